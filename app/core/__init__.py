@@ -1,0 +1,5 @@
+"""scandiff's numeric core: formats, detectors, EMD, registration, localisation.
+
+Usable from a notebook; imports only numpy, scipy, scikit-learn, POT, small_gicp and the
+format libraries, never the web, database or settings layers (a test enforces this).
+"""

@@ -1,0 +1,28 @@
+"""The error types of the numeric core.
+
+Every problem with the *input* (a malformed file, a cloud with too few points, two scans that
+do not overlap) raises a subclass of :class:`InputError` whose message says what is wrong and,
+where possible, what to do about it.  Callers (the CLI, the service) turn these into exit
+status 2 or an HTTP 4xx; anything else escaping the core is a bug.
+"""
+
+
+class InputError(ValueError):
+    """Base class: the caller's input cannot be used; the message says why."""
+
+
+class PointCloudError(InputError):
+    """A point cloud file or array is malformed, empty or otherwise unusable.
+
+    Raised by every reader in :mod:`app.core.formats` and by :class:`app.core.cloud.PointCloud`
+    validation: truncated bodies, count mismatches, unknown field types, missing x/y/z, no finite
+    points, too few points, unknown format.
+    """
+
+
+class UnsupportedFormatError(PointCloudError):
+    """The content is not any supported point-cloud format (the service answers 415)."""
+
+
+class RegistrationError(InputError):
+    """The scan cannot be aligned to the reference (e.g. the clouds do not overlap)."""

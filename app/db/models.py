@@ -1,0 +1,212 @@
+"""SQLAlchemy 2 models: the durable state of the service.
+
+Point clouds and per-point results live as files under the data directory (written atomically);
+rows hold metadata, scores and regions.  The ``job`` table is the source of truth for background
+work: the queue only carries job ids, and the recovery sweep re-enqueues what a dead worker left.
+IDs are random hex UUIDs, never sequential.
+"""
+
+from __future__ import annotations
+
+import uuid
+from datetime import UTC, datetime
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    Boolean,
+    DateTime,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    String,
+    Text,
+    UniqueConstraint,
+)
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+
+
+def new_id() -> str:
+    """A random 32-character hex id."""
+    return uuid.uuid4().hex
+
+
+def utc_now() -> datetime:
+    """The current time, timezone-aware UTC."""
+    return datetime.now(UTC)
+
+
+class Base(DeclarativeBase):
+    """Declarative base with a naming convention so Alembic batch migrations work on SQLite."""
+
+    from sqlalchemy import MetaData
+
+    metadata = MetaData(
+        naming_convention={
+            "ix": "ix_%(column_0_label)s",
+            "uq": "uq_%(table_name)s_%(column_0_name)s",
+            "ck": "ck_%(table_name)s_%(constraint_name)s",
+            "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
+            "pk": "pk_%(table_name)s",
+        }
+    )
+
+
+Timestamp = DateTime(timezone=True)
+
+
+class Organisation(Base):
+    __tablename__ = "organisation"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    name: Mapped[str] = mapped_column(String(200), unique=True)
+    created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)
+
+
+class ApiToken(Base):
+    __tablename__ = "api_token"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    organisation_id: Mapped[str] = mapped_column(ForeignKey("organisation.id", ondelete="CASCADE"))
+    role: Mapped[str] = mapped_column(String(16))  # admin | writer | reader
+    token_hash: Mapped[str] = mapped_column(String(64), unique=True)  # sha256 hex of the token
+    name: Mapped[str | None] = mapped_column(String(200), nullable=True)
+    created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)
+    revoked_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
+
+    organisation: Mapped[Organisation] = relationship()
+
+
+class Site(Base):
+    __tablename__ = "site"
+    __table_args__ = (UniqueConstraint("organisation_id", "name"),)
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    organisation_id: Mapped[str] = mapped_column(
+        ForeignKey("organisation.id", ondelete="CASCADE"), index=True
+    )
+    name: Mapped[str] = mapped_column(String(200))
+    description: Mapped[str | None] = mapped_column(Text, nullable=True)
+    detector_method: Mapped[str] = mapped_column(String(16), default="gmm")
+    detector_variant: Mapped[str] = mapped_column(String(16), default="improved")
+    detector_params: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    # No FK constraint to scan (cycle site <-> scan); the service keeps it consistent.
+    reference_scan_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)
+    updated_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now, onupdate=utc_now)
+
+
+class Scan(Base):
+    __tablename__ = "scan"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    organisation_id: Mapped[str] = mapped_column(
+        ForeignKey("organisation.id", ondelete="CASCADE"), index=True
+    )
+    site_id: Mapped[str] = mapped_column(ForeignKey("site.id", ondelete="CASCADE"), index=True)
+    filename: Mapped[str] = mapped_column(String(255))  # sanitised display name
+    format: Mapped[str] = mapped_column(String(16))  # ply, pcd, las, laz, xyz, csv, txt, npy, npz
+    size_bytes: Mapped[int] = mapped_column(Integer)
+    sha256: Mapped[str] = mapped_column(String(64))
+    storage_path: Mapped[str] = mapped_column(String(500))  # relative to the data directory
+    n_points: Mapped[int] = mapped_column(Integer)  # finite points
+    n_dropped: Mapped[int] = mapped_column(Integer, default=0)  # NaN/inf rows dropped
+    bbox_min: Mapped[list[float]] = mapped_column(JSON)
+    bbox_max: Mapped[list[float]] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now, index=True)
+
+
+class ReferenceHistory(Base):
+    """Every time a site's reference changed: which scan, when."""
+
+    __tablename__ = "reference_history"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    site_id: Mapped[str] = mapped_column(ForeignKey("site.id", ondelete="CASCADE"), index=True)
+    scan_id: Mapped[str] = mapped_column(ForeignKey("scan.id", ondelete="CASCADE"))
+    created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)
+
+
+JOB_STATUSES = ("queued", "running", "succeeded", "failed")
+
+
+class Job(Base):
+    """A comparison of a scan against a reference scan; the source of truth for the queue."""
+
+    __tablename__ = "job"
+    __table_args__ = (
+        Index("ix_job_site_created", "site_id", "created_at"),
+        Index("ix_job_status_lease", "status", "lease_expires_at"),
+    )
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    organisation_id: Mapped[str] = mapped_column(
+        ForeignKey("organisation.id", ondelete="CASCADE"), index=True
+    )
+    site_id: Mapped[str] = mapped_column(ForeignKey("site.id", ondelete="CASCADE"))
+    reference_scan_id: Mapped[str] = mapped_column(ForeignKey("scan.id", ondelete="CASCADE"))
+    scan_id: Mapped[str] = mapped_column(ForeignKey("scan.id", ondelete="CASCADE"))
+    method: Mapped[str] = mapped_column(String(16))
+    variant: Mapped[str] = mapped_column(String(16))
+    params: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)  # replayable
+    status: Mapped[str] = mapped_column(String(16), default="queued")
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    stage: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    max_attempts: Mapped[int] = mapped_column(Integer, default=3)
+    lease_owner: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    lease_expires_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
+    enqueued_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
+    score: Mapped[float | None] = mapped_column(Float, nullable=True)
+    threshold: Mapped[float | None] = mapped_column(Float, nullable=True)
+    changed: Mapped[bool | None] = mapped_column(Boolean, nullable=True, index=True)
+    calibration: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
+    registration: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
+    n_regions: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    timings: Mapped[dict[str, float] | None] = mapped_column(JSON, nullable=True)
+    labels_path: Mapped[str | None] = mapped_column(String(500), nullable=True)
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)
+    started_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
+    finished_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
+
+    regions: Mapped[list[Region]] = relationship(
+        back_populates="job", cascade="all, delete-orphan", order_by="Region.ordinal"
+    )
+
+
+class Region(Base):
+    """A connected cluster of changed points found by a job."""
+
+    __tablename__ = "region"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    job_id: Mapped[str] = mapped_column(ForeignKey("job.id", ondelete="CASCADE"), index=True)
+    ordinal: Mapped[int] = mapped_column(Integer)  # position in the job's region list
+    kind: Mapped[str] = mapped_column(String(16))  # added | removed
+    n_points: Mapped[int] = mapped_column(Integer)
+    centroid: Mapped[list[float]] = mapped_column(JSON)
+    bbox_min: Mapped[list[float]] = mapped_column(JSON)
+    bbox_max: Mapped[list[float]] = mapped_column(JSON)
+    mean_distance: Mapped[float] = mapped_column(Float)
+    max_distance: Mapped[float] = mapped_column(Float)
+
+    job: Mapped[Job] = relationship(back_populates="regions")
+
+
+class IdempotencyRecord(Base):
+    """The first response to a request carrying an ``Idempotency-Key``, replayed on retries."""
+
+    __tablename__ = "idempotency_record"
+    __table_args__ = (UniqueConstraint("organisation_id", "key"),)
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    organisation_id: Mapped[str] = mapped_column(
+        ForeignKey("organisation.id", ondelete="CASCADE")
+    )
+    key: Mapped[str] = mapped_column(String(200))
+    request_fingerprint: Mapped[str] = mapped_column(String(64))
+    status_code: Mapped[int] = mapped_column(Integer)
+    response_body: Mapped[dict[str, Any]] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)

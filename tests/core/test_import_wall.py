@@ -1,0 +1,50 @@
+"""The numeric core must not import the web, database, queue or settings layers."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+CORE = Path(__file__).resolve().parents[2] / "app" / "core"
+FORBIDDEN_TOP_LEVEL = {"fastapi", "starlette", "sqlalchemy", "pydantic", "pydantic_settings",
+                       "huey", "viser", "uvicorn", "alembic"}
+FORBIDDEN_APP = {"app.api", "app.db", "app.services", "app.jobs", "app.viewer", "app.config",
+                 "app.cli", "app.main"}
+
+
+def imported_modules(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text(), filename=str(path))
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+    return names
+
+
+def test_core_sources_import_nothing_outside_the_core():
+    offenders = []
+    for path in sorted(CORE.rglob("*.py")):
+        for module in imported_modules(path):
+            top = module.split(".")[0]
+            if top in FORBIDDEN_TOP_LEVEL or any(
+                module == name or module.startswith(name + ".") for name in FORBIDDEN_APP
+            ):
+                offenders.append(f"{path.relative_to(CORE.parent.parent)} imports {module}")
+    assert offenders == []
+
+
+def test_importing_the_core_loads_no_web_or_database_module():
+    code = (
+        "import sys, app.core, app.core.cloud, app.core.errors\n"
+        "import pkgutil, importlib\n"
+        "for info in pkgutil.walk_packages(app.core.__path__, 'app.core.'):\n"
+        "    importlib.import_module(info.name)\n"
+        f"bad = sorted(m for m in sys.modules if m.split('.')[0] in {sorted(FORBIDDEN_TOP_LEVEL)!r})\n"
+        "print(','.join(bad))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert result.stdout.strip() == ""
