@@ -1,0 +1,359 @@
+"""Run the real service (``python -m app serve``) as a subprocess for end-to-end tests.
+
+:class:`ServiceProcess` starts ``scandiff serve`` in its own process group on a free port, waits
+for ``GET /api/v1/health`` to answer 200, and offers the handles tests need: ``base_url``,
+``admin_token`` (read from ``<data_dir>/admin-token``), ``client()``, ``stop()`` (SIGTERM,
+graceful), ``kill()`` (SIGKILL to the whole group, as a power cut would), ``kill_parent()``
+(SIGKILL to ``serve`` only: its children must follow), ``restart()`` and ``worker_pids()`` (job
+worker processes, from the pid files the workers write in ``<data_dir>/run``).
+
+Use it through the fixtures: import them into a test module
+(``from tests.service_harness import service, service_factory  # noqa: F401``), then::
+
+    def test_flow(service_factory):
+        service = service_factory(workers=2, env={"SCANDIFF_JOB_LEASE_SECONDS": "3"})
+        with service.client() as client:
+            assert client.get("/api/v1/sites").status_code == 200
+
+The child environment gets ``SCANDIFF_TESTING=1`` (enables the documented job test hooks),
+``OMP_NUM_THREADS=1`` and ``PYTHONUNBUFFERED=1``; ``env`` adds or overrides variables.  Output of
+the service goes to ``log_path`` (default ``<data_dir>.service.log``), shown when start-up fails.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+PROJECT_ROOT = Path(__file__).resolve().parent.parent
+HEALTH_PATH = "/api/v1/health"
+ADMIN_TOKEN_FILE = "admin-token"
+WORKER_PID_DIR = "run"
+WORKER_PID_PREFIX = "worker-"
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that was free a moment ago."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind((host, 0))
+        return int(sock.getsockname()[1])
+
+
+def process_group_members(pgid: int) -> list[int]:
+    """Live (non-zombie) processes whose process group is ``pgid`` (Linux /proc)."""
+    members = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        # Fields after the command name (which may contain spaces) in parentheses.
+        fields = stat[stat.rindex(")") + 2 :].split()
+        state, process_group = fields[0], int(fields[2])
+        if process_group == pgid and state not in ("Z", "X"):
+            members.append(int(entry.name))
+    return sorted(members)
+
+
+def pid_is_alive(pid: int) -> bool:
+    """Whether ``pid`` is a running, non-zombie process."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat[stat.rindex(")") + 2 :].split()[0] not in ("Z", "X")
+
+
+class ServiceStartError(RuntimeError):
+    """The service exited or did not become healthy in time."""
+
+
+class ServiceProcess:
+    """One ``scandiff serve`` subprocess (API + job consumer) on a free port."""
+
+    def __init__(
+        self,
+        data_dir: str | Path,
+        *,
+        workers: int = 1,
+        env: Mapping[str, str] | None = None,
+        port: int | None = None,
+        host: str = "127.0.0.1",
+        startup_timeout: float = 60.0,
+        log_path: str | Path | None = None,
+    ) -> None:
+        self.data_dir = Path(data_dir).resolve()
+        self.workers = workers
+        self.host = host
+        self.port = port or free_port(host)
+        self.startup_timeout = startup_timeout
+        self.log_path = Path(log_path) if log_path else self.data_dir.with_suffix(".service.log")
+        self.extra_env = dict(env or {})
+        self.process: subprocess.Popen[bytes] | None = None
+        self._log_offset = 0
+
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    @property
+    def base_url(self) -> str:
+        """``http://host:port`` of the API."""
+        return f"http://{self.host}:{self.port}"
+
+    @property
+    def pid(self) -> int:
+        """Process id of ``scandiff serve`` (also its process group id)."""
+        if self.process is None:
+            raise RuntimeError("service not started")
+        return self.process.pid
+
+    def command(self) -> list[str]:
+        """The command line that starts the service."""
+        return [
+            sys.executable,
+            "-m",
+            "app",
+            "serve",
+            "--data-dir",
+            str(self.data_dir),
+            "--host",
+            self.host,
+            "--port",
+            str(self.port),
+            "--workers",
+            str(self.workers),
+        ]
+
+    def environment(self) -> dict[str, str]:
+        """The child's environment: ours plus the test defaults plus ``env``."""
+        environment = dict(os.environ)
+        environment.pop("SCANDIFF_DATA_DIR", None)
+        environment.update(
+            {
+                "SCANDIFF_TESTING": "1",
+                "OMP_NUM_THREADS": "1",
+                "OPENBLAS_NUM_THREADS": "1",
+                "MKL_NUM_THREADS": "1",
+                "PYTHONUNBUFFERED": "1",
+            }
+        )
+        environment.update(self.extra_env)
+        return environment
+
+    def start(self) -> ServiceProcess:
+        """Start the service and wait until its health endpoint answers 200."""
+        if self.is_running():
+            raise RuntimeError("service already running")
+        self.data_dir.parent.mkdir(parents=True, exist_ok=True)
+        self._log_offset = self.log_path.stat().st_size if self.log_path.exists() else 0
+        with open(self.log_path, "ab") as log_file:
+            self.process = subprocess.Popen(
+                self.command(),
+                cwd=PROJECT_ROOT,
+                env=self.environment(),
+                stdin=subprocess.DEVNULL,
+                stdout=log_file,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,  # own session and process group: kill() reaches all
+            )
+        self.wait_healthy()
+        return self
+
+    def wait_healthy(self, timeout: float | None = None) -> None:
+        """Poll the health endpoint until 200; raise with the log if the service dies first."""
+        deadline = time.monotonic() + (timeout or self.startup_timeout)
+        last_error = "no answer yet"
+        while time.monotonic() < deadline:
+            if self.process is None or self.process.poll() is not None:
+                raise ServiceStartError(
+                    f"scandiff serve exited with {self.process and self.process.returncode}:\n"
+                    f"{self.log_text()[-4000:]}"
+                )
+            try:
+                response = httpx.get(self.base_url + HEALTH_PATH, timeout=2.0)
+                if response.status_code == 200:
+                    return
+                last_error = f"{response.status_code} {response.text[:200]}"
+            except httpx.HTTPError as exc:
+                last_error = repr(exc)
+            time.sleep(0.1)
+        raise ServiceStartError(
+            f"service not healthy after {timeout or self.startup_timeout}s ({last_error}):\n"
+            f"{self.log_text()[-4000:]}"
+        )
+
+    def is_running(self) -> bool:
+        """Whether the ``serve`` process is alive."""
+        return self.process is not None and self.process.poll() is None
+
+    def stop(self, timeout: float = 30.0) -> int | None:
+        """SIGTERM ``serve`` (graceful); SIGKILL the group after ``timeout``; the exit status."""
+        if self.process is None:
+            return None
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+            try:
+                self.process.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.kill()
+        self.wait_group_gone(timeout=10.0, force=True)
+        return self.process.returncode
+
+    def kill(self) -> None:
+        """SIGKILL every process of the service at once (API, consumer, workers)."""
+        if self.process is None:
+            return
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self.process.pid, signal.SIGKILL)
+        self.process.wait(10)
+        self.wait_group_gone(timeout=10.0, force=True)
+
+    def kill_parent(self) -> None:
+        """SIGKILL ``serve`` alone; its children are expected to exit by themselves."""
+        if self.process is None:
+            return
+        self.process.kill()
+        self.process.wait(10)
+
+    def wait_group_gone(self, timeout: float = 10.0, force: bool = False) -> bool:
+        """Wait until no process of the group is left; SIGKILL leftovers when ``force``."""
+        if self.process is None:
+            return True
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if not process_group_members(self.process.pid):
+                return True
+            time.sleep(0.05)
+        if force:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.process.pid, signal.SIGKILL)
+            time.sleep(0.2)
+        return not process_group_members(self.process.pid)
+
+    def restart(self, *, kill: bool = False) -> ServiceProcess:
+        """Stop (or kill) the service and start it again on the same data dir and port."""
+        if kill:
+            self.kill()
+        else:
+            self.stop()
+        return self.start()
+
+    def __enter__(self) -> ServiceProcess:
+        return self if self.is_running() else self.start()
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.stop()
+
+    # -- introspection -----------------------------------------------------------------------
+
+    @property
+    def admin_token(self) -> str:
+        """The admin token written by ``serve`` on first start."""
+        return (self.data_dir / ADMIN_TOKEN_FILE).read_text().strip()
+
+    def client(self, token: str | None = None, **kwargs: Any) -> httpx.Client:
+        """An ``httpx.Client`` on ``base_url`` sending ``token`` (default: the admin token)."""
+        headers = dict(kwargs.pop("headers", {}))
+        headers.setdefault("Authorization", f"Bearer {token or self.admin_token}")
+        kwargs.setdefault("timeout", 30.0)
+        return httpx.Client(base_url=self.base_url, headers=headers, **kwargs)
+
+    def group_pids(self) -> list[int]:
+        """Every live process of the service (``serve`` and its descendants)."""
+        return process_group_members(self.pid) if self.process is not None else []
+
+    def worker_pids(self) -> list[int]:
+        """Live job-worker processes (each writes ``<data_dir>/run/worker-<pid>`` on start)."""
+        run_dir = self.data_dir / WORKER_PID_DIR
+        if self.process is None or not run_dir.is_dir():
+            return []
+        members = set(self.group_pids())
+        pids = []
+        for path in run_dir.glob(WORKER_PID_PREFIX + "*"):
+            try:
+                pid = int(path.name.removeprefix(WORKER_PID_PREFIX))
+            except ValueError:
+                continue
+            if pid in members and pid_is_alive(pid):
+                pids.append(pid)
+        return sorted(pids)
+
+    def wait_for_workers(self, count: int | None = None, timeout: float = 30.0) -> list[int]:
+        """Wait until ``count`` (default: ``workers``) job workers are up; their pids."""
+        wanted = self.workers if count is None else count
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            pids = self.worker_pids()
+            if len(pids) >= wanted:
+                return pids
+            time.sleep(0.05)
+        raise TimeoutError(f"{wanted} workers not up after {timeout}s: {self.worker_pids()}")
+
+    def wait_for_job(
+        self,
+        client: httpx.Client,
+        job_id: str,
+        *,
+        statuses: tuple[str, ...] = ("succeeded", "failed"),
+        timeout: float = 60.0,
+    ) -> dict[str, Any]:
+        """Poll ``GET /api/v1/jobs/{job_id}`` until its status is one of ``statuses``."""
+        deadline = time.monotonic() + timeout
+        job: dict[str, Any] = {}
+        while time.monotonic() < deadline:
+            response = client.get(f"/api/v1/jobs/{job_id}")
+            response.raise_for_status()
+            job = response.json()
+            if job["status"] in statuses:
+                return job
+            time.sleep(0.1)
+        raise TimeoutError(f"job {job_id} not in {statuses} after {timeout}s: {job}")
+
+    def log_text(self) -> str:
+        """What the service printed since the last ``start()``."""
+        if not self.log_path.exists():
+            return ""
+        with open(self.log_path, "rb") as log_file:
+            log_file.seek(self._log_offset)
+            return log_file.read().decode(errors="replace")
+
+
+@pytest.fixture
+def service_factory(tmp_path: Path) -> Iterator[Callable[..., ServiceProcess]]:
+    """Make started services (``service_factory(workers=2, env={...})``); all stopped after."""
+    started: list[ServiceProcess] = []
+
+    def make(
+        *,
+        workers: int = 1,
+        env: Mapping[str, str] | None = None,
+        data_dir: str | Path | None = None,
+        start: bool = True,
+        **kwargs: Any,
+    ) -> ServiceProcess:
+        directory = Path(data_dir) if data_dir else tmp_path / f"service{len(started)}"
+        service = ServiceProcess(directory, workers=workers, env=env, **kwargs)
+        started.append(service)
+        return service.start() if start else service
+
+    yield make
+    for service in started:
+        service.stop(timeout=15.0)
+
+
+@pytest.fixture
+def service(service_factory: Callable[..., ServiceProcess]) -> ServiceProcess:
+    """One started service with one job worker and default settings."""
+    return service_factory()
