@@ -1,0 +1,80 @@
+"""Apply the Alembic migrations programmatically (``scandiff serve`` and ``token create`` do).
+
+The scripts live in ``migrations/`` at the project root; ``alembic.ini`` there serves the
+``alembic`` command line.  Migrations on SQLite run with ``foreign_keys=OFF``: batch migrations
+recreate tables, and dropping a parent table with foreign keys on would cascade-delete its
+children's rows.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from alembic import command
+from alembic.config import Config
+from alembic.runtime.migration import MigrationContext
+from alembic.script import ScriptDirectory
+from sqlalchemy import Engine, create_engine, event
+from sqlalchemy.engine import make_url
+
+from app.db.session import SQLITE_BUSY_TIMEOUT_MS
+
+MIGRATIONS_DIR = Path(__file__).resolve().parents[2] / "migrations"
+
+
+def alembic_config(url: str) -> Config:
+    """An Alembic config for ``url`` pointing at the project's migration scripts."""
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS_DIR))
+    config.attributes["url"] = url
+    return config
+
+
+def migration_engine(url: str) -> Engine:
+    """An engine for running migrations: on SQLite, WAL, busy timeout, BEGIN IMMEDIATE, no FKs."""
+    if not url.startswith("sqlite"):
+        return create_engine(url)
+    database = make_url(url).database
+    if database and database != ":memory:":
+        Path(database).expanduser().parent.mkdir(parents=True, exist_ok=True)
+    engine = create_engine(url, connect_args={"timeout": SQLITE_BUSY_TIMEOUT_MS / 1000})
+
+    @event.listens_for(engine, "connect")
+    def _on_connect(dbapi_connection, _record) -> None:  # type: ignore[no-untyped-def]
+        dbapi_connection.isolation_level = None
+        cursor = dbapi_connection.cursor()
+        cursor.execute(f"PRAGMA busy_timeout = {SQLITE_BUSY_TIMEOUT_MS}")
+        cursor.execute("PRAGMA journal_mode = WAL")
+        cursor.execute("PRAGMA foreign_keys = OFF")
+        cursor.close()
+
+    @event.listens_for(engine, "begin")
+    def _on_begin(connection) -> None:  # type: ignore[no-untyped-def]
+        connection.exec_driver_sql("BEGIN IMMEDIATE")
+
+    return engine
+
+
+def upgrade_to_head(url: str) -> None:
+    """Bring the database at ``url`` to the newest revision (creating a SQLite file if needed)."""
+    command.upgrade(alembic_config(url), "head")
+
+
+def downgrade_to_base(url: str) -> None:
+    """Undo every migration of the database at ``url``."""
+    command.downgrade(alembic_config(url), "base")
+
+
+def head_revision() -> str | None:
+    """The newest revision of the migration scripts."""
+    return ScriptDirectory.from_config(alembic_config("sqlite://")).get_current_head()
+
+
+def current_revision(url: str) -> str | None:
+    """The revision the database at ``url`` is at (None when it was never migrated)."""
+    engine = migration_engine(url)
+    try:
+        with engine.connect() as connection:
+            return MigrationContext.configure(connection).get_current_revision()
+    finally:
+        engine.dispose()
