@@ -1,0 +1,271 @@
+"""Plumbing shared by the format readers: the input buffer, limits and error helpers.
+
+Every reader receives a :class:`Source` (the whole content as a read-only buffer, memory-mapped
+for files so binary bodies are decoded without an extra copy) and returns a :class:`RawCloud`
+(coordinates that may still contain NaN rows, plus attributes); :func:`read_point_cloud` turns it
+into a validated :class:`~app.core.cloud.PointCloud`.
+"""
+
+from __future__ import annotations
+
+import io
+import mmap
+import os
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager, suppress
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import BinaryIO
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.core.errors import PointCloudError
+
+SourceLike = str | os.PathLike | bytes | bytearray | memoryview | BinaryIO
+
+
+@dataclass
+class Source:
+    """The complete content of one input, plus what is known about where it came from.
+
+    Attributes
+    ----------
+    buffer : bytes-like
+        The whole content, read-only (an ``mmap`` for files, the bytes themselves otherwise).
+    path : Path or None
+        The file, when the input was a path (libraries that want a file object open it).
+    name : str or None
+        A file name for messages and suffix-based detection.
+    """
+
+    buffer: bytes | memoryview | mmap.mmap
+    path: Path | None = None
+    name: str | None = None
+
+    @property
+    def size(self) -> int:
+        """Number of bytes of content."""
+        return len(self.buffer)
+
+    def head(self, n_bytes: int) -> bytes:
+        """The first ``n_bytes`` bytes (fewer when the content is shorter)."""
+        return bytes(self.buffer[:n_bytes])
+
+    def stream(self) -> BinaryIO:
+        """A seekable binary stream over the content (a new file handle for paths)."""
+        if self.path is not None:
+            return open(self.path, "rb")
+        return io.BytesIO(bytes(self.buffer))
+
+    def as_bytes(self) -> bytes:
+        """The content as ``bytes`` (a copy for memory-mapped files)."""
+        if isinstance(self.buffer, bytes):
+            return self.buffer
+        return bytes(self.buffer)
+
+
+@dataclass
+class RawCloud:
+    """What a reader decoded, before :meth:`PointCloud.from_array` validates it.
+
+    Attributes
+    ----------
+    points : ndarray, shape (n, 3), float64
+        Coordinates in file order; may contain non-finite rows.
+    attributes : dict of str to ndarray, each shape (n, ...)
+        Extra per-point fields, owned arrays (never views of the input buffer).
+    sensor_origin : ndarray, shape (3,), or None
+    """
+
+    points: NDArray[np.float64]
+    attributes: dict[str, NDArray] = field(default_factory=dict)
+    sensor_origin: NDArray[np.float64] | None = None
+
+
+@contextmanager
+def open_source(source: SourceLike, filename: str | None = None) -> Iterator[Source]:
+    """Expose ``source`` (path, bytes or binary file object) as a :class:`Source`.
+
+    Files are memory-mapped read-only (an empty file gives an empty buffer); file objects are
+    read from their current position to the end.
+
+    Raises
+    ------
+    PointCloudError
+        The path does not exist, is a directory or cannot be read.
+    """
+    if isinstance(source, str | os.PathLike):
+        path = Path(source)
+        try:
+            handle = open(path, "rb")  # noqa: SIM115 - closed below
+        except FileNotFoundError as exc:
+            raise PointCloudError(f"file not found: {path}") from exc
+        except IsADirectoryError as exc:
+            raise PointCloudError(f"{path} is a directory, not a point-cloud file") from exc
+        except PermissionError as exc:
+            raise PointCloudError(f"permission denied reading {path}") from exc
+        with handle:
+            size = os.fstat(handle.fileno()).st_size
+            if size == 0:
+                yield Source(b"", path, filename or path.name)
+                return
+            mapped = mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ)
+            try:
+                yield Source(mapped, path, filename or path.name)
+            finally:
+                # An array view of the map may still be referenced (e.g. by a traceback);
+                # the map is then released when that view is garbage-collected.
+                with suppress(BufferError):
+                    mapped.close()
+        return
+    if isinstance(source, bytes | bytearray | memoryview):
+        yield Source(memoryview(source).toreadonly(), None, filename)
+        return
+    if hasattr(source, "read"):
+        content = source.read()
+        if isinstance(content, str):
+            raise PointCloudError(
+                "the file object is open in text mode; open it in binary mode ('rb')"
+            )
+        name = filename or _stream_name(source)
+        yield Source(bytes(content), None, name)
+        return
+    raise PointCloudError(
+        f"cannot read a point cloud from a {type(source).__name__}; "
+        "give a path, bytes or a binary file object"
+    )
+
+
+def _stream_name(stream: object) -> str | None:
+    name = getattr(stream, "name", None)
+    if isinstance(name, str) and name and not name.startswith("<"):
+        return os.path.basename(name)
+    return None
+
+
+def check_point_count(
+    declared: int,
+    max_points: int | None,
+    what: str,
+    *,
+    available_bytes: int | None = None,
+    bytes_per_point: int | None = None,
+) -> None:
+    """Refuse a declared point count before anything is allocated for it.
+
+    Parameters
+    ----------
+    declared : int
+        Points the header claims.
+    max_points : int or None
+        The caller's limit (None: no limit).
+    what : str
+        Where the count comes from, for the message (e.g. "the PLY header").
+    available_bytes, bytes_per_point : int, optional
+        When both are given, also refuse counts the body is too short to hold (truncation).
+
+    Raises
+    ------
+    PointCloudError
+        Negative count, more than ``max_points``, or a body too short for the count.
+    """
+    if declared < 0:
+        raise PointCloudError(f"{what} declares a negative point count ({declared})")
+    if max_points is not None and declared > max_points:
+        raise PointCloudError(
+            f"{what} declares {declared:,} points, more than the limit of {max_points:,}; "
+            "split or downsample the scan, or raise max_points"
+        )
+    if available_bytes is not None and bytes_per_point:
+        needed = declared * bytes_per_point
+        if needed > available_bytes:
+            held = available_bytes // bytes_per_point
+            raise PointCloudError(
+                f"truncated body: {what} declares {declared:,} points "
+                f"({needed:,} bytes) but only {available_bytes:,} bytes follow the header "
+                f"(room for {held:,} points); the file was cut short: upload it again"
+            )
+
+
+def owned(array: NDArray) -> NDArray:
+    """A native-byte-order array that owns its memory (never a view of the input buffer)."""
+    array = np.asarray(array)
+    dtype = array.dtype
+    if dtype.byteorder not in ("=", "|") and dtype.byteorder != _NATIVE:
+        dtype = dtype.newbyteorder("=")
+    return np.array(array, dtype=dtype, copy=True, order="C")
+
+
+_NATIVE = "<" if np.little_endian else ">"
+
+
+def xyz_from_columns(x: NDArray, y: NDArray, z: NDArray) -> NDArray[np.float64]:
+    """Stack three coordinate columns (any numeric dtype, any strides) into (n, 3) float64.
+
+    Returns
+    -------
+    ndarray, shape (n, 3), float64, C-contiguous
+    """
+    points = np.empty((len(x), 3), dtype=np.float64)
+    points[:, 0] = x
+    points[:, 1] = y
+    points[:, 2] = z
+    return points
+
+
+def find_xyz_names(names: list[str] | tuple[str, ...], what: str) -> tuple[str, str, str]:
+    """Pick the x, y and z field names among ``names`` (exact first, then case-insensitive).
+
+    Raises
+    ------
+    PointCloudError
+        One of x, y, z is missing.
+    """
+    chosen = []
+    for axis in ("x", "y", "z"):
+        if axis in names:
+            chosen.append(axis)
+            continue
+        matches = [name for name in names if name.lower() == axis]
+        if not matches:
+            raise PointCloudError(
+                f"{what} has no {axis!r} field (fields: {', '.join(names) or 'none'}); "
+                "a point cloud needs x, y and z"
+            )
+        chosen.append(matches[0])
+    return chosen[0], chosen[1], chosen[2]
+
+
+def has_nonzero_bytes(buffer: bytes | memoryview | mmap.mmap, start: int) -> bool:
+    """Whether ``buffer[start:]`` holds anything but zero bytes (padding)."""
+    return bool(np.frombuffer(buffer, dtype=np.uint8, offset=start).any())
+
+
+def structured_attributes(
+    data: NDArray, skip: tuple[str, ...], rename: Mapping[str, str] | None = None
+) -> dict[str, NDArray]:
+    """Copy every field of a structured array except ``skip`` into owned attribute arrays."""
+    attributes: dict[str, NDArray] = {}
+    for name in data.dtype.names or ():
+        if name in skip:
+            continue
+        attributes[(rename or {}).get(name, name)] = owned(data[name])
+    return attributes
+
+
+@contextmanager
+def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; move it over ``path`` only on success.
+
+    Readers never see a half-written file, and a failed write leaves no debris.
+    """
+    target = Path(path)
+    temporary = target.with_name(f".{target.name}.{os.getpid()}.tmp{target.suffix}")
+    try:
+        yield temporary
+        with open(temporary, "rb+") as handle:
+            os.fsync(handle.fileno())
+        os.replace(temporary, target)
+    finally:
+        temporary.unlink(missing_ok=True)

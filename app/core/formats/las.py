@@ -1,0 +1,217 @@
+"""LAS and LAZ (ASPRS lidar format), read and written with ``laspy`` (LAZ through ``lazrs``).
+
+Coordinates are the *scaled* values ``X * scale + offset`` computed in float64, so georeferenced
+data (UTM x ~ 5e5, y ~ 5e6) keeps the file's full resolution (typically 0.1-1 mm).
+
+Kept as attributes: ``intensity``, ``classification``, ``return_number``,
+``number_of_returns``, ``gps_time``, ``red``/``green``/``blue``/``nir`` when the point format
+has them, and every extra-bytes dimension (e.g. the ``label``/``distance``/``region`` fields
+written by :func:`write_las`).
+
+Before any point is decompressed the header's point count is checked against ``max_points``
+and against the bytes present: an uncompressed body must hold ``count x record size`` bytes,
+and a LAZ body may not claim to expand more than :data:`LAZ_MAX_EXPANSION` times (a cloud of
+1M identical points, the most compressible input there is, measured 2,811x with lazrs).
+Points are then decoded in chunks into preallocated arrays.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.core.errors import PointCloudError
+from app.core.formats._common import RawCloud, Source, atomic_output, check_point_count
+
+LAZ_MAX_EXPANSION = 10_000
+"""Largest accepted ratio of declared uncompressed point bytes to LAZ body bytes."""
+
+CHUNK_POINTS = 1_000_000
+KEPT_STANDARD_DIMENSIONS = (
+    "intensity",
+    "classification",
+    "return_number",
+    "number_of_returns",
+    "gps_time",
+    "red",
+    "green",
+    "blue",
+    "nir",
+)
+WRITE_POINT_FORMAT = 6
+"""LAS 1.4 point format 6: the modern base format (no colour); extra fields go to extra bytes."""
+
+
+def is_compressed_point_format(point_format_byte: int) -> bool:
+    """The LASzip convention: bit 7 set (and bit 6 clear) in the point data format byte."""
+    return bool(point_format_byte & 0x80) and not point_format_byte & 0x40
+
+
+def read_las(source: Source, max_points: int | None) -> RawCloud:
+    """Decode a LAS or LAZ file (the header says which).
+
+    Raises
+    ------
+    PointCloudError
+        Missing 'LASF' signature, malformed header, too many points, truncated body,
+        absurd compression ratio, corrupt LAZ data.
+    """
+    import laspy
+
+    head = source.head(4)
+    if head != b"LASF":
+        raise PointCloudError(
+            f"not a LAS/LAZ file: it does not start with the signature 'LASF' (starts with "
+            f"{head!r})"
+        )
+    with source.stream() as stream:
+        try:
+            reader = laspy.open(stream, closefd=False, read_evlrs=False)
+        except Exception as exc:  # laspy raises LaspyException, ValueError, struct.error, ...
+            raise PointCloudError(f"malformed LAS header: {exc}") from exc
+        with reader:
+            header = reader.header
+            n_points = int(header.point_count)
+            record_size = int(header.point_format.size)
+            body_bytes = source.size - int(header.offset_to_point_data)
+            what = "the LAZ header" if header.are_points_compressed else "the LAS header"
+            check_point_count(n_points, max_points, what)
+            if body_bytes < 0:
+                raise PointCloudError(
+                    f"truncated body: {what} puts the points at byte "
+                    f"{header.offset_to_point_data:,} but the file has {source.size:,} bytes"
+                )
+            if header.are_points_compressed:
+                declared = n_points * record_size
+                if declared > LAZ_MAX_EXPANSION * body_bytes + 4096:
+                    raise PointCloudError(
+                        f"absurd LAZ header: {n_points:,} points ({declared:,} bytes) cannot "
+                        f"be compressed into the {body_bytes:,} bytes present (more than "
+                        f"{LAZ_MAX_EXPANSION:,}x); the file is truncated or corrupt"
+                    )
+            else:
+                check_point_count(
+                    n_points,
+                    None,
+                    what,
+                    available_bytes=body_bytes,
+                    bytes_per_point=record_size,
+                )
+            return _read_points(reader, n_points, what)
+
+
+def _read_points(reader, n_points: int, what: str) -> RawCloud:
+    point_format = reader.header.point_format
+    kept = [name for name in KEPT_STANDARD_DIMENSIONS if name in point_format.dimension_names]
+    kept += list(point_format.extra_dimension_names)
+    scales = np.asarray(reader.header.scales, dtype=np.float64)
+    offsets = np.asarray(reader.header.offsets, dtype=np.float64)
+    points = np.empty((n_points, 3), dtype=np.float64)
+    attributes: dict[str, NDArray] = {}
+    n_read = 0
+    try:
+        while n_read < n_points:
+            chunk = reader.read_points(min(CHUNK_POINTS, n_points - n_read))
+            n_chunk = len(chunk)
+            if n_chunk == 0:
+                break
+            rows = slice(n_read, n_read + n_chunk)
+            for axis, raw_name in enumerate(("X", "Y", "Z")):
+                np.multiply(chunk[raw_name], scales[axis], out=points[rows, axis])
+                points[rows, axis] += offsets[axis]
+            for name in kept:
+                values = np.asarray(chunk[name])
+                if name not in attributes:
+                    attributes[name] = np.empty((n_points, *values.shape[1:]), values.dtype)
+                attributes[name][rows] = values
+            n_read += n_chunk
+    except PointCloudError:
+        raise
+    except Exception as exc:  # lazrs/laspy errors on corrupt or truncated LAZ data
+        raise PointCloudError(
+            f"corrupt or truncated point data after {n_read:,} of {n_points:,} points: {exc}"
+        ) from exc
+    if n_read < n_points:
+        raise PointCloudError(
+            f"truncated body: {what} declares {n_points:,} points but only {n_read:,} could be "
+            "read; the file was cut short: upload it again"
+        )
+    return RawCloud(points, attributes)
+
+
+def write_las(
+    path: str, points: NDArray[np.float64], fields: Mapping[str, NDArray], compress: bool
+) -> None:
+    """Write LAS 1.4 (point format 6), or LAZ when ``compress``, with fields as extra bytes.
+
+    Coordinates are stored as integers: the offset is the rounded centre of the data and the
+    scale the finest of 0.1 mm, 1 mm, 1 cm, ... that keeps every coordinate in int32 range
+    (0.1 mm up to a 214 km extent). Fields named like a standard dimension (``intensity``,
+    ``classification``, ...) fill that dimension; the others become extra-bytes dimensions
+    with their own type (bool is stored as uint8, float16 as float32).
+
+    Raises
+    ------
+    PointCloudError
+        Non-finite coordinates (LAS cannot store them), a field laspy cannot store.
+    """
+    import laspy
+
+    if not np.isfinite(points).all():
+        raise PointCloudError(
+            "LAS/LAZ cannot store NaN or infinite coordinates: drop those points first"
+        )
+    header = laspy.LasHeader(point_format=WRITE_POINT_FORMAT, version="1.4")
+    header.offsets, header.scales = _offsets_and_scales(points)
+    standard = set(header.point_format.standard_dimension_names)
+    extra_fields: dict[str, NDArray] = {}
+    standard_fields: dict[str, NDArray] = {}
+    for name, values in fields.items():
+        if name.lower() in ("x", "y", "z"):
+            raise PointCloudError(f"field {name!r} would overwrite a coordinate; rename it")
+        values = np.asarray(values)
+        if name in standard:
+            standard_fields[name] = values
+        else:
+            extra_fields[name] = _las_compatible(name, values)
+    try:
+        header.add_extra_dims(
+            [laspy.ExtraBytesParams(name=name, type=v.dtype) for name, v in extra_fields.items()]
+        )
+        las = laspy.LasData(header)
+        las.x = points[:, 0]
+        las.y = points[:, 1]
+        las.z = points[:, 2]
+        for name, values in {**standard_fields, **extra_fields}.items():
+            las[name] = values
+    except (ValueError, TypeError, OverflowError, laspy.LaspyException) as exc:
+        raise PointCloudError(f"cannot write these fields to LAS: {exc}") from exc
+    with atomic_output(path) as temporary:
+        las.write(str(temporary), do_compress=compress)
+
+
+def _offsets_and_scales(points: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
+    if len(points) == 0:
+        return np.zeros(3), np.full(3, 1e-3)
+    low, high = points.min(axis=0), points.max(axis=0)
+    offsets = np.round((low + high) / 2.0)
+    reach = np.maximum(np.abs(high - offsets), np.abs(low - offsets))
+    scales = np.empty(3)
+    for axis in range(3):
+        scale = 1e-4
+        while reach[axis] / scale >= 2**31 - 2:
+            scale *= 10.0
+        scales[axis] = scale
+    return offsets, scales
+
+
+def _las_compatible(name: str, values: NDArray) -> NDArray:
+    if values.dtype == np.bool_:
+        return values.astype(np.uint8)
+    if values.dtype.kind == "f" and values.dtype.itemsize == 2:
+        return values.astype(np.float32)
+    if values.dtype.kind not in "iuf":
+        raise PointCloudError(f"field {name!r} has type {values.dtype}, which LAS cannot hold")
+    return values.astype(values.dtype.newbyteorder("="), copy=False)

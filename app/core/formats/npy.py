@@ -1,0 +1,210 @@
+"""NumPy ``.npy`` and ``.npz`` files.
+
+Accepted layouts:
+
+- ``.npy``: a numeric array of shape (n, 3) or (n, k >= 3) (columns 0-2 are x, y, z; further
+  columns are ignored), or a structured array of shape (n,) with ``x``, ``y``, ``z`` fields (other
+  fields become attributes).
+- ``.npz``: one of those under the key ``points`` or ``xyz``; or separate 1-D ``x``, ``y``, ``z``
+  arrays; or a single array under any name (``np.savez(path, array)``). Other arrays with one
+  row per point become attributes.
+
+The array header is read with ``numpy.lib.format`` and its shape checked against ``max_points``
+and against the bytes present *before* the data is read (``numpy.load`` would allocate whatever
+the header claims). Pickled object arrays are refused.
+"""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from typing import BinaryIO
+
+import numpy as np
+from numpy.lib import format as npy_format
+from numpy.typing import NDArray
+
+from app.core.errors import PointCloudError
+from app.core.formats._common import (
+    RawCloud,
+    Source,
+    check_point_count,
+    find_xyz_names,
+    owned,
+    structured_attributes,
+    xyz_from_columns,
+)
+
+NPY_MAGIC = b"\x93NUMPY"
+POINT_KEYS = ("points", "xyz")
+
+
+def read_npy(source: Source, max_points: int | None) -> RawCloud:
+    """Decode a ``.npy`` file.
+
+    Raises
+    ------
+    PointCloudError
+        Bad magic, malformed header, object dtype, wrong shape, too many points, truncated data.
+    """
+    if not source.head(6) == NPY_MAGIC:
+        raise PointCloudError(
+            f"not a .npy file: it does not start with '\\x93NUMPY' (starts with {source.head(8)!r})"
+        )
+    header_stream = io.BytesIO(source.head(65536 + 16))
+    shape, fortran_order, dtype = _read_header(header_stream, "the .npy header")
+    offset = header_stream.tell()
+    _check_array(shape, dtype, max_points, source.size - offset, "the .npy header")
+    count = int(np.prod(shape))
+    flat = np.frombuffer(source.buffer, dtype=dtype, count=count, offset=offset)
+    array = flat.reshape(shape[::-1]).T if fortran_order else flat.reshape(shape)
+    return _cloud_from_array(array, "the .npy array")
+
+
+def read_npz(source: Source, max_points: int | None) -> RawCloud:
+    """Decode a ``.npz`` archive.
+
+    Raises
+    ------
+    PointCloudError
+        Not a zip archive, no recognisable point array, malformed member, too many points.
+    """
+    try:
+        with source.stream() as stream, zipfile.ZipFile(stream) as archive:
+            members = {
+                info.filename.removesuffix(".npy"): info
+                for info in archive.infolist()
+                if info.filename.endswith(".npy")
+            }
+            if not members:
+                raise PointCloudError(
+                    "the .npz archive holds no arrays; save the points with "
+                    "numpy.savez(path, points=array)"
+                )
+            key = next((k for k in POINT_KEYS if k in members), None)
+            if key is not None:
+                array = _read_member(archive, members[key], max_points)
+                cloud = _cloud_from_array(array, f"the .npz array {key!r}")
+                used = {key}
+            elif {"x", "y", "z"} <= members.keys():
+                columns = [_read_member(archive, members[k], max_points) for k in "xyz"]
+                lengths = {column.shape for column in columns}
+                if len(lengths) != 1 or columns[0].ndim != 1:
+                    raise PointCloudError(
+                        "the .npz arrays x, y, z must be 1-D and of equal length, got shapes "
+                        + ", ".join(str(column.shape) for column in columns)
+                    )
+                _require_numeric(columns[0].dtype, "the .npz array 'x'")
+                cloud = RawCloud(xyz_from_columns(*columns))
+                used = {"x", "y", "z"}
+            elif len(members) == 1:
+                key = next(iter(members))
+                array = _read_member(archive, members[key], max_points)
+                cloud = _cloud_from_array(array, f"the .npz array {key!r}")
+                used = {key}
+            else:
+                raise PointCloudError(
+                    f"the .npz archive has no 'points' or 'xyz' array and no x/y/z arrays "
+                    f"(arrays: {', '.join(sorted(members))}); save the points as "
+                    "numpy.savez(path, points=array)"
+                )
+            n_points = len(cloud.points)
+            for name in sorted(members.keys() - used):
+                info = members[name]
+                shape, _, _ = _member_header(archive, info)
+                if shape[:1] == (n_points,) and name not in cloud.attributes:
+                    values = _read_member(archive, info, max_points)
+                    if values.dtype.kind in "biuf":
+                        cloud.attributes[name] = owned(values)
+            return cloud
+    except zipfile.BadZipFile as exc:
+        raise PointCloudError(f"not a valid .npz (zip) archive: {exc}") from exc
+
+
+def _read_header(stream: BinaryIO, what: str) -> tuple[tuple[int, ...], bool, np.dtype]:
+    try:
+        version = npy_format.read_magic(stream)
+        if version == (1, 0):
+            shape, fortran_order, dtype = npy_format.read_array_header_1_0(stream)
+        elif version in ((2, 0), (3, 0)):
+            shape, fortran_order, dtype = npy_format.read_array_header_2_0(stream)
+        else:
+            raise PointCloudError(f"{what}: unsupported .npy format version {version}")
+    except PointCloudError:
+        raise
+    except (ValueError, SyntaxError, EOFError, UnicodeDecodeError) as exc:
+        raise PointCloudError(f"malformed .npy header in {what}: {exc}") from exc
+    return tuple(int(n) for n in shape), bool(fortran_order), dtype
+
+
+def _check_array(
+    shape: tuple[int, ...], dtype: np.dtype, max_points: int | None, available: int, what: str
+) -> None:
+    if dtype.hasobject:
+        raise PointCloudError(
+            f"{what} describes an object (pickled) array, which is not loaded for safety; "
+            "save a numeric array of shape (n, 3)"
+        )
+    if len(shape) == 0:
+        raise PointCloudError(f"{what} holds a scalar; expected an array of shape (n, 3)")
+    check_point_count(shape[0], max_points, what)
+    count = int(np.prod(shape))
+    needed = count * dtype.itemsize
+    if needed > available:
+        raise PointCloudError(
+            f"truncated data: {what} declares shape {shape} ({needed:,} bytes) but only "
+            f"{max(available, 0):,} bytes follow; the file was cut short"
+        )
+
+
+def _member_header(archive: zipfile.ZipFile, info: zipfile.ZipInfo):
+    with archive.open(info) as member:
+        return _read_header(member, f"the .npz member {info.filename!r}")
+
+
+def _read_member(
+    archive: zipfile.ZipFile, info: zipfile.ZipInfo, max_points: int | None
+) -> NDArray:
+    what = f"the .npz member {info.filename!r}"
+    with archive.open(info) as member:
+        shape, fortran_order, dtype = _read_header(member, what)
+        # The zip entry's declared size bounds what decompression may produce.
+        _check_array(shape, dtype, max_points, info.file_size - member.tell(), what)
+        count = int(np.prod(shape))
+        data = member.read(count * dtype.itemsize)
+    if len(data) < count * dtype.itemsize:
+        raise PointCloudError(f"truncated data in {what}: the archive member was cut short")
+    flat = np.frombuffer(data, dtype=dtype, count=count)
+    return flat.reshape(shape[::-1]).T if fortran_order else flat.reshape(shape)
+
+
+def _cloud_from_array(array: NDArray, what: str) -> RawCloud:
+    if array.dtype.names:
+        if array.ndim != 1:
+            raise PointCloudError(
+                f"{what} is a structured array of shape {array.shape}; expected shape (n,)"
+            )
+        x_name, y_name, z_name = find_xyz_names(list(array.dtype.names), what)
+        for name in (x_name, y_name, z_name):
+            _require_numeric(array.dtype[name], f"{what} field {name!r}")
+        points = xyz_from_columns(array[x_name], array[y_name], array[z_name])
+        attributes = {
+            name: values
+            for name, values in structured_attributes(array, (x_name, y_name, z_name)).items()
+            if values.dtype.kind in "biuf"
+        }
+        return RawCloud(points, attributes)
+    _require_numeric(array.dtype, what)
+    if array.ndim != 2 or array.shape[1] < 3:
+        raise PointCloudError(
+            f"{what} has shape {array.shape}; expected (n, 3) (or (n, k) with k >= 3, "
+            "x y z first) or a structured array with x, y, z fields"
+        )
+    return RawCloud(xyz_from_columns(array[:, 0], array[:, 1], array[:, 2]))
+
+
+def _require_numeric(dtype: np.dtype, what: str) -> None:
+    if dtype.kind not in "iuf":
+        raise PointCloudError(
+            f"{what} has dtype {dtype}, expected numbers (float or integer coordinates)"
+        )
