@@ -1,0 +1,248 @@
+"""``scandiff serve``: one command that runs the whole service.
+
+It creates the data directory, applies the migrations, removes leftover temporary files, runs
+the job recovery sweep, on first start creates organisation ``default`` with an admin token
+(printed, and stored in ``<data_dir>/admin-token`` with mode 0600), then starts two children:
+uvicorn (``app.main:create_app``) and the job consumer (``--workers`` processes).  Settings reach
+the children through ``SCANDIFF_*`` environment variables.  SIGTERM/SIGINT stop both gracefully;
+if ``serve`` itself is killed, the children notice (``PR_SET_PDEATHSIG`` and a ``getppid``
+watchdog) and stop too.  If a child exits on its own, ``serve`` stops the other and exits 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+from app.config import Settings
+
+logger = logging.getLogger("scandiff.serve")
+
+ADMIN_TOKEN_FILE = "admin-token"
+DEFAULT_ORGANISATION = "default"
+CHILD_STOP_TIMEOUT_SECONDS = 30.0
+"""How long the children get to stop after SIGTERM before SIGKILL (jobs get 10 s of it)."""
+API_GRACEFUL_SHUTDOWN_SECONDS = 10
+CHILD_ROLES = ("api", "consumer")
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register ``scandiff serve``."""
+    parser = subparsers.add_parser(
+        "serve",
+        help="run the HTTP API and the job workers",
+        description="Run the scandiff service: migrations, recovery, API and job workers.",
+    )
+    parser.add_argument("--data-dir", type=Path, default=None, help="data directory")
+    parser.add_argument("--host", default=None, help="address to bind (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, default=None, help="port to bind (default 8000)")
+    parser.add_argument("--workers", type=int, default=None, help="job worker processes")
+    parser.add_argument("--child", choices=CHILD_ROLES, default=None, help=argparse.SUPPRESS)
+    parser.set_defaults(handler=handle_serve)
+
+
+def build_settings(args: argparse.Namespace) -> Settings:
+    """Settings from the environment, overridden by the command-line options given."""
+    overrides = {
+        name: value
+        for name, value in (
+            ("data_dir", args.data_dir),
+            ("host", args.host),
+            ("port", args.port),
+            ("workers", args.workers),
+        )
+        if value is not None
+    }
+    return Settings(**overrides)
+
+
+def child_environment(settings: Settings) -> dict[str, str]:
+    """Our environment plus the settings the command line overrode, as ``SCANDIFF_*``."""
+    from app.jobs.lifecycle import SUPERVISOR_PID_ENV
+
+    environment = dict(os.environ)
+    environment.update(
+        {
+            "SCANDIFF_DATA_DIR": str(settings.data_dir),
+            "SCANDIFF_HOST": settings.host,
+            "SCANDIFF_PORT": str(settings.port),
+            "SCANDIFF_WORKERS": str(settings.workers),
+            SUPERVISOR_PID_ENV: str(os.getpid()),
+        }
+    )
+    return environment
+
+
+def write_secret_file(path: Path, content: str) -> None:
+    """Write ``content`` to ``path`` with mode 0600 atomically (temp file, fsync, rename)."""
+    temp_path = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    descriptor = os.open(temp_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        os.write(descriptor, content.encode())
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
+    os.chmod(temp_path, 0o600)
+    os.replace(temp_path, path)
+
+
+def ensure_admin_token(settings: Settings) -> str | None:
+    """On first start, create organisation ``default`` and an admin token; the new token."""
+    from sqlalchemy import select
+
+    from app.db.models import Organisation
+    from app.db.session import transaction
+    from app.services.auth import create_token
+
+    token_path = settings.data_dir / ADMIN_TOKEN_FILE
+    with transaction(settings.sqlalchemy_url) as session:
+        exists = session.execute(
+            select(Organisation.id).where(Organisation.name == DEFAULT_ORGANISATION)
+        ).first()
+        if exists:
+            return None  # not the first start
+        token = create_token(session, DEFAULT_ORGANISATION, "admin", name="admin (first start)")
+        # Written before the commit: a crash in between leaves no organisation, so the next
+        # start creates a new token and overwrites this file.
+        write_secret_file(token_path, token + "\n")
+    return token
+
+
+def prepare(settings: Settings) -> str | None:
+    """Everything before the children start; the admin token on first start."""
+    from app.db.migrate import upgrade_to_head
+    from app.db.session import get_engine
+    from app.jobs.queue import close_queue_connections
+    from app.jobs.recovery import recovery_sweep
+    from app.services.storage import sweep_temporary_files
+
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    upgrade_to_head(settings.sqlalchemy_url)
+    sweep_temporary_files(settings)
+    report = recovery_sweep(settings)
+    if report.enqueued or report.failed_expired:
+        logger.info(
+            "recovered jobs at start-up",
+            extra={"enqueued": len(report.enqueued), "failed": len(report.failed_expired)},
+        )
+    token = ensure_admin_token(settings)
+    get_engine(settings.sqlalchemy_url).dispose()
+    close_queue_connections()
+    return token
+
+
+class Supervisor:
+    """Starts the API and consumer children, forwards stop signals, stops both together."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.children: dict[str, subprocess.Popen[bytes]] = {}
+        self.stop_requested: int | None = None
+
+    def start_children(self) -> None:
+        """Start ``python -m app serve --child api|consumer`` with the settings in the env."""
+        environment = child_environment(self.settings)
+        for role in CHILD_ROLES:
+            self.children[role] = subprocess.Popen(
+                [sys.executable, "-m", "app", "serve", "--child", role],
+                env=environment,
+                stdin=subprocess.DEVNULL,
+            )
+
+    def request_stop(self, signum: int, _frame: FrameType | None) -> None:
+        """Signal handler: remember that we must stop."""
+        self.stop_requested = signum
+
+    def wait(self) -> int:
+        """Block until a stop signal or a child's exit; stop everything; the exit status."""
+        while self.stop_requested is None:
+            for role, child in self.children.items():
+                if child.poll() is not None:
+                    logger.error(
+                        "child exited unexpectedly; stopping the service",
+                        extra={"child": role, "returncode": child.returncode},
+                    )
+                    self.stop_children()
+                    return 1
+            time.sleep(0.2)
+        logger.info("stopping", extra={"signal": signal.Signals(self.stop_requested).name})
+        self.stop_children()
+        return 0
+
+    def stop_children(self) -> None:
+        """SIGTERM every child, wait, SIGKILL whatever is left after the timeout."""
+        for child in self.children.values():
+            if child.poll() is None:
+                child.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + CHILD_STOP_TIMEOUT_SECONDS
+        for role, child in self.children.items():
+            try:
+                child.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                logger.warning("child did not stop in time; killing it", extra={"child": role})
+                child.kill()
+                child.wait()
+
+
+def serve(settings: Settings) -> int:
+    """Prepare, start the children, and supervise them until stopped; the exit status."""
+    token = prepare(settings)
+    url = f"http://{settings.host}:{settings.port}"
+    print(f"scandiff serving at {url}  (API docs: {url}/docs)", flush=True)
+    print(f"data directory: {settings.data_dir}", flush=True)
+    if token:
+        print(
+            f"admin token (first start; also in {settings.data_dir / ADMIN_TOKEN_FILE}):\n{token}",
+            flush=True,
+        )
+    supervisor = Supervisor(settings)
+    signal.signal(signal.SIGTERM, supervisor.request_stop)
+    signal.signal(signal.SIGINT, supervisor.request_stop)
+    supervisor.start_children()
+    return supervisor.wait()
+
+
+def run_api_child(settings: Settings) -> int:
+    """The API child: uvicorn serving ``app.main:create_app``."""
+    import uvicorn
+
+    uvicorn.run(
+        "app.main:create_app",
+        factory=True,
+        host=settings.host,
+        port=settings.port,
+        log_level=settings.log_level.lower(),
+        timeout_graceful_shutdown=API_GRACEFUL_SHUTDOWN_SECONDS,
+    )
+    return 0
+
+
+def run_child(role: str) -> int:
+    """Run one child of ``serve`` (settings from ``SCANDIFF_*``), dying with its parent."""
+    from app.jobs.consumer import run_consumer
+    from app.jobs.lifecycle import die_with_supervisor
+
+    die_with_supervisor()
+    settings = Settings()
+    if role == "api":
+        return run_api_child(settings)
+    return run_consumer(settings, settings.workers)
+
+
+def handle_serve(args: argparse.Namespace) -> int:
+    """Entry of ``scandiff serve``."""
+    if args.child:
+        return run_child(args.child)
+    from app.jobs.log import configure_logging
+
+    settings = build_settings(args)
+    configure_logging(settings.log_level)
+    return serve(settings)

@@ -1,0 +1,179 @@
+"""The job consumer process: Huey process workers plus the periodic recovery sweep.
+
+Run by ``scandiff serve`` as a child, or alone on another host for scale-out
+(``python -m app.jobs.consumer --workers 4`` with the same ``SCANDIFF_*`` settings)::
+
+    consumer (this process: supervises workers, runs the recovery sweep every
+    │         recovery_interval_seconds, notes it is alive in the queue for /health)
+    ├── Huey scheduler (process)
+    └── Huey worker 1..N (processes; each runs one job at a time)
+
+SIGTERM or SIGINT stop it gracefully: idle workers exit at once, running jobs get
+:data:`SHUTDOWN_GRACE_SECONDS` to finish, then are interrupted and handed back to the queue
+without using up an attempt.  A worker that dies is replaced within a second; its job is
+recovered by the sweep once its lease expires.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from huey import Huey
+from huey.consumer import Consumer
+
+from app.config import Settings, get_settings
+from app.db.session import get_engine
+from app.jobs import queue
+from app.jobs.lifecycle import die_with_supervisor, set_parent_death_signal
+from app.jobs.log import configure_logging
+from app.jobs.recovery import recovery_sweep
+
+logger = logging.getLogger("scandiff.jobs.consumer")
+
+SHUTDOWN_GRACE_SECONDS = 10.0
+"""On SIGTERM/SIGINT, how long running jobs may take to finish before being interrupted."""
+WORKER_HEALTH_CHECK_SECONDS = 1.0
+"""How often dead workers are replaced."""
+QUEUE_POLL_MAX_DELAY_SECONDS = 1.0
+"""Longest pause between two polls of an empty SQLite queue by an idle worker."""
+CONSUMER_HEARTBEAT_SECONDS = 5.0
+WORKER_PID_DIR = "run"
+WORKER_PID_PREFIX = "worker-"
+
+
+def worker_pid_dir(settings: Settings) -> Path:
+    """Where workers note their pid (``worker-<pid>``) while alive (used by tests and ops)."""
+    return settings.data_dir / WORKER_PID_DIR
+
+
+def release_inherited_connections(settings: Settings) -> None:
+    """In a forked child: drop the parent's database and queue connections without closing."""
+    get_engine(settings.sqlalchemy_url).dispose(close=False)
+    queue.forget_queue_connections()
+
+
+def install_worker_hooks(huey: Huey, settings: Settings) -> None:
+    """Register start/stop hooks run inside each Huey worker process."""
+    pid_dir = worker_pid_dir(settings)
+
+    @huey.on_startup(name="scandiff_worker_started")
+    def worker_started() -> None:
+        pid_dir.mkdir(parents=True, exist_ok=True)
+        (pid_dir / f"{WORKER_PID_PREFIX}{os.getpid()}").touch()
+        logger.info("job worker started", extra={"stage": "worker-started"})
+
+    @huey.on_shutdown(name="scandiff_worker_stopped")
+    def worker_stopped() -> None:
+        (pid_dir / f"{WORKER_PID_PREFIX}{os.getpid()}").unlink(missing_ok=True)
+
+
+def remove_stale_worker_pid_files(settings: Settings) -> None:
+    """Delete pid files of workers that are no longer running."""
+    pid_dir = worker_pid_dir(settings)
+    if not pid_dir.is_dir():
+        return
+    for path in pid_dir.glob(f"{WORKER_PID_PREFIX}*"):
+        pid_text = path.name.removeprefix(WORKER_PID_PREFIX)
+        if not pid_text.isdigit() or not Path(f"/proc/{pid_text}").exists():
+            path.unlink(missing_ok=True)
+
+
+class ScandiffConsumer(Consumer):  # type: ignore[misc]
+    """Huey's consumer with process workers, SIGTERM as a graceful stop and the recovery sweep."""
+
+    def __init__(self, huey: Huey, settings: Settings, workers: int) -> None:
+        super().__init__(
+            huey,
+            workers=workers,
+            worker_type="process",
+            periodic=False,
+            initial_delay=0.1,
+            backoff=1.15,
+            max_delay=QUEUE_POLL_MAX_DELAY_SECONDS,
+            scheduler_interval=1,
+            check_worker_health=True,
+            health_check_interval=WORKER_HEALTH_CHECK_SECONDS,
+            shutdown_timeout=SHUTDOWN_GRACE_SECONDS,
+        )
+        # SIGTERM (what `scandiff serve` and service managers send) stops gracefully, like SIGINT;
+        # a second signal interrupts at once.  Workers still treat SIGTERM as "interrupt now".
+        self._signal_actions[signal.SIGTERM] = (False, True)
+        self.settings = settings
+        self._next_sweep = 0.0
+        self._next_alive_note = 0.0
+
+    def loop(self, health_check_ts: float | None = None) -> float | None:
+        """Huey's supervision loop, plus the recovery sweep and the liveness note when due."""
+        health_check_ts = super().loop(health_check_ts)
+        now = time.monotonic()
+        if now >= self._next_sweep:
+            self._next_sweep = now + self.settings.recovery_interval_seconds
+            self.sweep()
+        if now >= self._next_alive_note:
+            self._next_alive_note = now + CONSUMER_HEARTBEAT_SECONDS
+            self.note_alive()
+        return health_check_ts
+
+    def sweep(self) -> None:
+        """Run the recovery sweep; errors are logged, never fatal."""
+        try:
+            recovery_sweep(self.settings)
+        except Exception:
+            logger.exception("recovery sweep failed", extra={"stage": "recovery"})
+        finally:
+            self.close_connections()
+
+    def note_alive(self) -> None:
+        """Tell ``/health`` this consumer is alive."""
+        try:
+            queue.note_consumer_alive(self.settings, self.workers)
+        except Exception:
+            logger.exception("cannot note consumer liveness in the queue")
+        finally:
+            self.close_connections()
+
+    def close_connections(self) -> None:
+        """Close this process's connections so workers forked later inherit none."""
+        get_engine(self.settings.sqlalchemy_url).dispose()
+        queue.close_queue_connections()
+
+
+def run_consumer(settings: Settings, workers: int | None = None) -> int:
+    """Run the consumer until SIGTERM/SIGINT; the exit status."""
+    configure_logging(settings.log_level)
+    workers = workers or settings.workers
+    huey = queue.get_huey(settings)
+    install_worker_hooks(huey, settings)
+    remove_stale_worker_pid_files(settings)
+
+    def after_fork_in_child() -> None:
+        set_parent_death_signal(signal.SIGKILL)  # workers and scheduler never outlive us
+        release_inherited_connections(settings)
+
+    os.register_at_fork(after_in_child=after_fork_in_child)
+    logger.info(
+        "job consumer starting",
+        extra={"workers": workers, "queue": queue.queue_backend(settings)},
+    )
+    ScandiffConsumer(huey, settings, workers).run()
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m app.jobs.consumer [--workers N]``: settings from ``SCANDIFF_*``."""
+    parser = argparse.ArgumentParser(description="Run scandiff job workers.")
+    parser.add_argument("--workers", type=int, default=None, help="worker processes")
+    args = parser.parse_args(argv)
+    die_with_supervisor()
+    return run_consumer(get_settings(), args.workers)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

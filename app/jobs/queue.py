@@ -1,0 +1,168 @@
+"""The Huey instance for the configured backend, enqueueing jobs and the queue's health.
+
+The queue only carries job ids; the ``job`` table is the truth (see ``docs/jobs.md``).  By default
+the queue is a SQLite file in the data directory (``SqliteHuey``, no server); a ``redis://`` (or
+``rediss://``, ``unix://``) ``SCANDIFF_QUEUE_URL`` selects ``RedisHuey`` so consumers can run on
+many hosts.  One Huey instance per backend per process, each with the ``run_job`` task registered.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import time
+from collections.abc import Callable
+from datetime import UTC, datetime
+from typing import Any
+
+from huey import Huey, RedisHuey, SqliteHuey
+from sqlalchemy import update
+
+from app.config import Settings
+from app.db.models import Job
+from app.db.session import transaction
+
+logger = logging.getLogger("scandiff.jobs.queue")
+
+QUEUE_NAME = "scandiff"
+SQLITE_QUEUE_TIMEOUT_SECONDS = 60.0
+"""Busy timeout of the Huey SQLite queue file (Huey's default of 5 s is too short under load)."""
+REDIS_URL_SCHEMES = ("redis://", "rediss://", "unix://")
+CONSUMER_HEARTBEAT_KEY = "consumer-heartbeat"
+"""Huey key-value entry where consumers note they are alive (read by :func:`queue_health`)."""
+
+_hueys: dict[tuple[str, str], Huey] = {}
+_job_tasks: dict[int, Callable[..., Any]] = {}
+_hueys_lock = threading.Lock()
+
+
+def queue_backend(settings: Settings) -> str:
+    """``"sqlite"`` or ``"redis"``: which Huey backend ``settings`` select."""
+    url = settings.queue_url
+    if not url:
+        return "sqlite"
+    if url.startswith(REDIS_URL_SCHEMES):
+        return "redis"
+    raise ValueError(
+        f"unsupported SCANDIFF_QUEUE_URL {url!r}: leave it unset for the SQLite queue file in the "
+        "data directory, or give redis://host:port/db"
+    )
+
+
+def create_huey(settings: Settings) -> Huey:
+    """A new Huey instance for ``settings`` with the job task registered."""
+    backend = queue_backend(settings)
+    if backend == "sqlite":
+        settings.queue_path.parent.mkdir(parents=True, exist_ok=True)
+        huey: Huey = SqliteHuey(
+            name=QUEUE_NAME,
+            filename=str(settings.queue_path),
+            results=False,
+            utc=True,
+            timeout=SQLITE_QUEUE_TIMEOUT_SECONDS,
+        )
+    else:
+        huey = RedisHuey(name=QUEUE_NAME, url=settings.queue_url, results=False, utc=True)
+    from app.jobs.tasks import register_tasks  # the task module imports this one
+
+    _job_tasks[id(huey)] = register_tasks(huey)
+    return huey
+
+
+def _cache_key(settings: Settings) -> tuple[str, str]:
+    """Identifies the queue ``settings`` point at."""
+    return (settings.queue_url or "", str(settings.queue_path))
+
+
+def get_huey(settings: Settings) -> Huey:
+    """The process-wide Huey instance for ``settings`` (created on first use)."""
+    key = _cache_key(settings)
+    with _hueys_lock:
+        huey = _hueys.get(key)
+        if huey is None:
+            huey = _hueys[key] = create_huey(settings)
+        return huey
+
+
+def job_task(huey: Huey) -> Callable[..., Any]:
+    """The registered ``run_job`` task wrapper of ``huey``."""
+    return _job_tasks[id(huey)]
+
+
+def send_job_message(job_id: str, settings: Settings) -> None:
+    """Put one ``run_job(job_id)`` message on the queue (no database write)."""
+    job_task(get_huey(settings))(job_id)
+
+
+def enqueue_job(job_id: str, settings: Settings) -> None:
+    """Queue a committed job: note ``enqueued_at`` then send its message.
+
+    Call after the transaction that created the job has committed.  If sending fails the job
+    stays ``queued`` and the recovery sweep sends it again; duplicates are harmless because the
+    worker's claim is idempotent.
+    """
+    with transaction(settings.sqlalchemy_url) as session:
+        session.execute(
+            update(Job)
+            .where(Job.id == job_id, Job.status == "queued")
+            .values(enqueued_at=datetime.now(UTC))
+        )
+    send_job_message(job_id, settings)
+    logger.info("job enqueued", extra={"job_id": job_id, "stage": "enqueued"})
+
+
+def pending_job_ids(settings: Settings) -> set[str]:
+    """Job ids with a message waiting in the queue or its schedule."""
+    huey = get_huey(settings)
+    job_ids: set[str] = set()
+    for task in [*huey.pending(), *huey.scheduled()]:
+        if task.args:
+            job_ids.add(str(task.args[0]))
+    return job_ids
+
+
+def note_consumer_alive(settings: Settings, workers: int) -> None:
+    """Record in the queue that a consumer on this host is alive (for ``queue_health``)."""
+    get_huey(settings).put(
+        CONSUMER_HEARTBEAT_KEY,
+        {"host": socket.gethostname(), "pid": os.getpid(), "workers": workers, "at": time.time()},
+    )
+
+
+def queue_health(settings: Settings) -> dict[str, Any]:
+    """The queue's state for ``/health``: backend, reachability, waiting messages, consumer."""
+    health: dict[str, Any] = {"backend": queue_backend(settings)}
+    try:
+        huey = get_huey(settings)
+        health["pending"] = huey.pending_count()
+        health["scheduled"] = huey.scheduled_count()
+        consumer = huey.get(CONSUMER_HEARTBEAT_KEY, peek=True)
+    except Exception as exc:  # health must report, never raise
+        health.update(status="error", error=f"{type(exc).__name__}: {exc}")
+        return health
+    health["status"] = "ok"
+    if consumer:
+        health["consumer_last_seen_seconds"] = round(max(0.0, time.time() - consumer["at"]), 1)
+        health["consumer_workers"] = consumer.get("workers")
+    else:
+        health["consumer_last_seen_seconds"] = None
+    return health
+
+
+def forget_queue_connections() -> None:
+    """Drop (without closing) queue connections inherited over ``fork``."""
+    for huey in list(_hueys.values()):
+        storage = huey.storage
+        if hasattr(storage, "_conn"):
+            storage._conn = None
+            storage.lock = threading.Lock()
+
+
+def close_queue_connections() -> None:
+    """Close this process's queue connections (before forking workers)."""
+    for huey in list(_hueys.values()):
+        close = getattr(huey.storage, "close", None)
+        if close is not None:
+            close()

@@ -1,0 +1,169 @@
+"""The recovery sweep: nothing the ``job`` table says must run is left without a queue message.
+
+Huey is at-most-once: a worker killed mid-job loses its message.  The sweep, run by ``scandiff
+serve`` at start-up and by the consumer every ``recovery_interval_seconds``:
+
+* puts ``running`` jobs whose lease expired back to ``queued`` and sends a message, or fails them
+  with a reason when their attempts are used up (a poison job ends here instead of looping);
+* sends a message again for ``queued`` jobs that have none waiting in the queue and were not
+  enqueued within the grace period (``job_lease_seconds``: a dequeued message is claimed within
+  milliseconds), or were never enqueued (``enqueued_at`` null);
+* deletes temporary result files left by killed workers.
+
+Sending a message twice is harmless: a worker's claim is idempotent.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timedelta
+
+from sqlalchemy import or_, select
+
+from app.config import Settings
+from app.db.models import Job
+from app.db.session import transaction
+from app.jobs.execution import TEMP_MARKER, job_log, utc_now
+
+logger = logging.getLogger("scandiff.jobs.recovery")
+
+TEMP_FILE_MAX_AGE_SECONDS = 3600.0
+"""Temporary result files older than this belong to dead workers (used by periodic sweeps)."""
+
+
+@dataclass
+class RecoveryReport:
+    """What one sweep did."""
+
+    requeued_expired: list[str] = field(default_factory=list)
+    failed_expired: list[str] = field(default_factory=list)
+    resent_queued: list[str] = field(default_factory=list)
+    removed_temp_files: int = 0
+
+    @property
+    def enqueued(self) -> list[str]:
+        """Every job id a message was sent for."""
+        return [*self.requeued_expired, *self.resent_queued]
+
+    def is_empty(self) -> bool:
+        """Whether the sweep changed nothing."""
+        return not (self.enqueued or self.failed_expired or self.removed_temp_files)
+
+
+def recover_expired_leases(settings: Settings, now: datetime, report: RecoveryReport) -> None:
+    """Requeue (or fail, when used up) running jobs whose lease expired; one transaction."""
+    with transaction(settings.sqlalchemy_url) as session:
+        expired = (
+            session.execute(
+                select(Job)
+                .where(
+                    Job.status == "running",
+                    or_(Job.lease_expires_at.is_(None), Job.lease_expires_at < now),
+                )
+                .with_for_update(skip_locked=True)
+            )
+            .scalars()
+            .all()
+        )
+        for job in expired:
+            lost = (
+                f"attempt {job.attempts} stopped without finishing (lease of "
+                f"{job.lease_owner} expired; worker killed or lost) at stage {job.stage}"
+            )
+            if job.attempts >= job.max_attempts:
+                job.status = "failed"
+                job.error = (
+                    f"gave up after {job.attempts} attempts (max_attempts={job.max_attempts}): "
+                    f"{lost}"
+                )
+                job.stage = "failed"
+                job.finished_at = now
+                report.failed_expired.append(job.id)
+            else:
+                job.status = "queued"
+                job.error = lost
+                job.stage = "requeued"
+                job.enqueued_at = now
+                report.requeued_expired.append(job.id)
+            job.lease_owner = None
+            job.lease_expires_at = None
+    for job_id in report.failed_expired:
+        job_log("job failed: attempts used up", job_id, "failed")
+    for job_id in report.requeued_expired:
+        job_log("job lease expired; requeued", job_id, "requeued")
+
+
+def resend_orphaned_queued(
+    settings: Settings, now: datetime, pending: set[str] | None, report: RecoveryReport
+) -> None:
+    """Mark queued jobs without a live message as re-enqueued now; one transaction."""
+    grace_cutoff = now - timedelta(seconds=settings.job_lease_seconds)
+    with transaction(settings.sqlalchemy_url) as session:
+        candidates = (
+            session.execute(
+                select(Job)
+                .where(
+                    Job.status == "queued",
+                    or_(Job.enqueued_at.is_(None), Job.enqueued_at < grace_cutoff),
+                )
+                .with_for_update(skip_locked=True)
+            )
+            .scalars()
+            .all()
+        )
+        for job in candidates:
+            if pending is not None and job.id in pending and job.enqueued_at is not None:
+                continue  # its message is still waiting in the queue
+            job.enqueued_at = now
+            report.resent_queued.append(job.id)
+    for job_id in report.resent_queued:
+        job_log("queued job had no message; enqueued again", job_id, "requeued")
+
+
+def remove_stale_temp_files(settings: Settings, older_than_seconds: float) -> int:
+    """Delete temporary result files older than ``older_than_seconds``; how many."""
+    if not settings.results_dir.is_dir():
+        return 0
+    cutoff = time.time() - older_than_seconds
+    removed = 0
+    for path in settings.results_dir.glob(f"*/.*{TEMP_MARKER}*"):
+        try:
+            if path.stat().st_mtime <= cutoff:
+                path.unlink()
+                removed += 1
+        except FileNotFoundError:
+            continue
+    return removed
+
+
+def recovery_sweep(
+    settings: Settings, *, temp_file_max_age_seconds: float = TEMP_FILE_MAX_AGE_SECONDS
+) -> RecoveryReport:
+    """Run one sweep (see the module docstring) and send the messages; what it did."""
+    from app.jobs.queue import pending_job_ids, send_job_message
+
+    report = RecoveryReport()
+    now = utc_now()
+    try:
+        pending: set[str] | None = pending_job_ids(settings)
+    except Exception:  # cannot list the queue: fall back to the grace period alone
+        logger.exception("cannot list queued messages; re-sending by age only")
+        pending = None
+    recover_expired_leases(settings, now, report)
+    resend_orphaned_queued(settings, now, pending, report)
+    for job_id in report.enqueued:
+        send_job_message(job_id, settings)
+    report.removed_temp_files = remove_stale_temp_files(settings, temp_file_max_age_seconds)
+    if not report.is_empty():
+        logger.info(
+            "recovery sweep",
+            extra={
+                "requeued_expired": len(report.requeued_expired),
+                "failed_expired": len(report.failed_expired),
+                "resent_queued": len(report.resent_queued),
+                "removed_temp_files": report.removed_temp_files,
+            },
+        )
+    return report
