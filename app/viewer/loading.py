@@ -1,0 +1,129 @@
+"""Load a finished job's scene from the database and the data directory.
+
+Reads the job row (registration transform, decision), its regions, both scan files (with the
+core's readers) and the per-point labels the worker wrote to ``results_dir/<job_id>/labels.npz``;
+returns the :class:`~app.viewer.scene.SceneData` the 3D view draws.  Authorisation is the
+caller's business (the router checks the job belongs to the viewer's organisation first).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from app.config import Settings
+from app.core.formats import read_point_cloud
+from app.db.models import Job, Region, Scan, Site
+from app.db.session import session_factory
+from app.viewer.scene import DEFAULT_POINT_BUDGET, SceneData, build_scene_data, labels_for_points
+
+LABELS_FILE = "labels.npz"
+
+
+class ViewUnavailableError(Exception):
+    """The job cannot be shown (yet); ``status`` is the HTTP status to answer with."""
+
+    def __init__(self, message: str, status: int = 409) -> None:
+        super().__init__(message)
+        self.message = message
+        self.status = status
+
+
+def job_labels_path(settings: Settings, job: Job) -> Path:
+    """Where the worker wrote the job's per-point labels."""
+    default = settings.results_dir / job.id / LABELS_FILE
+    if job.labels_path and not default.exists():
+        stored = Path(job.labels_path)
+        return stored if stored.is_absolute() else settings.data_dir / stored
+    return default
+
+
+def load_job_scene(
+    settings: Settings, job_id: str, *, point_budget: int = DEFAULT_POINT_BUDGET
+) -> tuple[SceneData, str]:
+    """The scene of a succeeded job and a title for it.
+
+    Raises
+    ------
+    ViewUnavailableError
+        The job does not exist (404), has not succeeded (409) or its files are missing (410).
+    """
+    session = session_factory(settings.sqlalchemy_url)()
+    try:
+        job = session.get(Job, job_id)
+        if job is None:
+            raise ViewUnavailableError(f"job {job_id} not found", status=404)
+        if job.status != "succeeded":
+            reason = f": {job.error}" if job.status == "failed" and job.error else ""
+            raise ViewUnavailableError(
+                f"job {job_id} is {job.status}{reason}; the 3D view opens once it has succeeded"
+            )
+        reference = session.get(Scan, job.reference_scan_id)
+        scan = session.get(Scan, job.scan_id)
+        site = session.get(Site, job.site_id)
+        if reference is None or scan is None:
+            raise ViewUnavailableError(f"the scans of job {job_id} were deleted", status=410)
+        regions = [_region_dict(region) for region in job.regions]
+        paths = (
+            settings.data_dir / reference.storage_path,
+            settings.data_dir / scan.storage_path,
+        )
+        names = (reference.filename, scan.filename)
+        labels_path = job_labels_path(settings, job)
+        transform = (job.registration or {}).get("transform")
+        summary = {
+            "score": job.score,
+            "threshold": job.threshold,
+            "changed": job.changed,
+            "n_regions": job.n_regions,
+            "site": site.name if site else None,
+            "method": job.method,
+            "variant": job.variant,
+        }
+    finally:
+        session.close()
+
+    for path in (*paths, labels_path):
+        if not path.is_file():
+            raise ViewUnavailableError(
+                f"a file of job {job_id} is missing from the data directory ({path.name})",
+                status=410,
+            )
+    reference_cloud = read_point_cloud(paths[0])
+    scan_cloud = read_point_cloud(paths[1])
+    with np.load(labels_path) as labels:
+        reference_labels = labels_for_points(
+            labels["reference_label"], reference_cloud.source_index, len(reference_cloud)
+        )
+        scan_labels = labels_for_points(
+            labels["scan_label"], scan_cloud.source_index, len(scan_cloud)
+        )
+    data = build_scene_data(
+        reference_cloud.points,
+        scan_cloud.points,
+        reference_labels=reference_labels,
+        scan_labels=scan_labels,
+        transform=transform,
+        regions=regions,
+        point_budget=point_budget,
+        summary=summary,
+    )
+    site_name = summary["site"] or "site"
+    title = f"{site_name}: {names[1]} vs {names[0]}"
+    return data, title
+
+
+def _region_dict(region: Region) -> dict[str, Any]:
+    """A region row as the API shows it."""
+    return {
+        "id": region.id,
+        "kind": region.kind,
+        "n_points": region.n_points,
+        "centroid": region.centroid,
+        "bbox_min": region.bbox_min,
+        "bbox_max": region.bbox_max,
+        "mean_distance": region.mean_distance,
+        "max_distance": region.max_distance,
+    }

@@ -1,0 +1,398 @@
+"""What the 3D view shows for one job, as plain arrays: the scene builder.
+
+:func:`build_scene_data` turns a finished job (both clouds, the registration transform, the
+per-point labels and the regions) into display layers and region boxes;
+:mod:`app.viewer.viser_scene` draws them with viser.  Nothing here imports viser, so the
+builder is unit-tested on synthetic data without a server.
+
+Coordinates: the scan is drawn in the reference frame (the job's registration transform is applied),
+and every displayed coordinate is relative to a rounded local origin and stored as float32, so
+georeferenced scans (x ~ 5e5 m) keep their millimetres on the GPU.  Large clouds are randomly
+subsampled (deterministically) to a point budget; changed points are kept first, and each layer
+states how many of its points are shown.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+LABEL_UNOBSERVED = -1
+LABEL_UNCHANGED = 0
+LABEL_CHANGED = 1
+
+DEFAULT_POINT_BUDGET = 1_000_000
+"""Most points sent to a browser for one job (about 15 MB over the websocket)."""
+
+CHANGED_SHARE_OF_BUDGET = 0.5
+"""Changed points (removed + added) may use at most this share of the budget."""
+
+MIN_BOX_EDGE = 0.01
+"""Region boxes are at least this wide (metres), so single-point regions stay visible."""
+
+RGB = tuple[int, int, int]
+
+
+@dataclass(frozen=True)
+class LayerStyle:
+    """How one layer is drawn."""
+
+    name: str
+    title: str
+    color: RGB
+    visible: bool
+    description: str
+
+
+LAYER_STYLES: tuple[LayerStyle, ...] = (
+    LayerStyle("reference", "Reference", (150, 150, 150), True, "unchanged reference points"),
+    LayerStyle("scan", "Scan", (110, 150, 200), True, "unchanged scan points"),
+    LayerStyle("removed", "Removed", (230, 25, 25), True, "in the reference, gone from the scan"),
+    LayerStyle("added", "Added", (20, 200, 50), True, "in the scan, not in the reference"),
+    LayerStyle(
+        "unobserved", "Unobserved", (215, 215, 235), False, "seen by one scan only (not change)"
+    ),
+)
+STYLE_BY_NAME: dict[str, LayerStyle] = {style.name: style for style in LAYER_STYLES}
+KIND_COLORS: dict[str, RGB] = {
+    "removed": STYLE_BY_NAME["removed"].color,
+    "added": STYLE_BY_NAME["added"].color,
+}
+
+
+@dataclass(frozen=True, eq=False)
+class Layer:
+    """One coloured point layer: float32 points relative to the scene origin."""
+
+    name: str
+    title: str
+    color: RGB
+    visible: bool
+    description: str
+    points: NDArray[np.float32]
+    n_total: int
+
+    @property
+    def n_shown(self) -> int:
+        """Points actually drawn (after downsampling)."""
+        return int(self.points.shape[0])
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """Name, colour, default visibility and shown/total counts."""
+        return {
+            "name": self.name,
+            "title": self.title,
+            "color": list(self.color),
+            "visible": self.visible,
+            "shown": self.n_shown,
+            "total": self.n_total,
+        }
+
+
+@dataclass(frozen=True)
+class RegionBox:
+    """A region's axis-aligned box, in file coordinates of the reference frame and locally."""
+
+    index: int
+    region_id: str | None
+    kind: str
+    n_points: int
+    centroid: tuple[float, float, float]
+    bbox_min: tuple[float, float, float]
+    bbox_max: tuple[float, float, float]
+    center_local: tuple[float, float, float]
+    dimensions: tuple[float, float, float]
+    mean_distance: float | None
+    max_distance: float | None
+
+    @property
+    def color(self) -> RGB:
+        """Red for removed, green for added."""
+        return KIND_COLORS.get(self.kind, (240, 200, 0))
+
+    @property
+    def label(self) -> str:
+        """Text drawn next to the box."""
+        return f"#{self.index + 1} {self.kind} · {self.n_points:,} pts"
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """Plain JSON types."""
+        return {
+            "index": self.index,
+            "region_id": self.region_id,
+            "kind": self.kind,
+            "n_points": self.n_points,
+            "label": self.label,
+            "centroid": list(self.centroid),
+            "bbox_min": list(self.bbox_min),
+            "bbox_max": list(self.bbox_max),
+            "center_local": list(self.center_local),
+            "dimensions": list(self.dimensions),
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class SceneData:
+    """Everything the 3D view of one job draws."""
+
+    origin: NDArray[np.float64]
+    layers: tuple[Layer, ...]
+    regions: tuple[RegionBox, ...]
+    bounds_min: NDArray[np.float64]  # local frame, over every point (not only the shown ones)
+    bounds_max: NDArray[np.float64]
+    point_size: float
+    point_budget: int
+    summary: Mapping[str, Any] = field(default_factory=dict)
+
+    def layer(self, name: str) -> Layer:
+        """The layer called ``name``."""
+        for layer in self.layers:
+            if layer.name == name:
+                return layer
+        raise KeyError(name)
+
+    @property
+    def center(self) -> NDArray[np.float64]:
+        """Centre of the bounds, local frame."""
+        return (self.bounds_min + self.bounds_max) / 2.0
+
+    @property
+    def extent(self) -> float:
+        """Length of the bounds' diagonal (metres), at least 1 mm."""
+        return max(float(np.linalg.norm(self.bounds_max - self.bounds_min)), 1e-3)
+
+    @property
+    def n_shown(self) -> int:
+        """Points drawn over every layer."""
+        return sum(layer.n_shown for layer in self.layers)
+
+    @property
+    def n_total(self) -> int:
+        """Points in every layer before downsampling."""
+        return sum(layer.n_total for layer in self.layers)
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """The builder's record: origin, layers with counts, region boxes."""
+        return {
+            "origin": self.origin.tolist(),
+            "point_size": self.point_size,
+            "point_budget": self.point_budget,
+            "shown": self.n_shown,
+            "total": self.n_total,
+            "layers": [layer.to_json_dict() for layer in self.layers],
+            "regions": [region.to_json_dict() for region in self.regions],
+            "summary": dict(self.summary),
+        }
+
+
+def local_origin(points: NDArray[np.float64], quantum: float = 1.0) -> NDArray[np.float64]:
+    """Centre of the bounding box of ``points`` rounded to ``quantum`` metres."""
+    if len(points) == 0:
+        return np.zeros(3)
+    centre = (points.min(axis=0) + points.max(axis=0)) / 2.0
+    return np.round(centre / quantum) * quantum
+
+
+def apply_transform(points: NDArray[np.float64], transform: NDArray[np.float64]) -> NDArray:
+    """``points`` (n, 3) moved by the homogeneous 4x4 ``transform``."""
+    return points @ transform[:3, :3].T + transform[:3, 3]
+
+
+def labels_for_points(
+    labels_in_file_order: NDArray | None, source_index: NDArray[np.int64], n_points: int
+) -> NDArray[np.int8]:
+    """Per-point labels of a cloud from labels in file order (unchanged when unknown)."""
+    if labels_in_file_order is None:
+        return np.zeros(n_points, dtype=np.int8)
+    labels = np.asarray(labels_in_file_order).astype(np.int8, copy=False)
+    if source_index.size and int(source_index.max()) >= labels.shape[0]:
+        raise ValueError(
+            f"labels have {labels.shape[0]} rows but the cloud has rows up to "
+            f"{int(source_index.max())}: the labels belong to another file"
+        )
+    return labels[source_index]
+
+
+def allocate_budget(totals: Mapping[str, int], budget: int) -> dict[str, int]:
+    """Points to show per layer: changed layers first (up to half), the rest proportionally."""
+    budget = max(int(budget), 0)
+    if budget >= sum(totals.values()):
+        return {name: int(total) for name, total in totals.items()}
+    changed = [name for name in ("removed", "added") if name in totals]
+    others = [name for name in totals if name not in changed]
+    shown: dict[str, int] = {}
+    changed_total = sum(totals[name] for name in changed)
+    changed_budget = min(changed_total, int(budget * CHANGED_SHARE_OF_BUDGET))
+    for name in changed:
+        share = totals[name] / changed_total if changed_total else 0.0
+        shown[name] = min(totals[name], int(changed_budget * share))
+    remaining = budget - sum(shown.values())
+    others_total = sum(totals[name] for name in others)
+    for name in others:
+        share = totals[name] / others_total if others_total else 0.0
+        shown[name] = min(totals[name], int(remaining * share))
+    return shown
+
+
+def subsample(
+    points: NDArray[np.float64], count: int, rng: np.random.Generator
+) -> NDArray[np.float64]:
+    """``count`` points of ``points`` chosen uniformly without replacement, in input order."""
+    if count >= len(points):
+        return points
+    chosen = np.sort(rng.choice(len(points), size=count, replace=False))
+    return points[chosen]
+
+
+def estimate_point_size(points: NDArray[np.float32], sample_size: int = 2000) -> float:
+    """A point size (metres) that closes the gaps between displayed points: 1.5x median spacing."""
+    if len(points) < 2:
+        return 0.05
+    rng = np.random.default_rng(0)
+    sample = points if len(points) <= sample_size else points[rng.choice(len(points), sample_size)]
+    tree = cKDTree(points if len(points) <= 200_000 else subsample(points, 200_000, rng))
+    distances, _ = tree.query(sample, k=2)
+    spacing = float(np.median(distances[:, 1]))
+    if not np.isfinite(spacing) or spacing <= 0:
+        extent = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+        spacing = max(extent, 1.0) / 500.0
+    return 1.5 * spacing
+
+
+def region_boxes(
+    regions: Sequence[Mapping[str, Any]], origin: NDArray[np.float64]
+) -> tuple[RegionBox, ...]:
+    """Boxes of the API's regions (reference-frame file coordinates) relative to ``origin``."""
+    boxes = []
+    for index, region in enumerate(regions):
+        low = np.asarray(region["bbox_min"], dtype=np.float64)
+        high = np.asarray(region["bbox_max"], dtype=np.float64)
+        dimensions = np.maximum(high - low, MIN_BOX_EDGE)
+        center = (low + high) / 2.0 - origin
+        boxes.append(
+            RegionBox(
+                index=index,
+                region_id=region.get("id"),
+                kind=str(region["kind"]),
+                n_points=int(region["n_points"]),
+                centroid=_triple(region.get("centroid", (low + high) / 2.0)),
+                bbox_min=_triple(low),
+                bbox_max=_triple(high),
+                center_local=_triple(center),
+                dimensions=_triple(dimensions),
+                mean_distance=_optional_float(region.get("mean_distance")),
+                max_distance=_optional_float(region.get("max_distance")),
+            )
+        )
+    return tuple(boxes)
+
+
+def build_scene_data(
+    reference_points: NDArray[np.float64],
+    scan_points: NDArray[np.float64],
+    *,
+    reference_labels: NDArray | None = None,
+    scan_labels: NDArray | None = None,
+    transform: NDArray | Sequence[Sequence[float]] | None = None,
+    regions: Sequence[Mapping[str, Any]] = (),
+    point_budget: int = DEFAULT_POINT_BUDGET,
+    summary: Mapping[str, Any] | None = None,
+    random_state: int = 0,
+) -> SceneData:
+    """Layers and region boxes of one job.
+
+    Parameters
+    ----------
+    reference_points, scan_points : ndarray, shape (n, 3)
+        The clouds' finite points in their files' frames (``PointCloud.points``).
+    reference_labels, scan_labels : ndarray of int8, per point of each cloud, optional
+        0 unchanged, 1 changed, -1 unobserved (see :func:`labels_for_points` to map labels
+        stored in file order); None draws every point as unchanged.
+    transform : 4x4, optional
+        Registration of the scan onto the reference (file frames); identity when None.
+    regions : sequence of mappings
+        The job's regions as the API returns them (``kind``, ``n_points``, ``bbox_min`` ...).
+    point_budget : int
+        Most points drawn over all layers.
+    """
+    reference_points = np.asarray(reference_points, dtype=np.float64).reshape(-1, 3)
+    scan_points = np.asarray(scan_points, dtype=np.float64).reshape(-1, 3)
+    matrix = np.eye(4) if transform is None else np.asarray(transform, dtype=np.float64)
+    if matrix.shape != (4, 4) or not np.isfinite(matrix).all():
+        raise ValueError(f"the registration transform must be a finite 4x4 matrix, got {matrix!r}")
+    scan_in_reference = apply_transform(scan_points, matrix)
+    reference_labels = _check_labels(reference_labels, len(reference_points), "reference")
+    scan_labels = _check_labels(scan_labels, len(scan_points), "scan")
+
+    origin = local_origin(reference_points if len(reference_points) else scan_in_reference)
+    selections: dict[str, NDArray[np.float64]] = {
+        "reference": reference_points[reference_labels == LABEL_UNCHANGED],
+        "scan": scan_in_reference[scan_labels == LABEL_UNCHANGED],
+        "removed": reference_points[reference_labels == LABEL_CHANGED],
+        "added": scan_in_reference[scan_labels == LABEL_CHANGED],
+        "unobserved": np.concatenate(
+            [
+                reference_points[reference_labels == LABEL_UNOBSERVED],
+                scan_in_reference[scan_labels == LABEL_UNOBSERVED],
+            ]
+        ),
+    }
+    totals = {name: len(points) for name, points in selections.items()}
+    counts = allocate_budget(totals, point_budget)
+    rng = np.random.default_rng(random_state)
+    layers = []
+    for style in LAYER_STYLES:
+        shown = subsample(selections[style.name], counts[style.name], rng)
+        layers.append(
+            Layer(
+                name=style.name,
+                title=style.title,
+                color=style.color,
+                visible=style.visible,
+                description=style.description,
+                points=np.ascontiguousarray(shown - origin, dtype=np.float32),
+                n_total=totals[style.name],
+            )
+        )
+    every_point = np.concatenate([reference_points, scan_in_reference]) - origin
+    if len(every_point):
+        bounds_min, bounds_max = every_point.min(axis=0), every_point.max(axis=0)
+    else:
+        bounds_min = bounds_max = np.zeros(3)
+    drawn = [layer.points for layer in layers if layer.n_shown]
+    return SceneData(
+        origin=origin,
+        layers=tuple(layers),
+        regions=region_boxes(regions, origin),
+        bounds_min=bounds_min,
+        bounds_max=bounds_max,
+        point_size=estimate_point_size(np.concatenate(drawn)) if drawn else 0.05,
+        point_budget=int(point_budget),
+        summary=dict(summary or {}),
+    )
+
+
+def _check_labels(labels: NDArray | None, n_points: int, which: str) -> NDArray[np.int8]:
+    """Labels as int8 with one per point (all unchanged when None)."""
+    if labels is None:
+        return np.zeros(n_points, dtype=np.int8)
+    array = np.asarray(labels).astype(np.int8, copy=False).reshape(-1)
+    if array.shape[0] != n_points:
+        raise ValueError(f"{which} labels: {array.shape[0]} values for {n_points} points")
+    return array
+
+
+def _triple(values: Any) -> tuple[float, float, float]:
+    """Three Python floats."""
+    array = np.asarray(values, dtype=np.float64).reshape(3)
+    return (float(array[0]), float(array[1]), float(array[2]))
+
+
+def _optional_float(value: Any) -> float | None:
+    """``float(value)`` or None."""
+    return None if value is None else float(value)
