@@ -16,12 +16,14 @@ The ``job`` table is the truth; a queue message only says "look at job X".  A wo
    if it still holds the lease.
 
 Input problems (:class:`app.core.errors.InputError`) fail the job at once with the message; other
-errors put it back in the queue until ``max_attempts`` is reached.  Test hooks (``params
-["_testing"]``) are honoured only when ``SCANDIFF_TESTING=1``; see :func:`apply_test_hooks`.
+errors put it back in the queue until ``max_attempts`` is reached.  Test hooks (env
+``SCANDIFF_TEST_JOB_HOOKS``) are honoured only when ``SCANDIFF_TESTING=1``; see
+:func:`apply_test_hooks`.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
@@ -49,7 +51,7 @@ from app.db.session import transaction
 logger = logging.getLogger("scandiff.jobs")
 
 TESTING_ENV = "SCANDIFF_TESTING"
-TEST_HOOK_KEY = "_testing"
+TEST_HOOKS_ENV = "SCANDIFF_TEST_JOB_HOOKS"
 LABELS_FILENAME = "labels.npz"
 DETAILS_FILENAME = "details.npz"
 TEMP_MARKER = ".tmp"
@@ -121,6 +123,7 @@ class ClaimedJob:
     reference_format: str | None
     scan_path: Path | None
     scan_format: str | None
+    scan_filename: str | None
 
 
 def job_log(message: str, job_id: str, stage: str, **fields: Any) -> None:
@@ -171,6 +174,7 @@ def claim_job(
             reference_format=reference.format if reference else None,
             scan_path=settings.data_dir / scan.storage_path if scan else None,
             scan_format=scan.format if scan else None,
+            scan_filename=scan.filename if scan else None,
         )
     job_log(
         "job claimed",
@@ -317,22 +321,38 @@ def testing_enabled() -> bool:
     return os.environ.get(TESTING_ENV) == "1"
 
 
-def apply_test_hooks(hooks: Mapping[str, Any], job: ClaimedJob, keeper: LeaseKeeper) -> None:
-    """Test-only behaviour from ``params["_testing"]`` (ignored unless ``SCANDIFF_TESTING=1``).
-
-    Keys: ``on_attempts`` (list of attempt numbers the hooks apply to; default all),
-    ``sleep_seconds`` (sleep while heart-beating, stage ``testing-sleep``), ``kill_worker``
-    (SIGKILL this worker process: a crash), ``raise_error`` (raise ``RuntimeError`` with that
-    message: a transient failure), ``allocate_bytes`` (allocate that much: hits the memory cap).
-    """
+def test_hooks_for(job: ClaimedJob) -> dict[str, Any]:
+    """The test hooks that apply to ``job`` (empty unless ``SCANDIFF_TESTING=1``)."""
+    raw = os.environ.get(TEST_HOOKS_ENV)
+    if not raw:
+        return {}
     if not testing_enabled():
         logger.warning(
-            "job has test hooks but SCANDIFF_TESTING is not 1; ignoring them",
+            f"{TEST_HOOKS_ENV} is set but {TESTING_ENV} is not 1; ignoring the test hooks",
             extra={"job_id": job.id, "stage": "claimed"},
         )
-        return
+        return {}
+    hooks = json.loads(raw)
+    if "scan_filename" in hooks and hooks["scan_filename"] != job.scan_filename:
+        return {}
     on_attempts = hooks.get("on_attempts")
     if on_attempts is not None and job.attempt not in on_attempts:
+        return {}
+    return dict(hooks)
+
+
+def apply_test_hooks(job: ClaimedJob, keeper: LeaseKeeper) -> None:
+    """Test-only behaviour from the JSON object in env ``SCANDIFF_TEST_JOB_HOOKS``.
+
+    Honoured only when ``SCANDIFF_TESTING=1`` (set by the test harness, never in production).
+    Filters: ``scan_filename`` (only jobs whose scan has that filename), ``on_attempts`` (list
+    of attempt numbers).  Actions, in this order: ``sleep_seconds`` (sleep while heart-beating,
+    stage ``testing-sleep``), ``allocate_bytes`` (allocate that much: hits the memory cap),
+    ``kill_worker`` (SIGKILL this worker process: a crash), ``raise_error`` (raise
+    ``RuntimeError`` with that message: a transient failure).
+    """
+    hooks = test_hooks_for(job)
+    if not hooks:
         return
     sleep_seconds = float(hooks.get("sleep_seconds", 0.0))
     if sleep_seconds > 0:
@@ -395,15 +415,6 @@ def to_jsonable(value: Any) -> Any:
     return value
 
 
-def split_params(params: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any], bool, int]:
-    """``(detector params, test hooks, align, random_state)`` from a job's stored params."""
-    detector_params = dict(params)
-    hooks = detector_params.pop(TEST_HOOK_KEY, None) or {}
-    align = bool(detector_params.pop("align", True))
-    random_state = int(detector_params.pop("random_state", 0))
-    return detector_params, dict(hooks), align, random_state
-
-
 def compute(
     job: ClaimedJob, settings: Settings, keeper: LeaseKeeper
 ) -> tuple[Any, dict[str, float]]:
@@ -411,9 +422,7 @@ def compute(
     from app.core.formats import read_point_cloud
     from app.core.pipeline import compare
 
-    detector_params, hooks, align, random_state = split_params(job.params)
-    if hooks:
-        apply_test_hooks(hooks, job, keeper)
+    apply_test_hooks(job, keeper)
     if job.reference_path is None or job.scan_path is None:
         raise InputError("the job's reference scan or scan no longer exists")
     keeper.report("loading", 0.0)
@@ -427,9 +436,7 @@ def compute(
         scan,
         method=job.method,
         variant=job.variant,
-        align=align,
-        random_state=random_state,
-        params=detector_params,
+        params=job.params,  # replayable: holds align/random_state/stage parameters when given
         progress=keeper.compare_progress,
     )
     return result, {"load_inputs": load_seconds}

@@ -1,0 +1,132 @@
+"""A stand-in for ``app.core.pipeline.compare`` so job durability tests run fast.
+
+The durability machinery (claim, lease, recovery) does not depend on the numbers; this fake
+returns a deterministic result shaped like :class:`app.core.pipeline.ComparisonResult` in a few
+milliseconds.  :func:`install` patches it in (in-process tests); :data:`CONSUMER_BOOTSTRAP`
+starts a consumer process with it installed.
+"""
+
+from __future__ import annotations
+
+import sys
+import types
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.core.cloud import PointCloud
+
+CONSUMER_BOOTSTRAP = (
+    "import sys, tests.jobs.fake_pipeline as fake; fake.install(); "
+    "from app.jobs.consumer import main; sys.exit(main())"
+)
+
+
+@dataclass(frozen=True)
+class FakeRegion:
+    """A region with the fields of ``RegionSummary``."""
+
+    kind: str
+    n_points: int
+    centroid: list[float]
+    bbox_min: list[float]
+    bbox_max: list[float]
+    mean_distance: float
+    max_distance: float
+
+
+@dataclass(frozen=True)
+class FakeResult:
+    """The attributes of ``ComparisonResult`` the worker uses."""
+
+    score: float
+    threshold: float
+    changed: bool
+    calibration: dict[str, Any]
+    registration: dict[str, Any]
+    regions: list[FakeRegion]
+    reference_label: NDArray[np.int8]
+    scan_label: NDArray[np.int8]
+    reference_distance: NDArray[np.float32]
+    scan_distance: NDArray[np.float32]
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def write_labels_npz(self, path: str | Path) -> None:
+        """Same arrays as the real result."""
+        with open(path, "wb") as handle:
+            np.savez_compressed(
+                handle,
+                reference_changed=self.reference_label == 1,
+                scan_changed=self.scan_label == 1,
+                reference_label=self.reference_label,
+                scan_label=self.scan_label,
+            )
+
+
+def fake_compare(
+    reference: PointCloud,
+    scan: PointCloud,
+    *,
+    method: str = "gmm",
+    variant: str = "improved",
+    align: bool = True,
+    random_state: int = 0,
+    params: Mapping[str, Any] | None = None,
+    progress: Callable[[str, float], None] | None = None,
+) -> FakeResult:
+    """A deterministic result: the scan's points beyond x > 1 are an "added" region."""
+    for stage, fraction in (("align", 0.05), ("localise", 0.35), ("detect", 0.65)):
+        if progress is not None:
+            progress(stage, fraction)
+    added = scan.points[:, 0] > 1.0
+    scan_label = np.zeros(scan.n_source, dtype=np.int8)
+    scan_label[scan.source_index[added]] = 1
+    regions = []
+    if added.any():
+        box = scan.points[added]
+        regions.append(
+            FakeRegion(
+                "added",
+                int(added.sum()),
+                box.mean(axis=0).tolist(),
+                box.min(axis=0).tolist(),
+                box.max(axis=0).tolist(),
+                0.5,
+                float("nan") if params and params.get("nan_max") else 1.0,
+            )
+        )
+    return FakeResult(
+        score=float(added.mean()),
+        threshold=0.01,
+        changed=bool(added.mean() > 0.01),
+        calibration={"noise": np.float64(0.001), "samples": np.arange(3)},
+        registration={"transform": np.eye(4), "fitness": np.float32(1.0), "rmse": float("inf")},
+        regions=regions,
+        reference_label=np.zeros(reference.n_source, dtype=np.int8),
+        scan_label=scan_label,
+        reference_distance=np.zeros(reference.n_source, dtype=np.float32),
+        scan_distance=np.where(scan_label == 1, 1.0, 0.0).astype(np.float32),
+        timings={"align": 0.001},
+    )
+
+
+def pipeline_module() -> types.ModuleType:
+    """``app.core.pipeline`` (an empty stand-in module if the real one cannot be imported)."""
+    try:
+        import app.core.pipeline as pipeline
+    except ImportError:  # the real pipeline's dependencies are not importable (yet)
+        import app.core
+
+        pipeline = types.ModuleType("app.core.pipeline")
+        sys.modules["app.core.pipeline"] = pipeline
+        app.core.pipeline = pipeline  # type: ignore[attr-defined]
+    return pipeline
+
+
+def install() -> None:
+    """Make ``app.core.pipeline.compare`` the fake (for this process)."""
+    pipeline_module().compare = fake_compare  # type: ignore[attr-defined]
