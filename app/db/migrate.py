@@ -8,6 +8,7 @@ children's rows.
 
 from __future__ import annotations
 
+from functools import lru_cache
 from pathlib import Path
 
 from alembic import command
@@ -65,8 +66,9 @@ def downgrade_to_base(url: str) -> None:
     command.downgrade(alembic_config(url), "base")
 
 
+@lru_cache(maxsize=1)
 def head_revision() -> str | None:
-    """The newest revision of the migration scripts."""
+    """The newest revision of the migration scripts (read once per process)."""
     return ScriptDirectory.from_config(alembic_config("sqlite://")).get_current_head()
 
 

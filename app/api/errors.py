@@ -1,0 +1,110 @@
+"""One JSON shape for every error: ``{"error": <code>, "detail": <message>}`` with its status.
+
+Service errors (:class:`app.services.errors.AppError`) carry their status and code; core input
+errors map to 415 (unsupported format), 400 (malformed point cloud) or 422 (other bad input);
+request validation is 422; unknown routes and methods keep their status; anything else is a
+500 whose detail names the request id to look up in the logs.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
+
+from app.core.errors import InputError, PointCloudError, UnsupportedFormatError
+from app.services.errors import AppError
+
+logger = logging.getLogger("scandiff.api")
+
+_HTTP_CODES = {
+    400: "bad_request",
+    401: "unauthorized",
+    403: "forbidden",
+    404: "not_found",
+    405: "method_not_allowed",
+    406: "not_acceptable",
+    409: "conflict",
+    413: "payload_too_large",
+    415: "unsupported_media_type",
+    422: "validation_error",
+    429: "too_many_requests",
+}
+
+
+def error_response(
+    status_code: int, code: str, detail: str, headers: dict[str, str] | None = None
+) -> JSONResponse:
+    """The JSON error response."""
+    return JSONResponse({"error": code, "detail": detail}, status_code=status_code, headers=headers)
+
+
+def request_id_of(request: Request) -> str | None:
+    """The id the logging middleware gave this request."""
+    return request.scope.get("state", {}).get("request_id")
+
+
+async def handle_app_error(request: Request, exc: Exception) -> JSONResponse:
+    """Render a service error with its own status and code."""
+    assert isinstance(exc, AppError)
+    headers = {"WWW-Authenticate": "Bearer"} if exc.status_code == 401 else None
+    return error_response(exc.status_code, exc.code, exc.detail, headers)
+
+
+async def handle_input_error(request: Request, exc: Exception) -> JSONResponse:
+    """Render a core input error: 415 unknown format, 400 malformed cloud, 422 other input."""
+    if isinstance(exc, UnsupportedFormatError):
+        return error_response(415, "unsupported_format", str(exc))
+    if isinstance(exc, PointCloudError):
+        return error_response(400, "malformed_point_cloud", str(exc))
+    return error_response(422, "invalid_input", str(exc))
+
+
+def _location(error: dict[str, Any]) -> str:
+    return ".".join(str(part) for part in error.get("loc", ()))
+
+
+async def handle_validation_error(request: Request, exc: Exception) -> JSONResponse:
+    """Render request validation problems as one readable 422 message."""
+    assert isinstance(exc, RequestValidationError)
+    messages = [
+        f"{_location(error)}: {error.get('msg', 'invalid')}" if _location(error) else error["msg"]
+        for error in exc.errors()
+    ]
+    return error_response(422, "validation_error", "; ".join(messages) or "invalid request")
+
+
+async def handle_http_exception(request: Request, exc: Exception) -> JSONResponse:
+    """Render framework HTTP errors (unknown route, wrong method...) in the same shape."""
+    assert isinstance(exc, StarletteHTTPException)
+    code = _HTTP_CODES.get(exc.status_code, "error")
+    return error_response(exc.status_code, code, str(exc.detail), dict(exc.headers or {}) or None)
+
+
+async def handle_client_disconnect(request: Request, exc: Exception) -> JSONResponse:
+    """The client went away mid-request (nobody reads this answer)."""
+    return error_response(400, "client_disconnected", "the client disconnected mid-request")
+
+
+async def handle_unexpected_error(request: Request, exc: Exception) -> JSONResponse:
+    """Log the bug with the request id and answer a 500 without internals."""
+    request_id = request_id_of(request)
+    logger.exception("unhandled error (request id %s)", request_id)
+    return error_response(
+        500, "internal_error", f"internal server error; request id {request_id or 'unknown'}"
+    )
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Register every handler above on ``app``."""
+    app.add_exception_handler(AppError, handle_app_error)
+    app.add_exception_handler(InputError, handle_input_error)
+    app.add_exception_handler(RequestValidationError, handle_validation_error)
+    app.add_exception_handler(StarletteHTTPException, handle_http_exception)
+    app.add_exception_handler(ClientDisconnect, handle_client_disconnect)
+    app.add_exception_handler(Exception, handle_unexpected_error)

@@ -1,0 +1,58 @@
+"""Comparison jobs: creation, state and results."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Header, Query
+from fastapi.responses import FileResponse, JSONResponse
+
+from app.api.deps import PrincipalDep, SessionDep, SettingsDep, WriterDep
+from app.services import jobs as jobs_service
+from app.services import results as results_service
+from app.services.schemas import ErrorRead, JobCreate, JobRead, RegionRead
+
+router = APIRouter(tags=["jobs"])
+
+
+@router.post("/jobs", status_code=202, response_model=JobRead)
+def create_job(
+    payload: JobCreate,
+    session: SessionDep,
+    settings: SettingsDep,
+    principal: WriterDep,
+    idempotency_key: Annotated[str | None, Header(alias="Idempotency-Key")] = None,
+) -> JSONResponse:
+    """Queue a comparison of two scans of one site (e.g. a re-run with other parameters)."""
+    stored = jobs_service.create_job(session, settings, principal, payload, idempotency_key)
+    return JSONResponse(stored.body, status_code=stored.status_code)
+
+
+@router.get("/jobs/{job_id}", response_model=JobRead)
+def get_job(job_id: str, session: SessionDep, principal: PrincipalDep) -> JobRead:
+    """Read a job's state and results."""
+    return JobRead.from_model(jobs_service.get_job(session, principal, job_id))
+
+
+@router.get("/jobs/{job_id}/regions", response_model=list[RegionRead])
+def list_regions(job_id: str, session: SessionDep, principal: PrincipalDep) -> list[RegionRead]:
+    """The changed regions the job found (empty until it succeeded)."""
+    regions = jobs_service.list_regions(session, principal, job_id)
+    return [RegionRead.from_model(region) for region in regions]
+
+
+@router.get(
+    "/jobs/{job_id}/labels",
+    response_class=FileResponse,
+    responses={409: {"model": ErrorRead, "description": "The job has not succeeded."}},
+)
+def get_labels(
+    job_id: str,
+    session: SessionDep,
+    settings: SettingsDep,
+    principal: PrincipalDep,
+    format: Annotated[Literal["npz", "ply", "las"], Query(description="File format.")] = "npz",
+) -> FileResponse:
+    """Per-point labels: the npz of `scandiff compare --labels`, or both clouds as PLY/LAS."""
+    download = results_service.labels_file(session, settings, principal, job_id, format)
+    return FileResponse(download.path, media_type=download.media_type, filename=download.filename)

@@ -1,0 +1,248 @@
+"""Browser sessions and view links: signed cookies and URLs, no server-side session table.
+
+* A **session cookie** (``scandiff_session``, HttpOnly, SameSite=Strict) is what the dashboard
+  gets for a valid API token (``POST /api/v1/session``).  It holds the token's *id* (never the
+  token) and an expiry, signed with HMAC-SHA256; every request re-reads the token row, so
+  revoking the token ends its sessions at once.
+* A **view link** (``/jobs/{job_id}/view?link=...``) lets someone without a token open one job's
+  3D view until it expires (``view_link_ttl_seconds``, 24 h by default).  It is signed for that
+  job and names the token that made it (revoking the token kills its links).  Opening the link
+  also sets a cookie scoped to that view's path, because the viser client drops the query
+  string when it opens its websocket.
+
+The signing key is ``Settings.secret_key`` or, when unset, a random key generated once into
+``<data_dir>/secret-key`` (mode 0600) and shared by every process using that directory.
+
+The API's bearer-token dependency accepts the session cookie too by calling
+:func:`principal_from_session_cookie` when a request has no ``Authorization`` header.
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import hashlib
+import hmac
+import json
+import os
+import secrets
+import time
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlsplit
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+from starlette.requests import HTTPConnection
+
+from app.config import Settings, get_settings
+from app.db.models import ApiToken
+from app.services.auth import Principal, hash_token
+
+SESSION_COOKIE = "scandiff_session"
+VIEW_COOKIE = "scandiff_view"
+SESSION_TTL_SECONDS = 12 * 3600
+SECRET_KEY_FILE = "secret-key"
+SESSION_PURPOSE = "session"
+VIEW_LINK_PURPOSE = "view-link"
+SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+
+
+class SignatureInvalidError(Exception):
+    """A signed value was tampered with, malformed, signed for another purpose or expired."""
+
+    def __init__(self, message: str, *, expired: bool = False) -> None:
+        super().__init__(message)
+        self.expired = expired
+
+
+@dataclass(frozen=True)
+class ViewGrant:
+    """Why a connection may see a job's 3D view."""
+
+    job_id: str
+    token_id: str
+    via: str  # "session" or "link"
+    expires_at: float
+
+
+# -- keys and signatures -----------------------------------------------------------------------
+
+
+def settings_of(connection: HTTPConnection) -> Settings:
+    """The app's settings (``app.state.settings``), else the process-wide ones."""
+    settings = getattr(connection.app.state, "settings", None)
+    return settings if isinstance(settings, Settings) else get_settings()
+
+
+def secret_key(settings: Settings) -> bytes:
+    """The signing key: ``settings.secret_key`` or the one generated in the data directory."""
+    if settings.secret_key:
+        return settings.secret_key.encode()
+    return _data_dir_secret(settings.data_dir)
+
+
+@lru_cache(maxsize=16)
+def _data_dir_secret(data_dir: Path) -> bytes:
+    """Read ``<data_dir>/secret-key``, creating it (0600, atomically) on first use."""
+    path = data_dir / SECRET_KEY_FILE
+    if not path.exists():
+        data_dir.mkdir(parents=True, exist_ok=True)
+        temporary = data_dir / f".{SECRET_KEY_FILE}.{os.getpid()}.{secrets.token_hex(4)}"
+        descriptor = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        try:
+            with os.fdopen(descriptor, "w") as handle:
+                handle.write(secrets.token_urlsafe(48) + "\n")
+                handle.flush()
+                os.fsync(handle.fileno())
+            with contextlib.suppress(FileExistsError):  # another process won the race
+                os.link(temporary, path)
+        finally:
+            temporary.unlink(missing_ok=True)
+    key = path.read_text().strip()
+    if len(key) < 32:
+        raise RuntimeError(f"{path} holds no usable secret key; delete it to make a new one")
+    return key.encode()
+
+
+def _b64encode(data: bytes) -> str:
+    return base64.urlsafe_b64encode(data).rstrip(b"=").decode("ascii")
+
+
+def _b64decode(text: str) -> bytes:
+    return base64.urlsafe_b64decode(text + "=" * (-len(text) % 4))
+
+
+def _mac(key: bytes, purpose: str, body: str) -> bytes:
+    return hmac.new(key, f"{purpose}.{body}".encode(), hashlib.sha256).digest()
+
+
+def sign(payload: dict[str, Any], purpose: str, key: bytes) -> str:
+    """``payload`` (JSON, with an ``exp`` timestamp) signed for ``purpose``: ``body.mac``."""
+    body = _b64encode(json.dumps(payload, separators=(",", ":"), sort_keys=True).encode())
+    return f"{body}.{_b64encode(_mac(key, purpose, body))}"
+
+
+def verify(value: str, purpose: str, key: bytes, *, now: float | None = None) -> dict[str, Any]:
+    """The payload of a value made by :func:`sign` for ``purpose``.
+
+    Raises
+    ------
+    SignatureInvalidError
+        Bad format or signature (``expired=False``), or past its ``exp`` (``expired=True``).
+    """
+    body, _, mac = value.partition(".")
+    try:
+        given = _b64decode(mac)
+    except (ValueError, TypeError) as exc:
+        raise SignatureInvalidError("malformed signature") from exc
+    if not body or not hmac.compare_digest(given, _mac(key, purpose, body)):
+        raise SignatureInvalidError("bad signature")
+    try:
+        payload = json.loads(_b64decode(body))
+    except (ValueError, TypeError) as exc:
+        raise SignatureInvalidError("malformed payload") from exc
+    if not isinstance(payload, dict) or not isinstance(payload.get("exp"), (int, float)):
+        raise SignatureInvalidError("payload without expiry")
+    if (time.time() if now is None else now) >= payload["exp"]:
+        raise SignatureInvalidError("expired", expired=True)
+    return payload
+
+
+# -- tokens and sessions -----------------------------------------------------------------------
+
+
+def find_api_token(session: Session, raw_token: str) -> ApiToken | None:
+    """The live (not revoked) token row for a raw token."""
+    if not raw_token or not raw_token.strip():
+        return None
+    row = session.scalars(
+        select(ApiToken).where(ApiToken.token_hash == hash_token(raw_token.strip()))
+    ).first()
+    return row if row is not None and row.revoked_at is None else None
+
+
+def live_token_by_id(session: Session, token_id: str) -> ApiToken | None:
+    """The token row with this id unless it was revoked."""
+    row = session.get(ApiToken, token_id)
+    return row if row is not None and row.revoked_at is None else None
+
+
+def make_session_cookie(token: ApiToken, key: bytes, ttl: float = SESSION_TTL_SECONDS) -> str:
+    """The signed session cookie value for a token row."""
+    return sign({"tid": token.id, "exp": int(time.time() + ttl)}, SESSION_PURPOSE, key)
+
+
+def session_token_id(connection: HTTPConnection) -> str | None:
+    """The token id in the connection's valid session cookie, else None."""
+    value = connection.cookies.get(SESSION_COOKIE)
+    if not value:
+        return None
+    try:
+        payload = verify(value, SESSION_PURPOSE, secret_key(settings_of(connection)))
+    except SignatureInvalidError:
+        return None
+    token_id = payload.get("tid")
+    return token_id if isinstance(token_id, str) else None
+
+
+def same_origin(connection: HTTPConnection) -> bool:
+    """Whether the ``Origin`` header (when sent) names this server's host."""
+    origin = connection.headers.get("origin")
+    if not origin:
+        return True
+    host = connection.headers.get("host", "")
+    return urlsplit(origin).netloc.lower() == host.lower()
+
+
+def token_from_session_cookie(connection: HTTPConnection, session: Session) -> ApiToken | None:
+    """The live token row behind the request's session cookie, or None.
+
+    For requests that change things (not GET/HEAD/OPTIONS) and for websockets the ``Origin``,
+    when present, must be this server: a second guard against cross-site requests besides
+    SameSite=Strict.
+    """
+    token_id = session_token_id(connection)
+    if token_id is None:
+        return None
+    method = connection.scope.get("method", "GET") if connection.scope["type"] == "http" else ""
+    if method not in SAFE_METHODS and not same_origin(connection):
+        return None
+    return live_token_by_id(session, token_id)
+
+
+def principal_from_session_cookie(connection: HTTPConnection, session: Session) -> Principal | None:
+    """The principal of the request's session cookie (for the API's bearer dependency)."""
+    token = token_from_session_cookie(connection, session)
+    if token is None:
+        return None
+    return Principal(organisation_id=token.organisation_id, role=token.role, token_id=token.id)
+
+
+# -- view links --------------------------------------------------------------------------------
+
+
+def make_view_link(job_id: str, token: ApiToken, key: bytes, ttl: float) -> tuple[str, float]:
+    """A signed view-link value for ``job_id`` and when it expires (epoch seconds)."""
+    expires_at = float(int(time.time() + ttl))
+    value = sign({"job": job_id, "tid": token.id, "exp": expires_at}, VIEW_LINK_PURPOSE, key)
+    return value, expires_at
+
+
+def verify_view_link(value: str, job_id: str, key: bytes, session: Session) -> ViewGrant:
+    """The grant a view-link value gives for ``job_id``.
+
+    Raises
+    ------
+    SignatureInvalidError
+        Tampered, for another job, expired (``expired=True``) or its token was revoked.
+    """
+    payload = verify(value, VIEW_LINK_PURPOSE, key)
+    if payload.get("job") != job_id:
+        raise SignatureInvalidError("this link is for another job")
+    token_id = payload.get("tid")
+    if not isinstance(token_id, str) or live_token_by_id(session, token_id) is None:
+        raise SignatureInvalidError("the token that made this link was revoked")
+    return ViewGrant(job_id, token_id, "link", float(payload["exp"]))

@@ -1,0 +1,62 @@
+"""The FastAPI application: ``create_app(settings)``; ``uvicorn --factory app.main:create_app``.
+
+API v1 lives under ``/api/v1`` (see ``docs/api.md``), OpenAPI at ``/docs`` and
+``/openapi.json``.  The app does not migrate the database: ``scandiff serve`` applies the
+migrations and sweeps leftovers before starting it.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+
+from fastapi import FastAPI
+
+from app.api.errors import install_error_handlers
+from app.api.logs import RequestLogMiddleware, configure_logging
+from app.api.routes import api_router
+from app.config import Settings, get_settings
+from app.services import storage
+from app.services.health import service_version
+
+logger = logging.getLogger("scandiff.api")
+
+OPTIONAL_ROUTER_MODULES = ("app.viewer.routes",)
+"""Modules exposing a ``router`` mounted when present (built by other parts of the project)."""
+
+DESCRIPTION = (
+    "Detects and locates changes between 3D scans of a site. Authenticate with "
+    "`Authorization: Bearer <token>` (`scandiff token create`). Every error is "
+    '`{"error": <code>, "detail": <message>}`.'
+)
+
+
+def _include_optional_routers(app: FastAPI) -> None:
+    for module_name in OPTIONAL_ROUTER_MODULES:
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name == module_name:
+                continue
+            raise
+        app.include_router(module.router)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The application for ``settings`` (default: from ``SCANDIFF_*`` environment variables)."""
+    settings = settings or get_settings()
+    configure_logging(settings.log_level)
+    storage.ensure_directories(settings)
+    app = FastAPI(
+        title="scandiff",
+        version=service_version(),
+        description=DESCRIPTION,
+        docs_url="/docs",
+        openapi_url="/openapi.json",
+    )
+    app.state.settings = settings
+    install_error_handlers(app)
+    app.add_middleware(RequestLogMiddleware)
+    app.include_router(api_router)
+    _include_optional_routers(app)
+    return app

@@ -1,0 +1,168 @@
+"""Comparison jobs: creation (enqueued after commit), reads, the site timeline and regions.
+
+The job row is the truth; the queue only carries its id.  A job is enqueued only after the
+transaction that created it committed (an enqueue that fails leaves the job ``queued`` for the
+recovery sweep).  Running jobs is the worker's business (:mod:`app.jobs`).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from app.config import Settings
+from app.db.models import Job, Region, Scan
+from app.services import idempotency, sites
+from app.services.auth import Principal
+from app.services.errors import NotFoundError, ValidationFailedError
+from app.services.idempotency import StoredResponse
+from app.services.paging import newest_first_page
+from app.services.schemas import JobCreate, JobRead, as_utc
+from app.services.transaction import after_commit
+
+logger = logging.getLogger("scandiff.services.jobs")
+
+
+def enqueue_after_commit(job_id: str, settings: Settings) -> None:
+    """Hand the job id to the queue (called once the job row is committed)."""
+    try:
+        from app.jobs.queue import enqueue_job
+    except ModuleNotFoundError as exc:
+        if exc.name not in ("app.jobs.queue",):
+            raise
+        logger.warning("job queue not available; job %s waits for the recovery sweep", job_id)
+        return
+    enqueue_job(job_id, settings)
+
+
+def new_job(
+    session: Session,
+    settings: Settings,
+    *,
+    organisation_id: str,
+    site_id: str,
+    reference_scan_id: str,
+    scan_id: str,
+    method: str,
+    variant: str,
+    params: dict[str, Any],
+) -> Job:
+    """Insert a queued job (parameters already validated) and enqueue it after commit."""
+    job = Job(
+        organisation_id=organisation_id,
+        site_id=site_id,
+        reference_scan_id=reference_scan_id,
+        scan_id=scan_id,
+        method=method,
+        variant=variant,
+        params=params,
+        status="queued",
+        progress=0.0,
+        attempts=0,
+        max_attempts=settings.job_max_attempts,
+    )
+    session.add(job)
+    session.flush()
+    job_id = job.id
+    after_commit(session, lambda: enqueue_after_commit(job_id, settings))
+    return job
+
+
+def _get_scan(session: Session, principal: Principal, scan_id: str) -> Scan:
+    scan = session.scalar(
+        select(Scan).where(Scan.id == scan_id, Scan.organisation_id == principal.organisation_id)
+    )
+    if scan is None:
+        raise NotFoundError(f"scan {scan_id} not found")
+    return scan
+
+
+def create_job(
+    session: Session,
+    settings: Settings,
+    principal: Principal,
+    payload: JobCreate,
+    idempotency_key: str | None,
+) -> StoredResponse:
+    """Create a comparison of two scans of one site (202), replaying on a known key."""
+    key = idempotency.validate_key(idempotency_key)
+    record = None
+    if key is not None:
+        fingerprint = idempotency.request_fingerprint(
+            "POST", "/api/v1/jobs", payload.model_dump(mode="json")
+        )
+        record, stored = idempotency.claim(session, principal.organisation_id, key, fingerprint)
+        if stored is not None:
+            return stored
+    reference = _get_scan(session, principal, payload.reference_scan_id)
+    scan = _get_scan(session, principal, payload.scan_id)
+    if reference.site_id != scan.site_id:
+        raise ValidationFailedError(
+            "the reference and the scan belong to different sites; compare scans of one site",
+            code="scans_of_different_sites",
+        )
+    site = sites.get_site(session, principal, scan.site_id)
+    method, variant, params = sites.resolve_detector(
+        site, payload.method, payload.variant, payload.params
+    )
+    job = new_job(
+        session,
+        settings,
+        organisation_id=principal.organisation_id,
+        site_id=site.id,
+        reference_scan_id=reference.id,
+        scan_id=scan.id,
+        method=method,
+        variant=variant,
+        params=params,
+    )
+    response = StoredResponse(202, JobRead.from_model(job).model_dump(mode="json"))
+    return idempotency.remember(record, response)
+
+
+def get_job(session: Session, principal: Principal, job_id: str) -> Job:
+    """The principal's job ``job_id``; 404 when it does not exist or is another's."""
+    job = session.scalar(
+        select(Job).where(Job.id == job_id, Job.organisation_id == principal.organisation_id)
+    )
+    if job is None:
+        raise NotFoundError(f"job {job_id} not found")
+    return job
+
+
+def list_site_jobs(
+    session: Session,
+    principal: Principal,
+    site_id: str,
+    *,
+    changed: bool | None,
+    status: str | None,
+    since: datetime | None,
+    limit: int,
+    cursor: str | None,
+) -> tuple[Sequence[Job], str | None]:
+    """A site's jobs, newest first, filtered by decision, status and creation time; one page."""
+    site = sites.get_site(session, principal, site_id)
+    statement = select(Job).where(
+        Job.site_id == site.id, Job.organisation_id == principal.organisation_id
+    )
+    if changed is not None:
+        statement = statement.where(Job.changed.is_(changed))
+    if status is not None:
+        statement = statement.where(Job.status == status)
+    if since is not None:
+        statement = statement.where(Job.created_at >= as_utc(since))
+    return newest_first_page(session, statement, Job, limit, cursor)
+
+
+def list_regions(session: Session, principal: Principal, job_id: str) -> Sequence[Region]:
+    """The changed regions a job found, in the job's order (empty until it succeeded)."""
+    job = get_job(session, principal, job_id)
+    return session.scalars(
+        select(Region).where(Region.job_id == job.id).order_by(Region.ordinal)
+    ).all()

@@ -1,0 +1,157 @@
+"""Per-point results of a job as files: the worker's ``labels.npz``, or PLY/LAS of both clouds.
+
+``npz`` is the worker's file as written (exactly the arrays of ``scandiff compare --labels``:
+``reference_changed, scan_changed, reference_label, scan_label``, one entry per source row).
+``ply``/``las`` hold the finite points of both clouds in the reference's file frame (the scan
+moved by the job's registration) with per-point fields ``cloud`` (0 reference, 1 scan),
+``label`` (1 changed, 0 unchanged, -1 unobserved) and ``distance`` (NaN where unknown).  They
+are built on first request, outside any transaction, and kept next to the labels.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from sqlalchemy.orm import Session
+
+from app.config import Settings
+from app.db.models import new_id
+from app.services import jobs, scans, storage
+from app.services.auth import Principal
+from app.services.errors import ConflictError, NotFoundError
+from app.services.scans import PARSE_SLOTS, DownloadFile
+from app.services.transaction import end_read_transaction
+
+LABEL_FORMATS = ("npz", "ply", "las")
+DETAILS_FILE = "details.npz"
+
+
+@dataclass(frozen=True)
+class CloudSource:
+    """A stored scan file to read."""
+
+    path: Path
+    format: str
+    filename: str
+
+
+def _load_cloud_fields(
+    cloud_source: CloudSource,
+    labels: np.ndarray,
+    distances: np.ndarray | None,
+    max_points: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    from app.core.formats import read_point_cloud
+
+    cloud = read_point_cloud(
+        cloud_source.path,
+        cloud_source.format,
+        filename=cloud_source.filename,
+        max_points=max_points,
+    )
+    if labels.shape != (cloud.n_source,):
+        raise ConflictError(
+            f"the job's labels have {labels.shape[0]} entries but {cloud_source.filename} has "
+            f"{cloud.n_source} points; the stored results do not match the scan"
+        )
+    point_labels = labels[cloud.source_index].astype(np.int8)
+    if distances is not None and distances.shape == (cloud.n_source,):
+        point_distances = distances[cloud.source_index].astype(np.float32)
+    else:
+        point_distances = np.full(len(cloud), np.nan, dtype=np.float32)
+    return cloud.points, point_labels, point_distances
+
+
+def _scan_to_reference_frame(points: np.ndarray, registration: dict[str, Any] | None) -> np.ndarray:
+    transform = np.asarray((registration or {}).get("transform", np.eye(4)), dtype=np.float64)
+    if transform.shape != (4, 4) or not np.isfinite(transform).all():
+        return points
+    return points @ transform[:3, :3].T + transform[:3, 3]
+
+
+def build_labels_cloud(
+    target: Path,
+    file_format: str,
+    labels_path: Path,
+    reference: CloudSource,
+    scan: CloudSource,
+    registration: dict[str, Any] | None,
+    settings: Settings,
+) -> None:
+    """Write both clouds with ``cloud``, ``label`` and ``distance`` fields to ``target``."""
+    from app.core.formats import write_point_cloud
+
+    with PARSE_SLOTS:
+        with np.load(labels_path) as labels_file:
+            reference_label = np.asarray(labels_file["reference_label"])
+            scan_label = np.asarray(labels_file["scan_label"])
+        details_path = labels_path.parent / DETAILS_FILE
+        reference_distance = scan_distance = None
+        if details_path.is_file():
+            with np.load(details_path) as details_file:
+                reference_distance = np.asarray(details_file["reference_distance"])
+                scan_distance = np.asarray(details_file["scan_distance"])
+        reference_points, reference_labels, reference_distances = _load_cloud_fields(
+            reference, reference_label, reference_distance, settings.max_points
+        )
+        scan_points, scan_labels, scan_distances = _load_cloud_fields(
+            scan, scan_label, scan_distance, settings.max_points
+        )
+        scan_points = _scan_to_reference_frame(scan_points, registration)
+        points = np.vstack([reference_points, scan_points])
+        fields = {
+            "cloud": np.concatenate(
+                [np.zeros(len(reference_points), np.uint8), np.ones(len(scan_points), np.uint8)]
+            ),
+            "label": np.concatenate([reference_labels, scan_labels]),
+            "distance": np.concatenate([reference_distances, scan_distances]),
+        }
+        temporary = target.parent / f".{target.name}.{os.getpid()}-{new_id()}.tmp"
+        try:
+            write_point_cloud(temporary, points, fields, format=file_format)
+            storage.install_file(temporary, target)
+        finally:
+            storage.remove_file(temporary)
+
+
+def labels_file(
+    session: Session, settings: Settings, principal: Principal, job_id: str, file_format: str
+) -> DownloadFile:
+    """The per-point labels of a succeeded job as ``npz``, ``ply`` or ``las``."""
+    job = jobs.get_job(session, principal, job_id)
+    if job.status != "succeeded" or not job.labels_path:
+        raise ConflictError(
+            f"job {job.id} is {job.status}; its labels exist once it has succeeded",
+            code="job_not_succeeded",
+        )
+    labels_path = storage.resolve_data_path(settings, job.labels_path)
+    if not labels_path.is_file():
+        raise NotFoundError(f"the labels of job {job.id} are missing from storage")
+    if file_format == "npz":
+        end_read_transaction(session)
+        return DownloadFile(path=labels_path, filename=f"{job.id}-labels.npz")
+    reference_scan = scans.get_scan(session, principal, job.reference_scan_id)
+    scan = scans.get_scan(session, principal, job.scan_id)
+    reference = CloudSource(
+        path=storage.resolve_data_path(settings, reference_scan.storage_path),
+        format=reference_scan.format,
+        filename=reference_scan.filename,
+    )
+    compared = CloudSource(
+        path=storage.resolve_data_path(settings, scan.storage_path),
+        format=scan.format,
+        filename=scan.filename,
+    )
+    registration = dict(job.registration or {})
+    download_name = f"{job.id}-labels.{file_format}"
+    end_read_transaction(session)
+    target = labels_path.parent / f"labels.{file_format}"
+    if not target.is_file():
+        build_labels_cloud(
+            target, file_format, labels_path, reference, compared, registration, settings
+        )
+    return DownloadFile(path=target, filename=download_name)

@@ -1,0 +1,266 @@
+"""Scans: uploads (stream, store, parse, then register), reads and downloads of the originals.
+
+An upload never holds a database transaction while it reads the body or parses the cloud:
+a short read checks the site first (404, 409 without a reference, 422 for a bad detector), the
+body streams to a temporary file under the size cap, the core reader parses it (a malformed file
+is a 4xx with the core's message, nothing is stored), the file is renamed into place, and only
+then a short write transaction inserts the scan and its job (and the idempotency record).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from collections.abc import AsyncIterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import anyio
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from app.config import Settings
+from app.db.models import Scan, new_id
+from app.services import idempotency, jobs, sites, storage
+from app.services.auth import Principal
+from app.services.errors import ConflictError, NotFoundError
+from app.services.idempotency import StoredResponse
+from app.services.paging import newest_first_page
+from app.services.schemas import JobRead, ScanRead, UploadRead
+from app.services.transaction import after_rollback, end_read_transaction
+
+PARSE_SLOTS = threading.BoundedSemaphore(2)
+"""At most this many clouds are parsed at once per process (each may take gigabytes)."""
+
+
+@dataclass(frozen=True)
+class UploadOptions:
+    """What an upload request asks for, besides its body."""
+
+    site_id: str
+    reference: bool
+    filename: str | None
+    method: str | None = None
+    variant: str | None = None
+    idempotency_key: str | None = None
+
+
+class UploadBody(Protocol):
+    """A request body being received: its bytes, then the client's file name once known."""
+
+    def chunks(self) -> AsyncIterator[bytes]:
+        """The bytes of the file, in order (may raise the service's errors)."""
+        ...
+
+    @property
+    def filename(self) -> str | None:
+        """The file name the client gave in the body (multipart), once ``chunks`` is consumed."""
+        ...
+
+
+@dataclass(frozen=True)
+class ParsedScan:
+    """What the core reader found in an upload."""
+
+    format: str
+    n_points: int
+    n_dropped: int
+    bbox_min: list[float]
+    bbox_max: list[float]
+
+
+@dataclass(frozen=True)
+class DownloadFile:
+    """A stored file to send back."""
+
+    path: Path
+    filename: str
+    media_type: str = "application/octet-stream"
+
+
+def no_reference_message(site_id: str) -> str:
+    """The 409 message for a comparison upload to a site without a reference."""
+    return (
+        f"site {site_id} has no reference scan yet: upload one first with "
+        f"POST /api/v1/sites/{site_id}/scans?reference=true"
+    )
+
+
+def _check_upload_target(session: Session, principal: Principal, options: UploadOptions) -> None:
+    site = sites.get_site(session, principal, options.site_id)
+    if not options.reference:
+        if site.reference_scan_id is None:
+            raise ConflictError(no_reference_message(site.id), code="no_reference")
+        sites.resolve_detector(site, options.method, options.variant)
+    end_read_transaction(session)
+
+
+def _find_replay(
+    session: Session, principal: Principal, key: str, fingerprint: str
+) -> StoredResponse | None:
+    stored = idempotency.find_response(session, principal.organisation_id, key, fingerprint)
+    end_read_transaction(session)
+    return stored
+
+
+def parse_upload(path: Path, filename: str | None, head: bytes, max_points: int) -> ParsedScan:
+    """Detect the format and read the cloud with the core (raises the core's errors)."""
+    from app.core.formats import detect_format, read_point_cloud
+
+    with PARSE_SLOTS:
+        file_format = detect_format(filename, head)
+        cloud = read_point_cloud(
+            path, file_format, filename=filename or "upload", max_points=max_points
+        )
+        low, high = cloud.bounds()
+        return ParsedScan(
+            format=file_format,
+            n_points=len(cloud),
+            n_dropped=cloud.n_dropped,
+            bbox_min=[float(value) for value in low],
+            bbox_max=[float(value) for value in high],
+        )
+
+
+def _register_upload(
+    session: Session,
+    settings: Settings,
+    principal: Principal,
+    options: UploadOptions,
+    fingerprint: str,
+    scan: Scan,
+) -> tuple[StoredResponse, bool]:
+    """Insert the scan (and its job) in the request's transaction; ``(response, created)``."""
+    record = None
+    if options.idempotency_key is not None:
+        record, stored = idempotency.claim(
+            session, principal.organisation_id, options.idempotency_key, fingerprint
+        )
+        if stored is not None:
+            return stored, False
+    site = sites.get_site(session, principal, options.site_id)
+    if not options.reference and site.reference_scan_id is None:
+        raise ConflictError(no_reference_message(site.id), code="no_reference")
+    session.add(scan)
+    session.flush()
+    if options.reference:
+        sites.set_reference(session, site, scan)
+        response = StoredResponse(
+            201, UploadRead(scan=ScanRead.from_model(scan), job=None).model_dump(mode="json")
+        )
+    else:
+        method, variant, params = sites.resolve_detector(site, options.method, options.variant)
+        job = jobs.new_job(
+            session,
+            settings,
+            organisation_id=principal.organisation_id,
+            site_id=site.id,
+            reference_scan_id=site.reference_scan_id,
+            scan_id=scan.id,
+            method=method,
+            variant=variant,
+            params=params,
+        )
+        response = StoredResponse(
+            202,
+            UploadRead(scan=ScanRead.from_model(scan), job=JobRead.from_model(job)).model_dump(
+                mode="json"
+            ),
+        )
+    return idempotency.remember(record, response), True
+
+
+async def upload_scan(
+    session: Session,
+    settings: Settings,
+    principal: Principal,
+    options: UploadOptions,
+    body: UploadBody,
+) -> StoredResponse:
+    """Receive a scan: 201 when it becomes the reference, else 202 with its comparison job."""
+    key = idempotency.validate_key(options.idempotency_key)
+    await anyio.to_thread.run_sync(_check_upload_target, session, principal, options)
+    received = await storage.receive_stream(body.chunks(), settings, settings.max_upload_bytes)
+    try:
+        filename = storage.sanitise_filename(options.filename or body.filename)
+        fingerprint = idempotency.request_fingerprint(
+            "POST",
+            f"/api/v1/sites/{options.site_id}/scans",
+            {
+                "reference": options.reference,
+                "filename": filename,
+                "method": options.method,
+                "variant": options.variant,
+                "sha256": received.sha256,
+            },
+        )
+        if key is not None:
+            stored = await anyio.to_thread.run_sync(
+                _find_replay, session, principal, key, fingerprint
+            )
+            if stored is not None:
+                return stored
+        parsed = await anyio.to_thread.run_sync(
+            parse_upload, received.path, filename, received.head, settings.max_points
+        )
+        scan_id = new_id()
+        storage_path = storage.scan_storage_path(options.site_id, scan_id, parsed.format)
+        final_path = storage.resolve_data_path(settings, storage_path)
+        await anyio.to_thread.run_sync(storage.install_file, received.path, final_path)
+        after_rollback(session, lambda: storage.remove_file(final_path))
+        scan = Scan(
+            id=scan_id,
+            organisation_id=principal.organisation_id,
+            site_id=options.site_id,
+            filename=filename or f"scan.{parsed.format}",
+            format=parsed.format,
+            size_bytes=received.size_bytes,
+            sha256=received.sha256,
+            storage_path=storage_path,
+            n_points=parsed.n_points,
+            n_dropped=parsed.n_dropped,
+            bbox_min=parsed.bbox_min,
+            bbox_max=parsed.bbox_max,
+        )
+        keyed_options = dataclasses.replace(options, idempotency_key=key)
+        response, created = await anyio.to_thread.run_sync(
+            _register_upload, session, settings, principal, keyed_options, fingerprint, scan
+        )
+        if not created:
+            storage.remove_file(final_path)
+        return response
+    finally:
+        storage.remove_file(received.path)  # gone already when it was installed
+
+
+def get_scan(session: Session, principal: Principal, scan_id: str) -> Scan:
+    """The principal's scan ``scan_id``; 404 when it does not exist or is another's."""
+    scan = session.scalar(
+        select(Scan).where(Scan.id == scan_id, Scan.organisation_id == principal.organisation_id)
+    )
+    if scan is None:
+        raise NotFoundError(f"scan {scan_id} not found")
+    return scan
+
+
+def list_site_scans(
+    session: Session, principal: Principal, site_id: str, limit: int, cursor: str | None
+) -> tuple[Sequence[Scan], str | None]:
+    """A site's scans, newest first, one page."""
+    site = sites.get_site(session, principal, site_id)
+    statement = select(Scan).where(
+        Scan.site_id == site.id, Scan.organisation_id == principal.organisation_id
+    )
+    return newest_first_page(session, statement, Scan, limit, cursor)
+
+
+def scan_file(
+    session: Session, settings: Settings, principal: Principal, scan_id: str
+) -> DownloadFile:
+    """The original bytes of a scan as uploaded."""
+    scan = get_scan(session, principal, scan_id)
+    path = storage.resolve_data_path(settings, scan.storage_path)
+    if not path.is_file():
+        raise NotFoundError(f"the file of scan {scan_id} is missing from storage")
+    return DownloadFile(path=path, filename=scan.filename)

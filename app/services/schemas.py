@@ -1,0 +1,251 @@
+"""Request and response bodies of the API (``XCreate`` / ``XUpdate`` / ``XRead``).
+
+Read models are built from ORM rows by ``from_model``; datetimes are rendered as UTC with an
+offset (SQLite hands them back naive).
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Annotated, Any, Generic, Literal, TypeVar
+
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StringConstraints
+
+from app.db.models import Job, Region, Scan, Site
+
+
+def as_utc(value: datetime) -> datetime:
+    """``value`` as an aware UTC datetime (naive values are taken to be UTC)."""
+    if value.tzinfo is None:
+        return value.replace(tzinfo=UTC)
+    return value.astimezone(UTC)
+
+
+UtcDatetime = Annotated[datetime, AfterValidator(as_utc)]
+Name = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=200)]
+Identifier = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=64)]
+JobStatus = Literal["queued", "running", "succeeded", "failed"]
+
+ItemT = TypeVar("ItemT")
+
+
+class StrictBody(BaseModel):
+    """A request body that rejects unknown fields (a typo is a 422, not silently ignored)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+class DetectorConfig(StrictBody):
+    """A detector: method (``pca``, ``gmm``, ``planes``...), variant and keyword parameters."""
+
+    method: Identifier
+    variant: Identifier
+    params: dict[str, Any] = Field(default_factory=dict)
+
+
+class SiteCreate(StrictBody):
+    """A new site; the detector defaults to the service's default (GMM-EMD, improved)."""
+
+    name: Name
+    description: Annotated[str, StringConstraints(max_length=10_000)] | None = None
+    detector: DetectorConfig | None = None
+
+
+class SiteUpdate(StrictBody):
+    """Fields of a site to change; absent fields are kept."""
+
+    name: Name | None = None
+    description: Annotated[str, StringConstraints(max_length=10_000)] | None = None
+    detector: DetectorConfig | None = None
+
+
+class SiteRead(BaseModel):
+    """A site as the API shows it."""
+
+    id: str
+    name: str
+    description: str | None
+    detector: DetectorConfig
+    reference_scan_id: str | None
+    created_at: UtcDatetime
+    updated_at: UtcDatetime
+
+    @classmethod
+    def from_model(cls, site: Site) -> SiteRead:
+        """Build from a ``Site`` row."""
+        return cls(
+            id=site.id,
+            name=site.name,
+            description=site.description,
+            detector=DetectorConfig(
+                method=site.detector_method,
+                variant=site.detector_variant,
+                params=dict(site.detector_params or {}),
+            ),
+            reference_scan_id=site.reference_scan_id,
+            created_at=site.created_at,
+            updated_at=site.updated_at,
+        )
+
+
+class ReferencePromote(StrictBody):
+    """Make an existing scan of the site its reference."""
+
+    scan_id: Identifier
+
+
+class ScanRead(BaseModel):
+    """An uploaded scan: metadata of the stored original file."""
+
+    id: str
+    site_id: str
+    filename: str
+    format: str
+    size_bytes: int
+    sha256: str
+    n_points: int
+    n_dropped: int
+    bbox_min: list[float]
+    bbox_max: list[float]
+    created_at: UtcDatetime
+
+    @classmethod
+    def from_model(cls, scan: Scan) -> ScanRead:
+        """Build from a ``Scan`` row."""
+        return cls(
+            id=scan.id,
+            site_id=scan.site_id,
+            filename=scan.filename,
+            format=scan.format,
+            size_bytes=scan.size_bytes,
+            sha256=scan.sha256,
+            n_points=scan.n_points,
+            n_dropped=scan.n_dropped,
+            bbox_min=list(scan.bbox_min),
+            bbox_max=list(scan.bbox_max),
+            created_at=scan.created_at,
+        )
+
+
+class JobCreate(StrictBody):
+    """Any comparison of two scans of one site; method/variant/params default to the site's."""
+
+    reference_scan_id: Identifier
+    scan_id: Identifier
+    method: Identifier | None = None
+    variant: Identifier | None = None
+    params: dict[str, Any] | None = None
+
+
+class JobRead(BaseModel):
+    """A comparison job: its inputs, state and results."""
+
+    id: str
+    site_id: str
+    reference_scan_id: str
+    scan_id: str
+    status: JobStatus
+    progress: float
+    stage: str | None
+    attempts: int
+    max_attempts: int
+    method: str
+    variant: str
+    params: dict[str, Any]
+    score: float | None
+    threshold: float | None
+    changed: bool | None
+    calibration: dict[str, Any] | None
+    registration: dict[str, Any] | None
+    n_regions: int | None
+    error: str | None
+    timings: dict[str, float] | None
+    created_at: UtcDatetime
+    started_at: UtcDatetime | None
+    finished_at: UtcDatetime | None
+
+    @classmethod
+    def from_model(cls, job: Job) -> JobRead:
+        """Build from a ``Job`` row."""
+        return cls(
+            id=job.id,
+            site_id=job.site_id,
+            reference_scan_id=job.reference_scan_id,
+            scan_id=job.scan_id,
+            status=job.status,  # type: ignore[arg-type]
+            progress=job.progress,
+            stage=job.stage,
+            attempts=job.attempts,
+            max_attempts=job.max_attempts,
+            method=job.method,
+            variant=job.variant,
+            params=dict(job.params or {}),
+            score=job.score,
+            threshold=job.threshold,
+            changed=job.changed,
+            calibration=job.calibration,
+            registration=job.registration,
+            n_regions=job.n_regions,
+            error=job.error,
+            timings=job.timings,
+            created_at=job.created_at,
+            started_at=job.started_at,
+            finished_at=job.finished_at,
+        )
+
+
+class RegionRead(BaseModel):
+    """A connected cluster of changed points (``added``: new in the scan; ``removed``: gone)."""
+
+    id: str
+    kind: str
+    n_points: int
+    centroid: list[float]
+    bbox_min: list[float]
+    bbox_max: list[float]
+    mean_distance: float
+    max_distance: float
+
+    @classmethod
+    def from_model(cls, region: Region) -> RegionRead:
+        """Build from a ``Region`` row."""
+        return cls(
+            id=region.id,
+            kind=region.kind,
+            n_points=region.n_points,
+            centroid=list(region.centroid),
+            bbox_min=list(region.bbox_min),
+            bbox_max=list(region.bbox_max),
+            mean_distance=region.mean_distance,
+            max_distance=region.max_distance,
+        )
+
+
+class UploadRead(BaseModel):
+    """Answer to an upload: the stored scan and, unless it became the reference, its job."""
+
+    scan: ScanRead
+    job: JobRead | None
+
+
+class Page(BaseModel, Generic[ItemT]):
+    """One page of a list, newest first; pass ``next_cursor`` as ``cursor`` for the next one."""
+
+    items: list[ItemT]
+    next_cursor: str | None
+
+
+class ErrorRead(BaseModel):
+    """Every error: a stable code and a human-readable message."""
+
+    error: str
+    detail: str
+
+
+class HealthRead(BaseModel):
+    """Whether the database and the queue work."""
+
+    status: Literal["ok", "degraded", "unavailable"]
+    version: str
+    database: dict[str, Any]
+    queue: dict[str, Any]

@@ -1,0 +1,202 @@
+"""Sites: a place scanned over time, with its detector settings and current reference scan."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from sqlalchemy import delete, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from app.config import Settings
+from app.core.errors import InputError
+from app.db.models import Job, ReferenceHistory, Region, Scan, Site
+from app.services import storage
+from app.services.auth import Principal
+from app.services.errors import ConflictError, NotFoundError, ValidationFailedError
+from app.services.paging import newest_first_page
+from app.services.schemas import SiteCreate, SiteUpdate
+from app.services.transaction import after_commit
+
+DEFAULT_METHOD = "gmm"
+DEFAULT_VARIANT = "improved"
+
+
+PIPELINE_PARAM_KEYS = (
+    "random_state",
+    "align",
+    "variant",
+    "registration",
+    "localisation",
+    "reference_origin",
+    "scan_origin",
+)
+"""Keys of a job's ``params`` that ``app.core.pipeline.compare`` consumes itself (the rest are
+detector keyword parameters)."""
+
+
+def validate_detector(method: str, variant: str, params: dict[str, Any]) -> None:
+    """Check that ``compare`` would accept these settings; 422 with the core's message otherwise.
+
+    The detector keyword parameters go through ``make_detector`` (unknown method, variant or
+    parameter, or a bad value); the pipeline's own keys get a shape check.
+    """
+    from app.core.detectors import make_detector
+
+    if "variant" in params and params["variant"] != variant:
+        raise ValidationFailedError(
+            f"params say variant {params['variant']!r} but variant {variant!r} was requested",
+            code="invalid_detector",
+        )
+    for stage in ("registration", "localisation"):
+        if params.get(stage) is not None and not isinstance(params[stage], dict):
+            raise ValidationFailedError(
+                f"params.{stage} must be an object of keyword parameters", code="invalid_detector"
+            )
+    random_state = params.get("random_state", 0)
+    if isinstance(random_state, bool) or not isinstance(random_state, int):
+        raise ValidationFailedError("params.random_state must be an integer")
+    detector_params = {
+        name: value for name, value in params.items() if name not in PIPELINE_PARAM_KEYS
+    }
+    try:
+        make_detector(method, variant, random_state=random_state, **detector_params)
+    except InputError as exc:
+        raise ValidationFailedError(str(exc), code="invalid_detector") from exc
+    except TypeError as exc:  # a parameter the detector's constructor does not take
+        raise ValidationFailedError(
+            f"invalid parameters for {method}/{variant}: {exc}", code="invalid_detector"
+        ) from exc
+
+
+def resolve_detector(
+    site: Site, method: str | None, variant: str | None, params: dict[str, Any] | None = None
+) -> tuple[str, str, dict[str, Any]]:
+    """The detector of a job: overrides, else the site's; validated.
+
+    Without explicit ``params`` the site's parameters are kept only when method and variant
+    are the site's (another detector takes its own defaults).
+    """
+    chosen_method = method or site.detector_method
+    chosen_variant = variant or site.detector_variant
+    if params is None:
+        same_detector = (chosen_method, chosen_variant) == (
+            site.detector_method,
+            site.detector_variant,
+        )
+        params = dict(site.detector_params or {}) if same_detector else {}
+    validate_detector(chosen_method, chosen_variant, params)
+    return chosen_method, chosen_variant, params
+
+
+def get_site(session: Session, principal: Principal, site_id: str) -> Site:
+    """The principal's site ``site_id``; 404 when it does not exist or is another's."""
+    site = session.scalar(
+        select(Site).where(Site.id == site_id, Site.organisation_id == principal.organisation_id)
+    )
+    if site is None:
+        raise NotFoundError(f"site {site_id} not found")
+    return site
+
+
+def list_sites(
+    session: Session, principal: Principal, limit: int, cursor: str | None
+) -> tuple[Sequence[Site], str | None]:
+    """The principal's sites, newest first, one page."""
+    statement = select(Site).where(Site.organisation_id == principal.organisation_id)
+    return newest_first_page(session, statement, Site, limit, cursor)
+
+
+def _flush_unique_name(session: Session, name: str) -> None:
+    try:
+        with session.begin_nested():
+            session.flush()
+    except IntegrityError as exc:
+        raise ConflictError(f"a site named {name!r} already exists", code="site_exists") from exc
+
+
+def create_site(session: Session, principal: Principal, payload: SiteCreate) -> Site:
+    """Create a site (detector validated; default GMM-EMD improved)."""
+    detector = payload.detector
+    method = detector.method if detector else DEFAULT_METHOD
+    variant = detector.variant if detector else DEFAULT_VARIANT
+    params = dict(detector.params) if detector else {}
+    validate_detector(method, variant, params)
+    site = Site(
+        organisation_id=principal.organisation_id,
+        name=payload.name,
+        description=payload.description,
+        detector_method=method,
+        detector_variant=variant,
+        detector_params=params,
+    )
+    session.add(site)
+    _flush_unique_name(session, payload.name)
+    return site
+
+
+def update_site(session: Session, principal: Principal, site_id: str, payload: SiteUpdate) -> Site:
+    """Change a site's name, description or detector (only the fields given)."""
+    site = get_site(session, principal, site_id)
+    fields = payload.model_fields_set
+    if "name" in fields:
+        if payload.name is None:
+            raise ValidationFailedError("name cannot be null")
+        site.name = payload.name
+    if "description" in fields:
+        site.description = payload.description
+    if "detector" in fields:
+        if payload.detector is None:
+            raise ValidationFailedError("detector cannot be null")
+        params = dict(payload.detector.params)
+        validate_detector(payload.detector.method, payload.detector.variant, params)
+        site.detector_method = payload.detector.method
+        site.detector_variant = payload.detector.variant
+        site.detector_params = params
+    _flush_unique_name(session, site.name)
+    return site
+
+
+def delete_site(session: Session, settings: Settings, principal: Principal, site_id: str) -> None:
+    """Delete a site with its scans, jobs and regions; their files go once the rows are gone."""
+    site = get_site(session, principal, site_id)
+    job_ids = list(session.scalars(select(Job.id).where(Job.site_id == site.id)))
+    if job_ids:
+        session.execute(delete(Region).where(Region.job_id.in_(job_ids)))
+    session.execute(delete(Job).where(Job.site_id == site.id))
+    session.execute(delete(ReferenceHistory).where(ReferenceHistory.site_id == site.id))
+    session.execute(delete(Scan).where(Scan.site_id == site.id))
+    session.delete(site)
+    session.flush()
+
+    def remove_files() -> None:
+        storage.remove_tree(storage.site_scans_directory(settings, site_id))
+        for job_id in job_ids:
+            storage.remove_tree(storage.job_results_directory(settings, job_id))
+
+    after_commit(session, remove_files)
+
+
+def set_reference(session: Session, site: Site, scan: Scan) -> None:
+    """Make ``scan`` the site's reference and record it in the reference history."""
+    site.reference_scan_id = scan.id
+    session.add(ReferenceHistory(site_id=site.id, scan_id=scan.id))
+    session.flush()
+
+
+def promote_reference(session: Session, principal: Principal, site_id: str, scan_id: str) -> Site:
+    """Make an existing scan of the site its reference."""
+    site = get_site(session, principal, site_id)
+    scan = session.scalar(
+        select(Scan).where(Scan.id == scan_id, Scan.organisation_id == principal.organisation_id)
+    )
+    if scan is None:
+        raise NotFoundError(f"scan {scan_id} not found")
+    if scan.site_id != site.id:
+        raise ValidationFailedError(
+            f"scan {scan_id} belongs to another site; a reference must be a scan of this site",
+            code="scan_of_another_site",
+        )
+    set_reference(session, site, scan)
+    return site

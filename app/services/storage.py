@@ -1,0 +1,256 @@
+"""Files of the service: streamed uploads, atomic installation, clean-up and the start-up sweep.
+
+Uploads stream into ``tmp/`` (same filesystem as ``scans/``) while their size is counted against
+the cap and their SHA-256 computed; the file is fsynced and renamed into place only once it
+parsed.  A killed server leaves at most a temporary file (removed by
+:func:`sweep_temporary_files` at the next start) or, in the instant between the rename and the
+commit of the row, an unreferenced scan file (removed by the same sweep).
+
+Layout under the data directory::
+
+    tmp/<pid>-<random>.part         uploads being received
+    scans/<site_id>/<scan_id>.<fmt>  original bytes of every scan (path stored relative)
+    results/<job_id>/                per-point results of a job (written by the job worker)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import logging
+import os
+import re
+import shutil
+import time
+import unicodedata
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import anyio
+from sqlalchemy import select
+from sqlalchemy.exc import SQLAlchemyError
+
+from app.config import Settings
+from app.db.models import Job, Scan, new_id
+from app.db.session import transaction
+from app.services.errors import BadRequestError, PayloadTooLargeError
+
+logger = logging.getLogger("scandiff.storage")
+
+HEAD_BYTES = 4096
+"""How much of the start of an upload is kept for format sniffing."""
+
+TEMPORARY_SUFFIX = ".part"
+MAX_FILENAME_BYTES = 255
+_HEX_ID = re.compile(r"^[0-9a-f]{32}$")
+_SAFE_PUNCTUATION = frozenset("._-+ ()[]")
+
+
+@dataclass(frozen=True)
+class ReceivedFile:
+    """An upload fully written to a temporary file (fsynced)."""
+
+    path: Path
+    size_bytes: int
+    sha256: str
+    head: bytes
+
+
+def ensure_directories(settings: Settings) -> None:
+    """Create the data, scans, results and temporary directories if missing."""
+    for directory in (
+        settings.data_dir,
+        settings.scans_dir,
+        settings.results_dir,
+        settings.tmp_dir,
+    ):
+        directory.mkdir(parents=True, exist_ok=True)
+
+
+def too_large_message(max_bytes: int) -> str:
+    """The 413 message for a cap of ``max_bytes``."""
+    return f"the upload is larger than the limit of {max_bytes} bytes (SCANDIFF_MAX_UPLOAD_BYTES)"
+
+
+async def receive_stream(
+    chunks: AsyncIterator[bytes], settings: Settings, max_bytes: int
+) -> ReceivedFile:
+    """Write ``chunks`` to a new temporary file, counting bytes against ``max_bytes``.
+
+    Raises :class:`PayloadTooLargeError` as soon as the cap is passed (the rest of the body is
+    not read) and :class:`BadRequestError` for an empty body; the temporary file is removed on
+    any failure, including a client that disconnects.
+    """
+    settings.tmp_dir.mkdir(parents=True, exist_ok=True)
+    path = settings.tmp_dir / f"{os.getpid()}-{new_id()}{TEMPORARY_SUFFIX}"
+    hasher = hashlib.sha256()
+    head = bytearray()
+    size = 0
+    try:
+        with open(path, "xb") as output:
+            async for chunk in chunks:
+                if not chunk:
+                    continue
+                size += len(chunk)
+                if size > max_bytes:
+                    raise PayloadTooLargeError(too_large_message(max_bytes))
+                hasher.update(chunk)
+                if len(head) < HEAD_BYTES:
+                    head.extend(chunk[: HEAD_BYTES - len(head)])
+                output.write(chunk)
+            if size == 0:
+                raise BadRequestError(
+                    "the upload is empty: send the scan file as the request body "
+                    "or as the multipart field 'file'",
+                    code="empty_upload",
+                )
+            output.flush()
+            await anyio.to_thread.run_sync(os.fsync, output.fileno())
+    except BaseException:
+        remove_file(path)
+        raise
+    return ReceivedFile(path=path, size_bytes=size, sha256=hasher.hexdigest(), head=bytes(head))
+
+
+def _fsync_directory(directory: Path) -> None:
+    with contextlib.suppress(OSError):
+        descriptor = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(descriptor)
+        finally:
+            os.close(descriptor)
+
+
+def install_file(source: Path, destination: Path) -> None:
+    """Atomically move a complete (fsynced) file into place and make the rename durable."""
+    destination.parent.mkdir(parents=True, exist_ok=True)
+    os.replace(source, destination)
+    _fsync_directory(destination.parent)
+
+
+def remove_file(path: Path) -> None:
+    """Delete ``path`` if it exists (errors are logged, never raised)."""
+    try:
+        path.unlink(missing_ok=True)
+    except OSError:
+        logger.warning("could not remove %s", path, exc_info=True)
+
+
+def remove_tree(path: Path) -> None:
+    """Delete the directory ``path`` and everything in it if it exists (errors are logged)."""
+    if path.exists():
+        shutil.rmtree(path, ignore_errors=True)
+
+
+def scan_storage_path(site_id: str, scan_id: str, file_format: str) -> str:
+    """Where a scan's original bytes live, relative to the data directory."""
+    return f"scans/{site_id}/{scan_id}.{file_format}"
+
+
+def resolve_data_path(settings: Settings, stored_path: str) -> Path:
+    """The absolute path of a path stored in the database (relative to the data directory)."""
+    path = Path(stored_path)
+    if not path.is_absolute():
+        path = settings.data_dir / path
+    resolved = path.resolve()
+    if not resolved.is_relative_to(settings.data_dir):
+        raise ValueError(f"stored path {stored_path!r} points outside the data directory")
+    return resolved
+
+
+def site_scans_directory(settings: Settings, site_id: str) -> Path:
+    """The directory holding a site's scan files."""
+    return settings.scans_dir / site_id
+
+
+def job_results_directory(settings: Settings, job_id: str) -> Path:
+    """The directory holding a job's per-point result files."""
+    return settings.results_dir / job_id
+
+
+def sanitise_filename(name: str | None) -> str | None:
+    """A display-safe file name: no directories, controls or undecodable bytes; None if empty.
+
+    ``"../../etc/passwd"`` becomes ``"passwd"``, ``"C:\\scans\\a.ply"`` becomes ``"a.ply"``,
+    undecodable bytes (surrogate escapes) become ``"_"``; at most 255 UTF-8 bytes, suffix kept.
+    """
+    if name is None:
+        return None
+    text = name.encode("utf-8", "replace").decode("utf-8", "replace")
+    text = unicodedata.normalize("NFC", text).replace("\\", "/").rsplit("/", 1)[-1]
+    cleaned = "".join(
+        char if char.isprintable() and (char.isalnum() or char in _SAFE_PUNCTUATION) else "_"
+        for char in text
+    )
+    cleaned = cleaned.strip(" .")
+    if not cleaned or set(cleaned) <= {"_"}:
+        return None
+    if len(cleaned.encode("utf-8")) > MAX_FILENAME_BYTES:
+        stem, dot, suffix = cleaned.rpartition(".")
+        if not dot or len(suffix) > 16:
+            stem, suffix = cleaned, ""
+        budget = MAX_FILENAME_BYTES - len(suffix.encode("utf-8")) - (1 if suffix else 0)
+        stem = stem.encode("utf-8")[:budget].decode("utf-8", "ignore")
+        cleaned = f"{stem}.{suffix}" if suffix else stem
+    return cleaned
+
+
+def _older_than(path: Path, min_age_seconds: float, now: float) -> bool:
+    try:
+        return now - path.stat().st_mtime >= min_age_seconds
+    except OSError:
+        return False
+
+
+def sweep_temporary_files(settings: Settings, *, min_age_seconds: float = 0.0) -> int:
+    """Remove what an interrupted upload or deletion left behind; the number of paths removed.
+
+    Call it at start-up, before serving (``min_age_seconds=0``); periodic calls while uploads
+    run must pass a generous ``min_age_seconds`` (say 3600).  Removes temporary upload files,
+    scan files that no scan row references, and result directories of jobs that no longer
+    exist.  Never raises (a database that is not migrated yet only skips the last two).
+    """
+    now = time.time()
+    removed = 0
+    if settings.tmp_dir.is_dir():
+        for path in settings.tmp_dir.iterdir():
+            if path.is_file() and _older_than(path, min_age_seconds, now):
+                remove_file(path)
+                removed += 1
+    try:
+        with transaction(settings.sqlalchemy_url) as session:
+            scan_paths = set(session.scalars(select(Scan.storage_path)))
+            job_ids = set(session.scalars(select(Job.id)))
+    except SQLAlchemyError:
+        logger.warning("sweep: database not readable, orphaned files not checked", exc_info=True)
+        return removed
+    referenced = {resolve_data_path(settings, path) for path in scan_paths}
+    if settings.scans_dir.is_dir():
+        for site_directory in settings.scans_dir.iterdir():
+            if not site_directory.is_dir() or not _HEX_ID.match(site_directory.name):
+                continue
+            for path in site_directory.iterdir():
+                if (
+                    path.is_file()
+                    and path.resolve() not in referenced
+                    and _older_than(path, min_age_seconds, now)
+                ):
+                    remove_file(path)
+                    removed += 1
+            if _older_than(site_directory, min_age_seconds, now):
+                with contextlib.suppress(OSError):
+                    site_directory.rmdir()  # only succeeds when empty
+    if settings.results_dir.is_dir():
+        for path in settings.results_dir.iterdir():
+            if (
+                path.is_dir()
+                and _HEX_ID.match(path.name)
+                and path.name not in job_ids
+                and _older_than(path, min_age_seconds, now)
+            ):
+                remove_tree(path)
+                removed += 1
+    if removed:
+        logger.info("sweep removed %d leftover file(s) or directories", removed)
+    return removed
