@@ -131,7 +131,24 @@ def sniff_format(head: bytes) -> str | None:
         return "npy"
     if head.startswith((b"PK\x03\x04", b"PK\x05\x06")):
         return "npz"
+    if _looks_like_pcd(head):
+        return "pcd"
     return _sniff_text(head)
+
+
+def _looks_like_pcd(head: bytes) -> bool:
+    """A PCD header: '# .PCD' or a first non-comment line starting VERSION or FIELDS.
+
+    Works on bytes: a binary PCD body (NUL bytes, anything) may follow the header in ``head``.
+    """
+    if head.lstrip().startswith(b"# .PCD"):
+        return True
+    for line in head.split(b"\n", 32)[:32]:
+        stripped = line.strip()
+        if not stripped or stripped.startswith(b"#"):
+            continue
+        return stripped.split(None, 1)[0].upper() in (b"VERSION", b"FIELDS")
+    return False
 
 
 def _sniff_text(head: bytes) -> str | None:
@@ -143,18 +160,9 @@ def _sniff_text(head: bytes) -> str | None:
         if exc.start < len(head) - 3:
             return None
         text = head[: exc.start].decode("utf-8-sig")  # a character cut by the head's end
-    if text.lstrip().startswith("# .PCD"):
-        return "pcd"
     lines = text.splitlines()
     if len(lines) > 1 and not text.endswith(("\n", "\r")):
         lines = lines[:-1]  # the last line may be cut by the head's end
-    for line in lines:
-        stripped = line.strip()
-        if not stripped or stripped.startswith("#"):
-            continue
-        if stripped.split(None, 1)[0].upper() in ("VERSION", "FIELDS"):
-            return "pcd"
-        break
     _, first_data = _text._find_header(lines)
     if first_data is None:
         return None

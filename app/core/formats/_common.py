@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import mmap
 import os
+import re
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
@@ -240,6 +241,12 @@ def find_xyz_names(names: list[str] | tuple[str, ...], what: str) -> tuple[str, 
 def has_nonzero_bytes(buffer: bytes | memoryview | mmap.mmap, start: int) -> bool:
     """Whether ``buffer[start:]`` holds anything but zero bytes (padding)."""
     return bool(np.frombuffer(buffer, dtype=np.uint8, offset=start).any())
+
+
+def loadtxt_problem(exc: ValueError) -> str:
+    """``numpy.loadtxt``'s message with 1-based data-row numbers and without its API hints."""
+    message = str(exc).split("; use `usecols`")[0].rstrip(".")
+    return re.sub(r"at row (\d+)", lambda match: f"in data row {int(match.group(1)) + 1}", message)
 
 
 def structured_attributes(

@@ -52,9 +52,9 @@ def read_npy(source: Source, max_points: int | None) -> RawCloud:
             f"not a .npy file: it does not start with '\\x93NUMPY' (starts with {source.head(8)!r})"
         )
     header_stream = io.BytesIO(source.head(65536 + 16))
-    shape, fortran_order, dtype = _read_header(header_stream, "the .npy header")
+    shape, fortran_order, dtype = _read_header(header_stream, "the .npy file")
     offset = header_stream.tell()
-    _check_array(shape, dtype, max_points, source.size - offset, "the .npy header")
+    _check_array(shape, dtype, max_points, source.size - offset, "the .npy file")
     count = int(np.prod(shape))
     flat = np.frombuffer(source.buffer, dtype=dtype, count=count, offset=offset)
     array = flat.reshape(shape[::-1]).T if fortran_order else flat.reshape(shape)
@@ -133,7 +133,7 @@ def _read_header(stream: BinaryIO, what: str) -> tuple[tuple[int, ...], bool, np
     except PointCloudError:
         raise
     except (ValueError, SyntaxError, EOFError, UnicodeDecodeError) as exc:
-        raise PointCloudError(f"malformed .npy header in {what}: {exc}") from exc
+        raise PointCloudError(f"malformed header in {what}: {exc}") from exc
     return tuple(int(n) for n in shape), bool(fortran_order), dtype
 
 

@@ -39,6 +39,7 @@ from app.core.formats._common import (
     check_point_count,
     find_xyz_names,
     has_nonzero_bytes,
+    loadtxt_problem,
     owned,
     xyz_from_columns,
 )
@@ -326,9 +327,9 @@ def _read_ascii(source: Source, offset: int, metadata, dtype: np.dtype) -> dict[
     try:
         table = np.loadtxt(io.StringIO(text), dtype=np.float64, ndmin=2, comments=None)
     except ValueError as exc:
-        message = str(exc).split("; use `usecols`")[0].rstrip(".")
         raise PointCloudError(
-            f"malformed ascii PCD data: {message}; each row must hold {n_columns} numbers"
+            f"malformed ascii PCD data: {loadtxt_problem(exc)}; each row must hold "
+            f"{n_columns} numbers"
         ) from exc
     if table.shape[0] != n_points:
         raise PointCloudError(

@@ -28,6 +28,7 @@ from app.core.formats._common import (
     check_point_count,
     find_xyz_names,
     has_nonzero_bytes,
+    loadtxt_problem,
     structured_attributes,
     xyz_from_columns,
 )
@@ -69,9 +70,10 @@ def read_ply(source: Source, max_points: int | None) -> RawCloud:
             ) from exc
         raise PointCloudError(f"malformed PLY header (line {exc.line}): {exc.message}") from exc
     except UnicodeDecodeError as exc:
+        offset = next(i for i, byte in enumerate(head) if byte > 127)
         raise PointCloudError(
-            f"malformed PLY header: byte {head[exc.start : exc.start + 1]!r} at offset "
-            f"{exc.start} is not ASCII; the header must be ASCII text"
+            f"malformed PLY header: byte {head[offset : offset + 1]!r} at offset {offset} is "
+            "not ASCII; the header must be ASCII text"
         ) from exc
     body_offset = header_stream.tell()
 
@@ -170,7 +172,7 @@ def _read_ascii_vertices(
         )
     except ValueError as exc:
         raise PointCloudError(
-            f"malformed ascii PLY vertex data: {_loadtxt_message(exc)}; each vertex row must "
+            f"malformed ascii PLY vertex data: {loadtxt_problem(exc)}; each vertex row must "
             f"hold {len(vertex.properties)} numbers "
             f"({' '.join(prop.name for prop in vertex.properties)})"
         ) from exc
@@ -238,11 +240,6 @@ def _read_with_plyfile(source: Source, vertex_name: str) -> NDArray:
         ) from exc
     except (plyfile.PlyParseError, ValueError) as exc:
         raise PointCloudError(f"malformed PLY file: {exc}") from exc
-
-
-def _loadtxt_message(exc: ValueError) -> str:
-    message = str(exc).split("; use `usecols`")[0]
-    return message.rstrip(".")
 
 
 def write_ply(path: str, points: NDArray[np.float64], fields: Mapping[str, NDArray]) -> None:

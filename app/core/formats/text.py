@@ -23,7 +23,7 @@ import re
 import numpy as np
 
 from app.core.errors import PointCloudError
-from app.core.formats._common import RawCloud, Source, check_point_count
+from app.core.formats._common import RawCloud, Source, check_point_count, loadtxt_problem
 
 COMMENT_PREFIX = "#"
 _UNITS = re.compile(r"[\(\[\{].*?[\)\]\}]")
@@ -189,15 +189,15 @@ def _is_number(value: str) -> bool:
 
 
 def _describe_loadtxt_error(exc: ValueError, first_data_index: int) -> str:
-    message = str(exc).split("; use `usecols`")[0].rstrip(".")
+    message = loadtxt_problem(exc)
+    where = f"data rows start at line {first_data_index + 1}"
     if "could not convert" in message:
         return (
-            f"non-numeric text in the data rows: {message} (rows counted from line "
-            f"{first_data_index + 1}); every value used must be a number"
+            f"non-numeric text in the data rows: {message} ({where}); every value used must "
+            "be a number"
         )
-    if "number of columns" in message or "usecols" in message.lower():
+    if "columns" in message or "column index" in message:
         return (
-            f"inconsistent number of columns: {message} (rows counted from line "
-            f"{first_data_index + 1}); every row needs the same columns"
+            f"inconsistent number of columns: {message} ({where}); every row needs the same columns"
         )
     return f"malformed text point cloud: {message}"
