@@ -252,7 +252,13 @@ class LeaseKeeper:
         if stage != self.stage:
             self.stage = stage
             self.progress = progress
-            job_log("job stage", self.job.id, stage, attempt=self.job.attempt, progress=progress)
+            job_log(
+                "job stage",
+                self.job.id,
+                stage,
+                attempt=self.job.attempt,
+                progress=round(progress, 3),
+            )
             self._wake.set()
         else:
             self.progress = progress

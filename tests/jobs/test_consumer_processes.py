@@ -1,0 +1,122 @@
+"""Durability against real consumer processes: kills, poison jobs, duplicate messages.
+
+The consumer runs as ``python -m app.jobs.consumer`` would (Huey process workers, recovery sweep
+in the supervisor) with short leases and the fast pipeline stand-in, on a database migrated with
+Alembic.  Recovery times are printed (``pytest -s``) and bounded.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from collections.abc import Callable
+
+from app.config import Settings
+from app.jobs.execution import lease_owner_pid
+from app.jobs.queue import enqueue_job, get_huey, send_job_message
+from tests.jobs.conftest import (
+    ConsumerProcess,
+    count_regions,
+    create_job,
+    load_job,
+    wait_for_status,
+)
+
+
+def hooks_env(**hooks: object) -> dict[str, str]:
+    """Environment enabling the job test hooks ``hooks``."""
+    return {"SCANDIFF_TESTING": "1", "SCANDIFF_TEST_JOB_HOOKS": json.dumps(hooks)}
+
+
+def test_consumer_runs_an_enqueued_job(
+    job_settings: Settings, consumer_factory: Callable[..., ConsumerProcess]
+) -> None:
+    consumer = consumer_factory(workers=1)
+    job_id = create_job(job_settings)
+
+    enqueue_job(job_id, job_settings)
+    job = wait_for_status(job_settings, job_id, ("succeeded", "failed"))
+
+    assert (job.status, job.attempts, job.error) == ("succeeded", 1, None), consumer.log()
+    assert count_regions(job_settings, job_id) == job.n_regions == 1
+    assert (job_settings.results_dir / job_id / "labels.npz").is_file()
+    assert (job_settings.results_dir / job_id / "details.npz").is_file()
+    stages = [
+        json.loads(line).get("stage")
+        for line in consumer.log().splitlines()
+        if line.startswith("{") and job_id in line
+    ]
+    assert {"claimed", "loading", "comparing", "writing", "storing", "succeeded"} <= set(stages)
+
+
+def test_worker_killed_mid_job_is_finished_by_another_attempt(
+    job_settings: Settings, consumer_factory: Callable[..., ConsumerProcess]
+) -> None:
+    consumer = consumer_factory(workers=2, env=hooks_env(sleep_seconds=60, on_attempts=[1]))
+    consumer.wait_for_workers()
+    job_id = create_job(job_settings)
+    enqueue_job(job_id, job_settings)
+    running = wait_for_status(job_settings, job_id, ("running",))
+    while load_job(job_settings, job_id).stage != "testing-sleep":
+        time.sleep(0.02)
+
+    os.kill(lease_owner_pid(running.lease_owner), signal.SIGKILL)
+    killed_at = time.monotonic()
+    second = wait_for_status(job_settings, job_id, ("succeeded", "failed"), timeout=30)
+    recovery_seconds = time.monotonic() - killed_at
+
+    print(f"\nkilled worker's job finished by attempt 2 in {recovery_seconds:.2f}s")
+    assert (second.status, second.attempts) == ("succeeded", 2), consumer.log()
+    assert lease_owner_pid(second.lease_owner) != lease_owner_pid(running.lease_owner)
+    assert count_regions(job_settings, job_id) == 1
+    # lease (2 s) + sweep interval (0.5 s) + pick-up; generous bound for a loaded machine
+    assert recovery_seconds < job_settings.job_lease_seconds + 6
+    assert len(consumer.wait_for_workers()) == 2  # the dead worker was replaced
+
+
+def test_poison_job_fails_after_max_attempts_and_others_still_run(
+    job_settings: Settings, consumer_factory: Callable[..., ConsumerProcess]
+) -> None:
+    consumer = consumer_factory(
+        workers=2, env=hooks_env(kill_worker=True, scan_filename="poison.npy")
+    )
+    poison_id = create_job(job_settings, scan_filename="poison.npy")
+    healthy_id = create_job(job_settings)
+    started = time.monotonic()
+    enqueue_job(poison_id, job_settings)
+    enqueue_job(healthy_id, job_settings)
+
+    poison = wait_for_status(job_settings, poison_id, ("succeeded", "failed"), timeout=45)
+    print(
+        f"\npoison job failed after {poison.attempts} attempts, {time.monotonic() - started:.1f}s"
+    )
+
+    assert (poison.status, poison.attempts) == ("failed", job_settings.job_max_attempts)
+    assert poison.error.startswith("gave up after 3 attempts"), poison.error
+    assert "worker killed or lost" in poison.error
+    healthy = wait_for_status(job_settings, healthy_id, ("succeeded", "failed"))
+    assert healthy.status == "succeeded", consumer.log()
+
+
+def test_duplicate_messages_run_the_job_once(
+    job_settings: Settings, consumer_factory: Callable[..., ConsumerProcess]
+) -> None:
+    job_id = create_job(job_settings)
+    enqueue_job(job_id, job_settings)
+    for _ in range(5):
+        send_job_message(job_id, job_settings)
+    assert get_huey(job_settings).pending_count() == 6
+
+    consumer = consumer_factory(workers=2)
+    job = wait_for_status(job_settings, job_id, ("succeeded", "failed"))
+    deadline = time.monotonic() + 10
+    while get_huey(job_settings).pending_count() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.3)  # let the last duplicates finish being ignored
+
+    job = load_job(job_settings, job_id)
+    assert (job.status, job.attempts) == ("succeeded", 1), consumer.log()
+    assert count_regions(job_settings, job_id) == 1
+    assert consumer.log().count('"stage": "claimed"') == 1
