@@ -197,6 +197,8 @@ def sanitise_filename(name: str | None) -> str | None:
 
 
 def _older_than(path: Path, min_age_seconds: float, now: float) -> bool:
+    if min_age_seconds <= 0:
+        return True
     try:
         return now - path.stat().st_mtime >= min_age_seconds
     except OSError:

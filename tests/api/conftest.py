@@ -230,3 +230,67 @@ def assert_error(response: httpx.Response, status_code: int, error: str | None =
     if error is not None:
         assert body["error"] == error, body
     return body["detail"]
+
+
+def finish_job(
+    api: ApiServer,
+    job_id: str,
+    n_reference: int,
+    n_scan: int,
+    *,
+    changed: bool = True,
+    transform: list[list[float]] | None = None,
+) -> dict[str, NDArray]:
+    """Play the worker: write the job's result files and rows as a succeeded job; the arrays."""
+    from sqlalchemy import update
+
+    from app.db.models import Job, Region, utc_now
+
+    rng = np.random.default_rng(7)
+    arrays = {
+        "reference_label": rng.integers(-1, 2, n_reference).astype(np.int8),
+        "scan_label": rng.integers(-1, 2, n_scan).astype(np.int8),
+    }
+    arrays["reference_changed"] = arrays["reference_label"] == 1
+    arrays["scan_changed"] = arrays["scan_label"] == 1
+    details = {
+        "reference_distance": rng.uniform(0, 1, n_reference).astype(np.float32),
+        "scan_distance": rng.uniform(0, 1, n_scan).astype(np.float32),
+    }
+    directory = api.settings.results_dir / job_id
+    directory.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(directory / "labels.npz", **arrays)
+    np.savez_compressed(directory / "details.npz", **details)
+    with transaction(api.settings.sqlalchemy_url) as session:
+        session.execute(
+            update(Job)
+            .where(Job.id == job_id)
+            .values(
+                status="succeeded",
+                progress=1.0,
+                attempts=1,
+                score=0.5,
+                threshold=0.1,
+                changed=changed,
+                registration={"transform": transform or np.eye(4).tolist(), "rmse": 0.01},
+                timings={"align": 0.1},
+                n_regions=1,
+                labels_path=f"results/{job_id}/labels.npz",
+                started_at=utc_now(),
+                finished_at=utc_now(),
+            )
+        )
+        session.add(
+            Region(
+                job_id=job_id,
+                ordinal=0,
+                kind="added",
+                n_points=12,
+                centroid=[1.0, 2.0, 0.5],
+                bbox_min=[0.5, 1.5, 0.0],
+                bbox_max=[1.5, 2.5, 1.0],
+                mean_distance=0.4,
+                max_distance=0.9,
+            )
+        )
+    return {**arrays, **details}

@@ -1,0 +1,126 @@
+"""Storage helpers: file-name sanitising and the start-up sweep of leftovers."""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import pytest
+
+from app.config import Settings
+from app.db.migrate import upgrade_to_head
+from app.db.models import Job, Organisation, Scan, Site
+from app.db.session import transaction
+from app.services.storage import (
+    ensure_directories,
+    resolve_data_path,
+    sanitise_filename,
+    sweep_temporary_files,
+)
+
+
+@pytest.mark.parametrize(
+    ("given", "expected"),
+    [
+        ("scan.ply", "scan.ply"),
+        ("../../etc/passwd", "passwd"),
+        ("C:\\Users\\robot\\scan 01.laz", "scan 01.laz"),
+        ("/abs/path/.hidden.pcd", "hidden.pcd"),
+        ("..", None),
+        ("", None),
+        (None, None),
+        ("a\x00b\nc.ply", "a_b_c.ply"),
+        ("bad\udcffbyte.ply", "bad_byte.ply"),  # an undecodable byte (surrogate escape)
+        ("Straße.ply", "Straße.ply"),
+        ("x" * 400 + ".ply", "x" * 251 + ".ply"),
+        ("name;rm -rf $HOME|.ply", "name_rm -rf _HOME_.ply"),
+    ],
+)
+def test_sanitise_filename(given: str | None, expected: str | None) -> None:
+    assert sanitise_filename(given) == expected
+
+
+def test_long_unicode_names_stay_within_255_bytes() -> None:
+    cleaned = sanitise_filename("é" * 300 + ".ply")
+    assert cleaned is not None and cleaned.endswith(".ply")
+    assert len(cleaned.encode()) <= 255
+
+
+def test_resolve_data_path_refuses_paths_outside_the_data_directory(tmp_path: Path) -> None:
+    settings = Settings(data_dir=tmp_path)
+    assert resolve_data_path(settings, "scans/a/b.ply") == tmp_path / "scans/a/b.ply"
+    with pytest.raises(ValueError):
+        resolve_data_path(settings, "../elsewhere.ply")
+
+
+def test_the_sweep_removes_leftovers_and_keeps_what_rows_reference(tmp_path: Path) -> None:
+    settings = Settings(data_dir=tmp_path / "data")
+    ensure_directories(settings)
+    upgrade_to_head(settings.sqlalchemy_url)
+    with transaction(settings.sqlalchemy_url) as session:
+        organisation = Organisation(name="o")
+        session.add(organisation)
+        session.flush()
+        site = Site(organisation_id=organisation.id, name="s")
+        session.add(site)
+        session.flush()
+        scan = Scan(
+            organisation_id=organisation.id,
+            site_id=site.id,
+            filename="a.ply",
+            format="ply",
+            size_bytes=1,
+            sha256="0" * 64,
+            storage_path=f"scans/{site.id}/{'a' * 32}.ply",
+            n_points=10,
+            bbox_min=[0, 0, 0],
+            bbox_max=[1, 1, 1],
+        )
+        session.add(scan)
+        session.flush()
+        job = Job(
+            organisation_id=organisation.id,
+            site_id=site.id,
+            reference_scan_id=scan.id,
+            scan_id=scan.id,
+            method="gmm",
+            variant="improved",
+        )
+        session.add(job)
+        session.flush()
+        site_id, job_id = site.id, job.id
+    kept_scan = settings.scans_dir / site_id / f"{'a' * 32}.ply"
+    orphan_scan = settings.scans_dir / site_id / f"{'b' * 32}.ply"
+    orphan_site_directory = settings.scans_dir / ("c" * 32)
+    kept_results = settings.results_dir / job_id
+    orphan_results = settings.results_dir / ("d" * 32)
+    foreign_results = settings.results_dir / "not-a-job-directory"
+    temporary = settings.tmp_dir / "123-abc.part"
+    for path in (kept_scan, orphan_scan, orphan_site_directory / "x.ply", temporary):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(b"data")
+    for directory in (kept_results, orphan_results, foreign_results):
+        directory.mkdir(parents=True)
+        (directory / "labels.npz").write_bytes(b"npz")
+
+    # A periodic sweep with a grace period leaves fresh files alone.
+    assert sweep_temporary_files(settings, min_age_seconds=3600) == 0
+    assert temporary.exists() and orphan_scan.exists()
+
+    old = time.time() - 10
+    os.utime(temporary, (old, old))
+    removed = sweep_temporary_files(settings)
+    assert removed == 4
+    assert kept_scan.exists() and kept_results.exists() and foreign_results.exists()
+    assert not temporary.exists()
+    assert not orphan_scan.exists()
+    assert not orphan_site_directory.exists()
+    assert not orphan_results.exists()
+
+
+def test_the_sweep_survives_an_unmigrated_database(tmp_path: Path) -> None:
+    settings = Settings(data_dir=tmp_path)
+    ensure_directories(settings)
+    (settings.tmp_dir / "1-x.part").write_bytes(b"x")
+    assert sweep_temporary_files(settings) == 1
