@@ -1,0 +1,217 @@
+"""Alignment of a scan to its reference (app.core.registration)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from app.core.cloud import PointCloud
+from app.core.errors import RegistrationError
+from app.core.formats import read_point_cloud
+from app.core.registration import (
+    Registration,
+    apply_transform,
+    estimate_point_spacing,
+    evaluate_alignment,
+    identity_registration,
+    register_scan,
+    rotation_angle_degrees,
+)
+
+NOISE = 0.01  # 1 cm Gaussian noise per axis
+
+
+def sample_box_faces(rng: np.random.Generator, low, high, density: float, faces: str) -> np.ndarray:
+    """Points uniformly on the named faces ("x-", "z+", ...) of an axis-aligned box.
+
+    Returns
+    -------
+    ndarray, shape (n, 3); n ~ area x density
+    """
+    low, high = np.asarray(low, float), np.asarray(high, float)
+    parts = []
+    for face in faces.split():
+        axis = "xyz".index(face[0])
+        others = [a for a in range(3) if a != axis]
+        count = rng.poisson(np.prod(high[others] - low[others]) * density)
+        face_points = np.empty((count, 3))
+        face_points[:, axis] = (high if face[1] == "+" else low)[axis]
+        for other in others:
+            face_points[:, other] = rng.uniform(low[other], high[other], count)
+        parts.append(face_points)
+    return np.vstack(parts)
+
+
+def room_scene(seed: int, density: float = 200.0, noise: float = NOISE) -> np.ndarray:
+    """An independent noisy sampling of an 8 x 6 x 3 m room with three boxes (not symmetric).
+
+    Returns
+    -------
+    ndarray, shape (~30k, 3), centred near the origin
+    """
+    rng = np.random.default_rng(seed)
+    walls = "x- x+ y- y+"
+    points = np.vstack(
+        [
+            sample_box_faces(rng, [0, 0, 0], [8, 6, 3], density, walls + " z-"),
+            sample_box_faces(rng, [1, 1, 0], [2.5, 1.8, 1.2], density, walls + " z+"),
+            sample_box_faces(rng, [5, 3.5, 0], [5.6, 5.5, 2.0], density, walls + " z+"),
+            sample_box_faces(rng, [3, 0, 0.8], [4.5, 0.6, 0.9], density, walls + " z+ z-"),
+        ]
+    )
+    return points - [4.0, 3.0, 1.5] + rng.normal(0.0, noise, points.shape)
+
+
+def rigid_transform(translation_m: float, rotation_deg: float, seed: int = 7) -> np.ndarray:
+    """A 4x4 transform with the given translation length and rotation angle, random axes."""
+    rng = np.random.default_rng(seed)
+    axis = rng.normal(size=3)
+    direction = rng.normal(size=3)
+    transform = np.eye(4)
+    rotvec = axis / np.linalg.norm(axis) * np.radians(rotation_deg)
+    transform[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    transform[:3, 3] = direction / np.linalg.norm(direction) * translation_m
+    return transform
+
+
+def errors(estimated: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    """(translation error in metres, rotation error in degrees)."""
+    residual = np.linalg.inv(truth) @ estimated
+    translation_error = float(np.linalg.norm(estimated[:3, 3] - truth[:3, 3]))
+    return translation_error, rotation_angle_degrees(residual[:3, :3])
+
+
+@pytest.fixture(scope="module")
+def reference() -> np.ndarray:
+    return room_scene(seed=1)
+
+
+@pytest.fixture(scope="module")
+def rescan() -> np.ndarray:
+    """The same room sampled again (different points, different noise), not yet moved."""
+    return room_scene(seed=2)
+
+
+@pytest.mark.parametrize(
+    ("translation_m", "rotation_deg"),
+    [(0.03, 0.4), (0.5, 5.0)],
+    ids=["robot-pose-error", "large-error"],
+)
+def test_recovers_a_known_rigid_transform(reference, rescan, translation_m, rotation_deg):
+    truth = rigid_transform(translation_m, rotation_deg)
+    scan = apply_transform(rescan, np.linalg.inv(truth))  # the scan as the robot saw it
+    result = register_scan(reference, scan)
+    translation_error, rotation_error = errors(result.transform, truth)
+    assert translation_error < 0.005
+    assert rotation_error < 0.05
+    assert result.method == "small_gicp"
+    assert result.converged
+    assert result.fitness > 0.95
+    assert 0 < result.rmse < result.max_correspondence_distance
+    assert result.voxel_size > 0 and result.iterations > 0
+
+
+def test_georeferenced_coordinates_and_point_clouds_are_accepted(reference, rescan):
+    offset = np.array([512_345.0, 5_412_345.0, 240.0])  # UTM-like: beyond small_gicp's grid
+    truth = rigid_transform(0.05, 0.5)
+    scan = PointCloud.from_array(apply_transform(rescan, np.linalg.inv(truth)) + offset)
+    result = register_scan(PointCloud.from_array(reference + offset), scan)
+    # Compare in the local frame: at 5e6 m from the origin a 0.005 degree rotation difference
+    # alone moves the translation column by ~400 m while moving the points by under a mm.
+    shift = np.eye(4)
+    shift[:3, 3] = offset
+    local = np.linalg.inv(shift) @ result.transform @ shift
+    translation_error, rotation_error = errors(local, truth)
+    assert translation_error < 0.005
+    assert rotation_error < 0.05
+
+
+def test_initial_transform_is_the_starting_point(reference, rescan):
+    truth = rigid_transform(2.0, 25.0)
+    scan = apply_transform(rescan, np.linalg.inv(truth))
+    guess = truth @ rigid_transform(0.1, 1.0, seed=3)  # e.g. odometry, 10 cm / 1 degree off
+    result = register_scan(reference, scan, initial_transform=guess)
+    translation_error, rotation_error = errors(result.transform, truth)
+    assert translation_error < 0.005
+    assert rotation_error < 0.05
+
+
+def test_non_overlapping_clouds_raise(reference, rescan):
+    elsewhere = rescan + np.array([40.0, 0.0, 0.0])  # another room down the street
+    with pytest.raises(RegistrationError, match=r"does not overlap.*--no-align"):
+        register_scan(reference, elsewhere)
+
+
+def test_partial_overlap_below_min_fitness_raises(reference, rescan):
+    half = rescan[rescan[:, 0] < 0.0]
+    assert register_scan(reference, half).fitness > 0.9
+    with pytest.raises(RegistrationError, match=r"only [0-9]+% of its points"):
+        register_scan(reference, rescan + np.array([7.0, 0.0, 0.0]), min_fitness=0.8)
+
+
+def test_too_few_points_raise():
+    with pytest.raises(RegistrationError, match="at least"):
+        register_scan(np.zeros((5, 3)), np.zeros((5, 3)))
+
+
+def test_identity_registration_reports_fitness(reference, rescan):
+    aligned = identity_registration(reference, rescan)
+    assert aligned.method == "none"
+    np.testing.assert_array_equal(aligned.transform, np.eye(4))
+    assert aligned.iterations == 0
+    assert aligned.fitness > 0.95
+    moved = identity_registration(reference, rescan + np.array([0.0, 0.0, 1.0]))
+    assert moved.fitness < aligned.fitness - 0.2
+    assert moved.max_correspondence_distance == pytest.approx(aligned.max_correspondence_distance)
+
+
+def test_evaluate_alignment_on_known_distances():
+    grid = np.stack(np.meshgrid(*[np.arange(10) * 0.1] * 2, [0.0]), axis=-1).reshape(-1, 3)
+    lifted = grid + np.array([0.0, 0.0, 0.03])
+    fitness, rmse = evaluate_alignment(grid, lifted, np.eye(4), 0.05)
+    assert fitness == 1.0
+    assert rmse == pytest.approx(0.03)
+    fitness, rmse = evaluate_alignment(grid, lifted, np.eye(4), 0.02)
+    assert fitness == 0.0
+    assert np.isnan(rmse)
+    lower = np.eye(4)
+    lower[2, 3] = -0.03
+    fitness, rmse = evaluate_alignment(grid, lifted, lower, 0.02)
+    assert (fitness, rmse) == (1.0, pytest.approx(0.0, abs=1e-12))
+
+
+def test_apply_transform_and_spacing():
+    transform = rigid_transform(1.0, 30.0)
+    points = np.random.default_rng(0).normal(size=(50, 3))
+    expected = (transform @ np.column_stack([points, np.ones(50)]).T).T[:, :3]
+    np.testing.assert_allclose(apply_transform(points, transform), expected)
+    grid = np.stack(np.meshgrid(*[np.arange(20) * 0.05] * 3), axis=-1).reshape(-1, 3)
+    doubled = np.vstack([grid, grid])  # exact duplicates are not neighbours
+    assert estimate_point_spacing(doubled) == pytest.approx(0.05)
+
+
+def test_to_json_dict_is_serialisable():
+    result = Registration(np.eye(4), 0.0, float("nan"), False, 0, "none", 0.1, 0.025)
+    encoded = json.loads(json.dumps(result.to_json_dict(), allow_nan=False))
+    assert encoded["transform"] == np.eye(4).tolist()
+    assert encoded["rmse"] is None
+    assert encoded["method"] == "none"
+    assert encoded["rotation_degrees"] == 0.0
+
+
+@pytest.mark.real_data
+def test_kitti_consecutive_frames_align(real_data_dir: Path):
+    frames = real_data_dir / "kitti_2011_09_26_drive_0002_pointcloudset"
+    frame0 = read_point_cloud(frames / "frame0.ply")
+    frame1 = read_point_cloud(frames / "frame1.ply")
+    result = register_scan(frame0, frame1)
+    assert result.converged
+    assert result.fitness > 0.5
+    # The car drives ~0.9 m forward (x) per frame; README: ICP gives 1.78 m over two frames.
+    assert result.translation[0] == pytest.approx(0.88, abs=0.05)
+    assert np.abs(result.translation[1:]).max() < 0.1
+    assert result.rotation_degrees < 1.0
