@@ -115,6 +115,22 @@ def test_recovers_a_known_rigid_transform(reference, rescan, translation_m, rota
     assert result.voxel_size > 0 and result.iterations > 0
 
 
+def test_dense_scans_are_thinned_without_bias():
+    """170k points per scan: thinning them with a coarse voxel grid biased GICP by ~0.06 deg."""
+    reference, rescan = room_scene(seed=1, density=1100.0), room_scene(seed=2, density=1100.0)
+    truth = rigid_transform(0.03, 0.4)
+    result = register_scan(reference, apply_transform(rescan, np.linalg.inv(truth)))
+    translation_error, rotation_error = errors(result.transform, truth)
+    assert translation_error < 0.005
+    assert rotation_error < 0.03
+
+
+def test_given_parameters_are_used(reference, rescan):
+    result = register_scan(reference, rescan, voxel_size=0.1, max_correspondence_distance=0.3)
+    assert (result.voxel_size, result.max_correspondence_distance) == (0.1, 0.3)
+    assert result.fitness > 0.95
+
+
 def test_georeferenced_coordinates_and_point_clouds_are_accepted(reference, rescan):
     offset = np.array([512_345.0, 5_412_345.0, 240.0])  # UTM-like: beyond small_gicp's grid
     truth = rigid_transform(0.05, 0.5)
