@@ -77,11 +77,12 @@ def pcd_bytes(
     ]
     types = [np.float32] * 3 + [values.dtype.type for values in extra.values()]
     cloud = pypcd4.PointCloud.from_points(columns, ("x", "y", "z", *extra), types)
-    if viewpoint is not None:
-        cloud.metadata = cloud.metadata.derive(viewpoint=viewpoint)
     stream = io.BytesIO()
     cloud.save(stream, encoding=pypcd4.Encoding(encoding))
     content = stream.getvalue()
+    if viewpoint is not None:
+        default = b"VIEWPOINT 0.0 0.0 0.0 1.0 0.0 0.0 0.0"
+        content = content.replace(default, b"VIEWPOINT " + " ".join(map(str, viewpoint)).encode())
     # pypcd4 silently falls back to binary when LZF cannot shrink the data (random floats).
     assert f"DATA {encoding}\n".encode() in content, "use compressible test data"
     return content
