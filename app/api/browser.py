@@ -34,7 +34,8 @@ from pathlib import Path
 from typing import Any
 
 import viser
-import websockets
+import websockets.asyncio.client
+import websockets.exceptions
 from fastapi import APIRouter, FastAPI, Request, WebSocket
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 from pydantic import BaseModel, Field
@@ -197,10 +198,15 @@ def read_session(request: Request) -> Response:
     session = open_session(request)
     try:
         principal = request_principal(request, session)
-        if principal is None:
+        if principal is None and request.cookies.get(SESSION_COOKIE):
             return error_response(
-                401, "unauthorized", "not signed in, or the session expired: sign in again"
+                401,
+                "session_ended",
+                "your session has ended: its token was revoked or the session expired; "
+                "sign in again",
             )
+        if principal is None:
+            return error_response(401, "unauthorized", "not signed in")
         organisation = session.get(Organisation, principal.organisation_id)
         return JSONResponse(
             {

@@ -117,8 +117,13 @@ class RegionBox:
 
     @property
     def label(self) -> str:
-        """Text drawn next to the box."""
+        """Text of the region's button: number, kind and size."""
         return f"#{self.index + 1} {self.kind} · {self.n_points:,} pts"
+
+    @property
+    def short_label(self) -> str:
+        """Text drawn next to the box in the scene (short: many boxes may be close)."""
+        return f"#{self.index + 1} {self.kind}"
 
     def to_json_dict(self) -> dict[str, Any]:
         """Plain JSON types."""

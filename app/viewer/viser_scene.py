@@ -87,7 +87,7 @@ def configure_server(server: viser.ViserServer, data: SceneData, title: str) -> 
 def default_camera_offset(extent: float) -> np.ndarray:
     """Camera position relative to what it looks at: from the south-west, above."""
     direction = np.array([-0.55, -0.75, 0.55])
-    return direction / np.linalg.norm(direction) * max(extent, 0.5) * 0.9
+    return direction / np.linalg.norm(direction) * max(extent, 0.5) * 0.75
 
 
 def build_client_scene(client: viser.ClientHandle, data: SceneData, title: str) -> ClientScene:
@@ -118,7 +118,7 @@ def build_client_scene(client: viser.ClientHandle, data: SceneData, title: str) 
         corner = np.asarray(region.center_local) + np.asarray(region.dimensions) / 2.0
         label = scene.add_label(
             f"/region_labels/{region.index}",
-            region.label,
+            region.short_label,
             position=tuple(corner),
             anchor="bottom-left",
         )
