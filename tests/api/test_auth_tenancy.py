@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import logging
-import subprocess
-import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -20,8 +19,6 @@ from tests.api.conftest import (
     site_with_reference,
     upload,
 )
-
-PROJECT_ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.parametrize(
@@ -119,10 +116,22 @@ def test_each_request_is_logged_once_without_the_token(
 ) -> None:
     token = api.token("writer")
     client = api.client(token, headers={"X-Request-ID": "req-12345"})
-    with caplog.at_level(logging.INFO, logger="scandiff.api.access"):
-        response = client.get("/api/v1/sites", params={"limit": 5})
+    caplog.set_level(logging.INFO, logger="scandiff.api.access")
+    response = client.get("/api/v1/sites", params={"limit": 5})
     assert response.headers["x-request-id"] == "req-12345"
-    records = [record for record in caplog.records if record.name == "scandiff.api.access"]
+
+    def matching() -> list[logging.LogRecord]:
+        return [
+            record
+            for record in caplog.records
+            if record.name == "scandiff.api.access" and record.request_id == "req-12345"
+        ]
+
+    deadline = time.monotonic() + 5  # the line is written once the response has been sent
+    while not matching() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.05)
+    records = matching()
     assert len(records) == 1
     record = records[0]
     assert (record.method, record.path, record.status, record.request_id) == (
@@ -138,54 +147,34 @@ def test_each_request_is_logged_once_without_the_token(
     assert all(token not in JsonFormatter().format(entry) for entry in caplog.records)
 
 
-def test_token_command_prints_only_a_working_token(api: ApiServer, tmp_path: Path) -> None:
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "app",
-            "token",
-            "create",
-            "--org",
-            "cli-org",
-            "--role",
-            "reader",
-            "--data-dir",
-            str(api.data_dir),
-        ],
-        capture_output=True,
-        text=True,
-        cwd=PROJECT_ROOT,
-        timeout=60,
+def test_token_command_prints_only_a_working_token(
+    api: ApiServer, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from app.cli import main
+
+    status = main(
+        ["token", "create", "--org", "cli-org", "--role", "reader", "--data-dir", str(api.data_dir)]
     )
-    assert result.returncode == 0, result.stderr
-    token = result.stdout.strip()
-    assert result.stdout == token + "\n"
+    assert status == 0
+    output = capsys.readouterr().out
+    token = output.strip()
+    assert output == token + "\n"
     client = api.client(token)
     assert client.get("/api/v1/sites").status_code == 200
     assert_error(client.post("/api/v1/sites", json={"name": "x"}), 403)
 
 
-def test_token_command_migrates_a_fresh_data_directory(tmp_path: Path) -> None:
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "app",
-            "token",
-            "create",
-            "--org",
-            "o",
-            "--role",
-            "admin",
-            "--data-dir",
-            str(tmp_path / "fresh"),
-        ],
-        capture_output=True,
-        text=True,
-        cwd=PROJECT_ROOT,
-        timeout=60,
+def test_token_command_migrates_a_fresh_data_directory(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from app.cli import main
+
+    data_dir = tmp_path / "fresh"
+    assert (
+        main(["token", "create", "--org", "o", "--role", "admin", "--data-dir", str(data_dir)]) == 0
     )
-    assert result.returncode == 0, result.stderr
-    assert (tmp_path / "fresh" / "scandiff.sqlite3").is_file()
-    assert len(result.stdout.split()) == 1
+    assert (data_dir / "scandiff.sqlite3").is_file()
+    assert len(capsys.readouterr().out.split()) == 1
+    assert (
+        main(["token", "create", "--org", " ", "--role", "admin", "--data-dir", str(data_dir)]) == 2
+    )
