@@ -131,9 +131,10 @@ def labels_file(
     labels_path = storage.resolve_data_path(settings, job.labels_path)
     if not labels_path.is_file():
         raise NotFoundError(f"the labels of job {job.id} are missing from storage")
+    download_name = f"{job.id}-labels.{file_format}"
     if file_format == "npz":
         end_read_transaction(session)
-        return DownloadFile(path=labels_path, filename=f"{job.id}-labels.npz")
+        return DownloadFile(path=labels_path, filename=download_name)
     reference_scan = scans.get_scan(session, principal, job.reference_scan_id)
     scan = scans.get_scan(session, principal, job.scan_id)
     reference = CloudSource(
@@ -147,7 +148,6 @@ def labels_file(
         filename=scan.filename,
     )
     registration = dict(job.registration or {})
-    download_name = f"{job.id}-labels.{file_format}"
     end_read_transaction(session)
     target = labels_path.parent / f"labels.{file_format}"
     if not target.is_file():

@@ -159,7 +159,7 @@ class JobRead(BaseModel):
     registration: dict[str, Any] | None
     n_regions: int | None
     error: str | None
-    timings: dict[str, float] | None
+    timings: dict[str, Any] | None
     created_at: UtcDatetime
     started_at: UtcDatetime | None
     finished_at: UtcDatetime | None
