@@ -148,11 +148,11 @@ class Supervisor:
         self.stop_requested: int | None = None
 
     def start_children(self) -> None:
-        """Start ``python -m app serve --child api|consumer`` with the settings in the env."""
+        """Start ``python -m app.cli.serve --child api|consumer`` with the settings in the env."""
         environment = child_environment(self.settings)
         for role in CHILD_ROLES:
             self.children[role] = subprocess.Popen(
-                [sys.executable, "-m", "app", "serve", "--child", role],
+                [sys.executable, "-m", "app.cli.serve", "--child", role],
                 env=environment,
                 stdin=subprocess.DEVNULL,
             )
@@ -221,6 +221,7 @@ def run_api_child(settings: Settings) -> int:
         port=settings.port,
         log_level=settings.log_level.lower(),
         timeout_graceful_shutdown=API_GRACEFUL_SHUTDOWN_SECONDS,
+        access_log=False,  # the app logs one JSON line per request itself
     )
     return 0
 
@@ -246,3 +247,9 @@ def handle_serve(args: argparse.Namespace) -> int:
     settings = build_settings(args)
     configure_logging(settings.log_level)
     return serve(settings)
+
+
+if __name__ == "__main__":  # the children: python -m app.cli.serve --child api|consumer
+    child_parser = argparse.ArgumentParser(prog="scandiff serve (child)")
+    child_parser.add_argument("--child", choices=CHILD_ROLES, required=True)
+    sys.exit(run_child(child_parser.parse_args().child))

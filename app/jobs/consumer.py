@@ -26,7 +26,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from huey import Huey
-from huey.consumer import Consumer
+from huey.consumer import Consumer, ConsumerStopped
 
 from app.config import Settings, get_settings
 from app.db.session import get_engine
@@ -113,12 +113,17 @@ class ScandiffConsumer(Consumer):  # type: ignore[misc]
         """Huey's supervision loop, plus the recovery sweep and the liveness note when due."""
         health_check_ts = super().loop(health_check_ts)
         now = time.monotonic()
-        if now >= self._next_sweep:
-            self._next_sweep = now + self.settings.recovery_interval_seconds
-            self.sweep()
-        if now >= self._next_alive_note:
-            self._next_alive_note = now + CONSUMER_HEARTBEAT_SECONDS
-            self.note_alive()
+        try:
+            if now >= self._next_sweep:
+                self._next_sweep = now + self.settings.recovery_interval_seconds
+                self.sweep()
+            if now >= self._next_alive_note:
+                self._next_alive_note = now + CONSUMER_HEARTBEAT_SECONDS
+                self.note_alive()
+        except KeyboardInterrupt:  # a second stop signal while sweeping: stop now
+            logger.info("stop requested during the recovery sweep; stopping now")
+            self.stop(graceful=False)
+            raise ConsumerStopped from None
         return health_check_ts
 
     def sweep(self) -> None:
@@ -145,9 +150,22 @@ class ScandiffConsumer(Consumer):  # type: ignore[misc]
         queue.close_queue_connections()
 
 
+def preload_pipeline() -> None:
+    """Import the numeric pipeline once here, so forked workers start ready (copy-on-write)."""
+    started = time.perf_counter()
+    try:
+        import app.core.formats
+        import app.core.pipeline  # noqa: F401
+    except ImportError:
+        logger.exception("cannot import the comparison pipeline; jobs will fail until fixed")
+        return
+    logger.info("pipeline preloaded", extra={"seconds": round(time.perf_counter() - started, 2)})
+
+
 def run_consumer(settings: Settings, workers: int | None = None) -> int:
     """Run the consumer until SIGTERM/SIGINT; the exit status."""
     configure_logging(settings.log_level)
+    preload_pipeline()
     workers = workers or settings.workers
     huey = queue.get_huey(settings)
     install_worker_hooks(huey, settings)
@@ -162,7 +180,11 @@ def run_consumer(settings: Settings, workers: int | None = None) -> int:
         "job consumer starting",
         extra={"workers": workers, "queue": queue.queue_backend(settings)},
     )
-    ScandiffConsumer(huey, settings, workers).run()
+    consumer = ScandiffConsumer(huey, settings, workers)
+    try:
+        consumer.run()
+    finally:
+        consumer.stop_flag.set()  # idle workers exit by themselves even if run() failed
     return 0
 
 

@@ -92,6 +92,35 @@ def lease_owner_pid(lease_owner: str | None) -> int | None:
     return int(parts[1]) if len(parts) == 3 and parts[1].isdigit() else None
 
 
+def lease_owner_is_dead_here(lease_owner: str | None) -> bool:
+    """Whether ``lease_owner`` names a process of this host that no longer runs.
+
+    Lets the sweep recover a crashed local worker's job without waiting for its lease.  Only a
+    definite "no such process" counts: a reused pid reads as alive (then the lease decides).
+    """
+    if not lease_owner:
+        return False
+    host, _, _ = lease_owner.rpartition(":")
+    host, _, pid_text = host.rpartition(":")
+    if host != socket.gethostname() or not pid_text.isdigit():
+        return False
+    pid = int(pid_text)
+    if pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        return False
+    try:  # a zombie (killed, not yet reaped by its parent) is dead too
+        with open(f"/proc/{pid}/stat") as stat_file:
+            stat = stat_file.read()
+        return stat[stat.rindex(")") + 2 :].split()[0] in ("Z", "X")
+    except OSError:
+        return False
+
+
 def claimable(now: datetime) -> ColumnElement[bool]:
     """SQL condition: the job may be taken (queued, or running with an expired lease)."""
     return or_(

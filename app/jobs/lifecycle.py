@@ -22,7 +22,7 @@ PR_SET_PDEATHSIG = 1
 SUPERVISOR_PID_ENV = "SCANDIFF_SUPERVISOR_PID"
 """Set by ``scandiff serve`` in its children's environment: the pid they must outlive not."""
 WATCHDOG_INTERVAL_SECONDS = 0.5
-FORCED_EXIT_AFTER_SECONDS = 30.0
+FORCED_EXIT_AFTER_SECONDS = 15.0
 """After asking itself to stop (SIGTERM), an orphaned child SIGKILLs itself this much later."""
 
 
@@ -37,13 +37,15 @@ def set_parent_death_signal(signum: int) -> bool:
         return False
 
 
-def _watch(parent_pid: int, signum: int) -> None:
-    """Poll ``getppid``; when the parent is gone, signal ourselves, then force the exit."""
+def _watch(parent_pid: int, signum: int, kernel_signals: bool) -> None:
+    """Poll ``getppid``; when the parent is gone, signal ourselves (unless the kernel did)."""
     while os.getppid() == parent_pid:
         time.sleep(WATCHDOG_INTERVAL_SECONDS)
     logger.warning("parent process %s is gone; stopping", parent_pid)
-    os.kill(os.getpid(), signum)
+    if not kernel_signals:  # a second signal would mean "stop now" to the consumer
+        os.kill(os.getpid(), signum)
     time.sleep(FORCED_EXIT_AFTER_SECONDS)
+    logger.error("still running %ss after the parent died; killing", FORCED_EXIT_AFTER_SECONDS)
     os.kill(os.getpid(), signal.SIGKILL)
 
 
@@ -51,11 +53,15 @@ def die_with_parent(parent_pid: int | None = None, signum: int = signal.SIGTERM)
     """Make this process receive ``signum`` when ``parent_pid`` (default: our parent) exits."""
     if parent_pid is None:
         parent_pid = os.getppid()
-    set_parent_death_signal(signum)
+    kernel_signals = set_parent_death_signal(signum)
     if os.getppid() != parent_pid:  # the parent died before prctl took effect
         os.kill(os.getpid(), signum)
+        kernel_signals = True  # already signalled
     threading.Thread(
-        target=_watch, args=(parent_pid, signum), name="parent-watchdog", daemon=True
+        target=_watch,
+        args=(parent_pid, signum, kernel_signals),
+        name="parent-watchdog",
+        daemon=True,
     ).start()
 
 

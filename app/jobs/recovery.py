@@ -3,8 +3,9 @@
 Huey is at-most-once: a worker killed mid-job loses its message.  The sweep, run by ``scandiff
 serve`` at start-up and by the consumer every ``recovery_interval_seconds``:
 
-* puts ``running`` jobs whose lease expired back to ``queued`` and sends a message, or fails them
-  with a reason when their attempts are used up (a poison job ends here instead of looping);
+* puts ``running`` jobs whose lease expired (or whose worker was a process of this host that
+  no longer exists) back to ``queued`` and sends a message, or fails them with a reason when
+  their attempts are used up (a poison job ends here instead of looping);
 * sends a message again for ``queued`` jobs that have none waiting in the queue and were not
   enqueued within the grace period (``job_lease_seconds``: a dequeued message is claimed within
   milliseconds), or were never enqueued (``enqueued_at`` null);
@@ -25,7 +26,13 @@ from sqlalchemy import or_, select
 from app.config import Settings
 from app.db.models import Job
 from app.db.session import transaction
-from app.jobs.execution import TEMP_MARKER, job_log, utc_now
+from app.jobs.execution import (
+    TEMP_MARKER,
+    as_utc,
+    job_log,
+    lease_owner_is_dead_here,
+    utc_now,
+)
 
 logger = logging.getLogger("scandiff.jobs.recovery")
 
@@ -53,24 +60,30 @@ class RecoveryReport:
 
 
 def recover_expired_leases(settings: Settings, now: datetime, report: RecoveryReport) -> None:
-    """Requeue (or fail, when used up) running jobs whose lease expired; one transaction."""
+    """Requeue (or fail, when used up) running jobs whose worker is gone; one transaction.
+
+    A worker is gone when its lease expired, or at once when it was a process of this host
+    that no longer exists (a crash seen without waiting for the lease).
+    """
     with transaction(settings.sqlalchemy_url) as session:
-        expired = (
+        running = (
             session.execute(
-                select(Job)
-                .where(
-                    Job.status == "running",
-                    or_(Job.lease_expires_at.is_(None), Job.lease_expires_at < now),
-                )
-                .with_for_update(skip_locked=True)
+                select(Job).where(Job.status == "running").with_for_update(skip_locked=True)
             )
             .scalars()
             .all()
         )
-        for job in expired:
+        for job in running:
+            lease_expires_at = as_utc(job.lease_expires_at)
+            if lease_expires_at is not None and lease_expires_at >= now:
+                if not lease_owner_is_dead_here(job.lease_owner):
+                    continue
+                why = "its worker process is gone"
+            else:
+                why = "its lease expired"
             lost = (
-                f"attempt {job.attempts} stopped without finishing (lease of "
-                f"{job.lease_owner} expired; worker killed or lost) at stage {job.stage}"
+                f"attempt {job.attempts} stopped without finishing ({why}: {job.lease_owner}; "
+                f"worker killed or lost) at stage {job.stage}"
             )
             if job.attempts >= job.max_attempts:
                 job.status = "failed"

@@ -2,8 +2,8 @@
 
 The durability machinery (claim, lease, recovery) does not depend on the numbers; this fake
 returns a deterministic result shaped like :class:`app.core.pipeline.ComparisonResult` in a few
-milliseconds.  :func:`install` patches it in (in-process tests); :data:`CONSUMER_BOOTSTRAP`
-starts a consumer process with it installed.
+milliseconds.  :func:`stub_pipeline_module` replaces the module in ``sys.modules`` (tests patch
+it in); :data:`CONSUMER_BOOTSTRAP` starts a consumer process with it installed.
 """
 
 from __future__ import annotations
@@ -114,19 +114,13 @@ def fake_compare(
     )
 
 
-def pipeline_module() -> types.ModuleType:
-    """``app.core.pipeline`` (an empty stand-in module if the real one cannot be imported)."""
-    try:
-        import app.core.pipeline as pipeline
-    except ImportError:  # the real pipeline's dependencies are not importable (yet)
-        import app.core
-
-        pipeline = types.ModuleType("app.core.pipeline")
-        sys.modules["app.core.pipeline"] = pipeline
-        app.core.pipeline = pipeline  # type: ignore[attr-defined]
-    return pipeline
+def stub_pipeline_module() -> types.ModuleType:
+    """A module standing in for ``app.core.pipeline`` whose ``compare`` is the fake."""
+    module = types.ModuleType("app.core.pipeline")
+    module.compare = fake_compare  # type: ignore[attr-defined]
+    return module
 
 
 def install() -> None:
-    """Make ``app.core.pipeline.compare`` the fake (for this process)."""
-    pipeline_module().compare = fake_compare  # type: ignore[attr-defined]
+    """Make ``import app.core.pipeline`` give the stub in this process (the real one is slow)."""
+    sys.modules["app.core.pipeline"] = stub_pipeline_module()

@@ -12,6 +12,7 @@ import os
 import signal
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 from app.config import Settings
 from app.jobs.execution import lease_owner_pid
@@ -71,9 +72,45 @@ def test_worker_killed_mid_job_is_finished_by_another_attempt(
     assert (second.status, second.attempts) == ("succeeded", 2), consumer.log()
     assert lease_owner_pid(second.lease_owner) != lease_owner_pid(running.lease_owner)
     assert count_regions(job_settings, job_id) == 1
-    # lease (2 s) + sweep interval (0.5 s) + pick-up; generous bound for a loaded machine
+    # the sweep sees the local worker is gone (0.5 s interval) without waiting for the lease;
+    # generous bound for a loaded machine
     assert recovery_seconds < job_settings.job_lease_seconds + 6
     assert len(consumer.wait_for_workers()) == 2  # the dead worker was replaced
+
+
+def test_frozen_worker_loses_its_lease_and_cannot_store_after_waking(
+    job_settings: Settings, consumer_factory: Callable[..., ConsumerProcess]
+) -> None:
+    consumer = consumer_factory(workers=2, env=hooks_env(sleep_seconds=4, on_attempts=[1]))
+    consumer.wait_for_workers()
+    job_id = create_job(job_settings)
+    enqueue_job(job_id, job_settings)
+    running = wait_for_status(job_settings, job_id, ("running",))
+    frozen_pid = lease_owner_pid(running.lease_owner)
+
+    os.kill(frozen_pid, signal.SIGSTOP)  # alive but silent: only the lease can tell
+    frozen_at = time.monotonic()
+    try:
+        second = wait_for_status(job_settings, job_id, ("succeeded", "failed"), timeout=30)
+        takeover_seconds = time.monotonic() - frozen_at
+    finally:
+        os.kill(frozen_pid, signal.SIGCONT)
+    deadline = time.monotonic() + 15
+    while "lease lost" not in consumer.log() and time.monotonic() < deadline:
+        time.sleep(0.1)
+
+    print(f"\nfrozen worker's job taken over and finished in {takeover_seconds:.2f}s")
+    assert (second.status, second.attempts) == ("succeeded", 2), consumer.log()
+    assert takeover_seconds >= job_settings.job_lease_seconds - 0.5  # waited for the lease
+    assert "lease lost" in consumer.log()
+    time.sleep(0.5)
+    job = load_job(job_settings, job_id)
+    assert (job.status, job.attempts, job.lease_owner) == (
+        "succeeded",
+        2,
+        second.lease_owner,
+    )
+    assert count_regions(job_settings, job_id) == 1
 
 
 def test_poison_job_fails_after_max_attempts_and_others_still_run(
@@ -120,3 +157,29 @@ def test_duplicate_messages_run_the_job_once(
     assert (job.status, job.attempts) == ("succeeded", 1), consumer.log()
     assert count_regions(job_settings, job_id) == 1
     assert consumer.log().count('"stage": "claimed"') == 1
+
+
+def test_memory_cap_fails_a_job_that_needs_too_much_and_spares_the_others(
+    tmp_path: Path, job_settings: Settings
+) -> None:
+    capped = job_settings.model_copy(update={"job_memory_limit_bytes": 1_000_000_000})
+    consumer = ConsumerProcess(
+        capped,
+        workers=1,
+        env=hooks_env(allocate_bytes=3_000_000_000, scan_filename="huge.npy"),
+        log_path=tmp_path / "capped.log",
+    )
+    try:
+        huge_id = create_job(capped, scan_filename="huge.npy")
+        normal_id = create_job(capped)
+        enqueue_job(huge_id, capped)
+        enqueue_job(normal_id, capped)
+
+        huge = wait_for_status(capped, huge_id, ("succeeded", "failed"))
+        normal = wait_for_status(capped, normal_id, ("succeeded", "failed"))
+    finally:
+        consumer.stop()
+
+    assert (huge.status, huge.attempts) == ("failed", 1), consumer.log()
+    assert huge.error.startswith("out of memory") and "1000000000" in huge.error
+    assert normal.status == "succeeded", consumer.log()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 import time
 from datetime import timedelta
 
@@ -31,8 +32,7 @@ from tests.jobs.conftest import count_regions, create_job, load_job
 @pytest.fixture(autouse=True)
 def fake_compare(monkeypatch: pytest.MonkeyPatch) -> None:
     """Use the fast deterministic pipeline stand-in."""
-    pipeline = fake_pipeline.pipeline_module()
-    monkeypatch.setattr(pipeline, "compare", fake_pipeline.fake_compare, raising=False)
+    monkeypatch.setitem(sys.modules, "app.core.pipeline", fake_pipeline.stub_pipeline_module())
 
 
 def expire_lease(settings: Settings, job_id: str) -> None:
@@ -171,7 +171,7 @@ def test_shutdown_interrupt_hands_the_job_back_without_using_an_attempt(
     def interrupted(*args: object, **kwargs: object) -> None:
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(fake_pipeline.pipeline_module(), "compare", interrupted)
+    monkeypatch.setattr(sys.modules["app.core.pipeline"], "compare", interrupted)
     job_id = create_job(job_settings)
 
     with pytest.raises(KeyboardInterrupt):

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import socket
+import subprocess
 import time
 from datetime import timedelta
 
@@ -63,6 +65,21 @@ def test_sweep_requeues_expired_leases_and_fails_used_up_jobs(job_settings: Sett
     assert "stage detect" in poison.error
     assert load_job(job_settings, live_id).status == "running"
     assert pending_job_ids(job_settings) == {lost_id}
+
+
+def test_sweep_requeues_at_once_a_job_whose_local_worker_is_gone(job_settings: Settings) -> None:
+    finished = subprocess.Popen(["true"])
+    finished.wait()  # reaped: its pid no longer exists
+    dead_pid = finished.pid
+    job_id = create_job(job_settings)
+    dead_owner = f"{socket.gethostname()}:{dead_pid}:deadbeef"
+    assert claim_job(job_id, job_settings, dead_owner) is not None  # lease still 2 s ahead
+
+    report = recovery_sweep(job_settings)
+
+    assert report.requeued_expired == [job_id]
+    job = load_job(job_settings, job_id)
+    assert job.status == "queued" and "its worker process is gone" in job.error
 
 
 def test_sweep_resends_queued_jobs_without_a_live_message(job_settings: Settings) -> None:
