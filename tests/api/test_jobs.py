@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import time
+from concurrent.futures import ThreadPoolExecutor
 from datetime import UTC, datetime
 
 import httpx
@@ -273,3 +274,23 @@ def test_regions_and_labels_of_a_succeeded_job(
         np.asarray(las["label"]), np.concatenate([arrays["reference_label"], arrays["scan_label"]])
     )
     assert_error(writer.get(f"/api/v1/jobs/{job['id']}/labels", params={"format": "xyz"}), 422)
+
+
+def test_concurrent_retries_with_one_key_create_one_scan(
+    api: ApiServer, writer: httpx.Client
+) -> None:
+    site, _reference = site_with_reference(writer)
+    content = ply_bytes(make_points(3000, seed=12))
+    token = writer.headers["Authorization"]
+
+    def send(_: int) -> httpx.Response:
+        with httpx.Client(base_url=api.base_url, headers={"Authorization": token}) as client:
+            return upload(client, site["id"], content, headers={"Idempotency-Key": "race"})
+
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        responses = list(pool.map(send, range(4)))
+    assert {response.status_code for response in responses} == {202}
+    assert len({response.text for response in responses}) == 1
+    assert count(api, Scan, site_id=site["id"]) == 2
+    assert count(api, Job, site_id=site["id"]) == 1
+    assert len(list((api.settings.scans_dir / site["id"]).iterdir())) == 2
