@@ -246,6 +246,7 @@ def handle_serve(args: argparse.Namespace) -> int:
 
     settings = build_settings(args)
     configure_logging(settings.log_level)
+    logging.getLogger("alembic.runtime.plugins").setLevel(logging.WARNING)
     return serve(settings)
 
 
