@@ -88,7 +88,13 @@ def remove_stale_worker_pid_files(settings: Settings) -> None:
 class ScandiffConsumer(Consumer):  # type: ignore[misc]
     """Huey's consumer with process workers, SIGTERM as a graceful stop and the recovery sweep."""
 
-    def __init__(self, huey: Huey, settings: Settings, workers: int) -> None:
+    def __init__(
+        self,
+        huey: Huey,
+        settings: Settings,
+        workers: int,
+        shutdown_grace_seconds: float = SHUTDOWN_GRACE_SECONDS,
+    ) -> None:
         super().__init__(
             huey,
             workers=workers,
@@ -100,7 +106,7 @@ class ScandiffConsumer(Consumer):  # type: ignore[misc]
             scheduler_interval=1,
             check_worker_health=True,
             health_check_interval=WORKER_HEALTH_CHECK_SECONDS,
-            shutdown_timeout=SHUTDOWN_GRACE_SECONDS,
+            shutdown_timeout=shutdown_grace_seconds,
         )
         # SIGTERM (what `scandiff serve` and service managers send) stops gracefully, like SIGINT;
         # a second signal interrupts at once.  Workers still treat SIGTERM as "interrupt now".
@@ -162,7 +168,11 @@ def preload_pipeline() -> None:
     logger.info("pipeline preloaded", extra={"seconds": round(time.perf_counter() - started, 2)})
 
 
-def run_consumer(settings: Settings, workers: int | None = None) -> int:
+def run_consumer(
+    settings: Settings,
+    workers: int | None = None,
+    shutdown_grace_seconds: float = SHUTDOWN_GRACE_SECONDS,
+) -> int:
     """Run the consumer until SIGTERM/SIGINT; the exit status."""
     configure_logging(settings.log_level)
     preload_pipeline()
@@ -180,7 +190,7 @@ def run_consumer(settings: Settings, workers: int | None = None) -> int:
         "job consumer starting",
         extra={"workers": workers, "queue": queue.queue_backend(settings)},
     )
-    consumer = ScandiffConsumer(huey, settings, workers)
+    consumer = ScandiffConsumer(huey, settings, workers, shutdown_grace_seconds)
     try:
         consumer.run()
     finally:
@@ -192,9 +202,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     """``python -m app.jobs.consumer [--workers N]``: settings from ``SCANDIFF_*``."""
     parser = argparse.ArgumentParser(description="Run scandiff job workers.")
     parser.add_argument("--workers", type=int, default=None, help="worker processes")
+    parser.add_argument(
+        "--shutdown-grace",
+        type=float,
+        default=SHUTDOWN_GRACE_SECONDS,
+        help="seconds running jobs may take to finish on SIGTERM/SIGINT before being handed back",
+    )
     args = parser.parse_args(argv)
     die_with_supervisor()
-    return run_consumer(get_settings(), args.workers)
+    return run_consumer(get_settings(), args.workers, args.shutdown_grace)
 
 
 if __name__ == "__main__":

@@ -175,6 +175,7 @@ class ConsumerProcess:
         workers: int = 1,
         env: dict[str, str] | None = None,
         fake_pipeline: bool = True,
+        shutdown_grace_seconds: float = 10.0,
         log_path: Path,
     ) -> None:
         self.settings = settings
@@ -191,7 +192,15 @@ class ConsumerProcess:
         )
         with open(log_path, "ab") as log_file:
             self.process = subprocess.Popen(
-                [sys.executable, "-c", code, "--workers", str(workers)],
+                [
+                    sys.executable,
+                    "-c",
+                    code,
+                    "--workers",
+                    str(workers),
+                    "--shutdown-grace",
+                    str(shutdown_grace_seconds),
+                ],
                 cwd=PROJECT_ROOT,
                 env=environment,
                 stdout=log_file,

@@ -137,6 +137,27 @@ def test_poison_job_fails_after_max_attempts_and_others_still_run(
     assert healthy.status == "succeeded", consumer.log()
 
 
+def test_sigterm_hands_a_running_job_back_without_using_an_attempt(
+    job_settings: Settings, consumer_factory: Callable[..., ConsumerProcess]
+) -> None:
+    consumer = consumer_factory(
+        workers=1, env=hooks_env(sleep_seconds=60, on_attempts=[1]), shutdown_grace_seconds=1.0
+    )
+    job_id = create_job(job_settings)
+    enqueue_job(job_id, job_settings)
+    wait_for_status(job_settings, job_id, ("running",))
+
+    assert consumer.stop(timeout=20) == 0
+    assert consumer.worker_pids() == []
+    job = load_job(job_settings, job_id)
+    assert (job.status, job.attempts, job.lease_owner, job.enqueued_at) == ("queued", 0, None, None)
+    assert job.error == "interrupted by a worker shutdown"
+
+    consumer_factory(workers=1)  # the next consumer's first sweep sends it again
+    job = wait_for_status(job_settings, job_id, ("succeeded", "failed"))
+    assert (job.status, job.attempts) == ("succeeded", 1)
+
+
 def test_duplicate_messages_run_the_job_once(
     job_settings: Settings, consumer_factory: Callable[..., ConsumerProcess]
 ) -> None:
