@@ -10,6 +10,7 @@ from fastapi import Depends, Request, Security
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
+from app.api.session_auth import principal_from_session_cookie
 from app.config import Settings
 from app.db.session import session_factory
 from app.services import auth
@@ -48,10 +49,19 @@ bearer_scheme = HTTPBearer(auto_error=False, description="An API token: `scandif
 
 
 def get_principal(
+    request: Request,
     session: SessionDep,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Security(bearer_scheme)],
 ) -> Principal:
-    """The caller, from ``Authorization: Bearer <token>``; 401 without a valid token."""
+    """The caller, from ``Authorization: Bearer <token>``; 401 without a valid token.
+
+    A request without an ``Authorization`` header may instead carry the dashboard's signed
+    session cookie (:mod:`app.api.session_auth`, same-origin checked for writes).
+    """
+    if "authorization" not in request.headers:
+        principal = principal_from_session_cookie(request, session)
+        if principal is not None:
+            return principal
     return auth.authenticate(session, credentials.credentials if credentials else None)
 
 

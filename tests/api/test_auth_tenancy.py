@@ -178,3 +178,19 @@ def test_token_command_migrates_a_fresh_data_directory(
     assert (
         main(["token", "create", "--org", " ", "--role", "admin", "--data-dir", str(data_dir)]) == 2
     )
+
+
+def test_the_dashboard_session_cookie_authenticates_api_requests(api: ApiServer) -> None:
+    organisation = "cookie-org"
+    reader_token = api.token("reader", organisation)
+    writer = api.client(api.token("writer", organisation))
+    site = create_site(writer)
+    browser = api.client()
+    assert browser.post("/api/v1/session", json={"token": reader_token}).status_code == 200
+    listed = browser.get("/api/v1/sites").json()["items"]
+    assert [item["id"] for item in listed] == [site["id"]]
+    assert_error(browser.post("/api/v1/sites", json={"name": "x"}), 403)  # still a reader
+    # A bearer header, when sent, is what counts (an invalid one is not rescued by the cookie).
+    bad = browser.get("/api/v1/sites", headers={"Authorization": "Bearer wrong"})
+    assert_error(bad, 401)
+    assert_error(api.client().get("/api/v1/sites"), 401)
