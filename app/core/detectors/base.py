@@ -1,0 +1,453 @@
+"""What every change detector shares: parameters, input checks, sub-sampling and the decision.
+
+A detector turns two point clouds into one number, ``d(reference, scan)`` (the paper's
+``d(S, T)``), and decides ``changed`` by comparing it with a threshold calibrated on the
+clouds' own resampling noise (:mod:`app.core.detectors.calibration`).
+
+Subclasses provide three things:
+
+* :meth:`ChangeDetector._context`: whatever both clouds must share and is derived from the
+  reference (a scale, an orientation origin, a fitted reference model ...);
+* :meth:`ChangeDetector._score`: the distance between two *working* point sets given that
+  context (once for the real pair, and again for every resampled pair during calibration);
+* class attributes ``_variant_defaults`` (the method's own hyper-parameters per variant).
+
+The base class does the rest: parameter validation and ``get_params``, input validation,
+reducing big clouds to at most ``max_points`` working points (on a common voxel grid for the
+improved variants, so the descriptor reflects geometry rather than sensor density), seeding
+every random choice from ``random_state``, and calibration.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.core.detectors import calibration
+from app.core.errors import InputError
+
+VARIANTS = ("improved", "paper")
+
+MIN_WORKING_POINTS = 10
+"""Fewest points a cloud may have: below this no descriptor is meaningful."""
+
+
+@dataclass(frozen=True)
+class Detection:
+    """The outcome of :meth:`ChangeDetector.detect`.
+
+    Attributes
+    ----------
+    score : float
+        ``d(reference, scan)`` for the detector's method and variant.
+    threshold : float
+        Calibrated decision threshold (same units as ``score``).
+    changed : bool
+        ``score > threshold``.
+    calibration : dict
+        JSON-serialisable account of how ``threshold`` was obtained (scheme, number of
+        resamples, null statistics, nominal false-alarm rate, p-value ...).
+    """
+
+    score: float
+    threshold: float
+    changed: bool
+    calibration: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """How one hyper-parameter is validated.
+
+    Attributes
+    ----------
+    kind : {"int", "float", "choice", "voxel"}
+        ``voxel`` accepts ``"auto"`` or a float >= 0 (0 switches voxelisation off).
+    low, high : float or None
+        Inclusive bounds for numbers.
+    choices : tuple of str
+        Allowed values for ``choice``.
+    """
+
+    kind: str
+    low: float | None = None
+    high: float | None = None
+    choices: tuple[str, ...] = ()
+
+    def check(self, name: str, value: Any) -> Any:
+        """Return ``value`` normalised to a JSON type, or raise :class:`InputError`."""
+        if self.kind == "choice":
+            if value not in self.choices:
+                raise InputError(f"{name} must be one of {list(self.choices)}, got {value!r}")
+            return str(value)
+        if self.kind == "voxel" and value == "auto":
+            return "auto"
+        if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+            raise InputError(f"{name} must be a number, got {value!r}")
+        if self.kind == "int":
+            if int(value) != value:
+                raise InputError(f"{name} must be an integer, got {value!r}")
+            value = int(value)
+        else:
+            value = float(value)
+            if not math.isfinite(value):
+                raise InputError(f"{name} must be finite, got {value!r}")
+        low = 0.0 if self.kind == "voxel" else self.low
+        if low is not None and value < low:
+            raise InputError(f"{name} must be >= {low:g}, got {value!r}")
+        if self.high is not None and value > self.high:
+            raise InputError(f"{name} must be <= {self.high:g}, got {value!r}")
+        return value
+
+
+COMMON_SPECS: dict[str, ParamSpec] = {
+    "false_alarm_rate": ParamSpec("float", 1e-6, 0.5),
+    "n_resamples": ParamSpec("int", 3, 10_000),
+    "calibration": ParamSpec("choice", choices=calibration.SCHEMES),
+    "max_points": ParamSpec("int", MIN_WORKING_POINTS, 10_000_000),
+    "voxel_size": ParamSpec("voxel"),
+}
+COMMON_DEFAULTS: dict[str, dict[str, Any]] = {
+    "improved": {
+        "false_alarm_rate": 0.01,
+        "n_resamples": 20,
+        "calibration": "permutation",
+        "max_points": 4000,
+        "voxel_size": "auto",
+    },
+    "paper": {
+        "false_alarm_rate": 0.01,
+        "n_resamples": 20,
+        "calibration": "permutation",
+        "max_points": 4000,
+        "voxel_size": 0.0,
+    },
+}
+
+
+def as_points(points: NDArray, name: str) -> NDArray[np.float64]:
+    """Validate one cloud: shape (n, 3), finite, at least :data:`MIN_WORKING_POINTS` rows.
+
+    Returns
+    -------
+    ndarray, shape (n, 3), float64
+
+    Raises
+    ------
+    InputError
+        With a message saying what is wrong.
+    """
+    try:
+        array = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name}: coordinates are not numbers ({exc})") from exc
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise InputError(f"{name} must have shape (n, 3), got {array.shape}")
+    if array.shape[0] < MIN_WORKING_POINTS:
+        raise InputError(
+            f"{name} has {array.shape[0]} points; at least {MIN_WORKING_POINTS} are needed"
+        )
+    if not np.isfinite(array).all():
+        raise InputError(f"{name} contains NaN or inf coordinates; drop those points first")
+    return array
+
+
+def voxel_representatives(
+    points: NDArray[np.float64],
+    voxel_size: float,
+    origin: NDArray[np.float64],
+    rng: np.random.Generator,
+) -> NDArray[np.int64]:
+    """Indices of one randomly chosen point per occupied voxel of a grid anchored at ``origin``.
+
+    A random representative (rather than the voxel centroid) keeps the points' noise as it is,
+    so the calibration's resampling noise stays that of real points.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    voxel_size : float
+        Edge length, > 0.
+    origin : ndarray, shape (3,)
+        Grid corner shared by both clouds (so they are thinned on the same grid).
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    ndarray, shape (k,), int64
+        Sorted indices into ``points``.
+    """
+    order = rng.permutation(points.shape[0])
+    cells = np.floor((points[order] - origin) / voxel_size).astype(np.int64)
+    cells -= cells.min(axis=0)
+    extent = cells.max(axis=0) + 1
+    keys = (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
+    _, first = np.unique(keys, return_index=True)
+    return np.sort(order[first]).astype(np.int64)
+
+
+def _occupied_voxels(points: NDArray[np.float64], voxel_size: float) -> int:
+    cells = np.floor((points - points.min(axis=0)) / voxel_size).astype(np.int64)
+    extent = cells.max(axis=0) + 1
+    keys = (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
+    return int(np.unique(keys).size)
+
+
+def auto_voxel_size(points: NDArray[np.float64], target_count: int) -> float:
+    """A voxel edge at which ``points`` occupy about ``target_count`` voxels.
+
+    Solved by secant steps on ``log(count)`` versus ``log(size)`` (count ~ size**-2 on
+    surfaces), starting from the bounding-box diagonal; a handful of ``np.unique`` calls.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    target_count : int
+        Desired number of occupied voxels (< n).
+
+    Returns
+    -------
+    float
+        Voxel edge length.
+    """
+    diagonal = float(np.linalg.norm(np.ptp(points, axis=0)))
+    size = diagonal / math.sqrt(target_count)
+    count = _occupied_voxels(points, size)
+    slope = -2.0
+    for _ in range(6):
+        if abs(math.log(count / target_count)) < 0.05:
+            break
+        new_size = size * math.exp(math.log(target_count / count) / slope)
+        new_count = _occupied_voxels(points, new_size)
+        if new_count != count and new_size != size:
+            measured = math.log(new_count / count) / math.log(new_size / size)
+            slope = min(-0.5, max(-3.0, measured))
+        size, count = new_size, new_count
+    return size
+
+
+class ChangeDetector(ABC):
+    """Base class of the EMD change detectors; see the module docstring.
+
+    Parameters
+    ----------
+    variant : {"improved", "paper"}
+    random_state : int
+        Seeds every random choice (sub-sampling, EM initialisation, plane sampling,
+        calibration resamples): the same inputs and ``random_state`` give the same result.
+    **params
+        Hyper-parameters; see ``_variant_defaults`` of each subclass and
+        :data:`COMMON_DEFAULTS`. Unknown names raise :class:`InputError`.
+    """
+
+    method: ClassVar[str]
+    _specs: ClassVar[dict[str, ParamSpec]] = {}
+    _variant_defaults: ClassVar[dict[str, dict[str, Any]]] = {}
+
+    def __init__(self, variant: str = "improved", *, random_state: int = 0, **params: Any):
+        if variant not in VARIANTS:
+            raise InputError(f"variant must be one of {list(VARIANTS)}, got {variant!r}")
+        if isinstance(random_state, bool) or not isinstance(random_state, int | np.integer):
+            raise InputError(f"random_state must be an integer, got {random_state!r}")
+        if random_state < 0:
+            raise InputError(f"random_state must be >= 0, got {random_state}")
+        self.variant = variant
+        self.random_state = int(random_state)
+        specs = self.param_specs(variant)
+        unknown = sorted(set(params) - set(specs))
+        if unknown:
+            raise InputError(
+                f"unknown parameter(s) {unknown} for the {self.method!r} detector "
+                f"(variant {variant!r}); "
+                f"valid: {sorted([*specs, 'random_state', 'variant'])}"
+            )
+        values = {**COMMON_DEFAULTS[variant], **self._variant_defaults[variant], **params}
+        self.params: dict[str, Any] = {
+            name: specs[name].check(name, values[name]) for name in specs
+        }
+
+    @classmethod
+    def param_specs(cls, variant: str) -> dict[str, ParamSpec]:
+        """The hyper-parameters ``variant`` accepts: the common ones, then the method's own."""
+        own = {name: cls._specs[name] for name in cls._variant_defaults[variant]}
+        return {**COMMON_SPECS, **own}
+
+    def get_params(self) -> dict[str, Any]:
+        """JSON-serialisable parameters; ``make_detector(method, **get_params())`` rebuilds it."""
+        return {"variant": self.variant, "random_state": self.random_state, **self.params}
+
+    def __repr__(self) -> str:
+        arguments = ", ".join(f"{key}={value!r}" for key, value in self.get_params().items())
+        return f"{type(self).__name__}({arguments})"
+
+    # ----------------------------------------------------------------------------------------
+    # to be provided by each method
+
+    @abstractmethod
+    def _context(
+        self,
+        reference: NDArray[np.float64],
+        scan: NDArray[np.float64],
+        rng: np.random.Generator,
+    ) -> dict[str, Any]:
+        """What both working sets share, derived from the working reference (and scan).
+
+        Computed once per call and reused for every calibration resample.
+        """
+
+    @abstractmethod
+    def _score(
+        self,
+        first: NDArray[np.float64],
+        second: NDArray[np.float64],
+        context: dict[str, Any],
+        rng: np.random.Generator,
+        is_resample: bool,
+    ) -> float:
+        """``d(first, second)`` on working sets; ``is_resample`` is True during calibration."""
+
+    # ----------------------------------------------------------------------------------------
+    # shared machinery
+
+    def _working_sets(
+        self,
+        reference: NDArray[np.float64],
+        scan: NDArray[np.float64],
+        rng: np.random.Generator,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
+        """Thin both clouds to at most ``max_points`` points each.
+
+        The improved variants first thin both clouds on one common voxel grid (so a scanner
+        that saw a wall from close by, with ten times the density, weighs it no more than one
+        that saw it from afar), then draw a uniform random subset.
+
+        Returns
+        -------
+        reference_work : ndarray, shape (n', 3)
+        scan_work : ndarray, shape (m', 3)
+        info : dict
+            ``voxel_size`` used (0 when none) and the working sizes.
+        """
+        max_points = self.params["max_points"]
+        voxel_size = self.params["voxel_size"]
+        if voxel_size == "auto":
+            smaller = reference if reference.shape[0] <= scan.shape[0] else scan
+            larger_count = max(reference.shape[0], scan.shape[0])
+            if larger_count > max_points and smaller.shape[0] > MIN_WORKING_POINTS:
+                # The grid at which the sparser cloud keeps ~max_points voxels (or ~half of
+                # its points when it is smaller than that): both clouds then sample every
+                # surface at about the same spacing.
+                target = max(MIN_WORKING_POINTS, min(max_points, smaller.shape[0] // 2))
+                voxel_size = auto_voxel_size(smaller, target)
+            else:
+                voxel_size = 0.0
+        if voxel_size > 0:
+            origin = np.minimum(reference.min(axis=0), scan.min(axis=0))
+            reference = reference[voxel_representatives(reference, voxel_size, origin, rng)]
+            scan = scan[voxel_representatives(scan, voxel_size, origin, rng)]
+        sets = []
+        for cloud in (reference, scan):
+            if cloud.shape[0] > max_points:
+                cloud = cloud[np.sort(rng.choice(cloud.shape[0], max_points, replace=False))]
+            sets.append(cloud)
+        info = {
+            "voxel_size": float(voxel_size),
+            "n_reference_working": int(sets[0].shape[0]),
+            "n_scan_working": int(sets[1].shape[0]),
+        }
+        return sets[0], sets[1], info
+
+    def _rngs(self) -> tuple[np.random.Generator, np.random.Generator, np.random.Generator]:
+        """Independent generators for sub-sampling, scoring and calibration."""
+        seeds = np.random.SeedSequence(self.random_state).spawn(3)
+        return tuple(np.random.default_rng(seed) for seed in seeds)  # type: ignore[return-value]
+
+    def _prepare(
+        self, reference: NDArray, scan: NDArray
+    ) -> tuple[
+        NDArray[np.float64],
+        NDArray[np.float64],
+        dict[str, Any],
+        dict[str, Any],
+        np.random.Generator,
+        np.random.Generator,
+    ]:
+        reference = as_points(reference, "reference")
+        scan = as_points(scan, "scan")
+        sampling_rng, score_rng, calibration_rng = self._rngs()
+        reference_work, scan_work, info = self._working_sets(reference, scan, sampling_rng)
+        context = self._context(reference_work, scan_work, score_rng)
+        return reference_work, scan_work, context, info, score_rng, calibration_rng
+
+    def distance(self, reference: NDArray, scan: NDArray) -> float:
+        """``d(reference, scan)`` for this method and variant.
+
+        Parameters
+        ----------
+        reference : array_like, shape (n, 3)
+            Reference cloud, local coordinates.
+        scan : array_like, shape (m, 3)
+            Later scan of the same place, same frame.
+
+        Returns
+        -------
+        float
+            Non-negative distance; 0 for identical clouds (up to EM / sampling noise).
+        """
+        reference_work, scan_work, context, _, score_rng, _ = self._prepare(reference, scan)
+        return float(self._score(reference_work, scan_work, context, score_rng, False))
+
+    def detect(self, reference: NDArray, scan: NDArray) -> Detection:
+        """Distance plus a threshold calibrated on the clouds' own resampling noise.
+
+        Parameters
+        ----------
+        reference : array_like, shape (n, 3)
+        scan : array_like, shape (m, 3)
+
+        Returns
+        -------
+        Detection
+        """
+        reference_work, scan_work, context, info, score_rng, calibration_rng = self._prepare(
+            reference, scan
+        )
+        score = float(self._score(reference_work, scan_work, context, score_rng, False))
+
+        def resample_score(first: NDArray[np.float64], second: NDArray[np.float64]) -> float:
+            return float(self._score(first, second, context, calibration_rng, True))
+
+        null = calibration.null_distribution(
+            reference_work,
+            scan_work,
+            resample_score,
+            scheme=self.params["calibration"],
+            n_resamples=self.params["n_resamples"],
+            rng=calibration_rng,
+        )
+        n_failed = int(np.sum(~np.isfinite(null)))
+        if null.size - n_failed < 2:
+            raise InputError(
+                f"cannot calibrate the {self.method}/{self.variant} detector: it failed on "
+                f"{n_failed} of {null.size} resampled pairs"
+            )
+        decision = calibration.threshold_from_null(null, self.params["false_alarm_rate"])
+        report = {
+            **decision.report(score),
+            "calibration": self.params["calibration"],
+            "n_failed_resamples": n_failed,
+            **info,
+            "method": self.method,
+            "variant": self.variant,
+        }
+        return Detection(
+            score=score,
+            threshold=decision.threshold,
+            changed=bool(score > decision.threshold),
+            calibration=report,
+        )

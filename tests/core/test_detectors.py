@@ -1,0 +1,203 @@
+"""Contract of the EMD change detectors, and the properties the improved variants exist for."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from app.core.detectors import METHODS, VARIANTS, Detection, make_detector
+from app.core.detectors.gmm import _fit, bures_wasserstein_distances
+from app.core.detectors.pca import improved_pca_emd, paper_pca_emd, principal_axes
+from app.core.emd import earth_movers_distance
+from app.core.errors import InputError
+
+FAST = {"n_resamples": 8}
+"""Fewer calibration resamples than the default 20, to keep the tests quick."""
+
+
+def corridor(n_points: int, rng: np.random.Generator, noise: float = 0.005) -> np.ndarray:
+    """Points on the walls x = +-1 and the ceiling z = 2 of a 4 m corridor, shape (n, 3)."""
+    surface = rng.integers(0, 3, n_points)
+    along = rng.uniform(-2.0, 2.0, n_points)
+    across = rng.uniform(0.0, 2.0, n_points)
+    points = np.column_stack([np.where(surface == 0, -1.0, 1.0), along, across])
+    ceiling = surface == 2
+    points[ceiling] = np.column_stack(
+        [across[ceiling] - 1.0, along[ceiling], np.full(ceiling.sum(), 2.0)]
+    )
+    return points + rng.normal(0.0, noise, points.shape)
+
+
+def box_faces(n_points: int, rng: np.random.Generator, noise: float = 0.005) -> np.ndarray:
+    """Points on the free faces of a 0.6 x 0.8 x 0.8 m box against the wall x = -1."""
+    low, high = np.array([-1.0, -0.4, 0.0]), np.array([-0.4, 0.4, 0.8])
+    points = rng.uniform(low, high, (n_points, 3))
+    face = rng.integers(0, 4, n_points)
+    points[face == 0, 0] = high[0]
+    points[face == 1, 1] = low[1]
+    points[face == 2, 1] = high[1]
+    points[face == 3, 2] = high[2]
+    return points + rng.normal(0.0, noise, points.shape)
+
+
+@pytest.fixture(scope="module")
+def scene() -> dict[str, np.ndarray]:
+    """A reference, an independent rescan of it, and a rescan with a box added (25 %)."""
+    rng = np.random.default_rng(11)
+    reference = corridor(1200, rng)
+    return {
+        "reference": reference,
+        "rescan": corridor(1200, rng),
+        "with_box": np.vstack([corridor(1200, rng), box_faces(300, rng)]),
+    }
+
+
+ALL = [(method, variant) for method in METHODS for variant in VARIANTS]
+
+
+@pytest.mark.parametrize(("method", "variant"), ALL)
+def test_identical_clouds_score_about_zero_and_are_not_changed(method, variant, scene):
+    detector = make_detector(method, variant, **FAST)
+    detection = detector.detect(scene["reference"], scene["reference"].copy())
+    assert isinstance(detection, Detection)
+    assert detection.score == pytest.approx(0.0, abs=1e-2)
+    assert detection.threshold > detection.score
+    assert detection.changed is False
+    json.dumps(detection.calibration)  # JSON-serialisable
+    assert detection.calibration["n_resamples"] >= 2
+    assert detection.calibration["false_alarm_rate"] == 0.01
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_improved_detects_an_added_box_and_not_a_plain_rescan(method, scene):
+    detector = make_detector(method, **FAST)
+    unchanged = detector.detect(scene["reference"], scene["rescan"])
+    changed = detector.detect(scene["reference"], scene["with_box"])
+    assert changed.score > unchanged.score
+    assert changed.changed is True
+    assert unchanged.changed is False
+    assert changed.score > changed.threshold
+    assert 0.0 < changed.calibration["p_value"] <= 1.0
+
+
+@pytest.mark.parametrize(("method", "variant"), ALL)
+def test_get_params_round_trips_through_make_detector(method, variant):
+    detector = make_detector(method, variant, random_state=5, false_alarm_rate=0.05)
+    params = detector.get_params()
+    assert params["variant"] == variant
+    assert params["random_state"] == 5
+    assert params["false_alarm_rate"] == 0.05
+    assert json.loads(json.dumps(params)) == params
+    rebuilt = make_detector(method, **params)
+    assert type(rebuilt) is type(detector)
+    assert rebuilt.get_params() == params
+
+
+@pytest.mark.parametrize(("method", "variant"), ALL)
+def test_same_random_state_gives_the_same_detection(method, variant, scene):
+    first = make_detector(method, variant, random_state=3, **FAST)
+    second = make_detector(method, variant, random_state=3, **FAST)
+    one = first.detect(scene["reference"], scene["rescan"])
+    two = second.detect(scene["reference"], scene["rescan"])
+    assert one == two
+    assert first.distance(scene["reference"], scene["rescan"]) == one.score
+
+
+def test_large_clouds_are_thinned_to_max_points_on_a_common_voxel_grid():
+    rng = np.random.default_rng(2)
+    reference, scan = corridor(20_000, rng), corridor(5_000, rng)
+    detection = make_detector("pca", max_points=1000, **FAST).detect(reference, scan)
+    assert detection.calibration["voxel_size"] > 0
+    assert detection.calibration["n_reference_working"] <= 1000
+    assert detection.calibration["n_scan_working"] <= 1000
+    paper = make_detector("pca", "paper", max_points=1000, **FAST).detect(reference, scan)
+    assert paper.calibration["voxel_size"] == 0.0
+
+
+@pytest.mark.parametrize(
+    ("method", "variant", "params", "message"),
+    [
+        ("pcaa", "improved", {}, "valid: \\['gmm', 'pca', 'planes'\\]"),
+        ("pca", "better", {}, "valid: \\['improved', 'paper'\\]"),
+        ("gmm", "improved", {"n_component": 3}, "n_components"),
+        ("gmm", "improved", {"n_components": 0}, ">= 1"),
+        ("gmm", "improved", {"n_components": 2.5}, "integer"),
+        ("gmm", "paper", {"covariance_floor": 0.1}, "unknown parameter"),
+        ("planes", "improved", {"inlier_distance": 0.1}, "unknown parameter"),
+        ("pca", "improved", {"false_alarm_rate": 0.0}, "false_alarm_rate"),
+        ("pca", "improved", {"calibration": "bootstrap"}, "permutation"),
+        ("pca", "improved", {"voxel_size": -1.0}, "voxel_size"),
+        ("pca", "improved", {"voxel_size": "big"}, "voxel_size"),
+        ("pca", "improved", {"n_resamples": True}, "n_resamples"),
+    ],
+)
+def test_bad_parameters_raise_input_error_naming_the_valid_ones(method, variant, params, message):
+    with pytest.raises(InputError, match=message):
+        make_detector(method, variant, **params)
+
+
+@pytest.mark.parametrize(
+    ("reference", "message"),
+    [
+        (np.zeros((5, 3)), "at least 10"),
+        (np.zeros((20, 2)), "shape"),
+        (np.full((20, 3), np.nan), "NaN"),
+    ],
+)
+def test_bad_clouds_raise_input_error(reference, message):
+    with pytest.raises(InputError, match=message):
+        make_detector("pca").distance(reference, np.zeros((20, 3)))
+
+
+def test_improved_pca_is_invariant_to_eigenvector_signs_and_the_papers_is_not():
+    rng = np.random.default_rng(0)
+    values_a, vectors_a = principal_axes(corridor(500, rng))
+    values_b, vectors_b = principal_axes(corridor(500, rng))
+    flipped_b = vectors_b * np.array([[-1.0], [1.0], [-1.0]])
+    improved = improved_pca_emd(values_a, vectors_a, values_b, vectors_b)
+    assert improved_pca_emd(values_a, vectors_a, values_b, flipped_b) == pytest.approx(improved)
+    paper = paper_pca_emd(values_a, vectors_a, values_b, vectors_b)
+    paper_flipped = paper_pca_emd(values_a, vectors_a, values_b, flipped_b)
+    assert abs(paper_flipped - paper) > 0.5
+
+
+def test_gmm_warm_start_reduces_the_spread_between_noise_realisations():
+    rng = np.random.default_rng(1)
+    clean = corridor(300, rng, noise=0.0)
+    reg_covar = 2e-3
+    cold, warm = [], []
+    for _ in range(5):
+        reference = clean + rng.normal(0.0, 0.01, clean.shape)
+        scan = clean + rng.normal(0.0, 0.01, clean.shape)
+        reference_model = _fit(reference, 8, seed=0, reg_covar=reg_covar, max_iter=100)
+        for store, start in ((cold, None), (warm, reference_model)):
+            iterations = 100 if start is None else 1
+            scan_model = _fit(
+                scan, 8, seed=0, reg_covar=reg_covar, max_iter=iterations, start=start
+            )
+            ground = bures_wasserstein_distances(
+                reference_model.means_,
+                reference_model.covariances_,
+                scan_model.means_,
+                scan_model.covariances_,
+            )
+            store.append(
+                earth_movers_distance(
+                    reference_model.weights_, scan_model.weights_, ground
+                ).distance
+            )
+    assert np.std(warm) < 0.5 * np.std(cold)
+    assert np.mean(warm) < 0.5 * np.mean(cold)
+
+
+def test_bures_distance_matches_closed_forms():
+    means = np.array([[0.0, 0.0, 0.0]])
+    identity = np.eye(3)[None]
+    # Same covariance: the distance is the distance between the means.
+    shifted = bures_wasserstein_distances(means, identity, np.array([[3.0, 4.0, 0.0]]), identity)
+    assert shifted[0, 0] == pytest.approx(5.0)
+    # Commuting covariances: ||sqrt(A) - sqrt(B)||_F.
+    scaled = bures_wasserstein_distances(means, identity, means, 4.0 * identity)
+    assert scaled[0, 0] == pytest.approx(np.sqrt(3.0))
