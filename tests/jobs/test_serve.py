@@ -1,4 +1,4 @@
-"""``scandiff serve`` as a whole: first start, graceful stop, orphan-proof children, restarts.
+"""``scandiff serve`` as a whole: first start, orphan-proof children, restart, graceful stop.
 
 These start the real command (``python -m app serve``) through :mod:`tests.service_harness`: a
 migrated SQLite file, uvicorn and the job consumer as child processes.  Jobs are created over
@@ -87,7 +87,7 @@ def pipeline_importable() -> bool:
     return True
 
 
-def test_serve_first_start_graceful_stop_restart_and_orphan_proof_children(
+def test_first_start_prints_a_private_token_and_children_die_with_serve(
     service_factory: Callable[..., ServiceProcess],  # noqa: F811
 ) -> None:
     service = service_factory(workers=2, env=FAST_LEASES)
@@ -98,6 +98,8 @@ def test_serve_first_start_graceful_stop_restart_and_orphan_proof_children(
     output = service.log_text()
     assert service.admin_token in output
     assert service.base_url in output and str(service.data_dir) in output
+    with service.client() as client:
+        assert client.get("/api/v1/sites").status_code == 200
     assert len(service.wait_for_workers(2)) == 2
     deadline = time.monotonic() + 10
     while time.monotonic() < deadline:
@@ -107,18 +109,7 @@ def test_serve_first_start_graceful_stop_restart_and_orphan_proof_children(
         time.sleep(0.1)
     assert (queue["status"], queue["backend"], queue["consumer_workers"]) == ("ok", "sqlite", 2)
 
-    # SIGTERM: everything stops, exit status 0
-    assert service.stop() == 0
-    assert service.group_pids() == []
-
-    # second start: no new token; the first one still works
-    service.start()
-    assert "admin token" not in service.log_text()
-    with service.client() as client:
-        assert client.get("/api/v1/sites").status_code == 200
-
     # serve killed with SIGKILL: its children notice and exit
-    service.wait_for_workers(2)
     children = [pid for pid in service.group_pids() if pid != service.pid]
     assert len(children) >= 5  # API, consumer, Huey scheduler, two workers
     service.kill_parent()
@@ -146,6 +137,7 @@ def test_killed_service_restarted_finishes_running_and_queued_jobs(
     service.extra_env = dict(FAST_LEASES)
     restarted_at = time.monotonic()
     service.start()
+    assert "admin token" not in service.log_text()  # printed on first start only
     with service.client() as client:
         finished = {
             job_id: service.wait_for_job(client, job_id, timeout=90)
@@ -164,3 +156,5 @@ def test_killed_service_restarted_finishes_running_and_queued_jobs(
     with np.load(io.BytesIO(labels.content)) as arrays:
         assert {"reference_label", "scan_label"} <= set(arrays.files)
     assert "database is locked" not in service.log_path.read_text()
+    assert service.stop() == 0  # SIGTERM: graceful, every child gone
+    assert service.group_pids() == []

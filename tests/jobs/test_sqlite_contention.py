@@ -23,7 +23,7 @@ from app.jobs.queue import enqueue_job
 from app.jobs.recovery import recovery_sweep
 from tests.jobs.conftest import create_job
 
-DURATION_SECONDS = 2.0
+DURATION_SECONDS = 1.5
 
 
 def hammer(role: str, settings_kwargs: dict[str, Any], job_ids: list[str], results: Any) -> None:
