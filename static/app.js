@@ -110,7 +110,7 @@ function showBanner(message, kind = "error") {
 }
 
 function setCrumbs(...parts) {
-  crumbs.replaceChildren(...parts.flatMap((part, index) => [index ? h("span", { class: "crumb-sep" }, "›") : null, part]));
+  crumbs.replaceChildren(...parts.flatMap((part, index) => (index ? [h("span", { class: "crumb-sep" }, "›"), part] : [part])));
 }
 
 function stopPolling() {

@@ -77,7 +77,8 @@ export function drawTimeline(container, jobs, onSelect) {
     : { hour: "2-digit", minute: "2-digit" };
   for (let index = 0; index <= 4; index += 1) {
     const time = tMin + ((tMax - tMin) * index) / 4;
-    axes.append(svg("text", { x: x(time), y: HEIGHT - 8, "text-anchor": "middle" },
+    const anchor = index === 0 ? "start" : index === 4 ? "end" : "middle";
+    axes.append(svg("text", { x: x(time), y: HEIGHT - 8, "text-anchor": anchor },
       new Date(time).toLocaleString(undefined, timeFormat)));
   }
   axes.append(svg("line", { x1: MARGIN.left, x2: MARGIN.left, y1: MARGIN.top, y2: MARGIN.top + plotHeight, class: "axis" }));

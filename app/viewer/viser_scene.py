@@ -76,6 +76,9 @@ def configure_server(server: viser.ViserServer, data: SceneData, title: str) -> 
         titlebar_content=None,
     )
     server.scene.set_up_direction(UP_DIRECTION)
+    # Points and boxes are flat-coloured: shadow maps only cost time (a lot in software WebGL).
+    server.scene.configure_default_lights(enabled=True, cast_shadow=False)
+    server.scene.configure_environment_map(hdri=None)  # its PMREM passes are slow in software
     center = data.center
     server.initial_camera.look_at = tuple(center)
     server.initial_camera.position = tuple(center + default_camera_offset(data.extent))

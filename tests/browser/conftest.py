@@ -31,7 +31,7 @@ DOCS_SCREENSHOTS_DIR = PROJECT_ROOT / "docs" / "screenshots"
 CHROMIUM_CANDIDATES = ("chromium", "chromium-browser", "google-chrome")
 FAILING_SCAN_NAME = "sensor-fault.ply"
 FAILING_SCAN_REASON = "simulated sensor fault for the browser test"
-SCENE_POINTS = 12_000  # rays per synthetic scan: software WebGL stays fast
+SCENE_POINTS = 8_000  # rays per synthetic scan: software WebGL stays fast
 
 
 def find_chromium() -> tuple[str | None, str | None]:
@@ -41,12 +41,10 @@ def find_chromium() -> tuple[str | None, str | None]:
 
 
 @pytest.fixture(scope="session")
-def chrome_factory() -> Iterator[Callable[[], Any]]:
-    """Start headless Chromium sessions (each with a fresh profile); all quit at the end."""
+def chromium() -> tuple[str, str]:
+    """Paths of Chromium and chromedriver; skips (locally) or fails (CI) when missing."""
     try:
-        from selenium import webdriver
-        from selenium.webdriver.chrome.options import Options
-        from selenium.webdriver.chrome.service import Service
+        import selenium  # noqa: F401
     except ImportError:
         require(False, "selenium is not installed (pip install -e '.[dev]')")
     browser, driver = find_chromium()
@@ -55,6 +53,17 @@ def chrome_factory() -> Iterator[Callable[[], Any]]:
         "Chromium and chromedriver are not installed "
         "(apt-get install chromium chromium-driver; .ci/run does this)",
     )
+    return str(browser), str(driver)
+
+
+@pytest.fixture
+def chrome_factory(chromium: tuple[str, str]) -> Iterator[Callable[[], Any]]:
+    """Start headless Chromium sessions (each with a fresh profile); all quit after the test."""
+    from selenium import webdriver
+    from selenium.webdriver.chrome.options import Options
+    from selenium.webdriver.chrome.service import Service
+
+    browser, driver = chromium
     drivers: list[Any] = []
     profiles: list[str] = []
 
@@ -62,7 +71,7 @@ def chrome_factory() -> Iterator[Callable[[], Any]]:
         profile = tempfile.mkdtemp(prefix="scandiff-chromium-")
         profiles.append(profile)
         options = Options()
-        options.binary_location = str(browser)
+        options.binary_location = browser
         for argument in (
             "--headless=new",
             "--no-sandbox",

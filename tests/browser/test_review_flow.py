@@ -163,7 +163,9 @@ def test_review_with_the_mouse(review_service: ReviewService, chrome_factory) ->
     dot = by_css(driver, "#timeline circle.dot[data-job-id]")
     job_id = dot.get_attribute("data-job-id")
     assert driver.find_elements(By.CSS_SELECTOR, "#timeline .threshold-line")
+    driver.set_window_size(1280, 1160)  # the whole site page in one picture
     save_screenshot(driver, "dashboard-site", docs_name="dashboard.png")
+    driver.set_window_size(1280, 860)
 
     # Filters: "changed only" keeps this job iff the detector said changed.
     with service.client() as client:
@@ -331,8 +333,8 @@ def test_view_link_opens_without_a_token(review_service: ReviewService, chrome_f
     assert httpx.get(url).status_code == 200
     assert httpx.get(url.replace(job["id"], "0" * 32)).status_code in (401, 403)
     driver = chrome_factory()  # a fresh profile: no session cookie
-    driver.get(url)
     before = len(view_scene(service, job["id"]).get("clients", []))
-    png = wait_for_view(driver, service, job["id"], clients=before + 1 if before else 1)
+    driver.get(url)
+    png = wait_for_view(driver, service, job["id"], clients=before + 1)
     assert count_colour(png, RED) > 30
     assert_boxes_match_regions(view_scene(service, job["id"]), service.made["regions"])
