@@ -129,6 +129,14 @@ def test_review_with_the_mouse(review_service: ReviewService, chrome_factory) ->
     by_css(driver, "#new-site-name").send_keys("Warehouse aisle B")
     session_cookie = driver.get_cookie("scandiff_session")
     assert session_cookie["httpOnly"] and session_cookie["sameSite"] == "Strict"
+    sites = httpx.get(
+        service.base_url + "/api/v1/sites",
+        cookies={"scandiff_session": session_cookie["value"]},
+    )
+    assert sites.status_code == 200, (
+        "the API does not accept the session cookie: app/api/deps.py must call "
+        "app.api.session_auth.principal_from_session_cookie (see docs/review.md)"
+    )
 
     # Create a site, upload its reference, then a scan (progress bar, then a live job).
     by_css(driver, "#create-site").click()
