@@ -86,6 +86,11 @@ def las_bytes(points: NDArray[np.float64], compressed: bool = True) -> bytes:
     return buffer.getvalue()
 
 
+def unique_name(prefix: str) -> str:
+    """A name no other test (or earlier run on a persistent database) used."""
+    return f"{prefix}-{uuid.uuid4().hex[:12]}"
+
+
 # -- the server ----------------------------------------------------------------------------------
 
 
@@ -111,7 +116,7 @@ class ApiServer:
     def token(self, role: str = "writer", organisation: str | None = None) -> str:
         """A new token for ``organisation`` (default: a fresh one)."""
         with transaction(self.settings.sqlalchemy_url) as session:
-            return create_token(session, organisation or f"org-{uuid.uuid4().hex[:8]}", role)
+            return create_token(session, organisation or unique_name("org"), role)
 
     def client(self, token: str | None = None, **kwargs: Any) -> httpx.Client:
         """An HTTP client on the server, authenticated with ``token`` when given."""

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from app.api.logs import JsonFormatter
+from app.config import Settings
 from tests.api.conftest import (
     ApiServer,
     assert_error,
@@ -17,6 +18,7 @@ from tests.api.conftest import (
     make_points,
     ply_bytes,
     site_with_reference,
+    unique_name,
     upload,
 )
 
@@ -47,7 +49,7 @@ def test_health_is_public(api: ApiServer) -> None:
 
 
 def test_readers_read_but_cannot_write(api: ApiServer) -> None:
-    organisation = "readers-org"
+    organisation = unique_name("readers")
     writer = api.client(api.token("writer", organisation))
     reader = api.client(api.token("reader", organisation))
     site, reference = site_with_reference(writer)
@@ -76,8 +78,8 @@ def test_admins_can_write(api: ApiServer) -> None:
 
 
 def test_organisations_cannot_see_each_others_objects(api: ApiServer) -> None:
-    alice = api.client(api.token("writer", "alice-org"))
-    bob = api.client(api.token("admin", "bob-org"))
+    alice = api.client(api.token("writer", unique_name("alice")))
+    bob = api.client(api.token("admin", unique_name("bob")))
     site, reference = site_with_reference(alice)
     response = upload(alice, site["id"], ply_bytes(make_points(2500, seed=4)))
     assert response.status_code == 202, response.text
@@ -170,10 +172,10 @@ def test_token_command_migrates_a_fresh_data_directory(
     from app.cli import main
 
     data_dir = tmp_path / "fresh"
-    assert (
-        main(["token", "create", "--org", "o", "--role", "admin", "--data-dir", str(data_dir)]) == 0
-    )
-    assert (data_dir / "scandiff.sqlite3").is_file()
+    arguments = ["token", "create", "--org", unique_name("o"), "--role", "admin"]
+    assert main([*arguments, "--data-dir", str(data_dir)]) == 0
+    if Settings(data_dir=data_dir).database_url is None:  # the default embedded database
+        assert (data_dir / "scandiff.sqlite3").is_file()
     assert len(capsys.readouterr().out.split()) == 1
     assert (
         main(["token", "create", "--org", " ", "--role", "admin", "--data-dir", str(data_dir)]) == 2
@@ -181,7 +183,7 @@ def test_token_command_migrates_a_fresh_data_directory(
 
 
 def test_the_dashboard_session_cookie_authenticates_api_requests(api: ApiServer) -> None:
-    organisation = "cookie-org"
+    organisation = unique_name("cookie")
     reader_token = api.token("reader", organisation)
     writer = api.client(api.token("writer", organisation))
     site = create_site(writer)

@@ -26,6 +26,7 @@ from tests.api.conftest import (
     pcd_bytes,
     ply_bytes,
     site_with_reference,
+    unique_name,
     upload,
 )
 
@@ -158,13 +159,14 @@ def test_a_retried_upload_returns_the_first_response(
 def test_a_retried_reference_upload_replays_201(api: ApiServer, writer: httpx.Client) -> None:
     site, _ = site_with_reference(writer)
     content = ply_bytes(make_points(1000, seed=5))
-    headers = {"Idempotency-Key": "reference-once"}
+    key = unique_name("reference-once")
+    headers = {"Idempotency-Key": key}
     first = upload(writer, site["id"], content, reference=True, headers=headers)
     second = upload(writer, site["id"], content, reference=True, headers=headers)
     assert first.status_code == second.status_code == 201
     assert first.json() == second.json()
     assert count(api, Scan, site_id=site["id"]) == 2
-    assert count(api, IdempotencyRecord, key="reference-once") == 1
+    assert count(api, IdempotencyRecord, key=key) == 1
 
 
 def test_failed_requests_do_not_consume_the_key(writer: httpx.Client) -> None:

@@ -17,6 +17,7 @@ from tests.api.conftest import (
     make_points,
     ply_bytes,
     site_with_reference,
+    unique_name,
     upload,
 )
 
@@ -103,8 +104,9 @@ def test_update_a_site(writer: httpx.Client) -> None:
 
 
 def test_list_sites_pages_newest_first_with_an_opaque_cursor(api: ApiServer) -> None:
-    client = api.client(api.token("reader", "paging-org"))
-    writer = api.client(api.token("writer", "paging-org"))
+    organisation = unique_name("paging")
+    client = api.client(api.token("reader", organisation))
+    writer = api.client(api.token("writer", organisation))
     created = [create_site(writer, name=f"s{index}")["id"] for index in range(5)]
     seen: list[str] = []
     cursor = None

@@ -18,6 +18,7 @@ from app.services.storage import (
     sanitise_filename,
     sweep_temporary_files,
 )
+from tests.api.conftest import unique_name
 
 
 @pytest.mark.parametrize(
@@ -59,7 +60,7 @@ def test_the_sweep_removes_leftovers_and_keeps_what_rows_reference(tmp_path: Pat
     ensure_directories(settings)
     upgrade_to_head(settings.sqlalchemy_url)
     with transaction(settings.sqlalchemy_url) as session:
-        organisation = Organisation(name="o")
+        organisation = Organisation(name=unique_name("sweep"))
         session.add(organisation)
         session.flush()
         site = Site(organisation_id=organisation.id, name="s")

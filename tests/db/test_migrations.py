@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
 from sqlalchemy import create_engine, inspect
@@ -68,3 +70,27 @@ def test_alembic_command_line_takes_the_url_from_x_argument(tmp_path: Path) -> N
         cwd=PROJECT_ROOT,
     )
     assert current_revision(url) == head_revision()
+
+
+POSTGRES_URL_ENV = "SCANDIFF_TEST_POSTGRES_URL"
+
+
+@pytest.mark.skipif(
+    not os.environ.get(POSTGRES_URL_ENV),
+    reason=f"set {POSTGRES_URL_ENV}=postgresql+psycopg://user@host:port/empty_db to run",
+)
+def test_migrations_on_postgresql() -> None:
+    url = os.environ[POSTGRES_URL_ENV]
+    downgrade_to_base(url)
+    upgrade_to_head(url)
+    assert current_revision(url) == head_revision()
+    engine = create_engine(url)
+    try:
+        with engine.connect() as connection:
+            context = MigrationContext.configure(connection, opts={"compare_type": True})
+            assert compare_metadata(context, Base.metadata) == []
+    finally:
+        engine.dispose()
+    downgrade_to_base(url)
+    assert current_revision(url) is None
+    upgrade_to_head(url)
