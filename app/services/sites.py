@@ -10,6 +10,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from app.config import Settings
+from app.core.detectors import make_detector  # imported here, never inside a transaction
 from app.core.errors import InputError
 from app.db.models import Job, ReferenceHistory, Region, Scan, Site
 from app.services import storage
@@ -42,8 +43,6 @@ def validate_detector(method: str, variant: str, params: dict[str, Any]) -> None
     The detector keyword parameters go through ``make_detector`` (unknown method, variant or
     parameter, or a bad value); the pipeline's own keys get a shape check.
     """
-    from app.core.detectors import make_detector
-
     if "variant" in params and params["variant"] != variant:
         raise ValidationFailedError(
             f"params say variant {params['variant']!r} but variant {variant!r} was requested",
