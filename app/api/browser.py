@@ -407,22 +407,26 @@ async def job_view_socket(websocket: WebSocket, job_id: str) -> None:
     if not isinstance(grant, ViewGrant):
         await websocket.close(code=WEBSOCKET_POLICY_VIOLATION)  # before accept: HTTP 403
         return
-    manager = viewer_manager(websocket)
-    try:
-        viewer = await run_in_threadpool(manager.get, job_id)
-    except ViewUnavailableError as exc:
-        logger.info("3D view of job %s unavailable: %s", job_id, exc.message)
-        await websocket.close(code=WEBSOCKET_POLICY_VIOLATION)
-        return
-    except Exception:
-        logger.exception("could not start the 3D view of job %s", job_id)
-        await websocket.close(code=WEBSOCKET_INTERNAL_ERROR)
-        return
     requested = [
         protocol
         for protocol in websocket.scope.get("subprotocols", [])
         if protocol.startswith(VISER_SUBPROTOCOL_PREFIX)
     ]
+    # Accept at once with the client's viser subprotocol: loading a large scene can take longer
+    # than the 5 s the viser client waits for a handshake before it retries.
+    await websocket.accept(subprotocol=requested[0] if requested else None)
+    manager = viewer_manager(websocket)
+    try:
+        viewer = await run_in_threadpool(manager.get, job_id)
+    except ViewUnavailableError as exc:
+        logger.info("3D view of job %s unavailable: %s", job_id, exc.message)
+        reason = exc.message.encode()[:120].decode(errors="ignore")  # a close reason <= 123 B
+        await websocket.close(code=WEBSOCKET_POLICY_VIOLATION, reason=reason)
+        return
+    except Exception:
+        logger.exception("could not start the 3D view of job %s", job_id)
+        await websocket.close(code=WEBSOCKET_INTERNAL_ERROR, reason="the 3D view failed to load")
+        return
     try:
         upstream = await websockets.asyncio.client.connect(
             f"ws://127.0.0.1:{viewer.port}",
@@ -433,9 +437,8 @@ async def job_view_socket(websocket: WebSocket, job_id: str) -> None:
         )
     except (OSError, websockets.exceptions.WebSocketException, TimeoutError):
         logger.exception("viser server of job %s did not accept the proxy", job_id)
-        await websocket.close(code=WEBSOCKET_INTERNAL_ERROR)
+        await websocket.close(code=WEBSOCKET_INTERNAL_ERROR, reason="the 3D view is unreachable")
         return
-    await websocket.accept(subprotocol=upstream.subprotocol)
     manager.connection_opened(job_id)
     try:
         await _pump(websocket, upstream)
@@ -443,8 +446,13 @@ async def job_view_socket(websocket: WebSocket, job_id: str) -> None:
         manager.connection_closed(job_id)
         await upstream.close()
         if websocket.client_state != WebSocketState.DISCONNECTED:
+            code = upstream.close_code
+            forwardable = code is not None and code not in (1005, 1006, 1015)
             with contextlib.suppress(RuntimeError, WebSocketDisconnect):
-                await websocket.close()
+                await websocket.close(
+                    code=code if forwardable else 1000,
+                    reason=(upstream.close_reason or "") if forwardable else "",
+                )
 
 
 async def _pump(browser: WebSocket, upstream: Any) -> None:
