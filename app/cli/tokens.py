@@ -13,7 +13,8 @@ from pathlib import Path
 from typing import Any
 
 from app.config import Settings
-from app.services.auth import ROLES
+
+ROLES = ("reader", "writer", "admin")  # app.services.auth.ROLES, without importing SQLAlchemy
 
 
 def add_parser(subparsers: Any) -> None:
