@@ -120,6 +120,7 @@ def test_review_with_the_mouse(review_service: ReviewService, chrome_factory) ->
     # Sign in: a wrong token is refused in words, the printed admin token works.
     driver.get(service.base_url + "/")
     by_css(driver, "#token").send_keys("sdt_not-a-real-token")
+    assert not driver.find_element(By.ID, "sign-out").is_displayed()
     by_css(driver, "#sign-in-button").click()
     wait_until(lambda: "not valid" in text_of(driver, "#sign-in-error"), 10, "no refusal shown")
     token_field = by_css(driver, "#token")
