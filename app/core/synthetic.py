@@ -36,6 +36,7 @@ from numpy.typing import NDArray
 __all__ = [
     "CHANGE_KINDS",
     "CORRIDOR_BOX_DEPTH",
+    "STATIC_BOXES",
     "SceneBox",
     "SyntheticPair",
     "paper_corridor",
@@ -255,7 +256,7 @@ class SceneBox:
         return (np.asarray(self.low) + np.asarray(self.high)) / 2.0
 
 
-_STATIC_BOXES = (
+STATIC_BOXES: tuple[SceneBox, ...] = (
     SceneBox("dividing_wall_south", (10.0, 0.0, 0.0), (10.2, 3.2, 3.0)),
     SceneBox("dividing_wall_north", (10.0, 4.4, 0.0), (10.2, 8.0, 3.0)),
     SceneBox("door_lintel", (10.0, 3.2, 2.2), (10.2, 4.4, 3.0)),
@@ -267,6 +268,7 @@ _STATIC_BOXES = (
     SceneBox("box_room_b", (12.0, 1.0, 0.0), (13.0, 2.0, 1.2)),
     SceneBox("shelf_room_b", (13.0, 7.5, 0.0), (15.5, 8.0, 2.0)),
 )
+"""The furniture and the dividing wall of :func:`raycast_scene`, present in both worlds."""
 _ADDED_BOX = SceneBox("added_box", (5.4, 1.2, 0.0), (6.2, 2.0, 0.9))
 _REMOVED_BOX = SceneBox("removed_box", (2.0, 4.6, 0.0), (2.9, 5.4, 1.0))
 _MOVED_BOX_BEFORE = SceneBox("moved_box_before", (6.6, 4.0, 0.0), (7.4, 4.6, 0.8))
@@ -504,15 +506,15 @@ def raycast_scene(
         raise ValueError(f"range_noise must be >= 0, got {range_noise}")
     rng = np.random.default_rng(random_state)
     reference_only, scan_only = raycast_scene_objects(change)
-    reference_world = [*_STATIC_BOXES, *reference_only]
-    scan_world = [*_STATIC_BOXES, *scan_only]
+    reference_world = [*STATIC_BOXES, *reference_only]
+    scan_world = [*STATIC_BOXES, *scan_only]
     reference_sensor = np.array([*REFERENCE_SENSOR_XY, SENSOR_HEIGHT])
     scan_sensor = _place_scan_sensor(
-        sensor_shift, [*_STATIC_BOXES, *reference_only, *scan_only], rng
+        sensor_shift, [*STATIC_BOXES, *reference_only, *scan_only], rng
     )
     reference_low, reference_high = _box_arrays(reference_world)
     scan_low, scan_high = _box_arrays(scan_world)
-    n_static = len(_STATIC_BOXES)
+    n_static = len(STATIC_BOXES)
 
     def sweep(sensor, low, high):
         directions = _lidar_directions(n_points, rng)

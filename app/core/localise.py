@@ -1,0 +1,1003 @@
+"""Per-point change labels and changed regions between a reference scan and an aligned rescan.
+
+The paper's scores say *whether* a site changed; this module says *where*.  Real rescans are
+independent samplings at different densities from a moved sensor, with occlusions and sparse far
+surfaces, so plain cloud-to-cloud nearest-neighbour distances with one global threshold flood
+with false alarms.  Instead (method, reasons and measured numbers in ``docs/localisation.md``):
+
+1. **Local geometry of each cloud.**  One k-nearest-neighbour query per cloud gives, for every
+   point, a plane fitted to its neighbourhood (centroid and normal), the local point spacing
+   ``s`` (the side of the area each point stands for, from the k-th neighbour distance) and the
+   fit's residual.  Neighbourhoods that are a line (one scan ring on a floor seen at a grazing
+   angle, where rings are far apart) are refitted with three times more neighbours.  The
+   median residual, corrected for the fit's degrees of freedom, is the cloud's noise ``sigma``.
+2. **Distance to the other cloud's surface** (C2M/M3C2-like).  Each neighbour ``q`` (in the
+   other cloud, around the point's nearest point there) stands for a disc of radius
+   ``r(q) = max(f * s(q), tau)`` on its fitted plane.  The distance of ``p`` is the smallest
+   point-to-plane distance to the discs ``p`` projects into, or its nearest-point distance
+   when it projects into none (the other cloud has no surface there).
+3. **Change candidates.**  ``p`` is a candidate when that distance exceeds
+   ``tau = threshold_factor * sqrt(sigma_ref^2 + sigma_scan^2 + registration_rmse^2)`` AND no
+   point of the other cloud lies within ``r`` of it: the threshold along the normal follows
+   the measured noise, the one across the surface the other cloud's local spacing.  The
+   support factor ``f`` is calibrated on the data: how far, in local spacings, a point's
+   nearest neighbour in the other cloud typically is (~1.3 for independent lidar samplings;
+   ~0.6 for the paper's corridor, whose two clouds are the same points with fresh noise).
+4. **Visibility: unobserved is never change.**  With the other cloud's sensor origin, its
+   returns are indexed by direction from that origin (a KD-tree on unit vectors: a spherical
+   range image that adapts to any ray pattern).  For each candidate, the returns within a few
+   angular steps of its direction are compared with where each ray meets the candidate's own
+   surface (its plane): a return clearly short of the candidate (or of that crossing) means it
+   was occluded; no return means out of range or field of view; both give *unobserved*.  Rays
+   that cross the candidate's plane near it, where its own cloud has surface, and carry on
+   clearly beyond it saw free space there: *changed*.  Rays that end there: the surface is
+   there after all, *unchanged*.  A candidate whose surface the other sensor saw only edge-on
+   gets no evidence of its own; it is changed when connected to candidates mostly seen through
+   (a removed box's side face), unobserved otherwise.  Without an origin, a coverage test: a
+   candidate whose nearest point in the other cloud is farther than ``coverage_factor`` local
+   spacings is unobserved (that is right for merged multi-view maps; single-viewpoint scans
+   should pass origins, or their shadows' rims come out as changes).
+5. **Regions.**  Changed points of each cloud are linked to neighbours closer than
+   ``cluster_factor`` local spacings (k-nearest-neighbour graph, sparse connected
+   components); clusters smaller than ``min_region_points`` are noise and relabelled
+   unchanged, so the changed points are exactly the regions' points.
+
+Everything is vectorised numpy/scipy: a 200k x 200k pair takes about 2.5 s of one core.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from app.core.cloud import MIN_POINTS
+from app.core.errors import InputError, PointCloudError
+
+__all__ = [
+    "DEFAULT_PARAMETERS",
+    "LABEL_CHANGED",
+    "LABEL_UNCHANGED",
+    "LABEL_UNOBSERVED",
+    "ChangedRegion",
+    "Localisation",
+    "localise_changes",
+]
+
+LABEL_UNCHANGED = 0
+LABEL_CHANGED = 1
+LABEL_UNOBSERVED = -1
+
+DEFAULT_PARAMETERS: dict[str, Any] = {
+    "n_neighbors": 10,
+    "threshold_factor": 3.5,
+    "support_factor": None,
+    "cluster_factor": 2.5,
+    "coverage_factor": 3.0,
+    "visibility_margin_factor": 1.0,
+    "visibility_angle_factor": 2.5,
+    "visibility_beyond_fraction": 0.5,
+    "visibility_miss_factor": 4.0,
+}
+"""Keyword parameters of :func:`localise_changes` and their defaults.
+
+n_neighbors
+    Neighbours (besides the point) of the local plane fit, spacing and noise estimate.  10
+    spans two rings of a lidar whose rings are twice as far apart as its columns; line-shaped
+    neighbourhoods are refitted with 3x more anyway.
+threshold_factor
+    ``tau`` in standard deviations of the combined noise (3.5: ~1 in 2000 two-sided under
+    Gaussian noise; the minimum over neighbouring discs makes false candidates rarer still).
+support_factor
+    Support radius in the other cloud's local spacings; None calibrates it (3.5 x the lower
+    quartile of nearest-neighbour distances in local spacings, clipped to [0.5, 2]).
+cluster_factor
+    Changed points closer than this many local spacings belong to one region.
+coverage_factor
+    Without the other sensor's origin: a candidate farther than this many of the other
+    cloud's local spacings from it is unobserved.
+visibility_margin_factor
+    Scales the range margin that makes a return "clearly" before or beyond a candidate:
+    ``sqrt((t_own / cos(incidence))^2 + t_other^2)`` with ``t = threshold_factor * sigma``.
+visibility_angle_factor
+    Returns within this many typical angular steps of the candidate's direction are the
+    other sensor's view of it (at most 8 returns are used).
+visibility_beyond_fraction
+    Fraction of the rays crossing the candidate's surface near it that must pass beyond it.
+visibility_miss_factor
+    "Near": within ``max(miss_factor * own spacing, candidate's distance)`` of the candidate.
+"""
+
+SUPPORT_FACTOR_QUANTILE = 0.25
+SUPPORT_FACTOR_PER_QUANTILE = 3.5
+"""Calibrated support factor = 3.5 x the lower quartile of nearest-neighbour distances in local
+spacings (~1.3 for independent lidar samplings; the quartile ignores up to 75 % of points
+being changed or unobserved)."""
+SUPPORT_FACTOR_RANGE = (0.5, 2.0)
+MIN_REGION_POINTS_FLOOR = 4
+"""Smallest default minimum region size: 1-3 point clusters are noise."""
+MIN_REGION_POINTS_FRACTION = 1e-4
+"""The default minimum region size grows with the smaller cloud (20 points at 200k)."""
+RESOLUTION_THRESHOLD_FRACTION = 0.05
+"""``tau`` is at least this fraction of the median spacing (noise-free data has sigma = 0)."""
+MIN_INCIDENCE_COSINE = math.cos(math.radians(85.0))
+"""Rays meeting a candidate's plane at more than 85 degrees incidence graze it: no evidence."""
+STATUS_SURFACE = 0
+STATUS_SEEN_THROUGH = 1
+STATUS_UNOBSERVED = -1
+STATUS_EDGE_ON = 2
+"""Visibility of a change candidate: the other sensor saw a surface where it is (unchanged),
+saw free space through it (changed), could not see it (unobserved), or saw its surface only
+edge-on (changed if most of its connected candidates were seen through, else unobserved)."""
+EDGE_ON_SEEN_THROUGH_SHARE = 0.5
+LINEAR_EIGENVALUE_RATIO = 0.1
+"""A neighbourhood whose middle/largest eigenvalue ratio is below this is a line, not a plane."""
+LINEAR_REFIT_FACTOR = 3
+"""Linear neighbourhoods are refitted with this many times more neighbours."""
+OWN_SUPPORT_FACTOR = 0.75
+"""A ray's crossing of a candidate's plane is evidence only within this many own spacings of
+an own point (stricter than the support radius: only evidence is lost, never invented)."""
+CLUSTER_NEIGHBOURS = 10
+VISIBILITY_RAYS = 8
+_CHUNK = 65_536
+_ANGULAR_SAMPLE = 4096
+
+
+@dataclass(frozen=True)
+class ChangedRegion:
+    """One connected cluster of changed points.
+
+    Attributes
+    ----------
+    kind : {"added", "removed"}
+        "added": scan points with no counterpart in the reference; "removed": reference points
+        with no counterpart in the scan.
+    point_indices : ndarray, shape (k,), int64
+        Sorted indices into the scan ("added") or the reference ("removed").
+    centroid, bbox_min, bbox_max : ndarray, shape (3,), float64
+        Mean position and axis-aligned bounds of the points, in the reference frame.
+    mean_distance, max_distance : float
+        Mean and largest distance of the points to the other cloud's surface (metres).
+    """
+
+    kind: str
+    point_indices: NDArray[np.int64]
+    centroid: NDArray[np.float64]
+    bbox_min: NDArray[np.float64]
+    bbox_max: NDArray[np.float64]
+    mean_distance: float
+    max_distance: float
+
+    @property
+    def n_points(self) -> int:
+        """Number of points in the region."""
+        return int(self.point_indices.shape[0])
+
+
+@dataclass(frozen=True)
+class Localisation:
+    """Per-point labels, distances and regions of one comparison.
+
+    Attributes
+    ----------
+    reference_label : ndarray, shape (n,), int8
+        0 unchanged, 1 changed ("removed"), -1 unobserved (the scan could not see it).
+    scan_label : ndarray, shape (m,), int8
+        0 unchanged, 1 changed ("added"), -1 unobserved (the reference could not see it).
+    reference_distance : ndarray, shape (n,), float32
+        Distance (metres) to the scan's surface; NaN where unobserved.
+    scan_distance : ndarray, shape (m,), float32
+        Distance to the reference's surface; NaN where unobserved.
+    reference_region : ndarray, shape (n,), int32
+        Index into ``regions`` of each reference point's region, -1 if none.
+    scan_region : ndarray, shape (m,), int32
+        Likewise for scan points.
+    regions : list of ChangedRegion
+        Sorted by ``n_points``, largest first.
+    parameters : dict
+        JSON-serialisable effective parameters and estimates (noise, spacing, thresholds,
+        support and cluster radii, minimum region size, visibility mode, counts).
+    """
+
+    reference_label: NDArray[np.int8]
+    scan_label: NDArray[np.int8]
+    reference_distance: NDArray[np.float32]
+    scan_distance: NDArray[np.float32]
+    reference_region: NDArray[np.int32]
+    scan_region: NDArray[np.int32]
+    regions: list[ChangedRegion]
+    parameters: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class _LocalGeometry:
+    """A cloud's KD-tree and per-point local surface (surfel) estimates."""
+
+    points: NDArray[np.float64]  # (n, 3)
+    tree: cKDTree
+    neighbor_index: NDArray[np.int64]  # (n, k + 1), column 0 is the point itself
+    centroid: NDArray[np.float64]  # (n, 3) centroid of the neighbourhood
+    normal: NDArray[np.float64]  # (n, 3) unit normal of the fitted plane
+    spacing: NDArray[np.float64]  # (n,) local point spacing
+    noise: float  # plane-fit residual standard deviation of the cloud
+    linear: NDArray[np.bool_]  # (n,) neighbourhood is a line even when widened: no normal
+    variation: NDArray[np.float64]  # (n,) smallest eigenvalue / trace: 0 flat, 1/3 isotropic
+
+    def flattest_neighbour(self, index: NDArray[np.int64]) -> NDArray[np.int64]:
+        """For each point in ``index``, the neighbour (or itself) whose fit is flattest.
+
+        Near an edge a point's own neighbourhood straddles two faces and its normal is tilted;
+        the neighbour with the flattest neighbourhood lies on one face and has that face's
+        normal.  Returns indices into the cloud, shape (len(index),).
+        """
+        neighbours = self.neighbor_index[index]
+        best = np.argmin(self.variation[neighbours], axis=1)
+        return neighbours[np.arange(neighbours.shape[0]), best]
+
+
+def _as_points(points: NDArray, name: str) -> NDArray[np.float64]:
+    array = np.asarray(points, dtype=np.float64)
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise PointCloudError(f"{name} must have shape (n, 3), got {array.shape}")
+    if array.shape[0] < MIN_POINTS:
+        raise PointCloudError(
+            f"{name} has {array.shape[0]} points; at least {MIN_POINTS} are needed"
+        )
+    if not np.isfinite(array).all():
+        raise PointCloudError(f"{name} contains NaN or infinite coordinates")
+    return np.ascontiguousarray(array)
+
+
+def _as_origin(origin: NDArray | None, name: str) -> NDArray[np.float64] | None:
+    if origin is None:
+        return None
+    array = np.asarray(origin, dtype=np.float64).reshape(-1)
+    if array.shape != (3,) or not np.isfinite(array).all():
+        raise InputError(f"{name} must be 3 finite numbers, got {np.asarray(origin).tolist()}")
+    return array
+
+
+def _resolve_parameters(params: dict[str, Any]) -> dict[str, Any]:
+    """Defaults merged with ``params``, validated; raises InputError naming the bad one."""
+    unknown = sorted(set(params) - set(DEFAULT_PARAMETERS))
+    if unknown:
+        raise InputError(
+            f"unknown localisation parameter(s) {unknown}; valid: {sorted(DEFAULT_PARAMETERS)}"
+        )
+    settings = {**DEFAULT_PARAMETERS, **params}
+    for name, value in settings.items():
+        if name == "support_factor" and value is None:
+            continue
+        if isinstance(value, bool) or not (
+            isinstance(value, int | float) and math.isfinite(value) and value > 0
+        ):
+            raise InputError(f"{name} must be a positive number, got {value!r}")
+        settings[name] = float(value)
+    if settings["n_neighbors"] != int(settings["n_neighbors"]) or settings["n_neighbors"] < 3:
+        raise InputError(f"n_neighbors must be an integer >= 3, got {params['n_neighbors']!r}")
+    settings["n_neighbors"] = int(settings["n_neighbors"])
+    if settings["visibility_beyond_fraction"] > 1:
+        value = params["visibility_beyond_fraction"]
+        raise InputError(f"visibility_beyond_fraction must be in (0, 1], got {value}")
+    return settings
+
+
+def _plane_fit(
+    covariance: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Eigenvalues and the smallest eigenvector of symmetric 3x3 matrices, closed form.
+
+    Parameters
+    ----------
+    covariance : ndarray, shape (n, 3, 3)
+
+    Returns
+    -------
+    smallest, largest : ndarray, shape (n,)
+        Smallest (clipped at 0) and largest eigenvalue.
+    normal : ndarray, shape (n, 3)
+        Unit eigenvector of the smallest eigenvalue; (0, 0, 1) where the matrix is isotropic.
+    """
+    c00, c11, c22 = covariance[:, 0, 0], covariance[:, 1, 1], covariance[:, 2, 2]
+    c01, c02, c12 = covariance[:, 0, 1], covariance[:, 0, 2], covariance[:, 1, 2]
+    mean_diagonal = (c00 + c11 + c22) / 3.0
+    off_diagonal = c01**2 + c02**2 + c12**2
+    spread = np.sqrt(
+        ((c00 - mean_diagonal) ** 2 + (c11 - mean_diagonal) ** 2 + (c22 - mean_diagonal) ** 2) / 6.0
+        + off_diagonal / 3.0
+    )
+    safe_spread = np.where(spread > 0, spread, 1.0)
+    b00 = (c00 - mean_diagonal) / safe_spread
+    b11 = (c11 - mean_diagonal) / safe_spread
+    b22 = (c22 - mean_diagonal) / safe_spread
+    b01, b02, b12 = c01 / safe_spread, c02 / safe_spread, c12 / safe_spread
+    half_determinant = (
+        b00 * (b11 * b22 - b12 * b12)
+        - b01 * (b01 * b22 - b12 * b02)
+        + b02 * (b01 * b12 - b11 * b02)
+    ) / 2.0
+    angle = np.arccos(np.clip(half_determinant, -1.0, 1.0)) / 3.0
+    largest = mean_diagonal + 2.0 * spread * np.cos(angle)
+    smallest = mean_diagonal + 2.0 * spread * np.cos(angle + 2.0 * np.pi / 3.0)
+    shifted = covariance - smallest[:, None, None] * np.eye(3)
+    row0, row1, row2 = shifted[:, 0], shifted[:, 1], shifted[:, 2]
+    crosses = np.stack([np.cross(row0, row1), np.cross(row0, row2), np.cross(row1, row2)], 1)
+    norms = np.linalg.norm(crosses, axis=2)
+    best = norms.argmax(axis=1)
+    rows = np.arange(covariance.shape[0])
+    best_norm = norms[rows, best]
+    normal = crosses[rows, best] / np.where(best_norm > 0, best_norm, 1.0)[:, None]
+    normal[(best_norm <= 0) | (spread <= 0)] = (0.0, 0.0, 1.0)
+    return np.maximum(smallest, 0.0), largest, normal
+
+
+def _neighbourhood_planes(
+    points: NDArray[np.float64], neighbor_index: NDArray[np.int64]
+) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
+    """Centroid, normal and eigenvalues of each neighbourhood.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    neighbor_index : ndarray, shape (p, k)
+
+    Returns
+    -------
+    centroid, normal : ndarray, shape (p, 3)
+    residual_variance : ndarray, shape (p,)
+        Smallest eigenvalue (mean squared distance to the plane).
+    middle_over_largest : ndarray, shape (p,)
+        Middle over largest eigenvalue: ~0 for points along a line (one scan ring).
+    variation : ndarray, shape (p,)
+        Smallest eigenvalue over the trace (surface variation): 0 on a plane.
+    """
+    count = neighbor_index.shape[0]
+    centroid = np.empty((count, 3))
+    normal = np.empty((count, 3))
+    residual_variance = np.empty(count)
+    middle_over_largest = np.empty(count)
+    variation = np.empty(count)
+    for start in range(0, count, _CHUNK):
+        chunk = slice(start, start + _CHUNK)
+        neighbours = points[neighbor_index[chunk]]
+        centre = neighbours.mean(axis=1)
+        deviation = neighbours - centre[:, None, :]
+        covariance = np.empty((centre.shape[0], 3, 3))
+        for i in range(3):
+            for j in range(i, 3):
+                value = (deviation[:, :, i] * deviation[:, :, j]).mean(axis=1)
+                covariance[:, i, j] = value
+                covariance[:, j, i] = value
+        smallest, largest, normal[chunk] = _plane_fit(covariance)
+        trace = np.trace(covariance, axis1=1, axis2=2)
+        middle = trace - smallest - largest
+        middle_over_largest[chunk] = middle / np.maximum(largest, 1e-300)
+        variation[chunk] = smallest / np.maximum(trace, 1e-300)
+        residual_variance[chunk] = smallest
+        centroid[chunk] = centre
+    return centroid, normal, residual_variance, middle_over_largest, variation
+
+
+def _local_geometry(points: NDArray[np.float64], n_neighbors: int) -> _LocalGeometry:
+    """Fit a plane to every point's neighbourhood; estimate spacing and noise.
+
+    Neighbourhoods that are nearly a line (the k nearest points all on one scan ring, as on
+    floors and walls seen at grazing angles, where rings are far apart) do not define a plane:
+    those are refitted with :data:`LINEAR_REFIT_FACTOR` times more neighbours.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    n_neighbors : int
+        Neighbours besides the point itself (reduced to n - 1 for tiny clouds).
+    """
+    n = points.shape[0]
+    k = min(n_neighbors, n - 1)
+    tree = cKDTree(points, balanced_tree=False, compact_nodes=False)
+    distance, neighbor_index = tree.query(points, k=k + 1)
+    centroid, normal, residual_variance, middle_over_largest, variation = _neighbourhood_planes(
+        points, neighbor_index
+    )
+    # side of the area each point stands for: k points in a disc of radius r_k
+    raw_spacing = distance[:, k] * math.sqrt(math.pi / k)
+    # plane fit of k+1 points has k+1-3 residual degrees of freedom
+    residual_variance *= (k + 1) / max(k + 1 - 3, 1)
+    linear = np.flatnonzero(middle_over_largest < LINEAR_EIGENVALUE_RATIO)
+    k_wide = min(LINEAR_REFIT_FACTOR * k, n - 1)
+    if linear.size and k_wide > k:
+        wide_distance, wide_index = tree.query(points[linear], k=k_wide + 1)
+        (
+            centroid[linear],
+            normal[linear],
+            wide_residual,
+            middle_over_largest[linear],
+            variation[linear],
+        ) = _neighbourhood_planes(points, wide_index)
+        residual_variance[linear] = wide_residual * (k_wide + 1) / (k_wide + 1 - 3)
+        raw_spacing[linear] = wide_distance[:, k_wide] * math.sqrt(math.pi / k_wide)
+    spacing = np.maximum(raw_spacing[neighbor_index].mean(axis=1), 1e-12)
+    noise = float(np.sqrt(np.median(residual_variance)))
+    return _LocalGeometry(
+        points,
+        tree,
+        neighbor_index,
+        centroid,
+        normal,
+        spacing,
+        noise,
+        middle_over_largest < LINEAR_EIGENVALUE_RATIO,
+        variation,
+    )
+
+
+def _support_factor(
+    nn_distance_over_spacing: NDArray[np.float64], requested: float | None
+) -> float:
+    if requested is not None:
+        return float(requested)
+    quartile = float(np.quantile(nn_distance_over_spacing, SUPPORT_FACTOR_QUANTILE))
+    low, high = SUPPORT_FACTOR_RANGE
+    return float(np.clip(SUPPORT_FACTOR_PER_QUANTILE * quartile, low, high))
+
+
+def _surface_distance(
+    points: NDArray[np.float64],
+    nn_distance: NDArray[np.float64],
+    nn_index: NDArray[np.int64],
+    other: _LocalGeometry,
+    threshold: float,
+    support_factor: float,
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Distance of each point to the other cloud's supported local surface.
+
+    Parameters
+    ----------
+    points : ndarray, shape (p, 3)
+    nn_distance, nn_index : ndarray, shape (p,)
+        Nearest point of the other cloud.
+    other : _LocalGeometry
+    threshold : float
+        ``tau``.
+    support_factor : float
+
+    Returns
+    -------
+    distance : ndarray, shape (p,)
+        Smallest point-to-plane distance over the neighbours of the nearest point whose
+        support disc ``p`` projects into; the nearest-point distance when there is none.
+    candidate : ndarray, shape (p,), bool
+        ``distance > tau`` and no point of the other cloud within the support radius.
+    """
+    distance = np.empty(points.shape[0])
+    candidate = np.empty(points.shape[0], dtype=bool)
+    for start in range(0, points.shape[0], _CHUNK):
+        chunk = slice(start, start + _CHUNK)
+        query = points[chunk]
+        neighbours = other.neighbor_index[nn_index[chunk]]  # (c, K) around the nearest point
+        normals = other.normal[neighbours]
+        support_radius = np.maximum(support_factor * other.spacing[neighbours], threshold)
+        offset = query[:, None, :] - other.points[neighbours]
+        along_normal = np.einsum("ckd,ckd->ck", offset, normals)
+        lateral_squared = np.einsum("ckd,ckd->ck", offset, offset) - along_normal**2
+        supported = lateral_squared <= support_radius**2
+        plane_distance = np.abs(
+            np.einsum("ckd,ckd->ck", query[:, None, :] - other.centroid[neighbours], normals)
+        )
+        plane_distance = np.where(supported, plane_distance, np.inf).min(axis=1)
+        nearest = nn_distance[chunk]
+        distance[chunk] = np.where(np.isfinite(plane_distance), plane_distance, nearest)
+        candidate[chunk] = (distance[chunk] > threshold) & (nearest > support_radius[:, 0])
+    return distance, candidate
+
+
+def _ray_visibility(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    spacing: NDArray[np.float64],
+    surface_distance: NDArray[np.float64],
+    linear: NDArray[np.bool_],
+    own: _LocalGeometry,
+    normal_tolerance: float,
+    range_tolerance: float,
+    other_points: NDArray[np.float64],
+    other_origin: NDArray[np.float64],
+    margin_factor: float,
+    angle_factor: float,
+    beyond_fraction: float,
+    miss_factor: float,
+) -> tuple[NDArray[np.int8], float]:
+    """What the other sensor saw in the direction of each point.
+
+    The other cloud's returns are indexed by direction from its origin.  For each point, the
+    returns within ``angle_factor`` typical angular steps of its direction are compared with
+    where each of those rays would meet the point's own surface (the plane through the point
+    with its normal): a ray that stops clearly before the point (or before meeting that plane)
+    means something is in front of it; a ray that meets the plane near the point (within
+    ``max(miss_factor * spacing, surface_distance)``) and carries on clearly beyond it saw
+    free space where the point's surface would be.
+
+    Parameters
+    ----------
+    points : ndarray, shape (p, 3)
+    normals : ndarray, shape (p, 3)
+        Unit normals of the points' own surface.
+    spacing : ndarray, shape (p,)
+        The points' own cloud's local spacing.
+    surface_distance : ndarray, shape (p,)
+        The points' distance to the other cloud's surface.
+    linear : ndarray, shape (p,), bool
+        The point's neighbourhood is a line: its normal is unknown, so it gets no evidence.
+    own : _LocalGeometry
+        The points' own cloud: a ray's crossing of the point's plane counts only within
+        :data:`OWN_SUPPORT_FACTOR` own spacings of an own point.
+    normal_tolerance : float
+        How far (metres) a point may lie off its true surface: threshold_factor x its
+        cloud's noise and the registration residual.
+    range_tolerance : float
+        threshold_factor x the other cloud's noise (the error of its ranges).
+    other_points : ndarray, shape (m, 3)
+        The other cloud, whose sensor was at ``other_origin``.
+    other_origin : ndarray, shape (3,)
+    margin_factor, angle_factor, beyond_fraction, miss_factor : float
+        See :data:`DEFAULT_PARAMETERS`.
+
+    Returns
+    -------
+    status : ndarray, shape (p,), int8
+        1 "seen through": at least ``beyond_fraction`` of the rays meeting the point's surface
+        near it pass clearly beyond it, and none stops clearly before it; -1 "unobserved": no
+        return in that direction (out of range or field of view), one stops clearly before
+        the point (occluded), or no ray meets the point's surface near it (seen edge-on);
+        0 "surface": the rays end where the point's surface is.
+    angular_step : float
+        The other sensor's typical angular step (radians).
+    """
+    other_offset = other_points - other_origin
+    other_range = np.linalg.norm(other_offset, axis=1)
+    valid = other_range > 0
+    other_range = other_range[valid]
+    other_direction = other_offset[valid] / other_range[:, None]
+    direction_tree = cKDTree(other_direction, balanced_tree=False, compact_nodes=False)
+    sample = np.linspace(0, other_range.shape[0] - 1, min(_ANGULAR_SAMPLE, other_range.shape[0]))
+    sample_step, _ = direction_tree.query(other_direction[sample.astype(np.int64)], k=3)
+    angular_step = float(np.median(sample_step[:, 2]))
+    if points.shape[0] == 0:
+        return np.zeros(0, dtype=np.int8), angular_step
+    offset = points - other_origin
+    point_range = np.linalg.norm(offset, axis=1)
+    angle, ray = direction_tree.query(
+        offset / np.maximum(point_range, 1e-12)[:, None],
+        k=min(VISIBILITY_RAYS, other_range.shape[0]),
+        distance_upper_bound=angle_factor * angular_step,
+    )
+    found = np.isfinite(angle)
+    ray = np.minimum(ray, other_range.shape[0] - 1)
+    ray_range = other_range[ray]
+    ray_direction = other_direction[ray]  # (p, k, 3)
+    # where each ray meets the plane through the point: origin + crossing * direction; rays
+    # that graze the plane (or points without a normal) cannot say whether the surface is there
+    ray_dot_normal = np.einsum("pkd,pd->pk", ray_direction, normals)
+    grazing = (np.abs(ray_dot_normal) < MIN_INCIDENCE_COSINE) | linear[:, None]
+    offset_dot_normal = np.einsum("pd,pd->p", offset, normals)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        crossing = offset_dot_normal[:, None] / ray_dot_normal
+    crosses_ahead = found & ~grazing & np.isfinite(crossing) & (crossing > 0)
+    crossing = np.where(crosses_ahead, crossing, np.inf)
+    crossing_point = (
+        other_origin + np.where(crosses_ahead, crossing, 0.0)[..., None] * ray_direction
+    )
+    miss_distance = np.linalg.norm(crossing_point - points[:, None, :], axis=2)
+    miss_tolerance = np.maximum(miss_factor * spacing, surface_distance)
+    crosses_near = crosses_ahead & (miss_distance <= miss_tolerance[:, None])
+    # ... and only where the point's own cloud has surface: a ray crossing the plane beyond
+    # the edge of a table top says nothing about the table
+    near_rows, near_rays = np.nonzero(crosses_near)
+    own_distance, own_nearest = own.tree.query(crossing_point[near_rows, near_rays], k=1)
+    own_support = np.maximum(OWN_SUPPORT_FACTOR * own.spacing[own_nearest], normal_tolerance)
+    crosses_near[near_rows, near_rays] = own_distance <= own_support
+    # a point off its surface by e lies e / cos(incidence) along the ray from the surface
+    cos_incidence = np.where(grazing, 1.0, np.abs(ray_dot_normal))
+    margin = margin_factor * np.sqrt((normal_tolerance / cos_incidence) ** 2 + range_tolerance**2)
+    expected_stop = np.where(
+        crosses_near, np.minimum(crossing, point_range[:, None]), point_range[:, None]
+    )
+    stops_before = found & (ray_range < expected_stop - margin)
+    passes_beyond = crosses_near & (ray_range > crossing + margin)
+    n_near = crosses_near.sum(axis=1)
+    occluded = (~found.any(axis=1)) | stops_before.any(axis=1)
+    seen_through = passes_beyond.sum(axis=1) >= beyond_fraction * np.maximum(n_near, 1)
+    status = np.where(seen_through, STATUS_SEEN_THROUGH, STATUS_SURFACE)
+    status = np.where(n_near == 0, STATUS_EDGE_ON, status)
+    status = np.where(occluded, STATUS_UNOBSERVED, status).astype(np.int8)
+    return status, angular_step
+
+
+def _resolve_edge_on(
+    points: NDArray[np.float64],
+    spacing: NDArray[np.float64],
+    status: NDArray[np.int8],
+    cluster_factor: float,
+) -> NDArray[np.int8]:
+    """Decide candidates whose surface the other sensor saw only edge-on.
+
+    A removed box's face that the other sensor sees edge-on gets no ray evidence of its own,
+    but the sensor saw through the rest of the box: edge-on candidates connected (within
+    ``cluster_factor`` local spacings) to candidates that are mostly seen through are
+    changed; the others (a pillar's face seen edge-on, the rest unchanged) are unobserved.
+
+    Parameters
+    ----------
+    points : ndarray, shape (c, 3)
+        The candidates.
+    spacing : ndarray, shape (c,)
+        Their cloud's local spacing.
+    status : ndarray, shape (c,), int8
+        From :func:`_ray_visibility`.
+    cluster_factor : float
+
+    Returns
+    -------
+    ndarray, shape (c,), int8
+        ``status`` with every STATUS_EDGE_ON replaced.
+    """
+    edge_on = status == STATUS_EDGE_ON
+    if not edge_on.any():
+        return status
+    involved = np.flatnonzero(edge_on | (status == STATUS_SEEN_THROUGH))
+    labels = _cluster_labels(points[involved], cluster_factor * spacing[involved])
+    seen_through_share = np.bincount(
+        labels, weights=(status[involved] == STATUS_SEEN_THROUGH).astype(np.float64)
+    ) / np.bincount(labels)
+    promoted = seen_through_share[labels] >= EDGE_ON_SEEN_THROUGH_SHARE
+    resolved = status.copy()
+    resolved[involved] = np.where(
+        edge_on[involved],
+        np.where(promoted, STATUS_SEEN_THROUGH, STATUS_UNOBSERVED),
+        status[involved],
+    )
+    return resolved
+
+
+def _cluster_labels(points: NDArray[np.float64], radius: NDArray[np.float64]) -> NDArray:
+    """Connected components of points linked to neighbours within their own ``radius``.
+
+    Each point is linked to its :data:`CLUSTER_NEIGHBOURS` nearest neighbours that lie within
+    its radius (a k-nearest-neighbour graph cut at the radius: on surfaces it connects what
+    the full radius graph connects, at a fixed cost per point).
+
+    Parameters
+    ----------
+    points : ndarray, shape (c, 3)
+    radius : ndarray, shape (c,)
+
+    Returns
+    -------
+    ndarray, shape (c,), int
+        Component label per point.
+    """
+    count = points.shape[0]
+    if count <= 1:
+        return np.zeros(count, dtype=np.int64)
+    k = min(CLUSTER_NEIGHBOURS + 1, count)
+    distance, neighbour = cKDTree(points).query(points, k=k, distance_upper_bound=radius.max())
+    linked = distance[:, 1:] <= radius[:, None]
+    rows = np.repeat(np.arange(count), k - 1)[linked.ravel()]
+    columns = neighbour[:, 1:][linked]
+    graph = coo_matrix((np.ones(rows.shape[0], dtype=np.int8), (rows, columns)), (count, count))
+    _, labels = connected_components(graph, directed=True, connection="weak")
+    return labels
+
+
+def _regions(
+    kind: str,
+    points: NDArray[np.float64],
+    changed: NDArray[np.bool_],
+    spacing: NDArray[np.float64],
+    distance: NDArray[np.float64],
+    cluster_factor: float,
+    min_region_points: int,
+) -> tuple[list[ChangedRegion], int]:
+    """Cluster one cloud's changed points into regions of at least ``min_region_points``.
+
+    Returns
+    -------
+    regions : list of ChangedRegion
+    n_dropped_clusters : int
+    """
+    changed_index = np.flatnonzero(changed)
+    labels = _cluster_labels(points[changed_index], cluster_factor * spacing[changed_index])
+    if labels.size == 0:
+        return [], 0
+    sizes = np.bincount(labels)
+    order = np.argsort(labels, kind="stable")
+    boundaries = np.flatnonzero(np.diff(labels[order])) + 1
+    regions = []
+    for members in np.split(changed_index[order], boundaries):
+        if members.shape[0] < min_region_points:
+            continue
+        region_points = points[members]
+        region_distance = distance[members]
+        regions.append(
+            ChangedRegion(
+                kind=kind,
+                point_indices=np.sort(members).astype(np.int64),
+                centroid=region_points.mean(axis=0),
+                bbox_min=region_points.min(axis=0),
+                bbox_max=region_points.max(axis=0),
+                mean_distance=float(region_distance.mean()),
+                max_distance=float(region_distance.max()),
+            )
+        )
+    return regions, int((sizes < min_region_points).sum())
+
+
+def _label_candidates(
+    side: str,
+    points: NDArray[np.float64],
+    geometry: _LocalGeometry,
+    candidate: NDArray[np.bool_],
+    distance: NDArray[np.float64],
+    nn_distance: NDArray[np.float64],
+    nn_index: NDArray[np.int64],
+    other: _LocalGeometry,
+    other_origin: NDArray[np.float64] | None,
+    registration_rmse: float,
+    settings: dict[str, Any],
+) -> tuple[NDArray[np.int8], dict[str, Any]]:
+    """Label one cloud's points: candidates become changed or unobserved, the rest unchanged.
+
+    Parameters
+    ----------
+    side : {"reference", "scan"}
+        Prefix of the report's keys.
+    points : ndarray, shape (p, 3)
+    geometry : _LocalGeometry
+        Of ``points``.
+    candidate, distance, nn_distance, nn_index : ndarray, shape (p,)
+        From the comparison with the other cloud.
+    other : _LocalGeometry
+        The other cloud.
+    other_origin : ndarray, shape (3,), or None
+        The other sensor's position: ray visibility test if given, coverage test otherwise.
+    registration_rmse : float
+    settings : dict
+        Resolved keyword parameters.
+
+    Returns
+    -------
+    label : ndarray, shape (p,), int8
+        LABEL_UNCHANGED, LABEL_CHANGED or LABEL_UNOBSERVED.
+    report : dict
+        JSON-serialisable figures of the visibility test.
+    """
+    label = np.full(points.shape[0], LABEL_UNCHANGED, dtype=np.int8)
+    index = np.flatnonzero(candidate)
+    report: dict[str, Any] = {f"{side}_candidates": int(index.size)}
+    if other_origin is None:
+        report[f"{side}_visibility"] = "coverage"
+        covered = nn_distance[index] <= settings["coverage_factor"] * other.spacing[nn_index[index]]
+        status = np.where(covered, STATUS_SEEN_THROUGH, STATUS_UNOBSERVED)
+    else:
+        report[f"{side}_visibility"] = "ray"
+        flattest = geometry.flattest_neighbour(index)
+        status, angular_step = _ray_visibility(
+            points[index],
+            geometry.normal[flattest],
+            geometry.spacing[index],
+            distance[index],
+            geometry.linear[flattest],
+            geometry,
+            settings["threshold_factor"] * math.hypot(geometry.noise, registration_rmse),
+            settings["threshold_factor"] * other.noise,
+            other.points,
+            other_origin,
+            settings["visibility_margin_factor"],
+            settings["visibility_angle_factor"],
+            settings["visibility_beyond_fraction"],
+            settings["visibility_miss_factor"],
+        )
+        report[f"{side}_other_angular_step_deg"] = math.degrees(angular_step)
+        report[f"{side}_candidates_on_other_surface"] = int((status == STATUS_SURFACE).sum())
+        report[f"{side}_candidates_edge_on"] = int((status == STATUS_EDGE_ON).sum())
+        status = _resolve_edge_on(
+            points[index], geometry.spacing[index], status, settings["cluster_factor"]
+        )
+    label[index[status == STATUS_SEEN_THROUGH]] = LABEL_CHANGED
+    label[index[status == STATUS_UNOBSERVED]] = LABEL_UNOBSERVED
+    return label, report
+
+
+def localise_changes(
+    reference: NDArray,
+    scan: NDArray,
+    *,
+    reference_origin: NDArray | None = None,
+    scan_origin: NDArray | None = None,
+    registration_rmse: float = 0.0,
+    min_region_points: int | None = None,
+    **params: Any,
+) -> Localisation:
+    """Label each point unchanged, changed or unobserved and group changes into regions.
+
+    Parameters
+    ----------
+    reference : array_like, shape (n, 3)
+        The reference scan.
+    scan : array_like, shape (m, 3)
+        The new scan, already aligned into the reference frame.
+    reference_origin : array_like, shape (3,), optional
+        The reference sensor's position (reference frame).  Enables the ray visibility test
+        for scan points; without it they get the coverage test.
+    scan_origin : array_like, shape (3,), optional
+        The scan sensor's position, already in the reference frame.  Enables the ray
+        visibility test for reference points.
+    registration_rmse : float
+        Residual of the alignment (metres); widens the distance threshold.
+    min_region_points : int, optional
+        Smaller clusters of changed points are noise and relabelled unchanged.  Default:
+        ``max(4, round(1e-4 * min(n, m)))``.
+    **params
+        See :data:`DEFAULT_PARAMETERS`.
+
+    Returns
+    -------
+    Localisation
+
+    Raises
+    ------
+    PointCloudError
+        A cloud is not (n, 3), has non-finite values or fewer than 10 points.
+    InputError
+        An unknown or invalid parameter or origin.
+    """
+    settings = _resolve_parameters(params)
+    reference_points = _as_points(reference, "reference")
+    scan_points = _as_points(scan, "scan")
+    reference_origin = _as_origin(reference_origin, "reference_origin")
+    scan_origin = _as_origin(scan_origin, "scan_origin")
+    if not (math.isfinite(registration_rmse) and registration_rmse >= 0):
+        raise InputError(f"registration_rmse must be >= 0, got {registration_rmse}")
+    if min_region_points is None:
+        min_region_points = max(
+            MIN_REGION_POINTS_FLOOR,
+            round(MIN_REGION_POINTS_FRACTION * min(len(reference_points), len(scan_points))),
+        )
+    elif min_region_points < 1:
+        raise InputError(f"min_region_points must be >= 1, got {min_region_points}")
+
+    reference_geometry = _local_geometry(reference_points, settings["n_neighbors"])
+    scan_geometry = _local_geometry(scan_points, settings["n_neighbors"])
+    reference_nn_distance, reference_nn_index = scan_geometry.tree.query(reference_points, k=1)
+    scan_nn_distance, scan_nn_index = reference_geometry.tree.query(scan_points, k=1)
+
+    median_spacing = float(
+        np.median(np.concatenate([reference_geometry.spacing, scan_geometry.spacing]))
+    )
+    noise_threshold = settings["threshold_factor"] * math.sqrt(
+        reference_geometry.noise**2 + scan_geometry.noise**2 + registration_rmse**2
+    )
+    threshold = max(noise_threshold, RESOLUTION_THRESHOLD_FRACTION * median_spacing)
+    relative_nn_distance = np.concatenate(
+        [
+            reference_nn_distance / scan_geometry.spacing[reference_nn_index],
+            scan_nn_distance / reference_geometry.spacing[scan_nn_index],
+        ]
+    )
+    support_factor = _support_factor(relative_nn_distance, settings["support_factor"])
+
+    reference_distance, reference_candidate = _surface_distance(
+        reference_points,
+        reference_nn_distance,
+        reference_nn_index,
+        scan_geometry,
+        threshold,
+        support_factor,
+    )
+    scan_distance, scan_candidate = _surface_distance(
+        scan_points,
+        scan_nn_distance,
+        scan_nn_index,
+        reference_geometry,
+        threshold,
+        support_factor,
+    )
+
+    reference_label, reference_report = _label_candidates(
+        "reference",
+        reference_points,
+        reference_geometry,
+        reference_candidate,
+        reference_distance,
+        reference_nn_distance,
+        reference_nn_index,
+        scan_geometry,
+        scan_origin,
+        registration_rmse,
+        settings,
+    )
+    scan_label, scan_report = _label_candidates(
+        "scan",
+        scan_points,
+        scan_geometry,
+        scan_candidate,
+        scan_distance,
+        scan_nn_distance,
+        scan_nn_index,
+        reference_geometry,
+        reference_origin,
+        registration_rmse,
+        settings,
+    )
+
+    regions: list[ChangedRegion] = []
+    dropped: dict[str, int] = {}
+    for kind, points, geometry, label, distance in (
+        ("removed", reference_points, reference_geometry, reference_label, reference_distance),
+        ("added", scan_points, scan_geometry, scan_label, scan_distance),
+    ):
+        kind_regions, dropped[kind] = _regions(
+            kind,
+            points,
+            label == LABEL_CHANGED,
+            geometry.spacing,
+            distance,
+            settings["cluster_factor"],
+            min_region_points,
+        )
+        regions.extend(kind_regions)
+    regions.sort(key=lambda region: (-region.n_points, region.kind, int(region.point_indices[0])))
+
+    reference_region = np.full(len(reference_points), -1, dtype=np.int32)
+    scan_region = np.full(len(scan_points), -1, dtype=np.int32)
+    for number, region in enumerate(regions):
+        target = reference_region if region.kind == "removed" else scan_region
+        target[region.point_indices] = number
+    # changed points outside any kept region were in clusters too small to be a change
+    reference_label[(reference_label == LABEL_CHANGED) & (reference_region < 0)] = LABEL_UNCHANGED
+    scan_label[(scan_label == LABEL_CHANGED) & (scan_region < 0)] = LABEL_UNCHANGED
+
+    reference_distance_out = reference_distance.astype(np.float32)
+    reference_distance_out[reference_label == LABEL_UNOBSERVED] = np.nan
+    scan_distance_out = scan_distance.astype(np.float32)
+    scan_distance_out[scan_label == LABEL_UNOBSERVED] = np.nan
+
+    parameters: dict[str, Any] = {
+        **{name: settings[name] for name in DEFAULT_PARAMETERS if name != "support_factor"},
+        "support_factor": support_factor,
+        "support_factor_calibrated": settings["support_factor"] is None,
+        "min_region_points": int(min_region_points),
+        "registration_rmse": float(registration_rmse),
+        "reference_noise": reference_geometry.noise,
+        "scan_noise": scan_geometry.noise,
+        "threshold": threshold,
+        "reference_spacing_median": float(np.median(reference_geometry.spacing)),
+        "scan_spacing_median": float(np.median(scan_geometry.spacing)),
+        "nn_distance_over_spacing_quartile": float(
+            np.quantile(relative_nn_distance, SUPPORT_FACTOR_QUANTILE)
+        ),
+        "support_radius_median": max(support_factor * median_spacing, threshold),
+        "cluster_radius_median": settings["cluster_factor"] * median_spacing,
+        **reference_report,
+        **scan_report,
+        "n_reference_changed": int((reference_label == LABEL_CHANGED).sum()),
+        "n_reference_unobserved": int((reference_label == LABEL_UNOBSERVED).sum()),
+        "n_scan_changed": int((scan_label == LABEL_CHANGED).sum()),
+        "n_scan_unobserved": int((scan_label == LABEL_UNOBSERVED).sum()),
+        "n_dropped_clusters": int(sum(dropped.values())),
+    }
+    return Localisation(
+        reference_label=reference_label,
+        scan_label=scan_label,
+        reference_distance=reference_distance_out,
+        scan_distance=scan_distance_out,
+        reference_region=reference_region,
+        scan_region=scan_region,
+        regions=regions,
+        parameters=parameters,
+    )

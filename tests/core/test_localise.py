@@ -1,0 +1,331 @@
+"""Change localisation on the paper's corridor and on ray-cast lidar rescans.
+
+Rules checked (the measured numbers are in docs/localisation.md):
+
+* unchanged rescans (moved sensor, occlusions, 3 cm / 0.4 degree pose error, aligned with the
+  true transform) give no region of real size (>= 0.1 % of the points) and < 0.5 % of the
+  points falsely changed;
+* changed rescans give IoU >= 0.85 of the changed points (over points the ground truth marks
+  observed) and a region of the right kind whose box contains each changed object's centre;
+* the visibility test labels unobserved what the other sensor could not see (agreement with
+  the exact ray-cast ground truth >= 95 %), and never calls such a point changed.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import time
+
+import numpy as np
+import pytest
+
+from app.core.errors import InputError, PointCloudError
+from app.core.localise import (
+    DEFAULT_PARAMETERS,
+    LABEL_CHANGED,
+    LABEL_UNOBSERVED,
+    Localisation,
+    localise_changes,
+)
+from app.core.synthetic import (
+    SyntheticPair,
+    paper_corridor,
+    raycast_scene,
+    raycast_scene_objects,
+)
+
+SCENE_POINTS = 50_000
+POSE_ERROR = (0.03, 0.4)  # metres, degrees
+REAL_REGION_FRACTION = 1e-3
+
+
+@functools.cache
+def localised_scene(
+    change: str, seed: int = 11, n_points: int = SCENE_POINTS
+) -> tuple[SyntheticPair, Localisation]:
+    """A ray-cast rescan, aligned with the true transform, localised with both origins."""
+    pair = raycast_scene(n_points=n_points, change=change, pose_error=POSE_ERROR, random_state=seed)
+    localisation = localise_changes(
+        pair.reference,
+        pair.aligned_scan(),
+        reference_origin=pair.reference_origin,
+        scan_origin=pair.aligned_scan_origin(),
+    )
+    return pair, localisation
+
+
+def changed_iou(pair: SyntheticPair, localisation: Localisation) -> float:
+    """IoU of changed points of both clouds, over the points the ground truth marks observed."""
+    intersection = union = 0
+    for label, changed, observed in (
+        (localisation.reference_label, pair.reference_changed, pair.reference_observed),
+        (localisation.scan_label, pair.scan_changed, pair.scan_observed),
+    ):
+        predicted = label == LABEL_CHANGED
+        intersection += np.count_nonzero(predicted & changed & observed)
+        union += np.count_nonzero((predicted | changed) & observed)
+    return intersection / union if union else 1.0
+
+
+def false_changed_fraction(pair: SyntheticPair, localisation: Localisation) -> float:
+    false = np.count_nonzero(
+        (localisation.reference_label == LABEL_CHANGED) & ~pair.reference_changed
+    ) + np.count_nonzero((localisation.scan_label == LABEL_CHANGED) & ~pair.scan_changed)
+    return false / (len(pair.reference) + len(pair.scan))
+
+
+def visibility_agreement(label: np.ndarray, observed: np.ndarray) -> float:
+    return float(np.mean((label == LABEL_UNOBSERVED) == ~observed))
+
+
+def region_containing(localisation: Localisation, kind: str, point: np.ndarray):
+    for region in localisation.regions:
+        if (
+            region.kind == kind
+            and np.all(region.bbox_min <= point)
+            and np.all(point <= region.bbox_max)
+        ):
+            return region
+    return None
+
+
+# --- ray-cast rescans ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", [11, 12])
+def test_unchanged_rescan_has_no_real_region_and_few_false_changes(seed):
+    pair, localisation = localised_scene("none", seed)
+    real_size = REAL_REGION_FRACTION * SCENE_POINTS
+    assert [r.n_points for r in localisation.regions if r.n_points >= real_size] == []
+    assert false_changed_fraction(pair, localisation) < 0.005
+
+
+@pytest.mark.parametrize("change", ["box", "removed", "moved"])
+def test_changed_rescan_localises_the_object(change):
+    pair, localisation = localised_scene(change)
+    assert changed_iou(pair, localisation) >= 0.85
+    reference_only, scan_only = raycast_scene_objects(change)
+    for kind, boxes in (("removed", reference_only), ("added", scan_only)):
+        for box in boxes:
+            region = region_containing(localisation, kind, box.centre)
+            assert region is not None, f"no {kind} region contains {box.name}'s centre"
+            assert region.n_points > 100
+    assert false_changed_fraction(pair, localisation) < 0.005
+
+
+@pytest.mark.parametrize("change", ["none", "box", "removed"])
+def test_visibility_test_labels_what_the_other_sensor_missed_unobserved(change):
+    pair, localisation = localised_scene(change)
+    assert (~pair.reference_observed).mean() > 0.05  # there are occlusions to find
+    assert visibility_agreement(localisation.reference_label, pair.reference_observed) >= 0.95
+    assert visibility_agreement(localisation.scan_label, pair.scan_observed) >= 0.95
+    # most points the scan could not see are labelled so, and (almost) none is called changed
+    occluded = ~pair.reference_observed
+    assert np.mean(localisation.reference_label[occluded] == LABEL_UNOBSERVED) > 0.8
+    assert np.count_nonzero(localisation.reference_label[occluded] == LABEL_CHANGED) <= (
+        1e-3 * occluded.sum()
+    )
+
+
+def test_labels_regions_and_distances_are_consistent():
+    pair, localisation = localised_scene("moved")
+    n, m = len(pair.reference), len(pair.scan)
+    assert localisation.reference_label.shape == (n,) and localisation.scan_label.shape == (m,)
+    assert localisation.reference_label.dtype == np.int8
+    assert localisation.reference_distance.dtype == np.float32
+    assert localisation.reference_region.dtype == np.int32
+    sizes = [region.n_points for region in localisation.regions]
+    assert sizes == sorted(sizes, reverse=True)
+    for label, distance, region_index, kind, points in (
+        (
+            localisation.reference_label,
+            localisation.reference_distance,
+            localisation.reference_region,
+            "removed",
+            pair.reference,
+        ),
+        (
+            localisation.scan_label,
+            localisation.scan_distance,
+            localisation.scan_region,
+            "added",
+            pair.aligned_scan(),
+        ),
+    ):
+        assert set(np.unique(label)) <= {-1, 0, 1}
+        np.testing.assert_array_equal(np.isnan(distance), label == LABEL_UNOBSERVED)
+        np.testing.assert_array_equal(region_index >= 0, label == LABEL_CHANGED)
+        for number, region in enumerate(localisation.regions):
+            if region.kind != kind:
+                assert not np.any(region_index == number)
+                continue
+            members = np.flatnonzero(region_index == number)
+            np.testing.assert_array_equal(region.point_indices, members)
+            assert region.point_indices.dtype == np.int64
+            region_points = points[members]
+            np.testing.assert_allclose(region.centroid, region_points.mean(axis=0))
+            np.testing.assert_allclose(region.bbox_min, region_points.min(axis=0))
+            np.testing.assert_allclose(region.bbox_max, region_points.max(axis=0))
+            assert region.max_distance == pytest.approx(float(distance[members].max()), rel=1e-5)
+            assert region.mean_distance > localisation.parameters["threshold"]
+
+
+def test_parameters_are_json_and_replay_the_result():
+    pair, localisation = localised_scene("box")
+    parameters = json.loads(json.dumps(localisation.parameters))
+    assert parameters["reference_visibility"] == parameters["scan_visibility"] == "ray"
+    assert 0.004 < parameters["reference_noise"] < 0.012  # 1 cm along rays, less along normals
+    replay_params = {name: parameters[name] for name in DEFAULT_PARAMETERS}
+    replayed = localise_changes(
+        pair.reference,
+        pair.aligned_scan(),
+        reference_origin=pair.reference_origin,
+        scan_origin=pair.aligned_scan_origin(),
+        min_region_points=parameters["min_region_points"],
+        **replay_params,
+    )
+    np.testing.assert_array_equal(replayed.reference_label, localisation.reference_label)
+    np.testing.assert_array_equal(replayed.scan_label, localisation.scan_label)
+
+
+def test_registration_rmse_widens_the_threshold():
+    pair, localisation = localised_scene("box")
+    wider = localise_changes(
+        pair.reference,
+        pair.aligned_scan(),
+        reference_origin=pair.reference_origin,
+        scan_origin=pair.aligned_scan_origin(),
+        registration_rmse=0.05,
+    )
+    assert wider.parameters["threshold"] > localisation.parameters["threshold"] + 0.1
+    assert wider.parameters["n_scan_changed"] <= localisation.parameters["n_scan_changed"]
+    box = raycast_scene_objects("box")[1][0]
+    assert region_containing(wider, "added", box.centre) is not None
+
+
+def test_min_region_points_drops_small_clusters():
+    pair = raycast_scene(n_points=10_000, change="box", random_state=2)
+    arguments = {
+        "reference_origin": pair.reference_origin,
+        "scan_origin": pair.aligned_scan_origin(),
+    }
+    default = localise_changes(pair.reference, pair.aligned_scan(), **arguments)
+    assert default.parameters["min_region_points"] == 4
+    assert default.regions
+    strict = localise_changes(
+        pair.reference, pair.aligned_scan(), min_region_points=100_000, **arguments
+    )
+    assert strict.regions == []
+    assert not np.any(strict.scan_label == LABEL_CHANGED)
+    assert not np.any(strict.reference_label == LABEL_CHANGED)
+
+
+# --- the paper's corridor ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("noise_variance", [1e-5, 1e-4, 1e-3])
+def test_corridor_box_is_localised(noise_variance):
+    box_front_centre = np.array([-0.5, 0.0, 1.0])
+    ious = []
+    for seed in range(10):
+        pair = paper_corridor(noise_variance=noise_variance, change_fraction=0.2, random_state=seed)
+        localisation = localise_changes(pair.reference, pair.scan)
+        assert localisation.parameters["reference_visibility"] == "coverage"
+        ious.append(changed_iou(pair, localisation))
+        assert region_containing(localisation, "added", box_front_centre) is not None
+    assert np.mean(ious) >= 0.85
+    assert np.min(ious) >= 0.7
+
+
+def test_corridor_without_change_has_no_change():
+    for seed in range(10):
+        pair = paper_corridor(noise_variance=1e-3, random_state=seed)
+        localisation = localise_changes(pair.reference, pair.scan)
+        assert localisation.regions == []
+        assert not np.any(localisation.reference_label == LABEL_CHANGED)
+
+
+def test_noise_is_estimated_from_plane_fit_residuals():
+    pair = paper_corridor(n_points=3000, noise_variance=1e-4, random_state=0)
+    parameters = localise_changes(pair.reference, pair.scan).parameters
+    assert parameters["reference_noise"] == pytest.approx(0.01, rel=0.3)
+    assert parameters["scan_noise"] == pytest.approx(0.01, rel=0.3)
+
+
+# --- input validation --------------------------------------------------------------------------
+
+
+def test_invalid_input_is_rejected_with_a_reason():
+    points = np.random.default_rng(0).normal(size=(50, 3))
+    with pytest.raises(PointCloudError, match=r"shape \(n, 3\)"):
+        localise_changes(points[:, :2], points)
+    with pytest.raises(PointCloudError, match="at least"):
+        localise_changes(points[:5], points)
+    bad = points.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(PointCloudError, match="NaN"):
+        localise_changes(points, bad)
+    with pytest.raises(InputError, match="unknown localisation parameter"):
+        localise_changes(points, points, neighbours=5)
+    with pytest.raises(InputError, match="threshold_factor"):
+        localise_changes(points, points, threshold_factor=-1)
+    with pytest.raises(InputError, match="n_neighbors"):
+        localise_changes(points, points, n_neighbors=2)
+    with pytest.raises(InputError, match="scan_origin"):
+        localise_changes(points, points, scan_origin=[0, 0])
+    with pytest.raises(InputError, match="registration_rmse"):
+        localise_changes(points, points, registration_rmse=-0.1)
+
+
+def test_identical_clouds_have_no_change():
+    pair = raycast_scene(n_points=5000, change="none", random_state=0)
+    localisation = localise_changes(
+        pair.reference,
+        pair.reference,
+        reference_origin=pair.reference_origin,
+        scan_origin=pair.reference_origin,
+    )
+    assert not np.any(localisation.reference_label)
+    assert not np.any(localisation.scan_label)
+    assert localisation.regions == []
+
+
+# --- full size ----------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_full_size_rescans_accuracy_and_speed():
+    """200k x 200k pairs of every kind; prints the table quoted in docs/localisation.md."""
+    rows = []
+    for change in ("none", "box", "removed", "moved", "mixed"):
+        pair = raycast_scene(
+            n_points=200_000, change=change, pose_error=POSE_ERROR, random_state=21
+        )
+        started = time.process_time()
+        localisation = localise_changes(
+            pair.reference,
+            pair.aligned_scan(),
+            reference_origin=pair.reference_origin,
+            scan_origin=pair.aligned_scan_origin(),
+        )
+        cpu_seconds = time.process_time() - started
+        iou = changed_iou(pair, localisation)
+        false_fraction = false_changed_fraction(pair, localisation)
+        agreement = visibility_agreement(localisation.reference_label, pair.reference_observed)
+        rows.append(
+            (change, iou, false_fraction, agreement, len(localisation.regions), cpu_seconds)
+        )
+        assert false_fraction < 0.005
+        assert agreement >= 0.95
+        assert cpu_seconds < 6.0  # ~2.5 s on one core; generous for loaded CI machines
+        if change == "none":
+            assert all(r.n_points < REAL_REGION_FRACTION * 200_000 for r in localisation.regions)
+        else:
+            assert iou >= 0.85
+    print("\nchange   IoU    false%  agreement  regions  cpu_s")
+    for change, iou, false_fraction, agreement, n_regions, cpu_seconds in rows:
+        print(
+            f"{change:8s} {iou:.3f}  {100 * false_fraction:.3f}   {agreement:.3f}      "
+            f"{n_regions:3d}    {cpu_seconds:.2f}"
+        )
