@@ -28,14 +28,22 @@ class ClientScene:
     """The nodes and controls drawn for one connected browser."""
 
     client_id: int
+    client: viser.ClientHandle | None = None
     point_clouds: dict[str, viser.PointCloudHandle] = field(default_factory=dict)
     boxes: list[tuple[RegionBox, viser.BoxHandle]] = field(default_factory=list)
     labels: list[viser.LabelHandle] = field(default_factory=list)
 
     def to_json_dict(self, origin: np.ndarray) -> dict[str, Any]:
         """What viser holds for this client: layers (visibility, sizes) and boxes (file frame)."""
+        camera = None
+        if self.client is not None:
+            camera = {
+                "look_at": (np.asarray(self.client.camera.look_at) + origin).tolist(),
+                "position": (np.asarray(self.client.camera.position) + origin).tolist(),
+            }
         return {
             "client_id": self.client_id,
+            "camera": camera,
             "layers": {
                 name: {
                     "visible": bool(handle.visible),
@@ -95,7 +103,7 @@ def default_camera_offset(extent: float) -> np.ndarray:
 
 def build_client_scene(client: viser.ClientHandle, data: SceneData, title: str) -> ClientScene:
     """Add layers, region boxes and the GUI for one browser."""
-    record = ClientScene(client_id=client.client_id)
+    record = ClientScene(client_id=client.client_id, client=client)
     scene, gui = client.scene, client.gui
     for layer in data.layers:
         record.point_clouds[layer.name] = scene.add_point_cloud(
@@ -213,9 +221,9 @@ def _add_region_list(
 
         @reset.on_click
         def _(_event: viser.GuiEvent) -> None:
-            with client.atomic():
-                client.camera.look_at = tuple(data.center)
+            with client.atomic():  # position first: viser's position setter moves look_at too
                 client.camera.position = tuple(data.center + default_camera_offset(data.extent))
+                client.camera.look_at = tuple(data.center)
 
 
 def _camera_mover(client: viser.ClientHandle, region: RegionBox) -> Any:
@@ -229,9 +237,9 @@ def _camera_mover(client: viser.ClientHandle, region: RegionBox) -> Any:
             norm = float(np.linalg.norm(direction))
             direction = direction / norm if norm > 1e-9 else default_camera_offset(1.0)
             distance = max(float(np.linalg.norm(region.dimensions)) * 2.0, 1.0)
-            with client.atomic():
-                client.camera.look_at = tuple(center)
+            with client.atomic():  # position first: viser's position setter moves look_at too
                 client.camera.position = tuple(center + direction * distance)
+                client.camera.look_at = tuple(center)
 
     return move
 

@@ -238,6 +238,21 @@ def test_review_with_the_mouse(review_service: ReviewService, chrome_factory) ->
     layers = {layer["name"]: layer for layer in scene["scene"]["layers"]}
     assert layers["removed"]["shown"] > 0 and layers["added"]["shown"] > 0
     assert not scene["clients"][0]["layers"]["unobserved"]["visible"]
+    # The region list moves the camera to the region clicked.
+    target = regions[1]
+    centre = (np.array(target["bbox_min"]) + np.array(target["bbox_max"])) / 2
+    retry(
+        lambda: driver.find_element(
+            By.XPATH, "//button[starts-with(normalize-space(.), '#2 ')]"
+        ).click()
+    )
+    wait_until(
+        lambda: np.allclose(
+            view_scene(service, job_id)["clients"][0]["camera"]["look_at"], centre, atol=1e-2
+        ),
+        20,
+        "clicking region #2 did not move the camera to it",
+    )
     driver.close()
     driver.switch_to.window(driver.window_handles[0])
 
