@@ -148,8 +148,8 @@ class SceneData:
     origin: NDArray[np.float64]
     layers: tuple[Layer, ...]
     regions: tuple[RegionBox, ...]
-    bounds_min: NDArray[np.float64]  # local frame, over every point (not only the shown ones)
-    bounds_max: NDArray[np.float64]
+    bounds_min: NDArray[np.float64]  # local frame: 1st/99th percentiles of the drawn points,
+    bounds_max: NDArray[np.float64]  # what the camera frames (far stray returns ignored)
     point_size: float
     point_budget: int
     summary: Mapping[str, Any] = field(default_factory=dict)
@@ -254,8 +254,13 @@ def subsample(
     return points[chosen]
 
 
-def estimate_point_size(points: NDArray[np.float32], sample_size: int = 2000) -> float:
-    """A point size (metres) that closes the gaps between displayed points: 1.5x median spacing."""
+def estimate_point_size(
+    points: NDArray[np.float32], extent: float = 0.0, sample_size: int = 2000
+) -> float:
+    """A point size (metres): 1.5x the median spacing, at least 1/800 of the scene's extent.
+
+    The floor keeps sparse far-range lidar returns visible when the whole scene is in view.
+    """
     if len(points) < 2:
         return 0.05
     rng = np.random.default_rng(0)
@@ -266,7 +271,7 @@ def estimate_point_size(points: NDArray[np.float32], sample_size: int = 2000) ->
     if not np.isfinite(spacing) or spacing <= 0:
         extent = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
         spacing = max(extent, 1.0) / 500.0
-    return 1.5 * spacing
+    return max(1.5 * spacing, extent / 800.0)
 
 
 def region_boxes(
@@ -364,19 +369,19 @@ def build_scene_data(
                 n_total=totals[style.name],
             )
         )
-    every_point = np.concatenate([reference_points, scan_in_reference]) - origin
-    if len(every_point):
-        bounds_min, bounds_max = every_point.min(axis=0), every_point.max(axis=0)
+    drawn = [layer.points for layer in layers if layer.n_shown]
+    if drawn:
+        bounds_min, bounds_max = np.percentile(np.concatenate(drawn), [1.0, 99.0], axis=0)
     else:
         bounds_min = bounds_max = np.zeros(3)
-    drawn = [layer.points for layer in layers if layer.n_shown]
+    extent = float(np.linalg.norm(bounds_max - bounds_min))
     return SceneData(
         origin=origin,
         layers=tuple(layers),
         regions=region_boxes(regions, origin),
         bounds_min=bounds_min,
         bounds_max=bounds_max,
-        point_size=estimate_point_size(np.concatenate(drawn)) if drawn else 0.05,
+        point_size=estimate_point_size(np.concatenate(drawn), extent) if drawn else 0.05,
         point_budget=int(point_budget),
         summary=dict(summary or {}),
     )

@@ -20,6 +20,9 @@ from app.viewer.scene import Layer, RegionBox, SceneData
 MAX_REGION_BUTTONS = 40
 """Region list length in the GUI; the largest regions are listed first beyond this."""
 
+MAX_REGION_LABELS = 20
+"""Regions whose box gets a text label in the scene (the largest); more would hide the data."""
+
 UP_DIRECTION = "+z"
 
 
@@ -116,6 +119,10 @@ def build_client_scene(client: viser.ClientHandle, data: SceneData, title: str) 
             precision="float32",
             visible=layer.visible and layer.n_shown > 0,
         )
+    labelled = {
+        region.index
+        for region in sorted(data.regions, key=lambda region: -region.n_points)[:MAX_REGION_LABELS]
+    }
     for region in data.regions:
         box = scene.add_box(
             f"/regions/{region.index}",
@@ -126,6 +133,9 @@ def build_client_scene(client: viser.ClientHandle, data: SceneData, title: str) 
             cast_shadow=False,
             receive_shadow=False,
         )
+        record.boxes.append((region, box))
+        if region.index not in labelled:
+            continue
         corner = np.asarray(region.center_local) + np.asarray(region.dimensions) / 2.0
         label = scene.add_label(
             f"/region_labels/{region.index}",
@@ -133,7 +143,6 @@ def build_client_scene(client: viser.ClientHandle, data: SceneData, title: str) 
             position=tuple(corner),
             anchor="bottom-left",
         )
-        record.boxes.append((region, box))
         record.labels.append(label)
 
     with client.atomic():
@@ -210,6 +219,8 @@ def _add_region_list(
             return
         if len(data.regions) > len(regions):
             gui.add_markdown(f"The {len(regions)} largest of {len(data.regions)} are listed.")
+        if len(data.regions) > MAX_REGION_LABELS:
+            gui.add_markdown(f"Labels are drawn on the {MAX_REGION_LABELS} largest.")
         for region in regions:
             button = gui.add_button(
                 region.label,
