@@ -101,7 +101,7 @@ def configure_server(server: viser.ViserServer, data: SceneData, title: str) -> 
 def default_camera_offset(extent: float) -> np.ndarray:
     """Camera position relative to what it looks at: from the south-west, above."""
     direction = np.array([-0.55, -0.75, 0.55])
-    return direction / np.linalg.norm(direction) * max(extent, 0.5) * 0.75
+    return direction / np.linalg.norm(direction) * max(extent, 0.5) * 1.0
 
 
 def build_client_scene(client: viser.ClientHandle, data: SceneData, title: str) -> ClientScene:
