@@ -147,6 +147,7 @@ CLUSTER_NEIGHBOURS = 10
 VISIBILITY_RAYS = 8
 _CHUNK = 65_536
 _ANGULAR_SAMPLE = 4096
+_ALIGNMENT_SAMPLE = 20_000
 
 
 @dataclass(frozen=True)
@@ -453,7 +454,7 @@ def _surface_distance(
     other: _LocalGeometry,
     threshold: float,
     support_factor: float,
-) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]:
     """Distance of each point to the other cloud's supported local surface.
 
     Parameters
@@ -473,9 +474,14 @@ def _surface_distance(
         support disc ``p`` projects into; the nearest-point distance when there is none.
     candidate : ndarray, shape (p,), bool
         ``distance > tau`` and no point of the other cloud within the support radius.
+    nearest_plane_offset : ndarray, shape (p,)
+        Signed distance to the plane of the nearest point's neighbourhood where that point
+        lies within the support radius of ``p`` (a matched point), NaN elsewhere (for the
+        alignment residual).
     """
     distance = np.empty(points.shape[0])
     candidate = np.empty(points.shape[0], dtype=bool)
+    nearest_plane_offset = np.empty(points.shape[0])
     for start in range(0, points.shape[0], _CHUNK):
         chunk = slice(start, start + _CHUNK)
         query = points[chunk]
@@ -486,14 +492,65 @@ def _surface_distance(
         along_normal = np.einsum("ckd,ckd->ck", offset, normals)
         lateral_squared = np.einsum("ckd,ckd->ck", offset, offset) - along_normal**2
         supported = lateral_squared <= support_radius**2
-        plane_distance = np.abs(
-            np.einsum("ckd,ckd->ck", query[:, None, :] - other.centroid[neighbours], normals)
+        plane_offset = np.einsum(
+            "ckd,ckd->ck", query[:, None, :] - other.centroid[neighbours], normals
         )
-        plane_distance = np.where(supported, plane_distance, np.inf).min(axis=1)
+        plane_distance = np.where(supported, np.abs(plane_offset), np.inf).min(axis=1)
         nearest = nn_distance[chunk]
+        nearest_plane_offset[chunk] = np.where(
+            nearest <= support_radius[:, 0], plane_offset[:, 0], np.nan
+        )
         distance[chunk] = np.where(np.isfinite(plane_distance), plane_distance, nearest)
         candidate[chunk] = (distance[chunk] > threshold) & (nearest > support_radius[:, 0])
-    return distance, candidate
+    return distance, candidate, nearest_plane_offset
+
+
+def _alignment_residual(
+    reference_side: tuple,
+    scan_side: tuple,
+    threshold: float,
+    support_factor: float,
+) -> float:
+    """Misalignment left after registration, measured on the clouds themselves (metres).
+
+    The signed point-to-plane offsets of matched points (a subsample of each cloud against
+    the other; a point is matched when its nearest point in the other cloud lies within the
+    support radius, so changed points do not count) spread by ``sigma_own^2 + sigma_other^2 / (k + 1)`` from noise alone (the
+    plane goes through a neighbourhood's centroid); a robust spread (1.4826 x MAD) beyond
+    that is alignment error, which then widens ``tau`` like ``registration_rmse`` does.
+
+    Parameters
+    ----------
+    reference_side, scan_side : tuple
+        ``(points, nn_distance, nn_index, geometry)`` of each cloud, the nearest neighbours
+        being in the other cloud.
+    threshold : float
+        Preliminary ``tau`` (noise and registration_rmse only).
+    support_factor : float
+
+    Returns
+    -------
+    float
+        ``sqrt(mean over both directions of max(0, spread^2 - noise^2))``.
+    """
+    excess_variances = []
+    for (points, nn_distance, nn_index, geometry), (*_, other) in (
+        (reference_side, scan_side),
+        (scan_side, reference_side),
+    ):
+        step = max(1, points.shape[0] // _ALIGNMENT_SAMPLE)
+        sample = slice(None, None, step)
+        _, _, offset = _surface_distance(
+            points[sample], nn_distance[sample], nn_index[sample], other, threshold, support_factor
+        )
+        offset = offset[np.isfinite(offset)]
+        if offset.size < MIN_POINTS:
+            continue
+        spread = 1.4826 * float(np.median(np.abs(offset - np.median(offset))))
+        other_k = other.neighbor_index.shape[1]
+        noise_variance = geometry.noise**2 + other.noise**2 / other_k
+        excess_variances.append(max(0.0, spread**2 - noise_variance))
+    return math.sqrt(float(np.mean(excess_variances))) if excess_variances else 0.0
 
 
 def _ray_visibility(
@@ -747,7 +804,7 @@ def _label_candidates(
     nn_index: NDArray[np.int64],
     other: _LocalGeometry,
     other_origin: NDArray[np.float64] | None,
-    registration_rmse: float,
+    misalignment: float,
     settings: dict[str, Any],
 ) -> tuple[NDArray[np.int8], dict[str, Any]]:
     """Label one cloud's points: candidates become changed or unobserved, the rest unchanged.
@@ -765,7 +822,8 @@ def _label_candidates(
         The other cloud.
     other_origin : ndarray, shape (3,), or None
         The other sensor's position: ray visibility test if given, coverage test otherwise.
-    registration_rmse : float
+    misalignment : float
+        registration_rmse and the measured alignment residual combined (metres).
     settings : dict
         Resolved keyword parameters.
 
@@ -793,7 +851,7 @@ def _label_candidates(
             distance[index],
             geometry.linear[flattest],
             geometry,
-            settings["threshold_factor"] * math.hypot(geometry.noise, registration_rmse),
+            settings["threshold_factor"] * math.hypot(geometry.noise, misalignment),
             settings["threshold_factor"] * other.noise,
             other.points,
             other_origin,
@@ -879,10 +937,6 @@ def localise_changes(
     median_spacing = float(
         np.median(np.concatenate([reference_geometry.spacing, scan_geometry.spacing]))
     )
-    noise_threshold = settings["threshold_factor"] * math.sqrt(
-        reference_geometry.noise**2 + scan_geometry.noise**2 + registration_rmse**2
-    )
-    threshold = max(noise_threshold, RESOLUTION_THRESHOLD_FRACTION * median_spacing)
     relative_nn_distance = np.concatenate(
         [
             reference_nn_distance / scan_geometry.spacing[reference_nn_index],
@@ -890,8 +944,27 @@ def localise_changes(
         ]
     )
     support_factor = _support_factor(relative_nn_distance, settings["support_factor"])
+    resolution_floor = RESOLUTION_THRESHOLD_FRACTION * median_spacing
+    noise_only_threshold = max(
+        settings["threshold_factor"]
+        * math.hypot(reference_geometry.noise, scan_geometry.noise, registration_rmse),
+        resolution_floor,
+    )
+    alignment_residual = _alignment_residual(
+        (reference_points, reference_nn_distance, reference_nn_index, reference_geometry),
+        (scan_points, scan_nn_distance, scan_nn_index, scan_geometry),
+        noise_only_threshold,
+        support_factor,
+    )
+    threshold = max(
+        settings["threshold_factor"]
+        * math.hypot(
+            reference_geometry.noise, scan_geometry.noise, registration_rmse, alignment_residual
+        ),
+        resolution_floor,
+    )
 
-    reference_distance, reference_candidate = _surface_distance(
+    reference_distance, reference_candidate, _ = _surface_distance(
         reference_points,
         reference_nn_distance,
         reference_nn_index,
@@ -899,7 +972,7 @@ def localise_changes(
         threshold,
         support_factor,
     )
-    scan_distance, scan_candidate = _surface_distance(
+    scan_distance, scan_candidate, _ = _surface_distance(
         scan_points,
         scan_nn_distance,
         scan_nn_index,
@@ -918,7 +991,7 @@ def localise_changes(
         reference_nn_index,
         scan_geometry,
         scan_origin,
-        registration_rmse,
+        math.hypot(registration_rmse, alignment_residual),
         settings,
     )
     scan_label, scan_report = _label_candidates(
@@ -931,7 +1004,7 @@ def localise_changes(
         scan_nn_index,
         reference_geometry,
         reference_origin,
-        registration_rmse,
+        math.hypot(registration_rmse, alignment_residual),
         settings,
     )
 
@@ -975,6 +1048,7 @@ def localise_changes(
         "registration_rmse": float(registration_rmse),
         "reference_noise": reference_geometry.noise,
         "scan_noise": scan_geometry.noise,
+        "alignment_residual": alignment_residual,
         "threshold": threshold,
         "reference_spacing_median": float(np.median(reference_geometry.spacing)),
         "scan_spacing_median": float(np.median(scan_geometry.spacing)),

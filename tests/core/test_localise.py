@@ -224,18 +224,21 @@ def test_min_region_points_drops_small_clusters():
 # --- the paper's corridor ----------------------------------------------------------------------
 
 
+@pytest.mark.parametrize("change_fraction", [0.1, 0.33])
 @pytest.mark.parametrize("noise_variance", [1e-5, 1e-4, 1e-3])
-def test_corridor_box_is_localised(noise_variance):
+def test_corridor_box_is_localised(noise_variance, change_fraction):
     box_front_centre = np.array([-0.5, 0.0, 1.0])
     ious = []
     for seed in range(10):
-        pair = paper_corridor(noise_variance=noise_variance, change_fraction=0.2, random_state=seed)
+        pair = paper_corridor(
+            noise_variance=noise_variance, change_fraction=change_fraction, random_state=seed
+        )
         localisation = localise_changes(pair.reference, pair.scan)
         assert localisation.parameters["reference_visibility"] == "coverage"
         ious.append(changed_iou(pair, localisation))
         assert region_containing(localisation, "added", box_front_centre) is not None
     assert np.mean(ious) >= 0.85
-    assert np.min(ious) >= 0.7
+    assert np.min(ious) >= 0.75
 
 
 def test_corridor_without_change_has_no_change():
