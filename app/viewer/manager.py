@@ -54,7 +54,6 @@ class JobViewer:
             clients = [scene.to_json_dict(self.data.origin) for scene in self.clients.values()]
         return {
             "job_id": self.job_id,
-            "port": self.port,
             "connections": self.connections,
             "scene": self.data.to_json_dict(),
             "clients": clients,

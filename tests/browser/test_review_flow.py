@@ -16,6 +16,7 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
+import viser
 
 from tests.browser.conftest import (
     FAILING_SCAN_REASON,
@@ -115,7 +116,6 @@ def test_review_with_the_mouse(review_service: ReviewService, chrome_factory) ->
 
     service = review_service
     driver = chrome_factory()
-    started = time.monotonic()
 
     # Sign in: a wrong token is refused in words, the printed admin token works.
     driver.get(service.base_url + "/")
@@ -276,7 +276,6 @@ def test_review_with_the_mouse(review_service: ReviewService, chrome_factory) ->
     by_css(driver, "#sign-in-form")
     driver.get(f"{service.base_url}/jobs/{job_id}/view")
     assert "Sign in" in driver.find_element(By.TAG_NAME, "h1").text
-    assert time.monotonic() - started < 200
 
 
 def test_expired_session_is_explained(review_service: ReviewService, chrome_factory) -> None:
@@ -304,7 +303,7 @@ def test_view_refused_without_auth(review_service: ReviewService) -> None:
     job = service.finished_job()
     view = f"{service.base_url}/jobs/{job['id']}/view"
     socket_url = view.replace("http://", "ws://")
-    protocol = [f"viser-v{__import__('viser').__version__}"]
+    protocol = [f"viser-v{viser.__version__}"]
 
     # No cookie, no link: the page says why (401), a forged link is refused (403).
     plain = httpx.get(view)
@@ -325,9 +324,7 @@ def test_view_refused_without_auth(review_service: ReviewService) -> None:
         websockets.sync.client.connect(
             socket_url, subprotocols=protocol, additional_headers={"Cookie": cookie}
         )
-    # A session cookie from another site (cross-origin websocket) is refused too.
-    with service.client() as client:
-        assert client.get("/api/v1/jobs/" + job["id"]).status_code == 200
+    # The owner's session opens the view, but not from a page of another site (Origin).
     with httpx.Client(base_url=service.base_url) as browser:
         browser.post("/api/v1/session", json={"token": service.process.admin_token})
         own = f"scandiff_session={browser.cookies['scandiff_session']}"
