@@ -110,6 +110,22 @@ def assert_boxes_match_regions(scene: dict[str, Any], regions: list[dict[str, An
         assert np.allclose(box["dimensions"], expected_size, atol=1e-3)
 
 
+def assert_api_accepts_session_cookie(driver: Any, service: ReviewService) -> None:
+    """The browser got an HttpOnly SameSite=Strict session cookie that the API accepts."""
+    session_cookie = wait_until(
+        lambda: driver.get_cookie("scandiff_session"), 10, "signing in set no session cookie"
+    )
+    assert session_cookie["httpOnly"] and session_cookie["sameSite"] == "Strict"
+    sites = httpx.get(
+        service.base_url + "/api/v1/sites",
+        cookies={"scandiff_session": session_cookie["value"]},
+    )
+    assert sites.status_code == 200, (
+        "the API does not accept the session cookie: app/api/deps.py must call "
+        "app.api.session_auth.principal_from_session_cookie (see docs/review.md)"
+    )
+
+
 def test_review_with_the_mouse(review_service: ReviewService, chrome_factory) -> None:
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support.ui import Select
@@ -127,17 +143,8 @@ def test_review_with_the_mouse(review_service: ReviewService, chrome_factory) ->
     token_field.clear()
     token_field.send_keys(service.process.admin_token)
     by_css(driver, "#sign-in-button").click()
+    assert_api_accepts_session_cookie(driver, service)
     by_css(driver, "#new-site-name").send_keys("Warehouse aisle B")
-    session_cookie = driver.get_cookie("scandiff_session")
-    assert session_cookie["httpOnly"] and session_cookie["sameSite"] == "Strict"
-    sites = httpx.get(
-        service.base_url + "/api/v1/sites",
-        cookies={"scandiff_session": session_cookie["value"]},
-    )
-    assert sites.status_code == 200, (
-        "the API does not accept the session cookie: app/api/deps.py must call "
-        "app.api.session_auth.principal_from_session_cookie (see docs/review.md)"
-    )
 
     # Create a site, upload its reference, then a scan (progress bar, then a live job).
     by_css(driver, "#create-site").click()
@@ -287,6 +294,7 @@ def test_expired_session_is_explained(review_service: ReviewService, chrome_fact
     driver.get(service.base_url + "/")
     by_css(driver, "#token").send_keys(token)
     by_css(driver, "#sign-in-button").click()
+    assert_api_accepts_session_cookie(driver, service)
     by_css(driver, "#no-sites")
     service.revoke_token(token)
     driver.refresh()
