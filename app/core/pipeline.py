@@ -2,10 +2,25 @@
 
 This is the function the CLI (``scandiff compare``) and the service's worker both call, so a
 result over HTTP is identical to the CLI's on the same inputs and parameters.
+
+Stages
+------
+1. **Local origin.** Both clouds are shifted by one rounded origin taken from the reference
+   (:func:`app.core.cloud.choose_local_origin`) so georeferenced coordinates keep their
+   millimetres in float arithmetic; every coordinate reported is shifted back.
+2. **Registration** of the scan onto the reference (GICP via small_gicp), or the identity with
+   its fit measured when ``align=False``.
+3. **Localisation**: per-point labels (changed / unchanged / unobserved) for both clouds and
+   connected regions (:mod:`app.core.localise`).
+4. **Detection**: the paper's global EMD score between the parts of the two clouds that both
+   sensors observed (points the other scan could not see are not evidence of change), with a
+   threshold calibrated from the clouds' own resampling noise (:mod:`app.core.detectors`).
 """
 
 from __future__ import annotations
 
+import inspect
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -14,7 +29,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.cloud import PointCloud
+from app.core.cloud import MIN_POINTS, PointCloud, choose_local_origin
+from app.core.detectors import make_detector
+from app.core.detectors.base import ChangeDetector
+from app.core.errors import InputError
+from app.core.localise import localise_changes
+from app.core.registration import (
+    apply_transform,
+    identity_registration,
+    register_scan,
+)
 
 ProgressCallback = Callable[[str, float], None]
 """Called as ``progress(stage, fraction_done)`` with fraction in [0, 1]."""
@@ -23,10 +47,25 @@ LABEL_UNCHANGED = 0
 LABEL_CHANGED = 1
 LABEL_UNOBSERVED = -1
 
+DECISION_RULES = ("either", "detector", "regions")
+"""How ``changed`` is decided:
+
+``"either"`` (default)
+    the global EMD score exceeds its calibrated threshold, or localisation found at least one
+    region of changed points (each region already passed the noise-calibrated distance test and
+    the minimum size).  The global score of a whole scene barely moves when a single object
+    appears (PCA cannot see it at all), while the per-point test finds it; a surveillance user
+    wants both kinds of evidence.
+``"detector"``
+    the paper's rule: the global score against its threshold only.
+``"regions"``
+    localisation only.
+"""
+
 
 @dataclass(frozen=True)
 class RegionSummary:
-    """One connected cluster of changed points, in file coordinates."""
+    """One connected cluster of changed points, in file coordinates of the reference frame."""
 
     kind: str  # "added" (in the scan, not in the reference) or "removed"
     n_points: int
@@ -36,13 +75,26 @@ class RegionSummary:
     mean_distance: float
     max_distance: float
 
+    def to_json_dict(self) -> dict[str, Any]:
+        """Plain JSON types."""
+        return {
+            "kind": self.kind,
+            "n_points": self.n_points,
+            "centroid": self.centroid,
+            "bbox_min": self.bbox_min,
+            "bbox_max": self.bbox_max,
+            "mean_distance": self.mean_distance,
+            "max_distance": self.max_distance,
+        }
+
 
 @dataclass(frozen=True)
 class ComparisonResult:
     """Everything one comparison produced.
 
-    ``reference_label`` and ``scan_label`` have one entry per row of the source file (points
-    dropped on load are -1): 0 unchanged, 1 changed, -1 unobserved.
+    Per-point arrays have one entry per row of the source file (points dropped on load keep
+    their place): labels are 0 unchanged, 1 changed, -1 unobserved or dropped; distances are
+    NaN there.  ``reference_region``/``scan_region`` index ``regions`` (-1: none).
     """
 
     method: str
@@ -60,15 +112,191 @@ class ComparisonResult:
     scan_label: NDArray[np.int8]
     reference_distance: NDArray[np.float32]
     scan_distance: NDArray[np.float32]
+    reference_region: NDArray[np.int32]
+    scan_region: NDArray[np.int32]
+    localisation: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
 
+    def label_counts(self) -> dict[str, dict[str, int]]:
+        """How many points of each cloud are unchanged, changed and unobserved."""
+
+        def counts(labels: NDArray[np.int8]) -> dict[str, int]:
+            return {
+                "unchanged": int(np.count_nonzero(labels == LABEL_UNCHANGED)),
+                "changed": int(np.count_nonzero(labels == LABEL_CHANGED)),
+                "unobserved": int(np.count_nonzero(labels == LABEL_UNOBSERVED)),
+            }
+
+        return {"reference": counts(self.reference_label), "scan": counts(self.scan_label)}
+
     def to_json_dict(self) -> dict[str, Any]:
-        """The JSON object printed by ``scandiff compare --json``."""
-        raise NotImplementedError
+        """The JSON object printed by ``scandiff compare --json`` (non-finite numbers: null)."""
+        return json_safe(
+            {
+                "method": self.method,
+                "variant": self.variant,
+                "params": self.params,
+                "score": self.score,
+                "threshold": self.threshold,
+                "changed": self.changed,
+                "calibration": self.calibration,
+                "registration": self.registration,
+                "regions": [region.to_json_dict() for region in self.regions],
+                "n_regions": len(self.regions),
+                "n_reference": self.n_reference,
+                "n_scan": self.n_scan,
+                "label_counts": self.label_counts(),
+                "localisation": self.localisation,
+                "timings": self.timings,
+            }
+        )
 
     def write_labels_npz(self, path: str | Path) -> None:
         """Write ``reference_changed``, ``scan_changed``, ``reference_label``, ``scan_label``."""
-        raise NotImplementedError
+        with open(path, "wb") as handle:
+            np.savez_compressed(
+                handle,
+                reference_changed=self.reference_label == LABEL_CHANGED,
+                scan_changed=self.scan_label == LABEL_CHANGED,
+                reference_label=self.reference_label.astype(np.int8),
+                scan_label=self.scan_label.astype(np.int8),
+            )
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` with numpy scalars/arrays turned into Python types and NaN/inf into None."""
+    if isinstance(value, Mapping):
+        return {str(key): json_safe(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(item) for item in value]
+    if isinstance(value, np.ndarray):
+        return json_safe(value.tolist())
+    if isinstance(value, (np.bool_, bool)):
+        return bool(value)
+    if isinstance(value, (np.integer, int)):
+        return int(value)
+    if isinstance(value, (np.floating, float)):
+        return float(value) if np.isfinite(value) else None
+    return value
+
+
+def _origin_in_local_frame(
+    explicit: Any, from_file: NDArray[np.float64] | None, local_origin: NDArray[np.float64]
+) -> NDArray[np.float64] | None:
+    """The sensor origin to use, shifted into local coordinates (None when unknown)."""
+    if explicit is not None:
+        origin = np.asarray(explicit, dtype=np.float64).reshape(-1)
+        if origin.shape != (3,) or not np.isfinite(origin).all():
+            raise InputError(f"a sensor origin must be three finite numbers, got {explicit!r}")
+        return origin - local_origin
+    if from_file is not None:
+        return np.asarray(from_file, dtype=np.float64) - local_origin
+    return None
+
+
+def _file_frame_transform(
+    local_transform: NDArray[np.float64], local_origin: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Express a transform estimated in local coordinates in the files' coordinates."""
+    shift = np.eye(4)
+    shift[:3, 3] = local_origin
+    unshift = np.eye(4)
+    unshift[:3, 3] = -local_origin
+    return shift @ local_transform @ unshift
+
+
+@dataclass(frozen=True)
+class ComparisonSettings:
+    """A comparison's parameters, split by stage and validated."""
+
+    detector: ChangeDetector
+    align: bool
+    registration: dict[str, Any]
+    localisation: dict[str, Any]
+    reference_origin: Any
+    scan_origin: Any
+    decision: str
+
+
+def _check_keywords(function: Callable[..., Any], stage: str, keywords: Mapping[str, Any]) -> None:
+    """Raise InputError naming the parameters ``function`` does not take."""
+    accepted = {
+        name
+        for name, parameter in inspect.signature(function).parameters.items()
+        if parameter.kind in (parameter.KEYWORD_ONLY, parameter.POSITIONAL_OR_KEYWORD)
+    }
+    unknown = sorted(set(keywords) - accepted)
+    if unknown and not any(
+        parameter.kind == parameter.VAR_KEYWORD
+        for parameter in inspect.signature(function).parameters.values()
+    ):
+        raise InputError(
+            f"unknown {stage} parameter(s) {', '.join(unknown)}; "
+            f"valid: {', '.join(sorted(accepted - {'reference', 'scan'}))}"
+        )
+
+
+def parse_comparison_params(
+    method: str,
+    variant: str,
+    params: Mapping[str, Any] | None,
+    *,
+    random_state: int = 0,
+    align: bool = True,
+) -> ComparisonSettings:
+    """Validate and split a comparison's ``params`` (see :func:`compare`).
+
+    Parameters stored with an earlier result (``result.params``) replay it exactly: their
+    ``random_state`` and ``align`` take precedence over the keyword arguments.
+
+    Raises
+    ------
+    InputError
+        Unknown method, variant or parameter, or a value of the wrong type.
+    """
+    if params is not None and not isinstance(params, Mapping):
+        raise InputError("params must be an object of keyword parameters")
+    remaining = dict(params or {})
+    random_state = remaining.pop("random_state", random_state)
+    if isinstance(random_state, bool) or not isinstance(random_state, int):
+        raise InputError(f"random_state must be an integer, got {random_state!r}")
+    align = remaining.pop("align", align)
+    if not isinstance(align, bool):
+        raise InputError(f"align must be true or false, got {align!r}")
+    stored_variant = remaining.pop("variant", variant)
+    if stored_variant != variant:
+        raise InputError(
+            f"params say variant {stored_variant!r} but variant {variant!r} was requested"
+        )
+    stage_params: dict[str, dict[str, Any]] = {}
+    for stage in ("registration", "localisation"):
+        value = remaining.pop(stage, None) or {}
+        if not isinstance(value, Mapping):
+            raise InputError(f"{stage} must be an object of keyword parameters, got {value!r}")
+        stage_params[stage] = dict(value)
+    _check_keywords(register_scan, "registration", stage_params["registration"])
+    _check_keywords(localise_changes, "localisation", stage_params["localisation"])
+    decision = remaining.pop("decision", "either")
+    if decision not in DECISION_RULES:
+        raise InputError(f"decision must be one of {', '.join(DECISION_RULES)}, got {decision!r}")
+    reference_origin = remaining.pop("reference_origin", None)
+    scan_origin = remaining.pop("scan_origin", None)
+    for origin in (reference_origin, scan_origin):
+        if origin is not None:
+            _origin_in_local_frame(origin, None, np.zeros(3))  # validates the shape
+    try:
+        detector = make_detector(method, variant, random_state=random_state, **remaining)
+    except TypeError as exc:
+        raise InputError(f"invalid parameters for {method}/{variant}: {exc}") from exc
+    return ComparisonSettings(
+        detector=detector,
+        align=align,
+        registration=stage_params["registration"],
+        localisation=stage_params["localisation"],
+        reference_origin=reference_origin,
+        scan_origin=scan_origin,
+        decision=decision,
+    )
 
 
 def compare(
@@ -82,5 +310,165 @@ def compare(
     params: Mapping[str, Any] | None = None,
     progress: ProgressCallback | None = None,
 ) -> ComparisonResult:
-    """Compare ``scan`` against ``reference``; see the module docstring."""
-    raise NotImplementedError
+    """Compare ``scan`` against ``reference``; see the module docstring.
+
+    Parameters
+    ----------
+    reference, scan : PointCloud
+        The clouds as read from their files.
+    method : {"gmm", "pca", "planes"}
+    variant : {"improved", "paper"}
+    align : bool
+        Register the scan onto the reference first (recommended for robot scans).
+    random_state : int
+        Seeds every random choice, so a result can be replayed exactly.
+    params : mapping, optional
+        Detector keyword parameters, plus the reserved keys ``"registration"`` and
+        ``"localisation"`` (dicts of keyword parameters for those stages), ``"decision"``
+        (one of :data:`DECISION_RULES`) and
+        ``"reference_origin"`` / ``"scan_origin"`` (sensor positions in each file's frame,
+        overriding what the file says).
+    progress : callable, optional
+        ``progress(stage, fraction)`` after each stage.
+
+    Returns
+    -------
+    ComparisonResult
+
+    Raises
+    ------
+    InputError
+        Unknown method, variant or parameter; clouds that cannot be aligned.
+    """
+    settings = parse_comparison_params(
+        method, variant, params, random_state=random_state, align=align
+    )
+    align = settings.align
+    registration_params = settings.registration
+    localisation_params = settings.localisation
+    explicit_reference_origin = settings.reference_origin
+    explicit_scan_origin = settings.scan_origin
+    detector = settings.detector
+
+    def report(stage: str, fraction: float) -> None:
+        if progress is not None:
+            progress(stage, fraction)
+
+    timings: dict[str, float] = {}
+    local_origin = choose_local_origin(reference.points)
+    reference_points = reference.points - local_origin
+    scan_points = scan.points - local_origin
+    reference_origin = _origin_in_local_frame(
+        explicit_reference_origin, reference.sensor_origin, local_origin
+    )
+    scan_origin = _origin_in_local_frame(explicit_scan_origin, scan.sensor_origin, local_origin)
+
+    report("align", 0.05)
+    started = time.perf_counter()
+    if align:
+        registration = register_scan(reference_points, scan_points, **registration_params)
+    else:
+        registration = identity_registration(reference_points, scan_points)
+    aligned_scan = apply_transform(scan_points, registration.transform)
+    if scan_origin is not None:
+        scan_origin = apply_transform(scan_origin[None, :], registration.transform)[0]
+    timings["align"] = time.perf_counter() - started
+    registration_report = registration.to_json_dict()
+    registration_report["transform"] = _file_frame_transform(
+        registration.transform, local_origin
+    ).tolist()
+    registration_report["enabled"] = align
+
+    report("localise", 0.35)
+    started = time.perf_counter()
+    localisation = localise_changes(
+        reference_points,
+        aligned_scan,
+        reference_origin=reference_origin,
+        scan_origin=scan_origin,
+        registration_rmse=float(registration.rmse) if align else 0.0,
+        **localisation_params,
+    )
+    timings["localise"] = time.perf_counter() - started
+
+    report("detect", 0.65)
+    started = time.perf_counter()
+    reference_observed = localisation.reference_label != LABEL_UNOBSERVED
+    scan_observed = localisation.scan_label != LABEL_UNOBSERVED
+    use_observed = (
+        np.count_nonzero(reference_observed) >= MIN_POINTS
+        and np.count_nonzero(scan_observed) >= MIN_POINTS
+    )
+    if use_observed:
+        detection = detector.detect(
+            reference_points[reference_observed], aligned_scan[scan_observed]
+        )
+    else:
+        detection = detector.detect(reference_points, aligned_scan)
+    timings["detect"] = time.perf_counter() - started
+
+    calibration = dict(detection.calibration)
+    calibration["compared_points"] = "mutually observed" if use_observed else "all"
+    detector_changed = bool(detection.changed)
+    regions_changed = len(localisation.regions) > 0
+    changed = {
+        "either": detector_changed or regions_changed,
+        "detector": detector_changed,
+        "regions": regions_changed,
+    }[settings.decision]
+    calibration["decision"] = {
+        "rule": settings.decision,
+        "detector_changed": detector_changed,
+        "n_regions": len(localisation.regions),
+    }
+    regions = [
+        RegionSummary(
+            kind=region.kind,
+            n_points=int(region.n_points),
+            centroid=(np.asarray(region.centroid) + local_origin).tolist(),
+            bbox_min=(np.asarray(region.bbox_min) + local_origin).tolist(),
+            bbox_max=(np.asarray(region.bbox_max) + local_origin).tolist(),
+            mean_distance=float(region.mean_distance),
+            max_distance=float(region.max_distance),
+        )
+        for region in localisation.regions
+    ]
+    effective_params: dict[str, Any] = {
+        **detector.get_params(),
+        "align": align,
+        "registration": registration_params,
+        "localisation": localisation_params,
+        "decision": settings.decision,
+    }
+    if explicit_reference_origin is not None:
+        effective_params["reference_origin"] = list(map(float, explicit_reference_origin))
+    if explicit_scan_origin is not None:
+        effective_params["scan_origin"] = list(map(float, explicit_scan_origin))
+    report("done", 1.0)
+    return ComparisonResult(
+        method=method,
+        variant=variant,
+        params=effective_params,
+        score=float(detection.score),
+        threshold=float(detection.threshold),
+        changed=changed,
+        calibration=calibration,
+        registration=registration_report,
+        regions=regions,
+        n_reference=len(reference),
+        n_scan=len(scan),
+        reference_label=reference.to_source_order(
+            localisation.reference_label.astype(np.int8), LABEL_UNOBSERVED
+        ),
+        scan_label=scan.to_source_order(localisation.scan_label.astype(np.int8), LABEL_UNOBSERVED),
+        reference_distance=reference.to_source_order(
+            localisation.reference_distance.astype(np.float32), np.nan
+        ),
+        scan_distance=scan.to_source_order(localisation.scan_distance.astype(np.float32), np.nan),
+        reference_region=reference.to_source_order(
+            localisation.reference_region.astype(np.int32), -1
+        ),
+        scan_region=scan.to_source_order(localisation.scan_region.astype(np.int32), -1),
+        localisation=dict(localisation.parameters),
+        timings=timings,
+    )

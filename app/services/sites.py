@@ -10,8 +10,8 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from app.config import Settings
-from app.core.detectors import make_detector  # imported here, never inside a transaction
 from app.core.errors import InputError
+from app.core.pipeline import parse_comparison_params  # imported here, never in a transaction
 from app.db.models import Job, ReferenceHistory, Region, Scan, Site
 from app.services import storage
 from app.services.auth import Principal
@@ -24,49 +24,12 @@ DEFAULT_METHOD = "gmm"
 DEFAULT_VARIANT = "improved"
 
 
-PIPELINE_PARAM_KEYS = (
-    "random_state",
-    "align",
-    "variant",
-    "registration",
-    "localisation",
-    "reference_origin",
-    "scan_origin",
-)
-"""Keys of a job's ``params`` that ``app.core.pipeline.compare`` consumes itself (the rest are
-detector keyword parameters)."""
-
-
 def validate_detector(method: str, variant: str, params: dict[str, Any]) -> None:
-    """Check that ``compare`` would accept these settings; 422 with the core's message otherwise.
-
-    The detector keyword parameters go through ``make_detector`` (unknown method, variant or
-    parameter, or a bad value); the pipeline's own keys get a shape check.
-    """
-    if "variant" in params and params["variant"] != variant:
-        raise ValidationFailedError(
-            f"params say variant {params['variant']!r} but variant {variant!r} was requested",
-            code="invalid_detector",
-        )
-    for stage in ("registration", "localisation"):
-        if params.get(stage) is not None and not isinstance(params[stage], dict):
-            raise ValidationFailedError(
-                f"params.{stage} must be an object of keyword parameters", code="invalid_detector"
-            )
-    random_state = params.get("random_state", 0)
-    if isinstance(random_state, bool) or not isinstance(random_state, int):
-        raise ValidationFailedError("params.random_state must be an integer")
-    detector_params = {
-        name: value for name, value in params.items() if name not in PIPELINE_PARAM_KEYS
-    }
+    """Check that ``compare`` would accept these settings; 422 with the core's message otherwise."""
     try:
-        make_detector(method, variant, random_state=random_state, **detector_params)
+        parse_comparison_params(method, variant, params)
     except InputError as exc:
         raise ValidationFailedError(str(exc), code="invalid_detector") from exc
-    except TypeError as exc:  # a parameter the detector's constructor does not take
-        raise ValidationFailedError(
-            f"invalid parameters for {method}/{variant}: {exc}", code="invalid_detector"
-        ) from exc
 
 
 def resolve_detector(

@@ -1,0 +1,150 @@
+"""``scandiff compare`` as scripts use it: a real subprocess on real files."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from plyfile import PlyData, PlyElement
+
+from app.core.synthetic import raycast_scene
+
+REQUIRED_KEYS = {
+    "method",
+    "variant",
+    "score",
+    "threshold",
+    "changed",
+    "registration",
+    "regions",
+    "n_reference",
+    "n_scan",
+    "timings",
+}
+REGION_KEYS = {
+    "kind",
+    "n_points",
+    "centroid",
+    "bbox_min",
+    "bbox_max",
+    "mean_distance",
+    "max_distance",
+}
+
+
+def run_cli(*arguments: str | Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "app", "compare", *map(str, arguments)],
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+
+
+def write_ply(path: Path, points: np.ndarray) -> Path:
+    vertices = np.empty(len(points), dtype=[("x", "f8"), ("y", "f8"), ("z", "f8")])
+    vertices["x"], vertices["y"], vertices["z"] = points.T
+    PlyData([PlyElement.describe(vertices, "vertex")]).write(str(path))
+    return path
+
+
+@pytest.fixture(scope="module")
+def scene_files(tmp_path_factory):
+    directory = tmp_path_factory.mktemp("scene")
+    pair = raycast_scene(n_points=20_000, change="box", random_state=11)
+    scan = pair.scan.copy()
+    scan[[3, 4]] = np.nan  # dropped on load, must keep their place in the labels
+    reference_path = write_ply(directory / "reference.ply", pair.reference)
+    np.savetxt(directory / "scan.xyz", scan, fmt="%.6f")
+    return reference_path, directory / "scan.xyz", pair
+
+
+def test_json_output_labels_and_export(scene_files, tmp_path):
+    reference_path, scan_path, pair = scene_files
+    labels_path = tmp_path / "labels.npz"
+    export_path = tmp_path / "export.ply"
+    completed = run_cli(
+        reference_path, scan_path, "--json", "--labels", labels_path, "--export", export_path
+    )
+    assert completed.returncode == 0, completed.stderr
+    report = json.loads(completed.stdout)  # exactly one JSON object
+    assert REQUIRED_KEYS <= report.keys()
+    assert report["method"] == "gmm" and report["variant"] == "improved"
+    assert report["changed"] is True
+    assert np.asarray(report["registration"]["transform"]).shape == (4, 4)
+    assert 0.0 <= report["registration"]["fitness"] <= 1.0
+    assert report["regions"] and all(REGION_KEYS <= region.keys() for region in report["regions"])
+    assert report["n_scan"] == len(pair.scan) - 2
+
+    with np.load(labels_path) as labels:
+        assert set(labels.files) == {
+            "reference_changed",
+            "scan_changed",
+            "reference_label",
+            "scan_label",
+        }
+        assert labels["reference_changed"].dtype == bool
+        assert labels["scan_label"].dtype == np.int8
+        assert labels["reference_label"].shape == (len(pair.reference),)
+        assert labels["scan_label"].shape == (len(pair.scan),)
+        assert (labels["scan_label"][[3, 4]] == -1).all()
+        assert not labels["scan_changed"][[3, 4]].any()
+        np.testing.assert_array_equal(labels["scan_changed"], labels["scan_label"] == 1)
+
+    exported = PlyData.read(str(export_path))["vertex"]
+    assert {"label", "distance", "cloud"} <= set(exported.data.dtype.names)
+    assert len(exported.data) == len(pair.reference) + len(pair.scan) - 2
+
+
+def test_human_summary_without_json(scene_files):
+    reference_path, scan_path, _ = scene_files
+    completed = run_cli(reference_path, scan_path, "--method", "pca", "--no-align")
+    assert completed.returncode == 0, completed.stderr
+    assert "pca-EMD" in completed.stdout and "regions:" in completed.stdout
+
+
+@pytest.mark.parametrize(
+    ("content", "fragment"),
+    [
+        (b"ply\nformat ascii 1.0\nelement vertex 5\nproperty float x\nend_header\n1\n", "ply"),
+        (b"\x00\x01garbage", "format"),
+    ],
+)
+def test_bad_input_exits_2_with_one_line(tmp_path, scene_files, content, fragment):
+    reference_path, _, _ = scene_files
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(content)
+    completed = run_cli(reference_path, bad, "--json")
+    assert completed.returncode == 2
+    assert completed.stdout == ""
+    lines = completed.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("scandiff: error:")
+    assert fragment.lower() in lines[0].lower()
+
+
+def test_missing_file_exits_2(tmp_path, scene_files):
+    reference_path, _, _ = scene_files
+    completed = run_cli(reference_path, tmp_path / "nope.ply")
+    assert completed.returncode == 2
+    assert "no such file" in completed.stderr
+
+
+def test_real_kitti_frames(real_data_dir, tmp_path):
+    frames = real_data_dir / "kitti_2011_09_26_drive_0002_pointcloudset"
+    completed = run_cli(frames / "frame0.ply", frames / "frame1.ply", "--json", "--sensor-frame")
+    assert completed.returncode == 0, completed.stderr
+    report = json.loads(completed.stdout)
+    assert report["registration"]["fitness"] > 0.5
+    translation = np.asarray(report["registration"]["transform"])[:3, 3]
+    assert 0.3 < np.linalg.norm(translation) < 3.0  # the car moves ~0.9 m per frame
+
+
+def test_token_cli_roles_match_the_service():
+    from app.cli import tokens
+    from app.services import auth
+
+    assert tokens.ROLES == auth.ROLES
