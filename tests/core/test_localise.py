@@ -328,7 +328,82 @@ def test_full_size_rescans_accuracy_and_speed():
             assert iou >= 0.85
     print("\nchange   IoU    false%  agreement  regions  cpu_s")
     for change, iou, false_fraction, agreement, n_regions, cpu_seconds in rows:
+        iou_cell = "  -  " if change == "none" else f"{iou:.3f}"
         print(
-            f"{change:8s} {iou:.3f}  {100 * false_fraction:.3f}   {agreement:.3f}      "
+            f"{change:8s} {iou_cell}  {100 * false_fraction:.3f}   {agreement:.3f}      "
             f"{n_regions:3d}    {cpu_seconds:.2f}"
         )
+
+
+# --- benchmark: `OMP_NUM_THREADS=1 .venv/bin/python -m tests.core.test_localise [n] [seeds]` ----
+
+
+def benchmark(n_points: int = SCENE_POINTS, n_seeds: int = 8) -> None:
+    """Print the accuracy and speed tables of docs/localisation.md (Markdown)."""
+    print(f"ray-cast rescans: {n_points} points, pose error {POSE_ERROR}, {n_seeds} seeds\n")
+    print(
+        "| change | IoU mean | IoU min | false % mean | false % max | largest spurious region "
+        "| visibility agreement ref / scan (min) | CPU s |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for change in ("none", "box", "removed", "moved", "mixed"):
+        ious, falses, spurious, agree_reference, agree_scan, cpu = [], [], [], [], [], []
+        for seed in range(100, 100 + n_seeds):
+            pair = raycast_scene(
+                n_points=n_points, change=change, pose_error=POSE_ERROR, random_state=seed
+            )
+            started = time.process_time()
+            localisation = localise_changes(
+                pair.reference,
+                pair.aligned_scan(),
+                reference_origin=pair.reference_origin,
+                scan_origin=pair.aligned_scan_origin(),
+            )
+            cpu.append(time.process_time() - started)
+            if change != "none":
+                ious.append(changed_iou(pair, localisation))
+            falses.append(100 * false_changed_fraction(pair, localisation))
+            truth = {"removed": pair.reference_changed, "added": pair.scan_changed}
+            spurious.append(
+                max(
+                    (
+                        region.n_points
+                        for region in localisation.regions
+                        if truth[region.kind][region.point_indices].mean() < 0.5
+                    ),
+                    default=0,
+                )
+            )
+            agree_reference.append(
+                visibility_agreement(localisation.reference_label, pair.reference_observed)
+            )
+            agree_scan.append(visibility_agreement(localisation.scan_label, pair.scan_observed))
+        iou_cells = f"{np.mean(ious):.3f} | {np.min(ious):.3f}" if ious else "- | -"
+        print(
+            f"| {change} | {iou_cells} | {np.mean(falses):.3f} | {np.max(falses):.3f} "
+            f"| {max(spurious)} | {np.min(agree_reference):.3f} / {np.min(agree_scan):.3f} "
+            f"| {np.mean(cpu):.2f} |"
+        )
+    fractions = (0.03, 0.1, 0.2, 0.33)
+    print("\npaper corridor (300 points, no origins): IoU mean / min over 10 seeds\n")
+    print("| noise variance | " + " | ".join(f"{f:.0%} moved" for f in fractions) + " |")
+    print("|---|" + "---|" * len(fractions))
+    for noise_variance in (1e-5, 1e-4, 1e-3, 1e-2):
+        cells = []
+        for change_fraction in fractions:
+            values = []
+            for seed in range(10):
+                pair = paper_corridor(
+                    noise_variance=noise_variance,
+                    change_fraction=change_fraction,
+                    random_state=seed,
+                )
+                values.append(changed_iou(pair, localise_changes(pair.reference, pair.scan)))
+            cells.append(f"{np.mean(values):.2f} / {np.min(values):.2f}")
+        print(f"| {noise_variance:g} | " + " | ".join(cells) + " |")
+
+
+if __name__ == "__main__":
+    import sys
+
+    benchmark(*(int(argument) for argument in sys.argv[1:3]))
