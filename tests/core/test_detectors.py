@@ -13,8 +13,10 @@ from app.core.detectors.pca import improved_pca_emd, paper_pca_emd, principal_ax
 from app.core.emd import earth_movers_distance
 from app.core.errors import InputError
 
-FAST = {"n_resamples": 8}
-"""Fewer calibration resamples than the default 20, to keep the tests quick."""
+SMALL = {"max_points": 2000}
+"""Working sets of 2000 points (default 4000), to keep the tests quick."""
+FAST = {**SMALL, "n_resamples": 8}
+"""... and fewer calibration resamples than the default 20."""
 
 
 def corridor(n_points: int, rng: np.random.Generator, noise: float = 0.005) -> np.ndarray:
@@ -31,8 +33,8 @@ def corridor(n_points: int, rng: np.random.Generator, noise: float = 0.005) -> n
 
 
 def box_faces(n_points: int, rng: np.random.Generator, noise: float = 0.005) -> np.ndarray:
-    """Points on the free faces of a 0.6 x 0.8 x 0.8 m box against the wall x = -1."""
-    low, high = np.array([-1.0, -0.4, 0.0]), np.array([-0.4, 0.4, 0.8])
+    """Points on the free faces of a 0.8 x 1 x 1.2 m box against the wall x = -1."""
+    low, high = np.array([-1.0, 0.5, 0.0]), np.array([-0.2, 1.5, 1.2])
     points = rng.uniform(low, high, (n_points, 3))
     face = rng.integers(0, 4, n_points)
     points[face == 0, 0] = high[0]
@@ -44,13 +46,16 @@ def box_faces(n_points: int, rng: np.random.Generator, noise: float = 0.005) -> 
 
 @pytest.fixture(scope="module")
 def scene() -> dict[str, np.ndarray]:
-    """A reference, an independent rescan of it, and a rescan with a box added (25 %)."""
+    """A reference, an independent rescan of it, and a rescan with a box added (1/7 of it).
+
+    6000 points each: more than ``max_points``, so the detectors take the production path
+    (common voxel grid, paired calibration).
+    """
     rng = np.random.default_rng(11)
-    reference = corridor(1200, rng)
     return {
-        "reference": reference,
-        "rescan": corridor(1200, rng),
-        "with_box": np.vstack([corridor(1200, rng), box_faces(300, rng)]),
+        "reference": corridor(6000, rng),
+        "rescan": corridor(6000, rng),
+        "with_box": np.vstack([corridor(6000, rng), box_faces(1000, rng)]),
     }
 
 
@@ -60,9 +65,10 @@ ALL = [(method, variant) for method in METHODS for variant in VARIANTS]
 @pytest.mark.parametrize(("method", "variant"), ALL)
 def test_identical_clouds_score_about_zero_and_are_not_changed(method, variant, scene):
     detector = make_detector(method, variant, **FAST)
-    detection = detector.detect(scene["reference"], scene["reference"].copy())
+    shuffled = scene["reference"][np.random.default_rng(0).permutation(6000)]
+    detection = detector.detect(scene["reference"], shuffled)
     assert isinstance(detection, Detection)
-    assert detection.score == pytest.approx(0.0, abs=1e-2)
+    assert detection.score == pytest.approx(0.0, abs=1e-6)
     assert detection.threshold > detection.score
     assert detection.changed is False
     json.dumps(detection.calibration)  # JSON-serialisable
@@ -70,16 +76,25 @@ def test_identical_clouds_score_about_zero_and_are_not_changed(method, variant, 
     assert detection.calibration["false_alarm_rate"] == 0.01
 
 
+def test_small_clouds_are_used_whole_and_calibrated_by_plain_permutation():
+    rng = np.random.default_rng(5)
+    detection = make_detector("gmm", **FAST).detect(corridor(300, rng), corridor(300, rng))
+    assert detection.calibration["voxel_size"] == 0.0
+    assert detection.calibration["n_reference_working"] == 300
+    assert detection.calibration["calibration"] == "permutation"
+
+
 @pytest.mark.parametrize("method", METHODS)
 def test_improved_detects_an_added_box_and_not_a_plain_rescan(method, scene):
-    detector = make_detector(method, **FAST)
+    detector = make_detector(method, **SMALL)
     unchanged = detector.detect(scene["reference"], scene["rescan"])
     changed = detector.detect(scene["reference"], scene["with_box"])
     assert changed.score > unchanged.score
     assert changed.changed is True
     assert unchanged.changed is False
     assert changed.score > changed.threshold
-    assert 0.0 < changed.calibration["p_value"] <= 1.0
+    assert changed.calibration["calibration"] == "paired"
+    assert changed.calibration["p_value"] == pytest.approx(1.0 / 21.0)
 
 
 @pytest.mark.parametrize(("method", "variant"), ALL)
@@ -108,11 +123,11 @@ def test_same_random_state_gives_the_same_detection(method, variant, scene):
 def test_large_clouds_are_thinned_to_max_points_on_a_common_voxel_grid():
     rng = np.random.default_rng(2)
     reference, scan = corridor(20_000, rng), corridor(5_000, rng)
-    detection = make_detector("pca", max_points=1000, **FAST).detect(reference, scan)
+    detection = make_detector("pca", max_points=1000, n_resamples=8).detect(reference, scan)
     assert detection.calibration["voxel_size"] > 0
     assert detection.calibration["n_reference_working"] <= 1000
     assert detection.calibration["n_scan_working"] <= 1000
-    paper = make_detector("pca", "paper", max_points=1000, **FAST).detect(reference, scan)
+    paper = make_detector("pca", "paper", max_points=1000, n_resamples=8).detect(reference, scan)
     assert paper.calibration["voxel_size"] == 0.0
 
 

@@ -27,6 +27,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from app.core.detectors import calibration
 from app.core.errors import InputError
@@ -116,14 +117,14 @@ COMMON_DEFAULTS: dict[str, dict[str, Any]] = {
     "improved": {
         "false_alarm_rate": 0.01,
         "n_resamples": 20,
-        "calibration": "permutation",
+        "calibration": "auto",
         "max_points": 4000,
         "voxel_size": "auto",
     },
     "paper": {
         "false_alarm_rate": 0.01,
         "n_resamples": 20,
-        "calibration": "permutation",
+        "calibration": "auto",
         "max_points": 4000,
         "voxel_size": 0.0,
     },
@@ -157,16 +158,56 @@ def as_points(points: NDArray, name: str) -> NDArray[np.float64]:
     return array
 
 
+def point_keys(points: NDArray[np.float64], seed: int) -> NDArray[np.uint64]:
+    """A pseudo-random 64-bit key per point, computed from its coordinates and ``seed``.
+
+    Selections made by key (the smallest keys, or the smallest key per voxel) are uniformly
+    random for a given seed, yet depend only on the points themselves: the same cloud, in
+    any order, always gives the same working set, so ``d(S, S) = 0`` exactly.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3), float64
+    seed : int
+
+    Returns
+    -------
+    ndarray, shape (n,), uint64
+    """
+
+    def mix(values: NDArray[np.uint64]) -> NDArray[np.uint64]:  # splitmix64 finaliser
+        values = values ^ (values >> np.uint64(30))
+        values = values * np.uint64(0xBF58476D1CE4E5B9)
+        values = values ^ (values >> np.uint64(27))
+        values = values * np.uint64(0x94D049BB133111EB)
+        return values ^ (values >> np.uint64(31))
+
+    bits = np.ascontiguousarray(points, dtype=np.float64).view(np.uint64).reshape(-1, 3)
+    start = (seed * 0x9E3779B97F4A7C15 + 1) % 2**64
+    keys = np.full(bits.shape[0], np.uint64(start))
+    for column in range(3):
+        keys = mix(keys ^ bits[:, column])
+    return keys
+
+
+def smallest_keys(keys: NDArray[np.uint64], count: int) -> NDArray[np.int64]:
+    """Sorted indices of the ``count`` smallest ``keys`` (a random subset of that size)."""
+    if count >= keys.size:
+        return np.arange(keys.size, dtype=np.int64)
+    return np.sort(np.argpartition(keys, count - 1)[:count]).astype(np.int64)
+
+
 def voxel_representatives(
     points: NDArray[np.float64],
     voxel_size: float,
     origin: NDArray[np.float64],
-    rng: np.random.Generator,
+    keys: NDArray[np.uint64],
 ) -> NDArray[np.int64]:
-    """Indices of one randomly chosen point per occupied voxel of a grid anchored at ``origin``.
+    """Indices of one random point per occupied voxel of a grid anchored at ``origin``.
 
     A random representative (rather than the voxel centroid) keeps the points' noise as it is,
-    so the calibration's resampling noise stays that of real points.
+    so the calibration's resampling noise stays that of real points. "Random" is the point
+    with the smallest key (:func:`point_keys`) in its voxel.
 
     Parameters
     ----------
@@ -175,20 +216,33 @@ def voxel_representatives(
         Edge length, > 0.
     origin : ndarray, shape (3,)
         Grid corner shared by both clouds (so they are thinned on the same grid).
-    rng : numpy.random.Generator
+    keys : ndarray, shape (n,), uint64
 
     Returns
     -------
     ndarray, shape (k,), int64
         Sorted indices into ``points``.
     """
-    order = rng.permutation(points.shape[0])
-    cells = np.floor((points[order] - origin) / voxel_size).astype(np.int64)
+    cells = np.floor((points - origin) / voxel_size).astype(np.int64)
     cells -= cells.min(axis=0)
     extent = cells.max(axis=0) + 1
-    keys = (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
-    _, first = np.unique(keys, return_index=True)
+    voxels = (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
+    order = np.lexsort((keys, voxels))
+    sorted_voxels = voxels[order]
+    first = np.ones(order.size, dtype=bool)
+    first[1:] = sorted_voxels[1:] != sorted_voxels[:-1]
     return np.sort(order[first]).astype(np.int64)
+
+
+def median_spacing(points: NDArray[np.float64], rng: np.random.Generator) -> float:
+    """Median nearest-neighbour distance of ``points`` (n, 3), from up to 1000 query points."""
+    queries = points[rng.choice(points.shape[0], min(1000, points.shape[0]), replace=False)]
+    distances, _ = cKDTree(points).query(queries, k=2)
+    spacing = float(np.median(distances[:, 1]))
+    if spacing > 0:
+        return spacing
+    positive = distances[:, 1][distances[:, 1] > 0]
+    return float(positive.min()) if positive.size else 1.0
 
 
 def _occupied_voxels(points: NDArray[np.float64], voxel_size: float) -> int:
@@ -274,7 +328,9 @@ class ChangeDetector(ABC):
     @classmethod
     def param_specs(cls, variant: str) -> dict[str, ParamSpec]:
         """The hyper-parameters ``variant`` accepts: the common ones, then the method's own."""
-        own = {name: cls._specs[name] for name in cls._variant_defaults[variant]}
+        own = {
+            name: cls._specs[name] for name in cls._variant_defaults[variant] if name in cls._specs
+        }
         return {**COMMON_SPECS, **own}
 
     def get_params(self) -> dict[str, Any]:
@@ -315,16 +371,14 @@ class ChangeDetector(ABC):
     # shared machinery
 
     def _working_sets(
-        self,
-        reference: NDArray[np.float64],
-        scan: NDArray[np.float64],
-        rng: np.random.Generator,
+        self, reference: NDArray[np.float64], scan: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
         """Thin both clouds to at most ``max_points`` points each.
 
         The improved variants first thin both clouds on one common voxel grid (so a scanner
         that saw a wall from close by, with ten times the density, weighs it no more than one
-        that saw it from afar), then draw a uniform random subset.
+        that saw it from afar), then draw a uniform random subset. Every choice is made by
+        :func:`point_keys`, so it depends on the points and ``random_state`` only.
 
         Returns
         -------
@@ -335,6 +389,7 @@ class ChangeDetector(ABC):
         """
         max_points = self.params["max_points"]
         voxel_size = self.params["voxel_size"]
+        seed = self.random_state
         if voxel_size == "auto":
             smaller = reference if reference.shape[0] <= scan.shape[0] else scan
             larger_count = max(reference.shape[0], scan.shape[0])
@@ -346,26 +401,30 @@ class ChangeDetector(ABC):
                 voxel_size = auto_voxel_size(smaller, target)
             else:
                 voxel_size = 0.0
+        origin = np.minimum(reference.min(axis=0), scan.min(axis=0))
         if voxel_size > 0:
-            origin = np.minimum(reference.min(axis=0), scan.min(axis=0))
-            reference = reference[voxel_representatives(reference, voxel_size, origin, rng)]
-            scan = scan[voxel_representatives(scan, voxel_size, origin, rng)]
+            reference = reference[
+                voxel_representatives(reference, voxel_size, origin, point_keys(reference, seed))
+            ]
+            scan = scan[voxel_representatives(scan, voxel_size, origin, point_keys(scan, seed))]
         sets = []
         for cloud in (reference, scan):
-            if cloud.shape[0] > max_points:
-                cloud = cloud[np.sort(rng.choice(cloud.shape[0], max_points, replace=False))]
-            sets.append(cloud)
-        info = {
+            keys = point_keys(cloud, seed)
+            kept = smallest_keys(keys, max_points)
+            # Canonical order (by key): the same points in any order give the same working set.
+            sets.append(cloud[kept[np.argsort(keys[kept], kind="stable")]])
+        info: dict[str, Any] = {
             "voxel_size": float(voxel_size),
+            "grid_origin": origin.tolist() if voxel_size > 0 else None,
             "n_reference_working": int(sets[0].shape[0]),
             "n_scan_working": int(sets[1].shape[0]),
         }
         return sets[0], sets[1], info
 
-    def _rngs(self) -> tuple[np.random.Generator, np.random.Generator, np.random.Generator]:
-        """Independent generators for sub-sampling, scoring and calibration."""
-        seeds = np.random.SeedSequence(self.random_state).spawn(3)
-        return tuple(np.random.default_rng(seed) for seed in seeds)  # type: ignore[return-value]
+    def _rngs(self) -> tuple[np.random.Generator, np.random.Generator]:
+        """Independent generators for scoring and calibration."""
+        seeds = np.random.SeedSequence(self.random_state).spawn(2)
+        return np.random.default_rng(seeds[0]), np.random.default_rng(seeds[1])
 
     def _prepare(
         self, reference: NDArray, scan: NDArray
@@ -379,8 +438,8 @@ class ChangeDetector(ABC):
     ]:
         reference = as_points(reference, "reference")
         scan = as_points(scan, "scan")
-        sampling_rng, score_rng, calibration_rng = self._rngs()
-        reference_work, scan_work, info = self._working_sets(reference, scan, sampling_rng)
+        score_rng, calibration_rng = self._rngs()
+        reference_work, scan_work, info = self._working_sets(reference, scan)
         context = self._context(reference_work, scan_work, score_rng)
         return reference_work, scan_work, context, info, score_rng, calibration_rng
 
@@ -420,15 +479,25 @@ class ChangeDetector(ABC):
         score = float(self._score(reference_work, scan_work, context, score_rng, False))
 
         def resample_score(first: NDArray[np.float64], second: NDArray[np.float64]) -> float:
+            if min(first.shape[0], second.shape[0]) < MIN_WORKING_POINTS:
+                return float("nan")
             return float(self._score(first, second, context, calibration_rng, True))
 
+        scheme = self.params["calibration"]
+        if scheme == "auto":
+            scheme = "paired" if info["voxel_size"] > 0 else "permutation"
+        pairing_voxel = 0.0
+        if scheme == "paired":
+            pairing_voxel = info["voxel_size"] or median_spacing(reference_work, calibration_rng)
         null = calibration.null_distribution(
             reference_work,
             scan_work,
             resample_score,
-            scheme=self.params["calibration"],
+            scheme=scheme,
             n_resamples=self.params["n_resamples"],
             rng=calibration_rng,
+            pairing_voxel=pairing_voxel,
+            pairing_origin=None if info["grid_origin"] is None else np.array(info["grid_origin"]),
         )
         n_failed = int(np.sum(~np.isfinite(null)))
         if null.size - n_failed < 2:
@@ -439,7 +508,8 @@ class ChangeDetector(ABC):
         decision = calibration.threshold_from_null(null, self.params["false_alarm_rate"])
         report = {
             **decision.report(score),
-            "calibration": self.params["calibration"],
+            "calibration": scheme,
+            "pairing_voxel": pairing_voxel if scheme == "paired" else None,
             "n_failed_resamples": n_failed,
             **info,
             "method": self.method,

@@ -4,7 +4,26 @@ A global distance is only useful with a threshold that says how large it gets wh
 changed. That depends on the scene, the sensor noise, the number of points and the detector,
 so no constant works across sites. We estimate it from the two clouds themselves:
 
-``permutation`` (default)
+``auto`` (default)
+    ``paired`` when the detector thinned both clouds on a common voxel grid (big clouds),
+    ``permutation`` otherwise (clouds small enough to be used whole).
+``paired``
+    A permutation test stratified by a voxel grid (the working grid when the clouds were
+    thinned on one, else the reference's median nearest-neighbour spacing). In a voxel that
+    both clouds reach, the reference's and the scan's points are dealt out again at random
+    (keeping each cloud's count in that voxel); points in voxels only one cloud reaches go to
+    either resampled set with probability 1/2. Under "no change" points of one voxel are
+    exchangeable, so the resampled pairs differ by what two samplings of the same surfaces
+    differ by (noise and sub-voxel sampling); a changed region (voxels only one cloud
+    reaches) is split evenly and cancels. Unlike a plain permutation it keeps the spatial
+    layout of both clouds: thinned clouds are one point per voxel, and a plain permutation
+    then opens holes and doubles points that neither real cloud has, inflating the null
+    (measured: on a 200k-point ray-cast rescan without change, the plain permutation's
+    threshold was 4x the observed distance, the paired one 1.6x). On clouds that were *not*
+    thinned (several points of each cloud per voxel) it conditions on each voxel's counts and
+    comes out too small for independent samplings (a false alarm on a 1200-point rescan in
+    the tests), hence ``auto``.
+``permutation``
     Pool the reference and scan working sets, shuffle, split back into sets of the original
     sizes ``n`` and ``m`` and compute the detector's distance between them, ``n_resamples``
     times. If the two clouds are independent samples of one unchanged surface (the null
@@ -17,15 +36,21 @@ so no constant works across sites. We estimate it from the two clouds themselves
     ``sqrt((1/n + 1/m) / (1/n_1 + 1/n_2))`` (distances between descriptor estimates grow like
     their sampling standard error). Never mixes the clouds, but relies on that scaling law.
 
+All three treat the pair as two independent samplings of the same surfaces. The paper's
+corridor is not that: its reference and scan are the *same* 300 points with independent
+noise, so every scheme is conservative there (false alarms well below the nominal rate,
+less power); see bench/results/paper.md.
+
 The threshold is an upper prediction bound for one more null value: with ``L`` the logs of the
 null distances (their distribution is skewed and positive; logs make it close to normal),
 ``threshold = exp(mean(L) + t_{R-1, 1-alpha} * std(L) * sqrt(1 + 1/R))`` for ``R`` resamples
 and nominal false-alarm rate ``alpha`` (Student-t because mean and std are estimated from
 ``R`` values). Measured on 300 pairs of independent samplings of the paper's corridor (where
 the permutation null is exact), nominal 1 % / 5 % gave 0.3 % / 4.0 % false alarms with this
-rule, against 3 % / 8 % for a normal and 2.3 % / 7 % for a gamma fit: the null's right tail
-is heavy. ``calibration`` in the result reports all of it, including the permutation
-p-value ``(1 + #{null >= score}) / (R + 1)``.
+rule, against 3 % / 8 % for a normal and 2.3 % / 7 % for a gamma fit (PCA, plain
+permutation; with the paired scheme PCA gave 0.3 % / 6.7 % and GMM 1.3 % / 7.3 %, 150-300
+pairs): the null's right tail is heavy. ``calibration`` in the result reports all of it,
+including the permutation p-value ``(1 + #{null >= score}) / (R + 1)``.
 
 What it does *not* capture: noise that is not sampling noise (registration residuals,
 different viewpoints and occlusions, moving people). Those are handled upstream (registration,
@@ -44,7 +69,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import stats
 
-SCHEMES = ("permutation", "split_half")
+SCHEMES = ("auto", "paired", "permutation", "split_half")
 
 PairScore = Callable[[NDArray[np.float64], NDArray[np.float64]], float]
 
@@ -57,6 +82,8 @@ def null_distribution(
     scheme: str,
     n_resamples: int,
     rng: np.random.Generator,
+    pairing_voxel: float = 0.0,
+    pairing_origin: NDArray[np.float64] | None = None,
 ) -> NDArray[np.float64]:
     """Distances between resampled sets that share no change, scaled to the pair's sizes.
 
@@ -66,10 +93,16 @@ def null_distribution(
     scan : ndarray, shape (m, 3)
     score : callable
         ``score(first, second) -> float``, the detector's distance on working sets.
-    scheme : {"permutation", "split_half"}
+    scheme : {"paired", "permutation", "split_half"}
+        Already resolved (not ``auto``).
     n_resamples : int
         Number of null distances to compute (``split_half`` alternates between the clouds).
     rng : numpy.random.Generator
+    pairing_voxel : float
+        Edge of the voxels whose points ``paired`` exchanges (> 0 for that scheme).
+    pairing_origin : ndarray, shape (3,), optional
+        Corner of that grid: the thinning grid's, so each voxel holds at most one point of
+        each cloud (default: the pooled minimum).
 
     Returns
     -------
@@ -77,7 +110,15 @@ def null_distribution(
     """
     n_reference, n_scan = reference.shape[0], scan.shape[0]
     values = np.empty(n_resamples)
-    if scheme == "permutation":
+    if scheme == "paired":
+        if pairing_voxel <= 0:
+            raise ValueError("the paired scheme needs pairing_voxel > 0")
+        pooled = np.concatenate([reference, scan])
+        resampler = VoxelPairing(reference, scan, pairing_voxel, pairing_origin)
+        for index in range(n_resamples):
+            to_first = resampler.draw(rng)
+            values[index] = score(pooled[to_first], pooled[~to_first])
+    elif scheme == "permutation":
         pooled = np.concatenate([reference, scan])
         for index in range(n_resamples):
             order = rng.permutation(pooled.shape[0])
@@ -94,6 +135,70 @@ def null_distribution(
     else:
         raise ValueError(f"unknown calibration scheme {scheme!r}; valid: {list(SCHEMES)}")
     return values
+
+
+class VoxelPairing:
+    """Exchanges of reference and scan points that share a voxel (the ``paired`` scheme).
+
+    Parameters
+    ----------
+    reference : ndarray, shape (n, 3)
+    scan : ndarray, shape (m, 3)
+    voxel_size : float
+        Edge of the cubic cells of one grid shared by both clouds.
+    origin : ndarray, shape (3,), optional
+        A corner of the grid (default: the pooled minimum).
+
+    Notes
+    -----
+    A voxel holding ``a`` reference and ``b`` scan points (both > 0) is a stratum: each draw
+    deals its ``a + b`` points at random, ``a`` to the first set and ``b`` to the second.
+    Points in voxels only one cloud reaches go to either set with probability 1/2 each, so a
+    changed region (scan-only or reference-only voxels) is split evenly between the two
+    resampled sets and cancels instead of entering the null.
+    """
+
+    def __init__(
+        self,
+        reference: NDArray[np.float64],
+        scan: NDArray[np.float64],
+        voxel_size: float,
+        origin: NDArray[np.float64] | None = None,
+    ):
+        pooled = np.concatenate([reference, scan])
+        corner = pooled.min(axis=0) if origin is None else np.asarray(origin, dtype=np.float64)
+        cells = np.floor((pooled - corner) / voxel_size).astype(np.int64)
+        cells -= cells.min(axis=0)
+        extent = cells.max(axis=0) + 1
+        keys = (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
+        _, voxel = np.unique(keys, return_inverse=True)
+        from_reference = np.arange(pooled.shape[0]) < reference.shape[0]
+        reference_count = np.bincount(voxel[from_reference], minlength=voxel.max() + 1)
+        scan_count = np.bincount(voxel[~from_reference], minlength=voxel.max() + 1)
+        shared = (reference_count > 0) & (scan_count > 0)
+        self.paired = np.flatnonzero(shared[voxel])
+        self.unpaired = np.flatnonzero(~shared[voxel])
+        self.voxel = voxel[self.paired]
+        order = np.argsort(self.voxel, kind="stable")
+        self.voxel_start = np.searchsorted(self.voxel[order], self.voxel)
+        self.quota = reference_count[self.voxel]
+        self.size = pooled.shape[0]
+
+    @property
+    def paired_fraction(self) -> float:
+        """Fraction of all points in voxels both clouds reach."""
+        return self.paired.size / self.size
+
+    def draw(self, rng: np.random.Generator) -> NDArray[np.bool_]:
+        """One exchange: True for the points of the pooled set that go to the first set."""
+        to_first = np.zeros(self.size, dtype=bool)
+        order = np.lexsort((rng.random(self.paired.size), self.voxel))
+        rank = np.empty(self.paired.size, dtype=np.int64)
+        rank[order] = np.arange(self.paired.size)
+        rank -= self.voxel_start
+        to_first[self.paired] = rank < self.quota
+        to_first[self.unpaired] = rng.random(self.unpaired.size) < 0.5
+        return to_first
 
 
 @dataclass(frozen=True)

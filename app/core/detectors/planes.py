@@ -19,7 +19,7 @@ Each cloud becomes planes ``(a, b, c, d)`` in R^4 weighted by inlier counts; eq.
 Euclidean ground distance in R^4 gives ``d_PE``.
 
 ``paper``: exactly that, with fixed thresholds ``epsilon = 0.1``, ``delta = eta = 0.1``
-(scene units, metres; the paper gives no values), ``N = 200``, ``m = 5``, ``p = 15``; the
+(scene units, metres; the paper gives no values), ``N = 500``, ``m = 5``, ``p = 15``; the
 normal's sign is whatever the cross product of the random triple gives. When a cloud yields
 no plane (noise sigma >~ eta), eq. (1) is undefined and :class:`ExtractionError` is raised.
 
@@ -37,13 +37,17 @@ no plane (noise sigma >~ eta), eq. (1) is undefined and :class:`ExtractionError`
 * **voting and refinement**: steps 4-7 become one vectorised vote (each candidate's weight
   is the number of candidates it would absorb under the tests of step 4, so the result no
   longer depends on the order of the triples, and it is ~30x faster than the sequential
-  merge); the 5 best-supported candidates (support >= ``m`` = 3) are refitted by least
-  squares to their ``eta``-inliers (twice) and the one with most inliers is extracted
+  merge); the 10 best-supported candidates (support >= ``m`` = 3) are refitted by least
+  squares to their ``eta``-inliers (3 times) and the one with most inliers is extracted
   (RANSAC's criterion: the best-supported candidate alone is often a diagonal through two
   noisy walls). Its parameters then average all its points instead of ~N/9 random triples;
-  planes with fewer than ``p`` inliers are not extracted. ``N = 300``. At the end every
-  point is counted for its *nearest* extracted plane (within ``eta``): the greedy removal of
-  step 8 hands the points near an intersection to whichever plane happened to come first.
+  planes with fewer than ``p`` inliers are not extracted, and a round without an acceptable
+  plane is retried with fresh triples (3 failed rounds stop the extraction). ``N = 300``.
+  At the end every point is counted for its *nearest* extracted plane (within ``eta``): the
+  greedy removal of step 8 hands the points near an intersection to whichever plane
+  happened to come first.
+* **ground distance**: Euclidean in R^4 on ``(n, d / r)``, the offset in units of the
+  reference's RMS radius ``r``, so distances (and ``unexplained_cost``) are scale-free.
 * **weights**: inlier *fractions* of each cloud (a denser scan does not weigh more), plus the
   fraction of points explained by no plane as one more mass, at ground distance
   ``unexplained_cost`` from every plane; both sides then carry mass 1, so points that leave a
@@ -98,6 +102,8 @@ class PlaneSettings:
         planes with at least ``min_points`` inliers.
     n_candidates : int
         Improved: how many of the heaviest candidates to refit; the one with most inliers wins.
+    max_failed_rounds : int
+        Improved: rounds without an acceptable plane before stopping (fresh triples each).
     """
 
     normal_tolerance: float
@@ -109,6 +115,7 @@ class PlaneSettings:
     orientation_origin: NDArray[np.float64] | None = None
     refine: bool = False
     n_candidates: int = 1
+    max_failed_rounds: int = 1
 
 
 def _orient(planes: NDArray[np.float64], origin: NDArray[np.float64] | None) -> NDArray[np.float64]:
@@ -264,7 +271,7 @@ def _refit(points: NDArray[np.float64]) -> NDArray[np.float64]:
 def _refined(
     points: NDArray[np.float64], plane: NDArray[np.float64], settings: PlaneSettings
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Least-squares refit of ``plane`` (data frame) on its ``eta``-inliers, twice.
+    """Least-squares refit of ``plane`` (data frame) on its ``eta``-inliers, three times.
 
     Returns
     -------
@@ -272,7 +279,7 @@ def _refined(
     inliers : ndarray, shape (n,), bool
     """
     inliers = np.abs(points @ plane[:3] - plane[3]) < settings.inlier_distance
-    for _ in range(2):
+    for _ in range(3):
         if inliers.sum() < 3:
             break
         plane = _refit(points[inliers])
@@ -305,6 +312,7 @@ def extract_fuzzy_planes(
     remaining = points
     found_planes: list[NDArray[np.float64]] = []
     counts: list[int] = []
+    failed_rounds = 0
     for _ in range(MAX_ROUNDS):
         if remaining.shape[0] < max(settings.min_points, 3):
             break
@@ -321,14 +329,19 @@ def extract_fuzzy_planes(
             weights = _vote(candidates, triple_points, settings)
             order = np.argsort(-weights, kind="stable")[: settings.n_candidates]
             order = order[weights[order] >= settings.min_weight]
-            if order.size == 0:
-                break
-            frame_plane, inliers = max(
+            best = max(
                 (_refined(remaining, _to_frame(candidates[k], origin), settings) for k in order),
                 key=lambda refined: int(refined[1].sum()),
+                default=None,
             )
-            if int(inliers.sum()) < settings.min_points:
-                break
+            if best is None or int(best[1].sum()) < settings.min_points:
+                # A weak round (few random triples happened to share a plane) is not proof
+                # that no plane is left: retry with fresh triples before stopping.
+                failed_rounds += 1
+                if failed_rounds >= settings.max_failed_rounds:
+                    break
+                continue
+            frame_plane, inliers = best
             found_planes.append(_orient(frame_plane, origin))
             counts.append(int(inliers.sum()))
             remaining = remaining[~inliers]
@@ -408,9 +421,10 @@ class PlanesDetector(ChangeDetector):
     variant : {"improved", "paper"}
     random_state : int
     n_iterations : int
-        ``N``, random triples per round (200).
+        ``N``, random triples per round (paper 500: with 200, the paper's merge stopped before
+        the first plane on half of the corridor pairs at variance 1e-3; improved 300).
     min_weight : int
-        ``m`` (5).
+        ``m``: paper 5 (triples merged into the heaviest candidate); improved 3 (votes).
     normal_tolerance, merge_distance, inlier_distance : float
         Paper only: ``epsilon`` (0.1), ``delta`` and ``eta`` (0.1, scene units).
     min_points : int
@@ -446,7 +460,7 @@ class PlanesDetector(ChangeDetector):
             "unexplained_cost": 1.0,
         },
         "paper": {
-            "n_iterations": 200,
+            "n_iterations": 500,
             "min_weight": 5,
             "normal_tolerance": 0.1,
             "merge_distance": 0.1,
@@ -487,9 +501,15 @@ class PlanesDetector(ChangeDetector):
             min_points=min_points,
             orientation_origin=origin,
             refine=True,
-            n_candidates=5,
+            n_candidates=10,
+            max_failed_rounds=3,
         )
-        return {"settings": settings, "noise_std": noise_std, "spacing": spacing}
+        return {
+            "settings": settings,
+            "noise_std": noise_std,
+            "spacing": spacing,
+            "rms_radius": max(rms_radius, 1e-12),
+        }
 
     def descriptor(
         self, points: NDArray[np.float64], context: dict[str, Any]
@@ -534,7 +554,12 @@ class PlanesDetector(ChangeDetector):
                 )
             ground = np.linalg.norm(planes_a[:, None, :] - planes_b[None, :, :], axis=2)
             return earth_movers_distance(weights_a, weights_b, ground).distance
-        ground = np.linalg.norm(planes_a[:-1, None, :] - planes_b[None, :-1, :], axis=2)
+        # (n, d / r): offsets in units of the reference's RMS radius, so the ground distance
+        # (and unexplained_cost) mean the same in a corridor and in a warehouse.
+        scale = np.array([1.0, 1.0, 1.0, 1.0 / context["rms_radius"]])
+        ground = np.linalg.norm(
+            planes_a[:-1, None, :] * scale - planes_b[None, :-1, :] * scale, axis=2
+        )
         cost = self.params["unexplained_cost"]
         full = np.zeros((planes_a.shape[0], planes_b.shape[0]))
         full[:-1, :-1] = ground
