@@ -536,6 +536,18 @@ def _las_with_count(content: bytes, count: int) -> bytes:
     return content[:107] + struct.pack("<I", count) + content[111:]
 
 
+def _patch(content: bytes, offset: int, new: bytes) -> bytes:
+    return content[:offset] + new + content[offset + len(new) :]
+
+
+def _laz_with_chunk_count(n_chunks: int) -> bytes:
+    """A LAZ file whose chunk table declares ``n_chunks`` chunks (lazrs would abort)."""
+    content = las_bytes(random_points(), compress=True)
+    point_offset = struct.unpack_from("<I", content, 96)[0]
+    table_offset = struct.unpack_from("<q", content, point_offset)[0]
+    return _patch(content, table_offset, struct.pack("<II", 0, n_chunks))
+
+
 def _npy_header(shape: tuple[int, ...], dtype: str = "<f8") -> bytes:
     stream = io.BytesIO()
     np.lib.format.write_array_header_1_0(
@@ -750,7 +762,18 @@ MALFORMED: dict[str, tuple[str, Callable[[], bytes], str]] = {
         lambda: b"LASX" + las_bytes(random_points())[4:],
         "not a LAS/LAZ file",
     ),
-    "las-short-header": ("scan.las", lambda: b"LASF" + bytes(50), "malformed LAS header"),
+    "las-short-header": ("scan.las", lambda: b"LASF" + bytes(50), "truncated LAS header"),
+    "las-vlr-count-bomb": (
+        "scan.las",
+        lambda: _patch(las_bytes(random_points()), 100, struct.pack("<I", 10**9)),
+        "VLRs cannot fit",
+    ),
+    "las-point-offset-beyond-file": (
+        "scan.las",
+        lambda: _patch(las_bytes(random_points()), 96, struct.pack("<I", 10**7)),
+        "inconsistent",
+    ),
+    "laz-chunk-table-bomb": ("scan.laz", lambda: _laz_with_chunk_count(10**9), "chunk table"),
     "text-non-utf8": ("scan.xyz", lambda: b"1 2 3\n" * 20 + b"4 5 \xff\xfe\n", "not UTF-8 text"),
     "text-non-numeric": ("scan.xyz", lambda: ROWS_3 * 5 + b"1 two 3\n", "non-numeric text"),
     "text-two-columns": ("scan.csv", lambda: b"1,2\n3,4\n" * 10, "at least 3 numeric columns"),

@@ -209,9 +209,12 @@ def xyz_from_columns(x: NDArray, y: NDArray, z: NDArray) -> NDArray[np.float64]:
     ndarray, shape (n, 3), float64, C-contiguous
     """
     points = np.empty((len(x), 3), dtype=np.float64)
-    points[:, 0] = x
-    points[:, 1] = y
-    points[:, 2] = z
+    # Signalling NaNs in float32 data raise the "invalid" flag when widened: they are NaN rows
+    # like any other (dropped and counted later), not an error.
+    with np.errstate(invalid="ignore"):
+        points[:, 0] = x
+        points[:, 1] = y
+        points[:, 2] = z
     return points
 
 

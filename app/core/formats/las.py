@@ -17,6 +17,7 @@ Points are then decoded in chunks into preallocated arrays.
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Mapping
 
 import numpy as np
@@ -29,6 +30,11 @@ LAZ_MAX_EXPANSION = 10_000
 """Largest accepted ratio of declared uncompressed point bytes to LAZ body bytes."""
 
 CHUNK_POINTS = 1_000_000
+LASZIP_VLR_RECORD_ID = 22204
+LAS_MIN_HEADER_BYTES = 227
+LAS_VLR_HEADER_BYTES = 54
+LAZ_MAX_CHUNK_POINTS = 10_000_000
+"""Largest fixed LAZ chunk accepted (LASzip writes 50,000)."""
 KEPT_STANDARD_DIMENSIONS = (
     "intensity",
     "classification",
@@ -66,6 +72,7 @@ def read_las(source: Source, max_points: int | None) -> RawCloud:
             f"not a LAS/LAZ file: it does not start with the signature 'LASF' (starts with "
             f"{head!r})"
         )
+    _check_header_layout(source)
     with source.stream() as stream:
         try:
             reader = laspy.open(stream, closefd=False, read_evlrs=False)
@@ -91,6 +98,7 @@ def read_las(source: Source, max_points: int | None) -> RawCloud:
                         f"be compressed into the {body_bytes:,} bytes present (more than "
                         f"{LAZ_MAX_EXPANSION:,}x); the file is truncated or corrupt"
                     )
+                _check_laz_structure(source, header, n_points, record_size)
             else:
                 check_point_count(
                     n_points,
@@ -100,6 +108,78 @@ def read_las(source: Source, max_points: int | None) -> RawCloud:
                     bytes_per_point=record_size,
                 )
             return _read_points(reader, n_points, what)
+
+
+def _check_header_layout(source: Source) -> None:
+    """Vet the header fields laspy loops over before it reads them.
+
+    A corrupt VLR count (e.g. 10**9) would make laspy loop for minutes reading empty records.
+    """
+    if source.size < LAS_MIN_HEADER_BYTES:
+        raise PointCloudError(
+            f"truncated LAS header: the file has {source.size} bytes, a LAS header needs "
+            f"{LAS_MIN_HEADER_BYTES}"
+        )
+    header_size, point_offset, n_vlrs = struct.unpack_from("<HII", source.buffer, 94)
+    if not LAS_MIN_HEADER_BYTES <= header_size <= point_offset <= source.size:
+        raise PointCloudError(
+            f"malformed LAS header: header size {header_size:,} and point data offset "
+            f"{point_offset:,} are inconsistent with a {source.size:,}-byte file"
+        )
+    if n_vlrs * LAS_VLR_HEADER_BYTES > point_offset - header_size:
+        raise PointCloudError(
+            f"malformed LAS header: {n_vlrs:,} VLRs cannot fit in the "
+            f"{point_offset - header_size:,} bytes before the point data"
+        )
+
+
+def _check_laz_structure(source: Source, header, n_points: int, record_size: int) -> None:
+    """Vet the LASzip VLR and chunk table that lazrs trusts.
+
+    lazrs allocates from these numbers before decoding: a corrupt chunk table declaring
+    billions of chunks makes it request tens of GB and *abort the process* (a Rust allocation
+    failure cannot be caught), so they are checked here first.
+    """
+    laszip_vlrs = [vlr for vlr in header.vlrs if vlr.record_id == LASZIP_VLR_RECORD_ID]
+    if not laszip_vlrs or len(getattr(laszip_vlrs[0], "record_data", b"")) < 34:
+        raise PointCloudError(
+            "corrupt LAZ file: the LASzip description (VLR 22204) is missing or too short"
+        )
+    record = laszip_vlrs[0].record_data
+    chunk_size = struct.unpack_from("<I", record, 12)[0]
+    n_items = struct.unpack_from("<H", record, 32)[0]
+    if len(record) < 34 + 6 * n_items:
+        raise PointCloudError("corrupt LAZ file: the LASzip item list is truncated")
+    item_bytes = sum(struct.unpack_from("<H", record, 34 + 6 * i + 2)[0] for i in range(n_items))
+    if item_bytes != record_size:
+        raise PointCloudError(
+            f"corrupt LAZ file: the LASzip items describe {item_bytes}-byte points but the "
+            f"header's point format has {record_size}-byte points"
+        )
+    variable_chunks = chunk_size == 0xFFFFFFFF
+    if not variable_chunks and not 0 < chunk_size <= LAZ_MAX_CHUNK_POINTS:
+        raise PointCloudError(f"corrupt LAZ file: absurd chunk size {chunk_size:,} points")
+    start = int(header.offset_to_point_data)
+    if source.size < start + 8:
+        raise PointCloudError("truncated body: the LAZ point data is missing")
+    table_offset = struct.unpack_from("<q", source.buffer, start)[0]
+    if table_offset == -1:
+        return  # written without a chunk table (unseekable output): decoded sequentially
+    if not start + 8 <= table_offset <= source.size - 8:
+        raise PointCloudError(
+            f"corrupt or truncated LAZ file: the chunk table offset {table_offset:,} lies "
+            f"outside the point data (bytes {start + 8:,} to {source.size:,})"
+        )
+    version, n_chunks = struct.unpack_from("<II", source.buffer, table_offset)
+    if variable_chunks:
+        most_chunks = min(n_points, table_offset - start)
+    else:
+        most_chunks = -(-n_points // chunk_size)
+    if version != 0 or n_chunks > max(most_chunks, 1):
+        raise PointCloudError(
+            f"corrupt or truncated LAZ file: the chunk table (version {version}) declares "
+            f"{n_chunks:,} chunks where at most {most_chunks:,} are possible"
+        )
 
 
 def _read_points(reader, n_points: int, what: str) -> RawCloud:
