@@ -26,6 +26,8 @@ from app.core.errors import PointCloudError
 from app.core.formats._common import RawCloud, Source, check_point_count, loadtxt_problem
 
 COMMENT_PREFIX = "#"
+LEADING_LINES = 1000
+"""Lines searched for the header and the first data row (the rest is parsed by numpy only)."""
 _UNITS = re.compile(r"[\(\[\{].*?[\)\]\}]")
 
 
@@ -55,15 +57,21 @@ def read_text(source: Source, max_points: int | None) -> RawCloud:
             "not a text point cloud: the content contains NUL bytes (binary data); "
             "give the right format or suffix"
         )
-    lines = text.splitlines()
-    names, first_data_index = _find_header(lines)
+    leading = _leading_lines(text, LEADING_LINES)
+    names, first_data_index = _find_header([line for _, line in leading])
     if first_data_index is None:
+        if len(leading) == LEADING_LINES:
+            raise PointCloudError(
+                f"no data row within the first {LEADING_LINES:,} lines (only comments, blank "
+                "lines or text); expected rows of x y z numbers"
+            )
         raise PointCloudError(
             "zero points: the text file has no data rows"
             + (" after its header" if names else "")
             + "; expected rows of x y z numbers"
         )
-    first_row = lines[first_data_index].strip()
+    data_start, first_row = leading[first_data_index]
+    first_row = first_row.strip()
     delimiter, decimal_comma = _detect_delimiter(first_row)
     first_values = _split(first_row, delimiter)
     numeric = [
@@ -104,7 +112,7 @@ def read_text(source: Source, max_points: int | None) -> RawCloud:
         xyz_columns = numeric_columns[:3]
 
     usecols = [*xyz_columns, *attribute_columns.values()]
-    body = "\n".join(lines[first_data_index:])
+    body = text[data_start:]
     if decimal_comma:
         body = body.replace(",", ".")
     try:
@@ -126,6 +134,19 @@ def read_text(source: Source, max_points: int | None) -> RawCloud:
         for position, name in enumerate(attribute_columns)
     }
     return RawCloud(points, attributes)
+
+
+def _leading_lines(text: str, limit: int) -> list[tuple[int, str]]:
+    """The first ``limit`` lines as (offset of the line in ``text``, line without newline)."""
+    lines: list[tuple[int, str]] = []
+    position = 0
+    while position < len(text) and len(lines) < limit:
+        end = text.find("\n", position)
+        if end < 0:
+            end = len(text)
+        lines.append((position, text[position:end].rstrip("\r")))
+        position = end + 1
+    return lines
 
 
 def _find_header(lines: list[str]) -> tuple[list[str] | None, int | None]:
