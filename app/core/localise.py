@@ -122,8 +122,11 @@ being changed or unobserved)."""
 SUPPORT_FACTOR_RANGE = (0.5, 2.0)
 MIN_REGION_POINTS_FLOOR = 4
 """Smallest default minimum region size: 1-3 point clusters are noise."""
-MIN_REGION_POINTS_FRACTION = 1e-4
-"""The default minimum region size grows with the smaller cloud (20 points at 200k)."""
+MIN_REGION_POINTS_PER_SQRT = 0.08
+"""Default minimum region size = max(4, 0.08 sqrt(min(n, m))): 4 for the 300-point corridor,
+11 at 20k, 18 at 50k, 36 at 200k points.  Spurious clusters come from one-dimensional features
+at the resolution limit (an edge, a thin strip seen at a grazing angle) whose point count grows
+like sqrt(n); an object's grows like n, so it stays far above this."""
 RESOLUTION_THRESHOLD_FRACTION = 0.05
 """``tau`` is at least this fraction of the median spacing (noise-free data has sigma = 0)."""
 MIN_INCIDENCE_COSINE = math.cos(math.radians(85.0))
@@ -515,9 +518,10 @@ def _alignment_residual(
 
     The signed point-to-plane offsets of matched points (a subsample of each cloud against
     the other; a point is matched when its nearest point in the other cloud lies within the
-    support radius, so changed points do not count) spread by ``sigma_own^2 + sigma_other^2 / (k + 1)`` from noise alone (the
-    plane goes through a neighbourhood's centroid); a robust spread (1.4826 x MAD) beyond
-    that is alignment error, which then widens ``tau`` like ``registration_rmse`` does.
+    support radius, so changed points do not count) have variance
+    ``sigma_own^2 + sigma_other^2 / (k + 1)`` from noise alone (the plane goes through a
+    neighbourhood's centroid); a robust spread (1.4826 x MAD) beyond that is alignment error,
+    which then widens ``tau`` like ``registration_rmse`` does.
 
     Parameters
     ----------
@@ -899,7 +903,7 @@ def localise_changes(
         Residual of the alignment (metres); widens the distance threshold.
     min_region_points : int, optional
         Smaller clusters of changed points are noise and relabelled unchanged.  Default:
-        ``max(4, round(1e-4 * min(n, m)))``.
+        ``max(4, round(0.08 * sqrt(min(n, m))))``.
     **params
         See :data:`DEFAULT_PARAMETERS`.
 
@@ -924,7 +928,9 @@ def localise_changes(
     if min_region_points is None:
         min_region_points = max(
             MIN_REGION_POINTS_FLOOR,
-            round(MIN_REGION_POINTS_FRACTION * min(len(reference_points), len(scan_points))),
+            round(
+                MIN_REGION_POINTS_PER_SQRT * math.sqrt(min(len(reference_points), len(scan_points)))
+            ),
         )
     elif min_region_points < 1:
         raise InputError(f"min_region_points must be >= 1, got {min_region_points}")
