@@ -59,7 +59,7 @@ _READERS: dict[str, Callable[[Source, int | None], RawCloud]] = {
     "npz": read_npz,
 }
 
-_PROGRAMMING_ERRORS = (AttributeError, NameError, AssertionError, NotImplementedError)
+_PROGRAMMING_ERRORS = (AttributeError, NameError, AssertionError)
 """Never reported as bad input: these are bugs and must surface as such."""
 
 

@@ -119,6 +119,11 @@ def read_npz(source: Source, max_points: int | None) -> RawCloud:
             return cloud
     except zipfile.BadZipFile as exc:
         raise PointCloudError(f"not a valid .npz (zip) archive: {exc}") from exc
+    except NotImplementedError as exc:  # zipfile: compression method or feature it lacks
+        raise PointCloudError(
+            f"unsupported .npz (zip) archive: {exc}; save it with numpy.savez or "
+            "numpy.savez_compressed"
+        ) from exc
 
 
 def _read_header(stream: BinaryIO, what: str) -> tuple[tuple[int, ...], bool, np.dtype]:
