@@ -116,7 +116,11 @@ class Registration:
         return rotation_angle_degrees(self.transform[:3, :3])
 
     def to_json_dict(self) -> dict[str, Any]:
-        """JSON-serialisable summary (transform as nested lists, NaN rmse as None)."""
+        """JSON-serialisable summary (transform as nested lists, NaN rmse as None).
+
+        The translation is left to ``transform`` on purpose: callers that re-express the
+        transform in another frame (e.g. file coordinates) replace that one key.
+        """
         return {
             "transform": self.transform.tolist(),
             "fitness": float(self.fitness),
@@ -126,8 +130,7 @@ class Registration:
             "method": self.method,
             "max_correspondence_distance": float(self.max_correspondence_distance),
             "voxel_size": float(self.voxel_size),
-            "translation": self.translation.tolist(),
-            "rotation_degrees": self.rotation_degrees,
+            "rotation_degrees": self.rotation_degrees,  # frame-independent, unlike translation
         }
 
 
