@@ -79,7 +79,7 @@ DEFAULT_PARAMETERS: dict[str, Any] = {
     "threshold_factor": 3.5,
     "support_factor": None,
     "cluster_factor": 2.5,
-    "coverage_factor": 3.0,
+    "coverage_factor": 10.0,
     "visibility_margin_factor": 1.0,
     "visibility_angle_factor": 2.5,
     "visibility_beyond_fraction": 0.5,
@@ -101,7 +101,9 @@ cluster_factor
     Changed points closer than this many local spacings belong to one region.
 coverage_factor
     Without the other sensor's origin: a candidate farther than this many of the other
-    cloud's local spacings from it is unobserved.
+    cloud's local spacings from it is unobserved.  Without a viewpoint a removed object and
+    a hole in the other cloud's coverage look alike: larger values find more of large changes
+    and flag more rims of holes (shadows).  Single-viewpoint scans should pass origins.
 visibility_margin_factor
     Scales the range margin that makes a return "clearly" before or beyond a candidate:
     ``sqrt((t_own / cos(incidence))^2 + t_other^2)`` with ``t = threshold_factor * sigma``.
