@@ -377,7 +377,9 @@ class ChangeDetector(ABC):
 
         The improved variants first thin both clouds on one common voxel grid (so a scanner
         that saw a wall from close by, with ten times the density, weighs it no more than one
-        that saw it from afar), then draw a uniform random subset. Every choice is made by
+        that saw it from afar): by default (``voxel_size="auto"``, clouds bigger than
+        ``max_points``) the grid on which the sparser cloud keeps about ``max_points`` points.
+        Then they draw a uniform random subset. Every choice is made by
         :func:`point_keys`, so it depends on the points and ``random_state`` only.
 
         Returns
