@@ -7,13 +7,13 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
 from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
 from sqlalchemy import create_engine, inspect
 
 from app.db.migrate import current_revision, downgrade_to_base, head_revision, upgrade_to_head
 from app.db.models import Base
+from tests.conftest import require
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 
@@ -75,11 +75,12 @@ def test_alembic_command_line_takes_the_url_from_x_argument(tmp_path: Path) -> N
 POSTGRES_URL_ENV = "SCANDIFF_TEST_POSTGRES_URL"
 
 
-@pytest.mark.skipif(
-    not os.environ.get(POSTGRES_URL_ENV),
-    reason=f"set {POSTGRES_URL_ENV}=postgresql+psycopg://user@host:port/empty_db to run",
-)
 def test_migrations_on_postgresql() -> None:
+    require(
+        bool(os.environ.get(POSTGRES_URL_ENV)),
+        f"set {POSTGRES_URL_ENV}=postgresql+psycopg://user@host:port/empty_db to run "
+        "(.ci/run creates one)",
+    )
     url = os.environ[POSTGRES_URL_ENV]
     downgrade_to_base(url)
     upgrade_to_head(url)

@@ -44,12 +44,18 @@ def test_consumer_runs_an_enqueued_job(
     assert count_regions(job_settings, job_id) == job.n_regions == 1
     assert (job_settings.results_dir / job_id / "labels.npz").is_file()
     assert (job_settings.results_dir / job_id / "details.npz").is_file()
-    stages = [
-        json.loads(line).get("stage")
-        for line in consumer.log().splitlines()
-        if line.startswith("{") and job_id in line
-    ]
-    assert {"claimed", "loading", "comparing", "writing", "storing", "succeeded"} <= set(stages)
+    expected_stages = {"claimed", "loading", "comparing", "writing", "storing", "succeeded"}
+    deadline = time.monotonic() + 10.0  # the last line is logged just after the commit
+    while True:
+        stages = {
+            json.loads(line).get("stage")
+            for line in consumer.log().splitlines()
+            if line.startswith("{") and job_id in line
+        }
+        if expected_stages <= stages or time.monotonic() > deadline:
+            break
+        time.sleep(0.1)
+    assert expected_stages <= stages
 
 
 def test_worker_killed_mid_job_is_finished_by_another_attempt(
