@@ -36,13 +36,14 @@ no plane (noise sigma >~ eta), eq. (1) is undefined and :class:`ExtractionError`
   a triple with baseline ``~r``), ``p = max(15, 2% of the points)``.
 * **voting and refinement**: steps 4-7 become one vectorised vote (each candidate's weight
   is the number of candidates it would absorb under the tests of step 4, so the result no
-  longer depends on the order of the triples, and it is ~30x faster than the sequential
-  merge); the 10 best-supported candidates (support >= ``m`` = 3) are refitted by least
-  squares to their ``eta``-inliers (3 times) and the one with most inliers is extracted
-  (RANSAC's criterion: the best-supported candidate alone is often a diagonal through two
-  noisy walls). Its parameters then average all its points instead of ~N/9 random triples;
-  planes with fewer than ``p`` inliers are not extracted, and a round without an acceptable
-  plane is retried with fresh triples (3 failed rounds stop the extraction). ``N = 300``.
+  longer depends on the order of the triples, and it is one matrix operation instead of a
+  Python loop per triple); the 10 best-supported candidates (support >= ``m`` = 3) are
+  refitted by least squares to their ``eta``-inliers (3 times) and the one with most
+  inliers is extracted (RANSAC's criterion: the best-supported candidate alone is often a
+  diagonal through two noisy walls). Its parameters then average all its points instead of
+  ~N/9 random triples; planes with fewer than ``p`` inliers are not extracted, and a round
+  without an acceptable plane is retried with fresh triples (3 failed rounds stop the
+  extraction). ``N = 300``.
   At the end every point is counted for its *nearest* extracted plane (within ``eta``): the
   greedy removal of step 8 hands the points near an intersection to whichever plane
   happened to come first.
