@@ -50,6 +50,7 @@ if str(ROOT) not in sys.path:
 
 from app.core.detectors import METHODS, VARIANTS, make_detector  # noqa: E402
 from app.core.errors import InputError  # noqa: E402
+from app.core.localise import LABEL_CHANGED, localise_changes  # noqa: E402
 from app.core.synthetic import SyntheticPair, paper_corridor, raycast_scene  # noqa: E402
 
 VARIANCES = (1e-1, 1e-2, 1e-3, 1e-4, 1e-5)
@@ -91,7 +92,15 @@ def pair_metrics(
     dataset : int
         Index of the dataset within its setting.
     """
-    return {}
+    if change_fraction == 0.0:
+        return {}
+    localisation = localise_changes(pair.reference, pair.scan)
+    predicted = np.concatenate(
+        [localisation.reference_label == LABEL_CHANGED, localisation.scan_label == LABEL_CHANGED]
+    )
+    truth = np.concatenate([pair.reference_changed, pair.scan_changed])
+    union = np.count_nonzero(predicted | truth)
+    return {"localisation IoU": float(np.count_nonzero(predicted & truth) / union)}
 
 
 PAIR_METRICS: list[PairMetrics] = [pair_metrics]

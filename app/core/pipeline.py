@@ -47,19 +47,25 @@ LABEL_UNCHANGED = 0
 LABEL_CHANGED = 1
 LABEL_UNOBSERVED = -1
 
-DECISION_RULES = ("either", "detector", "regions")
+DECISION_RULES = ("regions", "either", "detector")
 """How ``changed`` is decided:
 
-``"either"`` (default)
-    the global EMD score exceeds its calibrated threshold, or localisation found at least one
-    region of changed points (each region already passed the noise-calibrated distance test and
-    the minimum size).  The global score of a whole scene barely moves when a single object
-    appears (PCA cannot see it at all), while the per-point test finds it; a surveillance user
-    wants both kinds of evidence.
+``"regions"`` (default)
+    localisation found at least one region of changed points: points farther from the other
+    cloud's local surface than a threshold calibrated from the measured noise and local point
+    spacing, seen by the other sensor (not unobserved), in a connected cluster above the size
+    floor that spurious edge clusters never reach.  On ray-cast rescans (200k points, sensor
+    moved 1 m, 3 cm / 0.4 degree pose error) this gave 0 of 9 false alarms and 36 of 36
+    detections with IoU >= 0.96, while the global EMD detectors raised 3 of 9 false alarms
+    (GMM 2/3, PCA 1/3) and missed most single-object changes (``bench/scenes.py``): their
+    threshold models resampling noise, not the change of viewpoint between two rescans.
+``"either"``
+    the global score exceeds its calibrated threshold, or a region was found.
 ``"detector"``
-    the paper's rule: the global score against its threshold only.
-``"regions"``
-    localisation only.
+    the paper's rule: the global EMD score against its calibrated threshold only.
+
+Whatever the rule, the global score, its threshold and the detector's own verdict are
+reported (``calibration["decision"]``).
 """
 
 
@@ -276,7 +282,7 @@ def parse_comparison_params(
         stage_params[stage] = dict(value)
     _check_keywords(register_scan, "registration", stage_params["registration"])
     _check_keywords(localise_changes, "localisation", stage_params["localisation"])
-    decision = remaining.pop("decision", "either")
+    decision = remaining.pop("decision", DECISION_RULES[0])
     if decision not in DECISION_RULES:
         raise InputError(f"decision must be one of {', '.join(DECISION_RULES)}, got {decision!r}")
     reference_origin = remaining.pop("reference_origin", None)

@@ -1,0 +1,149 @@
+"""The comparison pipeline's contract, over every detector and variant."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.core.cloud import PointCloud
+from app.core.detectors import METHODS, VARIANTS
+from app.core.errors import InputError
+from app.core.pipeline import LABEL_CHANGED, compare
+from app.core.registration import apply_transform
+from app.core.synthetic import raycast_scene
+
+SCENE_POINTS = 20_000
+
+
+@pytest.fixture(scope="module")
+def added_box_pair():
+    return raycast_scene(n_points=SCENE_POINTS, change="box", random_state=3)
+
+
+@pytest.fixture(scope="module")
+def unchanged_pair():
+    return raycast_scene(
+        n_points=SCENE_POINTS, change="none", pose_error=(0.03, 0.4), random_state=4
+    )
+
+
+def rigid_transform(angle_degrees: float, translation: tuple[float, float, float]) -> np.ndarray:
+    angle = np.radians(angle_degrees)
+    transform = np.eye(4)
+    transform[:2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
+    transform[:3, 3] = translation
+    return transform
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("method", METHODS)
+def test_identical_clouds_score_near_zero_and_unchanged(method, variant, added_box_pair):
+    cloud = PointCloud.from_array(added_box_pair.reference)
+    result = compare(cloud, cloud, method=method, variant=variant)
+    assert result.score <= 1e-6 + 1e-3 * abs(result.threshold)
+    assert not result.changed
+    assert result.regions == []
+    assert np.count_nonzero(result.reference_label == LABEL_CHANGED) == 0
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("method", METHODS)
+def test_rigidly_moved_copy_is_unchanged_after_alignment(method, variant, added_box_pair):
+    reference = PointCloud.from_array(added_box_pair.reference)
+    moved = apply_transform(added_box_pair.reference, rigid_transform(2.0, (0.2, -0.1, 0.05)))
+    result = compare(reference, PointCloud.from_array(moved), method=method, variant=variant)
+    assert not result.changed, result.calibration
+    assert result.registration["fitness"] > 0.9
+    assert result.regions == []
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_added_box_is_changed_with_a_region_at_the_right_place(method, added_box_pair):
+    pair = added_box_pair
+    result = compare(
+        PointCloud.from_array(pair.reference, sensor_origin=pair.reference_origin),
+        PointCloud.from_array(pair.scan, sensor_origin=pair.scan_origin),
+        method=method,
+    )
+    assert result.changed, (result.score, result.threshold)
+    true_added = apply_transform(pair.scan[pair.scan_changed], pair.true_transform)
+    true_centre = true_added.mean(axis=0)
+    added_regions = [region for region in result.regions if region.kind == "added"]
+    assert added_regions
+    assert any(
+        np.all(np.asarray(region.bbox_min) - 0.05 <= true_centre)
+        and np.all(true_centre <= np.asarray(region.bbox_max) + 0.05)
+        for region in added_regions
+    )
+
+
+def test_unchanged_rescan_with_pose_error_is_not_changed(unchanged_pair):
+    pair = unchanged_pair
+    result = compare(
+        PointCloud.from_array(pair.reference, sensor_origin=pair.reference_origin),
+        PointCloud.from_array(pair.scan, sensor_origin=pair.scan_origin),
+    )
+    assert not result.changed, (result.score, result.threshold)
+    assert result.regions == []
+
+
+def test_params_of_a_result_replay_it_exactly(added_box_pair):
+    pair = added_box_pair
+    reference = PointCloud.from_array(pair.reference)
+    scan = PointCloud.from_array(pair.scan)
+    first = compare(reference, scan, method="gmm", random_state=7)
+    replay = compare(reference, scan, method="gmm", params=first.params)
+    assert replay.score == first.score
+    assert replay.threshold == first.threshold
+    np.testing.assert_array_equal(replay.scan_label, first.scan_label)
+
+
+def test_georeferenced_coordinates_give_the_same_answer(added_box_pair):
+    pair = added_box_pair
+    offset = np.array([512_345.0, 5_412_345.0, 250.0])
+    local = compare(PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan))
+    far = compare(
+        PointCloud.from_array(pair.reference + offset),
+        PointCloud.from_array(pair.scan + offset),
+    )
+    assert far.changed == local.changed
+    assert len(far.regions) == len(local.regions)
+    np.testing.assert_allclose(
+        np.asarray(far.regions[0].centroid) - offset, local.regions[0].centroid, atol=1e-3
+    )
+    np.testing.assert_array_equal(far.scan_label, local.scan_label)
+
+
+def test_dropped_points_keep_their_place_in_labels(added_box_pair):
+    points = added_box_pair.scan.copy()
+    points[[0, 5, 17]] = np.nan
+    scan = PointCloud.from_array(points)
+    result = compare(PointCloud.from_array(added_box_pair.reference), scan)
+    assert result.scan_label.shape == (len(points),)
+    assert (result.scan_label[[0, 5, 17]] == -1).all()
+    assert result.n_scan == len(points) - 3
+
+
+def test_unknown_method_and_parameters_are_input_errors(added_box_pair):
+    cloud = PointCloud.from_array(added_box_pair.reference)
+    with pytest.raises(InputError, match="method"):
+        compare(cloud, cloud, method="sift")
+    with pytest.raises(InputError):
+        compare(cloud, cloud, params={"no_such_parameter": 1})
+
+
+def test_decision_rules(added_box_pair):
+    pair = added_box_pair
+    reference = PointCloud.from_array(pair.reference)
+    scan = PointCloud.from_array(pair.scan)
+    either = compare(reference, scan, method="pca", params={"decision": "either"})
+    default = compare(reference, scan, method="pca")
+    assert default.calibration["decision"]["rule"] == "regions"
+    assert default.changed == (len(default.regions) > 0)
+    detector_only = compare(reference, scan, method="pca", params={"decision": "detector"})
+    decision = either.calibration["decision"]
+    assert decision["rule"] == "either"
+    assert either.changed == (decision["detector_changed"] or decision["n_regions"] > 0)
+    assert detector_only.changed == (detector_only.score > detector_only.threshold)
+    with pytest.raises(InputError, match="decision"):
+        compare(reference, scan, params={"decision": "vote"})
