@@ -24,7 +24,7 @@ class Settings(BaseSettings):
     )
     queue_url: str | None = Field(
         default=None,
-        description="Huey backend: default sqlite file in data_dir; redis://host:port/db to scale out.",
+        description="Huey backend: a sqlite file in data_dir, or redis://host:port/db.",
     )
     host: str = "127.0.0.1"
     port: int = 8000

@@ -173,9 +173,7 @@ def choose_local_origin(points: NDArray[np.float64], quantum: float = 1.0) -> ND
     return np.round(centre / quantum) * quantum
 
 
-def voxel_downsample_indices(
-    points: NDArray[np.float64], voxel_size: float
-) -> NDArray[np.int64]:
+def voxel_downsample_indices(points: NDArray[np.float64], voxel_size: float) -> NDArray[np.int64]:
     """Indices of one point per occupied voxel (the first in input order).
 
     Parameters
