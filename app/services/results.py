@@ -19,6 +19,7 @@ import numpy as np
 from sqlalchemy.orm import Session
 
 from app.config import Settings
+from app.core.registration import apply_transform
 from app.db.models import new_id
 from app.services import jobs, scans, storage
 from app.services.auth import Principal
@@ -70,7 +71,7 @@ def _scan_to_reference_frame(points: np.ndarray, registration: dict[str, Any] | 
     transform = np.asarray((registration or {}).get("transform", np.eye(4)), dtype=np.float64)
     if transform.shape != (4, 4) or not np.isfinite(transform).all():
         return points
-    return points @ transform[:3, :3].T + transform[:3, 3]
+    return apply_transform(points, transform)
 
 
 def build_labels_cloud(

@@ -22,6 +22,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from app.core.registration import apply_transform
+
 LABEL_UNOBSERVED = -1
 LABEL_UNCHANGED = 0
 LABEL_CHANGED = 1
@@ -196,16 +198,16 @@ class SceneData:
 
 
 def local_origin(points: NDArray[np.float64], quantum: float = 1.0) -> NDArray[np.float64]:
-    """Centre of the bounding box of ``points`` rounded to ``quantum`` metres."""
+    """Centre of the bounding box of ``points`` rounded to ``quantum`` metres.
+
+    Unlike :func:`app.core.cloud.choose_local_origin` (zero near the origin, so the core's
+    numbers match the file's), the display always centres: viser sends float32 and the camera
+    orbits the origin.
+    """
     if len(points) == 0:
         return np.zeros(3)
     centre = (points.min(axis=0) + points.max(axis=0)) / 2.0
     return np.round(centre / quantum) * quantum
-
-
-def apply_transform(points: NDArray[np.float64], transform: NDArray[np.float64]) -> NDArray:
-    """``points`` (n, 3) moved by the homogeneous 4x4 ``transform``."""
-    return points @ transform[:3, :3].T + transform[:3, 3]
 
 
 def labels_for_points(

@@ -29,7 +29,7 @@ from tests.service_harness import ServiceProcess
 ARTIFACTS_DIR = PROJECT_ROOT / "test-artifacts" / "browser"
 DOCS_SCREENSHOTS_DIR = PROJECT_ROOT / "docs" / "screenshots"
 CHROMIUM_CANDIDATES = ("chromium", "chromium-browser", "google-chrome")
-FAILING_SCAN_NAME = "sensor-fault.ply"
+FAILING_SCAN_NAME = "sensor-fault.pcd"
 FAILING_SCAN_REASON = "simulated sensor fault for the browser test"
 SCENE_POINTS = 8_000  # rays per synthetic scan: software WebGL stays fast
 
@@ -132,11 +132,16 @@ def write_small_png(source: Path, target: Path, max_bytes: int = 300_000) -> Non
         width = int(width * 0.85)
 
 
-def write_ply(path: Path, points: np.ndarray) -> Path:
-    """A binary little-endian PLY of ``points`` (n, 3)."""
-    from app.core.formats import write_point_cloud
-
-    write_point_cloud(path, points)
+def write_pcd(path: Path, points: np.ndarray, sensor_origin: np.ndarray) -> Path:
+    """A binary PCD of ``points`` (n, 3) whose VIEWPOINT is the sensor position, as a robot's."""
+    header = (
+        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\n"
+        "SIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+        f"WIDTH {len(points)}\nHEIGHT 1\n"
+        f"VIEWPOINT {' '.join(repr(float(value)) for value in sensor_origin)} 1 0 0 0\n"
+        f"POINTS {len(points)}\nDATA binary\n"
+    )
+    path.write_bytes(header.encode() + points.astype("<f4").tobytes())
     return path
 
 
@@ -151,7 +156,7 @@ class ScanFiles:
 
 @pytest.fixture(scope="session")
 def scan_files(tmp_path_factory: pytest.TempPathFactory) -> ScanFiles:
-    """A ray-cast rescan of two rooms with a box added and one removed (PLY files)."""
+    """A ray-cast rescan of two rooms with a box added and one removed (PCD with VIEWPOINT)."""
     from app.core.synthetic import raycast_scene
 
     pair = raycast_scene(
@@ -159,9 +164,11 @@ def scan_files(tmp_path_factory: pytest.TempPathFactory) -> ScanFiles:
     )
     directory = tmp_path_factory.mktemp("scans")
     return ScanFiles(
-        reference=write_ply(directory / "reference-2024-05-01.ply", pair.reference),
-        scan=write_ply(directory / "rescan-2024-06-01.ply", pair.scan),
-        failing_scan=write_ply(directory / FAILING_SCAN_NAME, pair.scan),
+        reference=write_pcd(
+            directory / "reference-2024-05-01.pcd", pair.reference, pair.reference_origin
+        ),
+        scan=write_pcd(directory / "rescan-2024-06-01.pcd", pair.scan, pair.scan_origin),
+        failing_scan=write_pcd(directory / FAILING_SCAN_NAME, pair.scan, pair.scan_origin),
     )
 
 
