@@ -114,6 +114,9 @@ class Scan(Base):
     n_dropped: Mapped[int] = mapped_column(Integer, default=0)  # NaN/inf rows dropped
     bbox_min: Mapped[list[float]] = mapped_column(JSON)
     bbox_max: Mapped[list[float]] = mapped_column(JSON)
+    # Where the sensor was, in the file's frame: from the upload's ?sensor_origin= or the file
+    # itself (a PCD VIEWPOINT). Lets localisation tell occluded (unobserved) from removed.
+    sensor_origin: Mapped[list[float] | None] = mapped_column(JSON, nullable=True)
     created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now, index=True)
 
 

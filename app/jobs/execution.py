@@ -23,6 +23,7 @@ errors put it back in the queue until ``max_attempts`` is reached.  Test hooks (
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -153,6 +154,8 @@ class ClaimedJob:
     scan_path: Path | None
     scan_format: str | None
     scan_filename: str | None
+    reference_sensor_origin: list[float] | None = None
+    scan_sensor_origin: list[float] | None = None
 
 
 def job_log(message: str, job_id: str, stage: str, **fields: Any) -> None:
@@ -204,6 +207,8 @@ def claim_job(
             scan_path=settings.data_dir / scan.storage_path if scan else None,
             scan_format=scan.format if scan else None,
             scan_filename=scan.filename if scan else None,
+            reference_sensor_origin=reference.sensor_origin if reference else None,
+            scan_sensor_origin=scan.sensor_origin if scan else None,
         )
     job_log(
         "job claimed",
@@ -464,6 +469,15 @@ def compute(
     started = time.perf_counter()
     reference = read_point_cloud(job.reference_path, format=job.reference_format)
     scan = read_point_cloud(job.scan_path, format=job.scan_format)
+    # The origin given at upload wins over the file's; a job's params override both.
+    if job.reference_sensor_origin is not None:
+        reference = dataclasses.replace(
+            reference, sensor_origin=np.asarray(job.reference_sensor_origin, dtype=np.float64)
+        )
+    if job.scan_sensor_origin is not None:
+        scan = dataclasses.replace(
+            scan, sensor_origin=np.asarray(job.scan_sensor_origin, dtype=np.float64)
+        )
     load_seconds = time.perf_counter() - started
     keeper.report("comparing", PROGRESS_LOADED)
     result = compare(

@@ -10,6 +10,7 @@ then a short write transaction inserts the scan and its job (and the idempotency
 from __future__ import annotations
 
 import dataclasses
+import math
 import threading
 from collections.abc import AsyncIterator, Sequence
 from dataclasses import dataclass
@@ -24,7 +25,7 @@ from app.config import Settings
 from app.db.models import Scan, new_id
 from app.services import idempotency, jobs, sites, storage
 from app.services.auth import Principal
-from app.services.errors import ConflictError, NotFoundError
+from app.services.errors import ConflictError, NotFoundError, ValidationFailedError
 from app.services.idempotency import StoredResponse
 from app.services.paging import newest_first_page
 from app.services.schemas import JobRead, ScanRead, UploadRead
@@ -44,6 +45,7 @@ class UploadOptions:
     method: str | None = None
     variant: str | None = None
     idempotency_key: str | None = None
+    sensor_origin: list[float] | None = None
 
 
 class UploadBody(Protocol):
@@ -68,6 +70,7 @@ class ParsedScan:
     n_dropped: int
     bbox_min: list[float]
     bbox_max: list[float]
+    sensor_origin: list[float] | None = None
 
 
 @dataclass(frozen=True)
@@ -104,6 +107,24 @@ def _find_replay(
     return stored
 
 
+def parse_sensor_origin(text: str | None) -> list[float] | None:
+    """``"x,y,z"`` as three finite floats; 422 with a message otherwise."""
+    if text is None or text == "":
+        return None
+    parts = text.split(",")
+    try:
+        values = [float(part) for part in parts]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(math.isfinite(value) for value in values):
+        raise ValidationFailedError(
+            f"sensor_origin must be three finite numbers 'x,y,z' in the file's frame "
+            f"(e.g. 0,0,0 for a scan in its sensor's frame), got {text!r}",
+            code="invalid_sensor_origin",
+        )
+    return values
+
+
 def parse_upload(path: Path, filename: str | None, head: bytes, max_points: int) -> ParsedScan:
     """Detect the format and read the cloud with the core (raises the core's errors)."""
     from app.core.formats import detect_format, read_point_cloud
@@ -120,6 +141,9 @@ def parse_upload(path: Path, filename: str | None, head: bytes, max_points: int)
             n_dropped=cloud.n_dropped,
             bbox_min=[float(value) for value in low],
             bbox_max=[float(value) for value in high],
+            sensor_origin=(
+                None if cloud.sensor_origin is None else [float(v) for v in cloud.sensor_origin]
+            ),
         )
 
 
@@ -192,6 +216,7 @@ async def upload_scan(
                 "filename": filename,
                 "method": options.method,
                 "variant": options.variant,
+                "sensor_origin": options.sensor_origin,
                 "sha256": received.sha256,
             },
         )
@@ -222,6 +247,7 @@ async def upload_scan(
             n_dropped=parsed.n_dropped,
             bbox_min=parsed.bbox_min,
             bbox_max=parsed.bbox_max,
+            sensor_origin=options.sensor_origin or parsed.sensor_origin,
         )
         keyed_options = dataclasses.replace(options, idempotency_key=key)
         response, created = await anyio.to_thread.run_sync(

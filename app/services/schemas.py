@@ -107,6 +107,7 @@ class ScanRead(BaseModel):
     n_dropped: int
     bbox_min: list[float]
     bbox_max: list[float]
+    sensor_origin: list[float] | None = None
     created_at: UtcDatetime
 
     @classmethod
@@ -123,6 +124,7 @@ class ScanRead(BaseModel):
             n_dropped=scan.n_dropped,
             bbox_min=list(scan.bbox_min),
             bbox_max=list(scan.bbox_max),
+            sensor_origin=list(scan.sensor_origin) if scan.sensor_origin is not None else None,
             created_at=scan.created_at,
         )
 

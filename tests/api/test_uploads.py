@@ -283,3 +283,36 @@ def test_files_are_stored_under_ids_not_client_names(
     stored = api.settings.scans_dir / site["id"] / f"{scan['id']}.ply"
     assert stored.is_file()
     assert list(api.settings.tmp_dir.iterdir()) == []
+
+
+def test_sensor_origin_comes_from_the_query_or_the_file_and_is_validated(
+    writer: httpx.Client, site_and_reference: tuple[dict, dict]
+) -> None:
+    site, _ = site_and_reference
+    points = make_points(3000, seed=4)
+
+    given = upload(writer, site["id"], ply_bytes(points), sensor_origin="1.5,-2,0.25")
+    assert given.status_code == 202, given.text
+    assert given.json()["scan"]["sensor_origin"] == [1.5, -2.0, 0.25]
+
+    without = upload(writer, site["id"], ply_bytes(points))
+    assert without.json()["scan"]["sensor_origin"] is None
+
+    header, body = pcd_bytes(points).split(b"DATA binary\n", 1)
+    header = b"\n".join(
+        b"VIEWPOINT 3 4 5 1 0 0 0" if line.startswith(b"VIEWPOINT") else line
+        for line in header.split(b"\n")
+    )
+    from_file = upload(writer, site["id"], header + b"DATA binary\n" + body, filename="v.pcd")
+    assert from_file.status_code == 202, from_file.text
+    assert from_file.json()["scan"]["sensor_origin"] == [3.0, 4.0, 5.0]
+
+    before = scan_ids(writer, site["id"])
+    for bad in ("1,2", "a,b,c", "1,2,nan", "1,2,3,4"):
+        detail = assert_error(
+            upload(writer, site["id"], ply_bytes(points), sensor_origin=bad),
+            422,
+            "invalid_sensor_origin",
+        )
+        assert "x,y,z" in detail
+    assert scan_ids(writer, site["id"]) == before

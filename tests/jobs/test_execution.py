@@ -201,3 +201,29 @@ def test_heartbeat_extends_the_lease_and_notices_a_takeover(job_settings: Settin
             keeper.report("detect", 0.6)
     finally:
         keeper.stop()
+
+
+def test_sensor_origins_stored_with_the_scans_reach_compare(
+    job_settings: Settings, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from app.db.models import Scan
+
+    seen: dict[str, object] = {}
+    stub = fake_pipeline.stub_pipeline_module()
+
+    def recording_compare(reference, scan, **keywords):  # type: ignore[no-untyped-def]
+        seen["reference"] = reference.sensor_origin
+        seen["scan"] = scan.sensor_origin
+        return fake_pipeline.fake_compare(reference, scan, **keywords)
+
+    stub.compare = recording_compare  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "app.core.pipeline", stub)
+    job_id = create_job(job_settings)
+    with transaction(job_settings.sqlalchemy_url) as session:
+        job = session.get(Job, job_id)
+        session.get(Scan, job.reference_scan_id).sensor_origin = [1.0, 2.0, 3.0]
+        session.get(Scan, job.scan_id).sensor_origin = [0.0, 0.0, 0.5]
+
+    assert execute_job(job_id, job_settings) == "succeeded"
+    np.testing.assert_array_equal(seen["reference"], [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(seen["scan"], [0.0, 0.0, 0.5])

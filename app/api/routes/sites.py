@@ -122,6 +122,15 @@ async def upload_scan(
     filename: Annotated[str | None, Query(max_length=1000, description="Original name.")] = None,
     method: Annotated[str | None, Query(max_length=64, description="Detector override.")] = None,
     variant: Annotated[str | None, Query(max_length=64, description="Variant override.")] = None,
+    sensor_origin: Annotated[
+        str | None,
+        Query(
+            max_length=200,
+            description="Sensor position 'x,y,z' in the file's frame (0,0,0 for a scan in its "
+            "sensor's frame); enables the visibility test. Default: the file's own (PCD "
+            "VIEWPOINT), else unknown.",
+        ),
+    ] = None,
     idempotency_key: Annotated[str | None, Header(alias="Idempotency-Key")] = None,
 ) -> JSONResponse:
     """Upload a scan as the raw body or multipart field `file`; compare it to the reference."""
@@ -132,6 +141,7 @@ async def upload_scan(
         method=method,
         variant=variant,
         idempotency_key=idempotency_key,
+        sensor_origin=scans_service.parse_sensor_origin(sensor_origin),
     )
     stored = await scans_service.upload_scan(session, settings, principal, options, body)
     return JSONResponse(stored.body, status_code=stored.status_code)
