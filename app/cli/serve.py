@@ -242,10 +242,10 @@ def handle_serve(args: argparse.Namespace) -> int:
     """Entry of ``scandiff serve``."""
     if args.child:
         return run_child(args.child)
-    from app.jobs.log import configure_logging
+    from app.log import configure_process_logging
 
     settings = build_settings(args)
-    configure_logging(settings.log_level)
+    configure_process_logging(settings.log_level)
     logging.getLogger("alembic.runtime.plugins").setLevel(logging.WARNING)
     return serve(settings)
 

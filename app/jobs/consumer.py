@@ -32,8 +32,8 @@ from app.config import Settings, get_settings
 from app.db.session import get_engine
 from app.jobs import queue
 from app.jobs.lifecycle import die_with_supervisor, set_parent_death_signal
-from app.jobs.log import configure_logging
 from app.jobs.recovery import recovery_sweep
+from app.log import configure_process_logging
 
 logger = logging.getLogger("scandiff.jobs.consumer")
 
@@ -174,7 +174,7 @@ def run_consumer(
     shutdown_grace_seconds: float = SHUTDOWN_GRACE_SECONDS,
 ) -> int:
     """Run the consumer until SIGTERM/SIGINT; the exit status."""
-    configure_logging(settings.log_level)
+    configure_process_logging(settings.log_level)
     preload_pipeline()
     workers = workers or settings.workers
     huey = queue.get_huey(settings)

@@ -1,4 +1,4 @@
-"""Structured logging for the service's processes: one JSON object per line on stderr."""
+"""Structured logging shared by every process: one JSON object per line on stderr."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ STANDARD_RECORD_FIELDS = frozenset(
 )
 
 
-class JsonLineFormatter(logging.Formatter):
+class JsonFormatter(logging.Formatter):
     """Render a record as one JSON line: time, level, logger, message, pid and ``extra`` fields."""
 
     def format(self, record: logging.LogRecord) -> str:
@@ -34,10 +34,10 @@ class JsonLineFormatter(logging.Formatter):
         return json.dumps(entry, default=str)
 
 
-def configure_logging(level: str = "INFO") -> None:
+def configure_process_logging(level: str = "INFO") -> None:
     """Send every log record of this process to stderr as JSON lines at ``level``."""
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(JsonLineFormatter())
+    handler.setFormatter(JsonFormatter())
     root = logging.getLogger()
     for existing in list(root.handlers):
         root.removeHandler(existing)
