@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -236,10 +234,9 @@ def test_raycast_is_reproducible_and_validates():
 
 
 @pytest.mark.slow
-def test_raycast_200k_generates_in_under_two_seconds():
-    raycast_scene(n_points=2000, random_state=0)  # warm-up (imports, allocator)
-    started = time.process_time()
+def test_raycast_200k_full_size_scene():
+    """Full size; its generation time is a benchmark figure (bench/scenes.py), not a test."""
     pair = raycast_scene(n_points=200_000, change="mixed", pose_error=(0.03, 0.4), random_state=1)
-    elapsed = time.process_time() - started
     assert len(pair.reference) == len(pair.scan) == 200_000
-    assert elapsed < 2.0, f"took {elapsed:.2f} s of CPU"
+    assert pair.reference_changed.any() and pair.scan_changed.any()
+    assert not pair.reference_observed.all()  # furniture occludes part of the room
