@@ -12,7 +12,7 @@ import logging
 
 from fastapi import FastAPI
 
-from app.api.errors import install_error_handlers
+from app.api.errors import document_error_shape, install_error_handlers
 from app.api.logs import RequestLogMiddleware, configure_logging
 from app.api.routes import api_router
 from app.config import Settings, get_settings
@@ -59,4 +59,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(RequestLogMiddleware)
     app.include_router(api_router)
     _include_optional_routers(app)
+    document_error_shape(app)
     return app

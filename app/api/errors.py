@@ -19,6 +19,7 @@ from starlette.requests import ClientDisconnect
 
 from app.core.errors import InputError, PointCloudError, UnsupportedFormatError
 from app.services.errors import AppError
+from app.services.schemas import ErrorRead
 
 logger = logging.getLogger("scandiff.api")
 
@@ -108,3 +109,31 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(StarletteHTTPException, handle_http_exception)
     app.add_exception_handler(ClientDisconnect, handle_client_disconnect)
     app.add_exception_handler(Exception, handle_unexpected_error)
+
+
+def document_error_shape(app: FastAPI) -> None:
+    """Make ``/openapi.json`` describe the 422 the handlers send (``ErrorRead``).
+
+    FastAPI documents every 422 as its own ``HTTPValidationError`` (``detail`` a list), a shape
+    this app never sends; clients generated from the document (and schemathesis) then reject
+    every real validation error.
+    """
+    generate = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        schema = generate()
+        components = schema.setdefault("components", {}).setdefault("schemas", {})
+        if "ErrorRead" not in components:
+            components["ErrorRead"] = ErrorRead.model_json_schema()
+        error_content = {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorRead"}}}
+        for operations in schema.get("paths", {}).values():
+            for operation in operations.values():
+                response = operation.get("responses", {}).get("422")
+                if response is not None:
+                    response["description"] = "Validation error"
+                    response["content"] = error_content
+        components.pop("HTTPValidationError", None)
+        components.pop("ValidationError", None)
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
