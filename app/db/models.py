@@ -152,7 +152,10 @@ class Job(Base):
     scan_id: Mapped[str] = mapped_column(ForeignKey("scan.id", ondelete="CASCADE"))
     method: Mapped[str] = mapped_column(String(16))
     variant: Mapped[str] = mapped_column(String(16))
-    params: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)  # replayable
+    params: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)  # as requested
+    # Every parameter in effect (the detector's get_params(), seed, stages, decision rule):
+    # POST /jobs with these params replays the result exactly, whatever defaults change later.
+    effective_params: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
     status: Mapped[str] = mapped_column(String(16), default="queued")
     progress: Mapped[float] = mapped_column(Float, default=0.0)
     stage: Mapped[str | None] = mapped_column(String(32), nullable=True)

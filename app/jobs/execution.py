@@ -537,6 +537,7 @@ def store_results(
         row.threshold = float(result.threshold)
         row.changed = bool(result.changed)
         row.calibration = to_jsonable(result.calibration)
+        row.effective_params = to_jsonable(getattr(result, "params", None))
         row.registration = to_jsonable(result.registration)
         row.n_regions = len(result.regions)
         row.timings = to_jsonable(timings)

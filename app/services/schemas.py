@@ -154,6 +154,11 @@ class JobRead(BaseModel):
     method: str
     variant: str
     params: dict[str, Any]
+    effective_params: dict[str, Any] | None = Field(
+        default=None,
+        description="Every parameter in effect once the job ran; POST /jobs with these params "
+        "replays the result exactly.",
+    )
     score: float | None
     threshold: float | None
     changed: bool | None
@@ -182,6 +187,7 @@ class JobRead(BaseModel):
             method=job.method,
             variant=job.variant,
             params=dict(job.params or {}),
+            effective_params=job.effective_params,
             score=job.score,
             threshold=job.threshold,
             changed=job.changed,

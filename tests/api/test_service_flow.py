@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from app.core.formats import read_point_cloud
-from app.core.pipeline import compare
+from app.core.pipeline import compare, json_safe
 from app.core.synthetic import raycast_scene
 from tests.api.conftest import las_bytes, pcd_bytes, ply_bytes
 from tests.service_harness import ServiceProcess, service_factory  # noqa: F401
@@ -78,6 +78,7 @@ def check_same_as_local_compare(
     # floating-point reductions between processes (seen: relative 3e-5 after registration).
     assert job["score"] == pytest.approx(local.score, rel=1e-3), (job, local.to_json_dict())
     assert job["changed"] == local.changed
+    assert job["effective_params"] == json_safe(local.params)  # what a replay needs
     labels = load_labels(client.get(f"/api/v1/jobs/{job['id']}/labels").content)
     assert np.mean(labels["scan_label"] == local.scan_label) > 0.99
     assert np.mean(labels["reference_label"] == local.reference_label) > 0.99

@@ -54,6 +54,7 @@ class FakeResult:
     reference_distance: NDArray[np.float32]
     scan_distance: NDArray[np.float32]
     timings: dict[str, float] = field(default_factory=dict)
+    params: dict[str, Any] = field(default_factory=dict)
 
     def write_labels_npz(self, path: str | Path) -> None:
         """Same arrays as the real result."""
@@ -111,6 +112,7 @@ def fake_compare(
         reference_distance=np.zeros(reference.n_source, dtype=np.float32),
         scan_distance=np.where(scan_label == 1, 1.0, 0.0).astype(np.float32),
         timings={"align": 0.001},
+        params={"variant": variant, "random_state": random_state, **dict(params or {})},
     )
 
 
