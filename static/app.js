@@ -177,9 +177,10 @@ async function api(path, { method = "GET", body, headers = {} } = {}) {
 }
 
 /** Upload `file` as the raw body with progress; resolves with the JSON answer. */
-function uploadScan(siteId, file, reference, onProgress) {
+function uploadScan(siteId, file, reference, onProgress, sensorOrigin = "") {
   return new Promise((resolve, reject) => {
     const query = new URLSearchParams({ reference: String(reference), filename: file.name });
+    if (sensorOrigin) query.set("sensor_origin", sensorOrigin);
     const request = new XMLHttpRequest();
     request.open("POST", `${API}/sites/${encodeURIComponent(siteId)}/scans?${query}`);
     request.withCredentials = true;
@@ -360,6 +361,10 @@ let uploadCard = { siteId: null, node: null };
 
 function uploadPanel(site, onDone) {
   const fileInput = h("input", { type: "file", id: "scan-file", name: "file", accept: ".ply,.pcd,.las,.laz,.xyz,.csv,.txt,.npy,.npz,.e57" });
+  const originInput = h("input", {
+    type: "text", id: "sensor-origin", name: "sensor_origin", placeholder: "sensor x,y,z (optional)",
+    title: "Where the lidar was, in the file's frame (0,0,0 for a scan in its sensor's frame): lets scandiff tell occluded parts from removed ones. PCD files may carry it as VIEWPOINT.",
+  });
   const status = h("p", { class: "upload-status", id: "upload-status", role: "status" });
   const bar = h("div", { id: "upload-progress", class: "upload-progress", hidden: true });
   const referenceButton = h("button", { type: "button", id: "upload-reference" }, "Upload as reference");
@@ -383,7 +388,7 @@ function uploadPanel(site, onDone) {
       const answer = await uploadScan(site.id, file, reference, (fraction) => {
         const label = fraction >= 1 ? "Checking the file…" : `Uploading ${file.name}: ${Math.round(fraction * 100)}%`;
         bar.replaceChildren(progressBar(fraction, label));
-      });
+      }, originInput.value.trim());
       bar.replaceChildren(progressBar(1, "Uploaded"));
       const scan = answer && (answer.scan || answer);
       const points = scan && Number.isFinite(scan.n_points) ? ` (${scan.n_points.toLocaleString()} points)` : "";
@@ -409,7 +414,7 @@ function uploadPanel(site, onDone) {
   return h("section", { class: "card", id: "upload-card" },
     h("h2", {}, "Upload"),
     h("p", { class: "muted" }, "PLY, PCD, LAS/LAZ, XYZ/CSV/TXT or NPY. A new reference replaces the current one (the history is kept); a scan is compared with the current reference."),
-    h("div", { class: "upload-row" }, fileInput, referenceButton, scanButton),
+    h("div", { class: "upload-row" }, fileInput, originInput, referenceButton, scanButton),
     hint, bar, status);
 }
 
