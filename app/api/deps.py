@@ -15,7 +15,7 @@ from app.config import Settings
 from app.db.session import session_factory
 from app.services import auth
 from app.services.auth import Principal
-from app.services.transaction import commit, rollback
+from app.services.transaction import commit, end_read_transaction, rollback
 
 
 def get_app_settings(request: Request) -> Settings:
@@ -58,11 +58,17 @@ def get_principal(
     A request without an ``Authorization`` header may instead carry the dashboard's signed
     session cookie (:mod:`app.api.session_auth`, same-origin checked for writes).
     """
-    if "authorization" not in request.headers:
-        principal = principal_from_session_cookie(request, session)
-        if principal is not None:
-            return principal
-    return auth.authenticate(session, credentials.credentials if credentials else None)
+    try:
+        if "authorization" not in request.headers:
+            principal = principal_from_session_cookie(request, session)
+            if principal is not None:
+                return principal
+        return auth.authenticate(session, credentials.credentials if credentials else None)
+    finally:
+        # Give the connection back now: the route runs in another worker thread, and a
+        # connection held across that hop let 50 parallel uploads exhaust the pool (every
+        # worker thread waiting for a connection held by a request waiting for a thread).
+        end_read_transaction(session)
 
 
 PrincipalDep = Annotated[Principal, Depends(get_principal)]
