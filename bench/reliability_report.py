@@ -25,6 +25,7 @@ BEGIN = "<!-- figures:begin (bench/reliability_report.py) -->"
 END = "<!-- figures:end -->"
 ROW_ORDER = [
     "malformed-uploads",
+    "accepted-strange-files-in-a-worker",
     "authorisation-matrix",
     "view-links",
     "schema-fuzzing",

@@ -14,8 +14,12 @@ from __future__ import annotations
 
 import functools
 import io
+import json
 import logging
+import os
 import struct
+import subprocess
+import sys
 import time
 import zipfile
 from collections import Counter
@@ -24,11 +28,13 @@ from dataclasses import dataclass
 
 import httpx
 import numpy as np
+import pytest
 from sqlalchemy import func, select
 
 from app.db.models import Job, Scan
 from app.db.session import transaction
 from tests.api.conftest import ApiServer, create_site, make_points, ply_bytes, upload
+from tests.conftest import PROJECT_ROOT
 from tests.core import test_formats as reader_corpus
 from tests.reliability.figures import record_figure
 
@@ -341,3 +347,80 @@ def test_the_corpus_is_large_and_covers_every_format() -> None:
     assert len(corpus) >= 200
     for suffix in ("ply", "pcd", "las", "laz", "xyz", "csv", "txt", "npy", "npz"):
         assert suffixes[suffix] > 0, (suffix, suffixes)
+
+
+WORKER_MEMORY_CAP_BYTES = 3 * 1024**3
+RUN_JOBS_IN_A_WORKER = """
+import json, sys
+from app.config import Settings
+from app.jobs.execution import execute_job
+settings = Settings()
+for job_id in sys.argv[1:]:
+    print(json.dumps({"job_id": job_id, "outcome": execute_job(job_id, settings)}), flush=True)
+"""
+
+
+@pytest.mark.slow
+def test_accepted_strange_files_end_succeeded_or_failed_with_a_reason(
+    service: ApiServer,
+) -> None:
+    """Mutations and polyglots that the reader accepts get a job; a worker process (memory
+    capped with RLIMIT_AS) runs each: it ends ``succeeded`` or ``failed`` with a reason and the
+    worker survives every one of them."""
+    client = service.client(service.token("writer"))
+    site = create_site(client)
+    reference = upload(client, site["id"], ply_bytes(make_points(3000, seed=1)), reference=True)
+    assert reference.status_code == 201, reference.text
+    job_ids: dict[str, str] = {}
+    for item in build_corpus():
+        if item.may_be_valid:
+            response = send(client, site["id"], item)
+            assert response.status_code < 500, (item.name, response.text)
+            if response.status_code == 202:
+                job_ids[response.json()["job"]["id"]] = item.name
+    assert job_ids, "no strange file was accepted: nothing to run"
+    environment = {
+        **os.environ,
+        "SCANDIFF_DATA_DIR": str(service.settings.data_dir),
+        "SCANDIFF_JOB_MEMORY_LIMIT_BYTES": str(WORKER_MEMORY_CAP_BYTES),
+        "OMP_NUM_THREADS": "1",
+    }
+    started = time.monotonic()
+    worker = subprocess.run(
+        [sys.executable, "-c", RUN_JOBS_IN_A_WORKER, *job_ids],
+        cwd=PROJECT_ROOT,
+        env=environment,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    elapsed = time.monotonic() - started
+    outcomes = {
+        entry["job_id"]: entry["outcome"]
+        for entry in (
+            json.loads(line) for line in worker.stdout.splitlines() if line.startswith("{")
+        )
+    }
+    rows = {job_id: client.get(f"/api/v1/jobs/{job_id}").json() for job_id in job_ids}
+    statuses = Counter(row["status"] for row in rows.values())
+    failed_without_reason = [
+        job_ids[job_id]
+        for job_id, row in rows.items()
+        if row["status"] == "failed" and not row["error"]
+    ]
+    reasons = Counter(str(row["error"])[:80] for row in rows.values() if row["status"] == "failed")
+    record_figure(
+        "accepted-strange-files-in-a-worker",
+        load=f"{len(job_ids)} jobs in one worker process (RLIMIT_AS {WORKER_MEMORY_CAP_BYTES} B)",
+        faults="valid-but-strange uploads: byte mutations, polyglots, foreign suffixes",
+        inputs=f"{len(job_ids)} accepted files",
+        result=(
+            f"job statuses {dict(statuses)}; worker exit {worker.returncode}; "
+            f"{len(failed_without_reason)} failed without a reason; {elapsed:.1f} s"
+        ),
+        failure_reasons=dict(reasons),
+    )
+    assert worker.returncode == 0, worker.stderr[-3000:]
+    assert set(outcomes) == set(job_ids), worker.stderr[-3000:]
+    assert set(statuses) <= {"succeeded", "failed"}, statuses
+    assert not failed_without_reason, failed_without_reason
