@@ -28,6 +28,7 @@ ROW_ORDER = [
     "accepted-strange-files-in-a-worker",
     "authorisation-matrix",
     "view-links",
+    "view-websocket",
     "schema-fuzzing",
     "schema-fuzzing-slow",
     "upload-limits-cap",

@@ -537,3 +537,64 @@ def test_view_links_open_only_their_own_job_until_they_expire(
     )
     assert not wrong, wrong
     assert not leaks, leaks
+
+
+def websocket_handshake(
+    service: ApiServer, job_id: str, cookies: dict[str, str], origin: str | None = None
+) -> int:
+    """The HTTP status of the 3D view's websocket handshake (101 when it was accepted)."""
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    url = service.base_url.replace("http://", "ws://") + f"/jobs/{job_id}/view"
+    headers = {"Cookie": "; ".join(f"{name}={value}" for name, value in cookies.items())}
+    if origin is not None:
+        headers["Origin"] = origin
+    try:
+        with connect(url, additional_headers=headers, open_timeout=10):
+            return 101
+    except InvalidStatus as exc:
+        return exc.response.status_code
+
+
+def test_the_view_websocket_opens_only_for_the_owner(service: ApiServer, world: dict) -> None:
+    ids: Objects = world["ids"]
+    callers = {caller.name: caller for caller in world["callers"]}
+    owner_cookie = callers["A-reader-session-cookie"].cookies
+    with transaction(service.settings.sqlalchemy_url) as session:
+        writer_token = session.scalar(
+            select(ApiToken).where(
+                ApiToken.token_hash == hash_token(world["tokens"][("A", "writer")])
+            )
+        )
+        assert writer_token is not None
+        expired, _ = make_view_link(ids.job_id, writer_token, secret_key(service.settings), -5)
+    cases = {
+        # Accepted, then closed with the reason (the queued job has no view yet): no viewer starts.
+        "A's session, queued job": (
+            websocket_handshake(service, ids.queued_job_id, owner_cookie),
+            101,
+        ),
+        "no credentials": (websocket_handshake(service, ids.job_id, {}), 403),
+        "B's session cookie": (
+            websocket_handshake(service, ids.job_id, callers["B-session-cookie"].cookies),
+            403,
+        ),
+        "expired view-link cookie": (
+            websocket_handshake(service, ids.job_id, {VIEW_COOKIE: expired}),
+            403,
+        ),
+        "A's session from another origin": (
+            websocket_handshake(service, ids.job_id, owner_cookie, origin="http://evil.example"),
+            403,
+        ),
+    }
+    wrong = {name: pair for name, pair in cases.items() if pair[0] != pair[1]}
+    record_figure(
+        "view-websocket",
+        load=f"{len(cases)} websocket handshakes on the 3D view",
+        faults="no credentials, other organisation's cookie, expired link, cross-origin",
+        inputs=f"{len(cases)} handshakes",
+        result=f"{len(wrong)} wrong; statuses { {name: got for name, (got, _) in cases.items()} }",
+    )
+    assert not wrong, wrong
