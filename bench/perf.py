@@ -376,7 +376,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="scandiff-perf-") as temporary:
         work_dir = Path(temporary)
         sizes = [measure_size(n, work_dir, with_m3c2) for n in sizes_to_run]
-        ingest = measure_ingest(work_dir, INGEST_POINTS, repeats=2 if args.quick else 3)
+        ingest = measure_ingest(work_dir, INGEST_POINTS, repeats=3 if args.quick else 7)
         print(f"ingest: {ingest}", flush=True)
         if args.no_service:
             service: dict[str, Any] = {"error": "skipped (--no-service)"}
