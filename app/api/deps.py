@@ -26,13 +26,18 @@ def get_app_settings(request: Request) -> Settings:
 SettingsDep = Annotated[Settings, Depends(get_app_settings)]
 
 
-def get_session(settings: SettingsDep) -> Iterator[Session]:
+SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+
+
+def get_session(request: Request, settings: SettingsDep) -> Iterator[Session]:
     """A session whose transaction commits when the route returns, before the response is sent.
 
     Rolled back if the route raises; after-commit work (enqueueing jobs, deleting files of
-    deleted rows) runs once the commit succeeded.
+    deleted rows) runs once the commit succeeded.  Safe methods (GET) get a read-only session
+    (a deferred transaction on SQLite: readers never queue for the write lock).
     """
-    session = session_factory(settings.sqlalchemy_url)()
+    read_only = request.method in SAFE_METHODS
+    session = session_factory(settings.sqlalchemy_url, read_only=read_only)()
     try:
         yield session
         commit(session)

@@ -17,6 +17,9 @@ from sqlalchemy import Engine, create_engine, event
 from sqlalchemy.orm import Session, sessionmaker
 
 SQLITE_BUSY_TIMEOUT_MS = 60_000
+READ_ONLY_OPTION = "scandiff_read_only"
+"""Execution option marking a session that only reads: on SQLite it opens a plain (deferred)
+transaction, which in WAL mode never waits for, nor blocks, writers."""
 
 
 def _configure_sqlite(engine: Engine, *, foreign_keys: bool = True) -> None:
@@ -35,7 +38,10 @@ def _configure_sqlite(engine: Engine, *, foreign_keys: bool = True) -> None:
 
     @event.listens_for(engine, "begin")
     def _on_begin(connection) -> None:  # type: ignore[no-untyped-def]
-        connection.exec_driver_sql("BEGIN IMMEDIATE")
+        if connection.get_execution_options().get(READ_ONLY_OPTION):
+            connection.exec_driver_sql("BEGIN")
+        else:
+            connection.exec_driver_sql("BEGIN IMMEDIATE")
 
 
 def make_engine(url: str, *, foreign_keys: bool = True) -> Engine:
@@ -59,9 +65,17 @@ def get_engine(url: str) -> Engine:
     return make_engine(url)
 
 
-def session_factory(url: str) -> sessionmaker[Session]:
-    """A sessionmaker bound to the engine for ``url``."""
-    return sessionmaker(bind=get_engine(url), expire_on_commit=False)
+def session_factory(url: str, *, read_only: bool = False) -> sessionmaker[Session]:
+    """A sessionmaker bound to the engine for ``url``.
+
+    ``read_only=True`` is for requests that never write (GET): on SQLite their transactions are
+    deferred, so a hundred concurrent status polls do not queue behind each other and behind
+    the workers for the write lock (``BEGIN IMMEDIATE``), which is what writers need.
+    """
+    engine = get_engine(url)
+    if read_only:
+        engine = engine.execution_options(**{READ_ONLY_OPTION: True})
+    return sessionmaker(bind=engine, expire_on_commit=False)
 
 
 @contextmanager
