@@ -38,6 +38,12 @@ class Settings(BaseSettings):
     job_memory_limit_bytes: int | None = Field(
         default=None, description="RLIMIT_AS for a worker process running a job; None = no cap."
     )
+    max_concurrent_reads: int = Field(
+        default=16, ge=1, description="GET requests in flight; more wait without a thread."
+    )
+    max_concurrent_writes: int = Field(
+        default=8, ge=1, description="Other requests (uploads included) in flight."
+    )
     view_link_ttl_seconds: int = Field(default=24 * 3600, gt=0)
     secret_key: str | None = Field(
         default=None, description="Signs view links and cookies; generated in data_dir if unset."

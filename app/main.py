@@ -12,6 +12,7 @@ import logging
 
 from fastapi import FastAPI
 
+from app.api.concurrency import ConcurrencyLimitMiddleware
 from app.api.errors import document_error_shape, install_error_handlers
 from app.api.logs import RequestLogMiddleware, configure_logging
 from app.api.routes import api_router
@@ -56,6 +57,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     install_error_handlers(app)
+    app.add_middleware(
+        ConcurrencyLimitMiddleware,
+        max_reads=settings.max_concurrent_reads,
+        max_writes=settings.max_concurrent_writes,
+    )
     app.add_middleware(RequestLogMiddleware)
     app.include_router(api_router)
     _include_optional_routers(app)

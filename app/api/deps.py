@@ -10,6 +10,7 @@ from fastapi import Depends, Request, Security
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
+from app.api.concurrency import SAFE_METHODS
 from app.api.session_auth import principal_from_session_cookie
 from app.config import Settings
 from app.db.session import session_factory
@@ -24,9 +25,6 @@ def get_app_settings(request: Request) -> Settings:
 
 
 SettingsDep = Annotated[Settings, Depends(get_app_settings)]
-
-
-SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 
 
 def get_session(request: Request, settings: SettingsDep) -> Iterator[Session]:

@@ -52,7 +52,12 @@ def make_engine(url: str, *, foreign_keys: bool = True) -> Engine:
     """
     if url.startswith("sqlite"):
         engine = create_engine(
-            url, connect_args={"timeout": SQLITE_BUSY_TIMEOUT_MS / 1000, "check_same_thread": False}
+            url,
+            connect_args={"timeout": SQLITE_BUSY_TIMEOUT_MS / 1000, "check_same_thread": False},
+            # More connections than the API admits requests (app.api.concurrency), so an
+            # admitted request never waits for one.
+            pool_size=10,
+            max_overflow=30,
         )
         _configure_sqlite(engine, foreign_keys=foreign_keys)
         return engine

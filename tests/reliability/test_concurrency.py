@@ -12,6 +12,7 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
+import httpx
 from sqlalchemy import text
 
 from app.db.session import session_factory
@@ -73,3 +74,42 @@ def test_reads_answer_while_a_writer_holds_the_lock(service: ApiServer) -> None:
     # Every read finished while the writer still held the lock (it lets go after 30 s at most;
     # reads queued behind it would all finish only after that).
     assert reads_done < WRITE_LOCK_SECONDS
+
+
+N_STORM_CLIENTS = 100
+N_STORM_REQUESTS = 400
+
+
+def test_a_storm_of_mixed_reads_and_writes_all_succeed(service: ApiServer) -> None:
+    """100 clients alternating GET and PATCH on one site: no timeout, no 5xx."""
+    token = service.token("writer", "storm")
+    site = create_site(service.client(token))
+    url = f"{service.base_url}/api/v1/sites/{site['id']}"
+    statuses: list[int | str] = []
+    latencies: list[float] = []
+
+    def one(index: int) -> None:
+        with httpx.Client(headers={"Authorization": f"Bearer {token}"}, timeout=60) as client:
+            begun = time.monotonic()
+            try:
+                if index % 2:
+                    response = client.patch(url, json={"description": f"pass {index}"})
+                else:
+                    response = client.get(url)
+                statuses.append(response.status_code)
+            except httpx.HTTPError as error:
+                statuses.append(type(error).__name__)
+            latencies.append(time.monotonic() - begun)
+
+    started = time.monotonic()
+    with ThreadPoolExecutor(N_STORM_CLIENTS) as pool:
+        list(pool.map(one, range(N_STORM_REQUESTS)))
+    elapsed = time.monotonic() - started
+    latencies.sort()
+    counts = {status: statuses.count(status) for status in set(statuses)}
+    print(
+        f"\n{N_STORM_REQUESTS} requests (GET/PATCH alternating) from {N_STORM_CLIENTS} clients: "
+        f"{counts} in {elapsed:.1f} s, p50 {statistics.median(latencies):.2f} s, "
+        f"p99 {latencies[int(0.99 * (len(latencies) - 1))]:.2f} s"
+    )
+    assert counts == {200: N_STORM_REQUESTS}
