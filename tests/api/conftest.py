@@ -15,6 +15,7 @@ import threading
 import time
 import uuid
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -155,13 +156,9 @@ def start_server(settings: Settings) -> tuple[uvicorn.Server, threading.Thread, 
     return server, thread, f"http://127.0.0.1:{port}"
 
 
-@pytest.fixture(scope="module")
-def api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ApiServer]:
-    """The app on a fresh, migrated data directory, for one test module."""
-    settings = Settings(
-        data_dir=tmp_path_factory.mktemp("api-data"),
-        max_upload_bytes=MAX_UPLOAD_BYTES,
-    )
+@contextmanager
+def running_api(settings: Settings) -> Iterator[ApiServer]:
+    """The app served by uvicorn in a thread for ``settings``; stopped on exit."""
     server, thread, base_url = start_server(settings)
     handle = ApiServer(settings=settings, base_url=base_url)
     try:
@@ -171,6 +168,17 @@ def api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ApiServer]:
             client.close()
         server.should_exit = True
         thread.join(timeout=10)
+
+
+@pytest.fixture(scope="module")
+def api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ApiServer]:
+    """The app on a fresh, migrated data directory, for one test module."""
+    settings = Settings(
+        data_dir=tmp_path_factory.mktemp("api-data"),
+        max_upload_bytes=MAX_UPLOAD_BYTES,
+    )
+    with running_api(settings) as handle:
+        yield handle
 
 
 @pytest.fixture

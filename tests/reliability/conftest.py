@@ -9,7 +9,7 @@ from collections.abc import Iterator
 import pytest
 
 from app.config import Settings
-from tests.api.conftest import ApiServer, start_server
+from tests.api.conftest import ApiServer, running_api
 
 RELIABILITY_MAX_UPLOAD_BYTES = 1_000_000
 
@@ -21,12 +21,5 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ApiServer]:
         data_dir=tmp_path_factory.mktemp("reliability-data"),
         max_upload_bytes=RELIABILITY_MAX_UPLOAD_BYTES,
     )
-    server, thread, base_url = start_server(settings)
-    handle = ApiServer(settings=settings, base_url=base_url)
-    try:
+    with running_api(settings) as handle:
         yield handle
-    finally:
-        for client in handle.clients:
-            client.close()
-        server.should_exit = True
-        thread.join(timeout=10)
