@@ -863,6 +863,25 @@ FUZZ_SEEDS = {
 }
 
 
+def mutate_bytes(
+    data: bytearray, rng: np.random.Generator, mutation: int, min_length: int = 0
+) -> bytearray:
+    """One corruption of a valid file: 0 header bytes flipped, 1 truncated (to at least
+    ``min_length`` bytes), 2 body bytes flipped, 3 random bytes inserted."""
+    if mutation == 0:  # header bytes
+        for _ in range(rng.integers(1, 4)):
+            data[rng.integers(0, min(len(data), 400))] = rng.integers(256)
+    elif mutation == 1:
+        data = data[: rng.integers(min_length, len(data))]
+    elif mutation == 2:
+        for _ in range(rng.integers(1, 20)):
+            data[rng.integers(0, len(data))] = rng.integers(256)
+    else:
+        at = rng.integers(0, len(data))
+        data[at:at] = rng.integers(0, 256, rng.integers(1, 50)).astype(np.uint8).tobytes()
+    return data
+
+
 @pytest.mark.parametrize("kind", sorted(FUZZ_SEEDS))
 def test_corrupted_files_raise_only_point_cloud_error(kind):
     """Random byte flips, truncations and insertions (found a LAZ chunk-table abort in lazrs
@@ -870,19 +889,7 @@ def test_corrupted_files_raise_only_point_cloud_error(kind):
     content = FUZZ_SEEDS[kind](random_points(200))
     rng = np.random.default_rng(sorted(FUZZ_SEEDS).index(kind))
     for _ in range(40):
-        data = bytearray(content)
-        mutation = rng.integers(4)
-        if mutation == 0:  # header bytes
-            for _ in range(rng.integers(1, 4)):
-                data[rng.integers(0, min(len(data), 400))] = rng.integers(256)
-        elif mutation == 1:
-            data = data[: rng.integers(0, len(data))]
-        elif mutation == 2:
-            for _ in range(rng.integers(1, 20)):
-                data[rng.integers(0, len(data))] = rng.integers(256)
-        else:
-            at = rng.integers(0, len(data))
-            data[at:at] = rng.integers(0, 256, rng.integers(1, 50)).astype(np.uint8).tobytes()
+        data = mutate_bytes(bytearray(content), rng, int(rng.integers(4)))
         for filename in (None, f"scan.{kind.split('-')[0]}"):
             with contextlib.suppress(PointCloudError):  # anything else fails the test
                 read_point_cloud(bytes(data), filename=filename)

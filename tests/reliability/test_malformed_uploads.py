@@ -179,19 +179,7 @@ def _mutated_uploads() -> Iterator[BadUpload]:
         content = build(_points(200))
         rng = np.random.default_rng(1000 + sorted(reader_corpus.FUZZ_SEEDS).index(kind))
         for index in range(MUTATIONS_PER_FORMAT):
-            data = bytearray(content)
-            mutation = index % 4
-            if mutation == 0:
-                for _ in range(rng.integers(1, 4)):
-                    data[rng.integers(0, min(len(data), 400))] = rng.integers(256)
-            elif mutation == 1:
-                data = data[: rng.integers(1, len(data))]
-            elif mutation == 2:
-                for _ in range(rng.integers(1, 20)):
-                    data[rng.integers(0, len(data))] = rng.integers(256)
-            else:
-                at = rng.integers(0, len(data))
-                data[at:at] = rng.integers(0, 256, rng.integers(1, 50)).astype(np.uint8).tobytes()
+            data = reader_corpus.mutate_bytes(bytearray(content), rng, index % 4, min_length=1)
             suffix = kind.split("-")[0]
             yield BadUpload(
                 f"mutated-{kind}-{index}", bytes(data), f"scan.{suffix}", may_be_valid=True
