@@ -33,6 +33,7 @@ from app.core.cloud import MIN_POINTS, PointCloud, choose_local_origin
 from app.core.detectors import make_detector
 from app.core.detectors.base import ChangeDetector
 from app.core.errors import InputError
+from app.core.jsonable import json_safe
 from app.core.localise import localise_changes
 from app.core.registration import (
     apply_transform,
@@ -167,23 +168,6 @@ class ComparisonResult:
                 reference_label=self.reference_label.astype(np.int8),
                 scan_label=self.scan_label.astype(np.int8),
             )
-
-
-def json_safe(value: Any) -> Any:
-    """``value`` with numpy scalars/arrays turned into Python types and NaN/inf into None."""
-    if isinstance(value, Mapping):
-        return {str(key): json_safe(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_safe(item) for item in value]
-    if isinstance(value, np.ndarray):
-        return json_safe(value.tolist())
-    if isinstance(value, (np.bool_, bool)):
-        return bool(value)
-    if isinstance(value, (np.integer, int)):
-        return int(value)
-    if isinstance(value, (np.floating, float)):
-        return float(value) if np.isfinite(value) else None
-    return value
 
 
 def _origin_in_local_frame(

@@ -26,7 +26,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import math
 import os
 import resource
 import signal
@@ -34,7 +33,7 @@ import socket
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
@@ -46,6 +45,7 @@ from sqlalchemy import ColumnElement, and_, delete, or_, select, update
 
 from app.config import Settings
 from app.core.errors import InputError
+from app.core.jsonable import json_safe
 from app.db.models import Job, Region, Scan
 from app.db.session import transaction
 
@@ -440,21 +440,6 @@ def job_results_dir(settings: Settings, job_id: str) -> Path:
     return settings.results_dir / job_id
 
 
-def to_jsonable(value: Any) -> Any:
-    """``value`` with numpy types as Python ones and non-finite floats as None (portable JSON)."""
-    if isinstance(value, Mapping):
-        return {str(key): to_jsonable(item) for key, item in value.items()}
-    if isinstance(value, list | tuple):
-        return [to_jsonable(item) for item in value]
-    if isinstance(value, np.ndarray):
-        return to_jsonable(value.tolist())
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
 def compute(
     job: ClaimedJob, settings: Settings, keeper: LeaseKeeper
 ) -> tuple[Any, dict[str, float]]:
@@ -524,9 +509,9 @@ def store_results(
                 ordinal=ordinal,
                 kind=str(region.kind),
                 n_points=int(region.n_points),
-                centroid=to_jsonable(list(region.centroid)),
-                bbox_min=to_jsonable(list(region.bbox_min)),
-                bbox_max=to_jsonable(list(region.bbox_max)),
+                centroid=json_safe(list(region.centroid)),
+                bbox_min=json_safe(list(region.bbox_min)),
+                bbox_max=json_safe(list(region.bbox_max)),
                 mean_distance=float(region.mean_distance),
                 max_distance=float(region.max_distance),
             )
@@ -536,11 +521,11 @@ def store_results(
         row.score = float(result.score)
         row.threshold = float(result.threshold)
         row.changed = bool(result.changed)
-        row.calibration = to_jsonable(result.calibration)
-        row.effective_params = to_jsonable(getattr(result, "params", None))
-        row.registration = to_jsonable(result.registration)
+        row.calibration = json_safe(result.calibration)
+        row.effective_params = json_safe(getattr(result, "params", None))
+        row.registration = json_safe(result.registration)
         row.n_regions = len(result.regions)
-        row.timings = to_jsonable(timings)
+        row.timings = json_safe(timings)
         row.labels_path = labels_path
         row.error = None
         row.progress = 1.0

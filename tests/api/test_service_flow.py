@@ -21,7 +21,8 @@ import numpy as np
 import pytest
 
 from app.core.formats import read_point_cloud
-from app.core.pipeline import compare, json_safe
+from app.core.jsonable import json_safe
+from app.core.pipeline import compare
 from app.core.synthetic import raycast_scene
 from tests.api.conftest import las_bytes, pcd_bytes, ply_bytes
 from tests.service_harness import ServiceProcess, service_factory  # noqa: F401
