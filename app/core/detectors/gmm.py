@@ -105,25 +105,23 @@ def _fit(
     start: GaussianMixture | None = None,
 ) -> GaussianMixture:
     """EM fit, cold (k-means initialisation) or warm-started from ``start``'s parameters."""
-    if start is None:
-        mixture = GaussianMixture(
-            n_components,
-            covariance_type="full",
-            reg_covar=reg_covar,
-            max_iter=max_iter,
-            random_state=seed,
-        )
-    else:
-        mixture = GaussianMixture(
-            n_components,
-            covariance_type="full",
-            reg_covar=reg_covar,
-            max_iter=max_iter,
-            random_state=seed,
-            weights_init=start.weights_,
-            means_init=start.means_,
-            precisions_init=start.precisions_,
-        )
+    warm_start = (
+        {}
+        if start is None
+        else {
+            "weights_init": start.weights_,
+            "means_init": start.means_,
+            "precisions_init": start.precisions_,
+        }
+    )
+    mixture = GaussianMixture(
+        n_components,
+        covariance_type="full",
+        reg_covar=reg_covar,
+        max_iter=max_iter,
+        random_state=seed,
+        **warm_start,
+    )
     with warnings.catch_warnings():
         # Stopping after a fixed number of iterations is intended (anchored refit).
         warnings.simplefilter("ignore", ConvergenceWarning)
