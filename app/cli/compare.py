@@ -132,18 +132,21 @@ def _export(path: Path, reference: PointCloud, scan: PointCloud, result: Compari
     fields = {
         "cloud": np.concatenate([np.zeros(len(reference), np.uint8), np.ones(len(scan), np.uint8)]),
         "label": np.concatenate(
-            [result.reference_label[reference.source_index], result.scan_label[scan.source_index]]
+            [
+                reference.from_source_order(result.reference_label),
+                scan.from_source_order(result.scan_label),
+            ]
         ).astype(np.int8),
         "distance": np.concatenate(
             [
-                result.reference_distance[reference.source_index],
-                result.scan_distance[scan.source_index],
+                reference.from_source_order(result.reference_distance),
+                scan.from_source_order(result.scan_distance),
             ]
         ).astype(np.float32),
         "region": np.concatenate(
             [
-                result.reference_region[reference.source_index],
-                result.scan_region[scan.source_index],
+                reference.from_source_order(result.reference_region),
+                scan.from_source_order(result.scan_region),
             ]
         ).astype(np.int32),
     }

@@ -145,6 +145,33 @@ class PointCloud:
         out[self.source_index] = values
         return out
 
+    def from_source_order(self, values: NDArray) -> NDArray:
+        """The entries of per-row ``values`` (file order) that belong to this cloud's points.
+
+        The inverse of :meth:`to_source_order`: labels saved per file row (dropped rows
+        included) come back aligned with ``points``.
+
+        Parameters
+        ----------
+        values : ndarray, shape (n_source, ...)
+
+        Returns
+        -------
+        ndarray, shape (n, ...)
+
+        Raises
+        ------
+        ValueError
+            ``values`` has not one row per source row (it belongs to another file).
+        """
+        values = np.asarray(values)
+        if values.shape[:1] != (self.n_source,):
+            raise ValueError(
+                f"{values.shape[0] if values.ndim else 0} values for a file of {self.n_source} "
+                "rows: they belong to another file"
+            )
+        return values[self.source_index]
+
     def bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Axis-aligned bounding box ``(min, max)``, each shape (3,)."""
         return self.points.min(axis=0), self.points.max(axis=0)

@@ -59,9 +59,9 @@ def _load_cloud_fields(
             f"the job's labels have {labels.shape[0]} entries but {cloud_source.filename} has "
             f"{cloud.n_source} points; the stored results do not match the scan"
         )
-    point_labels = labels[cloud.source_index].astype(np.int8)
+    point_labels = cloud.from_source_order(labels).astype(np.int8)
     if distances is not None and distances.shape == (cloud.n_source,):
-        point_distances = distances[cloud.source_index].astype(np.float32)
+        point_distances = cloud.from_source_order(distances).astype(np.float32)
     else:
         point_distances = np.full(len(cloud), np.nan, dtype=np.float32)
     return cloud.points, point_labels, point_distances

@@ -17,7 +17,7 @@ from app.config import Settings
 from app.core.formats import read_point_cloud
 from app.db.models import Job, Region, Scan, Site
 from app.db.session import session_factory
-from app.viewer.scene import DEFAULT_POINT_BUDGET, SceneData, build_scene_data, labels_for_points
+from app.viewer.scene import DEFAULT_POINT_BUDGET, SceneData, build_scene_data
 
 LABELS_FILE = "labels.npz"
 
@@ -94,12 +94,8 @@ def load_job_scene(
     reference_cloud = read_point_cloud(paths[0])
     scan_cloud = read_point_cloud(paths[1])
     with np.load(labels_path) as labels:
-        reference_labels = labels_for_points(
-            labels["reference_label"], reference_cloud.source_index, len(reference_cloud)
-        )
-        scan_labels = labels_for_points(
-            labels["scan_label"], scan_cloud.source_index, len(scan_cloud)
-        )
+        reference_labels = reference_cloud.from_source_order(labels["reference_label"])
+        scan_labels = scan_cloud.from_source_order(labels["scan_label"])
     data = build_scene_data(
         reference_cloud.points,
         scan_cloud.points,

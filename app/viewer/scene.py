@@ -210,21 +210,6 @@ def local_origin(points: NDArray[np.float64], quantum: float = 1.0) -> NDArray[n
     return np.round(centre / quantum) * quantum
 
 
-def labels_for_points(
-    labels_in_file_order: NDArray | None, source_index: NDArray[np.int64], n_points: int
-) -> NDArray[np.int8]:
-    """Per-point labels of a cloud from labels in file order (unchanged when unknown)."""
-    if labels_in_file_order is None:
-        return np.zeros(n_points, dtype=np.int8)
-    labels = np.asarray(labels_in_file_order).astype(np.int8, copy=False)
-    if source_index.size and int(source_index.max()) >= labels.shape[0]:
-        raise ValueError(
-            f"labels have {labels.shape[0]} rows but the cloud has rows up to "
-            f"{int(source_index.max())}: the labels belong to another file"
-        )
-    return labels[source_index]
-
-
 def allocate_budget(totals: Mapping[str, int], budget: int) -> dict[str, int]:
     """Points to show per layer: changed layers first (up to half), the rest proportionally."""
     budget = max(int(budget), 0)
@@ -323,8 +308,8 @@ def build_scene_data(
     reference_points, scan_points : ndarray, shape (n, 3)
         The clouds' finite points in their files' frames (``PointCloud.points``).
     reference_labels, scan_labels : ndarray of int8, per point of each cloud, optional
-        0 unchanged, 1 changed, -1 unobserved (see :func:`labels_for_points` to map labels
-        stored in file order); None draws every point as unchanged.
+        0 unchanged, 1 changed, -1 unobserved (labels stored in file order are mapped with
+        ``PointCloud.from_source_order``); None draws every point as unchanged.
     transform : 4x4, optional
         Registration of the scan onto the reference (file frames); identity when None.
     regions : sequence of mappings

@@ -14,7 +14,6 @@ from app.viewer.scene import (
     LAYER_STYLES,
     allocate_budget,
     build_scene_data,
-    labels_for_points,
 )
 
 
@@ -121,15 +120,10 @@ def test_large_clouds_are_downsampled_keeping_changed_points(pair) -> None:
     assert data.layer("reference").n_shown < data.layer("reference").n_total
 
 
-def test_budget_allocation_and_labels_in_file_order() -> None:
+def test_budget_allocation() -> None:
     shown = allocate_budget({"reference": 900, "scan": 900, "removed": 50, "added": 50}, 1000)
     assert shown["removed"] == 50 and shown["added"] == 50
     assert shown["reference"] == shown["scan"] == 450
-    # Labels are stored per file row; a dropped (NaN) row keeps its place.
-    labels = np.array([0, -1, 1, 0], dtype=np.int8)
-    assert labels_for_points(labels, np.array([0, 2, 3]), 3).tolist() == [0, 1, 0]
-    with pytest.raises(ValueError, match="another file"):
-        labels_for_points(labels[:2], np.array([0, 2, 3]), 3)
 
 
 def test_viewer_manager_binds_loopback_on_its_own_port_and_stops_when_idle(pair) -> None:

@@ -28,6 +28,19 @@ def test_non_finite_rows_are_dropped_counted_and_keep_their_place():
     assert list(np.flatnonzero(labels == -1)) == [2, 7, 11]
 
 
+def test_labels_in_file_order_come_back_aligned_with_the_points():
+    points = np.arange(12, dtype=float).reshape(4, 3)
+    points[1] = np.nan  # a dropped row keeps its place in file-order labels
+    cloud = PointCloud.from_array(points, min_points=1)
+    labels = np.array([0, -1, 1, 0], dtype=np.int8)
+    assert cloud.from_source_order(labels).tolist() == [0, 1, 0]
+    np.testing.assert_array_equal(
+        cloud.from_source_order(cloud.to_source_order(np.array([5, 6, 7]), fill=-1)), [5, 6, 7]
+    )
+    with pytest.raises(ValueError, match="another file"):
+        cloud.from_source_order(labels[:2])
+
+
 @pytest.mark.parametrize(
     ("points", "fragment"),
     [
