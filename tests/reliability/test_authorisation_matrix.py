@@ -143,6 +143,11 @@ class Caller:
     cookies: dict[str, str] = field(default_factory=dict)
 
 
+def off_by_one(object_id: str) -> str:
+    """``object_id`` with its last character changed (never the id itself)."""
+    return object_id[:-1] + ("1" if object_id.endswith("0") else "0")
+
+
 def expected_status(operation: Operation, caller: Caller) -> int:
     """What the caller must get from the operation on A's objects."""
     if caller.organisation is None:
@@ -405,10 +410,10 @@ def test_only_the_owner_path_succeeds_and_nothing_leaks(service: ApiServer, worl
                 b_ids["site"], b_ids["scan"], b_ids["scan"], b_ids["job"], b_ids["job"]
             ),
             "off by one": Objects(
-                ids.site_id[:-1] + "0",
-                ids.scan_id[:-1] + "0",
-                ids.scan_id[:-1] + "0",
-                ids.job_id[:-1] + "0",
+                off_by_one(ids.site_id),
+                off_by_one(ids.scan_id),
+                off_by_one(ids.scan_id),
+                off_by_one(ids.job_id),
                 "0",
             ),
             "junk": Objects("..", "%2e%2e%2fadmin-token", "0 OR 1=1", "*", "null"),
