@@ -4,7 +4,8 @@ Uploads stream into ``tmp/`` (same filesystem as ``scans/``) while their size is
 the cap and their SHA-256 computed; the file is fsynced and renamed into place only once it
 parsed.  A killed server leaves at most a temporary file (removed by
 :func:`sweep_temporary_files` at the next start) or, in the instant between the rename and the
-commit of the row, an unreferenced scan file (removed by the same sweep).
+commit of the row, an unreferenced scan file (removed by the same sweep); a job worker killed
+while writing its results leaves a temporary result file (removed by the same sweep too).
 
 Layout under the data directory::
 
@@ -210,9 +211,12 @@ def sweep_temporary_files(settings: Settings, *, min_age_seconds: float = 0.0) -
 
     Call it at start-up, before serving (``min_age_seconds=0``); periodic calls while uploads
     run must pass a generous ``min_age_seconds`` (say 3600).  Removes temporary upload files,
+    temporary result files of job workers killed while writing (``results/<job>/.*.tmp*``),
     scan files that no scan row references, and result directories of jobs that no longer
     exist.  Never raises (a database that is not migrated yet only skips the last two).
     """
+    from app.jobs.recovery import remove_stale_temp_files
+
     now = time.time()
     removed = 0
     if settings.tmp_dir.is_dir():
@@ -220,6 +224,7 @@ def sweep_temporary_files(settings: Settings, *, min_age_seconds: float = 0.0) -
             if path.is_file() and _older_than(path, min_age_seconds, now):
                 remove_file(path)
                 removed += 1
+    removed += remove_stale_temp_files(settings, min_age_seconds)
     try:
         with transaction(settings.sqlalchemy_url) as session:
             scan_paths = set(session.scalars(select(Scan.storage_path)))

@@ -32,3 +32,11 @@ def record_figure(
     directory.mkdir(parents=True, exist_ok=True)
     (directory / f"{test}.json").write_text(json.dumps(row, indent=2, sort_keys=True, default=str))
     return row
+
+
+def percentile(values: list[float], fraction: float) -> float:
+    """The ``fraction`` quantile of ``values`` (nearest rank below; 0.5 = median)."""
+    if not values:
+        return float("nan")
+    ordered = sorted(values)
+    return ordered[int(fraction * (len(ordered) - 1))]
