@@ -72,8 +72,11 @@ class RawCloud:
 
     Attributes
     ----------
-    points : ndarray, shape (n, 3), float64
-        Coordinates in file order; may contain non-finite rows.
+    points : ndarray, shape (n, 3), any real dtype
+        Coordinates in file order; may contain non-finite rows. Binary readers give a read-only
+        view of the input buffer (e.g. float32 records, see :func:`xyz_points`):
+        :meth:`PointCloud.from_array` converts it to an owned float64 array in one pass, so the
+        view never outlives the buffer.
     attributes : dict of str to ndarray, each shape (n, ...)
         Extra per-point fields, owned arrays (never views of the input buffer).
     sensor_origin : ndarray, shape (3,), or None
@@ -208,6 +211,10 @@ def xyz_from_columns(x: NDArray, y: NDArray, z: NDArray) -> NDArray[np.float64]:
     -------
     ndarray, shape (n, 3), float64, C-contiguous
     """
+    view = xyz_view(x, y, z)
+    if view is not None:
+        with np.errstate(invalid="ignore"):  # signalling NaNs: see below
+            return view.astype(np.float64, order="C")
     points = np.empty((len(x), 3), dtype=np.float64)
     # Signalling NaNs in float32 data raise the "invalid" flag when widened: they are NaN rows
     # like any other (dropped and counted later), not an error.
@@ -216,6 +223,54 @@ def xyz_from_columns(x: NDArray, y: NDArray, z: NDArray) -> NDArray[np.float64]:
         points[:, 1] = y
         points[:, 2] = z
     return points
+
+
+def xyz_view(x: NDArray, y: NDArray, z: NDArray) -> NDArray | None:
+    """The three coordinate columns as one (n, 3) view, without copying, when the layout allows.
+
+    That is when they are 1-D views of the same buffer with the same dtype and stride, and y
+    and z follow x at equal distances: ``x y z`` side by side in each record of a PLY/PCD body
+    (packed or padded), or three consecutive column blocks (a compressed PCD body).
+
+    Returns
+    -------
+    ndarray, shape (n, 3), or None
+        A read-only view of the buffer; None when the layout differs.
+    """
+    columns = (x, y, z)
+    if not all(isinstance(c, np.ndarray) and c.ndim == 1 for c in columns):
+        return None
+    base = x.base
+    if (
+        base is None
+        or not all(c.base is base for c in columns)
+        or not (x.dtype == y.dtype == z.dtype)
+        or not (x.strides == y.strides == z.strides)
+        or not (len(x) == len(y) == len(z))
+        or x.dtype.kind not in "iuf"
+    ):
+        return None
+    address = x.__array_interface__["data"][0]
+    step = y.__array_interface__["data"][0] - address
+    if step < x.dtype.itemsize or z.__array_interface__["data"][0] - address != 2 * step:
+        return None
+    # Each column of the view is exactly one of x, y, z: it reads no byte they do not cover.
+    return np.lib.stride_tricks.as_strided(
+        x, shape=(len(x), 3), strides=(x.strides[0], step), writeable=False
+    )
+
+
+def xyz_points(x: NDArray, y: NDArray, z: NDArray) -> NDArray:
+    """The coordinates for a :class:`RawCloud`: :func:`xyz_view` when possible (no copy; the
+    float64 conversion then happens once, in :meth:`PointCloud.from_array`), else
+    :func:`xyz_from_columns`.
+
+    Returns
+    -------
+    ndarray, shape (n, 3)
+    """
+    view = xyz_view(x, y, z)
+    return view if view is not None else xyz_from_columns(x, y, z)
 
 
 def find_xyz_names(names: list[str] | tuple[str, ...], what: str) -> tuple[str, str, str]:

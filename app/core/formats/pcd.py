@@ -41,7 +41,7 @@ from app.core.formats._common import (
     has_nonzero_bytes,
     loadtxt_problem,
     owned,
-    xyz_from_columns,
+    xyz_points,
 )
 
 HEADER_LIMIT_BYTES = 64 * 1024
@@ -95,7 +95,7 @@ def read_pcd(source: Source, max_points: int | None) -> RawCloud:
     else:
         columns = _read_compressed(source, data_offset, metadata.points, dtype)
 
-    points = xyz_from_columns(columns[x_name], columns[y_name], columns[z_name])
+    points = xyz_points(columns[x_name], columns[y_name], columns[z_name])
     attributes: dict[str, NDArray] = {}
     for name, count in zip(metadata.fields, metadata.count, strict=True):
         if name in (x_name, y_name, z_name) or name.startswith(PADDING_PREFIXES):

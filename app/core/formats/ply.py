@@ -30,11 +30,13 @@ from app.core.formats._common import (
     has_nonzero_bytes,
     loadtxt_problem,
     structured_attributes,
-    xyz_from_columns,
+    xyz_points,
 )
 
 HEADER_LIMIT_BYTES = 1 << 20
 """Longest PLY header accepted (comments included)."""
+HEADER_PEEK_BYTES = 1 << 14
+"""Bytes tried first for the header (see :func:`_parse_header`)."""
 
 VERTEX_ELEMENT_NAMES = ("vertex", "vertices", "point", "points")
 
@@ -50,6 +52,56 @@ def read_ply(source: Source, max_points: int | None) -> RawCloud:
     """
     import plyfile
 
+    header, body_offset = _parse_header(source)
+
+    elements = list(header.elements)
+    vertex_position = _vertex_element_position(elements)
+    vertex = elements[vertex_position]
+    property_names = [prop.name for prop in vertex.properties]
+    x_name, y_name, z_name = find_xyz_names(property_names, f"the PLY {vertex.name!r} element")
+    has_lists = any(isinstance(prop, plyfile.PlyListProperty) for prop in vertex.properties)
+    for name in (x_name, y_name, z_name):
+        if isinstance(vertex.ply_property(name), plyfile.PlyListProperty):
+            raise PointCloudError(f"PLY property {name!r} is a list; x, y, z must be scalars")
+    check_point_count(vertex.count, max_points, "the PLY header")
+
+    if header.text:
+        data = _read_ascii_vertices(source, body_offset, elements, vertex_position, has_lists)
+    else:
+        data = _read_binary_vertices(
+            source, body_offset, elements, vertex_position, header.byte_order, has_lists
+        )
+    # List properties (rare on vertices) are dropped: attributes must be (n, ...) arrays.
+    scalar_fields = tuple(
+        prop.name for prop in vertex.properties if not isinstance(prop, plyfile.PlyListProperty)
+    )
+    points = xyz_points(data[x_name], data[y_name], data[z_name])
+    attributes = structured_attributes(
+        data[list(scalar_fields)] if has_lists else data, skip=(x_name, y_name, z_name)
+    )
+    return RawCloud(points, attributes)
+
+
+def _parse_header(source: Source):  # -> (plyfile.PlyData, int), plyfile imported lazily
+    """The header (plyfile's parse) and the offset of the body.
+
+    The first :data:`HEADER_PEEK_BYTES` suffice for nearly every file; only when the header
+    does not end within them is it parsed again from the first :data:`HEADER_LIMIT_BYTES`
+    (copying a megabyte of a memory-mapped file costs more than the whole header parse).
+    """
+    import plyfile
+
+    if source.size > HEADER_PEEK_BYTES:
+        peek = source.head(HEADER_PEEK_BYTES)
+        if peek.startswith(b"ply"):
+            stream = io.BytesIO(peek)
+            try:
+                header = plyfile.PlyData._parse_header(stream)
+            except Exception:  # any problem is reported from the full head below
+                pass
+            else:
+                if stream.tell() < len(peek):  # 'end_header' and its line end are in the peek
+                    return header, stream.tell()
     head = source.head(HEADER_LIMIT_BYTES)
     if not head.startswith(b"ply"):
         raise PointCloudError(
@@ -75,34 +127,7 @@ def read_ply(source: Source, max_points: int | None) -> RawCloud:
             f"malformed PLY header: byte {head[offset : offset + 1]!r} at offset {offset} is "
             "not ASCII; the header must be ASCII text"
         ) from exc
-    body_offset = header_stream.tell()
-
-    elements = list(header.elements)
-    vertex_position = _vertex_element_position(elements)
-    vertex = elements[vertex_position]
-    property_names = [prop.name for prop in vertex.properties]
-    x_name, y_name, z_name = find_xyz_names(property_names, f"the PLY {vertex.name!r} element")
-    has_lists = any(isinstance(prop, plyfile.PlyListProperty) for prop in vertex.properties)
-    for name in (x_name, y_name, z_name):
-        if isinstance(vertex.ply_property(name), plyfile.PlyListProperty):
-            raise PointCloudError(f"PLY property {name!r} is a list; x, y, z must be scalars")
-    check_point_count(vertex.count, max_points, "the PLY header")
-
-    if header.text:
-        data = _read_ascii_vertices(source, body_offset, elements, vertex_position, has_lists)
-    else:
-        data = _read_binary_vertices(
-            source, body_offset, elements, vertex_position, header.byte_order, has_lists
-        )
-    # List properties (rare on vertices) are dropped: attributes must be (n, ...) arrays.
-    scalar_fields = tuple(
-        prop.name for prop in vertex.properties if not isinstance(prop, plyfile.PlyListProperty)
-    )
-    points = xyz_from_columns(data[x_name], data[y_name], data[z_name])
-    attributes = structured_attributes(
-        data[list(scalar_fields)] if has_lists else data, skip=(x_name, y_name, z_name)
-    )
-    return RawCloud(points, attributes)
+    return header, header_stream.tell()
 
 
 def _vertex_element_position(elements: list) -> int:
