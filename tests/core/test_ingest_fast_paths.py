@@ -1,0 +1,333 @@
+"""The binary PLY/PCD ingest fast paths give exactly the clouds of the slow paths.
+
+Fast: the readers hand ``PointCloud.from_array`` an (n, 3) view of the file's records
+(``xyz_points``), which converts it to float64 block by block and checks finiteness on the way
+(``dot`` per block, row-by-row check only when that fails). Slow: ``xyz_from_columns`` fills a
+float64 array column by column and ``from_array`` then checks it. Both must agree bit for bit
+on points, dropped rows, source_index and attributes, for every layout and byte order.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import pickle
+
+import numpy as np
+import plyfile
+import pytest
+
+from app.core import cloud as cloud_module
+from app.core.cloud import PointCloud
+from app.core.errors import PointCloudError
+from app.core.formats import pcd, ply, read_point_cloud
+from app.core.formats._common import open_source, xyz_from_columns, xyz_view
+
+N_POINTS = 257  # not a multiple of the (patched) block size: the last block is partial
+
+
+@pytest.fixture(autouse=True)
+def _small_blocks(monkeypatch):
+    """Many blocks, including a partial last one, even for small test clouds."""
+    monkeypatch.setattr(cloud_module, "CHECK_BLOCK_POINTS", 16)
+
+
+def _values(n: int = N_POINTS, seed: int = 0, with_non_finite: bool = True) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    values = rng.uniform(-1000.0, 1000.0, size=(n, 3))
+    if with_non_finite:
+        values[3, 0] = np.nan
+        values[40, 2] = np.inf
+        values[41, 1] = -np.inf
+        values[n - 1] = np.nan  # in the partial last block
+    return values
+
+
+def _structured(layout: list[tuple[str, str]], values: np.ndarray) -> np.ndarray:
+    records = np.zeros(len(values), dtype=layout)
+    for axis, name in enumerate("xyz"):
+        records[name] = values[:, axis]
+    for name, _ in layout:
+        if name not in "xyz":
+            records[name] = np.arange(len(values)) % 7 + 1
+    return records
+
+
+def _assert_same_cloud(fast: PointCloud, slow: PointCloud) -> None:
+    assert fast.points.dtype == np.float64 and fast.points.flags.c_contiguous
+    assert fast.points.flags.owndata and fast.points.flags.writeable
+    np.testing.assert_array_equal(fast.points, slow.points)
+    assert fast.n_source == slow.n_source and fast.n_dropped == slow.n_dropped
+    np.testing.assert_array_equal(fast.source_index, slow.source_index)
+    assert fast.attributes.keys() == slow.attributes.keys()
+    for name, values in slow.attributes.items():
+        assert fast.attributes[name].dtype == values.dtype
+        np.testing.assert_array_equal(fast.attributes[name], values)
+    if slow.sensor_origin is None:
+        assert fast.sensor_origin is None
+    else:
+        np.testing.assert_array_equal(fast.sensor_origin, slow.sensor_origin)
+
+
+def _fast_and_slow(monkeypatch, module, content: bytes, filename: str):
+    fast = read_point_cloud(content, filename=filename)
+    with monkeypatch.context() as patch:
+        patch.setattr(module, "xyz_points", xyz_from_columns)
+        slow = read_point_cloud(content, filename=filename)
+    return fast, slow
+
+
+PLY_LAYOUTS = {
+    "f4 packed": [("x", "f4"), ("y", "f4"), ("z", "f4")],
+    "f8 packed": [("x", "f8"), ("y", "f8"), ("z", "f8")],
+    "property before": [("intensity", "u2"), ("x", "f4"), ("y", "f4"), ("z", "f4")],
+    "properties around": [("a", "u1"), ("x", "f4"), ("y", "f4"), ("z", "f4"), ("b", "f8")],
+    "property between": [("x", "f4"), ("y", "f4"), ("nx", "f4"), ("z", "f4")],
+    "z y x": [("z", "f4"), ("y", "f4"), ("x", "f4")],
+    "mixed types": [("x", "f8"), ("y", "f4"), ("z", "f4")],
+    "int32": [("x", "i4"), ("y", "i4"), ("z", "i4")],
+}
+
+
+@pytest.mark.parametrize("layout", PLY_LAYOUTS, ids=list(PLY_LAYOUTS))
+@pytest.mark.parametrize("byte_order", ["<", ">"])
+@pytest.mark.parametrize("comment", ["", "c", "ab", "abc", "abcdefg"])  # body alignment 0..7
+def test_binary_ply_fast_path_equals_slow_path(monkeypatch, layout, byte_order, comment):
+    integer = PLY_LAYOUTS[layout][0][1] == "i4"
+    values = np.round(_values(with_non_finite=not integer))
+    records = _structured(PLY_LAYOUTS[layout], values)
+    data = plyfile.PlyData(
+        [plyfile.PlyElement.describe(records, "vertex")],
+        text=False,
+        byte_order=byte_order,
+        comments=[comment] if comment else [],
+    )
+    stream = io.BytesIO()
+    data.write(stream)
+    fast, slow = _fast_and_slow(monkeypatch, ply, stream.getvalue(), "cloud.ply")
+    _assert_same_cloud(fast, slow)
+    finite = np.isfinite(values).all(axis=1)
+    expected = np.column_stack([records[name].astype(np.float64) for name in "xyz"])[finite]
+    np.testing.assert_array_equal(fast.points, expected)
+    assert fast.n_dropped == (0 if integer else 4)
+
+
+def _pcd_bytes(records: np.ndarray, fields: list[tuple[str, str, int, int]], encoding: str):
+    """A PCD file; ``fields`` lists (name, TYPE, SIZE, COUNT) in record order."""
+    header = (
+        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n"
+        f"FIELDS {' '.join(f[0] for f in fields)}\n"
+        f"SIZE {' '.join(str(f[2]) for f in fields)}\n"
+        f"TYPE {' '.join(f[1] for f in fields)}\n"
+        f"COUNT {' '.join(str(f[3]) for f in fields)}\n"
+        f"WIDTH {len(records)}\nHEIGHT 1\nVIEWPOINT 1 2 3 1 0 0 0\n"
+        f"POINTS {len(records)}\nDATA {encoding}\n"
+    )
+    if encoding == "binary":
+        return header.encode() + records.tobytes()
+    import lzf
+
+    columns = b"".join(
+        np.ascontiguousarray(records[name]).tobytes() for name in records.dtype.names
+    )
+    compressed = lzf.compress(columns, 2 * len(columns) + 64)
+    return header.encode() + np.array([len(compressed), len(columns)], "<u4").tobytes() + compressed
+
+
+PCD_LAYOUTS = {
+    "f4 packed": [("x", "F", 4, 1), ("y", "F", 4, 1), ("z", "F", 4, 1)],
+    "f8 packed": [("x", "F", 8, 1), ("y", "F", 8, 1), ("z", "F", 8, 1)],
+    "padding and rgb": [
+        ("x", "F", 4, 1),
+        ("y", "F", 4, 1),
+        ("z", "F", 4, 1),
+        ("_", "U", 1, 4),
+        ("rgb", "F", 4, 1),
+    ],
+    "count > 1 before": [("hist", "F", 4, 3), ("x", "F", 4, 1), ("y", "F", 4, 1), ("z", "F", 4, 1)],
+    "field between": [
+        ("x", "F", 4, 1),
+        ("intensity", "U", 2, 1),
+        ("y", "F", 4, 1),
+        ("z", "F", 4, 1),
+    ],
+}
+
+
+def _pcd_records(fields, values):
+    kinds = {"F": "f", "U": "u", "I": "i"}
+    layout = [
+        (name, f"<{kinds[type_code]}{size}", (count,))
+        if count > 1
+        else (name, f"<{kinds[type_code]}{size}")
+        for name, type_code, size, count in fields
+    ]
+    records = np.zeros(len(values), dtype=layout)
+    for axis, name in enumerate("xyz"):
+        records[name] = values[:, axis]
+    for name, *_ in fields:
+        if name not in "xyz":
+            records[name] = (np.arange(len(values)) % 5 + 1).reshape(
+                (-1,) + (1,) * (records[name].ndim - 1)
+            )
+    return records
+
+
+@pytest.mark.parametrize("layout", PCD_LAYOUTS, ids=list(PCD_LAYOUTS))
+@pytest.mark.parametrize("encoding", ["binary", "binary_compressed"])
+def test_pcd_fast_path_equals_slow_path(monkeypatch, layout, encoding):
+    values = _values()
+    content = _pcd_bytes(_pcd_records(PCD_LAYOUTS[layout], values), PCD_LAYOUTS[layout], encoding)
+    fast, slow = _fast_and_slow(monkeypatch, pcd, content, "cloud.pcd")
+    _assert_same_cloud(fast, slow)
+    assert fast.n_dropped == 4
+    np.testing.assert_array_equal(fast.sensor_origin, [1.0, 2.0, 3.0])
+    assert "_" not in fast.attributes and not any(k.startswith("#") for k in fast.attributes)
+
+
+def test_xyz_view_only_for_equally_spaced_columns_of_one_buffer():
+    records = np.zeros(5, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("w", "<f4")])
+    view = xyz_view(records["x"], records["y"], records["z"])
+    assert view is not None and view.shape == (5, 3) and not view.flags.writeable
+    assert np.shares_memory(view, records)
+    assert xyz_view(records["x"], records["y"], records["w"]) is None  # uneven spacing
+    assert xyz_view(records["z"], records["y"], records["x"]) is None  # backwards
+    assert xyz_view(records["x"], records["y"], records["z"].copy()) is None  # two buffers
+    assert xyz_view(np.zeros(5), np.zeros(5), np.zeros(5)) is None
+    mixed = np.zeros(5, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<i4")])
+    assert xyz_view(mixed["x"], mixed["y"], mixed["z"]) is None
+
+
+@pytest.mark.parametrize("dtype", ["<f4", ">f4", "<f8", ">f8", "<i4", "<u2", "<f2"])
+@pytest.mark.parametrize("aligned", [True, False])
+def test_from_array_converts_any_view_like_a_float64_copy(dtype, aligned):
+    values = _values(with_non_finite=np.dtype(dtype).kind == "f")
+    raw = values.astype(dtype)
+    buffer = (b"" if aligned else b"\x00") + raw.tobytes()
+    view = np.frombuffer(buffer, dtype=dtype, offset=0 if aligned else 1).reshape(-1, 3)
+    assert view.flags.aligned == aligned or np.dtype(dtype).itemsize == 1
+    fast = PointCloud.from_array(view, attributes={"i": np.arange(len(view))})
+    slow = PointCloud.from_array(
+        np.array(raw, dtype=np.float64), attributes={"i": np.arange(len(view))}
+    )
+    _assert_same_cloud(fast, slow)
+    assert not np.shares_memory(fast.points, view)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_huge_finite_values_are_kept(dtype):
+    """dot(v, v) overflows to inf for huge values: the row check then keeps every row."""
+    big = np.finfo(dtype).max / 4
+    values = np.full((40, 3), big, dtype=dtype)
+    values[::2] *= -1
+    cloud = PointCloud.from_array(values)
+    assert len(cloud) == 40 and cloud.n_dropped == 0
+    np.testing.assert_array_equal(cloud.points, values.astype(np.float64))
+
+
+def test_signalling_nan_rows_are_dropped_silently():
+    values = np.ones((20, 3), dtype=np.float32)
+    values.view(np.uint32)[5, 1] = 0x7F800001  # signalling NaN
+    with np.errstate(all="raise"):
+        cloud = PointCloud.from_array(values.copy())
+        view_cloud = PointCloud.from_array(np.frombuffer(values.tobytes(), "<f4").reshape(-1, 3))
+    assert cloud.n_dropped == view_cloud.n_dropped == 1
+    assert 5 not in view_cloud.source_index
+
+
+def test_all_non_finite_and_too_few_points_give_the_same_errors():
+    with pytest.raises(PointCloudError, match="none of the 30 points"):
+        PointCloud.from_array(
+            np.frombuffer(np.full(90, np.nan, "<f4").tobytes(), "<f4").reshape(-1, 3)
+        )
+    few = np.zeros((30, 3), dtype=np.float32)
+    few[5:] = np.nan
+    with pytest.raises(PointCloudError, match=r"only 5 finite points \(of 30\)"):
+        PointCloud.from_array(few)
+
+
+def test_owned_float64_points_are_not_copied_and_read_only_ones_are():
+    points = np.random.default_rng(1).uniform(size=(50, 3))
+    assert PointCloud.from_array(points).points is points
+    frozen = points.copy()
+    frozen.flags.writeable = False
+    kept = PointCloud.from_array(frozen).points
+    assert kept.flags.writeable and not np.shares_memory(kept, frozen)
+    np.testing.assert_array_equal(kept, frozen)
+
+
+def test_lazy_source_index_behaves_like_an_arange():
+    cloud = PointCloud.from_array(np.zeros((30, 3)))
+    labels = np.arange(30) * 2
+    np.testing.assert_array_equal(cloud.to_source_order(labels, fill=-1), labels)
+    np.testing.assert_array_equal(cloud.from_source_order(labels), labels)
+    assert cloud.from_source_order(labels) is not labels
+    np.testing.assert_array_equal(cloud.source_index, np.arange(30))
+    assert cloud.source_index.dtype == np.int64 and cloud.source_index is cloud.source_index
+    restored = pickle.loads(pickle.dumps(PointCloud.from_array(np.zeros((30, 3)))))
+    np.testing.assert_array_equal(restored.source_index, np.arange(30))
+    moved = dataclasses.replace(cloud, sensor_origin=np.ones(3))
+    np.testing.assert_array_equal(moved.source_index, np.arange(30))
+    explicit = PointCloud(np.zeros((3, 3)), np.array([0, 2, 5]), 6)
+    np.testing.assert_array_equal(explicit.source_index, [0, 2, 5])
+    assert explicit.to_source_order(np.array([1, 2, 3]), fill=0).tolist() == [1, 0, 2, 0, 0, 3]
+    with pytest.raises(TypeError):
+        PointCloud(np.zeros((3, 3)))  # source_index and n_source stay required
+
+
+def test_ply_header_longer_than_the_peek_or_ending_at_its_edge(tmp_path):
+    values = _values(with_non_finite=False)
+    records = _structured(PLY_LAYOUTS["f4 packed"], values)
+    element = plyfile.PlyElement.describe(records, "vertex")
+    plain = io.BytesIO()
+    plyfile.PlyData([element], text=False, byte_order="<").write(plain)
+    header_length = plain.getvalue().index(b"end_header\n") + len(b"end_header\n")
+    comment_line = len(b"comment \n")
+    for target in (
+        ply.HEADER_PEEK_BYTES - 1,
+        ply.HEADER_PEEK_BYTES,
+        ply.HEADER_PEEK_BYTES + 1,
+        3 * ply.HEADER_PEEK_BYTES,
+    ):
+        comment = "c" * (target - header_length - comment_line)
+        stream = io.BytesIO()
+        plyfile.PlyData([element], text=False, byte_order="<", comments=[comment]).write(stream)
+        content = stream.getvalue()
+        assert content.index(b"end_header\n") + len(b"end_header\n") == target
+        path = tmp_path / f"long_{target}.ply"
+        path.write_bytes(content)
+        cloud = read_point_cloud(path)
+        np.testing.assert_array_equal(cloud.points, values.astype(np.float32).astype(np.float64))
+
+
+@pytest.mark.parametrize(
+    ("build", "expect_view"),
+    [
+        (lambda: _ply_content("f4 packed", "<"), True),
+        (lambda: _ply_content("f8 packed", ">"), True),
+        (lambda: _ply_content("properties around", "<"), True),
+        (lambda: _ply_content("property between", "<"), False),
+        (lambda: _pcd_content("padding and rgb", "binary"), True),
+        (lambda: _pcd_content("count > 1 before", "binary_compressed"), True),
+        (lambda: _pcd_content("field between", "binary"), False),
+    ],
+)
+def test_readers_hand_over_a_view_when_the_layout_allows(build, expect_view):
+    content, reader = build()
+    with open_source(content) as source:
+        raw = reader(source, None)
+        assert (raw.points.dtype != np.float64 or not raw.points.flags.owndata) == expect_view
+        assert raw.points.shape == (N_POINTS, 3)
+
+
+def _ply_content(layout: str, byte_order: str):
+    records = _structured(PLY_LAYOUTS[layout], _values())
+    stream = io.BytesIO()
+    element = plyfile.PlyElement.describe(records, "vertex")
+    plyfile.PlyData([element], text=False, byte_order=byte_order).write(stream)
+    return stream.getvalue(), ply.read_ply
+
+
+def _pcd_content(layout: str, encoding: str):
+    fields = PCD_LAYOUTS[layout]
+    return _pcd_bytes(_pcd_records(fields, _values()), fields, encoding), pcd.read_pcd
