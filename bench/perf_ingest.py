@@ -1,8 +1,13 @@
 """Ingest speed of ``bench/perf.py``: ``read_point_cloud`` against ``numpy.fromfile``.
 
 The same ray-cast cloud is written as binary PLY, binary PCD and LAZ (millimetre scale); each
-file is read once to warm the page cache, then the best of ``repeats`` reads is kept for both
-``read_point_cloud`` and ``numpy.fromfile`` of the file's bytes (the floor: no parsing).
+file is read once to warm the page cache, then ``read_point_cloud`` and ``numpy.fromfile`` of the
+file's bytes (the floor: no parsing) are timed alternately, ``repeats`` times each (alternating
+keeps both under the same machine load). The share of the floor's speed uses the best times
+(the least disturbed); the median times and their share are reported too.
+
+The floor writes the file's bytes once; ``read_point_cloud`` must also widen float32
+coordinates to float64, i.e. write twice as many bytes (24 MB for 1M points) as the floor does.
 """
 
 from __future__ import annotations
@@ -39,16 +44,34 @@ def write_laz(path: Path, points: NDArray[np.float64]) -> None:
 
 def best_seconds(action: Callable[[], object], repeats: int) -> float:
     """Fastest of ``repeats`` timed calls of ``action``."""
+    return min(timed_seconds(action, repeats))
+
+
+def timed_seconds(action: Callable[[], object], repeats: int) -> list[float]:
+    """Seconds of each of ``repeats`` calls of ``action``."""
     timings = []
     for _ in range(repeats):
         started = time.perf_counter()
         action()
         timings.append(time.perf_counter() - started)
-    return min(timings)
+    return timings
+
+
+def alternate_seconds(
+    first: Callable[[], object], second: Callable[[], object], repeats: int
+) -> tuple[list[float], list[float]]:
+    """Seconds of ``repeats`` calls of each action, the two taking turns."""
+    first_times: list[float] = []
+    second_times: list[float] = []
+    for _ in range(repeats):
+        first_times += timed_seconds(first, 1)
+        second_times += timed_seconds(second, 1)
+    return first_times, second_times
 
 
 def measure_ingest(work_dir: Path, n_points: int, repeats: int = 3) -> dict[str, dict[str, Any]]:
-    """Per format: file size, read and fromfile seconds, share of fromfile speed, MB/s."""
+    """Per format: file size, read and fromfile seconds (best and median), share of fromfile
+    speed (best and median), MB/s and points/s (best)."""
     points = raycast_scene(n_points=n_points, change="none", random_state=SCENE_SEED).reference
     ingest_dir = work_dir / "ingest"
     ingest_dir.mkdir(parents=True, exist_ok=True)
@@ -60,16 +83,22 @@ def measure_ingest(work_dir: Path, n_points: int, repeats: int = 3) -> dict[str,
         cloud = read_point_cloud(path)  # warm the page cache and check the content
         if len(cloud) != len(points):
             raise RuntimeError(f"{name}: read {len(cloud)} of {len(points)} points")
-        read_seconds = best_seconds(lambda path=path: read_point_cloud(path), repeats)
-        fromfile_seconds = best_seconds(
-            lambda path=path: np.fromfile(path, dtype=np.uint8), repeats
+        read_times, fromfile_times = alternate_seconds(
+            lambda path=path: read_point_cloud(path),
+            lambda path=path: np.fromfile(path, dtype=np.uint8),
+            repeats,
         )
+        read_seconds, fromfile_seconds = min(read_times), min(fromfile_times)
+        read_median, fromfile_median = np.median(read_times), np.median(fromfile_times)
         megabytes = path.stat().st_size / 1e6
         results[name] = {
             "megabytes": megabytes,
             "read_seconds": read_seconds,
             "fromfile_seconds": fromfile_seconds,
             "share_of_fromfile": fromfile_seconds / read_seconds,
+            "read_seconds_median": float(read_median),
+            "fromfile_seconds_median": float(fromfile_median),
+            "share_of_fromfile_median": float(fromfile_median / read_median),
             "mb_per_second": megabytes / read_seconds,
             "points_per_second": len(points) / read_seconds,
         }
