@@ -34,6 +34,10 @@ ROW_ORDER = [
     "upload-limits-cap",
     "upload-limits-lying-length",
     "upload-limits-parallel-oversize",
+    "crash-recovery",
+    "worker-kills",
+    "sqlite-contention",
+    "load-script",
 ]
 
 
