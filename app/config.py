@@ -8,9 +8,25 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
+from typing import Any, Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+GIB = 1024**3
+DISABLED_WORDS = frozenset({"none", "null", "off", "unlimited"})
+"""Environment values that turn a cap off (as does 0 for the memory cap); empty = default."""
+
+
+def _none_when_disabled(value: Any, default: Any) -> Any:
+    """``"none"``, ``"off"``, ``"unlimited"`` (any case) as None, ``""`` as ``default``."""
+    if isinstance(value, str):
+        word = value.strip().lower()
+        if word in DISABLED_WORDS:
+            return None
+        if word == "":
+            return default
+    return value
 
 
 class Settings(BaseSettings):
@@ -35,8 +51,11 @@ class Settings(BaseSettings):
     job_heartbeat_seconds: float = Field(default=10.0, gt=0)
     job_max_attempts: int = Field(default=3, ge=1)
     recovery_interval_seconds: float = Field(default=60.0, gt=0)
-    job_memory_limit_bytes: int | None = Field(
-        default=None, description="RLIMIT_AS for a worker process running a job; None = no cap."
+    job_memory_limit_bytes: int | Literal["auto"] | None = Field(
+        default="auto",
+        description="RLIMIT_AS for a worker process running a job: 'auto' (derived from the "
+        "machine's memory and the number of workers where the consumer starts), bytes, or "
+        "0 / 'none' for no cap.",
     )
     max_concurrent_reads: int = Field(
         default=16, ge=1, description="GET requests in flight; more wait without a thread."
@@ -44,11 +63,50 @@ class Settings(BaseSettings):
     max_concurrent_writes: int = Field(
         default=8, ge=1, description="Other requests (uploads included) in flight."
     )
+    max_queued_jobs_per_organisation: int | None = Field(
+        default=1000,
+        ge=1,
+        description="Unfinished (queued or running) jobs an organisation may have; more is a "
+        "429. None / 'none' = unlimited.",
+    )
+    max_stored_bytes_per_organisation: int | None = Field(
+        default=50 * GIB,
+        ge=1,
+        description="Bytes of scan files an organisation may store; more is a 507. "
+        "None / 'none' = unlimited.",
+    )
     view_link_ttl_seconds: int = Field(default=24 * 3600, gt=0)
     secret_key: str | None = Field(
         default=None, description="Signs view links and cookies; generated in data_dir if unset."
     )
     log_level: str = "INFO"
+
+    @field_validator(
+        "max_queued_jobs_per_organisation", "max_stored_bytes_per_organisation", mode="before"
+    )
+    @classmethod
+    def _unlimited_words(cls, value: Any, info: ValidationInfo) -> Any:
+        return _none_when_disabled(value, cls.model_fields[str(info.field_name)].default)
+
+    @field_validator("job_memory_limit_bytes", mode="before")
+    @classmethod
+    def _memory_limit(cls, value: Any) -> Any:
+        value = _none_when_disabled(value, "auto")
+        if isinstance(value, str) and value.strip().lower() == "auto":
+            return "auto"
+        if value is not None and not isinstance(value, bool) and int(value) == 0:
+            return None
+        return value
+
+    @field_validator("job_memory_limit_bytes")
+    @classmethod
+    def _memory_limit_positive(cls, value: int | str | None) -> int | str | None:
+        if isinstance(value, int) and value < 0:
+            raise ValueError(
+                "job_memory_limit_bytes must be 'auto', a positive number of bytes, "
+                "or 0 / 'none' for no cap"
+            )
+        return value
 
     @field_validator("data_dir")
     @classmethod

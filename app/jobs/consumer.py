@@ -31,6 +31,7 @@ from huey.consumer import Consumer, ConsumerStopped
 from app.config import Settings, get_settings
 from app.db.session import get_engine
 from app.jobs import queue
+from app.jobs.execution import job_memory_limit
 from app.jobs.lifecycle import die_with_supervisor, set_parent_death_signal
 from app.jobs.recovery import recovery_sweep
 from app.log import configure_process_logging
@@ -46,6 +47,7 @@ QUEUE_POLL_MAX_DELAY_SECONDS = 1.0
 CONSUMER_HEARTBEAT_SECONDS = 5.0
 WORKER_PID_DIR = "run"
 WORKER_PID_PREFIX = "worker-"
+MEMORY_LIMIT_ENV = "SCANDIFF_JOB_MEMORY_LIMIT_BYTES"
 
 
 def worker_pid_dir(settings: Settings) -> Path:
@@ -168,6 +170,18 @@ def preload_pipeline() -> None:
     logger.info("pipeline preloaded", extra={"seconds": round(time.perf_counter() - started, 2)})
 
 
+def fix_job_memory_limit(settings: Settings, workers: int) -> Settings:
+    """Resolve an ``auto`` memory cap for ``workers`` here, once, for every worker to inherit.
+
+    The value is exported as ``SCANDIFF_JOB_MEMORY_LIMIT_BYTES`` (0 = no cap) before any worker
+    is forked, since workers read their settings from the environment.
+    """
+    limit = job_memory_limit(settings, workers)
+    os.environ[MEMORY_LIMIT_ENV] = str(limit or 0)
+    get_settings.cache_clear()
+    return settings.model_copy(update={"job_memory_limit_bytes": limit})
+
+
 def run_consumer(
     settings: Settings,
     workers: int | None = None,
@@ -177,6 +191,7 @@ def run_consumer(
     configure_process_logging(settings.log_level)
     preload_pipeline()
     workers = workers or settings.workers
+    settings = fix_job_memory_limit(settings, workers)
     huey = queue.get_huey(settings)
     install_worker_hooks(huey, settings)
     remove_stale_worker_pid_files(settings)
@@ -188,7 +203,11 @@ def run_consumer(
     os.register_at_fork(after_in_child=after_fork_in_child)
     logger.info(
         "job consumer starting",
-        extra={"workers": workers, "queue": queue.queue_backend(settings)},
+        extra={
+            "workers": workers,
+            "queue": queue.queue_backend(settings),
+            "job_memory_limit_bytes": settings.job_memory_limit_bytes,
+        },
     )
     consumer = ScandiffConsumer(huey, settings, workers, shutdown_grace_seconds)
     try:

@@ -8,8 +8,9 @@ The ``job`` table is the truth; a queue message only says "look at job X".  A wo
    job leased by a live worker changes nothing;
 2. keeps the lease alive from a **heartbeat** thread that also writes ``progress``/``stage``; if
    the lease was taken over, the job is abandoned at the next progress report and never stored;
-3. reads the scans and runs ``compare`` **outside any transaction**, under an optional
-   ``RLIMIT_AS`` cap;
+3. reads the scans and runs ``compare`` **outside any transaction**, under an ``RLIMIT_AS``
+   cap (by default derived from the machine's memory and the number of workers:
+   :func:`default_memory_limit`);
 4. writes ``results/<job_id>/labels.npz`` and ``details.npz`` **atomically** (temp, fsync,
    rename);
 5. stores score, decision, regions, registration and timings in **one short transaction**, only
@@ -43,7 +44,7 @@ from typing import Any
 import numpy as np
 from sqlalchemy import ColumnElement, and_, delete, or_, select, update
 
-from app.config import Settings
+from app.config import GIB, Settings
 from app.core.errors import InputError
 from app.core.jsonable import json_safe
 from app.db.models import Job, Region, Scan
@@ -341,6 +342,59 @@ class LeaseKeeper:
             self._stop.wait(MIN_HEARTBEAT_SPACING_SECONDS)
 
 
+MEMORY_SHARE = 0.75
+"""Share of the machine's memory the workers' caps add up to by default (the rest: the API,
+the consumer, the page cache)."""
+MEMORY_LIMIT_CEILING_BYTES = 8 * GIB
+"""Largest default cap: a 5M-point pair peaks at 4.1 GiB of address space (docs/jobs.md), the
+rest is room for the thread stacks and malloc arenas of BLAS threads on many-core machines."""
+MEMORY_LIMIT_FLOOR_BYTES = 1 * GIB
+"""Smallest default cap: an idle worker with the pipeline loaded already maps ~0.35 GiB."""
+_CGROUP_MEMORY_FILES = (
+    Path("/sys/fs/cgroup/memory.max"),  # cgroup v2
+    Path("/sys/fs/cgroup/memory/memory.limit_in_bytes"),  # cgroup v1
+)
+
+
+def cgroup_memory_limit() -> int | None:
+    """The memory limit of this process's container (cgroup), or None when there is none."""
+    for path in _CGROUP_MEMORY_FILES:
+        try:
+            text = path.read_text().strip()
+        except OSError:
+            continue
+        if text.isdigit() and int(text) < 2**60:  # v1 says "no limit" with a huge number
+            return int(text)
+    return None
+
+
+def machine_memory_bytes() -> int | None:
+    """Physical memory, or the container's memory limit when lower; None if unknown."""
+    try:
+        physical = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError):
+        physical = 0
+    limits = [value for value in (physical, cgroup_memory_limit()) if value and value > 0]
+    return min(limits) if limits else None
+
+
+def default_memory_limit(workers: int, memory_bytes: int | None = None) -> int | None:
+    """The default job cap: 75 % of the memory shared by ``workers``, within 1 to 8 GiB."""
+    memory = machine_memory_bytes() if memory_bytes is None else memory_bytes
+    if not memory:
+        return None
+    share = int(memory * MEMORY_SHARE / max(workers, 1))
+    return max(MEMORY_LIMIT_FLOOR_BYTES, min(MEMORY_LIMIT_CEILING_BYTES, share))
+
+
+def job_memory_limit(settings: Settings, workers: int | None = None) -> int | None:
+    """The ``RLIMIT_AS`` of a job in bytes: the setting, or the default when it is ``auto``."""
+    configured = settings.job_memory_limit_bytes
+    if configured == "auto":
+        return default_memory_limit(workers or settings.workers)
+    return configured if isinstance(configured, int) and configured > 0 else None
+
+
 @contextmanager
 def memory_limit(limit_bytes: int | None) -> Iterator[None]:
     """Cap this process's address space (RLIMIT_AS) at ``limit_bytes`` while inside."""
@@ -599,8 +653,9 @@ def execute_job(job_id: str, settings: Settings) -> str:
         return "skipped"
     keeper = LeaseKeeper(job, settings).start()
     started = time.perf_counter()
+    limit_bytes = job_memory_limit(settings)
     try:
-        with memory_limit(settings.job_memory_limit_bytes):
+        with memory_limit(limit_bytes):
             result, job_timings = compute(job, settings, keeper)
             keeper.report("writing", PROGRESS_COMPARED)
             write_started = time.perf_counter()
@@ -634,8 +689,8 @@ def execute_job(job_id: str, settings: Settings) -> str:
         keeper.stop()
         message = (
             f"out of memory: the job needs more than the worker's memory cap "
-            f"(SCANDIFF_JOB_MEMORY_LIMIT_BYTES={settings.job_memory_limit_bytes})"
-            if settings.job_memory_limit_bytes
+            f"(SCANDIFF_JOB_MEMORY_LIMIT_BYTES={limit_bytes})"
+            if limit_bytes
             else "out of memory"
         )
         return "failed" if fail_job(job, settings, message) else "lease-lost"
