@@ -35,7 +35,30 @@ _HTTP_CODES = {
     415: "unsupported_media_type",
     422: "validation_error",
     429: "too_many_requests",
+    507: "insufficient_storage",
 }
+
+
+QUEUED_JOBS_RESPONSE: dict[str, Any] = {
+    "model": ErrorRead,
+    "description": "The organisation has its cap of unfinished jobs "
+    "(SCANDIFF_MAX_QUEUED_JOBS_PER_ORGANISATION); nothing was stored. Retry after the "
+    "`Retry-After` seconds.",
+    "headers": {
+        "Retry-After": {
+            "description": "Seconds to wait before retrying.",
+            "schema": {"type": "integer"},
+        }
+    },
+}
+"""OpenAPI entry of the 429 of operations that create a job."""
+
+STORAGE_QUOTA_RESPONSE: dict[str, Any] = {
+    "model": ErrorRead,
+    "description": "The upload would pass the organisation's storage quota "
+    "(SCANDIFF_MAX_STORED_BYTES_PER_ORGANISATION); nothing was stored.",
+}
+"""OpenAPI entry of the 507 of uploads."""
 
 
 def error_response(
@@ -53,8 +76,10 @@ def request_id_of(request: Request) -> str | None:
 async def handle_app_error(request: Request, exc: Exception) -> JSONResponse:
     """Render a service error with its own status and code."""
     assert isinstance(exc, AppError)
-    headers = {"WWW-Authenticate": "Bearer"} if exc.status_code == 401 else None
-    return error_response(exc.status_code, exc.code, exc.detail, headers)
+    headers = dict(exc.headers)
+    if exc.status_code == 401:
+        headers["WWW-Authenticate"] = "Bearer"
+    return error_response(exc.status_code, exc.code, exc.detail, headers or None)
 
 
 async def handle_input_error(request: Request, exc: Exception) -> JSONResponse:

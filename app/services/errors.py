@@ -14,9 +14,12 @@ class AppError(Exception):
     status_code: int = 400
     code: str = "bad_request"
 
-    def __init__(self, detail: str, *, code: str | None = None) -> None:
+    def __init__(
+        self, detail: str, *, code: str | None = None, headers: dict[str, str] | None = None
+    ) -> None:
         super().__init__(detail)
         self.detail = detail
+        self.headers = dict(headers or {})
         if code is not None:
             self.code = code
 
@@ -75,3 +78,21 @@ class ValidationFailedError(AppError):
 
     status_code = 422
     code = "validation_error"
+
+
+class TooManyRequestsError(AppError):
+    """A per-organisation cap on work in progress is reached; retry later (429)."""
+
+    status_code = 429
+    code = "too_many_requests"
+
+    def __init__(self, detail: str, *, retry_after_seconds: int, code: str | None = None) -> None:
+        super().__init__(detail, code=code, headers={"Retry-After": str(retry_after_seconds)})
+        self.retry_after_seconds = retry_after_seconds
+
+
+class InsufficientStorageError(AppError):
+    """The organisation's storage quota cannot hold this (507)."""
+
+    status_code = 507
+    code = "insufficient_storage"

@@ -1,6 +1,8 @@
 """Comparison jobs: creation (enqueued after commit), reads, the site timeline and regions.
 
-The job row is the truth; the queue only carries its id.  A job is enqueued only after the
+The job row is the truth; the queue only carries its id.  Every job is created by
+:func:`new_job`, which first checks the organisation's cap on unfinished jobs (429, under the
+organisation lock of :mod:`app.services.quotas`).  A job is enqueued only after the
 transaction that created it committed (an enqueue that fails leaves the job ``queued`` for the
 recovery sweep).  Running jobs is the worker's business (:mod:`app.jobs`).
 """
@@ -17,7 +19,7 @@ from sqlalchemy.orm import Session
 
 from app.config import Settings
 from app.db.models import Job, Region, Scan
-from app.services import idempotency, sites
+from app.services import idempotency, quotas, sites
 from app.services.auth import Principal
 from app.services.errors import NotFoundError, ValidationFailedError
 from app.services.idempotency import StoredResponse
@@ -52,7 +54,9 @@ def new_job(
     variant: str,
     params: dict[str, Any],
 ) -> Job:
-    """Insert a queued job (parameters already validated) and enqueue it after commit."""
+    """Insert a queued job (parameters validated; 429 at the cap) and enqueue it after commit."""
+    quotas.lock_organisation(session, organisation_id)
+    quotas.check_queued_jobs(session, settings, organisation_id)
     job = Job(
         organisation_id=organisation_id,
         site_id=site_id,

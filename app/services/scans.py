@@ -1,10 +1,14 @@
 """Scans: uploads (stream, store, parse, then register), reads and downloads of the originals.
 
 An upload never holds a database transaction while it reads the body or parses the cloud:
-a short read checks the site first (404, 409 without a reference, 422 for a bad detector), the
-body streams to a temporary file under the size cap, the core reader parses it (a malformed file
-is a 4xx with the core's message, nothing is stored), the file is renamed into place, and only
-then a short write transaction inserts the scan and its job (and the idempotency record).
+a short read checks the site first (404, 409 without a reference, 422 for a bad detector) and
+the organisation's quotas (429 too many unfinished jobs, 507 when ``Content-Length`` alone would
+pass the storage cap), the body streams to a temporary file under the size cap and the storage
+left (507 as soon as it is passed), the quotas are checked again with the exact size, the core
+reader parses it (a malformed file is a 4xx with the core's message, nothing is stored), the file
+is renamed into place, and only then a short write transaction locks the organisation, checks
+the quotas a last time and inserts the scan and its job (and the idempotency record).  Any
+refusal leaves no row, and the file goes with the rolled-back transaction.
 """
 
 from __future__ import annotations
@@ -22,8 +26,8 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.config import Settings
-from app.db.models import Scan, new_id
-from app.services import idempotency, jobs, sites, storage
+from app.db.models import IdempotencyRecord, Scan, new_id
+from app.services import idempotency, jobs, quotas, sites, storage
 from app.services.auth import Principal
 from app.services.errors import ConflictError, NotFoundError, ValidationFailedError
 from app.services.idempotency import StoredResponse
@@ -46,6 +50,8 @@ class UploadOptions:
     variant: str | None = None
     idempotency_key: str | None = None
     sensor_origin: list[float] | None = None
+    declared_size: int | None = None
+    """The file's size when known before reading the body (a raw body's ``Content-Length``)."""
 
 
 class UploadBody(Protocol):
@@ -90,13 +96,62 @@ def no_reference_message(site_id: str) -> str:
     )
 
 
-def _check_upload_target(session: Session, principal: Principal, options: UploadOptions) -> None:
+def _key_was_used(session: Session, principal: Principal, key: str | None) -> bool:
+    """Whether ``key`` has a stored response (its retry must replay, never be refused)."""
+    if key is None:
+        return False
+    return (
+        session.scalar(
+            select(IdempotencyRecord.id).where(
+                IdempotencyRecord.organisation_id == principal.organisation_id,
+                IdempotencyRecord.key == key,
+            )
+        )
+        is not None
+    )
+
+
+def _check_upload_target(
+    session: Session, settings: Settings, principal: Principal, options: UploadOptions
+) -> int | None:
+    """Site, reference, detector and quotas before the body is read; the storage left."""
     site = sites.get_site(session, principal, options.site_id)
     if not options.reference:
         if site.reference_scan_id is None:
             raise ConflictError(no_reference_message(site.id), code="no_reference")
         sites.resolve_detector(site, options.method, options.variant)
+    remaining = None
+    if not _key_was_used(session, principal, options.idempotency_key):
+        if not options.reference:
+            quotas.check_queued_jobs(session, settings, principal.organisation_id)
+        quotas.check_stored_bytes(
+            session, settings, principal.organisation_id, options.declared_size
+        )
+        remaining = quotas.remaining_bytes(session, settings, principal.organisation_id)
     end_read_transaction(session)
+    return remaining
+
+
+def _check_quotas(
+    session: Session, settings: Settings, principal: Principal, options: UploadOptions, size: int
+) -> None:
+    """The quotas again, with the exact size, before the cloud is parsed (a read)."""
+    if not options.reference:
+        quotas.check_queued_jobs(session, settings, principal.organisation_id)
+    quotas.check_stored_bytes(session, settings, principal.organisation_id, size)
+    end_read_transaction(session)
+
+
+async def _within_storage_left(
+    chunks: AsyncIterator[bytes], remaining: int, cap: int
+) -> AsyncIterator[bytes]:
+    """``chunks``, or a 507 as soon as they pass the ``remaining`` bytes of the storage quota."""
+    received = 0
+    async for chunk in chunks:
+        received += len(chunk)
+        if received > remaining:
+            raise quotas.storage_error(cap - remaining, cap, remaining, at_least=True)
+        yield chunk
 
 
 def _find_replay(
@@ -163,6 +218,10 @@ def _register_upload(
         )
         if stored is not None:
             return stored, False
+    quotas.lock_organisation(session, principal.organisation_id)
+    quotas.check_stored_bytes(session, settings, principal.organisation_id, scan.size_bytes)
+    if not options.reference:
+        quotas.check_queued_jobs(session, settings, principal.organisation_id)
     site = sites.get_site(session, principal, options.site_id)
     if not options.reference and site.reference_scan_id is None:
         raise ConflictError(no_reference_message(site.id), code="no_reference")
@@ -204,8 +263,15 @@ async def upload_scan(
 ) -> StoredResponse:
     """Receive a scan: 201 when it becomes the reference, else 202 with its comparison job."""
     key = idempotency.validate_key(options.idempotency_key)
-    await anyio.to_thread.run_sync(_check_upload_target, session, principal, options)
-    received = await storage.receive_stream(body.chunks(), settings, settings.max_upload_bytes)
+    keyed_options = dataclasses.replace(options, idempotency_key=key)
+    remaining = await anyio.to_thread.run_sync(
+        _check_upload_target, session, settings, principal, keyed_options
+    )
+    chunks = body.chunks()
+    cap = settings.max_stored_bytes_per_organisation
+    if cap is not None and remaining is not None and remaining < settings.max_upload_bytes:
+        chunks = _within_storage_left(chunks, remaining, cap)
+    received = await storage.receive_stream(chunks, settings, settings.max_upload_bytes)
     try:
         filename = storage.sanitise_filename(options.filename or body.filename)
         fingerprint = idempotency.request_fingerprint(
@@ -226,6 +292,9 @@ async def upload_scan(
             )
             if stored is not None:
                 return stored
+        await anyio.to_thread.run_sync(
+            _check_quotas, session, settings, principal, keyed_options, received.size_bytes
+        )
         parsed = await anyio.to_thread.run_sync(
             parse_upload, received.path, filename, received.head, settings.max_points
         )
@@ -249,7 +318,6 @@ async def upload_scan(
             bbox_max=parsed.bbox_max,
             sensor_origin=options.sensor_origin or parsed.sensor_origin,
         )
-        keyed_options = dataclasses.replace(options, idempotency_key=key)
         response, created = await anyio.to_thread.run_sync(
             _register_upload, session, settings, principal, keyed_options, fingerprint, scan
         )

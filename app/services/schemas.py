@@ -257,3 +257,14 @@ class HealthRead(BaseModel):
     version: str
     database: dict[str, Any]
     queue: dict[str, Any]
+
+
+class OrganisationRead(BaseModel):
+    """The caller's organisation, its usage and its quotas (a null cap is unlimited)."""
+
+    id: str
+    name: str
+    queued_jobs: int = Field(description="Jobs not finished yet (queued or running).")
+    max_queued_jobs: int | None = Field(description="Cap on queued_jobs; more is a 429.")
+    stored_bytes: int = Field(description="Bytes of the organisation's scan files.")
+    max_stored_bytes: int | None = Field(description="Cap on stored_bytes; more is a 507.")

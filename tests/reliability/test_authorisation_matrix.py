@@ -96,6 +96,7 @@ OPERATIONS = [
     ),
     Operation("GET", "/api/v1/sites", "reader", 200, scoped=False),
     Operation("GET", "/api/v1/session", "reader", 200, scoped=False),
+    Operation("GET", "/api/v1/organisation", "reader", 200, scoped=False),
     Operation("GET", "/api/v1/sites/{site_id}", "reader", 200),
     Operation(
         "PATCH",

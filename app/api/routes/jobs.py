@@ -8,6 +8,7 @@ from fastapi import APIRouter, Header, Query
 from fastapi.responses import FileResponse, JSONResponse
 
 from app.api.deps import PrincipalDep, SessionDep, SettingsDep, WriterDep
+from app.api.errors import QUEUED_JOBS_RESPONSE
 from app.services import jobs as jobs_service
 from app.services import results as results_service
 from app.services.schemas import ErrorRead, JobCreate, JobRead, RegionRead
@@ -15,7 +16,9 @@ from app.services.schemas import ErrorRead, JobCreate, JobRead, RegionRead
 router = APIRouter(tags=["jobs"])
 
 
-@router.post("/jobs", status_code=202, response_model=JobRead)
+@router.post(
+    "/jobs", status_code=202, response_model=JobRead, responses={429: QUEUED_JOBS_RESPONSE}
+)
 def create_job(
     payload: JobCreate,
     session: SessionDep,

@@ -5,11 +5,12 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Header, Query, Response
+from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi.responses import JSONResponse
 
 from app.api.deps import PrincipalDep, SessionDep, SettingsDep, WriterDep
-from app.api.uploads import UploadBodyDep
+from app.api.errors import QUEUED_JOBS_RESPONSE, STORAGE_QUOTA_RESPONSE
+from app.api.uploads import RawBody, UploadBodyDep, declared_length
 from app.services import jobs as jobs_service
 from app.services import scans as scans_service
 from app.services import sites as sites_service
@@ -109,11 +110,14 @@ def promote_reference(
         409: {"model": ErrorRead, "description": "The site has no reference yet."},
         413: {"model": ErrorRead},
         415: {"model": ErrorRead},
+        429: QUEUED_JOBS_RESPONSE,
+        507: STORAGE_QUOTA_RESPONSE,
     },
     openapi_extra=UPLOAD_BODY_SCHEMA,
 )
 async def upload_scan(
     site_id: str,
+    request: Request,
     session: SessionDep,
     settings: SettingsDep,
     principal: WriterDep,
@@ -142,6 +146,7 @@ async def upload_scan(
         variant=variant,
         idempotency_key=idempotency_key,
         sensor_origin=scans_service.parse_sensor_origin(sensor_origin),
+        declared_size=declared_length(request) if isinstance(body, RawBody) else None,
     )
     stored = await scans_service.upload_scan(session, settings, principal, options, body)
     return JSONResponse(stored.body, status_code=stored.status_code)

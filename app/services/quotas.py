@@ -1,0 +1,157 @@
+"""Per-organisation quotas: unfinished jobs (429) and stored scan bytes (507), and their usage.
+
+*Queued jobs* are an organisation's jobs that have not finished (``queued`` or ``running``);
+*stored bytes* are the sizes of its scan files as uploaded (``scan.size_bytes``).  Result files
+(labels, PLY/LAS exports) are not counted: they are derived from the scans, bounded by them and
+deleted with them.
+
+The authoritative checks run inside the write transaction that inserts the scan or the job, after
+:func:`lock_organisation`: on SQLite that transaction is ``BEGIN IMMEDIATE`` (writers take turns),
+on PostgreSQL the organisation row is locked ``FOR UPDATE``, so two concurrent uploads of one
+organisation cannot both pass the check with the same usage.  Earlier checks (before a body is
+read, after it streamed) are optimisations that refuse sooner; they never replace the last one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from app.config import Settings
+from app.db.models import Job, Organisation, Scan
+from app.services.errors import InsufficientStorageError, NotFoundError, TooManyRequestsError
+
+UNFINISHED_JOB_STATUSES = ("queued", "running")
+RETRY_AFTER_SECONDS = 30
+"""``Retry-After`` of a 429: jobs take seconds to minutes, a fleet should back off that long."""
+ORGANISATION_PATH = "/api/v1/organisation"
+
+
+@dataclass(frozen=True)
+class Usage:
+    """An organisation's usage and caps (None = unlimited)."""
+
+    organisation_id: str
+    name: str
+    queued_jobs: int
+    max_queued_jobs: int | None
+    stored_bytes: int
+    max_stored_bytes: int | None
+
+
+def lock_organisation(session: Session, organisation_id: str) -> None:
+    """Serialise quota checks of one organisation until the transaction ends.
+
+    ``SELECT ... FOR UPDATE`` of the organisation row on PostgreSQL; SQLite has no row locks and
+    needs none (its write transactions are ``BEGIN IMMEDIATE``, one at a time).
+    """
+    session.execute(
+        select(Organisation.id).where(Organisation.id == organisation_id).with_for_update()
+    )
+
+
+def queued_jobs(session: Session, organisation_id: str) -> int:
+    """The organisation's jobs that have not finished (queued or running)."""
+    count = session.scalar(
+        select(func.count())
+        .select_from(Job)
+        .where(Job.organisation_id == organisation_id, Job.status.in_(UNFINISHED_JOB_STATUSES))
+    )
+    return int(count or 0)
+
+
+def stored_bytes(session: Session, organisation_id: str) -> int:
+    """Bytes of the organisation's scan files."""
+    total = session.scalar(
+        select(func.coalesce(func.sum(Scan.size_bytes), 0)).where(
+            Scan.organisation_id == organisation_id
+        )
+    )
+    return int(total or 0)
+
+
+def queued_jobs_message(queued: int, cap: int) -> str:
+    """The 429 message: how many, the cap, what to do."""
+    return (
+        f"the organisation has {queued} unfinished jobs (queued or running) and the cap is {cap} "
+        f"(SCANDIFF_MAX_QUEUED_JOBS_PER_ORGANISATION): nothing was stored; wait for jobs to "
+        f"finish and retry after {RETRY_AFTER_SECONDS} s (GET {ORGANISATION_PATH} shows the "
+        f"count)"
+    )
+
+
+def storage_message(used: int, cap: int, adding: int | None, *, at_least: bool = False) -> str:
+    """The 507 message: usage, the upload (``at_least`` while it streams), the cap, what to do."""
+    if adding is None:
+        upload = ""
+    else:
+        upload = f", this upload adds {'more than ' if at_least else ''}{adding}"
+    return (
+        f"storage quota exceeded: the organisation stores {used} bytes of scans{upload} and "
+        f"the cap is {cap} (SCANDIFF_MAX_STORED_BYTES_PER_ORGANISATION), "
+        f"{max(cap - used, 0)} bytes left: nothing was stored; free space by deleting sites "
+        f"you no longer need (DELETE /api/v1/sites/{{site_id}} removes their scans and "
+        f"results), then retry (GET {ORGANISATION_PATH} shows the usage)"
+    )
+
+
+def check_queued_jobs(
+    session: Session, settings: Settings, organisation_id: str, adding: int = 1
+) -> None:
+    """429 when ``adding`` more jobs would pass the organisation's cap on unfinished jobs."""
+    cap = settings.max_queued_jobs_per_organisation
+    if cap is None:
+        return
+    queued = queued_jobs(session, organisation_id)
+    if queued + adding > cap:
+        raise TooManyRequestsError(
+            queued_jobs_message(queued, cap),
+            retry_after_seconds=RETRY_AFTER_SECONDS,
+            code="too_many_queued_jobs",
+        )
+
+
+def storage_error(
+    used: int, cap: int, adding: int | None, *, at_least: bool = False
+) -> InsufficientStorageError:
+    """The 507 for an upload of ``adding`` bytes (None: of unknown size)."""
+    return InsufficientStorageError(
+        storage_message(used, cap, adding, at_least=at_least), code="storage_quota_exceeded"
+    )
+
+
+def check_stored_bytes(
+    session: Session, settings: Settings, organisation_id: str, adding: int | None
+) -> None:
+    """507 when ``adding`` bytes more (None: any upload, at least 1 byte) pass the cap."""
+    cap = settings.max_stored_bytes_per_organisation
+    if cap is None:
+        return
+    used = stored_bytes(session, organisation_id)
+    if used + (1 if adding is None else adding) > cap:
+        raise storage_error(used, cap, adding)
+
+
+def remaining_bytes(session: Session, settings: Settings, organisation_id: str) -> int | None:
+    """Bytes the organisation may still store (None = unlimited); a hint, not a reservation."""
+    cap = settings.max_stored_bytes_per_organisation
+    if cap is None:
+        return None
+    return max(cap - stored_bytes(session, organisation_id), 0)
+
+
+def organisation_usage(session: Session, settings: Settings, organisation_id: str) -> Usage:
+    """The organisation's queued jobs and stored bytes with their caps."""
+    organisation = session.get(Organisation, organisation_id)
+    if organisation is None:
+        raise NotFoundError(f"organisation {organisation_id} not found")
+    return Usage(
+        organisation_id=organisation.id,
+        name=organisation.name,
+        queued_jobs=queued_jobs(session, organisation_id),
+        max_queued_jobs=settings.max_queued_jobs_per_organisation,
+        stored_bytes=stored_bytes(session, organisation_id),
+        max_stored_bytes=settings.max_stored_bytes_per_organisation,
+    )
