@@ -331,3 +331,33 @@ def _ply_content(layout: str, byte_order: str):
 def _pcd_content(layout: str, encoding: str):
     fields = PCD_LAYOUTS[layout]
     return _pcd_bytes(_pcd_records(fields, _values()), fields, encoding), pcd.read_pcd
+
+
+@pytest.mark.parametrize("n", [1, 255, 256, 257, 1000, 5 * 256])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, np.int32])
+def test_column_extreme_equals_the_plain_reduction(n, dtype):
+    points = (np.random.default_rng(n).normal(size=(n, 3)) * 1000).astype(dtype)
+    for ufunc in (np.minimum, np.maximum):
+        np.testing.assert_array_equal(
+            cloud_module.column_extreme(points, ufunc), ufunc.reduce(points, axis=0)
+        )
+        strided = np.asfortranarray(points)
+        np.testing.assert_array_equal(
+            cloud_module.column_extreme(strided, ufunc), ufunc.reduce(points, axis=0)
+        )
+    if dtype is not np.int32:
+        points[n // 2, 1] = np.nan
+        low = cloud_module.column_extreme(points, np.minimum)
+        assert np.isnan(low[1]) and not np.isnan(low[[0, 2]]).any()
+    with pytest.raises(ValueError, match="zero-size"):
+        cloud_module.column_extreme(points[:0], np.minimum)
+
+
+def test_bounds_and_local_origin_use_the_fast_extremes():
+    points = np.random.default_rng(2).uniform(-5, 5, size=(1000, 3)) + np.array([5e5, 5e6, 100.0])
+    cloud = PointCloud.from_array(points)
+    low, high = cloud.bounds()
+    np.testing.assert_array_equal(low, points.min(axis=0))
+    np.testing.assert_array_equal(high, points.max(axis=0))
+    centre = (points.min(axis=0) + points.max(axis=0)) / 2
+    np.testing.assert_array_equal(cloud_module.choose_local_origin(points), np.round(centre))
