@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from plyfile import PlyData, PlyElement
 from scipy.spatial import cKDTree
 
+from app.core.allocator import release_freed_memory_promptly
 from app.core.formats import read_point_cloud
 from app.core.pipeline import LABEL_CHANGED, compare
 from app.core.synthetic import raycast_scene
@@ -88,6 +89,7 @@ def _load_pair(scene_dir: Path) -> tuple[Any, Any, float]:
 
 def pipeline_worker(scene_dir: Path, *, method: str, **_: Any) -> dict[str, Any]:
     """Load both PLY files and run ``compare()``; stage times, peak RSS, IoU."""
+    release_freed_memory_promptly()  # as the CLI and the job workers do
     truth = np.load(scene_dir / "truth.npz")
     reference, scan, load_seconds = _load_pair(scene_dir)
     started = time.perf_counter()

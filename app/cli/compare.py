@@ -155,9 +155,11 @@ def _export(path: Path, reference: PointCloud, scan: PointCloud, result: Compari
 
 def run(args: argparse.Namespace) -> int:
     """Run one comparison; exit status 0, or 2 on bad input."""
+    from app.core.allocator import release_freed_memory_promptly
     from app.core.formats import read_point_cloud
     from app.core.pipeline import compare
 
+    release_freed_memory_promptly()
     try:
         for path in (args.reference, args.scan):
             if not path.is_file():

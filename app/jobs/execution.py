@@ -498,9 +498,11 @@ def compute(
     job: ClaimedJob, settings: Settings, keeper: LeaseKeeper
 ) -> tuple[Any, dict[str, float]]:
     """Read both scans and run ``compare``; the result and this job's own timings."""
+    from app.core.allocator import release_freed_memory_promptly
     from app.core.formats import read_point_cloud
     from app.core.pipeline import compare
 
+    release_freed_memory_promptly()  # freed temporaries go back to the system: peak = live data
     apply_test_hooks(job, keeper)
     if job.reference_path is None or job.scan_path is None:
         raise InputError("the job's reference scan or scan no longer exists")

@@ -1,0 +1,54 @@
+"""glibc's mmap threshold is fixed, so freed large temporaries leave the resident set."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from app.core.allocator import release_freed_memory_promptly
+
+PROGRAM = textwrap.dedent(
+    """
+    import sys
+    import numpy as np
+    from app.core.allocator import release_freed_memory_promptly
+
+    if sys.argv[1] == "fixed":
+        assert release_freed_memory_promptly()
+
+    def resident_mb():
+        for line in open("/proc/self/status"):
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+
+    # free one 8 MB array (glibc then raises its threshold to 8 MB), then allocate 50 arrays
+    # of 4 MB with a small array after each (so the heap cannot shrink), and free the big ones
+    np.ones(1_000_000).sum()
+    start = resident_mb()
+    blocks, keep = [], []
+    for _ in range(50):
+        blocks.append(np.ones(500_000))
+        keep.append(np.ones(1_000))  # 8 kB: from malloc, not a small-object pool
+    del blocks
+    print(resident_mb() - start)
+    """
+)
+
+
+def retained_megabytes(mode: str) -> float:
+    completed = subprocess.run(
+        [sys.executable, "-c", PROGRAM, mode], capture_output=True, text=True, check=True
+    )
+    return float(completed.stdout.strip())
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt: Linux only")
+def test_fixed_threshold_returns_freed_arrays_to_the_system() -> None:
+    assert release_freed_memory_promptly()
+    default = retained_megabytes("default")
+    fixed = retained_megabytes("fixed")
+    assert fixed < 20, f"{fixed:.0f} MB still resident after freeing with the fixed threshold"
+    assert default > 100, f"the default kept only {default:.0f} MB: the test shows nothing"
