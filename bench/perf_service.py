@@ -4,13 +4,26 @@
   a site that already has its reference; the clock runs from the start of the POST until a poll
   of ``GET /api/v1/jobs/{id}`` (every 20 ms) sees ``succeeded``.
 * ``GET /api/v1/jobs/{id}`` against ``GET /api/v1/health``: 32 client threads, each with its own
-  keep-alive ``httpx.Client``, for a bounded time and request count per endpoint.
+  keep-alive ``httpx.Client``, for a bounded time and request count per endpoint.  The two
+  endpoints take turns (``LOAD_ROUNDS`` windows each, alternating), so a neighbour's burst on a
+  shared machine slows both alike instead of only the one measured at that moment.
+* Job throughput (:func:`measure_throughput`): ``workers`` job workers kept busy for
+  ``duration_seconds`` by a feeder that keeps at least ``workers`` jobs queued; jobs finished
+  in the window per hour, job run time (``started_at`` to ``finished_at``) and queue wait
+  (``created_at`` to ``started_at``; long by construction, the feeder keeps a backlog).
+
+Run alone: ``.venv/bin/python -m bench.perf_service [--quick] [--throughput-only]``.
 """
 
 from __future__ import annotations
 
+import argparse
+import json
+import os
+import tempfile
 import threading
 import time
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +41,12 @@ POLL_SECONDS = 0.02
 JOB_TIMEOUT_SECONDS = 120.0
 LATENCY_REPEATS = 3
 """Scans uploaded one after another; the median latency is reported."""
+LOAD_ROUNDS = 5
+"""Alternating windows per endpoint in the status-vs-health load test."""
+THROUGHPUT_SECONDS = 300.0
+THROUGHPUT_QUICK_SECONDS = 60.0
+THROUGHPUT_WORKERS = 2
+THROUGHPUT_POLL_SECONDS = 0.5
 
 
 def time_one_comparison(
@@ -60,10 +79,69 @@ def load_test(
     base_url: str, path: str, headers: dict[str, str], seconds: float, clients: int
 ) -> dict[str, Any]:
     """``clients`` threads GET ``path`` until ``seconds`` pass; rate and latency quantiles."""
+    latencies, errors, elapsed = _load_window(base_url, path, headers, seconds, clients)
+    return _load_summary(clients, [latencies], [elapsed], errors)
+
+
+def _load_summary(
+    clients: int, latencies: list[np.ndarray], elapsed: list[float], errors: int
+) -> dict[str, Any]:
+    all_latencies = np.concatenate(latencies)
+    return {
+        "clients": clients,
+        "requests": int(all_latencies.size),
+        "rps": all_latencies.size / sum(elapsed),
+        "p50_ms": float(np.percentile(all_latencies, 50) * 1000),
+        "p99_ms": float(np.percentile(all_latencies, 99) * 1000),
+        "errors": errors,
+    }
+
+
+def compare_load(
+    base_url: str,
+    paths: dict[str, str],
+    headers: dict[str, str],
+    seconds: float,
+    clients: int,
+    rounds: int = LOAD_ROUNDS,
+) -> dict[str, Any]:
+    """:func:`load_test` of each of ``paths`` for ``seconds`` in all, in alternating windows.
+
+    ``{name: summary}`` plus ``"round_rps"``: each window's requests/s per name, in order.
+    """
+    latencies: dict[str, list[np.ndarray]] = {name: [] for name in paths}
+    elapsed: dict[str, list[float]] = {name: [] for name in paths}
+    errors = dict.fromkeys(paths, 0)
+    rounds = max(1, min(rounds, int(seconds)))  # windows of at least a second
+    for _ in range(rounds):
+        for name, path in paths.items():
+            window, window_errors, window_seconds = _load_window(
+                base_url, path, headers, seconds / rounds, clients
+            )
+            latencies[name].append(window)
+            elapsed[name].append(window_seconds)
+            errors[name] += window_errors
+    report: dict[str, Any] = {
+        name: _load_summary(clients, latencies[name], elapsed[name], errors[name]) for name in paths
+    }
+    report["round_rps"] = {
+        name: [round(w.size / e, 1) for w, e in zip(latencies[name], elapsed[name], strict=True)]
+        for name in paths
+    }
+    return report
+
+
+def _load_window(
+    base_url: str, path: str, headers: dict[str, str], seconds: float, clients: int
+) -> tuple[np.ndarray, int, float]:
+    """One window of :func:`load_test`: (latencies in s, errors, elapsed s)."""
     latencies: list[list[float]] = [[] for _ in range(clients)]
     errors = [0] * clients
-    start_barrier = threading.Barrier(clients + 1)
     deadline_holder: list[float] = []
+    # The clock starts once every client has its connection open (the barrier's action).
+    start_barrier = threading.Barrier(
+        clients + 1, action=lambda: deadline_holder.append(time.perf_counter() + seconds)
+    )
 
     def client_loop(index: int) -> None:
         with httpx.Client(base_url=base_url, headers=headers, timeout=30.0) as client:
@@ -85,21 +163,13 @@ def load_test(
     threads = [threading.Thread(target=client_loop, args=(i,)) for i in range(clients)]
     for thread in threads:
         thread.start()
-    deadline_holder.append(time.perf_counter() + seconds)
-    started = time.perf_counter()
     start_barrier.wait()
+    started = deadline_holder[0] - seconds
     for thread in threads:
         thread.join()
     elapsed = time.perf_counter() - started
-    all_latencies = np.concatenate([np.asarray(values) for values in latencies])
-    return {
-        "clients": clients,
-        "requests": int(all_latencies.size),
-        "rps": all_latencies.size / elapsed,
-        "p50_ms": float(np.percentile(all_latencies, 50) * 1000),
-        "p99_ms": float(np.percentile(all_latencies, 99) * 1000),
-        "errors": int(sum(errors)),
-    }
+    all_latencies = np.concatenate([np.asarray(values, dtype=float) for values in latencies])
+    return all_latencies, int(sum(errors)), elapsed
 
 
 def measure_service(work_dir: Path, load_seconds: float = 5.0) -> dict[str, Any]:
@@ -137,11 +207,12 @@ def measure_service(work_dir: Path, load_seconds: float = 5.0) -> dict[str, Any]
                 uploads.append(upload_seconds)
                 latencies.append(latency_seconds)
         headers = {"Authorization": f"Bearer {service.admin_token}"}
-        job_load = load_test(
-            service.base_url, f"/api/v1/jobs/{job_id}", headers, load_seconds, CONCURRENT_CLIENTS
-        )
-        health_load = load_test(
-            service.base_url, "/api/v1/health", headers, load_seconds, CONCURRENT_CLIENTS
+        load = compare_load(
+            service.base_url,
+            {"job": f"/api/v1/jobs/{job_id}", "health": "/api/v1/health"},
+            headers,
+            load_seconds,
+            CONCURRENT_CLIENTS,
         )
     except Exception as exc:  # a benchmark reports what failed instead of losing the run
         return {"error": f"{type(exc).__name__}: {exc}"}
@@ -153,6 +224,142 @@ def measure_service(work_dir: Path, load_seconds: float = 5.0) -> dict[str, Any]
         "upload_seconds": float(np.median(uploads)),
         "latency_seconds": float(np.median(latencies)),
         "latency_all_seconds": latencies,
-        "job": job_load,
-        "health": health_load,
+        "job": load["job"],
+        "health": load["health"],
+        "round_rps": load["round_rps"],
     }
+
+
+def _parse_time(value: str | None) -> datetime | None:
+    return datetime.fromisoformat(value.replace("Z", "+00:00")) if value else None
+
+
+def _upload(client: httpx.Client, scans_path: str, scan_bytes: bytes, filename: str) -> str:
+    response = client.post(
+        scans_path,
+        params={"filename": filename},
+        content=scan_bytes,
+        headers={"Content-Type": "application/octet-stream"},
+    )
+    response.raise_for_status()
+    return str(response.json()["job"]["id"])
+
+
+def measure_throughput(
+    work_dir: Path,
+    duration_seconds: float = THROUGHPUT_SECONDS,
+    workers: int = THROUGHPUT_WORKERS,
+    scan_points: int = SERVICE_POINTS,
+) -> dict[str, Any]:
+    """Jobs per hour with ``workers`` busy workers over ``duration_seconds`` (after a warm-up).
+
+    A warm-up job per worker runs first (imports, caches), then the clock starts; the feeder
+    uploads a scan whenever fewer than ``workers`` of its jobs are ``queued``.  Counted: jobs
+    that finished inside the window.
+    """
+    pair = raycast_scene(n_points=scan_points, change="box", random_state=SCENE_SEED)
+    reference_path = work_dir / "throughput-reference.ply"
+    scan_path = work_dir / "throughput-scan.ply"
+    write_binary_ply(reference_path, pair.reference)
+    write_binary_ply(scan_path, pair.scan)
+    scan_bytes = scan_path.read_bytes()
+    service = ServiceProcess(work_dir / "throughput-data", workers=workers)
+    jobs: dict[str, dict[str, Any]] = {}
+    uploads: list[float] = []
+    try:
+        service.start()
+        service.wait_for_workers()
+        with service.client() as client:
+            response = client.post(
+                "/api/v1/sites",
+                json={"name": "throughput", "detector": {"method": "gmm", "variant": "improved"}},
+            )
+            response.raise_for_status()
+            scans_path = f"/api/v1/sites/{response.json()['id']}/scans"
+            response = client.post(
+                scans_path,
+                params={"reference": "true", "filename": "reference.ply"},
+                content=reference_path.read_bytes(),
+                headers={"Content-Type": "application/octet-stream"},
+            )
+            response.raise_for_status()
+            warm_up = [
+                _upload(client, scans_path, scan_bytes, f"warm-{i}.ply") for i in range(workers)
+            ]
+            for job_id in warm_up:
+                service.wait_for_job(client, job_id, timeout=JOB_TIMEOUT_SECONDS)
+            load_before = os.getloadavg()
+            window_start = time.time()
+            deadline = time.perf_counter() + duration_seconds
+            while time.perf_counter() < deadline:
+                for job_id, job in jobs.items():
+                    if job.get("status") not in ("succeeded", "failed"):
+                        jobs[job_id] = client.get(f"/api/v1/jobs/{job_id}").json()
+                queued = sum(1 for job in jobs.values() if job.get("status") == "queued")
+                for _ in range(workers - queued):
+                    started = time.perf_counter()
+                    job_id = _upload(client, scans_path, scan_bytes, f"scan-{len(jobs)}.ply")
+                    uploads.append(time.perf_counter() - started)
+                    jobs[job_id] = {"status": "queued"}
+                time.sleep(THROUGHPUT_POLL_SECONDS)
+            window_end = time.time()
+            load_after = os.getloadavg()
+            for job_id, job in jobs.items():  # final states: what finished before the end
+                if job.get("status") not in ("succeeded", "failed"):
+                    jobs[job_id] = client.get(f"/api/v1/jobs/{job_id}").json()
+    except Exception as exc:  # a benchmark reports what failed instead of losing the run
+        return {"error": f"{type(exc).__name__}: {exc}"}
+    finally:
+        if service.is_running():
+            service.stop()
+    run_seconds, wait_seconds, failed, finished = [], [], 0, 0
+    for job in jobs.values():
+        created, started, ended = (
+            _parse_time(job.get(key)) for key in ("created_at", "started_at", "finished_at")
+        )
+        if ended is None or not window_start <= ended.timestamp() <= window_end:
+            continue
+        finished += 1
+        failed += job["status"] == "failed"
+        if started is not None:
+            run_seconds.append((ended - started).total_seconds())
+            if created is not None:
+                wait_seconds.append((started - created).total_seconds())
+    window = window_end - window_start
+    return {
+        "workers": workers,
+        "points": scan_points,
+        "method": "gmm",
+        "window_seconds": window,
+        "submitted": len(jobs),
+        "finished": finished,
+        "failed": failed,
+        "jobs_per_hour": finished / window * 3600.0,
+        "run_median_seconds": float(np.median(run_seconds)) if run_seconds else None,
+        "run_p99_seconds": float(np.percentile(run_seconds, 99)) if run_seconds else None,
+        "queue_wait_median_seconds": float(np.median(wait_seconds)) if wait_seconds else None,
+        "upload_median_seconds": float(np.median(uploads)) if uploads else None,
+        "load_average": [round(load_before[0], 2), round(load_after[0], 2)],
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description="scandiff service figures (issue 6)")
+    parser.add_argument("--quick", action="store_true", help="2 s load, 60 s throughput")
+    parser.add_argument("--throughput-only", action="store_true")
+    parser.add_argument("--service-only", action="store_true", help="skip the throughput")
+    args = parser.parse_args()
+    report: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory(prefix="scandiff-perf-service-") as temporary:
+        work_dir = Path(temporary)
+        if not args.throughput_only:
+            report["service"] = measure_service(work_dir, load_seconds=2.0 if args.quick else 5.0)
+            print(json.dumps(report["service"], indent=1), flush=True)
+        if not args.service_only:
+            seconds = THROUGHPUT_QUICK_SECONDS if args.quick else THROUGHPUT_SECONDS
+            report["throughput"] = measure_throughput(work_dir, duration_seconds=seconds)
+            print(json.dumps(report["throughput"], indent=1), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -13,13 +13,34 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from functools import lru_cache
 
-from sqlalchemy import Engine, create_engine, event
+from sqlalchemy import Connection, Engine, create_engine, event
 from sqlalchemy.orm import Session, sessionmaker
 
 SQLITE_BUSY_TIMEOUT_MS = 60_000
 READ_ONLY_OPTION = "scandiff_read_only"
 """Execution option marking a session that only reads: on SQLite it opens a plain (deferred)
 transaction, which in WAL mode never waits for, nor blocks, writers."""
+
+
+_CHANGES_AT_BEGIN = "scandiff_changes_at_begin"
+
+
+def _total_changes(connection: Connection) -> int | None:
+    """Rows changed on this DBAPI connection since it opened (sqlite3), else None."""
+    return getattr(connection.connection.dbapi_connection, "total_changes", None)
+
+
+def read_transaction_wrote(session: Session) -> bool:
+    """Whether the open transaction of a read-only session changed rows (True if unsure).
+
+    False means ending it is free of I/O and lock waits (a deferred SQLite transaction that
+    only read), so the API may commit it without a worker-thread hop.
+    """
+    if not session.in_transaction():
+        return False
+    connection = session.connection()
+    at_begin = connection.info.get(_CHANGES_AT_BEGIN)
+    return at_begin is None or _total_changes(connection) != at_begin
 
 
 def _configure_sqlite(engine: Engine, *, foreign_keys: bool = True) -> None:
@@ -40,6 +61,7 @@ def _configure_sqlite(engine: Engine, *, foreign_keys: bool = True) -> None:
     def _on_begin(connection) -> None:  # type: ignore[no-untyped-def]
         if connection.get_execution_options().get(READ_ONLY_OPTION):
             connection.exec_driver_sql("BEGIN")
+            connection.info[_CHANGES_AT_BEGIN] = _total_changes(connection)
         else:
             connection.exec_driver_sql("BEGIN IMMEDIATE")
 
@@ -77,7 +99,13 @@ def session_factory(url: str, *, read_only: bool = False) -> sessionmaker[Sessio
     deferred, so a hundred concurrent status polls do not queue behind each other and behind
     the workers for the write lock (``BEGIN IMMEDIATE``), which is what writers need.
     """
-    engine = get_engine(url)
+    return _sessionmaker_for(get_engine(url), read_only)
+
+
+@lru_cache(maxsize=16)
+def _sessionmaker_for(engine: Engine, read_only: bool) -> sessionmaker[Session]:
+    """One sessionmaker per engine and mode (an option engine and a sessionmaker cost ~0.1 ms
+    to build, which a status poll paid every request)."""
     if read_only:
         engine = engine.execution_options(**{READ_ONLY_OPTION: True})
     return sessionmaker(bind=engine, expire_on_commit=False)
