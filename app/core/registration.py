@@ -46,7 +46,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
+from pykdtree.kdtree import KDTree
 
 from app.core.cloud import PointCloud
 from app.core.errors import RegistrationError
@@ -181,8 +181,7 @@ def estimate_point_spacing(
         return 0.0
     rng = np.random.default_rng(random_state)
     sample = points[rng.choice(len(points), size=min(sample_size, len(points)), replace=False)]
-    tree = cKDTree(points, balanced_tree=False, compact_nodes=False)
-    distances, _ = tree.query(sample, k=min(4, len(points)))
+    distances, _ = KDTree(np.ascontiguousarray(points)).query(sample, k=min(4, len(points)))
     distances = np.where(distances > 0.0, distances, np.inf).min(axis=1)
     distances = distances[np.isfinite(distances)]
     return float(np.median(distances)) if distances.size else 0.0
@@ -223,8 +222,9 @@ def evaluate_alignment(
         reference_points = _downsample(reference_points - centre, voxel_size) + centre
         scan_points = _downsample(scan_points - centre, voxel_size) + centre
     moved = apply_transform(scan_points, transform)
-    tree = cKDTree(reference_points, balanced_tree=False, compact_nodes=False)
-    distances, _ = tree.query(moved, k=1, distance_upper_bound=max_correspondence_distance)
+    distances, _ = KDTree(np.ascontiguousarray(reference_points)).query(
+        np.ascontiguousarray(moved), k=1, distance_upper_bound=max_correspondence_distance
+    )
     inliers = distances[np.isfinite(distances)]
     fitness = float(inliers.size / max(len(moved), 1))
     rmse = float(np.sqrt(np.mean(inliers**2))) if inliers.size else float("nan")
