@@ -57,6 +57,12 @@ class Settings(BaseSettings):
         "machine's memory and the number of workers where the consumer starts), bytes, or "
         "0 / 'none' for no cap.",
     )
+    job_threads: int | None = Field(
+        default=None,
+        ge=1,
+        description="Threads one job may use (its localiser's KD-tree queries and the two "
+        "sides of a comparison); None = the CPUs divided among the workers, at least 1.",
+    )
     max_concurrent_reads: int = Field(
         default=16, ge=1, description="GET requests in flight; more wait without a thread."
     )

@@ -64,6 +64,7 @@ from app.core.cloud import MIN_POINTS
 from app.core.errors import InputError, PointCloudError
 
 __all__ = [
+    "available_threads",
     "DEFAULT_PARAMETERS",
     "LABEL_CHANGED",
     "LABEL_UNCHANGED",
@@ -1042,8 +1043,10 @@ def available_threads() -> int:
         return os.cpu_count() or 1
 
 
-def _both(function: Callable[..., Any], *argument_pairs: tuple[Any, Any]) -> tuple[Any, Any]:
-    """``function`` on the reference's and the scan's arguments, concurrently on 2+ threads.
+def _both(
+    threads: int, function: Callable[..., Any], *argument_pairs: tuple[Any, Any]
+) -> tuple[Any, Any]:
+    """``function`` on the reference's and the scan's arguments, concurrently if threads >= 2.
 
     The two sides of a comparison are independent (numpy and the KD-tree release the GIL), so
     with two threads the localiser takes about half the time; the results are the same.
@@ -1051,7 +1054,7 @@ def _both(function: Callable[..., Any], *argument_pairs: tuple[Any, Any]) -> tup
     """
     first = [pair[0] for pair in argument_pairs]
     second = [pair[1] for pair in argument_pairs]
-    if available_threads() < 2:
+    if threads < 2:
         return function(*first), function(*second)
     with ThreadPoolExecutor(max_workers=1) as pool:
         future = pool.submit(function, *first)
@@ -1067,6 +1070,7 @@ def localise_changes(
     scan_origin: NDArray | None = None,
     registration_rmse: float = 0.0,
     min_region_points: int | None = None,
+    threads: int | None = None,
     **params: Any,
 ) -> Localisation:
     """Label each point unchanged, changed or unobserved and group changes into regions.
@@ -1088,6 +1092,10 @@ def localise_changes(
     min_region_points : int, optional
         Smaller clusters of changed points are noise and relabelled unchanged.  Default:
         ``max(4, round(0.08 * sqrt(min(n, m))))``.
+    threads : int, optional
+        Threads to use (the reference and scan sides run concurrently from 2; the KD-tree
+        queries use OpenMP's setting).  Default: :func:`available_threads`.  The result does
+        not depend on it.
     **params
         See :data:`DEFAULT_PARAMETERS`.
 
@@ -1103,6 +1111,7 @@ def localise_changes(
         An unknown or invalid parameter or origin.
     """
     settings = _resolve_parameters(params)
+    threads = available_threads() if threads is None else max(1, int(threads))
     reference_points = _as_points(reference, "reference")
     scan_points = _as_points(scan, "scan")
     reference_origin = _as_origin(reference_origin, "reference_origin")
@@ -1121,10 +1130,10 @@ def localise_changes(
 
     n_neighbors = settings["n_neighbors"]
     reference_geometry, scan_geometry = _both(
-        _local_geometry, (reference_points, scan_points), (n_neighbors, n_neighbors)
+        threads, _local_geometry, (reference_points, scan_points), (n_neighbors, n_neighbors)
     )
     (reference_nn_distance, reference_nn_index), (scan_nn_distance, scan_nn_index) = _both(
-        _nearest_in, (reference_points, scan_points), (scan_geometry, reference_geometry)
+        threads, _nearest_in, (reference_points, scan_points), (scan_geometry, reference_geometry)
     )
 
     median_spacing = float(
@@ -1158,6 +1167,7 @@ def localise_changes(
     )
 
     (reference_distance, reference_candidate, _), (scan_distance, scan_candidate, _) = _both(
+        threads,
         _surface_distance,
         (reference_points, scan_points),
         (reference_nn_distance, scan_nn_distance),
@@ -1168,6 +1178,7 @@ def localise_changes(
     )
     misalignment = math.hypot(registration_rmse, alignment_residual)
     (reference_label, reference_report), (scan_label, scan_report) = _both(
+        threads,
         _label_candidates,
         ("reference", "scan"),
         (reference_points, scan_points),
@@ -1184,6 +1195,7 @@ def localise_changes(
 
     factor = settings["cluster_factor"]
     (removed, dropped_removed), (added, dropped_added) = _both(
+        threads,
         _regions,
         ("removed", "added"),
         (reference_points, scan_points),

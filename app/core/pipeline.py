@@ -28,13 +28,14 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from threadpoolctl import threadpool_limits
 
 from app.core.cloud import MIN_POINTS, PointCloud, choose_local_origin
 from app.core.detectors import make_detector
 from app.core.detectors.base import ChangeDetector
 from app.core.errors import InputError
 from app.core.jsonable import json_safe
-from app.core.localise import localise_changes
+from app.core.localise import available_threads, localise_changes
 from app.core.registration import (
     apply_transform,
     identity_registration,
@@ -299,6 +300,7 @@ def compare(
     random_state: int = 0,
     params: Mapping[str, Any] | None = None,
     progress: ProgressCallback | None = None,
+    threads: int | None = None,
 ) -> ComparisonResult:
     """Compare ``scan`` against ``reference``; see the module docstring.
 
@@ -320,6 +322,10 @@ def compare(
         overriding what the file says).
     progress : callable, optional
         ``progress(stage, fraction)`` after each stage.
+    threads : int, optional
+        Threads the localiser may use (default: ``OMP_NUM_THREADS`` if set, else every CPU
+        this process may run on).  Detectors run their BLAS calls on one thread (small
+        matrices: more threads only contend).  Results do not depend on it.
 
     Returns
     -------
@@ -373,16 +379,19 @@ def compare(
 
     report("localise", 0.35)
     started = time.perf_counter()
-    localisation = localise_changes(
-        reference_points,
-        aligned_scan,
-        reference_origin=reference_origin,
-        scan_origin=scan_origin,
-        # Not registration.rmse: that includes sampling distance and real change (0.15 m on
-        # KITTI); localise measures the remaining misalignment itself from local surfaces.
-        registration_rmse=0.0,
-        **localisation_params,
-    )
+    threads = available_threads() if threads is None else max(1, int(threads))
+    with threadpool_limits(limits=threads, user_api="openmp"):
+        localisation = localise_changes(
+            reference_points,
+            aligned_scan,
+            reference_origin=reference_origin,
+            scan_origin=scan_origin,
+            # Not registration.rmse: that includes sampling distance and real change (0.15 m on
+            # KITTI); localise measures the remaining misalignment itself from local surfaces.
+            registration_rmse=0.0,
+            threads=threads,
+            **localisation_params,
+        )
     timings["localise"] = time.perf_counter() - started
 
     report("detect", 0.65)
@@ -393,12 +402,13 @@ def compare(
         np.count_nonzero(reference_observed) >= MIN_POINTS
         and np.count_nonzero(scan_observed) >= MIN_POINTS
     )
-    if use_observed:
-        detection = detector.detect(
-            reference_points[reference_observed], aligned_scan[scan_observed]
-        )
-    else:
-        detection = detector.detect(reference_points, aligned_scan)
+    with threadpool_limits(limits=1, user_api="blas"):
+        if use_observed:
+            detection = detector.detect(
+                reference_points[reference_observed], aligned_scan[scan_observed]
+            )
+        else:
+            detection = detector.detect(reference_points, aligned_scan)
     timings["detect"] = time.perf_counter() - started
 
     calibration = dict(detection.calibration)

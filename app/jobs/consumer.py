@@ -31,7 +31,7 @@ from huey.consumer import Consumer, ConsumerStopped
 from app.config import Settings, get_settings
 from app.db.session import get_engine
 from app.jobs import queue
-from app.jobs.execution import job_memory_limit
+from app.jobs.execution import job_memory_limit, job_threads
 from app.jobs.lifecycle import die_with_supervisor, set_parent_death_signal
 from app.jobs.recovery import recovery_sweep
 from app.log import configure_process_logging
@@ -48,6 +48,7 @@ CONSUMER_HEARTBEAT_SECONDS = 5.0
 WORKER_PID_DIR = "run"
 WORKER_PID_PREFIX = "worker-"
 MEMORY_LIMIT_ENV = "SCANDIFF_JOB_MEMORY_LIMIT_BYTES"
+JOB_THREADS_ENV = "SCANDIFF_JOB_THREADS"
 
 
 def worker_pid_dir(settings: Settings) -> Path:
@@ -171,15 +172,18 @@ def preload_pipeline() -> None:
 
 
 def fix_job_memory_limit(settings: Settings, workers: int) -> Settings:
-    """Resolve an ``auto`` memory cap for ``workers`` here, once, for every worker to inherit.
+    """Resolve an ``auto`` memory cap and the job thread count for ``workers`` here, once.
 
-    The value is exported as ``SCANDIFF_JOB_MEMORY_LIMIT_BYTES`` (0 = no cap) before any worker
-    is forked, since workers read their settings from the environment.
+    The values are exported as ``SCANDIFF_JOB_MEMORY_LIMIT_BYTES`` (0 = no cap) and
+    ``SCANDIFF_JOB_THREADS`` before any worker is forked, since workers read their settings
+    from the environment.
     """
     limit = job_memory_limit(settings, workers)
     os.environ[MEMORY_LIMIT_ENV] = str(limit or 0)
+    threads = job_threads(settings, workers)  # the CPUs shared among this many workers
+    os.environ[JOB_THREADS_ENV] = str(threads)
     get_settings.cache_clear()
-    return settings.model_copy(update={"job_memory_limit_bytes": limit})
+    return settings.model_copy(update={"job_memory_limit_bytes": limit, "job_threads": threads})
 
 
 def run_consumer(
@@ -207,6 +211,7 @@ def run_consumer(
             "workers": workers,
             "queue": queue.queue_backend(settings),
             "job_memory_limit_bytes": settings.job_memory_limit_bytes,
+            "job_threads": settings.job_threads,
         },
     )
     consumer = ScandiffConsumer(huey, settings, workers, shutdown_grace_seconds)

@@ -395,6 +395,17 @@ def job_memory_limit(settings: Settings, workers: int | None = None) -> int | No
     return configured if isinstance(configured, int) and configured > 0 else None
 
 
+def job_threads(settings: Settings, workers: int | None = None) -> int:
+    """Threads a job may use: the setting, else this machine's CPUs shared by the workers."""
+    if settings.job_threads:
+        return settings.job_threads
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        cores = os.cpu_count() or 1
+    return max(1, cores // max(workers or settings.workers, 1))
+
+
 @contextmanager
 def memory_limit(limit_bytes: int | None) -> Iterator[None]:
     """Cap this process's address space (RLIMIT_AS) at ``limit_bytes`` while inside."""
@@ -528,6 +539,7 @@ def compute(
         variant=job.variant,
         params=job.params,  # replayable: holds align/random_state/stage parameters when given
         progress=keeper.compare_progress,
+        threads=job_threads(settings),  # the result does not depend on it
     )
     return result, {"load_inputs": load_seconds}
 

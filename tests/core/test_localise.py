@@ -189,6 +189,23 @@ def test_parameters_are_json_and_replay_the_result():
     np.testing.assert_array_equal(replayed.scan_label, localisation.scan_label)
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_the_result_does_not_depend_on_the_thread_count(threads):
+    pair, localisation = localised_scene("removed")
+    other = localise_changes(
+        pair.reference,
+        pair.aligned_scan(),
+        reference_origin=pair.reference_origin,
+        scan_origin=pair.aligned_scan_origin(),
+        threads=threads,
+    )
+    for name in ("reference_label", "scan_label", "reference_region", "scan_region"):
+        np.testing.assert_array_equal(getattr(other, name), getattr(localisation, name))
+    np.testing.assert_array_equal(other.reference_distance, localisation.reference_distance)
+    assert other.parameters == localisation.parameters
+    assert len(other.regions) == len(localisation.regions) > 0
+
+
 def test_registration_rmse_widens_the_threshold():
     pair, localisation = localised_scene("box")
     wider = localise_changes(

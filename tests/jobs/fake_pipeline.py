@@ -78,6 +78,7 @@ def fake_compare(
     random_state: int = 0,
     params: Mapping[str, Any] | None = None,
     progress: Callable[[str, float], None] | None = None,
+    threads: int | None = None,
 ) -> FakeResult:
     """A deterministic result: the scan's points beyond x > 1 are an "added" region."""
     for stage, fraction in (("align", 0.05), ("localise", 0.35), ("detect", 0.65)):
