@@ -47,6 +47,7 @@ Everything is vectorised numpy/scipy: a 200k x 200k pair takes about 2.5 s of on
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Callable
@@ -64,13 +65,13 @@ from app.core.cloud import MIN_POINTS
 from app.core.errors import InputError, PointCloudError
 
 __all__ = [
-    "available_threads",
     "DEFAULT_PARAMETERS",
     "LABEL_CHANGED",
     "LABEL_UNCHANGED",
     "LABEL_UNOBSERVED",
     "ChangedRegion",
     "Localisation",
+    "available_threads",
     "localise_changes",
 ]
 
@@ -156,6 +157,8 @@ CLUSTER_NEIGHBOURS = 10
 VISIBILITY_RAYS = 8
 _CHUNK = 32_768
 _QUERY_CHUNK = 65_536
+_RELEASED_INDEX = np.empty((0, 0), dtype=np.uint32)
+"""Stands for a geometry's neighbour index once the localiser no longer needs it."""
 _GATHER_CHUNK = 16_384
 """Points per step of (chunk, neighbours, 3) gathers: a few MB per temporary array."""
 _ANGULAR_SAMPLE = 4096
@@ -960,6 +963,7 @@ def _label_candidates(
     points: NDArray[np.float64],
     geometry: _LocalGeometry,
     candidate: NDArray[np.bool_],
+    flattest: NDArray[np.integer],
     distance: NDArray[np.float64],
     nn_distance: NDArray[np.float64],
     nn_index: NDArray[np.int64],
@@ -979,6 +983,9 @@ def _label_candidates(
         Of ``points``.
     candidate, distance, nn_distance, nn_index : ndarray, shape (p,)
         From the comparison with the other cloud.
+    flattest : ndarray, shape (c,)
+        ``geometry.flattest_neighbour`` of each candidate (taken before the neighbour index
+        was released).
     other : _LocalGeometry
         The other cloud.
     other_origin : ndarray, shape (3,), or None
@@ -1004,7 +1011,6 @@ def _label_candidates(
         status = np.where(covered, STATUS_SEEN_THROUGH, STATUS_UNOBSERVED)
     else:
         report[f"{side}_visibility"] = "ray"
-        flattest = geometry.flattest_neighbour(index)
         status, angular_step = _ray_visibility(
             points[index],
             geometry.normal[flattest],
@@ -1176,6 +1182,12 @@ def localise_changes(
         (threshold, threshold),
         (support_factor, support_factor),
     )
+    # From here on the neighbour index (4 (k + 1) bytes a point) is needed only for the
+    # candidates' flattest neighbours: take those and release it before the visibility test.
+    reference_flattest = reference_geometry.flattest_neighbour(np.flatnonzero(reference_candidate))
+    scan_flattest = scan_geometry.flattest_neighbour(np.flatnonzero(scan_candidate))
+    reference_geometry = dataclasses.replace(reference_geometry, neighbor_index=_RELEASED_INDEX)
+    scan_geometry = dataclasses.replace(scan_geometry, neighbor_index=_RELEASED_INDEX)
     misalignment = math.hypot(registration_rmse, alignment_residual)
     (reference_label, reference_report), (scan_label, scan_report) = _both(
         threads,
@@ -1184,6 +1196,7 @@ def localise_changes(
         (reference_points, scan_points),
         (reference_geometry, scan_geometry),
         (reference_candidate, scan_candidate),
+        (reference_flattest, scan_flattest),
         (reference_distance, scan_distance),
         (reference_nn_distance, scan_nn_distance),
         (reference_nn_index, scan_nn_index),

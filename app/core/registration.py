@@ -48,7 +48,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
-from app.core.cloud import PointCloud
+from app.core.cloud import PointCloud, column_extreme
 from app.core.errors import RegistrationError
 
 FINE_POINT_BUDGET = 30_000
@@ -462,7 +462,7 @@ def _points_of(cloud: CloudLike, role: str) -> NDArray[np.float64]:
 
 
 def _centre_of(points: NDArray[np.float64]) -> NDArray[np.float64]:
-    return (points.min(axis=0) + points.max(axis=0)) / 2.0
+    return (column_extreme(points, np.minimum) + column_extreme(points, np.maximum)) / 2.0
 
 
 def _translated(transform: NDArray[np.float64], shift: NDArray[np.float64]) -> NDArray:

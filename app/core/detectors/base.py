@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from app.core.cloud import column_extreme
 from app.core.detectors import calibration
 from app.core.errors import InputError
 
@@ -224,8 +225,8 @@ def voxel_representatives(
         Sorted indices into ``points``.
     """
     cells = np.floor((points - origin) / voxel_size).astype(np.int64)
-    cells -= cells.min(axis=0)
-    extent = cells.max(axis=0) + 1
+    cells -= column_extreme(cells, np.minimum)
+    extent = column_extreme(cells, np.maximum) + 1
     voxels = (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
     # per voxel, the point with the smallest key, ties to the lowest index (what a lexsort by
     # voxel then key would pick first), from one sort by voxel and two segment minima: ~3x
@@ -255,8 +256,8 @@ def median_spacing(points: NDArray[np.float64], rng: np.random.Generator) -> flo
 
 
 def _occupied_voxels(points: NDArray[np.float64], voxel_size: float) -> int:
-    cells = np.floor((points - points.min(axis=0)) / voxel_size).astype(np.int64)
-    extent = cells.max(axis=0) + 1
+    cells = np.floor((points - column_extreme(points, np.minimum)) / voxel_size).astype(np.int64)
+    extent = column_extreme(cells, np.maximum) + 1
     keys = (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
     return int(np.unique(keys).size)
 
@@ -412,7 +413,7 @@ class ChangeDetector(ABC):
                 voxel_size = auto_voxel_size(smaller, target)
             else:
                 voxel_size = 0.0
-        origin = np.minimum(reference.min(axis=0), scan.min(axis=0))
+        origin = np.minimum(column_extreme(reference, np.minimum), column_extreme(scan, np.minimum))
         if voxel_size > 0:
             reference = reference[
                 voxel_representatives(reference, voxel_size, origin, point_keys(reference, seed))

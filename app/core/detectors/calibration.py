@@ -69,6 +69,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import stats
 
+from app.core.cloud import column_extreme
+
 SCHEMES = ("auto", "paired", "permutation", "split_half")
 
 PairScore = Callable[[NDArray[np.float64], NDArray[np.float64]], float]
@@ -166,10 +168,14 @@ class VoxelPairing:
         origin: NDArray[np.float64] | None = None,
     ):
         pooled = np.concatenate([reference, scan])
-        corner = pooled.min(axis=0) if origin is None else np.asarray(origin, dtype=np.float64)
+        corner = (
+            column_extreme(pooled, np.minimum)
+            if origin is None
+            else np.asarray(origin, dtype=np.float64)
+        )
         cells = np.floor((pooled - corner) / voxel_size).astype(np.int64)
-        cells -= cells.min(axis=0)
-        extent = cells.max(axis=0) + 1
+        cells -= column_extreme(cells, np.minimum)
+        extent = column_extreme(cells, np.maximum) + 1
         keys = (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
         _, voxel = np.unique(keys, return_inverse=True)
         from_reference = np.arange(pooled.shape[0]) < reference.shape[0]
