@@ -419,6 +419,18 @@ def _plan(
     samples = []
     for role, points in (("reference", reference_grid), ("scan", scan_grid)):
         if len(points) < MIN_POINTS_AFTER_DOWNSAMPLING:
+            if grid <= grid_floor:  # the grid was widened because of how far the clouds reach
+                reaches = {
+                    "reference": float(np.abs(local_reference).max()),
+                    "scan": float(np.abs(local_scan).max()),
+                }
+                farthest = max(reaches, key=lambda name: reaches[name])
+                raise RegistrationError(
+                    f"cannot align: the {farthest} has points {reaches[farthest]:.3g} from the "
+                    f"reference's centre, which forces a {grid:.3g} alignment grid at which the "
+                    f"{role} keeps only {len(points)} points; check the {farthest} for stray "
+                    "points with absurd coordinates (or pass --no-align)"
+                )
             raise RegistrationError(
                 f"too few points to align: the {role} keeps {len(points)} points at a "
                 f"{grid:.3g} voxel grid"

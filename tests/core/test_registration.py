@@ -169,6 +169,13 @@ def test_partial_overlap_below_min_fitness_raises(reference, rescan):
         register_scan(reference, rescan + np.array([7.0, 0.0, 0.0]), min_fitness=0.8)
 
 
+def test_a_stray_point_with_absurd_coordinates_is_named_as_the_cause(reference, rescan):
+    """A byte flip can leave one point at 1e12 m; the error must blame that cloud."""
+    scan = np.vstack([rescan, [[1e12, 0.0, 0.0]]])
+    with pytest.raises(RegistrationError, match=r"the scan has points 1e\+12 .*absurd"):
+        register_scan(reference, scan)
+
+
 def test_too_few_points_raise():
     with pytest.raises(RegistrationError, match="at least"):
         register_scan(np.zeros((5, 3)), np.zeros((5, 3)))
