@@ -817,15 +817,21 @@ def _ray_status(
     miss_distance = np.linalg.norm(crossing_point - points[:, None, :], axis=2)
     miss_tolerance = np.maximum(miss_factor * spacing, surface_distance)
     crosses_near = crosses_ahead & (miss_distance <= miss_tolerance[:, None])
-    # ... and only where the point's own cloud has surface: a ray crossing the plane beyond
-    # the edge of a table top says nothing about the table
-    near_rows, near_rays = np.nonzero(crosses_near)
-    own_distance, own_nearest = own.tree.query(crossing_point[near_rows, near_rays], k=1)
-    own_support = np.maximum(OWN_SUPPORT_FACTOR * own.spacing[own_nearest], normal_tolerance)
-    crosses_near[near_rows, near_rays] = own_distance <= own_support
     # a point off its surface by e lies e / cos(incidence) along the ray from the surface
     cos_incidence = np.where(grazing, 1.0, np.abs(ray_dot_normal))
     margin = margin_factor * np.sqrt((normal_tolerance / cos_incidence) ** 2 + range_tolerance**2)
+    # A ray that stops clearly before both the point and its crossing occludes the point
+    # whatever the test below decides (the expected stop is one of the two): such points are
+    # unobserved already, and most candidates of a moved sensor are (its shadows).
+    occluded_anyway = ~found.any(axis=1) | (
+        found & (ray_range < np.minimum(crossing, point_range[:, None]) - margin)
+    ).any(axis=1)
+    # ... and only where the point's own cloud has surface: a ray crossing the plane beyond
+    # the edge of a table top says nothing about the table
+    near_rows, near_rays = np.nonzero(crosses_near & ~occluded_anyway[:, None])
+    own_distance, own_nearest = own.tree.query(crossing_point[near_rows, near_rays], k=1)
+    own_support = np.maximum(OWN_SUPPORT_FACTOR * own.spacing[own_nearest], normal_tolerance)
+    crosses_near[near_rows, near_rays] = own_distance <= own_support
     expected_stop = np.where(
         crosses_near, np.minimum(crossing, point_range[:, None]), point_range[:, None]
     )
