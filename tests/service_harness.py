@@ -34,7 +34,9 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 import pytest
+from numpy.typing import NDArray
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 HEALTH_PATH = "/api/v1/health"
@@ -357,3 +359,26 @@ def service_factory(tmp_path: Path) -> Iterator[Callable[..., ServiceProcess]]:
 def service(service_factory: Callable[..., ServiceProcess]) -> ServiceProcess:
     """One started service with one job worker and default settings."""
     return service_factory()
+
+
+def room_points(
+    rng: np.random.Generator, n_points: int, *, with_box: bool = False
+) -> NDArray[np.float64]:
+    """A floor and two walls of a 6 x 4 x 2.5 m room, 3 mm noise, shape (~n_points, 3).
+
+    ``with_box`` adds a 0.8 m box on the floor (half as many points as a wall).
+    """
+    third = n_points // 3
+    floor = np.column_stack(
+        [rng.uniform(0, 6, third), rng.uniform(0, 4, third), rng.normal(0, 0.003, third)]
+    )
+    wall_x = np.column_stack(
+        [rng.uniform(0, 6, third), rng.normal(4, 0.003, third), rng.uniform(0, 2.5, third)]
+    )
+    wall_y = np.column_stack(
+        [rng.normal(0, 0.003, third), rng.uniform(0, 4, third), rng.uniform(0, 2.5, third)]
+    )
+    parts = [floor, wall_x, wall_y]
+    if with_box:
+        parts.append(rng.uniform([2.5, 1.5, 0.0], [3.3, 2.3, 0.8], (third // 2, 3)))
+    return np.vstack(parts)

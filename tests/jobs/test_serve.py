@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from plyfile import PlyData, PlyElement
 
-from tests.service_harness import ServiceProcess, service_factory  # noqa: F401
+from tests.service_harness import ServiceProcess, room_points, service_factory  # noqa: F401
 
 FAST_LEASES = {
     "SCANDIFF_JOB_LEASE_SECONDS": "2",
@@ -29,21 +29,7 @@ FAST_LEASES = {
 
 def room_ply(seed: int, *, with_box: bool = False, n_points: int = 1500) -> bytes:
     """A binary PLY of a floor and two walls; ``with_box`` adds a box on the floor."""
-    rng = np.random.default_rng(seed)
-    third = n_points // 3
-    floor = np.column_stack(
-        [rng.uniform(0, 6, third), rng.uniform(0, 4, third), rng.normal(0, 0.003, third)]
-    )
-    wall_x = np.column_stack(
-        [rng.uniform(0, 6, third), rng.normal(4, 0.003, third), rng.uniform(0, 2.5, third)]
-    )
-    wall_y = np.column_stack(
-        [rng.normal(0, 0.003, third), rng.uniform(0, 4, third), rng.uniform(0, 2.5, third)]
-    )
-    parts = [floor, wall_x, wall_y]
-    if with_box:
-        parts.append(rng.uniform([2.5, 1.5, 0.0], [3.3, 2.3, 0.8], (third // 2, 3)))
-    points = np.vstack(parts)
+    points = room_points(np.random.default_rng(seed), n_points, with_box=with_box)
     vertex = np.empty(len(points), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
     vertex["x"], vertex["y"], vertex["z"] = points.T
     buffer = io.BytesIO()

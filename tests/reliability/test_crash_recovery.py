@@ -50,7 +50,7 @@ from app.services.storage import ensure_directories, sweep_temporary_files
 from tests.jobs.conftest import create_job
 from tests.reliability.conftest import database_rows, job_status_counts, wait_until
 from tests.reliability.figures import record_figure
-from tests.service_harness import ServiceProcess, service_factory  # noqa: F401
+from tests.service_harness import ServiceProcess, room_points, service_factory  # noqa: F401
 
 N_UPLOADS = 50
 N_KILLS = 3
@@ -76,20 +76,7 @@ def room_with_attributes(seed: int, *, with_box: bool, n_bytes: int) -> bytes:
     (``a0``, ``a1``, ... random values) as make the file about ``n_bytes`` long.
     """
     rng = np.random.default_rng(seed)
-    third = POINTS_PER_SCAN // 3
-    floor = np.column_stack(
-        [rng.uniform(0, 6, third), rng.uniform(0, 4, third), rng.normal(0, 0.003, third)]
-    )
-    wall_x = np.column_stack(
-        [rng.uniform(0, 6, third), rng.normal(4, 0.003, third), rng.uniform(0, 2.5, third)]
-    )
-    wall_y = np.column_stack(
-        [rng.normal(0, 0.003, third), rng.uniform(0, 4, third), rng.uniform(0, 2.5, third)]
-    )
-    parts = [floor, wall_x, wall_y]
-    if with_box:
-        parts.append(rng.uniform([2.5, 1.5, 0.0], [3.3, 2.3, 0.8], (third // 2, 3)))
-    points = np.vstack(parts)
+    points = room_points(rng, POINTS_PER_SCAN, with_box=with_box)
     n_attributes = max(0, round(n_bytes / (8 * len(points))) - 3)
     dtype = [("x", "f8"), ("y", "f8"), ("z", "f8")] + [(f"a{i}", "f8") for i in range(n_attributes)]
     vertex = np.empty(len(points), dtype=dtype)
