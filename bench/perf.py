@@ -46,6 +46,7 @@ PROJECT_ROOT = Path(__file__).resolve().parent.parent
 if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``app`` and ``bench`` importable
     sys.path.insert(0, str(PROJECT_ROOT))
 
+from app.core.localise import usable_cpus  # noqa: E402
 from bench.perf_ingest import measure_ingest  # noqa: E402
 from bench.perf_service import measure_service, measure_throughput  # noqa: E402
 from bench.perf_workers import WORKERS, write_scene  # noqa: E402
@@ -60,7 +61,7 @@ WORKER_TIMEOUT_SECONDS = 1800.0
 
 
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+CORES = usable_cpus()
 
 
 def pipeline_threads() -> int:

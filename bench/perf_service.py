@@ -172,6 +172,26 @@ def _load_window(
     return all_latencies, int(sum(errors)), elapsed
 
 
+def create_site_with_reference(
+    client: httpx.Client, name: str, method: str, reference_path: Path
+) -> str:
+    """Create a site comparing with ``method`` (improved), upload its reference; its scans URL."""
+    response = client.post(
+        "/api/v1/sites",
+        json={"name": name, "detector": {"method": method, "variant": "improved"}},
+    )
+    response.raise_for_status()
+    scans_path = f"/api/v1/sites/{response.json()['id']}/scans"
+    response = client.post(
+        scans_path,
+        params={"reference": "true", "filename": "reference.ply"},
+        content=reference_path.read_bytes(),
+        headers={"Content-Type": "application/octet-stream"},
+    )
+    response.raise_for_status()
+    return scans_path
+
+
 def measure_service(work_dir: Path, load_seconds: float = 5.0) -> dict[str, Any]:
     """Latency of one 100k-point comparison and the status-vs-health load test."""
     pair = raycast_scene(n_points=SERVICE_POINTS, change="box", random_state=SCENE_SEED)
@@ -185,19 +205,7 @@ def measure_service(work_dir: Path, load_seconds: float = 5.0) -> dict[str, Any]
         service.start()
         service.wait_for_workers()
         with service.client() as client:
-            response = client.post(
-                "/api/v1/sites",
-                json={"name": "perf", "detector": {"method": method, "variant": "improved"}},
-            )
-            response.raise_for_status()
-            scans_path = f"/api/v1/sites/{response.json()['id']}/scans"
-            response = client.post(
-                scans_path,
-                params={"reference": "true", "filename": "reference.ply"},
-                content=reference_path.read_bytes(),
-                headers={"Content-Type": "application/octet-stream"},
-            )
-            response.raise_for_status()
+            scans_path = create_site_with_reference(client, "perf", method, reference_path)
             scan_bytes = scan_path.read_bytes()
             latencies, uploads = [], []
             for attempt in range(LATENCY_REPEATS):
@@ -270,19 +278,7 @@ def measure_throughput(
         service.start()
         service.wait_for_workers()
         with service.client() as client:
-            response = client.post(
-                "/api/v1/sites",
-                json={"name": "throughput", "detector": {"method": "gmm", "variant": "improved"}},
-            )
-            response.raise_for_status()
-            scans_path = f"/api/v1/sites/{response.json()['id']}/scans"
-            response = client.post(
-                scans_path,
-                params={"reference": "true", "filename": "reference.ply"},
-                content=reference_path.read_bytes(),
-                headers={"Content-Type": "application/octet-stream"},
-            )
-            response.raise_for_status()
+            scans_path = create_site_with_reference(client, "throughput", "gmm", reference_path)
             warm_up = [
                 _upload(client, scans_path, scan_bytes, f"warm-{i}.ply") for i in range(workers)
             ]

@@ -75,6 +75,7 @@ __all__ = [
     "Localisation",
     "available_threads",
     "localise_changes",
+    "usable_cpus",
 ]
 
 LABEL_UNCHANGED = 0
@@ -1046,15 +1047,20 @@ def _label_candidates(
     return label, report
 
 
-def available_threads() -> int:
-    """Threads a comparison may use: ``OMP_NUM_THREADS`` if set, else the CPUs it may run on."""
-    configured = os.environ.get("OMP_NUM_THREADS", "").strip()
-    if configured.isdigit() and int(configured) > 0:
-        return int(configured)
+def usable_cpus() -> int:
+    """The CPUs this process may run on (its affinity mask on Linux)."""
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
         return os.cpu_count() or 1
+
+
+def available_threads() -> int:
+    """Threads a comparison may use: ``OMP_NUM_THREADS`` if set, else :func:`usable_cpus`."""
+    configured = os.environ.get("OMP_NUM_THREADS", "").strip()
+    if configured.isdigit() and int(configured) > 0:
+        return int(configured)
+    return usable_cpus()
 
 
 def _both(

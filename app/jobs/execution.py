@@ -399,11 +399,9 @@ def job_threads(settings: Settings, workers: int | None = None) -> int:
     """Threads a job may use: the setting, else this machine's CPUs shared by the workers."""
     if settings.job_threads:
         return settings.job_threads
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        cores = os.cpu_count() or 1
-    return max(1, cores // max(workers or settings.workers, 1))
+    from app.core.localise import usable_cpus  # the numeric core is imported lazily here
+
+    return max(1, usable_cpus() // max(workers or settings.workers, 1))
 
 
 @contextmanager

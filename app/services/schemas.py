@@ -7,11 +7,14 @@ offset (SQLite hands them back naive).
 from __future__ import annotations
 
 from datetime import UTC, datetime
-from typing import Annotated, Any, Generic, Literal, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, Generic, Literal, TypeVar
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StringConstraints
 
 from app.db.models import Job, Region, Scan, Site
+
+if TYPE_CHECKING:
+    from app.services.quotas import Usage
 
 
 def as_utc(value: datetime) -> datetime:
@@ -268,3 +271,15 @@ class OrganisationRead(BaseModel):
     max_queued_jobs: int | None = Field(description="Cap on queued_jobs; more is a 429.")
     stored_bytes: int = Field(description="Bytes of the organisation's scan files.")
     max_stored_bytes: int | None = Field(description="Cap on stored_bytes; more is a 507.")
+
+    @classmethod
+    def from_usage(cls, usage: Usage) -> OrganisationRead:
+        """Build from :class:`app.services.quotas.Usage`."""
+        return cls(
+            id=usage.organisation_id,
+            name=usage.name,
+            queued_jobs=usage.queued_jobs,
+            max_queued_jobs=usage.max_queued_jobs,
+            stored_bytes=usage.stored_bytes,
+            max_stored_bytes=usage.max_stored_bytes,
+        )

@@ -17,6 +17,7 @@ from __future__ import annotations
 import functools
 import json
 import time
+from typing import Any
 
 import numpy as np
 import pytest
@@ -46,13 +47,18 @@ def localised_scene(
 ) -> tuple[SyntheticPair, Localisation]:
     """A ray-cast rescan, aligned with the true transform, localised with both origins."""
     pair = raycast_scene(n_points=n_points, change=change, pose_error=POSE_ERROR, random_state=seed)
-    localisation = localise_changes(
+    return pair, localise_pair(pair)
+
+
+def localise_pair(pair: SyntheticPair, **options: Any) -> Localisation:
+    """``localise_changes`` on a pair aligned with its true transform, with both origins."""
+    return localise_changes(
         pair.reference,
         pair.aligned_scan(),
         reference_origin=pair.reference_origin,
         scan_origin=pair.aligned_scan_origin(),
+        **options,
     )
-    return pair, localisation
 
 
 def changed_iou(pair: SyntheticPair, localisation: Localisation) -> float:
@@ -177,13 +183,8 @@ def test_parameters_are_json_and_replay_the_result():
     assert parameters["reference_visibility"] == parameters["scan_visibility"] == "ray"
     assert 0.004 < parameters["reference_noise"] < 0.012  # 1 cm along rays, less along normals
     replay_params = {name: parameters[name] for name in DEFAULT_PARAMETERS}
-    replayed = localise_changes(
-        pair.reference,
-        pair.aligned_scan(),
-        reference_origin=pair.reference_origin,
-        scan_origin=pair.aligned_scan_origin(),
-        min_region_points=parameters["min_region_points"],
-        **replay_params,
+    replayed = localise_pair(
+        pair, min_region_points=parameters["min_region_points"], **replay_params
     )
     np.testing.assert_array_equal(replayed.reference_label, localisation.reference_label)
     np.testing.assert_array_equal(replayed.scan_label, localisation.scan_label)
@@ -192,13 +193,7 @@ def test_parameters_are_json_and_replay_the_result():
 @pytest.mark.parametrize("threads", [1, 2])
 def test_the_result_does_not_depend_on_the_thread_count(threads):
     pair, localisation = localised_scene("removed")
-    other = localise_changes(
-        pair.reference,
-        pair.aligned_scan(),
-        reference_origin=pair.reference_origin,
-        scan_origin=pair.aligned_scan_origin(),
-        threads=threads,
-    )
+    other = localise_pair(pair, threads=threads)
     for name in ("reference_label", "scan_label", "reference_region", "scan_region"):
         np.testing.assert_array_equal(getattr(other, name), getattr(localisation, name))
     np.testing.assert_array_equal(other.reference_distance, localisation.reference_distance)
@@ -208,13 +203,7 @@ def test_the_result_does_not_depend_on_the_thread_count(threads):
 
 def test_registration_rmse_widens_the_threshold():
     pair, localisation = localised_scene("box")
-    wider = localise_changes(
-        pair.reference,
-        pair.aligned_scan(),
-        reference_origin=pair.reference_origin,
-        scan_origin=pair.aligned_scan_origin(),
-        registration_rmse=0.05,
-    )
+    wider = localise_pair(pair, registration_rmse=0.05)
     assert wider.parameters["threshold"] > localisation.parameters["threshold"] + 0.1
     assert wider.parameters["n_scan_changed"] <= localisation.parameters["n_scan_changed"]
     box = raycast_scene_objects("box")[1][0]

@@ -7,12 +7,13 @@ import os
 import pytest
 
 from app.config import Settings, get_settings
+from app.core.localise import usable_cpus
 from app.jobs.consumer import JOB_THREADS_ENV, MEMORY_LIMIT_ENV, fix_job_memory_limit
 from app.jobs.execution import job_threads
 
 
 def cores() -> int:
-    return len(os.sched_getaffinity(0))
+    return usable_cpus()
 
 
 def test_the_default_shares_the_cpus_among_the_workers() -> None:

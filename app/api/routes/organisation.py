@@ -17,11 +17,4 @@ def get_organisation(
 ) -> OrganisationRead:
     """The caller's organisation: unfinished jobs and stored bytes, with their caps."""
     usage = quotas.organisation_usage(session, settings, principal.organisation_id)
-    return OrganisationRead(
-        id=usage.organisation_id,
-        name=usage.name,
-        queued_jobs=usage.queued_jobs,
-        max_queued_jobs=usage.max_queued_jobs,
-        stored_bytes=usage.stored_bytes,
-        max_stored_bytes=usage.max_stored_bytes,
-    )
+    return OrganisationRead.from_usage(usage)
