@@ -207,6 +207,18 @@ def test_gmm_warm_start_reduces_the_spread_between_noise_realisations():
     assert np.mean(warm) < 0.5 * np.mean(cold)
 
 
+@pytest.mark.parametrize("method", METHODS)
+def test_detection_does_not_depend_on_the_calibration_threads(method):
+    rng = np.random.default_rng(4)
+    reference = corridor(3000, rng)
+    scan = np.vstack([corridor(3000, rng), box_faces(300, rng)])
+    detector = make_detector(method, random_state=5, **FAST)
+    serial = detector.detect(reference, scan, threads=1)
+    concurrent = detector.detect(reference, scan, threads=3)
+    assert concurrent.calibration["null_values"] == serial.calibration["null_values"]
+    assert (concurrent.score, concurrent.threshold) == (serial.score, serial.threshold)
+
+
 def test_bures_distance_matches_closed_forms():
     means = np.array([[0.0, 0.0, 0.0]])
     identity = np.eye(3)[None]
