@@ -368,9 +368,10 @@ def _neighbourhood_planes(
 ) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
     """Plane (normal and constant) and eigenvalues of each neighbourhood.
 
-    Each coordinate is gathered separately into a contiguous (chunk, k) array, so the
-    covariance is six contiguous dot products per neighbourhood (2.5x faster than products
-    of strided slices of a (chunk, k, 3) gather).
+    Each coordinate is gathered separately (from a strided column view of ``points``: as
+    fast as from a contiguous copy, which would cost 8 bytes a point) into a contiguous
+    (chunk, k) array, so the covariance is six contiguous dot products per neighbourhood
+    (2.5x faster than products of strided slices of a (chunk, k, 3) gather).
 
     Parameters
     ----------
@@ -392,7 +393,6 @@ def _neighbourhood_planes(
         Smallest eigenvalue over the trace (surface variation): 0 on a plane.
     """
     count, k = neighbor_index.shape
-    coordinates = np.ascontiguousarray(points.T)  # (3, n): one contiguous row per axis
     normal = np.empty((count, 3), dtype=np.float32)
     plane_constant = np.empty(count)
     residual_variance = np.empty(count)
@@ -404,7 +404,7 @@ def _neighbourhood_planes(
         centroid = np.empty((index.shape[0], 3))
         deviation = []
         for axis in range(3):
-            values = coordinates[axis][index]  # (c, k)
+            values = points[:, axis][index]  # (c, k)
             mean = values.mean(axis=1)
             centroid[:, axis] = mean
             values -= mean[:, None]
@@ -451,11 +451,15 @@ def _local_geometry(points: NDArray[np.float64], n_neighbors: int) -> _LocalGeom
     normal, plane_constant, residual_variance, middle_over_largest, variation = (
         _neighbourhood_planes(points, neighbor_index)
     )
-    # side of the area each point stands for: k points in a disc of radius r_k
-    raw_spacing = kth_distance * math.sqrt(math.pi / k)
+    is_linear = middle_over_largest < LINEAR_EIGENVALUE_RATIO
+    del middle_over_largest
+    # side of the area each point stands for: k points in a disc of radius r_k (in place:
+    # every full-size temporary here is paid twice when both clouds run at once)
+    raw_spacing = kth_distance
+    raw_spacing *= math.sqrt(math.pi / k)
     # plane fit of k+1 points has k+1-3 residual degrees of freedom
     residual_variance *= (k + 1) / max(k + 1 - 3, 1)
-    linear = np.flatnonzero(middle_over_largest < LINEAR_EIGENVALUE_RATIO)
+    linear = np.flatnonzero(is_linear)
     k_wide = min(LINEAR_REFIT_FACTOR * k, n - 1)
     if linear.size and k_wide > k:
         wide_distance, wide_index = tree.query(points[linear], k=k_wide + 1)
@@ -463,17 +467,20 @@ def _local_geometry(points: NDArray[np.float64], n_neighbors: int) -> _LocalGeom
             normal[linear],
             plane_constant[linear],
             wide_residual,
-            middle_over_largest[linear],
+            wide_middle_over_largest,
             variation[linear],
         ) = _neighbourhood_planes(points, wide_index)
+        is_linear[linear] = wide_middle_over_largest < LINEAR_EIGENVALUE_RATIO
         residual_variance[linear] = wide_residual * (k_wide + 1) / (k_wide + 1 - 3)
         raw_spacing[linear] = wide_distance[:, k_wide] * math.sqrt(math.pi / k_wide)
     spacing = np.empty(n)
     for start in range(0, n, _CHUNK):
         chunk = slice(start, start + _CHUNK)
         spacing[chunk] = raw_spacing[neighbor_index[chunk]].mean(axis=1)
+    del raw_spacing
     np.maximum(spacing, 1e-12, out=spacing)
     noise = float(np.sqrt(np.median(residual_variance)))
+    del residual_variance
     return _LocalGeometry(
         points,
         tree,
@@ -482,7 +489,7 @@ def _local_geometry(points: NDArray[np.float64], n_neighbors: int) -> _LocalGeom
         plane_constant,
         spacing,
         noise,
-        middle_over_largest < LINEAR_EIGENVALUE_RATIO,
+        is_linear,
         variation,
     )
 
@@ -511,7 +518,8 @@ def _surface_distance(
     other: _LocalGeometry,
     threshold: float,
     support_factor: float,
-) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]:
+    with_plane_offset: bool = False,
+) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64] | None]:
     """Distance of each point to the other cloud's supported local surface.
 
     A point whose nearest point in the other cloud lies within that point's support radius
@@ -530,6 +538,8 @@ def _surface_distance(
     threshold : float
         ``tau``.
     support_factor : float
+    with_plane_offset : bool
+        Also return the signed offsets (for the alignment residual; 8 bytes a point).
 
     Returns
     -------
@@ -539,26 +549,29 @@ def _surface_distance(
         support disc ``p`` projects into; the nearest-point distance when there is none.
     candidate : ndarray, shape (p,), bool
         Unmatched and ``distance > tau``.
-    nearest_plane_offset : ndarray, shape (p,)
-        Signed offset from the nearest point's plane for matched points, NaN elsewhere (for
-        the alignment residual).
+    nearest_plane_offset : ndarray, shape (p,), or None
+        With ``with_plane_offset``: the signed offset from the nearest point's plane for
+        matched points, NaN elsewhere.
     """
-    nearest_support = np.maximum(support_factor * other.spacing[nn_index], threshold)
-    matched = nn_distance <= nearest_support
-    nearest_plane_offset = np.full(points.shape[0], np.nan)
+    nearest_plane_offset = np.full(points.shape[0], np.nan) if with_plane_offset else None
     distance = np.empty(points.shape[0])
     candidate = np.zeros(points.shape[0], dtype=bool)
+    unmatched_parts = []
     for start in range(0, points.shape[0], _CHUNK):
         chunk = slice(start, start + _CHUNK)
-        rows = start + np.flatnonzero(matched[chunk])
+        nearest_support = np.maximum(support_factor * other.spacing[nn_index[chunk]], threshold)
+        matched = nn_distance[chunk] <= nearest_support
+        unmatched_parts.append(start + np.flatnonzero(~matched))
+        rows = start + np.flatnonzero(matched)
         nearest = nn_index[rows]
         offset = (
             np.einsum("pd,pd->p", points[rows], other.normal[nearest])
             - other.plane_constant[nearest]
         )
-        nearest_plane_offset[rows] = offset
+        if nearest_plane_offset is not None:
+            nearest_plane_offset[rows] = offset
         distance[rows] = np.abs(offset)
-    unmatched = np.flatnonzero(~matched)
+    unmatched = np.concatenate(unmatched_parts)
     for start in range(0, unmatched.shape[0], _GATHER_CHUNK):
         rows = unmatched[start : start + _GATHER_CHUNK]
         query = points[rows]
@@ -613,8 +626,15 @@ def _alignment_residual(
         step = max(1, points.shape[0] // _ALIGNMENT_SAMPLE)
         sample = slice(None, None, step)
         _, _, offset = _surface_distance(
-            points[sample], nn_distance[sample], nn_index[sample], other, threshold, support_factor
+            points[sample],
+            nn_distance[sample],
+            nn_index[sample],
+            other,
+            threshold,
+            support_factor,
+            with_plane_offset=True,
         )
+        assert offset is not None  # with_plane_offset=True
         offset = offset[np.isfinite(offset)]
         if offset.size < MIN_POINTS:
             continue
@@ -1166,6 +1186,8 @@ def localise_changes(
         ]
     )
     support_factor = _support_factor(relative_nn_distance, settings["support_factor"])
+    nn_distance_quartile = float(np.quantile(relative_nn_distance, SUPPORT_FACTOR_QUANTILE))
+    del relative_nn_distance  # 8 bytes a point of both clouds
     resolution_floor = RESOLUTION_THRESHOLD_FRACTION * median_spacing
     noise_only_threshold = max(
         settings["threshold_factor"]
@@ -1262,9 +1284,7 @@ def localise_changes(
         "threshold": threshold,
         "reference_spacing_median": float(np.median(reference_geometry.spacing)),
         "scan_spacing_median": float(np.median(scan_geometry.spacing)),
-        "nn_distance_over_spacing_quartile": float(
-            np.quantile(relative_nn_distance, SUPPORT_FACTOR_QUANTILE)
-        ),
+        "nn_distance_over_spacing_quartile": nn_distance_quartile,
         "support_radius_median": max(support_factor * median_spacing, threshold),
         "cluster_radius_median": settings["cluster_factor"] * median_spacing,
         **reference_report,
