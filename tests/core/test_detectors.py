@@ -3,12 +3,18 @@
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 import pytest
 
 from app.core.detectors import METHODS, VARIANTS, Detection, make_detector
-from app.core.detectors.gmm import _fit, bures_wasserstein_distances
+from app.core.detectors.gmm import (
+    MixtureStart,
+    _fit,
+    bures_wasserstein_distances,
+    refine_mixture,
+)
 from app.core.detectors.pca import improved_pca_emd, paper_pca_emd, principal_axes
 from app.core.emd import earth_movers_distance
 from app.core.errors import InputError
@@ -178,6 +184,7 @@ def test_improved_pca_is_invariant_to_eigenvector_signs_and_the_papers_is_not():
     assert abs(paper_flipped - paper) > 0.5
 
 
+@pytest.mark.filterwarnings("ignore::sklearn.exceptions.ConvergenceWarning")
 def test_gmm_warm_start_reduces_the_spread_between_noise_realisations():
     rng = np.random.default_rng(1)
     clean = corridor(300, rng, noise=0.0)
@@ -207,14 +214,33 @@ def test_gmm_warm_start_reduces_the_spread_between_noise_realisations():
     assert np.mean(warm) < 0.5 * np.mean(cold)
 
 
+@pytest.mark.filterwarnings("ignore::sklearn.exceptions.ConvergenceWarning")
+@pytest.mark.parametrize("iterations", [1, 4, 100])
+def test_gmm_refinement_is_scikit_learns_warm_started_fit_to_the_bit(iterations):
+    rng = np.random.default_rng(3)
+    reference = corridor(1500, rng, noise=0.01)
+    scan = np.vstack([corridor(1500, rng, noise=0.01), box_faces(200, rng)])
+    reference_model = _fit(reference, 8, seed=0, reg_covar=2e-3, max_iter=100)
+    expected = _fit(scan, 8, seed=0, reg_covar=2e-3, max_iter=iterations, start=reference_model)
+    weights, means, covariances = refine_mixture(
+        scan, MixtureStart.from_mixture(reference_model), reg_covar=2e-3, max_iter=iterations
+    )
+    np.testing.assert_array_equal(weights, expected.weights_)
+    np.testing.assert_array_equal(means, expected.means_)
+    np.testing.assert_array_equal(covariances, expected.covariances_)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
 @pytest.mark.parametrize("method", METHODS)
-def test_detection_does_not_depend_on_the_calibration_threads(method):
+def test_detection_does_not_depend_on_the_calibration_threads(method, variant):
     rng = np.random.default_rng(4)
     reference = corridor(3000, rng)
     scan = np.vstack([corridor(3000, rng), box_faces(300, rng)])
-    detector = make_detector(method, random_state=5, **FAST)
+    detector = make_detector(method, variant, random_state=5, **FAST)
     serial = detector.detect(reference, scan, threads=1)
-    concurrent = detector.detect(reference, scan, threads=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # e.g. a ConvergenceWarning leaking from a thread
+        concurrent = detector.detect(reference, scan, threads=3)
     assert concurrent.calibration["null_values"] == serial.calibration["null_values"]
     assert (concurrent.score, concurrent.threshold) == (serial.score, serial.threshold)
 

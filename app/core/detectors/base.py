@@ -21,7 +21,10 @@ every random choice from ``random_state``, and calibration.
 from __future__ import annotations
 
 import math
+import warnings
 from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -313,6 +316,11 @@ class ChangeDetector(ABC):
 
     method: ClassVar[str]
     _specs: ClassVar[dict[str, ParamSpec]] = {}
+    _ignored_warnings: ClassVar[tuple[type[Warning], ...]] = ()
+    """Warnings the method raises by design (e.g. EM stopped after a fixed number of
+    iterations), ignored for a whole :meth:`detect` or :meth:`distance` call. They are set once
+    in the calling thread: ``warnings.catch_warnings`` is not thread-safe, so code that runs
+    on the calibration threads must not use it."""
     _variant_defaults: ClassVar[dict[str, dict[str, Any]]] = {}
 
     def __init__(self, variant: str = "improved", *, random_state: int = 0, **params: Any):
@@ -439,6 +447,14 @@ class ChangeDetector(ABC):
         }
         return sets[0], sets[1], info
 
+    @contextmanager
+    def _numerics(self) -> Iterator[None]:
+        """One BLAS/OpenMP thread and :attr:`_ignored_warnings` ignored, for one call."""
+        with threadpool_limits(limits=1), warnings.catch_warnings():
+            for category in self._ignored_warnings:
+                warnings.simplefilter("ignore", category)
+            yield
+
     def _rngs(self) -> tuple[np.random.Generator, np.random.Generator]:
         """Independent generators for scoring and calibration."""
         seeds = np.random.SeedSequence(self.random_state).spawn(2)
@@ -476,7 +492,7 @@ class ChangeDetector(ABC):
         float
             Non-negative distance; 0 for identical clouds (up to EM / sampling noise).
         """
-        with threadpool_limits(limits=1):
+        with self._numerics():
             reference_work, scan_work, context, _, score_rng, _ = self._prepare(reference, scan)
             return float(self._score(reference_work, scan_work, context, score_rng, False))
 
@@ -504,7 +520,7 @@ class ChangeDetector(ABC):
         caller's thread settings.
         """
         threads = available_threads() if threads is None else max(1, int(threads))
-        with threadpool_limits(limits=1):
+        with self._numerics():
             return self._detect(reference, scan, threads)
 
     def _detect(self, reference: NDArray, scan: NDArray, threads: int) -> Detection:

@@ -39,11 +39,13 @@
 
 from __future__ import annotations
 
-import warnings
+import math
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import linalg
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.mixture import GaussianMixture
 
@@ -104,7 +106,11 @@ def _fit(
     max_iter: int,
     start: GaussianMixture | None = None,
 ) -> GaussianMixture:
-    """EM fit, cold (k-means initialisation) or warm-started from ``start``'s parameters."""
+    """EM fit, cold (k-means initialisation) or warm-started from ``start``'s parameters.
+
+    A fit that stops at ``max_iter`` raises scikit-learn's ``ConvergenceWarning``; the
+    detector ignores it for the whole call (:attr:`ChangeDetector._ignored_warnings`).
+    """
     warm_start = (
         {}
         if start is None
@@ -122,11 +128,144 @@ def _fit(
         random_state=seed,
         **warm_start,
     )
-    with warnings.catch_warnings():
-        # Stopping after a fixed number of iterations is intended (anchored refit).
-        warnings.simplefilter("ignore", ConvergenceWarning)
-        mixture.fit(points)
+    mixture.fit(points)
     return mixture
+
+
+@dataclass(frozen=True)
+class MixtureStart:
+    """A full-covariance Gaussian mixture to start EM refinements from.
+
+    Attributes
+    ----------
+    weights : ndarray, shape (K,)
+    means : ndarray, shape (K, d)
+    precisions_cholesky : ndarray, shape (K, d, d)
+        Upper-triangular ``U_k`` with ``precision_k = U_k U_k^T``, computed from the
+        precisions exactly as scikit-learn does for ``precisions_init``.
+    """
+
+    weights: NDArray[np.float64]
+    means: NDArray[np.float64]
+    precisions_cholesky: NDArray[np.float64]
+
+    @classmethod
+    def from_mixture(cls, mixture: GaussianMixture) -> MixtureStart:
+        """The start scikit-learn would make of ``weights_init=mixture.weights_`` etc."""
+        flipped = [
+            np.flip(linalg.cholesky(np.flip(precision), lower=True))
+            for precision in mixture.precisions_
+        ]
+        return cls(
+            weights=np.array(mixture.weights_, dtype=np.float64),
+            means=np.array(mixture.means_, dtype=np.float64),
+            precisions_cholesky=np.stack(flipped),
+        )
+
+
+def _log_gaussian_densities(
+    points: NDArray[np.float64],
+    means: NDArray[np.float64],
+    precisions_cholesky: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """``log N(x_i | mu_k, Sigma_k)``, shape (n, K), as scikit-learn's ``full`` case."""
+    n_points, n_features = points.shape
+    log_det = np.sum(
+        np.log(precisions_cholesky.reshape(means.shape[0], -1)[:, :: n_features + 1]), axis=1
+    )
+    squared = np.empty((n_points, means.shape[0]))
+    for k in range(means.shape[0]):
+        whitened = (points @ precisions_cholesky[k]) - (means[k] @ precisions_cholesky[k])
+        squared[:, k] = np.sum(np.square(whitened), axis=1)
+    return -0.5 * (n_features * math.log(2 * math.pi) + squared) + log_det
+
+
+def _log_sum_exp_rows(values: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``log(sum(exp(values), axis=1))``, shape (n,), with scikit-learn's rounding."""
+    row_max = np.max(values, axis=1, keepdims=True)
+    at_max = values == row_max
+    others = values.copy()
+    others[at_max] = -np.inf
+    n_at_max = np.sum(at_max.astype(np.float64), axis=1, keepdims=True, dtype=np.float64)
+    shift = np.where(np.isfinite(row_max), row_max, 0)
+    total = np.sum(np.exp(others - shift), axis=1, keepdims=True, dtype=np.float64)
+    total = np.where(total == 0, total, total / n_at_max)
+    return np.squeeze(np.log1p(total) + np.log(n_at_max) + row_max, axis=1)
+
+
+def _precisions_cholesky(covariances: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``U_k`` (upper triangular, ``Sigma_k^-1 = U_k U_k^T``), shape (K, d, d)."""
+    identity = np.eye(covariances.shape[1])
+    result = np.empty_like(covariances)
+    for k, covariance in enumerate(covariances):
+        try:
+            lower = linalg.cholesky(covariance, lower=True)
+        except np.linalg.LinAlgError as exc:
+            raise ValueError(
+                "EM refinement failed: a component's covariance is not positive definite"
+            ) from exc
+        result[k] = linalg.solve_triangular(lower, identity, lower=True).T
+    return result
+
+
+def refine_mixture(
+    points: NDArray[np.float64],
+    start: MixtureStart,
+    *,
+    reg_covar: float,
+    max_iter: int,
+    tol: float = 1e-3,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """EM iterations on ``points`` started from ``start``: scikit-learn's warm-started fit.
+
+    The same operations in the same order as ``GaussianMixture(covariance_type="full",
+    weights_init=..., means_init=..., precisions_init=..., max_iter=max_iter).fit(points)``
+    (so the same bits), without its input validation, its final E-step (it only serves
+    ``fit_predict``'s labels) and its per-call overhead: ~1 ms instead of ~6 ms for one
+    iteration on 4000 points. ``tests/core/test_detectors.py`` checks the equality.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, d), float64
+    start : MixtureStart
+    reg_covar : float
+        Added to the diagonal of every covariance.
+    max_iter : int
+        At most this many E+M iterations (>= 1).
+    tol : float
+        Stop when the mean log-likelihood changes by less (scikit-learn's default 1e-3).
+
+    Returns
+    -------
+    weights : ndarray, shape (K,)
+    means : ndarray, shape (K, d)
+    covariances : ndarray, shape (K, d, d)
+    """
+    points = np.asarray(points, dtype=np.float64)
+    weights, means, precisions_cholesky = start.weights, start.means, start.precisions_cholesky
+    covariances = np.empty((means.shape[0], points.shape[1], points.shape[1]))
+    lower_bound = -np.inf
+    for iteration in range(max_iter):
+        # E-step: log responsibilities under the current model
+        weighted = _log_gaussian_densities(points, means, precisions_cholesky) + np.log(weights)
+        log_norm = _log_sum_exp_rows(weighted)
+        with np.errstate(under="ignore"):
+            log_responsibilities = weighted - log_norm[:, np.newaxis]
+        previous_bound, lower_bound = lower_bound, np.mean(log_norm)
+        # M-step
+        responsibilities = np.exp(log_responsibilities)
+        counts = np.sum(responsibilities, axis=0) + 10 * np.finfo(np.float64).eps
+        means = (responsibilities.T @ points) / counts[:, np.newaxis]
+        covariances = np.empty((means.shape[0], points.shape[1], points.shape[1]))
+        for k in range(means.shape[0]):
+            centred = points - means[k, :]
+            covariances[k] = ((responsibilities[:, k] * centred.T) @ centred) / counts[k]
+            covariances[k].flat[:: points.shape[1] + 1] += reg_covar
+        weights = counts / np.sum(counts)
+        if iteration + 1 == max_iter or abs(lower_bound - previous_bound) < tol:
+            break
+        precisions_cholesky = _precisions_cholesky(covariances)
+    return weights, means, covariances
 
 
 class GmmDetector(ChangeDetector):
@@ -151,6 +290,8 @@ class GmmDetector(ChangeDetector):
     """
 
     method: ClassVar[str] = "gmm"
+    # EM stopping at max_iter is intended: the anchored refinements, bounded cost.
+    _ignored_warnings: ClassVar[tuple[type[Warning], ...]] = (ConvergenceWarning,)
     _specs: ClassVar[dict[str, ParamSpec]] = {
         "n_components": ParamSpec("int", 1, 256),
         "max_iter": ParamSpec("int", 1, 10_000),
@@ -195,13 +336,15 @@ class GmmDetector(ChangeDetector):
         reg_covar = self._reg_covar(reference)
         context: dict[str, Any] = {"reg_covar": reg_covar}
         if self.variant == "improved":
-            context["reference_model"] = _fit(
+            reference_model = _fit(
                 reference,
                 n_components,
                 seed=self._seed(),
                 reg_covar=reg_covar,
                 max_iter=self.params["max_iter"],
             )
+            context["reference_model"] = reference_model
+            context["refinement_start"] = MixtureStart.from_mixture(reference_model)
         return context
 
     def _score(
@@ -227,20 +370,16 @@ class GmmDetector(ChangeDetector):
         # to the reference): identical sets give identical models, and only what the data
         # moves, moves. Calibration resamples go through exactly the same steps.
         reference_model: GaussianMixture = context["reference_model"]
-        model_a, model_b = (
-            _fit(
+        (_, means_a, covariances_a), (_, means_b, covariances_b) = (
+            refine_mixture(
                 points,
-                n_components,
-                seed=seed,
+                context["refinement_start"],
                 reg_covar=reg_covar,
                 max_iter=self.params["refine_iterations"],
-                start=reference_model,
             )
             for points in (first, second)
         )
-        ground = bures_wasserstein_distances(
-            model_a.means_, model_a.covariances_, model_b.means_, model_b.covariances_
-        )
+        ground = bures_wasserstein_distances(means_a, covariances_a, means_b, covariances_b)
         # Weights: the shared model's mixing probabilities on both sides. How many points
         # fall in each component after the refinement depends on the sampling pattern
         # (viewpoint, lidar rings), while what a change does to the geometry shows in the
