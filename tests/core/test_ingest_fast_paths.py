@@ -2,7 +2,8 @@
 
 Fast: the readers hand ``PointCloud.from_array`` an (n, 3) view of the file's records
 (``xyz_points``), which converts it to float64 block by block and checks finiteness on the way
-(``dot`` per block, row-by-row check only when that fails). Slow: ``xyz_from_columns`` fills a
+(``dot`` per block, row-by-row check only when that fails), in one thread or split between
+several (every test here runs both ways). Slow: ``xyz_from_columns`` fills a
 float64 array column by column and ``from_array`` then checks it. Both must agree bit for bit
 on points, dropped rows, source_index and attributes, for every layout and byte order.
 """
@@ -26,10 +27,15 @@ from app.core.formats._common import open_source, xyz_from_columns, xyz_view
 N_POINTS = 257  # not a multiple of the (patched) block size: the last block is partial
 
 
-@pytest.fixture(autouse=True)
-def _small_blocks(monkeypatch):
-    """Many blocks, including a partial last one, even for small test clouds."""
+@pytest.fixture(autouse=True, params=[1, 3], ids=["1 thread", "3 threads"])
+def _small_blocks(monkeypatch, request):
+    """Many blocks, including a partial last one, even for small test clouds; converted by
+    one thread, or by three (parts of 64 rows: 4 blocks each, the last part shorter)."""
     monkeypatch.setattr(cloud_module, "CHECK_BLOCK_POINTS", 16)
+    monkeypatch.setattr(cloud_module, "PARALLEL_MIN_POINTS", 64)
+    monkeypatch.setattr(cloud_module, "MAX_CONVERSION_THREADS", 3)
+    monkeypatch.setattr(cloud_module, "conversion_threads", lambda: request.param)
+    return request.param
 
 
 def _values(n: int = N_POINTS, seed: int = 0, with_non_finite: bool = True) -> np.ndarray:
@@ -361,3 +367,75 @@ def test_bounds_and_local_origin_use_the_fast_extremes():
     np.testing.assert_array_equal(high, points.max(axis=0))
     centre = (points.min(axis=0) + points.max(axis=0)) / 2
     np.testing.assert_array_equal(cloud_module.choose_local_origin(points), np.round(centre))
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3, 4, 16])
+@pytest.mark.parametrize("n_points", [63, 64, 65, 128, 129, 200, 257, 1000])
+@pytest.mark.parametrize("aligned", [True, False])
+def test_threaded_conversion_equals_one_thread(threads, n_points, aligned):
+    """Any split (parts of whole blocks, a short or empty last part, more threads than parts)
+    gives the one-thread cloud, non-finite rows in any part included."""
+    values = _values(n=n_points, seed=n_points)
+    values[n_points // 2, 1] = np.nan  # in a later part
+    buffer = (b"" if aligned else b"\x00") + values.astype("<f4").tobytes()
+    view = np.frombuffer(buffer, "<f4", offset=0 if aligned else 1).reshape(-1, 3)
+    attributes = {"i": np.arange(n_points)}
+    split = PointCloud.from_array(view, attributes=attributes, threads=threads)
+    single = PointCloud.from_array(view, attributes=attributes, threads=1)
+    _assert_same_cloud(split, single)
+    finite_values = values.astype(np.float32).astype(np.float64)
+    np.testing.assert_array_equal(split.points, finite_values[np.isfinite(values).all(axis=1)])
+
+
+def test_all_finite_clouds_need_no_row_check_whatever_the_threads(monkeypatch):
+    values = _values(n=300, with_non_finite=False).astype(np.float32)
+    monkeypatch.setattr(np, "isfinite", _refuse_row_check(np.isfinite))
+    for threads in (1, 2, 3):
+        cloud = PointCloud.from_array(values, threads=threads)
+        assert cloud.n_dropped == 0 and cloud.source_index.tolist() == list(range(300))
+
+
+def _refuse_row_check(isfinite):
+    def guarded(values, *args, **kwargs):
+        if np.ndim(values) == 2:
+            raise AssertionError("row-by-row check on an all-finite cloud")
+        return isfinite(values, *args, **kwargs)
+
+    return guarded
+
+
+def test_an_error_in_a_helper_thread_reaches_the_caller(monkeypatch):
+    original = cloud_module._convert_rows
+    calls = []
+
+    def failing(array, out):
+        calls.append(len(array))
+        if len(calls) == 2:
+            raise MemoryError("no room for this part")
+        return original(array, out)
+
+    monkeypatch.setattr(cloud_module, "_convert_rows", failing)
+    values = _values(n=200).astype(np.float32)
+    with pytest.raises(MemoryError, match="no room"):
+        PointCloud.from_array(values, threads=2)
+
+
+def test_conversion_threads_follow_omp_num_threads_and_the_cap(monkeypatch):
+    monkeypatch.undo()  # the real conversion_threads and cap
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert cloud_module.conversion_threads() == 1
+    monkeypatch.setenv("OMP_NUM_THREADS", "64")
+    assert cloud_module.conversion_threads() == cloud_module.MAX_CONVERSION_THREADS
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    assert 1 <= cloud_module.conversion_threads() <= cloud_module.MAX_CONVERSION_THREADS
+
+
+def test_conversion_without_a_spare_thread_happens_in_the_caller(monkeypatch):
+    def refuse(self):
+        raise RuntimeError("can't start new thread")
+
+    monkeypatch.setattr(cloud_module.threading.Thread, "start", refuse)
+    values = _values(n=200).astype(np.float32)
+    _assert_same_cloud(
+        PointCloud.from_array(values, threads=3), PointCloud.from_array(values, threads=1)
+    )
