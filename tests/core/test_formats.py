@@ -240,6 +240,22 @@ def test_las_and_laz_round_trip(compress, point_format):
         np.testing.assert_array_equal(cloud.attributes["red"], np.arange(N_POINTS) * 100)
 
 
+@pytest.mark.parametrize("point_format", [3, 6])
+def test_laz_decoded_in_parallel_equals_sequential(point_format):
+    """Several LAZ chunks (50,000 points each): the parallel decoder gives the sequential
+    cloud."""
+    points = np.round(random_points(120_000, seed=4), 3)
+    version = "1.4" if point_format >= 6 else "1.2"
+    content = las_bytes(points, compress=True, point_format=point_format, version=version)
+    sequential = read_point_cloud(content, filename="scan.laz", threads=1)
+    parallel = read_point_cloud(content, filename="scan.laz", threads=2)
+    np.testing.assert_allclose(sequential.points, points, atol=1e-9)
+    np.testing.assert_array_equal(parallel.points, sequential.points)
+    assert parallel.attributes.keys() == sequential.attributes.keys()
+    for name, values in sequential.attributes.items():
+        np.testing.assert_array_equal(parallel.attributes[name], values)
+
+
 def test_georeferenced_las_keeps_millimetres():
     rng = np.random.default_rng(3)
     utm = np.column_stack(
@@ -830,10 +846,11 @@ MALFORMED: dict[str, tuple[str, Callable[[], bytes], str]] = {
 
 
 @pytest.mark.parametrize("case", sorted(MALFORMED))
-def test_malformed_input_raises_point_cloud_error_with_a_useful_message(case):
+@pytest.mark.parametrize("threads", [1, 2])  # sequential and parallel decoders (LAZ, widening)
+def test_malformed_input_raises_point_cloud_error_with_a_useful_message(case, threads):
     filename, build, fragment = MALFORMED[case]
     with pytest.raises(PointCloudError) as caught:
-        read_point_cloud(build(), filename=filename)
+        read_point_cloud(build(), filename=filename, threads=threads)
     message = str(caught.value)
     assert fragment in message, message
     assert message.startswith(f"{filename}: ")
@@ -888,8 +905,11 @@ def test_corrupted_files_raise_only_point_cloud_error(kind):
     and a 10**9-VLR loop in laspy, both now refused up front)."""
     content = FUZZ_SEEDS[kind](random_points(200))
     rng = np.random.default_rng(sorted(FUZZ_SEEDS).index(kind))
+    # LAZ also through the parallel decoder (lazrs's ParLasZipDecompressor)
+    thread_counts = (1, 2) if kind.startswith("laz") else (None,)
     for _ in range(40):
         data = mutate_bytes(bytearray(content), rng, int(rng.integers(4)))
         for filename in (None, f"scan.{kind.split('-')[0]}"):
-            with contextlib.suppress(PointCloudError):  # anything else fails the test
-                read_point_cloud(bytes(data), filename=filename)
+            for threads in thread_counts:
+                with contextlib.suppress(PointCloudError):  # anything else fails the test
+                    read_point_cloud(bytes(data), filename=filename, threads=threads)

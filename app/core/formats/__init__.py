@@ -28,7 +28,7 @@ from pathlib import PurePath
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.cloud import PointCloud
+from app.core.cloud import PointCloud, conversion_threads
 from app.core.errors import PointCloudError, UnsupportedFormatError
 from app.core.formats import text as _text
 from app.core.formats._common import RawCloud, Source, SourceLike, open_source
@@ -182,6 +182,7 @@ def read_point_cloud(
     *,
     filename: str | None = None,
     max_points: int | None = 200_000_000,
+    threads: int | None = None,
 ) -> PointCloud:
     """Read a point cloud from a path, bytes or a binary file object.
 
@@ -197,6 +198,10 @@ def read_point_cloud(
     max_points : int or None
         Refuse files whose header declares more points (None: no limit). Checked before any
         allocation or decompression.
+    threads : int, optional
+        Threads that may decode a large file: they widen binary PLY/PCD coordinates to float64
+        and decompress LAZ. Default :func:`~app.core.cloud.conversion_threads` (``OMP_NUM_THREADS``
+        or the usable CPUs, at most two). The cloud does not depend on it.
 
     Returns
     -------
@@ -220,8 +225,16 @@ def read_point_cloud(
                 raise PointCloudError("the file is empty (0 bytes): zero points")
             if chosen is None:
                 chosen = detect_format(opened.name, opened.head(SNIFF_BYTES))
-            raw = _READERS[chosen](opened, max_points)
-            return PointCloud.from_array(raw.points, raw.attributes, raw.sensor_origin)
+            if threads is None:
+                threads = conversion_threads()
+            reader = _READERS[chosen]
+            if reader is read_las:
+                raw = read_las(opened, max_points, threads=threads)
+            else:
+                raw = reader(opened, max_points)
+            return PointCloud.from_array(
+                raw.points, raw.attributes, raw.sensor_origin, threads=threads
+            )
         except PointCloudError as exc:
             raise type(exc)(f"{label}: {exc}") from exc
         except MemoryError as exc:

@@ -55,8 +55,12 @@ def is_compressed_point_format(point_format_byte: int) -> bool:
     return bool(point_format_byte & 0x80) and not point_format_byte & 0x40
 
 
-def read_las(source: Source, max_points: int | None) -> RawCloud:
+def read_las(source: Source, max_points: int | None, *, threads: int = 1) -> RawCloud:
     """Decode a LAS or LAZ file (the header says which).
+
+    With ``threads`` >= 2, LAZ chunks are decompressed in parallel (lazrs's
+    ``ParLasZipDecompressor``, which needs the chunk table: a file without one is decoded
+    sequentially); with 1, sequentially.
 
     Raises
     ------
@@ -75,7 +79,9 @@ def read_las(source: Source, max_points: int | None) -> RawCloud:
     _check_header_layout(source)
     with source.stream() as stream:
         try:
-            reader = laspy.open(stream, closefd=False, read_evlrs=False)
+            reader = laspy.open(
+                stream, closefd=False, read_evlrs=False, laz_backend=_laz_backends(threads)
+            )
         except Exception as exc:  # laspy raises LaspyException, ValueError, struct.error, ...
             raise PointCloudError(f"malformed LAS header: {exc}") from exc
         with reader:
@@ -108,6 +114,22 @@ def read_las(source: Source, max_points: int | None) -> RawCloud:
                     bytes_per_point=record_size,
                 )
             return _read_points(reader, n_points, what)
+
+
+def _laz_backends(threads: int):  # -> tuple[laspy.LazBackend, ...], laspy imported lazily
+    """The LAZ decoders laspy should try, in order: parallel first when ``threads`` >= 2.
+
+    laspy falls back to the next one when a decoder cannot be created (the parallel one needs
+    a chunk table); only the installed ones are listed, so that laspy logs no error for the
+    others. An empty tuple (no LAZ decoder installed) makes laspy say so for compressed files.
+    """
+    import laspy
+
+    order = (laspy.LazBackend.LazrsParallel, laspy.LazBackend.Lazrs, laspy.LazBackend.Laszip)
+    if threads < 2:
+        order = (laspy.LazBackend.Lazrs, laspy.LazBackend.Laszip, laspy.LazBackend.LazrsParallel)
+    available = laspy.LazBackend.detect_available()
+    return tuple(backend for backend in order if backend in available)
 
 
 def _check_header_layout(source: Source) -> None:
