@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from app.core.detectors import METHODS, VARIANTS, Detection, make_detector
+from app.core.detectors import planes as planes_module
 from app.core.detectors.gmm import (
     MixtureStart,
     _fit,
@@ -16,6 +17,13 @@ from app.core.detectors.gmm import (
     refine_mixture,
 )
 from app.core.detectors.pca import improved_pca_emd, paper_pca_emd, principal_axes
+from app.core.detectors.planes import (
+    PlaneSettings,
+    VoteWorkspace,
+    _candidate_planes,
+    _refined,
+    _vote,
+)
 from app.core.emd import earth_movers_distance
 from app.core.errors import InputError
 
@@ -254,3 +262,50 @@ def test_bures_distance_matches_closed_forms():
     # Commuting covariances: ||sqrt(A) - sqrt(B)||_F.
     scaled = bures_wasserstein_distances(means, identity, means, 4.0 * identity)
     assert scaled[0, 0] == pytest.approx(np.sqrt(3.0))
+
+
+def test_plane_refinements_shared_between_candidates_change_nothing(monkeypatch):
+    rng = np.random.default_rng(6)
+    points = np.vstack([corridor(3000, rng, noise=0.01), box_faces(500, rng)])
+    settings = PlaneSettings(0.2, 0.03, 0.03, 300, 3, 15)
+    # as in a round of the extraction: the 10 best-supported of 300 random triples
+    candidates, triples = _candidate_planes(points, 300, rng)
+    weights = _vote(candidates, points[triples], settings)
+    candidates = candidates[np.argsort(-weights, kind="stable")[:10]]
+    refits = {"alone": 0, "shared": 0}
+    counting = "alone"
+
+    def counted_refit(inliers: np.ndarray) -> np.ndarray:
+        refits[counting] += 1
+        return plane_fit(inliers)
+
+    plane_fit = planes_module._refit
+    monkeypatch.setattr(planes_module, "_refit", counted_refit)
+    known: dict = {}
+    for candidate in candidates:
+        counting = "alone"
+        alone_plane, alone_inliers = _refined(points, candidate, settings)
+        counting = "shared"
+        plane, inliers = _refined(points, candidate, settings, known)
+        np.testing.assert_array_equal(plane, alone_plane)
+        np.testing.assert_array_equal(inliers, alone_inliers)
+    assert refits["shared"] < refits["alone"]  # the shortcut was taken
+
+
+def test_plane_vote_reusing_its_buffers_gives_the_same_weights():
+    rng = np.random.default_rng(7)
+    points = corridor(3000, rng, noise=0.01)
+    settings = PlaneSettings(0.2, 0.03, 0.03, 300, 3, 15)
+    workspace = VoteWorkspace()
+    for count in (300, 120, 300, 7):
+        candidates, triples = _candidate_planes(points, count, rng)
+        reused = _vote(candidates, points[triples], settings, workspace)
+        fresh = _vote(candidates, points[triples], settings)
+        np.testing.assert_array_equal(reused, fresh)
+        # against the definition, pair by pair
+        gaps = np.linalg.norm(candidates[:, None, :3] - candidates[None, :, :3], axis=2)
+        heights = np.abs(
+            np.einsum("ik,jck->ijc", candidates[:, :3], points[triples]) - candidates[:, None, 3:]
+        ).max(axis=2)
+        expected = ((gaps < 0.2) & (heights < 0.03)).sum(axis=1)
+        assert np.abs(reused - expected).sum() <= 0.001 * count * count  # ties at a threshold
