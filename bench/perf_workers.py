@@ -39,10 +39,11 @@ def write_binary_ply(path: Path, points: NDArray[np.float64]) -> None:
     PlyData([PlyElement.describe(vertex, "vertex")], text=False, byte_order="<").write(str(path))
 
 
-def write_scene(scene_dir: Path, n_points: int) -> None:
-    """Ray-cast one rescan pair (an added box) and write it as binary PLY + ground truth."""
+def write_scene(scene_dir: Path, n_points: int, change: str = "box") -> None:
+    """Ray-cast one rescan pair (by default an added box; any of
+    ``app.core.synthetic.CHANGE_KINDS``) and write it as binary PLY + ground truth."""
     pair = raycast_scene(
-        n_points=n_points, change="box", pose_error=(0.03, 0.4), random_state=SCENE_SEED
+        n_points=n_points, change=change, pose_error=(0.03, 0.4), random_state=SCENE_SEED
     )
     scene_dir.mkdir(parents=True, exist_ok=True)
     write_binary_ply(scene_dir / "reference.ply", pair.reference)
@@ -112,6 +113,15 @@ def pipeline_worker(scene_dir: Path, *, method: str, **_: Any) -> dict[str, Any]
             result.reference_label == LABEL_CHANGED, result.scan_label == LABEL_CHANGED, truth
         ),
         "changed": bool(result.changed),
+        "n_regions": len(result.regions),
+        "changed_points": int(
+            np.count_nonzero(result.reference_label == LABEL_CHANGED)
+            + np.count_nonzero(result.scan_label == LABEL_CHANGED)
+        ),
+        "truly_changed_points": int(
+            np.count_nonzero(truth["reference_changed"]) + np.count_nonzero(truth["scan_changed"])
+        ),
+        "points": len(reference) + len(scan),
     }
 
 
