@@ -11,10 +11,11 @@ numeric work and add back when reporting coordinates.
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import threading
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -108,11 +109,13 @@ def _float64_checked(array: NDArray, threads: int = 1) -> tuple[NDArray[np.float
     first copied into an aligned scratch block: numpy's unaligned casts are about twice as slow
     as a copy.
 
-    One core converts at most ~30 GB/s of cache traffic (a float32 -> float64 widening reads
-    12 and writes 24 bytes per point), so with ``threads`` >= 2 and at least
-    :data:`PARALLEL_MIN_POINTS` rows the rows are split into ``threads`` contiguous parts,
-    converted concurrently (numpy's copies and ``dot`` release the GIL). The result does not
-    depend on ``threads``.
+    One core moves only so many bytes per second through its caches (~30 GB/s here, and a
+    float32 -> float64 widening reads 12 and writes 24 bytes per point), so with ``threads``
+    >= 2 and at least :data:`PARALLEL_MIN_POINTS` rows per thread, helper threads take blocks
+    too (numpy's copies and ``dot`` release the GIL). The blocks are handed out one at a time
+    from a shared counter, not split up front: a helper that gets no core on a busy machine
+    then simply converts fewer blocks (none at worst), and the caller never waits for more than
+    the block a helper is converting. The result does not depend on ``threads``.
 
     Parameters
     ----------
@@ -127,33 +130,30 @@ def _float64_checked(array: NDArray, threads: int = 1) -> tuple[NDArray[np.float
         True only when every coordinate is finite (False: check row by row).
     """
     out = np.empty(array.shape, dtype=np.float64)
-    n_parts = max(1, min(threads, len(array) // PARALLEL_MIN_POINTS))
-    if n_parts == 1:
-        return out, _convert_rows(array, out)
-    # Part boundaries on block boundaries: every block but the last is a full one.
-    rows_per_part = -(-len(array) // n_parts)
-    rows_per_part = -(-rows_per_part // CHECK_BLOCK_POINTS) * CHECK_BLOCK_POINTS
-    bounds = [min(part * rows_per_part, len(array)) for part in range(n_parts + 1)]
-    results = [True] * n_parts
+    n_threads = max(1, min(threads, len(array) // PARALLEL_MIN_POINTS))
+    if n_threads == 1:
+        return out, _convert_blocks(array, out, itertools.count())
+    # itertools.count's next() is atomic (one C call under the GIL): each block goes to
+    # exactly one thread.
+    block_numbers = itertools.count()
+    results: list[bool] = []
     failures: list[BaseException] = []
 
-    def convert_part(part: int) -> None:
-        rows = slice(bounds[part], bounds[part + 1])
+    def convert_blocks() -> None:
         try:
-            results[part] = _convert_rows(array[rows], out[rows])
+            results.append(_convert_blocks(array, out, block_numbers))
         except BaseException as exc:  # re-raised in the calling thread
             failures.append(exc)
 
     helpers: list[threading.Thread] = []
-    for part in range(1, n_parts):
-        helper = threading.Thread(target=convert_part, args=(part,), name=f"from_array-{part}")
+    for number in range(1, n_threads):
+        helper = threading.Thread(target=convert_blocks, name=f"from_array-{number}")
         try:
             helper.start()
-        except RuntimeError:  # no thread to be had (e.g. an address-space limit): do it here
-            convert_part(part)
-        else:
-            helpers.append(helper)
-    convert_part(0)
+        except RuntimeError:  # no thread to be had (e.g. an address-space limit)
+            break  # the threads already running (at least the caller) take every block
+        helpers.append(helper)
+    convert_blocks()
     for helper in helpers:
         helper.join()
     if failures:
@@ -161,13 +161,14 @@ def _float64_checked(array: NDArray, threads: int = 1) -> tuple[NDArray[np.float
     return out, all(results)
 
 
-def _convert_rows(array: NDArray, out: NDArray[np.float64]) -> bool:
-    """Widen ``array`` (shape (n, 3)) into ``out`` (shape (n, 3), float64) block by block.
+def _convert_blocks(array: NDArray, out: NDArray[np.float64], block_numbers: Iterator[int]) -> bool:
+    """Widen the blocks of ``array`` (shape (n, 3)) that ``block_numbers`` hands out into
+    ``out`` (shape (n, 3), float64), until it hands out one past the end.
 
     Returns
     -------
     bool
-        True only when every value is finite (see :func:`_float64_checked`).
+        True only when every value converted here is finite (see :func:`_float64_checked`).
     """
     check_input = array.dtype.kind == "f" and array.dtype.isnative
     scratch = None if array.flags.aligned else np.empty((CHECK_BLOCK_POINTS, 3), array.dtype)
@@ -175,7 +176,10 @@ def _convert_rows(array: NDArray, out: NDArray[np.float64]) -> bool:
     # Signalling NaNs raise the "invalid" flag when widened: they are NaN rows like any other;
     # dot() may overflow (see _surely_finite). One errstate for all blocks (it costs ~5 us).
     with np.errstate(invalid="ignore", over="ignore"):
-        for start in range(0, len(array), CHECK_BLOCK_POINTS):
+        for number in block_numbers:
+            start = number * CHECK_BLOCK_POINTS
+            if start >= len(array):
+                break
             block = array[start : start + CHECK_BLOCK_POINTS]
             if scratch is not None:
                 np.copyto(scratch[: len(block)], block)

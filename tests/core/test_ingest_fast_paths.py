@@ -30,7 +30,7 @@ N_POINTS = 257  # not a multiple of the (patched) block size: the last block is 
 @pytest.fixture(autouse=True, params=[1, 3], ids=["1 thread", "3 threads"])
 def _small_blocks(monkeypatch, request):
     """Many blocks, including a partial last one, even for small test clouds; converted by
-    one thread, or by three (parts of 64 rows: 4 blocks each, the last part shorter)."""
+    one thread, or shared by three (from 192 rows on)."""
     monkeypatch.setattr(cloud_module, "CHECK_BLOCK_POINTS", 16)
     monkeypatch.setattr(cloud_module, "PARALLEL_MIN_POINTS", 64)
     monkeypatch.setattr(cloud_module, "MAX_CONVERSION_THREADS", 3)
@@ -373,8 +373,8 @@ def test_bounds_and_local_origin_use_the_fast_extremes():
 @pytest.mark.parametrize("n_points", [63, 64, 65, 128, 129, 200, 257, 1000])
 @pytest.mark.parametrize("aligned", [True, False])
 def test_threaded_conversion_equals_one_thread(threads, n_points, aligned):
-    """Any split (parts of whole blocks, a short or empty last part, more threads than parts)
-    gives the one-thread cloud, non-finite rows in any part included."""
+    """Any number of threads (more than there are blocks included) gives the one-thread
+    cloud, non-finite rows in any block included."""
     values = _values(n=n_points, seed=n_points)
     values[n_points // 2, 1] = np.nan  # in a later part
     buffer = (b"" if aligned else b"\x00") + values.astype("<f4").tobytes()
@@ -405,16 +405,16 @@ def _refuse_row_check(isfinite):
 
 
 def test_an_error_in_a_helper_thread_reaches_the_caller(monkeypatch):
-    original = cloud_module._convert_rows
+    original = cloud_module._convert_blocks
     calls = []
 
-    def failing(array, out):
+    def failing(array, out, block_numbers):
         calls.append(len(array))
         if len(calls) == 2:
             raise MemoryError("no room for this part")
-        return original(array, out)
+        return original(array, out, block_numbers)
 
-    monkeypatch.setattr(cloud_module, "_convert_rows", failing)
+    monkeypatch.setattr(cloud_module, "_convert_blocks", failing)
     values = _values(n=200).astype(np.float32)
     with pytest.raises(MemoryError, match="no room"):
         PointCloud.from_array(values, threads=2)
