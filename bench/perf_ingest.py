@@ -8,10 +8,18 @@ keeps both under the same machine load). The share of the floor's speed uses the
 
 The floor writes the file's bytes once; ``read_point_cloud`` must also widen float32
 coordinates to float64, i.e. write twice as many bytes (24 MB for 1M points) as the floor does.
+
+``read_point_cloud`` runs with its default thread budget (``threads``: two on a two-core
+machine unless ``OMP_NUM_THREADS`` says otherwise; they share the widening and the LAZ
+decompression) and, in the same rotation, with one thread (the ``*_one_thread`` figures), so
+the single-threaded speed against the single-threaded floor stays visible. ``load_average`` is
+the machine's 1-minute load when the format's timings start: on a shared machine a load near
+the core count means the second thread had no core of its own.
 """
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -22,6 +30,7 @@ import numpy as np
 import pypcd4
 from numpy.typing import NDArray
 
+from app.core.cloud import conversion_threads
 from app.core.formats import read_point_cloud
 from app.core.synthetic import raycast_scene
 from bench.perf_workers import SCENE_SEED, write_binary_ply
@@ -57,25 +66,24 @@ def timed_seconds(action: Callable[[], object], repeats: int) -> list[float]:
     return timings
 
 
-def alternate_seconds(
-    first: Callable[[], object], second: Callable[[], object], repeats: int
-) -> tuple[list[float], list[float]]:
-    """Seconds of ``repeats`` calls of each action, the two taking turns."""
-    first_times: list[float] = []
-    second_times: list[float] = []
+def rotate_seconds(actions: list[Callable[[], object]], repeats: int) -> list[list[float]]:
+    """Seconds of ``repeats`` calls of each action, the actions taking turns."""
+    times: list[list[float]] = [[] for _ in actions]
     for _ in range(repeats):
-        first_times += timed_seconds(first, 1)
-        second_times += timed_seconds(second, 1)
-    return first_times, second_times
+        for action, action_times in zip(actions, times, strict=True):
+            action_times += timed_seconds(action, 1)
+    return times
 
 
 def measure_ingest(work_dir: Path, n_points: int, repeats: int = 3) -> dict[str, dict[str, Any]]:
     """Per format: file size, read and fromfile seconds (best and median), share of fromfile
-    speed (best and median), MB/s and points/s (best)."""
+    speed (best and median), MB/s and points/s (best); the same read figures with one thread
+    (``*_one_thread``), the default thread count and the 1-minute load average."""
     points = raycast_scene(n_points=n_points, change="none", random_state=SCENE_SEED).reference
     ingest_dir = work_dir / "ingest"
     ingest_dir.mkdir(parents=True, exist_ok=True)
     writers = {"ply": write_binary_ply, "pcd": write_pcd, "laz": write_laz}
+    threads = conversion_threads()
     results: dict[str, dict[str, Any]] = {}
     for name, writer in writers.items():
         path = ingest_dir / f"cloud.{name}"
@@ -83,23 +91,48 @@ def measure_ingest(work_dir: Path, n_points: int, repeats: int = 3) -> dict[str,
         cloud = read_point_cloud(path)  # warm the page cache and check the content
         if len(cloud) != len(points):
             raise RuntimeError(f"{name}: read {len(cloud)} of {len(points)} points")
-        read_times, fromfile_times = alternate_seconds(
-            lambda path=path: read_point_cloud(path),
-            lambda path=path: np.fromfile(path, dtype=np.uint8),
+        load_average = os.getloadavg()[0]
+        read_times, fromfile_times, one_thread_times = rotate_seconds(
+            [
+                lambda path=path: read_point_cloud(path),
+                lambda path=path: np.fromfile(path, dtype=np.uint8),
+                lambda path=path: read_point_cloud(path, threads=1),
+            ],
             repeats,
         )
-        read_seconds, fromfile_seconds = min(read_times), min(fromfile_times)
-        read_median, fromfile_median = np.median(read_times), np.median(fromfile_times)
         megabytes = path.stat().st_size / 1e6
         results[name] = {
             "megabytes": megabytes,
-            "read_seconds": read_seconds,
-            "fromfile_seconds": fromfile_seconds,
-            "share_of_fromfile": fromfile_seconds / read_seconds,
-            "read_seconds_median": float(read_median),
-            "fromfile_seconds_median": float(fromfile_median),
-            "share_of_fromfile_median": float(fromfile_median / read_median),
-            "mb_per_second": megabytes / read_seconds,
-            "points_per_second": len(points) / read_seconds,
+            "threads": threads,
+            "load_average": load_average,
+            **_read_figures(read_times, fromfile_times, megabytes, len(points), ""),
+            **_read_figures(
+                one_thread_times, fromfile_times, megabytes, len(points), "_one_thread"
+            ),
         }
     return results
+
+
+def _read_figures(
+    read_times: list[float],
+    fromfile_times: list[float],
+    megabytes: float,
+    n_points: int,
+    suffix: str,
+) -> dict[str, float]:
+    """Best and median read seconds, their share of the floor's speed, MB/s and points/s."""
+    read_seconds, fromfile_seconds = min(read_times), min(fromfile_times)
+    read_median, fromfile_median = np.median(read_times), np.median(fromfile_times)
+    figures = {
+        "read_seconds": read_seconds,
+        "fromfile_seconds": fromfile_seconds,
+        "share_of_fromfile": fromfile_seconds / read_seconds,
+        "read_seconds_median": float(read_median),
+        "fromfile_seconds_median": float(fromfile_median),
+        "share_of_fromfile_median": float(fromfile_median / read_median),
+        "mb_per_second": megabytes / read_seconds,
+        "points_per_second": n_points / read_seconds,
+    }
+    if suffix:  # the floor's own figures are reported once
+        del figures["fromfile_seconds"], figures["fromfile_seconds_median"]
+    return {f"{key}{suffix}": value for key, value in figures.items()}
