@@ -383,6 +383,28 @@ def targets(sizes: list[dict[str, Any]], ingest: dict[str, Any], service: dict[s
     return rows
 
 
+def imports_lines(sizes: list[dict[str, Any]]) -> list[str]:
+    """What the libraries alone take of the pipeline's peak RSS."""
+    gmm = next(
+        (size["pipeline"]["gmm"] for size in sizes if "imports_rss_mb" in size["pipeline"]["gmm"]),
+        None,
+    )
+    if gmm is None:
+        return []
+    pandas = (
+        "pandas loaded: scikit-learn imports it when installed, and the bench extra installs "
+        "it (py4dgeo needs seaborn); `make install` does not, so a service worker's baseline "
+        "is lower"
+        if gmm["pandas_loaded"]
+        else "pandas not loaded"
+    )
+    return [
+        f"Peak RSS includes the libraries: {gmm['imports_rss_mb']:.0f} MB resident before any "
+        f"data is read ({pandas}).",
+        "",
+    ]
+
+
 def repeat_lines(sizes: list[dict[str, Any]]) -> list[str]:
     """One line per size listing every run's seconds of the repeated configurations."""
     lines = []
@@ -426,6 +448,7 @@ def render(
         "",
         *repeat_lines(sizes),
         "",
+        *imports_lines(sizes),
         "load: both binary PLY files via `read_point_cloud`.  floor: one cKDTree build + k=1 "
         "query each way.  M3C2 runs on the truly aligned pair; its time includes "
         "building its KD-trees and normals; its IoU labels |distance| > level of detection "

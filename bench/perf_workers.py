@@ -7,6 +7,7 @@ ground-truth changed/observed masks).  Each worker prints one JSON object.
 
 from __future__ import annotations
 
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -60,12 +61,21 @@ def write_scene(scene_dir: Path, n_points: int, change: str = "box") -> None:
     )
 
 
+def _status_mb(field: str) -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(f"{field}:"):
+            return int(line.split()[1]) / 1024
+    raise RuntimeError(f"no {field} in /proc/self/status")
+
+
 def peak_rss_mb() -> float:
     """This process's peak resident set size (VmHWM) in MiB."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024
-    raise RuntimeError("no VmHWM in /proc/self/status")
+    return _status_mb("VmHWM")
+
+
+def resident_mb() -> float:
+    """This process's resident set size now (VmRSS) in MiB."""
+    return _status_mb("VmRSS")
 
 
 def changed_iou(
@@ -91,6 +101,7 @@ def _load_pair(scene_dir: Path) -> tuple[Any, Any, float]:
 def pipeline_worker(scene_dir: Path, *, method: str, **_: Any) -> dict[str, Any]:
     """Load both PLY files and run ``compare()``; stage times, peak RSS, IoU."""
     release_freed_memory_promptly()  # as the CLI and the job workers do
+    imports_mb = resident_mb()  # the libraries, before any data
     truth = np.load(scene_dir / "truth.npz")
     reference, scan, load_seconds = _load_pair(scene_dir)
     started = time.perf_counter()
@@ -109,6 +120,10 @@ def pipeline_worker(scene_dir: Path, *, method: str, **_: Any) -> dict[str, Any]
         **{stage: float(result.timings[stage]) for stage in ("align", "localise", "detect")},
         "total": load_seconds + compare_seconds,
         "peak_rss_mb": peak_rss_mb(),
+        "imports_rss_mb": imports_mb,
+        # scikit-learn imports pandas when it is installed (the bench extra brings it, through
+        # py4dgeo's seaborn; `make install` does not): tens of MB of this process's RSS
+        "pandas_loaded": "pandas" in sys.modules,
         "iou": changed_iou(
             result.reference_label == LABEL_CHANGED, result.scan_label == LABEL_CHANGED, truth
         ),
