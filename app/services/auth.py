@@ -5,9 +5,11 @@ organisation and has a role: ``reader`` (read only), ``writer`` (read and write)
 (everything a writer can, and managing the organisation's tokens from the command line).
 Tokens are never logged.
 
-Authenticated tokens are cached per process for :data:`TOKEN_CACHE_SECONDS` (a status poll
-otherwise paid a database round trip just to learn who is calling); see :class:`TokenCache`
-for what a revocation costs.
+Authenticated tokens are cached per process for the ``token_cache_seconds`` setting (default
+:data:`TOKEN_CACHE_SECONDS`; a status poll otherwise paid a database round trip just to learn
+who is calling); see :class:`TokenCache` for what a revocation costs.  Operators list and revoke
+tokens with ``scandiff token list`` / ``scandiff token revoke`` (:func:`list_tokens`,
+:func:`revoke_existing_token`).
 """
 
 from __future__ import annotations
@@ -23,11 +25,17 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
-from sqlalchemy import event, select, update
+from sqlalchemy import ColumnElement, event, select, update
 from sqlalchemy.orm import Session
 
 from app.db.models import ApiToken, Organisation
-from app.services.errors import AuthenticationError, PermissionDeniedError, ValidationFailedError
+from app.services.errors import (
+    AuthenticationError,
+    ConflictError,
+    NotFoundError,
+    PermissionDeniedError,
+    ValidationFailedError,
+)
 
 logger = logging.getLogger("scandiff.services.auth")
 
@@ -39,7 +47,8 @@ TOKEN_PREFIX = "sdt_"
 TOKEN_CACHE_SECONDS = 5.0
 """How long an API process trusts a token it authenticated without reading its row again: the
 bound on how long a token revoked behind the service's back (plain SQL) keeps working; 0
-disables the cache.  (To become a setting, ``token_cache_seconds``.)"""
+disables the cache.  The default of the ``token_cache_seconds`` setting
+(``SCANDIFF_TOKEN_CACHE_SECONDS``), which :func:`configure_token_cache` applies at API start."""
 TOKEN_CACHE_MAX_ENTRIES = 4096
 REVOCATIONS_FILE = "token-revocations"
 """In the data directory: one line appended per revocation; its size is the revocation counter
@@ -166,6 +175,14 @@ token_cache = TokenCache(TOKEN_CACHE_SECONDS, TOKEN_CACHE_MAX_ENTRIES)
 """This process's cache, used by the API's bearer-token dependency."""
 
 
+def configure_token_cache(ttl_seconds: float) -> None:
+    """Set this process's token cache TTL (the ``token_cache_seconds`` setting; 0 disables it)."""
+    if not 0 <= ttl_seconds < float("inf"):
+        raise ValueError(f"token cache TTL must be a finite number >= 0, got {ttl_seconds!r}")
+    token_cache.ttl = ttl_seconds
+    token_cache.clear()
+
+
 def authenticate(session: Session, token: str | None) -> Principal:
     """The principal of a bearer ``token``; :class:`AuthenticationError` if missing or invalid."""
     if not token:
@@ -225,6 +242,101 @@ def record_revocation(revocations: Path | None) -> None:
             token_cache.ttl,
             exc,
         )
+
+
+@dataclass(frozen=True)
+class TokenSummary:
+    """What an operator may see of a token: never the secret nor its digest."""
+
+    id: str
+    organisation: str
+    role: str
+    name: str | None
+    created_at: datetime
+    revoked_at: datetime | None
+
+    def to_json_dict(self) -> dict[str, str | None]:
+        """The summary as JSON-ready values (times as ISO 8601 UTC)."""
+        return {
+            "id": self.id,
+            "organisation": self.organisation,
+            "role": self.role,
+            "name": self.name,
+            "created_at": iso_utc(self.created_at),
+            "revoked_at": iso_utc(self.revoked_at) if self.revoked_at else None,
+        }
+
+
+def iso_utc(value: datetime) -> str:
+    """``value`` as ISO 8601 in UTC to the second (naive values, as SQLite returns, are UTC)."""
+    if value.tzinfo is None:
+        value = value.replace(tzinfo=UTC)
+    return value.astimezone(UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
+
+
+def _summaries(session: Session, *conditions: ColumnElement[bool]) -> list[TokenSummary]:
+    rows = session.execute(
+        select(ApiToken, Organisation.name)
+        .join(Organisation, Organisation.id == ApiToken.organisation_id)
+        .where(*conditions)
+        .order_by(Organisation.name, ApiToken.created_at, ApiToken.id)
+    ).all()
+    return [
+        TokenSummary(
+            id=token.id,
+            organisation=organisation_name,
+            role=token.role,
+            name=token.name,
+            created_at=token.created_at,
+            revoked_at=token.revoked_at,
+        )
+        for token, organisation_name in rows
+    ]
+
+
+def list_tokens(session: Session, organisation_name: str | None = None) -> list[TokenSummary]:
+    """Every token (of ``organisation_name`` if given), by organisation then age."""
+    if organisation_name is None:
+        return _summaries(session)
+    organisation_id = session.scalar(
+        select(Organisation.id).where(Organisation.name == organisation_name.strip())
+    )
+    if organisation_id is None:
+        raise NotFoundError(f"no organisation named {organisation_name!r}")
+    return _summaries(session, ApiToken.organisation_id == organisation_id)
+
+
+def token_id_of_secret(session: Session, token: str) -> str:
+    """The id of the token whose secret is ``token``; :class:`NotFoundError` if none."""
+    token = token.strip()
+    if not token:
+        raise ValidationFailedError("the token secret is empty")
+    token_id = session.scalar(select(ApiToken.id).where(ApiToken.token_hash == hash_token(token)))
+    if token_id is None:
+        raise NotFoundError("no token has this secret")
+    return token_id
+
+
+def revoke_existing_token(
+    session: Session, token_id: str, revocations: Path | None
+) -> TokenSummary:
+    """Revoke ``token_id`` with :func:`revoke_token`; the token as it was before.
+
+    :class:`NotFoundError` for an unknown id, :class:`ConflictError` (code
+    ``token_already_revoked``) for a token revoked before.  The latter still advances the
+    revocation counter: the earlier revocation may have been made in the database alone, and
+    running processes would otherwise keep accepting their cached use of it for their TTL.
+    """
+    found = _summaries(session, ApiToken.id == token_id)
+    if not found:
+        raise NotFoundError(f"no token with id {token_id!r}")
+    summary = found[0]
+    if summary.revoked_at is None and revoke_token(session, token_id, revocations):
+        return summary
+    revoked_at = session.scalar(select(ApiToken.revoked_at).where(ApiToken.id == token_id))
+    record_revocation(revocations)
+    since = f" (since {iso_utc(revoked_at)})" if revoked_at else ""
+    raise ConflictError(f"token {token_id} is already revoked{since}", code="token_already_revoked")
 
 
 def require_role(principal: Principal, role: str) -> Principal:
