@@ -29,6 +29,14 @@ def _none_when_disabled(value: Any, default: Any) -> Any:
     return value
 
 
+def _default_token_cache_seconds() -> float:
+    """:data:`app.services.auth.TOKEN_CACHE_SECONDS`, imported only when settings are built (the
+    auth module pulls in SQLAlchemy, which a ``scandiff compare`` never needs)."""
+    from app.services.auth import TOKEN_CACHE_SECONDS
+
+    return TOKEN_CACHE_SECONDS
+
+
 class Settings(BaseSettings):
     """Service settings; ``SCANDIFF_DATA_DIR=/srv/scandiff`` etc. override the defaults."""
 
@@ -82,6 +90,13 @@ class Settings(BaseSettings):
         "None / 'none' = unlimited.",
     )
     view_link_ttl_seconds: int = Field(default=24 * 3600, gt=0)
+    token_cache_seconds: float = Field(
+        default_factory=_default_token_cache_seconds,
+        description="Seconds an API process trusts a token it authenticated without reading its "
+        "row again (default 5, >= 0; 0 disables the cache). A revocation through `scandiff "
+        "token revoke` ends cached uses at once; one made directly in the database is seen "
+        "within this many seconds.",
+    )
     secret_key: str | None = Field(
         default=None, description="Signs view links and cookies; generated in data_dir if unset."
     )
@@ -111,6 +126,16 @@ class Settings(BaseSettings):
             raise ValueError(
                 "job_memory_limit_bytes must be 'auto', a positive number of bytes, "
                 "or 0 / 'none' for no cap"
+            )
+        return value
+
+    @field_validator("token_cache_seconds")
+    @classmethod
+    def _token_cache_seconds_valid(cls, value: float) -> float:
+        if not 0 <= value < float("inf"):
+            raise ValueError(
+                "token_cache_seconds must be a finite number of seconds >= 0 (0 disables the "
+                f"token cache), got {value}"
             )
         return value
 

@@ -17,7 +17,7 @@ from app.api.errors import document_error_shape, install_error_handlers
 from app.api.logs import RequestLogMiddleware, configure_logging
 from app.api.routes import api_router
 from app.config import Settings, get_settings
-from app.services import storage
+from app.services import auth, storage
 from app.services.health import service_version
 
 logger = logging.getLogger("scandiff.api")
@@ -48,6 +48,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or get_settings()
     configure_logging(settings.log_level)
     storage.ensure_directories(settings)
+    auth.configure_token_cache(settings.token_cache_seconds)
     app = FastAPI(
         title="scandiff",
         version=service_version(),

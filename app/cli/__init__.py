@@ -11,6 +11,10 @@ import importlib
 import sys
 from collections.abc import Sequence
 
+from pydantic import ValidationError
+
+EXIT_BAD_INPUT = 2
+
 SUBCOMMAND_MODULES = ("app.cli.compare", "app.cli.serve", "app.cli.tokens")
 
 
@@ -39,7 +43,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     if handler is None:
         parser.print_help()
         return 0
-    return int(handler(args) or 0)
+    try:
+        return int(handler(args) or 0)
+    except ValidationError as exc:  # a SCANDIFF_* variable (or option) the settings reject
+        if exc.title != "Settings":
+            raise
+        print(f"scandiff: error: {settings_error_message(exc)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+def settings_error_message(exc: ValidationError) -> str:
+    """One line naming each rejected setting, its environment variable and why."""
+    problems = []
+    for error in exc.errors(include_url=False):
+        name = ".".join(str(part) for part in error["loc"])
+        reason = str(error["msg"]).removeprefix("Value error, ")
+        problems.append(f"{name} (SCANDIFF_{name.upper()}): {reason}")
+    return "invalid settings: " + "; ".join(problems)
 
 
 if __name__ == "__main__":

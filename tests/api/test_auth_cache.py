@@ -7,14 +7,21 @@ failure, or keep accepting a revoked token longer than documented: at once after
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
+from pydantic import ValidationError
 from sqlalchemy import update
 
+from app.config import Settings
 from app.db.models import ApiToken
 from app.db.session import transaction
+from app.main import create_app
 from app.services import auth
 from app.services.auth import Principal, TokenCache, hash_token
 from tests.api.conftest import ApiServer, assert_error, create_site, unique_name
@@ -133,3 +140,53 @@ def test_cache_expires_and_stays_bounded() -> None:
     time.sleep(0.06)
     assert cache.get("digest-x", counter=-1) is None
     assert TokenCache(ttl=0.0, max_entries=4).get("digest-x", counter=-1) is None
+
+
+def test_token_cache_seconds_defaults_to_the_constant_and_reads_the_environment(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.delenv("SCANDIFF_TOKEN_CACHE_SECONDS", raising=False)
+    assert Settings().token_cache_seconds == auth.TOKEN_CACHE_SECONDS
+    monkeypatch.setenv("SCANDIFF_TOKEN_CACHE_SECONDS", "0")
+    assert Settings().token_cache_seconds == 0.0
+    monkeypatch.setenv("SCANDIFF_TOKEN_CACHE_SECONDS", "1.5")
+    assert Settings().token_cache_seconds == 1.5
+    description = Settings.model_fields["token_cache_seconds"].description or ""
+    assert "0 disables" in description and "scandiff token revoke" in description
+
+
+@pytest.mark.parametrize("value", ["-1", "-0.5", "nan", "inf"])
+def test_a_negative_or_non_finite_token_cache_ttl_is_rejected_clearly(
+    value: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("SCANDIFF_TOKEN_CACHE_SECONDS", value)
+    with pytest.raises(ValidationError, match="token_cache_seconds must be a finite number"):
+        Settings()
+
+
+def test_the_cli_reports_a_bad_token_cache_ttl_without_a_traceback(tmp_path: Path) -> None:
+    completed = subprocess.run(
+        [sys.executable, "-m", "app", "token", "list", "--data-dir", str(tmp_path)],
+        env={**os.environ, "SCANDIFF_TOKEN_CACHE_SECONDS": "-1"},
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert completed.returncode == 2
+    assert "Traceback" not in completed.stderr
+    assert completed.stderr.startswith("scandiff: error: invalid settings: token_cache_seconds ")
+    assert "SCANDIFF_TOKEN_CACHE_SECONDS" in completed.stderr and ">= 0" in completed.stderr
+
+
+def test_create_app_applies_token_cache_seconds_to_the_process_cache(tmp_path: Path) -> None:
+    saved = auth.token_cache.ttl
+    try:
+        create_app(Settings(data_dir=tmp_path, token_cache_seconds=0))
+        assert auth.token_cache.ttl == 0
+        auth.token_cache.put("digest", Principal("org", "reader", "t"), counter=-1)
+        assert auth.token_cache.get("digest", counter=-1) is None  # 0 disables the cache
+        create_app(Settings(data_dir=tmp_path, token_cache_seconds=42))
+        assert auth.token_cache.ttl == 42
+    finally:
+        auth.token_cache.ttl = saved
+        auth.token_cache.clear()
