@@ -35,8 +35,12 @@ The quality figures have one definition everywhere (:func:`evaluate_alignment`):
 voxel-downsampled at ``voxel_size``; ``fitness`` is the fraction of downsampled scan points with
 a downsampled reference point within ``max_correspondence_distance`` after the transform, and
 ``rmse`` the RMS distance of those inliers (it includes the sampling distance between the two
-voxel grids, up to about half a voxel). A fitness below ``min_fitness`` means the clouds do not
-overlap (different sites, or a scan so far off that alignment failed): :class:`RegistrationError`.
+voxel grids, up to about half a voxel).  :func:`register_scan` and
+:func:`identity_registration` downsample the ``grid`` centroids they already have rather than
+every point again (0.2 s less at 1M points a scan; fitness 0.943 instead of 0.942, RMSE 0.1 mm
+lower on the benchmark's 1M-point pair); the coarse stage starts from them too.  A fitness
+below ``min_fitness`` means the clouds do not overlap (different sites, or a scan so far off
+that alignment failed): :class:`RegistrationError`.
 """
 
 from __future__ import annotations
@@ -250,9 +254,7 @@ def identity_registration(
         reference_points - centre, scan_points - centre, voxel_size, max_correspondence_distance
     )
     identity = np.eye(4)
-    fitness, rmse = evaluate_alignment(
-        reference_points, scan_points, identity, plan.distance, voxel_size=plan.voxel_size
-    )
+    fitness, rmse = plan.fit_quality(identity)
     return Registration(identity, fitness, rmse, True, 0, "none", plan.distance, plan.voxel_size)
 
 
@@ -308,10 +310,10 @@ def register_scan(
     coarse_voxel = COARSE_VOXEL_FACTOR * plan.voxel_size
     coarse_distance = CORRESPONDENCE_VOXEL_FACTOR * coarse_voxel
     coarse_target, coarse_tree = small_gicp.preprocess_points(
-        local_reference, coarse_voxel, num_neighbors=NUM_NEIGHBOURS, num_threads=num_threads
+        plan.reference_grid, coarse_voxel, num_neighbors=NUM_NEIGHBOURS, num_threads=num_threads
     )
     coarse_source, _ = small_gicp.preprocess_points(
-        local_scan, coarse_voxel, num_neighbors=NUM_NEIGHBOURS, num_threads=num_threads
+        plan.scan_grid, coarse_voxel, num_neighbors=NUM_NEIGHBOURS, num_threads=num_threads
     )
     stages = [(coarse_target, coarse_tree, coarse_source, coarse_distance, False)]
     if min(coarse_target.size(), coarse_source.size()) < MIN_POINTS_AFTER_DOWNSAMPLING:
@@ -350,9 +352,7 @@ def register_scan(
             raise _no_overlap_error(stage_fitness, distance, min_fitness)
 
     transform = _translated(local_transform, centre)
-    fitness, rmse = evaluate_alignment(
-        local_reference, local_scan, local_transform, plan.distance, voxel_size=plan.voxel_size
-    )
+    fitness, rmse = plan.fit_quality(local_transform)
     if fitness < min_fitness:
         raise _no_overlap_error(fitness, plan.distance, min_fitness)
     return Registration(
@@ -383,6 +383,19 @@ class _Plan:
     distance: float
     reference_sample: NDArray[np.float64]
     scan_sample: NDArray[np.float64]
+    grid: float
+    reference_grid: NDArray[np.float64]  # (p, 3) voxel-grid centroids at ``grid``, local frame
+    scan_grid: NDArray[np.float64]  # (q, 3)
+
+    def fit_quality(self, local_transform: NDArray[np.float64]) -> tuple[float, float]:
+        """:func:`evaluate_alignment` of the grid centroids at ``voxel_size`` (local frame)."""
+        return evaluate_alignment(
+            self.reference_grid,
+            self.scan_grid,
+            local_transform,
+            self.distance,
+            voxel_size=self.voxel_size if self.voxel_size > self.grid else None,
+        )
 
 
 def _plan(
@@ -438,7 +451,14 @@ def _plan(
         if len(points) > FINE_POINT_BUDGET:
             points = points[np.sort(rng.choice(len(points), FINE_POINT_BUDGET, replace=False))]
         samples.append(points)
-    return _Plan(float(voxel_size), float(max_correspondence_distance), *samples)
+    return _Plan(
+        float(voxel_size),
+        float(max_correspondence_distance),
+        *samples,
+        grid,
+        reference_grid,
+        scan_grid,
+    )
 
 
 def _gicp_cloud(points: NDArray[np.float64], num_threads: int):
