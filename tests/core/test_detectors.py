@@ -7,13 +7,14 @@ import warnings
 
 import numpy as np
 import pytest
+from sklearn.mixture import GaussianMixture
 
 from app.core.detectors import METHODS, VARIANTS, Detection, make_detector
 from app.core.detectors import planes as planes_module
 from app.core.detectors.gmm import (
     MixtureStart,
-    _fit,
     bures_wasserstein_distances,
+    fit_mixture,
     refine_mixture,
 )
 from app.core.detectors.pca import improved_pca_emd, paper_pca_emd, principal_axes
@@ -31,6 +32,37 @@ SMALL = {"max_points": 2000}
 """Working sets of 2000 points (default 4000), to keep the tests quick."""
 FAST = {**SMALL, "n_resamples": 8}
 """... and fewer calibration resamples than the default 20."""
+
+
+def sklearn_fit(
+    points: np.ndarray,
+    n_components: int,
+    *,
+    seed: int,
+    reg_covar: float,
+    max_iter: int,
+    start: GaussianMixture | None = None,
+) -> GaussianMixture:
+    """scikit-learn's EM, cold (k-means start) or warm-started from ``start``: what the GMM
+    detector's own EM (``fit_mixture``, ``refine_mixture``) reproduces."""
+    warm_start = (
+        {}
+        if start is None
+        else {
+            "weights_init": start.weights_,
+            "means_init": start.means_,
+            "precisions_init": start.precisions_,
+        }
+    )
+    mixture = GaussianMixture(
+        n_components,
+        covariance_type="full",
+        reg_covar=reg_covar,
+        max_iter=max_iter,
+        random_state=seed,
+        **warm_start,
+    )
+    return mixture.fit(points)
 
 
 def corridor(n_points: int, rng: np.random.Generator, noise: float = 0.005) -> np.ndarray:
@@ -201,10 +233,10 @@ def test_gmm_warm_start_reduces_the_spread_between_noise_realisations():
     for _ in range(5):
         reference = clean + rng.normal(0.0, 0.01, clean.shape)
         scan = clean + rng.normal(0.0, 0.01, clean.shape)
-        reference_model = _fit(reference, 8, seed=0, reg_covar=reg_covar, max_iter=100)
+        reference_model = sklearn_fit(reference, 8, seed=0, reg_covar=reg_covar, max_iter=100)
         for store, start in ((cold, None), (warm, reference_model)):
             iterations = 100 if start is None else 1
-            scan_model = _fit(
+            scan_model = sklearn_fit(
                 scan, 8, seed=0, reg_covar=reg_covar, max_iter=iterations, start=start
             )
             ground = bures_wasserstein_distances(
@@ -228,14 +260,31 @@ def test_gmm_refinement_is_scikit_learns_warm_started_fit_to_the_bit(iterations)
     rng = np.random.default_rng(3)
     reference = corridor(1500, rng, noise=0.01)
     scan = np.vstack([corridor(1500, rng, noise=0.01), box_faces(200, rng)])
-    reference_model = _fit(reference, 8, seed=0, reg_covar=2e-3, max_iter=100)
-    expected = _fit(scan, 8, seed=0, reg_covar=2e-3, max_iter=iterations, start=reference_model)
+    reference_model = sklearn_fit(reference, 8, seed=0, reg_covar=2e-3, max_iter=100)
+    expected = sklearn_fit(
+        scan, 8, seed=0, reg_covar=2e-3, max_iter=iterations, start=reference_model
+    )
     weights, means, covariances = refine_mixture(
         scan, MixtureStart.from_mixture(reference_model), reg_covar=2e-3, max_iter=iterations
     )
     np.testing.assert_array_equal(weights, expected.weights_)
     np.testing.assert_array_equal(means, expected.means_)
     np.testing.assert_array_equal(covariances, expected.covariances_)
+
+
+@pytest.mark.filterwarnings("ignore::sklearn.exceptions.ConvergenceWarning")
+@pytest.mark.parametrize(("seed", "iterations"), [(0, 100), (1, 3), (2, 1), (3, 100)])
+def test_gmm_fit_is_scikit_learns_fit_to_the_bit(seed, iterations):
+    rng = np.random.default_rng(seed)
+    points = np.vstack([corridor(1500, rng, noise=0.01), box_faces(200, rng)])
+    expected = sklearn_fit(points, 8, seed=seed, reg_covar=1e-6, max_iter=iterations)
+    fitted = fit_mixture(points, 8, seed=seed, reg_covar=1e-6, max_iter=iterations)
+    np.testing.assert_array_equal(fitted.weights, expected.weights_)
+    np.testing.assert_array_equal(fitted.means, expected.means_)
+    np.testing.assert_array_equal(fitted.covariances, expected.covariances_)
+    np.testing.assert_array_equal(fitted.precisions_cholesky, expected.precisions_cholesky_)
+    np.testing.assert_array_equal(fitted.precisions, expected.precisions_)
+    assert (fitted.n_iter, fitted.converged) == (expected.n_iter_, expected.converged_)
 
 
 @pytest.mark.parametrize("variant", VARIANTS)

@@ -4,7 +4,9 @@
     A ``K``-component full-covariance mixture is fitted to each cloud independently with
     scikit-learn's EM (k-means initialisation, one initialisation, at most 100 iterations,
     tolerance 1e-3 on the lower bound, ``reg_covar`` 1e-6: scikit-learn's defaults, with the
-    detector's ``random_state``). Each component is the point
+    detector's ``random_state``; :func:`fit_mixture` runs scikit-learn's k-means and then the
+    same EM arithmetic as ``GaussianMixture.fit``, with the same bits, at a third of the cost
+    per iteration). Each component is the point
     ``theta = (mu, vec Sigma)`` in R^12 weighted by its mixing probability, with Euclidean
     ground distance. The paper does not say which ``K`` it used; we use 8 for both variants.
 
@@ -46,6 +48,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 from scipy import linalg
+from sklearn.cluster import KMeans
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.mixture import GaussianMixture
 
@@ -91,45 +94,43 @@ def bures_wasserstein_distances(
     return np.sqrt(np.clip(squared, 0.0, None))
 
 
-def parameter_vectors(mixture: GaussianMixture) -> NDArray[np.float64]:
+def parameter_vectors(mixture: Mixture) -> NDArray[np.float64]:
     """The paper's ``theta_k = (mu_k, vec Sigma_k)``, shape (K, 3 + 9)."""
-    n_components = mixture.means_.shape[0]
-    return np.hstack([mixture.means_, mixture.covariances_.reshape(n_components, -1)])
+    n_components = mixture.means.shape[0]
+    return np.hstack([mixture.means, mixture.covariances.reshape(n_components, -1)])
 
 
-def _fit(
-    points: NDArray[np.float64],
-    n_components: int,
-    *,
-    seed: int,
-    reg_covar: float,
-    max_iter: int,
-    start: GaussianMixture | None = None,
-) -> GaussianMixture:
-    """EM fit, cold (k-means initialisation) or warm-started from ``start``'s parameters.
+@dataclass(frozen=True)
+class Mixture:
+    """A fitted full-covariance Gaussian mixture (what :func:`fit_mixture` returns).
 
-    A fit that stops at ``max_iter`` raises scikit-learn's ``ConvergenceWarning``; the
-    detector ignores it for the whole call (:attr:`ChangeDetector._ignored_warnings`).
+    Attributes
+    ----------
+    weights : ndarray, shape (K,)
+    means : ndarray, shape (K, d)
+    covariances : ndarray, shape (K, d, d)
+    precisions_cholesky : ndarray, shape (K, d, d)
+        Upper-triangular ``U_k`` with ``Sigma_k^-1 = U_k U_k^T``.
+    n_iter : int
+        EM iterations run.
+    converged : bool
+        Whether the mean log-likelihood changed by less than ``tol`` before ``max_iter``.
     """
-    warm_start = (
-        {}
-        if start is None
-        else {
-            "weights_init": start.weights_,
-            "means_init": start.means_,
-            "precisions_init": start.precisions_,
-        }
-    )
-    mixture = GaussianMixture(
-        n_components,
-        covariance_type="full",
-        reg_covar=reg_covar,
-        max_iter=max_iter,
-        random_state=seed,
-        **warm_start,
-    )
-    mixture.fit(points)
-    return mixture
+
+    weights: NDArray[np.float64]
+    means: NDArray[np.float64]
+    covariances: NDArray[np.float64]
+    precisions_cholesky: NDArray[np.float64]
+    n_iter: int
+    converged: bool
+
+    @property
+    def precisions(self) -> NDArray[np.float64]:
+        """``U_k U_k^T``, shape (K, d, d), as scikit-learn's ``precisions_``."""
+        precisions = np.empty_like(self.precisions_cholesky)
+        for k, cholesky in enumerate(self.precisions_cholesky):
+            precisions[k] = cholesky @ cholesky.T
+        return precisions
 
 
 @dataclass(frozen=True)
@@ -150,17 +151,29 @@ class MixtureStart:
     precisions_cholesky: NDArray[np.float64]
 
     @classmethod
-    def from_mixture(cls, mixture: GaussianMixture) -> MixtureStart:
-        """The start scikit-learn would make of ``weights_init=mixture.weights_`` etc."""
+    def from_precisions(
+        cls,
+        weights: NDArray[np.float64],
+        means: NDArray[np.float64],
+        precisions: NDArray[np.float64],
+    ) -> MixtureStart:
+        """The start scikit-learn makes of ``weights_init``, ``means_init``,
+        ``precisions_init``: shapes (K,), (K, d), (K, d, d)."""
         flipped = [
-            np.flip(linalg.cholesky(np.flip(precision), lower=True))
-            for precision in mixture.precisions_
+            np.flip(linalg.cholesky(np.flip(precision), lower=True)) for precision in precisions
         ]
         return cls(
-            weights=np.array(mixture.weights_, dtype=np.float64),
-            means=np.array(mixture.means_, dtype=np.float64),
+            weights=np.array(weights, dtype=np.float64),
+            means=np.array(means, dtype=np.float64),
             precisions_cholesky=np.stack(flipped),
         )
+
+    @classmethod
+    def from_mixture(cls, mixture: Mixture | GaussianMixture) -> MixtureStart:
+        """The start scikit-learn would make of ``weights_init=mixture.weights_`` etc."""
+        if isinstance(mixture, Mixture):
+            return cls.from_precisions(mixture.weights, mixture.means, mixture.precisions)
+        return cls.from_precisions(mixture.weights_, mixture.means_, mixture.precisions_)
 
 
 def _log_gaussian_densities(
@@ -208,6 +221,113 @@ def _precisions_cholesky(covariances: NDArray[np.float64]) -> NDArray[np.float64
     return result
 
 
+def _m_step(
+    points: NDArray[np.float64], responsibilities: NDArray[np.float64], reg_covar: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Component sizes (K,), means (K, d) and covariances (K, d, d), as scikit-learn's."""
+    n_features = points.shape[1]
+    counts = np.sum(responsibilities, axis=0) + 10 * np.finfo(np.float64).eps
+    means = (responsibilities.T @ points) / counts[:, np.newaxis]
+    covariances = np.empty((means.shape[0], n_features, n_features))
+    for k in range(means.shape[0]):
+        centred = points - means[k, :]
+        covariances[k] = ((responsibilities[:, k] * centred.T) @ centred) / counts[k]
+        covariances[k].flat[:: n_features + 1] += reg_covar
+    return counts, means, covariances
+
+
+def _em(
+    points: NDArray[np.float64],
+    weights: NDArray[np.float64],
+    means: NDArray[np.float64],
+    precisions_cholesky: NDArray[np.float64],
+    *,
+    reg_covar: float,
+    max_iter: int,
+    tol: float,
+    final_precisions: bool,
+) -> Mixture:
+    """EM iterations from the given parameters, scikit-learn's loop (see :func:`fit_mixture`).
+
+    ``final_precisions=False`` skips the Cholesky factors of the last M-step (its
+    ``precisions_cholesky`` is then the previous one): refinements only use the means and
+    covariances.
+    """
+    covariances = np.empty((means.shape[0], points.shape[1], points.shape[1]))
+    lower_bound = -np.inf
+    converged = False
+    n_iter = 0
+    for n_iter in range(1, max_iter + 1):
+        # E-step: log responsibilities under the current model
+        weighted = _log_gaussian_densities(points, means, precisions_cholesky) + np.log(weights)
+        log_norm = _log_sum_exp_rows(weighted)
+        with np.errstate(under="ignore"):
+            log_responsibilities = weighted - log_norm[:, np.newaxis]
+        previous_bound, lower_bound = lower_bound, np.mean(log_norm)
+        # M-step
+        counts, means, covariances = _m_step(points, np.exp(log_responsibilities), reg_covar)
+        weights = counts / np.sum(counts)
+        converged = abs(lower_bound - previous_bound) < tol
+        if final_precisions or not (converged or n_iter == max_iter):
+            precisions_cholesky = _precisions_cholesky(covariances)
+        if converged:
+            break
+    return Mixture(weights, means, covariances, precisions_cholesky, n_iter, bool(converged))
+
+
+def fit_mixture(
+    points: NDArray[np.float64],
+    n_components: int,
+    *,
+    seed: int,
+    reg_covar: float,
+    max_iter: int,
+    tol: float = 1e-3,
+) -> Mixture:
+    """EM fit from a k-means start: scikit-learn's ``GaussianMixture(...).fit`` to the bit.
+
+    The same k-means (scikit-learn's, one initialisation, seeded with ``seed``), then the same
+    operations in the same order as ``GaussianMixture(n_components, covariance_type="full",
+    reg_covar=reg_covar, max_iter=max_iter, tol=tol, random_state=seed).fit(points)``, without
+    its validation, per-call overhead and final E-step: ~1.5 ms instead of ~4 ms per EM
+    iteration on 4000 points. ``tests/core/test_detectors.py`` checks the equality.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, d), float64
+    n_components : int
+        ``K`` (<= n).
+    seed : int
+    reg_covar : float
+    max_iter : int
+    tol : float
+
+    Returns
+    -------
+    Mixture
+    """
+    points = np.asarray(points, dtype=np.float64)
+    labels = (
+        KMeans(n_clusters=n_components, n_init=1, random_state=np.random.RandomState(seed))
+        .fit(points)
+        .labels_
+    )
+    responsibilities = np.zeros((points.shape[0], n_components))
+    responsibilities[np.arange(points.shape[0]), labels] = 1
+    counts, means, covariances = _m_step(points, responsibilities, reg_covar)
+    weights = counts / points.shape[0]
+    return _em(
+        points,
+        weights,
+        means,
+        _precisions_cholesky(covariances),
+        reg_covar=reg_covar,
+        max_iter=max_iter,
+        tol=tol,
+        final_precisions=True,
+    )
+
+
 def refine_mixture(
     points: NDArray[np.float64],
     start: MixtureStart,
@@ -241,31 +361,17 @@ def refine_mixture(
     means : ndarray, shape (K, d)
     covariances : ndarray, shape (K, d, d)
     """
-    points = np.asarray(points, dtype=np.float64)
-    weights, means, precisions_cholesky = start.weights, start.means, start.precisions_cholesky
-    covariances = np.empty((means.shape[0], points.shape[1], points.shape[1]))
-    lower_bound = -np.inf
-    for iteration in range(max_iter):
-        # E-step: log responsibilities under the current model
-        weighted = _log_gaussian_densities(points, means, precisions_cholesky) + np.log(weights)
-        log_norm = _log_sum_exp_rows(weighted)
-        with np.errstate(under="ignore"):
-            log_responsibilities = weighted - log_norm[:, np.newaxis]
-        previous_bound, lower_bound = lower_bound, np.mean(log_norm)
-        # M-step
-        responsibilities = np.exp(log_responsibilities)
-        counts = np.sum(responsibilities, axis=0) + 10 * np.finfo(np.float64).eps
-        means = (responsibilities.T @ points) / counts[:, np.newaxis]
-        covariances = np.empty((means.shape[0], points.shape[1], points.shape[1]))
-        for k in range(means.shape[0]):
-            centred = points - means[k, :]
-            covariances[k] = ((responsibilities[:, k] * centred.T) @ centred) / counts[k]
-            covariances[k].flat[:: points.shape[1] + 1] += reg_covar
-        weights = counts / np.sum(counts)
-        if iteration + 1 == max_iter or abs(lower_bound - previous_bound) < tol:
-            break
-        precisions_cholesky = _precisions_cholesky(covariances)
-    return weights, means, covariances
+    refined = _em(
+        np.asarray(points, dtype=np.float64),
+        start.weights,
+        start.means,
+        start.precisions_cholesky,
+        reg_covar=reg_covar,
+        max_iter=max_iter,
+        tol=tol,
+        final_precisions=False,
+    )
+    return refined.weights, refined.means, refined.covariances
 
 
 class GmmDetector(ChangeDetector):
@@ -336,14 +442,14 @@ class GmmDetector(ChangeDetector):
         reg_covar = self._reg_covar(reference)
         context: dict[str, Any] = {"reg_covar": reg_covar}
         if self.variant == "improved":
-            reference_model = _fit(
+            reference_model = fit_mixture(
                 reference,
                 n_components,
                 seed=self._seed(),
                 reg_covar=reg_covar,
                 max_iter=self.params["max_iter"],
             )
-            context["reference_model"] = reference_model
+            context["reference_weights"] = reference_model.weights
             context["refinement_start"] = MixtureStart.from_mixture(reference_model)
         return context
 
@@ -360,16 +466,17 @@ class GmmDetector(ChangeDetector):
         reg_covar = context["reg_covar"]
         seed = self._seed()
         if self.variant == "paper":
-            model_a = _fit(first, n_components, seed=seed, reg_covar=reg_covar, max_iter=max_iter)
-            model_b = _fit(second, n_components, seed=seed, reg_covar=reg_covar, max_iter=max_iter)
+            model_a, model_b = (
+                fit_mixture(points, n_components, seed=seed, reg_covar=reg_covar, max_iter=max_iter)
+                for points in (first, second)
+            )
             theta_a, theta_b = parameter_vectors(model_a), parameter_vectors(model_b)
             ground = np.linalg.norm(theta_a[:, None, :] - theta_b[None, :, :], axis=2)
-            return earth_movers_distance(model_a.weights_, model_b.weights_, ground).distance
+            return earth_movers_distance(model_a.weights, model_b.weights, ground).distance
 
         # Both sets are described by the same short EM refinement of one shared model (fitted
         # to the reference): identical sets give identical models, and only what the data
         # moves, moves. Calibration resamples go through exactly the same steps.
-        reference_model: GaussianMixture = context["reference_model"]
         (_, means_a, covariances_a), (_, means_b, covariances_b) = (
             refine_mixture(
                 points,
@@ -384,5 +491,5 @@ class GmmDetector(ChangeDetector):
         # fall in each component after the refinement depends on the sampling pattern
         # (viewpoint, lidar rings), while what a change does to the geometry shows in the
         # components' means and covariances.
-        weights = reference_model.weights_
+        weights = context["reference_weights"]
         return earth_movers_distance(weights, weights, ground).distance
