@@ -9,12 +9,12 @@ keeps both under the same machine load). The share of the floor's speed uses the
 The floor writes the file's bytes once; ``read_point_cloud`` must also widen float32
 coordinates to float64, i.e. write twice as many bytes (24 MB for 1M points) as the floor does.
 
-``read_point_cloud`` runs with its default thread budget (``threads``: two on a two-core
-machine unless ``OMP_NUM_THREADS`` says otherwise; they share the widening and the LAZ
-decompression) and, in the same rotation, with one thread (the ``*_one_thread`` figures), so
-the single-threaded speed against the single-threaded floor stays visible. ``load_average`` is
-the machine's 1-minute load when the format's timings start: on a shared machine a load near
-the core count means the second thread had no core of its own.
+``read_point_cloud`` runs with its default thread budget (``threads``: on a two-core machine
+two while the 1-minute load average leaves a core idle, else one, unless ``OMP_NUM_THREADS``
+says otherwise; they share the widening and the LAZ decompression) and, in the same rotation,
+with one thread (the ``*_one_thread`` figures), so the single-threaded speed against the
+single-threaded floor stays visible. ``load_average`` and ``threads`` are taken when the
+format's timings start.
 """
 
 from __future__ import annotations
@@ -83,7 +83,6 @@ def measure_ingest(work_dir: Path, n_points: int, repeats: int = 3) -> dict[str,
     ingest_dir = work_dir / "ingest"
     ingest_dir.mkdir(parents=True, exist_ok=True)
     writers = {"ply": write_binary_ply, "pcd": write_pcd, "laz": write_laz}
-    threads = conversion_threads()
     results: dict[str, dict[str, Any]] = {}
     for name, writer in writers.items():
         path = ingest_dir / f"cloud.{name}"
@@ -92,6 +91,7 @@ def measure_ingest(work_dir: Path, n_points: int, repeats: int = 3) -> dict[str,
         if len(cloud) != len(points):
             raise RuntimeError(f"{name}: read {len(cloud)} of {len(points)} points")
         load_average = os.getloadavg()[0]
+        threads = conversion_threads()  # what the default read uses now (it follows the load)
         read_times, fromfile_times, one_thread_times = rotate_seconds(
             [
                 lambda path=path: read_point_cloud(path),

@@ -430,6 +430,18 @@ def test_conversion_threads_follow_omp_num_threads_and_the_cap(monkeypatch):
     assert 1 <= cloud_module.conversion_threads() <= cloud_module.MAX_CONVERSION_THREADS
 
 
+@pytest.mark.parametrize(
+    ("cpus", "load", "expected"),
+    [(2, 0.1, 2), (2, 1.3, 2), (2, 1.6, 1), (2, 3.5, 1), (1, 0.0, 1), (8, 5.0, 2), (8, 7.8, 1)],
+)
+def test_conversion_threads_leave_busy_cpus_alone(monkeypatch, cpus, load, expected):
+    monkeypatch.undo()  # the real conversion_threads and cap
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setattr(cloud_module.os, "sched_getaffinity", lambda pid: set(range(cpus)))
+    monkeypatch.setattr(cloud_module.os, "getloadavg", lambda: (load, load, load))
+    assert cloud_module.conversion_threads() == expected
+
+
 def test_conversion_without_a_spare_thread_happens_in_the_caller(monkeypatch):
     def refuse(self):
         raise RuntimeError("can't start new thread")
