@@ -1,4 +1,4 @@
-"""Apply the Alembic migrations programmatically (``scandiff serve`` and ``token create`` do).
+"""Apply the Alembic migrations programmatically (``scandiff serve`` and ``token`` do).
 
 The scripts live in ``migrations/`` at the project root; ``alembic.ini`` there serves the
 ``alembic`` command line.  Migrations on SQLite run with ``foreign_keys=OFF``: batch migrations
