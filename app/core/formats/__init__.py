@@ -200,8 +200,9 @@ def read_point_cloud(
         allocation or decompression.
     threads : int, optional
         Threads that may decode a large file: they widen binary PLY/PCD coordinates to float64
-        and decompress LAZ. Default :func:`~app.core.cloud.conversion_threads` (``OMP_NUM_THREADS``
-        or the usable CPUs, at most two). The cloud does not depend on it.
+        and decompress LAZ. Default :func:`~app.core.cloud.conversion_threads`
+        (``OMP_NUM_THREADS``, else two when the load average leaves a CPU idle, else one). The
+        cloud does not depend on it.
 
     Returns
     -------

@@ -59,8 +59,8 @@ def read_las(source: Source, max_points: int | None, *, threads: int = 1) -> Raw
     """Decode a LAS or LAZ file (the header says which).
 
     With ``threads`` >= 2, LAZ chunks are decompressed in parallel (lazrs's
-    ``ParLasZipDecompressor``, which needs the chunk table: a file without one is decoded
-    sequentially); with 1, sequentially.
+    ``ParLasZipDecompressor``; when it cannot be created, e.g. without a chunk table, laspy
+    falls back to the sequential decoder); with 1, sequentially.
 
     Raises
     ------
