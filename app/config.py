@@ -29,12 +29,9 @@ def _none_when_disabled(value: Any, default: Any) -> Any:
     return value
 
 
-def _default_token_cache_seconds() -> float:
-    """:data:`app.services.auth.TOKEN_CACHE_SECONDS`, imported only when settings are built (the
-    auth module pulls in SQLAlchemy, which a ``scandiff compare`` never needs)."""
-    from app.services.auth import TOKEN_CACHE_SECONDS
-
-    return TOKEN_CACHE_SECONDS
+DEFAULT_TOKEN_CACHE_SECONDS = 5.0
+"""Default of ``token_cache_seconds``: how long an API process trusts a token it authenticated
+without reading its row again (:class:`app.services.auth.TokenCache`)."""
 
 
 class Settings(BaseSettings):
@@ -91,7 +88,7 @@ class Settings(BaseSettings):
     )
     view_link_ttl_seconds: int = Field(default=24 * 3600, gt=0)
     token_cache_seconds: float = Field(
-        default_factory=_default_token_cache_seconds,
+        default=DEFAULT_TOKEN_CACHE_SECONDS,
         description="Seconds an API process trusts a token it authenticated without reading its "
         "row again (default 5, >= 0; 0 disables the cache). A revocation through `scandiff "
         "token revoke` ends cached uses at once; one made directly in the database is seen "

@@ -28,6 +28,7 @@ from pathlib import Path
 from sqlalchemy import ColumnElement, event, select, update
 from sqlalchemy.orm import Session
 
+from app.config import DEFAULT_TOKEN_CACHE_SECONDS
 from app.db.models import ApiToken, Organisation
 from app.services.errors import (
     AuthenticationError,
@@ -44,7 +45,7 @@ ROLES = ("reader", "writer", "admin")
 
 TOKEN_PREFIX = "sdt_"
 
-TOKEN_CACHE_SECONDS = 5.0
+TOKEN_CACHE_SECONDS = DEFAULT_TOKEN_CACHE_SECONDS
 """How long an API process trusts a token it authenticated without reading its row again: the
 bound on how long a token revoked behind the service's back (plain SQL) keeps working; 0
 disables the cache.  The default of the ``token_cache_seconds`` setting
