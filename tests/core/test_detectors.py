@@ -341,7 +341,7 @@ def test_plane_refinements_shared_between_candidates_change_nothing(monkeypatch)
     assert refits["shared"] < refits["alone"]  # the shortcut was taken
 
 
-def test_plane_vote_reusing_its_buffers_gives_the_same_weights():
+def test_plane_vote_reusing_its_buffers_or_with_a_floor_gives_the_same_weights():
     rng = np.random.default_rng(7)
     points = corridor(3000, rng, noise=0.01)
     settings = PlaneSettings(0.2, 0.03, 0.03, 300, 3, 15)
@@ -351,6 +351,13 @@ def test_plane_vote_reusing_its_buffers_gives_the_same_weights():
         reused = _vote(candidates, points[triples], settings, workspace)
         fresh = _vote(candidates, points[triples], settings)
         np.testing.assert_array_equal(reused, fresh)
+        # with a floor, weights that can reach it are exact, the others stay below it
+        floor = int(np.percentile(fresh, 70)) + 1
+        floored = _vote(candidates, points[triples], settings, workspace, floor=floor)
+        reachable = fresh >= floor
+        assert 0 < reachable.sum() < count or count < 100
+        np.testing.assert_array_equal(floored[reachable], fresh[reachable])
+        assert np.all(floored[~reachable] < floor)
         # against the definition, pair by pair
         gaps = np.linalg.norm(candidates[:, None, :3] - candidates[None, :, :3], axis=2)
         heights = np.abs(

@@ -228,7 +228,7 @@ def _accumulate(
 
 
 class VoteWorkspace:
-    """Reusable (N, N) buffers for :func:`_vote`, one per extraction.
+    """Reusable buffers for :func:`_vote`, one per extraction.
 
     A round's vote needs five N x N arrays (N = 300 candidates: 0.7 MB each). Allocated per
     round, every one is a fresh mapping (the service fixes glibc's mmap threshold at
@@ -242,21 +242,14 @@ class VoteWorkspace:
 
     def arrays(
         self, size: int
-    ) -> tuple[
-        NDArray[np.float64],
-        NDArray[np.float64],
-        NDArray[np.float64],
-        NDArray[np.bool_],
-        NDArray[np.bool_],
-    ]:
-        """Three float64 then two bool (size, size) arrays, C-contiguous."""
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+        """Three float64 buffers and one bool buffer of ``size * size`` entries each, flat."""
         cells = size * size
         if self._floats.size < 3 * cells:
             self._floats = np.empty(3 * cells)
-            self._flags = np.empty(2 * cells, dtype=bool)
-        floats = [self._floats[k * cells : (k + 1) * cells].reshape(size, size) for k in range(3)]
-        flags = [self._flags[k * cells : (k + 1) * cells].reshape(size, size) for k in range(2)]
-        return floats[0], floats[1], floats[2], flags[0], flags[1]
+            self._flags = np.empty(cells, dtype=bool)
+        first, second, third = (self._floats[k * cells : (k + 1) * cells] for k in range(3))
+        return first, second, third, self._flags[:cells]
 
 
 def _vote(
@@ -264,6 +257,7 @@ def _vote(
     triple_points: NDArray[np.float64],
     settings: PlaneSettings,
     workspace: VoteWorkspace | None = None,
+    floor: int = 0,
 ) -> NDArray[np.float64]:
     """Improved steps 4-7: each candidate's weight is the number of candidates it would absorb.
 
@@ -272,6 +266,12 @@ def _vote(
     the result depend on the order of the triples and costs a Python loop per triple; the
     winner is refitted by least squares anyway, so only the vote matters.
 
+    A candidate whose normal is close to fewer than ``floor`` candidates' normals cannot reach
+    a weight of ``floor``; it gets that count (an upper bound of its weight, below
+    ``floor``) and its point tests are skipped. The extraction only keeps weights >= ``m``,
+    so with ``floor = m`` it picks the same candidates; the point tests of the others (about
+    two thirds of them) are not worth computing.
+
     Parameters
     ----------
     candidates : ndarray, shape (N, 4)
@@ -279,37 +279,55 @@ def _vote(
     settings : PlaneSettings
     workspace : VoteWorkspace, optional
         Buffers to reuse between rounds (default: fresh ones).
+    floor : int
+        Weights below this are only upper bounds (default 0: every weight exact).
 
     Returns
     -------
     ndarray, shape (N,)
     """
     count = candidates.shape[0]
-    buffers = (workspace or VoteWorkspace()).arrays(count)
-    normal_gap_squared, point_gap, heights, support, point_within = buffers
+    products, point_gap, heights, flags = (workspace or VoteWorkspace()).arrays(count)
     normals = candidates[:, :3]
     tolerance_squared = settings.normal_tolerance**2
     # |v_i - v_j|^2 = 2 - 2 v_i . v_j for unit normals, clipped at 0 (the clip cannot change
     # a comparison with a positive tolerance). In place: the same roundings as
     # `2.0 - 2.0 * (normals @ normals.T)`, without the temporaries.
+    normal_gap_squared = products.reshape(count, count)
     np.matmul(normals, normals.T, out=normal_gap_squared)
     normal_gap_squared *= -2.0
     normal_gap_squared += 2.0
     if tolerance_squared <= 0.0:
         np.maximum(normal_gap_squared, 0.0, out=normal_gap_squared)
-    np.less(normal_gap_squared, tolerance_squared, out=support)
-    # distance of triple j's points to plane i, maximised over the three points: (N_i, N_j)
-    offsets = candidates[:, 3:4]
+    normal_close = np.less(normal_gap_squared, tolerance_squared, out=flags.reshape(count, count))
+    bounds = np.count_nonzero(normal_close, axis=1)
+    rows = np.flatnonzero(bounds >= floor)
+    weights = bounds.astype(np.float64)
+    if rows.size == 0:
+        return weights
+    # distance of triple j's points to plane i, maximised over the three points, for the rows
+    # i that can reach `floor`: (r, N). The products are computed for all rows (the same
+    # matrix product, so the same roundings, whatever `floor` is) and then gathered.
+    every_row = rows.size == count
+    all_heights = products.reshape(count, count)  # the normal gaps are done with
+    row_gap = point_gap[: rows.size * count].reshape(rows.size, count)
+    row_heights = heights[: rows.size * count].reshape(rows.size, count)
+    offsets = candidates[rows, 3:4]
     for corner in range(3):
-        target = point_gap if corner == 0 else heights
-        np.matmul(normals, triple_points[:, corner, :].T, out=target)
+        target = row_gap if corner == 0 else row_heights
+        if every_row:
+            np.matmul(normals, triple_points[:, corner, :].T, out=target)
+        else:
+            np.matmul(normals, triple_points[:, corner, :].T, out=all_heights)
+            np.take(all_heights, rows, axis=0, out=target, mode="clip")  # valid rows: unbuffered
         target -= offsets
         np.abs(target, out=target)
         if corner:
-            np.maximum(point_gap, heights, out=point_gap)
-    np.less(point_gap, settings.merge_distance, out=point_within)
-    support &= point_within
-    return np.count_nonzero(support, axis=1).astype(np.float64)
+            np.maximum(row_gap, row_heights, out=row_gap)
+    support = normal_close[rows] if not every_row else normal_close
+    support &= row_gap < settings.merge_distance
+    weights[rows] = np.count_nonzero(support, axis=1)
+    return weights
 
 
 def _refit(points: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -413,7 +431,7 @@ def extract_fuzzy_planes(
         if settings.refine:
             # Improved: vote, then of the `n_candidates` best-supported candidates (with
             # support >= m) keep the one whose least-squares refit has the most inliers.
-            weights = _vote(candidates, triple_points, settings, workspace)
+            weights = _vote(candidates, triple_points, settings, workspace, settings.min_weight)
             order = np.argsort(-weights, kind="stable")[: settings.n_candidates]
             order = order[weights[order] >= settings.min_weight]
             known: dict[tuple[int, bytes], Refinement] = {}
