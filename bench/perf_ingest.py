@@ -9,9 +9,9 @@ keeps both under the same machine load). The share of the floor's speed uses the
 The floor writes the file's bytes once; ``read_point_cloud`` must also widen float32
 coordinates to float64, i.e. write twice as many bytes (24 MB for 1M points) as the floor does.
 
-``read_point_cloud`` runs with its default thread budget (``threads``: on a two-core machine
-two while the 1-minute load average leaves a core idle, else one, unless ``OMP_NUM_THREADS``
-says otherwise; they share the widening and the LAZ decompression) and, in the same rotation,
+``read_point_cloud`` runs with its default thread budget (``threads``: for the PLY/PCD
+widening two while the 1-minute load average leaves a core idle, else one; for LAZ every usable
+CPU; ``OMP_NUM_THREADS`` overrides both) and, in the same rotation,
 with one thread (the ``*_one_thread`` figures), so the single-threaded speed against the
 single-threaded floor stays visible. ``load_average`` and ``threads`` are taken when the
 format's timings start.
@@ -30,7 +30,7 @@ import numpy as np
 import pypcd4
 from numpy.typing import NDArray
 
-from app.core.cloud import conversion_threads
+from app.core.cloud import conversion_threads, usable_threads
 from app.core.formats import read_point_cloud
 from app.core.synthetic import raycast_scene
 from bench.perf_workers import SCENE_SEED, write_binary_ply
@@ -91,7 +91,8 @@ def measure_ingest(work_dir: Path, n_points: int, repeats: int = 3) -> dict[str,
         if len(cloud) != len(points):
             raise RuntimeError(f"{name}: read {len(cloud)} of {len(points)} points")
         load_average = os.getloadavg()[0]
-        threads = conversion_threads()  # what the default read uses now (it follows the load)
+        # What the default read uses now: LAZ every usable CPU, the widening follows the load.
+        threads = usable_threads() if name == "laz" else conversion_threads()
         # Each read follows a fromfile (as in the two-way rotation before the one-thread
         # read was added): a read right after another finds its output memory hot in cache.
         read_times, fromfile_times, one_thread_times, more_fromfile_times = rotate_seconds(

@@ -83,6 +83,23 @@ def _surely_finite(values: NDArray) -> bool:
         return bool(np.isfinite(np.dot(flat, flat)))
 
 
+def usable_threads() -> int:
+    """Threads this process may keep busy: ``OMP_NUM_THREADS`` when set, else the CPUs it
+    may run on (its affinity mask on Linux)."""
+    configured = _configured_threads()
+    if configured is not None:
+        return configured
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def _configured_threads() -> int | None:
+    configured = os.environ.get("OMP_NUM_THREADS", "").strip()
+    return int(configured) if configured.isdigit() and int(configured) > 0 else None
+
+
 def conversion_threads() -> int:
     """Threads :meth:`PointCloud.from_array` (and the LAZ decoder) use by default.
 
@@ -96,13 +113,9 @@ def conversion_threads() -> int:
     process itself included). The rule errs towards one thread: the loss when oversubscribed
     is larger than the gain when not.
     """
-    configured = os.environ.get("OMP_NUM_THREADS", "").strip()
-    if configured.isdigit() and int(configured) > 0:
-        return min(int(configured), MAX_CONVERSION_THREADS)
-    try:
-        usable = len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        usable = os.cpu_count() or 1
+    if _configured_threads() is not None:
+        return min(usable_threads(), MAX_CONVERSION_THREADS)
+    usable = usable_threads()
     try:
         load = os.getloadavg()[0]
     except (AttributeError, OSError):  # no load average (Windows)

@@ -451,3 +451,17 @@ def test_conversion_without_a_spare_thread_happens_in_the_caller(monkeypatch):
     _assert_same_cloud(
         PointCloud.from_array(values, threads=3), PointCloud.from_array(values, threads=1)
     )
+
+
+def test_usable_threads_ignore_the_load(monkeypatch):
+    """The LAZ default: lazrs's threads do not hold the GIL, so only OMP_NUM_THREADS and the
+    affinity mask count."""
+    monkeypatch.undo()
+    monkeypatch.setattr(cloud_module.os, "sched_getaffinity", lambda pid: {0, 1, 2})
+    monkeypatch.setattr(cloud_module.os, "getloadavg", lambda: (9.0, 9.0, 9.0))
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    assert cloud_module.usable_threads() == 3
+    assert cloud_module.conversion_threads() == 1
+    monkeypatch.setenv("OMP_NUM_THREADS", "5")
+    assert cloud_module.usable_threads() == 5
+    assert cloud_module.conversion_threads() == cloud_module.MAX_CONVERSION_THREADS

@@ -28,7 +28,7 @@ from pathlib import PurePath
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.cloud import PointCloud, conversion_threads
+from app.core.cloud import PointCloud, conversion_threads, usable_threads
 from app.core.errors import PointCloudError, UnsupportedFormatError
 from app.core.formats import text as _text
 from app.core.formats._common import RawCloud, Source, SourceLike, open_source
@@ -200,9 +200,12 @@ def read_point_cloud(
         allocation or decompression.
     threads : int, optional
         Threads that may decode a large file: they widen binary PLY/PCD coordinates to float64
-        and decompress LAZ. Default :func:`~app.core.cloud.conversion_threads`
-        (``OMP_NUM_THREADS``, else two when the load average leaves a CPU idle, else one). The
-        cloud does not depend on it.
+        and decompress LAZ. Default: for the widening
+        :func:`~app.core.cloud.conversion_threads` (``OMP_NUM_THREADS``, else two while the
+        load average leaves a CPU idle, else one: Python threads stall each other on a busy
+        machine), for LAZ :func:`~app.core.cloud.usable_threads` (lazrs's decoder threads
+        do not hold the GIL and paid off at every load measured but the highest). The cloud
+        does not depend on it.
 
     Returns
     -------
@@ -226,15 +229,17 @@ def read_point_cloud(
                 raise PointCloudError("the file is empty (0 bytes): zero points")
             if chosen is None:
                 chosen = detect_format(opened.name, opened.head(SNIFF_BYTES))
-            if threads is None:
-                threads = conversion_threads()
             reader = _READERS[chosen]
             if reader is read_las:
-                raw = read_las(opened, max_points, threads=threads)
+                laz_threads = usable_threads() if threads is None else threads
+                raw = read_las(opened, max_points, threads=laz_threads)
             else:
                 raw = reader(opened, max_points)
             return PointCloud.from_array(
-                raw.points, raw.attributes, raw.sensor_origin, threads=threads
+                raw.points,
+                raw.attributes,
+                raw.sensor_origin,
+                threads=conversion_threads() if threads is None else threads,
             )
         except PointCloudError as exc:
             raise type(exc)(f"{label}: {exc}") from exc
