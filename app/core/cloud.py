@@ -96,22 +96,23 @@ def usable_threads() -> int:
 
 
 def _configured_threads() -> int | None:
+    """``OMP_NUM_THREADS`` when it is a positive integer, else None."""
     configured = os.environ.get("OMP_NUM_THREADS", "").strip()
     return int(configured) if configured.isdigit() and int(configured) > 0 else None
 
 
 def conversion_threads() -> int:
-    """Threads :meth:`PointCloud.from_array` (and the LAZ decoder) use by default.
+    """Threads :meth:`PointCloud.from_array` widens large inputs with by default.
 
     ``OMP_NUM_THREADS`` when set (the thread budget the service and the benchmarks give a
     process), at most :data:`MAX_CONVERSION_THREADS`. Otherwise the caller's thread plus one
     per CPU (of those this process may run on) that the machine's 1-minute load average
     leaves idle, like ``make -l``: a helper only pays when it gets a core of its own. On an
     oversubscribed machine a helper preempted while it holds the GIL stalls the caller for a
-    whole time slice (a 1M-point binary PLY read on 2 CPUs: best 2.6 ms with one thread,
-    7.5 ms with two at load 4.4; 2.4 ms with one, 1.8 ms with two at load 2, the reading
-    process itself included). The rule errs towards one thread: the loss when oversubscribed
-    is larger than the gain when not.
+    whole time slice. Measured on 2 CPUs, 1M-point binary PLY read: at load ~2 one thread
+    2.4 ms, two 1.8 ms; at load 2.8 two threads ~7 % slower in the median; at load 4.4 two
+    threads with the rows split in halves up front 7.5 ms against 2.6 ms. The rule errs
+    towards one thread: the loss when oversubscribed is larger than the gain when not.
     """
     if _configured_threads() is not None:
         return min(usable_threads(), MAX_CONVERSION_THREADS)
