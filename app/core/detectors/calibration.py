@@ -117,8 +117,10 @@ def null_distribution(
         Corner of that grid: the thinning grid's, so each voxel holds at most one point of
         each cloud (default: the pooled minimum).
     threads : int
-        Resampled pairs scored at once (numpy, SciPy and scikit-learn release the GIL in
-        most of their work); 1 scores them one after the other.
+        Resampled pairs scored at once on a thread pool; 1 (the default) scores them one
+        after the other. On the shared 2-core machine two threads were no faster (GIL-bound
+        small numpy calls; see :meth:`ChangeDetector.detect
+        <app.core.detectors.base.ChangeDetector.detect>`).
 
     Returns
     -------
