@@ -517,8 +517,9 @@ def compute(
         raise InputError("the job's reference scan or scan no longer exists")
     keeper.report("loading", 0.0)
     started = time.perf_counter()
-    reference = read_point_cloud(job.reference_path, format=job.reference_format)
-    scan = read_point_cloud(job.scan_path, format=job.scan_format)
+    threads = job_threads(settings)  # the result does not depend on it
+    reference = read_point_cloud(job.reference_path, format=job.reference_format, threads=threads)
+    scan = read_point_cloud(job.scan_path, format=job.scan_format, threads=threads)
     # The origin given at upload wins over the file's; a job's params override both.
     if job.reference_sensor_origin is not None:
         reference = dataclasses.replace(
@@ -537,7 +538,7 @@ def compute(
         variant=job.variant,
         params=job.params,  # replayable: holds align/random_state/stage parameters when given
         progress=keeper.compare_progress,
-        threads=job_threads(settings),  # the result does not depend on it
+        threads=threads,
     )
     return result, {"load_inputs": load_seconds}
 
