@@ -48,7 +48,7 @@ PROJECT_ROOT = Path(__file__).resolve().parent.parent
 if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``app`` and ``bench`` importable
     sys.path.insert(0, str(PROJECT_ROOT))
 
-from app.core.localise import usable_cpus  # noqa: E402
+from app.core.threads import usable_cpus  # noqa: E402
 from bench.perf_ingest import measure_ingest  # noqa: E402
 from bench.perf_service import measure_service, measure_throughput  # noqa: E402
 from bench.perf_workers import WORKERS, write_scene  # noqa: E402

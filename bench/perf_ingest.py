@@ -30,9 +30,10 @@ import numpy as np
 import pypcd4
 from numpy.typing import NDArray
 
-from app.core.cloud import conversion_threads, usable_threads
+from app.core.cloud import conversion_threads
 from app.core.formats import read_point_cloud
 from app.core.synthetic import raycast_scene
+from app.core.threads import available_threads
 from bench.perf_workers import SCENE_SEED, write_binary_ply
 
 
@@ -92,7 +93,7 @@ def measure_ingest(work_dir: Path, n_points: int, repeats: int = 3) -> dict[str,
             raise RuntimeError(f"{name}: read {len(cloud)} of {len(points)} points")
         load_average = os.getloadavg()[0]
         # What the default read uses now: LAZ every usable CPU, the widening follows the load.
-        threads = usable_threads() if name == "laz" else conversion_threads()
+        threads = available_threads() if name == "laz" else conversion_threads()
         # Each read follows a fromfile (as in the two-way rotation before the one-thread
         # read was added): a read right after another finds its output memory hot in cache.
         read_times, fromfile_times, one_thread_times, more_fromfile_times = rotate_seconds(

@@ -51,7 +51,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -65,6 +64,7 @@ from scipy.sparse.csgraph import connected_components
 
 from app.core.cloud import MIN_POINTS
 from app.core.errors import InputError, PointCloudError
+from app.core.threads import available_threads
 
 __all__ = [
     "DEFAULT_PARAMETERS",
@@ -73,9 +73,7 @@ __all__ = [
     "LABEL_UNOBSERVED",
     "ChangedRegion",
     "Localisation",
-    "available_threads",
     "localise_changes",
-    "usable_cpus",
 ]
 
 LABEL_UNCHANGED = 0
@@ -1065,22 +1063,6 @@ def _label_candidates(
     label[index[status == STATUS_SEEN_THROUGH]] = LABEL_CHANGED
     label[index[status == STATUS_UNOBSERVED]] = LABEL_UNOBSERVED
     return label, report
-
-
-def usable_cpus() -> int:
-    """The CPUs this process may run on (its affinity mask on Linux)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
-
-
-def available_threads() -> int:
-    """Threads a comparison may use: ``OMP_NUM_THREADS`` if set, else :func:`usable_cpus`."""
-    configured = os.environ.get("OMP_NUM_THREADS", "").strip()
-    if configured.isdigit() and int(configured) > 0:
-        return int(configured)
-    return usable_cpus()
 
 
 def _both(

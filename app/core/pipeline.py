@@ -35,12 +35,13 @@ from app.core.detectors import make_detector
 from app.core.detectors.base import ChangeDetector
 from app.core.errors import InputError
 from app.core.jsonable import json_safe
-from app.core.localise import available_threads, localise_changes
+from app.core.localise import localise_changes
 from app.core.registration import (
     apply_transform,
     identity_registration,
     register_scan,
 )
+from app.core.threads import available_threads
 
 ProgressCallback = Callable[[str, float], None]
 """Called as ``progress(stage, fraction_done)`` with fraction in [0, 1]."""

@@ -399,7 +399,7 @@ def job_threads(settings: Settings, workers: int | None = None) -> int:
     """Threads a job may use: the setting, else this machine's CPUs shared by the workers."""
     if settings.job_threads:
         return settings.job_threads
-    from app.core.localise import usable_cpus  # the numeric core is imported lazily here
+    from app.core.threads import usable_cpus  # the numeric core is imported lazily here
 
     return max(1, usable_cpus() // max(workers or settings.workers, 1))
 

@@ -23,6 +23,7 @@ from app.core.cloud import PointCloud
 from app.core.errors import PointCloudError
 from app.core.formats import pcd, ply, read_point_cloud
 from app.core.formats._common import open_source, xyz_from_columns, xyz_view
+from app.core.threads import available_threads
 
 N_POINTS = 257  # not a multiple of the (patched) block size: the last block is partial
 
@@ -453,15 +454,15 @@ def test_conversion_without_a_spare_thread_happens_in_the_caller(monkeypatch):
     )
 
 
-def test_usable_threads_ignore_the_load(monkeypatch):
+def test_available_threads_ignore_the_load(monkeypatch):
     """The LAZ default: lazrs's threads do not hold the GIL, so only OMP_NUM_THREADS and the
     affinity mask count."""
     monkeypatch.undo()
     monkeypatch.setattr(cloud_module.os, "sched_getaffinity", lambda pid: {0, 1, 2})
     monkeypatch.setattr(cloud_module.os, "getloadavg", lambda: (9.0, 9.0, 9.0))
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
-    assert cloud_module.usable_threads() == 3
+    assert available_threads() == 3
     assert cloud_module.conversion_threads() == 1
     monkeypatch.setenv("OMP_NUM_THREADS", "5")
-    assert cloud_module.usable_threads() == 5
+    assert available_threads() == 5
     assert cloud_module.conversion_threads() == cloud_module.MAX_CONVERSION_THREADS

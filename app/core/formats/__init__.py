@@ -28,7 +28,7 @@ from pathlib import PurePath
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.cloud import PointCloud, conversion_threads, usable_threads
+from app.core.cloud import PointCloud, conversion_threads
 from app.core.errors import PointCloudError, UnsupportedFormatError
 from app.core.formats import text as _text
 from app.core.formats._common import RawCloud, Source, SourceLike, open_source
@@ -36,6 +36,7 @@ from app.core.formats.las import is_compressed_point_format, read_las, write_las
 from app.core.formats.npy import read_npy, read_npz
 from app.core.formats.pcd import read_pcd
 from app.core.formats.ply import read_ply, write_ply
+from app.core.threads import available_threads
 
 SUPPORTED_FORMATS: tuple[str, ...] = ("ply", "pcd", "las", "laz", "xyz", "csv", "txt", "npy", "npz")
 """Formats :func:`read_point_cloud` reads (names are the usual file suffixes)."""
@@ -203,7 +204,7 @@ def read_point_cloud(
         and decompress LAZ. Default: for the widening
         :func:`~app.core.cloud.conversion_threads` (``OMP_NUM_THREADS``, else two while the
         load average leaves a CPU idle, else one: Python threads stall each other on a busy
-        machine), for LAZ :func:`~app.core.cloud.usable_threads` (lazrs's decoder threads
+        machine), for LAZ :func:`~app.core.threads.available_threads` (lazrs's decoder threads
         do not hold the GIL and paid off at every load measured but the highest). The cloud
         does not depend on it.
 
@@ -231,7 +232,7 @@ def read_point_cloud(
                 chosen = detect_format(opened.name, opened.head(SNIFF_BYTES))
             reader = _READERS[chosen]
             if reader is read_las:
-                laz_threads = usable_threads() if threads is None else threads
+                laz_threads = available_threads() if threads is None else threads
                 raw = read_las(opened, max_points, threads=laz_threads)
             else:
                 raw = reader(opened, max_points)
