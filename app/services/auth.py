@@ -37,6 +37,7 @@ from app.services.errors import (
     PermissionDeniedError,
     ValidationFailedError,
 )
+from app.services.schemas import as_utc
 
 logger = logging.getLogger("scandiff.services.auth")
 
@@ -270,9 +271,7 @@ class TokenSummary:
 
 def iso_utc(value: datetime) -> str:
     """``value`` as ISO 8601 in UTC to the second (naive values, as SQLite returns, are UTC)."""
-    if value.tzinfo is None:
-        value = value.replace(tzinfo=UTC)
-    return value.astimezone(UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
+    return as_utc(value).isoformat(timespec="seconds").replace("+00:00", "Z")
 
 
 def _summaries(session: Session, *conditions: ColumnElement[bool]) -> list[TokenSummary]:
