@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import warnings
 
 import numpy as np
 import pytest
@@ -285,21 +284,6 @@ def test_gmm_fit_is_scikit_learns_fit_to_the_bit(seed, iterations):
     np.testing.assert_array_equal(fitted.precisions_cholesky, expected.precisions_cholesky_)
     np.testing.assert_array_equal(fitted.precisions, expected.precisions_)
     assert (fitted.n_iter, fitted.converged) == (expected.n_iter_, expected.converged_)
-
-
-@pytest.mark.parametrize("variant", VARIANTS)
-@pytest.mark.parametrize("method", METHODS)
-def test_detection_does_not_depend_on_the_calibration_threads(method, variant):
-    rng = np.random.default_rng(4)
-    reference = corridor(3000, rng)
-    scan = np.vstack([corridor(3000, rng), box_faces(300, rng)])
-    detector = make_detector(method, variant, random_state=5, **FAST)
-    serial = detector.detect(reference, scan, threads=1)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # e.g. a ConvergenceWarning leaking from a thread
-        concurrent = detector.detect(reference, scan, threads=3)
-    assert concurrent.calibration["null_values"] == serial.calibration["null_values"]
-    assert (concurrent.score, concurrent.threshold) == (serial.score, serial.threshold)
 
 
 def test_bures_distance_matches_closed_forms():

@@ -318,8 +318,7 @@ class ChangeDetector(ABC):
     _ignored_warnings: ClassVar[tuple[type[Warning], ...]] = ()
     """Warnings the method raises by design (e.g. EM stopped after a fixed number of
     iterations), ignored for a whole :meth:`detect` or :meth:`distance` call. They are set once
-    in the calling thread: ``warnings.catch_warnings`` is not thread-safe, so code that runs
-    on the calibration threads must not use it."""
+    in the calling thread (``warnings.catch_warnings`` is not thread-safe)."""
     _variant_defaults: ClassVar[dict[str, dict[str, Any]]] = {}
 
     def __init__(self, variant: str = "improved", *, random_state: int = 0, **params: Any):
@@ -384,11 +383,7 @@ class ChangeDetector(ABC):
         rng: np.random.Generator,
         is_resample: bool,
     ) -> float:
-        """``d(first, second)`` on working sets; ``is_resample`` is True during calibration.
-
-        Calibration resamples may be scored concurrently on several threads: ``context`` must
-        only be read, and ``rng`` is then the resample's own generator.
-        """
+        """``d(first, second)`` on working sets; ``is_resample`` is True during calibration."""
 
     # ----------------------------------------------------------------------------------------
     # shared machinery
@@ -495,19 +490,13 @@ class ChangeDetector(ABC):
             reference_work, scan_work, context, _, score_rng, _ = self._prepare(reference, scan)
             return float(self._score(reference_work, scan_work, context, score_rng, False))
 
-    def detect(self, reference: NDArray, scan: NDArray, *, threads: int = 1) -> Detection:
+    def detect(self, reference: NDArray, scan: NDArray) -> Detection:
         """Distance plus a threshold calibrated on the clouds' own resampling noise.
 
         Parameters
         ----------
         reference : array_like, shape (n, 3)
         scan : array_like, shape (m, 3)
-        threads : int
-            Calibration resamples scored at once (default 1). The result does not depend on
-            it: every resample is drawn in the same order and scored on its own. Measured on
-            the shared 2-core machine (100k-point pairs, improved variants), two threads were
-            no faster: 0.82-1.09x the serial time for GMM, 1.09-1.14x for planes (the GIL:
-            most of a resample is small numpy calls).
 
         Returns
         -------
@@ -520,28 +509,19 @@ class ChangeDetector(ABC):
         threads on a busy machine), which also makes the k-means start independent of the
         caller's thread settings.
         """
-        threads = max(1, int(threads))
         with self._numerics():
-            return self._detect(reference, scan, threads)
+            return self._detect(reference, scan)
 
-    def _detect(self, reference: NDArray, scan: NDArray, threads: int) -> Detection:
+    def _detect(self, reference: NDArray, scan: NDArray) -> Detection:
         reference_work, scan_work, context, info, score_rng, calibration_rng = self._prepare(
             reference, scan
         )
         score = float(self._score(reference_work, scan_work, context, score_rng, False))
-        # Each resample gets a generator of its own (none of the detectors draws from it
-        # today): resamples may be scored concurrently, in any order.
-        resample_seeds = np.random.SeedSequence([self.random_state, 1]).spawn(
-            self.params["n_resamples"]
-        )
 
-        def resample_score(
-            first: NDArray[np.float64], second: NDArray[np.float64], index: int
-        ) -> float:
+        def resample_score(first: NDArray[np.float64], second: NDArray[np.float64]) -> float:
             if min(first.shape[0], second.shape[0]) < MIN_WORKING_POINTS:
                 return float("nan")
-            resample_rng = np.random.default_rng(resample_seeds[index])
-            return float(self._score(first, second, context, resample_rng, True))
+            return float(self._score(first, second, context, calibration_rng, True))
 
         scheme = self.params["calibration"]
         if scheme == "auto":
@@ -558,7 +538,6 @@ class ChangeDetector(ABC):
             rng=calibration_rng,
             pairing_voxel=pairing_voxel,
             pairing_origin=None if info["grid_origin"] is None else np.array(info["grid_origin"]),
-            threads=threads,
         )
         n_failed = int(np.sum(~np.isfinite(null)))
         if null.size - n_failed < 2:

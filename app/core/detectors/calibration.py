@@ -61,9 +61,7 @@ docs/detectors.md.
 from __future__ import annotations
 
 import math
-from collections import deque
-from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -75,10 +73,7 @@ from app.core.cloud import column_extreme
 
 SCHEMES = ("auto", "paired", "permutation", "split_half")
 
-PairScore = Callable[[NDArray[np.float64], NDArray[np.float64], int], float]
-"""``score(first, second, index) -> float``: the detector's distance on the ``index``-th
-resampled pair. It may run on any thread, in any order, so it must not draw from a generator
-it shares with other resamples."""
+PairScore = Callable[[NDArray[np.float64], NDArray[np.float64]], float]
 
 
 def null_distribution(
@@ -91,21 +86,15 @@ def null_distribution(
     rng: np.random.Generator,
     pairing_voxel: float = 0.0,
     pairing_origin: NDArray[np.float64] | None = None,
-    threads: int = 1,
 ) -> NDArray[np.float64]:
     """Distances between resampled sets that share no change, scaled to the pair's sizes.
-
-    The resampled pairs are drawn from ``rng`` one after the other in the calling thread, in
-    the same order whatever ``threads`` is; only the scoring runs concurrently. So the result
-    does not depend on ``threads``.
 
     Parameters
     ----------
     reference : ndarray, shape (n, 3)
     scan : ndarray, shape (m, 3)
     score : callable
-        ``score(first, second, index) -> float``, the detector's distance on working sets
-        (see :data:`PairScore`).
+        ``score(first, second) -> float``, the detector's distance on working sets.
     scheme : {"paired", "permutation", "split_half"}
         Already resolved (not ``auto``).
     n_resamples : int
@@ -116,69 +105,37 @@ def null_distribution(
     pairing_origin : ndarray, shape (3,), optional
         Corner of that grid: the thinning grid's, so each voxel holds at most one point of
         each cloud (default: the pooled minimum).
-    threads : int
-        Resampled pairs scored at once on a thread pool; 1 (the default) scores them one
-        after the other. On the shared 2-core machine two threads were no faster (GIL-bound
-        small numpy calls; see :meth:`ChangeDetector.detect
-        <app.core.detectors.base.ChangeDetector.detect>`).
 
     Returns
     -------
     ndarray, shape (n_resamples,)
     """
     n_reference, n_scan = reference.shape[0], scan.shape[0]
-    draws: Iterator[tuple[NDArray[np.float64], NDArray[np.float64], float]]
+    values = np.empty(n_resamples)
     if scheme == "paired":
         if pairing_voxel <= 0:
             raise ValueError("the paired scheme needs pairing_voxel > 0")
         pooled = np.concatenate([reference, scan])
         resampler = VoxelPairing(reference, scan, pairing_voxel, pairing_origin)
-
-        def paired_draws() -> Iterator[tuple[NDArray[np.float64], NDArray[np.float64], float]]:
-            for _ in range(n_resamples):
-                to_first = resampler.draw(rng)
-                yield pooled[to_first], pooled[~to_first], 1.0
-
-        draws = paired_draws()
+        for index in range(n_resamples):
+            to_first = resampler.draw(rng)
+            values[index] = score(pooled[to_first], pooled[~to_first])
     elif scheme == "permutation":
         pooled = np.concatenate([reference, scan])
-
-        def permuted_draws() -> Iterator[tuple[NDArray[np.float64], NDArray[np.float64], float]]:
-            for _ in range(n_resamples):
-                order = rng.permutation(pooled.shape[0])
-                yield pooled[order[:n_reference]], pooled[order[n_reference:]], 1.0
-
-        draws = permuted_draws()
+        for index in range(n_resamples):
+            order = rng.permutation(pooled.shape[0])
+            values[index] = score(pooled[order[:n_reference]], pooled[order[n_reference:]])
     elif scheme == "split_half":
         target_variance = 1.0 / n_reference + 1.0 / n_scan
-
-        def half_draws() -> Iterator[tuple[NDArray[np.float64], NDArray[np.float64], float]]:
-            for index in range(n_resamples):
-                cloud = reference if index % 2 == 0 else scan
-                order = rng.permutation(cloud.shape[0])
-                half = cloud.shape[0] // 2
-                first, second = cloud[order[:half]], cloud[order[half:]]
-                variance = 1.0 / first.shape[0] + 1.0 / second.shape[0]
-                yield first, second, math.sqrt(target_variance / variance)
-
-        draws = half_draws()
+        for index in range(n_resamples):
+            cloud = reference if index % 2 == 0 else scan
+            order = rng.permutation(cloud.shape[0])
+            half = cloud.shape[0] // 2
+            first, second = cloud[order[:half]], cloud[order[half:]]
+            scale = math.sqrt(target_variance / (1.0 / first.shape[0] + 1.0 / second.shape[0]))
+            values[index] = scale * score(first, second)
     else:
         raise ValueError(f"unknown calibration scheme {scheme!r}; valid: {list(SCHEMES)}")
-    values = np.empty(n_resamples)
-    if threads <= 1 or n_resamples < 2:
-        for index, (first, second, scale) in enumerate(draws):
-            values[index] = scale * score(first, second, index)
-        return values
-    # Draw in order here, score on the pool; at most 2 * threads pairs are held at once.
-    with ThreadPoolExecutor(max_workers=min(threads, n_resamples)) as pool:
-        pending: deque[tuple[int, float, Future[float]]] = deque()
-        for index, (first, second, scale) in enumerate(draws):
-            pending.append((index, scale, pool.submit(score, first, second, index)))
-            while len(pending) >= 2 * threads:
-                done_index, done_scale, future = pending.popleft()
-                values[done_index] = done_scale * future.result()
-        for done_index, done_scale, future in pending:
-            values[done_index] = done_scale * future.result()
     return values
 
 
