@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -61,6 +62,7 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
+from threadpoolctl import threadpool_limits
 
 from app.core.cloud import MIN_POINTS
 from app.core.errors import InputError, PointCloudError
@@ -73,7 +75,11 @@ __all__ = [
     "LABEL_UNOBSERVED",
     "ChangedRegion",
     "Localisation",
+    "NeighbourhoodSearch",
+    "Neighbourhoods",
     "localise_changes",
+    "nearest_neighbourhoods",
+    "neighbourhood_size",
 ]
 
 LABEL_UNCHANGED = 0
@@ -422,7 +428,142 @@ def _neighbourhood_planes(
     return normal, plane_constant, residual_variance, middle_over_largest, variation
 
 
-def _local_geometry(points: NDArray[np.float64], n_neighbors: int) -> _LocalGeometry:
+@dataclass(frozen=True)
+class Neighbourhoods:
+    """A cloud's KD-tree and every point's nearest neighbours: the localiser's largest single
+    cost (the k-NN query is ~40 % of it), which a caller may compute ahead of time, e.g. for the
+    reference while the scan is still being aligned (:func:`nearest_neighbourhoods`).
+
+    Attributes
+    ----------
+    tree : pykdtree.kdtree.KDTree
+        Over the cloud's points.
+    neighbor_index : ndarray, shape (n, k + 1), uint32
+        Column 0 is the point itself.
+    kth_distance : ndarray, shape (n,), float64
+        Distance to the k-th neighbour.
+    """
+
+    tree: KDTree
+    neighbor_index: NDArray[np.uint32]
+    kth_distance: NDArray[np.float64]
+
+    @property
+    def n_neighbors(self) -> int:
+        """Neighbours per point besides the point itself (k)."""
+        return int(self.neighbor_index.shape[1]) - 1
+
+
+def neighbourhood_size(n_points: int, **params: Any) -> int:
+    """The k that :func:`localise_changes` uses for a cloud of ``n_points`` with ``params``.
+
+    Raises
+    ------
+    InputError
+        An unknown or invalid parameter (the message :func:`localise_changes` would give).
+    """
+    return min(_resolve_parameters(params)["n_neighbors"], n_points - 1)
+
+
+def nearest_neighbourhoods(
+    points: NDArray[np.float64], n_neighbors: int, _cancelled: threading.Event | None = None
+) -> Neighbourhoods | None:
+    """Build the KD-tree of ``points`` and find each point's ``n_neighbors`` nearest neighbours.
+
+    Queried in chunks, so only the k-th distance is kept (never an (n, k + 1) float array).
+    The query releases the GIL: :class:`NeighbourhoodSearch` runs this on its own thread.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3), float64
+        Finite coordinates, n >= 2 (the cloud :func:`localise_changes` will be given: the same
+        array, not a copy in another frame).
+    n_neighbors : int
+        k, in 1..n - 1 (see :func:`neighbourhood_size`).
+
+    Returns
+    -------
+    Neighbourhoods
+        (None only when ``_cancelled``, :class:`NeighbourhoodSearch`'s event, was set.)
+    """
+    n = points.shape[0]
+    k = int(n_neighbors)
+    if not 1 <= k <= n - 1:
+        raise ValueError(f"n_neighbors must be in 1..{n - 1}, got {n_neighbors}")
+    tree = KDTree(points)
+    neighbor_index = np.empty((n, k + 1), dtype=np.uint32)
+    kth_distance = np.empty(n)
+    for start in range(0, n, _QUERY_CHUNK):
+        if _cancelled is not None and _cancelled.is_set():
+            return None
+        chunk = slice(start, start + _QUERY_CHUNK)
+        distance, neighbor_index[chunk] = tree.query(points[chunk], k=k + 1)
+        kth_distance[chunk] = distance[:, k]
+    return Neighbourhoods(tree, neighbor_index, kth_distance)
+
+
+class NeighbourhoodSearch:
+    """:func:`nearest_neighbourhoods` of a cloud, running on its own thread from creation.
+
+    :meth:`take` waits for it and hands the result over: the search keeps no reference, so the
+    memory goes as soon as the caller lets go of it (the localiser releases the neighbour index
+    half-way).  :meth:`cancel` stops it at its next chunk (~65k points) and waits.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3), float64
+        Finite coordinates; the array :func:`localise_changes` will be given.
+    n_neighbors : int
+        k (:func:`neighbourhood_size`).
+    openmp_threads : int
+        OpenMP threads of the search's own KD-tree queries (1 when it shares the machine with
+        other work).
+    """
+
+    def __init__(self, points: NDArray[np.float64], n_neighbors: int, openmp_threads: int = 1):
+        self.n_points = int(points.shape[0])
+        self.n_neighbors = int(n_neighbors)
+        self._cancelled = threading.Event()
+        self._result: Neighbourhoods | None = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(
+            target=self._run,
+            args=(points, openmp_threads),
+            name="neighbourhood-search",
+            daemon=True,
+        )
+        self._thread.start()
+
+    def _run(self, points: NDArray[np.float64], openmp_threads: int) -> None:
+        try:
+            # the limit applies to this thread's own OpenMP calls only
+            with threadpool_limits(limits=openmp_threads, user_api="openmp"):
+                self._result = nearest_neighbourhoods(points, self.n_neighbors, self._cancelled)
+        except BaseException as error:  # handed to take()'s caller
+            self._error = error
+
+    def take(self) -> Neighbourhoods:
+        """Wait for the search and return its result (once; it keeps no reference)."""
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        result, self._result = self._result, None
+        if result is None:
+            raise RuntimeError("the neighbourhood search was cancelled or already taken")
+        return result
+
+    def cancel(self) -> None:
+        """Stop the search at its next chunk, wait for the thread and drop any result."""
+        self._cancelled.set()
+        self._thread.join()
+        self._result = None
+
+
+def _local_geometry(
+    points: NDArray[np.float64],
+    n_neighbors: int,
+    neighbourhoods: Neighbourhoods | NeighbourhoodSearch | None = None,
+) -> _LocalGeometry:
     """Fit a plane to every point's neighbourhood; estimate spacing and noise.
 
     Neighbourhoods that are nearly a line (the k nearest points all on one scan ring, as on
@@ -434,27 +575,35 @@ def _local_geometry(points: NDArray[np.float64], n_neighbors: int) -> _LocalGeom
     points : ndarray, shape (n, 3)
     n_neighbors : int
         Neighbours besides the point itself (reduced to n - 1 for tiny clouds).
+    neighbourhoods : Neighbourhoods or NeighbourhoodSearch, optional
+        Of ``points``, computed ahead; found here otherwise.
     """
     n = points.shape[0]
     k = min(n_neighbors, n - 1)
-    tree = KDTree(points)
-    # queried in chunks: only the k-th distance is kept, never an (n, k + 1) float array
-    neighbor_index = np.empty((n, k + 1), dtype=np.uint32)
-    kth_distance = np.empty(n)
-    for start in range(0, n, _QUERY_CHUNK):
-        chunk = slice(start, start + _QUERY_CHUNK)
-        distance, neighbor_index[chunk] = tree.query(points[chunk], k=k + 1)
-        kth_distance[chunk] = distance[:, k]
-    del distance
+    if isinstance(neighbourhoods, NeighbourhoodSearch):
+        neighbourhoods = neighbourhoods.take()
+    if neighbourhoods is None:
+        neighbourhoods = nearest_neighbourhoods(points, k)
+    elif neighbourhoods.neighbor_index.shape != (n, k + 1):
+        raise ValueError(
+            f"neighbourhoods of shape {neighbourhoods.neighbor_index.shape} were computed for "
+            f"another cloud or k; this cloud needs {(n, k + 1)}"
+        )
+    tree, neighbor_index, kth_distance = (
+        neighbourhoods.tree,
+        neighbourhoods.neighbor_index,
+        neighbourhoods.kth_distance,
+    )
+    del neighbourhoods
     normal, plane_constant, residual_variance, middle_over_largest, variation = (
         _neighbourhood_planes(points, neighbor_index)
     )
     is_linear = middle_over_largest < LINEAR_EIGENVALUE_RATIO
     del middle_over_largest
-    # side of the area each point stands for: k points in a disc of radius r_k (in place:
-    # every full-size temporary here is paid twice when both clouds run at once)
-    raw_spacing = kth_distance
-    raw_spacing *= math.sqrt(math.pi / k)
+    # side of the area each point stands for: k points in a disc of radius r_k (a new array:
+    # ``neighbourhoods`` may be the caller's, and is left as it was)
+    raw_spacing = kth_distance * math.sqrt(math.pi / k)
+    del kth_distance
     # plane fit of k+1 points has k+1-3 residual degrees of freedom
     residual_variance *= (k + 1) / max(k + 1 - 3, 1)
     linear = np.flatnonzero(is_linear)
@@ -1093,6 +1242,7 @@ def localise_changes(
     registration_rmse: float = 0.0,
     min_region_points: int | None = None,
     threads: int | None = None,
+    reference_neighbourhoods: Neighbourhoods | NeighbourhoodSearch | None = None,
     **params: Any,
 ) -> Localisation:
     """Label each point unchanged, changed or unobserved and group changes into regions.
@@ -1118,6 +1268,10 @@ def localise_changes(
         Threads to use (the reference and scan sides run concurrently from 2; the KD-tree
         queries use OpenMP's setting).  Default: :func:`available_threads`.  The result does
         not depend on it.
+    reference_neighbourhoods : Neighbourhoods or NeighbourhoodSearch, optional
+        :func:`nearest_neighbourhoods` of ``reference`` with :func:`neighbourhood_size`
+        neighbours, computed ahead (the pipeline starts a :class:`NeighbourhoodSearch` while
+        the scan is aligned).  The result is the same as without it.
     **params
         See :data:`DEFAULT_PARAMETERS`.
 
@@ -1152,7 +1306,11 @@ def localise_changes(
 
     n_neighbors = settings["n_neighbors"]
     reference_geometry, scan_geometry = _both(
-        threads, _local_geometry, (reference_points, scan_points), (n_neighbors, n_neighbors)
+        threads,
+        _local_geometry,
+        (reference_points, scan_points),
+        (n_neighbors, n_neighbors),
+        (reference_neighbourhoods, None),
     )
     (reference_nn_distance, reference_nn_index), (scan_nn_distance, scan_nn_index) = _both(
         threads, _nearest_in, (reference_points, scan_points), (scan_geometry, reference_geometry)

@@ -28,7 +28,10 @@ from app.core.localise import (
     LABEL_CHANGED,
     LABEL_UNOBSERVED,
     Localisation,
+    NeighbourhoodSearch,
     localise_changes,
+    nearest_neighbourhoods,
+    neighbourhood_size,
 )
 from app.core.synthetic import (
     SyntheticPair,
@@ -199,6 +202,68 @@ def test_the_result_does_not_depend_on_the_thread_count(threads):
     np.testing.assert_array_equal(other.reference_distance, localisation.reference_distance)
     assert other.parameters == localisation.parameters
     assert len(other.regions) == len(localisation.regions) > 0
+
+
+def assert_same_localisation(first: Localisation, second: Localisation) -> None:
+    for name in ("reference_label", "scan_label", "reference_region", "scan_region"):
+        np.testing.assert_array_equal(getattr(first, name), getattr(second, name))
+    np.testing.assert_array_equal(first.reference_distance, second.reference_distance)
+    np.testing.assert_array_equal(first.scan_distance, second.scan_distance)
+    assert first.parameters == second.parameters
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_reference_neighbourhoods_found_ahead_give_the_same_result(threads):
+    pair, localisation = localised_scene("removed")
+    reference = np.ascontiguousarray(pair.reference)
+    k = neighbourhood_size(len(reference))
+    assert k == DEFAULT_PARAMETERS["n_neighbors"]
+    search = NeighbourhoodSearch(reference, k, openmp_threads=1)
+    assert_same_localisation(
+        localise_pair(pair, threads=threads, reference_neighbourhoods=search), localisation
+    )
+    # a finished search as a plain value, used twice: the localiser leaves it as it was
+    neighbourhoods = nearest_neighbourhoods(reference, k)
+    kth_distance = neighbourhoods.kth_distance.copy()
+    for _ in range(2):
+        assert_same_localisation(
+            localise_pair(pair, threads=threads, reference_neighbourhoods=neighbourhoods),
+            localisation,
+        )
+    np.testing.assert_array_equal(neighbourhoods.kth_distance, kth_distance)
+    assert neighbourhoods.n_neighbors == k
+
+
+def test_neighbourhood_search_hands_its_result_over_once_and_stops_when_cancelled():
+    pair, _ = localised_scene("removed")
+    reference = np.ascontiguousarray(pair.reference)
+    search = NeighbourhoodSearch(reference, 10)
+    taken = search.take()
+    expected = nearest_neighbourhoods(reference, 10)
+    np.testing.assert_array_equal(taken.neighbor_index, expected.neighbor_index)
+    np.testing.assert_array_equal(taken.kth_distance, expected.kth_distance)
+    assert taken.neighbor_index[:, 0].tolist() == list(range(len(reference)))  # itself first
+    with pytest.raises(RuntimeError, match="cancelled or already taken"):
+        search.take()
+    cancelled = NeighbourhoodSearch(reference, 10)
+    cancelled.cancel()
+    assert not cancelled._thread.is_alive()
+    with pytest.raises(RuntimeError, match="cancelled or already taken"):
+        cancelled.take()
+    with pytest.raises(ValueError, match=r"n_neighbors must be in 1\.\."):
+        nearest_neighbourhoods(reference[:5], 5)
+
+
+def test_neighbourhoods_of_another_cloud_or_size_are_refused():
+    pair, _ = localised_scene("removed")
+    other_k = nearest_neighbourhoods(np.ascontiguousarray(pair.reference), 7)
+    with pytest.raises(ValueError, match="another cloud or k"):
+        localise_pair(pair, reference_neighbourhoods=other_k)
+    other_cloud = nearest_neighbourhoods(np.ascontiguousarray(pair.reference[:-1]), 10)
+    with pytest.raises(ValueError, match="another cloud or k"):
+        localise_pair(pair, reference_neighbourhoods=other_cloud)
+    with pytest.raises(InputError, match="n_neighbors"):
+        neighbourhood_size(100, n_neighbors=2)
 
 
 def test_registration_rmse_widens_the_threshold():

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
+from app.core import pipeline
 from app.core.cloud import PointCloud
 from app.core.detectors import METHODS, VARIANTS
 from app.core.errors import InputError
-from app.core.pipeline import LABEL_CHANGED, compare
+from app.core.pipeline import LABEL_CHANGED, REFERENCE_AHEAD_MIN_POINTS, compare
 from app.core.registration import apply_transform
 from app.core.synthetic import raycast_scene
 
@@ -147,3 +150,55 @@ def test_decision_rules(added_box_pair):
     assert detector_only.changed == (detector_only.score > detector_only.threshold)
     with pytest.raises(InputError, match="decision"):
         compare(reference, scan, params={"decision": "vote"})
+
+
+def searches_running() -> list[str]:
+    return [thread.name for thread in threading.enumerate() if "neighbourhood" in thread.name]
+
+
+def test_the_reference_search_run_during_alignment_changes_nothing_and_ends_with_it(
+    monkeypatch,
+):
+    """From REFERENCE_AHEAD_MIN_POINTS points and 2 threads the reference's neighbour search
+    runs while the scan is aligned: the result is exactly the one-thread result."""
+    started: list[int] = []
+
+    class CountedSearch(pipeline.NeighbourhoodSearch):
+        def __init__(self, points, n_neighbors, openmp_threads=1):
+            started.append(len(points))
+            super().__init__(points, n_neighbors, openmp_threads)
+
+    monkeypatch.setattr(pipeline, "NeighbourhoodSearch", CountedSearch)
+    pair = raycast_scene(
+        n_points=REFERENCE_AHEAD_MIN_POINTS + 5_000,
+        change="box",
+        pose_error=(0.03, 0.4),
+        random_state=5,
+    )
+    reference, scan = PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan)
+    params = {
+        "reference_origin": pair.reference_origin.tolist(),
+        "scan_origin": pair.scan_origin.tolist(),
+    }
+    one = compare(reference, scan, params=params, threads=1)
+    assert started == []
+    two = compare(reference, scan, params=params, threads=2)
+    assert started == [len(pair.reference)]
+    assert searches_running() == []
+    assert one.changed and one.regions
+    assert two.score == one.score and two.registration == one.registration
+    for name in ("reference_label", "scan_label", "reference_region", "scan_region"):
+        np.testing.assert_array_equal(getattr(two, name), getattr(one, name))
+    np.testing.assert_array_equal(two.reference_distance, one.reference_distance)
+    assert two.localisation == one.localisation
+
+    # an alignment that fails stops the search: no thread outlives the comparison
+    far_away = PointCloud.from_array(pair.scan + np.array([500.0, 0.0, 0.0]))
+    with pytest.raises(InputError, match="does not overlap"):
+        compare(reference, far_away, threads=2)
+    assert len(started) == 2
+    assert searches_running() == []
+    # bad localisation parameters are reported by localisation, as without the search
+    with pytest.raises(InputError, match="n_neighbors"):
+        compare(reference, scan, params={"localisation": {"n_neighbors": 2}}, threads=2)
+    assert searches_running() == []
