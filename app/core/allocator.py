@@ -13,6 +13,12 @@ a fresh mapping whose pages fault (and are zeroed) on first touch, and the local
 detectors allocate thousands of 0.1-1 MB chunk temporaries.  On the 1M-point pair (gmm, 2
 threads, fresh processes, a busy machine) 128 KiB took 9.3-10.1 s and 1 MiB 8.4-8.5 s (glibc's
 default 7.8-8.1 s), with the same peak RSS (504-506 MB; default 539-594 MB).
+
+Fixing the mmap threshold also freezes glibc's trim threshold at 128 KiB: whenever more than
+that is free at the top of the heap it is handed back, and the next chunk temporary faults
+the same pages in again.  It is fixed at 32 MiB (at most that much freed heap stays
+resident): on the 1M-point pair minor page faults fell from 605-650k to 390-440k and system
+CPU time from 2.9-3.2 s to 2.1-2.3 s, peak RSS within +-8 MB (fresh processes, 3 rounds).
 """
 
 from __future__ import annotations
@@ -21,20 +27,23 @@ import ctypes
 import ctypes.util
 import sys
 
-__all__ = ["MMAP_THRESHOLD_BYTES", "release_freed_memory_promptly"]
+__all__ = ["MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES", "release_freed_memory_promptly"]
 
 MMAP_THRESHOLD_BYTES = 1024 * 1024
 """Fixed here instead of growing with each large free (glibc starts at 128 KiB)."""
-_M_MMAP_THRESHOLD = -3  # from <malloc.h>
+TRIM_THRESHOLD_BYTES = 32 * 1024 * 1024
+"""Free space kept at the top of the heap before glibc gives it back (default 128 KiB)."""
+_M_TRIM_THRESHOLD = -1  # from <malloc.h>
+_M_MMAP_THRESHOLD = -3
 
 
 def release_freed_memory_promptly() -> bool:
-    """Fix glibc's mmap threshold for this process (a no-op elsewhere).
+    """Fix glibc's mmap and trim thresholds for this process (a no-op elsewhere).
 
     Returns
     -------
     bool
-        True when the setting was applied (Linux with glibc).
+        True when the settings were applied (Linux with glibc).
     """
     if not sys.platform.startswith("linux"):
         return False
@@ -45,4 +54,5 @@ def release_freed_memory_promptly() -> bool:
         return False  # not glibc (musl has no mallopt)
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
     mallopt.restype = ctypes.c_int
-    return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES))
+    trimmed = mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES)
+    return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(trimmed)
