@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from sklearn.mixture import GaussianMixture
 
-from app.core.detectors import METHODS, VARIANTS, Detection, make_detector
+from app.core.detectors import METHODS, VARIANTS, Detection, base, make_detector
 from app.core.detectors import planes as planes_module
 from app.core.detectors.gmm import (
     MixtureStart,
@@ -349,3 +349,27 @@ def test_plane_vote_reusing_its_buffers_or_with_a_floor_gives_the_same_weights()
         ).max(axis=2)
         expected = ((gaps < 0.2) & (heights < 0.03)).sum(axis=1)
         assert np.abs(reused - expected).sum() <= 0.001 * count * count  # ties at a threshold
+
+
+def test_voxel_thinning_on_a_dense_grid_picks_what_the_sort_picks(monkeypatch):
+    """The dense per-cell path (grids up to a few cells a point) and the sort path choose the
+    same representatives and count the same voxels, ties between duplicates included."""
+    rng = np.random.default_rng(8)
+    points = rng.uniform(-3.0, 5.0, size=(40_000, 3)) * [1.0, 1.0, 0.2]
+    points[7::7] = points[3:-4:7]  # duplicated points: equal keys in a voxel
+    keys = base.point_keys(points, seed=3)
+    origin = points.min(axis=0) - 0.01
+    dense = {
+        size: (
+            base.voxel_representatives(points, size, origin, keys),
+            base._occupied_voxels(points, size),
+        )
+        for size in (0.05, 0.3, 2.0)
+    }
+    assert base._dense_cell_limit(len(points)) > (8.0 / 0.3) ** 2 * (1.6 / 0.3)  # dense used
+    monkeypatch.setattr(base, "_dense_cell_limit", lambda n_points: 0)
+    for size, (representatives, occupied) in dense.items():
+        np.testing.assert_array_equal(
+            base.voxel_representatives(points, size, origin, keys), representatives
+        )
+        assert base._occupied_voxels(points, size) == occupied

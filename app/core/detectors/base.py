@@ -228,10 +228,15 @@ def voxel_representatives(
     ndarray, shape (k,), int64
         Sorted indices into ``points``.
     """
-    cells = np.floor((points - origin) / voxel_size).astype(np.int64)
-    cells -= column_extreme(cells, np.minimum)
-    extent = column_extreme(cells, np.maximum) + 1
-    voxels = (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
+    voxels, n_cells = _voxel_ids(points, voxel_size, origin, shift_to_zero=True)
+    if n_cells <= _dense_cell_limit(points.shape[0]):
+        # per voxel the smallest key, by one unbuffered minimum into a dense array of cells
+        # (~10x faster than sorting a million voxel ids); same choice as the sort below
+        smallest = np.full(n_cells, np.iinfo(np.uint64).max, dtype=np.uint64)
+        np.minimum.at(smallest, voxels, keys)
+        holders = np.flatnonzero(keys == smallest[voxels])  # >= 1 per voxel, by index
+        _, first = np.unique(voxels[holders], return_index=True)  # ties: the lowest index
+        return np.sort(holders[first]).astype(np.int64)
     # per voxel, the point with the smallest key, ties to the lowest index (what a lexsort by
     # voxel then key would pick first), from one sort by voxel and two segment minima: ~3x
     # faster than the lexsort at 1M points
@@ -248,6 +253,35 @@ def voxel_representatives(
     return np.sort(np.minimum.reduceat(order[holders], holder_starts)).astype(np.int64)
 
 
+def _voxel_ids(
+    points: NDArray[np.float64], voxel_size: float, origin: NDArray[np.float64], shift_to_zero: bool
+) -> tuple[NDArray[np.int64], int]:
+    """Row-major id of each point's voxel (grid anchored at ``origin``) and the grid's size.
+
+    Returns
+    -------
+    voxels : ndarray, shape (n,), int64
+        In ``0 .. n_cells - 1``.
+    n_cells : int
+        Cells of the bounding grid (the ids' range; may exceed int64 for absurd extents, in
+        which case it is only compared, never allocated).
+    """
+    scaled = points - origin
+    scaled /= voxel_size
+    cells = np.floor(scaled, out=scaled).astype(np.int64)
+    del scaled
+    if shift_to_zero:
+        cells -= column_extreme(cells, np.minimum)
+    extent = column_extreme(cells, np.maximum) + 1
+    voxels = (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
+    return voxels, math.prod(int(size) for size in extent)
+
+
+def _dense_cell_limit(n_points: int) -> int:
+    """Largest grid worth a dense per-cell array (8 bytes a cell): a few times the points."""
+    return 4 * n_points + (1 << 20)
+
+
 def median_spacing(points: NDArray[np.float64], rng: np.random.Generator) -> float:
     """Median nearest-neighbour distance of ``points`` (n, 3), from up to 1000 query points."""
     queries = points[rng.choice(points.shape[0], min(1000, points.shape[0]), replace=False)]
@@ -260,10 +294,14 @@ def median_spacing(points: NDArray[np.float64], rng: np.random.Generator) -> flo
 
 
 def _occupied_voxels(points: NDArray[np.float64], voxel_size: float) -> int:
-    cells = np.floor((points - column_extreme(points, np.minimum)) / voxel_size).astype(np.int64)
-    extent = column_extreme(cells, np.maximum) + 1
-    keys = (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
-    return int(np.unique(keys).size)
+    voxels, n_cells = _voxel_ids(
+        points, voxel_size, column_extreme(points, np.minimum), shift_to_zero=False
+    )
+    if n_cells <= _dense_cell_limit(points.shape[0]):
+        occupied = np.zeros(n_cells, dtype=np.bool_)
+        occupied[voxels] = True  # ~10x faster than np.unique's sort at 1M points
+        return int(np.count_nonzero(occupied))
+    return int(np.unique(voxels).size)
 
 
 def auto_voxel_size(points: NDArray[np.float64], target_count: int) -> float:
@@ -283,7 +321,9 @@ def auto_voxel_size(points: NDArray[np.float64], target_count: int) -> float:
     float
         Voxel edge length.
     """
-    diagonal = float(np.linalg.norm(np.ptp(points, axis=0)))
+    diagonal = float(
+        np.linalg.norm(column_extreme(points, np.maximum) - column_extreme(points, np.minimum))
+    )
     size = diagonal / math.sqrt(target_count)
     count = _occupied_voxels(points, size)
     slope = -2.0
