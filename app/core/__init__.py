@@ -3,3 +3,7 @@
 Usable from a notebook; imports only numpy, scipy, scikit-learn, POT, small_gicp and the
 format libraries, never the web, database or settings layers (a test enforces this).
 """
+
+from app.core.threads import prefer_passive_openmp_waits
+
+prefer_passive_openmp_waits()
