@@ -44,7 +44,7 @@ with false alarms.  Instead (method, reasons and measured numbers in ``docs/loca
    unchanged, so the changed points are exactly the regions' points.
 
 Everything is vectorised numpy with pykdtree's k-NN; the reference and scan sides run on two
-threads when available: a 1M x 1M pair takes about 8 s on 2 cores (``docs/performance.md``).
+threads when available: a 1M x 1M pair takes 6.5-8 s on 2 cores (``docs/performance.md``).
 """
 
 from __future__ import annotations
