@@ -326,7 +326,11 @@ def _reference_neighbourhoods_ahead(
     if not np.isfinite(points).all():
         yield None
         return
-    search = NeighbourhoodSearch(points, n_neighbors, openmp_threads=1)
+    try:
+        search = NeighbourhoodSearch(points, n_neighbors, openmp_threads=1)
+    except RuntimeError:  # no thread to be had (e.g. under a job's address-space cap)
+        yield None
+        return
     try:
         yield search
     finally:

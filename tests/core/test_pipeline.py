@@ -198,6 +198,21 @@ def test_the_reference_search_run_during_alignment_changes_nothing_and_ends_with
         compare(reference, far_away, threads=2)
     assert len(started) == 2
     assert searches_running() == []
+    # no thread to be had for the search (as under a job's address-space cap): the reference
+    # is searched in line instead
+    start = threading.Thread.start
+
+    def refuse(thread):
+        if thread.name == "neighbourhood-search":
+            raise RuntimeError("can't start new thread")
+        start(thread)
+
+    with monkeypatch.context() as refusing:
+        refusing.setattr(threading.Thread, "start", refuse)
+        without_thread = compare(reference, scan, params=params, threads=2)
+    assert len(started) == 3
+    np.testing.assert_array_equal(without_thread.scan_label, one.scan_label)
+    assert without_thread.score == one.score
     # bad localisation parameters are reported by localisation, as without the search
     with pytest.raises(InputError, match="n_neighbors"):
         compare(reference, scan, params={"localisation": {"n_neighbors": 2}}, threads=2)
