@@ -40,6 +40,26 @@ MAX_CONVERSION_THREADS = 2
 """Most threads :func:`conversion_threads` suggests."""
 
 
+@dataclass(frozen=True)
+class FileRows:
+    """Where a memory-mapped (n, 3) coordinate view lies in its file, to read it with ``pread``.
+
+    Converting straight from a file's memory map pays a page-table walk and a first-touch
+    fault on every page; reading each block with ``os.preadv`` into a cache-sized buffer and
+    widening it there is faster (1M points, one thread: 4.2-5.5 ms against 6.2-7.8 ms).
+
+    Attributes
+    ----------
+    file_descriptor : int
+        An open descriptor of the file (positional reads: threads may share it).
+    offset : int
+        Byte offset of the first row's first coordinate.
+    """
+
+    file_descriptor: int
+    offset: int
+
+
 class _SourceIndex:
     """``PointCloud.source_index``: stored ``None`` (no row dropped) becomes an ``arange`` on first
     access, so loading a cloud without NaN rows does not write 8 bytes per point up front."""
@@ -108,7 +128,9 @@ def conversion_threads() -> int:
     return max(1, min(1 + idle_cpus, usable, MAX_CONVERSION_THREADS))
 
 
-def _float64_checked(array: NDArray, threads: int = 1) -> tuple[NDArray[np.float64], bool]:
+def _float64_checked(
+    array: NDArray, threads: int = 1, file_rows: FileRows | None = None
+) -> tuple[NDArray[np.float64], bool]:
     """Convert a numeric (n, 3) array of any layout to a new C-contiguous float64 array.
 
     Block by block, so that each block is checked for finiteness while it is in cache: the
@@ -130,6 +152,9 @@ def _float64_checked(array: NDArray, threads: int = 1) -> tuple[NDArray[np.float
     array : ndarray, shape (n, 3), any real or integer dtype, any strides and alignment
     threads : int
         Threads to use (the calling thread included).
+    file_rows : FileRows, optional
+        ``array`` is a view of a memory-mapped file lying there: blocks are read from the file
+        instead of through the map.
 
     Returns
     -------
@@ -140,7 +165,7 @@ def _float64_checked(array: NDArray, threads: int = 1) -> tuple[NDArray[np.float
     out = np.empty(array.shape, dtype=np.float64)
     n_threads = max(1, min(threads, len(array) // PARALLEL_MIN_POINTS))
     if n_threads == 1:
-        return out, _convert_blocks(array, out, itertools.count())
+        return out, _convert_blocks(array, out, itertools.count(), file_rows)
     # itertools.count's next() is atomic (one C call under the GIL): each block goes to
     # exactly one thread.
     block_numbers = itertools.count()
@@ -149,7 +174,7 @@ def _float64_checked(array: NDArray, threads: int = 1) -> tuple[NDArray[np.float
 
     def convert_blocks() -> None:
         try:
-            results.append(_convert_blocks(array, out, block_numbers))
+            results.append(_convert_blocks(array, out, block_numbers, file_rows))
         except BaseException as exc:  # re-raised in the calling thread
             failures.append(exc)
 
@@ -169,9 +194,46 @@ def _float64_checked(array: NDArray, threads: int = 1) -> tuple[NDArray[np.float
     return out, all(results)
 
 
-def _convert_blocks(array: NDArray, out: NDArray[np.float64], block_numbers: Iterator[int]) -> bool:
+class _BlockReader:
+    """Reads rows of a file-backed (n, 3) view into an aligned buffer with ``os.preadv``."""
+
+    def __init__(self, array: NDArray, file_rows: FileRows):
+        self.file_rows = file_rows
+        self.dtype = array.dtype
+        self.strides = array.strides  # (row stride, column step) in the file
+        row_stride, step = array.strides
+        if row_stride <= 0 or step <= 0:
+            raise ValueError("file rows must have positive strides")
+        self.row_bytes = 2 * step + array.dtype.itemsize  # x .. end of z within a row
+        # 8-byte aligned: any column offset keeps the dtype's alignment when the file's does
+        self.buffer = np.empty(
+            -(-(CHECK_BLOCK_POINTS * row_stride + self.row_bytes) // 8), dtype=np.uint64
+        )
+
+    def read(self, start: int, rows: int) -> NDArray:
+        """Rows ``start .. start + rows`` as an (rows, 3) view of the buffer."""
+        row_stride = self.strides[0]
+        size = (rows - 1) * row_stride + self.row_bytes
+        view = memoryview(self.buffer).cast("B")[:size]
+        got = os.preadv(
+            self.file_rows.file_descriptor, [view], self.file_rows.offset + start * row_stride
+        )
+        if got != size:
+            raise PointCloudError(
+                f"the file changed while it was read: {got} of {size} bytes at row {start}"
+            )
+        return np.ndarray((rows, 3), self.dtype, self.buffer, 0, self.strides)
+
+
+def _convert_blocks(
+    array: NDArray,
+    out: NDArray[np.float64],
+    block_numbers: Iterator[int],
+    file_rows: FileRows | None = None,
+) -> bool:
     """Widen the blocks of ``array`` (shape (n, 3)) that ``block_numbers`` hands out into
-    ``out`` (shape (n, 3), float64), until it hands out one past the end.
+    ``out`` (shape (n, 3), float64), until it hands out one past the end; with ``file_rows``
+    each block's bytes are read from the file into a buffer first (see :class:`FileRows`).
 
     Returns
     -------
@@ -180,6 +242,7 @@ def _convert_blocks(array: NDArray, out: NDArray[np.float64], block_numbers: Ite
     """
     check_input = array.dtype.kind == "f" and array.dtype.isnative
     scratch = None if array.flags.aligned else np.empty((CHECK_BLOCK_POINTS, 3), array.dtype)
+    reader = None if file_rows is None else _BlockReader(array, file_rows)
     all_finite = True
     # Signalling NaNs raise the "invalid" flag when widened: they are NaN rows like any other;
     # dot() may overflow (see _surely_finite). One errstate for all blocks (it costs ~5 us).
@@ -189,7 +252,9 @@ def _convert_blocks(array: NDArray, out: NDArray[np.float64], block_numbers: Ite
             if start >= len(array):
                 break
             block = array[start : start + CHECK_BLOCK_POINTS]
-            if scratch is not None:
+            if reader is not None:
+                block = reader.read(start, len(block))
+            if scratch is not None and not block.flags.aligned:
                 np.copyto(scratch[: len(block)], block)
                 block = scratch[: len(block)]
             target = out[start : start + CHECK_BLOCK_POINTS]
@@ -238,6 +303,7 @@ class PointCloud:
         sensor_origin: NDArray | None = None,
         min_points: int = MIN_POINTS,
         threads: int | None = None,
+        file_rows: FileRows | None = None,
     ) -> PointCloud:
         """Validate raw coordinates, drop non-finite rows and build a cloud.
 
@@ -255,6 +321,9 @@ class PointCloud:
             Threads that convert a large non-float64 ``points`` (e.g. a float32 view of a
             file) to float64; default :func:`conversion_threads`. The cloud does not depend
             on it.
+        file_rows : FileRows, optional
+            Where ``points``, a view of a memory-mapped file, lies in that file: it is then
+            read block by block from the file (faster than through the map; same cloud).
 
         Raises
         ------
@@ -274,7 +343,7 @@ class PointCloud:
             # one pass converts them to an owned float64 array and checks finiteness on the way.
             if threads is None:
                 threads = conversion_threads()
-            array, all_finite = _float64_checked(array, threads)
+            array, all_finite = _float64_checked(array, threads, file_rows)
         else:
             try:
                 array = array.astype(np.float64, copy=False)

@@ -12,7 +12,10 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import os
 import pickle
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import plyfile
@@ -22,7 +25,7 @@ from app.core import cloud as cloud_module
 from app.core.cloud import PointCloud
 from app.core.errors import PointCloudError
 from app.core.formats import pcd, ply, read_point_cloud
-from app.core.formats._common import open_source, xyz_from_columns, xyz_view
+from app.core.formats._common import file_rows_of, open_source, xyz_from_columns, xyz_view
 from app.core.threads import available_threads
 
 N_POINTS = 257  # not a multiple of the (patched) block size: the last block is partial
@@ -77,10 +80,16 @@ def _assert_same_cloud(fast: PointCloud, slow: PointCloud) -> None:
 
 
 def _fast_and_slow(monkeypatch, module, content: bytes, filename: str):
+    """The cloud read from bytes (fast path), and through the slow path; the same content read
+    from a file (its rows then come by ``pread``, see ``FileRows``) must equal the first."""
     fast = read_point_cloud(content, filename=filename)
     with monkeypatch.context() as patch:
         patch.setattr(module, "xyz_points", xyz_from_columns)
         slow = read_point_cloud(content, filename=filename)
+    with tempfile.TemporaryDirectory() as directory:
+        path = Path(directory) / filename
+        path.write_bytes(content)
+        _assert_same_cloud(read_point_cloud(path), fast)
     return fast, slow
 
 
@@ -409,11 +418,11 @@ def test_an_error_in_a_helper_thread_reaches_the_caller(monkeypatch):
     original = cloud_module._convert_blocks
     calls = []
 
-    def failing(array, out, block_numbers):
+    def failing(array, out, block_numbers, file_rows=None):
         calls.append(len(array))
         if len(calls) == 2:
             raise MemoryError("no room for this part")
-        return original(array, out, block_numbers)
+        return original(array, out, block_numbers, file_rows)
 
     monkeypatch.setattr(cloud_module, "_convert_blocks", failing)
     values = _values(n=200).astype(np.float32)
@@ -466,3 +475,35 @@ def test_available_threads_ignore_the_load(monkeypatch):
     monkeypatch.setenv("OMP_NUM_THREADS", "5")
     assert available_threads() == 5
     assert cloud_module.conversion_threads() == cloud_module.MAX_CONVERSION_THREADS
+
+
+def test_file_rows_are_read_with_pread_and_a_file_changed_meanwhile_is_an_error(
+    monkeypatch, tmp_path
+):
+    content, _ = _ply_content("properties around", "<")  # 17-byte records: unaligned rows
+    path = tmp_path / "cloud.ply"
+    path.write_bytes(content)
+    with open_source(path) as source:
+        raw = ply.read_ply(source, None)
+        rows = file_rows_of(raw.points, source)
+        assert rows is not None and rows.file_descriptor == source.file_descriptor
+        assert content[rows.offset : rows.offset + 4] == raw.points[:1, 0].tobytes()
+    with open_source(content) as source:  # bytes: no file to read from
+        assert file_rows_of(ply.read_ply(source, None).points, source) is None
+
+    reads = []
+    original_read = cloud_module._BlockReader.read
+
+    def counted(reader, start, rows):
+        reads.append(rows)
+        return original_read(reader, start, rows)
+
+    monkeypatch.setattr(cloud_module._BlockReader, "read", counted)
+    cloud = read_point_cloud(path)
+    assert sum(reads) == N_POINTS and len(cloud) == N_POINTS - 4
+
+    # the file shrank after it was mapped: say so instead of converting garbage
+    monkeypatch.setattr(cloud_module.os, "preadv", lambda fd, buffers, offset: 5)
+    with pytest.raises(PointCloudError, match="changed while it was read"):
+        read_point_cloud(path)
+    assert os.path.getsize(path) == len(content)

@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from app.core.cloud import PointCloud, conversion_threads
 from app.core.errors import PointCloudError, UnsupportedFormatError
 from app.core.formats import text as _text
-from app.core.formats._common import RawCloud, Source, SourceLike, open_source
+from app.core.formats._common import RawCloud, Source, SourceLike, file_rows_of, open_source
 from app.core.formats.las import is_compressed_point_format, read_las, write_las
 from app.core.formats.npy import read_npy, read_npz
 from app.core.formats.pcd import read_pcd
@@ -241,6 +241,7 @@ def read_point_cloud(
                 raw.attributes,
                 raw.sensor_origin,
                 threads=conversion_threads() if threads is None else threads,
+                file_rows=file_rows_of(raw.points, opened),
             )
         except PointCloudError as exc:
             raise type(exc)(f"{label}: {exc}") from exc

@@ -21,6 +21,7 @@ from typing import BinaryIO
 import numpy as np
 from numpy.typing import NDArray
 
+from app.core.cloud import FileRows
 from app.core.errors import PointCloudError
 
 SourceLike = str | os.PathLike | bytes | bytearray | memoryview | BinaryIO
@@ -38,11 +39,14 @@ class Source:
         The file, when the input was a path (libraries that want a file object open it).
     name : str or None
         A file name for messages and suffix-based detection.
+    file_descriptor : int or None
+        The open file behind a memory-mapped ``buffer`` (valid while the source is open).
     """
 
     buffer: bytes | memoryview | mmap.mmap
     path: Path | None = None
     name: str | None = None
+    file_descriptor: int | None = None
 
     @property
     def size(self) -> int:
@@ -116,7 +120,7 @@ def open_source(source: SourceLike, filename: str | None = None) -> Iterator[Sou
                 return
             mapped = mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ)
             try:
-                yield Source(mapped, path, filename or path.name)
+                yield Source(mapped, path, filename or path.name, handle.fileno())
             finally:
                 # An array view of the map may still be referenced (e.g. by a traceback);
                 # the map is then released when that view is garbage-collected.
@@ -294,6 +298,35 @@ def find_xyz_names(names: list[str] | tuple[str, ...], what: str) -> tuple[str, 
             )
         chosen.append(matches[0])
     return chosen[0], chosen[1], chosen[2]
+
+
+def file_rows_of(points: NDArray, source: Source) -> FileRows | None:
+    """Where ``points``, an (n, 3) view of ``source``'s memory map, lies in its file; else None.
+
+    :meth:`PointCloud.from_array` then reads it block by block with ``pread`` instead of
+    through the map (see :class:`~app.core.cloud.FileRows`).
+    """
+    if source.file_descriptor is None or not isinstance(source.buffer, mmap.mmap):
+        return None
+    if (
+        not isinstance(points, np.ndarray)
+        or points.ndim != 2
+        or points.shape[0] == 0
+        or points.shape[1] != 3
+        or points.dtype.kind not in "iuf"
+        or points.strides[0] <= 0
+        or points.strides[1] <= 0
+    ):
+        return None
+    mapped = np.frombuffer(source.buffer, dtype=np.uint8)
+    try:
+        start = points.__array_interface__["data"][0] - mapped.__array_interface__["data"][0]
+        row_stride, step = points.strides
+        end = start + (points.shape[0] - 1) * row_stride + 2 * step + points.dtype.itemsize
+        inside = 0 <= start and end <= mapped.size
+    finally:
+        del mapped  # the map can be closed again
+    return FileRows(source.file_descriptor, start) if inside else None
 
 
 def has_nonzero_bytes(buffer: bytes | memoryview | mmap.mmap, start: int) -> bool:
