@@ -80,6 +80,7 @@ __all__ = [
     "localise_changes",
     "nearest_neighbourhoods",
     "neighbourhood_size",
+    "start_neighbourhood_search",
 ]
 
 LABEL_UNCHANGED = 0
@@ -448,11 +449,6 @@ class Neighbourhoods:
     neighbor_index: NDArray[np.uint32]
     kth_distance: NDArray[np.float64]
 
-    @property
-    def n_neighbors(self) -> int:
-        """Neighbours per point besides the point itself (k)."""
-        return int(self.neighbor_index.shape[1]) - 1
-
 
 def neighbourhood_size(n_points: int, **params: Any) -> int:
     """The k that :func:`localise_changes` uses for a cloud of ``n_points`` with ``params``.
@@ -521,24 +517,22 @@ class NeighbourhoodSearch:
     """
 
     def __init__(self, points: NDArray[np.float64], n_neighbors: int, openmp_threads: int = 1):
-        self.n_points = int(points.shape[0])
-        self.n_neighbors = int(n_neighbors)
         self._cancelled = threading.Event()
         self._result: Neighbourhoods | None = None
         self._error: BaseException | None = None
         self._thread = threading.Thread(
             target=self._run,
-            args=(points, openmp_threads),
+            args=(points, int(n_neighbors), openmp_threads),
             name="neighbourhood-search",
             daemon=True,
         )
         self._thread.start()
 
-    def _run(self, points: NDArray[np.float64], openmp_threads: int) -> None:
+    def _run(self, points: NDArray[np.float64], n_neighbors: int, openmp_threads: int) -> None:
         try:
             # the limit applies to this thread's own OpenMP calls only
             with threadpool_limits(limits=openmp_threads, user_api="openmp"):
-                self._result = nearest_neighbourhoods(points, self.n_neighbors, self._cancelled)
+                self._result = nearest_neighbourhoods(points, n_neighbors, self._cancelled)
         except BaseException as error:  # handed to take()'s caller
             self._error = error
 
@@ -557,6 +551,21 @@ class NeighbourhoodSearch:
         self._cancelled.set()
         self._thread.join()
         self._result = None
+
+
+def start_neighbourhood_search(reference: NDArray, **params: Any) -> NeighbourhoodSearch | None:
+    """The :class:`NeighbourhoodSearch` that ``localise_changes(reference, ..., **params)`` can
+    take as ``reference_neighbourhoods``, already running on one OpenMP thread.
+
+    None when :func:`localise_changes` will reject ``reference`` or ``params`` (it then reports
+    them itself) or when no thread can be started (e.g. under an address-space cap).
+    """
+    try:
+        points = _as_points(reference, "reference")
+        n_neighbors = neighbourhood_size(len(points), **params)
+        return NeighbourhoodSearch(points, n_neighbors, openmp_threads=1)
+    except (InputError, PointCloudError, RuntimeError):
+        return None
 
 
 def _local_geometry(
@@ -1270,8 +1279,9 @@ def localise_changes(
         not depend on it.
     reference_neighbourhoods : Neighbourhoods or NeighbourhoodSearch, optional
         :func:`nearest_neighbourhoods` of ``reference`` with :func:`neighbourhood_size`
-        neighbours, computed ahead (the pipeline starts a :class:`NeighbourhoodSearch` while
-        the scan is aligned).  The result is the same as without it.
+        neighbours, computed ahead (the pipeline starts one with
+        :func:`start_neighbourhood_search` while the scan is aligned).  The result is the same
+        as without it.
     **params
         See :data:`DEFAULT_PARAMETERS`.
 

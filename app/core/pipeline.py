@@ -39,7 +39,7 @@ from app.core.jsonable import json_safe
 from app.core.localise import (
     NeighbourhoodSearch,
     localise_changes,
-    neighbourhood_size,
+    start_neighbourhood_search,
 )
 from app.core.registration import (
     apply_transform,
@@ -308,33 +308,18 @@ def _reference_neighbourhoods_ahead(
     localisation_params: Mapping[str, Any],
     enabled: bool,
 ) -> Iterator[NeighbourhoodSearch | None]:
-    """The reference's neighbourhood search running on a second thread, or None.
-
-    None when not ``enabled``, for small clouds, or for inputs that localisation will reject
-    (it then reports them itself).  On leaving, a search still running is stopped at its next
-    chunk and waited for, so no thread outlives the comparison.
-    """
-    if not enabled or len(reference_points) < REFERENCE_AHEAD_MIN_POINTS:
-        yield None
-        return
-    try:
-        n_neighbors = neighbourhood_size(len(reference_points), **localisation_params)
-    except (InputError, TypeError):
-        yield None
-        return
-    points = np.ascontiguousarray(reference_points, dtype=np.float64)
-    if not np.isfinite(points).all():
-        yield None
-        return
-    try:
-        search = NeighbourhoodSearch(points, n_neighbors, openmp_threads=1)
-    except RuntimeError:  # no thread to be had (e.g. under a job's address-space cap)
-        yield None
-        return
+    """The reference's neighbourhood search running on a second thread, or None (not
+    ``enabled``, a small cloud, or see :func:`start_neighbourhood_search`).  On leaving, a
+    search still running is stopped at its next chunk and waited for, so no thread outlives
+    the comparison."""
+    search = None
+    if enabled and len(reference_points) >= REFERENCE_AHEAD_MIN_POINTS:
+        search = start_neighbourhood_search(reference_points, **localisation_params)
     try:
         yield search
     finally:
-        search.cancel()
+        if search is not None:
+            search.cancel()
 
 
 def compare(

@@ -7,7 +7,7 @@ import threading
 import numpy as np
 import pytest
 
-from app.core import pipeline
+from app.core import localise
 from app.core.cloud import PointCloud
 from app.core.detectors import METHODS, VARIANTS
 from app.core.errors import InputError
@@ -163,12 +163,12 @@ def test_the_reference_search_run_during_alignment_changes_nothing_and_ends_with
     runs while the scan is aligned: the result is exactly the one-thread result."""
     started: list[int] = []
 
-    class CountedSearch(pipeline.NeighbourhoodSearch):
+    class CountedSearch(localise.NeighbourhoodSearch):
         def __init__(self, points, n_neighbors, openmp_threads=1):
             started.append(len(points))
             super().__init__(points, n_neighbors, openmp_threads)
 
-    monkeypatch.setattr(pipeline, "NeighbourhoodSearch", CountedSearch)
+    monkeypatch.setattr(localise, "NeighbourhoodSearch", CountedSearch)
     pair = raycast_scene(
         n_points=REFERENCE_AHEAD_MIN_POINTS + 5_000,
         change="box",
