@@ -228,7 +228,7 @@ def voxel_representatives(
     ndarray, shape (k,), int64
         Sorted indices into ``points``.
     """
-    voxels, n_cells = _voxel_ids(points, voxel_size, origin, shift_to_zero=True)
+    voxels, n_cells = _voxel_ids(points, voxel_size, origin)
     if n_cells <= _dense_cell_limit(points.shape[0]):
         # per voxel the smallest key, by one unbuffered minimum into a dense array of cells
         # (~10x faster than sorting a million voxel ids); same choice as the sort below
@@ -254,9 +254,10 @@ def voxel_representatives(
 
 
 def _voxel_ids(
-    points: NDArray[np.float64], voxel_size: float, origin: NDArray[np.float64], shift_to_zero: bool
+    points: NDArray[np.float64], voxel_size: float, origin: NDArray[np.float64]
 ) -> tuple[NDArray[np.int64], int]:
-    """Row-major id of each point's voxel (grid anchored at ``origin``) and the grid's size.
+    """Row-major id of each point's voxel (grid anchored at ``origin``) in the grid that
+    bounds the occupied cells, and that grid's size.
 
     Returns
     -------
@@ -270,8 +271,7 @@ def _voxel_ids(
     scaled /= voxel_size
     cells = np.floor(scaled, out=scaled).astype(np.int64)
     del scaled
-    if shift_to_zero:
-        cells -= column_extreme(cells, np.minimum)
+    cells -= column_extreme(cells, np.minimum)
     extent = column_extreme(cells, np.maximum) + 1
     voxels = (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
     return voxels, math.prod(int(size) for size in extent)
@@ -294,9 +294,7 @@ def median_spacing(points: NDArray[np.float64], rng: np.random.Generator) -> flo
 
 
 def _occupied_voxels(points: NDArray[np.float64], voxel_size: float) -> int:
-    voxels, n_cells = _voxel_ids(
-        points, voxel_size, column_extreme(points, np.minimum), shift_to_zero=False
-    )
+    voxels, n_cells = _voxel_ids(points, voxel_size, column_extreme(points, np.minimum))
     if n_cells <= _dense_cell_limit(points.shape[0]):
         occupied = np.zeros(n_cells, dtype=np.bool_)
         occupied[voxels] = True  # ~10x faster than np.unique's sort at 1M points
