@@ -181,23 +181,23 @@ def parse_sensor_origin(text: str | None) -> list[float] | None:
 
 
 def parse_upload(path: Path, filename: str | None, head: bytes, max_points: int) -> ParsedScan:
-    """Detect the format and read the cloud with the core (raises the core's errors)."""
-    from app.core.formats import detect_format, read_point_cloud
+    """Detect the format and check the cloud with the core, without loading it (raises the
+    core's errors)."""
+    from app.core.formats import detect_format, summarise_point_cloud
 
     with PARSE_SLOTS:
         file_format = detect_format(filename, head)
-        cloud = read_point_cloud(
+        summary = summarise_point_cloud(
             path, file_format, filename=filename or "upload", max_points=max_points
         )
-        low, high = cloud.bounds()
         return ParsedScan(
             format=file_format,
-            n_points=len(cloud),
-            n_dropped=cloud.n_dropped,
-            bbox_min=[float(value) for value in low],
-            bbox_max=[float(value) for value in high],
+            n_points=summary.n_points,
+            n_dropped=summary.n_dropped,
+            bbox_min=[float(value) for value in summary.low],
+            bbox_max=[float(value) for value in summary.high],
             sensor_origin=(
-                None if cloud.sensor_origin is None else [float(v) for v in cloud.sensor_origin]
+                None if summary.sensor_origin is None else [float(v) for v in summary.sensor_origin]
             ),
         )
 

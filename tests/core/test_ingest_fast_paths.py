@@ -24,9 +24,10 @@ import pytest
 from app.core import cloud as cloud_module
 from app.core.cloud import PointCloud
 from app.core.errors import PointCloudError
-from app.core.formats import pcd, ply, read_point_cloud
+from app.core.formats import pcd, ply, read_point_cloud, summarise_point_cloud
 from app.core.formats._common import file_rows_of, open_source, xyz_from_columns, xyz_view
 from app.core.threads import available_threads
+from tests.core.test_cloud_summary import assert_summary_of
 
 N_POINTS = 257  # not a multiple of the (patched) block size: the last block is partial
 
@@ -36,6 +37,8 @@ def _small_blocks(monkeypatch, request):
     """Many blocks, including a partial last one, even for small test clouds; converted by
     one thread, or shared by three (from 192 rows on)."""
     monkeypatch.setattr(cloud_module, "CHECK_BLOCK_POINTS", 16)
+    monkeypatch.setattr(cloud_module, "SUMMARY_BLOCK_POINTS", 16)
+    monkeypatch.setattr(cloud_module, "SUMMARY_ROWS_PER_LINE", 4)
     monkeypatch.setattr(cloud_module, "PARALLEL_MIN_POINTS", 64)
     monkeypatch.setattr(cloud_module, "MAX_CONVERSION_THREADS", 3)
     monkeypatch.setattr(cloud_module, "conversion_threads", lambda: request.param)
@@ -81,15 +84,18 @@ def _assert_same_cloud(fast: PointCloud, slow: PointCloud) -> None:
 
 def _fast_and_slow(monkeypatch, module, content: bytes, filename: str):
     """The cloud read from bytes (fast path), and through the slow path; the same content read
-    from a file (its rows then come by ``pread``, see ``FileRows``) must equal the first."""
+    from a file (its rows then come by ``pread``, see ``FileRows``) must equal the first, and
+    the summaries of both (what uploads are checked with) must describe the slow one."""
     fast = read_point_cloud(content, filename=filename)
     with monkeypatch.context() as patch:
         patch.setattr(module, "xyz_points", xyz_from_columns)
         slow = read_point_cloud(content, filename=filename)
+    assert_summary_of(summarise_point_cloud(content, filename=filename), slow)
     with tempfile.TemporaryDirectory() as directory:
         path = Path(directory) / filename
         path.write_bytes(content)
         _assert_same_cloud(read_point_cloud(path), fast)
+        assert_summary_of(summarise_point_cloud(path), slow)
     return fast, slow
 
 

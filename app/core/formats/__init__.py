@@ -24,11 +24,12 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Mapping
 from pathlib import PurePath
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.cloud import PointCloud, conversion_threads
+from app.core.cloud import CloudSummary, PointCloud, conversion_threads, summarise_array
 from app.core.errors import PointCloudError, UnsupportedFormatError
 from app.core.formats import text as _text
 from app.core.formats._common import RawCloud, Source, SourceLike, file_rows_of, open_source
@@ -47,6 +48,8 @@ WRITABLE_FORMATS: tuple[str, ...] = ("ply", "las", "laz")
 TEXT_FORMATS: tuple[str, ...] = ("xyz", "csv", "txt")
 SNIFF_BYTES = 4096
 """How much of the content :func:`read_point_cloud` shows to :func:`detect_format`."""
+
+Decoded = TypeVar("Decoded")
 
 _READERS: dict[str, Callable[[Source, int | None], RawCloud]] = {
     "ply": read_ply,
@@ -221,6 +224,77 @@ def read_point_cloud(
     UnsupportedFormatError
         The format is unknown or cannot be detected.
     """
+
+    def build(raw: RawCloud, opened: Source) -> PointCloud:
+        return PointCloud.from_array(
+            raw.points,
+            raw.attributes,
+            raw.sensor_origin,
+            threads=conversion_threads() if threads is None else threads,
+            file_rows=file_rows_of(raw.points, opened),
+        )
+
+    return _decode(source, format, filename, max_points, threads, build)
+
+
+def summarise_point_cloud(
+    source: SourceLike,
+    format: str | None = None,
+    *,
+    filename: str | None = None,
+    max_points: int | None = 200_000_000,
+    threads: int | None = None,
+) -> CloudSummary:
+    """Check a point cloud as :func:`read_point_cloud` does and summarise it, without loading it.
+
+    For accepting uploads: the same detection, the same checks and the same errors, and the
+    counts, bounds and sensor origin of the cloud :func:`read_point_cloud` would return, but
+    the coordinates are visited a cache-sized block at a time in the file's own type
+    (:func:`~app.core.cloud.summarise_array`), so no float64 copy of the coordinates is
+    made: for a binary PLY/PCD the coordinates cost one block of memory whatever the cloud's
+    size (extra fields are still copied out, as for reading). Other formats are decoded as for
+    reading (LAZ must be decompressed, text parsed) and then summarised.
+
+    Parameters
+    ----------
+    source, format, filename, max_points, threads
+        As for :func:`read_point_cloud` (``threads`` share the blocks of a binary PLY/PCD,
+        or decompress a LAZ).
+
+    Returns
+    -------
+    CloudSummary
+        ``n_points``, ``n_dropped``, ``low``/``high`` bounds and ``sensor_origin`` equal to
+        those of the cloud :func:`read_point_cloud` returns.
+
+    Raises
+    ------
+    PointCloudError, UnsupportedFormatError
+        As :func:`read_point_cloud`.
+    """
+
+    def build(raw: RawCloud, opened: Source) -> CloudSummary:
+        return summarise_array(
+            raw.points,
+            raw.attributes,
+            raw.sensor_origin,
+            file_rows=file_rows_of(raw.points, opened),
+            threads=threads,
+        )
+
+    return _decode(source, format, filename, max_points, threads, build)
+
+
+def _decode(
+    source: SourceLike,
+    format: str | None,
+    filename: str | None,
+    max_points: int | None,
+    threads: int | None,
+    build: Callable[[RawCloud, Source], Decoded],
+) -> Decoded:
+    """Open ``source``, choose its format, decode it and hand the raw cloud to ``build``;
+    every error becomes a :class:`PointCloudError` whose message starts with the file name."""
     with open_source(source, filename) as opened:
         label = opened.name or "input"
         chosen = "unknown"
@@ -236,13 +310,7 @@ def read_point_cloud(
                 raw = read_las(opened, max_points, threads=laz_threads)
             else:
                 raw = reader(opened, max_points)
-            return PointCloud.from_array(
-                raw.points,
-                raw.attributes,
-                raw.sensor_origin,
-                threads=conversion_threads() if threads is None else threads,
-                file_rows=file_rows_of(raw.points, opened),
-            )
+            return build(raw, opened)
         except PointCloudError as exc:
             raise type(exc)(f"{label}: {exc}") from exc
         except MemoryError as exc:
@@ -327,5 +395,6 @@ __all__ = [
     "detect_format",
     "read_point_cloud",
     "sniff_format",
+    "summarise_point_cloud",
     "write_point_cloud",
 ]
