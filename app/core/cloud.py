@@ -396,8 +396,8 @@ def _summarise_blocks(
     with a non-finite value, and a block's last partial line, are checked row by row.
     """
     rows = SUMMARY_ROWS_PER_LINE
-    line_low: NDArray | None = None  # running extremes of whole lines, (rows * 3,)
-    line_high: NDArray | None = None
+    line_lows: list[NDArray] = []  # extremes of each block's whole lines, each (rows * 3,)
+    line_highs: list[NDArray] = []
     low = np.full(3, np.inf)
     high = np.full(3, -np.inf)
     n_finite = 0
@@ -411,11 +411,8 @@ def _summarise_blocks(
                 block_low = np.minimum.reduce(lines, axis=0)
                 block_high = np.maximum.reduce(lines, axis=0)
                 if not check or math.isfinite(np.dot(block_low, block_high)):
-                    if line_low is None or line_high is None:
-                        line_low, line_high = block_low, block_high
-                    else:
-                        np.minimum(line_low, block_low, out=line_low)
-                        np.maximum(line_high, block_high, out=line_high)
+                    line_lows.append(block_low)
+                    line_highs.append(block_high)
                     n_finite += n_whole
                     block = block[n_whole:]
             if len(block) and check:
@@ -424,9 +421,10 @@ def _summarise_blocks(
                 n_finite += len(block)
                 np.minimum(low, column_extreme(block, np.minimum), out=low)
                 np.maximum(high, column_extreme(block, np.maximum), out=high)
-    if line_low is not None and line_high is not None:
-        np.minimum(low, np.minimum.reduce(line_low.reshape(rows, 3), axis=0), out=low)
-        np.maximum(high, np.maximum.reduce(line_high.reshape(rows, 3), axis=0), out=high)
+    for lines, ufunc, bound in ((line_lows, np.minimum, low), (line_highs, np.maximum, high)):
+        if lines:  # (blocks, rows * 3) -> (rows * 3,) -> (rows, 3) -> (3,)
+            line = ufunc.reduce(np.asarray(lines), axis=0)
+            ufunc(bound, column_extreme(line.reshape(rows, 3), ufunc), out=bound)
     return n_finite, low, high
 
 
@@ -479,9 +477,7 @@ def _blocks(
     one maybe fewer.
     """
     size = CHECK_BLOCK_POINTS if block_points is None else block_points
-    scratch = None
-    if contiguous or not array.flags.aligned:
-        scratch = np.empty((size, 3), array.dtype.newbyteorder("="))
+    scratch = None  # allocated on first use: most files need none
     reader = None if file_rows is None else _BlockReader(array, file_rows, size)
     for number in block_numbers:
         start = number * size
@@ -490,9 +486,9 @@ def _blocks(
         block = array[start : start + size]
         if reader is not None:
             block = reader.read(start, len(block))
-        if scratch is not None and not (
-            block.flags.aligned and (block.flags.c_contiguous or not contiguous)
-        ):
+        if not block.flags.aligned or (contiguous and not block.flags.c_contiguous):
+            if scratch is None:
+                scratch = np.empty((size, 3), array.dtype.newbyteorder("="))
             np.copyto(scratch[: len(block)], block)
             block = scratch[: len(block)]
         yield start, block
