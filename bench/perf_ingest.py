@@ -1,4 +1,4 @@
-"""Ingest speed of ``bench/perf.py``: ``read_point_cloud`` against ``numpy.fromfile``.
+"""Ingest speed of ``bench/perf.py``: upload check and float64 load against ``numpy.fromfile``.
 
 The same ray-cast cloud is written as binary PLY, binary PCD and LAZ (millimetre scale); each
 file is read once to warm the page cache, then ``read_point_cloud`` and ``numpy.fromfile`` of the
@@ -6,8 +6,12 @@ file's bytes (the floor: no parsing) are timed alternately, ``repeats`` times ea
 keeps both under the same machine load). The share of the floor's speed uses the best times
 (the least disturbed); the median times and their share are reported too.
 
-The floor writes the file's bytes once; ``read_point_cloud`` must also widen float32
-coordinates to float64, i.e. write twice as many bytes (24 MB for 1M points) as the floor does.
+Two readers are timed. ``summarise_point_cloud`` is what the service runs on every upload
+before accepting it (the same parsing and checks as a read, the point count, the dropped
+non-finite rows and the bounds, a block at a time in the file's float32, no float64 copy):
+the ``*_upload_check`` figures. ``read_point_cloud`` loads the cloud the core computes on (a
+job's load stage): it must also widen float32 coordinates to float64, i.e. write twice as many
+bytes (24 MB for 1M points) as the floor does, into fresh pages the kernel first zeroes.
 
 ``read_point_cloud`` runs with its default thread budget (``threads``: for the PLY/PCD
 widening two while the 1-minute load average leaves a core idle, else one; for LAZ every usable
@@ -31,7 +35,7 @@ import pypcd4
 from numpy.typing import NDArray
 
 from app.core.cloud import conversion_threads
-from app.core.formats import read_point_cloud
+from app.core.formats import read_point_cloud, summarise_point_cloud
 from app.core.synthetic import raycast_scene
 from app.core.threads import available_threads
 from bench.perf_workers import SCENE_SEED, write_binary_ply
@@ -79,7 +83,8 @@ def rotate_seconds(actions: list[Callable[[], object]], repeats: int) -> list[li
 def measure_ingest(work_dir: Path, n_points: int, repeats: int = 3) -> dict[str, dict[str, Any]]:
     """Per format: file size, read and fromfile seconds (best and median), share of fromfile
     speed (best and median), MB/s and points/s (best); the same read figures with one thread
-    (``*_one_thread``), the default thread count and the 1-minute load average."""
+    (``*_one_thread``) and for the upload check (``*_upload_check``), the default thread count
+    and the 1-minute load average."""
     points = raycast_scene(n_points=n_points, change="none", random_state=SCENE_SEED).reference
     ingest_dir = work_dir / "ingest"
     ingest_dir.mkdir(parents=True, exist_ok=True)
@@ -96,16 +101,19 @@ def measure_ingest(work_dir: Path, n_points: int, repeats: int = 3) -> dict[str,
         threads = available_threads() if name == "laz" else conversion_threads()
         # Each read follows a fromfile (as in the two-way rotation before the one-thread
         # read was added): a read right after another finds its output memory hot in cache.
-        read_times, fromfile_times, one_thread_times, more_fromfile_times = rotate_seconds(
+        timings = rotate_seconds(
             [
                 lambda path=path: read_point_cloud(path),
                 lambda path=path: np.fromfile(path, dtype=np.uint8),
                 lambda path=path: read_point_cloud(path, threads=1),
                 lambda path=path: np.fromfile(path, dtype=np.uint8),
+                lambda path=path: summarise_point_cloud(path),
+                lambda path=path: np.fromfile(path, dtype=np.uint8),
             ],
             repeats,
         )
-        fromfile_times += more_fromfile_times
+        read_times, one_thread_times, check_times = timings[0], timings[2], timings[4]
+        fromfile_times = timings[1] + timings[3] + timings[5]
         megabytes = path.stat().st_size / 1e6
         results[name] = {
             "megabytes": megabytes,
@@ -115,6 +123,7 @@ def measure_ingest(work_dir: Path, n_points: int, repeats: int = 3) -> dict[str,
             **_read_figures(
                 one_thread_times, fromfile_times, megabytes, len(points), "_one_thread"
             ),
+            **_read_figures(check_times, fromfile_times, megabytes, len(points), "_upload_check"),
         }
     return results
 
