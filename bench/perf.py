@@ -364,7 +364,7 @@ def targets(sizes: list[dict[str, Any]], ingest: dict[str, Any], service: dict[s
             rows.append(
                 (
                     f"binary {name.upper()} ingest >= 50 % of numpy.fromfile: the upload "
-                    "check (parse, count, NaN rows, bounds; 1 thread)",
+                    f"check (parse, count, NaN rows, bounds; {row.get('threads', 1)} thread(s))",
                     f"{100 * check:.1f} % (median {100 * check_median:.1f} %)",
                     _verdict(check >= 0.5),
                 )
