@@ -12,7 +12,6 @@ import contextlib
 import json
 import os
 import shutil
-import sqlite3
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -191,40 +190,31 @@ class ReviewService:
 
     def create_token(self, org: str, role: str = "writer") -> str:
         """A new token from ``scandiff token create``."""
+        return self._token_command("create", "--org", org, "--role", role).splitlines()[-1]
+
+    def revoke_token(self, token: str) -> None:
+        """Revoke a token with ``scandiff token revoke``, the secret given on stdin."""
+        self._token_command("revoke", "--token-secret-stdin", stdin=token + "\n")
+
+    def _token_command(self, *arguments: str, stdin: str | None = None) -> str:
+        """Run ``scandiff token ...`` on this server's data directory; its standard output."""
         import subprocess
         import sys
 
         completed = subprocess.run(
             [
                 sys.executable,
-                "-m",
-                "app",
-                "token",
-                "create",
-                "--org",
-                org,
-                "--role",
-                role,
-                "--data-dir",
-                str(self.process.data_dir),
+                *("-m", "app", "token", *arguments),
+                *("--data-dir", str(self.process.data_dir)),
             ],
             cwd=PROJECT_ROOT,
+            input=stdin,
             capture_output=True,
             text=True,
             check=True,
             timeout=60,
         )
-        return completed.stdout.strip().splitlines()[-1]
-
-    def revoke_token(self, token: str) -> None:
-        """Mark a token revoked in the database (there is no revoke command yet)."""
-        from app.services.auth import hash_token
-
-        with sqlite3.connect(self.process.data_dir / "scandiff.sqlite3", timeout=30) as db:
-            db.execute(
-                "UPDATE api_token SET revoked_at = CURRENT_TIMESTAMP WHERE token_hash = ?",
-                (hash_token(token),),
-            )
+        return completed.stdout.strip()
 
     def finished_job(self) -> dict[str, Any]:
         """A succeeded comparison: the one the mouse test made, else one made over the API."""
