@@ -1,7 +1,8 @@
 """Ingest speed of ``bench/perf.py``: upload check and float64 load against ``numpy.fromfile``.
 
 The same ray-cast cloud is written as binary PLY, binary PCD and LAZ (millimetre scale); each
-file is read once to warm the page cache, then ``read_point_cloud`` and ``numpy.fromfile`` of the
+file is flushed to disk (no writeback competes with the timed reads) and read once to warm the
+page cache, then ``read_point_cloud`` and ``numpy.fromfile`` of the
 file's bytes (the floor: no parsing) are timed alternately, ``repeats`` times each (alternating
 keeps both under the same machine load). The share of the floor's speed uses the best times
 (the least disturbed); the median times and their share are reported too.
@@ -23,6 +24,7 @@ format's timings start.
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from collections.abc import Callable
@@ -93,6 +95,7 @@ def measure_ingest(work_dir: Path, n_points: int, repeats: int = 3) -> dict[str,
     for name, writer in writers.items():
         path = ingest_dir / f"cloud.{name}"
         writer(path, points)
+        _flush_to_disk(path)  # no writeback of the new file while the reads are timed
         cloud = read_point_cloud(path)  # warm the page cache and check the content
         if len(cloud) != len(points):
             raise RuntimeError(f"{name}: read {len(cloud)} of {len(points)} points")
@@ -128,6 +131,15 @@ def measure_ingest(work_dir: Path, n_points: int, repeats: int = 3) -> dict[str,
     return results
 
 
+def _flush_to_disk(path: Path) -> None:
+    """Write the file's dirty pages out now (they stay in the page cache)."""
+    descriptor = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
+
+
 def _read_figures(
     read_times: list[float],
     fromfile_times: list[float],
@@ -151,3 +163,90 @@ def _read_figures(
     if suffix:  # the floor's own figures are reported once
         del figures["fromfile_seconds"], figures["fromfile_seconds_median"]
     return {f"{key}{suffix}": value for key, value in figures.items()}
+
+
+def memory_figures(path: Path) -> dict[str, dict[str, float]]:
+    """Seconds and peak-RSS growth of one ``summarise_point_cloud`` and one ``read_point_cloud``
+    (1 thread) of ``path``, each in a fresh process (Linux: the peak is reset through
+    ``/proc/self/clear_refs`` after the imports, then compared with the resident set)."""
+    import subprocess
+    import sys
+
+    script = (
+        "import json, sys, time\n"
+        "from app.core import formats\n"
+        "def status_mb(field):\n"
+        "    for line in open('/proc/self/status'):\n"
+        "        if line.startswith(field + ':'):\n"
+        "            return int(line.split()[1]) / 1024\n"
+        "reader = getattr(formats, sys.argv[1])\n"
+        "reader(sys.argv[3], threads=1)  # the readers' own imports, on a small file\n"
+        "with open('/proc/self/clear_refs', 'w') as refs:\n"
+        "    refs.write('5')  # VmHWM := VmRSS: the peak from here on\n"
+        "before = status_mb('VmRSS')\n"
+        "started = time.perf_counter()\n"
+        "reader(sys.argv[2], threads=1)\n"
+        "seconds = time.perf_counter() - started\n"
+        "growth = status_mb('VmHWM') - before\n"
+        "print(json.dumps({'seconds': seconds, 'peak_rss_growth_mb': growth}))\n"
+    )
+    small = path.with_name(f"small-{path.name}")
+    write_binary_ply(small, np.random.default_rng(SCENE_SEED).normal(size=(100, 3)))
+    figures = {}
+    for reader in ("summarise_point_cloud", "read_point_cloud"):
+        completed = subprocess.run(
+            [sys.executable, "-c", script, reader, str(path), str(small)],
+            capture_output=True,
+            text=True,
+            check=True,
+            cwd=Path(__file__).resolve().parent.parent,
+        )
+        figures[reader] = json.loads(completed.stdout)
+    return figures
+
+
+def main() -> None:
+    """``python -m bench.perf_ingest``: the ingest figures alone, in a fresh quiet process."""
+    import argparse
+    import tempfile
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument("--points", type=int, default=1_000_000)
+    parser.add_argument("--repeats", type=int, default=40, help="rounds of the rotation")
+    parser.add_argument(
+        "--memory",
+        action="store_true",
+        help="instead: time and peak-RSS growth of one upload check and one load of a binary "
+        "PLY of --points random points, each in a fresh process",
+    )
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as directory:
+        if args.memory:
+            path = Path(directory) / "cloud.ply"
+            points = np.random.default_rng(SCENE_SEED).normal(size=(args.points, 3)) * 50.0
+            write_binary_ply(path, points)
+            del points
+            _flush_to_disk(path)
+            for reader, row in memory_figures(path).items():
+                print(
+                    f"{reader}: {1e3 * row['seconds']:.1f} ms, "
+                    f"peak RSS +{row['peak_rss_growth_mb']:.0f} MB"
+                )
+            return
+        results = measure_ingest(Path(directory), args.points, repeats=args.repeats)
+    for name, row in results.items():
+        print(
+            f"{name}: fromfile {1e3 * row['fromfile_seconds']:.3f} ms; "
+            f"upload check {1e3 * row['read_seconds_upload_check']:.3f} ms "
+            f"({100 * row['share_of_fromfile_upload_check']:.1f} %, median "
+            f"{100 * row['share_of_fromfile_median_upload_check']:.1f} %); "
+            f"float64 load with {row['threads']} thread(s) {1e3 * row['read_seconds']:.3f} ms "
+            f"({100 * row['share_of_fromfile']:.1f} %), with 1 "
+            f"{1e3 * row['read_seconds_one_thread']:.3f} ms "
+            f"({100 * row['share_of_fromfile_one_thread']:.1f} %); "
+            f"load average {row['load_average']:.1f}"
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -396,8 +396,8 @@ def _summarise_blocks(
     with a non-finite value, and a block's last partial line, are checked row by row.
     """
     rows = SUMMARY_ROWS_PER_LINE
-    line_lows: list[NDArray] = []  # extremes of each block's whole lines, each (rows * 3,)
-    line_highs: list[NDArray] = []
+    line_low: NDArray | None = None  # running extremes of the blocks' lines, (rows * 3,)
+    line_high: NDArray | None = None
     low = np.full(3, np.inf)
     high = np.full(3, -np.inf)
     n_finite = 0
@@ -411,8 +411,11 @@ def _summarise_blocks(
                 block_low = np.minimum.reduce(lines, axis=0)
                 block_high = np.maximum.reduce(lines, axis=0)
                 if not check or math.isfinite(np.dot(block_low, block_high)):
-                    line_lows.append(block_low)
-                    line_highs.append(block_high)
+                    if line_low is None or line_high is None:
+                        line_low, line_high = block_low, block_high
+                    else:
+                        np.minimum(line_low, block_low, out=line_low)
+                        np.maximum(line_high, block_high, out=line_high)
                     n_finite += n_whole
                     block = block[n_whole:]
             if len(block) and check:
@@ -421,10 +424,9 @@ def _summarise_blocks(
                 n_finite += len(block)
                 np.minimum(low, column_extreme(block, np.minimum), out=low)
                 np.maximum(high, column_extreme(block, np.maximum), out=high)
-    for lines, ufunc, bound in ((line_lows, np.minimum, low), (line_highs, np.maximum, high)):
-        if lines:  # (blocks, rows * 3) -> (rows * 3,) -> (rows, 3) -> (3,)
-            line = ufunc.reduce(np.asarray(lines), axis=0)
-            ufunc(bound, column_extreme(line.reshape(rows, 3), ufunc), out=bound)
+    if line_low is not None and line_high is not None:  # (rows * 3,) -> (rows, 3) -> (3,)
+        np.minimum(low, column_extreme(line_low.reshape(rows, 3), np.minimum), out=low)
+        np.maximum(high, column_extreme(line_high.reshape(rows, 3), np.maximum), out=high)
     return n_finite, low, high
 
 
