@@ -133,11 +133,8 @@ def measure_ingest(work_dir: Path, n_points: int, repeats: int = 3) -> dict[str,
 
 def _flush_to_disk(path: Path) -> None:
     """Write the file's dirty pages out now (they stay in the page cache)."""
-    descriptor = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(descriptor)
-    finally:
-        os.close(descriptor)
+    with open(path, "rb") as file:
+        os.fsync(file.fileno())
 
 
 def _read_figures(

@@ -327,8 +327,8 @@ def summarise_array(
     attributes: Mapping[str, NDArray] | None = None,
     sensor_origin: NDArray | None = None,
     min_points: int = MIN_POINTS,
-    file_rows: FileRows | None = None,
     threads: int | None = None,
+    file_rows: FileRows | None = None,
 ) -> CloudSummary:
     """Validate coordinates as :meth:`PointCloud.from_array` does and summarise them.
 
@@ -346,12 +346,12 @@ def summarise_array(
     sensor_origin : array_like, shape (3,), optional
     min_points : int
         Raise :class:`PointCloudError` when fewer finite points remain.
-    file_rows : FileRows, optional
-        Where ``points``, a view of a memory-mapped file, lies in that file (read with
-        ``pread``, see :class:`FileRows`).
     threads : int, optional
         Threads that share the blocks (as for :meth:`PointCloud.from_array`); default
         :func:`conversion_threads`. The summary does not depend on it.
+    file_rows : FileRows, optional
+        Where ``points``, a view of a memory-mapped file, lies in that file (read with
+        ``pread``, see :class:`FileRows`).
 
     Returns
     -------
