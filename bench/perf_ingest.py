@@ -162,10 +162,11 @@ def _read_figures(
     return {f"{key}{suffix}": value for key, value in figures.items()}
 
 
-def memory_figures(path: Path) -> dict[str, dict[str, float]]:
+def memory_figures(path: Path, small: Path) -> dict[str, dict[str, float]]:
     """Seconds and peak-RSS growth of one ``summarise_point_cloud`` and one ``read_point_cloud``
-    (1 thread) of ``path``, each in a fresh process (Linux: the peak is reset through
-    ``/proc/self/clear_refs`` after the imports, then compared with the resident set)."""
+    (1 thread) of ``path``, each in a fresh process that first reads ``small``, a small file of
+    the same format, so that the readers' own imports are not counted; the peak is then reset
+    through ``/proc/self/clear_refs`` (Linux) and compared with the resident set."""
     import subprocess
     import sys
 
@@ -187,8 +188,6 @@ def memory_figures(path: Path) -> dict[str, dict[str, float]]:
         "growth = status_mb('VmHWM') - before\n"
         "print(json.dumps({'seconds': seconds, 'peak_rss_growth_mb': growth}))\n"
     )
-    small = path.with_name(f"small-{path.name}")
-    write_binary_ply(small, np.random.default_rng(SCENE_SEED).normal(size=(100, 3)))
     figures = {}
     for reader in ("summarise_point_cloud", "read_point_cloud"):
         completed = subprocess.run(
@@ -214,21 +213,22 @@ def main() -> None:
         "--memory",
         action="store_true",
         help="instead: time and peak-RSS growth of one upload check and one load of a binary "
-        "PLY of --points random points, each in a fresh process",
+        "PLY and a LAZ of --points random points, each in a fresh process",
     )
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as directory:
         if args.memory:
-            path = Path(directory) / "cloud.ply"
             points = np.random.default_rng(SCENE_SEED).normal(size=(args.points, 3)) * 50.0
-            write_binary_ply(path, points)
-            del points
-            _flush_to_disk(path)
-            for reader, row in memory_figures(path).items():
-                print(
-                    f"{reader}: {1e3 * row['seconds']:.1f} ms, "
-                    f"peak RSS +{row['peak_rss_growth_mb']:.0f} MB"
-                )
+            for name, writer in (("ply", write_binary_ply), ("laz", write_laz)):
+                path, small = Path(directory) / f"cloud.{name}", Path(directory) / f"small.{name}"
+                writer(path, points)
+                writer(small, points[:1000])
+                _flush_to_disk(path)
+                for reader, row in memory_figures(path, small).items():
+                    print(
+                        f"{name} {reader}: {1e3 * row['seconds']:.1f} ms, "
+                        f"peak RSS +{row['peak_rss_growth_mb']:.0f} MB"
+                    )
             return
         results = measure_ingest(Path(directory), args.points, repeats=args.repeats)
     for name, row in results.items():

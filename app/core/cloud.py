@@ -240,9 +240,13 @@ def _checked_coordinates(points: NDArray) -> NDArray:
         raise PointCloudError(
             f"points must have shape (n, 3), got {array.shape}; give x, y, z per point"
         )
-    if array.shape[0] == 0:
-        raise PointCloudError("the point cloud is empty (0 points)")
+    _check_not_empty(int(array.shape[0]))
     return array
+
+
+def _check_not_empty(n_source: int) -> None:
+    if n_source == 0:
+        raise PointCloudError("the point cloud is empty (0 points)")
 
 
 def _as_float64(array: NDArray) -> NDArray[np.float64]:
@@ -374,60 +378,105 @@ def summarise_array(
         lambda block_numbers: _summarise_blocks(array, block_numbers, file_rows),
         "summarise_array",
     )
-    n_finite = sum(part[0] for part in parts)
-    low = np.min([part[1] for part in parts], axis=0)
-    high = np.max([part[2] for part in parts], axis=0)
-    _check_finite_count(n_finite, n_source, min_points)
-    _checked_attributes(attributes, n_source)
-    return CloudSummary(n_source, n_finite, low, high, _checked_sensor_origin(sensor_origin))
+    bounds = parts[0]
+    for part in parts[1:]:
+        bounds.merge(part)
+    return bounds.summary(n_source, min_points, attributes, sensor_origin)
 
 
 def _summarise_blocks(
     array: NDArray, block_numbers: Iterator[int], file_rows: FileRows | None
-) -> tuple[int, NDArray[np.float64], NDArray[np.float64]]:
-    """Finite rows among the blocks of the numeric (n, 3) ``array`` that ``block_numbers``
-    hands out, and their bounds ``(low, high)``, each shape (3,) float64 (inf and -inf when
-    no row is finite).
+) -> FiniteBounds:
+    """:class:`FiniteBounds` of the blocks of the numeric (n, 3) ``array`` that
+    ``block_numbers`` hands out."""
+    bounds = FiniteBounds()
+    for _, block in _blocks(array, block_numbers, file_rows, True, SUMMARY_BLOCK_POINTS):
+        bounds.add(block)
+    return bounds
 
-    Each block's whole lines of :data:`SUMMARY_ROWS_PER_LINE` rows are reduced to a line of
-    minima and one of maxima in the data's own type: numpy's min/max propagate NaN and reach
-    inf, so the two lines also prove the block finite (their ``dot`` is finite; it may
-    overflow, see :func:`_surely_finite`), without a pass of its own. A block
-    with a non-finite value, and a block's last partial line, are checked row by row.
+
+class FiniteBounds:
+    """Counts the finite rows of coordinate blocks and bounds them, one block at a time.
+
+    What :func:`summarise_array` (and a reader that decodes in chunks) keeps of a cloud: a
+    few kilobytes whatever its size. Each block's whole lines of :data:`SUMMARY_ROWS_PER_LINE`
+    rows are reduced to a line of minima and one of maxima in the data's own type: numpy's
+    min/max propagate NaN and reach inf, so the two lines also prove the block finite (their
+    ``dot`` is finite; it may overflow, see :func:`_surely_finite`), without a pass of its
+    own. A block with a non-finite value, and a block's last partial line, are checked row by
+    row.
     """
-    rows = SUMMARY_ROWS_PER_LINE
-    line_low: NDArray | None = None  # running extremes of the blocks' lines, (rows * 3,)
-    line_high: NDArray | None = None
-    low = np.full(3, np.inf)
-    high = np.full(3, -np.inf)
-    n_finite = 0
-    check = array.dtype.kind == "f"
-    with np.errstate(invalid="ignore", over="ignore"):
-        blocks = _blocks(array, block_numbers, file_rows, True, SUMMARY_BLOCK_POINTS)
-        for _, block in blocks:
-            n_whole = len(block) - len(block) % rows
+
+    def __init__(self) -> None:
+        self.n_finite = 0
+        self.low = np.full(3, np.inf)  # of the rows checked row by row
+        self.high = np.full(3, -np.inf)
+        self.line_low: NDArray | None = None  # running extremes of whole lines, (rows * 3,)
+        self.line_high: NDArray | None = None
+
+    def add(self, block: NDArray) -> None:
+        """Count and bound the finite rows of ``block``, shape (k, 3), any real or integer
+        dtype, C-contiguous; the block may be overwritten afterwards."""
+        rows = SUMMARY_ROWS_PER_LINE
+        check = block.dtype.kind == "f"
+        n_whole = len(block) - len(block) % rows
+        with np.errstate(invalid="ignore", over="ignore"):
             if n_whole:
                 lines = block[:n_whole].reshape(-1, rows * 3)
                 block_low = np.minimum.reduce(lines, axis=0)
                 block_high = np.maximum.reduce(lines, axis=0)
                 if not check or math.isfinite(np.dot(block_low, block_high)):
-                    if line_low is None or line_high is None:
-                        line_low, line_high = block_low, block_high
-                    else:
-                        np.minimum(line_low, block_low, out=line_low)
-                        np.maximum(line_high, block_high, out=line_high)
-                    n_finite += n_whole
+                    self._add_lines(block_low, block_high)
+                    self.n_finite += n_whole
                     block = block[n_whole:]
             if len(block) and check:
                 block = block[np.isfinite(block).all(axis=1)]
-            if len(block):
-                n_finite += len(block)
-                np.minimum(low, column_extreme(block, np.minimum), out=low)
-                np.maximum(high, column_extreme(block, np.maximum), out=high)
-    if line_low is not None and line_high is not None:  # (rows * 3,) -> (rows, 3) -> (3,)
-        np.minimum(low, column_extreme(line_low.reshape(rows, 3), np.minimum), out=low)
-        np.maximum(high, column_extreme(line_high.reshape(rows, 3), np.maximum), out=high)
-    return n_finite, low, high
+        if len(block):
+            self.n_finite += len(block)
+            np.minimum(self.low, column_extreme(block, np.minimum), out=self.low)
+            np.maximum(self.high, column_extreme(block, np.maximum), out=self.high)
+
+    def _add_lines(self, line_low: NDArray, line_high: NDArray) -> None:
+        if self.line_low is None or self.line_high is None:
+            self.line_low, self.line_high = line_low, line_high
+        else:
+            np.minimum(self.line_low, line_low, out=self.line_low)
+            np.maximum(self.line_high, line_high, out=self.line_high)
+
+    def merge(self, other: FiniteBounds) -> None:
+        """Add what ``other`` counted and bounded (another thread's blocks)."""
+        self.n_finite += other.n_finite
+        np.minimum(self.low, other.low, out=self.low)
+        np.maximum(self.high, other.high, out=self.high)
+        if other.line_low is not None and other.line_high is not None:
+            self._add_lines(other.line_low, other.line_high)
+
+    def bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``(low, high)`` of every finite row added, each shape (3,) float64 (inf and -inf
+        when there was none)."""
+        low, high = self.low.copy(), self.high.copy()
+        if self.line_low is not None and self.line_high is not None:
+            rows = len(self.line_low) // 3  # (rows * 3,) -> (rows, 3) -> (3,)
+            np.minimum(low, column_extreme(self.line_low.reshape(rows, 3), np.minimum), out=low)
+            np.maximum(high, column_extreme(self.line_high.reshape(rows, 3), np.maximum), out=high)
+        return low, high
+
+    def summary(
+        self,
+        n_source: int,
+        min_points: int = MIN_POINTS,
+        attributes: Mapping[str, NDArray] | None = None,
+        sensor_origin: NDArray | None = None,
+    ) -> CloudSummary:
+        """The :class:`CloudSummary` of a source of ``n_source`` rows whose blocks were all
+        added, after the checks of :meth:`PointCloud.from_array` (same errors)."""
+        _check_not_empty(n_source)
+        _check_finite_count(self.n_finite, n_source, min_points)
+        _checked_attributes(attributes, n_source)
+        low, high = self.bounds()
+        return CloudSummary(
+            n_source, self.n_finite, low, high, _checked_sensor_origin(sensor_origin)
+        )
 
 
 class _BlockReader:

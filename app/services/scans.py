@@ -36,7 +36,8 @@ from app.services.schemas import JobRead, ScanRead, UploadRead
 from app.services.transaction import after_rollback, end_read_transaction
 
 PARSE_SLOTS = threading.BoundedSemaphore(2)
-"""At most this many clouds are parsed at once per process (each may take gigabytes)."""
+"""At most this many clouds are parsed at once per process: checking a binary PLY/PCD or a
+LAS/LAZ upload takes a few MB, but text and NumPy files are decoded whole (gigabytes)."""
 
 
 @dataclass(frozen=True)

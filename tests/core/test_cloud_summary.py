@@ -16,10 +16,11 @@ import pytest
 from app.core import cloud as cloud_module
 from app.core.cloud import MIN_POINTS, CloudSummary, PointCloud, summarise_array
 from app.core.errors import PointCloudError
-from app.core.formats import read_point_cloud, summarise_point_cloud
+from app.core.formats import las, read_point_cloud, summarise_point_cloud
 from tests.core.test_formats import (
     FUZZ_SEEDS,
     MALFORMED,
+    las_bytes,
     mutate_bytes,
     pcd_bytes,
     ply_bytes,
@@ -188,3 +189,22 @@ def test_file_summary_keeps_the_sensor_origin_and_the_point_limit():
     np.testing.assert_array_equal(summary.sensor_origin, [1.5, -2.0, 0.25])
     with pytest.raises(PointCloudError, match="more than the limit of 10"):
         summarise_point_cloud(ply_bytes(points), filename="scan.ply", max_points=10)
+
+
+@pytest.mark.parametrize("compress", [False, True], ids=["las", "laz"])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_las_summary_over_many_chunks_equals_the_read_cloud(monkeypatch, compress, threads):
+    """LAS/LAZ are summarised a decoded chunk at a time (here 16 chunks of 64 points, each of
+    whole and partial 4-row lines), by the sequential and the parallel LAZ decoder."""
+    monkeypatch.setattr(las, "SUMMARY_CHUNK_POINTS", 64)
+    monkeypatch.setattr(cloud_module, "SUMMARY_ROWS_PER_LINE", 4)
+    content = las_bytes(random_points(1000, seed=7) * 40.0, compress=compress)
+    filename = "scan.laz" if compress else "scan.las"
+    cloud = read_point_cloud(content, filename=filename, threads=threads)
+    summary = summarise_point_cloud(content, filename=filename, threads=threads)
+    assert_summary_of(summary, cloud)
+    with pytest.raises(PointCloudError, match=r"truncated|corrupt") as expected:
+        read_point_cloud(content[: len(content) - 200], filename=filename, threads=threads)
+    with pytest.raises(PointCloudError) as got:
+        summarise_point_cloud(content[: len(content) - 200], filename=filename, threads=threads)
+    assert str(got.value) == str(expected.value)

@@ -33,7 +33,12 @@ from app.core.cloud import CloudSummary, PointCloud, conversion_threads, summari
 from app.core.errors import PointCloudError, UnsupportedFormatError
 from app.core.formats import text as _text
 from app.core.formats._common import RawCloud, Source, SourceLike, file_rows_of, open_source
-from app.core.formats.las import is_compressed_point_format, read_las, write_las
+from app.core.formats.las import (
+    is_compressed_point_format,
+    read_las,
+    summarise_las,
+    write_las,
+)
 from app.core.formats.npy import read_npy, read_npz
 from app.core.formats.pcd import read_pcd
 from app.core.formats.ply import read_ply, write_ply
@@ -234,7 +239,10 @@ def read_point_cloud(
             file_rows=file_rows_of(raw.points, opened),
         )
 
-    return _decode(source, format, filename, max_points, threads, build)
+    def build_las(opened: Source, max_points: int | None, threads: int) -> PointCloud:
+        return build(read_las(opened, max_points, threads=threads), opened)
+
+    return _decode(source, format, filename, max_points, threads, build, build_las)
 
 
 def summarise_point_cloud(
@@ -252,8 +260,9 @@ def summarise_point_cloud(
     the coordinates are visited a cache-sized block at a time in the file's own type
     (:func:`~app.core.cloud.summarise_array`), so no float64 copy of the coordinates is
     made: for a binary PLY/PCD the coordinates cost one block of memory whatever the cloud's
-    size (extra fields are still copied out, as for reading). Other formats are decoded as for
-    reading (LAZ must be decompressed, text parsed) and then summarised.
+    size (extra fields are still copied out, as for reading), for a LAS/LAZ one chunk of
+    decoded points (:func:`~app.core.formats.las.summarise_las`). Text and NumPy files are
+    decoded as for reading, then summarised.
 
     Parameters
     ----------
@@ -282,7 +291,10 @@ def summarise_point_cloud(
             threads=threads,
         )
 
-    return _decode(source, format, filename, max_points, threads, build)
+    def build_las(opened: Source, max_points: int | None, threads: int) -> CloudSummary:
+        return summarise_las(opened, max_points, threads=threads)
+
+    return _decode(source, format, filename, max_points, threads, build, build_las)
 
 
 def _decode(
@@ -292,9 +304,11 @@ def _decode(
     max_points: int | None,
     threads: int | None,
     build: Callable[[RawCloud, Source], Decoded],
+    build_las: Callable[[Source, int | None, int], Decoded],
 ) -> Decoded:
-    """Open ``source``, choose its format, decode it and hand the raw cloud to ``build``;
-    every error becomes a :class:`PointCloudError` whose message starts with the file name."""
+    """Open ``source``, choose its format, decode it and hand the raw cloud to ``build``
+    (LAS/LAZ go to ``build_las`` with the decoder's thread count); every error becomes a
+    :class:`PointCloudError` whose message starts with the file name."""
     with open_source(source, filename) as opened:
         label = opened.name or "input"
         chosen = "unknown"
@@ -307,10 +321,8 @@ def _decode(
             reader = _READERS[chosen]
             if reader is read_las:
                 laz_threads = available_threads() if threads is None else threads
-                raw = read_las(opened, max_points, threads=laz_threads)
-            else:
-                raw = reader(opened, max_points)
-            return build(raw, opened)
+                return build_las(opened, max_points, laz_threads)
+            return build(reader(opened, max_points), opened)
         except PointCloudError as exc:
             raise type(exc)(f"{label}: {exc}") from exc
         except MemoryError as exc:

@@ -12,17 +12,21 @@ Before any point is decompressed the header's point count is checked against ``m
 and against the bytes present: an uncompressed body must hold ``count x record size`` bytes,
 and a LAZ body may not claim to expand more than :data:`LAZ_MAX_EXPANSION` times (a cloud of
 1M identical points, the most compressible input there is, measured 2,811x with lazrs).
-Points are then decoded in chunks into preallocated arrays.
+Points are then decoded in chunks into preallocated arrays (:func:`read_las`), or summarised
+chunk by chunk without keeping them (:func:`summarise_las`, for checking uploads).
 """
 
 from __future__ import annotations
 
 import struct
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from app.core.cloud import CloudSummary, FiniteBounds
 from app.core.errors import PointCloudError
 from app.core.formats._common import RawCloud, Source, atomic_output, check_point_count
 
@@ -30,6 +34,8 @@ LAZ_MAX_EXPANSION = 10_000
 """Largest accepted ratio of declared uncompressed point bytes to LAZ body bytes."""
 
 CHUNK_POINTS = 1_000_000
+SUMMARY_CHUNK_POINTS = 1 << 18
+"""Points decoded at a time by :func:`summarise_las` (about 11 MB with the laspy record)."""
 LASZIP_VLR_RECORD_ID = 22204
 LAS_MIN_HEADER_BYTES = 227
 LAS_VLR_HEADER_BYTES = 54
@@ -68,6 +74,32 @@ def read_las(source: Source, max_points: int | None, *, threads: int = 1) -> Raw
         Missing 'LASF' signature, malformed header, too many points, truncated body,
         absurd compression ratio, corrupt LAZ data.
     """
+    with _opened_points(source, max_points, threads) as (reader, n_points, what):
+        return _read_points(reader, n_points, what)
+
+
+def summarise_las(source: Source, max_points: int | None, *, threads: int = 1) -> CloudSummary:
+    """What :func:`read_las` and ``PointCloud.from_array`` would make of the file, as a
+    :class:`~app.core.cloud.CloudSummary`, decoding :data:`SUMMARY_CHUNK_POINTS` points at a
+    time: memory stays at one chunk whatever the file's size (the same checks and errors).
+    """
+    with _opened_points(source, max_points, threads) as (reader, n_points, what):
+        scales, offsets = _scales_and_offsets(reader)
+        buffer = np.empty((SUMMARY_CHUNK_POINTS, 3))
+        bounds = FiniteBounds()
+        for _, chunk in _chunks(reader, n_points, what, SUMMARY_CHUNK_POINTS):
+            xyz = buffer[: len(chunk)]
+            _scale(chunk, scales, offsets, xyz)
+            bounds.add(xyz)
+        return bounds.summary(n_points)
+
+
+@contextmanager
+def _opened_points(
+    source: Source, max_points: int | None, threads: int
+) -> Iterator[tuple[Any, int, str]]:
+    """A laspy reader positioned at the points, once the header passed every check, with the
+    point count and what declared it (for messages)."""
     import laspy
 
     head = source.head(4)
@@ -113,7 +145,7 @@ def read_las(source: Source, max_points: int | None, *, threads: int = 1) -> Raw
                     available_bytes=body_bytes,
                     bytes_per_point=record_size,
                 )
-            return _read_points(reader, n_points, what)
+            yield reader, n_points, what
 
 
 def _laz_backends(threads: int):  # -> tuple[laspy.LazBackend, ...], laspy imported lazily
@@ -208,39 +240,57 @@ def _read_points(reader, n_points: int, what: str) -> RawCloud:
     point_format = reader.header.point_format
     kept = [name for name in KEPT_STANDARD_DIMENSIONS if name in point_format.dimension_names]
     kept += list(point_format.extra_dimension_names)
-    scales = np.asarray(reader.header.scales, dtype=np.float64)
-    offsets = np.asarray(reader.header.offsets, dtype=np.float64)
+    scales, offsets = _scales_and_offsets(reader)
     points = np.empty((n_points, 3), dtype=np.float64)
     attributes: dict[str, NDArray] = {}
+    for n_read, chunk in _chunks(reader, n_points, what, CHUNK_POINTS):
+        rows = slice(n_read, n_read + len(chunk))
+        _scale(chunk, scales, offsets, points[rows])
+        for name in kept:
+            values = np.asarray(chunk[name])
+            if name not in attributes:
+                attributes[name] = np.empty((n_points, *values.shape[1:]), values.dtype)
+            attributes[name][rows] = values
+    return RawCloud(points, attributes)
+
+
+def _chunks(reader, n_points: int, what: str, chunk_points: int) -> Iterator[tuple[int, Any]]:
+    """``(first row, laspy point record)`` of up to ``chunk_points`` points at a time, until
+    all ``n_points`` were decoded; corrupt or missing data is a :class:`PointCloudError`."""
     n_read = 0
-    try:
-        while n_read < n_points:
-            chunk = reader.read_points(min(CHUNK_POINTS, n_points - n_read))
-            n_chunk = len(chunk)
-            if n_chunk == 0:
-                break
-            rows = slice(n_read, n_read + n_chunk)
-            for axis, raw_name in enumerate(("X", "Y", "Z")):
-                np.multiply(chunk[raw_name], scales[axis], out=points[rows, axis])
-                points[rows, axis] += offsets[axis]
-            for name in kept:
-                values = np.asarray(chunk[name])
-                if name not in attributes:
-                    attributes[name] = np.empty((n_points, *values.shape[1:]), values.dtype)
-                attributes[name][rows] = values
-            n_read += n_chunk
-    except PointCloudError:
-        raise
-    except Exception as exc:  # lazrs/laspy errors on corrupt or truncated LAZ data
-        raise PointCloudError(
-            f"corrupt or truncated point data after {n_read:,} of {n_points:,} points: {exc}"
-        ) from exc
+    while n_read < n_points:
+        try:
+            chunk = reader.read_points(min(chunk_points, n_points - n_read))
+        except Exception as exc:  # lazrs/laspy errors on corrupt or truncated LAZ data
+            raise PointCloudError(
+                f"corrupt or truncated point data after {n_read:,} of {n_points:,} points: {exc}"
+            ) from exc
+        if len(chunk) == 0:
+            break
+        yield n_read, chunk
+        n_read += len(chunk)
     if n_read < n_points:
         raise PointCloudError(
             f"truncated body: {what} declares {n_points:,} points but only {n_read:,} could be "
             "read; the file was cut short: upload it again"
         )
-    return RawCloud(points, attributes)
+
+
+def _scales_and_offsets(reader) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    return (
+        np.asarray(reader.header.scales, dtype=np.float64),
+        np.asarray(reader.header.offsets, dtype=np.float64),
+    )
+
+
+def _scale(
+    chunk, scales: NDArray[np.float64], offsets: NDArray[np.float64], out: NDArray[np.float64]
+) -> None:
+    """The chunk's integer X, Y, Z as coordinates ``X * scale + offset`` into ``out``, shape
+    (len(chunk), 3) float64."""
+    for axis, raw_name in enumerate(("X", "Y", "Z")):
+        np.multiply(chunk[raw_name], scales[axis], out=out[:, axis])
+        out[:, axis] += offsets[axis]
 
 
 def write_las(
