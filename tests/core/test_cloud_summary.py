@@ -208,3 +208,29 @@ def test_las_summary_over_many_chunks_equals_the_read_cloud(monkeypatch, compres
     with pytest.raises(PointCloudError) as got:
         summarise_point_cloud(content[: len(content) - 200], filename=filename, threads=threads)
     assert str(got.value) == str(expected.value)
+
+
+@pytest.mark.parametrize("compress", [False, True], ids=["las", "laz"])
+def test_las_summary_memory_stays_at_a_chunk(monkeypatch, tmp_path, compress):
+    """A 200k-point LAS/LAZ file summarised 4096 points at a time allocates a few chunks of
+    arrays (nothing grows with the 49 chunks), where reading it allocates every point's
+    coordinates and fields. (Bytes, not a file, would be copied whole for laspy's stream.)"""
+    monkeypatch.setattr(las, "SUMMARY_CHUNK_POINTS", 4096)
+    points = np.random.default_rng(8).uniform(-500, 500, size=(200_000, 3))
+    content = tmp_path / ("scan.laz" if compress else "scan.las")
+    content.write_bytes(las_bytes(points, compress=compress))
+    filename = content.name
+
+    def peak_bytes(action) -> int:
+        tracemalloc.start()
+        try:
+            action()
+            return tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+
+    summary_peak = peak_bytes(lambda: summarise_point_cloud(content, filename=filename))
+    read_peak = peak_bytes(lambda: read_point_cloud(content, filename=filename))
+    record_bytes = 34  # point format 3
+    assert read_peak >= len(points) * 24  # the float64 coordinates alone
+    assert summary_peak < 8 * 4096 * (24 + record_bytes), (summary_peak, read_peak)
