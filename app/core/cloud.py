@@ -48,7 +48,7 @@ and 1.36 (1.60) ms; 128k-point blocks no better than 64k. numpy's min/max reduct
 the GIL, so a second thread only overlaps the ``pread`` copies."""
 
 SUMMARY_ROWS_PER_LINE = 2048
-"""Rows folded into one line when :func:`summarise_array` reduces a block to its extremes
+"""Rows folded into one line when :class:`FiniteBounds` reduces a block to its extremes
 (a long, vectorised min/max over (16, 6144) float32 per default block: 5 us where
 :func:`column_extreme` took 16 us)."""
 

@@ -42,6 +42,17 @@ def assert_summary_of(summary: CloudSummary, cloud: PointCloud) -> None:
         np.testing.assert_array_equal(summary.sensor_origin, cloud.sensor_origin)
 
 
+def peak_traced_bytes(action) -> int:
+    """Peak bytes of Python and numpy allocations while ``action()`` runs (numpy reports its
+    buffers to ``tracemalloc``)."""
+    tracemalloc.start()
+    try:
+        action()
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
 def _outcome(function, *args, **kwargs):
     """``("ok", result)`` or ``("error", message)`` of a call that may raise PointCloudError."""
     try:
@@ -123,20 +134,12 @@ def test_array_summary_memory_stays_at_a_block_whatever_the_cloud(monkeypatch):
     values = np.random.default_rng(5).normal(size=(1_000_000, 3)).astype(np.float32)
     values[123_456] = np.nan
 
-    def peak_bytes(action) -> int:
-        tracemalloc.start()
-        try:
-            action()
-            return tracemalloc.get_traced_memory()[1]
-        finally:
-            tracemalloc.stop()
-
-    summary_peak = peak_bytes(lambda: summarise_array(values, threads=1))
-    cloud_peak = peak_bytes(lambda: PointCloud.from_array(values, threads=1))
+    summary_peak = peak_traced_bytes(lambda: summarise_array(values, threads=1))
+    cloud_peak = peak_traced_bytes(lambda: PointCloud.from_array(values, threads=1))
     assert_summary_of(summarise_array(values, threads=2), PointCloud.from_array(values))
     block_bytes = 4096 * 3 * 4
     line_bytes = cloud_module.SUMMARY_ROWS_PER_LINE * 3 * 4
-    assert cloud_peak >= values.size * 8  # numpy reports its buffers to tracemalloc
+    assert cloud_peak >= values.size * 8  # the float64 copy
     assert summary_peak < 4 * (block_bytes + line_bytes), (summary_peak, block_bytes)
 
 
@@ -217,20 +220,11 @@ def test_las_summary_memory_stays_at_a_chunk(monkeypatch, tmp_path, compress):
     coordinates and fields. (Bytes, not a file, would be copied whole for laspy's stream.)"""
     monkeypatch.setattr(las, "SUMMARY_CHUNK_POINTS", 4096)
     points = np.random.default_rng(8).uniform(-500, 500, size=(200_000, 3))
-    content = tmp_path / ("scan.laz" if compress else "scan.las")
-    content.write_bytes(las_bytes(points, compress=compress))
-    filename = content.name
+    path = tmp_path / ("scan.laz" if compress else "scan.las")
+    path.write_bytes(las_bytes(points, compress=compress))
 
-    def peak_bytes(action) -> int:
-        tracemalloc.start()
-        try:
-            action()
-            return tracemalloc.get_traced_memory()[1]
-        finally:
-            tracemalloc.stop()
-
-    summary_peak = peak_bytes(lambda: summarise_point_cloud(content, filename=filename))
-    read_peak = peak_bytes(lambda: read_point_cloud(content, filename=filename))
+    summary_peak = peak_traced_bytes(lambda: summarise_point_cloud(path))
+    read_peak = peak_traced_bytes(lambda: read_point_cloud(path))
     record_bytes = 34  # point format 3
     assert read_peak >= len(points) * 24  # the float64 coordinates alone
     assert summary_peak < 8 * 4096 * (24 + record_bytes), (summary_peak, read_peak)

@@ -10,7 +10,8 @@ coordinates, non-finite rows dropped and counted, extra per-point fields as attr
 name and says what is wrong and how to fix it. No library exception (``KeyError``,
 ``struct.error``, ``ValueError``, ``MemoryError``, ``UnicodeDecodeError``, ...) escapes. Point
 counts declared by headers are checked against ``max_points`` and against the bytes present
-before anything is allocated or decompressed.
+before anything is allocated or decompressed. :func:`summarise_point_cloud` makes the same
+checks and reports the counts and bounds of that cloud without building it (uploads).
 
 Example
 -------
