@@ -59,7 +59,7 @@ from app.api.session_auth import (
     settings_of,
     verify_view_link,
 )
-from app.db.models import ApiToken, Job, Organisation
+from app.db.models import ApiToken, Job, JobStatus, Organisation
 from app.db.session import session_factory
 from app.services.auth import Principal, authenticate
 from app.services.errors import AppError
@@ -374,11 +374,11 @@ def _job_not_viewable(connection: HTTPConnection, job_id: str) -> ViewUnavailabl
         job = session.get(Job, job_id)
         if job is None:
             return ViewUnavailableError(f"job {job_id} not found", status=404)
-        if job.status == "failed":
+        if job.status == JobStatus.FAILED:
             return ViewUnavailableError(
                 f"job {job_id} failed: {job.error or 'no reason recorded'}", status=409
             )
-        if job.status != "succeeded":
+        if job.status != JobStatus.SUCCEEDED:
             return ViewUnavailableError(
                 f"job {job_id} is still {job.status} ({job.progress:.0%}); the 3D view opens "
                 "once it has finished",

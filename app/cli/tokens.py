@@ -120,7 +120,7 @@ def handle_create(args: argparse.Namespace) -> int:
 
 def format_token_table(tokens: list[TokenSummary]) -> str:
     """A header and one aligned line per token ('-' for no name / not revoked)."""
-    from app.services.auth import iso_utc
+    from app.clock import iso_utc
 
     rows = [LIST_COLUMNS] + [
         (

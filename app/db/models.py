@@ -9,7 +9,8 @@ IDs are random hex UUIDs, never sequential.
 from __future__ import annotations
 
 import uuid
-from datetime import UTC, datetime
+from datetime import datetime
+from enum import StrEnum
 from typing import Any
 
 from sqlalchemy import (
@@ -26,15 +27,12 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
+from app.clock import utc_now
+
 
 def new_id() -> str:
     """A random 32-character hex id."""
     return uuid.uuid4().hex
-
-
-def utc_now() -> datetime:
-    """The current time, timezone-aware UTC."""
-    return datetime.now(UTC)
 
 
 class Base(DeclarativeBase):
@@ -131,7 +129,19 @@ class ReferenceHistory(Base):
     created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)
 
 
-JOB_STATUSES = ("queued", "running", "succeeded", "failed")
+class JobStatus(StrEnum):
+    """Where a job is in its life: ``queued -> running -> succeeded | failed`` (a lost lease or a
+    retry puts a running job back to ``queued``)."""
+
+    QUEUED = "queued"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+
+    @classmethod
+    def unfinished(cls) -> tuple[JobStatus, ...]:
+        """The statuses of a job that still holds a place in the queue."""
+        return (cls.QUEUED, cls.RUNNING)
 
 
 class Job(Base):
@@ -156,7 +166,7 @@ class Job(Base):
     # Every parameter in effect (the detector's get_params(), seed, stages, decision rule):
     # POST /jobs with these params replays the result exactly, whatever defaults change later.
     effective_params: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
-    status: Mapped[str] = mapped_column(String(16), default="queued")
+    status: Mapped[str] = mapped_column(String(16), default=JobStatus.QUEUED)
     progress: Mapped[float] = mapped_column(Float, default=0.0)
     stage: Mapped[str | None] = mapped_column(String(32), nullable=True)
     attempts: Mapped[int] = mapped_column(Integer, default=0)

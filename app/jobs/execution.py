@@ -37,17 +37,18 @@ import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from datetime import UTC, datetime, timedelta
+from datetime import datetime, timedelta
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from sqlalchemy import ColumnElement, and_, delete, or_, select, update
 
+from app.clock import utc_now
 from app.config import GIB, Settings
 from app.core.errors import InputError
 from app.core.jsonable import json_safe
-from app.db.models import Job, Region, Scan
+from app.db.models import Job, JobStatus, Region, Scan
 from app.db.session import transaction
 
 logger = logging.getLogger("scandiff.jobs")
@@ -67,18 +68,6 @@ PROGRESS_COMPARED = 0.95
 
 class LeaseLostError(RuntimeError):
     """Another worker took this job over (our lease expired); abandon it without writing."""
-
-
-def utc_now() -> datetime:
-    """The current time, timezone-aware UTC."""
-    return datetime.now(UTC)
-
-
-def as_utc(moment: datetime | None) -> datetime | None:
-    """``moment`` as aware UTC (SQLite returns naive datetimes that are UTC)."""
-    if moment is None:
-        return None
-    return moment.replace(tzinfo=UTC) if moment.tzinfo is None else moment.astimezone(UTC)
 
 
 def make_lease_owner() -> str:
@@ -126,9 +115,9 @@ def lease_owner_is_dead_here(lease_owner: str | None) -> bool:
 def claimable(now: datetime) -> ColumnElement[bool]:
     """SQL condition: the job may be taken (queued, or running with an expired lease)."""
     return or_(
-        Job.status == "queued",
+        Job.status == JobStatus.QUEUED,
         and_(
-            Job.status == "running",
+            Job.status == JobStatus.RUNNING,
             or_(Job.lease_expires_at.is_(None), Job.lease_expires_at < now),
         ),
     )
@@ -136,7 +125,7 @@ def claimable(now: datetime) -> ColumnElement[bool]:
 
 def held_by(job_id: str, owner: str) -> ColumnElement[bool]:
     """SQL condition: job ``job_id`` is running under ``owner``'s lease."""
-    return and_(Job.id == job_id, Job.status == "running", Job.lease_owner == owner)
+    return and_(Job.id == job_id, Job.status == JobStatus.RUNNING, Job.lease_owner == owner)
 
 
 @dataclass(frozen=True)
@@ -175,7 +164,7 @@ def claim_job(
             update(Job)
             .where(Job.id == job_id, Job.attempts < Job.max_attempts, claimable(now))
             .values(
-                status="running",
+                status=JobStatus.RUNNING,
                 attempts=Job.attempts + 1,
                 lease_owner=owner,
                 lease_expires_at=lease_until,
@@ -232,7 +221,7 @@ def give_up_if_used_up(session: Any, job: Job, now: datetime) -> bool:
         update(Job)
         .where(Job.id == job.id, Job.attempts >= Job.max_attempts, claimable(now))
         .values(
-            status="failed",
+            status=JobStatus.FAILED,
             error=reason,
             stage="failed",
             finished_at=now,
@@ -584,7 +573,7 @@ def store_results(
             )
             for ordinal, region in enumerate(result.regions)
         )
-        row.status = "succeeded"
+        row.status = JobStatus.SUCCEEDED
         row.score = float(result.score)
         row.threshold = float(result.threshold)
         row.changed = bool(result.changed)
@@ -609,7 +598,7 @@ def fail_job(job: ClaimedJob, settings: Settings, message: str) -> bool:
             update(Job)
             .where(held_by(job.id, job.lease_owner))
             .values(
-                status="failed",
+                status=JobStatus.FAILED,
                 error=message,
                 stage="failed",
                 finished_at=utc_now(),
@@ -635,12 +624,12 @@ def release_job(job: ClaimedJob, settings: Settings, error: str, *, count_attemp
         if row is None:
             return "lease-lost"
         if count_attempt and row.attempts >= row.max_attempts:
-            row.status = "failed"
+            row.status = JobStatus.FAILED
             row.error = f"failed after {row.attempts} attempts; last error: {error}"
             row.finished_at = utc_now()
             row.stage = "failed"
         else:
-            row.status = "queued"
+            row.status = JobStatus.QUEUED
             row.error = error
             row.stage = "requeued"
             row.enqueued_at = utc_now() if count_attempt else None
@@ -715,7 +704,7 @@ def execute_job(job_id: str, settings: Settings) -> str:
         keeper.stop()
         logger.exception("job attempt failed", extra={"job_id": job.id, "stage": keeper.stage})
         status = release_job(job, settings, f"{type(exc).__name__}: {exc}", count_attempt=True)
-        if status == "queued":
+        if status == JobStatus.QUEUED:
             from app.jobs.queue import send_job_message
 
             send_job_message(job.id, settings)

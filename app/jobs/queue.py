@@ -21,7 +21,7 @@ from huey import Huey, RedisHuey, SqliteHuey
 from sqlalchemy import update
 
 from app.config import Settings
-from app.db.models import Job
+from app.db.models import Job, JobStatus
 from app.db.session import transaction
 
 logger = logging.getLogger("scandiff.jobs.queue")
@@ -106,7 +106,7 @@ def enqueue_job(job_id: str, settings: Settings) -> None:
     with transaction(settings.sqlalchemy_url) as session:
         session.execute(
             update(Job)
-            .where(Job.id == job_id, Job.status == "queued")
+            .where(Job.id == job_id, Job.status == JobStatus.QUEUED)
             .values(enqueued_at=datetime.now(UTC))
         )
     send_job_message(job_id, settings)

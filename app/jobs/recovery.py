@@ -23,15 +23,14 @@ from datetime import datetime, timedelta
 
 from sqlalchemy import or_, select
 
+from app.clock import as_utc, utc_now
 from app.config import Settings
-from app.db.models import Job
+from app.db.models import Job, JobStatus
 from app.db.session import transaction
 from app.jobs.execution import (
     TEMP_MARKER,
-    as_utc,
     job_log,
     lease_owner_is_dead_here,
-    utc_now,
 )
 
 logger = logging.getLogger("scandiff.jobs.recovery")
@@ -68,7 +67,7 @@ def recover_expired_leases(settings: Settings, now: datetime, report: RecoveryRe
     with transaction(settings.sqlalchemy_url) as session:
         running = (
             session.execute(
-                select(Job).where(Job.status == "running").with_for_update(skip_locked=True)
+                select(Job).where(Job.status == JobStatus.RUNNING).with_for_update(skip_locked=True)
             )
             .scalars()
             .all()
@@ -86,7 +85,7 @@ def recover_expired_leases(settings: Settings, now: datetime, report: RecoveryRe
                 f"worker killed or lost) at stage {job.stage}"
             )
             if job.attempts >= job.max_attempts:
-                job.status = "failed"
+                job.status = JobStatus.FAILED
                 job.error = (
                     f"gave up after {job.attempts} attempts (max_attempts={job.max_attempts}): "
                     f"{lost}"
@@ -95,7 +94,7 @@ def recover_expired_leases(settings: Settings, now: datetime, report: RecoveryRe
                 job.finished_at = now
                 report.failed_expired.append(job.id)
             else:
-                job.status = "queued"
+                job.status = JobStatus.QUEUED
                 job.error = lost
                 job.stage = "requeued"
                 job.enqueued_at = now
@@ -118,7 +117,7 @@ def resend_orphaned_queued(
             session.execute(
                 select(Job)
                 .where(
-                    Job.status == "queued",
+                    Job.status == JobStatus.QUEUED,
                     or_(Job.enqueued_at.is_(None), Job.enqueued_at < grace_cutoff),
                 )
                 .with_for_update(skip_locked=True)

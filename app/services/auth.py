@@ -28,6 +28,7 @@ from pathlib import Path
 from sqlalchemy import ColumnElement, event, select, update
 from sqlalchemy.orm import Session
 
+from app.clock import iso_utc
 from app.config import DEFAULT_TOKEN_CACHE_SECONDS
 from app.db.models import ApiToken, Organisation
 from app.services.errors import (
@@ -37,7 +38,6 @@ from app.services.errors import (
     PermissionDeniedError,
     ValidationFailedError,
 )
-from app.services.schemas import as_utc
 
 logger = logging.getLogger("scandiff.services.auth")
 
@@ -267,11 +267,6 @@ class TokenSummary:
             "created_at": iso_utc(self.created_at),
             "revoked_at": iso_utc(self.revoked_at) if self.revoked_at else None,
         }
-
-
-def iso_utc(value: datetime) -> str:
-    """``value`` as ISO 8601 in UTC to the second (naive values, as SQLite returns, are UTC)."""
-    return as_utc(value).isoformat(timespec="seconds").replace("+00:00", "Z")
 
 
 def _summaries(session: Session, *conditions: ColumnElement[bool]) -> list[TokenSummary]:

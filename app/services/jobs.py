@@ -17,14 +17,15 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from app.clock import as_utc
 from app.config import Settings
-from app.db.models import Job, Region, Scan
+from app.db.models import Job, JobStatus, Region, Scan
 from app.services import idempotency, quotas, sites
 from app.services.auth import Principal
 from app.services.errors import NotFoundError, ValidationFailedError
 from app.services.idempotency import StoredResponse
 from app.services.paging import newest_first_page
-from app.services.schemas import JobCreate, JobRead, as_utc
+from app.services.schemas import JobCreate, JobRead
 from app.services.transaction import after_commit
 
 logger = logging.getLogger("scandiff.services.jobs")
@@ -65,7 +66,7 @@ def new_job(
         method=method,
         variant=variant,
         params=params,
-        status="queued",
+        status=JobStatus.QUEUED,
         progress=0.0,
         attempts=0,
         max_attempts=settings.job_max_attempts,

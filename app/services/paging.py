@@ -12,8 +12,8 @@ from typing import Any, TypeVar
 from sqlalchemy import Select, and_, or_
 from sqlalchemy.orm import Session
 
+from app.clock import as_utc
 from app.services.errors import BadRequestError
-from app.services.schemas import as_utc
 
 DEFAULT_LIMIT = 50
 MAX_LIMIT = 200

@@ -20,10 +20,9 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from app.config import Settings
-from app.db.models import Job, Organisation, Scan
+from app.db.models import Job, JobStatus, Organisation, Scan
 from app.services.errors import InsufficientStorageError, NotFoundError, TooManyRequestsError
 
-UNFINISHED_JOB_STATUSES = ("queued", "running")
 RETRY_AFTER_SECONDS = 30
 """``Retry-After`` of a 429: jobs take seconds to minutes, a fleet should back off that long."""
 ORGANISATION_PATH = "/api/v1/organisation"
@@ -57,7 +56,7 @@ def queued_jobs(session: Session, organisation_id: str) -> int:
     count = session.scalar(
         select(func.count())
         .select_from(Job)
-        .where(Job.organisation_id == organisation_id, Job.status.in_(UNFINISHED_JOB_STATUSES))
+        .where(Job.organisation_id == organisation_id, Job.status.in_(JobStatus.unfinished()))
     )
     return int(count or 0)
 

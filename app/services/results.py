@@ -20,7 +20,7 @@ from sqlalchemy.orm import Session
 
 from app.config import Settings
 from app.core.registration import apply_transform
-from app.db.models import new_id
+from app.db.models import JobStatus, new_id
 from app.services import jobs, scans, storage
 from app.services.auth import Principal
 from app.services.errors import ConflictError, NotFoundError
@@ -124,7 +124,7 @@ def labels_file(
 ) -> DownloadFile:
     """The per-point labels of a succeeded job as ``npz``, ``ply`` or ``las``."""
     job = jobs.get_job(session, principal, job_id)
-    if job.status != "succeeded" or not job.labels_path:
+    if job.status != JobStatus.SUCCEEDED or not job.labels_path:
         raise ConflictError(
             f"job {job.id} is {job.status}; its labels exist once it has succeeded",
             code="job_not_succeeded",

@@ -6,28 +6,21 @@ offset (SQLite hands them back naive).
 
 from __future__ import annotations
 
-from datetime import UTC, datetime
+from datetime import datetime
 from typing import TYPE_CHECKING, Annotated, Any, Generic, Literal, TypeVar
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StringConstraints
 
-from app.db.models import Job, Region, Scan, Site
+from app.clock import as_utc
+from app.db.models import Job, JobStatus, Region, Scan, Site
 
 if TYPE_CHECKING:
     from app.services.quotas import Usage
 
 
-def as_utc(value: datetime) -> datetime:
-    """``value`` as an aware UTC datetime (naive values are taken to be UTC)."""
-    if value.tzinfo is None:
-        return value.replace(tzinfo=UTC)
-    return value.astimezone(UTC)
-
-
 UtcDatetime = Annotated[datetime, AfterValidator(as_utc)]
 Name = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=200)]
 Identifier = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=64)]
-JobStatus = Literal["queued", "running", "succeeded", "failed"]
 
 ItemT = TypeVar("ItemT")
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from app.config import Settings
 from app.core.formats import read_point_cloud
-from app.db.models import Job, Region, Scan, Site
+from app.db.models import Job, JobStatus, Region, Scan, Site
 from app.db.session import session_factory
 from app.viewer.scene import DEFAULT_POINT_BUDGET, SceneData, build_scene_data
 
@@ -55,8 +55,8 @@ def load_job_scene(
         job = session.get(Job, job_id)
         if job is None:
             raise ViewUnavailableError(f"job {job_id} not found", status=404)
-        if job.status != "succeeded":
-            reason = f": {job.error}" if job.status == "failed" and job.error else ""
+        if job.status != JobStatus.SUCCEEDED:
+            reason = f": {job.error}" if job.status == JobStatus.FAILED and job.error else ""
             raise ViewUnavailableError(
                 f"job {job_id} is {job.status}{reason}; the 3D view opens once it has succeeded"
             )

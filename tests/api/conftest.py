@@ -257,7 +257,8 @@ def finish_job(
     """Play the worker: write the job's result files and rows as a succeeded job; the arrays."""
     from sqlalchemy import update
 
-    from app.db.models import Job, Region, utc_now
+    from app.clock import utc_now
+    from app.db.models import Job, Region
 
     rng = np.random.default_rng(7)
     arrays = {

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from sqlalchemy import update
 
+from app.clock import utc_now
 from app.config import Settings
 from app.db.models import Job
 from app.db.session import transaction
@@ -22,7 +23,6 @@ from app.jobs.execution import (
     lease_owner_pid,
     make_lease_owner,
     store_results,
-    utc_now,
 )
 from app.jobs.queue import pending_job_ids
 from tests.jobs import fake_pipeline

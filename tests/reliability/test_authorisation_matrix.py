@@ -29,7 +29,8 @@ from sqlalchemy import func, select, update
 
 from app.api.logs import JsonFormatter
 from app.api.session_auth import SESSION_COOKIE, VIEW_COOKIE, make_view_link, secret_key
-from app.db.models import ApiToken, Job, Scan, utc_now
+from app.clock import utc_now
+from app.db.models import ApiToken, Job, Scan
 from app.db.session import transaction
 from app.services.auth import hash_token
 from tests.api.conftest import (
