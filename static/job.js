@@ -1,0 +1,117 @@
+// One comparison job: its numbers, its changed regions, the 3D view, view links and downloads.
+
+import { API, ApiError, api, describeError, itemsOf } from "./api.js";
+import { decisionBadge, formatDate, formatNumber, formatVector, h, jobProgress, statusBadge } from "./dom.js";
+import { app, currentRender, schedulePoll, setCrumbs } from "./page.js";
+import { handleFailure } from "./session.js";
+
+function numbersTable(job) {
+  const registration = job.registration || {};
+  const timings = job.timings || {};
+  const rows = [
+    ["Status", [statusBadge(job), " ", jobProgress(job)]],
+    ["Decision", decisionBadge(job)],
+    ["Score", formatNumber(job.score)],
+    ["Threshold", formatNumber(job.threshold)],
+    ["Regions", job.n_regions ?? "—"],
+    ["Detector", `${job.method} · ${job.variant}`],
+    ["Registration fitness", formatNumber(registration.fitness)],
+    ["Registration RMSE", registration.rmse !== undefined ? `${formatNumber(registration.rmse)} m` : "—"],
+    ["Attempts", `${job.attempts} of ${job.max_attempts ?? "?"}`],
+    ["Created", formatDate(job.created_at)],
+    ["Started", formatDate(job.started_at)],
+    ["Finished", formatDate(job.finished_at)],
+  ];
+  const timingText = Object.entries(timings).map(([stage, seconds]) => `${stage} ${formatNumber(seconds, 3)} s`).join(" · ");
+  if (timingText) rows.push(["Timings", timingText]);
+  return h("table", { class: "table facts-table", id: "job-numbers" },
+    h("tbody", {}, rows.map(([name, value]) => h("tr", {}, h("th", {}, name), h("td", {}, value)))));
+}
+
+function regionsTable(regions) {
+  if (!regions.length) return h("p", { class: "muted", id: "no-regions" }, "No changed region.");
+  return h("table", { class: "table", id: "regions-table" },
+    h("thead", {}, h("tr", {}, ["#", "Kind", "Points", "Centroid (m)", "Size (m)", "Mean distance", "Max distance"].map((title) => h("th", {}, title)))),
+    h("tbody", {}, regions.map((region, index) => {
+      const size = region.bbox_min && region.bbox_max ? region.bbox_max.map((value, axis) => value - region.bbox_min[axis]) : null;
+      return h("tr", { dataset: { kind: region.kind } },
+        h("td", {}, String(index + 1)),
+        h("td", {}, h("span", { class: `badge badge-${region.kind}` }, region.kind)),
+        h("td", { class: "num" }, formatNumber(region.n_points)),
+        h("td", {}, formatVector(region.centroid)),
+        h("td", {}, size ? size.map((value) => formatNumber(value, 3)).join(" × ") : "—"),
+        h("td", { class: "num" }, formatNumber(region.mean_distance)),
+        h("td", { class: "num" }, formatNumber(region.max_distance)));
+    })));
+}
+
+export async function renderJob(jobId) {
+  const generation = currentRender();
+  const job = await api(`jobs/${jobId}`);
+  const [site, regions] = await Promise.all([
+    api(`sites/${job.site_id}`).catch(() => null),
+    job.status === "succeeded" ? api(`jobs/${jobId}/regions`).then(itemsOf) : Promise.resolve([]),
+  ]);
+  if (generation !== currentRender()) return;
+  setCrumbs(h("a", { href: "#/" }, "Sites"),
+    site ? h("a", { href: `#/sites/${site.id}` }, site.name) : h("span", {}, "site"),
+    h("span", {}, `job ${jobId.slice(0, 8)}`));
+
+  const finished = job.status === "succeeded";
+  const linkOutput = h("div", { id: "view-link-output", class: "view-link" });
+  const shareButton = h("button", { type: "button", id: "make-view-link", disabled: !finished }, "Make a view link");
+  shareButton.addEventListener("click", async () => {
+    try {
+      const answer = await api(`jobs/${jobId}/view-link`, { method: "POST" });
+      const field = h("input", { type: "text", readonly: true, value: answer.url, id: "view-link-url", size: 60 });
+      const copy = h("button", { type: "button" }, "Copy");
+      copy.addEventListener("click", async () => {
+        field.select();
+        try {
+          await navigator.clipboard.writeText(answer.url);
+          copy.textContent = "Copied";
+        } catch {
+          document.execCommand("copy");
+          copy.textContent = "Copied";
+        }
+      });
+      linkOutput.replaceChildren(field, copy,
+        h("p", { class: "muted" }, `Anyone with this link can open this job's 3D view, without a token, until ${formatDate(answer.expires_at)}.`));
+    } catch (failure) {
+      if (failure instanceof ApiError && failure.status === 401) return handleFailure(failure, "Making a view link");
+      linkOutput.replaceChildren(h("p", { class: "form-error" }, `No link: ${describeError(failure)}`));
+    }
+  });
+
+  const downloads = finished
+    ? h("ul", { class: "downloads", id: "downloads" },
+      h("li", {}, h("a", { href: `${API}/jobs/${jobId}/labels?format=ply`, download: `labels-${jobId}.ply` }, "Labels as PLY")),
+      h("li", {}, h("a", { href: `${API}/jobs/${jobId}/labels?format=las`, download: `labels-${jobId}.las` }, "Labels as LAS")),
+      h("li", {}, h("a", { href: `${API}/jobs/${jobId}/labels?format=npz`, download: `labels-${jobId}.npz`, id: "download-labels-npz" }, "Labels as npz")),
+      h("li", {}, h("a", { href: `${API}/jobs/${jobId}/regions`, download: `regions-${jobId}.json` }, "Regions as JSON")))
+    : h("p", { class: "muted" }, "Downloads appear when the job has succeeded.");
+
+  const failure = job.status === "failed"
+    ? h("div", { class: "failure", id: "job-error", role: "alert" },
+      h("strong", {}, "This job failed. "),
+      job.error || "No reason was recorded.",
+      h("p", { class: "muted" }, `Attempts: ${job.attempts} of ${job.max_attempts ?? "?"}.`))
+    : null;
+
+  const viewButton = finished
+    ? h("a", { class: "button primary", href: `/jobs/${jobId}/view`, target: "_blank", rel: "noopener", id: "open-3d-view" }, "Open 3D view")
+    : h("span", { class: "button disabled", title: "The 3D view opens when the job has succeeded" }, "Open 3D view");
+
+  app.replaceChildren(
+    h("section", { class: "card" },
+      h("div", { class: "title-row" }, h("h1", {}, "Comparison job"), h("div", { class: "actions" }, viewButton, shareButton)),
+      linkOutput,
+      failure,
+      numbersTable(job)),
+    h("section", { class: "card" }, h("h2", {}, `Regions (${finished ? regions.length : "—"})`), finished ? regionsTable(regions) : h("p", { class: "muted" }, "Regions appear when the job has succeeded.")),
+    h("section", { class: "card" }, h("h2", {}, "Downloads"), downloads));
+
+  if (job.status === "queued" || job.status === "running") {
+    schedulePoll(() => renderJob(jobId).catch((failure) => handleFailure(failure, "Refreshing the job")));
+  }
+}
