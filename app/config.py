@@ -33,6 +33,13 @@ DEFAULT_TOKEN_CACHE_SECONDS = 5.0
 """Default of ``token_cache_seconds``: how long an API process trusts a token it authenticated
 without reading its row again (:class:`app.services.auth.TokenCache`)."""
 
+DEFAULT_VIEWER_POINT_BUDGET = 1_000_000
+"""Default of ``viewer_point_budget``: the most points a job's 3D view sends to a browser."""
+
+DEFAULT_VIEWER_IDLE_SECONDS = 300.0
+"""Default of ``viewer_idle_seconds``: how long a job's 3D view server outlives its last
+browser connection."""
+
 
 class Settings(BaseSettings):
     """Service settings; ``SCANDIFF_DATA_DIR=/srv/scandiff`` etc. override the defaults."""
@@ -93,6 +100,19 @@ class Settings(BaseSettings):
         "row again (default 5, >= 0; 0 disables the cache). A revocation through `scandiff "
         "token revoke` ends cached uses at once; one made directly in the database is seen "
         "within this many seconds.",
+    )
+    viewer_point_budget: int = Field(
+        default=DEFAULT_VIEWER_POINT_BUDGET,
+        ge=1,
+        description="The most points over all layers a job's 3D view sends to a browser "
+        "(about 15 MB per million); larger clouds are subsampled, changed points first.",
+    )
+    viewer_idle_seconds: float = Field(
+        default=DEFAULT_VIEWER_IDLE_SECONDS,
+        gt=0,
+        allow_inf_nan=False,
+        description="Seconds a job's 3D view server keeps running after its last browser "
+        "connection closed.",
     )
     secret_key: str | None = Field(
         default=None, description="Signs view links and cookies; generated in data_dir if unset."

@@ -7,11 +7,11 @@ migrations and sweeps leftovers before starting it.
 
 from __future__ import annotations
 
-import importlib
 import logging
 
 from fastapi import FastAPI
 
+from app.api.browser import include_browser_routes
 from app.api.concurrency import ConcurrencyLimitMiddleware
 from app.api.errors import document_error_shape, install_error_handlers
 from app.api.logs import RequestLogMiddleware, configure_logging
@@ -22,25 +22,11 @@ from app.services.health import service_version
 
 logger = logging.getLogger("scandiff.api")
 
-OPTIONAL_ROUTER_MODULES = ("app.viewer.routes",)
-"""Modules exposing a ``router`` mounted when present (built by other parts of the project)."""
-
 DESCRIPTION = (
     "Detects and locates changes between 3D scans of a site. Authenticate with "
     "`Authorization: Bearer <token>` (`scandiff token create`). Every error is "
     '`{"error": <code>, "detail": <message>}`.'
 )
-
-
-def _include_optional_routers(app: FastAPI) -> None:
-    for module_name in OPTIONAL_ROUTER_MODULES:
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name == module_name:
-                continue
-            raise
-        app.include_router(module.router)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -65,6 +51,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.add_middleware(RequestLogMiddleware)
     app.include_router(api_router)
-    _include_optional_routers(app)
+    include_browser_routes(app, settings)
     document_error_shape(app)
     return app

@@ -1,5 +1,5 @@
-"""Dependencies: settings, the request's database session (its one transaction owner), and the
-authenticated principal with its role checks."""
+"""Dependencies: settings, the request's database session (its one transaction owner), the
+authenticated principal with its role checks, and the app's 3D viewers."""
 
 from __future__ import annotations
 
@@ -14,12 +14,18 @@ from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from app.api.concurrency import SAFE_METHODS
-from app.api.session_auth import principal_from_session_cookie
+from app.api.session_auth import SESSION_COOKIE, principal_from_session_cookie
 from app.config import Settings
 from app.db.session import read_transaction_wrote, session_factory
 from app.services import auth
 from app.services.auth import Principal
+from app.services.errors import AuthenticationError
 from app.services.transaction import commit, end_read_transaction, rollback
+from app.viewer.manager import ViewerManager
+
+SESSION_ENDED = (
+    "your session has ended: its token was revoked or the session expired; sign in again"
+)
 
 
 async def get_app_settings(request: Request) -> Settings:
@@ -106,19 +112,20 @@ async def get_principal(
         if principal is not None:
             return principal
     return await run_in_threadpool(
-        _principal_from_database, request, session, credentials, revocations
+        _principal_from_database, request, session, settings, credentials, revocations
     )
 
 
 def _principal_from_database(
     request: Request,
     session: Session,
+    settings: Settings,
     credentials: HTTPAuthorizationCredentials | None,
     revocations: Path,
 ) -> Principal:
     try:
         if "authorization" not in request.headers:
-            principal = principal_from_session_cookie(request, session)
+            principal = principal_from_session_cookie(request, session, settings)
             if principal is not None:
                 return principal
         token = credentials.credentials if credentials else None
@@ -133,9 +140,36 @@ def _principal_from_database(
 PrincipalDep = Annotated[Principal, Depends(get_principal)]
 
 
+async def get_session_principal(
+    request: Request,
+    session: SessionDep,
+    settings: SettingsDep,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Security(bearer_scheme)],
+) -> Principal:
+    """:func:`get_principal`, except that a request whose session cookie no longer works gets
+    a 401 ``session_ended`` (the dashboard then asks to sign in again)."""
+    try:
+        return await get_principal(request, session, settings, credentials)
+    except AuthenticationError:
+        if request.cookies.get(SESSION_COOKIE):
+            raise AuthenticationError(SESSION_ENDED, code="session_ended") from None
+        raise
+
+
+SessionPrincipalDep = Annotated[Principal, Depends(get_session_principal)]
+
+
 async def get_writer(principal: PrincipalDep) -> Principal:
     """The caller, if allowed to write (writer or admin); 403 for readers."""
     return auth.require_role(principal, "writer")
 
 
 WriterDep = Annotated[Principal, Depends(get_writer)]
+
+
+async def get_viewer_manager(request: Request) -> ViewerManager:
+    """The app's per-job 3D viewers (``app.state.viewer_manager``)."""
+    return request.app.state.viewer_manager
+
+
+ViewerManagerDep = Annotated[ViewerManager, Depends(get_viewer_manager)]

@@ -27,22 +27,20 @@ import json
 import os
 import secrets
 import time
-from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-from sqlalchemy import select
 from sqlalchemy.orm import Session
 from starlette.requests import HTTPConnection
 
-from app.config import Settings, get_settings
+from app.config import Settings
 from app.db.models import ApiToken
-from app.services.auth import Principal, hash_token
+from app.services.auth import Principal
+from app.viewer.access import ViewGrant
 
 SESSION_COOKIE = "scandiff_session"
-VIEW_COOKIE = "scandiff_view"
 SESSION_TTL_SECONDS = 12 * 3600
 SECRET_KEY_FILE = "secret-key"
 SESSION_PURPOSE = "session"
@@ -58,23 +56,7 @@ class SignatureInvalidError(Exception):
         self.expired = expired
 
 
-@dataclass(frozen=True)
-class ViewGrant:
-    """Why a connection may see a job's 3D view."""
-
-    job_id: str
-    token_id: str
-    via: str  # "session" or "link"
-    expires_at: float
-
-
 # -- keys and signatures -----------------------------------------------------------------------
-
-
-def settings_of(connection: HTTPConnection) -> Settings:
-    """The app's settings (``app.state.settings``), else the process-wide ones."""
-    settings = getattr(connection.app.state, "settings", None)
-    return settings if isinstance(settings, Settings) else get_settings()
 
 
 def secret_key(settings: Settings) -> bytes:
@@ -154,34 +136,24 @@ def verify(value: str, purpose: str, key: bytes, *, now: float | None = None) ->
 # -- tokens and sessions -----------------------------------------------------------------------
 
 
-def find_api_token(session: Session, raw_token: str) -> ApiToken | None:
-    """The live (not revoked) token row for a raw token."""
-    if not raw_token or not raw_token.strip():
-        return None
-    row = session.scalars(
-        select(ApiToken).where(ApiToken.token_hash == hash_token(raw_token.strip()))
-    ).first()
-    return row if row is not None and row.revoked_at is None else None
-
-
 def live_token_by_id(session: Session, token_id: str) -> ApiToken | None:
     """The token row with this id unless it was revoked."""
     row = session.get(ApiToken, token_id)
     return row if row is not None and row.revoked_at is None else None
 
 
-def make_session_cookie(token: ApiToken, key: bytes, ttl: float = SESSION_TTL_SECONDS) -> str:
-    """The signed session cookie value for a token row."""
-    return sign({"tid": token.id, "exp": int(time.time() + ttl)}, SESSION_PURPOSE, key)
+def make_session_cookie(token_id: str, key: bytes, ttl: float = SESSION_TTL_SECONDS) -> str:
+    """The signed session cookie value for the token ``token_id``."""
+    return sign({"tid": token_id, "exp": int(time.time() + ttl)}, SESSION_PURPOSE, key)
 
 
-def session_token_id(connection: HTTPConnection) -> str | None:
-    """The token id in the connection's valid session cookie, else None."""
+def session_token_id(connection: HTTPConnection, key: bytes) -> str | None:
+    """The token id in the connection's session cookie if signed with ``key``, else None."""
     value = connection.cookies.get(SESSION_COOKIE)
     if not value:
         return None
     try:
-        payload = verify(value, SESSION_PURPOSE, secret_key(settings_of(connection)))
+        payload = verify(value, SESSION_PURPOSE, key)
     except SignatureInvalidError:
         return None
     token_id = payload.get("tid")
@@ -197,14 +169,16 @@ def same_origin(connection: HTTPConnection) -> bool:
     return urlsplit(origin).netloc.lower() == host.lower()
 
 
-def token_from_session_cookie(connection: HTTPConnection, session: Session) -> ApiToken | None:
+def token_from_session_cookie(
+    connection: HTTPConnection, session: Session, settings: Settings
+) -> ApiToken | None:
     """The live token row behind the request's session cookie, or None.
 
     For requests that change things (not GET/HEAD/OPTIONS) and for websockets the ``Origin``,
     when present, must be this server: a second guard against cross-site requests besides
     SameSite=Strict.
     """
-    token_id = session_token_id(connection)
+    token_id = session_token_id(connection, secret_key(settings))
     if token_id is None:
         return None
     method = connection.scope.get("method", "GET") if connection.scope["type"] == "http" else ""
@@ -213,9 +187,11 @@ def token_from_session_cookie(connection: HTTPConnection, session: Session) -> A
     return live_token_by_id(session, token_id)
 
 
-def principal_from_session_cookie(connection: HTTPConnection, session: Session) -> Principal | None:
+def principal_from_session_cookie(
+    connection: HTTPConnection, session: Session, settings: Settings
+) -> Principal | None:
     """The principal of the request's session cookie (for the API's bearer dependency)."""
-    token = token_from_session_cookie(connection, session)
+    token = token_from_session_cookie(connection, session, settings)
     if token is None:
         return None
     return Principal(organisation_id=token.organisation_id, role=token.role, token_id=token.id)

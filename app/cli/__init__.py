@@ -7,30 +7,23 @@ subparser and sets ``handler`` (a function ``(args) -> int`` returning the exit 
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 from collections.abc import Sequence
 
 from pydantic import ValidationError
 
-EXIT_BAD_INPUT = 2
+from app.cli import compare, serve, tokens
 
-SUBCOMMAND_MODULES = ("app.cli.compare", "app.cli.serve", "app.cli.tokens")
+EXIT_BAD_INPUT = 2
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The top-level parser with every available subcommand."""
+    """The top-level parser with every subcommand."""
     parser = argparse.ArgumentParser(
         prog="scandiff", description="Detect and locate changes between 3D scans of a site."
     )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module_name in SUBCOMMAND_MODULES:
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name == module_name:
-                continue  # subcommand not built yet
-            raise
+    for module in (compare, serve, tokens):
         module.add_parser(subparsers)
     return parser
 

@@ -3,7 +3,7 @@
 Reads the job row (registration transform, decision), its regions, both scan files (with the
 core's readers) and the per-point labels the worker wrote to ``results_dir/<job_id>/labels.npz``;
 returns the :class:`~app.viewer.scene.SceneData` the 3D view draws.  Authorisation is the
-caller's business (the router checks the job belongs to the viewer's organisation first).
+caller's business (the viewer's routes ask their authoriser first).
 """
 
 from __future__ import annotations
@@ -38,6 +38,25 @@ def job_labels_path(settings: Settings, job: Job) -> Path:
         stored = Path(job.labels_path)
         return stored if stored.is_absolute() else settings.data_dir / stored
     return default
+
+
+def job_view_problem(settings: Settings, job_id: str) -> ViewUnavailableError | None:
+    """Why the job's view cannot open (no such job, failed, not finished yet), or None."""
+    with session_factory(settings.sqlalchemy_url, read_only=True)() as session:
+        job = session.get(Job, job_id)
+        if job is None:
+            return ViewUnavailableError(f"job {job_id} not found", status=404)
+        if job.status == JobStatus.FAILED:
+            return ViewUnavailableError(
+                f"job {job_id} failed: {job.error or 'no reason recorded'}", status=409
+            )
+        if job.status != JobStatus.SUCCEEDED:
+            return ViewUnavailableError(
+                f"job {job_id} is still {job.status} ({job.progress:.0%}); the 3D view opens "
+                "once it has finished",
+                status=409,
+            )
+        return None
 
 
 def load_job_scene(

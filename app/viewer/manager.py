@@ -1,7 +1,7 @@
 """Per-job viser servers, started on demand on 127.0.0.1 and stopped when idle.
 
 The browser never talks to a viser server directly: FastAPI serves the client page and proxies
-its websocket (``app.api.browser``), so every connection passes the service's auth.  Each job
+its websocket (:mod:`app.viewer.routes`), so every connection passes the service's auth.  Each job
 gets its own ``ViserServer(host="127.0.0.1", port=0)``; the port actually bound is read back
 with ``get_port()`` (viser silently moves to port+1 when a port is busy).  A reaper thread stops
 servers that had no proxied connection for ``idle_seconds``.
@@ -18,6 +18,7 @@ from typing import Any
 
 import viser
 
+from app.config import DEFAULT_VIEWER_IDLE_SECONDS
 from app.viewer.scene import SceneData
 from app.viewer.viser_scene import ClientScene, build_client_scene, configure_server
 
@@ -26,7 +27,8 @@ logger = logging.getLogger("scandiff.viewer")
 SceneLoader = Callable[[str], tuple[SceneData, str]]
 """Loads a job's scene: ``loader(job_id) -> (scene data, title)``."""
 
-DEFAULT_IDLE_SECONDS = 300.0
+DEFAULT_IDLE_SECONDS = DEFAULT_VIEWER_IDLE_SECONDS
+"""Seconds a viewer outlives its last connection; the default of ``viewer_idle_seconds``."""
 
 
 @dataclass

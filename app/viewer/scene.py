@@ -22,14 +22,16 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from app.config import DEFAULT_VIEWER_POINT_BUDGET
 from app.core.registration import apply_transform
 
 LABEL_UNOBSERVED = -1
 LABEL_UNCHANGED = 0
 LABEL_CHANGED = 1
 
-DEFAULT_POINT_BUDGET = 1_000_000
-"""Most points sent to a browser for one job (about 15 MB over the websocket)."""
+DEFAULT_POINT_BUDGET = DEFAULT_VIEWER_POINT_BUDGET
+"""Most points sent to a browser for one job (about 15 MB over the websocket); the default of
+the ``viewer_point_budget`` setting."""
 
 CHANGED_SHARE_OF_BUDGET = 0.5
 """Changed points (removed + added) may use at most this share of the budget."""

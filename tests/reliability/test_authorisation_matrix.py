@@ -28,11 +28,12 @@ import pytest
 from sqlalchemy import func, select, update
 
 from app.api.logs import JsonFormatter
-from app.api.session_auth import SESSION_COOKIE, VIEW_COOKIE, make_view_link, secret_key
+from app.api.session_auth import SESSION_COOKIE, make_view_link, secret_key
 from app.clock import utc_now
 from app.db.models import ApiToken, Job, Scan
 from app.db.session import transaction
 from app.services.auth import hash_token
+from app.viewer.access import VIEW_COOKIE
 from tests.api.conftest import (
     ApiServer,
     create_site,
