@@ -13,8 +13,7 @@ from collections.abc import Sequence
 from pydantic import ValidationError
 
 from app.cli import compare, serve, tokens
-
-EXIT_BAD_INPUT = 2
+from app.cli.exit_status import EXIT_BAD_INPUT
 
 
 def build_parser() -> argparse.ArgumentParser:

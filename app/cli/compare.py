@@ -12,13 +12,12 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from app.cli.exit_status import EXIT_BAD_INPUT
 from app.core.errors import InputError
 
 if TYPE_CHECKING:  # the numeric stack is imported when the command runs, not to build the parser
     from app.core.cloud import PointCloud
     from app.core.pipeline import ComparisonResult
-
-EXIT_BAD_INPUT = 2
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:

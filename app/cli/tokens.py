@@ -23,13 +23,13 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from app.cli.exit_status import EXIT_BAD_INPUT
 from app.config import Settings
 
 if TYPE_CHECKING:  # SQLAlchemy is imported when a command runs, not to build the parser
     from app.services.auth import TokenSummary
 
 ROLES = ("reader", "writer", "admin")  # app.services.auth.ROLES, without importing SQLAlchemy
-EXIT_BAD_INPUT = 2
 LIST_COLUMNS = ("id", "organisation", "role", "name", "created", "revoked")
 
 
