@@ -34,9 +34,9 @@ ORGANISATION_PATH = "/api/v1/organisation"
 
 @dataclass(frozen=True)
 class Usage:
-    """An organisation's usage and caps (None = unlimited)."""
+    """An organisation (its id and name), its usage and its caps (None = unlimited)."""
 
-    organisation_id: str
+    id: str
     name: str
     queued_jobs: int
     max_queued_jobs: int | None
@@ -146,7 +146,7 @@ def organisation_usage(session: Session, settings: Settings, principal: Principa
     if organisation is None:
         raise NotFoundError(f"organisation {principal.organisation_id} not found")
     return Usage(
-        organisation_id=organisation.id,
+        id=organisation.id,
         name=organisation.name,
         queued_jobs=queued_jobs(session, principal),
         max_queued_jobs=settings.max_queued_jobs_per_organisation,

@@ -17,4 +17,4 @@ def get_organisation(
 ) -> OrganisationRead:
     """The caller's organisation: unfinished jobs and stored bytes, with their caps."""
     usage = quotas.organisation_usage(session, settings, principal)
-    return OrganisationRead.from_usage(usage)
+    return OrganisationRead.from_model(usage)
