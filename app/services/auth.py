@@ -22,13 +22,13 @@ import secrets
 import threading
 import time
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from datetime import datetime
 from pathlib import Path
 
 from sqlalchemy import ColumnElement, event, select, update
 from sqlalchemy.orm import Session
 
-from app.clock import iso_utc
+from app.clock import iso_utc, utc_now
 from app.config import DEFAULT_TOKEN_CACHE_SECONDS
 from app.db.models import ApiToken, Organisation
 from app.services.errors import (
@@ -218,7 +218,7 @@ def revoke_token(session: Session, token_id: str, revocations: Path | None) -> b
     revoked = session.execute(
         update(ApiToken)
         .where(ApiToken.id == token_id, ApiToken.revoked_at.is_(None))
-        .values(revoked_at=datetime.now(UTC))
+        .values(revoked_at=utc_now())
     ).rowcount
     if revoked:
         # The session event, not app.services.transaction.after_commit: it also fires for the

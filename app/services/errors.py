@@ -7,12 +7,27 @@ errors (:class:`app.core.errors.InputError` and subclasses) are mapped there too
 
 from __future__ import annotations
 
+from typing import Any
+
 
 class AppError(Exception):
-    """Base class: an expected failure with an HTTP status, a stable code and a message."""
+    """Base class: an expected failure with an HTTP status, a stable code and a message.
+
+    A subclass names its status and default code on its class line:
+    ``class NotFoundError(AppError, status_code=404, code="not_found")``.
+    """
 
     status_code: int = 400
     code: str = "bad_request"
+
+    def __init_subclass__(
+        cls, *, status_code: int | None = None, code: str | None = None, **kwargs: Any
+    ) -> None:
+        super().__init_subclass__(**kwargs)
+        if status_code is not None:
+            cls.status_code = status_code
+        if code is not None:
+            cls.code = code
 
     def __init__(
         self, detail: str, *, code: str | None = None, headers: dict[str, str] | None = None
@@ -24,75 +39,45 @@ class AppError(Exception):
             self.code = code
 
 
-class BadRequestError(AppError):
-    """The request is malformed (400)."""
-
-    status_code = 400
-    code = "bad_request"
+class BadRequestError(AppError, status_code=400, code="bad_request"):
+    """The request is malformed."""
 
 
-class AuthenticationError(AppError):
-    """No token, or a token that is unknown or revoked (401)."""
-
-    status_code = 401
-    code = "unauthorized"
+class AuthenticationError(AppError, status_code=401, code="unauthorized"):
+    """No token, or a token that is unknown or revoked."""
 
 
-class PermissionDeniedError(AppError):
-    """The token's role does not allow this (403)."""
-
-    status_code = 403
-    code = "forbidden"
+class PermissionDeniedError(AppError, status_code=403, code="forbidden"):
+    """The token's role does not allow this."""
 
 
-class NotFoundError(AppError):
-    """The object does not exist or belongs to another organisation (404)."""
-
-    status_code = 404
-    code = "not_found"
+class NotFoundError(AppError, status_code=404, code="not_found"):
+    """The object does not exist or belongs to another organisation."""
 
 
-class ConflictError(AppError):
-    """The request conflicts with the current state (409)."""
-
-    status_code = 409
-    code = "conflict"
+class ConflictError(AppError, status_code=409, code="conflict"):
+    """The request conflicts with the current state."""
 
 
-class PayloadTooLargeError(AppError):
-    """The body is larger than the configured cap (413)."""
-
-    status_code = 413
-    code = "payload_too_large"
+class PayloadTooLargeError(AppError, status_code=413, code="payload_too_large"):
+    """The body is larger than the configured cap."""
 
 
-class UnsupportedMediaError(AppError):
-    """The content is in no supported format (415)."""
-
-    status_code = 415
-    code = "unsupported_media_type"
+class UnsupportedMediaError(AppError, status_code=415, code="unsupported_media_type"):
+    """The content is in no supported format."""
 
 
-class ValidationFailedError(AppError):
-    """The request is well-formed but its values are not acceptable (422)."""
-
-    status_code = 422
-    code = "validation_error"
+class ValidationFailedError(AppError, status_code=422, code="validation_error"):
+    """The request is well-formed but its values are not acceptable."""
 
 
-class TooManyRequestsError(AppError):
-    """A per-organisation cap on work in progress is reached; retry later (429)."""
-
-    status_code = 429
-    code = "too_many_requests"
+class TooManyRequestsError(AppError, status_code=429, code="too_many_requests"):
+    """A per-organisation cap on work in progress is reached; retry later."""
 
     def __init__(self, detail: str, *, retry_after_seconds: int, code: str | None = None) -> None:
         super().__init__(detail, code=code, headers={"Retry-After": str(retry_after_seconds)})
         self.retry_after_seconds = retry_after_seconds
 
 
-class InsufficientStorageError(AppError):
-    """The organisation's storage quota cannot hold this (507)."""
-
-    status_code = 507
-    code = "insufficient_storage"
+class InsufficientStorageError(AppError, status_code=507, code="insufficient_storage"):
+    """The organisation's storage quota cannot hold this."""

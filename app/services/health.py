@@ -10,7 +10,9 @@ from typing import Any
 from sqlalchemy import text
 
 from app.config import Settings
+from app.db.migrate import head_revision
 from app.db.session import transaction
+from app.jobs.queue import queue_health as report_queue_health
 
 logger = logging.getLogger("scandiff.services.health")
 
@@ -26,8 +28,6 @@ def service_version() -> str:
 
 def database_health(settings: Settings) -> dict[str, Any]:
     """``{"status": "ok", "revision": ...}`` or ``{"status": "error", "detail": ...}``."""
-    from app.db.migrate import head_revision
-
     try:
         with transaction(settings.sqlalchemy_url) as session:
             session.execute(text("SELECT 1"))
@@ -47,12 +47,6 @@ def database_health(settings: Settings) -> dict[str, Any]:
 
 def queue_health(settings: Settings) -> dict[str, Any]:
     """What the job queue reports about itself (``app.jobs.queue.queue_health``)."""
-    try:
-        from app.jobs.queue import queue_health as report_queue_health
-    except ModuleNotFoundError as exc:
-        if exc.name != "app.jobs.queue":
-            raise
-        return {"status": "unknown", "detail": "the job queue is not installed"}
     try:
         return dict(report_queue_health(settings))
     except Exception as exc:

@@ -18,7 +18,9 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from app.db.models import IdempotencyRecord
+from app.services.auth import Principal
 from app.services.errors import ValidationFailedError
+from app.services.scoping import scoped
 
 MAX_KEY_LENGTH = 200
 PENDING_STATUS = 0
@@ -68,13 +70,11 @@ def _replay(record: IdempotencyRecord, fingerprint: str) -> StoredResponse:
 
 
 def find_response(
-    session: Session, organisation_id: str, key: str, fingerprint: str
+    session: Session, principal: Principal, key: str, fingerprint: str
 ) -> StoredResponse | None:
     """The stored response for ``key`` (422 if it was for another request), or None."""
     record = session.scalar(
-        select(IdempotencyRecord).where(
-            IdempotencyRecord.organisation_id == organisation_id, IdempotencyRecord.key == key
-        )
+        scoped(select(IdempotencyRecord).where(IdempotencyRecord.key == key), principal)
     )
     if record is None or record.status_code == PENDING_STATUS:
         return None
@@ -82,18 +82,18 @@ def find_response(
 
 
 def claim(
-    session: Session, organisation_id: str, key: str, fingerprint: str
+    session: Session, principal: Principal, key: str, fingerprint: str
 ) -> tuple[IdempotencyRecord | None, StoredResponse | None]:
     """Claim ``key`` in this transaction: ``(record, None)``, or ``(None, stored)`` to replay.
 
     The claim is a row insert in a savepoint: a concurrent claimer waits for the winner's
     commit (PostgreSQL) or for its turn (SQLite's ``BEGIN IMMEDIATE``) and then replays.
     """
-    stored = find_response(session, organisation_id, key, fingerprint)
+    stored = find_response(session, principal, key, fingerprint)
     if stored is not None:
         return None, stored
     record = IdempotencyRecord(
-        organisation_id=organisation_id,
+        organisation_id=principal.organisation_id,
         key=key,
         request_fingerprint=fingerprint,
         status_code=PENDING_STATUS,
@@ -104,7 +104,7 @@ def claim(
             session.add(record)
             session.flush()
     except IntegrityError:
-        stored = find_response(session, organisation_id, key, fingerprint)
+        stored = find_response(session, principal, key, fingerprint)
         if stored is None:
             raise
         return None, stored

@@ -1,15 +1,15 @@
 """Comparison jobs: creation (enqueued after commit), reads, the site timeline and regions.
 
 The job row is the truth; the queue only carries its id.  Every job is created by
-:func:`new_job`, which first checks the organisation's cap on unfinished jobs (429, under the
-organisation lock of :mod:`app.services.quotas`).  A job is enqueued only after the
+:func:`new_job`, which checks the organisation's cap on unfinished jobs (429) under the
+organisation lock of :mod:`app.services.quotas`, in the transaction that inserts the job: the
+one check of that cap, for an upload as for ``POST /jobs``.  A job is enqueued only after the
 transaction that created it committed (an enqueue that fails leaves the job ``queued`` for the
 recovery sweep).  Running jobs is the worker's business (:mod:`app.jobs`).
 """
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Sequence
 from datetime import datetime
 from typing import Any
@@ -20,34 +20,22 @@ from sqlalchemy.orm import Session
 from app.clock import as_utc
 from app.config import Settings
 from app.db.models import Job, JobStatus, Region, Scan
+from app.jobs.queue import enqueue_job
 from app.services import idempotency, quotas, sites
 from app.services.auth import Principal
-from app.services.errors import NotFoundError, ValidationFailedError
+from app.services.errors import ValidationFailedError
 from app.services.idempotency import StoredResponse
 from app.services.paging import newest_first_page
 from app.services.schemas import JobCreate, JobRead
+from app.services.scoping import get_owned, scoped
 from app.services.transaction import after_commit
-
-logger = logging.getLogger("scandiff.services.jobs")
-
-
-def enqueue_after_commit(job_id: str, settings: Settings) -> None:
-    """Hand the job id to the queue (called once the job row is committed)."""
-    try:
-        from app.jobs.queue import enqueue_job
-    except ModuleNotFoundError as exc:
-        if exc.name not in ("app.jobs.queue",):
-            raise
-        logger.warning("job queue not available; job %s waits for the recovery sweep", job_id)
-        return
-    enqueue_job(job_id, settings)
 
 
 def new_job(
     session: Session,
     settings: Settings,
+    principal: Principal,
     *,
-    organisation_id: str,
     site_id: str,
     reference_scan_id: str,
     scan_id: str,
@@ -55,11 +43,11 @@ def new_job(
     variant: str,
     params: dict[str, Any],
 ) -> Job:
-    """Insert a queued job (parameters validated; 429 at the cap) and enqueue it after commit."""
-    quotas.lock_organisation(session, organisation_id)
-    quotas.check_queued_jobs(session, settings, organisation_id)
+    """Insert a queued job (429 at the organisation's cap) and enqueue it after commit."""
+    quotas.lock_organisation(session, principal)
+    quotas.check_queued_jobs(session, settings, principal)
     job = Job(
-        organisation_id=organisation_id,
+        organisation_id=principal.organisation_id,
         site_id=site_id,
         reference_scan_id=reference_scan_id,
         scan_id=scan_id,
@@ -74,17 +62,8 @@ def new_job(
     session.add(job)
     session.flush()
     job_id = job.id
-    after_commit(session, lambda: enqueue_after_commit(job_id, settings))
+    after_commit(session, lambda: enqueue_job(job_id, settings))
     return job
-
-
-def _get_scan(session: Session, principal: Principal, scan_id: str) -> Scan:
-    scan = session.scalar(
-        select(Scan).where(Scan.id == scan_id, Scan.organisation_id == principal.organisation_id)
-    )
-    if scan is None:
-        raise NotFoundError(f"scan {scan_id} not found")
-    return scan
 
 
 def create_job(
@@ -101,11 +80,11 @@ def create_job(
         fingerprint = idempotency.request_fingerprint(
             "POST", "/api/v1/jobs", payload.model_dump(mode="json")
         )
-        record, stored = idempotency.claim(session, principal.organisation_id, key, fingerprint)
+        record, stored = idempotency.claim(session, principal, key, fingerprint)
         if stored is not None:
             return stored
-    reference = _get_scan(session, principal, payload.reference_scan_id)
-    scan = _get_scan(session, principal, payload.scan_id)
+    reference = get_owned(session, principal, Scan, payload.reference_scan_id)
+    scan = get_owned(session, principal, Scan, payload.scan_id)
     if reference.site_id != scan.site_id:
         raise ValidationFailedError(
             "the reference and the scan belong to different sites; compare scans of one site",
@@ -118,7 +97,7 @@ def create_job(
     job = new_job(
         session,
         settings,
-        organisation_id=principal.organisation_id,
+        principal,
         site_id=site.id,
         reference_scan_id=reference.id,
         scan_id=scan.id,
@@ -132,12 +111,7 @@ def create_job(
 
 def get_job(session: Session, principal: Principal, job_id: str) -> Job:
     """The principal's job ``job_id``; 404 when it does not exist or is another's."""
-    job = session.scalar(
-        select(Job).where(Job.id == job_id, Job.organisation_id == principal.organisation_id)
-    )
-    if job is None:
-        raise NotFoundError(f"job {job_id} not found")
-    return job
+    return get_owned(session, principal, Job, job_id)
 
 
 def list_site_jobs(
@@ -146,16 +120,14 @@ def list_site_jobs(
     site_id: str,
     *,
     changed: bool | None,
-    status: str | None,
+    status: JobStatus | None,
     since: datetime | None,
     limit: int,
     cursor: str | None,
 ) -> tuple[Sequence[Job], str | None]:
     """A site's jobs, newest first, filtered by decision, status and creation time; one page."""
     site = sites.get_site(session, principal, site_id)
-    statement = select(Job).where(
-        Job.site_id == site.id, Job.organisation_id == principal.organisation_id
-    )
+    statement = scoped(select(Job).where(Job.site_id == site.id), principal)
     if changed is not None:
         statement = statement.where(Job.changed.is_(changed))
     if status is not None:

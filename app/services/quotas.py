@@ -8,8 +8,10 @@ deleted with them.
 The authoritative checks run inside the write transaction that inserts the scan or the job, after
 :func:`lock_organisation`: on SQLite that transaction is ``BEGIN IMMEDIATE`` (writers take turns),
 on PostgreSQL the organisation row is locked ``FOR UPDATE``, so two concurrent uploads of one
-organisation cannot both pass the check with the same usage.  Earlier checks (before a body is
-read, after it streamed) are optimisations that refuse sooner; they never replace the last one.
+organisation cannot both pass the check with the same usage.  The cap on unfinished jobs is
+checked there only, by :func:`app.services.jobs.new_job` (every job is created by it).  The
+storage cap is also checked earlier (before a body is read, while and after it streams): those
+checks refuse a large upload sooner and never replace the last one.
 """
 
 from __future__ import annotations
@@ -21,7 +23,9 @@ from sqlalchemy.orm import Session
 
 from app.config import Settings
 from app.db.models import Job, JobStatus, Organisation, Scan
+from app.services.auth import Principal
 from app.services.errors import InsufficientStorageError, NotFoundError, TooManyRequestsError
+from app.services.scoping import scoped
 
 RETRY_AFTER_SECONDS = 30
 """``Retry-After`` of a 429: jobs take seconds to minutes, a fleet should back off that long."""
@@ -30,9 +34,9 @@ ORGANISATION_PATH = "/api/v1/organisation"
 
 @dataclass(frozen=True)
 class Usage:
-    """An organisation's usage and caps (None = unlimited)."""
+    """An organisation (its id and name), its usage and its caps (None = unlimited)."""
 
-    organisation_id: str
+    id: str
     name: str
     queued_jobs: int
     max_queued_jobs: int | None
@@ -40,34 +44,29 @@ class Usage:
     max_stored_bytes: int | None
 
 
-def lock_organisation(session: Session, organisation_id: str) -> None:
+def lock_organisation(session: Session, principal: Principal) -> None:
     """Serialise quota checks of one organisation until the transaction ends.
 
     ``SELECT ... FOR UPDATE`` of the organisation row on PostgreSQL; SQLite has no row locks and
     needs none (its write transactions are ``BEGIN IMMEDIATE``, one at a time).
     """
     session.execute(
-        select(Organisation.id).where(Organisation.id == organisation_id).with_for_update()
+        select(Organisation.id)
+        .where(Organisation.id == principal.organisation_id)
+        .with_for_update()
     )
 
 
-def queued_jobs(session: Session, organisation_id: str) -> int:
+def queued_jobs(session: Session, principal: Principal) -> int:
     """The organisation's jobs that have not finished (queued or running)."""
-    count = session.scalar(
-        select(func.count())
-        .select_from(Job)
-        .where(Job.organisation_id == organisation_id, Job.status.in_(JobStatus.unfinished()))
-    )
+    unfinished = select(func.count()).select_from(Job).where(Job.status.in_(JobStatus.unfinished()))
+    count = session.scalar(scoped(unfinished, principal))
     return int(count or 0)
 
 
-def stored_bytes(session: Session, organisation_id: str) -> int:
+def stored_bytes(session: Session, principal: Principal) -> int:
     """Bytes of the organisation's scan files."""
-    total = session.scalar(
-        select(func.coalesce(func.sum(Scan.size_bytes), 0)).where(
-            Scan.organisation_id == organisation_id
-        )
-    )
+    total = session.scalar(scoped(select(func.coalesce(func.sum(Scan.size_bytes), 0)), principal))
     return int(total or 0)
 
 
@@ -97,13 +96,13 @@ def storage_message(used: int, cap: int, adding: int | None, *, at_least: bool =
 
 
 def check_queued_jobs(
-    session: Session, settings: Settings, organisation_id: str, adding: int = 1
+    session: Session, settings: Settings, principal: Principal, adding: int = 1
 ) -> None:
     """429 when ``adding`` more jobs would pass the organisation's cap on unfinished jobs."""
     cap = settings.max_queued_jobs_per_organisation
     if cap is None:
         return
-    queued = queued_jobs(session, organisation_id)
+    queued = queued_jobs(session, principal)
     if queued + adding > cap:
         raise TooManyRequestsError(
             queued_jobs_message(queued, cap),
@@ -122,35 +121,35 @@ def storage_error(
 
 
 def check_stored_bytes(
-    session: Session, settings: Settings, organisation_id: str, adding: int | None
+    session: Session, settings: Settings, principal: Principal, adding: int | None
 ) -> None:
     """507 when ``adding`` bytes more (None: any upload, at least 1 byte) pass the cap."""
     cap = settings.max_stored_bytes_per_organisation
     if cap is None:
         return
-    used = stored_bytes(session, organisation_id)
+    used = stored_bytes(session, principal)
     if used + (1 if adding is None else adding) > cap:
         raise storage_error(used, cap, adding)
 
 
-def remaining_bytes(session: Session, settings: Settings, organisation_id: str) -> int | None:
+def remaining_bytes(session: Session, settings: Settings, principal: Principal) -> int | None:
     """Bytes the organisation may still store (None = unlimited); a hint, not a reservation."""
     cap = settings.max_stored_bytes_per_organisation
     if cap is None:
         return None
-    return max(cap - stored_bytes(session, organisation_id), 0)
+    return max(cap - stored_bytes(session, principal), 0)
 
 
-def organisation_usage(session: Session, settings: Settings, organisation_id: str) -> Usage:
+def organisation_usage(session: Session, settings: Settings, principal: Principal) -> Usage:
     """The organisation's queued jobs and stored bytes with their caps."""
-    organisation = session.get(Organisation, organisation_id)
+    organisation = session.get(Organisation, principal.organisation_id)
     if organisation is None:
-        raise NotFoundError(f"organisation {organisation_id} not found")
+        raise NotFoundError(f"organisation {principal.organisation_id} not found")
     return Usage(
-        organisation_id=organisation.id,
+        id=organisation.id,
         name=organisation.name,
-        queued_jobs=queued_jobs(session, organisation_id),
+        queued_jobs=queued_jobs(session, principal),
         max_queued_jobs=settings.max_queued_jobs_per_organisation,
-        stored_bytes=stored_bytes(session, organisation_id),
+        stored_bytes=stored_bytes(session, principal),
         max_stored_bytes=settings.max_stored_bytes_per_organisation,
     )

@@ -2,13 +2,14 @@
 
 An upload never holds a database transaction while it reads the body or parses the cloud:
 a short read checks the site first (404, 409 without a reference, 422 for a bad detector) and
-the organisation's quotas (429 too many unfinished jobs, 507 when ``Content-Length`` alone would
-pass the storage cap), the body streams to a temporary file under the size cap and the storage
-left (507 as soon as it is passed), the quotas are checked again with the exact size, the core
-reader parses it (a malformed file is a 4xx with the core's message, nothing is stored), the file
-is renamed into place, and only then a short write transaction locks the organisation, checks
-the quotas a last time and inserts the scan and its job (and the idempotency record).  Any
-refusal leaves no row, and the file goes with the rolled-back transaction.
+the storage quota (507 when ``Content-Length`` alone would pass it), the body streams to a
+temporary file under the size cap and the storage left (507 as soon as it is passed), the
+storage quota is checked again with the exact size, the core reader parses it (a malformed file
+is a 4xx with the core's message, nothing is stored), the file is renamed into place, and only
+then a short write transaction locks the organisation, checks the storage quota a last time and
+inserts the scan and its job (:func:`app.services.jobs.new_job` checks the cap on unfinished
+jobs there: 429) and the idempotency record.  Any refusal leaves no row, and the file goes with
+the rolled-back transaction.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from app.services.errors import ConflictError, NotFoundError, ValidationFailedEr
 from app.services.idempotency import StoredResponse
 from app.services.paging import newest_first_page
 from app.services.schemas import JobRead, ScanRead, UploadRead
+from app.services.scoping import get_owned, scoped
 from app.services.transaction import after_rollback, end_read_transaction
 
 PARSE_SLOTS = threading.BoundedSemaphore(2)
@@ -101,21 +103,14 @@ def _key_was_used(session: Session, principal: Principal, key: str | None) -> bo
     """Whether ``key`` has a stored response (its retry must replay, never be refused)."""
     if key is None:
         return False
-    return (
-        session.scalar(
-            select(IdempotencyRecord.id).where(
-                IdempotencyRecord.organisation_id == principal.organisation_id,
-                IdempotencyRecord.key == key,
-            )
-        )
-        is not None
-    )
+    used = scoped(select(IdempotencyRecord.id).where(IdempotencyRecord.key == key), principal)
+    return session.scalar(used) is not None
 
 
 def _check_upload_target(
     session: Session, settings: Settings, principal: Principal, options: UploadOptions
 ) -> int | None:
-    """Site, reference, detector and quotas before the body is read; the storage left."""
+    """Site, reference, detector and storage quota before the body is read; the storage left."""
     site = sites.get_site(session, principal, options.site_id)
     if not options.reference:
         if site.reference_scan_id is None:
@@ -123,23 +118,17 @@ def _check_upload_target(
         sites.resolve_detector(site, options.method, options.variant)
     remaining = None
     if not _key_was_used(session, principal, options.idempotency_key):
-        if not options.reference:
-            quotas.check_queued_jobs(session, settings, principal.organisation_id)
-        quotas.check_stored_bytes(
-            session, settings, principal.organisation_id, options.declared_size
-        )
-        remaining = quotas.remaining_bytes(session, settings, principal.organisation_id)
+        quotas.check_stored_bytes(session, settings, principal, options.declared_size)
+        remaining = quotas.remaining_bytes(session, settings, principal)
     end_read_transaction(session)
     return remaining
 
 
-def _check_quotas(
-    session: Session, settings: Settings, principal: Principal, options: UploadOptions, size: int
+def _check_stored_bytes(
+    session: Session, settings: Settings, principal: Principal, size: int
 ) -> None:
-    """The quotas again, with the exact size, before the cloud is parsed (a read)."""
-    if not options.reference:
-        quotas.check_queued_jobs(session, settings, principal.organisation_id)
-    quotas.check_stored_bytes(session, settings, principal.organisation_id, size)
+    """The storage quota again, with the exact size, before the cloud is parsed (a read)."""
+    quotas.check_stored_bytes(session, settings, principal, size)
     end_read_transaction(session)
 
 
@@ -158,7 +147,7 @@ async def _within_storage_left(
 def _find_replay(
     session: Session, principal: Principal, key: str, fingerprint: str
 ) -> StoredResponse | None:
-    stored = idempotency.find_response(session, principal.organisation_id, key, fingerprint)
+    stored = idempotency.find_response(session, principal, key, fingerprint)
     end_read_transaction(session)
     return stored
 
@@ -214,15 +203,11 @@ def _register_upload(
     """Insert the scan (and its job) in the request's transaction; ``(response, created)``."""
     record = None
     if options.idempotency_key is not None:
-        record, stored = idempotency.claim(
-            session, principal.organisation_id, options.idempotency_key, fingerprint
-        )
+        record, stored = idempotency.claim(session, principal, options.idempotency_key, fingerprint)
         if stored is not None:
             return stored, False
-    quotas.lock_organisation(session, principal.organisation_id)
-    quotas.check_stored_bytes(session, settings, principal.organisation_id, scan.size_bytes)
-    if not options.reference:
-        quotas.check_queued_jobs(session, settings, principal.organisation_id)
+    quotas.lock_organisation(session, principal)
+    quotas.check_stored_bytes(session, settings, principal, scan.size_bytes)
     site = sites.get_site(session, principal, options.site_id)
     if not options.reference and site.reference_scan_id is None:
         raise ConflictError(no_reference_message(site.id), code="no_reference")
@@ -238,7 +223,7 @@ def _register_upload(
         job = jobs.new_job(
             session,
             settings,
-            organisation_id=principal.organisation_id,
+            principal,
             site_id=site.id,
             reference_scan_id=site.reference_scan_id,
             scan_id=scan.id,
@@ -294,7 +279,7 @@ async def upload_scan(
             if stored is not None:
                 return stored
         await anyio.to_thread.run_sync(
-            _check_quotas, session, settings, principal, keyed_options, received.size_bytes
+            _check_stored_bytes, session, settings, principal, received.size_bytes
         )
         parsed = await anyio.to_thread.run_sync(
             parse_upload, received.path, filename, received.head, settings.max_points
@@ -331,12 +316,7 @@ async def upload_scan(
 
 def get_scan(session: Session, principal: Principal, scan_id: str) -> Scan:
     """The principal's scan ``scan_id``; 404 when it does not exist or is another's."""
-    scan = session.scalar(
-        select(Scan).where(Scan.id == scan_id, Scan.organisation_id == principal.organisation_id)
-    )
-    if scan is None:
-        raise NotFoundError(f"scan {scan_id} not found")
-    return scan
+    return get_owned(session, principal, Scan, scan_id)
 
 
 def list_site_scans(
@@ -344,9 +324,7 @@ def list_site_scans(
 ) -> tuple[Sequence[Scan], str | None]:
     """A site's scans, newest first, one page."""
     site = sites.get_site(session, principal, site_id)
-    statement = select(Scan).where(
-        Scan.site_id == site.id, Scan.organisation_id == principal.organisation_id
-    )
+    statement = scoped(select(Scan).where(Scan.site_id == site.id), principal)
     return newest_first_page(session, statement, Scan, limit, cursor)
 
 

@@ -7,20 +7,25 @@ offset (SQLite hands them back naive).
 from __future__ import annotations
 
 from datetime import datetime
-from typing import TYPE_CHECKING, Annotated, Any, Generic, Literal, TypeVar
+from typing import Annotated, Any, Generic, Literal, Self, TypeVar
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StringConstraints
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    StringConstraints,
+)
 
 from app.clock import as_utc
-from app.db.models import Job, JobStatus, Region, Scan, Site
-
-if TYPE_CHECKING:
-    from app.services.quotas import Usage
-
+from app.db.models import JobStatus, Site
 
 UtcDatetime = Annotated[datetime, AfterValidator(as_utc)]
 Name = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=200)]
 Identifier = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=64)]
+JsonObject = Annotated[dict[str, Any], BeforeValidator(lambda value: value or {})]
+"""A JSON object column that reads as ``{}`` when it is empty or null."""
 
 ItemT = TypeVar("ItemT")
 
@@ -29,6 +34,17 @@ class StrictBody(BaseModel):
     """A request body that rejects unknown fields (a typo is a 422, not silently ignored)."""
 
     model_config = ConfigDict(extra="forbid")
+
+
+class RowRead(BaseModel):
+    """A response body whose fields are the attributes of the same names of a row."""
+
+    model_config = ConfigDict(from_attributes=True)
+
+    @classmethod
+    def from_model(cls, row: object) -> Self:
+        """Build from a row (a ``Scan``, ``Job``, quota ``Usage``...) by attribute name."""
+        return cls.model_validate(row)
 
 
 class DetectorConfig(StrictBody):
@@ -90,7 +106,7 @@ class ReferencePromote(StrictBody):
     scan_id: Identifier
 
 
-class ScanRead(BaseModel):
+class ScanRead(RowRead):
     """An uploaded scan: metadata of the stored original file."""
 
     id: str
@@ -106,24 +122,6 @@ class ScanRead(BaseModel):
     sensor_origin: list[float] | None = None
     created_at: UtcDatetime
 
-    @classmethod
-    def from_model(cls, scan: Scan) -> ScanRead:
-        """Build from a ``Scan`` row."""
-        return cls(
-            id=scan.id,
-            site_id=scan.site_id,
-            filename=scan.filename,
-            format=scan.format,
-            size_bytes=scan.size_bytes,
-            sha256=scan.sha256,
-            n_points=scan.n_points,
-            n_dropped=scan.n_dropped,
-            bbox_min=list(scan.bbox_min),
-            bbox_max=list(scan.bbox_max),
-            sensor_origin=list(scan.sensor_origin) if scan.sensor_origin is not None else None,
-            created_at=scan.created_at,
-        )
-
 
 class JobCreate(StrictBody):
     """Any comparison of two scans of one site; method/variant/params default to the site's."""
@@ -135,7 +133,7 @@ class JobCreate(StrictBody):
     params: dict[str, Any] | None = None
 
 
-class JobRead(BaseModel):
+class JobRead(RowRead):
     """A comparison job: its inputs, state and results."""
 
     id: str
@@ -149,7 +147,7 @@ class JobRead(BaseModel):
     max_attempts: int
     method: str
     variant: str
-    params: dict[str, Any]
+    params: JsonObject
     effective_params: dict[str, Any] | None = Field(
         default=None,
         description="Every parameter in effect once the job ran; POST /jobs with these params "
@@ -167,38 +165,8 @@ class JobRead(BaseModel):
     started_at: UtcDatetime | None
     finished_at: UtcDatetime | None
 
-    @classmethod
-    def from_model(cls, job: Job) -> JobRead:
-        """Build from a ``Job`` row."""
-        return cls(
-            id=job.id,
-            site_id=job.site_id,
-            reference_scan_id=job.reference_scan_id,
-            scan_id=job.scan_id,
-            status=job.status,  # type: ignore[arg-type]
-            progress=job.progress,
-            stage=job.stage,
-            attempts=job.attempts,
-            max_attempts=job.max_attempts,
-            method=job.method,
-            variant=job.variant,
-            params=dict(job.params or {}),
-            effective_params=job.effective_params,
-            score=job.score,
-            threshold=job.threshold,
-            changed=job.changed,
-            calibration=job.calibration,
-            registration=job.registration,
-            n_regions=job.n_regions,
-            error=job.error,
-            timings=job.timings,
-            created_at=job.created_at,
-            started_at=job.started_at,
-            finished_at=job.finished_at,
-        )
 
-
-class RegionRead(BaseModel):
+class RegionRead(RowRead):
     """A connected cluster of changed points (``added``: new in the scan; ``removed``: gone)."""
 
     id: str
@@ -209,20 +177,6 @@ class RegionRead(BaseModel):
     bbox_max: list[float]
     mean_distance: float
     max_distance: float
-
-    @classmethod
-    def from_model(cls, region: Region) -> RegionRead:
-        """Build from a ``Region`` row."""
-        return cls(
-            id=region.id,
-            kind=region.kind,
-            n_points=region.n_points,
-            centroid=list(region.centroid),
-            bbox_min=list(region.bbox_min),
-            bbox_max=list(region.bbox_max),
-            mean_distance=region.mean_distance,
-            max_distance=region.max_distance,
-        )
 
 
 class UploadRead(BaseModel):
@@ -255,7 +209,7 @@ class HealthRead(BaseModel):
     queue: dict[str, Any]
 
 
-class OrganisationRead(BaseModel):
+class OrganisationRead(RowRead):
     """The caller's organisation, its usage and its quotas (a null cap is unlimited)."""
 
     id: str
@@ -264,15 +218,3 @@ class OrganisationRead(BaseModel):
     max_queued_jobs: int | None = Field(description="Cap on queued_jobs; more is a 429.")
     stored_bytes: int = Field(description="Bytes of the organisation's scan files.")
     max_stored_bytes: int | None = Field(description="Cap on stored_bytes; more is a 507.")
-
-    @classmethod
-    def from_usage(cls, usage: Usage) -> OrganisationRead:
-        """Build from :class:`app.services.quotas.Usage`."""
-        return cls(
-            id=usage.organisation_id,
-            name=usage.name,
-            queued_jobs=usage.queued_jobs,
-            max_queued_jobs=usage.max_queued_jobs,
-            stored_bytes=usage.stored_bytes,
-            max_stored_bytes=usage.max_stored_bytes,
-        )

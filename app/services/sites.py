@@ -15,9 +15,10 @@ from app.core.pipeline import parse_comparison_params  # imported here, never in
 from app.db.models import Job, ReferenceHistory, Region, Scan, Site
 from app.services import storage
 from app.services.auth import Principal
-from app.services.errors import ConflictError, NotFoundError, ValidationFailedError
+from app.services.errors import ConflictError, ValidationFailedError
 from app.services.paging import newest_first_page
 from app.services.schemas import SiteCreate, SiteUpdate
+from app.services.scoping import get_owned, scoped
 from app.services.transaction import after_commit
 
 DEFAULT_METHOD = "gmm"
@@ -54,20 +55,14 @@ def resolve_detector(
 
 def get_site(session: Session, principal: Principal, site_id: str) -> Site:
     """The principal's site ``site_id``; 404 when it does not exist or is another's."""
-    site = session.scalar(
-        select(Site).where(Site.id == site_id, Site.organisation_id == principal.organisation_id)
-    )
-    if site is None:
-        raise NotFoundError(f"site {site_id} not found")
-    return site
+    return get_owned(session, principal, Site, site_id)
 
 
 def list_sites(
     session: Session, principal: Principal, limit: int, cursor: str | None
 ) -> tuple[Sequence[Site], str | None]:
     """The principal's sites, newest first, one page."""
-    statement = select(Site).where(Site.organisation_id == principal.organisation_id)
-    return newest_first_page(session, statement, Site, limit, cursor)
+    return newest_first_page(session, scoped(select(Site), principal), Site, limit, cursor)
 
 
 def _flush_unique_name(session: Session, name: str) -> None:
@@ -150,11 +145,7 @@ def set_reference(session: Session, site: Site, scan: Scan) -> None:
 def promote_reference(session: Session, principal: Principal, site_id: str, scan_id: str) -> Site:
     """Make an existing scan of the site its reference."""
     site = get_site(session, principal, site_id)
-    scan = session.scalar(
-        select(Scan).where(Scan.id == scan_id, Scan.organisation_id == principal.organisation_id)
-    )
-    if scan is None:
-        raise NotFoundError(f"scan {scan_id} not found")
+    scan = get_owned(session, principal, Scan, scan_id)
     if scan.site_id != site.id:
         raise ValidationFailedError(
             f"scan {scan_id} belongs to another site; a reference must be a scan of this site",

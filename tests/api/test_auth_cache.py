@@ -18,6 +18,7 @@ import pytest
 from pydantic import ValidationError
 from sqlalchemy import update
 
+from app.clock import utc_now
 from app.config import Settings
 from app.db.models import ApiToken
 from app.db.session import transaction
@@ -48,7 +49,7 @@ def revoke_in_database(api: ApiServer, token: str) -> None:
         session.execute(
             update(ApiToken)
             .where(ApiToken.token_hash == hash_token(token))
-            .values(revoked_at=auth.datetime.now(auth.UTC))
+            .values(revoked_at=utc_now())
         )
 
 

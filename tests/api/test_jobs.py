@@ -6,7 +6,6 @@ from __future__ import annotations
 import io
 import time
 from concurrent.futures import ThreadPoolExecutor
-from datetime import UTC, datetime
 
 import httpx
 import laspy
@@ -15,7 +14,8 @@ import pytest
 from plyfile import PlyData
 from sqlalchemy import func, select
 
-from app.db.models import IdempotencyRecord, Job, Scan
+from app.clock import utc_now
+from app.db.models import IdempotencyRecord, Job, JobStatus, Scan
 from app.db.session import transaction
 from tests.api.conftest import (
     ApiServer,
@@ -66,7 +66,7 @@ def test_post_jobs_queues_any_comparison(
     job = response.json()
     assert (job["reference_scan_id"], job["scan_id"]) == (scan["id"], reference["id"])
     assert (job["method"], job["variant"], job["params"]) == ("pca", "paper", {"random_state": 3})
-    assert job["status"] == "queued" and job["progress"] == 0.0 and job["attempts"] == 0
+    assert job["status"] == JobStatus.QUEUED and job["progress"] == 0.0 and job["attempts"] == 0
     expected_keys = {
         "id", "site_id", "reference_scan_id", "scan_id", "status", "progress", "attempts",
         "method", "variant", "params", "score", "threshold", "changed", "registration",
@@ -186,7 +186,7 @@ def test_the_timeline_filters_and_pages_newest_first(api: ApiServer, writer: htt
         jobs.append(response.json()["job"])
         if index == 1:
             time.sleep(0.01)
-            middle = datetime.now(UTC)
+            middle = utc_now()
     finish_job(api, jobs[0]["id"], reference["n_points"], 600, changed=True)
     finish_job(api, jobs[3]["id"], reference["n_points"], 600, changed=False)
     timeline = f"/api/v1/sites/{site['id']}/jobs"
@@ -198,8 +198,8 @@ def test_the_timeline_filters_and_pages_newest_first(api: ApiServer, writer: htt
 
     newest_first = [job["id"] for job in reversed(jobs)]
     assert ids() == newest_first
-    assert ids(status="succeeded") == [jobs[3]["id"], jobs[0]["id"]]
-    assert ids(status="queued") == [jobs[4]["id"], jobs[2]["id"], jobs[1]["id"]]
+    assert ids(status=JobStatus.SUCCEEDED) == [jobs[3]["id"], jobs[0]["id"]]
+    assert ids(status=JobStatus.QUEUED) == [jobs[4]["id"], jobs[2]["id"], jobs[1]["id"]]
     assert ids(changed="true") == [jobs[0]["id"]]
     assert ids(changed="false") == [jobs[3]["id"]]
     assert ids(since=middle.isoformat()) == newest_first[:3]
@@ -233,7 +233,7 @@ def test_regions_and_labels_of_a_succeeded_job(
         api, job["id"], reference["n_points"], scan["n_points"], transform=shift.tolist()
     )
     fetched = writer.get(f"/api/v1/jobs/{job['id']}").json()
-    assert fetched["status"] == "succeeded" and fetched["changed"] is True
+    assert fetched["status"] == JobStatus.SUCCEEDED and fetched["changed"] is True
     regions = writer.get(f"/api/v1/jobs/{job['id']}/regions").json()
     assert len(regions) == 1
     assert set(regions[0]) == {

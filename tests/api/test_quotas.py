@@ -15,7 +15,7 @@ import httpx
 import pytest
 from sqlalchemy import func, select, update
 
-from app.db.models import Job, Scan
+from app.db.models import Job, JobStatus, Scan
 from app.db.session import transaction
 from app.services.quotas import RETRY_AFTER_SECONDS
 from tests.api.conftest import (
@@ -92,10 +92,10 @@ def finish_queued_jobs(api: ApiServer, organisation_id: str, n_jobs: int) -> Non
     with transaction(api.settings.sqlalchemy_url) as session:
         job_ids = session.scalars(
             select(Job.id)
-            .where(Job.organisation_id == organisation_id, Job.status == "queued")
+            .where(Job.organisation_id == organisation_id, Job.status == JobStatus.QUEUED)
             .limit(n_jobs)
         ).all()
-        session.execute(update(Job).where(Job.id.in_(job_ids)).values(status="failed"))
+        session.execute(update(Job).where(Job.id.in_(job_ids)).values(status=JobStatus.FAILED))
 
 
 def test_the_cap_on_unfinished_jobs_answers_429_and_stores_nothing(quota_api: ApiServer) -> None:

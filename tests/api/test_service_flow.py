@@ -24,6 +24,7 @@ from app.core.formats import read_point_cloud
 from app.core.jsonable import json_safe
 from app.core.pipeline import compare
 from app.core.synthetic import raycast_scene
+from app.db.models import JobStatus
 from tests.api.conftest import las_bytes, pcd_bytes, ply_bytes
 from tests.service_harness import ServiceProcess, service_factory  # noqa: F401
 
@@ -32,7 +33,7 @@ ServiceFactory = Callable[..., ServiceProcess]
 
 def wait_succeeded(service: ServiceProcess, client: httpx.Client, job_id: str) -> dict[str, Any]:
     job = service.wait_for_job(client, job_id, timeout=120)
-    assert job["status"] == "succeeded", job
+    assert job["status"] == JobStatus.SUCCEEDED, job
     return job
 
 

@@ -13,11 +13,11 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
-from datetime import UTC, datetime
 
 import httpx
 from sqlalchemy import update
 
+from app.clock import utc_now
 from app.config import Settings
 from app.db.models import ApiToken
 from app.db.session import transaction
@@ -67,7 +67,7 @@ def revoke_in_database(service: ServiceProcess, secret: str) -> None:
         session.execute(
             update(ApiToken)
             .where(ApiToken.token_hash == hash_token(secret))
-            .values(revoked_at=datetime.now(UTC))
+            .values(revoked_at=utc_now())
         )
 
 

@@ -9,6 +9,7 @@ from collections.abc import Iterator
 import httpx
 import pytest
 
+from app.db.models import JobStatus
 from tests.api.conftest import (
     MAX_UPLOAD_BYTES,
     ApiServer,
@@ -77,7 +78,7 @@ def test_uploads_in_every_format_create_a_scan_and_a_queued_job(
     for axis in range(3):
         assert scan["bbox_min"][axis] == pytest.approx(points[:, axis].min(), abs=1e-3)
         assert scan["bbox_max"][axis] == pytest.approx(points[:, axis].max(), abs=1e-3)
-    assert job["status"] == "queued"
+    assert job["status"] == JobStatus.QUEUED
     assert (job["reference_scan_id"], job["scan_id"]) == (reference["id"], scan["id"])
     assert (job["method"], job["variant"]) == ("gmm", "improved")
     assert writer.get(f"/api/v1/jobs/{job['id']}").json()["id"] == job["id"]

@@ -16,5 +16,5 @@ def get_organisation(
     session: SessionDep, settings: SettingsDep, principal: PrincipalDep
 ) -> OrganisationRead:
     """The caller's organisation: unfinished jobs and stored bytes, with their caps."""
-    usage = quotas.organisation_usage(session, settings, principal.organisation_id)
-    return OrganisationRead.from_usage(usage)
+    usage = quotas.organisation_usage(session, settings, principal)
+    return OrganisationRead.from_model(usage)

@@ -11,6 +11,7 @@ from fastapi.responses import JSONResponse
 from app.api.deps import PrincipalDep, SessionDep, SettingsDep, WriterDep
 from app.api.errors import QUEUED_JOBS_RESPONSE, STORAGE_QUOTA_RESPONSE
 from app.api.uploads import RawBody, UploadBodyDep, declared_length
+from app.db.models import JobStatus
 from app.services import jobs as jobs_service
 from app.services import scans as scans_service
 from app.services import sites as sites_service
@@ -18,7 +19,6 @@ from app.services.paging import DEFAULT_LIMIT, MAX_LIMIT
 from app.services.schemas import (
     ErrorRead,
     JobRead,
-    JobStatus,
     Page,
     ReferencePromote,
     ScanRead,
