@@ -21,7 +21,7 @@ from typing import BinaryIO
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.cloud import FileRows
+from app.core.blocks import FileRows
 from app.core.errors import PointCloudError
 
 SourceLike = str | os.PathLike | bytes | bytearray | memoryview | BinaryIO
@@ -304,7 +304,7 @@ def file_rows_of(points: NDArray, source: Source) -> FileRows | None:
     """Where ``points``, an (n, 3) view of ``source``'s memory map, lies in its file; else None.
 
     :meth:`PointCloud.from_array` then reads it block by block with ``pread`` instead of
-    through the map (see :class:`~app.core.cloud.FileRows`).
+    through the map (see :class:`~app.core.blocks.FileRows`).
     """
     if source.file_descriptor is None or not isinstance(source.buffer, mmap.mmap):
         return None

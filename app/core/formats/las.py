@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.cloud import CloudSummary, FiniteBounds
+from app.core.cloud_summary import CloudSummary, FiniteBounds
 from app.core.errors import PointCloudError
 from app.core.formats._common import RawCloud, Source, atomic_output, check_point_count
 
@@ -80,7 +80,7 @@ def read_las(source: Source, max_points: int | None, *, threads: int = 1) -> Raw
 
 def summarise_las(source: Source, max_points: int | None, *, threads: int = 1) -> CloudSummary:
     """What :func:`read_las` and ``PointCloud.from_array`` would make of the file, as a
-    :class:`~app.core.cloud.CloudSummary`, decoding :data:`SUMMARY_CHUNK_POINTS` points at a
+    :class:`~app.core.cloud_summary.CloudSummary`, decoding :data:`SUMMARY_CHUNK_POINTS` points at a
     time: memory stays at one chunk whatever the file's size (the same checks and errors).
     """
     with _opened_points(source, max_points, threads) as (reader, n_points, what):
