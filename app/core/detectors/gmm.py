@@ -53,7 +53,7 @@ from sklearn.exceptions import ConvergenceWarning
 from sklearn.mixture import GaussianMixture
 
 from app.core.detectors.base import ChangeDetector, ParamSpec
-from app.core.emd import earth_movers_distance
+from app.core.emd import earth_movers_distance, euclidean_ground_distances
 from app.core.errors import InputError
 
 
@@ -471,7 +471,7 @@ class GmmDetector(ChangeDetector):
                 for points in (first, second)
             )
             theta_a, theta_b = parameter_vectors(model_a), parameter_vectors(model_b)
-            ground = np.linalg.norm(theta_a[:, None, :] - theta_b[None, :, :], axis=2)
+            ground = euclidean_ground_distances(theta_a, theta_b)
             return earth_movers_distance(model_a.weights, model_b.weights, ground).distance
 
         # Both sets are described by the same short EM refinement of one shared model (fitted

@@ -334,6 +334,29 @@ def has_nonzero_bytes(buffer: bytes | memoryview | mmap.mmap, start: int) -> boo
     return bool(np.frombuffer(buffer, dtype=np.uint8, offset=start).any())
 
 
+def ascii_body(source: Source, offset: int, not_ascii: str) -> str:
+    """The bytes of ``source`` from ``offset`` on, decoded as ASCII text.
+
+    Parameters
+    ----------
+    source : Source
+    offset : int
+        Where the body starts.
+    not_ascii : str
+        The error message when a byte is not ASCII; ``{offset}`` in it becomes that byte's
+        offset in the file.
+
+    Raises
+    ------
+    PointCloudError
+        A byte is not ASCII.
+    """
+    try:
+        return bytes(source.buffer[offset:]).decode("ascii")
+    except UnicodeDecodeError as exc:
+        raise PointCloudError(not_ascii.format(offset=offset + exc.start)) from exc
+
+
 def loadtxt_problem(exc: ValueError) -> str:
     """``numpy.loadtxt``'s message with 1-based data-row numbers and without its API hints."""
     message = str(exc).split("; use `usecols`")[0].rstrip(".")
