@@ -10,8 +10,8 @@ written by :func:`write_las`).
 
 Before any point is decompressed the header's point count is checked against ``max_points``
 and against the bytes present: an uncompressed body must hold ``count x record size`` bytes,
-and a LAZ body may not claim to expand more than :data:`LAZ_MAX_EXPANSION` times (a cloud of
-1M identical points, the most compressible input there is, measured 2,811x with lazrs).
+and a LAZ body may not claim to expand more than :data:`LAZ_MAX_EXPANSION` times, well above
+what the most compressible input there is expands to (figures in docs/performance.md).
 Points are then decoded in chunks into preallocated arrays (:func:`read_las`), or summarised
 chunk by chunk without keeping them (:func:`summarise_las`, for checking uploads).
 """

@@ -6,7 +6,7 @@ body is then decoded in one step without a per-point Python loop:
 - binary: a zero-copy ``numpy.frombuffer`` view of the (memory-mapped) file with plyfile's dtype,
   whenever the elements before ``vertex`` have no list properties (true for point clouds and for
   meshes written vertex-first); otherwise plyfile reads the whole file;
-- ascii: ``numpy.loadtxt`` on the vertex rows (about 10x faster than plyfile's row loop).
+- ascii: ``numpy.loadtxt`` on the vertex rows (much faster than plyfile's row loop).
 
 Every vertex property other than x, y, z is kept as an attribute (red/green/blue, nx/ny/nz,
 intensity, label, ...). Faces and other elements are ignored.
