@@ -36,7 +36,7 @@ import numpy as np
 import pypcd4
 from numpy.typing import NDArray
 
-from app.core.cloud import conversion_threads
+from app.core.blocks import conversion_threads
 from app.core.formats import read_point_cloud, summarise_point_cloud
 from app.core.synthetic import raycast_scene
 from app.core.threads import available_threads

@@ -4,21 +4,17 @@ glibc serves allocations above ``M_MMAP_THRESHOLD`` (128 KiB) with their own map
 unmaps them on free, but each time such a block is freed it raises the threshold (up to
 32 MiB), after which equally large arrays come from the heap, whose freed space is kept.  A
 comparison allocates and frees many 1-30 MB temporaries (chunked neighbour gathers, KD-tree
-query results), so the heap grows by hundreds of MB that no array uses: on a 1M-point pair the
-peak resident set was 712 MB with the default behaviour and 555 MB with the threshold fixed
-(``bench/perf.py``).  Setting the threshold explicitly turns the dynamic adjustment off.
+query results), so the heap grows by hundreds of MB that no array uses.  Setting the threshold
+explicitly turns the dynamic adjustment off.
 
 It is fixed at 1 MiB rather than glibc's initial 128 KiB: every block above the threshold is
 a fresh mapping whose pages fault (and are zeroed) on first touch, and the localiser and the
-detectors allocate thousands of 0.1-1 MB chunk temporaries.  On the 1M-point pair (gmm, 2
-threads, fresh processes, a busy machine) 128 KiB took 9.3-10.1 s and 1 MiB 8.4-8.5 s (glibc's
-default 7.8-8.1 s), with the same peak RSS (504-506 MB; default 539-594 MB).
+detectors allocate thousands of 0.1-1 MB chunk temporaries.
 
 Fixing the mmap threshold also freezes glibc's trim threshold at 128 KiB: whenever more than
 that is free at the top of the heap it is handed back, and the next chunk temporary faults
 the same pages in again.  It is fixed at 32 MiB (at most that much freed heap stays
-resident): on the 1M-point pair minor page faults fell from 605-650k to 390-440k and system
-CPU time from 2.9-3.2 s to 2.1-2.3 s, peak RSS within +-8 MB (fresh processes, 3 rounds).
+resident).  The measurements behind all three choices are in docs/performance.md.
 """
 
 from __future__ import annotations

@@ -109,3 +109,20 @@ def earth_movers_distance(
     flow = np.asarray(flow, dtype=np.float64)
     distance = float(np.sum(flow * cost) / transported)
     return EmdResult(distance=max(distance, 0.0), flow=flow)
+
+
+def euclidean_ground_distances(
+    points_a: NDArray[np.float64], points_b: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Euclidean ground distances ``d_ij = |x_i - y_j|`` between two sets of weighted points.
+
+    Parameters
+    ----------
+    points_a : ndarray, shape (m, d)
+    points_b : ndarray, shape (n, d)
+
+    Returns
+    -------
+    ndarray, shape (m, n)
+    """
+    return np.linalg.norm(points_a[:, None, :] - points_b[None, :, :], axis=2)

@@ -12,8 +12,8 @@ coordinates into the reference frame with generalised ICP (``small_gicp``, C++),
 - Fine sample: the voxel-grid centroids at ``grid = 2 x spacing`` (this evens out lidar density,
   which is extreme near the sensor), then a uniform random sample of at most
   :data:`FINE_POINT_BUDGET` of them per cloud. Random thinning keeps the sampling unbiased:
-  thinning with a coarser voxel grid instead biased GICP by up to 0.07 degrees on a 170k-point
-  room at 1 cm noise (the two grids cut box edges differently), random thinning 0.01 degrees.
+  thinning with a coarser voxel grid instead biases GICP, because the two grids cut box edges
+  differently (figures in docs/performance.md).
 - ``voxel_size`` = the mean spacing of that sample, ``grid x sqrt(count / budget)`` when the grid
   keeps more than the budget (surfaces: count ~ 1/voxel^2), else ``grid``.
 - ``max_correspondence_distance`` = ``4 x voxel_size``.
@@ -37,8 +37,8 @@ a downsampled reference point within ``max_correspondence_distance`` after the t
 ``rmse`` the RMS distance of those inliers (it includes the sampling distance between the two
 voxel grids, up to about half a voxel).  :func:`register_scan` and
 :func:`identity_registration` downsample the ``grid`` centroids they already have rather than
-every point again (0.2 s less at 1M points a scan; fitness 0.943 instead of 0.942, RMSE 0.1 mm
-lower on the benchmark's 1M-point pair); the coarse stage starts from them too.  A fitness
+every point again (faster, with the same quality figures to 1e-3; see docs/performance.md);
+the coarse stage starts from them too.  A fitness
 below ``min_fitness`` means the clouds do not overlap (different sites, or a scan so far off
 that alignment failed): :class:`RegistrationError`.
 """

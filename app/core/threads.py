@@ -26,9 +26,9 @@ def prefer_passive_openmp_waits() -> None:
     The localiser runs the reference's and the scan's KD-tree queries on two threads, each
     query an OpenMP loop, while alignment or numpy work runs beside them: more threads than
     cores.  With the default (active) policy a thread that finishes its share of a loop spins
-    for its team-mates, burning the core another thread needs.  Passive waits let it sleep: on
-    the 1M-point pair (2 cores, fresh processes, 5 interleaved rounds) 0.0-0.6 s less wall time
-    (mean 0.37 s of 7.5 s) and less user CPU in 4 of 5 rounds.  OpenMP runtimes read the
+    for its team-mates, burning the core another thread needs.  Passive waits let it sleep,
+    which saves wall and CPU time on the 1M-point pair (figures in docs/performance.md).
+    OpenMP runtimes read the
     variable when they load, so this runs when ``app.core`` is imported, before pykdtree,
     small_gicp or scikit-learn load theirs; child processes inherit it.
     """

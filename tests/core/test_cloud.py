@@ -1,16 +1,11 @@
-"""PointCloud validation, source-order bookkeeping, local origin and voxel sampling."""
+"""PointCloud validation, source-order bookkeeping and local origin."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from app.core.cloud import (
-    MIN_POINTS,
-    PointCloud,
-    choose_local_origin,
-    voxel_downsample_indices,
-)
+from app.core.cloud import MIN_POINTS, PointCloud, choose_local_origin
 from app.core.errors import PointCloudError
 
 
@@ -71,10 +66,3 @@ def test_local_origin_keeps_millimetres_for_georeferenced_data():
     shifted = (georeferenced - origin).astype(np.float32)  # what a float32 consumer sees
     np.testing.assert_allclose(shifted + origin, georeferenced, atol=1e-4)
     np.testing.assert_array_equal(choose_local_origin(local), np.zeros(3))
-
-
-def test_voxel_downsample_keeps_one_point_per_voxel():
-    points = np.array([[0.01, 0, 0], [0.02, 0, 0], [1.5, 0, 0], [1.6, 0, 0], [3.0, 0, 0]])
-    np.testing.assert_array_equal(voxel_downsample_indices(points, 1.0), [0, 2, 4])
-    with pytest.raises(ValueError):
-        voxel_downsample_indices(points, 0.0)

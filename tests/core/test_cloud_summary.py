@@ -13,8 +13,10 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from app.core import cloud as cloud_module
-from app.core.cloud import MIN_POINTS, CloudSummary, PointCloud, summarise_array
+from app.core import blocks as blocks_module
+from app.core import cloud_summary as summary_module
+from app.core.cloud import MIN_POINTS, PointCloud
+from app.core.cloud_summary import CloudSummary, summarise_array
 from app.core.errors import PointCloudError
 from app.core.formats import las, read_point_cloud, summarise_point_cloud
 from tests.core.test_formats import (
@@ -69,10 +71,10 @@ def block_points(monkeypatch, request):
     """Many small blocks of whole and partial 4-row lines (a partial last block, blocks of NaN
     rows only), in one thread or shared by three; or the default sizes."""
     block_points, rows_per_line, threads = request.param
-    monkeypatch.setattr(cloud_module, "SUMMARY_BLOCK_POINTS", block_points)
-    monkeypatch.setattr(cloud_module, "SUMMARY_ROWS_PER_LINE", rows_per_line)
-    monkeypatch.setattr(cloud_module, "PARALLEL_MIN_POINTS", 64)
-    monkeypatch.setattr(cloud_module, "conversion_threads", lambda: threads)
+    monkeypatch.setattr(summary_module, "SUMMARY_BLOCK_POINTS", block_points)
+    monkeypatch.setattr(summary_module, "SUMMARY_ROWS_PER_LINE", rows_per_line)
+    monkeypatch.setattr(blocks_module, "PARALLEL_MIN_POINTS", 64)
+    monkeypatch.setattr(blocks_module, "conversion_threads", lambda: threads)
     return block_points
 
 
@@ -130,7 +132,7 @@ def test_array_summary_memory_stays_at_a_block_whatever_the_cloud(monkeypatch):
     """The point of summaries: a 1M-point float32 cloud (12 MB) is checked with a few blocks of
     new arrays (here 245 blocks of 4096 points: nothing may grow with their number), where
     building the cloud allocates its 24 MB float64 copy."""
-    monkeypatch.setattr(cloud_module, "SUMMARY_BLOCK_POINTS", 4096)
+    monkeypatch.setattr(summary_module, "SUMMARY_BLOCK_POINTS", 4096)
     values = np.random.default_rng(5).normal(size=(1_000_000, 3)).astype(np.float32)
     values[123_456] = np.nan
 
@@ -138,7 +140,7 @@ def test_array_summary_memory_stays_at_a_block_whatever_the_cloud(monkeypatch):
     cloud_peak = peak_traced_bytes(lambda: PointCloud.from_array(values, threads=1))
     assert_summary_of(summarise_array(values, threads=2), PointCloud.from_array(values))
     block_bytes = 4096 * 3 * 4
-    line_bytes = cloud_module.SUMMARY_ROWS_PER_LINE * 3 * 4
+    line_bytes = summary_module.SUMMARY_ROWS_PER_LINE * 3 * 4
     assert cloud_peak >= values.size * 8  # the float64 copy
     assert summary_peak < 4 * (block_bytes + line_bytes), (summary_peak, block_bytes)
 
@@ -200,7 +202,7 @@ def test_las_summary_over_many_chunks_equals_the_read_cloud(monkeypatch, compres
     """LAS/LAZ are summarised a decoded chunk at a time (here 16 chunks of 64 points, each of
     whole and partial 4-row lines), by the sequential and the parallel LAZ decoder."""
     monkeypatch.setattr(las, "SUMMARY_CHUNK_POINTS", 64)
-    monkeypatch.setattr(cloud_module, "SUMMARY_ROWS_PER_LINE", 4)
+    monkeypatch.setattr(summary_module, "SUMMARY_ROWS_PER_LINE", 4)
     content = las_bytes(random_points(1000, seed=7) * 40.0, compress=compress)
     filename = "scan.laz" if compress else "scan.las"
     cloud = read_point_cloud(content, filename=filename, threads=threads)

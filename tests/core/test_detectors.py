@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 from sklearn.mixture import GaussianMixture
 
-from app.core.detectors import METHODS, VARIANTS, Detection, base, make_detector
-from app.core.detectors import planes as planes_module
+from app.core.detectors import METHODS, VARIANTS, Detection, base, make_detector, plane_extraction
 from app.core.detectors.gmm import (
     MixtureStart,
     bures_wasserstein_distances,
@@ -17,7 +16,7 @@ from app.core.detectors.gmm import (
     refine_mixture,
 )
 from app.core.detectors.pca import improved_pca_emd, paper_pca_emd, principal_axes
-from app.core.detectors.planes import (
+from app.core.detectors.plane_extraction import (
     PlaneSettings,
     VoteWorkspace,
     _candidate_planes,
@@ -312,8 +311,8 @@ def test_plane_refinements_shared_between_candidates_change_nothing(monkeypatch)
         refits[counting] += 1
         return plane_fit(inliers)
 
-    plane_fit = planes_module._refit
-    monkeypatch.setattr(planes_module, "_refit", counted_refit)
+    plane_fit = plane_extraction._refit
+    monkeypatch.setattr(plane_extraction, "_refit", counted_refit)
     known: dict = {}
     for candidate in candidates:
         counting = "alone"

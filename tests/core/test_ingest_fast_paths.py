@@ -21,7 +21,9 @@ import numpy as np
 import plyfile
 import pytest
 
+from app.core import blocks as blocks_module
 from app.core import cloud as cloud_module
+from app.core import cloud_summary as summary_module
 from app.core.cloud import PointCloud
 from app.core.errors import PointCloudError
 from app.core.formats import pcd, ply, read_point_cloud, summarise_point_cloud
@@ -36,12 +38,12 @@ N_POINTS = 257  # not a multiple of the (patched) block size: the last block is 
 def _small_blocks(monkeypatch, request):
     """Many blocks, including a partial last one, even for small test clouds; converted by
     one thread, or shared by three (from 192 rows on)."""
-    monkeypatch.setattr(cloud_module, "CHECK_BLOCK_POINTS", 16)
-    monkeypatch.setattr(cloud_module, "SUMMARY_BLOCK_POINTS", 16)
-    monkeypatch.setattr(cloud_module, "SUMMARY_ROWS_PER_LINE", 4)
-    monkeypatch.setattr(cloud_module, "PARALLEL_MIN_POINTS", 64)
-    monkeypatch.setattr(cloud_module, "MAX_CONVERSION_THREADS", 3)
-    monkeypatch.setattr(cloud_module, "conversion_threads", lambda: request.param)
+    monkeypatch.setattr(blocks_module, "CHECK_BLOCK_POINTS", 16)
+    monkeypatch.setattr(summary_module, "SUMMARY_BLOCK_POINTS", 16)
+    monkeypatch.setattr(summary_module, "SUMMARY_ROWS_PER_LINE", 4)
+    monkeypatch.setattr(blocks_module, "PARALLEL_MIN_POINTS", 64)
+    monkeypatch.setattr(blocks_module, "MAX_CONVERSION_THREADS", 3)
+    monkeypatch.setattr(blocks_module, "conversion_threads", lambda: request.param)
     return request.param
 
 
@@ -421,7 +423,7 @@ def _refuse_row_check(isfinite):
 
 
 def test_an_error_in_a_helper_thread_reaches_the_caller(monkeypatch):
-    original = cloud_module._convert_blocks
+    original = blocks_module._convert_blocks
     calls = []
 
     def failing(array, out, block_numbers, file_rows=None):
@@ -430,7 +432,7 @@ def test_an_error_in_a_helper_thread_reaches_the_caller(monkeypatch):
             raise MemoryError("no room for this part")
         return original(array, out, block_numbers, file_rows)
 
-    monkeypatch.setattr(cloud_module, "_convert_blocks", failing)
+    monkeypatch.setattr(blocks_module, "_convert_blocks", failing)
     values = _values(n=200).astype(np.float32)
     with pytest.raises(MemoryError, match="no room"):
         PointCloud.from_array(values, threads=2)
@@ -439,11 +441,11 @@ def test_an_error_in_a_helper_thread_reaches_the_caller(monkeypatch):
 def test_conversion_threads_follow_omp_num_threads_and_the_cap(monkeypatch):
     monkeypatch.undo()  # the real conversion_threads and cap
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
-    assert cloud_module.conversion_threads() == 1
+    assert blocks_module.conversion_threads() == 1
     monkeypatch.setenv("OMP_NUM_THREADS", "64")
-    assert cloud_module.conversion_threads() == cloud_module.MAX_CONVERSION_THREADS
+    assert blocks_module.conversion_threads() == blocks_module.MAX_CONVERSION_THREADS
     monkeypatch.delenv("OMP_NUM_THREADS")
-    assert 1 <= cloud_module.conversion_threads() <= cloud_module.MAX_CONVERSION_THREADS
+    assert 1 <= blocks_module.conversion_threads() <= blocks_module.MAX_CONVERSION_THREADS
 
 
 @pytest.mark.parametrize(
@@ -453,16 +455,16 @@ def test_conversion_threads_follow_omp_num_threads_and_the_cap(monkeypatch):
 def test_conversion_threads_leave_busy_cpus_alone(monkeypatch, cpus, load, expected):
     monkeypatch.undo()  # the real conversion_threads and cap
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
-    monkeypatch.setattr(cloud_module.os, "sched_getaffinity", lambda pid: set(range(cpus)))
-    monkeypatch.setattr(cloud_module.os, "getloadavg", lambda: (load, load, load))
-    assert cloud_module.conversion_threads() == expected
+    monkeypatch.setattr(blocks_module.os, "sched_getaffinity", lambda pid: set(range(cpus)))
+    monkeypatch.setattr(blocks_module.os, "getloadavg", lambda: (load, load, load))
+    assert blocks_module.conversion_threads() == expected
 
 
 def test_conversion_without_a_spare_thread_happens_in_the_caller(monkeypatch):
     def refuse(self):
         raise RuntimeError("can't start new thread")
 
-    monkeypatch.setattr(cloud_module.threading.Thread, "start", refuse)
+    monkeypatch.setattr(blocks_module.threading.Thread, "start", refuse)
     values = _values(n=200).astype(np.float32)
     _assert_same_cloud(
         PointCloud.from_array(values, threads=3), PointCloud.from_array(values, threads=1)
@@ -473,14 +475,14 @@ def test_available_threads_ignore_the_load(monkeypatch):
     """The LAZ default: lazrs's threads do not hold the GIL, so only OMP_NUM_THREADS and the
     affinity mask count."""
     monkeypatch.undo()
-    monkeypatch.setattr(cloud_module.os, "sched_getaffinity", lambda pid: {0, 1, 2})
-    monkeypatch.setattr(cloud_module.os, "getloadavg", lambda: (9.0, 9.0, 9.0))
+    monkeypatch.setattr(blocks_module.os, "sched_getaffinity", lambda pid: {0, 1, 2})
+    monkeypatch.setattr(blocks_module.os, "getloadavg", lambda: (9.0, 9.0, 9.0))
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     assert available_threads() == 3
-    assert cloud_module.conversion_threads() == 1
+    assert blocks_module.conversion_threads() == 1
     monkeypatch.setenv("OMP_NUM_THREADS", "5")
     assert available_threads() == 5
-    assert cloud_module.conversion_threads() == cloud_module.MAX_CONVERSION_THREADS
+    assert blocks_module.conversion_threads() == blocks_module.MAX_CONVERSION_THREADS
 
 
 def test_file_rows_are_read_with_pread_and_a_file_changed_meanwhile_is_an_error(
@@ -498,18 +500,18 @@ def test_file_rows_are_read_with_pread_and_a_file_changed_meanwhile_is_an_error(
         assert file_rows_of(ply.read_ply(source, None).points, source) is None
 
     reads = []
-    original_read = cloud_module._BlockReader.read
+    original_read = blocks_module._BlockReader.read
 
     def counted(reader, start, rows):
         reads.append(rows)
         return original_read(reader, start, rows)
 
-    monkeypatch.setattr(cloud_module._BlockReader, "read", counted)
+    monkeypatch.setattr(blocks_module._BlockReader, "read", counted)
     cloud = read_point_cloud(path)
     assert sum(reads) == N_POINTS and len(cloud) == N_POINTS - 4
 
     # the file shrank after it was mapped: say so instead of converting garbage
-    monkeypatch.setattr(cloud_module.os, "preadv", lambda fd, buffers, offset: 5)
+    monkeypatch.setattr(blocks_module.os, "preadv", lambda fd, buffers, offset: 5)
     with pytest.raises(PointCloudError, match="changed while it was read"):
         read_point_cloud(path)
     assert os.path.getsize(path) == len(content)

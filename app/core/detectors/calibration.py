@@ -18,8 +18,7 @@ so no constant works across sites. We estimate it from the two clouds themselves
     reaches) is split evenly and cancels. Unlike a plain permutation it keeps the spatial
     layout of both clouds: thinned clouds are one point per voxel, and a plain permutation
     then opens holes and doubles points that neither real cloud has, inflating the null
-    (measured on ray-cast rescans, 50k rays: the improved GMM detected an added box in 0/5
-    pairs with the plain permutation, 4/5 with ``paired``; bench/results/paper.md). On clouds
+    (figures in docs/performance.md and bench/results/paper.md). On clouds
     that were *not* thinned (several points of each cloud per voxel) it conditions on each
     voxel's counts and comes out too small for independent samplings (a false alarm on a
     1200-point rescan in the tests), hence ``auto``.
@@ -45,11 +44,9 @@ The threshold is an upper prediction bound for one more null value: with ``L`` t
 null distances (their distribution is skewed and positive; logs make it close to normal),
 ``threshold = exp(mean(L) + t_{R-1, 1-alpha} * std(L) * sqrt(1 + 1/R))`` for ``R`` resamples
 and nominal false-alarm rate ``alpha`` (Student-t because mean and std are estimated from
-``R`` values). Measured on 300 pairs of independent samplings of the paper's corridor (where
-the permutation null is exact), nominal 1 % / 5 % gave 0.3 % / 4.0 % false alarms with this
-rule, against 3 % / 8 % for a normal and 2.3 % / 7 % for a gamma fit (PCA, plain
-permutation; with the paired scheme PCA gave 0.3 % / 6.7 % and GMM 1.3 % / 7.3 %, 150-300
-pairs): the null's right tail is heavy. ``calibration`` in the result reports all of it,
+``R`` values). The null's right tail is heavy: on the corridor this rule keeps false alarms
+near the nominal rate where normal and gamma fits exceed it (figures in docs/detectors.md).
+``calibration`` in the result reports all of it,
 including the permutation p-value ``(1 + #{null >= score}) / (R + 1)``.
 
 What it does *not* capture: noise that is not sampling noise (registration residuals,

@@ -31,10 +31,8 @@
     * **weights**: the shared model's mixing probabilities on *both* sides. After the
       refinement, how many points fall in each component depends on the sampling pattern
       (viewpoint, lidar ring spacing) as much as on the scene; what a change does to the
-      geometry shows in the components' means and covariances. Measured: on the corridor
-      (variance 1e-2) the null spread drops from 0.0157 to 0.0090 and a 3 % box is detected
-      in 67 % instead of 30 % of pairs at 5 % false positives; on ray-cast rescans from a
-      sensor moved 1 m (30k rays) the box / no-change score ratio rises from 1.09 to 1.37.
+      geometry shows in the components' means and covariances; the null narrows and a box is
+      detected more often (figures in docs/detectors.md).
     * fixed ``K`` rather than BIC (BIC's choice flips between epochs of one scene) and the fit
       on at most ``max_points`` points thinned on a common voxel grid (see ``base``).
 """
@@ -53,7 +51,7 @@ from sklearn.exceptions import ConvergenceWarning
 from sklearn.mixture import GaussianMixture
 
 from app.core.detectors.base import ChangeDetector, ParamSpec
-from app.core.emd import earth_movers_distance
+from app.core.emd import earth_movers_distance, euclidean_ground_distances
 from app.core.errors import InputError
 
 
@@ -289,8 +287,9 @@ def fit_mixture(
     The same k-means (scikit-learn's, one initialisation, seeded with ``seed``), then the same
     operations in the same order as ``GaussianMixture(n_components, covariance_type="full",
     reg_covar=reg_covar, max_iter=max_iter, tol=tol, random_state=seed).fit(points)``, without
-    its validation, per-call overhead and final E-step: ~1.5 ms instead of ~4 ms per EM
-    iteration on 4000 points. ``tests/core/test_detectors.py`` checks the equality.
+    its validation, per-call overhead and final E-step, which cost more than an EM iteration
+    on a working set (figures in docs/performance.md). ``tests/core/test_detectors.py``
+    checks the equality.
 
     Parameters
     ----------
@@ -341,8 +340,8 @@ def refine_mixture(
     The same operations in the same order as ``GaussianMixture(covariance_type="full",
     weights_init=..., means_init=..., precisions_init=..., max_iter=max_iter).fit(points)``
     (so the same bits), without its input validation, its final E-step (it only serves
-    ``fit_predict``'s labels) and its per-call overhead: ~1 ms instead of ~6 ms for one
-    iteration on 4000 points. ``tests/core/test_detectors.py`` checks the equality.
+    ``fit_predict``'s labels) and its per-call overhead, which cost more than the iteration
+    (figures in docs/performance.md). ``tests/core/test_detectors.py`` checks the equality.
 
     Parameters
     ----------
@@ -471,7 +470,7 @@ class GmmDetector(ChangeDetector):
                 for points in (first, second)
             )
             theta_a, theta_b = parameter_vectors(model_a), parameter_vectors(model_b)
-            ground = np.linalg.norm(theta_a[:, None, :] - theta_b[None, :, :], axis=2)
+            ground = euclidean_ground_distances(theta_a, theta_b)
             return earth_movers_distance(model_a.weights, model_b.weights, ground).distance
 
         # Both sets are described by the same short EM refinement of one shared model (fitted

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.detectors.base import ChangeDetector, ParamSpec
-from app.core.emd import earth_movers_distance
+from app.core.emd import earth_movers_distance, euclidean_ground_distances
 
 
 def principal_axes(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -66,7 +66,7 @@ def sign_invariant_distances(
     -------
     ndarray, shape (k, l)
     """
-    minus = np.linalg.norm(axes_a[:, None, :] - axes_b[None, :, :], axis=2)
+    minus = euclidean_ground_distances(axes_a, axes_b)
     plus = np.linalg.norm(axes_a[:, None, :] + axes_b[None, :, :], axis=2)
     return np.minimum(minus, plus)
 
@@ -86,7 +86,7 @@ def paper_pca_emd(
     vectors_a, vectors_b : ndarray, shape (3, 3)
         Unit eigenvectors as rows (the weighted points), Euclidean ground distance.
     """
-    ground = np.linalg.norm(vectors_a[:, None, :] - vectors_b[None, :, :], axis=2)
+    ground = euclidean_ground_distances(vectors_a, vectors_b)
     return earth_movers_distance(values_a, values_b, ground).distance
 
 

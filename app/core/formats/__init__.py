@@ -30,7 +30,9 @@ from typing import TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.cloud import CloudSummary, PointCloud, conversion_threads, summarise_array
+from app.core.blocks import conversion_threads
+from app.core.cloud import PointCloud
+from app.core.cloud_summary import CloudSummary, summarise_array
 from app.core.errors import PointCloudError, UnsupportedFormatError
 from app.core.formats import text as _text
 from app.core.formats._common import RawCloud, Source, SourceLike, file_rows_of, open_source
@@ -211,7 +213,7 @@ def read_point_cloud(
     threads : int, optional
         Threads that may decode a large file: they widen binary PLY/PCD coordinates to float64
         and decompress LAZ. Default: for the widening
-        :func:`~app.core.cloud.conversion_threads` (``OMP_NUM_THREADS``, else two while the
+        :func:`~app.core.blocks.conversion_threads` (``OMP_NUM_THREADS``, else two while the
         load average leaves a CPU idle, else one: Python threads stall each other on a busy
         machine), for LAZ :func:`~app.core.threads.available_threads` (lazrs's decoder threads
         do not hold the GIL and paid off at every load measured but the highest). The cloud
@@ -259,7 +261,7 @@ def summarise_point_cloud(
     For accepting uploads: the same detection, the same checks and the same errors, and the
     counts, bounds and sensor origin of the cloud :func:`read_point_cloud` would return, but
     the coordinates are visited a cache-sized block at a time in the file's own type
-    (:func:`~app.core.cloud.summarise_array`), so no float64 copy of the coordinates is
+    (:func:`~app.core.cloud_summary.summarise_array`), so no float64 copy of the coordinates is
     made: for a binary PLY/PCD the coordinates cost one block of memory whatever the cloud's
     size (extra fields are still copied out, as for reading), for a LAS/LAZ one chunk of
     decoded points (:func:`~app.core.formats.las.summarise_las`). Text and NumPy files are

@@ -21,7 +21,7 @@ from typing import BinaryIO
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.cloud import FileRows
+from app.core.blocks import FileRows
 from app.core.errors import PointCloudError
 
 SourceLike = str | os.PathLike | bytes | bytearray | memoryview | BinaryIO
@@ -304,7 +304,7 @@ def file_rows_of(points: NDArray, source: Source) -> FileRows | None:
     """Where ``points``, an (n, 3) view of ``source``'s memory map, lies in its file; else None.
 
     :meth:`PointCloud.from_array` then reads it block by block with ``pread`` instead of
-    through the map (see :class:`~app.core.cloud.FileRows`).
+    through the map (see :class:`~app.core.blocks.FileRows`).
     """
     if source.file_descriptor is None or not isinstance(source.buffer, mmap.mmap):
         return None
@@ -332,6 +332,29 @@ def file_rows_of(points: NDArray, source: Source) -> FileRows | None:
 def has_nonzero_bytes(buffer: bytes | memoryview | mmap.mmap, start: int) -> bool:
     """Whether ``buffer[start:]`` holds anything but zero bytes (padding)."""
     return bool(np.frombuffer(buffer, dtype=np.uint8, offset=start).any())
+
+
+def ascii_body(source: Source, offset: int, not_ascii: str) -> str:
+    """The bytes of ``source`` from ``offset`` on, decoded as ASCII text.
+
+    Parameters
+    ----------
+    source : Source
+    offset : int
+        Where the body starts.
+    not_ascii : str
+        The error message when a byte is not ASCII; ``{offset}`` in it becomes that byte's
+        offset in the file.
+
+    Raises
+    ------
+    PointCloudError
+        A byte is not ASCII.
+    """
+    try:
+        return bytes(source.buffer[offset:]).decode("ascii")
+    except UnicodeDecodeError as exc:
+        raise PointCloudError(not_ascii.format(offset=offset + exc.start)) from exc
 
 
 def loadtxt_problem(exc: ValueError) -> str:

@@ -10,8 +10,8 @@ written by :func:`write_las`).
 
 Before any point is decompressed the header's point count is checked against ``max_points``
 and against the bytes present: an uncompressed body must hold ``count x record size`` bytes,
-and a LAZ body may not claim to expand more than :data:`LAZ_MAX_EXPANSION` times (a cloud of
-1M identical points, the most compressible input there is, measured 2,811x with lazrs).
+and a LAZ body may not claim to expand more than :data:`LAZ_MAX_EXPANSION` times, well above
+what the most compressible input there is expands to (figures in docs/performance.md).
 Points are then decoded in chunks into preallocated arrays (:func:`read_las`), or summarised
 chunk by chunk without keeping them (:func:`summarise_las`, for checking uploads).
 """
@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.cloud import CloudSummary, FiniteBounds
+from app.core.cloud_summary import CloudSummary, FiniteBounds
 from app.core.errors import PointCloudError
 from app.core.formats._common import RawCloud, Source, atomic_output, check_point_count
 
@@ -80,7 +80,7 @@ def read_las(source: Source, max_points: int | None, *, threads: int = 1) -> Raw
 
 def summarise_las(source: Source, max_points: int | None, *, threads: int = 1) -> CloudSummary:
     """What :func:`read_las` and ``PointCloud.from_array`` would make of the file, as a
-    :class:`~app.core.cloud.CloudSummary`, decoding :data:`SUMMARY_CHUNK_POINTS` points at a
+    :class:`~app.core.cloud_summary.CloudSummary`, decoding :data:`SUMMARY_CHUNK_POINTS` points at a
     time: memory stays at one chunk whatever the file's size (the same checks and errors).
     """
     with _opened_points(source, max_points, threads) as (reader, n_points, what):

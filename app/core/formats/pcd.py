@@ -36,6 +36,7 @@ from app.core.errors import PointCloudError
 from app.core.formats._common import (
     RawCloud,
     Source,
+    ascii_body,
     check_point_count,
     find_xyz_names,
     has_nonzero_bytes,
@@ -317,13 +318,12 @@ def _read_ascii(source: Source, offset: int, metadata, dtype: np.dtype) -> dict[
         available_bytes=source.size - offset,
         bytes_per_point=2 * n_columns,
     )
-    try:
-        text = bytes(source.buffer[offset:]).decode("ascii")
-    except UnicodeDecodeError as exc:
-        raise PointCloudError(
-            f"the ascii PCD body is not ASCII text (byte offset {offset + exc.start}); "
-            "is DATA wrong (binary data declared as ascii)?"
-        ) from exc
+    text = ascii_body(
+        source,
+        offset,
+        "the ascii PCD body is not ASCII text (byte offset {offset}); "
+        "is DATA wrong (binary data declared as ascii)?",
+    )
     try:
         table = np.loadtxt(io.StringIO(text), dtype=np.float64, ndmin=2, comments=None)
     except ValueError as exc:

@@ -6,7 +6,7 @@ body is then decoded in one step without a per-point Python loop:
 - binary: a zero-copy ``numpy.frombuffer`` view of the (memory-mapped) file with plyfile's dtype,
   whenever the elements before ``vertex`` have no list properties (true for point clouds and for
   meshes written vertex-first); otherwise plyfile reads the whole file;
-- ascii: ``numpy.loadtxt`` on the vertex rows (about 10x faster than plyfile's row loop).
+- ascii: ``numpy.loadtxt`` on the vertex rows (much faster than plyfile's row loop).
 
 Every vertex property other than x, y, z is kept as an attribute (red/green/blue, nx/ny/nz,
 intensity, label, ...). Faces and other elements are ignored.
@@ -24,6 +24,7 @@ from app.core.errors import PointCloudError
 from app.core.formats._common import (
     RawCloud,
     Source,
+    ascii_body,
     atomic_output,
     check_point_count,
     find_xyz_names,
@@ -162,13 +163,12 @@ def _read_ascii_vertices(
             f"truncated body: the PLY header declares {rows_before:,} rows before the vertices "
             f"but the body has only {body_bytes:,} bytes"
         )
-    try:
-        text = bytes(source.buffer[body_offset:]).decode("ascii")
-    except UnicodeDecodeError as exc:
-        raise PointCloudError(
-            f"the ascii PLY body is not ASCII text: byte at offset {body_offset + exc.start} "
-            "cannot be decoded; is the 'format' line wrong (binary data declared as ascii)?"
-        ) from exc
+    text = ascii_body(
+        source,
+        body_offset,
+        "the ascii PLY body is not ASCII text: byte at offset {offset} cannot be decoded; "
+        "is the 'format' line wrong (binary data declared as ascii)?",
+    )
     if has_lists:
         return _read_with_plyfile(source, elements[vertex_position].name)
     stripped = text.strip()
