@@ -116,6 +116,9 @@ def _check_upload_target(
         if site.reference_scan_id is None:
             raise ConflictError(no_reference_message(site.id), code="no_reference")
         sites.resolve_detector(site, options.method, options.variant)
+        # Fail fast, before a robot sends a large body it would send in vain; the check that
+        # counts is the one in jobs.new_job, under the organisation lock.
+        quotas.check_queued_jobs(session, settings, principal)
     remaining = None
     if not _key_was_used(session, principal, options.idempotency_key):
         quotas.check_stored_bytes(session, settings, principal, options.declared_size)

@@ -120,6 +120,8 @@ def test_the_cap_on_unfinished_jobs_answers_429_and_stores_nothing(quota_api: Ap
         "multipart upload": upload(
             client, site["id"], ply_bytes(make_points(1000, seed=20)), multipart=True
         ),
+        # Refused before the body is parsed: a robot at the cap does not send a scan in vain.
+        "upload of a body never parsed": upload(client, site["id"], b"ply\nnot a point cloud\n"),
         "POST /jobs": client.post(
             "/api/v1/jobs", json={"reference_scan_id": reference_id, "scan_id": scan_ids[0]}
         ),
