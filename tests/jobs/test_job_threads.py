@@ -9,7 +9,7 @@ import pytest
 from app.config import Settings, get_settings
 from app.core.threads import usable_cpus
 from app.jobs.consumer import JOB_THREADS_ENV, MEMORY_LIMIT_ENV, fix_job_memory_limit
-from app.jobs.execution import job_threads
+from app.jobs.limits import job_threads
 
 
 def cores() -> int:

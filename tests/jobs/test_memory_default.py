@@ -9,7 +9,7 @@ import pytest
 
 from app.config import GIB, Settings, get_settings
 from app.jobs.consumer import MEMORY_LIMIT_ENV, fix_job_memory_limit
-from app.jobs.execution import (
+from app.jobs.limits import (
     MEMORY_LIMIT_CEILING_BYTES,
     MEMORY_LIMIT_FLOOR_BYTES,
     default_memory_limit,
