@@ -11,7 +11,7 @@ import pytest
 
 from app.config import GIB, Settings, get_settings
 from app.jobs import limits
-from app.jobs.consumer import JOB_THREADS_ENV, MEMORY_LIMIT_ENV, fix_job_memory_limit
+from app.jobs.consumer import MEMORY_LIMIT_ENV, fix_job_memory_limit
 from app.jobs.limits import (
     default_memory_limit,
     job_memory_limit,
@@ -112,12 +112,8 @@ def test_an_explicit_cap_overrides_the_default(monkeypatch: pytest.MonkeyPatch) 
         Settings(job_memory_limit_bytes=-1)
 
 
+@pytest.mark.usefixtures("without_consumer_exports")
 def test_the_consumer_fixes_the_cap_once_for_its_workers(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.delenv(MEMORY_LIMIT_ENV, raising=False)
-    # The consumer exports the thread count too: setenv first so that monkeypatch removes it again
-    # (delenv of an absent variable records nothing to undo).
-    monkeypatch.setenv(JOB_THREADS_ENV, "")
-    monkeypatch.delenv(JOB_THREADS_ENV)
     expected = expected_cap(memory_of_this_machine(), 4)
     fixed = fix_job_memory_limit(Settings(workers=2), workers=4)
     assert isinstance(fixed.job_memory_limit_bytes, int)
