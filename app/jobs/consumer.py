@@ -31,8 +31,9 @@ from huey.consumer import Consumer, ConsumerStopped
 from app.config import Settings, get_settings
 from app.db.session import get_engine
 from app.jobs import queue
-from app.jobs.execution import job_memory_limit, job_threads
+from app.jobs.hooks import job_hooks
 from app.jobs.lifecycle import die_with_supervisor, set_parent_death_signal
+from app.jobs.limits import job_memory_limit, job_threads
 from app.jobs.recovery import recovery_sweep
 from app.log import configure_process_logging
 
@@ -160,14 +161,9 @@ class ScandiffConsumer(Consumer):  # type: ignore[misc]
 
 
 def preload_pipeline() -> None:
-    """Import the numeric pipeline once here, so forked workers start ready (copy-on-write)."""
+    """Load the comparison here once, so forked workers start ready (copy-on-write)."""
     started = time.perf_counter()
-    try:
-        import app.core.formats
-        import app.core.pipeline  # noqa: F401
-    except ImportError:
-        logger.exception("cannot import the comparison pipeline; jobs will fail until fixed")
-        return
+    job_hooks.comparison()
     logger.info("pipeline preloaded", extra={"seconds": round(time.perf_counter() - started, 2)})
 
 

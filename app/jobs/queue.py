@@ -1,9 +1,11 @@
-"""The Huey instance for the configured backend, enqueueing jobs and the queue's health.
+"""The Huey instance for the configured backend, its ``run_job`` task, enqueueing and health.
 
 The queue only carries job ids; the ``job`` table is the truth (see ``docs/jobs.md``).  By default
 the queue is a SQLite file in the data directory (``SqliteHuey``, no server); a ``redis://`` (or
 ``rediss://``, ``unix://``) ``SCANDIFF_QUEUE_URL`` selects ``RedisHuey`` so consumers can run on
-many hosts.  One Huey instance per backend per process, each with the ``run_job`` task registered.
+many hosts.  One Huey instance per backend per process, each with the ``run_job`` task registered
+(no Huey retries: attempts live in the job table, and :func:`run_job_once` sends the message of a
+job given back to ``queued`` again).
 """
 
 from __future__ import annotations
@@ -14,19 +16,21 @@ import socket
 import threading
 import time
 from collections.abc import Callable
-from datetime import UTC, datetime
 from typing import Any
 
 from huey import Huey, RedisHuey, SqliteHuey
 from sqlalchemy import update
 
-from app.config import Settings
+from app.clock import utc_now
+from app.config import Settings, get_settings
 from app.db.models import Job, JobStatus
 from app.db.session import transaction
+from app.jobs.execution import execute_job
 
 logger = logging.getLogger("scandiff.jobs.queue")
 
 QUEUE_NAME = "scandiff"
+JOB_TASK_NAME = "run_job"
 SQLITE_QUEUE_TIMEOUT_SECONDS = 60.0
 """Busy timeout of the Huey SQLite queue file (Huey's default of 5 s is too short under load)."""
 REDIS_URL_SCHEMES = ("redis://", "rediss://", "unix://")
@@ -65,9 +69,7 @@ def create_huey(settings: Settings) -> Huey:
         )
     else:
         huey = RedisHuey(name=QUEUE_NAME, url=settings.queue_url, results=False, utc=True)
-    from app.jobs.tasks import register_tasks  # the task module imports this one
-
-    _job_tasks[id(huey)] = register_tasks(huey)
+    _job_tasks[id(huey)] = huey.task(name=JOB_TASK_NAME, retries=0)(run_job)
     return huey
 
 
@@ -96,6 +98,20 @@ def send_job_message(job_id: str, settings: Settings) -> None:
     job_task(get_huey(settings))(job_id)
 
 
+def run_job_once(job_id: str, settings: Settings) -> str:
+    """Run job ``job_id`` if it still needs running; send its message again if it went back to
+    ``queued`` (a failed attempt with attempts left).  The outcome of :func:`execute_job`."""
+    outcome = execute_job(job_id, settings)
+    if outcome == JobStatus.QUEUED:
+        send_job_message(job_id, settings)
+    return outcome
+
+
+def run_job(job_id: str) -> None:
+    """The Huey task: run job ``job_id`` (claim, compare, store; idempotent), settings from env."""
+    run_job_once(job_id, get_settings())
+
+
 def enqueue_job(job_id: str, settings: Settings) -> None:
     """Queue a committed job: note ``enqueued_at`` then send its message.
 
@@ -107,7 +123,7 @@ def enqueue_job(job_id: str, settings: Settings) -> None:
         session.execute(
             update(Job)
             .where(Job.id == job_id, Job.status == JobStatus.QUEUED)
-            .values(enqueued_at=datetime.now(UTC))
+            .values(enqueued_at=utc_now())
         )
     send_job_message(job_id, settings)
     logger.info("job enqueued", extra={"job_id": job_id, "stage": "enqueued"})

@@ -17,7 +17,6 @@ Sending a message twice is harmless: a worker's claim is idempotent.
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 
@@ -27,11 +26,9 @@ from app.clock import as_utc, utc_now
 from app.config import Settings
 from app.db.models import Job, JobStatus
 from app.db.session import transaction
-from app.jobs.execution import (
-    TEMP_MARKER,
-    job_log,
-    lease_owner_is_dead_here,
-)
+from app.jobs.leases import job_log, lease_owner_is_dead_here
+from app.jobs.queue import pending_job_ids, send_job_message
+from app.jobs.results import remove_stale_temp_files
 
 logger = logging.getLogger("scandiff.jobs.recovery")
 
@@ -134,28 +131,10 @@ def resend_orphaned_queued(
         job_log("queued job had no message; enqueued again", job_id, "requeued")
 
 
-def remove_stale_temp_files(settings: Settings, older_than_seconds: float) -> int:
-    """Delete temporary result files older than ``older_than_seconds``; how many."""
-    if not settings.results_dir.is_dir():
-        return 0
-    cutoff = time.time() - older_than_seconds
-    removed = 0
-    for path in settings.results_dir.glob(f"*/.*{TEMP_MARKER}*"):
-        try:
-            if path.stat().st_mtime <= cutoff:
-                path.unlink()
-                removed += 1
-        except FileNotFoundError:
-            continue
-    return removed
-
-
 def recovery_sweep(
     settings: Settings, *, temp_file_max_age_seconds: float = TEMP_FILE_MAX_AGE_SECONDS
 ) -> RecoveryReport:
     """Run one sweep (see the module docstring) and send the messages; what it did."""
-    from app.jobs.queue import pending_job_ids, send_job_message
-
     report = RecoveryReport()
     now = utc_now()
     try:

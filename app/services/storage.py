@@ -35,6 +35,8 @@ from sqlalchemy.exc import SQLAlchemyError
 from app.config import Settings
 from app.db.models import Job, Scan, new_id
 from app.db.session import transaction
+from app.files import fsync_directory
+from app.jobs.results import remove_stale_temp_files
 from app.services.errors import BadRequestError, PayloadTooLargeError
 
 logger = logging.getLogger("scandiff.storage")
@@ -114,20 +116,12 @@ async def receive_stream(
     return ReceivedFile(path=path, size_bytes=size, sha256=hasher.hexdigest(), head=bytes(head))
 
 
-def _fsync_directory(directory: Path) -> None:
-    with contextlib.suppress(OSError):
-        descriptor = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(descriptor)
-        finally:
-            os.close(descriptor)
-
-
 def install_file(source: Path, destination: Path) -> None:
     """Atomically move a complete (fsynced) file into place and make the rename durable."""
     destination.parent.mkdir(parents=True, exist_ok=True)
     os.replace(source, destination)
-    _fsync_directory(destination.parent)
+    with contextlib.suppress(OSError):  # the file is in place; only the rename's durability is lost
+        fsync_directory(destination.parent)
 
 
 def remove_file(path: Path) -> None:
@@ -215,8 +209,6 @@ def sweep_temporary_files(settings: Settings, *, min_age_seconds: float = 0.0) -
     scan files that no scan row references, and result directories of jobs that no longer
     exist.  Never raises (a database that is not migrated yet only skips the last two).
     """
-    from app.jobs.recovery import remove_stale_temp_files
-
     now = time.time()
     removed = 0
     if settings.tmp_dir.is_dir():

@@ -20,6 +20,7 @@ from app.config import Settings
 from app.db.migrate import upgrade_to_head
 from app.db.models import Job, Organisation, Region, Scan, Site
 from app.db.session import get_engine, transaction
+from app.jobs.consumer import JOB_THREADS_ENV, MEMORY_LIMIT_ENV
 from tests.jobs.fake_pipeline import CONSUMER_BOOTSTRAP
 from tests.service_harness import PROJECT_ROOT, pid_is_alive, process_group_members
 
@@ -54,6 +55,18 @@ def job_settings(tmp_path: Path) -> Settings:
     upgrade_to_head(settings.sqlalchemy_url)
     yield settings
     get_engine(settings.sqlalchemy_url).dispose()
+
+
+@pytest.fixture
+def without_consumer_exports(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Neither the memory cap nor the thread count in the environment, and none left after.
+
+    ``fix_job_memory_limit`` exports both; ``monkeypatch.delenv`` of an absent variable records
+    nothing to undo, so each is set first and the teardown restores the original state.
+    """
+    for name in (MEMORY_LIMIT_ENV, JOB_THREADS_ENV):
+        monkeypatch.setenv(name, "")
+        monkeypatch.delenv(name)
 
 
 def corridor_points(n_points: int, *, added_box: bool, seed: int) -> np.ndarray:

@@ -2,14 +2,14 @@
 
 The durability machinery (claim, lease, recovery) does not depend on the numbers; this fake
 returns a deterministic result shaped like :class:`app.core.pipeline.ComparisonResult` in a few
-milliseconds.  :func:`stub_pipeline_module` replaces the module in ``sys.modules`` (tests patch
-it in); :data:`CONSUMER_BOOTSTRAP` starts a consumer process with it installed.
+milliseconds.  It reaches the worker through the jobs' one test seam,
+:data:`app.jobs.hooks.job_hooks`: tests set ``job_hooks.compare`` to :func:`fake_compare`
+(in-process, with ``monkeypatch``); :data:`CONSUMER_BOOTSTRAP` starts a consumer process with it
+installed (:func:`install`), so the consumer never imports the real pipeline.
 """
 
 from __future__ import annotations
 
-import sys
-import types
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.cloud import PointCloud
+from app.jobs.hooks import job_hooks
 
 CONSUMER_BOOTSTRAP = (
     "import sys, tests.jobs.fake_pipeline as fake; fake.install(); "
@@ -117,13 +118,6 @@ def fake_compare(
     )
 
 
-def stub_pipeline_module() -> types.ModuleType:
-    """A module standing in for ``app.core.pipeline`` whose ``compare`` is the fake."""
-    module = types.ModuleType("app.core.pipeline")
-    module.compare = fake_compare  # type: ignore[attr-defined]
-    return module
-
-
 def install() -> None:
-    """Make ``import app.core.pipeline`` give the stub in this process (the real one is slow)."""
-    sys.modules["app.core.pipeline"] = stub_pipeline_module()
+    """Make the jobs of this process compare with :func:`fake_compare` (the real one is slow)."""
+    job_hooks.compare = fake_compare

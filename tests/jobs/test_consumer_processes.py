@@ -15,7 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from app.config import Settings
-from app.jobs.execution import lease_owner_pid
+from app.jobs.leases import lease_owner_pid
 from app.jobs.queue import enqueue_job, get_huey, send_job_message
 from tests.jobs.conftest import (
     ConsumerProcess,

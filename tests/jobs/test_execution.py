@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import sys
 import time
 from datetime import timedelta
 
@@ -15,16 +14,17 @@ from app.clock import utc_now
 from app.config import Settings
 from app.db.models import Job
 from app.db.session import transaction
-from app.jobs import execution
-from app.jobs.execution import (
+from app.jobs.execution import execute_job
+from app.jobs.hooks import job_hooks
+from app.jobs.leases import (
     LeaseKeeper,
+    LeaseLostError,
     claim_job,
-    execute_job,
     lease_owner_pid,
     make_lease_owner,
-    store_results,
 )
-from app.jobs.queue import pending_job_ids
+from app.jobs.queue import pending_job_ids, run_job_once
+from app.jobs.results import store_results
 from tests.jobs import fake_pipeline
 from tests.jobs.conftest import count_regions, create_job, load_job
 
@@ -32,7 +32,7 @@ from tests.jobs.conftest import count_regions, create_job, load_job
 @pytest.fixture(autouse=True)
 def fake_compare(monkeypatch: pytest.MonkeyPatch) -> None:
     """Use the fast deterministic pipeline stand-in."""
-    monkeypatch.setitem(sys.modules, "app.core.pipeline", fake_pipeline.stub_pipeline_module())
+    monkeypatch.setattr(job_hooks, "compare", fake_pipeline.fake_compare)
 
 
 def expire_lease(settings: Settings, job_id: str) -> None:
@@ -140,16 +140,16 @@ def test_transient_errors_are_retried_then_fail_after_max_attempts(
     )
     job_id = create_job(job_settings)
 
-    assert execute_job(job_id, job_settings) == "queued"
+    assert run_job_once(job_id, job_settings) == "queued"
     job = load_job(job_settings, job_id)
     assert job.status == "queued" and "disk on fire" in job.error
     assert job_id in pending_job_ids(job_settings)  # sent again at once
-    assert execute_job(job_id, job_settings) == "succeeded"
+    assert run_job_once(job_id, job_settings) == "succeeded"
     assert load_job(job_settings, job_id).attempts == 2
 
     monkeypatch.setenv("SCANDIFF_TEST_JOB_HOOKS", json.dumps({"raise_error": "always"}))
     poison_id = create_job(job_settings)
-    outcomes = [execute_job(poison_id, job_settings) for _ in range(4)]
+    outcomes = [run_job_once(poison_id, job_settings) for _ in range(4)]
     assert outcomes == ["queued", "queued", "failed", "skipped"]
     job = load_job(job_settings, poison_id)
     assert (job.status, job.attempts) == ("failed", 3)
@@ -172,7 +172,7 @@ def test_shutdown_interrupt_hands_the_job_back_without_using_an_attempt(
     def interrupted(*args: object, **kwargs: object) -> None:
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(sys.modules["app.core.pipeline"], "compare", interrupted)
+    monkeypatch.setattr(job_hooks, "compare", interrupted)
     job_id = create_job(job_settings)
 
     with pytest.raises(KeyboardInterrupt):
@@ -198,7 +198,7 @@ def test_heartbeat_extends_the_lease_and_notices_a_takeover(job_settings: Settin
         expire_lease(job_settings, job_id)
         assert claim_job(job_id, job_settings, make_lease_owner()) is not None  # taken over
         assert keeper.lost.wait(5.0)
-        with pytest.raises(execution.LeaseLostError):
+        with pytest.raises(LeaseLostError):
             keeper.report("detect", 0.6)
     finally:
         keeper.stop()
@@ -210,15 +210,13 @@ def test_sensor_origins_stored_with_the_scans_reach_compare(
     from app.db.models import Scan
 
     seen: dict[str, object] = {}
-    stub = fake_pipeline.stub_pipeline_module()
 
     def recording_compare(reference, scan, **keywords):  # type: ignore[no-untyped-def]
         seen["reference"] = reference.sensor_origin
         seen["scan"] = scan.sensor_origin
         return fake_pipeline.fake_compare(reference, scan, **keywords)
 
-    stub.compare = recording_compare  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "app.core.pipeline", stub)
+    monkeypatch.setattr(job_hooks, "compare", recording_compare)
     job_id = create_job(job_settings)
     with transaction(job_settings.sqlalchemy_url) as session:
         job = session.get(Job, job_id)

@@ -8,8 +8,8 @@ import pytest
 
 from app.config import Settings, get_settings
 from app.core.threads import usable_cpus
-from app.jobs.consumer import JOB_THREADS_ENV, MEMORY_LIMIT_ENV, fix_job_memory_limit
-from app.jobs.execution import job_threads
+from app.jobs.consumer import JOB_THREADS_ENV, fix_job_memory_limit
+from app.jobs.limits import job_threads
 
 
 def cores() -> int:
@@ -31,9 +31,8 @@ def test_the_setting_rejects_zero() -> None:
         Settings(job_threads=0)
 
 
-def test_the_consumer_exports_the_count_its_workers_read(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.delenv(JOB_THREADS_ENV, raising=False)  # restored afterwards, as is the cap's
-    monkeypatch.delenv(MEMORY_LIMIT_ENV, raising=False)
+@pytest.mark.usefixtures("without_consumer_exports")
+def test_the_consumer_exports_the_count_its_workers_read() -> None:
     get_settings.cache_clear()
     fixed = fix_job_memory_limit(Settings(workers=1), workers=cores())
     assert fixed.job_threads == 1

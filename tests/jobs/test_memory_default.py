@@ -2,21 +2,43 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import resource
+from pathlib import Path
 
 import pytest
 
 from app.config import GIB, Settings, get_settings
+from app.jobs import limits
 from app.jobs.consumer import MEMORY_LIMIT_ENV, fix_job_memory_limit
-from app.jobs.execution import (
-    MEMORY_LIMIT_CEILING_BYTES,
-    MEMORY_LIMIT_FLOOR_BYTES,
+from app.jobs.limits import (
     default_memory_limit,
     job_memory_limit,
     machine_memory_bytes,
     memory_limit,
 )
+
+CGROUP_MEMORY_FILES = ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes")
+
+
+def memory_of_this_machine() -> int:
+    """``MemTotal`` of ``/proc/meminfo``, or the container's memory limit when lower."""
+    with open("/proc/meminfo") as meminfo:
+        memory = next(
+            int(line.split()[1]) * 1024 for line in meminfo if line.startswith("MemTotal:")
+        )
+    for path in CGROUP_MEMORY_FILES:
+        with contextlib.suppress(OSError), open(path) as limit_file:
+            text = limit_file.read().strip()
+            if text.isdigit():  # cgroup v1 says "no limit" with a huge number: min() drops it
+                memory = min(memory, int(text))
+    return memory
+
+
+def expected_cap(memory: int, workers: int) -> int:
+    """The documented default: 75 % of ``memory`` shared by ``workers``, within 1 to 8 GiB."""
+    return max(1 * GIB, min(8 * GIB, memory * 3 // 4 // workers))
 
 
 @pytest.mark.parametrize(
@@ -41,14 +63,27 @@ def test_auto_is_the_default_and_derives_from_this_machine(
     monkeypatch.delenv(MEMORY_LIMIT_ENV, raising=False)
     settings = Settings(workers=3)
     assert settings.job_memory_limit_bytes == "auto"
-    memory = machine_memory_bytes()
-    assert memory is not None and 0 < memory <= os.sysconf("SC_PAGE_SIZE") * os.sysconf(
-        "SC_PHYS_PAGES"
-    )
-    expected = max(MEMORY_LIMIT_FLOOR_BYTES, min(MEMORY_LIMIT_CEILING_BYTES, memory * 3 // 4 // 3))
-    limit = job_memory_limit(settings)
-    assert limit is not None and abs(limit - expected) <= 1
-    assert job_memory_limit(settings, workers=1) == default_memory_limit(1)
+    memory = memory_of_this_machine()
+    assert machine_memory_bytes() == memory
+    for workers, limit in ((3, job_memory_limit(settings)), (1, job_memory_limit(settings, 1))):
+        assert limit is not None and abs(limit - expected_cap(memory, workers)) <= 1, workers
+
+
+def test_a_container_limit_below_the_machine_s_memory_wins(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    monkeypatch.delenv(MEMORY_LIMIT_ENV, raising=False)
+    version_2, version_1 = tmp_path / "memory.max", tmp_path / "memory.limit_in_bytes"
+    monkeypatch.setattr(limits, "_CGROUP_MEMORY_FILES", (version_2, version_1))
+    version_2.write_text("max\n")  # cgroup v2 without a limit: the v1 file is read next
+    version_1.write_text(f"{4 * GIB}\n")
+    container = min(4 * GIB, memory_of_this_machine())
+
+    assert machine_memory_bytes() == container
+    assert job_memory_limit(Settings(workers=2)) == expected_cap(container, 2)
+
+    version_1.write_text(f"{2**63 - 4096}\n")  # cgroup v1's "no limit"
+    assert machine_memory_bytes() == memory_of_this_machine()
 
 
 @pytest.mark.parametrize("value", ["0", "none", "None", "off", "unlimited"])
@@ -77,12 +112,14 @@ def test_an_explicit_cap_overrides_the_default(monkeypatch: pytest.MonkeyPatch) 
         Settings(job_memory_limit_bytes=-1)
 
 
+@pytest.mark.usefixtures("without_consumer_exports")
 def test_the_consumer_fixes_the_cap_once_for_its_workers(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.delenv(MEMORY_LIMIT_ENV, raising=False)
+    expected = expected_cap(memory_of_this_machine(), 4)
     fixed = fix_job_memory_limit(Settings(workers=2), workers=4)
-    assert fixed.job_memory_limit_bytes == default_memory_limit(4)
-    assert os.environ[MEMORY_LIMIT_ENV] == str(default_memory_limit(4))
-    assert get_settings().job_memory_limit_bytes == default_memory_limit(4)  # what workers read
+    assert isinstance(fixed.job_memory_limit_bytes, int)
+    assert abs(fixed.job_memory_limit_bytes - expected) <= 1
+    assert os.environ[MEMORY_LIMIT_ENV] == str(fixed.job_memory_limit_bytes)
+    assert get_settings().job_memory_limit_bytes == fixed.job_memory_limit_bytes  # workers read
 
     monkeypatch.setenv(MEMORY_LIMIT_ENV, "none")
     get_settings.cache_clear()

@@ -15,7 +15,7 @@ from app.clock import utc_now
 from app.config import Settings
 from app.db.models import Job
 from app.db.session import transaction
-from app.jobs.execution import claim_job, make_lease_owner
+from app.jobs.leases import claim_job, make_lease_owner
 from app.jobs.queue import (
     enqueue_job,
     get_huey,

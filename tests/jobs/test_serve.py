@@ -15,7 +15,6 @@ from collections.abc import Callable
 
 import httpx
 import numpy as np
-import pytest
 from plyfile import PlyData, PlyElement
 
 from tests.service_harness import ServiceProcess, room_points, service_factory  # noqa: F401
@@ -64,15 +63,6 @@ def describe(pids: list[int]) -> str:
     return "\n".join(lines)
 
 
-def pipeline_importable() -> bool:
-    """Whether the core pipeline imports (it is being written in parallel)."""
-    try:
-        import app.core.pipeline  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 def test_first_start_prints_a_private_token_and_children_die_with_serve(
     service_factory: Callable[..., ServiceProcess],  # noqa: F811
 ) -> None:
@@ -107,8 +97,6 @@ def test_first_start_prints_a_private_token_and_children_die_with_serve(
 def test_killed_service_restarted_finishes_running_and_queued_jobs(
     service_factory: Callable[..., ServiceProcess],  # noqa: F811
 ) -> None:
-    if not pipeline_importable():
-        pytest.skip("app.core.pipeline is not importable yet")
     slow = {"SCANDIFF_TEST_JOB_HOOKS": json.dumps({"sleep_seconds": 60, "scan_filename": "a.ply"})}
     service = service_factory(workers=1, env={**FAST_LEASES, **slow})
     with service.client() as client:

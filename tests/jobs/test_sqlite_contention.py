@@ -18,7 +18,7 @@ from sqlalchemy import select
 from app.config import Settings
 from app.db.models import Job, Site
 from app.db.session import session_factory
-from app.jobs.execution import ClaimedJob, LeaseKeeper, claim_job, make_lease_owner
+from app.jobs.leases import ClaimedJob, LeaseKeeper, claim_job, make_lease_owner
 from app.jobs.queue import enqueue_job
 from app.jobs.recovery import recovery_sweep
 from tests.jobs.conftest import create_job

@@ -36,7 +36,7 @@ from typing import Any
 
 import pytest
 
-from app.jobs.execution import lease_owner_pid
+from app.jobs.leases import lease_owner_pid
 from tests.jobs.test_serve import room_ply, upload
 from tests.reliability.conftest import database_rows
 from tests.reliability.figures import record_figure

@@ -1,0 +1,107 @@
+"""The one seam through which tests reach into a job run: :data:`job_hooks`.
+
+A job run asks :data:`job_hooks` for two things, and nothing else in ``app`` knows about tests:
+
+* :meth:`JobHooks.comparison`: the function that compares two clouds.  It is
+  :func:`app.core.pipeline.compare` unless a test set :attr:`JobHooks.compare` to a stand-in
+  (``tests/jobs/fake_pipeline.py`` installs a fast, deterministic one, in-process or in a
+  consumer it starts);
+* :meth:`JobHooks.inject_faults`: faults described by the JSON object in env
+  ``SCANDIFF_TEST_JOB_HOOKS`` (an environment variable, so that it reaches the workers of a
+  ``scandiff serve`` a test starts).  Honoured only when ``SCANDIFF_TESTING=1``, which the test
+  harness sets and production never does.
+
+Filters: ``scan_filename`` (only jobs whose scan has that filename), ``on_attempts`` (list of
+attempt numbers).  Actions, in this order: ``sleep_seconds`` (sleep while heart-beating, stage
+``testing-sleep``), ``allocate_bytes`` (allocate that much: hits the memory cap),
+``kill_worker`` (SIGKILL this worker process: a crash), ``raise_error`` (raise ``RuntimeError``
+with that message: a transient failure).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from app.jobs.leases import PROGRESS_LOADED, ClaimedJob, LeaseKeeper, job_log
+
+logger = logging.getLogger("scandiff.jobs")
+
+TESTING_ENV = "SCANDIFF_TESTING"
+TEST_HOOKS_ENV = "SCANDIFF_TEST_JOB_HOOKS"
+
+
+def testing_enabled() -> bool:
+    """Whether test hooks are honoured (env ``SCANDIFF_TESTING=1``; never set in production)."""
+    return os.environ.get(TESTING_ENV) == "1"
+
+
+@dataclass
+class JobHooks:
+    """What a job run takes from tests: a stand-in comparison and injected faults."""
+
+    compare: Callable[..., Any] | None = None
+    """Used instead of :func:`app.core.pipeline.compare` when set (tests only)."""
+
+    def comparison(self) -> Callable[..., Any]:
+        """The function a job compares its two clouds with."""
+        if self.compare is not None:
+            return self.compare
+        # Imported on first use, not with this module: the API process imports the jobs package
+        # to enqueue jobs and must stay small, without scipy, scikit-learn and POT (~4 s to
+        # import).  The consumer calls this before forking, so its workers start with it loaded.
+        from app.core.pipeline import compare
+
+        return compare
+
+    def faults_for(self, job: ClaimedJob) -> dict[str, Any]:
+        """The faults to inject into ``job`` (none unless ``SCANDIFF_TESTING=1``)."""
+        raw = os.environ.get(TEST_HOOKS_ENV)
+        if not raw:
+            return {}
+        if not testing_enabled():
+            logger.warning(
+                f"{TEST_HOOKS_ENV} is set but {TESTING_ENV} is not 1; ignoring the test hooks",
+                extra={"job_id": job.id, "stage": "claimed"},
+            )
+            return {}
+        faults = json.loads(raw)
+        if "scan_filename" in faults and faults["scan_filename"] != job.scan_filename:
+            return {}
+        on_attempts = faults.get("on_attempts")
+        if on_attempts is not None and job.attempt not in on_attempts:
+            return {}
+        return dict(faults)
+
+    def inject_faults(self, job: ClaimedJob, keeper: LeaseKeeper) -> None:
+        """Act out the faults of :meth:`faults_for` (see the module docstring), in order."""
+        faults = self.faults_for(job)
+        if not faults:
+            return
+        sleep_seconds = float(faults.get("sleep_seconds", 0.0))
+        if sleep_seconds > 0:
+            deadline = time.monotonic() + sleep_seconds
+            while (remaining := deadline - time.monotonic()) > 0:
+                keeper.report("testing-sleep", PROGRESS_LOADED * (1 - remaining / sleep_seconds))
+                time.sleep(min(0.05, remaining))
+        if faults.get("allocate_bytes"):
+            ballast = np.ones(int(faults["allocate_bytes"]), dtype=np.uint8)
+            del ballast
+        if faults.get("kill_worker"):
+            job_log("test hook: killing this worker", job.id, "testing-kill", attempt=job.attempt)
+            logging.shutdown()
+            os.kill(os.getpid(), signal.SIGKILL)
+        if faults.get("raise_error"):
+            raise RuntimeError(str(faults["raise_error"]))
+
+
+job_hooks = JobHooks()
+"""This process's job hooks (the only instance)."""
