@@ -37,10 +37,14 @@ from app.core.detectors.base import ChangeDetector
 from app.core.errors import InputError
 from app.core.jsonable import json_safe
 from app.core.localise import (
+    LABEL_CHANGED,
+    LABEL_UNCHANGED,
+    LABEL_UNOBSERVED,
     NeighbourhoodSearch,
     localise_changes,
     start_neighbourhood_search,
 )
+from app.core.parameters import ParamSpec, validate_parameters
 from app.core.registration import (
     apply_transform,
     identity_registration,
@@ -50,10 +54,6 @@ from app.core.threads import available_threads
 
 ProgressCallback = Callable[[str, float], None]
 """Called as ``progress(stage, fraction_done)`` with fraction in [0, 1]."""
-
-LABEL_UNCHANGED = 0
-LABEL_CHANGED = 1
-LABEL_UNOBSERVED = -1
 
 DECISION_RULES = ("regions", "either", "detector")
 """How ``changed`` is decided:
@@ -215,22 +215,13 @@ class ComparisonSettings:
     decision: str
 
 
-def _check_keywords(function: Callable[..., Any], stage: str, keywords: Mapping[str, Any]) -> None:
-    """Raise InputError naming the parameters ``function`` does not take."""
-    accepted = {
-        name
-        for name, parameter in inspect.signature(function).parameters.items()
-        if parameter.kind in (parameter.KEYWORD_ONLY, parameter.POSITIONAL_OR_KEYWORD)
-    }
-    unknown = sorted(set(keywords) - accepted)
-    if unknown and not any(
-        parameter.kind == parameter.VAR_KEYWORD
-        for parameter in inspect.signature(function).parameters.values()
-    ):
-        raise InputError(
-            f"unknown {stage} parameter(s) {', '.join(unknown)}; "
-            f"valid: {', '.join(sorted(accepted - {'reference', 'scan'}))}"
-        )
+REGISTRATION_SPECS: dict[str, ParamSpec] = {
+    name: ParamSpec("any")
+    for name, parameter in inspect.signature(register_scan).parameters.items()
+    if parameter.kind == parameter.KEYWORD_ONLY
+}
+"""The registration stage's keyword parameters: those :func:`register_scan` takes (values are
+checked by the registration itself)."""
 
 
 def parse_comparison_params(
@@ -271,8 +262,7 @@ def parse_comparison_params(
         if not isinstance(value, Mapping):
             raise InputError(f"{stage} must be an object of keyword parameters, got {value!r}")
         stage_params[stage] = dict(value)
-    _check_keywords(register_scan, "registration", stage_params["registration"])
-    _check_keywords(localise_changes, "localisation", stage_params["localisation"])
+    validate_parameters(REGISTRATION_SPECS, stage_params["registration"], stage="registration")
     decision = remaining.pop("decision", DECISION_RULES[0])
     if decision not in DECISION_RULES:
         raise InputError(f"decision must be one of {', '.join(DECISION_RULES)}, got {decision!r}")
