@@ -62,11 +62,9 @@ DECISION_RULES = ("regions", "either", "detector")
     localisation found at least one region of changed points: points farther from the other
     cloud's local surface than a threshold calibrated from the measured noise and local point
     spacing, seen by the other sensor (not unobserved), in a connected cluster above the size
-    floor that spurious edge clusters never reach.  On ray-cast rescans (200k points, sensor
-    moved 1 m, 3 cm / 0.4 degree pose error) this gave 0 of 9 false alarms and 36 of 36
-    detections with IoU >= 0.96, while the global EMD detectors raised 3 of 9 false alarms
-    (GMM 2/3, PCA 1/3) and missed most single-object changes (``bench/scenes.py``): their
-    threshold models resampling noise, not the change of viewpoint between two rescans.
+    floor that spurious edge clusters never reach.  It is the default because the global
+    detectors' threshold models resampling noise, not the change of viewpoint between two
+    rescans (``bench/scenes.py``; figures in ``docs/performance.md``).
 ``"either"``
     the global score exceeds its calibrated threshold, or a region was found.
 ``"detector"``
@@ -289,7 +287,7 @@ def parse_comparison_params(
 REFERENCE_AHEAD_MIN_POINTS = 50_000
 """From this many reference points (and with >= 2 threads) the reference's nearest-neighbour
 search starts on a second thread while the scan is aligned: alignment uses one core, and the
-search is the largest single cost of localisation (1M-point pair: ~0.5 s less wall time)."""
+search is the largest single cost of localisation (gain in ``docs/performance.md``)."""
 
 
 @contextmanager

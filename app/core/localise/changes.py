@@ -1,7 +1,8 @@
 """The public entry point: :func:`localise_changes` and its result, :class:`Localisation`.
 
-The steps, each in its own module (one-way: changes -> visibility / regions / distance ->
-surface -> neighbourhoods -> settings; method and measured numbers in ``docs/localisation.md``):
+The steps, each in its own module (imports go one way: changes -> visibility -> rays / regions
+/ distance -> surface -> neighbourhoods -> settings; method and measured numbers in
+``docs/localisation.md``):
 
 1. **Local geometry of each cloud** (:mod:`~app.core.localise.surface`, on the k nearest
    neighbours of :mod:`~app.core.localise.neighbourhoods`): a plane, spacing ``s`` and
@@ -13,7 +14,8 @@ surface -> neighbourhoods -> settings; method and measured numbers in ``docs/loc
    normal follows the measured noise, the one across the surface the other cloud's local
    spacing.
 4. **Visibility: unobserved is never change** (:mod:`~app.core.localise.visibility`): ray
-   tests from the other sensor's origin, or a coverage test without one.
+   tests from the other sensor's origin (:mod:`~app.core.localise.rays`), or a coverage test
+   without one.
 5. **Regions** (:mod:`~app.core.localise.regions`): connected changed points; clusters below
    ``min_region_points`` are noise and relabelled unchanged.
 
