@@ -37,10 +37,14 @@ from app.core.detectors.base import ChangeDetector
 from app.core.errors import InputError
 from app.core.jsonable import json_safe
 from app.core.localise import (
+    LABEL_CHANGED,
+    LABEL_UNCHANGED,
+    LABEL_UNOBSERVED,
     NeighbourhoodSearch,
     localise_changes,
     start_neighbourhood_search,
 )
+from app.core.parameters import ParamSpec, validate_parameters
 from app.core.registration import (
     apply_transform,
     identity_registration,
@@ -51,10 +55,6 @@ from app.core.threads import available_threads
 ProgressCallback = Callable[[str, float], None]
 """Called as ``progress(stage, fraction_done)`` with fraction in [0, 1]."""
 
-LABEL_UNCHANGED = 0
-LABEL_CHANGED = 1
-LABEL_UNOBSERVED = -1
-
 DECISION_RULES = ("regions", "either", "detector")
 """How ``changed`` is decided:
 
@@ -62,11 +62,9 @@ DECISION_RULES = ("regions", "either", "detector")
     localisation found at least one region of changed points: points farther from the other
     cloud's local surface than a threshold calibrated from the measured noise and local point
     spacing, seen by the other sensor (not unobserved), in a connected cluster above the size
-    floor that spurious edge clusters never reach.  On ray-cast rescans (200k points, sensor
-    moved 1 m, 3 cm / 0.4 degree pose error) this gave 0 of 9 false alarms and 36 of 36
-    detections with IoU >= 0.96, while the global EMD detectors raised 3 of 9 false alarms
-    (GMM 2/3, PCA 1/3) and missed most single-object changes (``bench/scenes.py``): their
-    threshold models resampling noise, not the change of viewpoint between two rescans.
+    floor that spurious edge clusters never reach.  It is the default because the global
+    detectors' threshold models resampling noise, not the change of viewpoint between two
+    rescans (``bench/scenes.py``; figures in ``docs/performance.md``).
 ``"either"``
     the global score exceeds its calibrated threshold, or a region was found.
 ``"detector"``
@@ -215,22 +213,13 @@ class ComparisonSettings:
     decision: str
 
 
-def _check_keywords(function: Callable[..., Any], stage: str, keywords: Mapping[str, Any]) -> None:
-    """Raise InputError naming the parameters ``function`` does not take."""
-    accepted = {
-        name
-        for name, parameter in inspect.signature(function).parameters.items()
-        if parameter.kind in (parameter.KEYWORD_ONLY, parameter.POSITIONAL_OR_KEYWORD)
-    }
-    unknown = sorted(set(keywords) - accepted)
-    if unknown and not any(
-        parameter.kind == parameter.VAR_KEYWORD
-        for parameter in inspect.signature(function).parameters.values()
-    ):
-        raise InputError(
-            f"unknown {stage} parameter(s) {', '.join(unknown)}; "
-            f"valid: {', '.join(sorted(accepted - {'reference', 'scan'}))}"
-        )
+REGISTRATION_SPECS: dict[str, ParamSpec] = {
+    name: ParamSpec("any")
+    for name, parameter in inspect.signature(register_scan).parameters.items()
+    if parameter.kind == parameter.KEYWORD_ONLY
+}
+"""The registration stage's keyword parameters: those :func:`register_scan` takes (values are
+checked by the registration itself)."""
 
 
 def parse_comparison_params(
@@ -271,8 +260,7 @@ def parse_comparison_params(
         if not isinstance(value, Mapping):
             raise InputError(f"{stage} must be an object of keyword parameters, got {value!r}")
         stage_params[stage] = dict(value)
-    _check_keywords(register_scan, "registration", stage_params["registration"])
-    _check_keywords(localise_changes, "localisation", stage_params["localisation"])
+    validate_parameters(REGISTRATION_SPECS, stage_params["registration"], stage="registration")
     decision = remaining.pop("decision", DECISION_RULES[0])
     if decision not in DECISION_RULES:
         raise InputError(f"decision must be one of {', '.join(DECISION_RULES)}, got {decision!r}")
@@ -299,7 +287,7 @@ def parse_comparison_params(
 REFERENCE_AHEAD_MIN_POINTS = 50_000
 """From this many reference points (and with >= 2 threads) the reference's nearest-neighbour
 search starts on a second thread while the scan is aligned: alignment uses one core, and the
-search is the largest single cost of localisation (1M-point pair: ~0.5 s less wall time)."""
+search is the largest single cost of localisation (gain in ``docs/performance.md``)."""
 
 
 @contextmanager

@@ -68,3 +68,31 @@ def test_importing_the_core_loads_no_web_or_database_module():
         [sys.executable, "-c", code], capture_output=True, text=True, check=True
     )
     assert result.stdout.strip() == ""
+
+
+LOCALISE_LAYERS = (
+    "settings",
+    "neighbourhoods",
+    "surface",
+    "distance",
+    "regions",
+    "rays",
+    "visibility",
+    "changes",
+)
+"""The localisation package's modules, lowest first: each imports only modules before it."""
+
+
+def test_the_localisation_package_imports_one_way():
+    package = CORE / "localise"
+    assert sorted(path.stem for path in package.glob("*.py")) == sorted(
+        [*LOCALISE_LAYERS, "__init__"]
+    )
+    offenders = []
+    for layer, name in enumerate(LOCALISE_LAYERS):
+        for module in imported_modules(package / f"{name}.py"):
+            if module == "app.core.localise" or module.startswith("app.core.localise."):
+                imported = module.removeprefix("app.core.localise").lstrip(".")
+                if imported not in LOCALISE_LAYERS[:layer]:
+                    offenders.append(f"{name} imports {module}")
+    assert offenders == []

@@ -7,11 +7,11 @@ import threading
 import numpy as np
 import pytest
 
-from app.core import localise
 from app.core.cloud import PointCloud
 from app.core.detectors import METHODS, VARIANTS
 from app.core.errors import InputError
-from app.core.pipeline import LABEL_CHANGED, REFERENCE_AHEAD_MIN_POINTS, compare
+from app.core.localise import LABEL_CHANGED, neighbourhoods
+from app.core.pipeline import REFERENCE_AHEAD_MIN_POINTS, compare
 from app.core.registration import apply_transform
 from app.core.synthetic import raycast_scene
 
@@ -163,12 +163,12 @@ def test_the_reference_search_run_during_alignment_changes_nothing_and_ends_with
     runs while the scan is aligned: the result is exactly the one-thread result."""
     started: list[int] = []
 
-    class CountedSearch(localise.NeighbourhoodSearch):
+    class CountedSearch(neighbourhoods.NeighbourhoodSearch):
         def __init__(self, points, n_neighbors, openmp_threads=1):
             started.append(len(points))
             super().__init__(points, n_neighbors, openmp_threads)
 
-    monkeypatch.setattr(localise, "NeighbourhoodSearch", CountedSearch)
+    monkeypatch.setattr(neighbourhoods, "NeighbourhoodSearch", CountedSearch)
     pair = raycast_scene(
         n_points=REFERENCE_AHEAD_MIN_POINTS + 5_000,
         change="box",

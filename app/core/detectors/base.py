@@ -36,6 +36,7 @@ from threadpoolctl import threadpool_limits
 from app.core.cloud import column_extreme
 from app.core.detectors import calibration
 from app.core.errors import InputError
+from app.core.parameters import ParamSpec, validate_parameters
 
 VARIANTS = ("improved", "paper")
 
@@ -64,51 +65,6 @@ class Detection:
     threshold: float
     changed: bool
     calibration: dict[str, Any]
-
-
-@dataclass(frozen=True)
-class ParamSpec:
-    """How one hyper-parameter is validated.
-
-    Attributes
-    ----------
-    kind : {"int", "float", "choice", "voxel"}
-        ``voxel`` accepts ``"auto"`` or a float >= 0 (0 switches voxelisation off).
-    low, high : float or None
-        Inclusive bounds for numbers.
-    choices : tuple of str
-        Allowed values for ``choice``.
-    """
-
-    kind: str
-    low: float | None = None
-    high: float | None = None
-    choices: tuple[str, ...] = ()
-
-    def check(self, name: str, value: Any) -> Any:
-        """Return ``value`` normalised to a JSON type, or raise :class:`InputError`."""
-        if self.kind == "choice":
-            if value not in self.choices:
-                raise InputError(f"{name} must be one of {list(self.choices)}, got {value!r}")
-            return str(value)
-        if self.kind == "voxel" and value == "auto":
-            return "auto"
-        if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
-            raise InputError(f"{name} must be a number, got {value!r}")
-        if self.kind == "int":
-            if int(value) != value:
-                raise InputError(f"{name} must be an integer, got {value!r}")
-            value = int(value)
-        else:
-            value = float(value)
-            if not math.isfinite(value):
-                raise InputError(f"{name} must be finite, got {value!r}")
-        low = 0.0 if self.kind == "voxel" else self.low
-        if low is not None and value < low:
-            raise InputError(f"{name} must be >= {low:g}, got {value!r}")
-        if self.high is not None and value > self.high:
-            raise InputError(f"{name} must be <= {self.high:g}, got {value!r}")
-        return value
 
 
 COMMON_SPECS: dict[str, ParamSpec] = {
@@ -368,18 +324,13 @@ class ChangeDetector(ABC):
             raise InputError(f"random_state must be >= 0, got {random_state}")
         self.variant = variant
         self.random_state = int(random_state)
-        specs = self.param_specs(variant)
-        unknown = sorted(set(params) - set(specs))
-        if unknown:
-            raise InputError(
-                f"unknown parameter(s) {unknown} for the {self.method!r} detector "
-                f"(variant {variant!r}); "
-                f"valid: {sorted([*specs, 'random_state', 'variant'])}"
-            )
-        values = {**COMMON_DEFAULTS[variant], **self._variant_defaults[variant], **params}
-        self.params: dict[str, Any] = {
-            name: specs[name].check(name, values[name]) for name in specs
-        }
+        self.params: dict[str, Any] = validate_parameters(
+            self.param_specs(variant),
+            params,
+            owner=f"the {self.method!r} detector (variant {variant!r})",
+            defaults={**COMMON_DEFAULTS[variant], **self._variant_defaults[variant]},
+            also_valid=("random_state", "variant"),
+        )
 
     @classmethod
     def param_specs(cls, variant: str) -> dict[str, ParamSpec]:

@@ -1,0 +1,51 @@
+"""Per-point change labels and changed regions between a reference scan and an aligned rescan.
+
+The paper's scores say *whether* a site changed; this package says *where*.  Real rescans are
+independent samplings at different densities from a moved sensor, with occlusions and sparse
+far surfaces, so plain cloud-to-cloud nearest-neighbour distances with one global threshold
+flood with false alarms.  The method (steps in :mod:`app.core.localise.changes`, reasons and
+measured numbers in ``docs/localisation.md``) fits local surfaces, measures distances to the
+other cloud's surface against a noise-calibrated threshold, tests what the other sensor could
+see, and groups changed points into regions.
+
+Modules, each depending only on those below it:
+
+- :mod:`~app.core.localise.changes`: :func:`localise_changes` and :class:`Localisation`;
+- :mod:`~app.core.localise.visibility`: candidates become changed or unobserved;
+- :mod:`~app.core.localise.rays`: the ray test from the other sensor's origin;
+- :mod:`~app.core.localise.regions`: connected regions of changed points;
+- :mod:`~app.core.localise.distance`: point-to-surface distances, support factor, alignment
+  residual, and the per-cloud :class:`~app.core.localise.distance.Side`;
+- :mod:`~app.core.localise.surface`: plane fits, spacing and noise of each cloud;
+- :mod:`~app.core.localise.neighbourhoods`: the k-NN search, in line or on its own thread;
+- :mod:`~app.core.localise.settings`: keyword parameters and input checks.
+
+This module lists the package's public names.
+"""
+
+from app.core.localise.changes import Localisation, localise_changes
+from app.core.localise.neighbourhoods import (
+    Neighbourhoods,
+    NeighbourhoodSearch,
+    nearest_neighbourhoods,
+    neighbourhood_size,
+    start_neighbourhood_search,
+)
+from app.core.localise.regions import ChangedRegion
+from app.core.localise.settings import DEFAULT_PARAMETERS
+from app.core.localise.visibility import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
+
+__all__ = [
+    "DEFAULT_PARAMETERS",
+    "LABEL_CHANGED",
+    "LABEL_UNCHANGED",
+    "LABEL_UNOBSERVED",
+    "ChangedRegion",
+    "Localisation",
+    "NeighbourhoodSearch",
+    "Neighbourhoods",
+    "localise_changes",
+    "nearest_neighbourhoods",
+    "neighbourhood_size",
+    "start_neighbourhood_search",
+]

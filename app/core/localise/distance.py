@@ -1,0 +1,233 @@
+"""Distance of each point to the other cloud's surface (C2M/M3C2-like), and what it calibrates.
+
+Each neighbour ``q`` (in the other cloud, around the point's nearest point there) stands for a
+disc of radius ``r(q) = max(f * s(q), tau)`` on its fitted plane.  The distance of ``p`` is the
+smallest point-to-plane distance to the discs ``p`` projects into, or its nearest-point
+distance when it projects into none (the other cloud has no surface there).  A matched point
+(its nearest point's disc contains it: never a candidate) gets that one plane's offset.  The
+support factor ``f`` is calibrated on the data (:func:`support_factor`), and the misalignment
+left after registration is measured on matched points (:func:`alignment_residual`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.core.cloud import MIN_POINTS
+from app.core.localise.settings import CHUNK, GATHER_CHUNK
+from app.core.localise.surface import LocalGeometry
+
+__all__ = ["Side", "alignment_residual", "nearest_in", "support_factor", "surface_distance"]
+
+SUPPORT_FACTOR_QUANTILE = 0.25
+SUPPORT_FACTOR_PER_QUANTILE = 3.5
+"""Calibrated support factor = 3.5 x the lower quartile of nearest-neighbour distances in local
+spacings (~1.3 for independent lidar samplings; the quartile ignores up to 75 % of points
+being changed or unobserved)."""
+SUPPORT_FACTOR_RANGE = (0.5, 2.0)
+ALIGNMENT_SAMPLE = 20_000
+"""Points of each cloud whose plane offsets measure the alignment residual."""
+
+
+@dataclass(frozen=True)
+class Side:
+    """One cloud of a comparison, its local surfaces and its nearest points in the other cloud.
+
+    Attributes
+    ----------
+    name : {"reference", "scan"}
+        Prefix of the report's keys.
+    region_kind : {"removed", "added"}
+        Kind of the regions its changed points form.
+    points : ndarray, shape (n, 3), float64
+    origin : ndarray, shape (3,), or None
+        This cloud's sensor position (reference frame), if known.
+    geometry : LocalGeometry
+        Of ``points``.
+    nearest_distance : ndarray, shape (n,), float64
+        Distance of each point to its nearest point in the other cloud.
+    nearest_index : ndarray, shape (n,), uint32
+        Index of that point in the other cloud.
+    """
+
+    name: str
+    region_kind: str
+    points: NDArray[np.float64]
+    origin: NDArray[np.float64] | None
+    geometry: LocalGeometry
+    nearest_distance: NDArray[np.float64]
+    nearest_index: NDArray[np.uint32]
+
+
+def nearest_in(
+    points: NDArray[np.float64], other: LocalGeometry
+) -> tuple[NDArray[np.float64], NDArray[np.uint32]]:
+    """Distance to and index of each point's nearest point in ``other``.
+
+    Parameters
+    ----------
+    points : ndarray, shape (p, 3)
+    other : LocalGeometry
+
+    Returns
+    -------
+    distance : ndarray, shape (p,), float64
+    index : ndarray, shape (p,), uint32
+    """
+    return other.tree.query(points, k=1)
+
+
+def support_factor(nn_distance_over_spacing: NDArray[np.float64], requested: float | None) -> float:
+    """The support factor ``f``: ``requested``, or calibrated from the clouds when None.
+
+    Parameters
+    ----------
+    nn_distance_over_spacing : ndarray, shape (p,)
+        Each point's nearest-neighbour distance in the other cloud, in that cloud's local
+        spacings (both clouds' points).
+    requested : float or None
+
+    Returns
+    -------
+    float
+        :data:`SUPPORT_FACTOR_PER_QUANTILE` x the lower quartile of
+        ``nn_distance_over_spacing``, clipped to :data:`SUPPORT_FACTOR_RANGE`.
+    """
+    if requested is not None:
+        return float(requested)
+    quartile = float(np.quantile(nn_distance_over_spacing, SUPPORT_FACTOR_QUANTILE))
+    low, high = SUPPORT_FACTOR_RANGE
+    return float(np.clip(SUPPORT_FACTOR_PER_QUANTILE * quartile, low, high))
+
+
+def surface_distance(
+    points: NDArray[np.float64],
+    nn_distance: NDArray[np.float64],
+    nn_index: NDArray[np.integer],
+    *,
+    other: LocalGeometry,
+    threshold: float,
+    support_factor: float,
+    with_plane_offset: bool = False,
+) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64] | None]:
+    """Distance of each point to the other cloud's supported local surface.
+
+    A point whose nearest point in the other cloud lies within that point's support radius
+    (``max(support_factor * spacing, tau)``) is *matched*: the other cloud has surface right
+    there, so it is never a candidate, and its distance is the offset from the plane of its
+    nearest point's neighbourhood (one plane: most points are matched, and this keeps their
+    cost at one gather).  An unmatched point is compared with every neighbour ``q`` of its
+    nearest point (a disc of radius ``max(support_factor * s(q), tau)`` on ``q``'s plane).
+
+    Parameters
+    ----------
+    points : ndarray, shape (p, 3)
+    nn_distance, nn_index : ndarray, shape (p,)
+        Nearest point of the other cloud.
+    other : LocalGeometry
+        The other cloud (its neighbour index not yet released).
+    threshold : float
+        ``tau``.
+    support_factor : float
+    with_plane_offset : bool
+        Also return the signed offsets (for the alignment residual; 8 bytes a point).
+
+    Returns
+    -------
+    distance : ndarray, shape (p,)
+        Matched points: absolute offset from the nearest point's plane.  Unmatched points:
+        the smallest point-to-plane distance over the neighbours of the nearest point whose
+        support disc ``p`` projects into; the nearest-point distance when there is none.
+    candidate : ndarray, shape (p,), bool
+        Unmatched and ``distance > tau``.
+    nearest_plane_offset : ndarray, shape (p,), or None
+        With ``with_plane_offset``: the signed offset from the nearest point's plane for
+        matched points, NaN elsewhere.
+    """
+    nearest_plane_offset = np.full(points.shape[0], np.nan) if with_plane_offset else None
+    distance = np.empty(points.shape[0])
+    candidate = np.zeros(points.shape[0], dtype=bool)
+    unmatched_parts = []
+    for start in range(0, points.shape[0], CHUNK):
+        chunk = slice(start, start + CHUNK)
+        nearest_support = np.maximum(support_factor * other.spacing[nn_index[chunk]], threshold)
+        matched = nn_distance[chunk] <= nearest_support
+        unmatched_parts.append(start + np.flatnonzero(~matched))
+        rows = start + np.flatnonzero(matched)
+        nearest = nn_index[rows]
+        offset = (
+            np.einsum("pd,pd->p", points[rows], other.normal[nearest])
+            - other.plane_constant[nearest]
+        )
+        if nearest_plane_offset is not None:
+            nearest_plane_offset[rows] = offset
+        distance[rows] = np.abs(offset)
+    unmatched = np.concatenate(unmatched_parts)
+    for start in range(0, unmatched.shape[0], GATHER_CHUNK):
+        rows = unmatched[start : start + GATHER_CHUNK]
+        query = points[rows]
+        neighbours = other.neighbor_index[nn_index[rows]]  # (c, K) around the nearest point
+        normals = other.normal[neighbours]
+        support_radius = np.maximum(support_factor * other.spacing[neighbours], threshold)
+        offset = query[:, None, :] - other.points[neighbours]
+        along_normal = np.einsum("ckd,ckd->ck", offset, normals)
+        lateral_squared = np.einsum("ckd,ckd->ck", offset, offset) - along_normal**2
+        supported = lateral_squared <= support_radius**2
+        plane_offset = np.einsum("cd,ckd->ck", query, normals) - other.plane_constant[neighbours]
+        plane_distance = np.where(supported, np.abs(plane_offset), np.inf).min(axis=1)
+        distance[rows] = np.where(np.isfinite(plane_distance), plane_distance, nn_distance[rows])
+        candidate[rows] = distance[rows] > threshold
+    return distance, candidate, nearest_plane_offset
+
+
+def alignment_residual(
+    reference: Side, scan: Side, *, threshold: float, support_factor: float
+) -> float:
+    """Misalignment left after registration, measured on the clouds themselves (metres).
+
+    The signed point-to-plane offsets of matched points (a subsample of each cloud against
+    the other; a point is matched when its nearest point in the other cloud lies within the
+    support radius, so changed points do not count) have variance
+    ``sigma_own^2 + sigma_other^2 / (k + 1)`` from noise alone (the plane goes through a
+    neighbourhood's centroid); a robust spread (1.4826 x MAD) beyond that is alignment error,
+    which then widens ``tau`` like ``registration_rmse`` does.
+
+    Parameters
+    ----------
+    reference, scan : Side
+        The two clouds, their neighbour indices not yet released.
+    threshold : float
+        Preliminary ``tau`` (noise and registration_rmse only).
+    support_factor : float
+
+    Returns
+    -------
+    float
+        ``sqrt(mean over both directions of max(0, spread^2 - noise^2))``.
+    """
+    excess_variances = []
+    for own, other in ((reference, scan), (scan, reference)):
+        step = max(1, own.points.shape[0] // ALIGNMENT_SAMPLE)
+        sample = slice(None, None, step)
+        _, _, offset = surface_distance(
+            own.points[sample],
+            own.nearest_distance[sample],
+            own.nearest_index[sample],
+            other=other.geometry,
+            threshold=threshold,
+            support_factor=support_factor,
+            with_plane_offset=True,
+        )
+        assert offset is not None  # with_plane_offset=True
+        offset = offset[np.isfinite(offset)]
+        if offset.size < MIN_POINTS:
+            continue
+        spread = 1.4826 * float(np.median(np.abs(offset - np.median(offset))))
+        other_k = other.geometry.neighbor_index.shape[1]
+        noise_variance = own.geometry.noise**2 + other.geometry.noise**2 / other_k
+        excess_variances.append(max(0.0, spread**2 - noise_variance))
+    return math.sqrt(float(np.mean(excess_variances))) if excess_variances else 0.0

@@ -1,0 +1,175 @@
+"""Every point's k nearest neighbours in its own cloud, found in line or on a thread of their own.
+
+The k-NN query is the localiser's largest single cost, so a caller may start it ahead of time,
+e.g. for the reference while the scan is still being aligned (:func:`start_neighbourhood_search`).
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from pykdtree.kdtree import KDTree
+from threadpoolctl import threadpool_limits
+
+from app.core.errors import InputError, PointCloudError
+from app.core.localise.settings import QUERY_CHUNK, as_points, resolve_parameters
+
+__all__ = [
+    "NeighbourhoodSearch",
+    "Neighbourhoods",
+    "nearest_neighbourhoods",
+    "neighbourhood_size",
+    "start_neighbourhood_search",
+]
+
+
+@dataclass(frozen=True)
+class Neighbourhoods:
+    """A cloud's KD-tree and every point's nearest neighbours (:func:`nearest_neighbourhoods`).
+
+    Attributes
+    ----------
+    tree : pykdtree.kdtree.KDTree
+        Over the cloud's points.
+    neighbor_index : ndarray, shape (n, k + 1), uint32
+        Column 0 is the point itself.
+    kth_distance : ndarray, shape (n,), float64
+        Distance to the k-th neighbour.
+    """
+
+    tree: KDTree
+    neighbor_index: NDArray[np.uint32]
+    kth_distance: NDArray[np.float64]
+
+
+def neighbourhood_size(n_points: int, **params: Any) -> int:
+    """The k that ``localise_changes`` uses for a cloud of ``n_points`` with ``params``.
+
+    Raises
+    ------
+    InputError
+        An unknown or invalid parameter (the message ``localise_changes`` would give).
+    """
+    return min(resolve_parameters(params)["n_neighbors"], n_points - 1)
+
+
+def nearest_neighbourhoods(
+    points: NDArray[np.float64], n_neighbors: int, _cancelled: threading.Event | None = None
+) -> Neighbourhoods | None:
+    """Build the KD-tree of ``points`` and find each point's ``n_neighbors`` nearest neighbours.
+
+    Queried in chunks, so only the k-th distance is kept (never an (n, k + 1) float array).
+    The query releases the GIL: :class:`NeighbourhoodSearch` runs this on its own thread.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3), float64
+        Finite coordinates, n >= 2 (the cloud ``localise_changes`` will be given: the same
+        array, not a copy in another frame).
+    n_neighbors : int
+        k, in 1..n - 1 (see :func:`neighbourhood_size`).
+
+    Returns
+    -------
+    Neighbourhoods
+        (None only when ``_cancelled``, :class:`NeighbourhoodSearch`'s event, was set.)
+    """
+    n = points.shape[0]
+    k = int(n_neighbors)
+    if not 1 <= k <= n - 1:
+        raise ValueError(f"n_neighbors must be in 1..{n - 1}, got {n_neighbors}")
+    tree = KDTree(points)
+    neighbor_index = np.empty((n, k + 1), dtype=np.uint32)
+    kth_distance = np.empty(n)
+    for start in range(0, n, QUERY_CHUNK):
+        if _cancelled is not None and _cancelled.is_set():
+            return None
+        chunk = slice(start, start + QUERY_CHUNK)
+        distance, neighbor_index[chunk] = tree.query(points[chunk], k=k + 1)
+        kth_distance[chunk] = distance[:, k]
+    return Neighbourhoods(tree, neighbor_index, kth_distance)
+
+
+class NeighbourhoodSearch:
+    """:func:`nearest_neighbourhoods` of a cloud, running on its own thread from creation.
+
+    :meth:`take` waits for it and hands the result over: the search keeps no reference, so the
+    memory goes as soon as the caller lets go of it (the localiser releases the neighbour index
+    half-way).  :meth:`cancel` stops it at its next chunk (~65k points) and waits.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3), float64
+        Finite coordinates; the array ``localise_changes`` will be given.
+    n_neighbors : int
+        k (:func:`neighbourhood_size`).
+    openmp_threads : int
+        OpenMP threads of the search's own KD-tree queries (1 when it shares the machine with
+        other work).
+    """
+
+    def __init__(self, points: NDArray[np.float64], n_neighbors: int, openmp_threads: int = 1):
+        self._cancelled = threading.Event()
+        self._result: Neighbourhoods | None = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(
+            target=self._run,
+            args=(points, int(n_neighbors), openmp_threads),
+            name="neighbourhood-search",
+            daemon=True,
+        )
+        self._thread.start()
+
+    def _run(self, points: NDArray[np.float64], n_neighbors: int, openmp_threads: int) -> None:
+        try:
+            # the limit applies to this thread's own OpenMP calls only
+            with threadpool_limits(limits=openmp_threads, user_api="openmp"):
+                self._result = nearest_neighbourhoods(points, n_neighbors, self._cancelled)
+        except BaseException as error:  # handed to take()'s caller
+            self._error = error
+
+    def take(self) -> Neighbourhoods:
+        """Wait for the search and return its result (once; it keeps no reference)."""
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        result, self._result = self._result, None
+        if result is None:
+            raise RuntimeError("the neighbourhood search was cancelled or already taken")
+        return result
+
+    def cancel(self) -> None:
+        """Stop the search at its next chunk, wait for the thread and drop any result."""
+        self._cancelled.set()
+        self._thread.join()
+        self._result = None
+
+
+def start_neighbourhood_search(reference: NDArray, **params: Any) -> NeighbourhoodSearch | None:
+    """The :class:`NeighbourhoodSearch` that ``localise_changes(reference, ..., **params)`` can
+    take as ``reference_neighbourhoods``, already running on one OpenMP thread.
+
+    Parameters
+    ----------
+    reference : array_like, shape (n, 3)
+        The reference cloud, as ``localise_changes`` will be given it.
+    **params
+        Localisation keyword parameters (only ``n_neighbors`` matters here).
+
+    Returns
+    -------
+    NeighbourhoodSearch or None
+        None when ``localise_changes`` will reject ``reference`` or ``params`` (it then
+        reports them itself) or when no thread can be started (e.g. under an address-space
+        cap).
+    """
+    try:
+        points = as_points(reference, "reference")
+        n_neighbors = neighbourhood_size(len(points), **params)
+        return NeighbourhoodSearch(points, n_neighbors, openmp_threads=1)
+    except (InputError, PointCloudError, RuntimeError):
+        return None

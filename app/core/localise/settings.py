@@ -1,0 +1,137 @@
+"""Localisation's keyword parameters, its input checks and the chunk sizes every step shares."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.core.cloud import MIN_POINTS
+from app.core.errors import InputError, PointCloudError
+from app.core.parameters import ParamSpec, validate_parameters
+
+__all__ = [
+    "DEFAULT_PARAMETERS",
+    "PARAMETER_SPECS",
+    "as_origin",
+    "as_points",
+    "resolve_parameters",
+]
+
+DEFAULT_PARAMETERS: dict[str, Any] = {
+    "n_neighbors": 10,
+    "threshold_factor": 3.5,
+    "support_factor": None,
+    "cluster_factor": 2.5,
+    "coverage_factor": 10.0,
+    "visibility_margin_factor": 1.0,
+    "visibility_angle_factor": 2.5,
+    "visibility_beyond_fraction": 0.5,
+    "visibility_miss_factor": 4.0,
+}
+"""Keyword parameters of :func:`~app.core.localise.changes.localise_changes` and their defaults.
+
+n_neighbors
+    Neighbours (besides the point) of the local plane fit, spacing and noise estimate.  10
+    spans two rings of a lidar whose rings are twice as far apart as its columns; line-shaped
+    neighbourhoods are refitted with 3x more anyway.
+threshold_factor
+    ``tau`` in standard deviations of the combined noise (3.5: ~1 in 2000 two-sided under
+    Gaussian noise; the minimum over neighbouring discs makes false candidates rarer still).
+support_factor
+    Support radius in the other cloud's local spacings; None calibrates it (3.5 x the lower
+    quartile of nearest-neighbour distances in local spacings, clipped to [0.5, 2]).
+cluster_factor
+    Changed points closer than this many local spacings belong to one region.
+coverage_factor
+    Without the other sensor's origin: a candidate farther than this many of the other
+    cloud's local spacings from it is unobserved.  Without a viewpoint a removed object and
+    a hole in the other cloud's coverage look alike: larger values find more of large changes
+    and flag more rims of holes (shadows).  Single-viewpoint scans should pass origins.
+visibility_margin_factor
+    Scales the range margin that makes a return "clearly" before or beyond a candidate:
+    ``sqrt((t_own / cos(incidence))^2 + t_other^2)`` with ``t = threshold_factor * sigma``.
+visibility_angle_factor
+    Returns within this many typical angular steps of the candidate's direction are the
+    other sensor's view of it (at most 8 returns are used).
+visibility_beyond_fraction
+    Fraction of the rays crossing the candidate's surface near it that must pass beyond it.
+visibility_miss_factor
+    "Near": within ``max(miss_factor * own spacing, candidate's distance)`` of the candidate.
+"""
+
+PARAMETER_SPECS: dict[str, ParamSpec] = {
+    "n_neighbors": ParamSpec("positive_int", low=3),
+    "threshold_factor": ParamSpec("positive"),
+    "support_factor": ParamSpec("positive", optional=True),
+    "cluster_factor": ParamSpec("positive"),
+    "coverage_factor": ParamSpec("positive"),
+    "visibility_margin_factor": ParamSpec("positive"),
+    "visibility_angle_factor": ParamSpec("positive"),
+    "visibility_beyond_fraction": ParamSpec("positive", high=1.0),
+    "visibility_miss_factor": ParamSpec("positive"),
+}
+"""How each of :data:`DEFAULT_PARAMETERS` is validated (same names, same order)."""
+
+CHUNK = 32_768
+"""Points per step of per-point array work (plane fits, spacing, distances, ray directions)."""
+QUERY_CHUNK = 65_536
+"""Points per k-nearest-neighbour query (and per check of a search's cancellation)."""
+GATHER_CHUNK = 16_384
+"""Points per step of (chunk, neighbours, 3) gathers: a few MB per temporary array."""
+
+
+def resolve_parameters(params: dict[str, Any]) -> dict[str, Any]:
+    """Defaults merged with ``params``, validated; raises InputError naming the bad one.
+
+    Parameters
+    ----------
+    params : dict
+        Keyword parameters, a subset of :data:`DEFAULT_PARAMETERS`.
+
+    Returns
+    -------
+    dict
+        Every parameter: ``n_neighbors`` an int, ``support_factor`` a float or None, the
+        others floats.
+    """
+    return validate_parameters(
+        PARAMETER_SPECS, params, stage="localisation", defaults=DEFAULT_PARAMETERS
+    )
+
+
+def as_points(points: NDArray, name: str) -> NDArray[np.float64]:
+    """One cloud as a contiguous float64 array of shape (n, 3), finite, n >= MIN_POINTS.
+
+    Raises
+    ------
+    PointCloudError
+        Naming ``name`` and what is wrong.
+    """
+    array = np.asarray(points, dtype=np.float64)
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise PointCloudError(f"{name} must have shape (n, 3), got {array.shape}")
+    if array.shape[0] < MIN_POINTS:
+        raise PointCloudError(
+            f"{name} has {array.shape[0]} points; at least {MIN_POINTS} are needed"
+        )
+    if not np.isfinite(array).all():
+        raise PointCloudError(f"{name} contains NaN or infinite coordinates")
+    return np.ascontiguousarray(array)
+
+
+def as_origin(origin: NDArray | None, name: str) -> NDArray[np.float64] | None:
+    """A sensor origin as a float64 array of shape (3,), or None when not given.
+
+    Raises
+    ------
+    InputError
+        Not three finite numbers.
+    """
+    if origin is None:
+        return None
+    array = np.asarray(origin, dtype=np.float64).reshape(-1)
+    if array.shape != (3,) or not np.isfinite(array).all():
+        raise InputError(f"{name} must be 3 finite numbers, got {np.asarray(origin).tolist()}")
+    return array

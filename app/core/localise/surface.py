@@ -1,0 +1,295 @@
+"""Each cloud's local surface: a plane fitted to every point's neighbourhood, its spacing, noise.
+
+One k-nearest-neighbour query per cloud (:mod:`app.core.localise.neighbourhoods`) gives, for
+every point, a plane fitted to its neighbourhood (centroid and normal), the local point
+spacing ``s`` (the side of the area each point stands for, from the k-th neighbour distance)
+and the fit's residual.  Neighbourhoods that are a line (one scan ring on a floor seen at a
+grazing angle, where rings are far apart) are refitted with three times more neighbours.  The
+median residual, corrected for the fit's degrees of freedom, is the cloud's noise ``sigma``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from pykdtree.kdtree import KDTree
+
+from app.core.localise.neighbourhoods import (
+    Neighbourhoods,
+    NeighbourhoodSearch,
+    nearest_neighbourhoods,
+)
+from app.core.localise.settings import CHUNK
+
+__all__ = ["LocalGeometry", "local_geometry", "neighbourhood_planes", "plane_fit"]
+
+LINEAR_EIGENVALUE_RATIO = 0.1
+"""A neighbourhood whose middle/largest eigenvalue ratio is below this is a line, not a plane."""
+LINEAR_REFIT_FACTOR = 3
+"""Linear neighbourhoods are refitted with this many times more neighbours."""
+_RELEASED_INDEX = np.empty((0, 0), dtype=np.uint32)
+"""Stands for a geometry's neighbour index once the localiser no longer needs it."""
+
+
+@dataclass(frozen=True)
+class LocalGeometry:
+    """A cloud's KD-tree and per-point local surface (surfel) estimates.
+
+    Attributes
+    ----------
+    points : ndarray, shape (n, 3), float64
+    tree : pykdtree.kdtree.KDTree
+        Over ``points``.
+    neighbor_index : ndarray, shape (n, k + 1), uint32
+        Column 0 is the point itself; empty once released (:meth:`without_neighbour_index`).
+    normal : ndarray, shape (n, 3), float32
+        Unit normal of the fitted plane.
+    plane_constant : ndarray, shape (n,), float64
+        ``normal . centroid``: the plane is ``x . normal = plane_constant``.
+    spacing : ndarray, shape (n,), float64
+        Local point spacing.
+    noise : float
+        Plane-fit residual standard deviation of the cloud.
+    linear : ndarray, shape (n,), bool
+        The neighbourhood is a line even when widened: no normal.
+    variation : ndarray, shape (n,), float64
+        Smallest eigenvalue over the trace: 0 flat, 1/3 isotropic.
+    """
+
+    points: NDArray[np.float64]
+    tree: KDTree
+    neighbor_index: NDArray[np.uint32]
+    normal: NDArray[np.float32]
+    plane_constant: NDArray[np.float64]
+    spacing: NDArray[np.float64]
+    noise: float
+    linear: NDArray[np.bool_]
+    variation: NDArray[np.float64]
+
+    def flattest_neighbour(self, index: NDArray[np.int64]) -> NDArray[np.int64]:
+        """For each point in ``index``, the neighbour (or itself) whose fit is flattest.
+
+        Near an edge a point's own neighbourhood straddles two faces and its normal is tilted;
+        the neighbour with the flattest neighbourhood lies on one face and has that face's
+        normal.  Returns indices into the cloud, shape (len(index),).
+        """
+        neighbours = self.neighbor_index[index]
+        best = np.argmin(self.variation[neighbours], axis=1)
+        return neighbours[np.arange(neighbours.shape[0]), best]
+
+    def without_neighbour_index(self) -> LocalGeometry:
+        """This geometry with its neighbour index (4 (k + 1) bytes a point) released."""
+        return dataclasses.replace(self, neighbor_index=_RELEASED_INDEX)
+
+
+def plane_fit(
+    c00: NDArray[np.float64],
+    c11: NDArray[np.float64],
+    c22: NDArray[np.float64],
+    c01: NDArray[np.float64],
+    c02: NDArray[np.float64],
+    c12: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Eigenvalues and the smallest eigenvector of symmetric 3x3 matrices, closed form.
+
+    Parameters
+    ----------
+    c00, c11, c22, c01, c02, c12 : ndarray, shape (n,)
+        The six distinct entries of each matrix (elementwise arrays: no (n, 3, 3) stack).
+
+    Returns
+    -------
+    smallest, largest : ndarray, shape (n,)
+        Smallest (clipped at 0) and largest eigenvalue.
+    normal : ndarray, shape (n, 3)
+        Unit eigenvector of the smallest eigenvalue; (0, 0, 1) where the matrix is isotropic.
+    """
+    mean_diagonal = (c00 + c11 + c22) / 3.0
+    d00, d11, d22 = c00 - mean_diagonal, c11 - mean_diagonal, c22 - mean_diagonal
+    spread = np.sqrt((d00**2 + d11**2 + d22**2) / 6.0 + (c01**2 + c02**2 + c12**2) / 3.0)
+    safe_spread = np.where(spread > 0, spread, 1.0)
+    b00, b11, b22 = d00 / safe_spread, d11 / safe_spread, d22 / safe_spread
+    b01, b02, b12 = c01 / safe_spread, c02 / safe_spread, c12 / safe_spread
+    half_determinant = (
+        b00 * (b11 * b22 - b12 * b12)
+        - b01 * (b01 * b22 - b12 * b02)
+        + b02 * (b01 * b12 - b11 * b02)
+    ) / 2.0
+    angle = np.arccos(np.clip(half_determinant, -1.0, 1.0)) / 3.0
+    largest = mean_diagonal + 2.0 * spread * np.cos(angle)
+    smallest = mean_diagonal + 2.0 * spread * np.cos(angle + 2.0 * np.pi / 3.0)
+    # rows of (C - smallest I); the eigenvector is along the largest cross product of two rows
+    s00, s11, s22 = c00 - smallest, c11 - smallest, c22 - smallest
+    candidates = (
+        (c01 * c12 - c02 * s11, c02 * c01 - s00 * c12, s00 * s11 - c01 * c01),  # row0 x row1
+        (c01 * s22 - c02 * c12, c02 * c02 - s00 * s22, s00 * c12 - c01 * c02),  # row0 x row2
+        (s11 * s22 - c12 * c12, c12 * c02 - c01 * s22, c01 * c12 - s11 * c02),  # row1 x row2
+    )
+    normal = np.empty((c00.shape[0], 3))
+    best_norm_squared = np.full(c00.shape[0], -1.0)
+    for x, y, z in candidates:
+        norm_squared = x * x + y * y + z * z
+        better = norm_squared > best_norm_squared
+        normal[better] = np.stack([x[better], y[better], z[better]], axis=1)
+        best_norm_squared = np.where(better, norm_squared, best_norm_squared)
+    best_norm = np.sqrt(best_norm_squared)
+    normal /= np.where(best_norm > 0, best_norm, 1.0)[:, None]
+    normal[(best_norm <= 0) | (spread <= 0)] = (0.0, 0.0, 1.0)
+    return np.maximum(smallest, 0.0), largest, normal
+
+
+def neighbourhood_planes(
+    points: NDArray[np.float64], neighbor_index: NDArray[np.integer]
+) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
+    """Plane (normal and constant) and eigenvalues of each neighbourhood.
+
+    Each coordinate is gathered separately (from a strided column view of ``points``, which
+    saves the contiguous copy's 8 bytes a point) into a contiguous (chunk, k) array, so the
+    covariance is six contiguous dot products per neighbourhood, faster than products of
+    strided slices of a (chunk, k, 3) gather (figures in ``docs/performance.md``).
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    neighbor_index : ndarray, shape (p, k)
+
+    Returns
+    -------
+    normal : ndarray, shape (p, 3), float32
+        Unit normal of the plane through the neighbourhood's centroid.
+    plane_constant : ndarray, shape (p,), float64
+        ``centroid . normal`` with the float32 normal, so that ``x . normal - plane_constant``
+        is ``(x - centroid) . normal`` to float64 precision wherever ``x`` is.
+    residual_variance : ndarray, shape (p,)
+        Smallest eigenvalue (mean squared distance to the plane).
+    middle_over_largest : ndarray, shape (p,)
+        Middle over largest eigenvalue: ~0 for points along a line (one scan ring).
+    variation : ndarray, shape (p,)
+        Smallest eigenvalue over the trace (surface variation): 0 on a plane.
+    """
+    count, k = neighbor_index.shape
+    normal = np.empty((count, 3), dtype=np.float32)
+    plane_constant = np.empty(count)
+    residual_variance = np.empty(count)
+    middle_over_largest = np.empty(count)
+    variation = np.empty(count)
+    for start in range(0, count, CHUNK):
+        chunk = slice(start, start + CHUNK)
+        index = neighbor_index[chunk]
+        centroid = np.empty((index.shape[0], 3))
+        deviation = []
+        for axis in range(3):
+            values = points[:, axis][index]  # (c, k)
+            mean = values.mean(axis=1)
+            centroid[:, axis] = mean
+            values -= mean[:, None]
+            deviation.append(values)
+        dx, dy, dz = deviation
+        c00, c11, c22, c01, c02, c12 = (
+            np.einsum("ck,ck->c", first, second) / k
+            for first, second in ((dx, dx), (dy, dy), (dz, dz), (dx, dy), (dx, dz), (dy, dz))
+        )
+        smallest, largest, normal[chunk] = plane_fit(c00, c11, c22, c01, c02, c12)
+        plane_constant[chunk] = np.einsum("cd,cd->c", centroid, normal[chunk].astype(np.float64))
+        trace = c00 + c11 + c22
+        middle = trace - smallest - largest
+        middle_over_largest[chunk] = middle / np.maximum(largest, 1e-300)
+        variation[chunk] = smallest / np.maximum(trace, 1e-300)
+        residual_variance[chunk] = smallest
+    return normal, plane_constant, residual_variance, middle_over_largest, variation
+
+
+def local_geometry(
+    points: NDArray[np.float64],
+    n_neighbors: int,
+    *,
+    neighbourhoods: Neighbourhoods | NeighbourhoodSearch | None = None,
+) -> LocalGeometry:
+    """Fit a plane to every point's neighbourhood; estimate spacing and noise.
+
+    Neighbourhoods that are nearly a line (the k nearest points all on one scan ring, as on
+    floors and walls seen at grazing angles, where rings are far apart) do not define a plane:
+    those are refitted with :data:`LINEAR_REFIT_FACTOR` times more neighbours.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    n_neighbors : int
+        Neighbours besides the point itself (reduced to n - 1 for tiny clouds).
+    neighbourhoods : Neighbourhoods or NeighbourhoodSearch, optional
+        Of ``points``, computed ahead; found here otherwise.
+
+    Returns
+    -------
+    LocalGeometry
+
+    Raises
+    ------
+    ValueError
+        ``neighbourhoods`` were computed for another cloud or k.
+    """
+    n = points.shape[0]
+    k = min(n_neighbors, n - 1)
+    if isinstance(neighbourhoods, NeighbourhoodSearch):
+        neighbourhoods = neighbourhoods.take()
+    if neighbourhoods is None:
+        neighbourhoods = nearest_neighbourhoods(points, k)
+    elif neighbourhoods.neighbor_index.shape != (n, k + 1):
+        raise ValueError(
+            f"neighbourhoods of shape {neighbourhoods.neighbor_index.shape} were computed for "
+            f"another cloud or k; this cloud needs {(n, k + 1)}"
+        )
+    tree, neighbor_index, kth_distance = (
+        neighbourhoods.tree,
+        neighbourhoods.neighbor_index,
+        neighbourhoods.kth_distance,
+    )
+    del neighbourhoods
+    normal, plane_constant, residual_variance, middle_over_largest, variation = (
+        neighbourhood_planes(points, neighbor_index)
+    )
+    is_linear = middle_over_largest < LINEAR_EIGENVALUE_RATIO
+    del middle_over_largest
+    # side of the area each point stands for: k points in a disc of radius r_k (a new array:
+    # ``neighbourhoods`` may be the caller's, and is left as it was)
+    raw_spacing = kth_distance * math.sqrt(math.pi / k)
+    del kth_distance
+    # plane fit of k+1 points has k+1-3 residual degrees of freedom
+    residual_variance *= (k + 1) / max(k + 1 - 3, 1)
+    linear = np.flatnonzero(is_linear)
+    k_wide = min(LINEAR_REFIT_FACTOR * k, n - 1)
+    if linear.size and k_wide > k:
+        wide_distance, wide_index = tree.query(points[linear], k=k_wide + 1)
+        (
+            normal[linear],
+            plane_constant[linear],
+            wide_residual,
+            wide_middle_over_largest,
+            variation[linear],
+        ) = neighbourhood_planes(points, wide_index)
+        is_linear[linear] = wide_middle_over_largest < LINEAR_EIGENVALUE_RATIO
+        residual_variance[linear] = wide_residual * (k_wide + 1) / (k_wide + 1 - 3)
+        raw_spacing[linear] = wide_distance[:, k_wide] * math.sqrt(math.pi / k_wide)
+    spacing = np.empty(n)
+    for start in range(0, n, CHUNK):
+        chunk = slice(start, start + CHUNK)
+        spacing[chunk] = raw_spacing[neighbor_index[chunk]].mean(axis=1)
+    del raw_spacing
+    np.maximum(spacing, 1e-12, out=spacing)
+    noise = float(np.sqrt(np.median(residual_variance)))
+    del residual_variance
+    return LocalGeometry(
+        points=points,
+        tree=tree,
+        neighbor_index=neighbor_index,
+        normal=normal,
+        plane_constant=plane_constant,
+        spacing=spacing,
+        noise=noise,
+        linear=is_linear,
+        variation=variation,
+    )

@@ -1,0 +1,194 @@
+"""Visibility: unobserved is never change.  Change candidates become changed or unobserved.
+
+With the other cloud's sensor origin, the ray test (:mod:`app.core.localise.rays`) says what
+that sensor saw in each candidate's direction.  A candidate whose surface it saw only edge-on
+gets no evidence of its own; it is changed when connected to candidates mostly seen through (a
+removed box's side face), unobserved otherwise.  Without an origin, a coverage test: a
+candidate whose nearest point in the other cloud is farther than ``coverage_factor`` local
+spacings is unobserved (right for merged multi-view maps; single-viewpoint scans should pass
+origins, or their shadows' rims come out as changes).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.core.localise.distance import Side
+from app.core.localise.rays import (
+    STATUS_EDGE_ON,
+    STATUS_SEEN_THROUGH,
+    STATUS_SURFACE,
+    STATUS_UNOBSERVED,
+    Candidates,
+    RayTest,
+    ray_visibility,
+)
+from app.core.localise.regions import cluster_labels
+
+__all__ = [
+    "LABEL_CHANGED",
+    "LABEL_UNCHANGED",
+    "LABEL_UNOBSERVED",
+    "find_candidates",
+    "label_candidates",
+    "resolve_edge_on",
+]
+
+LABEL_UNCHANGED = 0
+LABEL_CHANGED = 1
+LABEL_UNOBSERVED = -1
+
+EDGE_ON_SEEN_THROUGH_SHARE = 0.5
+
+
+def find_candidates(
+    side: Side, *, distance: NDArray[np.float64], candidate: NDArray[np.bool_]
+) -> Candidates:
+    """Gather ``side``'s candidates (before its neighbour index is released).
+
+    Parameters
+    ----------
+    side : Side
+    distance : ndarray, shape (n,)
+        Each point's distance to the other cloud's surface.
+    candidate : ndarray, shape (n,), bool
+
+    Returns
+    -------
+    Candidates
+    """
+    index = np.flatnonzero(candidate)
+    flattest = side.geometry.flattest_neighbour(index)
+    return Candidates(
+        index=index,
+        points=side.points[index],
+        normal=side.geometry.normal[flattest],
+        linear=side.geometry.linear[flattest],
+        spacing=side.geometry.spacing[index],
+        surface_distance=distance[index],
+    )
+
+
+def label_candidates(
+    own: Side,
+    other: Side,
+    *,
+    candidates: Candidates,
+    misalignment: float,
+    settings: dict[str, Any],
+) -> tuple[NDArray[np.int8], dict[str, Any]]:
+    """Label one cloud's points: candidates become changed or unobserved, the rest unchanged.
+
+    Parameters
+    ----------
+    own : Side
+        The cloud labelled.
+    other : Side
+        The other cloud: its sensor origin gives the ray visibility test, the coverage test
+        is used without it.
+    candidates : Candidates
+        ``own``'s change candidates (:func:`find_candidates`).
+    misalignment : float
+        registration_rmse and the measured alignment residual combined (metres).
+    settings : dict
+        Resolved keyword parameters.
+
+    Returns
+    -------
+    label : ndarray, shape (n,), int8
+        LABEL_UNCHANGED, LABEL_CHANGED or LABEL_UNOBSERVED.
+    report : dict
+        JSON-serialisable figures of the visibility test.
+    """
+    label = np.full(own.points.shape[0], LABEL_UNCHANGED, dtype=np.int8)
+    index = candidates.index
+    side = own.name
+    report: dict[str, Any] = {f"{side}_candidates": int(index.size)}
+    if other.origin is None:
+        report[f"{side}_visibility"] = "coverage"
+        covered = (
+            own.nearest_distance[index]
+            <= settings["coverage_factor"] * other.geometry.spacing[own.nearest_index[index]]
+        )
+        status = np.where(covered, STATUS_SEEN_THROUGH, STATUS_UNOBSERVED)
+    else:
+        report[f"{side}_visibility"] = "ray"
+        test = RayTest(
+            normal_tolerance=settings["threshold_factor"]
+            * math.hypot(own.geometry.noise, misalignment),
+            range_tolerance=settings["threshold_factor"] * other.geometry.noise,
+            margin_factor=settings["visibility_margin_factor"],
+            angle_factor=settings["visibility_angle_factor"],
+            beyond_fraction=settings["visibility_beyond_fraction"],
+            miss_factor=settings["visibility_miss_factor"],
+        )
+        status, angular_step = ray_visibility(
+            candidates,
+            own=own.geometry,
+            other_points=other.points,
+            other_origin=other.origin,
+            test=test,
+        )
+        report[f"{side}_other_angular_step_deg"] = math.degrees(angular_step)
+        report[f"{side}_candidates_on_other_surface"] = int((status == STATUS_SURFACE).sum())
+        report[f"{side}_candidates_edge_on"] = int((status == STATUS_EDGE_ON).sum())
+        status = resolve_edge_on(
+            candidates.points,
+            spacing=candidates.spacing,
+            status=status,
+            cluster_factor=settings["cluster_factor"],
+        )
+    label[index[status == STATUS_SEEN_THROUGH]] = LABEL_CHANGED
+    label[index[status == STATUS_UNOBSERVED]] = LABEL_UNOBSERVED
+    return label, report
+
+
+def resolve_edge_on(
+    points: NDArray[np.float64],
+    *,
+    spacing: NDArray[np.float64],
+    status: NDArray[np.int8],
+    cluster_factor: float,
+) -> NDArray[np.int8]:
+    """Decide candidates whose surface the other sensor saw only edge-on.
+
+    A removed box's face that the other sensor sees edge-on gets no ray evidence of its own,
+    but the sensor saw through the rest of the box: edge-on candidates connected (within
+    ``cluster_factor`` local spacings) to candidates that are mostly seen through are
+    changed; the others (a pillar's face seen edge-on, the rest unchanged) are unobserved.
+
+    Parameters
+    ----------
+    points : ndarray, shape (c, 3)
+        The candidates.
+    spacing : ndarray, shape (c,)
+        Their cloud's local spacing.
+    status : ndarray, shape (c,), int8
+        From :func:`ray_visibility`.
+    cluster_factor : float
+
+    Returns
+    -------
+    ndarray, shape (c,), int8
+        ``status`` with every STATUS_EDGE_ON replaced.
+    """
+    edge_on = status == STATUS_EDGE_ON
+    if not edge_on.any():
+        return status
+    involved = np.flatnonzero(edge_on | (status == STATUS_SEEN_THROUGH))
+    labels = cluster_labels(points[involved], cluster_factor * spacing[involved])
+    seen_through_share = np.bincount(
+        labels, weights=(status[involved] == STATUS_SEEN_THROUGH).astype(np.float64)
+    ) / np.bincount(labels)
+    promoted = seen_through_share[labels] >= EDGE_ON_SEEN_THROUGH_SHARE
+    resolved = status.copy()
+    resolved[involved] = np.where(
+        edge_on[involved],
+        np.where(promoted, STATUS_SEEN_THROUGH, STATUS_UNOBSERVED),
+        status[involved],
+    )
+    return resolved
