@@ -20,11 +20,9 @@ The API's bearer-token dependency accepts the session cookie too by calling
 from __future__ import annotations
 
 import base64
-import contextlib
 import hashlib
 import hmac
 import json
-import os
 import secrets
 import time
 from functools import lru_cache
@@ -36,6 +34,7 @@ from sqlalchemy.orm import Session
 from starlette.requests import HTTPConnection
 
 from app.config import Settings
+from app.core.files import write_private_file
 from app.db.models import ApiToken
 from app.services.auth import Principal
 from app.viewer.access import ViewGrant
@@ -71,18 +70,7 @@ def _data_dir_secret(data_dir: Path) -> bytes:
     """Read ``<data_dir>/secret-key``, creating it (0600, atomically) on first use."""
     path = data_dir / SECRET_KEY_FILE
     if not path.exists():
-        data_dir.mkdir(parents=True, exist_ok=True)
-        temporary = data_dir / f".{SECRET_KEY_FILE}.{os.getpid()}.{secrets.token_hex(4)}"
-        descriptor = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        try:
-            with os.fdopen(descriptor, "w") as handle:
-                handle.write(secrets.token_urlsafe(48) + "\n")
-                handle.flush()
-                os.fsync(handle.fileno())
-            with contextlib.suppress(FileExistsError):  # another process won the race
-                os.link(temporary, path)
-        finally:
-            temporary.unlink(missing_ok=True)
+        write_private_file(path, secrets.token_urlsafe(48) + "\n", overwrite=False)
     key = path.read_text().strip()
     if len(key) < 32:
         raise RuntimeError(f"{path} holds no usable secret key; delete it to make a new one")

@@ -23,6 +23,7 @@ from types import FrameType
 from typing import Any
 
 from app.config import Settings
+from app.core.files import write_private_file
 
 logger = logging.getLogger("scandiff.serve")
 
@@ -81,19 +82,6 @@ def child_environment(settings: Settings) -> dict[str, str]:
     return environment
 
 
-def write_secret_file(path: Path, content: str) -> None:
-    """Write ``content`` to ``path`` with mode 0600 atomically (temp file, fsync, rename)."""
-    temp_path = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    descriptor = os.open(temp_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    try:
-        os.write(descriptor, content.encode())
-        os.fsync(descriptor)
-    finally:
-        os.close(descriptor)
-    os.chmod(temp_path, 0o600)
-    os.replace(temp_path, path)
-
-
 def ensure_admin_token(settings: Settings) -> str | None:
     """On first start, create organisation ``default`` and an admin token; the new token."""
     from sqlalchemy import select
@@ -112,7 +100,7 @@ def ensure_admin_token(settings: Settings) -> str | None:
         token = create_token(session, DEFAULT_ORGANISATION, "admin", name="admin (first start)")
         # Written before the commit: a crash in between leaves no organisation, so the next
         # start creates a new token and overwrites this file.
-        write_secret_file(token_path, token + "\n")
+        write_private_file(token_path, token + "\n", overwrite=True)
     return token
 
 

@@ -2,7 +2,7 @@
 
 :func:`write_result_files` writes ``labels.npz`` (the arrays of ``scandiff compare --labels``)
 and ``details.npz`` (``reference_distance``, ``scan_distance``, float32, source order), each
-atomically (:func:`app.files.write_atomically`).  :func:`store_results` stores score, decision,
+atomically (:func:`app.core.files.write_atomically`).  :func:`store_results` stores score, decision,
 regions, registration and timings in **one short transaction**, only if the worker still holds
 the job's lease.  :func:`remove_stale_temp_files` deletes what a worker killed while writing left.
 """
@@ -18,10 +18,10 @@ from sqlalchemy import delete, select
 
 from app.clock import utc_now
 from app.config import Settings
+from app.core.files import TEMP_MARKER, write_atomically
 from app.core.jsonable import json_safe
 from app.db.models import Job, JobStatus, Region
 from app.db.session import transaction
-from app.files import TEMP_MARKER, write_atomically
 from app.jobs.leases import ClaimedJob, held_by
 
 LABELS_FILENAME = "labels.npz"

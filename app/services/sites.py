@@ -13,6 +13,7 @@ from app.config import Settings
 from app.core.errors import InputError
 from app.core.pipeline import parse_comparison_params  # imported here, never in a transaction
 from app.db.models import Job, ReferenceHistory, Region, Scan, Site
+from app.jobs.results import job_results_dir
 from app.services import storage
 from app.services.auth import Principal
 from app.services.errors import ConflictError, ValidationFailedError
@@ -130,7 +131,7 @@ def delete_site(session: Session, settings: Settings, principal: Principal, site
     def remove_files() -> None:
         storage.remove_tree(storage.site_scans_directory(settings, site_id))
         for job_id in job_ids:
-            storage.remove_tree(storage.job_results_directory(settings, job_id))
+            storage.remove_tree(job_results_dir(settings, job_id))
 
     after_commit(session, remove_files)
 

@@ -33,9 +33,9 @@ from sqlalchemy import select
 from sqlalchemy.exc import SQLAlchemyError
 
 from app.config import Settings
+from app.core.files import fsync_directory
 from app.db.models import Job, Scan, new_id
 from app.db.session import transaction
-from app.files import fsync_directory
 from app.jobs.results import remove_stale_temp_files
 from app.services.errors import BadRequestError, PayloadTooLargeError
 
@@ -157,11 +157,6 @@ def resolve_data_path(settings: Settings, stored_path: str) -> Path:
 def site_scans_directory(settings: Settings, site_id: str) -> Path:
     """The directory holding a site's scan files."""
     return settings.scans_dir / site_id
-
-
-def job_results_directory(settings: Settings, job_id: str) -> Path:
-    """The directory holding a job's per-point result files."""
-    return settings.results_dir / job_id
 
 
 def sanitise_filename(name: str | None) -> str | None:

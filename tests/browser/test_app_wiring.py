@@ -35,16 +35,19 @@ def test_the_app_has_the_api_browser_and_viewer_routes(client: TestClient) -> No
         "/api/v1/jobs/{job_id}/view/scene",
     } <= paths
     assert app.url_path_for("job_view", job_id="abc") == "/jobs/abc/view"  # type: ignore[attr-defined]
-    assert app.url_path_for("static", path="app.js") == "/static/app.js"  # type: ignore[attr-defined]
+    assert app.url_path_for("static", path="main.js") == "/static/main.js"  # type: ignore[attr-defined]
 
 
 def test_dashboard_files_are_served_revalidated_and_a_missing_one_is_the_api_404(
     client: TestClient,
 ) -> None:
-    for path in ("/", "/static/index.html", "/static/app.js", "/static/style.css"):
+    for path in ("/", "/static/index.html", "/static/main.js", "/static/style.css"):
         response = client.get(path)
         assert response.status_code == 200, path
         assert response.headers["cache-control"] == "no-cache", path
+    # The dashboard is ES modules: a browser runs them only with a JavaScript MIME type.
+    for module in ("main.js", "api.js", "dom.js", "timeline.js"):
+        assert "javascript" in client.get(f"/static/{module}").headers["content-type"], module
     missing = client.get("/static/no-such-file.js")
     assert missing.status_code == 404
     assert missing.json()["error"] == "not_found"

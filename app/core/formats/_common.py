@@ -373,20 +373,3 @@ def structured_attributes(
             continue
         attributes[(rename or {}).get(name, name)] = owned(data[name])
     return attributes
-
-
-@contextmanager
-def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; move it over ``path`` only on success.
-
-    Readers never see a half-written file, and a failed write leaves no debris.
-    """
-    target = Path(path)
-    temporary = target.with_name(f".{target.name}.{os.getpid()}.tmp{target.suffix}")
-    try:
-        yield temporary
-        with open(temporary, "rb+") as handle:
-            os.fsync(handle.fileno())
-        os.replace(temporary, target)
-    finally:
-        temporary.unlink(missing_ok=True)

@@ -28,7 +28,8 @@ from numpy.typing import NDArray
 
 from app.core.cloud_summary import CloudSummary, FiniteBounds
 from app.core.errors import PointCloudError
-from app.core.formats._common import RawCloud, Source, atomic_output, check_point_count
+from app.core.files import atomic_output
+from app.core.formats._common import RawCloud, Source, check_point_count
 
 LAZ_MAX_EXPANSION = 10_000
 """Largest accepted ratio of declared uncompressed point bytes to LAZ body bytes."""

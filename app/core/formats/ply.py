@@ -21,11 +21,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.errors import PointCloudError
+from app.core.files import atomic_output
 from app.core.formats._common import (
     RawCloud,
     Source,
     ascii_body,
-    atomic_output,
     check_point_count,
     find_xyz_names,
     has_nonzero_bytes,
