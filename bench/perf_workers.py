@@ -20,7 +20,8 @@ from scipy.spatial import cKDTree
 
 from app.core.allocator import release_freed_memory_promptly
 from app.core.formats import read_point_cloud
-from app.core.pipeline import LABEL_CHANGED, compare
+from app.core.localise import LABEL_CHANGED
+from app.core.pipeline import compare
 from app.core.synthetic import raycast_scene
 
 SCENE_SEED = 100

@@ -20,7 +20,8 @@ import numpy as np
 
 from app.core.cloud import PointCloud
 from app.core.detectors import METHODS
-from app.core.pipeline import LABEL_CHANGED, compare
+from app.core.localise import LABEL_CHANGED
+from app.core.pipeline import compare
 from app.core.synthetic import raycast_scene
 
 RESULTS = Path(__file__).resolve().parent / "results"

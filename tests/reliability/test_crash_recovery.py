@@ -43,9 +43,9 @@ import pytest
 from plyfile import PlyData, PlyElement
 
 from app.config import Settings
+from app.core.files import write_atomically
 from app.db.migrate import upgrade_to_head
 from app.db.session import get_engine
-from app.files import write_atomically
 from app.services.storage import ensure_directories, sweep_temporary_files
 from tests.jobs.conftest import create_job
 from tests.reliability.conftest import database_rows, job_status_counts, wait_until

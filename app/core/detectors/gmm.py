@@ -50,9 +50,10 @@ from sklearn.cluster import KMeans
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.mixture import GaussianMixture
 
-from app.core.detectors.base import ChangeDetector, ParamSpec
+from app.core.detectors.base import ChangeDetector
 from app.core.emd import earth_movers_distance, euclidean_ground_distances
 from app.core.errors import InputError
+from app.core.parameters import ParamSpec
 
 
 def _psd_sqrt(matrices: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -29,8 +29,9 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.detectors.base import ChangeDetector, ParamSpec
+from app.core.detectors.base import ChangeDetector
 from app.core.emd import earth_movers_distance, euclidean_ground_distances
+from app.core.parameters import ParamSpec
 
 
 def principal_axes(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

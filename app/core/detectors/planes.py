@@ -64,10 +64,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from app.core.detectors.base import ChangeDetector, ParamSpec
+from app.core.detectors.base import ChangeDetector
 from app.core.detectors.plane_extraction import PlaneSettings, extract_fuzzy_planes
 from app.core.emd import earth_movers_distance, euclidean_ground_distances
 from app.core.errors import InputError
+from app.core.parameters import ParamSpec
 
 
 class ExtractionError(InputError):

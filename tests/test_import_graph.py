@@ -1,0 +1,188 @@
+"""The shape of ``app/``: imports flow one way, with no circles, and no module grows too large.
+
+Every ``import`` in ``app/`` counts, at module level, inside functions and under
+``TYPE_CHECKING`` alike: an import hidden in a function is still an arrow.  Layers, lowest first
+(a module may import its own layer and those below it, never one above):
+
+``app.core`` < ``app.clock``, ``app.config``, ``app.log`` < ``app.db`` <
+``app.jobs`` < ``app.services`` < ``app.viewer`` < ``app.api`` < ``app.main`` < ``app.cli``,
+``app.__main__``.
+
+The core's own, stricter wall (no web or database library at all) is
+``tests/core/test_import_wall.py``.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+APP = Path(__file__).resolve().parent.parent / "app"
+
+LAYERS: tuple[tuple[str, ...], ...] = (
+    ("app.core",),
+    ("app.clock", "app.config", "app.log"),
+    ("app.db",),
+    ("app.jobs",),
+    ("app.services",),
+    ("app.viewer",),
+    ("app.api",),
+    ("app.main",),
+    ("app.cli", "app.__main__"),
+)
+"""Lowest first; a module may import from its own layer and the layers before it."""
+
+MAX_MODULE_LINES = 600
+
+
+def module_name(path: Path, root: Path) -> str:
+    """The dotted name of the module at ``path`` (a package is named by its ``__init__``)."""
+    parts = list(path.relative_to(root.parent).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def app_modules(root: Path) -> dict[str, Path]:
+    """Every module under ``root`` by dotted name."""
+    return {module_name(path, root): path for path in sorted(root.rglob("*.py"))}
+
+
+def imported_app_modules(name: str, path: Path, known: set[str]) -> set[str]:
+    """The modules of ``known`` that the module ``name`` at ``path`` imports, anywhere in it."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            candidates = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - (node.level - 1)]
+                source = ".".join(base + ([node.module] if node.module else []))
+            else:
+                source = node.module or ""
+            # ``from app.services import auth`` depends on the module ``auth``; ``from
+            # app.services.auth import Principal`` on ``auth`` too.
+            candidates = [
+                f"{source}.{alias.name}" if f"{source}.{alias.name}" in known else source
+                for alias in node.names
+            ]
+        else:
+            continue
+        for candidate in candidates:
+            # ``import app.db.models`` also runs ``app`` and ``app.db``: only the deepest counts.
+            while candidate and candidate not in known:
+                candidate = candidate.rpartition(".")[0]
+            if candidate and candidate != name:
+                found.add(candidate)
+    return found
+
+
+def import_graph(root: Path) -> dict[str, set[str]]:
+    """Module -> the modules of ``app`` it imports."""
+    modules = app_modules(root)
+    known = set(modules)
+    return {name: imported_app_modules(name, path, known) for name, path in modules.items()}
+
+
+def layer_of(module: str) -> int:
+    """The index in :data:`LAYERS` of ``module`` (``app`` itself is below everything)."""
+    for index, prefixes in enumerate(LAYERS):
+        if any(module == prefix or module.startswith(prefix + ".") for prefix in prefixes):
+            return index
+    if module == "app":
+        return -1
+    raise AssertionError(f"{module} belongs to no layer: add it to LAYERS")
+
+
+def upward_arrows(graph: dict[str, set[str]]) -> list[str]:
+    """Every import of a higher layer, as ``'a -> b'``."""
+    return sorted(
+        f"{source} -> {target}"
+        for source, targets in graph.items()
+        for target in targets
+        if layer_of(target) > layer_of(source)
+    )
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan's algorithm)."""
+    index: dict[str, int] = {}
+    lowlink: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    components: list[list[str]] = []
+
+    def visit(node: str) -> None:
+        index[node] = lowlink[node] = len(index)
+        stack.append(node)
+        on_stack.add(node)
+        for target in sorted(graph.get(node, ())):
+            if target not in index:
+                visit(target)
+                lowlink[node] = min(lowlink[node], lowlink[target])
+            elif target in on_stack:
+                lowlink[node] = min(lowlink[node], index[target])
+        if lowlink[node] == index[node]:
+            component = []
+            while True:
+                member = stack.pop()
+                on_stack.discard(member)
+                component.append(member)
+                if member == node:
+                    break
+            if len(component) > 1:
+                components.append(sorted(component))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return components
+
+
+def test_every_module_of_app_belongs_to_a_layer():
+    for name in app_modules(APP):
+        layer_of(name)
+
+
+def test_no_import_goes_from_a_lower_layer_to_a_higher_one():
+    assert upward_arrows(import_graph(APP)) == []
+
+
+def test_the_import_graph_of_app_has_no_cycle():
+    assert import_cycles(import_graph(APP)) == []
+
+
+def test_no_module_of_app_is_longer_than_the_limit():
+    too_long = {
+        str(path.relative_to(APP.parent)): lines
+        for path in sorted(APP.rglob("*.py"))
+        if (lines := len(path.read_text().splitlines())) > MAX_MODULE_LINES
+    }
+    assert too_long == {}
+
+
+# The checks themselves must be able to fail: a tree with a cycle and an upward arrow.
+
+
+@pytest.fixture
+def broken_tree(tmp_path: Path) -> Path:
+    root = tmp_path / "app"
+    for package in ("", "core", "db", "api"):
+        (root / package).mkdir(parents=True, exist_ok=True)
+        (root / package / "__init__.py").write_text("")
+    (root / "core" / "numbers.py").write_text("def f():\n    from app.db import models\n")
+    (root / "db" / "models.py").write_text("from app.db.session import engine\n")
+    (root / "db" / "session.py").write_text("from . import models\nengine = None\n")
+    (root / "api" / "routes.py").write_text("import app.db.models\nfrom app.core import numbers\n")
+    return root
+
+
+def test_the_checks_find_an_upward_arrow_and_a_cycle(broken_tree: Path):
+    graph = import_graph(broken_tree)
+    assert graph["app.api.routes"] == {"app.db.models", "app.core.numbers"}
+    assert upward_arrows(graph) == ["app.core.numbers -> app.db.models"]
+    assert import_cycles(graph) == [["app.db.models", "app.db.session"]]
