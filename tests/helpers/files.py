@@ -188,3 +188,8 @@ def chunked(content: bytes, chunk_size: int = 16_384) -> Iterator[bytes]:
     """The body as a generator: httpx sends it chunked, without ``Content-Length``."""
     for start in range(0, len(content), chunk_size):
         yield content[start : start + chunk_size]
+
+
+def room_ply(seed: int, *, with_box: bool = False, n_points: int = 1500) -> bytes:
+    """A binary PLY of a room's floor and two walls (3 mm noise); ``with_box`` adds a box."""
+    return ply_bytes(room_points(n_points, seed, noise=0.003, with_box=with_box))

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from app.core.cloud import PointCloud
 
 CONSUMER_BOOTSTRAP = (
-    "import sys, tests.jobs.fake_pipeline as fake; fake.install(); "
+    "import sys, tests.helpers.fake_pipeline as fake; fake.install(); "
     "from app.jobs.consumer import main; sys.exit(main())"
 )
 
