@@ -7,6 +7,7 @@
 
 from __future__ import annotations
 
+import functools
 import io
 import struct
 import zipfile
@@ -25,6 +26,12 @@ def replace_once(content: bytes, old: bytes, new: bytes) -> bytes:
     """``content`` with the first ``old`` (which must be there) replaced by ``new``."""
     assert old in content, old
     return content.replace(old, new, 1)
+
+
+def edit_header(format_name: str, old: bytes, new: bytes) -> bytes:
+    """A valid ``ply`` or ``pcd`` corpus file with ``old`` in its header replaced by ``new``."""
+    build = {"ply": corpus_ply, "pcd": corpus_pcd}[format_name]
+    return replace_once(build(), old, new)
 
 
 def corpus_ply(encoding: str = "binary_little_endian", n: int = N_POINTS) -> bytes:
@@ -92,6 +99,7 @@ def npz_with_member(name: str, member: bytes) -> bytes:
     return stream.getvalue()
 
 
+VERTEX_LINE = f"vertex {N_POINTS}".encode()
 NAN_ONLY = np.full((N_POINTS, 3), np.nan)
 ROWS_3 = b"1 2 3\n4 5 6\n7 8 9\n"
 
@@ -105,26 +113,11 @@ MALFORMED: dict[str, tuple[str, Callable[[], bytes], str]] = {
         lambda: corpus_ply("binary_big_endian")[:-40],
         "truncated body",
     ),
-    "ply-header-count-too-small": (
-        "scan.ply",
-        lambda: replace_once(corpus_ply(), f"vertex {N_POINTS}".encode(), b"vertex 10"),
-        "fix the 'element vertex' count",
-    ),
     "ply-truncated-ascii": ("scan.ply", lambda: corpus_ply("ascii")[:-200], "truncated body"),
     "ply-ascii-surplus-rows": (
         "scan.ply",
         lambda: replace_once(corpus_ply("ascii"), f"vertex {N_POINTS}".encode(), b"vertex 20"),
         "fix the 'element' counts",
-    ),
-    "ply-unknown-property-type": (
-        "scan.ply",
-        lambda: replace_once(corpus_ply(), b"property float z", b"property quad z"),
-        "field type 'quad'",
-    ),
-    "ply-no-xyz": (
-        "scan.ply",
-        lambda: replace_once(corpus_ply(), b"property float z", b"property float w"),
-        "no 'z' field",
     ),
     "ply-no-vertex": (
         "scan.ply",
@@ -134,16 +127,6 @@ MALFORMED: dict[str, tuple[str, Callable[[], bytes], str]] = {
             b"float a",
         ),
         "no 'vertex' element",
-    ),
-    "ply-header-bomb": (
-        "scan.ply",
-        lambda: replace_once(corpus_ply(), f"vertex {N_POINTS}".encode(), b"vertex 2147483648"),
-        "more than the limit",
-    ),
-    "ply-count-beyond-body": (
-        "scan.ply",
-        lambda: replace_once(corpus_ply(), f"vertex {N_POINTS}".encode(), b"vertex 1000000"),
-        "truncated body",
     ),
     "ply-no-end-header": (
         "scan.ply",
@@ -170,22 +153,7 @@ MALFORMED: dict[str, tuple[str, Callable[[], bytes], str]] = {
     ),
     "ply-zero-vertices": ("scan.ply", lambda: corpus_ply(n=0), "empty (0 points)"),
     "ply-nan-only": ("scan.ply", lambda: ply_bytes(NAN_ONLY), "none of the 64 points"),
-    "ply-non-ascii-header": (
-        "scan.ply",
-        lambda: replace_once(corpus_ply(), b"format", b"comment \xe9t\xe9\nformat"),
-        "not ASCII",
-    ),
-    "ply-bad-format-line": (
-        "scan.ply",
-        lambda: replace_once(corpus_ply(), b"binary_little_endian", b"binary"),
-        "don't understand format",
-    ),
     "pcd-truncated-binary": ("scan.pcd", lambda: corpus_pcd()[:-5], "truncated body"),
-    "pcd-width-height-mismatch": (
-        "scan.pcd",
-        lambda: replace_once(corpus_pcd(), b"HEIGHT 1", b"HEIGHT 2"),
-        "count mismatch",
-    ),
     "pcd-points-fewer-than-body": (
         "scan.pcd",
         lambda: replace_once(
@@ -194,26 +162,6 @@ MALFORMED: dict[str, tuple[str, Callable[[], bytes], str]] = {
             b"WIDTH 10",
         ),
         "count mismatch",
-    ),
-    "pcd-unknown-type": (
-        "scan.pcd",
-        lambda: replace_once(corpus_pcd(), b"TYPE F F F", b"TYPE F F X"),
-        "unknown PCD field type 'X'",
-    ),
-    "pcd-half-float": (
-        "scan.pcd",
-        lambda: replace_once(corpus_pcd(), b"SIZE 4 4 4", b"SIZE 4 4 2"),
-        "unsupported PCD field type",
-    ),
-    "pcd-field-list-mismatch": (
-        "scan.pcd",
-        lambda: replace_once(corpus_pcd(), b"SIZE 4 4 4", b"SIZE 4 4"),
-        "FIELDS lists 3",
-    ),
-    "pcd-no-xyz": (
-        "scan.pcd",
-        lambda: replace_once(corpus_pcd(), b"FIELDS x y z", b"FIELDS a b c"),
-        "no 'x' field",
     ),
     "pcd-header-bomb": (
         "scan.pcd",
@@ -245,16 +193,6 @@ MALFORMED: dict[str, tuple[str, Callable[[], bytes], str]] = {
         "corrupt compressed PCD data",
     ),
     "pcd-no-data-line": ("scan.pcd", lambda: corpus_pcd().split(b"DATA")[0], "no 'DATA' line"),
-    "pcd-unknown-encoding": (
-        "scan.pcd",
-        lambda: replace_once(corpus_pcd(), b"DATA binary", b"DATA zipped"),
-        "unknown PCD DATA encoding",
-    ),
-    "pcd-unknown-header-line": (
-        "scan.pcd",
-        lambda: replace_once(corpus_pcd(), b"HEIGHT 1", b"HEIGHT 1\nCOLOUR red"),
-        "unknown line",
-    ),
     "pcd-ascii-non-numeric": (
         "scan.pcd",
         lambda: corpus_pcd("ascii").rsplit(b"\n", 2)[0] + b"\n1.0 abc 3.0\n",
@@ -356,6 +294,30 @@ MALFORMED: dict[str, tuple[str, Callable[[], bytes], str]] = {
     ),
 }
 
+
+HEADER_EDITS: dict[str, tuple[bytes, bytes, str]] = {
+    # name (its format first): (header text of a valid file, its replacement, message fragment)
+    "ply-header-count-too-small": (VERTEX_LINE, b"vertex 10", "fix the 'element vertex' count"),
+    "ply-unknown-property-type": (b"property float z", b"property quad z", "field type 'quad'"),
+    "ply-no-xyz": (b"property float z", b"property float w", "no 'z' field"),
+    "ply-header-bomb": (VERTEX_LINE, b"vertex 2147483648", "more than the limit"),
+    "ply-count-beyond-body": (VERTEX_LINE, b"vertex 1000000", "truncated body"),
+    "ply-non-ascii-header": (b"format", b"comment \xe9t\xe9\nformat", "not ASCII"),
+    "ply-bad-format-line": (b"binary_little_endian", b"binary", "don't understand format"),
+    "pcd-width-height-mismatch": (b"HEIGHT 1", b"HEIGHT 2", "count mismatch"),
+    "pcd-unknown-type": (b"TYPE F F F", b"TYPE F F X", "unknown PCD field type 'X'"),
+    "pcd-half-float": (b"SIZE 4 4 4", b"SIZE 4 4 2", "unsupported PCD field type"),
+    "pcd-field-list-mismatch": (b"SIZE 4 4 4", b"SIZE 4 4", "FIELDS lists 3"),
+    "pcd-no-xyz": (b"FIELDS x y z", b"FIELDS a b c", "no 'x' field"),
+    "pcd-unknown-encoding": (b"DATA binary", b"DATA zipped", "unknown PCD DATA encoding"),
+    "pcd-unknown-header-line": (b"HEIGHT 1", b"HEIGHT 1\nCOLOUR red", "unknown line"),
+}
+MALFORMED.update(
+    {
+        case: (f"scan.{case[:3]}", functools.partial(edit_header, case[:3], old, new), fragment)
+        for case, (old, new, fragment) in HEADER_EDITS.items()
+    }
+)
 
 FUZZ_SEEDS = {
     "ply": lambda p: ply_bytes(p),

@@ -163,15 +163,7 @@ def finish_job(
         calibration={},
         registration={"transform": transform or np.eye(4).tolist(), "rmse": 0.01},
         regions=[
-            RegionSummary(
-                kind="added",
-                n_points=12,
-                centroid=[1.0, 2.0, 0.5],
-                bbox_min=[0.5, 1.5, 0.0],
-                bbox_max=[1.5, 2.5, 1.0],
-                mean_distance=0.4,
-                max_distance=0.9,
-            )
+            RegionSummary("added", 12, [1.0, 2.0, 0.5], [0.5, 1.5, 0.0], [1.5, 2.5, 1.0], 0.4, 0.9)
         ],
         n_reference=n_reference,
         n_scan=n_scan,
