@@ -13,11 +13,12 @@ from typing import Any
 
 import httpx
 import pytest
-from sqlalchemy import func, select, update
+from sqlalchemy import select, update
 
 from app.db.models import Job, Scan
 from app.db.session import transaction
 from app.services.quotas import RETRY_AFTER_SECONDS
+from tests.helpers.database import count_rows
 from tests.helpers.files import chunked, ply_bytes, ply_of_size
 from tests.helpers.http import assert_error, create_site, unique_name, upload
 from tests.helpers.scenes import room_points as make_points
@@ -47,14 +48,10 @@ def organisation(client: httpx.Client) -> dict[str, Any]:
 
 def rows_of(api: ApiServer, organisation_id: str) -> tuple[int, int]:
     """``(scans, jobs)`` rows of the organisation."""
-    with transaction(api.settings.sqlalchemy_url) as session:
-        scans = session.scalar(
-            select(func.count()).select_from(Scan).where(Scan.organisation_id == organisation_id)
-        )
-        jobs = session.scalar(
-            select(func.count()).select_from(Job).where(Job.organisation_id == organisation_id)
-        )
-    return int(scans or 0), int(jobs or 0)
+    return (
+        count_rows(api, Scan, organisation_id=organisation_id),
+        count_rows(api, Job, organisation_id=organisation_id),
+    )
 
 
 def finish_queued_jobs(api: ApiServer, organisation_id: str, n_jobs: int) -> None:

@@ -74,6 +74,23 @@ def pid_is_alive(pid: int) -> bool:
     return stat[stat.rindex(")") + 2 :].split()[0] not in ("Z", "X")
 
 
+def live_worker_pids(data_dir: Path, process_group: int) -> list[int]:
+    """Live job workers of ``process_group`` (each writes ``<data_dir>/run/worker-<pid>``)."""
+    run_dir = data_dir / WORKER_PID_DIR
+    if not run_dir.is_dir():
+        return []
+    members = set(process_group_members(process_group))
+    pids = []
+    for path in run_dir.glob(WORKER_PID_PREFIX + "*"):
+        try:
+            pid = int(path.name.removeprefix(WORKER_PID_PREFIX))
+        except ValueError:
+            continue
+        if pid in members and pid_is_alive(pid):
+            pids.append(pid)
+    return sorted(pids)
+
+
 class ServiceStartError(RuntimeError):
     """The service exited or did not become healthy in time."""
 
@@ -273,19 +290,9 @@ class ServiceProcess:
 
     def worker_pids(self) -> list[int]:
         """Live job-worker processes (each writes ``<data_dir>/run/worker-<pid>`` on start)."""
-        run_dir = self.data_dir / WORKER_PID_DIR
-        if self.process is None or not run_dir.is_dir():
+        if self.process is None:
             return []
-        members = set(self.group_pids())
-        pids = []
-        for path in run_dir.glob(WORKER_PID_PREFIX + "*"):
-            try:
-                pid = int(path.name.removeprefix(WORKER_PID_PREFIX))
-            except ValueError:
-                continue
-            if pid in members and pid_is_alive(pid):
-                pids.append(pid)
-        return sorted(pids)
+        return live_worker_pids(self.data_dir, self.pid)
 
     def wait_for_workers(self, count: int | None = None, timeout: float = 30.0) -> list[int]:
         """Wait until ``count`` (default: ``workers``) job workers are up; their pids."""
@@ -386,14 +393,7 @@ class ConsumerProcess:
 
     def worker_pids(self) -> list[int]:
         """Live worker processes of this consumer."""
-        members = set(process_group_members(self.process.pid))
-        run_dir = self.settings.data_dir / "run"
-        pids = (
-            [int(path.name.split("-")[1]) for path in run_dir.glob("worker-*")]
-            if run_dir.is_dir()
-            else []
-        )
-        return sorted(pid for pid in pids if pid in members and pid_is_alive(pid))
+        return live_worker_pids(self.settings.data_dir, self.process.pid)
 
     def wait_for_workers(self, timeout: float = 20.0) -> list[int]:
         """Wait until all workers are up."""

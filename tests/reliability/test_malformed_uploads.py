@@ -28,10 +28,8 @@ from dataclasses import dataclass
 import httpx
 import numpy as np
 import pytest
-from sqlalchemy import func, select
 
 from app.db.models import Job, Scan
-from app.db.session import transaction
 from tests.helpers.corpus import (
     FUZZ_SEEDS,
     MALFORMED,
@@ -39,6 +37,7 @@ from tests.helpers.corpus import (
     mutate_bytes,
     npy_header,
 )
+from tests.helpers.database import count_rows
 from tests.helpers.environment import PROJECT_ROOT
 from tests.helpers.figures import record_figure
 from tests.helpers.files import las_bytes, npy_bytes, npz_bytes, pcd_bytes, ply_bytes, text_bytes
@@ -231,12 +230,7 @@ class ErrorRecords(logging.Handler):
 
 def rows_of_site(service: ApiServer, site_id: str) -> tuple[int, int]:
     """``(scans, jobs)`` rows of the site in the database."""
-    with transaction(service.settings.sqlalchemy_url) as session:
-        scans = session.scalar(
-            select(func.count()).select_from(Scan).where(Scan.site_id == site_id)
-        )
-        jobs = session.scalar(select(func.count()).select_from(Job).where(Job.site_id == site_id))
-    return int(scans or 0), int(jobs or 0)
+    return count_rows(service, Scan, site_id=site_id), count_rows(service, Job, site_id=site_id)
 
 
 def problem_with(item: BadUpload, response: httpx.Response) -> str | None:
