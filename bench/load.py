@@ -293,7 +293,7 @@ def main(argv: list[str] | None = None) -> int:
     scratch = None
     try:
         if arguments.url is None:
-            from tests.service_harness import ServiceProcess
+            from tests.helpers.service import ServiceProcess
 
             scratch = tempfile.TemporaryDirectory(prefix="scandiff-load-")
             service = ServiceProcess(

@@ -32,7 +32,7 @@ import numpy as np
 
 from app.core.synthetic import raycast_scene
 from bench.perf_workers import SCENE_SEED, write_binary_ply
-from tests.service_harness import ServiceProcess
+from tests.helpers.service import ServiceProcess
 
 SERVICE_POINTS = 100_000
 CONCURRENT_CLIENTS = 32

@@ -4,7 +4,7 @@
     .venv/bin/python bench/reliability_report.py --fast     # only what `make test` runs
     .venv/bin/python bench/reliability_report.py --no-run   # re-render the last figures
 
-Each test writes one JSON row (``tests/reliability/figures.py``) to
+Each test writes one JSON row (``tests/helpers/figures.py``) to
 ``test-artifacts/reliability/``; the rows replace the text between the table markers of
 ``docs/reliability.md``.  Loopback only: the tests start their own servers on 127.0.0.1.
 """

@@ -1,35 +1,18 @@
-"""Shared test fixtures and the skip policy.
+"""Fixtures shared by every test directory: the real data, and ``scandiff serve`` subprocesses.
 
-Tests that need something outside the project (the real data in ../shared/data, a browser,
-PostgreSQL, Redis) call :func:`require` instead of ``pytest.skip``: locally it skips with the
-reason; in CI (``SCANDIFF_REQUIRE_SERVICES=1``) a missing dependency fails the test instead.
+The skip policy for missing dependencies is :func:`tests.helpers.environment.require`.
 """
 
 from __future__ import annotations
 
-import os
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
+from typing import Any
 
 import pytest
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-
-
-def require(condition: bool, reason: str) -> None:
-    """Skip (locally) or fail (in CI) when ``condition`` is false."""
-    if condition:
-        return
-    if os.environ.get("SCANDIFF_REQUIRE_SERVICES") == "1":
-        pytest.fail(f"required in CI but missing: {reason}")
-    pytest.skip(reason)
-
-
-def shared_data_dir() -> Path:
-    """Where ../shared/data lives (override with SCANDIFF_SHARED_DATA)."""
-    configured = os.environ.get("SCANDIFF_SHARED_DATA")
-    if configured:
-        return Path(configured)
-    return PROJECT_ROOT.parent / "shared" / "data"
+from tests.helpers.environment import require, shared_data_dir
+from tests.helpers.service import ServiceProcess
 
 
 @pytest.fixture
@@ -38,3 +21,26 @@ def real_data_dir() -> Path:
     path = shared_data_dir() / "real"
     require(path.is_dir(), f"real point-cloud data not found at {path}")
     return path
+
+
+@pytest.fixture
+def service_factory(tmp_path: Path) -> Iterator[Callable[..., ServiceProcess]]:
+    """Make started services (``service_factory(workers=2, env={...})``); all stopped after."""
+    started: list[ServiceProcess] = []
+
+    def make(
+        *,
+        workers: int = 1,
+        env: Mapping[str, str] | None = None,
+        data_dir: str | Path | None = None,
+        start: bool = True,
+        **kwargs: Any,
+    ) -> ServiceProcess:
+        directory = Path(data_dir) if data_dir else tmp_path / f"service{len(started)}"
+        service = ServiceProcess(directory, workers=workers, env=env, **kwargs)
+        started.append(service)
+        return service.start() if start else service
+
+    yield make
+    for service in started:
+        service.stop(timeout=15.0)

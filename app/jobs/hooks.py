@@ -4,7 +4,7 @@ A job run asks :data:`job_hooks` for two things, and nothing else in ``app`` kno
 
 * :meth:`JobHooks.comparison`: the function that compares two clouds.  It is
   :func:`app.core.pipeline.compare` unless a test set :attr:`JobHooks.compare` to a stand-in
-  (``tests/jobs/fake_pipeline.py`` installs a fast, deterministic one, in-process or in a
+  (``tests/helpers/fake_pipeline.py`` installs a fast, deterministic one, in-process or in a
   consumer it starts);
 * :meth:`JobHooks.inject_faults`: faults described by the JSON object in env
   ``SCANDIFF_TEST_JOB_HOOKS`` (an environment variable, so that it reaches the workers of a

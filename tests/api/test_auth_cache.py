@@ -25,7 +25,8 @@ from app.db.session import transaction
 from app.main import create_app
 from app.services import auth
 from app.services.auth import Principal, TokenCache, hash_token
-from tests.api.conftest import ApiServer, assert_error, create_site, unique_name
+from tests.helpers.http import assert_error, create_site, unique_name
+from tests.helpers.server import ApiServer
 
 SHORT_TTL = 0.5
 

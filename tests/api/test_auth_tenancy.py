@@ -10,17 +10,11 @@ import pytest
 
 from app.api.logs import JsonFormatter
 from app.config import Settings
-from tests.api.conftest import (
-    ApiServer,
-    assert_error,
-    create_site,
-    finish_job,
-    make_points,
-    ply_bytes,
-    site_with_reference,
-    unique_name,
-    upload,
-)
+from tests.helpers.files import ply_bytes
+from tests.helpers.http import assert_error, create_site, site_with_reference, unique_name, upload
+from tests.helpers.jobs import finish_job
+from tests.helpers.scenes import room_points as make_points
+from tests.helpers.server import ApiServer
 
 
 @pytest.mark.parametrize(

@@ -12,31 +12,15 @@ import laspy
 import numpy as np
 import pytest
 from plyfile import PlyData
-from sqlalchemy import func, select
 
 from app.clock import utc_now
 from app.db.models import IdempotencyRecord, Job, JobStatus, Scan
-from app.db.session import transaction
-from tests.api.conftest import (
-    ApiServer,
-    assert_error,
-    finish_job,
-    las_bytes,
-    make_points,
-    pcd_bytes,
-    ply_bytes,
-    site_with_reference,
-    unique_name,
-    upload,
-)
-
-
-def count(api: ApiServer, model: type, **filters: str) -> int:
-    with transaction(api.settings.sqlalchemy_url) as session:
-        statement = select(func.count()).select_from(model)
-        for name, value in filters.items():
-            statement = statement.where(getattr(model, name) == value)
-        return int(session.scalar(statement) or 0)
+from tests.helpers.database import count_rows as count
+from tests.helpers.files import las_bytes, pcd_bytes, ply_bytes
+from tests.helpers.http import assert_error, site_with_reference, unique_name, upload
+from tests.helpers.jobs import finish_job
+from tests.helpers.scenes import room_points as make_points
+from tests.helpers.server import ApiServer
 
 
 @pytest.fixture
@@ -137,7 +121,7 @@ def test_a_retried_upload_returns_the_first_response(
     api: ApiServer, writer: httpx.Client, multipart: bool
 ) -> None:
     site, _reference = site_with_reference(writer)
-    content = las_bytes(make_points(2000, seed=8))
+    content = las_bytes(make_points(2000, seed=8), compress=True)
     headers = {"Idempotency-Key": f"upload-{multipart}"}
     first = upload(writer, site["id"], content, filename="a.laz", multipart=multipart,
                    headers=headers)  # fmt: skip

@@ -13,22 +13,16 @@ from typing import Any
 
 import httpx
 import pytest
-from sqlalchemy import func, select, update
+from sqlalchemy import select, update
 
 from app.db.models import Job, JobStatus, Scan
 from app.db.session import transaction
 from app.services.quotas import RETRY_AFTER_SECONDS
-from tests.api.conftest import (
-    MAX_UPLOAD_BYTES,
-    ApiServer,
-    assert_error,
-    create_site,
-    make_points,
-    ply_bytes,
-    running_api,
-    unique_name,
-    upload,
-)
+from tests.helpers.database import count_rows
+from tests.helpers.files import chunked, ply_bytes, ply_of_size
+from tests.helpers.http import assert_error, create_site, unique_name, upload
+from tests.helpers.scenes import room_points as make_points
+from tests.helpers.server import MAX_UPLOAD_BYTES, ApiServer, fresh_api, running_api
 
 MAX_QUEUED_JOBS = 3
 MAX_STORED_BYTES = 250_000
@@ -37,36 +31,13 @@ MAX_STORED_BYTES = 250_000
 @pytest.fixture(scope="module")
 def quota_api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ApiServer]:
     """The app with small quotas on a fresh data directory (no consumer: jobs stay queued)."""
-    from app.config import Settings
-
-    settings = Settings(
-        data_dir=tmp_path_factory.mktemp("quota-data"),
+    yield from fresh_api(
+        tmp_path_factory,
+        "quota-data",
         max_upload_bytes=MAX_UPLOAD_BYTES,
         max_queued_jobs_per_organisation=MAX_QUEUED_JOBS,
         max_stored_bytes_per_organisation=MAX_STORED_BYTES,
     )
-    with running_api(settings) as handle:
-        yield handle
-
-
-def ply_of_size(size: int, seed: int = 3) -> bytes:
-    """A valid binary PLY of exactly ``size`` bytes (a header comment takes up the slack)."""
-    header = (
-        "ply\nformat binary_little_endian 1.0\ncomment {pad}\nelement vertex {n}\n"
-        "property float x\nproperty float y\nproperty float z\nend_header\n"
-    )
-    n_points = (size - len(header.format(pad="", n=10**6))) // 12
-    body = make_points(n_points, seed=seed).astype("<f4").tobytes()
-    padding = size - len(body) - len(header.format(pad="", n=n_points))
-    content = header.format(pad="x" * padding, n=n_points).encode() + body
-    assert len(content) == size
-    return content
-
-
-def chunked(content: bytes, chunk_size: int = 16_384) -> Iterator[bytes]:
-    """The body as a generator: httpx sends it chunked, without ``Content-Length``."""
-    for start in range(0, len(content), chunk_size):
-        yield content[start : start + chunk_size]
 
 
 def organisation(client: httpx.Client) -> dict[str, Any]:
@@ -77,14 +48,10 @@ def organisation(client: httpx.Client) -> dict[str, Any]:
 
 def rows_of(api: ApiServer, organisation_id: str) -> tuple[int, int]:
     """``(scans, jobs)`` rows of the organisation."""
-    with transaction(api.settings.sqlalchemy_url) as session:
-        scans = session.scalar(
-            select(func.count()).select_from(Scan).where(Scan.organisation_id == organisation_id)
-        )
-        jobs = session.scalar(
-            select(func.count()).select_from(Job).where(Job.organisation_id == organisation_id)
-        )
-    return int(scans or 0), int(jobs or 0)
+    return (
+        count_rows(api, Scan, organisation_id=organisation_id),
+        count_rows(api, Job, organisation_id=organisation_id),
+    )
 
 
 def finish_queued_jobs(api: ApiServer, organisation_id: str, n_jobs: int) -> None:

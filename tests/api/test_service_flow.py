@@ -25,8 +25,8 @@ from app.core.jsonable import json_safe
 from app.core.pipeline import compare
 from app.core.synthetic import raycast_scene
 from app.db.models import JobStatus
-from tests.api.conftest import las_bytes, pcd_bytes, ply_bytes
-from tests.service_harness import ServiceProcess, service_factory  # noqa: F401
+from tests.helpers.files import las_bytes, pcd_bytes, ply_bytes
+from tests.helpers.service import ServiceProcess
 
 ServiceFactory = Callable[..., ServiceProcess]
 
@@ -114,7 +114,7 @@ def kill_during_a_slow_upload(service: ServiceProcess, scans_path: str, head: by
 
 
 def test_the_whole_flow_then_a_kill_mid_upload_and_a_restart(
-    service_factory: ServiceFactory,  # noqa: F811
+    service_factory: ServiceFactory,
 ) -> None:
     service = service_factory(workers=1)
     pair = raycast_scene(n_points=3000, change="box", random_state=1)
@@ -136,7 +136,13 @@ def test_the_whole_flow_then_a_kill_mid_upload_and_a_restart(
         reference = response.json()["scan"]
         response = client.post(
             scans_path,
-            files={"file": ("monday.laz", las_bytes(pair.scan), "application/octet-stream")},
+            files={
+                "file": (
+                    "monday.laz",
+                    las_bytes(pair.scan, compress=True),
+                    "application/octet-stream",
+                )
+            },
         )
         assert response.status_code == 202, response.text
         laz_job = response.json()["job"]

@@ -5,29 +5,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import httpx
-from sqlalchemy import func, select
 
 from app.db.models import Job, ReferenceHistory, Region, Scan, Site
-from app.db.session import transaction
-from tests.api.conftest import (
-    ApiServer,
-    assert_error,
-    create_site,
-    finish_job,
-    make_points,
-    ply_bytes,
-    site_with_reference,
-    unique_name,
-    upload,
-)
-
-
-def count_rows(api: ApiServer, model: type, **filters: str) -> int:
-    with transaction(api.settings.sqlalchemy_url) as session:
-        statement = select(func.count()).select_from(model)
-        for name, value in filters.items():
-            statement = statement.where(getattr(model, name) == value)
-        return int(session.scalar(statement) or 0)
+from tests.helpers.database import count_rows
+from tests.helpers.files import ply_bytes
+from tests.helpers.http import assert_error, create_site, site_with_reference, unique_name, upload
+from tests.helpers.jobs import finish_job
+from tests.helpers.scenes import room_points as make_points
+from tests.helpers.server import ApiServer
 
 
 def test_create_and_read_a_site_with_the_default_detector(writer: httpx.Client) -> None:

@@ -10,7 +10,7 @@ import pytest
 
 from app.config import Settings
 from app.db.migrate import upgrade_to_head
-from app.db.models import Job, Organisation, Scan, Site
+from app.db.models import Organisation, Scan, Site
 from app.db.session import transaction
 from app.services.storage import (
     ensure_directories,
@@ -18,7 +18,8 @@ from app.services.storage import (
     sanitise_filename,
     sweep_temporary_files,
 )
-from tests.api.conftest import unique_name
+from tests.helpers.http import unique_name
+from tests.helpers.jobs import new_job
 
 
 @pytest.mark.parametrize(
@@ -80,14 +81,7 @@ def test_the_sweep_removes_leftovers_and_keeps_what_rows_reference(tmp_path: Pat
         )
         session.add(scan)
         session.flush()
-        job = Job(
-            organisation_id=organisation.id,
-            site_id=site.id,
-            reference_scan_id=scan.id,
-            scan_id=scan.id,
-            method="gmm",
-            variant="improved",
-        )
+        job = new_job(site, scan.id, scan.id)
         session.add(job)
         session.flush()
         site_id, job_id = site.id, job.id

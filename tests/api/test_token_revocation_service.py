@@ -22,8 +22,9 @@ from app.config import Settings
 from app.db.models import ApiToken
 from app.db.session import transaction
 from app.services.auth import TOKEN_CACHE_SECONDS, hash_token
-from tests.api.conftest import unique_name
-from tests.service_harness import PROJECT_ROOT, ServiceProcess, service_factory  # noqa: F401
+from tests.helpers.environment import PROJECT_ROOT
+from tests.helpers.http import unique_name
+from tests.helpers.service import ServiceProcess
 
 ServiceFactory = Callable[..., ServiceProcess]
 EXPIRY_DEADLINE_SECONDS = 60.0
@@ -77,7 +78,7 @@ def assert_unauthorized(response: httpx.Response) -> None:
 
 
 def test_cli_revocation_ends_a_cached_token_at_once_whatever_the_ttl(
-    service_factory: ServiceFactory,  # noqa: F811
+    service_factory: ServiceFactory,
 ) -> None:
     service = service_factory(env={"SCANDIFF_TOKEN_CACHE_SECONDS": "3600"})
 
@@ -106,7 +107,7 @@ def test_cli_revocation_ends_a_cached_token_at_once_whatever_the_ttl(
 
 
 def test_a_database_only_revocation_is_seen_when_a_short_ttl_expires(
-    service_factory: ServiceFactory,  # noqa: F811
+    service_factory: ServiceFactory,
 ) -> None:
     service = service_factory(env={"SCANDIFF_TOKEN_CACHE_SECONDS": "1"})
     secret, _ = issue_token(service)
@@ -122,7 +123,7 @@ def test_a_database_only_revocation_is_seen_when_a_short_ttl_expires(
 
 
 def test_a_zero_ttl_disables_the_cache(
-    service_factory: ServiceFactory,  # noqa: F811
+    service_factory: ServiceFactory,
 ) -> None:
     service = service_factory(env={"SCANDIFF_TOKEN_CACHE_SECONDS": "0"})
     secret, _ = issue_token(service)

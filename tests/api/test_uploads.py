@@ -10,18 +10,10 @@ import httpx
 import pytest
 
 from app.db.models import JobStatus
-from tests.api.conftest import (
-    MAX_UPLOAD_BYTES,
-    ApiServer,
-    assert_error,
-    create_site,
-    las_bytes,
-    make_points,
-    pcd_bytes,
-    ply_bytes,
-    site_with_reference,
-    upload,
-)
+from tests.helpers.files import las_bytes, pcd_bytes, ply_bytes
+from tests.helpers.http import assert_error, create_site, site_with_reference, upload
+from tests.helpers.scenes import room_points as make_points
+from tests.helpers.server import MAX_UPLOAD_BYTES, ApiServer
 
 
 @pytest.fixture
@@ -39,12 +31,17 @@ def scan_ids(client: httpx.Client, site_id: str) -> list[str]:
     ("make_content", "filename", "multipart", "expected_format"),
     [
         (lambda points: ply_bytes(points), "scan.ply", False, "ply"),
-        (lambda points: ply_bytes(points, text=True), "scan.ply", True, "ply"),
+        (lambda points: ply_bytes(points, "ascii"), "scan.ply", True, "ply"),
         (lambda points: pcd_bytes(points), "scan.pcd", True, "pcd"),
         (lambda points: pcd_bytes(points), "scan.pcd", False, "pcd"),
-        (lambda points: las_bytes(points), "scan.laz", True, "laz"),
-        (lambda points: las_bytes(points), None, False, "laz"),  # sniffed from the content
-        (lambda points: las_bytes(points, compressed=False), "scan.las", False, "las"),
+        (lambda points: las_bytes(points, compress=True), "scan.laz", True, "laz"),
+        (
+            lambda points: las_bytes(points, compress=True),
+            None,
+            False,
+            "laz",
+        ),  # sniffed from the content
+        (lambda points: las_bytes(points), "scan.las", False, "las"),
     ],
     ids=[
         "ply-raw",

@@ -15,7 +15,7 @@ from pydantic import ValidationError
 from app.config import Settings
 from app.main import create_app
 from app.viewer.routes import new_viewer_manager
-from tests.conftest import PROJECT_ROOT
+from tests.helpers.environment import PROJECT_ROOT
 
 
 @pytest.fixture

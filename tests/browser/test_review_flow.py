@@ -18,12 +18,8 @@ import numpy as np
 import pytest
 import viser
 
-from tests.browser.conftest import (
-    FAILING_SCAN_REASON,
-    ReviewService,
-    save_screenshot,
-    wait_until,
-)
+from tests.helpers.browser import FAILING_SCAN_REASON, ReviewService, save_screenshot
+from tests.helpers.browser import wait_for_page as wait_until
 
 pytestmark = pytest.mark.timeout(240)
 

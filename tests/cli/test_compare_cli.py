@@ -9,9 +9,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from plyfile import PlyData, PlyElement
+from plyfile import PlyData
 
 from app.core.synthetic import raycast_scene
+from tests.helpers.files import ply_bytes
 
 REQUIRED_KEYS = {
     "method",
@@ -45,20 +46,14 @@ def run_cli(*arguments: str | Path) -> subprocess.CompletedProcess[str]:
     )
 
 
-def write_ply(path: Path, points: np.ndarray) -> Path:
-    vertices = np.empty(len(points), dtype=[("x", "f8"), ("y", "f8"), ("z", "f8")])
-    vertices["x"], vertices["y"], vertices["z"] = points.T
-    PlyData([PlyElement.describe(vertices, "vertex")]).write(str(path))
-    return path
-
-
 @pytest.fixture(scope="module")
 def scene_files(tmp_path_factory):
     directory = tmp_path_factory.mktemp("scene")
     pair = raycast_scene(n_points=20_000, change="box", random_state=11)
     scan = pair.scan.copy()
     scan[[3, 4]] = np.nan  # dropped on load, must keep their place in the labels
-    reference_path = write_ply(directory / "reference.ply", pair.reference)
+    reference_path = directory / "reference.ply"
+    reference_path.write_bytes(ply_bytes(pair.reference, coordinate_type="f8"))
     np.savetxt(directory / "scan.xyz", scan, fmt="%.6f")
     return reference_path, directory / "scan.xyz", pair
 

@@ -16,32 +16,13 @@ import pytest
 from app.core import blocks as blocks_module
 from app.core import cloud_summary as summary_module
 from app.core.cloud import MIN_POINTS, PointCloud
-from app.core.cloud_summary import CloudSummary, summarise_array
+from app.core.cloud_summary import summarise_array
 from app.core.errors import PointCloudError
 from app.core.formats import las, read_point_cloud, summarise_point_cloud
-from tests.core.test_formats import (
-    FUZZ_SEEDS,
-    MALFORMED,
-    las_bytes,
-    mutate_bytes,
-    pcd_bytes,
-    ply_bytes,
-    random_points,
-)
-
-
-def assert_summary_of(summary: CloudSummary, cloud: PointCloud) -> None:
-    """``summary`` reports what ``cloud`` holds."""
-    assert summary.n_source == cloud.n_source
-    assert summary.n_points == len(cloud) and summary.n_dropped == cloud.n_dropped
-    low, high = cloud.bounds()
-    assert summary.low.dtype == np.float64 and summary.high.dtype == np.float64
-    np.testing.assert_array_equal(summary.low, low)
-    np.testing.assert_array_equal(summary.high, high)
-    if cloud.sensor_origin is None:
-        assert summary.sensor_origin is None
-    else:
-        np.testing.assert_array_equal(summary.sensor_origin, cloud.sensor_origin)
+from tests.helpers.clouds import assert_summary_of
+from tests.helpers.corpus import FUZZ_SEEDS, MALFORMED, mutate_bytes
+from tests.helpers.files import las_bytes, pcd_bytes, ply_bytes
+from tests.helpers.scenes import random_points
 
 
 def peak_traced_bytes(action) -> int:

@@ -11,14 +11,12 @@ on points, dropped rows, source_index and attributes, for every layout and byte 
 from __future__ import annotations
 
 import dataclasses
-import io
 import os
 import pickle
 import tempfile
 from pathlib import Path
 
 import numpy as np
-import plyfile
 import pytest
 
 from app.core import blocks as blocks_module
@@ -29,9 +27,11 @@ from app.core.errors import PointCloudError
 from app.core.formats import pcd, ply, read_point_cloud, summarise_point_cloud
 from app.core.formats._common import file_rows_of, open_source, xyz_from_columns, xyz_view
 from app.core.threads import available_threads
-from tests.core.test_cloud_summary import assert_summary_of
+from tests.helpers.clouds import assert_summary_of
+from tests.helpers.files import pcd_bytes, ply_bytes
 
 N_POINTS = 257  # not a multiple of the (patched) block size: the last block is partial
+VIEWPOINT = (1, 2, 3, 1, 0, 0, 0)  # the sensor at (1, 2, 3)
 
 
 @pytest.fixture(autouse=True, params=[1, 3], ids=["1 thread", "3 threads"])
@@ -101,6 +101,8 @@ def _fast_and_slow(monkeypatch, module, content: bytes, filename: str):
     return fast, slow
 
 
+PLY_ENCODINGS = {"<": "binary_little_endian", ">": "binary_big_endian"}
+
 PLY_LAYOUTS = {
     "f4 packed": [("x", "f4"), ("y", "f4"), ("z", "f4")],
     "f8 packed": [("x", "f8"), ("y", "f8"), ("z", "f8")],
@@ -120,42 +122,13 @@ def test_binary_ply_fast_path_equals_slow_path(monkeypatch, layout, byte_order, 
     integer = PLY_LAYOUTS[layout][0][1] == "i4"
     values = np.round(_values(with_non_finite=not integer))
     records = _structured(PLY_LAYOUTS[layout], values)
-    data = plyfile.PlyData(
-        [plyfile.PlyElement.describe(records, "vertex")],
-        text=False,
-        byte_order=byte_order,
-        comments=[comment] if comment else [],
-    )
-    stream = io.BytesIO()
-    data.write(stream)
-    fast, slow = _fast_and_slow(monkeypatch, ply, stream.getvalue(), "cloud.ply")
+    content = ply_bytes(records, PLY_ENCODINGS[byte_order], comments=[comment] if comment else [])
+    fast, slow = _fast_and_slow(monkeypatch, ply, content, "cloud.ply")
     _assert_same_cloud(fast, slow)
     finite = np.isfinite(values).all(axis=1)
     expected = np.column_stack([records[name].astype(np.float64) for name in "xyz"])[finite]
     np.testing.assert_array_equal(fast.points, expected)
     assert fast.n_dropped == (0 if integer else 4)
-
-
-def _pcd_bytes(records: np.ndarray, fields: list[tuple[str, str, int, int]], encoding: str):
-    """A PCD file; ``fields`` lists (name, TYPE, SIZE, COUNT) in record order."""
-    header = (
-        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n"
-        f"FIELDS {' '.join(f[0] for f in fields)}\n"
-        f"SIZE {' '.join(str(f[2]) for f in fields)}\n"
-        f"TYPE {' '.join(f[1] for f in fields)}\n"
-        f"COUNT {' '.join(str(f[3]) for f in fields)}\n"
-        f"WIDTH {len(records)}\nHEIGHT 1\nVIEWPOINT 1 2 3 1 0 0 0\n"
-        f"POINTS {len(records)}\nDATA {encoding}\n"
-    )
-    if encoding == "binary":
-        return header.encode() + records.tobytes()
-    import lzf
-
-    columns = b"".join(
-        np.ascontiguousarray(records[name]).tobytes() for name in records.dtype.names
-    )
-    compressed = lzf.compress(columns, 2 * len(columns) + 64)
-    return header.encode() + np.array([len(compressed), len(columns)], "<u4").tobytes() + compressed
 
 
 PCD_LAYOUTS = {
@@ -201,7 +174,7 @@ def _pcd_records(fields, values):
 @pytest.mark.parametrize("encoding", ["binary", "binary_compressed"])
 def test_pcd_fast_path_equals_slow_path(monkeypatch, layout, encoding):
     values = _values()
-    content = _pcd_bytes(_pcd_records(PCD_LAYOUTS[layout], values), PCD_LAYOUTS[layout], encoding)
+    content = pcd_bytes(_pcd_records(PCD_LAYOUTS[layout], values), encoding, viewpoint=VIEWPOINT)
     fast, slow = _fast_and_slow(monkeypatch, pcd, content, "cloud.pcd")
     _assert_same_cloud(fast, slow)
     assert fast.n_dropped == 4
@@ -302,10 +275,8 @@ def test_lazy_source_index_behaves_like_an_arange():
 def test_ply_header_longer_than_the_peek_or_ending_at_its_edge(tmp_path):
     values = _values(with_non_finite=False)
     records = _structured(PLY_LAYOUTS["f4 packed"], values)
-    element = plyfile.PlyElement.describe(records, "vertex")
-    plain = io.BytesIO()
-    plyfile.PlyData([element], text=False, byte_order="<").write(plain)
-    header_length = plain.getvalue().index(b"end_header\n") + len(b"end_header\n")
+    plain = ply_bytes(records)
+    header_length = plain.index(b"end_header\n") + len(b"end_header\n")
     comment_line = len(b"comment \n")
     for target in (
         ply.HEADER_PEEK_BYTES - 1,
@@ -314,9 +285,7 @@ def test_ply_header_longer_than_the_peek_or_ending_at_its_edge(tmp_path):
         3 * ply.HEADER_PEEK_BYTES,
     ):
         comment = "c" * (target - header_length - comment_line)
-        stream = io.BytesIO()
-        plyfile.PlyData([element], text=False, byte_order="<", comments=[comment]).write(stream)
-        content = stream.getvalue()
+        content = ply_bytes(records, comments=[comment])
         assert content.index(b"end_header\n") + len(b"end_header\n") == target
         path = tmp_path / f"long_{target}.ply"
         path.write_bytes(content)
@@ -346,15 +315,12 @@ def test_readers_hand_over_a_view_when_the_layout_allows(build, expect_view):
 
 def _ply_content(layout: str, byte_order: str):
     records = _structured(PLY_LAYOUTS[layout], _values())
-    stream = io.BytesIO()
-    element = plyfile.PlyElement.describe(records, "vertex")
-    plyfile.PlyData([element], text=False, byte_order=byte_order).write(stream)
-    return stream.getvalue(), ply.read_ply
+    return ply_bytes(records, PLY_ENCODINGS[byte_order]), ply.read_ply
 
 
 def _pcd_content(layout: str, encoding: str):
     fields = PCD_LAYOUTS[layout]
-    return _pcd_bytes(_pcd_records(fields, _values()), fields, encoding), pcd.read_pcd
+    return pcd_bytes(_pcd_records(fields, _values()), encoding, viewpoint=VIEWPOINT), pcd.read_pcd
 
 
 @pytest.mark.parametrize("n", [1, 255, 256, 257, 1000, 5 * 256])

@@ -13,7 +13,7 @@ from sqlalchemy import create_engine, inspect
 
 from app.db.migrate import current_revision, downgrade_to_base, head_revision, upgrade_to_head
 from app.db.models import Base
-from tests.conftest import require
+from tests.helpers.environment import require
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 

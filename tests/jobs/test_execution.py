@@ -25,8 +25,8 @@ from app.jobs.leases import (
 )
 from app.jobs.queue import pending_job_ids, run_job_once
 from app.jobs.results import store_results
-from tests.jobs import fake_pipeline
-from tests.jobs.conftest import count_regions, create_job, load_job
+from tests.helpers import fake_pipeline
+from tests.helpers.jobs import count_regions, create_job, load_job
 
 
 @pytest.fixture(autouse=True)

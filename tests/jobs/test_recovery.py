@@ -25,7 +25,7 @@ from app.jobs.queue import (
     send_job_message,
 )
 from app.jobs.recovery import recovery_sweep
-from tests.jobs.conftest import create_job, load_job
+from tests.helpers.jobs import create_job, load_job
 
 
 def set_job(settings: Settings, job_id: str, **values: object) -> None:

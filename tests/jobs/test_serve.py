@@ -1,6 +1,6 @@
 """``scandiff serve`` as a whole: first start, orphan-proof children, restart, graceful stop.
 
-These start the real command (``python -m app serve``) through :mod:`tests.service_harness`: a
+These start the real command (``python -m app serve``) through :mod:`tests.helpers.service`: a
 migrated SQLite file, uvicorn and the job consumer as child processes.  Jobs are created over
 HTTP, so results come from the real pipeline.
 """
@@ -15,39 +15,16 @@ from collections.abc import Callable
 
 import httpx
 import numpy as np
-from plyfile import PlyData, PlyElement
 
-from tests.service_harness import ServiceProcess, room_points, service_factory  # noqa: F401
+from tests.helpers.files import room_ply
+from tests.helpers.http import upload_accepted as upload
+from tests.helpers.service import ServiceProcess
 
 FAST_LEASES = {
     "SCANDIFF_JOB_LEASE_SECONDS": "2",
     "SCANDIFF_JOB_HEARTBEAT_SECONDS": "0.25",
     "SCANDIFF_RECOVERY_INTERVAL_SECONDS": "0.5",
 }
-
-
-def room_ply(seed: int, *, with_box: bool = False, n_points: int = 1500) -> bytes:
-    """A binary PLY of a floor and two walls; ``with_box`` adds a box on the floor."""
-    points = room_points(np.random.default_rng(seed), n_points, with_box=with_box)
-    vertex = np.empty(len(points), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
-    vertex["x"], vertex["y"], vertex["z"] = points.T
-    buffer = io.BytesIO()
-    PlyData([PlyElement.describe(vertex, "vertex")]).write(buffer)
-    return buffer.getvalue()
-
-
-def upload(client: httpx.Client, site_id: str, filename: str, body: bytes, **query: str) -> dict:
-    """POST a raw-body scan upload (jobs use the fast PCA detector); the JSON answer."""
-    if query.get("reference") != "true":
-        query.setdefault("method", "pca")
-    response = client.post(
-        f"/api/v1/sites/{site_id}/scans",
-        params={"filename": filename, **query},
-        content=body,
-        headers={"Content-Type": "application/octet-stream"},
-    )
-    assert response.status_code in (201, 202), response.text
-    return response.json()
 
 
 def describe(pids: list[int]) -> str:
@@ -64,7 +41,7 @@ def describe(pids: list[int]) -> str:
 
 
 def test_first_start_prints_a_private_token_and_children_die_with_serve(
-    service_factory: Callable[..., ServiceProcess],  # noqa: F811
+    service_factory: Callable[..., ServiceProcess],
 ) -> None:
     service = service_factory(workers=2, env=FAST_LEASES)
     token_file = service.data_dir / "admin-token"
@@ -95,7 +72,7 @@ def test_first_start_prints_a_private_token_and_children_die_with_serve(
 
 
 def test_killed_service_restarted_finishes_running_and_queued_jobs(
-    service_factory: Callable[..., ServiceProcess],  # noqa: F811
+    service_factory: Callable[..., ServiceProcess],
 ) -> None:
     slow = {"SCANDIFF_TEST_JOB_HOOKS": json.dumps({"sleep_seconds": 60, "scan_filename": "a.ply"})}
     service = service_factory(workers=1, env={**FAST_LEASES, **slow})

@@ -21,7 +21,7 @@ from app.db.session import session_factory
 from app.jobs.leases import ClaimedJob, LeaseKeeper, claim_job, make_lease_owner
 from app.jobs.queue import enqueue_job
 from app.jobs.recovery import recovery_sweep
-from tests.jobs.conftest import create_job
+from tests.helpers.jobs import create_job, new_job
 
 DURATION_SECONDS = 1.5
 
@@ -49,13 +49,10 @@ def hammer(role: str, settings_kwargs: dict[str, Any], job_ids: list[str], resul
                 with session.begin():  # read first, write later: the upgrade that used to fail
                     site = session.scalars(select(Site).limit(1)).one()
                     template = session.scalars(select(Job).limit(1)).one()
-                    job = Job(
-                        organisation_id=site.organisation_id,
-                        site_id=site.id,
-                        reference_scan_id=template.reference_scan_id,
-                        scan_id=template.scan_id,
-                        method="gmm",
-                        variant="improved",
+                    job = new_job(
+                        site,
+                        template.reference_scan_id,
+                        template.scan_id,
                         params={},
                         status="failed",  # not for the workers
                     )

@@ -34,16 +34,12 @@ from app.db.models import ApiToken, Job, Scan
 from app.db.session import transaction
 from app.services.auth import hash_token
 from app.viewer.access import VIEW_COOKIE
-from tests.api.conftest import (
-    ApiServer,
-    create_site,
-    finish_job,
-    make_points,
-    ply_bytes,
-    unique_name,
-    upload,
-)
-from tests.reliability.figures import record_figure
+from tests.helpers.figures import record_figure
+from tests.helpers.files import ply_bytes
+from tests.helpers.http import create_site, unique_name, upload
+from tests.helpers.jobs import finish_job
+from tests.helpers.scenes import room_points
+from tests.helpers.server import ApiServer
 
 PUBLIC_OPERATIONS = {
     ("GET", "/api/v1/health"),
@@ -85,7 +81,7 @@ class Operation:
         return self.path.format(site_id=site_id, scan_id=ids.scan_id, job_id=ids.job_id)
 
 
-SCAN_CONTENT = ply_bytes(make_points(1500, seed=21))
+SCAN_CONTENT = ply_bytes(room_points(1500, seed=21))
 
 OPERATIONS = [
     Operation(
@@ -255,19 +251,19 @@ def world(service: ApiServer) -> dict[str, Any]:
     reference = upload(
         a_writer,
         site["id"],
-        ply_bytes(make_points(3000, seed=1)),
+        ply_bytes(room_points(3000, seed=1)),
         reference=True,
         filename=markers["scan file name"],
     ).json()["scan"]
     created = upload(
         a_writer,
         site["id"],
-        ply_bytes(make_points(2500, seed=4)),
+        ply_bytes(room_points(2500, seed=4)),
         filename=markers["scan file name"],
     ).json()
     scan, job = created["scan"], created["job"]
     finish_job(service, job["id"], reference["n_points"], scan["n_points"])
-    queued = upload(a_writer, site["id"], ply_bytes(make_points(2000, seed=6))).json()["job"]
+    queued = upload(a_writer, site["id"], ply_bytes(room_points(2000, seed=6))).json()["job"]
     markers["reference sha256"] = reference["sha256"]
     markers["scan sha256"] = scan["sha256"]
     markers["organisation name"] = org_a
@@ -275,9 +271,9 @@ def world(service: ApiServer) -> dict[str, Any]:
     b_writer = service.client(tokens[("B", "writer")])
     b_site = create_site(b_writer)
     b_reference = upload(
-        b_writer, b_site["id"], ply_bytes(make_points(3000, seed=2)), reference=True
+        b_writer, b_site["id"], ply_bytes(room_points(3000, seed=2)), reference=True
     ).json()["scan"]
-    b_job = upload(b_writer, b_site["id"], ply_bytes(make_points(2000, seed=3))).json()["job"]
+    b_job = upload(b_writer, b_site["id"], ply_bytes(room_points(2000, seed=3))).json()["job"]
     link_as_token = a_writer.post(f"/api/v1/jobs/{ids.job_id}/view-link").json()["url"]
     link_value = link_as_token.split("link=", 1)[1]
     revoke(service, revoked_token)

@@ -16,7 +16,8 @@ import httpx
 from sqlalchemy import text
 
 from app.db.session import session_factory
-from tests.api.conftest import ApiServer, create_site
+from tests.helpers.http import create_site
+from tests.helpers.server import ApiServer
 
 N_CLIENTS = 32
 N_REQUESTS = 200

@@ -23,10 +23,12 @@ from collections.abc import Callable
 
 import httpx
 
-from tests.jobs.test_serve import room_ply, upload
-from tests.reliability.conftest import database_rows, job_status_counts, wait_until
-from tests.reliability.figures import percentile, record_figure
-from tests.service_harness import ServiceProcess, service_factory  # noqa: F401
+from tests.helpers.database import database_rows, job_status_counts
+from tests.helpers.figures import percentile, record_figure
+from tests.helpers.files import room_ply
+from tests.helpers.http import upload_accepted
+from tests.helpers.service import ServiceProcess
+from tests.helpers.waiting import wait_until
 
 N_WORKERS = 3
 N_POLLERS = 16
@@ -43,17 +45,19 @@ LOCKED = "database is locked"
 
 
 def test_status_reads_under_worker_writes_see_no_lock_errors(
-    service_factory: Callable[..., ServiceProcess],  # noqa: F811
+    service_factory: Callable[..., ServiceProcess],
 ) -> None:
     service = service_factory(workers=N_WORKERS, env=CONTENTION_ENV)
     bodies = [room_ply(200 + index, with_box=True, n_points=POINTS) for index in range(8)]
     with service.client() as client:
         site = client.post("/api/v1/sites", json={"name": "contention"}).json()
-        upload(client, site["id"], "reference.ply", room_ply(0, n_points=POINTS), reference="true")
+        upload_accepted(
+            client, site["id"], "reference.ply", room_ply(0, n_points=POINTS), reference="true"
+        )
         job_ids = [
-            upload(client, site["id"], f"backlog-{index}.ply", bodies[index % len(bodies)])["job"][
-                "id"
-            ]
+            upload_accepted(
+                client, site["id"], f"backlog-{index}.ply", bodies[index % len(bodies)]
+            )["job"]["id"]
             for index in range(UPLOAD_BACKLOG)
         ]
     service.wait_for_workers()

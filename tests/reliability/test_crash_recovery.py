@@ -27,7 +27,6 @@ kills a job hit every time must still have one attempt left.
 from __future__ import annotations
 
 import hashlib
-import io
 import random
 import threading
 import time
@@ -40,17 +39,19 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
-from plyfile import PlyData, PlyElement
 
 from app.config import Settings
 from app.core.files import write_atomically
 from app.db.migrate import upgrade_to_head
 from app.db.session import get_engine
 from app.services.storage import ensure_directories, sweep_temporary_files
-from tests.jobs.conftest import create_job
-from tests.reliability.conftest import database_rows, job_status_counts, wait_until
-from tests.reliability.figures import record_figure
-from tests.service_harness import ServiceProcess, room_points, service_factory  # noqa: F401
+from tests.helpers.database import database_rows, job_status_counts
+from tests.helpers.figures import record_figure
+from tests.helpers.files import ply_bytes
+from tests.helpers.jobs import create_job
+from tests.helpers.scenes import room_points
+from tests.helpers.service import ServiceProcess
+from tests.helpers.waiting import wait_until
 
 N_UPLOADS = 50
 N_KILLS = 3
@@ -76,16 +77,10 @@ def room_with_attributes(seed: int, *, with_box: bool, n_bytes: int) -> bytes:
     (``a0``, ``a1``, ... random values) as make the file about ``n_bytes`` long.
     """
     rng = np.random.default_rng(seed)
-    points = room_points(rng, POINTS_PER_SCAN, with_box=with_box)
+    points = room_points(POINTS_PER_SCAN, rng, noise=0.003, with_box=with_box)
     n_attributes = max(0, round(n_bytes / (8 * len(points))) - 3)
-    dtype = [("x", "f8"), ("y", "f8"), ("z", "f8")] + [(f"a{i}", "f8") for i in range(n_attributes)]
-    vertex = np.empty(len(points), dtype=dtype)
-    vertex["x"], vertex["y"], vertex["z"] = points.T
-    for index in range(n_attributes):
-        vertex[f"a{index}"] = rng.random(len(points))
-    buffer = io.BytesIO()
-    PlyData([PlyElement.describe(vertex, "vertex")]).write(buffer)
-    return buffer.getvalue()
+    attributes = {f"a{index}": rng.random(len(points)) for index in range(n_attributes)}
+    return ply_bytes(points, coordinate_type="f8", extra=attributes)
 
 
 @dataclass
@@ -205,7 +200,7 @@ def leftovers(data_dir: Path) -> dict[str, list[Path]]:
 
 @pytest.mark.slow
 def test_three_power_cuts_lose_nothing_and_leave_nothing_half_written(
-    service_factory: Callable[..., ServiceProcess],  # noqa: F811
+    service_factory: Callable[..., ServiceProcess],
 ) -> None:
     seed = random.randrange(2**32)
     rng = random.Random(seed)

@@ -14,8 +14,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from tests.reliability.figures import record_figure
-from tests.service_harness import PROJECT_ROOT
+from tests.helpers.environment import PROJECT_ROOT
+from tests.helpers.figures import record_figure
 
 CLIENTS = 4
 SECONDS = 3.0

@@ -17,7 +17,6 @@ import io
 import json
 import logging
 import os
-import struct
 import subprocess
 import sys
 import time
@@ -29,14 +28,22 @@ from dataclasses import dataclass
 import httpx
 import numpy as np
 import pytest
-from sqlalchemy import func, select
 
 from app.db.models import Job, Scan
-from app.db.session import transaction
-from tests.api.conftest import ApiServer, create_site, make_points, ply_bytes, upload
-from tests.conftest import PROJECT_ROOT
-from tests.core import test_formats as reader_corpus
-from tests.reliability.figures import record_figure
+from tests.helpers.corpus import (
+    FUZZ_SEEDS,
+    MALFORMED,
+    las_with_point_count,
+    mutate_bytes,
+    npy_header,
+)
+from tests.helpers.database import count_rows
+from tests.helpers.environment import PROJECT_ROOT
+from tests.helpers.figures import record_figure
+from tests.helpers.files import las_bytes, npy_bytes, npz_bytes, pcd_bytes, ply_bytes, text_bytes
+from tests.helpers.http import create_site, upload
+from tests.helpers.scenes import random_points, room_points
+from tests.helpers.server import ApiServer
 
 ACCEPTABLE_REJECTIONS = frozenset({400, 413, 415, 422})
 MUTATIONS_PER_FORMAT = 8
@@ -58,18 +65,10 @@ class BadUpload:
     may_be_valid: bool = False
 
 
-def _points(n: int = 64) -> np.ndarray:
-    return reader_corpus.random_points(n)
-
-
-def _las_with_count(content: bytes, count: int) -> bytes:
-    return content[:107] + struct.pack("<I", count) + content[111:]
-
-
 @functools.cache
 def _npz_deflate_bomb() -> bytes:
     """points.npy claiming 2^31 x 3 float64, followed by 64 MB of zeros deflated to ~64 kB."""
-    member = reader_corpus._npy_header((2**31, 3)) + bytes(64 * 1024 * 1024)
+    member = npy_header((2**31, 3)) + bytes(64 * 1024 * 1024)
     stream = io.BytesIO()
     with zipfile.ZipFile(stream, "w", compression=zipfile.ZIP_DEFLATED) as archive:
         archive.writestr("points.npy", member)
@@ -77,7 +76,7 @@ def _npz_deflate_bomb() -> bytes:
 
 
 def _reader_corpus_uploads() -> Iterator[BadUpload]:
-    for case, (filename, build, fragment) in sorted(reader_corpus.MALFORMED.items()):
+    for case, (filename, build, fragment) in sorted(MALFORMED.items()):
         content = build()
         if not content:  # the service refuses an empty body before the reader sees it
             fragment = "empty"
@@ -92,11 +91,11 @@ def _empty_and_non_finite_uploads() -> Iterator[BadUpload]:
     nan = np.full((64, 3), np.nan)
     inf = np.full((64, 3), np.inf)
     builders = {
-        "ply": lambda p: reader_corpus.ply_bytes(p),
-        "pcd": lambda p: reader_corpus.pcd_bytes(p, "ascii"),
-        "npy": reader_corpus.npy_bytes,
-        "npz": lambda p: reader_corpus.npz_bytes(points=p),
-        "xyz": lambda p: reader_corpus.text_bytes(p),
+        "ply": lambda p: ply_bytes(p),
+        "pcd": lambda p: pcd_bytes(p, "ascii"),
+        "npy": npy_bytes,
+        "npz": lambda p: npz_bytes(points=p),
+        "xyz": lambda p: text_bytes(p),
     }
     for suffix, build in builders.items():
         for label, points in (("zero-points", zero), ("all-nan", nan), ("all-inf", inf)):
@@ -104,17 +103,17 @@ def _empty_and_non_finite_uploads() -> Iterator[BadUpload]:
                 continue  # ply-zero-vertices and ply-nan-only are in the reader corpus
             yield BadUpload(f"{suffix}-{label}", build(points), f"scan.{suffix}")
     for suffix, compress in (("las", False), ("laz", True)):
-        content = reader_corpus.las_bytes(_points(), compress=compress)
-        yield BadUpload(f"{suffix}-zero-points", _las_with_count(content, 0), f"scan.{suffix}")
+        content = las_bytes(random_points(), compress=compress)
+        yield BadUpload(f"{suffix}-zero-points", las_with_point_count(content, 0), f"scan.{suffix}")
         yield BadUpload(
             f"{suffix}-count-40M-in-a-small-file",
-            _las_with_count(content, 40_000_000),
+            las_with_point_count(content, 40_000_000),
             f"scan.{suffix}",
             fragment="absurd LAZ header" if compress else "truncated body",
         )
         yield BadUpload(
             f"{suffix}-count-2^31",
-            _las_with_count(content, 2**31),
+            las_with_point_count(content, 2**31),
             f"scan.{suffix}",
             fragment="limit" if suffix == "las" else None,
         )
@@ -126,7 +125,7 @@ def _bomb_uploads() -> Iterator[BadUpload]:
 
 
 def _hostile_name_uploads() -> Iterator[BadUpload]:
-    truncated_ply = reader_corpus.ply_bytes(_points())[:-7]
+    truncated_ply = ply_bytes(random_points())[:-7]
     for label, name in (
         ("traversal-posix", "../../../../etc/passwd.ply"),
         ("traversal-windows", "..\\..\\Windows\\system32\\scan.ply"),
@@ -151,11 +150,11 @@ def _hostile_name_uploads() -> Iterator[BadUpload]:
 
 
 def _polyglot_uploads() -> Iterator[BadUpload]:
-    ply = reader_corpus.ply_bytes(_points())
-    pcd = reader_corpus.pcd_bytes(_points())
-    las = reader_corpus.las_bytes(_points())
-    npz = reader_corpus.npz_bytes(points=_points())
-    npy = reader_corpus.npy_bytes(_points())
+    ply = ply_bytes(random_points())
+    pcd = pcd_bytes(random_points())
+    las = las_bytes(random_points())
+    npz = npz_bytes(points=random_points())
+    npy = npy_bytes(random_points())
     yield BadUpload("polyglot-gif-ply", b"GIF89a\x01\x00\x01\x00" + ply, "scan.ply")
     yield BadUpload("polyglot-pdf-ply", b"%PDF-1.7\n%\xe2\xe3\xcf\xd3\n" + ply, "scan.ply")
     yield BadUpload("polyglot-html-ply", b"<html><script>alert(1)</script>" + ply, "scan.ply")
@@ -175,11 +174,11 @@ def _polyglot_uploads() -> Iterator[BadUpload]:
 
 def _mutated_uploads() -> Iterator[BadUpload]:
     """Byte flips, truncations and insertions of valid files (some stay valid: 2xx allowed)."""
-    for kind, build in sorted(reader_corpus.FUZZ_SEEDS.items()):
-        content = build(_points(200))
-        rng = np.random.default_rng(1000 + sorted(reader_corpus.FUZZ_SEEDS).index(kind))
+    for kind, build in sorted(FUZZ_SEEDS.items()):
+        content = build(random_points(200))
+        rng = np.random.default_rng(1000 + sorted(FUZZ_SEEDS).index(kind))
         for index in range(MUTATIONS_PER_FORMAT):
-            data = reader_corpus.mutate_bytes(bytearray(content), rng, index % 4, min_length=1)
+            data = mutate_bytes(bytearray(content), rng, index % 4, min_length=1)
             suffix = kind.split("-")[0]
             yield BadUpload(
                 f"mutated-{kind}-{index}", bytes(data), f"scan.{suffix}", may_be_valid=True
@@ -231,12 +230,7 @@ class ErrorRecords(logging.Handler):
 
 def rows_of_site(service: ApiServer, site_id: str) -> tuple[int, int]:
     """``(scans, jobs)`` rows of the site in the database."""
-    with transaction(service.settings.sqlalchemy_url) as session:
-        scans = session.scalar(
-            select(func.count()).select_from(Scan).where(Scan.site_id == site_id)
-        )
-        jobs = session.scalar(select(func.count()).select_from(Job).where(Job.site_id == site_id))
-    return int(scans or 0), int(jobs or 0)
+    return count_rows(service, Scan, site_id=site_id), count_rows(service, Job, site_id=site_id)
 
 
 def problem_with(item: BadUpload, response: httpx.Response) -> str | None:
@@ -267,7 +261,7 @@ def test_the_malformed_corpus_over_http_is_rejected_cleanly(service: ApiServer) 
     assert len(corpus) >= 200, len(corpus)
     client = service.client(service.token("writer"))
     site = create_site(client)
-    reference = upload(client, site["id"], ply_bytes(make_points(3000, seed=1)), reference=True)
+    reference = upload(client, site["id"], ply_bytes(room_points(3000, seed=1)), reference=True)
     assert reference.status_code == 201, reference.text
     errors = ErrorRecords()
     logging.getLogger().addHandler(errors)
@@ -293,7 +287,7 @@ def test_the_malformed_corpus_over_http_is_rejected_cleanly(service: ApiServer) 
         logging.getLogger().removeHandler(errors)
     elapsed = time.monotonic() - started
     health = client.get("/api/v1/health")
-    good = upload(client, site["id"], ply_bytes(make_points(2000, seed=5)), filename="good.ply")
+    good = upload(client, site["id"], ply_bytes(room_points(2000, seed=5)), filename="good.ply")
     scans, jobs = rows_of_site(service, site["id"])
     site_files = sorted((service.settings.scans_dir / site["id"]).iterdir())
     leftovers = sorted(service.settings.tmp_dir.iterdir())
@@ -357,7 +351,7 @@ def test_accepted_strange_files_end_succeeded_or_failed_with_a_reason(
     worker survives every one of them."""
     client = service.client(service.token("writer"))
     site = create_site(client)
-    reference = upload(client, site["id"], ply_bytes(make_points(3000, seed=1)), reference=True)
+    reference = upload(client, site["id"], ply_bytes(room_points(3000, seed=1)), reference=True)
     assert reference.status_code == 201, reference.text
     job_ids: dict[str, str] = {}
     for item in build_corpus():

@@ -28,15 +28,12 @@ from schemathesis.checks import (
     response_schema_conformance,
 )
 
-from tests.api.conftest import (
-    ApiServer,
-    create_site,
-    finish_job,
-    make_points,
-    ply_bytes,
-    upload,
-)
-from tests.reliability.figures import record_figure
+from tests.helpers.figures import record_figure
+from tests.helpers.files import ply_bytes
+from tests.helpers.http import create_site, upload
+from tests.helpers.jobs import finish_job
+from tests.helpers.scenes import room_points
+from tests.helpers.server import ApiServer
 
 EXAMPLES_PER_OPERATION = int(os.environ.get("SCANDIFF_SCHEMATHESIS_EXAMPLES", "12"))
 SLOW_EXAMPLES_PER_OPERATION = 100
@@ -50,8 +47,8 @@ def fuzz_target(service: ApiServer) -> dict[str, Any]:
     token = service.token("writer")
     writer = service.client(token)
     site = create_site(writer)
-    reference = upload(writer, site["id"], ply_bytes(make_points(3000, seed=1)), reference=True)
-    created = upload(writer, site["id"], ply_bytes(make_points(2000, seed=2))).json()
+    reference = upload(writer, site["id"], ply_bytes(room_points(3000, seed=1)), reference=True)
+    created = upload(writer, site["id"], ply_bytes(room_points(2000, seed=2))).json()
     finish_job(service, created["job"]["id"], 3000, 2000)
     return {
         "token": token,

@@ -10,7 +10,6 @@ import socket
 import threading
 import time
 from collections import Counter
-from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -18,31 +17,15 @@ import httpx
 import numpy as np
 import pytest
 
-from tests.api.conftest import ApiServer, create_site, make_points, ply_bytes, upload
-from tests.reliability.conftest import RELIABILITY_MAX_UPLOAD_BYTES
-from tests.reliability.figures import record_figure
+from tests.helpers.figures import record_figure
+from tests.helpers.files import chunked, ply_bytes, ply_of_size
+from tests.helpers.http import create_site, upload
+from tests.helpers.scenes import room_points
+from tests.helpers.server import RELIABILITY_MAX_UPLOAD_BYTES, ApiServer
 
 CAP = RELIABILITY_MAX_UPLOAD_BYTES
 PARALLEL_OVERSIZE_UPLOADS = 50
-
-
-def ply_of_exact_size(size: int) -> bytes:
-    """A valid binary PLY of exactly ``size`` bytes (a header comment takes up the slack)."""
-    header = (
-        "ply\nformat binary_little_endian 1.0\ncomment {pad}\nelement vertex {n}\n"
-        "property float x\nproperty float y\nproperty float z\nend_header\n"
-    )
-    n_points = (size - len(header.format(pad="", n=10**6))) // 12
-    body = make_points(n_points, seed=3).astype("<f4").tobytes()
-    padding = size - len(body) - len(header.format(pad="", n=n_points))
-    content = header.format(pad="x" * padding, n=n_points).encode() + body
-    assert len(content) == size, (len(content), size)
-    return content
-
-
-def chunks_of(content: bytes, chunk_size: int = 65_536) -> Iterator[bytes]:
-    for start in range(0, len(content), chunk_size):
-        yield content[start : start + chunk_size]
+CHUNK_BYTES = 65_536  # of the chunked bodies
 
 
 def raw_exchange(service: ApiServer, request: bytes, *, read_timeout: float = 5.0) -> bytes:
@@ -83,7 +66,7 @@ def limits_site(service: ApiServer) -> tuple[httpx.Client, str, str]:
     token = service.token("writer")
     client = service.client(token)
     site = create_site(client)
-    response = upload(client, site["id"], ply_bytes(make_points(3000, seed=1)), reference=True)
+    response = upload(client, site["id"], ply_bytes(room_points(3000, seed=1)), reference=True)
     assert response.status_code == 201, response.text
     return client, site["id"], token
 
@@ -92,22 +75,23 @@ def test_the_cap_is_exact_and_oversize_bodies_store_nothing(
     service: ApiServer, limits_site: tuple[httpx.Client, str, str]
 ) -> None:
     client, site_id, _ = limits_site
-    at_cap = ply_of_exact_size(CAP)
-    one_over = ply_of_exact_size(CAP + 1)
+    at_cap = ply_of_size(CAP)
+    one_over = ply_of_size(CAP + 1)
     path = f"/api/v1/sites/{site_id}/scans"
     files_before = stored_upload_files(service)
     over = {
         "raw, Content-Length": upload(client, site_id, one_over, filename="over.ply"),
         "raw, chunked": client.post(
-            path, params={"filename": "over.ply"}, content=chunks_of(one_over)
+            path, params={"filename": "over.ply"}, content=chunked(one_over, CHUNK_BYTES)
         ),
         "multipart": upload(client, site_id, one_over, filename="over.ply", multipart=True),
         "multipart, chunked": client.post(
             path,
-            content=chunks_of(
+            content=chunked(
                 b'--b\r\nContent-Disposition: form-data; name="file"; filename="o.ply"\r\n\r\n'
                 + one_over
-                + b"\r\n--b--\r\n"
+                + b"\r\n--b--\r\n",
+                CHUNK_BYTES,
             ),
             headers={"Content-Type": "multipart/form-data; boundary=b"},
         ),
@@ -116,7 +100,7 @@ def test_the_cap_is_exact_and_oversize_bodies_store_nothing(
     accepted = {
         "raw, Content-Length": upload(client, site_id, at_cap, filename="cap.ply"),
         "raw, chunked": client.post(
-            path, params={"filename": "cap.ply"}, content=chunks_of(at_cap)
+            path, params={"filename": "cap.ply"}, content=chunked(at_cap, CHUNK_BYTES)
         ),
         "multipart": upload(client, site_id, at_cap, filename="cap.ply", multipart=True),
     }
@@ -144,7 +128,7 @@ def test_lying_content_length_headers_are_refused_and_store_nothing(
     service: ApiServer, limits_site: tuple[httpx.Client, str, str]
 ) -> None:
     _, site_id, token = limits_site
-    content = ply_bytes(make_points(2000, seed=9))
+    content = ply_bytes(room_points(2000, seed=9))
     target = f"/api/v1/sites/{site_id}/scans?filename=lie.ply"
 
     def request(length: str, body: bytes) -> bytes:
@@ -214,7 +198,7 @@ def test_parallel_oversize_uploads_leave_the_disk_flat(
             response = client.post(
                 f"/api/v1/sites/{site_id}/scans",
                 params={"filename": f"big-{index}.ply"},
-                content=chunks_of(oversize),  # chunked: only the streamed count can trip
+                content=chunked(oversize, CHUNK_BYTES),  # chunked: only the streamed count can trip
                 headers={"Authorization": f"Bearer {token}"},
             )
             return response.status_code

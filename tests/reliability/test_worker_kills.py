@@ -37,10 +37,11 @@ from typing import Any
 import pytest
 
 from app.jobs.leases import lease_owner_pid
-from tests.jobs.test_serve import room_ply, upload
-from tests.reliability.conftest import database_rows
-from tests.reliability.figures import record_figure
-from tests.service_harness import ServiceProcess, service_factory  # noqa: F401
+from tests.helpers.database import database_rows
+from tests.helpers.figures import record_figure
+from tests.helpers.files import room_ply
+from tests.helpers.http import upload_accepted
+from tests.helpers.service import ServiceProcess
 
 N_JOBS = 20
 N_WORKERS = 2
@@ -97,7 +98,7 @@ def follow_kills(kills: list[Kill], jobs: dict[str, dict[str, Any]], now: float)
 
 @pytest.mark.slow
 def test_workers_killed_twenty_jobs_all_succeed_and_a_poison_input_fails(
-    service_factory: Callable[..., ServiceProcess],  # noqa: F811
+    service_factory: Callable[..., ServiceProcess],
 ) -> None:
     seed = random.randrange(2**32)
     rng = random.Random(seed)
@@ -106,11 +107,13 @@ def test_workers_killed_twenty_jobs_all_succeed_and_a_poison_input_fails(
     data_dir = service.data_dir
     with service.client() as client:
         site = client.post("/api/v1/sites", json={"name": "worker-kills"}).json()
-        upload(client, site["id"], "reference.ply", room_ply(0, n_points=POINTS), reference="true")
+        upload_accepted(
+            client, site["id"], "reference.ply", room_ply(0, n_points=POINTS), reference="true"
+        )
         service.wait_for_workers()
         started = time.monotonic()
         job_ids = [
-            upload(
+            upload_accepted(
                 client,
                 site["id"],
                 f"scan-{index:02d}.ply",
@@ -118,9 +121,9 @@ def test_workers_killed_twenty_jobs_all_succeed_and_a_poison_input_fails(
             )["job"]["id"]
             for index in range(N_JOBS)
         ]
-        poison_id = upload(client, site["id"], POISON_FILENAME, room_ply(99, with_box=True))["job"][
-            "id"
-        ]
+        poison_id = upload_accepted(
+            client, site["id"], POISON_FILENAME, room_ply(99, with_box=True)
+        )["job"]["id"]
 
     kills: list[Kill] = []
     idle_kills = 0

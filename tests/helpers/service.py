@@ -1,4 +1,4 @@
-"""Run the real service (``python -m app serve``) as a subprocess for end-to-end tests.
+"""Run the real service (``python -m app serve``), or a job consumer, as subprocesses for tests.
 
 :class:`ServiceProcess` starts ``scandiff serve`` in its own process group on a free port, waits
 for ``GET /api/v1/health`` to answer 200, and offers the handles tests need: ``base_url``,
@@ -7,8 +7,7 @@ graceful), ``kill()`` (SIGKILL to the whole group, as a power cut would), ``kill
 (SIGKILL to ``serve`` only: its children must follow), ``restart()`` and ``worker_pids()`` (job
 worker processes, from the pid files the workers write in ``<data_dir>/run``).
 
-Use it through the fixtures: import them into a test module
-(``from tests.service_harness import service, service_factory  # noqa: F401``), then::
+Use it through the ``service_factory`` fixture (in ``tests/conftest.py``)::
 
     def test_flow(service_factory):
         service = service_factory(workers=2, env={"SCANDIFF_JOB_LEASE_SECONDS": "3"})
@@ -18,6 +17,9 @@ Use it through the fixtures: import them into a test module
 The child environment gets ``SCANDIFF_TESTING=1`` (enables the documented job test hooks),
 ``OMP_NUM_THREADS=1`` and ``PYTHONUNBUFFERED=1``; ``env`` adds or overrides variables.  Output of
 the service goes to ``log_path`` (default ``<data_dir>.service.log``), shown when start-up fails.
+
+:class:`ConsumerProcess` runs ``python -m app.jobs.consumer`` alone (by default with the fake
+pipeline of :mod:`tests.helpers.fake_pipeline`) on the settings of a job test.
 """
 
 from __future__ import annotations
@@ -25,31 +27,24 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import httpx
-import numpy as np
-import pytest
-from numpy.typing import NDArray
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
+from app.config import Settings
+from tests.helpers.environment import PROJECT_ROOT
+from tests.helpers.fake_pipeline import CONSUMER_BOOTSTRAP
+from tests.helpers.network import free_port
+
 HEALTH_PATH = "/api/v1/health"
 ADMIN_TOKEN_FILE = "admin-token"
 WORKER_PID_DIR = "run"
 WORKER_PID_PREFIX = "worker-"
-
-
-def free_port(host: str = "127.0.0.1") -> int:
-    """A TCP port that was free a moment ago."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind((host, 0))
-        return int(sock.getsockname()[1])
 
 
 def process_group_members(pgid: int) -> list[int]:
@@ -77,6 +72,23 @@ def pid_is_alive(pid: int) -> bool:
     except OSError:
         return False
     return stat[stat.rindex(")") + 2 :].split()[0] not in ("Z", "X")
+
+
+def live_worker_pids(data_dir: Path, process_group: int) -> list[int]:
+    """Live job workers of ``process_group`` (each writes ``<data_dir>/run/worker-<pid>``)."""
+    run_dir = data_dir / WORKER_PID_DIR
+    if not run_dir.is_dir():
+        return []
+    members = set(process_group_members(process_group))
+    pids = []
+    for path in run_dir.glob(WORKER_PID_PREFIX + "*"):
+        try:
+            pid = int(path.name.removeprefix(WORKER_PID_PREFIX))
+        except ValueError:
+            continue
+        if pid in members and pid_is_alive(pid):
+            pids.append(pid)
+    return sorted(pids)
 
 
 class ServiceStartError(RuntimeError):
@@ -278,19 +290,9 @@ class ServiceProcess:
 
     def worker_pids(self) -> list[int]:
         """Live job-worker processes (each writes ``<data_dir>/run/worker-<pid>`` on start)."""
-        run_dir = self.data_dir / WORKER_PID_DIR
-        if self.process is None or not run_dir.is_dir():
+        if self.process is None:
             return []
-        members = set(self.group_pids())
-        pids = []
-        for path in run_dir.glob(WORKER_PID_PREFIX + "*"):
-            try:
-                pid = int(path.name.removeprefix(WORKER_PID_PREFIX))
-            except ValueError:
-                continue
-            if pid in members and pid_is_alive(pid):
-                pids.append(pid)
-        return sorted(pids)
+        return live_worker_pids(self.data_dir, self.pid)
 
     def wait_for_workers(self, count: int | None = None, timeout: float = 30.0) -> list[int]:
         """Wait until ``count`` (default: ``workers``) job workers are up; their pids."""
@@ -332,53 +334,90 @@ class ServiceProcess:
             return log_file.read().decode(errors="replace")
 
 
-@pytest.fixture
-def service_factory(tmp_path: Path) -> Iterator[Callable[..., ServiceProcess]]:
-    """Make started services (``service_factory(workers=2, env={...})``); all stopped after."""
-    started: list[ServiceProcess] = []
+def settings_environment(settings: Settings) -> dict[str, str]:
+    """``SCANDIFF_*`` variables reproducing ``settings`` in a child process."""
+    environment = {
+        "SCANDIFF_DATA_DIR": str(settings.data_dir),
+        "SCANDIFF_JOB_LEASE_SECONDS": str(settings.job_lease_seconds),
+        "SCANDIFF_JOB_HEARTBEAT_SECONDS": str(settings.job_heartbeat_seconds),
+        "SCANDIFF_RECOVERY_INTERVAL_SECONDS": str(settings.recovery_interval_seconds),
+        "SCANDIFF_JOB_MAX_ATTEMPTS": str(settings.job_max_attempts),
+    }
+    if settings.job_memory_limit_bytes:
+        environment["SCANDIFF_JOB_MEMORY_LIMIT_BYTES"] = str(settings.job_memory_limit_bytes)
+    return environment
 
-    def make(
+
+class ConsumerProcess:
+    """``python -m app.jobs.consumer`` (optionally with the fake pipeline) in its own group."""
+
+    def __init__(
+        self,
+        settings: Settings,
         *,
         workers: int = 1,
-        env: Mapping[str, str] | None = None,
-        data_dir: str | Path | None = None,
-        start: bool = True,
-        **kwargs: Any,
-    ) -> ServiceProcess:
-        directory = Path(data_dir) if data_dir else tmp_path / f"service{len(started)}"
-        service = ServiceProcess(directory, workers=workers, env=env, **kwargs)
-        started.append(service)
-        return service.start() if start else service
+        env: dict[str, str] | None = None,
+        fake_pipeline: bool = True,
+        shutdown_grace_seconds: float = 10.0,
+        log_path: Path,
+    ) -> None:
+        self.settings = settings
+        self.workers = workers
+        self.log_path = log_path
+        environment = dict(os.environ)
+        environment.update(settings_environment(settings))
+        environment.update({"SCANDIFF_TESTING": "1", "OMP_NUM_THREADS": "1"})
+        environment.update(env or {})
+        code = (
+            CONSUMER_BOOTSTRAP
+            if fake_pipeline
+            else "import sys; from app.jobs.consumer import main; sys.exit(main())"
+        )
+        with open(log_path, "ab") as log_file:
+            self.process = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-c",
+                    code,
+                    "--workers",
+                    str(workers),
+                    "--shutdown-grace",
+                    str(shutdown_grace_seconds),
+                ],
+                cwd=PROJECT_ROOT,
+                env=environment,
+                stdout=log_file,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )
 
-    yield make
-    for service in started:
-        service.stop(timeout=15.0)
+    def worker_pids(self) -> list[int]:
+        """Live worker processes of this consumer."""
+        return live_worker_pids(self.settings.data_dir, self.process.pid)
 
+    def wait_for_workers(self, timeout: float = 20.0) -> list[int]:
+        """Wait until all workers are up."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            pids = self.worker_pids()
+            if len(pids) >= self.workers:
+                return pids
+            if self.process.poll() is not None:
+                raise RuntimeError(f"consumer exited:\n{self.log()}")
+            time.sleep(0.05)
+        raise TimeoutError(f"workers not up:\n{self.log()}")
 
-@pytest.fixture
-def service(service_factory: Callable[..., ServiceProcess]) -> ServiceProcess:
-    """One started service with one job worker and default settings."""
-    return service_factory()
+    def log(self) -> str:
+        """Everything the consumer printed."""
+        return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
 
-
-def room_points(
-    rng: np.random.Generator, n_points: int, *, with_box: bool = False
-) -> NDArray[np.float64]:
-    """A floor and two walls of a 6 x 4 x 2.5 m room, 3 mm noise, shape (~n_points, 3).
-
-    ``with_box`` adds a 0.8 m box on the floor (half as many points as a wall).
-    """
-    third = n_points // 3
-    floor = np.column_stack(
-        [rng.uniform(0, 6, third), rng.uniform(0, 4, third), rng.normal(0, 0.003, third)]
-    )
-    wall_x = np.column_stack(
-        [rng.uniform(0, 6, third), rng.normal(4, 0.003, third), rng.uniform(0, 2.5, third)]
-    )
-    wall_y = np.column_stack(
-        [rng.normal(0, 0.003, third), rng.uniform(0, 4, third), rng.uniform(0, 2.5, third)]
-    )
-    parts = [floor, wall_x, wall_y]
-    if with_box:
-        parts.append(rng.uniform([2.5, 1.5, 0.0], [3.3, 2.3, 0.8], (third // 2, 3)))
-    return np.vstack(parts)
+    def stop(self, timeout: float = 20.0) -> int | None:
+        """SIGTERM, wait, then SIGKILL the group."""
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self.process.wait(timeout)
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self.process.pid, signal.SIGKILL)
+        self.process.wait(5)
+        return self.process.returncode

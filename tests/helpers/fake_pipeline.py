@@ -22,7 +22,7 @@ from app.core.cloud import PointCloud
 from app.jobs.hooks import job_hooks
 
 CONSUMER_BOOTSTRAP = (
-    "import sys, tests.jobs.fake_pipeline as fake; fake.install(); "
+    "import sys, tests.helpers.fake_pipeline as fake; fake.install(); "
     "from app.jobs.consumer import main; sys.exit(main())"
 )
 

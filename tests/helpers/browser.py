@@ -1,0 +1,152 @@
+"""Browser-test helpers: where Chromium is, screenshots, the review service and its scans.
+
+Screenshots go to ``test-artifacts/browser/`` (git-ignored); ``SCANDIFF_UPDATE_SCREENSHOTS=1``
+also refreshes the small PNGs under ``docs/screenshots/``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+from tests.helpers.environment import PROJECT_ROOT
+from tests.helpers.http import upload
+from tests.helpers.service import ServiceProcess
+from tests.helpers.waiting import wait_until
+
+Value = TypeVar("Value")
+
+ARTIFACTS_DIR = PROJECT_ROOT / "test-artifacts" / "browser"
+DOCS_SCREENSHOTS_DIR = PROJECT_ROOT / "docs" / "screenshots"
+CHROMIUM_CANDIDATES = ("chromium", "chromium-browser", "google-chrome")
+FAILING_SCAN_NAME = "sensor-fault.pcd"
+FAILING_SCAN_REASON = "simulated sensor fault for the browser test"
+SCENE_POINTS = 8_000  # rays per synthetic scan: software WebGL stays fast
+PAGE_POLL_SECONDS = 0.2
+
+
+def find_chromium() -> tuple[str | None, str | None]:
+    """Paths of the Chromium binary and of chromedriver, when installed."""
+    browser = next((path for name in CHROMIUM_CANDIDATES if (path := shutil.which(name))), None)
+    return browser, shutil.which("chromedriver")
+
+
+def save_screenshot(driver: Any, name: str, *, docs_name: str | None = None) -> Path:
+    """Save a PNG of the window under test-artifacts (and docs/screenshots when asked)."""
+    ARTIFACTS_DIR.mkdir(parents=True, exist_ok=True)
+    path = ARTIFACTS_DIR / f"{name}.png"
+    path.write_bytes(driver.get_screenshot_as_png())
+    if docs_name and os.environ.get("SCANDIFF_UPDATE_SCREENSHOTS") == "1":
+        write_small_png(path, DOCS_SCREENSHOTS_DIR / docs_name)
+    return path
+
+
+def write_small_png(source: Path, target: Path, max_bytes: int = 300_000) -> None:
+    """A palette PNG of ``source`` under ``max_bytes`` (shrunk until it fits)."""
+    from PIL import Image
+
+    target.parent.mkdir(parents=True, exist_ok=True)
+    image = Image.open(source).convert("RGB")
+    width = image.width
+    while True:
+        scaled = (
+            image
+            if width == image.width
+            else image.resize(
+                (width, round(image.height * width / image.width)), Image.Resampling.LANCZOS
+            )
+        )
+        scaled.quantize(colors=128, method=Image.Quantize.MEDIANCUT).save(target, optimize=True)
+        if target.stat().st_size <= max_bytes or width < 400:
+            return
+        width = int(width * 0.85)
+
+
+def wait_for_page(condition: Callable[[], Value], timeout: float, message: str) -> Value:
+    """Poll ``condition`` every 0.2 s until it returns something truthy (a page that
+    re-rendered under us, live updates, only means "look again"); that value."""
+    return wait_until(
+        condition,
+        timeout,
+        message,
+        interval=PAGE_POLL_SECONDS,
+        transient=("StaleElementReferenceException",),
+    )
+
+
+@dataclass
+class ScanFiles:
+    """Synthetic reference and scan files of one place, with a changed object."""
+
+    reference: Path
+    scan: Path
+    failing_scan: Path
+
+
+@dataclass
+class ReviewService:
+    """A running service and what the tests made in it."""
+
+    process: ServiceProcess
+    files: ScanFiles
+    made: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def base_url(self) -> str:
+        """``http://127.0.0.1:<port>``."""
+        return self.process.base_url
+
+    def client(self, token: str | None = None) -> Any:
+        """An httpx client with a bearer token (the admin one by default)."""
+        return self.process.client(token)
+
+    def create_token(self, org: str, role: str = "writer") -> str:
+        """A new token from ``scandiff token create``."""
+        return self._token_command("create", "--org", org, "--role", role).splitlines()[-1]
+
+    def revoke_token(self, token: str) -> None:
+        """Revoke a token with ``scandiff token revoke``, the secret given on stdin."""
+        self._token_command("revoke", "--token-secret-stdin", stdin=token + "\n")
+
+    def _token_command(self, *arguments: str, stdin: str | None = None) -> str:
+        """Run ``scandiff token ...`` on this server's data directory; its standard output."""
+        completed = subprocess.run(
+            [
+                sys.executable,
+                *("-m", "app", "token", *arguments),
+                *("--data-dir", str(self.process.data_dir)),
+            ],
+            cwd=PROJECT_ROOT,
+            input=stdin,
+            capture_output=True,
+            text=True,
+            check=True,
+            timeout=60,
+        )
+        return completed.stdout.strip()
+
+    def finished_job(self) -> dict[str, Any]:
+        """A succeeded comparison: the one the mouse test made, else one made over the API."""
+        if "job" in self.made:
+            return self.made["job"]
+        with self.client() as client:
+            site = client.post("/api/v1/sites", json={"name": "API-made site"})
+            site.raise_for_status()
+            site_id = site.json()["id"]
+            for path, reference in ((self.files.reference, True), (self.files.scan, False)):
+                answer = upload(
+                    client, site_id, path.read_bytes(), filename=path.name, reference=reference
+                )
+                assert answer.status_code in (201, 202), answer.text
+            job = self.process.wait_for_job(client, answer.json()["job"]["id"], timeout=120)
+            assert job["status"] == "succeeded", job
+            regions = client.get(f"/api/v1/jobs/{job['id']}/regions").json()
+        self.made["job"] = job
+        self.made["regions"] = regions
+        return job
