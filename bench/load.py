@@ -45,6 +45,8 @@ PROJECT_ROOT = Path(__file__).resolve().parent.parent
 if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``tests`` importable
     sys.path.insert(0, str(PROJECT_ROOT))
 
+from tests.helpers.figures import percentile  # noqa: E402  (after the sys.path line)
+
 MAX_CLIENTS = 256
 MAX_SECONDS = 600.0
 DEFAULT_MAX_REQUESTS = 100_000
@@ -87,14 +89,6 @@ def is_loopback_url(url: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False
-
-
-def percentile(values: list[float], fraction: float) -> float:
-    """The ``fraction`` quantile of ``values`` (nearest rank below; nan when empty)."""
-    if not values:
-        return float("nan")
-    ordered = sorted(values)
-    return ordered[int(fraction * (len(ordered) - 1))]
 
 
 @dataclass
