@@ -174,7 +174,7 @@ class ViewerManager:
         server = viser.ViserServer(host="127.0.0.1", port=0, label=title, verbose=False)
         secret = secrets.token_urlsafe(32)
         try:
-            require_view_secret(server, secret)  # before the scene or its callbacks exist
+            check = require_view_secret(server, secret)  # before the scene or its callbacks exist
         except BaseException:
             server.stop()
             raise
@@ -186,6 +186,8 @@ class ViewerManager:
 
         @server.on_client_connect
         def _(client: viser.ClientHandle) -> None:
+            if check.refused(client.client_id):
+                return  # closed for lacking the secret: build nothing for it
             scene = build_client_scene(client, data, title)
             with viewer.lock:
                 viewer.clients[client.client_id] = scene

@@ -37,6 +37,7 @@ VIEW_SECRET_HEADER = "X-Scandiff-View-Secret"
 """The header the API's proxy sends to its viser server with the view's secret."""
 
 WEBSOCKET_POLICY_VIOLATION = 1008
+REFUSAL_REASON = "the view secret is missing or wrong"
 
 
 class ViserInternalsChangedError(RuntimeError):
@@ -69,7 +70,21 @@ def presented_secret(connection: Any) -> str:
     return str(headers.get(VIEW_SECRET_HEADER, "")) if headers is not None else ""
 
 
-def require_view_secret(server: viser.ViserServer, secret: str, *, timeout: float = 10.0) -> None:
+class ViewSecretCheck:
+    """The check installed on one viser server; which of its clients it refused."""
+
+    def __init__(self) -> None:
+        self._refused: set[int] = set()
+
+    def refused(self, client_id: int) -> bool:
+        """Whether the client was closed for lacking the secret (skip building its scene:
+        viser may still hand on a message it buffered before the close)."""
+        return client_id in self._refused
+
+
+def require_view_secret(
+    server: viser.ViserServer, secret: str, *, timeout: float = 10.0
+) -> ViewSecretCheck:
     """Close, before viser sends a byte, every websocket to ``server`` without ``secret``.
 
     Connections opened before the call that lack the secret are closed before it returns.
@@ -84,6 +99,10 @@ def require_view_secret(server: viser.ViserServer, secret: str, *, timeout: floa
     websock = _websock_server(server)
     live: dict[int, Any] = websock._live_connections
     expected = secret.encode()
+    check = ViewSecretCheck()
+
+    def has_secret(connection: Any) -> bool:
+        return hmac.compare_digest(presented_secret(connection).encode(), expected)
 
     @websock.on_client_connect
     async def check_secret(client: viser.infra.WebsockClientConnection) -> None:
@@ -95,22 +114,29 @@ def require_view_secret(server: viser.ViserServer, secret: str, *, timeout: floa
                 client.client_id,
                 viser.__version__,
             )
+            check._refused.add(client.client_id)
             raise ViserInternalsChangedError("viser's live connection map changed")
-        if hmac.compare_digest(presented_secret(connection).encode(), expected):
+        if has_secret(connection):
             return
+        check._refused.add(client.client_id)
         logger.warning("refused a websocket to a viser server without the view secret")
-        await connection.close(WEBSOCKET_POLICY_VIOLATION, "the view secret is missing or wrong")
+        await connection.close(WEBSOCKET_POLICY_VIOLATION, REFUSAL_REASON)
+
+    @websock.on_client_disconnect
+    def forget(client: viser.infra.WebsockClientConnection) -> None:
+        check._refused.discard(client.client_id)
 
     loop = websock._background_event_loop
-    already_open = [
-        connection
-        for connection in list(live.values())
-        if not hmac.compare_digest(presented_secret(connection).encode(), expected)
-    ]
-    for connection in already_open:
+    already_open = {
+        client_id: connection
+        for client_id, connection in list(live.items())
+        if not has_secret(connection)
+    }
+    check._refused.update(already_open)
+    for connection in already_open.values():
         logger.warning("closed a websocket opened before the view secret was required")
         closing = asyncio.run_coroutine_threadsafe(
-            connection.close(WEBSOCKET_POLICY_VIOLATION, "the view secret is missing or wrong"),
-            loop,
+            connection.close(WEBSOCKET_POLICY_VIOLATION, REFUSAL_REASON), loop
         )
         closing.result(timeout)
+    return check

@@ -43,11 +43,11 @@ pytestmark = pytest.mark.timeout(240)
 
 @dataclass
 class TwoApis:
-    """Two API processes on one data directory, a finished job and a token of its owner."""
+    """Two API processes on one data directory, finished jobs (one per test) and a token."""
 
     first: ApiProcess
     second: ApiProcess
-    job_id: str
+    job_ids: list[str]
     token: str
 
 
@@ -58,22 +58,23 @@ def two_apis(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TwoApis]:
     settings = Settings(data_dir=root / "data")
     settings.data_dir.mkdir()
     upgrade_to_head(settings.sqlalchemy_url)
-    job_id = create_job(settings, n_points=3000)
-    job = load_job(settings, job_id)
-    with transaction(settings.sqlalchemy_url) as session:
-        sizes = [
-            session.get_one(Scan, scan_id).n_points
-            for scan_id in (job.reference_scan_id, job.scan_id)
-        ]
     handle = ApiServer(settings=settings, base_url="")
-    finish_job(handle, job_id, *sizes)
+    job_ids = [create_job(settings, n_points=3000) for _ in range(3)]
+    for job_id in job_ids:
+        job = load_job(settings, job_id)
+        with transaction(settings.sqlalchemy_url) as session:
+            sizes = [
+                session.get_one(Scan, scan_id).n_points
+                for scan_id in (job.reference_scan_id, job.scan_id)
+            ]
+        finish_job(handle, job_id, *sizes)
     token = handle.token("reader", organisation="tests")  # create_job's organisation
     first = ApiProcess(settings.data_dir, log_path=root / "first.log")
     second = ApiProcess(settings.data_dir, log_path=root / "second.log")
     try:
         first.start()
         second.start()
-        yield TwoApis(first, second, job_id, token)
+        yield TwoApis(first, second, job_ids, token)
     finally:
         for process in (first, second):
             process.stop(timeout=20)
@@ -142,7 +143,7 @@ def test_a_view_opened_through_one_process_is_served_by_the_other(two_apis: TwoA
     first, second, job_id, token = (
         two_apis.first,
         two_apis.second,
-        two_apis.job_id,
+        two_apis.job_ids[0],
         two_apis.token,
     )
     # A session cookie from the first process; the view page through the first process.
@@ -168,7 +169,7 @@ def test_a_view_link_made_through_one_process_opens_through_the_other(two_apis: 
     first, second, job_id, token = (
         two_apis.first,
         two_apis.second,
-        two_apis.job_id,
+        two_apis.job_ids[1],
         two_apis.token,
     )
     made = httpx.post(
@@ -199,7 +200,7 @@ def test_a_view_link_made_through_one_process_opens_through_the_other(two_apis: 
 def test_the_other_process_refuses_a_websocket_without_session_or_link(two_apis: TwoApis) -> None:
     from websockets.exceptions import InvalidStatus
 
-    url = f"ws://127.0.0.1:{two_apis.second.port}/jobs/{two_apis.job_id}/view"
+    url = f"ws://127.0.0.1:{two_apis.second.port}/jobs/{two_apis.job_ids[2]}/view"
     with pytest.raises(InvalidStatus) as refused:
         websockets.sync.client.connect(
             url,
