@@ -50,6 +50,10 @@ class TwoApis:
     job_ids: list[str]
     token: str
 
+    def for_test(self, index: int) -> tuple[ApiProcess, ApiProcess, str, str]:
+        """Both processes, the test's own job (no viewer of it runs yet) and the token."""
+        return self.first, self.second, self.job_ids[index], self.token
+
 
 @pytest.fixture(scope="module")
 def two_apis(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TwoApis]:
@@ -89,6 +93,15 @@ def view_record(api: ApiProcess, token: str, job_id: str) -> dict[str, Any]:
     )
     answer.raise_for_status()
     return answer.json()
+
+
+def running_view(api: ApiProcess, token: str, job_id: str) -> dict[str, Any]:
+    """``api``'s viewer record of the job once it runs (the view page starts it)."""
+    return wait_until(
+        lambda: (record := view_record(api, token, job_id)).get("running") and record,
+        60,
+        f"{api.base_url} did not start the job's viewer for its page",
+    )
 
 
 def shown_counts(record: dict[str, Any]) -> dict[str, int]:
@@ -140,22 +153,13 @@ def assert_same_scene(
 
 
 def test_a_view_opened_through_one_process_is_served_by_the_other(two_apis: TwoApis) -> None:
-    first, second, job_id, token = (
-        two_apis.first,
-        two_apis.second,
-        two_apis.job_ids[0],
-        two_apis.token,
-    )
+    first, second, job_id, token = two_apis.for_test(0)
     # A session cookie from the first process; the view page through the first process.
     with httpx.Client(base_url=first.base_url, timeout=60) as browser:
         assert browser.post("/api/v1/session", json={"token": token}).status_code == 200
         session_cookie = f"scandiff_session={browser.cookies['scandiff_session']}"
         assert browser.get(f"/jobs/{job_id}/view").status_code == 200
-    opened = wait_until(
-        lambda: (record := view_record(first, token, job_id)).get("running") and record,
-        60,
-        "the first process did not start the job's viewer for its page",
-    )
+    opened = running_view(first, token, job_id)
     before = view_record(second, token, job_id)
     # The websocket lands on the second process: it serves the scene with its own viser server.
     received = scene_through(second, job_id, session_cookie)
@@ -166,12 +170,7 @@ def test_a_view_opened_through_one_process_is_served_by_the_other(two_apis: TwoA
 
 
 def test_a_view_link_made_through_one_process_opens_through_the_other(two_apis: TwoApis) -> None:
-    first, second, job_id, token = (
-        two_apis.first,
-        two_apis.second,
-        two_apis.job_ids[1],
-        two_apis.token,
-    )
+    first, second, job_id, token = two_apis.for_test(1)
     made = httpx.post(
         f"{second.base_url}/api/v1/jobs/{job_id}/view-link",
         headers={"Authorization": f"Bearer {token}"},
@@ -182,11 +181,7 @@ def test_a_view_link_made_through_one_process_opens_through_the_other(two_apis: 
     page = httpx.get(made.json()["url"], timeout=60)
     assert page.status_code == 200
     link_cookie = f"{VIEW_COOKIE}={page.cookies[VIEW_COOKIE]}"
-    opened = wait_until(
-        lambda: (record := view_record(second, token, job_id)).get("running") and record,
-        60,
-        "the second process did not start the job's viewer for its page",
-    )
+    opened = running_view(second, token, job_id)
     # The websocket, with the link's cookie only, lands on the first process.
     connections_before = view_record(first, token, job_id).get("connections", 0)
     received = scene_through(first, job_id, link_cookie)
