@@ -83,7 +83,7 @@ class ViewSecretCheck:
 
 
 def require_view_secret(
-    server: viser.ViserServer, secret: str, *, timeout: float = 10.0
+    server: viser.ViserServer, secret: str, *, timeout: float = 15.0
 ) -> ViewSecretCheck:
     """Close, before viser sends a byte, every websocket to ``server`` without ``secret``.
 
