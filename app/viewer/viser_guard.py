@@ -5,7 +5,7 @@ authenticate a connection (nor to bind a Unix socket), so anyone on the host cou
 loopback port and receive the scene.  :func:`require_view_secret` closes every websocket whose
 opening handshake lacks ``X-Scandiff-View-Secret: <secret>`` before viser sends it anything.
 
-It relies on two things viser 1.1 does (checked by ``tests/viewer/test_viser_guard.py``):
+It relies on two things viser 1.1 does (checked by ``tests/browser/test_viewer_port_security.py``):
 
 * ``ViserServer._websock_server`` is the :class:`viser.infra.WebsockServer`, whose
   ``_live_connections`` maps a client id to its ``websockets`` ``ServerConnection`` (with the
