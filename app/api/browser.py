@@ -10,8 +10,8 @@ Routes
     ``{"url", "expires_at"}``: a signed link to the job's 3D view that needs no token until it
     expires (``view_link_ttl_seconds``).
 ``GET /api/v1/jobs/{job_id}/view/scene``
-    What the job's running 3D view shows: layers with shown/total counts and, per connected
-    browser, the region boxes as viser holds them.
+    What the job's running 3D view in this API process shows: layers with shown/total counts
+    and, per connected browser, the region boxes as viser holds them.
 ``GET /jobs/{job_id}/view`` and its websocket
     The 3D view itself (:mod:`app.viewer.routes`), built here with :func:`authorise_view`.
 

@@ -3,13 +3,21 @@
 The browser never talks to a viser server directly: FastAPI serves the client page and proxies
 its websocket (:mod:`app.viewer.routes`), so every connection passes the service's auth.  Each job
 gets its own ``ViserServer(host="127.0.0.1", port=0)``; the port actually bound is read back
-with ``get_port()`` (viser silently moves to port+1 when a port is busy).  A reaper thread stops
-servers that had no proxied connection for ``idle_seconds``.
+with ``get_port()`` (viser silently moves to port+1 when a port is busy).  Each server also gets
+a random per-view secret that only this process knows: the server closes any websocket whose
+handshake does not present it (:mod:`app.viewer.viser_guard`), so the loopback port serves
+nothing to other processes or users on the host.  A reaper thread stops servers that had no
+proxied connection for ``idle_seconds``.
+
+Every API process keeps its own viewers.  The scene is built deterministically from the job's
+stored files and rows (:func:`app.viewer.loading.load_job_scene`), so whichever process receives
+a view's websocket starts (or reuses) its own server for that job: no sticky sessions needed.
 """
 
 from __future__ import annotations
 
 import logging
+import secrets
 import threading
 import time
 from collections.abc import Callable
@@ -20,6 +28,7 @@ import viser
 
 from app.config import DEFAULT_VIEWER_IDLE_SECONDS
 from app.viewer.scene import SceneData
+from app.viewer.viser_guard import require_view_secret
 from app.viewer.viser_scene import ClientScene, build_client_scene, configure_server
 
 logger = logging.getLogger("scandiff.viewer")
@@ -39,6 +48,8 @@ class JobViewer:
     server: viser.ViserServer
     data: SceneData
     title: str
+    secret: str
+    """What the proxy presents to this server (``VIEW_SECRET_HEADER``); never leaves the process."""
     started_at: float
     last_active: float
     connections: int = 0
@@ -161,12 +172,22 @@ class ViewerManager:
         """Load the job's scene and start a viser server for it."""
         data, title = self.loader(job_id)
         server = viser.ViserServer(host="127.0.0.1", port=0, label=title, verbose=False)
+        secret = secrets.token_urlsafe(32)
+        try:
+            check = require_view_secret(server, secret)  # before the scene or its callbacks exist
+        except BaseException:
+            server.stop()
+            raise
         now = time.monotonic()
-        viewer = JobViewer(job_id, server, data, title, started_at=now, last_active=now)
+        viewer = JobViewer(
+            job_id, server, data, title, secret=secret, started_at=now, last_active=now
+        )
         configure_server(server, data, title)
 
         @server.on_client_connect
         def _(client: viser.ClientHandle) -> None:
+            if check.refused(client.client_id):
+                return  # closed for lacking the secret: build nothing for it
             scene = build_client_scene(client, data, title)
             with viewer.lock:
                 viewer.clients[client.client_id] = scene

@@ -4,7 +4,8 @@ Routes
 ------
 ``GET /jobs/{job_id}/view`` and its websocket
     viser's client page, and a proxy from its websocket to the job's viser server on 127.0.0.1
-    (forwarding the ``viser-v<version>`` subprotocol).  Both need what the router's
+    (forwarding the ``viser-v<version>`` subprotocol and presenting the view's secret, without
+    which the viser server closes the connection).  Both need what the router's
     :data:`~app.viewer.access.ViewAuthoriser` grants (the API's: a session cookie of the job's
     organisation or a valid view link); otherwise the page answers 401/403 in words and the
     websocket handshake is refused (HTTP 403).
@@ -38,6 +39,7 @@ from app.config import Settings
 from app.viewer.access import VIEW_COOKIE, ViewAuthoriser, ViewRefusal
 from app.viewer.loading import ViewUnavailableError, job_view_problem, load_job_scene
 from app.viewer.manager import ViewerManager
+from app.viewer.viser_guard import VIEW_SECRET_HEADER
 
 logger = logging.getLogger("scandiff.browser")
 
@@ -179,6 +181,7 @@ async def proxy_view_socket(
         upstream = await websockets.asyncio.client.connect(
             f"ws://127.0.0.1:{viewer.port}",
             subprotocols=requested or None,  # type: ignore[arg-type]
+            additional_headers={VIEW_SECRET_HEADER: viewer.secret},
             max_size=None,
             compression=None,
             open_timeout=15,

@@ -1,4 +1,5 @@
-"""Browser-test helpers: where Chromium is, screenshots, the review service and its scans.
+"""Browser-test helpers: where Chromium is, screenshots, the review service and its scans, an
+API-only process and the TCP ports a process group listens on.
 
 Screenshots go to ``test-artifacts/browser/`` (git-ignored); ``SCANDIFF_UPDATE_SCREENSHOTS=1``
 also refreshes the small PNGs under ``docs/screenshots/``.
@@ -17,7 +18,7 @@ from typing import Any, TypeVar
 
 from tests.helpers.environment import PROJECT_ROOT
 from tests.helpers.http import upload
-from tests.helpers.service import ServiceProcess
+from tests.helpers.service import ServiceProcess, process_group_members
 from tests.helpers.waiting import wait_until
 
 Value = TypeVar("Value")
@@ -150,3 +151,52 @@ class ReviewService:
         self.made["job"] = job
         self.made["regions"] = regions
         return job
+
+
+class ApiProcess(ServiceProcess):
+    """The API alone, ``uvicorn --factory app.main:create_app`` (no migrations, no consumer).
+
+    One of several API processes sharing a data directory and database (run the migrations
+    first); it writes no admin token, so tests make their own tokens.
+    """
+
+    def __init__(self, data_dir: str | Path, *, log_path: str | Path, **kwargs: Any) -> None:
+        super().__init__(data_dir, log_path=log_path, **kwargs)
+        self.extra_env.setdefault("SCANDIFF_DATA_DIR", str(self.data_dir))
+
+    def command(self) -> list[str]:
+        """The uvicorn command line of this API process."""
+        return [
+            sys.executable,
+            *("-m", "uvicorn", "--factory", "app.main:create_app"),
+            *("--host", self.host, "--port", str(self.port), "--log-level", "warning"),
+        ]
+
+
+def _socket_inodes(pid: int) -> set[str]:
+    """Inodes of the sockets process ``pid`` holds open (Linux /proc)."""
+    inodes = set()
+    fd_dir = Path(f"/proc/{pid}/fd")
+    try:
+        links = [os.readlink(entry) for entry in fd_dir.iterdir()]
+    except OSError:
+        return inodes
+    for link in links:
+        if link.startswith("socket:["):
+            inodes.add(link[len("socket:[") : -1])
+    return inodes
+
+
+def listening_tcp_ports(process_group: int) -> set[int]:
+    """TCP ports (IPv4 and IPv6) on which a process of ``process_group`` listens."""
+    inodes = set().union(*(_socket_inodes(pid) for pid in process_group_members(process_group)))
+    ports = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with open(table) as rows:
+            next(rows)
+            for row in rows:
+                fields = row.split()
+                local, state, inode = fields[1], fields[3], fields[9]
+                if state == "0A" and inode in inodes:  # 0A: LISTEN
+                    ports.add(int(local.rsplit(":", 1)[1], 16))
+    return ports
