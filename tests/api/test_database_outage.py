@@ -17,10 +17,12 @@ from pathlib import Path
 import httpx
 import psycopg
 import pytest
+from sqlalchemy import text
 from sqlalchemy.engine import make_url
+from sqlalchemy.exc import OperationalError
 
 from app.config import Settings
-from app.db.session import get_engine
+from app.db.session import DatabaseUnavailableError, get_engine
 from tests.helpers.environment import require
 from tests.helpers.files import ply_bytes
 from tests.helpers.http import assert_error, create_site, upload
@@ -183,3 +185,28 @@ def test_an_unreachable_database_in_the_jobs_api_is_a_503_too(
             json={"reference_scan_id": uuid.uuid4().hex, "scan_id": uuid.uuid4().hex},
         )
     )
+
+
+def test_a_sqlite_file_that_cannot_be_opened_is_unavailable_too(tmp_path: Path) -> None:
+    missing_directory = tmp_path / "gone" / "scandiff.db"  # SQLite does not create directories
+    engine = get_engine(f"sqlite:///{missing_directory}")
+    try:
+        with (
+            pytest.raises(DatabaseUnavailableError, match="unable to open database file"),
+            engine.connect() as connection,
+        ):
+            connection.execute(text("SELECT 1"))
+    finally:
+        engine.dispose()
+
+
+def test_a_statement_the_database_refuses_is_not_an_outage(tmp_path: Path) -> None:
+    engine = get_engine(f"sqlite:///{tmp_path / 'scandiff.db'}")
+    try:
+        with (
+            pytest.raises(OperationalError, match="no such table"),
+            engine.connect() as connection,
+        ):
+            connection.execute(text("SELECT * FROM no_such_table"))
+    finally:
+        engine.dispose()
