@@ -12,7 +12,9 @@ import os
 import time
 import uuid
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import httpx
 import psycopg
@@ -25,7 +27,7 @@ from app.config import Settings
 from app.db.session import DatabaseUnavailableError, get_engine
 from tests.helpers.environment import require
 from tests.helpers.files import ply_bytes
-from tests.helpers.http import assert_error, create_site, upload
+from tests.helpers.http import assert_error, site_with_reference, upload
 from tests.helpers.proxy import TcpProxy
 from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer, running_api
@@ -80,12 +82,27 @@ def outage(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[ApiServer
             connection.execute(f'DROP DATABASE IF EXISTS "{database}" WITH (FORCE)')
 
 
+@dataclass
+class SiteBeforeAnOutage:
+    """A writer's site with its reference, and the files stored before the outage."""
+
+    api: ApiServer
+    proxy: TcpProxy
+    client: httpx.Client
+    site: dict[str, Any]
+    reference: dict[str, Any]
+    files_before: list[Path]
+
+
 @pytest.fixture
-def database_back(outage: tuple[ApiServer, TcpProxy]) -> Iterator[None]:
-    """The proxy is open again after each test, whatever the test did."""
-    yield
-    if not outage[1].is_open:
-        outage[1].open()
+def before_outage(outage: tuple[ApiServer, TcpProxy]) -> Iterator[SiteBeforeAnOutage]:
+    """A new site with a reference, the database up; the proxy is open again afterwards."""
+    api, proxy = outage
+    client = api.client(api.token("writer"))
+    site, reference = site_with_reference(client)
+    yield SiteBeforeAnOutage(api, proxy, client, site, reference, api.stored_files())
+    if not proxy.is_open:
+        proxy.open()
 
 
 def scan_bytes(seed: int) -> bytes:
@@ -114,14 +131,14 @@ def site_scans(client: httpx.Client, site_id: str) -> list[dict[str, object]]:
 
 
 def test_requests_needing_the_database_are_503_while_it_is_down_and_work_after(
-    outage: tuple[ApiServer, TcpProxy], database_back: None
+    before_outage: SiteBeforeAnOutage,
 ) -> None:
-    api, proxy = outage
-    client = api.client(api.token("writer"))
-    site = create_site(client)
-    reference = upload(client, site["id"], scan_bytes(1), reference=True)
-    assert reference.status_code == 201, reference.text
-    files_before = api.stored_files()
+    api, proxy, client = before_outage.api, before_outage.proxy, before_outage.client
+    site, reference, files_before = (
+        before_outage.site,
+        before_outage.reference,
+        before_outage.files_before,
+    )
 
     proxy.close()
     assert_unavailable(client.get("/api/v1/sites"))
@@ -133,24 +150,20 @@ def test_requests_needing_the_database_are_503_while_it_is_down_and_work_after(
     assert health.status_code == 503 and health.json()["database"]["status"] == "error"
 
     proxy.open()
-    assert [scan["id"] for scan in site_scans(client, site["id"])] == [
-        reference.json()["scan"]["id"]
-    ]
+    assert [scan["id"] for scan in site_scans(client, site["id"])] == [reference["id"]]
     accepted = upload(client, site["id"], scan_bytes(3), method="pca")
     assert accepted.status_code == 202, accepted.text
     assert len(site_scans(client, site["id"])) == 2
     assert client.get("/api/v1/health").status_code == 200
 
 
-def test_an_outage_during_an_upload_leaves_no_scan(
-    outage: tuple[ApiServer, TcpProxy], database_back: None
-) -> None:
-    api, proxy = outage
-    client = api.client(api.token("writer"))
-    site = create_site(client)
-    reference = upload(client, site["id"], scan_bytes(1), reference=True)
-    assert reference.status_code == 201, reference.text
-    files_before = api.stored_files()
+def test_an_outage_during_an_upload_leaves_no_scan(before_outage: SiteBeforeAnOutage) -> None:
+    api, proxy, client, site = (
+        before_outage.api,
+        before_outage.proxy,
+        before_outage.client,
+        before_outage.site,
+    )
     body = scan_bytes(4)
 
     def body_cut_by_an_outage() -> Iterator[bytes]:
@@ -166,18 +179,17 @@ def test_an_outage_during_an_upload_leaves_no_scan(
         headers={"Content-Type": "application/octet-stream"},
     )
     assert_unavailable(response)
-    assert api.stored_files() == files_before
+    assert api.stored_files() == before_outage.files_before
 
     proxy.open()
     assert len(site_scans(client, site["id"])) == 1
 
 
 def test_an_unreachable_database_in_the_jobs_api_is_a_503_too(
-    outage: tuple[ApiServer, TcpProxy], database_back: None, tmp_path: Path
+    before_outage: SiteBeforeAnOutage,
 ) -> None:
-    api, proxy = outage
-    client = api.client(api.token("writer"))
-    proxy.close()
+    client = before_outage.client
+    before_outage.proxy.close()
     assert_unavailable(client.get(f"/api/v1/jobs/{uuid.uuid4().hex}"))
     assert_unavailable(
         client.post(
@@ -187,26 +199,21 @@ def test_an_unreachable_database_in_the_jobs_api_is_a_503_too(
     )
 
 
-def test_a_sqlite_file_that_cannot_be_opened_is_unavailable_too(tmp_path: Path) -> None:
-    missing_directory = tmp_path / "gone" / "scandiff.db"  # SQLite does not create directories
-    engine = get_engine(f"sqlite:///{missing_directory}")
+@pytest.mark.parametrize(
+    ("database", "statement", "error", "message"),
+    [
+        # SQLite does not create directories: the file cannot be opened (an outage).
+        ("gone/scandiff.db", "SELECT 1", DatabaseUnavailableError, "unable to open database file"),
+        # A statement the database refuses is a bug, not an outage.
+        ("scandiff.db", "SELECT * FROM no_such_table", OperationalError, "no such table"),
+    ],
+)
+def test_only_an_unusable_sqlite_file_is_unavailable(
+    tmp_path: Path, database: str, statement: str, error: type[Exception], message: str
+) -> None:
+    engine = get_engine(f"sqlite:///{tmp_path / database}")
     try:
-        with (
-            pytest.raises(DatabaseUnavailableError, match="unable to open database file"),
-            engine.connect() as connection,
-        ):
-            connection.execute(text("SELECT 1"))
-    finally:
-        engine.dispose()
-
-
-def test_a_statement_the_database_refuses_is_not_an_outage(tmp_path: Path) -> None:
-    engine = get_engine(f"sqlite:///{tmp_path / 'scandiff.db'}")
-    try:
-        with (
-            pytest.raises(OperationalError, match="no such table"),
-            engine.connect() as connection,
-        ):
-            connection.execute(text("SELECT * FROM no_such_table"))
+        with pytest.raises(error, match=message), engine.connect() as connection:
+            connection.execute(text(statement))
     finally:
         engine.dispose()

@@ -3,7 +3,7 @@
 :class:`WorkerProcess` runs ``python -m app worker`` (by default with the fake pipeline of
 :mod:`tests.helpers.fake_pipeline` installed first) in its own process group on the settings of
 a job test, plus ``env`` (say ``SCANDIFF_QUEUE_URL``).  Its worker pids come from the pid files
-the workers write, as for :class:`tests.helpers.service.ConsumerProcess`.
+the workers write, as for :class:`tests.helpers.service.ConsumerProcess`, whose handles it has.
 """
 
 from __future__ import annotations
@@ -13,13 +13,12 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from app.config import Settings
 from tests.helpers.environment import PROJECT_ROOT
-from tests.helpers.service import live_worker_pids, settings_environment
+from tests.helpers.service import ConsumerProcess, settings_environment
 
 FAKE_PIPELINE_WORKER = (
     "import sys, tests.helpers.fake_pipeline as fake; fake.install(); "
@@ -28,8 +27,9 @@ FAKE_PIPELINE_WORKER = (
 """``python -c`` code running ``scandiff worker`` with the fast pipeline stand-in."""
 
 
-class WorkerProcess:
-    """One ``scandiff worker`` subprocess in its own process group."""
+class WorkerProcess(ConsumerProcess):
+    """One ``scandiff worker`` subprocess in its own process group (the handles of
+    :class:`ConsumerProcess`: ``worker_pids``, ``wait_for_workers``, ``log``, ``stop``)."""
 
     def __init__(
         self,
@@ -42,7 +42,7 @@ class WorkerProcess:
         fake_pipeline: bool = True,
     ) -> None:
         self.settings = settings
-        self.concurrency = concurrency
+        self.workers = concurrency
         self.log_path = log_path
         environment = dict(os.environ)
         environment.update(settings_environment(settings))
@@ -64,26 +64,6 @@ class WorkerProcess:
                 start_new_session=True,
             )
 
-    def worker_pids(self) -> list[int]:
-        """Live job worker processes of this ``scandiff worker``."""
-        return live_worker_pids(self.settings.data_dir, self.process.pid)
-
-    def wait_for_workers(self, timeout: float = 30.0) -> list[int]:
-        """Wait until all ``concurrency`` workers are up; their pids."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            pids = self.worker_pids()
-            if len(pids) >= self.concurrency:
-                return pids
-            if self.process.poll() is not None:
-                raise RuntimeError(f"scandiff worker exited:\n{self.log()}")
-            time.sleep(0.05)
-        raise TimeoutError(f"workers not up:\n{self.log()}")
-
-    def log(self) -> str:
-        """Everything the process printed."""
-        return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
-
     def terminate(self, timeout: float = 30.0) -> int | None:
         """SIGTERM (graceful stop) and wait; the exit status (None if still running)."""
         if self.process.poll() is None:
@@ -91,11 +71,3 @@ class WorkerProcess:
             with contextlib.suppress(subprocess.TimeoutExpired):
                 self.process.wait(timeout)
         return self.process.poll()
-
-    def stop(self, timeout: float = 30.0) -> int | None:
-        """SIGTERM, wait, then SIGKILL whatever of the group is left; the exit status."""
-        status = self.terminate(timeout)
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(self.process.pid, signal.SIGKILL)
-        self.process.wait(5)
-        return status if status is not None else self.process.returncode
