@@ -2,8 +2,10 @@
 
 Service errors (:class:`app.services.errors.AppError`) carry their status and code; core input
 errors map to 415 (unsupported format), 400 (malformed point cloud) or 422 (other bad input);
-request validation is 422; unknown routes and methods keep their status; anything else is a
-500 whose detail names the request id to look up in the logs.
+request validation is 422; unknown routes and methods keep their status; an unreachable
+database (:class:`app.db.session.DatabaseUnavailableError`, wherever it is raised) is a 503
+``database_unavailable`` with ``Retry-After``; anything else is a 500 whose detail names the
+request id to look up in the logs.
 """
 
 from __future__ import annotations
@@ -18,7 +20,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
 from app.core.errors import InputError, PointCloudError, UnsupportedFormatError
-from app.services.errors import AppError
+from app.db.session import DatabaseUnavailableError
+from app.services.errors import AppError, ServiceUnavailableError
 from app.services.schemas import ErrorRead
 
 logger = logging.getLogger("scandiff.api")
@@ -35,9 +38,13 @@ _HTTP_CODES = {
     415: "unsupported_media_type",
     422: "validation_error",
     429: "too_many_requests",
+    503: "service_unavailable",
     507: "insufficient_storage",
 }
 
+
+DATABASE_RETRY_AFTER_SECONDS = 5
+"""``Retry-After`` of the 503 sent while the database is unreachable."""
 
 QUEUED_JOBS_RESPONSE: dict[str, Any] = {
     "model": ErrorRead,
@@ -117,8 +124,48 @@ async def handle_client_disconnect(request: Request, exc: Exception) -> JSONResp
     return error_response(400, "client_disconnected", "the client disconnected mid-request")
 
 
+def database_unavailable(exc: DatabaseUnavailableError) -> ServiceUnavailableError:
+    """The 503 answering a request that needed an unreachable database."""
+    return ServiceUnavailableError(
+        f"{exc}. Nothing was stored; retry after {DATABASE_RETRY_AFTER_SECONDS} seconds.",
+        retry_after_seconds=DATABASE_RETRY_AFTER_SECONDS,
+        code="database_unavailable",
+    )
+
+
+def unavailable_database_in(exc: BaseException) -> DatabaseUnavailableError | None:
+    """The :class:`DatabaseUnavailableError` in ``exc``, its causes or its group, if any."""
+    seen: set[int] = set()
+    pending: list[BaseException] = [exc]
+    while pending:
+        current = pending.pop()
+        if id(current) in seen:
+            continue
+        seen.add(id(current))
+        if isinstance(current, DatabaseUnavailableError):
+            return current
+        if isinstance(current, BaseExceptionGroup):
+            pending.extend(current.exceptions)
+        pending.extend(link for link in (current.__cause__, current.__context__) if link)
+    return None
+
+
+async def handle_database_unavailable(request: Request, exc: Exception) -> JSONResponse:
+    """Render an unreachable database as a 503 with ``Retry-After`` (logged, one line)."""
+    assert isinstance(exc, DatabaseUnavailableError)
+    logger.warning("database unavailable (request id %s): %s", request_id_of(request), exc)
+    return await handle_app_error(request, database_unavailable(exc))
+
+
 async def handle_unexpected_error(request: Request, exc: Exception) -> JSONResponse:
-    """Log the bug with the request id and answer a 500 without internals."""
+    """Log the bug with the request id and answer a 500 without internals.
+
+    An unreachable database raised outside a route (a middleware, a dependency's teardown,
+    wrapped in another error or a group) is still the 503 of :func:`handle_database_unavailable`.
+    """
+    unavailable = unavailable_database_in(exc)
+    if unavailable is not None:
+        return await handle_database_unavailable(request, unavailable)
     request_id = request_id_of(request)
     logger.exception("unhandled error (request id %s)", request_id)
     return error_response(
@@ -129,6 +176,7 @@ async def handle_unexpected_error(request: Request, exc: Exception) -> JSONRespo
 def install_error_handlers(app: FastAPI) -> None:
     """Register every handler above on ``app``."""
     app.add_exception_handler(AppError, handle_app_error)
+    app.add_exception_handler(DatabaseUnavailableError, handle_database_unavailable)
     app.add_exception_handler(InputError, handle_input_error)
     app.add_exception_handler(RequestValidationError, handle_validation_error)
     app.add_exception_handler(StarletteHTTPException, handle_http_exception)

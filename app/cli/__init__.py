@@ -1,4 +1,4 @@
-"""The ``scandiff`` command: ``compare``, ``serve`` and ``token`` subcommands.
+"""The ``scandiff`` command: ``compare``, ``serve``, ``worker`` and ``token`` subcommands.
 
 Each subcommand lives in its own module exposing ``add_parser(subparsers)``, which registers the
 subparser and sets ``handler`` (a function ``(args) -> int`` returning the exit status).
@@ -12,7 +12,7 @@ from collections.abc import Sequence
 
 from pydantic import ValidationError
 
-from app.cli import compare, serve, tokens
+from app.cli import compare, serve, tokens, worker
 from app.cli.exit_status import EXIT_BAD_INPUT
 
 
@@ -22,7 +22,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="scandiff", description="Detect and locate changes between 3D scans of a site."
     )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module in (compare, serve, tokens):
+    for module in (compare, serve, worker, tokens):
         module.add_parser(subparsers)
     return parser
 

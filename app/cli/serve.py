@@ -7,6 +7,9 @@ uvicorn (``app.main:create_app``) and the job consumer (``--workers`` processes)
 the children through ``SCANDIFF_*`` environment variables.  SIGTERM/SIGINT stop both gracefully;
 if ``serve`` itself is killed, the children notice (``PR_SET_PDEATHSIG`` and a ``getppid``
 watchdog) and stop too.  If a child exits on its own, ``serve`` stops the other and exits 1.
+
+``--workers 0`` runs the API alone (migrations, recovery sweep at start, uvicorn, no consumer):
+the API process of a scaled-out deployment whose jobs run in ``scandiff worker`` processes.
 """
 
 from __future__ import annotations
@@ -45,24 +48,53 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument("--data-dir", type=Path, default=None, help="data directory")
     parser.add_argument("--host", default=None, help="address to bind (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=None, help="port to bind (default 8000)")
-    parser.add_argument("--workers", type=int, default=None, help="job worker processes")
+    parser.add_argument(
+        "--workers",
+        type=worker_count,
+        default=None,
+        help="job worker processes; 0 runs the API only (jobs run in `scandiff worker`)",
+    )
     parser.add_argument("--child", choices=CHILD_ROLES, default=None, help=argparse.SUPPRESS)
     parser.set_defaults(handler=handle_serve)
 
 
+def worker_count(text: str) -> int:
+    """An argparse type: a whole number >= 0."""
+    if not text.strip().isdigit():
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: give a whole number of worker processes >= 0 (0: API only)"
+        )
+    return int(text)
+
+
 def build_settings(args: argparse.Namespace) -> Settings:
-    """Settings from the environment, overridden by the command-line options given."""
+    """Settings from the environment, overridden by the command-line options given.
+
+    ``--workers 0`` (API only) is not a setting: :func:`child_roles` reads it from ``args``.
+    """
     overrides = {
         name: value
         for name, value in (
             ("data_dir", args.data_dir),
             ("host", args.host),
             ("port", args.port),
-            ("workers", args.workers),
+            ("workers", args.workers or None),
         )
         if value is not None
     }
     return Settings(**overrides)
+
+
+def child_roles(args: argparse.Namespace) -> tuple[str, ...]:
+    """The children to start: the API, and the consumer unless ``--workers 0``."""
+    return ("api",) if args.workers == 0 else CHILD_ROLES
+
+
+def child_stop_timeout() -> float:
+    """How long the children get to stop: the jobs' shutdown grace plus time to hand back."""
+    from app.jobs.consumer import shutdown_grace_seconds_from_env
+
+    return max(CHILD_STOP_TIMEOUT_SECONDS, shutdown_grace_seconds_from_env() + 20.0)
 
 
 def child_environment(settings: Settings) -> dict[str, str]:
@@ -130,15 +162,17 @@ def prepare(settings: Settings) -> str | None:
 class Supervisor:
     """Starts the API and consumer children, forwards stop signals, stops both together."""
 
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: Settings, roles: tuple[str, ...] = CHILD_ROLES) -> None:
         self.settings = settings
+        self.roles = roles
+        self.stop_timeout = child_stop_timeout()
         self.children: dict[str, subprocess.Popen[bytes]] = {}
         self.stop_requested: int | None = None
 
     def start_children(self) -> None:
         """Start ``python -m app.cli.serve --child api|consumer`` with the settings in the env."""
         environment = child_environment(self.settings)
-        for role in CHILD_ROLES:
+        for role in self.roles:
             self.children[role] = subprocess.Popen(
                 [sys.executable, "-m", "app.cli.serve", "--child", role],
                 env=environment,
@@ -170,7 +204,7 @@ class Supervisor:
         for child in self.children.values():
             if child.poll() is None:
                 child.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + CHILD_STOP_TIMEOUT_SECONDS
+        deadline = time.monotonic() + self.stop_timeout
         for role, child in self.children.items():
             try:
                 child.wait(max(0.0, deadline - time.monotonic()))
@@ -180,18 +214,20 @@ class Supervisor:
                 child.wait()
 
 
-def serve(settings: Settings) -> int:
+def serve(settings: Settings, roles: tuple[str, ...] = CHILD_ROLES) -> int:
     """Prepare, start the children, and supervise them until stopped; the exit status."""
     token = prepare(settings)
     url = f"http://{settings.host}:{settings.port}"
     print(f"scandiff serving at {url}  (API docs: {url}/docs)", flush=True)
     print(f"data directory: {settings.data_dir}", flush=True)
+    if "consumer" not in roles:
+        print("no job workers here (--workers 0): run `scandiff worker` for the jobs", flush=True)
     if token:
         print(
             f"admin token (first start; also in {settings.data_dir / ADMIN_TOKEN_FILE}):\n{token}",
             flush=True,
         )
-    supervisor = Supervisor(settings)
+    supervisor = Supervisor(settings, roles)
     signal.signal(signal.SIGTERM, supervisor.request_stop)
     signal.signal(signal.SIGINT, supervisor.request_stop)
     supervisor.start_children()
@@ -235,7 +271,7 @@ def handle_serve(args: argparse.Namespace) -> int:
     settings = build_settings(args)
     configure_process_logging(settings.log_level)
     logging.getLogger("alembic.runtime.plugins").setLevel(logging.WARNING)
-    return serve(settings)
+    return serve(settings, child_roles(args))
 
 
 if __name__ == "__main__":  # the children: python -m app.cli.serve --child api|consumer

@@ -5,6 +5,12 @@ timeout, and every transaction opened with ``BEGIN IMMEDIATE`` so that a read th
 to a write can never fail at once with "database is locked" (DESIGN.md measured 5,854 such
 errors in 8 s with deferred transactions, 0 with IMMEDIATE).  Keep write transactions short and
 never do numeric work inside one.
+
+A database that cannot be reached (refused or lost connection; on SQLite a file that stays
+locked past the busy timeout or cannot be opened) raises :class:`DatabaseUnavailableError`
+instead of the driver's error, from every engine made here: the API answers it with a 503 and
+``Retry-After`` (:mod:`app.api.errors`), never a 500.  A dead pooled connection found by the
+pool's pre-ping is not such an error: the pool reconnects, so the service recovers by itself.
 """
 
 from __future__ import annotations
@@ -14,6 +20,8 @@ from contextlib import contextmanager
 from functools import lru_cache
 
 from sqlalchemy import Connection, Engine, create_engine, event
+from sqlalchemy.engine import ExceptionContext
+from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
 SQLITE_BUSY_TIMEOUT_MS = 60_000
@@ -23,6 +31,40 @@ transaction, which in WAL mode never waits for, nor blocks, writers."""
 
 
 _CHANGES_AT_BEGIN = "scandiff_changes_at_begin"
+SQLITE_UNAVAILABLE_MESSAGES = ("database is locked", "unable to open database file")
+"""SQLite errors meaning "the database cannot be used now", not "this statement is wrong"."""
+
+
+class DatabaseUnavailableError(Exception):
+    """The database cannot be reached now (connection refused or lost, file locked or gone).
+
+    Raised instead of the driver's error (kept as ``__cause__``); retrying later may succeed.
+    """
+
+
+def unavailable_error(context: ExceptionContext) -> DatabaseUnavailableError | None:
+    """The :class:`DatabaseUnavailableError` standing for this engine error, if it is one."""
+    error = context.sqlalchemy_exception
+    if context.is_pre_ping or not isinstance(error, (OperationalError, InterfaceError)):
+        return None
+    original = str(context.original_exception).strip()
+    if context.dialect is not None and context.dialect.name == "sqlite":
+        if not original.startswith(SQLITE_UNAVAILABLE_MESSAGES):
+            return None
+    elif not (context.is_disconnect or context.connection is None):
+        return None  # a statement the server refused (say a deadlock): not an outage
+    reason = original.splitlines()[0] if original else type(context.original_exception).__name__
+    unavailable = DatabaseUnavailableError(f"the database is unavailable: {reason}")
+    unavailable.__cause__ = error
+    return unavailable
+
+
+def _report_unavailable_databases(engine: Engine) -> None:
+    """Make ``engine`` raise :class:`DatabaseUnavailableError` for an unreachable database."""
+
+    @event.listens_for(engine, "handle_error")
+    def _on_error(context: ExceptionContext) -> DatabaseUnavailableError | None:
+        return unavailable_error(context)
 
 
 def _total_changes(connection: Connection) -> int | None:
@@ -82,8 +124,10 @@ def make_engine(url: str, *, foreign_keys: bool = True) -> Engine:
             max_overflow=30,
         )
         _configure_sqlite(engine, foreign_keys=foreign_keys)
-        return engine
-    return create_engine(url, pool_pre_ping=True)
+    else:
+        engine = create_engine(url, pool_pre_ping=True)
+    _report_unavailable_databases(engine)
+    return engine
 
 
 @lru_cache(maxsize=8)

@@ -1,16 +1,20 @@
 """The job consumer process: Huey process workers plus the periodic recovery sweep.
 
 Run by ``scandiff serve`` as a child, or alone on another host for scale-out
-(``python -m app.jobs.consumer --workers 4`` with the same ``SCANDIFF_*`` settings)::
+(``scandiff worker --concurrency 4`` with the same ``SCANDIFF_*`` settings, see
+:mod:`app.cli.worker`; ``python -m app.jobs.consumer --workers 4`` is the same without the wait
+for a migrated database)::
 
     consumer (this process: supervises workers, runs the recovery sweep every
     │         recovery_interval_seconds, notes it is alive in the queue for /health)
     ├── Huey scheduler (process)
     └── Huey worker 1..N (processes; each runs one job at a time)
 
-SIGTERM or SIGINT stop it gracefully: idle workers exit at once, running jobs get
-:data:`SHUTDOWN_GRACE_SECONDS` to finish, then are interrupted and handed back to the queue
-without using up an attempt.  A worker that dies is replaced within a second; its job is
+SIGTERM or SIGINT stop it gracefully: idle workers exit at once (no new job is taken), running
+jobs get the shutdown grace (``SCANDIFF_SHUTDOWN_GRACE_SECONDS``, default
+:data:`SHUTDOWN_GRACE_SECONDS`) to finish, then are interrupted and handed back to the queue
+without using up an attempt (``enqueued_at`` cleared: the next sweep of any consumer sends them
+again at once); the exit status is 0.  A worker that dies is replaced within a second; its job is
 recovered by the sweep once its lease expires.
 """
 
@@ -29,6 +33,7 @@ from huey import Huey
 from huey.consumer import Consumer, ConsumerStopped
 
 from app.config import Settings, get_settings
+from app.db.migrate import current_revision, head_revision
 from app.db.session import get_engine
 from app.jobs import queue
 from app.jobs.hooks import job_hooks
@@ -41,6 +46,10 @@ logger = logging.getLogger("scandiff.jobs.consumer")
 
 SHUTDOWN_GRACE_SECONDS = 10.0
 """On SIGTERM/SIGINT, how long running jobs may take to finish before being interrupted."""
+SHUTDOWN_GRACE_ENV = "SCANDIFF_SHUTDOWN_GRACE_SECONDS"
+"""Environment variable overriding :data:`SHUTDOWN_GRACE_SECONDS`."""
+DATABASE_WAIT_LOG_SECONDS = 10.0
+"""How often the wait says what it is waiting for."""
 WORKER_HEALTH_CHECK_SECONDS = 1.0
 """How often dead workers are replaced."""
 QUEUE_POLL_MAX_DELAY_SECONDS = 1.0
@@ -50,6 +59,67 @@ WORKER_PID_DIR = "run"
 WORKER_PID_PREFIX = "worker-"
 MEMORY_LIMIT_ENV = "SCANDIFF_JOB_MEMORY_LIMIT_BYTES"
 JOB_THREADS_ENV = "SCANDIFF_JOB_THREADS"
+
+
+class DatabaseNotReadyError(RuntimeError):
+    """The database was not reachable and migrated to head within the wait."""
+
+
+def shutdown_grace_seconds_from_env(default: float = SHUTDOWN_GRACE_SECONDS) -> float:
+    """The shutdown grace: env ``SCANDIFF_SHUTDOWN_GRACE_SECONDS`` (>= 0) or ``default``."""
+    raw = os.environ.get(SHUTDOWN_GRACE_ENV, "").strip()
+    if not raw:
+        return default
+    try:
+        value = float(raw)
+    except ValueError:
+        value = -1.0
+    if not value >= 0 or value == float("inf"):
+        raise ValueError(
+            f"{SHUTDOWN_GRACE_ENV}={raw!r}: give the seconds a running job may take to finish "
+            "on SIGTERM, a number >= 0"
+        )
+    return value
+
+
+def database_state(url: str) -> str | None:
+    """None when the database at ``url`` is reachable and at head; else what is wrong."""
+    head = head_revision()
+    try:
+        revision = current_revision(url)
+    except Exception as exc:
+        return f"the database cannot be reached ({type(exc).__name__}: {str(exc).strip()[:200]})"
+    if revision != head:
+        return (
+            f"the database is at revision {revision or 'none (never migrated)'}, this code needs "
+            f"{head}: start `scandiff serve` (it migrates) or run `alembic upgrade head`"
+        )
+    return None
+
+
+def wait_for_database_at_head(
+    settings: Settings,
+    timeout: float,
+    *,
+    poll_seconds: float = 0.5,
+) -> None:
+    """Block until the database is reachable and migrated to head; raise
+    :class:`DatabaseNotReadyError` saying why after ``timeout`` seconds.
+
+    A standalone consumer never migrates (the API processes do): started with them, it waits.
+    """
+    deadline = time.monotonic() + timeout
+    next_note = time.monotonic()
+    while (problem := database_state(settings.sqlalchemy_url)) is not None:
+        now = time.monotonic()
+        if now >= deadline:
+            raise DatabaseNotReadyError(f"gave up after waiting {timeout:g} s: {problem}")
+        if now >= next_note:
+            next_note = now + DATABASE_WAIT_LOG_SECONDS
+            logger.warning(
+                "waiting for the database: %s", problem, extra={"stage": "waiting-for-database"}
+            )
+        time.sleep(min(poll_seconds, max(0.0, deadline - now)))
 
 
 def worker_pid_dir(settings: Settings) -> Path:
@@ -185,10 +255,20 @@ def fix_job_memory_limit(settings: Settings, workers: int) -> Settings:
 def run_consumer(
     settings: Settings,
     workers: int | None = None,
-    shutdown_grace_seconds: float = SHUTDOWN_GRACE_SECONDS,
+    shutdown_grace_seconds: float | None = None,
+    *,
+    wait_for_database_seconds: float | None = None,
 ) -> int:
-    """Run the consumer until SIGTERM/SIGINT; the exit status."""
+    """Run the consumer until SIGTERM/SIGINT; the exit status.
+
+    ``shutdown_grace_seconds`` None reads ``SCANDIFF_SHUTDOWN_GRACE_SECONDS``.  With
+    ``wait_for_database_seconds`` it first waits that long for a migrated database.
+    """
     configure_process_logging(settings.log_level)
+    if shutdown_grace_seconds is None:
+        shutdown_grace_seconds = shutdown_grace_seconds_from_env()
+    if wait_for_database_seconds is not None:
+        wait_for_database_at_head(settings, wait_for_database_seconds)
     preload_pipeline()
     workers = workers or settings.workers
     settings = fix_job_memory_limit(settings, workers)
@@ -208,6 +288,7 @@ def run_consumer(
             "queue": queue.queue_backend(settings),
             "job_memory_limit_bytes": settings.job_memory_limit_bytes,
             "job_threads": settings.job_threads,
+            "shutdown_grace_seconds": shutdown_grace_seconds,
         },
     )
     consumer = ScandiffConsumer(huey, settings, workers, shutdown_grace_seconds)
@@ -225,7 +306,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--shutdown-grace",
         type=float,
-        default=SHUTDOWN_GRACE_SECONDS,
+        default=None,
         help="seconds running jobs may take to finish on SIGTERM/SIGINT before being handed back",
     )
     args = parser.parse_args(argv)

@@ -34,6 +34,10 @@ JOB_TASK_NAME = "run_job"
 SQLITE_QUEUE_TIMEOUT_SECONDS = 60.0
 """Busy timeout of the Huey SQLite queue file (Huey's default of 5 s is too short under load)."""
 REDIS_URL_SCHEMES = ("redis://", "rediss://", "unix://")
+REDIS_CONNECT_TIMEOUT_SECONDS = 5.0
+"""How long connecting to Redis may take: an unreachable host fails an enqueue in bounded time."""
+REDIS_SOCKET_TIMEOUT_SECONDS = 10.0
+"""How long one Redis reply may take (longer than Huey's 1 s blocking read of an idle worker)."""
 CONSUMER_HEARTBEAT_KEY = "consumer-heartbeat"
 """Huey key-value entry where consumers note they are alive (read by :func:`queue_health`)."""
 
@@ -68,7 +72,14 @@ def create_huey(settings: Settings) -> Huey:
             timeout=SQLITE_QUEUE_TIMEOUT_SECONDS,
         )
     else:
-        huey = RedisHuey(name=QUEUE_NAME, url=settings.queue_url, results=False, utc=True)
+        from redis import ConnectionPool  # the optional "redis" extra, needed only here
+
+        pool = ConnectionPool.from_url(
+            settings.queue_url,
+            socket_connect_timeout=REDIS_CONNECT_TIMEOUT_SECONDS,
+            socket_timeout=REDIS_SOCKET_TIMEOUT_SECONDS,
+        )
+        huey = RedisHuey(name=QUEUE_NAME, connection_pool=pool, results=False, utc=True)
     _job_tasks[id(huey)] = huey.task(name=JOB_TASK_NAME, retries=0)(run_job)
     return huey
 
@@ -112,12 +123,26 @@ def run_job(job_id: str) -> None:
     run_job_once(job_id, get_settings())
 
 
-def enqueue_job(job_id: str, settings: Settings) -> None:
-    """Queue a committed job: note ``enqueued_at`` then send its message.
+def mark_not_enqueued(job_ids: list[str], settings: Settings) -> None:
+    """Clear ``enqueued_at`` of those jobs still ``queued``: the next recovery sweep sends them
+    at once instead of after its grace period (their message never reached the queue)."""
+    if not job_ids:
+        return
+    with transaction(settings.sqlalchemy_url) as session:
+        session.execute(
+            update(Job)
+            .where(Job.id.in_(job_ids), Job.status == JobStatus.QUEUED)
+            .values(enqueued_at=None)
+        )
 
-    Call after the transaction that created the job has committed.  If sending fails the job
-    stays ``queued`` and the recovery sweep sends it again; duplicates are harmless because the
-    worker's claim is idempotent.
+
+def enqueue_job(job_id: str, settings: Settings) -> bool:
+    """Queue a committed job: note ``enqueued_at`` then send its message; whether it was sent.
+
+    Call after the transaction that created the job has committed.  If the queue cannot be
+    reached (Redis down) the failure is logged, never raised: the job stays ``queued`` with
+    ``enqueued_at`` cleared, and the recovery sweep of any running consumer sends it once the
+    queue is back.  Duplicates are harmless because the worker's claim is idempotent.
     """
     with transaction(settings.sqlalchemy_url) as session:
         session.execute(
@@ -125,8 +150,23 @@ def enqueue_job(job_id: str, settings: Settings) -> None:
             .where(Job.id == job_id, Job.status == JobStatus.QUEUED)
             .values(enqueued_at=utc_now())
         )
-    send_job_message(job_id, settings)
+    try:
+        send_job_message(job_id, settings)
+    except Exception as exc:
+        logger.warning(
+            "job not enqueued: the queue is unreachable (%s: %s); it stays queued and the "
+            "recovery sweep sends it when the queue is back",
+            type(exc).__name__,
+            exc,
+            extra={"job_id": job_id, "stage": "enqueue-failed"},
+        )
+        try:
+            mark_not_enqueued([job_id], settings)
+        except Exception:  # the sweep still sends it, after its grace period
+            logger.exception("cannot clear enqueued_at", extra={"job_id": job_id})
+        return False
     logger.info("job enqueued", extra={"job_id": job_id, "stage": "enqueued"})
+    return True
 
 
 def pending_job_ids(settings: Settings) -> set[str]:

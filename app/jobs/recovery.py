@@ -11,7 +11,10 @@ serve`` at start-up and by the consumer every ``recovery_interval_seconds``:
   milliseconds), or were never enqueued (``enqueued_at`` null);
 * deletes temporary result files left by killed workers.
 
-Sending a message twice is harmless: a worker's claim is idempotent.
+When the queue cannot be reached (Redis down) the jobs whose message could not be sent keep
+``enqueued_at`` null, so the first sweep after the queue is back sends them: an upload accepted
+while Redis was down runs without any manual step.  Sending a message twice is harmless: a
+worker's claim is idempotent.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from app.config import Settings
 from app.db.models import Job, JobStatus
 from app.db.session import transaction
 from app.jobs.leases import job_log, lease_owner_is_dead_here
-from app.jobs.queue import pending_job_ids, send_job_message
+from app.jobs.queue import mark_not_enqueued, pending_job_ids, send_job_message
 from app.jobs.results import remove_stale_temp_files
 
 logger = logging.getLogger("scandiff.jobs.recovery")
@@ -43,16 +46,24 @@ class RecoveryReport:
     requeued_expired: list[str] = field(default_factory=list)
     failed_expired: list[str] = field(default_factory=list)
     resent_queued: list[str] = field(default_factory=list)
+    unsent: list[str] = field(default_factory=list)
+    """Jobs due a message that the queue did not take (unreachable); the next sweep sends them."""
     removed_temp_files: int = 0
 
     @property
     def enqueued(self) -> list[str]:
         """Every job id a message was sent for."""
+        unsent = set(self.unsent)
+        return [job_id for job_id in self.due_messages if job_id not in unsent]
+
+    @property
+    def due_messages(self) -> list[str]:
+        """Every job id the sweep found needing a message."""
         return [*self.requeued_expired, *self.resent_queued]
 
     def is_empty(self) -> bool:
         """Whether the sweep changed nothing."""
-        return not (self.enqueued or self.failed_expired or self.removed_temp_files)
+        return not (self.due_messages or self.failed_expired or self.removed_temp_files)
 
 
 def recover_expired_leases(settings: Settings, now: datetime, report: RecoveryReport) -> None:
@@ -131,6 +142,26 @@ def resend_orphaned_queued(
         job_log("queued job had no message; enqueued again", job_id, "requeued")
 
 
+def send_due_messages(settings: Settings, report: RecoveryReport) -> None:
+    """Send the messages the sweep found due; on the first failure (queue unreachable) note the
+    rest as not enqueued, so that the next sweep sends them at once."""
+    due = report.due_messages
+    for index, job_id in enumerate(due):
+        try:
+            send_job_message(job_id, settings)
+        except Exception as exc:
+            report.unsent = due[index:]
+            logger.warning(
+                "queue unreachable (%s: %s); %d job(s) stay queued for the next sweep",
+                type(exc).__name__,
+                exc,
+                len(report.unsent),
+                extra={"stage": "recovery"},
+            )
+            mark_not_enqueued(report.unsent, settings)
+            return
+
+
 def recovery_sweep(
     settings: Settings, *, temp_file_max_age_seconds: float = TEMP_FILE_MAX_AGE_SECONDS
 ) -> RecoveryReport:
@@ -144,8 +175,7 @@ def recovery_sweep(
         pending = None
     recover_expired_leases(settings, now, report)
     resend_orphaned_queued(settings, now, pending, report)
-    for job_id in report.enqueued:
-        send_job_message(job_id, settings)
+    send_due_messages(settings, report)
     report.removed_temp_files = remove_stale_temp_files(settings, temp_file_max_age_seconds)
     if not report.is_empty():
         logger.info(
@@ -154,6 +184,7 @@ def recovery_sweep(
                 "requeued_expired": len(report.requeued_expired),
                 "failed_expired": len(report.failed_expired),
                 "resent_queued": len(report.resent_queued),
+                "unsent": len(report.unsent),
                 "removed_temp_files": report.removed_temp_files,
             },
         )

@@ -81,3 +81,11 @@ class TooManyRequestsError(AppError, status_code=429, code="too_many_requests"):
 
 class InsufficientStorageError(AppError, status_code=507, code="insufficient_storage"):
     """The organisation's storage quota cannot hold this."""
+
+
+class ServiceUnavailableError(AppError, status_code=503, code="service_unavailable"):
+    """Something the request needs (the database) is unavailable now; retry later."""
+
+    def __init__(self, detail: str, *, retry_after_seconds: int, code: str | None = None) -> None:
+        super().__init__(detail, code=code, headers={"Retry-After": str(retry_after_seconds)})
+        self.retry_after_seconds = retry_after_seconds

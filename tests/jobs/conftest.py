@@ -1,7 +1,9 @@
-"""Fixtures for job tests: a migrated SQLite database and job consumers."""
+"""Fixtures for job tests: a migrated SQLite database, job consumers, ``scandiff worker``
+processes and a private Redis server."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -12,8 +14,11 @@ from app.config import Settings
 from app.db.migrate import upgrade_to_head
 from app.db.session import get_engine
 from app.jobs.consumer import JOB_THREADS_ENV, MEMORY_LIMIT_ENV
+from tests.helpers.environment import require
 from tests.helpers.jobs import FAST_LEASES
+from tests.helpers.redis import REDIS_SERVER_ENV, RedisServer, redis_server_binary
 from tests.helpers.service import ConsumerProcess
+from tests.helpers.worker import WorkerProcess
 
 
 @pytest.fixture
@@ -55,3 +60,37 @@ def consumer_factory(
     yield make
     for consumer in started:
         consumer.stop()
+
+
+@pytest.fixture
+def worker_factory(tmp_path: Path) -> Iterator[Callable[..., WorkerProcess]]:
+    """Start ``scandiff worker`` processes: ``worker_factory(settings, concurrency=1, ...)``."""
+    started: list[WorkerProcess] = []
+
+    def make(settings: Settings, **kwargs: Any) -> WorkerProcess:
+        worker = WorkerProcess(settings, log_path=tmp_path / f"worker{len(started)}.log", **kwargs)
+        started.append(worker)
+        return worker
+
+    yield make
+    for worker in started:
+        worker.stop(timeout=15.0)
+
+
+@pytest.fixture
+def redis_server(tmp_path: Path) -> Iterator[RedisServer]:
+    """A private redis-server on a free port (never the shared one), stopped after the test."""
+    binary = redis_server_binary()
+    if binary is None and os.environ.get("CI") == "true":
+        pytest.fail(f"redis-server is required in CI (PATH or ${REDIS_SERVER_ENV})")
+    require(binary is not None, f"redis-server not found (PATH or ${REDIS_SERVER_ENV})")
+    assert binary is not None
+    server = RedisServer(binary, tmp_path / "redis").start()
+    yield server
+    server.kill()
+
+
+@pytest.fixture
+def redis_settings(job_settings: Settings, redis_server: RedisServer) -> Settings:
+    """``job_settings`` with the private Redis as the queue (``SCANDIFF_QUEUE_URL``)."""
+    return job_settings.model_copy(update={"queue_url": redis_server.url})
