@@ -35,7 +35,7 @@ from huey.consumer import Consumer, ConsumerStopped
 from app.config import Settings, get_settings
 from app.db.migrate import current_revision, head_revision
 from app.db.session import get_engine
-from app.jobs import queue
+from app.jobs import queue, runner
 from app.jobs.hooks import job_hooks
 from app.jobs.lifecycle import die_with_supervisor, set_parent_death_signal
 from app.jobs.limits import job_memory_limit, job_threads
@@ -272,6 +272,7 @@ def run_consumer(
     preload_pipeline()
     workers = workers or settings.workers
     settings = fix_job_memory_limit(settings, workers)
+    runner.install()  # this process's run_job messages run jobs (inherited by forked workers)
     huey = queue.get_huey(settings)
     install_worker_hooks(huey, settings)
     remove_stale_worker_pid_files(settings)

@@ -12,7 +12,7 @@ A worker (:func:`execute_job`):
 
 Input problems (:class:`app.core.errors.InputError`) fail the job at once with the message; other
 errors put it back to ``queued`` until ``max_attempts`` is reached: the caller
-(:func:`app.jobs.queue.run_job`) then sends its message again.  Tests reach in only through
+(:func:`app.jobs.runner.run_job_once`) then sends its message again.  Tests reach in only through
 :data:`app.jobs.hooks.job_hooks`.
 """
 

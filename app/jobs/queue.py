@@ -1,11 +1,14 @@
-"""The Huey instance for the configured backend, its ``run_job`` task, enqueueing and health.
+"""The Huey instance for the configured backend, its one task, enqueueing and health.
 
 The queue only carries job ids; the ``job`` table is the truth (see ``docs/jobs.md``).  By default
 the queue is a SQLite file in the data directory (``SqliteHuey``, no server); a ``redis://`` (or
 ``rediss://``, ``unix://``) ``SCANDIFF_QUEUE_URL`` selects ``RedisHuey`` so consumers can run on
 many hosts.  One Huey instance per backend per process, each with the ``run_job`` task registered
-(no Huey retries: attempts live in the job table, and :func:`run_job_once` sends the message of a
-job given back to ``queued`` again).
+(no Huey retries: attempts live in the job table).
+
+The queue knows nothing of what runs on it: the task calls the runner a worker process installs
+with :func:`install_job_runner` (:mod:`app.jobs.runner`); a process that only enqueues (the API)
+installs none, and a message that reached such a process would fail loudly.
 """
 
 from __future__ import annotations
@@ -22,10 +25,9 @@ from huey import Huey, RedisHuey, SqliteHuey
 from sqlalchemy import update
 
 from app.clock import utc_now
-from app.config import Settings, get_settings
+from app.config import Settings
 from app.db.models import Job, JobStatus
 from app.db.session import transaction
-from app.jobs.execution import execute_job
 
 logger = logging.getLogger("scandiff.jobs.queue")
 
@@ -44,6 +46,22 @@ CONSUMER_HEARTBEAT_KEY = "consumer-heartbeat"
 _hueys: dict[tuple[str, str], Huey] = {}
 _job_tasks: dict[int, Callable[..., Any]] = {}
 _hueys_lock = threading.Lock()
+_job_runner: Callable[[str], object] | None = None
+
+
+def install_job_runner(runner: Callable[[str], object]) -> None:
+    """Make this process's ``run_job`` messages call ``runner(job_id)`` (a worker does this)."""
+    global _job_runner
+    _job_runner = runner
+
+
+def run_job(job_id: str) -> None:
+    """The Huey task: hand job ``job_id`` to the runner this process installed."""
+    if _job_runner is None:
+        raise RuntimeError(
+            f"job {job_id}: no job runner in this process (start a worker: scandiff worker)"
+        )
+    _job_runner(job_id)
 
 
 def queue_backend(settings: Settings) -> str:
@@ -107,20 +125,6 @@ def job_task(huey: Huey) -> Callable[..., Any]:
 def send_job_message(job_id: str, settings: Settings) -> None:
     """Put one ``run_job(job_id)`` message on the queue (no database write)."""
     job_task(get_huey(settings))(job_id)
-
-
-def run_job_once(job_id: str, settings: Settings) -> str:
-    """Run job ``job_id`` if it still needs running; send its message again if it went back to
-    ``queued`` (a failed attempt with attempts left).  The outcome of :func:`execute_job`."""
-    outcome = execute_job(job_id, settings)
-    if outcome == JobStatus.QUEUED:
-        send_job_message(job_id, settings)
-    return outcome
-
-
-def run_job(job_id: str) -> None:
-    """The Huey task: run job ``job_id`` (claim, compare, store; idempotent), settings from env."""
-    run_job_once(job_id, get_settings())
 
 
 def mark_not_enqueued(job_ids: list[str], settings: Settings) -> None:

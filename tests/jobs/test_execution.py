@@ -23,8 +23,9 @@ from app.jobs.leases import (
     lease_owner_pid,
     make_lease_owner,
 )
-from app.jobs.queue import pending_job_ids, run_job_once
+from app.jobs.queue import pending_job_ids
 from app.jobs.results import store_results
+from app.jobs.runner import run_job_once
 from tests.helpers import fake_pipeline
 from tests.helpers.jobs import count_regions, create_job, load_job
 

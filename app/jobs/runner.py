@@ -1,0 +1,32 @@
+"""What a worker runs for each queue message: the job, and its message again if it needs one.
+
+The one module that knows both the queue and the execution (``queue`` and ``execution`` know
+nothing of each other); worker processes install :func:`run_job_from_queue` as the queue's job
+runner (:func:`app.jobs.queue.install_job_runner`).
+"""
+
+from __future__ import annotations
+
+from app.config import Settings, get_settings
+from app.db.models import JobStatus
+from app.jobs.execution import execute_job
+from app.jobs.queue import install_job_runner, send_job_message
+
+
+def run_job_once(job_id: str, settings: Settings) -> str:
+    """Run job ``job_id`` if it still needs running; send its message again if it went back to
+    ``queued`` (a failed attempt with attempts left).  The outcome of :func:`execute_job`."""
+    outcome = execute_job(job_id, settings)
+    if outcome == JobStatus.QUEUED:
+        send_job_message(job_id, settings)
+    return outcome
+
+
+def run_job_from_queue(job_id: str) -> None:
+    """The job runner of worker processes: settings from the environment."""
+    run_job_once(job_id, get_settings())
+
+
+def install() -> None:
+    """Make this process run the jobs whose messages it takes (a worker calls this at start)."""
+    install_job_runner(run_job_from_queue)
