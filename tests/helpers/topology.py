@@ -56,6 +56,8 @@ POSTGRES_ADMIN_URL = os.environ.get(
     "SCANDIFF_TEST_POSTGRES_ADMIN_URL", "postgresql://postgres@127.0.0.1:5432/postgres"
 )
 HEALTH_PATH = "/api/v1/health"
+START_TIMEOUT_SECONDS = 180.0
+"""How long a process may take to serve (a loaded 2-core machine imports slowly)."""
 CONSUMER_COMMAND = "import sys; from app.jobs.consumer import main; sys.exit(main())"
 REDIS_OPTIONS = ("--bind", "127.0.0.1", "--save", "", "--appendonly", "no")
 """No persistence: a restarted Redis comes back empty."""
@@ -121,6 +123,12 @@ class ManagedProcess:
 
     def start(self) -> ManagedProcess:
         """Start it (pinned with ``taskset -c cpus`` when given) and wait until it is ready."""
+        self.spawn()
+        self.wait_ready()
+        return self
+
+    def spawn(self) -> ManagedProcess:
+        """Start it without waiting (pinned with ``taskset -c cpus`` when given)."""
         if self.is_running():
             raise RuntimeError(f"{self.name} already running")
         prefix = ["taskset", "-c", self.cpus] if self.cpus else []
@@ -137,7 +145,6 @@ class ManagedProcess:
                 start_new_session=True,  # own process group: kill() reaches every child
             )
         self.starts += 1
-        self.wait_ready()
         return self
 
     def wait_ready(self) -> None:
@@ -233,7 +240,7 @@ class ApiProcess(ManagedProcess):
             return False
 
     def wait_ready(self) -> None:
-        wait_for(self.healthy, 60, "healthy", self)
+        wait_for(self.healthy, START_TIMEOUT_SECONDS, "healthy", self)
 
 
 @dataclass
@@ -248,7 +255,12 @@ class WorkerProcess(ManagedProcess):
         return live_worker_pids(self.data_dir, self.pid) if self.process is not None else []
 
     def wait_ready(self) -> None:
-        wait_for(lambda: len(self.worker_pids()) >= self.workers, 60, "with its workers", self)
+        wait_for(
+            lambda: len(self.worker_pids()) >= self.workers,
+            START_TIMEOUT_SECONDS,
+            "with its workers",
+            self,
+        )
 
 
 @dataclass
@@ -418,8 +430,10 @@ def scaled_out(
             )
             processes.append(worker)
             workers.append(worker)
-        for process in [*apis, *workers]:  # start in turn: a 2-core machine chokes otherwise
-            process.start()
+        for process in [*apis, *workers]:
+            process.spawn()
+        for process in [*apis, *workers]:
+            process.wait_ready()
         yield Topology(
             data_dir, database_name, settings, redis, apis, workers, admin_token, processes
         )
