@@ -280,7 +280,15 @@ def test_scaled_out_kills_of_api_worker_and_redis_lose_nothing(tmp_path: Path) -
         for thread in threads:
             thread.start()
         faults: list[dict[str, Any]] = []
-        restarts = inject_faults(topology, uploads, rng, faults)
+        try:
+            restarts = inject_faults(topology, uploads, rng, faults)
+        except TimeoutError as error:  # say why the uploads stalled
+            answers = Counter(str(status) for upload in uploads for _, status in upload.answers)
+            logs = "".join(api.log_text() for api in topology.apis)
+            raise AssertionError(
+                f"{error}; answers so far {dict(answers)}; faults {faults}; first error "
+                f"logged by an API: {first_error(logs)}"
+            ) from error
         for thread in [*threads, *restarts]:
             thread.join()
         assert all(process.is_running() for process in topology.processes), faults
