@@ -49,6 +49,7 @@ import pytest
 from app.jobs.leases import lease_owner_pid
 from tests.helpers.figures import record_figure
 from tests.helpers.files import room_ply
+from tests.helpers.http import upload as send_upload
 from tests.helpers.topology import ManagedProcess, Topology, WorkerProcess, scaled_out
 from tests.helpers.waiting import wait_until
 
@@ -103,14 +104,13 @@ def send_until_accepted(topology: Topology, site_id: str, upload: Upload, delay:
     while not upload.acknowledged and time.monotonic() < deadline:
         try:
             with topology.client(api) as client:
-                response = client.post(
-                    f"/api/v1/sites/{site_id}/scans",
-                    params={"filename": f"scan-{upload.index:02d}.ply", "method": "pca"},
-                    content=upload.body,
-                    headers={
-                        "Content-Type": "application/octet-stream",
-                        "Idempotency-Key": upload.key,
-                    },
+                response = send_upload(
+                    client,
+                    site_id,
+                    upload.body,
+                    filename=f"scan-{upload.index:02d}.ply",
+                    headers={"Idempotency-Key": upload.key},
+                    method="pca",
                 )
         except httpx.HTTPError as error:
             upload.answers.append((api, type(error).__name__))
@@ -218,7 +218,8 @@ def first_error(log: str) -> str:
     for line in log.splitlines():
         if line.startswith("{") and '"exception"' in line:
             exception = json.loads(line)["exception"].strip().splitlines()
-            return " ".join(part for part in exception[-8:] if not part.startswith("  File"))
+            raised = [i for i, part in enumerate(exception) if "Error" in part[:80].split(" ")[0]]
+            return " ".join(exception[raised[-1] if raised else 0 :][:6])
     return ""
 
 
