@@ -247,6 +247,7 @@ def success_lines(log: str) -> Counter[str]:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)  # start-up, three faults and settling on a loaded machine
 def test_scaled_out_kills_of_api_worker_and_redis_lose_nothing(tmp_path: Path) -> None:
     seed = random.randrange(2**32)
     rng = random.Random(seed)
