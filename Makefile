@@ -50,6 +50,7 @@ bench: $(BENCH_STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/python bench/paper.py --quick
 	OMP_NUM_THREADS=1 $(BIN)/python bench/scenes.py --quick
 	$(BIN)/python bench/perf.py
+	$(BIN)/python bench/perf_scaling.py --json bench/results/scaling.json
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache *.egg-info
