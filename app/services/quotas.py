@@ -47,13 +47,16 @@ class Usage:
 def lock_organisation(session: Session, principal: Principal) -> None:
     """Serialise quota checks of one organisation until the transaction ends.
 
-    ``SELECT ... FOR UPDATE`` of the organisation row on PostgreSQL; SQLite has no row locks and
-    needs none (its write transactions are ``BEGIN IMMEDIATE``, one at a time).
+    ``SELECT ... FOR NO KEY UPDATE`` of the organisation row on PostgreSQL: it serialises quota
+    checks but, unlike ``FOR UPDATE``, does not clash with the ``FOR KEY SHARE`` lock that inserting
+    a row referencing the organisation takes (an upload inserts its idempotency record first: with
+    ``FOR UPDATE`` two concurrent uploads deadlocked; tests/reliability/test_scaled_out.py).
+    SQLite has no row locks and needs none (its write transactions are ``BEGIN IMMEDIATE``).
     """
     session.execute(
         select(Organisation.id)
         .where(Organisation.id == principal.organisation_id)
-        .with_for_update()
+        .with_for_update(key_share=True)
     )
 
 

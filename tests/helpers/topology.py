@@ -58,14 +58,12 @@ POSTGRES_ADMIN_URL = os.environ.get(
 HEALTH_PATH = "/api/v1/health"
 START_TIMEOUT_SECONDS = 180.0
 """How long a process may take to serve (a loaded 2-core machine imports slowly)."""
-CONSUMER_COMMAND = "import sys; from app.jobs.consumer import main; sys.exit(main())"
+WORKER_COMMAND = (sys.executable, "-m", "app", "worker", "--concurrency", "1")
+"""A standalone worker (``scandiff worker``)."""
 REDIS_OPTIONS = ("--bind", "127.0.0.1", "--save", "", "--appendonly", "no")
 """No persistence: a restarted Redis comes back empty."""
-API_COMMAND = (
-    *(sys.executable, "-m", "uvicorn", "--factory", "app.main:create_app"),
-    *("--host", "127.0.0.1", "--no-access-log"),
-)
-"""The API process until ``scandiff serve --workers 0`` lands (port appended)."""
+API_COMMAND = (sys.executable, "-m", "app", "serve", "--workers", "0", "--host", "127.0.0.1")
+"""An API process without a consumer (``scandiff serve --workers 0``; port appended)."""
 TOPOLOGY_ENV = {
     "SCANDIFF_TESTING": "1",
     "OMP_NUM_THREADS": "1",
@@ -418,11 +416,15 @@ def scaled_out(
             processes.append(api)
             apis.append(api)
         workers = []
-        consumer_code = CONSUMER_BOOTSTRAP if fake_pipeline else CONSUMER_COMMAND
+        worker_command = (
+            [sys.executable, "-c", CONSUMER_BOOTSTRAP, "--workers", "1"]
+            if fake_pipeline
+            else list(WORKER_COMMAND)
+        )
         for index in range(n_workers):
             worker = WorkerProcess(
                 f"worker-{index}",
-                [sys.executable, "-c", consumer_code, "--workers", "1"],
+                worker_command,
                 environment,
                 logs / f"worker-{index}.log",
                 cpus=pick(worker_cpus, index),
