@@ -24,6 +24,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from huey import Huey
 from huey.consumer import Consumer, ConsumerStopped
@@ -35,7 +36,7 @@ from app.jobs.hooks import job_hooks
 from app.jobs.lifecycle import die_with_supervisor, set_parent_death_signal
 from app.jobs.limits import job_memory_limit, job_threads
 from app.jobs.recovery import recovery_sweep
-from app.log import configure_process_logging
+from app.log import bind_job, configure_process_logging
 
 logger = logging.getLogger("scandiff.jobs.consumer")
 
@@ -72,6 +73,14 @@ def install_worker_hooks(huey: Huey, settings: Settings) -> None:
         pid_dir.mkdir(parents=True, exist_ok=True)
         (pid_dir / f"{WORKER_PID_PREFIX}{os.getpid()}").touch()
         logger.info("job worker started", extra={"stage": "worker-started"})
+
+    @huey.pre_execute(name="scandiff_bind_job")
+    def bind_running_job(task: Any) -> None:
+        bind_job(str(task.args[0]) if task.args else None)  # Huey's lines carry the job id
+
+    @huey.post_execute(name="scandiff_unbind_job")
+    def unbind_running_job(task: Any, task_value: Any, exception: BaseException | None) -> None:
+        bind_job(None)
 
     @huey.on_shutdown(name="scandiff_worker_stopped")
     def worker_stopped() -> None:
@@ -188,7 +197,7 @@ def run_consumer(
     shutdown_grace_seconds: float = SHUTDOWN_GRACE_SECONDS,
 ) -> int:
     """Run the consumer until SIGTERM/SIGINT; the exit status."""
-    configure_process_logging(settings.log_level)
+    configure_process_logging(settings.log_level, settings.log_format)
     preload_pipeline()
     workers = workers or settings.workers
     settings = fix_job_memory_limit(settings, workers)

@@ -9,11 +9,7 @@ shared PostgreSQL database of the CI's second API run.
 
 from __future__ import annotations
 
-import os
 import random
-import subprocess
-import sys
-import time
 from collections import Counter, defaultdict
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -31,7 +27,7 @@ from app.config import Settings
 from app.db.models import Job, JobStatus, Organisation
 from app.db.session import get_engine, transaction
 from app.services.metrics import DURATION_BUCKETS_SECONDS, QUERIES_PER_SCRAPE
-from tests.helpers.environment import PROJECT_ROOT
+from tests.helpers.api_process import api_process
 from tests.helpers.files import ply_bytes
 from tests.helpers.http import (
     assert_error,
@@ -212,49 +208,6 @@ def test_an_upload_through_one_api_process_shows_in_another_process_metrics(
     assert delta("scandiff_queue_messages", backend="sqlite") == 1  # no consumer runs here
     assert value(after, "scandiff_queue_up", backend="sqlite") == 1
     assert value(after, "process_resident_memory_bytes") > 0  # the answering process's own
-
-
-@contextmanager
-def api_process(settings: Settings, log_path: Path) -> Iterator[str]:
-    """A second API process (uvicorn, no consumer) on ``settings``' data; its base URL."""
-    port = free_port()
-    environment = {**os.environ, "SCANDIFF_DATA_DIR": str(settings.data_dir)}
-    with open(log_path, "ab") as log_file:
-        process = subprocess.Popen(
-            [
-                *(sys.executable, "-m", "uvicorn", "--factory", "app.main:create_app"),
-                *("--host", "127.0.0.1", "--port", str(port), "--no-access-log"),
-            ],
-            cwd=PROJECT_ROOT,
-            env=environment,
-            stdout=log_file,
-            stderr=subprocess.STDOUT,
-        )
-    base_url = f"http://127.0.0.1:{port}"
-    try:
-        wait_healthy(base_url, process, log_path)
-        yield base_url
-    finally:
-        process.terminate()
-        try:
-            process.wait(15)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait(5)
-
-
-def wait_healthy(base_url: str, process: subprocess.Popen[bytes], log_path: Path) -> None:
-    """Wait until ``GET /api/v1/health`` answers 200; fail with the log if the process exits."""
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        assert process.poll() is None, log_path.read_text()[-3000:]
-        try:
-            if httpx.get(f"{base_url}/api/v1/health", timeout=2).status_code == 200:
-                return
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.1)
-    raise AssertionError(f"API process not healthy: {log_path.read_text()[-3000:]}")
 
 
 def test_metrics_token_is_required_when_set(tmp_path: Path) -> None:
