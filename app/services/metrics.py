@@ -17,6 +17,7 @@ import hmac
 import logging
 from collections.abc import Iterator, Sequence
 from datetime import timedelta
+from itertools import accumulate
 from typing import Any
 
 from prometheus_client import (
@@ -100,43 +101,39 @@ def finished_job_durations(
 
     Rows of ``(status, method, count, sum of seconds, cumulative count per bucket)``; the
     duration is ``finished_at - started_at`` of the last attempt, negative ones (clocks of two
-    hosts apart) counted as 0.
+    hosts apart) counted as 0.  The database computes each duration once (a materialized
+    ``WITH`` over the window's rows) and counts the jobs per status, method and bucket (the
+    first bound at or above the duration); the buckets are accumulated here.
     """
     since = utc_now() - timedelta(seconds=window_seconds)
     raw = seconds_between(Job.started_at, Job.finished_at, session.get_bind().dialect.name)
-    finished = (
-        select(
-            Job.status.label("status"),
-            Job.method.label("method"),
-            case((raw < 0, 0.0), else_=raw).label("seconds"),
-        )
-        .where(
-            Job.finished_at >= since,
-            Job.started_at.is_not(None),
-            Job.status.in_(FINISHED_STATUSES),
-        )
-        .subquery()
+    durations = (  # computed once per job (materialized), read through ix_job_finished_at
+        select(Job.status.label("status"), Job.method.label("method"), raw.label("seconds"))
+        .where(Job.finished_at >= since, Job.started_at.is_not(None))
+        .cte("durations")
+        .prefix_with("MATERIALIZED")
     )
-    bucket_counts = [
-        func.sum(case((finished.c.seconds <= bound, 1), else_=0))
-        for bound in DURATION_BUCKETS_SECONDS
-    ]
-    statement = select(
-        finished.c.status,
-        finished.c.method,
-        func.count(),
-        func.coalesce(func.sum(finished.c.seconds), 0.0),
-        *bucket_counts,
-    ).group_by(finished.c.status, finished.c.method)
-    return [
-        (
-            str(status),
-            str(method),
-            int(count),
-            float(total),
-            [int(value or 0) for value in buckets],
+    seconds = case((durations.c.seconds < 0, 0.0), else_=durations.c.seconds)
+    bucket = case(
+        *((seconds <= bound, index) for index, bound in enumerate(DURATION_BUCKETS_SECONDS)),
+        else_=len(DURATION_BUCKETS_SECONDS),
+    )
+    columns = (durations.c.status, durations.c.method, bucket)
+    statement = (
+        select(*columns, func.count(), func.sum(seconds))
+        .where(durations.c.status.in_(FINISHED_STATUSES))
+        .group_by(*columns)
+    )
+    groups: dict[tuple[str, str], tuple[list[int], list[float]]] = {}
+    for status, method, index, count, total in session.execute(statement).all():
+        counts, totals = groups.setdefault(
+            (str(status), str(method)), ([0] * (len(DURATION_BUCKETS_SECONDS) + 1), [0.0])
         )
-        for status, method, count, total, *buckets in session.execute(statement).all()
+        counts[int(index)] += int(count)
+        totals[0] += float(total or 0.0)
+    return [
+        (status, method, sum(counts), totals[0], list(accumulate(counts))[:-1])
+        for (status, method), (counts, totals) in sorted(groups.items())
     ]
 
 

@@ -69,12 +69,12 @@ def metrics_api(tmp_path: Path) -> Iterator[ApiServer]:
 
 @contextmanager
 def counted_selects(settings: Settings) -> Iterator[list[str]]:
-    """The SELECT statements run on the app's engine inside the block."""
+    """The queries (SELECT or WITH) run on the app's engine inside the block."""
     statements: list[str] = []
     engine = get_engine(settings.sqlalchemy_url)
 
     def note(_conn: Any, _cursor: Any, statement: str, *_args: Any) -> None:
-        if statement.lstrip().upper().startswith("SELECT"):
+        if statement.lstrip().upper().startswith(("SELECT", "WITH")):
             statements.append(statement)
 
     event.listen(engine, "before_cursor_execute", note)
