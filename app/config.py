@@ -118,6 +118,26 @@ class Settings(BaseSettings):
         default=None, description="Signs view links and cookies; generated in data_dir if unset."
     )
     log_level: str = "INFO"
+    log_format: Literal["json", "text"] = Field(
+        default="json",
+        description="Log lines on stderr: 'json' (one JSON object per line, with request_id "
+        "and job_id where they apply) or 'text' (the same fields as key=value, for people).",
+    )
+    metrics_token: str | None = Field(
+        default=None,
+        description="When set, GET /metrics requires `Authorization: Bearer <metrics_token>`; "
+        "unset (default), /metrics is public, as usual for Prometheus on a private network.",
+    )
+
+    @field_validator("log_format", mode="before")
+    @classmethod
+    def _log_format_word(cls, value: Any) -> Any:
+        return value.strip().lower() if isinstance(value, str) else value
+
+    @field_validator("metrics_token", mode="before")
+    @classmethod
+    def _metrics_token_set(cls, value: Any) -> Any:
+        return None if isinstance(value, str) and not value.strip() else value
 
     @field_validator(
         "max_queued_jobs_per_organisation", "max_stored_bytes_per_organisation", mode="before"

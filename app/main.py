@@ -32,7 +32,7 @@ DESCRIPTION = (
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The application for ``settings`` (default: from ``SCANDIFF_*`` environment variables)."""
     settings = settings or get_settings()
-    configure_logging(settings.log_level)
+    configure_logging(settings.log_level, settings.log_format)
     storage.ensure_directories(settings)
     auth.configure_token_cache(settings.token_cache_seconds)
     app = FastAPI(

@@ -269,7 +269,7 @@ def handle_serve(args: argparse.Namespace) -> int:
     from app.log import configure_process_logging
 
     settings = build_settings(args)
-    configure_process_logging(settings.log_level)
+    configure_process_logging(settings.log_level, settings.log_format)
     logging.getLogger("alembic.runtime.plugins").setLevel(logging.WARNING)
     return serve(settings, child_roles(args))
 

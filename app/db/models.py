@@ -185,7 +185,11 @@ class Job(Base):
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
     created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)
     started_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
-    finished_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
+    # indexed: the metrics' duration histogram reads the jobs finished in the last day
+    finished_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True, index=True)
+    # The X-Request-ID (or generated id) of the API request that created the job: the worker's
+    # log lines about the job carry it, so one id follows an upload into its comparison.
+    request_id: Mapped[str | None] = mapped_column(String(64), nullable=True)
 
     regions: Mapped[list[Region]] = relationship(
         back_populates="job", cascade="all, delete-orphan", order_by="Region.ordinal"

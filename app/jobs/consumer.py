@@ -28,6 +28,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from huey import Huey
 from huey.consumer import Consumer, ConsumerStopped
@@ -40,7 +41,7 @@ from app.jobs.hooks import job_hooks
 from app.jobs.lifecycle import die_with_supervisor, set_parent_death_signal
 from app.jobs.limits import job_memory_limit, job_threads
 from app.jobs.recovery import recovery_sweep
-from app.log import configure_process_logging
+from app.log import bind_job, configure_process_logging
 
 logger = logging.getLogger("scandiff.jobs.consumer")
 
@@ -142,6 +143,14 @@ def install_worker_hooks(huey: Huey, settings: Settings) -> None:
         pid_dir.mkdir(parents=True, exist_ok=True)
         (pid_dir / f"{WORKER_PID_PREFIX}{os.getpid()}").touch()
         logger.info("job worker started", extra={"stage": "worker-started"})
+
+    @huey.pre_execute(name="scandiff_bind_job")
+    def bind_running_job(task: Any) -> None:
+        bind_job(str(task.args[0]) if task.args else None)  # Huey's lines carry the job id
+
+    @huey.post_execute(name="scandiff_unbind_job")
+    def unbind_running_job(task: Any, task_value: Any, exception: BaseException | None) -> None:
+        bind_job(None)
 
     @huey.on_shutdown(name="scandiff_worker_stopped")
     def worker_stopped() -> None:
@@ -264,7 +273,7 @@ def run_consumer(
     ``shutdown_grace_seconds`` None reads ``SCANDIFF_SHUTDOWN_GRACE_SECONDS``.  With
     ``wait_for_database_seconds`` it first waits that long for a migrated database.
     """
-    configure_process_logging(settings.log_level)
+    configure_process_logging(settings.log_level, settings.log_format)
     if shutdown_grace_seconds is None:
         shutdown_grace_seconds = shutdown_grace_seconds_from_env()
     if wait_for_database_seconds is not None:

@@ -30,6 +30,7 @@ from app.clock import utc_now
 from app.config import Settings
 from app.db.models import Job, JobStatus, Scan
 from app.db.session import transaction
+from app.log import job_request_id, remember_job_request_id
 
 logger = logging.getLogger("scandiff.jobs")
 
@@ -121,10 +122,15 @@ class ClaimedJob:
     scan_filename: str | None
     reference_sensor_origin: list[float] | None = None
     scan_sensor_origin: list[float] | None = None
+    request_id: str | None = None
+    """The id of the API request that created the job (carried by its log lines)."""
 
 
 def job_log(message: str, job_id: str, stage: str, **fields: Any) -> None:
-    """One structured log line about a job stage."""
+    """One structured log line about a job stage (with its creating request's id when known)."""
+    request_id = job_request_id(job_id)
+    if request_id is not None:
+        fields.setdefault("request_id", request_id)
     logger.info(message, extra={"job_id": job_id, "stage": stage, **fields})
 
 
@@ -154,6 +160,7 @@ def claim_job(
         if job is None:
             logger.warning("job not found", extra={"job_id": job_id, "stage": "skipped"})
             return None
+        remember_job_request_id(job.id, job.request_id)  # for every later line about the job
         if not claimed:
             give_up_if_used_up(session, job, now)
             return None
@@ -174,6 +181,7 @@ def claim_job(
             scan_filename=scan.filename if scan else None,
             reference_sensor_origin=reference.sensor_origin if reference else None,
             scan_sensor_origin=scan.sensor_origin if scan else None,
+            request_id=job.request_id,
         )
     job_log(
         "job claimed",

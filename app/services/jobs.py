@@ -21,6 +21,7 @@ from app.clock import as_utc
 from app.config import Settings
 from app.db.models import Job, JobStatus, Region, Scan
 from app.jobs.queue import enqueue_job
+from app.log import current_request_id
 from app.services import idempotency, quotas, sites
 from app.services.auth import Principal
 from app.services.errors import ValidationFailedError
@@ -43,7 +44,10 @@ def new_job(
     variant: str,
     params: dict[str, Any],
 ) -> Job:
-    """Insert a queued job (429 at the organisation's cap) and enqueue it after commit."""
+    """Insert a queued job (429 at the organisation's cap) and enqueue it after commit.
+
+    The job keeps the id of the API request creating it (``request_id``; None outside one).
+    """
     quotas.lock_organisation(session, principal)
     quotas.check_queued_jobs(session, settings, principal)
     job = Job(
@@ -58,6 +62,7 @@ def new_job(
         progress=0.0,
         attempts=0,
         max_attempts=settings.job_max_attempts,
+        request_id=current_request_id(),  # the creating request's id, for the worker's logs
     )
     session.add(job)
     session.flush()

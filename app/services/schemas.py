@@ -164,6 +164,11 @@ class JobRead(RowRead):
     created_at: UtcDatetime
     started_at: UtcDatetime | None
     finished_at: UtcDatetime | None
+    request_id: str | None = Field(
+        default=None,
+        description="The id of the request that created the job (its X-Request-ID, or the id "
+        "generated for it); every log line about the job carries it.",
+    )
 
 
 class RegionRead(RowRead):

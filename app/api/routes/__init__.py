@@ -1,14 +1,21 @@
-"""Routers of API v1, one per resource; :data:`api_router` gathers them under ``/api/v1``."""
+"""Routers: API v1, one per resource, under ``/api/v1``; ``/metrics`` for Prometheus at the root.
+
+:data:`api_router` gathers them all (the app includes it once).
+"""
 
 from __future__ import annotations
 
 from fastapi import APIRouter
 
-from app.api.routes import health, jobs, organisation, scans, sites
+from app.api.routes import health, jobs, metrics, organisation, scans, sites
 
-api_router = APIRouter(prefix="/api/v1")
-api_router.include_router(health.router)
-api_router.include_router(sites.router)
-api_router.include_router(scans.router)
-api_router.include_router(jobs.router)
-api_router.include_router(organisation.router)
+v1_router = APIRouter(prefix="/api/v1")
+v1_router.include_router(health.router)
+v1_router.include_router(sites.router)
+v1_router.include_router(scans.router)
+v1_router.include_router(jobs.router)
+v1_router.include_router(organisation.router)
+
+api_router = APIRouter()
+api_router.include_router(v1_router)
+api_router.include_router(metrics.router)
