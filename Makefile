@@ -1,7 +1,12 @@
 # scandiff: every target installs what it needs first (idempotent: pip only runs when
 # pyproject.toml changed since the last install).
-PYTHON ?= python3.11
-VENV := .venv
+# PYTHON: the first interpreter >= 3.11 among python3, python3.13, python3.12, python3.11
+# (override: make test PYTHON=python3.12 VENV=.venv-3.12). VENV: where it installs.
+PYTHON_CANDIDATES := python3 python3.13 python3.12 python3.11
+PYTHON_IS_SUPPORTED := -c 'import sys; sys.exit(sys.version_info < (3, 11))'
+PYTHON ?= $(firstword $(foreach candidate,$(PYTHON_CANDIDATES),$(shell \
+	$(candidate) $(PYTHON_IS_SUPPORTED) >/dev/null 2>&1 && echo $(candidate))))
+VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 SHARED_DATA ?= ../shared/data
@@ -9,6 +14,13 @@ SHARED_DATA ?= ../shared/data
 .PHONY: install run test test-slow test-all lint format bench bench-paper clean
 
 $(BIN)/python:
+	@if [ -z "$(PYTHON)" ] || ! $(PYTHON) $(PYTHON_IS_SUPPORTED) >/dev/null 2>&1; then \
+	  echo "scandiff needs Python 3.11, 3.12 or 3.13, found: $$(for c in $(or $(PYTHON),$(PYTHON_CANDIDATES)); do \
+	    v=$$($$c -c 'import platform; print(platform.python_version())' 2>/dev/null) \
+	    && printf '%s %s; ' "$$c" "$$v" || printf '%s (none); ' "$$c"; done)" >&2; \
+	  echo "install one of them, or name it: make $(MAKECMDGOALS) PYTHON=/path/to/python3.12" >&2; \
+	  exit 1; \
+	fi
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 

@@ -3,7 +3,8 @@
 Routes
 ------
 ``GET /``, ``GET /static/{path}``
-    The dashboard (``static/``: plain HTML/JS/CSS, nothing from a CDN).
+    The dashboard (``static/``, shipped in the wheel as ``app/static``: plain HTML/JS/CSS,
+    nothing from a CDN).
 ``GET|POST|DELETE /api/v1/session``
     Who is signed in; trade a token for an HttpOnly SameSite=Strict session cookie; sign out.
 ``POST /api/v1/jobs/{job_id}/view-link``
@@ -64,7 +65,9 @@ from app.services.errors import AuthenticationError, PermissionDeniedError
 from app.viewer.access import VIEW_COOKIE, ViewGrant, ViewRefusal
 from app.viewer.routes import build_viewer_router, new_viewer_manager
 
-STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
+STATIC_DIR = (Path(__file__).resolve().parents[1] / "static").resolve()
+"""The dashboard's files: ``app/static`` (in a checkout a symlink to the top-level ``static/``; in
+an installed wheel the files themselves, shipped as package data)."""
 NO_STORE = {"Cache-Control": "no-store"}
 SESSION_GRANT_SECONDS = 3600
 """How long a view grant from a session cookie is good for (the cookie is re-read each time)."""

@@ -1,9 +1,9 @@
 """Apply the Alembic migrations programmatically (``scandiff serve`` and ``token`` do).
 
-The scripts live in ``migrations/`` at the project root; ``alembic.ini`` there serves the
-``alembic`` command line.  Migrations on SQLite run with ``foreign_keys=OFF``: batch migrations
-recreate tables, and dropping a parent table with foreign keys on would cascade-delete its
-children's rows.
+The scripts live in ``migrations/`` at the project root (shipped in the wheel as
+``app/migrations``); ``alembic.ini`` there serves the ``alembic`` command line.  Migrations on
+SQLite run with ``foreign_keys=OFF``: batch migrations recreate tables, and dropping a parent
+table with foreign keys on would cascade-delete its children's rows.
 """
 
 from __future__ import annotations
@@ -20,7 +20,9 @@ from sqlalchemy.engine import make_url
 
 from app.db.session import make_engine
 
-MIGRATIONS_DIR = Path(__file__).resolve().parents[2] / "migrations"
+MIGRATIONS_DIR = (Path(__file__).resolve().parents[1] / "migrations").resolve()
+"""``app/migrations``: in a checkout a symlink to the top-level ``migrations/``; in an installed
+wheel the scripts themselves, shipped as package data."""
 
 
 def alembic_config(url: str) -> Config:

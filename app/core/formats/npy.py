@@ -17,6 +17,7 @@ the header claims). Pickled object arrays are refused.
 from __future__ import annotations
 
 import io
+import tokenize
 import zipfile
 from typing import BinaryIO
 
@@ -37,6 +38,8 @@ from app.core.formats._common import (
 
 NPY_MAGIC = b"\x93NUMPY"
 POINT_KEYS = ("points", "xyz")
+# numpy.lib.format refuses longer headers by default (max_header_size); a numeric array's is ~128.
+MAX_HEADER_BYTES = 10_000
 
 
 def read_npy(source: Source, max_points: int | None) -> RawCloud:
@@ -129,17 +132,63 @@ def read_npz(source: Source, max_points: int | None) -> RawCloud:
 def _read_header(stream: BinaryIO, what: str) -> tuple[tuple[int, ...], bool, np.dtype]:
     try:
         version = npy_format.read_magic(stream)
-        if version == (1, 0):
-            shape, fortran_order, dtype = npy_format.read_array_header_1_0(stream)
-        elif version in ((2, 0), (3, 0)):
-            shape, fortran_order, dtype = npy_format.read_array_header_2_0(stream)
-        else:
+        if version not in ((1, 0), (2, 0), (3, 0)):
             raise PointCloudError(f"{what}: unsupported .npy format version {version}")
+        length_field = stream.read(2 if version == (1, 0) else 4)
+        header = _vetted_header(length_field, stream, version, what)
+        # numpy parses the vetted bytes (its tokenizer never sees a control byte: on Python 3.12+
+        # a NUL would surface as tokenize's "source code cannot contain null bytes").
+        replay = io.BytesIO(length_field + header)
+        if version == (1, 0):
+            shape, fortran_order, dtype = npy_format.read_array_header_1_0(replay)
+        else:
+            shape, fortran_order, dtype = npy_format.read_array_header_2_0(replay)
     except PointCloudError:
         raise
-    except (ValueError, SyntaxError, EOFError, UnicodeDecodeError) as exc:
+    except (ValueError, SyntaxError, EOFError, UnicodeDecodeError, tokenize.TokenError) as exc:
         raise PointCloudError(f"malformed header in {what}: {exc}") from exc
     return tuple(int(n) for n in shape), bool(fortran_order), dtype
+
+
+def _vetted_header(
+    length_field: bytes, stream: BinaryIO, version: tuple[int, int], what: str
+) -> bytes:
+    """The header's bytes, refused if they hold a control character (other than newline).
+
+    Parameters
+    ----------
+    length_field : bytes
+        The little-endian header length after the magic: 2 bytes (version 1.0) or 4 bytes.
+    stream : BinaryIO
+        Positioned at the header's first byte; left after its last.
+    version : tuple of int
+        The ``.npy`` format version from the magic.
+    what : str
+        The array's name in messages.
+
+    Returns
+    -------
+    bytes
+        The header, ``length`` bytes, as numpy's header readers expect it after the length.
+    """
+    if len(length_field) < (2 if version == (1, 0) else 4):
+        raise PointCloudError(f"malformed header in {what}: the file ends inside the header")
+    length = int.from_bytes(length_field, "little")
+    if length > MAX_HEADER_BYTES:
+        raise PointCloudError(
+            f"malformed header in {what}: it claims {length:,} bytes, more than the "
+            f"{MAX_HEADER_BYTES:,} a numeric array needs"
+        )
+    header = stream.read(length)
+    if len(header) < length:
+        raise PointCloudError(f"malformed header in {what}: the file ends inside the header")
+    for position, byte in enumerate(header):
+        if (byte < 0x20 and byte != 0x0A) or byte == 0x7F:
+            raise PointCloudError(
+                f"malformed header in {what}: byte {position} of the header is {byte:#04x}, "
+                "a control character; the file is corrupt (rewrite it with numpy.save)"
+            )
+    return header
 
 
 def _check_array(
