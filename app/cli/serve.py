@@ -136,8 +136,18 @@ def ensure_admin_token(settings: Settings) -> str | None:
     return token
 
 
-def prepare(settings: Settings) -> str | None:
-    """Everything before the children start; the admin token on first start."""
+SHARED_DATA_SWEEP_MIN_AGE_SECONDS = 3600.0
+"""Start-up sweep of an API-only process (``--workers 0``): other processes share the data
+directory and may be mid-upload or mid-write, so only files this old are leftovers."""
+
+
+def prepare(settings: Settings, *, data_dir_shared: bool = False) -> str | None:
+    """Everything before the children start; the admin token on first start.
+
+    ``data_dir_shared``: other API or worker processes use the data directory now (an API-only
+    process of a scaled-out deployment), so the sweep spares recent temporary and unreferenced
+    files: an upload in flight elsewhere is not a leftover.
+    """
     from app.db.migrate import upgrade_to_head
     from app.db.session import get_engine
     from app.jobs.queue import close_queue_connections
@@ -146,7 +156,9 @@ def prepare(settings: Settings) -> str | None:
 
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     upgrade_to_head(settings.sqlalchemy_url)
-    sweep_temporary_files(settings)
+    sweep_temporary_files(
+        settings, min_age_seconds=SHARED_DATA_SWEEP_MIN_AGE_SECONDS if data_dir_shared else 0.0
+    )
     report = recovery_sweep(settings)
     if report.enqueued or report.failed_expired:
         logger.info(
@@ -216,7 +228,7 @@ class Supervisor:
 
 def serve(settings: Settings, roles: tuple[str, ...] = CHILD_ROLES) -> int:
     """Prepare, start the children, and supervise them until stopped; the exit status."""
-    token = prepare(settings)
+    token = prepare(settings, data_dir_shared="consumer" not in roles)
     url = f"http://{settings.host}:{settings.port}"
     print(f"scandiff serving at {url}  (API docs: {url}/docs)", flush=True)
     print(f"data directory: {settings.data_dir}", flush=True)

@@ -15,7 +15,7 @@ from alembic import command
 from alembic.config import Config
 from alembic.runtime.migration import MigrationContext
 from alembic.script import ScriptDirectory
-from sqlalchemy import Engine, create_engine
+from sqlalchemy import Engine, create_engine, text
 from sqlalchemy.engine import make_url
 
 from app.db.session import make_engine
@@ -43,9 +43,34 @@ def migration_engine(url: str) -> Engine:
     return make_engine(url, foreign_keys=False)
 
 
+MIGRATION_LOCK_KEY = 0x5CA4D1FF
+"""PostgreSQL advisory-lock key held while migrating: API replicas starting together take turns."""
+
+
 def upgrade_to_head(url: str) -> None:
-    """Bring the database at ``url`` to the newest revision (creating a SQLite file if needed)."""
-    command.upgrade(alembic_config(url), "head")
+    """Bring the database at ``url`` to the newest revision (creating a SQLite file if needed).
+
+    On PostgreSQL the upgrade holds an advisory lock, so replicas starting at once on an empty
+    database migrate one after the other (the later ones find it at head) instead of colliding.
+    SQLite needs none: Alembic's transaction there is ``BEGIN IMMEDIATE``-serialised.
+    """
+    config = alembic_config(url)
+    if not url.startswith("postgresql"):
+        command.upgrade(config, "head")
+        return
+    engine = migration_engine(url)
+    try:
+        with engine.connect() as connection:
+            connection.execute(text("SELECT pg_advisory_lock(:key)"), {"key": MIGRATION_LOCK_KEY})
+            try:
+                command.upgrade(config, "head")
+            finally:
+                connection.execute(
+                    text("SELECT pg_advisory_unlock(:key)"), {"key": MIGRATION_LOCK_KEY}
+                )
+                connection.commit()
+    finally:
+        engine.dispose()
 
 
 def downgrade_to_base(url: str) -> None:

@@ -119,3 +119,22 @@ def test_the_sweep_survives_an_unmigrated_database(tmp_path: Path) -> None:
     ensure_directories(settings)
     (settings.tmp_dir / "1-x.part").write_bytes(b"x")
     assert sweep_temporary_files(settings) == 1
+
+
+@pytest.mark.parametrize("data_dir_shared", [False, True])
+def test_an_api_only_start_spares_uploads_other_processes_are_writing(
+    tmp_path: Path, data_dir_shared: bool
+) -> None:
+    """``scandiff serve --workers 0`` shares its data directory: a fresh upload elsewhere stays."""
+    from app.cli.serve import prepare
+
+    settings = Settings(data_dir=tmp_path / "data")
+    ensure_directories(settings)
+    in_flight = settings.tmp_dir / "456-def.part"  # another replica's upload, still streaming
+    unreferenced = settings.scans_dir / ("e" * 32) / "just-installed.ply"  # row not yet inserted
+    for path in (in_flight, unreferenced):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(b"data")
+    prepare(settings, data_dir_shared=data_dir_shared)
+    assert in_flight.exists() is data_dir_shared
+    assert unreferenced.exists() is data_dir_shared
