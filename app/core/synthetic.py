@@ -314,6 +314,9 @@ def _cast_rays(
     directions: NDArray[np.float64],
     box_low: NDArray[np.float64],
     box_high: NDArray[np.float64],
+    *,
+    shell_low: NDArray[np.float64] = ROOM_MIN,
+    shell_high: NDArray[np.float64] = ROOM_MAX,
 ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """First hit of rays from ``origin`` inside the room shell, with solid boxes in it.
 
@@ -325,6 +328,8 @@ def _cast_rays(
         Unit ray directions.
     box_low, box_high : ndarray, shape (b, 3)
         Corners of the solid boxes.
+    shell_low, shell_high : ndarray, shape (3,)
+        Corners of the closed shell (default: this module's building).
 
     Returns
     -------
@@ -336,8 +341,8 @@ def _cast_rays(
     with np.errstate(divide="ignore", invalid="ignore"):
         inverse = 1.0 / directions
         # leaving the shell: the far slab of each axis
-        to_max = (ROOM_MAX - origin) * inverse
-        to_min = (ROOM_MIN - origin) * inverse
+        to_max = (shell_high - origin) * inverse
+        to_min = (shell_low - origin) * inverse
         exit_distance = np.where(inverse > 0, to_max, to_min)
         exit_distance = np.where(np.isfinite(exit_distance), exit_distance, np.inf).min(axis=1)
         distance = exit_distance
