@@ -44,6 +44,8 @@ from app.core.localise import (
     localise_changes,
     start_neighbourhood_search,
 )
+from app.core.localise.settings import as_origins, as_station_index
+from app.core.localise.stations import STATION_INDEX_ATTRIBUTE
 from app.core.parameters import ParamSpec, validate_parameters
 from app.core.registration import (
     apply_transform,
@@ -175,18 +177,38 @@ class ComparisonResult:
             )
 
 
-def _origin_in_local_frame(
-    explicit: Any, from_file: NDArray[np.float64] | None, local_origin: NDArray[np.float64]
+def _origins_in_local_frame(
+    explicit: Any,
+    from_file: NDArray[np.float64] | None,
+    local_origin: NDArray[np.float64],
+    name: str,
 ) -> NDArray[np.float64] | None:
-    """The sensor origin to use, shifted into local coordinates (None when unknown)."""
-    if explicit is not None:
-        origin = np.asarray(explicit, dtype=np.float64).reshape(-1)
-        if origin.shape != (3,) or not np.isfinite(origin).all():
-            raise InputError(f"a sensor origin must be three finite numbers, got {explicit!r}")
-        return origin - local_origin
+    """The sensor origins to use, shape (k, 3), shifted into local coordinates (None: unknown).
+
+    ``explicit`` is one origin (3 numbers) or one per station ((k, 3)); it overrides the file's.
+    """
+    origins = as_origins(explicit, name)
+    if origins is not None:
+        return origins - local_origin
     if from_file is not None:
-        return np.asarray(from_file, dtype=np.float64) - local_origin
+        return np.asarray(from_file, dtype=np.float64).reshape(-1, 3) - local_origin
     return None
+
+
+def _station_index(cloud: PointCloud, origins: NDArray | None, name: str) -> NDArray | None:
+    """The cloud's per-point ``station_index`` attribute, checked against its origins.
+
+    Raises
+    ------
+    InputError
+        Not one integer per point in ``0 .. k-1`` for the k origins, or no origins.
+    """
+    station = cloud.attributes.get(STATION_INDEX_ATTRIBUTE)
+    if station is None:
+        return None
+    return as_station_index(
+        station, len(cloud), None if origins is None else len(origins), f"{name} station_index"
+    )
 
 
 def _file_frame_transform(
@@ -266,9 +288,8 @@ def parse_comparison_params(
         raise InputError(f"decision must be one of {', '.join(DECISION_RULES)}, got {decision!r}")
     reference_origin = remaining.pop("reference_origin", None)
     scan_origin = remaining.pop("scan_origin", None)
-    for origin in (reference_origin, scan_origin):
-        if origin is not None:
-            _origin_in_local_frame(origin, None, np.zeros(3))  # validates the shape
+    for origin, name in ((reference_origin, "reference_origin"), (scan_origin, "scan_origin")):
+        as_origins(origin, name)  # validates: 3 numbers or a list of them
     try:
         detector = make_detector(method, variant, random_state=random_state, **remaining)
     except TypeError as exc:
@@ -376,10 +397,14 @@ def compare(
     # modifies these arrays in place
     reference_points = reference.points - local_origin if local_origin.any() else reference.points
     scan_points = scan.points - local_origin if local_origin.any() else scan.points
-    reference_origin = _origin_in_local_frame(
-        explicit_reference_origin, reference.sensor_origin, local_origin
+    reference_origin = _origins_in_local_frame(
+        explicit_reference_origin, reference.sensor_origin, local_origin, "reference_origin"
     )
-    scan_origin = _origin_in_local_frame(explicit_scan_origin, scan.sensor_origin, local_origin)
+    scan_origin = _origins_in_local_frame(
+        explicit_scan_origin, scan.sensor_origin, local_origin, "scan_origin"
+    )
+    reference_station = _station_index(reference, reference_origin, "reference")
+    scan_station = _station_index(scan, scan_origin, "scan")
 
     threads = available_threads() if threads is None else max(1, int(threads))
     report("align", 0.05)
@@ -393,7 +418,7 @@ def compare(
             registration = identity_registration(reference_points, scan_points)
         aligned_scan = apply_transform(scan_points, registration.transform)
         if scan_origin is not None:
-            scan_origin = apply_transform(scan_origin[None, :], registration.transform)[0]
+            scan_origin = apply_transform(scan_origin, registration.transform)
         timings["align"] = time.perf_counter() - started
         registration_report = registration.to_json_dict()
         registration_report["transform"] = _file_frame_transform(
@@ -409,6 +434,8 @@ def compare(
                 aligned_scan,
                 reference_origin=reference_origin,
                 scan_origin=scan_origin,
+                reference_station=reference_station,
+                scan_station=scan_station,
                 # Not registration.rmse: that includes sampling distance and real change
                 # (0.15 m on KITTI); localise measures the remaining misalignment itself from
                 # local surfaces.
@@ -469,10 +496,13 @@ def compare(
         "localisation": localisation_params,
         "decision": settings.decision,
     }
-    if explicit_reference_origin is not None:
-        effective_params["reference_origin"] = list(map(float, explicit_reference_origin))
-    if explicit_scan_origin is not None:
-        effective_params["scan_origin"] = list(map(float, explicit_scan_origin))
+    for key, explicit in (
+        ("reference_origin", explicit_reference_origin),
+        ("scan_origin", explicit_scan_origin),
+    ):
+        if explicit is not None:  # as given: one origin, or a list of them
+            given = np.asarray(explicit, dtype=np.float64)
+            effective_params[key] = given.tolist()
     report("done", 1.0)
     return ComparisonResult(
         method=method,

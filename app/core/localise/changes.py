@@ -316,6 +316,7 @@ def localise_changes(
             scan_side,
             candidates=reference_candidates,
             misalignment=misalignment,
+            threshold=threshold,
             settings=settings,
         ),
         lambda: label_candidates(
@@ -323,6 +324,7 @@ def localise_changes(
             reference_side,
             candidates=scan_candidates,
             misalignment=misalignment,
+            threshold=threshold,
             settings=settings,
         ),
     )

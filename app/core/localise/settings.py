@@ -31,6 +31,7 @@ DEFAULT_PARAMETERS: dict[str, Any] = {
     "visibility_angle_factor": 2.5,
     "visibility_beyond_fraction": 0.5,
     "visibility_miss_factor": 4.0,
+    "origin_free_test": "gaps",
 }
 """Keyword parameters of :func:`~app.core.localise.changes.localise_changes` and their defaults.
 
@@ -61,6 +62,11 @@ visibility_beyond_fraction
     Fraction of the rays crossing the candidate's surface near it that must pass beyond it.
 visibility_miss_factor
     "Near": within ``max(miss_factor * own spacing, candidate's distance)`` of the candidate.
+origin_free_test
+    Without the other sensor's origins: ``"gaps"`` (a candidate lying on the other cloud's
+    surface between its samples, like a floor seen only at grazing angles, is unchanged; then
+    the coverage test: :mod:`~app.core.localise.gaps`) or ``"coverage"`` (the coverage test
+    alone, as before issue 15).
 """
 
 PARAMETER_SPECS: dict[str, ParamSpec] = {
@@ -73,6 +79,7 @@ PARAMETER_SPECS: dict[str, ParamSpec] = {
     "visibility_angle_factor": ParamSpec("positive"),
     "visibility_beyond_fraction": ParamSpec("positive", high=1.0),
     "visibility_miss_factor": ParamSpec("positive"),
+    "origin_free_test": ParamSpec("choice", choices=("gaps", "coverage")),
 }
 """How each of :data:`DEFAULT_PARAMETERS` is validated (same names, same order)."""
 

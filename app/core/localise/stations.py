@@ -15,7 +15,11 @@ from numpy.typing import NDArray
 
 from app.core.localise.settings import CHUNK
 
-__all__ = ["assign_stations"]
+__all__ = ["STATION_INDEX_ATTRIBUTE", "assign_stations", "ring_contrast"]
+
+STATION_INDEX_ATTRIBUTE = "station_index"
+"""Name of the per-point attribute (int, index into the cloud's origins) of the station that
+took each point of a merged cloud (a PLY/LAS extra dimension of that name)."""
 
 ELEVATION_BIN_DEG = 0.01
 """Histogram bin of elevations: far below any lidar's ring step (0.2-1 degree)."""

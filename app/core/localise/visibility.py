@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.localise.distance import Side
+from app.core.localise.gaps import in_sampling_gap
 from app.core.localise.rays import (
     STATUS_EDGE_ON,
     STATUS_SEEN_THROUGH,
@@ -83,6 +84,7 @@ def label_candidates(
     *,
     candidates: Candidates,
     misalignment: float,
+    threshold: float,
     settings: dict[str, Any],
 ) -> tuple[NDArray[np.int8], dict[str, Any]]:
     """Label one cloud's points: candidates become changed or unobserved, the rest unchanged.
@@ -98,6 +100,8 @@ def label_candidates(
         ``own``'s change candidates (:func:`find_candidates`).
     misalignment : float
         registration_rmse and the measured alignment residual combined (metres).
+    threshold : float
+        ``tau``: the sampling-gap test's tolerance (without origins).
     settings : dict
         Resolved keyword parameters.
 
@@ -119,6 +123,16 @@ def label_candidates(
             <= settings["coverage_factor"] * other.geometry.spacing[own.nearest_index[index]]
         )
         status = np.where(covered, STATUS_SEEN_THROUGH, STATUS_UNOBSERVED)
+        if settings["origin_free_test"] == "gaps":
+            gap = in_sampling_gap(
+                candidates.points,
+                candidates.normal,
+                own.nearest_distance[index],
+                other=other.geometry,
+                tolerance=threshold,
+            )
+            report[f"{side}_candidates_in_sampling_gaps"] = int(gap.sum())
+            status = np.where(gap, STATUS_SURFACE, status)
     else:
         report[f"{side}_visibility"] = "ray"
         test = RayTest(
