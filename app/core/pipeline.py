@@ -46,6 +46,7 @@ from app.core.localise import (
 )
 from app.core.localise.settings import as_origins, as_station_index
 from app.core.localise.stations import STATION_INDEX_ATTRIBUTE
+from app.core.origins.stations import recover_stations
 from app.core.parameters import ParamSpec, validate_parameters
 from app.core.registration import (
     apply_transform,
@@ -211,6 +212,32 @@ def _station_index(cloud: PointCloud, origins: NDArray | None, name: str) -> NDA
     )
 
 
+def _recovered(
+    points: NDArray[np.float64], side: str, report: dict[str, Any]
+) -> NDArray[np.float64] | None:
+    """The stations of a merged cloud without origins, when it has several (else None).
+
+    Adds ``{side}_recovered_stations`` (origins, local frame) and their ring shares to
+    ``report``.
+    """
+    found = recover_stations(points)
+    report[f"{side}_recovered_stations"] = found.origins.tolist()
+    report[f"{side}_recovered_ring_share"] = found.ring_share.tolist()
+    return found.origins if found.several else None
+
+
+def _in_file_frame(report: dict[str, Any], local_origin: NDArray[np.float64]) -> dict[str, Any]:
+    """``report`` with its recovered station origins shifted back into the files' frame."""
+    return {
+        key: (
+            (np.asarray(value, dtype=np.float64).reshape(-1, 3) + local_origin).tolist()
+            if key.endswith("_recovered_stations")
+            else value
+        )
+        for key, value in report.items()
+    }
+
+
 def _file_frame_transform(
     local_transform: NDArray[np.float64], local_origin: NDArray[np.float64]
 ) -> NDArray[np.float64]:
@@ -233,6 +260,7 @@ class ComparisonSettings:
     reference_origin: Any
     scan_origin: Any
     decision: str
+    recover_stations: bool = True
 
 
 REGISTRATION_SPECS: dict[str, ParamSpec] = {
@@ -286,6 +314,9 @@ def parse_comparison_params(
     decision = remaining.pop("decision", DECISION_RULES[0])
     if decision not in DECISION_RULES:
         raise InputError(f"decision must be one of {', '.join(DECISION_RULES)}, got {decision!r}")
+    recover = remaining.pop("recover_stations", True)
+    if not isinstance(recover, bool):
+        raise InputError(f"recover_stations must be true or false, got {recover!r}")
     reference_origin = remaining.pop("reference_origin", None)
     scan_origin = remaining.pop("scan_origin", None)
     for origin, name in ((reference_origin, "reference_origin"), (scan_origin, "scan_origin")):
@@ -302,6 +333,7 @@ def parse_comparison_params(
         reference_origin=reference_origin,
         scan_origin=scan_origin,
         decision=decision,
+        recover_stations=recover,
     )
 
 
@@ -358,9 +390,13 @@ def compare(
     params : mapping, optional
         Detector keyword parameters, plus the reserved keys ``"registration"`` and
         ``"localisation"`` (dicts of keyword parameters for those stages), ``"decision"``
-        (one of :data:`DECISION_RULES`) and
+        (one of :data:`DECISION_RULES`),
         ``"reference_origin"`` / ``"scan_origin"`` (sensor positions in each file's frame,
-        overriding what the file says).
+        overriding what the file says: 3 numbers, or a list of them for a cloud merged from
+        several stations, whose ``station_index`` attribute, if any, says which took each
+        point) and ``"recover_stations"`` (default true: a side without origins that was
+        merged from several stations gets its stations recovered from its points,
+        :func:`app.core.origins.stations.recover_stations`).
     progress : callable, optional
         ``progress(stage, fraction)`` after each stage.
     threads : int, optional
@@ -419,6 +455,14 @@ def compare(
         aligned_scan = apply_transform(scan_points, registration.transform)
         if scan_origin is not None:
             scan_origin = apply_transform(scan_origin, registration.transform)
+        stations_report: dict[str, Any] = {}
+        if settings.recover_stations:
+            started_recovery = time.perf_counter()
+            if reference_origin is None:
+                reference_origin = _recovered(reference_points, "reference", stations_report)
+            if scan_origin is None:
+                scan_origin = _recovered(aligned_scan, "scan", stations_report)
+            timings["stations"] = time.perf_counter() - started_recovery
         timings["align"] = time.perf_counter() - started
         registration_report = registration.to_json_dict()
         registration_report["transform"] = _file_frame_transform(
@@ -495,6 +539,7 @@ def compare(
         "registration": registration_params,
         "localisation": localisation_params,
         "decision": settings.decision,
+        "recover_stations": settings.recover_stations,
     }
     for key, explicit in (
         ("reference_origin", explicit_reference_origin),
@@ -528,6 +573,6 @@ def compare(
             localisation.reference_region.astype(np.int32), -1
         ),
         scan_region=scan.to_source_order(localisation.scan_region.astype(np.int32), -1),
-        localisation=dict(localisation.parameters),
+        localisation={**localisation.parameters, **_in_file_frame(stations_report, local_origin)},
         timings=timings,
     )

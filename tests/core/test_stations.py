@@ -146,7 +146,10 @@ def test_origins_without_station_index_are_assigned_from_the_rings():
     assigned = assign_stations(pair.reference, pair.reference_origins)
     assert np.mean(assigned == pair.reference_station) >= 0.95
     localisation = localise_changes(
-        pair.reference, scan, reference_origin=pair.reference_origins, scan_origin=scan_origins(pair)
+        pair.reference,
+        scan,
+        reference_origin=pair.reference_origins,
+        scan_origin=scan_origins(pair),
     )
     assert localisation.parameters["reference_station_assignment"] == "assigned"
     assert changed_iou(pair, localisation) >= 0.9

@@ -44,8 +44,8 @@ PAIR_NEIGHBOURS = 4
 MAX_PAIR_LENGTH = 0.5
 MIN_HORIZONTAL_SHARE = 0.3
 """A pair whose top-view part is shorter than this share of its length gives no line."""
-MAX_LINES = 60_000
-VOTE_REACH = 12.0
+MAX_LINES = 30_000
+VOTE_REACH = 10.0
 """Each line votes within this many metres of its pair (a lidar's dense returns are near it)."""
 CELL = 0.1
 MAX_STATIONS = 8
@@ -56,7 +56,7 @@ MIN_PEAK_SHARE = 0.2
 """A peak with fewer concurring lines than this share of the first one's is not a station."""
 CONCUR_DISTANCE = 0.003
 FINE_REACH = 0.3
-REFINE_LINES = 6000
+REFINE_LINES = 2500
 """Lines (in random order) near a peak that its refinement uses."""
 """A line concurs with a station when it passes within this many metres of it (column lines
 are exact: range noise moves a return along its ray)."""
@@ -65,7 +65,7 @@ MIN_RING_SHARE = 0.05
 lie on its rings."""
 MIN_RING_POINTS = 500
 HEIGHT_SAMPLE = 40_000
-HEIGHT_COARSE_SAMPLE = 8_000
+HEIGHT_COARSE_SAMPLE = 4_000
 HEIGHT_CHUNK = 64
 HEIGHT_REACH = 8.0
 SURFACE_CLEARANCE = 0.3
@@ -158,7 +158,7 @@ def _least_squares_point(anchor: NDArray, direction: NDArray) -> NDArray[np.floa
 
 def _refined_centre(anchor: NDArray, direction: NDArray, centre: NDArray) -> NDArray:
     """A Hough peak made exact: finer votes around it, then least squares on its lines."""
-    for reach, cell in ((FINE_REACH, 0.02), (0.03, 0.002)):
+    for reach, cell in ((FINE_REACH, 0.03), (0.045, 0.003)):
         near = np.flatnonzero(_distance_to_lines(anchor, direction, centre) <= reach)
         anchor, direction = anchor[near[:REFINE_LINES]], direction[near[:REFINE_LINES]]
         if anchor.shape[0] < 2:
@@ -203,7 +203,7 @@ def column_centres(
     shape = np.ceil((points[:, :2].max(axis=0) + 1.0 - low) / CELL).astype(np.int64) + 1
 
     def votes_of(lines: NDArray[np.int64]) -> NDArray[np.float64]:
-        steps = np.arange(-VOTE_REACH, VOTE_REACH, CELL / 2.0)
+        steps = np.arange(-VOTE_REACH, VOTE_REACH, CELL)
         votes = np.zeros(int(shape[0] * shape[1]))
         for start in range(0, lines.size, 2048):
             part = lines[start : start + 2048]
