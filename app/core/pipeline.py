@@ -44,6 +44,7 @@ from app.core.localise import (
     localise_changes,
     start_neighbourhood_search,
 )
+from app.core.origins.resolve import ResolvedOrigin, resolve_origin
 from app.core.parameters import ParamSpec, validate_parameters
 from app.core.registration import (
     apply_transform,
@@ -128,6 +129,8 @@ class ComparisonResult:
     scan_region: NDArray[np.int32]
     localisation: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+    sensor_origins: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
 
     def label_counts(self) -> dict[str, dict[str, int]]:
         """How many points of each cloud are unchanged, changed and unobserved."""
@@ -160,6 +163,8 @@ class ComparisonResult:
                 "label_counts": self.label_counts(),
                 "localisation": self.localisation,
                 "timings": self.timings,
+                "sensor_origins": self.sensor_origins,
+                "warnings": self.warnings,
             }
         )
 
@@ -211,6 +216,7 @@ class ComparisonSettings:
     reference_origin: Any
     scan_origin: Any
     decision: str
+    estimate_origins: bool = True
 
 
 REGISTRATION_SPECS: dict[str, ParamSpec] = {
@@ -266,6 +272,9 @@ def parse_comparison_params(
         raise InputError(f"decision must be one of {', '.join(DECISION_RULES)}, got {decision!r}")
     reference_origin = remaining.pop("reference_origin", None)
     scan_origin = remaining.pop("scan_origin", None)
+    estimate_origins = remaining.pop("estimate_origins", True)
+    if not isinstance(estimate_origins, bool):
+        raise InputError(f"estimate_origins must be true or false, got {estimate_origins!r}")
     for origin in (reference_origin, scan_origin):
         if origin is not None:
             _origin_in_local_frame(origin, None, np.zeros(3))  # validates the shape
@@ -281,6 +290,7 @@ def parse_comparison_params(
         reference_origin=reference_origin,
         scan_origin=scan_origin,
         decision=decision,
+        estimate_origins=estimate_origins,
     )
 
 
@@ -339,7 +349,9 @@ def compare(
         ``"localisation"`` (dicts of keyword parameters for those stages), ``"decision"``
         (one of :data:`DECISION_RULES`) and
         ``"reference_origin"`` / ``"scan_origin"`` (sensor positions in each file's frame,
-        overriding what the file says).
+        overriding what the file says) and ``"estimate_origins"`` (default true: estimate a
+        missing or contradicted origin from the points, :mod:`app.core.origins.resolve`).
+        The origins used are reported in ``sensor_origins``, contradicted ones in ``warnings``.
     progress : callable, optional
         ``progress(stage, fraction)`` after each stage.
     threads : int, optional
@@ -376,10 +388,17 @@ def compare(
     # modifies these arrays in place
     reference_points = reference.points - local_origin if local_origin.any() else reference.points
     scan_points = scan.points - local_origin if local_origin.any() else scan.points
-    reference_origin = _origin_in_local_frame(
-        explicit_reference_origin, reference.sensor_origin, local_origin
+    started = time.perf_counter()
+    resolved_reference = resolve_origin(
+        "reference",
+        reference_points,
+        given=_origin_in_local_frame(explicit_reference_origin, None, local_origin),
+        from_file=_origin_in_local_frame(None, reference.sensor_origin, local_origin),
+        estimate=settings.estimate_origins,
+        random_state=random_state,
     )
-    scan_origin = _origin_in_local_frame(explicit_scan_origin, scan.sensor_origin, local_origin)
+    reference_origin = resolved_reference.origin
+    timings["origins"] = time.perf_counter() - started
 
     threads = available_threads() if threads is None else max(1, int(threads))
     report("align", 0.05)
@@ -392,9 +411,13 @@ def compare(
         else:
             registration = identity_registration(reference_points, scan_points)
         aligned_scan = apply_transform(scan_points, registration.transform)
-        if scan_origin is not None:
-            scan_origin = apply_transform(scan_origin[None, :], registration.transform)[0]
         timings["align"] = time.perf_counter() - started
+        started = time.perf_counter()
+        resolved_scan = _resolve_scan_origin(
+            settings, scan, aligned_scan, registration.transform, local_origin, random_state
+        )
+        scan_origin = resolved_scan.origin
+        timings["origins"] += time.perf_counter() - started
         registration_report = registration.to_json_dict()
         registration_report["transform"] = _file_frame_transform(
             registration.transform, local_origin
@@ -473,6 +496,8 @@ def compare(
         effective_params["reference_origin"] = list(map(float, explicit_reference_origin))
     if explicit_scan_origin is not None:
         effective_params["scan_origin"] = list(map(float, explicit_scan_origin))
+    if not settings.estimate_origins:
+        effective_params["estimate_origins"] = False
     report("done", 1.0)
     return ComparisonResult(
         method=method,
@@ -500,4 +525,41 @@ def compare(
         scan_region=scan.to_source_order(localisation.scan_region.astype(np.int32), -1),
         localisation=dict(localisation.parameters),
         timings=timings,
+        sensor_origins={
+            "reference": resolved_reference.report(lambda origin: origin + local_origin),
+            "scan": resolved_scan.report(
+                lambda origin: _to_scan_file(origin, registration.transform, local_origin)
+            ),
+        },
+        warnings=[*resolved_reference.warnings, *resolved_scan.warnings],
+    )
+
+
+def _to_scan_file(
+    origin: NDArray[np.float64], transform: NDArray[np.float64], local_origin: NDArray
+) -> NDArray[np.float64]:
+    """A position in the aligned local frame, in the scan file's coordinates, shape (3,)."""
+    return apply_transform(origin[None, :], np.linalg.inv(transform))[0] + local_origin
+
+
+def _resolve_scan_origin(
+    settings: ComparisonSettings,
+    scan: PointCloud,
+    aligned_scan: NDArray[np.float64],
+    transform: NDArray[np.float64],
+    local_origin: NDArray[np.float64],
+    random_state: int,
+) -> ResolvedOrigin:
+    """The scan's origin, resolved in the aligned local frame (z up like the reference's)."""
+
+    def aligned(origin: NDArray[np.float64] | None) -> NDArray[np.float64] | None:
+        return None if origin is None else apply_transform(origin[None, :], transform)[0]
+
+    return resolve_origin(
+        "scan",
+        aligned_scan,
+        given=aligned(_origin_in_local_frame(settings.scan_origin, None, local_origin)),
+        from_file=aligned(_origin_in_local_frame(None, scan.sensor_origin, local_origin)),
+        estimate=settings.estimate_origins,
+        random_state=random_state,
     )
