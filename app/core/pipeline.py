@@ -44,9 +44,9 @@ from app.core.localise import (
     localise_changes,
     start_neighbourhood_search,
 )
-from app.core.localise.settings import as_origins, as_station_index
-from app.core.localise.stations import STATION_INDEX_ATTRIBUTE
-from app.core.origins.stations import recover_stations
+from app.core.localise.settings import as_origins
+from app.core.origins.resolve import ResolvedOrigin
+from app.core.origins.stations import origins_in_local_frame, resolve_stations, station_index_of
 from app.core.parameters import ParamSpec, validate_parameters
 from app.core.registration import (
     apply_transform,
@@ -131,6 +131,8 @@ class ComparisonResult:
     scan_region: NDArray[np.int32]
     localisation: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+    sensor_origins: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
 
     def label_counts(self) -> dict[str, dict[str, int]]:
         """How many points of each cloud are unchanged, changed and unobserved."""
@@ -163,6 +165,8 @@ class ComparisonResult:
                 "label_counts": self.label_counts(),
                 "localisation": self.localisation,
                 "timings": self.timings,
+                "sensor_origins": self.sensor_origins,
+                "warnings": self.warnings,
             }
         )
 
@@ -176,66 +180,6 @@ class ComparisonResult:
                 reference_label=self.reference_label.astype(np.int8),
                 scan_label=self.scan_label.astype(np.int8),
             )
-
-
-def _origins_in_local_frame(
-    explicit: Any,
-    from_file: NDArray[np.float64] | None,
-    local_origin: NDArray[np.float64],
-    name: str,
-) -> NDArray[np.float64] | None:
-    """The sensor origins to use, shape (k, 3), shifted into local coordinates (None: unknown).
-
-    ``explicit`` is one origin (3 numbers) or one per station ((k, 3)); it overrides the file's.
-    """
-    origins = as_origins(explicit, name)
-    if origins is not None:
-        return origins - local_origin
-    if from_file is not None:
-        return np.asarray(from_file, dtype=np.float64).reshape(-1, 3) - local_origin
-    return None
-
-
-def _station_index(cloud: PointCloud, origins: NDArray | None, name: str) -> NDArray | None:
-    """The cloud's per-point ``station_index`` attribute, checked against its origins.
-
-    Raises
-    ------
-    InputError
-        Not one integer per point in ``0 .. k-1`` for the k origins, or no origins.
-    """
-    station = cloud.attributes.get(STATION_INDEX_ATTRIBUTE)
-    if station is None:
-        return None
-    return as_station_index(
-        station, len(cloud), None if origins is None else len(origins), f"{name} station_index"
-    )
-
-
-def _recovered(
-    points: NDArray[np.float64], side: str, report: dict[str, Any]
-) -> NDArray[np.float64] | None:
-    """The stations of a merged cloud without origins, when it has several (else None).
-
-    Adds ``{side}_recovered_stations`` (origins, local frame) and their ring shares to
-    ``report``.
-    """
-    found = recover_stations(points)
-    report[f"{side}_recovered_stations"] = found.origins.tolist()
-    report[f"{side}_recovered_ring_share"] = found.ring_share.tolist()
-    return found.origins if found.several else None
-
-
-def _in_file_frame(report: dict[str, Any], local_origin: NDArray[np.float64]) -> dict[str, Any]:
-    """``report`` with its recovered station origins shifted back into the files' frame."""
-    return {
-        key: (
-            (np.asarray(value, dtype=np.float64).reshape(-1, 3) + local_origin).tolist()
-            if key.endswith("_recovered_stations")
-            else value
-        )
-        for key, value in report.items()
-    }
 
 
 def _file_frame_transform(
@@ -260,6 +204,7 @@ class ComparisonSettings:
     reference_origin: Any
     scan_origin: Any
     decision: str
+    estimate_origins: bool = True
     recover_stations: bool = True
 
 
@@ -314,11 +259,14 @@ def parse_comparison_params(
     decision = remaining.pop("decision", DECISION_RULES[0])
     if decision not in DECISION_RULES:
         raise InputError(f"decision must be one of {', '.join(DECISION_RULES)}, got {decision!r}")
+    reference_origin = remaining.pop("reference_origin", None)
+    scan_origin = remaining.pop("scan_origin", None)
+    estimate_origins = remaining.pop("estimate_origins", True)
+    if not isinstance(estimate_origins, bool):
+        raise InputError(f"estimate_origins must be true or false, got {estimate_origins!r}")
     recover = remaining.pop("recover_stations", True)
     if not isinstance(recover, bool):
         raise InputError(f"recover_stations must be true or false, got {recover!r}")
-    reference_origin = remaining.pop("reference_origin", None)
-    scan_origin = remaining.pop("scan_origin", None)
     for origin, name in ((reference_origin, "reference_origin"), (scan_origin, "scan_origin")):
         as_origins(origin, name)  # validates: 3 numbers or a list of them
     try:
@@ -333,6 +281,7 @@ def parse_comparison_params(
         reference_origin=reference_origin,
         scan_origin=scan_origin,
         decision=decision,
+        estimate_origins=estimate_origins,
         recover_stations=recover,
     )
 
@@ -390,13 +339,15 @@ def compare(
     params : mapping, optional
         Detector keyword parameters, plus the reserved keys ``"registration"`` and
         ``"localisation"`` (dicts of keyword parameters for those stages), ``"decision"``
-        (one of :data:`DECISION_RULES`),
+        (one of :data:`DECISION_RULES`) and
         ``"reference_origin"`` / ``"scan_origin"`` (sensor positions in each file's frame,
         overriding what the file says: 3 numbers, or a list of them for a cloud merged from
         several stations, whose ``station_index`` attribute, if any, says which took each
-        point) and ``"recover_stations"`` (default true: a side without origins that was
-        merged from several stations gets its stations recovered from its points,
-        :func:`app.core.origins.stations.recover_stations`).
+        point), ``"estimate_origins"`` (default true: estimate a missing or contradicted
+        origin from the points, :mod:`app.core.origins.resolve`) and ``"recover_stations"``
+        (default true: a cloud with no origin that was merged from several stations gets
+        them recovered, :func:`app.core.origins.stations.recover_stations`).
+        The origins used are reported in ``sensor_origins``, contradicted ones in ``warnings``.
     progress : callable, optional
         ``progress(stage, fraction)`` after each stage.
     threads : int, optional
@@ -433,14 +384,21 @@ def compare(
     # modifies these arrays in place
     reference_points = reference.points - local_origin if local_origin.any() else reference.points
     scan_points = scan.points - local_origin if local_origin.any() else scan.points
-    reference_origin = _origins_in_local_frame(
-        explicit_reference_origin, reference.sensor_origin, local_origin, "reference_origin"
+    started = time.perf_counter()
+    resolved_reference = resolve_stations(
+        "reference",
+        reference_points,
+        given=origins_in_local_frame(
+            explicit_reference_origin, None, local_origin, "reference_origin"
+        ),
+        from_file=origins_in_local_frame(None, reference.sensor_origin, local_origin),
+        estimate=settings.estimate_origins,
+        recover=settings.recover_stations,
+        random_state=random_state,
     )
-    scan_origin = _origins_in_local_frame(
-        explicit_scan_origin, scan.sensor_origin, local_origin, "scan_origin"
-    )
-    reference_station = _station_index(reference, reference_origin, "reference")
-    scan_station = _station_index(scan, scan_origin, "scan")
+    reference_origin = resolved_reference.origin
+    reference_station = station_index_of(reference, resolved_reference, "reference")
+    timings["origins"] = time.perf_counter() - started
 
     threads = available_threads() if threads is None else max(1, int(threads))
     report("align", 0.05)
@@ -453,17 +411,14 @@ def compare(
         else:
             registration = identity_registration(reference_points, scan_points)
         aligned_scan = apply_transform(scan_points, registration.transform)
-        if scan_origin is not None:
-            scan_origin = apply_transform(scan_origin, registration.transform)
-        stations_report: dict[str, Any] = {}
-        if settings.recover_stations:
-            started_recovery = time.perf_counter()
-            if reference_origin is None:
-                reference_origin = _recovered(reference_points, "reference", stations_report)
-            if scan_origin is None:
-                scan_origin = _recovered(aligned_scan, "scan", stations_report)
-            timings["stations"] = time.perf_counter() - started_recovery
         timings["align"] = time.perf_counter() - started
+        started = time.perf_counter()
+        resolved_scan = _resolve_scan_origin(
+            settings, scan, aligned_scan, registration.transform, local_origin, random_state
+        )
+        scan_origin = resolved_scan.origin
+        scan_station = station_index_of(scan, resolved_scan, "scan")
+        timings["origins"] += time.perf_counter() - started
         registration_report = registration.to_json_dict()
         registration_report["transform"] = _file_frame_transform(
             registration.transform, local_origin
@@ -539,15 +494,17 @@ def compare(
         "registration": registration_params,
         "localisation": localisation_params,
         "decision": settings.decision,
-        "recover_stations": settings.recover_stations,
     }
     for key, explicit in (
         ("reference_origin", explicit_reference_origin),
         ("scan_origin", explicit_scan_origin),
     ):
         if explicit is not None:  # as given: one origin, or a list of them
-            given = np.asarray(explicit, dtype=np.float64)
-            effective_params[key] = given.tolist()
+            effective_params[key] = np.asarray(explicit, dtype=np.float64).tolist()
+    if not settings.recover_stations:
+        effective_params["recover_stations"] = False
+    if not settings.estimate_origins:
+        effective_params["estimate_origins"] = False
     report("done", 1.0)
     return ComparisonResult(
         method=method,
@@ -573,6 +530,47 @@ def compare(
             localisation.reference_region.astype(np.int32), -1
         ),
         scan_region=scan.to_source_order(localisation.scan_region.astype(np.int32), -1),
-        localisation={**localisation.parameters, **_in_file_frame(stations_report, local_origin)},
+        localisation=dict(localisation.parameters),
         timings=timings,
+        sensor_origins={
+            "reference": resolved_reference.report(lambda origin: origin + local_origin),
+            "scan": resolved_scan.report(
+                lambda origin: _to_scan_file(origin, registration.transform, local_origin)
+            ),
+        },
+        warnings=[*resolved_reference.warnings, *resolved_scan.warnings],
+    )
+
+
+def _to_scan_file(
+    origin: NDArray[np.float64], transform: NDArray[np.float64], local_origin: NDArray
+) -> NDArray[np.float64]:
+    """Positions in the aligned local frame, in the scan file's coordinates, shape (3,)/(k, 3)."""
+    moved = apply_transform(origin.reshape(-1, 3), np.linalg.inv(transform)) + local_origin
+    return moved.reshape(origin.shape)
+
+
+def _resolve_scan_origin(
+    settings: ComparisonSettings,
+    scan: PointCloud,
+    aligned_scan: NDArray[np.float64],
+    transform: NDArray[np.float64],
+    local_origin: NDArray[np.float64],
+    random_state: int,
+) -> ResolvedOrigin:
+    """The scan's origin, resolved in the aligned local frame (z up like the reference's)."""
+
+    def aligned(origins: NDArray[np.float64] | None) -> NDArray[np.float64] | None:
+        return None if origins is None else apply_transform(origins, transform)
+
+    return resolve_stations(
+        "scan",
+        aligned_scan,
+        given=aligned(
+            origins_in_local_frame(settings.scan_origin, None, local_origin, "scan_origin")
+        ),
+        from_file=aligned(origins_in_local_frame(None, scan.sensor_origin, local_origin)),
+        estimate=settings.estimate_origins,
+        recover=settings.recover_stations,
+        random_state=random_state,
     )

@@ -22,18 +22,30 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
-from app.core.localise.stations import RING_CONTRAST, SMOOTHING_BINS, ring_contrast
+from app.core.cloud import PointCloud
+from app.core.localise.settings import as_origins, as_station_index
+from app.core.localise.stations import (
+    RING_CONTRAST,
+    SMOOTHING_BINS,
+    STATION_INDEX_ATTRIBUTE,
+    ring_contrast,
+)
+from app.core.origins.resolve import ResolvedOrigin, resolve_origin
 
 __all__ = [
     "RecoveredStations",
     "column_centres",
+    "origins_in_local_frame",
     "recover_stations",
+    "resolve_stations",
     "station_height",
+    "station_index_of",
 ]
 
 MAX_POINTS = 300_000
@@ -352,3 +364,96 @@ def recover_stations(
         concurring_lines=np.array(supports, dtype=np.int64),
         n_lines=n_lines,
     )
+
+
+def resolve_stations(
+    side: str,
+    points: NDArray[np.float64],
+    *,
+    given: NDArray[np.float64] | None,
+    from_file: NDArray[np.float64] | None,
+    estimate: bool,
+    recover: bool,
+    random_state: int = 0,
+) -> ResolvedOrigin:
+    """The origin(s) of one cloud: several given, or one resolved, or stations recovered.
+
+    Several given origins (a merged survey's stations) are used as given.  One origin (given,
+    from the file or estimated) goes through :func:`~app.core.origins.resolve.resolve_origin`.
+    When that leaves the cloud without an origin and ``recover``, the cloud's stations are
+    recovered (:func:`recover_stations`) and used when there are several.
+
+    Parameters
+    ----------
+    side : str
+    points : ndarray, shape (n, 3)
+        In the frame the origins are used in (z up).
+    given : ndarray, shape (k, 3), or None
+    from_file : ndarray, shape (1, 3) or (3,), or None
+    estimate, recover : bool
+    random_state : int
+
+    Returns
+    -------
+    ResolvedOrigin
+        ``origin`` of shape (k, 3) with k >= 2 for several stations, else as
+        :func:`~app.core.origins.resolve.resolve_origin` gives it.
+    """
+    if given is not None and len(given) > 1:
+        return ResolvedOrigin(given, "given", None)
+    resolved = resolve_origin(
+        side,
+        points,
+        given=None if given is None else given[0],
+        from_file=None if from_file is None else np.asarray(from_file).reshape(3),
+        estimate=estimate,
+        random_state=random_state,
+    )
+    if resolved.origin is not None or not recover:
+        return resolved
+    found = recover_stations(points, random_state=random_state)
+    if not found.several:
+        return resolved
+    return ResolvedOrigin(
+        found.origins,
+        "recovered",
+        None,
+        resolved.warnings,
+        resolved.evidence,
+        station_confidence=[round(float(share), 3) for share in found.ring_share],
+    )
+
+
+def origins_in_local_frame(
+    explicit: Any,
+    from_file: NDArray[np.float64] | None,
+    local_origin: NDArray[np.float64],
+    name: str = "sensor origin",
+) -> NDArray[np.float64] | None:
+    """The sensor origins to use, shape (k, 3), shifted into local coordinates (None: unknown).
+
+    ``explicit`` is one origin (3 numbers) or one per station ((k, 3)); it overrides the file's.
+    """
+    origins = as_origins(explicit, name)
+    if origins is not None:
+        return origins - local_origin
+    if from_file is not None:
+        return np.asarray(from_file, dtype=np.float64).reshape(-1, 3) - local_origin
+    return None
+
+
+def station_index_of(cloud: PointCloud, resolved: ResolvedOrigin, name: str) -> NDArray | None:
+    """The cloud's ``station_index`` attribute, checked against origins given for it.
+
+    Used only with given (or file) origins, whose order it refers to; ignored otherwise.
+
+    Raises
+    ------
+    InputError
+        Not one integer per point in ``0 .. k-1`` for the k origins.
+    """
+    station = cloud.attributes.get(STATION_INDEX_ATTRIBUTE)
+    if station is None or resolved.origin is None or resolved.source not in ("given", "file"):
+        return None
+    count = np.asarray(resolved.origin).reshape(-1, 3).shape[0]
+    return as_station_index(station, len(cloud), count, f"the {name}'s station_index")
