@@ -16,7 +16,8 @@ Per scene and mode: changed regions (the decision: changed when there is one), I
 points over the points some station of the other epoch saw.
 
 Run: ``.venv/bin/python bench/stations.py [--seeds 2] [--step 1.0] [--modes given,recovered]``;
-prints a table and writes it to ``bench/results/stations.md``.
+prints a table and writes it as the section "Several stations per cloud" of
+``bench/results/visibility.md`` (other sections are kept).
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 MODES = ("given", "origins", "recovered", "origin-free", "coverage")
 CHANGES = ("added", "removed", "mixed", "none")
 LAYOUTS = ("room", "corridor", "warehouse")
+SECTION = "Several stations per cloud (bench/stations.py)"
 
 
 def changed_iou(pair, localisation) -> float:
@@ -142,8 +144,22 @@ def main() -> None:
         )
     table = "\n".join(lines)
     print(table)
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "stations.md").write_text(table + "\n")
+    write_section(RESULTS / "visibility.md", SECTION, table)
+
+
+def write_section(path: Path, title: str, body: str) -> None:
+    """Replace (or append) the ``## title`` section of a Markdown file with ``body``."""
+    text = path.read_text() if path.exists() else "# Visibility without being told\n"
+    heading = f"## {title}\n"
+    start = text.find(heading)
+    if start < 0:
+        text = text.rstrip("\n") + "\n\n" + heading + "\n" + body + "\n"
+    else:
+        end = text.find("\n## ", start + len(heading))
+        rest = "" if end < 0 else text[end:]
+        text = text[:start] + heading + "\n" + body + "\n" + rest
+    path.parent.mkdir(exist_ok=True)
+    path.write_text(text)
 
 
 if __name__ == "__main__":
