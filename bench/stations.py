@@ -67,14 +67,15 @@ def localise(pair, scan, scan_origins, mode: str):
         for side, found in zip(("reference", "scan"), recovered, strict=True):
             if found.several:
                 options[f"{side}_origin"] = found.origins
-    elif mode == "coverage":
-        options["origin_free_test"] = "coverage"
+    elif mode == "origin-free":
+        options["origin_free_test"] = "gaps"
     return localise_changes(pair.reference, scan, **options), recovered
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=2)
+    parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--step", type=float, default=1.0, help="lidar grid step, degrees")
     parser.add_argument("--modes", default=",".join(MODES))
     parser.add_argument("--changes", default=",".join(CHANGES))
@@ -82,7 +83,7 @@ def main() -> None:
     args = parser.parse_args()
     modes = args.modes.split(",")
     rows = []
-    for seed in range(args.seeds):
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
         for layout in args.layouts.split(","):
             for change in args.changes.split(","):
                 n_stations = 3 + (seed + len(layout) + len(change)) % 3

@@ -31,7 +31,7 @@ DEFAULT_PARAMETERS: dict[str, Any] = {
     "visibility_angle_factor": 2.5,
     "visibility_beyond_fraction": 0.5,
     "visibility_miss_factor": 4.0,
-    "origin_free_test": "gaps",
+    "origin_free_test": "coverage",
 }
 """Keyword parameters of :func:`~app.core.localise.changes.localise_changes` and their defaults.
 
@@ -63,10 +63,11 @@ visibility_beyond_fraction
 visibility_miss_factor
     "Near": within ``max(miss_factor * own spacing, candidate's distance)`` of the candidate.
 origin_free_test
-    Without the other sensor's origins: ``"gaps"`` (a candidate lying on the other cloud's
-    surface between its samples, like a floor seen only at grazing angles, is unchanged; then
-    the coverage test: :mod:`~app.core.localise.gaps`) or ``"coverage"`` (the coverage test
-    alone, as before issue 15).
+    Without the other sensor's origins: ``"coverage"`` (the coverage test alone) or
+    ``"gaps"`` (a candidate lying on the other cloud's surface between its samples, like a
+    floor seen only at grazing angles, is unchanged; then the coverage test:
+    :mod:`~app.core.localise.gaps`).  ``"gaps"`` is opt-in: it removes false changes in the
+    blind discs of merged surveys but also parts of true changes on the paper's corridor.
 """
 
 PARAMETER_SPECS: dict[str, ParamSpec] = {
