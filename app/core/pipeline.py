@@ -395,7 +395,6 @@ def compare(
         given=_origin_in_local_frame(explicit_reference_origin, None, local_origin),
         from_file=_origin_in_local_frame(None, reference.sensor_origin, local_origin),
         estimate=settings.estimate_origins,
-        random_state=random_state,
     )
     reference_origin = resolved_reference.origin
     timings["origins"] = time.perf_counter() - started
@@ -414,7 +413,7 @@ def compare(
         timings["align"] = time.perf_counter() - started
         started = time.perf_counter()
         resolved_scan = _resolve_scan_origin(
-            settings, scan, aligned_scan, registration.transform, local_origin, random_state
+            settings, scan, aligned_scan, registration.transform, local_origin
         )
         scan_origin = resolved_scan.origin
         timings["origins"] += time.perf_counter() - started
@@ -548,7 +547,6 @@ def _resolve_scan_origin(
     aligned_scan: NDArray[np.float64],
     transform: NDArray[np.float64],
     local_origin: NDArray[np.float64],
-    random_state: int,
 ) -> ResolvedOrigin:
     """The scan's origin, resolved in the aligned local frame (z up like the reference's)."""
 
@@ -561,5 +559,4 @@ def _resolve_scan_origin(
         given=aligned(_origin_in_local_frame(settings.scan_origin, None, local_origin)),
         from_file=aligned(_origin_in_local_frame(None, scan.sensor_origin, local_origin)),
         estimate=settings.estimate_origins,
-        random_state=random_state,
     )
