@@ -9,7 +9,7 @@ compare's time spent on origins.  ``--large`` adds a 1M-point warehouse pair; re
 frames (sensor frame) moved by a rigid transform give the estimate's error on real data.
 
 Run: ``.venv/bin/python bench/visibility.py [--seeds 2] [--quick] [--large]``; writes
-``bench/results/visibility.md``.
+``bench/results/visibility.md`` (``--quick``: ``visibility_quick.md``).
 """
 
 from __future__ import annotations
@@ -179,7 +179,8 @@ def main() -> None:
             *_real_rows(),
         ]
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "visibility.md").write_text("\n".join(lines) + "\n")
+    name = "visibility_quick.md" if args.quick else "visibility.md"  # quick never overwrites
+    (RESULTS / name).write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
