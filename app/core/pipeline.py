@@ -394,7 +394,6 @@ def compare(
         from_file=origins_in_local_frame(None, reference.sensor_origin, local_origin),
         estimate=settings.estimate_origins,
         recover=settings.recover_stations,
-        random_state=random_state,
     )
     reference_origin = resolved_reference.origin
     reference_station = station_index_of(reference, resolved_reference, "reference")
@@ -414,7 +413,7 @@ def compare(
         timings["align"] = time.perf_counter() - started
         started = time.perf_counter()
         resolved_scan = _resolve_scan_origin(
-            settings, scan, aligned_scan, registration.transform, local_origin, random_state
+            settings, scan, aligned_scan, registration.transform, local_origin
         )
         scan_origin = resolved_scan.origin
         scan_station = station_index_of(scan, resolved_scan, "scan")
@@ -556,7 +555,6 @@ def _resolve_scan_origin(
     aligned_scan: NDArray[np.float64],
     transform: NDArray[np.float64],
     local_origin: NDArray[np.float64],
-    random_state: int,
 ) -> ResolvedOrigin:
     """The scan's origin, resolved in the aligned local frame (z up like the reference's)."""
 
@@ -572,5 +570,4 @@ def _resolve_scan_origin(
         from_file=aligned(origins_in_local_frame(None, scan.sensor_origin, local_origin)),
         estimate=settings.estimate_origins,
         recover=settings.recover_stations,
-        random_state=random_state,
     )

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.synthetic import _cast_rays, _random_rotation, _transform_points
+from app.core.synthetic import _cast_rays, _random_rotation, _transform_points, _visible_from
 
 __all__ = [
     "CHANGE_DISTANCE",
@@ -98,18 +98,16 @@ class LidarWorld:
         self, origin: NDArray[np.float64], points: NDArray[np.float64]
     ) -> NDArray[np.bool_]:
         """Whether an upright lidar at ``origin`` sees the exact surface ``points`` (p, 3)."""
-        offset = points - origin
-        distance = np.linalg.norm(offset, axis=1)
-        directions = offset / np.maximum(distance, 1e-12)[:, None]
-        elevation = np.rad2deg(np.arcsin(np.clip(directions[:, 2], -1.0, 1.0)))
-        in_view = (
-            (distance >= RANGE_LIMITS[0])
-            & (distance <= RANGE_LIMITS[1])
-            & (elevation >= ELEVATION_RANGE_DEG[0])
-            & (elevation <= ELEVATION_RANGE_DEG[1])
+        return _visible_from(
+            origin,
+            points,
+            self.box_low,
+            self.box_high,
+            range_limits=RANGE_LIMITS,
+            elevation_deg=ELEVATION_RANGE_DEG,
+            shell_low=self.shell_low,
+            shell_high=self.shell_high,
         )
-        first_hit, _ = self.cast(origin, directions)
-        return in_view & (first_hit >= distance - (1e-6 + 1e-6 * distance))
 
 
 @dataclass(frozen=True)

@@ -28,8 +28,10 @@ HORIZONTAL_NORMAL_Z = 0.8
 """Only points whose local surface normal has at least this vertical component give lines."""
 CONCUR_SINE = 0.02
 """A line concurs with a centre when it points at it within this sine of an angle."""
-HOUGH_CELLS = 160
-HOUGH_LINES = 15_000
+HOUGH_CELLS = 100
+HOUGH_LINES = 5_000
+HOUGH_PEAKS = 6
+"""Accumulator peaks refined; the one most lines point at is kept."""
 """Lines voting in the Hough accumulator (all of them refine its peak)."""
 """Cells along the longer side of the Hough accumulator."""
 
@@ -44,8 +46,7 @@ class ColumnFit:
     concurring_share : float
         Share of the lines pointing at ``centre`` (within :data:`CONCUR_SINE`).
     second_peak_ratio : float
-        Votes of the best other concurrence point (farther than 2 m) over the best's: near 1
-        for a cloud merged from several stations.
+        Votes of the strongest other accumulator peak (1 m away or more) over the chosen one's.
     n_lines : int
     """
 
@@ -116,8 +117,9 @@ def column_lines(
 
 def _hough(
     anchor: NDArray[np.float64], direction: NDArray[np.float64], low: NDArray, high: NDArray
-) -> tuple[NDArray[np.float64], float, float]:
-    """Accumulate lines on a grid over [low, high]; (peak centre, peak votes, second peak)."""
+) -> tuple[list[NDArray[np.float64]], list[float]]:
+    """Accumulate lines on a grid over [low, high]; the :data:`HOUGH_PEAKS` best cells at
+    least 1 m apart (centres, votes), best first."""
     size = float(np.max(high - low)) / HOUGH_CELLS
     shape = np.ceil((high - low) / size).astype(np.int64) + 1
     reach = float(np.linalg.norm(high - low))
@@ -126,8 +128,12 @@ def _hough(
     for start in range(0, len(anchor), 4000):
         a, d = anchor[start : start + 4000], direction[start : start + 4000]
         samples = a[:, None, :] + steps[None, :, None] * d[:, None, :]
-        cell = np.floor((samples - low) / size).astype(np.int64).reshape(-1, 2)
-        inside = np.all((cell >= 0) & (cell < shape), axis=1)
+        cell = ((samples - low) / size).astype(np.int64).reshape(-1, 2)
+        inside = (
+            (samples.reshape(-1, 2) >= low).all(axis=1)
+            & (cell[:, 0] < shape[0])
+            & (cell[:, 1] < shape[1])
+        )
         grid += np.bincount(cell[inside, 0] * shape[1] + cell[inside, 1], minlength=grid.size)
     votes = grid.reshape(shape)
     smooth = votes.copy()
@@ -135,13 +141,16 @@ def _hough(
     smooth[:-1, :] += votes[1:, :]
     smooth[:, 1:] += votes[:, :-1]
     smooth[:, :-1] += votes[:, 1:]
-    best = np.unravel_index(int(np.argmax(smooth)), shape)
-    centre = low + (np.array(best) + 0.5) * size
-    # the best concurrence point farther than 2 m from this one
     rows, cols = np.indices(shape)
-    far = np.hypot((rows - best[0]) * size, (cols - best[1]) * size) > 2.0
-    second = float(smooth[far].max()) if far.any() else 0.0
-    return centre, float(smooth[best]), second
+    centres, peaks = [], []
+    for _ in range(HOUGH_PEAKS):
+        best = np.unravel_index(int(np.argmax(smooth)), shape)
+        if smooth[best] <= 0:
+            break
+        centres.append(low + (np.array(best) + 0.5) * size)
+        peaks.append(float(smooth[best]))
+        smooth[np.hypot((rows - best[0]) * size, (cols - best[1]) * size) < 1.0] = 0.0
+    return centres, peaks
 
 
 def _refine(anchor: NDArray, direction: NDArray, centre: NDArray) -> NDArray[np.float64]:
@@ -172,15 +181,21 @@ def concurring_share(anchor: NDArray, direction: NDArray, centre: NDArray) -> fl
 def fit_column_centre(
     anchor: NDArray[np.float64], direction: NDArray[np.float64], low: NDArray, high: NDArray
 ) -> ColumnFit:
-    """The top-view point where the column lines concur, inside the box [low, high] (2,)."""
+    """The top-view point where the column lines concur, inside the box [low, high] (2,).
+
+    The Hough accumulator's best few peaks are refined; the one most lines point at wins.
+    """
     if len(anchor) < 20:
         return ColumnFit(np.asarray((low + high) / 2.0), 0.0, 1.0, len(anchor))
     voters = np.random.default_rng(0).permutation(len(anchor))[:HOUGH_LINES]
-    centre, peak, second = _hough(anchor[voters], direction[voters], low, high)
-    centre = _refine(anchor, direction, centre)
+    centres, peaks = _hough(anchor[voters], direction[voters], low, high)
+    refined = [_refine(anchor, direction, centre) for centre in centres]
+    shares = [concurring_share(anchor, direction, centre) for centre in refined]
+    best = int(np.argmax(shares))
+    others = [peak for index, peak in enumerate(peaks) if index != best]
     return ColumnFit(
-        centre=centre,
-        concurring_share=concurring_share(anchor, direction, centre),
-        second_peak_ratio=second / peak if peak > 0 else 1.0,
+        centre=refined[best],
+        concurring_share=shares[best],
+        second_peak_ratio=max(others, default=0.0) / peaks[best] if peaks[best] > 0 else 1.0,
         n_lines=len(anchor),
     )

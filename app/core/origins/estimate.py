@@ -28,9 +28,9 @@ CONFIDENT = 0.5
 """An estimate at least this confident is used when no origin is given."""
 MIN_POINTS = 2000
 """Smaller clouds get no estimate (confidence 0)."""
-PATCH_POINTS = 60_000
+PATCH_POINTS = 40_000
 """Points (whole voxels) whose neighbour pairs are examined."""
-QUERY_POINTS = 25_000
+QUERY_POINTS = 15_000
 RING_SHARE_RANGE = (0.6, 0.85)
 """Ring share mapped onto confidence 0..1 (single stations: 0.95-1; four merged: 0.1-0.6)."""
 CONCURRING_RANGE = (0.04, 0.08)
