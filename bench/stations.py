@@ -15,7 +15,7 @@ put back with the true transform so that only visibility is measured).  Modes:
 Per scene and mode: changed regions (the decision: changed when there is one), IoU of changed
 points over the points some station of the other epoch saw.
 
-Run: ``.venv/bin/python bench/stations.py [--seeds 2] [--step 1.0] [--modes given,recovered]``;
+Run: ``.venv/bin/python -m bench.stations [--seeds 2] [--step 1.0] [--modes given,recovered]``;
 prints a table and writes it as the section "Several stations per cloud" of
 ``bench/results/visibility.md`` (other sections are kept).
 """
@@ -28,29 +28,17 @@ from pathlib import Path
 
 import numpy as np
 
-from app.core.localise import LABEL_CHANGED, localise_changes
+from app.core.localise import localise_changes
 from app.core.origins.stations import recover_stations
 from app.core.synthetic import _transform_points
 from app.core.synthetic_lidar import lidar_pair
+from tests.helpers.scenes import changed_iou
 
 RESULTS = Path(__file__).resolve().parent / "results"
 MODES = ("given", "origins", "recovered", "origin-free", "coverage")
 CHANGES = ("added", "removed", "mixed", "none")
 LAYOUTS = ("room", "corridor", "warehouse")
 SECTION = "Several stations per cloud (bench/stations.py)"
-
-
-def changed_iou(pair, localisation) -> float:
-    """IoU of changed points of both clouds over the points the other epoch observed."""
-    intersection = union = 0
-    for label, changed, observed in (
-        (localisation.reference_label, pair.reference_changed, pair.reference_observed),
-        (localisation.scan_label, pair.scan_changed, pair.scan_observed),
-    ):
-        predicted = label == LABEL_CHANGED
-        intersection += np.count_nonzero(predicted & changed & observed)
-        union += np.count_nonzero((predicted | changed) & observed)
-    return intersection / union if union else 1.0
 
 
 def localise(pair, scan, scan_origins, mode: str):

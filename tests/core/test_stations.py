@@ -39,6 +39,7 @@ from app.core.origins.stations import recover_stations
 from app.core.pipeline import compare, parse_comparison_params
 from app.core.synthetic import _transform_points, raycast_scene
 from app.core.synthetic_lidar import LidarPair, lidar_pair
+from tests.helpers.scenes import changed_iou
 
 STEP = 1.2  # degrees: ~25k points a station
 
@@ -59,18 +60,6 @@ def survey(change: str, seed: int = 3, layout: str = "room") -> tuple[LidarPair,
 
 def scan_origins(pair: LidarPair) -> np.ndarray:
     return _transform_points(pair.scan_origins, pair.true_transform)
-
-
-def changed_iou(pair: LidarPair, localisation) -> float:
-    intersection = union = 0
-    for label, changed, observed in (
-        (localisation.reference_label, pair.reference_changed, pair.reference_observed),
-        (localisation.scan_label, pair.scan_changed, pair.scan_observed),
-    ):
-        predicted = label == LABEL_CHANGED
-        intersection += np.count_nonzero(predicted & changed & observed)
-        union += np.count_nonzero((predicted | changed) & observed)
-    return intersection / union if union else 1.0
 
 
 def with_stations(pair: LidarPair, scan: np.ndarray, **options):
@@ -223,19 +212,7 @@ def test_compare_takes_station_lists_and_the_station_index_attribute():
     assert result.localisation["reference_station_assignment"] == "given"
     assert result.localisation["scan_stations"] == 3
     assert result.params["scan_origin"] == pair.scan_origins.tolist()
-    predicted = np.concatenate(
-        [
-            result.reference_label[pair.reference_observed] == LABEL_CHANGED,
-            result.scan_label[pair.scan_observed] == LABEL_CHANGED,
-        ]
-    )
-    truth = np.concatenate(
-        [
-            pair.reference_changed[pair.reference_observed],
-            pair.scan_changed[pair.scan_observed],
-        ]
-    )
-    assert np.count_nonzero(predicted & truth) / np.count_nonzero(predicted | truth) >= 0.9
+    assert changed_iou(pair, result) >= 0.9
 
 
 @pytest.mark.parametrize(
