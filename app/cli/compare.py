@@ -108,6 +108,12 @@ def _print_summary(result: ComparisonResult, reference: Path, scan: Path) -> Non
         f"{counts['reference']['unobserved']} unobserved), scan {result.n_scan} "
         f"({counts['scan']['changed']} added, {counts['scan']['unobserved']} unobserved)"
     )
+    for side in ("reference", "scan"):
+        for entry in result.sensor_origins.get(side, []):
+            where = ", ".join(f"{value:.2f}" for value in entry["origin"])
+            print(f"  {side} sensor origin: ({where}), {entry['source']}")
+    for warning in result.warnings:
+        print(f"  warning: {warning}")
     print(f"  regions: {len(result.regions)}")
     for region in result.regions[:10]:
         centroid = ", ".join(f"{value:.2f}" for value in region.centroid)

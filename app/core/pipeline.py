@@ -44,6 +44,9 @@ from app.core.localise import (
     localise_changes,
     start_neighbourhood_search,
 )
+from app.core.localise.settings import as_origins
+from app.core.origins.resolve import ResolvedOrigin
+from app.core.origins.stations import origins_in_local_frame, resolve_stations, station_index_of
 from app.core.parameters import ParamSpec, validate_parameters
 from app.core.registration import (
     apply_transform,
@@ -128,6 +131,8 @@ class ComparisonResult:
     scan_region: NDArray[np.int32]
     localisation: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+    sensor_origins: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
 
     def label_counts(self) -> dict[str, dict[str, int]]:
         """How many points of each cloud are unchanged, changed and unobserved."""
@@ -160,6 +165,8 @@ class ComparisonResult:
                 "label_counts": self.label_counts(),
                 "localisation": self.localisation,
                 "timings": self.timings,
+                "sensor_origins": self.sensor_origins,
+                "warnings": self.warnings,
             }
         )
 
@@ -173,20 +180,6 @@ class ComparisonResult:
                 reference_label=self.reference_label.astype(np.int8),
                 scan_label=self.scan_label.astype(np.int8),
             )
-
-
-def _origin_in_local_frame(
-    explicit: Any, from_file: NDArray[np.float64] | None, local_origin: NDArray[np.float64]
-) -> NDArray[np.float64] | None:
-    """The sensor origin to use, shifted into local coordinates (None when unknown)."""
-    if explicit is not None:
-        origin = np.asarray(explicit, dtype=np.float64).reshape(-1)
-        if origin.shape != (3,) or not np.isfinite(origin).all():
-            raise InputError(f"a sensor origin must be three finite numbers, got {explicit!r}")
-        return origin - local_origin
-    if from_file is not None:
-        return np.asarray(from_file, dtype=np.float64) - local_origin
-    return None
 
 
 def _file_frame_transform(
@@ -211,6 +204,8 @@ class ComparisonSettings:
     reference_origin: Any
     scan_origin: Any
     decision: str
+    estimate_origins: bool = True
+    recover_stations: bool = True
 
 
 REGISTRATION_SPECS: dict[str, ParamSpec] = {
@@ -266,9 +261,14 @@ def parse_comparison_params(
         raise InputError(f"decision must be one of {', '.join(DECISION_RULES)}, got {decision!r}")
     reference_origin = remaining.pop("reference_origin", None)
     scan_origin = remaining.pop("scan_origin", None)
-    for origin in (reference_origin, scan_origin):
-        if origin is not None:
-            _origin_in_local_frame(origin, None, np.zeros(3))  # validates the shape
+    estimate_origins = remaining.pop("estimate_origins", True)
+    if not isinstance(estimate_origins, bool):
+        raise InputError(f"estimate_origins must be true or false, got {estimate_origins!r}")
+    recover = remaining.pop("recover_stations", True)
+    if not isinstance(recover, bool):
+        raise InputError(f"recover_stations must be true or false, got {recover!r}")
+    for origin, name in ((reference_origin, "reference_origin"), (scan_origin, "scan_origin")):
+        as_origins(origin, name)  # validates: 3 numbers or a list of them
     try:
         detector = make_detector(method, variant, random_state=random_state, **remaining)
     except TypeError as exc:
@@ -281,6 +281,8 @@ def parse_comparison_params(
         reference_origin=reference_origin,
         scan_origin=scan_origin,
         decision=decision,
+        estimate_origins=estimate_origins,
+        recover_stations=recover,
     )
 
 
@@ -339,7 +341,13 @@ def compare(
         ``"localisation"`` (dicts of keyword parameters for those stages), ``"decision"``
         (one of :data:`DECISION_RULES`) and
         ``"reference_origin"`` / ``"scan_origin"`` (sensor positions in each file's frame,
-        overriding what the file says).
+        overriding what the file says: 3 numbers, or a list of them for a cloud merged from
+        several stations, whose ``station_index`` attribute, if any, says which took each
+        point), ``"estimate_origins"`` (default true: estimate a missing or contradicted
+        origin from the points, :mod:`app.core.origins.resolve`) and ``"recover_stations"``
+        (default true: a cloud with no origin that was merged from several stations gets
+        them recovered, :func:`app.core.origins.stations.recover_stations`).
+        The origins used are reported in ``sensor_origins``, contradicted ones in ``warnings``.
     progress : callable, optional
         ``progress(stage, fraction)`` after each stage.
     threads : int, optional
@@ -376,10 +384,20 @@ def compare(
     # modifies these arrays in place
     reference_points = reference.points - local_origin if local_origin.any() else reference.points
     scan_points = scan.points - local_origin if local_origin.any() else scan.points
-    reference_origin = _origin_in_local_frame(
-        explicit_reference_origin, reference.sensor_origin, local_origin
+    started = time.perf_counter()
+    resolved_reference = resolve_stations(
+        "reference",
+        reference_points,
+        given=origins_in_local_frame(
+            explicit_reference_origin, None, local_origin, "reference_origin"
+        ),
+        from_file=origins_in_local_frame(None, reference.sensor_origin, local_origin),
+        estimate=settings.estimate_origins,
+        recover=settings.recover_stations,
     )
-    scan_origin = _origin_in_local_frame(explicit_scan_origin, scan.sensor_origin, local_origin)
+    reference_origin = resolved_reference.origin
+    reference_station = station_index_of(reference, resolved_reference, "reference")
+    timings["origins"] = time.perf_counter() - started
 
     threads = available_threads() if threads is None else max(1, int(threads))
     report("align", 0.05)
@@ -392,9 +410,14 @@ def compare(
         else:
             registration = identity_registration(reference_points, scan_points)
         aligned_scan = apply_transform(scan_points, registration.transform)
-        if scan_origin is not None:
-            scan_origin = apply_transform(scan_origin[None, :], registration.transform)[0]
         timings["align"] = time.perf_counter() - started
+        started = time.perf_counter()
+        resolved_scan = _resolve_scan_origin(
+            settings, scan, aligned_scan, registration.transform, local_origin
+        )
+        scan_origin = resolved_scan.origin
+        scan_station = station_index_of(scan, resolved_scan, "scan")
+        timings["origins"] += time.perf_counter() - started
         registration_report = registration.to_json_dict()
         registration_report["transform"] = _file_frame_transform(
             registration.transform, local_origin
@@ -409,6 +432,8 @@ def compare(
                 aligned_scan,
                 reference_origin=reference_origin,
                 scan_origin=scan_origin,
+                reference_station=reference_station,
+                scan_station=scan_station,
                 # Not registration.rmse: that includes sampling distance and real change
                 # (0.15 m on KITTI); localise measures the remaining misalignment itself from
                 # local surfaces.
@@ -469,10 +494,16 @@ def compare(
         "localisation": localisation_params,
         "decision": settings.decision,
     }
-    if explicit_reference_origin is not None:
-        effective_params["reference_origin"] = list(map(float, explicit_reference_origin))
-    if explicit_scan_origin is not None:
-        effective_params["scan_origin"] = list(map(float, explicit_scan_origin))
+    for key, explicit in (
+        ("reference_origin", explicit_reference_origin),
+        ("scan_origin", explicit_scan_origin),
+    ):
+        if explicit is not None:  # as given: one origin, or a list of them
+            effective_params[key] = np.asarray(explicit, dtype=np.float64).tolist()
+    if not settings.recover_stations:
+        effective_params["recover_stations"] = False
+    if not settings.estimate_origins:
+        effective_params["estimate_origins"] = False
     report("done", 1.0)
     return ComparisonResult(
         method=method,
@@ -500,4 +531,43 @@ def compare(
         scan_region=scan.to_source_order(localisation.scan_region.astype(np.int32), -1),
         localisation=dict(localisation.parameters),
         timings=timings,
+        sensor_origins={
+            "reference": resolved_reference.report(lambda origin: origin + local_origin),
+            "scan": resolved_scan.report(
+                lambda origin: _to_scan_file(origin, registration.transform, local_origin)
+            ),
+        },
+        warnings=[*resolved_reference.warnings, *resolved_scan.warnings],
+    )
+
+
+def _to_scan_file(
+    origin: NDArray[np.float64], transform: NDArray[np.float64], local_origin: NDArray
+) -> NDArray[np.float64]:
+    """Positions in the aligned local frame, in the scan file's coordinates, shape (3,)/(k, 3)."""
+    moved = apply_transform(origin.reshape(-1, 3), np.linalg.inv(transform)) + local_origin
+    return moved.reshape(origin.shape)
+
+
+def _resolve_scan_origin(
+    settings: ComparisonSettings,
+    scan: PointCloud,
+    aligned_scan: NDArray[np.float64],
+    transform: NDArray[np.float64],
+    local_origin: NDArray[np.float64],
+) -> ResolvedOrigin:
+    """The scan's origin, resolved in the aligned local frame (z up like the reference's)."""
+
+    def aligned(origins: NDArray[np.float64] | None) -> NDArray[np.float64] | None:
+        return None if origins is None else apply_transform(origins, transform)
+
+    return resolve_stations(
+        "scan",
+        aligned_scan,
+        given=aligned(
+            origins_in_local_frame(settings.scan_origin, None, local_origin, "scan_origin")
+        ),
+        from_file=aligned(origins_in_local_frame(None, scan.sensor_origin, local_origin)),
+        estimate=settings.estimate_origins,
+        recover=settings.recover_stations,
     )

@@ -314,6 +314,9 @@ def _cast_rays(
     directions: NDArray[np.float64],
     box_low: NDArray[np.float64],
     box_high: NDArray[np.float64],
+    *,
+    shell_low: NDArray[np.float64] = ROOM_MIN,
+    shell_high: NDArray[np.float64] = ROOM_MAX,
 ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """First hit of rays from ``origin`` inside the room shell, with solid boxes in it.
 
@@ -325,6 +328,8 @@ def _cast_rays(
         Unit ray directions.
     box_low, box_high : ndarray, shape (b, 3)
         Corners of the solid boxes.
+    shell_low, shell_high : ndarray, shape (3,)
+        Corners of the closed shell (default: this module's building).
 
     Returns
     -------
@@ -336,8 +341,8 @@ def _cast_rays(
     with np.errstate(divide="ignore", invalid="ignore"):
         inverse = 1.0 / directions
         # leaving the shell: the far slab of each axis
-        to_max = (ROOM_MAX - origin) * inverse
-        to_min = (ROOM_MIN - origin) * inverse
+        to_max = (shell_high - origin) * inverse
+        to_min = (shell_low - origin) * inverse
         exit_distance = np.where(inverse > 0, to_max, to_min)
         exit_distance = np.where(np.isfinite(exit_distance), exit_distance, np.inf).min(axis=1)
         distance = exit_distance
@@ -396,24 +401,31 @@ def _visible_from(
     points: NDArray[np.float64],
     box_low: NDArray[np.float64],
     box_high: NDArray[np.float64],
+    *,
+    range_limits: tuple[float, float] = LIDAR_RANGE,
+    elevation_deg: tuple[float, float] = LIDAR_ELEVATION_DEG,
+    shell_low: NDArray[np.float64] = ROOM_MIN,
+    shell_high: NDArray[np.float64] = ROOM_MAX,
 ) -> NDArray[np.bool_]:
     """Whether a sensor at ``origin`` sees the exact surface points ``points``, shape (p,).
 
     True iff the point is within the lidar's range and elevation field of view and the first
-    surface a ray from ``origin`` towards it meets (in the world given by the boxes) is not
-    before the point.
+    surface a ray from ``origin`` towards it meets (in the world given by the boxes and the
+    shell; by default this module's lidar and building) is not before the point.
     """
     offset = points - origin
     distance = np.linalg.norm(offset, axis=1)
     directions = offset / distance[:, None]
     elevation = np.rad2deg(np.arcsin(np.clip(directions[:, 2], -1.0, 1.0)))
     in_view = (
-        (distance >= LIDAR_RANGE[0])
-        & (distance <= LIDAR_RANGE[1])
-        & (elevation >= LIDAR_ELEVATION_DEG[0])
-        & (elevation <= LIDAR_ELEVATION_DEG[1])
+        (distance >= range_limits[0])
+        & (distance <= range_limits[1])
+        & (elevation >= elevation_deg[0])
+        & (elevation <= elevation_deg[1])
     )
-    first_hit, _ = _cast_rays(origin, directions, box_low, box_high)
+    first_hit, _ = _cast_rays(
+        origin, directions, box_low, box_high, shell_low=shell_low, shell_high=shell_high
+    )
     not_blocked = first_hit >= distance - (1e-7 + 1e-7 * distance)
     return in_view & not_blocked
 

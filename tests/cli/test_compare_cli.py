@@ -25,6 +25,8 @@ REQUIRED_KEYS = {
     "n_reference",
     "n_scan",
     "timings",
+    "sensor_origins",
+    "warnings",
 }
 REGION_KEYS = {
     "kind",

@@ -72,10 +72,12 @@ def test_importing_the_core_loads_no_web_or_database_module():
 
 LOCALISE_LAYERS = (
     "settings",
+    "stations",
     "neighbourhoods",
     "surface",
     "distance",
     "regions",
+    "gaps",
     "rays",
     "visibility",
     "changes",

@@ -39,6 +39,7 @@ from app.core.synthetic import (
     raycast_scene,
     raycast_scene_objects,
 )
+from tests.helpers.scenes import changed_iou
 
 SCENE_POINTS = 50_000
 POSE_ERROR = (0.03, 0.4)  # metres, degrees
@@ -62,19 +63,6 @@ def localise_pair(pair: SyntheticPair, **options: Any) -> Localisation:
         scan_origin=pair.aligned_scan_origin(),
         **options,
     )
-
-
-def changed_iou(pair: SyntheticPair, localisation: Localisation) -> float:
-    """IoU of changed points of both clouds, over the points the ground truth marks observed."""
-    intersection = union = 0
-    for label, changed, observed in (
-        (localisation.reference_label, pair.reference_changed, pair.reference_observed),
-        (localisation.scan_label, pair.scan_changed, pair.scan_observed),
-    ):
-        predicted = label == LABEL_CHANGED
-        intersection += np.count_nonzero(predicted & changed & observed)
-        union += np.count_nonzero((predicted | changed) & observed)
-    return intersection / union if union else 1.0
 
 
 def false_changed_fraction(pair: SyntheticPair, localisation: Localisation) -> float:

@@ -49,10 +49,12 @@ from app.core.localise.neighbourhoods import Neighbourhoods, NeighbourhoodSearch
 from app.core.localise.regions import ChangedRegion, find_regions
 from app.core.localise.settings import (
     DEFAULT_PARAMETERS,
-    as_origin,
+    as_origins,
     as_points,
+    as_station_index,
     resolve_parameters,
 )
+from app.core.localise.stations import assign_stations
 from app.core.localise.surface import local_geometry
 from app.core.localise.visibility import (
     LABEL_CHANGED,
@@ -149,6 +151,8 @@ def localise_changes(
     min_region_points: int | None = None,
     threads: int | None = None,
     reference_neighbourhoods: Neighbourhoods | NeighbourhoodSearch | None = None,
+    reference_station: NDArray | None = None,
+    scan_station: NDArray | None = None,
     **params: Any,
 ) -> Localisation:
     """Label each point unchanged, changed or unobserved and group changes into regions.
@@ -159,11 +163,12 @@ def localise_changes(
         The reference scan.
     scan : array_like, shape (m, 3)
         The new scan, already aligned into the reference frame.
-    reference_origin : array_like, shape (3,), optional
-        The reference sensor's position (reference frame).  Enables the ray visibility test
-        for scan points; without it they get the coverage test.
-    scan_origin : array_like, shape (3,), optional
-        The scan sensor's position, already in the reference frame.  Enables the ray
+    reference_origin : array_like, shape (3,) or (k, 3), optional
+        The reference sensor's position (reference frame), or one per station of a cloud
+        merged from k stations.  Enables the ray visibility test for scan points (observed =
+        observed by any station); without it they get the coverage test.
+    scan_origin : array_like, shape (3,) or (k, 3), optional
+        The scan sensor's position(s), already in the reference frame.  Enables the ray
         visibility test for reference points.
     registration_rmse : float
         Residual of the alignment (metres); widens the distance threshold.
@@ -180,6 +185,10 @@ def localise_changes(
         computed ahead (the pipeline starts one with
         :func:`~app.core.localise.neighbourhoods.start_neighbourhood_search` while the scan
         is aligned).  The result is the same as without it.
+    reference_station, scan_station : array_like, shape (n,) / (m,), int, optional
+        Index into the cloud's origins of the station that took each point.  Without it a
+        cloud with several origins has its points assigned to stations
+        (:func:`~app.core.localise.stations.assign_stations`).
     **params
         See :data:`~app.core.localise.settings.DEFAULT_PARAMETERS`.
 
@@ -198,8 +207,14 @@ def localise_changes(
     threads = available_threads() if threads is None else max(1, int(threads))
     reference_points = as_points(reference, "reference")
     scan_points = as_points(scan, "scan")
-    reference_origin = as_origin(reference_origin, "reference_origin")
-    scan_origin = as_origin(scan_origin, "scan_origin")
+    reference_origins = as_origins(reference_origin, "reference_origin")
+    scan_origins = as_origins(scan_origin, "scan_origin")
+    reference_station, reference_assignment = _stations_of(
+        reference_points, reference_origins, reference_station, "reference_station"
+    )
+    scan_station, scan_assignment = _stations_of(
+        scan_points, scan_origins, scan_station, "scan_station"
+    )
     if not (math.isfinite(registration_rmse) and registration_rmse >= 0):
         raise InputError(f"registration_rmse must be >= 0, got {registration_rmse}")
     if min_region_points is None:
@@ -224,7 +239,8 @@ def localise_changes(
         name="reference",
         region_kind="removed",
         points=reference_points,
-        origin=reference_origin,
+        origins=reference_origins,
+        station=reference_station,
         geometry=reference_geometry,
         nearest_distance=reference_nn_distance,
         nearest_index=reference_nn_index,
@@ -233,7 +249,8 @@ def localise_changes(
         name="scan",
         region_kind="added",
         points=scan_points,
-        origin=scan_origin,
+        origins=scan_origins,
+        station=scan_station,
         geometry=scan_geometry,
         nearest_distance=scan_nn_distance,
         nearest_index=scan_nn_index,
@@ -299,6 +316,7 @@ def localise_changes(
             scan_side,
             candidates=reference_candidates,
             misalignment=misalignment,
+            threshold=threshold,
             settings=settings,
         ),
         lambda: label_candidates(
@@ -306,6 +324,7 @@ def localise_changes(
             reference_side,
             candidates=scan_candidates,
             misalignment=misalignment,
+            threshold=threshold,
             settings=settings,
         ),
     )
@@ -358,6 +377,10 @@ def localise_changes(
         "nn_distance_over_spacing_quartile": nn_distance_quartile,
         "support_radius_median": max(support * median_spacing, threshold),
         "cluster_radius_median": settings["cluster_factor"] * median_spacing,
+        "reference_stations": 0 if reference_origins is None else len(reference_origins),
+        "scan_stations": 0 if scan_origins is None else len(scan_origins),
+        "reference_station_assignment": reference_assignment,
+        "scan_station_assignment": scan_assignment,
         **reference_report,
         **scan_report,
         "n_reference_changed": int((reference_label == LABEL_CHANGED).sum()),
@@ -376,6 +399,32 @@ def localise_changes(
         regions=regions,
         parameters=parameters,
     )
+
+
+def _stations_of(
+    points: NDArray[np.float64],
+    origins: NDArray[np.float64] | None,
+    station: NDArray | None,
+    name: str,
+) -> tuple[NDArray[np.int64] | None, str]:
+    """The checked per-point station index of one cloud, and where it came from.
+
+    Returns
+    -------
+    station : ndarray, shape (n,), int64, or None
+        None without origins or with one origin and no index (every point is its).
+    source : {"none", "single", "given", "assigned"}
+    """
+    checked = as_station_index(
+        station, points.shape[0], None if origins is None else len(origins), name
+    )
+    if checked is not None:
+        return checked, "given"
+    if origins is None:
+        return None, "none"
+    if len(origins) == 1:
+        return None, "single"
+    return assign_stations(points, origins), "assigned"
 
 
 def _released(side: Side) -> Side:

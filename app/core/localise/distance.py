@@ -44,8 +44,11 @@ class Side:
     region_kind : {"removed", "added"}
         Kind of the regions its changed points form.
     points : ndarray, shape (n, 3), float64
-    origin : ndarray, shape (3,), or None
-        This cloud's sensor position (reference frame), if known.
+    origins : ndarray, shape (k, 3), or None
+        This cloud's sensor positions (reference frame), one per station, if known.
+    station : ndarray, shape (n,), int64, or None
+        Index into ``origins`` of the station that took each point, if known or recovered
+        (None with one station: every point is its).
     geometry : LocalGeometry
         Of ``points``.
     nearest_distance : ndarray, shape (n,), float64
@@ -57,10 +60,11 @@ class Side:
     name: str
     region_kind: str
     points: NDArray[np.float64]
-    origin: NDArray[np.float64] | None
+    origins: NDArray[np.float64] | None
     geometry: LocalGeometry
     nearest_distance: NDArray[np.float64]
     nearest_index: NDArray[np.uint32]
+    station: NDArray[np.int64] | None = None
 
 
 def nearest_in(

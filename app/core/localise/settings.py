@@ -15,7 +15,9 @@ __all__ = [
     "DEFAULT_PARAMETERS",
     "PARAMETER_SPECS",
     "as_origin",
+    "as_origins",
     "as_points",
+    "as_station_index",
     "resolve_parameters",
 ]
 
@@ -29,6 +31,7 @@ DEFAULT_PARAMETERS: dict[str, Any] = {
     "visibility_angle_factor": 2.5,
     "visibility_beyond_fraction": 0.5,
     "visibility_miss_factor": 4.0,
+    "origin_free_test": "coverage",
 }
 """Keyword parameters of :func:`~app.core.localise.changes.localise_changes` and their defaults.
 
@@ -59,6 +62,12 @@ visibility_beyond_fraction
     Fraction of the rays crossing the candidate's surface near it that must pass beyond it.
 visibility_miss_factor
     "Near": within ``max(miss_factor * own spacing, candidate's distance)`` of the candidate.
+origin_free_test
+    Without the other sensor's origins: ``"coverage"`` (the coverage test alone) or
+    ``"gaps"`` (a candidate lying on the other cloud's surface between its samples, like a
+    floor seen only at grazing angles, is unchanged; then the coverage test:
+    :mod:`~app.core.localise.gaps`).  ``"gaps"`` is opt-in: it removes false changes in the
+    blind discs of merged surveys but also parts of true changes on the paper's corridor.
 """
 
 PARAMETER_SPECS: dict[str, ParamSpec] = {
@@ -71,6 +80,7 @@ PARAMETER_SPECS: dict[str, ParamSpec] = {
     "visibility_angle_factor": ParamSpec("positive"),
     "visibility_beyond_fraction": ParamSpec("positive", high=1.0),
     "visibility_miss_factor": ParamSpec("positive"),
+    "origin_free_test": ParamSpec("choice", choices=("gaps", "coverage")),
 }
 """How each of :data:`DEFAULT_PARAMETERS` is validated (same names, same order)."""
 
@@ -135,3 +145,91 @@ def as_origin(origin: NDArray | None, name: str) -> NDArray[np.float64] | None:
     if array.shape != (3,) or not np.isfinite(array).all():
         raise InputError(f"{name} must be 3 finite numbers, got {np.asarray(origin).tolist()}")
     return array
+
+
+def as_origins(origins: NDArray | None, name: str) -> NDArray[np.float64] | None:
+    """Sensor origins (one station or several) as a float64 array of shape (k, 3), or None.
+
+    Parameters
+    ----------
+    origins : array_like, shape (3,) or (k, 3), or None
+        One origin, or one per station of the cloud.
+    name : str
+        Named in the error message.
+
+    Raises
+    ------
+    InputError
+        Not three finite numbers, nor a non-empty list of them.
+    """
+    if origins is None:
+        return None
+    try:
+        array = np.asarray(origins, dtype=np.float64)
+    except (TypeError, ValueError):
+        array = None
+    if array is not None and array.shape == (3,):
+        array = array[None, :]
+    if array is None or array.ndim != 2 or array.shape[0] < 1 or array.shape[1] != 3:
+        raise InputError(
+            f"{name} must be 3 finite numbers (x, y, z) or a list of them, one per station, "
+            f"got {_shown(origins)}"
+        )
+    if not np.isfinite(array).all():
+        bad = int(np.flatnonzero(~np.isfinite(array).all(axis=1))[0])
+        raise InputError(
+            f"{name}: station {bad}'s origin must be 3 finite numbers, got {array[bad].tolist()}"
+        )
+    return np.ascontiguousarray(array)
+
+
+def as_station_index(
+    station: NDArray | None, n_points: int, n_stations: int | None, name: str
+) -> NDArray[np.int64] | None:
+    """A per-point station index as int64 of shape (n,), checked against the origins.
+
+    Parameters
+    ----------
+    station : array_like, shape (n,), or None
+        Index into the cloud's origins of the station that took each point.
+    n_points : int
+        The cloud's number of points.
+    n_stations : int or None
+        Number of origins given for the cloud (None: no origins, the index cannot be used).
+    name : str
+
+    Raises
+    ------
+    InputError
+        Not integers, not one per point, out of range, or given without origins.
+    """
+    if station is None:
+        return None
+    array = np.asarray(station)
+    if array.ndim != 1 or array.shape[0] != n_points:
+        raise InputError(
+            f"{name} must have one station index per point ({n_points}), got shape {array.shape}"
+        )
+    if array.dtype.kind == "f":
+        if not np.isfinite(array).all() or (array != np.round(array)).any():
+            raise InputError(f"{name} must hold whole numbers (station indices)")
+    elif array.dtype.kind not in "iub":
+        raise InputError(f"{name} must hold integer station indices, got {array.dtype}")
+    array = array.astype(np.int64)
+    if n_stations is None:
+        raise InputError(f"{name} needs the stations' origins: give one origin per station")
+    if n_points and (array.min() < 0 or array.max() >= n_stations):
+        raise InputError(
+            f"{name} must lie in 0..{n_stations - 1} (one per given origin), got values from "
+            f"{int(array.min())} to {int(array.max())}"
+        )
+    return array
+
+
+def _shown(value: object, limit: int = 120) -> str:
+    """``value`` for an error message, cut to ``limit`` characters."""
+    try:
+        text = repr(np.asarray(value).tolist())
+    except (TypeError, ValueError):
+        text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."

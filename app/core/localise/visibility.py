@@ -1,12 +1,13 @@
 """Visibility: unobserved is never change.  Change candidates become changed or unobserved.
 
 With the other cloud's sensor origin, the ray test (:mod:`app.core.localise.rays`) says what
-that sensor saw in each candidate's direction.  A candidate whose surface it saw only edge-on
-gets no evidence of its own; it is changed when connected to candidates mostly seen through (a
-removed box's side face), unobserved otherwise.  Without an origin, a coverage test: a
-candidate whose nearest point in the other cloud is farther than ``coverage_factor`` local
-spacings is unobserved (right for merged multi-view maps; single-viewpoint scans should pass
-origins, or their shadows' rims come out as changes).
+that sensor saw in each candidate's direction; with several stations, each station's own
+returns are its rays and a candidate is observed when any station saw it.  A candidate whose
+surface it saw only edge-on gets no evidence of its own; it is changed when connected to
+candidates mostly seen through (a removed box's side face), unobserved otherwise.  Without an
+origin, a coverage test: a candidate whose nearest point in the other cloud is farther than
+``coverage_factor`` local spacings is unobserved (single-viewpoint scans should pass origins,
+or their shadows' rims come out as changes).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.localise.distance import Side
+from app.core.localise.gaps import in_sampling_gap
 from app.core.localise.rays import (
     STATUS_EDGE_ON,
     STATUS_SEEN_THROUGH,
@@ -33,6 +35,7 @@ __all__ = [
     "LABEL_CHANGED",
     "LABEL_UNCHANGED",
     "LABEL_UNOBSERVED",
+    "combine_station_status",
     "find_candidates",
     "label_candidates",
     "resolve_edge_on",
@@ -43,6 +46,8 @@ LABEL_CHANGED = 1
 LABEL_UNOBSERVED = -1
 
 EDGE_ON_SEEN_THROUGH_SHARE = 0.5
+MIN_STATION_POINTS = 10
+"""A station of the other cloud with fewer returns than this is ignored (it saw nothing)."""
 
 
 def find_candidates(
@@ -79,6 +84,7 @@ def label_candidates(
     *,
     candidates: Candidates,
     misalignment: float,
+    threshold: float,
     settings: dict[str, Any],
 ) -> tuple[NDArray[np.int8], dict[str, Any]]:
     """Label one cloud's points: candidates become changed or unobserved, the rest unchanged.
@@ -94,6 +100,8 @@ def label_candidates(
         ``own``'s change candidates (:func:`find_candidates`).
     misalignment : float
         registration_rmse and the measured alignment residual combined (metres).
+    threshold : float
+        ``tau``: the sampling-gap test's tolerance (without origins).
     settings : dict
         Resolved keyword parameters.
 
@@ -108,13 +116,23 @@ def label_candidates(
     index = candidates.index
     side = own.name
     report: dict[str, Any] = {f"{side}_candidates": int(index.size)}
-    if other.origin is None:
+    if other.origins is None:
         report[f"{side}_visibility"] = "coverage"
         covered = (
             own.nearest_distance[index]
             <= settings["coverage_factor"] * other.geometry.spacing[own.nearest_index[index]]
         )
         status = np.where(covered, STATUS_SEEN_THROUGH, STATUS_UNOBSERVED)
+        if settings["origin_free_test"] == "gaps":
+            gap = in_sampling_gap(
+                candidates.points,
+                candidates.normal,
+                own.nearest_distance[index],
+                other=other.geometry,
+                tolerance=threshold,
+            )
+            report[f"{side}_candidates_in_sampling_gaps"] = int(gap.sum())
+            status = np.where(gap, STATUS_SURFACE, status)
     else:
         report[f"{side}_visibility"] = "ray"
         test = RayTest(
@@ -126,14 +144,9 @@ def label_candidates(
             beyond_fraction=settings["visibility_beyond_fraction"],
             miss_factor=settings["visibility_miss_factor"],
         )
-        status, angular_step = ray_visibility(
-            candidates,
-            own=own.geometry,
-            other_points=other.points,
-            other_origin=other.origin,
-            test=test,
-        )
-        report[f"{side}_other_angular_step_deg"] = math.degrees(angular_step)
+        status, angular_steps = _any_station_status(candidates, own=own, other=other, test=test)
+        report[f"{side}_other_stations"] = len(angular_steps)
+        report[f"{side}_other_angular_step_deg"] = math.degrees(float(np.median(angular_steps)))
         report[f"{side}_candidates_on_other_surface"] = int((status == STATUS_SURFACE).sum())
         report[f"{side}_candidates_edge_on"] = int((status == STATUS_EDGE_ON).sum())
         status = resolve_edge_on(
@@ -145,6 +158,71 @@ def label_candidates(
     label[index[status == STATUS_SEEN_THROUGH]] = LABEL_CHANGED
     label[index[status == STATUS_UNOBSERVED]] = LABEL_UNOBSERVED
     return label, report
+
+
+def _any_station_status(
+    candidates: Candidates, *, own: Side, other: Side, test: RayTest
+) -> tuple[NDArray[np.int8], list[float]]:
+    """Ray status of each candidate as seen by any station of the other cloud.
+
+    Each station's rays are its own returns (``other.station``; all of them with one
+    station); the statuses are combined by :func:`combine_station_status`.
+
+    Returns
+    -------
+    status : ndarray, shape (c,), int8
+    angular_steps : list of float
+        Each station's typical angular step (radians).
+    """
+    assert other.origins is not None
+    statuses = []
+    angular_steps = []
+    for number, origin in enumerate(other.origins):
+        if other.station is None:
+            station_points = other.points
+        else:
+            station_points = other.points[other.station == number]
+        if station_points.shape[0] < MIN_STATION_POINTS:
+            continue  # a station without returns saw nothing: all unobserved
+        status, angular_step = ray_visibility(
+            candidates,
+            own=own.geometry,
+            other_points=station_points,
+            other_origin=origin,
+            test=test,
+        )
+        statuses.append(status)
+        angular_steps.append(angular_step)
+    if not statuses:
+        return np.full(candidates.index.shape[0], STATUS_UNOBSERVED, dtype=np.int8), [math.nan]
+    return combine_station_status(np.stack(statuses)), angular_steps
+
+
+def combine_station_status(statuses: NDArray[np.int8]) -> NDArray[np.int8]:
+    """One status per candidate from each station's: observed by any station.
+
+    Parameters
+    ----------
+    statuses : ndarray, shape (k, c), int8
+        :func:`~app.core.localise.rays.ray_visibility` status from each of k stations.
+
+    Returns
+    -------
+    ndarray, shape (c,), int8
+        Seen through when at least one station saw through it and no more stations saw a
+        surface there; else surface when a station saw one; else edge-on when a station saw
+        its surface edge-on; else unobserved (no station could see it).  With k = 1 the
+        station's own status.
+    """
+    if statuses.shape[0] == 1:
+        return statuses[0]
+    through = (statuses == STATUS_SEEN_THROUGH).sum(axis=0)
+    surface = (statuses == STATUS_SURFACE).sum(axis=0)
+    edge_on = (statuses == STATUS_EDGE_ON).any(axis=0)
+    combined = np.where(edge_on, STATUS_EDGE_ON, STATUS_UNOBSERVED)
+    combined = np.where(surface > 0, STATUS_SURFACE, combined)
+    combined = np.where((through > 0) & (through >= surface), STATUS_SEEN_THROUGH, combined)
+    return combined.astype(np.int8)
 
 
 def resolve_edge_on(

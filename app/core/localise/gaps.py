@@ -1,0 +1,111 @@
+"""The origin-free test of merged clouds: a candidate in a sampling gap of the other's surface.
+
+Without any sensor origin, a candidate that lies *on* the other cloud's surface, inside a hole
+of its sampling, is not a change: under each station of a merged survey lies a blind disc
+(below the lidar's lowest ring) that the other stations cover only sparsely, at grazing
+angles, or not at all, so a dense point of the other epoch there finds no neighbour within a
+few local spacings.  The neighbourhood here adapts to the hole: in each of
+:data:`SECTORS` directions around the candidate, in its own surface's plane, probes at
+doubling distances (from its nearest-point distance up to :data:`MAX_GAP` metres) look for a
+point of the other cloud on that plane (within the tolerance, with an agreeing normal) in
+that direction.  The candidate is in a gap when every direction finds one: the other cloud's
+surface surrounds it.  A shadow's rim, an added box's faces or a removed box's points fail
+(the other cloud's points lie on one side only, or on other planes).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.core.localise.settings import GATHER_CHUNK
+from app.core.localise.surface import LocalGeometry
+
+__all__ = ["MAX_GAP", "SECTORS", "in_sampling_gap"]
+
+SECTORS = 6
+"""Directions (60 degrees apart) in which the other cloud's surface must be found."""
+SECTOR_HALF_ANGLE_COSINE = math.cos(math.radians(45.0))
+"""A point of the other cloud counts for a direction within 45 degrees of it."""
+PROBE_DOUBLINGS = 6
+"""Probes at 1, 2, 4, ... 32 nearest-point distances in each direction (capped at MAX_GAP)."""
+MAX_GAP = 4.0
+"""Largest distance (metres) from the candidate at which the surrounding surface counts: a
+blind disc is at most about 3 m across (a sensor 1.5 m up, 45 degrees below horizontal)."""
+PLANE_SLOPE = math.sin(math.radians(1.0))
+"""The plane tolerance grows by this much a metre away from the candidate (surfaces bend)."""
+NORMAL_AGREEMENT_COSINE = math.cos(math.radians(30.0))
+PROBE_NEIGHBOURS = 4
+
+
+def in_sampling_gap(
+    points: NDArray[np.float64],
+    normal: NDArray[np.floating],
+    nearest_distance: NDArray[np.float64],
+    *,
+    other: LocalGeometry,
+    tolerance: float,
+) -> NDArray[np.bool_]:
+    """Whether each point lies in a sampling gap of the other cloud's surface.
+
+    Parameters
+    ----------
+    points : ndarray, shape (c, 3)
+        Change candidates of one cloud.
+    normal : ndarray, shape (c, 3)
+        Unit normal of each candidate's own surface.
+    nearest_distance : ndarray, shape (c,)
+        Distance of each candidate to its nearest point in the other cloud.
+    other : LocalGeometry
+        The other cloud (its KD-tree, points and normals).
+    tolerance : float
+        Largest offset (metres) from the candidate's plane, at the candidate: ``tau``.
+
+    Returns
+    -------
+    ndarray, shape (c,), bool
+        In each of :data:`SECTORS` directions in the candidate's plane, within
+        :data:`MAX_GAP`, the other cloud has a point on that plane whose normal agrees.
+    """
+    count = points.shape[0]
+    result = np.zeros(count, dtype=bool)
+    k = min(PROBE_NEIGHBOURS, other.points.shape[0])
+    if count == 0:
+        return result
+    angles = 2.0 * math.pi * np.arange(SECTORS) / SECTORS
+    for start in range(0, count, GATHER_CHUNK):
+        chunk = slice(start, start + GATHER_CHUNK)
+        query = points[chunk]
+        unit = normal[chunk].astype(np.float64)
+        unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-12)[:, None]
+        helper = np.where(np.abs(unit[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+        first = np.cross(unit, helper)
+        first /= np.linalg.norm(first, axis=1)[:, None]
+        second = np.cross(unit, first)
+        directions = (
+            np.cos(angles)[None, :, None] * first[:, None, :]
+            + np.sin(angles)[None, :, None] * second[:, None, :]
+        )  # (c, S, 3)
+        found = np.zeros((query.shape[0], SECTORS), dtype=bool)
+        step = np.maximum(nearest_distance[chunk], 1e-3)
+        for doubling in range(PROBE_DOUBLINGS):
+            reach = np.minimum(step * 2.0**doubling, MAX_GAP)
+            probes = query[:, None, :] + reach[:, None, None] * directions
+            _, index = other.tree.query(probes.reshape(-1, 3), k=k)
+            index = index.reshape(query.shape[0], SECTORS, k)
+            offset = other.points[index] - query[:, None, None, :]  # (c, S, k, 3)
+            distance = np.linalg.norm(offset, axis=3)
+            across = np.abs(np.einsum("cskd,cd->csk", offset, unit))
+            along = np.einsum("cskd,csd->csk", offset, directions)
+            agrees = np.abs(np.einsum("cskd,cd->csk", other.normal[index], unit))
+            hit = (
+                (distance <= MAX_GAP)
+                & (across <= tolerance + PLANE_SLOPE * distance)
+                & (along >= SECTOR_HALF_ANGLE_COSINE * distance)
+                & (agrees >= NORMAL_AGREEMENT_COSINE)
+            )
+            found |= hit.any(axis=2)
+        result[chunk] = found.all(axis=1)
+    return result

@@ -1,0 +1,88 @@
+"""Which station of a merged multi-station cloud took each point, given the stations' origins.
+
+A spinning lidar's returns lie on a few cones of fixed elevation (its rings) as seen from its
+own origin, and nowhere in particular as seen from any other point.  For each station the
+points' elevations from its origin are histogrammed finely: bins far above the smoothed
+histogram are that station's rings.  A point goes to the station in whose ring bins it lies
+most clearly (the largest ratio of bin count to smoothed count); a point that fits no station's
+rings goes to the nearest station (the one that sees it densest).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.core.localise.settings import CHUNK
+
+__all__ = ["STATION_INDEX_ATTRIBUTE", "assign_stations", "ring_contrast"]
+
+STATION_INDEX_ATTRIBUTE = "station_index"
+"""Name of the per-point attribute (int, index into the cloud's origins) of the station that
+took each point of a merged cloud (a PLY/LAS extra dimension of that name)."""
+
+ELEVATION_BIN_DEG = 0.01
+"""Histogram bin of elevations: far below any lidar's ring step (0.2-1 degree)."""
+SMOOTHING_BINS = 51
+"""Width (bins) of the moving average that stands for the rings-free background."""
+RING_CONTRAST = 3.0
+"""A bin at least this many times its smoothed count is a ring bin."""
+
+
+def _elevation_bins(points: NDArray[np.float64], origin: NDArray[np.float64]) -> NDArray:
+    """Each point's elevation from ``origin`` as a bin number, shape (n,), int64."""
+    bins = np.empty(points.shape[0], dtype=np.int64)
+    for start in range(0, points.shape[0], CHUNK):
+        offset = points[start : start + CHUNK] - origin
+        horizontal = np.hypot(offset[:, 0], offset[:, 1])
+        elevation = np.degrees(np.arctan2(offset[:, 2], horizontal))
+        bins[start : start + CHUNK] = np.floor((elevation + 90.0) / ELEVATION_BIN_DEG)
+    return bins
+
+
+def ring_contrast(points: NDArray[np.float64], origin: NDArray[np.float64]) -> NDArray[np.float64]:
+    """How far above the background each point's elevation bin is, seen from ``origin``.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    origin : ndarray, shape (3,)
+
+    Returns
+    -------
+    ndarray, shape (n,), float64
+        Count of the point's elevation bin over the moving average of the counts around it:
+        well above 1 for points on one of the rings of a lidar at ``origin``.
+    """
+    bins = _elevation_bins(points, origin)
+    n_bins = round(180.0 / ELEVATION_BIN_DEG) + 1
+    counts = np.bincount(np.clip(bins, 0, n_bins - 1), minlength=n_bins).astype(np.float64)
+    kernel = np.ones(SMOOTHING_BINS) / SMOOTHING_BINS
+    background = np.convolve(counts, kernel, mode="same")
+    contrast = counts / np.maximum(background, 1e-12)
+    return contrast[np.clip(bins, 0, n_bins - 1)]
+
+
+def assign_stations(points: NDArray[np.float64], origins: NDArray[np.float64]) -> NDArray:
+    """The station that most likely took each point of a merged cloud.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    origins : ndarray, shape (k, 3)
+        The stations' origins, in the points' frame.
+
+    Returns
+    -------
+    ndarray, shape (n,), int64
+        Index into ``origins``: the station on whose rings the point lies most clearly
+        (contrast >= :data:`RING_CONTRAST`), else the nearest station.
+    """
+    contrast = np.stack([ring_contrast(points, origin) for origin in origins])
+    best = np.argmax(contrast, axis=0)
+    on_rings = contrast[best, np.arange(points.shape[0])] >= RING_CONTRAST
+    nearest = np.empty(points.shape[0], dtype=np.int64)
+    for start in range(0, points.shape[0], CHUNK):
+        offset = points[start : start + CHUNK, None, :] - origins[None, :, :]
+        nearest[start : start + CHUNK] = np.argmin(np.einsum("pkd,pkd->pk", offset, offset), 1)
+    return np.where(on_rings, best, nearest).astype(np.int64)

@@ -1,0 +1,11 @@
+"""Sensor origins from the data: estimate a single station's, check a given one.
+
+Data flows one way: :mod:`~app.core.origins.columns` (top-view centre) and
+:mod:`~app.core.origins.rings` (height) feed :mod:`~app.core.origins.estimate`
+(:func:`estimate_origin`), which :mod:`~app.core.origins.resolve` uses to pick and check the
+origin a comparison uses.
+"""
+
+from app.core.origins.estimate import CONFIDENT, OriginEstimate, estimate_origin
+
+__all__ = ["CONFIDENT", "OriginEstimate", "estimate_origin"]

@@ -1,0 +1,201 @@
+"""Where a spinning lidar stood, seen from above: the point its columns radiate from.
+
+An upright spinning lidar fires each column (one azimuth, every ring) in a vertical half-plane
+through its axis, and range noise moves a return along its ray, so inside that plane.  Two
+returns of one column therefore give, in the top view, a line through the sensor's (x, y)
+exactly; two returns of one ring on a level floor lie on a circle round the axis, so the normal
+to their pair does too.  Each neighbour pair on a level surface gives both lines, one of which
+misses; a Hough vote over all neighbour pairs finds the point where lines concur, and a robust
+least-squares fit on the lines that pass near it sharpens it.  A cloud merged from several
+stations has several such points; random points have none.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+__all__ = ["ColumnFit", "column_lines", "fit_column_centre", "lattice_patches"]
+
+NEIGHBOURS = 8
+"""Neighbour pairs per query point."""
+MIN_HORIZONTAL_SHARE = 0.3
+"""Pairs whose horizontal part is shorter than this share of their length give no line."""
+HORIZONTAL_NORMAL_Z = 0.8
+"""Only points whose local surface normal has at least this vertical component give lines."""
+CONCUR_SINE = 0.02
+"""A line concurs with a centre when it points at it within this sine of an angle."""
+HOUGH_CELLS = 100
+HOUGH_LINES = 5_000
+HOUGH_PEAKS = 6
+"""Accumulator peaks refined; the one most lines point at is kept."""
+"""Lines voting in the Hough accumulator (all of them refine its peak)."""
+"""Cells along the longer side of the Hough accumulator."""
+
+
+@dataclass(frozen=True)
+class ColumnFit:
+    """The top-view centre of the columns and how clearly the lines concur there.
+
+    Attributes
+    ----------
+    centre : ndarray, shape (2,)
+    concurring_share : float
+        Share of the lines pointing at ``centre`` (within :data:`CONCUR_SINE`).
+    second_peak_ratio : float
+        Votes of the strongest other accumulator peak (1 m away or more) over the chosen one's.
+    n_lines : int
+    """
+
+    centre: NDArray[np.float64]
+    concurring_share: float
+    second_peak_ratio: float
+    n_lines: int
+
+
+def lattice_patches(
+    points: NDArray[np.float64], max_points: int, rng: np.random.Generator, cell: float = 1.0
+) -> NDArray[np.float64]:
+    """All points of randomly chosen ``cell``-metre voxels, about ``max_points`` of them.
+
+    Whole voxels keep the scan's own density, so neighbours inside them are lattice neighbours.
+    """
+    if len(points) <= max_points:
+        return points
+    keys = np.floor(points / cell).astype(np.int64)
+    hashed = (keys[:, 0] * 73856093) ^ (keys[:, 1] * 19349663) ^ (keys[:, 2] * 83492791)
+    salt = int(rng.integers(1, 2**31 - 1))
+    bucket = ((hashed ^ salt) * 2654435761) % 1000
+    keep = bucket < max(1, int(1000 * max_points / len(points)))
+    return points[keep]
+
+
+def column_lines(
+    patch: NDArray[np.float64], n_queries: int, rng: np.random.Generator
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Top-view lines through neighbour pairs of ``patch`` (m, 3), and the wall points.
+
+    Returns
+    -------
+    anchor : ndarray, shape (l, 2)
+        A point of each line.
+    direction : ndarray, shape (l, 2)
+        Unit direction of each line.
+    wall_points : ndarray, shape (w, 3)
+        Query points on surfaces facing sideways (their elevations show the lidar's rings;
+        floors and ceilings would add a false ring at their own height).
+    """
+    tree = cKDTree(patch)
+    queries = rng.choice(len(patch), size=min(n_queries, len(patch)), replace=False)
+    _, neighbour = tree.query(patch[queries], k=NEIGHBOURS + 1)
+    # walls give no column lines (their columns are vertical) but long ridges of ring lines:
+    # keep query points on surfaces facing up or down
+    local = patch[np.minimum(neighbour, len(patch) - 1)]
+    centred = local - local.mean(axis=1, keepdims=True)
+    _, vectors = np.linalg.eigh(np.einsum("qki,qkj->qij", centred, centred))
+    normal_z = np.abs(vectors[:, 2, 0])
+    wall_points = patch[queries[normal_z < 1.0 - HORIZONTAL_NORMAL_Z]]
+    horizontal_surface = normal_z > HORIZONTAL_NORMAL_Z
+    queries, neighbour = queries[horizontal_surface], neighbour[horizontal_surface]
+    first = np.repeat(queries, NEIGHBOURS)
+    second = neighbour[:, 1:].ravel()
+    valid = second < len(patch)
+    first, second = first[valid], second[valid]
+    vector = patch[second] - patch[first]
+    horizontal = np.linalg.norm(vector[:, :2], axis=1)
+    length = np.linalg.norm(vector, axis=1)
+    keep = horizontal > MIN_HORIZONTAL_SHARE * np.maximum(length, 1e-12)
+    direction = vector[keep, :2] / horizontal[keep, None]
+    # ring pairs on a level floor run along circles round the axis: their normal points at it
+    across = np.column_stack([-direction[:, 1], direction[:, 0]])
+    anchor = patch[first[keep], :2]
+    return np.vstack([anchor, anchor]), np.vstack([direction, across]), wall_points
+
+
+def _hough(
+    anchor: NDArray[np.float64], direction: NDArray[np.float64], low: NDArray, high: NDArray
+) -> tuple[list[NDArray[np.float64]], list[float]]:
+    """Accumulate lines on a grid over [low, high]; the :data:`HOUGH_PEAKS` best cells at
+    least 1 m apart (centres, votes), best first."""
+    size = float(np.max(high - low)) / HOUGH_CELLS
+    shape = np.ceil((high - low) / size).astype(np.int64) + 1
+    reach = float(np.linalg.norm(high - low))
+    steps = np.arange(-reach, reach, size)
+    grid = np.zeros(int(shape[0] * shape[1]), dtype=np.float64)
+    for start in range(0, len(anchor), 4000):
+        a, d = anchor[start : start + 4000], direction[start : start + 4000]
+        samples = a[:, None, :] + steps[None, :, None] * d[:, None, :]
+        cell = ((samples - low) / size).astype(np.int64).reshape(-1, 2)
+        inside = (
+            (samples.reshape(-1, 2) >= low).all(axis=1)
+            & (cell[:, 0] < shape[0])
+            & (cell[:, 1] < shape[1])
+        )
+        grid += np.bincount(cell[inside, 0] * shape[1] + cell[inside, 1], minlength=grid.size)
+    votes = grid.reshape(shape)
+    smooth = votes.copy()
+    smooth[1:, :] += votes[:-1, :]
+    smooth[:-1, :] += votes[1:, :]
+    smooth[:, 1:] += votes[:, :-1]
+    smooth[:, :-1] += votes[:, 1:]
+    rows, cols = np.indices(shape)
+    centres, peaks = [], []
+    for _ in range(HOUGH_PEAKS):
+        best = np.unravel_index(int(np.argmax(smooth)), shape)
+        if smooth[best] <= 0:
+            break
+        centres.append(low + (np.array(best) + 0.5) * size)
+        peaks.append(float(smooth[best]))
+        smooth[np.hypot((rows - best[0]) * size, (cols - best[1]) * size) < 1.0] = 0.0
+    return centres, peaks
+
+
+def _refine(anchor: NDArray, direction: NDArray, centre: NDArray) -> NDArray[np.float64]:
+    """Least-squares point of the lines passing within a shrinking distance of ``centre``."""
+    normal = np.column_stack([-direction[:, 1], direction[:, 0]])
+    for tolerance in (0.5, 0.2, 0.08, 0.03, 0.01):
+        miss = np.abs(np.einsum("ij,ij->i", normal, centre - anchor))
+        near = miss < tolerance
+        if np.count_nonzero(near) < 10:
+            break
+        n = normal[near]
+        matrix = n.T @ n
+        if np.linalg.cond(matrix) > 1e8:
+            break
+        centre = np.linalg.solve(matrix, n.T @ np.einsum("ij,ij->i", n, anchor[near]))
+    return centre
+
+
+def concurring_share(anchor: NDArray, direction: NDArray, centre: NDArray) -> float:
+    """Share of lines pointing at ``centre`` within :data:`CONCUR_SINE`."""
+    towards = anchor - centre
+    distance = np.linalg.norm(towards, axis=1)
+    cross = np.abs(towards[:, 0] * direction[:, 1] - towards[:, 1] * direction[:, 0])
+    pointing = cross < CONCUR_SINE * np.maximum(distance, 1e-9)
+    return float(np.mean(pointing)) if len(anchor) else 0.0
+
+
+def fit_column_centre(
+    anchor: NDArray[np.float64], direction: NDArray[np.float64], low: NDArray, high: NDArray
+) -> ColumnFit:
+    """The top-view point where the column lines concur, inside the box [low, high] (2,).
+
+    The Hough accumulator's best few peaks are refined; the one most lines point at wins.
+    """
+    if len(anchor) < 20:
+        return ColumnFit(np.asarray((low + high) / 2.0), 0.0, 1.0, len(anchor))
+    voters = np.random.default_rng(0).permutation(len(anchor))[:HOUGH_LINES]
+    centres, peaks = _hough(anchor[voters], direction[voters], low, high)
+    refined = [_refine(anchor, direction, centre) for centre in centres]
+    shares = [concurring_share(anchor, direction, centre) for centre in refined]
+    best = int(np.argmax(shares))
+    others = [peak for index, peak in enumerate(peaks) if index != best]
+    return ColumnFit(
+        centre=refined[best],
+        concurring_share=shares[best],
+        second_peak_ratio=max(others, default=0.0) / peaks[best] if peaks[best] > 0 else 1.0,
+        n_lines=len(anchor),
+    )

@@ -1,0 +1,459 @@
+"""Recover the stations of a cloud merged from several lidar stations, from the points alone.
+
+An upright spinning lidar fires each column (one azimuth, every ring) in a vertical half-plane
+through its axis, and range noise moves a return along its ray, inside that plane: in the top
+view, two neighbouring returns of one column lie on a line through the station's (x, y)
+exactly.  Neighbour pairs of a merged cloud give many lines; those of each station's columns
+concur at its (x, y), the rest (ring pairs, pairs across stations) scatter.  So:
+
+1. **Top view** (:func:`column_centres`): a Hough vote of the pair lines on a grid, then, peak
+   by peak, a robust least-squares point of the lines that pass near it (lines used up by a
+   station are removed before the next peak).
+2. **Height** (:func:`station_height`): from the right origin a lidar's returns lie on a few
+   cones of fixed elevation (its rings); the height whose elevation histogram is sharpest,
+   coarse then fine, is the station's.
+3. **Acceptance**: a station is kept when many points lie on its rings
+   (:func:`~app.core.localise.stations.ring_contrast`); a cloud with two or more kept stations
+   was not taken from one place.  Points are then assigned to the stations
+   (:func:`~app.core.localise.stations.assign_stations`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from pykdtree.kdtree import KDTree
+
+from app.core.cloud import PointCloud
+from app.core.localise.settings import as_origins, as_station_index
+from app.core.localise.stations import (
+    RING_CONTRAST,
+    SMOOTHING_BINS,
+    STATION_INDEX_ATTRIBUTE,
+    ring_contrast,
+)
+from app.core.origins.resolve import ResolvedOrigin, resolve_origin
+
+__all__ = [
+    "RecoveredStations",
+    "column_centres",
+    "origins_in_local_frame",
+    "recover_stations",
+    "resolve_stations",
+    "station_height",
+    "station_index_of",
+]
+
+MAX_POINTS = 300_000
+"""Points used (a random subset of whole voxels beyond this): lines need lattice neighbours."""
+PATCH = 1.0
+"""Edge (metres) of the voxels the subset is made of."""
+PAIR_NEIGHBOURS = 4
+MAX_PAIR_LENGTH = 0.5
+MIN_HORIZONTAL_SHARE = 0.3
+"""A pair whose top-view part is shorter than this share of its length gives no line."""
+MAX_LINES = 30_000
+VOTE_REACH = 10.0
+"""Each line votes within this many metres of its pair (a lidar's dense returns are near it)."""
+CELL = 0.1
+MAX_STATIONS = 8
+MAX_PEAKS = 16
+"""Hough peaks examined (most are not stations: ring pairs and pairs across stations)."""
+MIN_CONCURRING = 50
+MIN_PEAK_SHARE = 0.2
+"""A peak with fewer concurring lines than this share of the first one's is not a station."""
+CONCUR_DISTANCE = 0.003
+FINE_REACH = 0.3
+REFINE_LINES = 2500
+"""Lines (in random order) near a peak that its refinement uses."""
+"""A line concurs with a station when it passes within this many metres of it (column lines
+are exact: range noise moves a return along its ray)."""
+MIN_RING_SHARE = 0.05
+"""A recovered station is kept when at least this share of the points (and MIN_RING_POINTS)
+lie on its rings."""
+MIN_RING_POINTS = 500
+HEIGHT_SAMPLE = 40_000
+HEIGHT_COARSE_SAMPLE = 4_000
+HEIGHT_CHUNK = 64
+HEIGHT_REACH = 8.0
+SURFACE_CLEARANCE = 0.3
+"""A station is searched at least this far above the lowest and below the highest points."""
+MIN_NORMAL_Z = 0.5
+"""Only pairs on floors, ceilings and tops (normal within 60 degrees of vertical) give lines:
+ring pairs on a wall give lines along the wall, which all concur with each other."""
+
+
+@dataclass(frozen=True)
+class RecoveredStations:
+    """Stations recovered from a cloud.
+
+    Attributes
+    ----------
+    origins : ndarray, shape (k, 3)
+        Kept stations, most supported first (k may be 0 or 1).
+    ring_share : ndarray, shape (k,)
+        Share of the cloud's points on each station's rings (its confidence).
+    concurring_lines : ndarray, shape (k,), int64
+        Top-view lines through each station.
+    n_lines : int
+    """
+
+    origins: NDArray[np.float64]
+    ring_share: NDArray[np.float64]
+    concurring_lines: NDArray[np.int64]
+    n_lines: int
+
+    @property
+    def several(self) -> bool:
+        """The cloud was taken from two or more places."""
+        return self.origins.shape[0] >= 2
+
+
+def _subset(points: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np.float64]:
+    """At most about MAX_POINTS points, as whole PATCH-metre voxels (lattice kept)."""
+    if points.shape[0] <= MAX_POINTS:
+        return points
+    cell = np.floor(points / PATCH).astype(np.int64)
+    _, voxel = np.unique(cell, axis=0, return_inverse=True)
+    voxel = voxel.reshape(-1)
+    n_voxels = int(voxel.max()) + 1
+    keep_share = MAX_POINTS / points.shape[0]
+    chosen = rng.random(n_voxels) < keep_share
+    return points[chosen[voxel]]
+
+
+def _pair_lines(
+    points: NDArray[np.float64], rng: np.random.Generator
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Top-view lines of neighbour pairs: anchors (l, 2) and unit directions (l, 2)."""
+    tree = KDTree(points)
+    distance, index = tree.query(points, k=max(PAIR_NEIGHBOURS + 1, 8))
+    neighbourhood = points[index] - points[index].mean(axis=1, keepdims=True)
+    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", neighbourhood, neighbourhood))
+    level = np.abs(vectors[:, 2, 0]) >= MIN_NORMAL_Z
+    distance, index = distance[:, : PAIR_NEIGHBOURS + 1], index[:, : PAIR_NEIGHBOURS + 1]
+    offset = points[index[:, 1:]] - points[:, None, :]  # (n, k, 3)
+    length = distance[:, 1:]
+    horizontal = np.hypot(offset[..., 0], offset[..., 1])
+    usable = (
+        level[:, None]
+        & (length > 0)
+        & (length <= MAX_PAIR_LENGTH)
+        & (horizontal >= MIN_HORIZONTAL_SHARE * length)
+    )
+    rows, columns = np.nonzero(usable)
+    if rows.size > MAX_LINES:
+        pick = rng.choice(rows.size, MAX_LINES, replace=False)
+        rows, columns = rows[pick], columns[pick]
+    anchor = points[rows, :2]
+    direction = offset[rows, columns, :2] / horizontal[rows, columns, None]
+    return anchor, direction
+
+
+def _distance_to_lines(anchor: NDArray, direction: NDArray, centre: NDArray) -> NDArray:
+    """Perpendicular top-view distance of ``centre`` (2,) to each line, shape (l,)."""
+    relative = centre - anchor
+    return np.abs(relative[:, 0] * direction[:, 1] - relative[:, 1] * direction[:, 0])
+
+
+def _least_squares_point(anchor: NDArray, direction: NDArray) -> NDArray[np.float64]:
+    """The point nearest (least squares) to all the lines, shape (2,)."""
+    normal = np.column_stack([-direction[:, 1], direction[:, 0]])
+    matrix = normal.T @ normal
+    vector = normal.T @ np.einsum("ld,ld->l", normal, anchor)
+    return np.linalg.solve(matrix + 1e-12 * np.eye(2), vector)
+
+
+def _refined_centre(anchor: NDArray, direction: NDArray, centre: NDArray) -> NDArray:
+    """A Hough peak made exact: finer votes around it, then least squares on its lines."""
+    for reach, cell in ((FINE_REACH, 0.03), (0.045, 0.003)):
+        near = np.flatnonzero(_distance_to_lines(anchor, direction, centre) <= reach)
+        anchor, direction = anchor[near[:REFINE_LINES]], direction[near[:REFINE_LINES]]
+        if anchor.shape[0] < 2:
+            return centre
+        offsets = np.arange(-reach, reach + 1e-9, cell)
+        grid = centre + np.stack(np.meshgrid(offsets, offsets, indexing="ij"), -1).reshape(-1, 2)
+        counts = np.zeros(grid.shape[0])
+        for start in range(0, grid.shape[0], 128):
+            candidates = grid[start : start + 128]
+            relative = candidates[:, None, :] - anchor[None, :, :]
+            distance = np.abs(
+                relative[..., 0] * direction[:, 1] - relative[..., 1] * direction[:, 0]
+            )
+            counts[start : start + 128] = (distance <= cell).sum(axis=1)
+        centre = grid[int(np.argmax(counts))]
+    close = _distance_to_lines(anchor, direction, centre) <= CONCUR_DISTANCE
+    if close.sum() >= 2:
+        centre = _least_squares_point(anchor[close], direction[close])
+    return centre
+
+
+def column_centres(
+    points: NDArray[np.float64], rng: np.random.Generator
+) -> list[tuple[NDArray[np.float64], int]]:
+    """Top-view points where neighbour-pair lines concur, strongest first.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+        In a frame whose z axis is the lidars' spin axis (upright stations).
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    list of (ndarray shape (2,), int)
+        Each centre and its number of concurring lines (within :data:`CONCUR_DISTANCE`).
+    """
+    anchor, direction = _pair_lines(points, rng)
+    if anchor.shape[0] < 10:
+        return []
+    low = points[:, :2].min(axis=0) - 1.0
+    shape = np.ceil((points[:, :2].max(axis=0) + 1.0 - low) / CELL).astype(np.int64) + 1
+
+    def votes_of(lines: NDArray[np.int64]) -> NDArray[np.float64]:
+        steps = np.arange(-VOTE_REACH, VOTE_REACH, CELL)
+        votes = np.zeros(int(shape[0] * shape[1]))
+        for start in range(0, lines.size, 2048):
+            part = lines[start : start + 2048]
+            samples = anchor[part, None, :] + steps[None, :, None] * direction[part, None, :]
+            cells = np.floor((samples - low) / CELL).astype(np.int64)
+            inside = (cells >= 0).all(axis=2) & (cells < shape).all(axis=2)
+            flat = cells[..., 0] * shape[1] + cells[..., 1]
+            votes += np.bincount(flat[inside], minlength=votes.size)
+        grid = votes.reshape(shape)
+        for axis in (0, 1):
+            grid = grid + np.roll(grid, 1, axis) + np.roll(grid, -1, axis)
+        return grid
+
+    smoothed = votes_of(np.arange(anchor.shape[0]))
+    remaining = np.ones(anchor.shape[0], dtype=bool)
+    centres: list[tuple[NDArray[np.float64], int]] = []
+    first_support = 0
+    for _ in range(MAX_PEAKS):
+        if len(centres) >= MAX_STATIONS:
+            break
+        cell = np.unravel_index(int(np.argmax(smoothed)), smoothed.shape)
+        if smoothed[cell] <= 0:
+            break
+        centre = _refined_centre(
+            anchor[remaining], direction[remaining], low + (np.asarray(cell) + 0.5) * CELL
+        )
+        concurring = remaining & (_distance_to_lines(anchor, direction, centre) <= CONCUR_DISTANCE)
+        support = int(concurring.sum())
+        first_support = max(first_support, support)
+        if support < max(MIN_CONCURRING, MIN_PEAK_SHARE * first_support):
+            # not a station: clear the peak's cell so that the next pass finds another one
+            row, column = cell
+            smoothed[max(row - 3, 0) : row + 4, max(column - 3, 0) : column + 4] = 0
+            continue
+        smoothed -= votes_of(np.flatnonzero(concurring))
+        remaining &= ~concurring
+        centres.append((centre, support))
+    return [
+        (centre, support)
+        for centre, support in centres
+        if support >= MIN_PEAK_SHARE * first_support
+    ]
+
+
+def _ring_scores(
+    rho: NDArray[np.float64], z: NDArray[np.float64], heights: NDArray[np.float64], bin_size: float
+) -> NDArray[np.float64]:
+    """For each candidate height, the share of points whose elevation bin is on a ring.
+
+    A bin is on a ring when its count is at least :data:`RING_CONTRAST` times the moving
+    average of :data:`SMOOTHING_BINS` bins around it.  Shape (h,).
+    """
+    n_bins = int(math.pi / bin_size) + 2
+    scores = np.empty(heights.size)
+    half = SMOOTHING_BINS // 2
+    for start in range(0, heights.size, HEIGHT_CHUNK):
+        part = heights[start : start + HEIGHT_CHUNK]
+        elevation = np.arctan2(z[None, :] - part[:, None], rho[None, :])
+        bins = np.floor((elevation + math.pi / 2) / bin_size).astype(np.int64)
+        bins += np.arange(part.size)[:, None] * n_bins
+        counts = np.bincount(bins.ravel(), minlength=part.size * n_bins).astype(np.float64)
+        counts = counts.reshape(part.size, n_bins)
+        padded = np.pad(counts, ((0, 0), (half + 1, half)))
+        cumulative = np.cumsum(padded, axis=1)
+        background = (cumulative[:, SMOOTHING_BINS:] - cumulative[:, :-SMOOTHING_BINS]) / (
+            SMOOTHING_BINS
+        )
+        on_ring = counts >= RING_CONTRAST * background
+        scores[start : start + HEIGHT_CHUNK] = (counts * on_ring).sum(axis=1) / max(rho.size, 1)
+    return scores
+
+
+def station_height(
+    points: NDArray[np.float64], centre: NDArray[np.float64], rng: np.random.Generator
+) -> float:
+    """The height of a station at top-view ``centre`` whose rings the points lie on.
+
+    A coarse search over the cloud's height range (elevation bins of 0.1 degree, 5 mm
+    steps), then a fine one (0.01 degree, 0.25 mm) around the best.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    centre : ndarray, shape (2,)
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    float
+    """
+    horizontal = np.hypot(points[:, 0] - centre[0], points[:, 1] - centre[1])
+    near = np.flatnonzero((horizontal <= HEIGHT_REACH) & (horizontal > 0.05))
+    if near.size > HEIGHT_SAMPLE:
+        near = rng.choice(near, HEIGHT_SAMPLE, replace=False)
+    rho, z = horizontal[near], points[near, 2]
+    # not at a floor's or ceiling's own height: their points would pile up at 0 degrees
+    low, high = np.quantile(z, [0.01, 0.99]) + np.array([SURFACE_CLEARANCE, -SURFACE_CLEARANCE])
+    if high <= low:
+        low = high = float(np.median(z))
+        high += 2e-3
+    best = (low + high) / 2.0
+    for step, span, bin_deg, sample in (
+        (2e-3, None, 0.04, HEIGHT_COARSE_SAMPLE),
+        (2e-4, 4e-3, 0.01, rho.size),
+    ):
+        heights = (
+            np.arange(low, high, step) if span is None else best + np.arange(-span, span, step)
+        )
+        scores = _ring_scores(rho[:sample], z[:sample], heights, math.radians(bin_deg))
+        best = float(heights[int(np.argmax(scores))])
+    return best
+
+
+def recover_stations(
+    points: NDArray[np.float64], *, random_state: int | np.random.Generator | None = 0
+) -> RecoveredStations:
+    """The lidar stations a cloud was merged from (upright spinning lidars).
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+        The cloud, in a frame whose z axis is vertical.
+    random_state : int, Generator or None
+
+    Returns
+    -------
+    RecoveredStations
+        Possibly none (no lidar structure) or one (a single-station cloud).
+    """
+    rng = np.random.default_rng(random_state)
+    subset = _subset(points, rng)
+    origins, shares, supports = [], [], []
+    for centre, support in column_centres(subset, rng):
+        height = station_height(subset, centre, rng)
+        origin = np.array([centre[0], centre[1], height])
+        on_rings = ring_contrast(subset, origin) >= RING_CONTRAST
+        share = float(on_rings.mean())
+        if share >= MIN_RING_SHARE and on_rings.sum() >= MIN_RING_POINTS:
+            origins.append(origin)
+            shares.append(share)
+            supports.append(support)
+    n_lines = 0
+    return RecoveredStations(
+        origins=np.array(origins, dtype=np.float64).reshape(-1, 3),
+        ring_share=np.array(shares, dtype=np.float64),
+        concurring_lines=np.array(supports, dtype=np.int64),
+        n_lines=n_lines,
+    )
+
+
+def resolve_stations(
+    side: str,
+    points: NDArray[np.float64],
+    *,
+    given: NDArray[np.float64] | None,
+    from_file: NDArray[np.float64] | None,
+    estimate: bool,
+    recover: bool,
+    random_state: int = 0,
+) -> ResolvedOrigin:
+    """The origin(s) of one cloud: several given, or one resolved, or stations recovered.
+
+    Several given origins (a merged survey's stations) are used as given.  One origin (given,
+    from the file or estimated) goes through :func:`~app.core.origins.resolve.resolve_origin`.
+    When that leaves the cloud without an origin and ``recover``, the cloud's stations are
+    recovered (:func:`recover_stations`) and used when there are several.
+
+    Parameters
+    ----------
+    side : str
+    points : ndarray, shape (n, 3)
+        In the frame the origins are used in (z up).
+    given : ndarray, shape (k, 3), or None
+    from_file : ndarray, shape (1, 3) or (3,), or None
+    estimate, recover : bool
+    random_state : int
+
+    Returns
+    -------
+    ResolvedOrigin
+        ``origin`` of shape (k, 3) with k >= 2 for several stations, else as
+        :func:`~app.core.origins.resolve.resolve_origin` gives it.
+    """
+    if given is not None and len(given) > 1:
+        return ResolvedOrigin(given, "given", None)
+    resolved = resolve_origin(
+        side,
+        points,
+        given=None if given is None else given[0],
+        from_file=None if from_file is None else np.asarray(from_file).reshape(3),
+        estimate=estimate,
+        random_state=random_state,
+    )
+    if resolved.origin is not None or not recover:
+        return resolved
+    found = recover_stations(points, random_state=random_state)
+    if not found.several:
+        return resolved
+    return ResolvedOrigin(
+        found.origins,
+        "recovered",
+        None,
+        resolved.warnings,
+        resolved.evidence,
+        station_confidence=[round(float(share), 3) for share in found.ring_share],
+    )
+
+
+def origins_in_local_frame(
+    explicit: Any,
+    from_file: NDArray[np.float64] | None,
+    local_origin: NDArray[np.float64],
+    name: str = "sensor origin",
+) -> NDArray[np.float64] | None:
+    """The sensor origins to use, shape (k, 3), shifted into local coordinates (None: unknown).
+
+    ``explicit`` is one origin (3 numbers) or one per station ((k, 3)); it overrides the file's.
+    """
+    origins = as_origins(explicit, name)
+    if origins is not None:
+        return origins - local_origin
+    if from_file is not None:
+        return np.asarray(from_file, dtype=np.float64).reshape(-1, 3) - local_origin
+    return None
+
+
+def station_index_of(cloud: PointCloud, resolved: ResolvedOrigin, name: str) -> NDArray | None:
+    """The cloud's ``station_index`` attribute, checked against origins given for it.
+
+    Used only with given (or file) origins, whose order it refers to; ignored otherwise.
+
+    Raises
+    ------
+    InputError
+        Not one integer per point in ``0 .. k-1`` for the k origins.
+    """
+    station = cloud.attributes.get(STATION_INDEX_ATTRIBUTE)
+    if station is None or resolved.origin is None or resolved.source not in ("given", "file"):
+        return None
+    count = np.asarray(resolved.origin).reshape(-1, 3).shape[0]
+    return as_station_index(station, len(cloud), count, f"the {name}'s station_index")

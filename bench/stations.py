@@ -1,0 +1,155 @@
+"""Several stations per cloud: localisation on merged multi-station lidar scans.
+
+Scenes: :func:`app.core.synthetic_lidar.lidar_pair` with 3-5 stations per epoch (rooms,
+corridors, warehouses; 1 cm range noise; the scan misaligned by 0.3-0.4 degrees and 2-3 cm, then
+put back with the true transform so that only visibility is measured).  Modes:
+
+- ``given``: every station's origin and each point's station index;
+- ``origins``: the origins only (points assigned to stations from the ring structure);
+- ``recovered``: nothing given; stations recovered from the points
+  (:func:`app.core.origins.stations.recover_stations`), else the origin-free test;
+- ``origin-free``: nothing given; the sampling-gap and coverage tests
+  (``origin_free_test="gaps"``);
+- ``coverage``: nothing given, the coverage test alone (before issue 15).
+
+Per scene and mode: changed regions (the decision: changed when there is one), IoU of changed
+points over the points some station of the other epoch saw.
+
+Run: ``.venv/bin/python -m bench.stations [--seeds 2] [--step 1.0] [--modes given,recovered]``;
+prints a table and writes it as the section "Several stations per cloud" of
+``bench/results/visibility.md`` (other sections are kept).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from app.core.localise import localise_changes
+from app.core.origins.stations import recover_stations
+from app.core.synthetic import _transform_points
+from app.core.synthetic_lidar import lidar_pair
+from tests.helpers.scenes import changed_iou
+
+RESULTS = Path(__file__).resolve().parent / "results"
+MODES = ("given", "origins", "recovered", "origin-free", "coverage")
+CHANGES = ("added", "removed", "mixed", "none")
+LAYOUTS = ("room", "corridor", "warehouse")
+SECTION = "Several stations per cloud (bench/stations.py)"
+
+
+def localise(pair, scan, scan_origins, mode: str):
+    """Localisation of one pair in one mode, and the stations recovered (or None)."""
+    options: dict = {}
+    recovered = None
+    if mode in ("given", "origins"):
+        options = {"reference_origin": pair.reference_origins, "scan_origin": scan_origins}
+        if mode == "given":
+            options["reference_station"] = pair.reference_station
+            options["scan_station"] = pair.scan_station
+    elif mode == "recovered":
+        recovered = (recover_stations(pair.reference), recover_stations(scan))
+        for side, found in zip(("reference", "scan"), recovered, strict=True):
+            if found.several:
+                options[f"{side}_origin"] = found.origins
+    elif mode == "origin-free":
+        options["origin_free_test"] = "gaps"
+    return localise_changes(pair.reference, scan, **options), recovered
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=2)
+    parser.add_argument("--first-seed", type=int, default=0)
+    parser.add_argument("--step", type=float, default=1.0, help="lidar grid step, degrees")
+    parser.add_argument("--modes", default=",".join(MODES))
+    parser.add_argument("--changes", default=",".join(CHANGES))
+    parser.add_argument("--layouts", default=",".join(LAYOUTS))
+    args = parser.parse_args()
+    modes = args.modes.split(",")
+    rows = []
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
+        for layout in args.layouts.split(","):
+            for change in args.changes.split(","):
+                n_stations = 3 + (seed + len(layout) + len(change)) % 3
+                pair = lidar_pair(
+                    layout=layout,
+                    change=change,
+                    n_stations=n_stations,
+                    angular_step_deg=args.step,
+                    misaligned=True,
+                    random_state=seed,
+                )
+                scan = _transform_points(pair.scan, pair.true_transform)
+                scan_origins = _transform_points(pair.scan_origins, pair.true_transform)
+                for mode in modes:
+                    started = time.perf_counter()
+                    localisation, recovered = localise(pair, scan, scan_origins, mode)
+                    seconds = time.perf_counter() - started
+                    found = (
+                        ""
+                        if recovered is None
+                        else "/".join(str(len(side.origins)) for side in recovered)
+                    )
+                    row = {
+                        "layout": layout,
+                        "change": change,
+                        "seed": seed,
+                        "stations": n_stations,
+                        "points": len(pair.reference) + len(pair.scan),
+                        "mode": mode,
+                        "regions": len(localisation.regions),
+                        "right": (len(localisation.regions) > 0) == (change != "none"),
+                        "iou": changed_iou(pair, localisation),
+                        "found": found,
+                        "seconds": seconds,
+                    }
+                    rows.append(row)
+                    print(
+                        f"{layout:9s} {change:7s} seed {seed} k={n_stations} {mode:11s} "
+                        f"regions {row['regions']:3d} right {row['right']!s:5s} "
+                        f"IoU {row['iou']:.3f} {found:5s} {seconds:5.1f} s",
+                        flush=True,
+                    )
+    lines = [
+        f"Multi-station scenes: grid step {args.step} deg, {args.seeds} seeds, "
+        f"layouts {args.layouts}, changes {args.changes} (`bench/stations.py`).",
+        "",
+        "| mode | decisions right | IoU min (changed) | IoU mean (changed) | "
+        "changed regions on unchanged scenes |",
+        "|---|---|---|---|---|",
+    ]
+    for mode in modes:
+        mine = [row for row in rows if row["mode"] == mode]
+        changed = [row["iou"] for row in mine if row["change"] != "none"]
+        quiet = [row["regions"] for row in mine if row["change"] == "none"]
+        lines.append(
+            f"| {mode} | {sum(row['right'] for row in mine)}/{len(mine)} | "
+            f"{min(changed, default=float('nan')):.3f} | "
+            f"{np.mean(changed) if changed else float('nan'):.3f} | {sum(quiet)} |"
+        )
+    table = "\n".join(lines)
+    print(table)
+    write_section(RESULTS / "visibility.md", SECTION, table)
+
+
+def write_section(path: Path, title: str, body: str) -> None:
+    """Replace (or append) the ``## title`` section of a Markdown file with ``body``."""
+    text = path.read_text() if path.exists() else "# Visibility without being told\n"
+    heading = f"## {title}\n"
+    start = text.find(heading)
+    if start < 0:
+        text = text.rstrip("\n") + "\n\n" + heading + "\n" + body + "\n"
+    else:
+        end = text.find("\n## ", start + len(heading))
+        rest = "" if end < 0 else text[end:]
+        text = text[:start] + heading + "\n" + body + "\n" + rest
+    path.parent.mkdir(exist_ok=True)
+    path.write_text(text)
+
+
+if __name__ == "__main__":
+    main()
