@@ -205,7 +205,7 @@ class ComparisonSettings:
     scan_origin: Any
     decision: str
     estimate_origins: bool = True
-    recover_stations: bool = True
+    recover_stations: bool = False
 
 
 REGISTRATION_SPECS: dict[str, ParamSpec] = {
@@ -264,7 +264,7 @@ def parse_comparison_params(
     estimate_origins = remaining.pop("estimate_origins", True)
     if not isinstance(estimate_origins, bool):
         raise InputError(f"estimate_origins must be true or false, got {estimate_origins!r}")
-    recover = remaining.pop("recover_stations", True)
+    recover = remaining.pop("recover_stations", False)
     if not isinstance(recover, bool):
         raise InputError(f"recover_stations must be true or false, got {recover!r}")
     for origin, name in ((reference_origin, "reference_origin"), (scan_origin, "scan_origin")):
@@ -345,8 +345,10 @@ def compare(
         several stations, whose ``station_index`` attribute, if any, says which took each
         point), ``"estimate_origins"`` (default true: estimate a missing or contradicted
         origin from the points, :mod:`app.core.origins.resolve`) and ``"recover_stations"``
-        (default true: a cloud with no origin that was merged from several stations gets
-        them recovered, :func:`app.core.origins.stations.recover_stations`).
+        (default false, opt-in: a cloud with no origin that was merged from several stations
+        gets them recovered, :func:`app.core.origins.stations.recover_stations`; it misses
+        stations standing close together and costs seconds per cloud, see
+        ``bench/results/visibility.md``).
         The origins used are reported in ``sensor_origins``, contradicted ones in ``warnings``.
     progress : callable, optional
         ``progress(stage, fraction)`` after each stage.
@@ -500,8 +502,8 @@ def compare(
     ):
         if explicit is not None:  # as given: one origin, or a list of them
             effective_params[key] = np.asarray(explicit, dtype=np.float64).tolist()
-    if not settings.recover_stations:
-        effective_params["recover_stations"] = False
+    if settings.recover_stations:
+        effective_params["recover_stations"] = True
     if not settings.estimate_origins:
         effective_params["estimate_origins"] = False
     report("done", 1.0)
