@@ -65,6 +65,20 @@ def process_group_members(pgid: int) -> list[int]:
     return sorted(members)
 
 
+def kill_process_group(process: subprocess.Popen[Any], timeout: float = 10.0) -> bool:
+    """``kill -9`` the process group led by ``process``; whether none of it is left after
+    ``timeout`` (stragglers of the group are killed again while waiting)."""
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(process.pid, signal.SIGKILL)
+    process.wait(timeout)
+    deadline = time.monotonic() + timeout
+    while process_group_members(process.pid) and time.monotonic() < deadline:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(process.pid, signal.SIGKILL)
+        time.sleep(0.05)
+    return not process_group_members(process.pid)
+
+
 def pid_is_alive(pid: int) -> bool:
     """Whether ``pid`` is a running, non-zombie process."""
     try:
@@ -229,10 +243,7 @@ class ServiceProcess:
         """SIGKILL every process of the service at once (API, consumer, workers)."""
         if self.process is None:
             return
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(self.process.pid, signal.SIGKILL)
-        self.process.wait(10)
-        self.wait_group_gone(timeout=10.0, force=True)
+        kill_process_group(self.process)
 
     def kill_parent(self) -> None:
         """SIGKILL ``serve`` alone; its children are expected to exit by themselves."""

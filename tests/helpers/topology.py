@@ -49,7 +49,7 @@ from app.services.auth import create_token
 from tests.helpers.environment import PROJECT_ROOT, require
 from tests.helpers.fake_pipeline import CONSUMER_BOOTSTRAP
 from tests.helpers.network import free_port
-from tests.helpers.service import live_worker_pids, process_group_members
+from tests.helpers.service import kill_process_group, live_worker_pids, process_group_members
 
 REDIS_SERVER = os.environ.get("SCANDIFF_TEST_REDIS_SERVER", "/usr/bin/redis-server")
 POSTGRES_ADMIN_URL = os.environ.get(
@@ -167,14 +167,7 @@ class ManagedProcess:
         """``kill -9`` the whole process group and wait until none of it is left."""
         if self.process is None:
             return
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(self.process.pid, signal.SIGKILL)
-        self.process.wait(10)
-        deadline = time.monotonic() + 10
-        while process_group_members(self.process.pid) and time.monotonic() < deadline:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(self.process.pid, signal.SIGKILL)
-            time.sleep(0.05)
+        kill_process_group(self.process)
 
     def stop(self, timeout: float = 15.0) -> None:
         """SIGTERM (graceful), then :meth:`kill` after ``timeout``."""
