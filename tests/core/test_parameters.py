@@ -28,7 +28,8 @@ from app.core.pipeline import parse_comparison_params
         (
             lambda: resolve_parameters({"n_neighbours": 5}),
             "unknown localisation parameter(s) ['n_neighbours']; valid: ['cluster_factor', "
-            "'coverage_factor', 'n_neighbors', 'support_factor', 'threshold_factor', "
+            "'coverage_factor', 'n_neighbors', 'origin_free_test', 'support_factor', "
+            "'threshold_factor', "
             "'visibility_angle_factor', 'visibility_beyond_fraction', "
             "'visibility_margin_factor', 'visibility_miss_factor']",
         ),
