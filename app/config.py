@@ -114,6 +114,13 @@ class Settings(BaseSettings):
         description="Seconds a job's 3D view server keeps running after its last browser "
         "connection closed.",
     )
+    shutdown_grace_seconds: float = Field(
+        default=10.0,
+        ge=0,
+        allow_inf_nan=False,
+        description="On SIGTERM, seconds a worker's running job may take to finish before it "
+        "is interrupted and handed back to the queue without using an attempt.",
+    )
     secret_key: str | None = Field(
         default=None, description="Signs view links and cookies; generated in data_dir if unset."
     )

@@ -90,11 +90,9 @@ def child_roles(args: argparse.Namespace) -> tuple[str, ...]:
     return ("api",) if args.workers == 0 else CHILD_ROLES
 
 
-def child_stop_timeout() -> float:
+def child_stop_timeout(settings: Settings) -> float:
     """How long the children get to stop: the jobs' shutdown grace plus time to hand back."""
-    from app.jobs.consumer import shutdown_grace_seconds_from_env
-
-    return max(CHILD_STOP_TIMEOUT_SECONDS, shutdown_grace_seconds_from_env() + 20.0)
+    return max(CHILD_STOP_TIMEOUT_SECONDS, settings.shutdown_grace_seconds + 20.0)
 
 
 def child_environment(settings: Settings) -> dict[str, str]:
@@ -177,7 +175,7 @@ class Supervisor:
     def __init__(self, settings: Settings, roles: tuple[str, ...] = CHILD_ROLES) -> None:
         self.settings = settings
         self.roles = roles
-        self.stop_timeout = child_stop_timeout()
+        self.stop_timeout = child_stop_timeout(settings)
         self.children: dict[str, subprocess.Popen[bytes]] = {}
         self.stop_requested: int | None = None
 

@@ -20,7 +20,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from app.cli.exit_status import EXIT_BAD_INPUT
 from app.config import Settings
 
 DATABASE_WAIT_SECONDS = 120.0
@@ -86,32 +85,21 @@ def build_settings(args: argparse.Namespace) -> Settings:
         overrides["data_dir"] = args.data_dir
     if args.concurrency is not None:
         overrides["workers"] = args.concurrency
+    if args.shutdown_grace is not None:
+        overrides["shutdown_grace_seconds"] = args.shutdown_grace
     return Settings(**overrides)
 
 
 def handle_worker(args: argparse.Namespace) -> int:
     """Entry of ``scandiff worker``."""
-    from app.jobs.consumer import (
-        DatabaseNotReadyError,
-        run_consumer,
-        shutdown_grace_seconds_from_env,
-    )
+    from app.jobs.consumer import DatabaseNotReadyError, run_consumer
 
     settings = build_settings(args)
-    try:
-        grace = (
-            args.shutdown_grace
-            if args.shutdown_grace is not None
-            else shutdown_grace_seconds_from_env()
-        )
-    except ValueError as exc:
-        print(f"scandiff worker: error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
     try:
         return run_consumer(
             settings,
             settings.workers,
-            grace,
+            settings.shutdown_grace_seconds,
             wait_for_database_seconds=args.wait_for_database,
         )
     except DatabaseNotReadyError as exc:

@@ -11,11 +11,11 @@ for a migrated database)::
     └── Huey worker 1..N (processes; each runs one job at a time)
 
 SIGTERM or SIGINT stop it gracefully: idle workers exit at once (no new job is taken), running
-jobs get the shutdown grace (``SCANDIFF_SHUTDOWN_GRACE_SECONDS``, default
-:data:`SHUTDOWN_GRACE_SECONDS`) to finish, then are interrupted and handed back to the queue
-without using up an attempt (``enqueued_at`` cleared: the next sweep of any consumer sends them
-again at once); the exit status is 0.  A worker that dies is replaced within a second; its job is
-recovered by the sweep once its lease expires.
+jobs get the shutdown grace (``SCANDIFF_SHUTDOWN_GRACE_SECONDS``, default 10 s) to finish,
+then are interrupted and handed back to the queue without using up an attempt (``enqueued_at``
+cleared: the next sweep of any consumer sends them again at once); the exit status is 0.  A
+worker that dies is replaced within a second; its job is recovered by the sweep once its lease
+expires.
 """
 
 from __future__ import annotations
@@ -45,10 +45,6 @@ from app.log import bind_job, configure_process_logging
 
 logger = logging.getLogger("scandiff.jobs.consumer")
 
-SHUTDOWN_GRACE_SECONDS = 10.0
-"""On SIGTERM/SIGINT, how long running jobs may take to finish before being interrupted."""
-SHUTDOWN_GRACE_ENV = "SCANDIFF_SHUTDOWN_GRACE_SECONDS"
-"""Environment variable overriding :data:`SHUTDOWN_GRACE_SECONDS`."""
 DATABASE_WAIT_LOG_SECONDS = 10.0
 """How often the wait says what it is waiting for."""
 WORKER_HEALTH_CHECK_SECONDS = 1.0
@@ -64,23 +60,6 @@ JOB_THREADS_ENV = "SCANDIFF_JOB_THREADS"
 
 class DatabaseNotReadyError(RuntimeError):
     """The database was not reachable and migrated to head within the wait."""
-
-
-def shutdown_grace_seconds_from_env(default: float = SHUTDOWN_GRACE_SECONDS) -> float:
-    """The shutdown grace: env ``SCANDIFF_SHUTDOWN_GRACE_SECONDS`` (>= 0) or ``default``."""
-    raw = os.environ.get(SHUTDOWN_GRACE_ENV, "").strip()
-    if not raw:
-        return default
-    try:
-        value = float(raw)
-    except ValueError:
-        value = -1.0
-    if not value >= 0 or value == float("inf"):
-        raise ValueError(
-            f"{SHUTDOWN_GRACE_ENV}={raw!r}: give the seconds a running job may take to finish "
-            "on SIGTERM, a number >= 0"
-        )
-    return value
 
 
 def database_state(url: str) -> str | None:
@@ -176,7 +155,7 @@ class ScandiffConsumer(Consumer):  # type: ignore[misc]
         huey: Huey,
         settings: Settings,
         workers: int,
-        shutdown_grace_seconds: float = SHUTDOWN_GRACE_SECONDS,
+        shutdown_grace_seconds: float,
     ) -> None:
         super().__init__(
             huey,
@@ -270,12 +249,12 @@ def run_consumer(
 ) -> int:
     """Run the consumer until SIGTERM/SIGINT; the exit status.
 
-    ``shutdown_grace_seconds`` None reads ``SCANDIFF_SHUTDOWN_GRACE_SECONDS``.  With
+    ``shutdown_grace_seconds`` None takes ``settings.shutdown_grace_seconds``.  With
     ``wait_for_database_seconds`` it first waits that long for a migrated database.
     """
     configure_process_logging(settings.log_level, settings.log_format)
     if shutdown_grace_seconds is None:
-        shutdown_grace_seconds = shutdown_grace_seconds_from_env()
+        shutdown_grace_seconds = settings.shutdown_grace_seconds
     if wait_for_database_seconds is not None:
         wait_for_database_at_head(settings, wait_for_database_seconds)
     preload_pipeline()
