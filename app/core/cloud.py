@@ -72,6 +72,39 @@ def _surely_finite(values: NDArray) -> bool:
         return bool(np.isfinite(np.dot(flat, flat)))
 
 
+def as_points(points: NDArray, name: str) -> NDArray[np.float64]:
+    """One cloud handed to a core stage, checked: float64, shape (n, 3), finite, n >= MIN_POINTS.
+
+    Parameters
+    ----------
+    points : array_like, shape (n, 3)
+    name : str
+        What the caller calls it (``"reference"``, ``"scan"``), for the message.
+
+    Returns
+    -------
+    ndarray, shape (n, 3), float64, C-contiguous
+
+    Raises
+    ------
+    PointCloudError
+        Naming ``name`` and what is wrong.
+    """
+    try:
+        array = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise PointCloudError(f"{name}: coordinates are not numbers ({exc})") from exc
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise PointCloudError(f"{name} must have shape (n, 3), got {array.shape}")
+    if array.shape[0] < MIN_POINTS:
+        raise PointCloudError(
+            f"{name} has {array.shape[0]} points; at least {MIN_POINTS} are needed"
+        )
+    if not np.isfinite(array).all():
+        raise PointCloudError(f"{name} contains NaN or inf coordinates; drop those points first")
+    return np.ascontiguousarray(array)
+
+
 def checked_coordinates(points: NDArray) -> NDArray:
     """``points`` as an array with one row of x, y, z per point and at least one row.
 

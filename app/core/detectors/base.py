@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
-from app.core.cloud import column_extreme
+from app.core.cloud import as_points, column_extreme
 from app.core.detectors import calibration
 from app.core.errors import InputError
 from app.core.parameters import ParamSpec, validate_parameters
@@ -90,33 +90,6 @@ COMMON_DEFAULTS: dict[str, dict[str, Any]] = {
         "voxel_size": 0.0,
     },
 }
-
-
-def as_points(points: NDArray, name: str) -> NDArray[np.float64]:
-    """Validate one cloud: shape (n, 3), finite, at least :data:`MIN_WORKING_POINTS` rows.
-
-    Returns
-    -------
-    ndarray, shape (n, 3), float64
-
-    Raises
-    ------
-    InputError
-        With a message saying what is wrong.
-    """
-    try:
-        array = np.asarray(points, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{name}: coordinates are not numbers ({exc})") from exc
-    if array.ndim != 2 or array.shape[1] != 3:
-        raise InputError(f"{name} must have shape (n, 3), got {array.shape}")
-    if array.shape[0] < MIN_WORKING_POINTS:
-        raise InputError(
-            f"{name} has {array.shape[0]} points; at least {MIN_WORKING_POINTS} are needed"
-        )
-    if not np.isfinite(array).all():
-        raise InputError(f"{name} contains NaN or inf coordinates; drop those points first")
-    return array
 
 
 def point_keys(points: NDArray[np.float64], seed: int) -> NDArray[np.uint64]:

@@ -36,6 +36,7 @@ from typing import Any, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
+from app.core.cloud import as_points
 from app.core.errors import InputError
 from app.core.localise.distance import (
     SUPPORT_FACTOR_QUANTILE,
@@ -50,7 +51,6 @@ from app.core.localise.regions import ChangedRegion, find_regions
 from app.core.localise.settings import (
     DEFAULT_PARAMETERS,
     as_origins,
-    as_points,
     as_station_index,
     resolve_parameters,
 )

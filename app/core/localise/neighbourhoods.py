@@ -15,8 +15,9 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 from threadpoolctl import threadpool_limits
 
+from app.core.cloud import as_points
 from app.core.errors import InputError, PointCloudError
-from app.core.localise.settings import QUERY_CHUNK, as_points, resolve_parameters
+from app.core.localise.settings import QUERY_CHUNK, resolve_parameters
 
 __all__ = [
     "NeighbourhoodSearch",

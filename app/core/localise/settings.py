@@ -7,8 +7,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.cloud import MIN_POINTS
-from app.core.errors import InputError, PointCloudError
+from app.core.errors import InputError
 from app.core.parameters import ParamSpec, validate_parameters
 
 __all__ = [
@@ -16,7 +15,6 @@ __all__ = [
     "PARAMETER_SPECS",
     "as_origin",
     "as_origins",
-    "as_points",
     "as_station_index",
     "resolve_parameters",
 ]
@@ -109,26 +107,6 @@ def resolve_parameters(params: dict[str, Any]) -> dict[str, Any]:
     return validate_parameters(
         PARAMETER_SPECS, params, stage="localisation", defaults=DEFAULT_PARAMETERS
     )
-
-
-def as_points(points: NDArray, name: str) -> NDArray[np.float64]:
-    """One cloud as a contiguous float64 array of shape (n, 3), finite, n >= MIN_POINTS.
-
-    Raises
-    ------
-    PointCloudError
-        Naming ``name`` and what is wrong.
-    """
-    array = np.asarray(points, dtype=np.float64)
-    if array.ndim != 2 or array.shape[1] != 3:
-        raise PointCloudError(f"{name} must have shape (n, 3), got {array.shape}")
-    if array.shape[0] < MIN_POINTS:
-        raise PointCloudError(
-            f"{name} has {array.shape[0]} points; at least {MIN_POINTS} are needed"
-        )
-    if not np.isfinite(array).all():
-        raise PointCloudError(f"{name} contains NaN or infinite coordinates")
-    return np.ascontiguousarray(array)
 
 
 def as_origin(origin: NDArray | None, name: str) -> NDArray[np.float64] | None:
