@@ -27,7 +27,6 @@ from app.config import Settings
 from app.db.models import Job, JobStatus, Organisation
 from app.db.session import get_engine, transaction
 from app.services.metrics import DURATION_BUCKETS_SECONDS, QUERIES_PER_SCRAPE
-from tests.helpers.api_process import api_process
 from tests.helpers.files import ply_bytes
 from tests.helpers.http import (
     assert_error,
@@ -39,6 +38,7 @@ from tests.helpers.http import (
 from tests.helpers.network import free_port
 from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer, running_api
+from tests.helpers.service import api_process
 
 Samples = dict[tuple[str, frozenset[tuple[str, str]]], float]
 

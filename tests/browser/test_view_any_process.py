@@ -27,9 +27,9 @@ from app.db.migrate import upgrade_to_head
 from app.db.models import Scan
 from app.db.session import transaction
 from app.viewer.access import VIEW_COOKIE
-from tests.helpers.browser import ApiProcess
 from tests.helpers.jobs import create_job, finish_job, load_job
 from tests.helpers.server import ApiServer
+from tests.helpers.service import ApiProcess
 from tests.helpers.viser_wire import (
     VISER_SUBPROTOCOL,
     camera_message,

@@ -153,26 +153,6 @@ class ReviewService:
         return job
 
 
-class ApiProcess(ServiceProcess):
-    """The API alone, ``uvicorn --factory app.main:create_app`` (no migrations, no consumer).
-
-    One of several API processes sharing a data directory and database (run the migrations
-    first); it writes no admin token, so tests make their own tokens.
-    """
-
-    def __init__(self, data_dir: str | Path, *, log_path: str | Path, **kwargs: Any) -> None:
-        super().__init__(data_dir, log_path=log_path, **kwargs)
-        self.extra_env.setdefault("SCANDIFF_DATA_DIR", str(self.data_dir))
-
-    def command(self) -> list[str]:
-        """The uvicorn command line of this API process."""
-        return [
-            sys.executable,
-            *("-m", "uvicorn", "--factory", "app.main:create_app"),
-            *("--host", self.host, "--port", str(self.port), "--log-level", "warning"),
-        ]
-
-
 def _socket_inodes(pid: int) -> set[str]:
     """Inodes of the sockets process ``pid`` holds open (Linux /proc)."""
     inodes = set()

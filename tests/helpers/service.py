@@ -30,7 +30,8 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -432,3 +433,35 @@ class ConsumerProcess:
             os.killpg(self.process.pid, signal.SIGKILL)
         self.process.wait(5)
         return self.process.returncode
+
+
+class ApiProcess(ServiceProcess):
+    """The API alone, ``uvicorn --factory app.main:create_app`` (no migrations, no consumer).
+
+    One of several API processes sharing a data directory and database (run the migrations
+    first); it writes no admin token, so tests make their own tokens.
+    """
+
+    def __init__(self, data_dir: str | Path, *, log_path: str | Path, **kwargs: Any) -> None:
+        super().__init__(data_dir, log_path=log_path, **kwargs)
+        self.extra_env.setdefault("SCANDIFF_DATA_DIR", str(self.data_dir))
+
+    def command(self) -> list[str]:
+        """The uvicorn command line of this API process."""
+        return [
+            sys.executable,
+            *("-m", "uvicorn", "--factory", "app.main:create_app"),
+            *("--host", self.host, "--port", str(self.port), "--no-access-log"),
+        ]
+
+
+@contextmanager
+def api_process(
+    settings: Settings, log_path: Path, env: Mapping[str, str] | None = None
+) -> Iterator[str]:
+    """An :class:`ApiProcess` on ``settings``' data directory for the ``with`` block; its URL."""
+    api = ApiProcess(settings.data_dir, log_path=log_path, env=env, startup_timeout=90.0).start()
+    try:
+        yield api.base_url
+    finally:
+        api.stop()

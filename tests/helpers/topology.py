@@ -29,7 +29,6 @@ import importlib.util
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -49,9 +48,11 @@ from app.services.auth import create_token
 from tests.helpers.environment import PROJECT_ROOT, require
 from tests.helpers.fake_pipeline import CONSUMER_BOOTSTRAP
 from tests.helpers.network import free_port
+from tests.helpers.redis import redis_ping, redis_server_binary
 from tests.helpers.service import kill_process_group, live_worker_pids, process_group_members
 
-REDIS_SERVER = os.environ.get("SCANDIFF_TEST_REDIS_SERVER", "/usr/bin/redis-server")
+REDIS_SERVER = redis_server_binary() or "/usr/bin/redis-server"
+"""The redis-server the topology runs (``SCANDIFF_TEST_REDIS_SERVER``, else on the PATH)."""
 POSTGRES_ADMIN_URL = os.environ.get(
     "SCANDIFF_TEST_POSTGRES_ADMIN_URL", "postgresql://postgres@127.0.0.1:5432/postgres"
 )
@@ -196,12 +197,7 @@ class RedisProcess(ManagedProcess):
 
     def ping(self) -> bool:
         """Whether it answers ``PING``."""
-        try:
-            with socket.create_connection(("127.0.0.1", self.port), timeout=0.5) as sock:
-                sock.sendall(b"PING\r\n")
-                return sock.recv(16).startswith(b"+PONG")
-        except OSError:
-            return False
+        return redis_ping(self.port)
 
     def wait_ready(self) -> None:
         wait_for(self.ping, 20, "answering PING", self)
