@@ -130,6 +130,19 @@ class Settings(BaseSettings):
         description="Log lines on stderr: 'json' (one JSON object per line, with request_id "
         "and job_id where they apply) or 'text' (the same fields as key=value, for people).",
     )
+    site_calibration_min_samples: int = Field(
+        default=5,
+        ge=1,
+        description="Reviewed-null jobs (false alarm, or confirmed unchanged) a site needs "
+        "before it learns its own thresholds from them.",
+    )
+    site_false_alarm_rate: float = Field(
+        default=0.2,
+        gt=0.0,
+        lt=1.0,
+        description="Target false-alarm rate of a site's learned thresholds (split-conformal "
+        "upper bound of its reviewed-null jobs; at least ceil(1/rate) - 1 of them are needed).",
+    )
     metrics_token: str | None = Field(
         default=None,
         description="When set, GET /metrics requires `Authorization: Bearer <metrics_token>`; "

@@ -53,6 +53,7 @@ from app.core.registration import (
     identity_registration,
     register_scan,
 )
+from app.core.site_calibration import DecisionInputs, decide
 from app.core.threads import available_threads
 
 ProgressCallback = Callable[[str, float], None]
@@ -323,6 +324,7 @@ def compare(
     params: Mapping[str, Any] | None = None,
     progress: ProgressCallback | None = None,
     threads: int | None = None,
+    site_calibration: Mapping[str, Any] | None = None,
 ) -> ComparisonResult:
     """Compare ``scan`` against ``reference``; see the module docstring.
 
@@ -356,6 +358,10 @@ def compare(
         Threads the localiser may use (default: ``OMP_NUM_THREADS`` if set, else every CPU
         this process may run on).  Detectors run their BLAS calls on one thread (small
         matrices: more threads only contend).  Results do not depend on it.
+    site_calibration : mapping, optional
+        A site's thresholds learned from its reviewed jobs
+        (:func:`app.core.site_calibration.learn_site_calibration`); applied when learned for
+        this method and variant.  Its provenance is in ``calibration["site"]`` either way.
 
     Returns
     -------
@@ -465,17 +471,23 @@ def compare(
 
     calibration = dict(detection.calibration)
     calibration["compared_points"] = "mutually observed" if use_observed else "all"
-    detector_changed = bool(detection.changed)
-    regions_changed = len(localisation.regions) > 0
-    changed = {
-        "either": detector_changed or regions_changed,
-        "detector": detector_changed,
-        "regions": regions_changed,
-    }[settings.decision]
+    changed, tests, calibration["site"] = decide(
+        DecisionInputs(
+            rule=settings.decision,
+            method=method,
+            variant=variant,
+            score=float(detection.score),
+            detector_threshold=float(detection.threshold),
+            largest_region_points=max((int(r.n_points) for r in localisation.regions), default=0),
+            min_region_points=int(localisation.parameters.get("min_region_points", 1)),
+        ),
+        site_calibration,
+    )
     calibration["decision"] = {
         "rule": settings.decision,
-        "detector_changed": detector_changed,
+        "detector_changed": bool(detection.changed),
         "n_regions": len(localisation.regions),
+        "tests": tests,
     }
     regions = [
         RegionSummary(

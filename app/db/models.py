@@ -91,6 +91,9 @@ class Site(Base):
     detector_params: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     # No FK constraint to scan (cycle site <-> scan); the service keeps it consistent.
     reference_scan_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    # Thresholds learned from the site's reviewed jobs (app.core.site_calibration), recomputed
+    # whenever a verdict changes; the worker passes them to the comparison.
+    calibration: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
     created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)
     updated_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now, onupdate=utc_now)
 
@@ -190,6 +193,8 @@ class Job(Base):
     # The X-Request-ID (or generated id) of the API request that created the job: the worker's
     # log lines about the job carry it, so one id follows an upload into its comparison.
     request_id: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    # The current review verdict ({"verdict", "note", "set_by", "set_at"}); history: JobVerdict.
+    verdict: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
 
     regions: Mapped[list[Region]] = relationship(
         back_populates="job", cascade="all, delete-orphan", order_by="Region.ordinal"
@@ -227,4 +232,27 @@ class IdempotencyRecord(Base):
     request_fingerprint: Mapped[str] = mapped_column(String(64))
     status_code: Mapped[int] = mapped_column(Integer)
     response_body: Mapped[dict[str, Any]] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)
+
+
+# --- i16/verdicts: review verdicts (issue 16 part 3) ---
+
+
+class JobVerdict(Base):
+    """Every verdict a reviewer gave a job, oldest first; the newest is ``Job.verdict``."""
+
+    __tablename__ = "job_verdict"
+    __table_args__ = (Index("ix_job_verdict_job_created", "job_id", "created_at"),)
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    organisation_id: Mapped[str] = mapped_column(
+        ForeignKey("organisation.id", ondelete="CASCADE"), index=True
+    )
+    site_id: Mapped[str] = mapped_column(ForeignKey("site.id", ondelete="CASCADE"), index=True)
+    job_id: Mapped[str] = mapped_column(ForeignKey("job.id", ondelete="CASCADE"))
+    verdict: Mapped[str] = mapped_column(String(16))  # confirmed | false_alarm | new_reference
+    note: Mapped[str | None] = mapped_column(Text, nullable=True)
+    token_id: Mapped[str | None] = mapped_column(String(32), nullable=True)  # who, by token
+    token_name: Mapped[str | None] = mapped_column(String(200), nullable=True)
+    role: Mapped[str] = mapped_column(String(16))
     created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)

@@ -81,6 +81,7 @@ def compute(
         params=job.params,  # replayable: holds align/random_state/stage parameters when given
         progress=keeper.compare_progress,
         threads=threads,
+        site_calibration=job.site_calibration,  # learned from the site's reviewed jobs
     )
     return result, {"load_inputs": load_seconds}
 

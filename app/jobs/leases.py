@@ -28,7 +28,7 @@ from sqlalchemy.orm import Session
 
 from app.clock import utc_now
 from app.config import Settings
-from app.db.models import Job, JobStatus, Scan
+from app.db.models import Job, JobStatus, Scan, Site
 from app.db.session import transaction
 from app.log import job_request_id, remember_job_request_id
 
@@ -124,6 +124,8 @@ class ClaimedJob:
     scan_sensor_origin: list[float] | None = None
     request_id: str | None = None
     """The id of the API request that created the job (carried by its log lines)."""
+    site_calibration: dict[str, Any] | None = None
+    """The site's thresholds learned from reviewed jobs, as they were when the job was claimed."""
 
 
 def job_log(message: str, job_id: str, stage: str, **fields: Any) -> None:
@@ -166,6 +168,7 @@ def claim_job(
             return None
         reference = session.get(Scan, job.reference_scan_id)
         scan = session.get(Scan, job.scan_id)
+        site = session.get(Site, job.site_id)
         claimed_job = ClaimedJob(
             id=job.id,
             attempt=job.attempts,
@@ -182,6 +185,7 @@ def claim_job(
             reference_sensor_origin=reference.sensor_origin if reference else None,
             scan_sensor_origin=scan.sensor_origin if scan else None,
             request_id=job.request_id,
+            site_calibration=dict(site.calibration) if site and site.calibration else None,
         )
     job_log(
         "job claimed",

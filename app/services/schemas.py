@@ -79,6 +79,11 @@ class SiteRead(BaseModel):
     description: str | None
     detector: DetectorConfig
     reference_scan_id: str | None
+    calibration: dict[str, Any] | None = Field(
+        default=None,
+        description="Thresholds the site learned from its reviewed jobs (rule, samples, "
+        "rank, values, source job ids); null until a job of the site got a verdict.",
+    )
     created_at: UtcDatetime
     updated_at: UtcDatetime
 
@@ -95,6 +100,7 @@ class SiteRead(BaseModel):
                 params=dict(site.detector_params or {}),
             ),
             reference_scan_id=site.reference_scan_id,
+            calibration=site.calibration,
             created_at=site.created_at,
             updated_at=site.updated_at,
         )
@@ -133,6 +139,33 @@ class JobCreate(StrictBody):
     params: dict[str, Any] | None = None
 
 
+class VerdictCreate(StrictBody):
+    """A reviewer's verdict on a succeeded job."""
+
+    verdict: Literal["confirmed", "false_alarm", "new_reference"] = Field(
+        description="confirmed: the decision was right; false_alarm: it said changed but "
+        "nothing that matters changed; new_reference: the job's scan becomes the site's reference."
+    )
+    note: Annotated[str, StringConstraints(strip_whitespace=True, max_length=2000)] | None = None
+
+
+class VerdictSetBy(BaseModel):
+    """Who gave a verdict: the API token (its id, name and role)."""
+
+    token_id: str | None
+    name: str | None
+    role: str
+
+
+class VerdictRead(BaseModel):
+    """A verdict: what, the reviewer's note, who and when."""
+
+    verdict: str
+    note: str | None
+    set_by: VerdictSetBy
+    set_at: UtcDatetime
+
+
 class JobRead(RowRead):
     """A comparison job: its inputs, state and results."""
 
@@ -168,6 +201,9 @@ class JobRead(RowRead):
         default=None,
         description="The id of the request that created the job (its X-Request-ID, or the id "
         "generated for it); every log line about the job carries it.",
+    )
+    verdict: VerdictRead | None = Field(
+        default=None, description="The current review verdict (POST /jobs/{id}/verdict)."
     )
 
 

@@ -12,7 +12,7 @@ from sqlalchemy.orm import Session
 from app.config import Settings
 from app.core.errors import InputError
 from app.core.pipeline import parse_comparison_params  # imported here, never in a transaction
-from app.db.models import Job, ReferenceHistory, Region, Scan, Site
+from app.db.models import Job, JobVerdict, ReferenceHistory, Region, Scan, Site
 from app.jobs.results import job_results_dir
 from app.services import storage
 from app.services.auth import Principal
@@ -123,6 +123,7 @@ def delete_site(session: Session, settings: Settings, principal: Principal, site
     if job_ids:
         session.execute(delete(Region).where(Region.job_id.in_(job_ids)))
     session.execute(delete(Job).where(Job.site_id == site.id))
+    session.execute(delete(JobVerdict).where(JobVerdict.site_id == site.id))
     session.execute(delete(ReferenceHistory).where(ReferenceHistory.site_id == site.id))
     session.execute(delete(Scan).where(Scan.site_id == site.id))
     session.delete(site)

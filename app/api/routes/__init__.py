@@ -7,13 +7,14 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from app.api.routes import health, jobs, metrics, organisation, scans, sites
+from app.api.routes import health, jobs, metrics, organisation, scans, sites, verdicts
 
 v1_router = APIRouter(prefix="/api/v1")
 v1_router.include_router(health.router)
 v1_router.include_router(sites.router)
 v1_router.include_router(scans.router)
 v1_router.include_router(jobs.router)
+v1_router.include_router(verdicts.router)
 v1_router.include_router(organisation.router)
 
 api_router = APIRouter()

@@ -1,0 +1,143 @@
+"""Review verdicts on finished jobs, and the per-site thresholds learned from them.
+
+A reviewer marks a succeeded job ``confirmed``, ``false_alarm`` or ``new_reference`` (the
+job's scan becomes the site's reference, recorded in the reference history).  A later verdict
+replaces the current one (``job.verdict``); every verdict stays in ``job_verdict`` with who
+(the API token) and when.  Each verdict recomputes the site's calibration
+(:func:`app.core.site_calibration.learn_site_calibration`) from its *reviewed-null* jobs: the
+current verdict is ``false_alarm``, or ``confirmed`` on a job that decided unchanged.  The
+worker passes it to the next comparisons of the site (:mod:`app.jobs.execution`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from app.clock import utc_now
+from app.config import Settings
+from app.core.jsonable import json_safe
+from app.core.site_calibration import ReviewedSample, learn_site_calibration
+from app.db.models import ApiToken, Job, JobStatus, JobVerdict, Region, Scan, Site
+from app.services import jobs, sites
+from app.services.auth import Principal
+from app.services.errors import ConflictError
+from app.services.schemas import VerdictCreate
+
+VERDICTS = ("confirmed", "false_alarm", "new_reference")
+
+
+def is_reviewed_null(verdict: dict[str, Any] | None, changed: bool | None) -> bool:
+    """Whether a job's current verdict says nothing really changed (a calibration sample)."""
+    if not verdict:
+        return False
+    kind = verdict.get("verdict")
+    return kind == "false_alarm" or (kind == "confirmed" and changed is False)
+
+
+def reviewed_samples(session: Session, site: Site) -> list[ReviewedSample]:
+    """The site's reviewed-null succeeded jobs of its current detector, oldest first."""
+    rows = session.scalars(
+        select(Job)
+        .where(
+            Job.site_id == site.id,
+            Job.status == JobStatus.SUCCEEDED,
+            Job.verdict.is_not(None),
+            Job.method == site.detector_method,
+            Job.variant == site.detector_variant,
+        )
+        .order_by(Job.created_at, Job.id)
+    ).all()
+    chosen = [job for job in rows if is_reviewed_null(job.verdict, job.changed)]
+    largest = dict(
+        session.execute(
+            select(Region.job_id, func.max(Region.n_points))
+            .where(Region.job_id.in_([job.id for job in chosen]))
+            .group_by(Region.job_id)
+        ).all()
+    )
+    return [
+        ReviewedSample(
+            job_id=job.id,
+            score=float(job.score) if job.score is not None else 0.0,
+            largest_region_points=int(largest.get(job.id) or 0),
+        )
+        for job in chosen
+    ]
+
+
+def recompute_site_calibration(session: Session, settings: Settings, site: Site) -> None:
+    """Learn the site's thresholds again from its reviewed-null jobs (stored on the site)."""
+    site.calibration = json_safe(
+        {
+            **learn_site_calibration(
+                reviewed_samples(session, site),
+                method=site.detector_method,
+                variant=site.detector_variant,
+                false_alarm_rate=settings.site_false_alarm_rate,
+                min_samples=settings.site_calibration_min_samples,
+            ),
+            "computed_at": utc_now().isoformat(),
+        }
+    )
+    session.flush()
+
+
+def set_verdict(
+    session: Session, settings: Settings, principal: Principal, job_id: str, payload: VerdictCreate
+) -> Job:
+    """Record a reviewer's verdict on a succeeded job (409 otherwise); the job."""
+    job = jobs.get_job(session, principal, job_id)
+    if job.status != JobStatus.SUCCEEDED:
+        raise ConflictError(
+            f"job {job.id} is {job.status}; only a succeeded job can get a verdict "
+            "(wait until it has finished, or re-run a failed one with POST /api/v1/jobs)",
+            code="job_not_succeeded",
+        )
+    site = sites.get_site(session, principal, job.site_id)
+    if payload.verdict == "new_reference":
+        scan = session.get(Scan, job.scan_id)
+        if scan is None:
+            raise ConflictError(f"the scan of job {job.id} no longer exists", code="scan_missing")
+        sites.set_reference(session, site, scan)
+    token = session.get(ApiToken, principal.token_id)
+    now = utc_now()
+    record = JobVerdict(
+        organisation_id=principal.organisation_id,
+        site_id=site.id,
+        job_id=job.id,
+        verdict=payload.verdict,
+        note=payload.note,
+        token_id=principal.token_id,
+        token_name=token.name if token is not None else None,
+        role=principal.role,
+        created_at=now,
+    )
+    session.add(record)
+    job.verdict = verdict_json(record)
+    session.flush()
+    recompute_site_calibration(session, settings, site)
+    return job
+
+
+def verdict_json(record: JobVerdict) -> dict[str, Any]:
+    """The ``job.verdict`` form of a verdict row."""
+    return {
+        "verdict": record.verdict,
+        "note": record.note,
+        "set_by": {"token_id": record.token_id, "name": record.token_name, "role": record.role},
+        "set_at": record.created_at.isoformat(),
+    }
+
+
+def list_verdicts(session: Session, principal: Principal, job_id: str) -> list[dict[str, Any]]:
+    """Every verdict given to a job, oldest first (the ``job.verdict`` form)."""
+    job = jobs.get_job(session, principal, job_id)
+    rows = session.scalars(
+        select(JobVerdict)
+        .where(JobVerdict.job_id == job.id)
+        .order_by(JobVerdict.created_at, JobVerdict.id)
+    ).all()
+    return [verdict_json(row) for row in rows]
