@@ -53,7 +53,7 @@ from app.core.registration import (
     identity_registration,
     register_scan,
 )
-from app.core.site_calibration import DecisionInputs, decide
+from app.core.site_calibration import DecisionInputs, decide, largest_extent
 from app.core.threads import available_threads
 
 ProgressCallback = Callable[[str, float], None]
@@ -478,7 +478,8 @@ def compare(
             variant=variant,
             score=float(detection.score),
             detector_threshold=float(detection.threshold),
-            largest_region_points=max((int(r.n_points) for r in localisation.regions), default=0),
+            n_regions=len(localisation.regions),
+            largest_region_extent_m=largest_extent(localisation.regions),
             min_region_points=int(localisation.parameters.get("min_region_points", 1)),
         ),
         site_calibration,

@@ -4,14 +4,19 @@ A comparison decides ``changed`` by a rule (:data:`app.core.pipeline.DECISION_RU
 rule is one or two *tests* of a statistic against a threshold:
 
 ``"regions"``
-    ``largest_region_points >= min_region_points``: a region of changed points survived the
-    localiser's size floor (``largest_region_points`` is 0 when none did).
+    ``largest_region_extent_m > 0``: a region of changed points survived the localiser's size
+    floor (``min_region_points``); the statistic is the largest diagonal of the regions'
+    bounding boxes in metres, 0 when no region survived.
 ``"detector"``
     ``score > threshold``: the detector's global score against its calibrated threshold.
 ``"either"``
     either test fires.
 
 A site whose reviewers keep marking the same kind of alarm as false learns its own bar.
+The region statistic is a size in metres, not a point count: the same object yields 30 to
+110 points depending on where the sensor stood, but a bounding box within 0.65-0.87 m
+(``bench/calibration.py``'s moving bin), so a bar learned on it separates a recurring small
+nuisance from a larger real change much better.
 
 The stated rule (split conformal)
 ---------------------------------
@@ -27,13 +32,13 @@ only when ``s > q`` (and the default test fires too: a learned threshold only ra
 What it does not promise: reviewed jobs are chosen by people (mostly raised alarms), so they
 are not a random sample of the site's null jobs; the bound is then conservative (higher than
 needed), which costs sensitivity, not false alarms.  A real change smaller than the learned
-nuisance (fewer points than the largest false-alarm region) no longer fires.
+nuisance (a region no larger than the largest learned false-alarm region) no longer fires.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,7 +46,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 SITE_RULE = "split-conformal upper bound of reviewed-null jobs"
-STATISTICS = ("largest_region_points", "score")
+STATISTICS = ("largest_region_extent_m", "score")
 """The statistics a site learns a threshold for: what ``"regions"`` and ``"detector"`` test."""
 MAX_SOURCE_IDS = 50
 """At most this many source job ids are listed in a calibration (the newest); ``n_samples``
@@ -54,7 +59,29 @@ class ReviewedSample:
 
     job_id: str
     score: float
-    largest_region_points: int
+    largest_region_extent_m: float
+
+
+def largest_extent(regions: Iterable[Any]) -> float:
+    """The largest bounding-box diagonal (metres) of regions with ``bbox_min``/``bbox_max``.
+
+    Parameters
+    ----------
+    regions : iterable
+        Objects (or mappings) with ``bbox_min`` and ``bbox_max``, each 3 numbers.
+
+    Returns
+    -------
+    float
+        0.0 when there is no region.
+    """
+    largest = 0.0
+    for region in regions:
+        low = region["bbox_min"] if isinstance(region, Mapping) else region.bbox_min
+        high = region["bbox_max"] if isinstance(region, Mapping) else region.bbox_max
+        diagonal = float(np.linalg.norm(np.asarray(high, float) - np.asarray(low, float)))
+        largest = max(largest, diagonal)
+    return largest
 
 
 def conformal_rank(n_samples: int, false_alarm_rate: float) -> int:
@@ -146,8 +173,8 @@ def learn_site_calibration(
     calibration["rank"] = rank
     calibration["quantile"] = rank / n_samples
     calibration["thresholds"] = {
-        "largest_region_points": conformal_upper_bound(
-            [sample.largest_region_points for sample in samples], false_alarm_rate
+        "largest_region_extent_m": conformal_upper_bound(
+            [sample.largest_region_extent_m for sample in samples], false_alarm_rate
         ),
         "score": conformal_upper_bound([sample.score for sample in samples], false_alarm_rate),
     }
@@ -163,7 +190,8 @@ class DecisionInputs:
     variant: str
     score: float
     detector_threshold: float
-    largest_region_points: int
+    n_regions: int
+    largest_region_extent_m: float
     min_region_points: int
 
 
@@ -189,25 +217,29 @@ def decide(
 ) -> tuple[bool, list[dict[str, Any]], dict[str, Any]]:
     """``changed``, the decisive tests and the site calibration's provenance.
 
-    Each test is ``{"statistic", "value", "comparison", "threshold", "source", "fires"}``;
-    ``source`` is ``"default"`` or ``"site"`` (a learned threshold above the default one).
+    Each test is ``{"statistic", "value", "comparison", "threshold", "source", "fires"}``
+    (the region test adds ``n_regions`` and ``min_region_points``); ``source`` is
+    ``"default"`` or ``"site"`` (a learned threshold above the default one).
     ``changed`` is any test firing for ``"either"``, the one test otherwise.
     """
     reason = _site_applies(inputs, site_calibration)
     learned = (site_calibration or {}).get("thresholds") if reason is None else None
     tests: list[dict[str, Any]] = []
     if inputs.rule in ("regions", "either"):
-        value = int(inputs.largest_region_points)
         test = {
-            "statistic": "largest_region_points",
-            "value": value,
-            "comparison": ">=",
-            "threshold": int(inputs.min_region_points),
+            "statistic": "largest_region_extent_m",
+            "value": float(inputs.largest_region_extent_m) if inputs.n_regions else 0.0,
+            "comparison": ">",
+            "threshold": 0.0,
             "source": "default",
+            "n_regions": int(inputs.n_regions),
+            "min_region_points": int(inputs.min_region_points),
+            "fires": inputs.n_regions > 0,
         }
-        site_value = (learned or {}).get("largest_region_points")
-        if site_value is not None and site_value >= inputs.min_region_points:
-            test.update(comparison=">", threshold=float(site_value), source="site")
+        site_value = (learned or {}).get("largest_region_extent_m")
+        if site_value is not None and site_value > 0.0:
+            test.update(threshold=float(site_value), source="site")
+            test["fires"] = bool(test["value"] > test["threshold"])
         tests.append(test)
     if inputs.rule in ("detector", "either"):
         test = {
@@ -220,12 +252,8 @@ def decide(
         site_value = (learned or {}).get("score")
         if site_value is not None and site_value > inputs.detector_threshold:
             test.update(threshold=float(site_value), source="site")
+        test["fires"] = bool(test["value"] > test["threshold"])
         tests.append(test)
-    for test in tests:
-        if test["comparison"] == ">=":
-            test["fires"] = bool(test["value"] >= test["threshold"])
-        else:
-            test["fires"] = bool(test["value"] > test["threshold"])
     changed = any(test["fires"] for test in tests)
     provenance = dict(site_calibration or {})
     provenance["applied"] = reason is None

@@ -11,15 +11,16 @@ worker passes it to the next comparisons of the site (:mod:`app.jobs.execution`)
 
 from __future__ import annotations
 
+from collections import defaultdict
 from typing import Any
 
-from sqlalchemy import func, select
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.clock import utc_now
 from app.config import Settings
 from app.core.jsonable import json_safe
-from app.core.site_calibration import ReviewedSample, learn_site_calibration
+from app.core.site_calibration import ReviewedSample, largest_extent, learn_site_calibration
 from app.db.models import ApiToken, Job, JobStatus, JobVerdict, Region, Scan, Site
 from app.services import jobs, sites
 from app.services.auth import Principal
@@ -51,18 +52,18 @@ def reviewed_samples(session: Session, site: Site) -> list[ReviewedSample]:
         .order_by(Job.created_at, Job.id)
     ).all()
     chosen = [job for job in rows if is_reviewed_null(job.verdict, job.changed)]
-    largest = dict(
-        session.execute(
-            select(Region.job_id, func.max(Region.n_points))
-            .where(Region.job_id.in_([job.id for job in chosen]))
-            .group_by(Region.job_id)
-        ).all()
-    )
+    regions: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for job_id, bbox_min, bbox_max in session.execute(
+        select(Region.job_id, Region.bbox_min, Region.bbox_max).where(
+            Region.job_id.in_([job.id for job in chosen])
+        )
+    ):
+        regions[job_id].append({"bbox_min": bbox_min, "bbox_max": bbox_max})
     return [
         ReviewedSample(
             job_id=job.id,
             score=float(job.score) if job.score is not None else 0.0,
-            largest_region_points=int(largest.get(job.id) or 0),
+            largest_region_extent_m=largest_extent(regions[job.id]),
         )
         for job in chosen
     ]

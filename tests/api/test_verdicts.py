@@ -155,8 +155,13 @@ def test_site_calibration_is_learned_from_reviewed_null_jobs(
     assert sorted(calibration["source_job_ids"]) == sorted(sources)
     assert calibration["rank"] == 5 and calibration["min_samples"] == 5
     assert calibration["false_alarm_rate"] == pytest.approx(api.settings.site_false_alarm_rate)
-    # thresholds: the largest of the samples' statistics (rank 5 of 5)
-    assert calibration["thresholds"]["largest_region_points"] == 12
+    # thresholds: the largest of the samples' statistics (rank 5 of 5); every finished job
+    # has one region of the same box, the unchanged one too
+    region = writer.get(f"/api/v1/jobs/{unchanged_job['id']}/regions").json()[0]
+    diagonal = sum(
+        (high - low) ** 2 for low, high in zip(region["bbox_min"], region["bbox_max"], strict=True)
+    )
+    assert calibration["thresholds"]["largest_region_extent_m"] == pytest.approx(diagonal**0.5)
     assert calibration["thresholds"]["score"] == pytest.approx(changed_jobs[0]["score"])
     assert (calibration["method"], calibration["variant"]) == (
         site["detector"]["method"],

@@ -15,6 +15,7 @@ from app.core.site_calibration import (
     conformal_rank,
     conformal_upper_bound,
     decide,
+    largest_extent,
     learn_site_calibration,
     minimum_samples,
 )
@@ -69,29 +70,33 @@ def test_bound_is_the_conformal_order_statistic() -> None:
         conformal_upper_bound([1.0, math.nan], 0.2)
 
 
-def samples(sizes: list[int], scores: list[float] | None = None) -> list[ReviewedSample]:
+def samples(sizes: list[float], scores: list[float] | None = None) -> list[ReviewedSample]:
     scores = scores or [0.1] * len(sizes)
     return [
-        ReviewedSample(job_id=f"job{index}", score=score, largest_region_points=size)
+        ReviewedSample(job_id=f"job{index}", score=score, largest_region_extent_m=size)
         for index, (size, score) in enumerate(zip(sizes, scores, strict=True))
     ]
 
 
 def test_learning_needs_the_minimum_count_then_states_its_provenance() -> None:
     learning = learn_site_calibration(
-        samples([40, 80, 35]), method="pca", variant="improved", false_alarm_rate=0.2, min_samples=5
+        samples([0.4, 0.8, 0.35]),
+        method="pca",
+        variant="improved",
+        false_alarm_rate=0.2,
+        min_samples=5,
     )
     assert learning["status"] == "learning" and learning["thresholds"] is None
     assert (learning["n_samples"], learning["min_samples"]) == (3, 5)
     learned = learn_site_calibration(
-        samples([40, 80, 35, 60, 50], [0.1, 0.3, 0.2, 0.05, 0.15]),
+        samples([0.4, 0.8, 0.35, 0.6, 0.5], [0.1, 0.3, 0.2, 0.05, 0.15]),
         method="pca",
         variant="improved",
         false_alarm_rate=0.2,
         min_samples=5,
     )
     assert learned["status"] == "learned" and learned["rank"] == 5
-    assert learned["thresholds"] == {"largest_region_points": 80.0, "score": 0.3}
+    assert learned["thresholds"] == {"largest_region_extent_m": 0.8, "score": 0.3}
     assert learned["source_job_ids"] == [f"job{index}" for index in range(5)]
     assert learned["rule"].startswith("split-conformal") and learned["false_alarm_rate"] == 0.2
     # a rate that needs more samples than the setting asks for raises the minimum
@@ -108,7 +113,8 @@ def inputs(**overrides) -> DecisionInputs:
         "variant": "improved",
         "score": 0.2,
         "detector_threshold": 0.25,
-        "largest_region_points": 70,
+        "n_regions": 2,
+        "largest_region_extent_m": 0.7,
         "min_region_points": 11,
     }
     return DecisionInputs(**{**values, **overrides})
@@ -120,7 +126,7 @@ def site(largest: float, score: float, **fields) -> dict:
         "method": "pca",
         "variant": "improved",
         "n_samples": 5,
-        "thresholds": {"largest_region_points": largest, "score": score},
+        "thresholds": {"largest_region_extent_m": largest, "score": score},
         **fields,
     }
 
@@ -130,41 +136,47 @@ def test_decision_without_a_site_calibration_is_the_default_rule() -> None:
     assert changed and provenance["applied"] is False and "no reviewed jobs" in provenance["reason"]
     assert tests == [
         {
-            "statistic": "largest_region_points",
-            "value": 70,
-            "comparison": ">=",
-            "threshold": 11,
+            "statistic": "largest_region_extent_m",
+            "value": 0.7,
+            "comparison": ">",
+            "threshold": 0.0,
             "source": "default",
+            "n_regions": 2,
+            "min_region_points": 11,
             "fires": True,
         }
     ]
-    changed, _tests, _ = decide(inputs(largest_region_points=0), None)
-    assert not changed
+    changed, tests, _ = decide(inputs(n_regions=0, largest_region_extent_m=0.0), None)
+    assert not changed and tests[0]["value"] == 0.0
 
 
 def test_a_learned_threshold_silences_the_nuisance_and_keeps_larger_changes() -> None:
-    learned = site(86.0, 0.31)
-    changed, tests, provenance = decide(inputs(largest_region_points=70), learned)
+    learned = site(0.87, 0.31)
+    changed, tests, provenance = decide(inputs(largest_region_extent_m=0.7), learned)
     assert not changed and provenance["applied"] is True
-    assert (tests[0]["source"], tests[0]["threshold"], tests[0]["comparison"]) == ("site", 86, ">")
-    changed, _, _ = decide(inputs(largest_region_points=300), learned)
+    assert (tests[0]["source"], tests[0]["threshold"], tests[0]["comparison"]) == (
+        "site",
+        0.87,
+        ">",
+    )
+    changed, _, _ = decide(inputs(largest_region_extent_m=1.7), learned)
     assert changed
-    # a learned value below the default never lowers the bar
-    changed, tests, _ = decide(inputs(largest_region_points=5), site(0.0, 0.0))
-    assert not changed and tests[0]["source"] == "default"
+    # learned on reviewed-unchanged jobs only (no region: 0 m): the default rule stays
+    changed, tests, _ = decide(inputs(), site(0.0, 0.0))
+    assert changed and tests[0]["source"] == "default"
 
 
 def test_either_rule_tests_both_statistics_and_detector_rule_the_score() -> None:
-    learned = site(86.0, 0.31)
+    learned = site(0.87, 0.31)
     changed, tests, _ = decide(inputs(rule="either", score=0.3), learned)
-    assert [test["statistic"] for test in tests] == ["largest_region_points", "score"]
+    assert [test["statistic"] for test in tests] == ["largest_region_extent_m", "score"]
     assert not changed and tests[1]["threshold"] == 0.31
     changed, tests, _ = decide(inputs(rule="detector", score=0.4), learned)
     assert changed and [test["statistic"] for test in tests] == ["score"]
 
 
 def test_calibration_of_another_detector_or_still_learning_is_not_applied() -> None:
-    changed, _, provenance = decide(inputs(), site(86.0, 0.31, method="gmm"))
+    changed, _, provenance = decide(inputs(), site(0.87, 0.31, method="gmm"))
     assert changed and not provenance["applied"] and "gmm/improved" in provenance["reason"]
     learning = {"status": "learning", "n_samples": 2, "min_samples": 5, "thresholds": None}
     changed, _, provenance = decide(inputs(), learning)
@@ -181,11 +193,20 @@ def test_compare_applies_a_site_calibration_and_reports_it() -> None:
     plain = compare(*clouds, method="pca")
     tests = plain.calibration["decision"]["tests"]
     assert plain.calibration["site"]["applied"] is False
-    largest = max((region.n_points for region in plain.regions), default=0)
-    assert largest > 0, "the moved bin should leave a region"
-    assert tests[0]["value"] == largest and plain.changed == (largest >= tests[0]["threshold"])
-    above = site(float(largest), 1e9, method="pca", variant="improved")
+    largest = largest_extent(plain.regions)
+    assert plain.changed and largest > 0, "the moved bin should leave a region"
+    assert tests[0]["value"] == pytest.approx(largest)
+    above = site(largest, 1e9, method="pca", variant="improved")
     calibrated = compare(*clouds, method="pca", site_calibration=above)
     assert calibrated.calibration["site"]["applied"] is True
     assert not calibrated.changed  # equal to the learned bound: not above it
     assert len(calibrated.regions) == len(plain.regions)  # the regions are still reported
+
+
+def test_largest_extent_is_the_largest_bounding_box_diagonal() -> None:
+    regions = [
+        {"bbox_min": [0.0, 0.0, 0.0], "bbox_max": [0.3, 0.4, 0.0]},
+        {"bbox_min": [1.0, 1.0, 1.0], "bbox_max": [2.0, 3.0, 3.0]},
+    ]
+    assert largest_extent(regions) == pytest.approx(3.0)
+    assert largest_extent([]) == 0.0
