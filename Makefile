@@ -56,12 +56,13 @@ $(BENCH_STAMP): pyproject.toml | $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[dev,bench]'
 	touch $(BENCH_STAMP)
 
-# paper + scenes + visibility (quick), then bench/perf.py: pipeline vs py4dgeo M3C2 and the cKDTree floor,
+# paper + scenes + visibility + per-site calibration (quick), then bench/perf.py: pipeline vs py4dgeo M3C2 and the cKDTree floor,
 # ingest, service (~3 min; --large adds 5M points); M3C2 is skipped if py4dgeo is missing.
 bench: $(BENCH_STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/python bench/paper.py --quick
 	OMP_NUM_THREADS=1 $(BIN)/python bench/scenes.py --quick
 	OMP_NUM_THREADS=1 $(BIN)/python bench/visibility.py --quick
+	OMP_NUM_THREADS=1 $(BIN)/python bench/calibration.py --quick
 	$(BIN)/python bench/perf.py
 	$(BIN)/python bench/perf_scaling.py --json bench/results/scaling.json
 

@@ -73,6 +73,7 @@ def site_visit(
     *,
     bin_spot: int,
     crate_spot: int | None = None,
+    crate_size: float = CRATE_SIZE[0],
     n_points: int = 20_000,
     sensor_shift: float = 0.5,
     range_noise: float = 0.01,
@@ -86,6 +87,8 @@ def site_visit(
         Index into :data:`BIN_SPOTS`.
     crate_spot : int, optional
         Index into :data:`CRATE_SPOTS`; None: no crate.
+    crate_size : float
+        Edge of the (cubic) crate, metres; default :data:`CRATE_SIZE`.
     n_points : int
         Rays (points) of the sweep, >= 1000.
     sensor_shift : float
@@ -104,7 +107,7 @@ def site_visit(
     rng = np.random.default_rng(random_state)
     world = [*STATIC_BOXES, _box_at("bin", BIN_SPOTS[bin_spot], BIN_SIZE)]
     if crate_spot is not None:
-        world.append(_box_at("crate", CRATE_SPOTS[crate_spot], CRATE_SIZE))
+        world.append(_box_at("crate", CRATE_SPOTS[crate_spot], (crate_size,) * 3))
     if sensor_shift > 0:
         sensor = _place_scan_sensor(sensor_shift, world, rng)
     else:
@@ -122,14 +125,15 @@ def site_history(
     *,
     layout_seed: int,
     real_change_visits: tuple[int, ...] = (),
+    crate_size: float = CRATE_SIZE[0],
     n_points: int = 20_000,
 ) -> tuple[SiteVisit, list[SiteVisit]]:
     """A reference and ``n_visits`` rescans of one layout; the bin moves on every visit.
 
     The layout (``layout_seed``) fixes the bin's spots (the reference's, then a different one
     on each visit, drawn from :data:`BIN_SPOTS`) and the crate's spot; visits whose index is in
-    ``real_change_visits`` also have the crate.  Sensor positions (0.3-0.8 m from the
-    reference sensor) and sampling vary per visit.
+    ``real_change_visits`` also have the crate (edge ``crate_size`` metres).  Sensor positions
+    (0.3-0.8 m from the reference sensor) and sampling vary per visit.
 
     Returns
     -------
@@ -147,6 +151,7 @@ def site_history(
         site_visit(
             bin_spot=int(rng.choice(others)),
             crate_spot=crate_spot if index in real_change_visits else None,
+            crate_size=crate_size,
             n_points=n_points,
             sensor_shift=float(rng.uniform(0.3, 0.8)),
             random_state=rng,
