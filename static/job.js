@@ -4,6 +4,7 @@ import { API, ApiError, api, describeError, itemsOf } from "./api.js";
 import { decisionBadge, formatDate, formatNumber, formatVector, h, jobProgress, statusBadge } from "./dom.js";
 import { app, currentRender, schedulePoll, setCrumbs } from "./page.js";
 import { handleFailure } from "./session.js";
+import { reviewPanel } from "./verdicts.js";
 
 function numbersTable(job) {
   const registration = job.registration || {};
@@ -108,6 +109,7 @@ export async function renderJob(jobId) {
       linkOutput,
       failure,
       numbersTable(job)),
+    reviewPanel(job, () => renderJob(jobId).catch((failure) => handleFailure(failure, "Refreshing the job"))),
     h("section", { class: "card" }, h("h2", {}, `Regions (${finished ? regions.length : "—"})`), finished ? regionsTable(regions) : h("p", { class: "muted" }, "Regions appear when the job has succeeded.")),
     h("section", { class: "card" }, h("h2", {}, "Downloads"), downloads));
 

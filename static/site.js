@@ -42,7 +42,7 @@ export async function renderSite(siteId) {
   setCrumbs(h("a", { href: "#/" }, "Sites"), h("span", {}, site.name));
 
   const timeline = h("div", { id: "timeline", class: "timeline" });
-  drawTimeline(timeline, timelineJobs, (job) => { location.hash = `#/jobs/${job.id}`; });
+  drawTimeline(timeline, timelineJobs, (job) => { location.hash = `#/jobs/${job.id}`; }, site);
 
   const changedOnly = h("input", { type: "checkbox", id: "filter-changed", checked: filters.changed });
   const statusSelect = h("select", { id: "filter-status" },
