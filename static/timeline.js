@@ -180,8 +180,11 @@ function drawDecisive(items, statistic, site, onSelect, tMin, tMax) {
   const info = STATISTICS[statistic] || { title: statistic, unit: "" };
   const chart = frame(MAIN_HEIGHT, `${info.title} of ${items.length} finished jobs over time, with the threshold that decided each`, "decisive-chart");
   chart.dataset.statistic = statistic;
-  const learned = site && site.calibration && site.calibration.status === "learned" && site.calibration.thresholds
-    ? site.calibration.thresholds[statistic] : null;
+  const calibration = site && site.calibration;
+  const forThisDetector = calibration && site.detector
+    && calibration.method === site.detector.method && calibration.variant === site.detector.variant;
+  const learned = forThisDetector && calibration.status === "learned" && calibration.thresholds
+    ? calibration.thresholds[statistic] : null;
   const values = items.flatMap((item) => [item.test.value, item.test.threshold]).filter(Number.isFinite);
   if (Number.isFinite(learned)) values.push(learned);
   const yMax = (Math.max(...values, 0) || 1) * 1.15;

@@ -110,7 +110,7 @@ def set_verdict(
         site_id=site.id,
         job_id=job.id,
         verdict=payload.verdict,
-        note=payload.note,
+        note=payload.note or None,
         token_id=principal.token_id,
         token_name=token.name if token is not None else None,
         role=principal.role,
