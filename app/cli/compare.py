@@ -31,7 +31,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("reference", type=Path, help="reference scan file")
     parser.add_argument("scan", type=Path, help="new scan file")
     parser.add_argument(
-        "--method", default="gmm", metavar="gmm|pca|planes", help="detector (default gmm)"
+        "--method",
+        default="gmm",
+        metavar="gmm|pca|planes",
+        help="detector (default gmm); the paper's names pca-emd, gmm-emd, pe (pe-emd) work too",
     )
     parser.add_argument(
         "--variant",
