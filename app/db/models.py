@@ -190,6 +190,12 @@ class Job(Base):
     # The X-Request-ID (or generated id) of the API request that created the job: the worker's
     # log lines about the job carry it, so one id follows an upload into its comparison.
     request_id: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    # Issue 15/19 (branch i19/explain): the sensor origins used (per side a list of {origin,
+    # source, confidence}), quality warnings ([{code, message, ...}]) and the decision's
+    # explanation ({..., text}); null until the job succeeded.
+    sensor_origins: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
+    warnings: Mapped[list[dict[str, Any]] | None] = mapped_column(JSON, nullable=True)
+    explanation: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
 
     regions: Mapped[list[Region]] = relationship(
         back_populates="job", cascade="all, delete-orphan", order_by="Region.ordinal"
