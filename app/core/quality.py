@@ -52,6 +52,10 @@ LOW_OVERLAP_FRACTION = 0.5
 ``unobserved``, so the decision rests on a small part of the place."""
 
 LABEL_UNOBSERVED = -1
+CORRECTION_HINT = (
+    "expected for files in their moving sensor's frame; for files in one world frame, check "
+    f"that the alignment found the right match, or {NO_ALIGN_HINT}"
+)
 ORIGIN_HINT = (
     "give the sensor position: sensor_origin=x,y,z (metres, the file's frame) on upload, "
     '"reference_origin"/"scan_origin" in the job\'s params, or --param on the CLI'
@@ -105,8 +109,7 @@ def registration_warnings(
             {
                 "code": "large_rotation",
                 "message": f"the alignment rotated the scan by {rotation:.1f} degrees (more "
-                f"than {large_rotation_degrees:g} degrees); check that it found the right "
-                f"match, or {NO_ALIGN_HINT} if the files share one frame",
+                f"than {large_rotation_degrees:g} degrees): {CORRECTION_HINT}",
                 "value": rotation,
                 "limit": large_rotation_degrees,
                 "unit": "degrees",
@@ -118,8 +121,7 @@ def registration_warnings(
             {
                 "code": "large_translation",
                 "message": f"the alignment moved the scan's centre by {translation:.2f} m "
-                f"(more than {large_translation_metres:g} m); check that it found the right "
-                f"match, or {NO_ALIGN_HINT} if the files share one frame",
+                f"(more than {large_translation_metres:g} m): {CORRECTION_HINT}",
                 "value": translation,
                 "limit": large_translation_metres,
                 "unit": "m",
