@@ -106,7 +106,8 @@ def test_the_jobs_table_shows_each_jobs_warnings(
                 w["code"] for w in warnings
             ]
             assert badge.get_attribute("title") == "\n".join(w["message"] for w in warnings)
-    save_screenshot(driver, "jobs-warning-badges")
+    driver.execute_script("document.querySelector('#jobs-table').scrollIntoView()")
+    save_screenshot(driver, "jobs-warning-badges", docs_name="jobs-warning-badges.png")
 
 
 def test_the_job_page_explains_the_decision_and_lists_the_warnings(
