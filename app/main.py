@@ -1,7 +1,9 @@
 """The FastAPI application: ``create_app(settings)``; ``uvicorn --factory app.main:create_app``.
 
-API v1 lives under ``/api/v1`` (see ``docs/api.md``), OpenAPI at ``/docs`` and
-``/openapi.json``.  The app does not migrate the database: ``scandiff serve`` applies the
+API v1 lives under ``/api/v1`` (see ``docs/api.md``), OpenAPI at ``/openapi.json``, browsable
+at ``/docs`` (Swagger UI) and ``/redoc`` (ReDoc), both served from the assets the
+``fastapi-offline`` package ships (:mod:`app.api.docs`): no request leaves the machine.  The app
+does not migrate the database: ``scandiff serve`` applies the
 migrations and sweeps leftovers before starting it.
 """
 
@@ -13,6 +15,7 @@ from fastapi import FastAPI
 
 from app.api.browser import include_browser_routes
 from app.api.concurrency import ConcurrencyLimitMiddleware
+from app.api.docs import install_offline_docs
 from app.api.errors import document_error_shape, install_error_handlers
 from app.api.logs import RequestLogMiddleware, configure_logging
 from app.api.routes import api_router
@@ -39,9 +42,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         title="scandiff",
         version=service_version(),
         description=DESCRIPTION,
-        docs_url="/docs",
+        docs_url=None,  # install_offline_docs: /docs and /redoc without a CDN
+        redoc_url=None,
         openapi_url="/openapi.json",
     )
+    install_offline_docs(app)
     app.state.settings = settings
     install_error_handlers(app)
     app.add_middleware(

@@ -2,6 +2,7 @@
 
 import { API, ApiError, api, describeError, itemsOf } from "./api.js";
 import { decisionBadge, formatDate, formatNumber, formatVector, h, jobProgress, statusBadge } from "./dom.js";
+import { attemptsText, explanationPanel, sensorOriginsText, warningBadge, warningsPanel } from "./explain.js";
 import { app, currentRender, schedulePoll, setCrumbs } from "./page.js";
 import { handleFailure } from "./session.js";
 import { reviewPanel } from "./verdicts.js";
@@ -11,14 +12,15 @@ function numbersTable(job) {
   const timings = job.timings || {};
   const rows = [
     ["Status", [statusBadge(job), " ", jobProgress(job)]],
-    ["Decision", decisionBadge(job)],
+    ["Decision", [decisionBadge(job), " ", warningBadge(job)]],
     ["Score", formatNumber(job.score)],
     ["Threshold", formatNumber(job.threshold)],
     ["Regions", job.n_regions ?? "—"],
     ["Detector", `${job.method} · ${job.variant}`],
     ["Registration fitness", formatNumber(registration.fitness)],
     ["Registration RMSE", registration.rmse !== undefined ? `${formatNumber(registration.rmse)} m` : "—"],
-    ["Attempts", `${job.attempts} of ${job.max_attempts ?? "?"}`],
+    ["Sensor origins", sensorOriginsText(job)],
+    ["Attempts", attemptsText(job)],
     ["Created", formatDate(job.created_at)],
     ["Started", formatDate(job.started_at)],
     ["Finished", formatDate(job.finished_at)],
@@ -96,7 +98,7 @@ export async function renderJob(jobId) {
     ? h("div", { class: "failure", id: "job-error", role: "alert" },
       h("strong", {}, "This job failed. "),
       job.error || "No reason was recorded.",
-      h("p", { class: "muted" }, `Attempts: ${job.attempts} of ${job.max_attempts ?? "?"}.`))
+      h("p", { class: "muted", id: "job-retry" }, `${attemptsText(job)}.`))
     : null;
 
   const viewButton = finished
@@ -108,6 +110,8 @@ export async function renderJob(jobId) {
       h("div", { class: "title-row" }, h("h1", {}, "Comparison job"), h("div", { class: "actions" }, viewButton, shareButton)),
       linkOutput,
       failure,
+      explanationPanel(job),
+      warningsPanel(job),
       numbersTable(job)),
     reviewPanel(job, () => renderJob(jobId).catch((failure) => handleFailure(failure, "Refreshing the job"))),
     h("section", { class: "card" }, h("h2", {}, `Regions (${finished ? regions.length : "—"})`), finished ? regionsTable(regions) : h("p", { class: "muted" }, "Regions appear when the job has succeeded.")),

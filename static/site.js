@@ -2,6 +2,7 @@
 
 import { api, itemsOf } from "./api.js";
 import { decisionBadge, formatDate, formatNumber, h, jobProgress, statusBadge } from "./dom.js";
+import { warningBadge } from "./explain.js";
 import { app, currentRender, schedulePoll, setCrumbs, startRender } from "./page.js";
 import { handleFailure } from "./session.js";
 import { drawTimeline } from "./timeline.js";
@@ -59,7 +60,7 @@ export async function renderSite(siteId) {
     h("td", {}, h("a", { href: `#/jobs/${job.id}`, class: "job-link" }, formatDate(job.created_at))),
     h("td", {}, statusBadge(job), " ", jobProgress(job)),
     h("td", { class: "num" }, formatNumber(job.score)),
-    h("td", {}, decisionBadge(job)),
+    h("td", {}, decisionBadge(job), " ", warningBadge(job)),
     h("td", { class: "num" }, job.n_regions ?? "—"),
     h("td", {}, `${job.method} · ${job.variant}`),
     h("td", { class: "error-cell" }, job.status === "failed" ? (job.error || "failed without a reason") : "")));

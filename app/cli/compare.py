@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from app.cli.exit_status import EXIT_BAD_INPUT
 from app.core.errors import InputError
+from app.core.explanation import explain_comparison
 
 if TYPE_CHECKING:  # the numeric stack is imported when the command runs, not to build the parser
     from app.core.cloud import PointCloud
@@ -31,7 +32,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("reference", type=Path, help="reference scan file")
     parser.add_argument("scan", type=Path, help="new scan file")
     parser.add_argument(
-        "--method", default="gmm", metavar="gmm|pca|planes", help="detector (default gmm)"
+        "--method",
+        default="gmm",
+        metavar="gmm|pca|planes",
+        help="detector (default gmm); the paper's names pca-emd, gmm-emd, pe (pe-emd) work too",
     )
     parser.add_argument(
         "--variant",
@@ -95,6 +99,7 @@ def _print_summary(result: ComparisonResult, reference: Path, scan: Path) -> Non
     registration = result.registration
     counts = result.label_counts()
     print(f"{scan.name} vs {reference.name}: {verdict}")
+    print(f"  why: {explain_comparison(result)['text']}")
     print(
         f"  {result.method}-EMD ({result.variant}): score {result.score:.4g}, "
         f"threshold {result.threshold:.4g}"
@@ -112,8 +117,11 @@ def _print_summary(result: ComparisonResult, reference: Path, scan: Path) -> Non
         for entry in result.sensor_origins.get(side, []):
             where = ", ".join(f"{value:.2f}" for value in entry["origin"])
             print(f"  {side} sensor origin: ({where}), {entry['source']}")
-    for warning in result.warnings:
-        print(f"  warning: {warning}")
+    from app.core.quality import quality_warnings
+
+    warnings = quality_warnings(result)
+    if warnings:
+        print(f"  warnings: {len(warnings)} (on stderr)")
     print(f"  regions: {len(result.regions)}")
     for region in result.regions[:10]:
         centroid = ", ".join(f"{value:.2f}" for value in region.centroid)
@@ -122,6 +130,14 @@ def _print_summary(result: ComparisonResult, reference: Path, scan: Path) -> Non
         print(f"    ... and {len(result.regions) - 10} more")
     timing = ", ".join(f"{stage} {seconds:.2f} s" for stage, seconds in result.timings.items())
     print(f"  timings: {timing}")
+
+
+def _print_warnings(result: ComparisonResult) -> None:
+    """Every quality warning on stderr, one line each, whatever the output format."""
+    from app.core.quality import quality_warnings
+
+    for warning in quality_warnings(result):
+        print(f"scandiff: warning: {warning['message']}", file=sys.stderr)
 
 
 def _export(path: Path, reference: PointCloud, scan: PointCloud, result: ComparisonResult) -> None:
@@ -201,6 +217,7 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         print(f"scandiff: error: {exc.strerror or exc}: {exc.filename or ''}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    _print_warnings(result)
     if args.json:
         json.dump(result.to_json_dict(), sys.stdout)
         sys.stdout.write("\n")

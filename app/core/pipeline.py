@@ -32,9 +32,10 @@ from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 
 from app.core.cloud import MIN_POINTS, PointCloud, choose_local_origin
-from app.core.detectors import make_detector
+from app.core.detectors import canonical_method, make_detector
 from app.core.detectors.base import ChangeDetector
 from app.core.errors import InputError
+from app.core.explanation import explain_comparison
 from app.core.jsonable import json_safe
 from app.core.localise import (
     LABEL_CHANGED,
@@ -48,6 +49,7 @@ from app.core.localise.settings import as_origins
 from app.core.origins.resolve import ResolvedOrigin
 from app.core.origins.stations import origins_in_local_frame, resolve_stations, station_index_of
 from app.core.parameters import ParamSpec, validate_parameters
+from app.core.quality import quality_warnings
 from app.core.registration import (
     apply_transform,
     identity_registration,
@@ -168,6 +170,8 @@ class ComparisonResult:
                 "timings": self.timings,
                 "sensor_origins": self.sensor_origins,
                 "warnings": self.warnings,
+                "quality_warnings": quality_warnings(self),  # structured, with the above
+                "explanation": explain_comparison(self),
             }
         )
 
@@ -333,6 +337,8 @@ def compare(
     reference, scan : PointCloud
         The clouds as read from their files.
     method : {"gmm", "pca", "planes"}
+        Or one of the paper's names (``"pe"``, ``"PE-EMD"``...); the result carries the
+        canonical name.
     variant : {"improved", "paper"}
     align : bool
         Register the scan onto the reference first (recommended for robot scans).
@@ -372,6 +378,7 @@ def compare(
     InputError
         Unknown method, variant or parameter; clouds that cannot be aligned.
     """
+    method = canonical_method(method)
     settings = parse_comparison_params(
         method, variant, params, random_state=random_state, align=align
     )
@@ -431,6 +438,9 @@ def compare(
             registration.transform, local_origin
         ).tolist()
         registration_report["enabled"] = align
+        centre = scan_points.mean(axis=0)  # how far the alignment moved the scan (metres)
+        moved = apply_transform(centre[None], registration.transform)[0] - centre
+        registration_report["translation_m"] = float(np.linalg.norm(moved))
 
         report("localise", 0.35)
         started = time.perf_counter()

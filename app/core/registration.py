@@ -67,6 +67,11 @@ NUM_NEIGHBOURS = 20
 MAX_ITERATIONS = {"coarse": 40, "fine": 20}
 """GICP iterations per stage (the fine stage starts close to the solution)."""
 MIN_POINTS_AFTER_DOWNSAMPLING = 20
+NO_ALIGN_HINT = (
+    'compare without aligning: "align": false in the job\'s params (API: POST /api/v1/jobs) '
+    "or --no-align (CLI)"
+)
+"""How to skip the alignment, in every interface (failure messages name it)."""
 VOXEL_GRID_LIMIT = 2**19
 """Largest |coordinate| / voxel accepted: small_gicp's voxel keys are 21-bit signed (2**20),
 halved for safety. Points beyond would be silently dropped."""
@@ -342,7 +347,8 @@ def register_scan(
         candidate = np.asarray(result.T_target_source, dtype=np.float64)
         if not np.isfinite(candidate).all():
             raise RegistrationError(
-                "the alignment diverged (non-finite transform); check the inputs or pass --no-align"
+                "the alignment diverged (non-finite transform); check the inputs, or "
+                + NO_ALIGN_HINT
             )
         local_transform = candidate
         stage_fitness = result.num_inliers / max(source.size(), 1)
@@ -370,8 +376,9 @@ def register_scan(
 def _no_overlap_error(fitness: float, distance: float, min_fitness: float) -> RegistrationError:
     return RegistrationError(
         f"the scan does not overlap the reference: only {fitness:.0%} of its points lie within "
-        f"{distance:.3g} of the reference after alignment (at least {min_fitness:.0%} needed); "
-        "check that both scans are of the same site or pass --no-align"
+        f"{distance:.3g} m of the reference after alignment (at least {min_fitness:.0%} needed, "
+        'the registration parameter "min_fitness"); check that both scans are of the same '
+        f"site, or {NO_ALIGN_HINT}"
     )
 
 
@@ -412,8 +419,8 @@ def _plan(
             raise ValueError("voxel_size must be positive")
         if voxel_size < grid_floor:
             raise RegistrationError(
-                f"voxel_size {voxel_size:.3g} is too small for a cloud reaching {reach:.3g} "
-                f"from its centre (at least {grid_floor:.3g}); pass a larger voxel_size"
+                f"voxel_size {voxel_size:.3g} m is too small for a cloud reaching {reach:.3g} m "
+                f"from its centre (at least {grid_floor:.3g} m); pass a larger voxel_size"
             )
     spacing = min(estimate_point_spacing(local_reference), estimate_point_spacing(local_scan))
     grid = max(FINE_VOXELS_PER_SPACING * spacing, grid_floor, 1e-9)
@@ -439,14 +446,14 @@ def _plan(
                 }
                 farthest = max(reaches, key=lambda name: reaches[name])
                 raise RegistrationError(
-                    f"cannot align: the {farthest} has points {reaches[farthest]:.3g} from the "
-                    f"reference's centre, which forces a {grid:.3g} alignment grid at which the "
+                    f"cannot align: the {farthest} has points {reaches[farthest]:.3g} m from the "
+                    f"reference's centre, which forces a {grid:.3g} m alignment grid at which the "
                     f"{role} keeps only {len(points)} points; check the {farthest} for stray "
-                    "points with absurd coordinates (or pass --no-align)"
+                    f"points with absurd coordinates, or {NO_ALIGN_HINT}"
                 )
             raise RegistrationError(
                 f"too few points to align: the {role} keeps {len(points)} points at a "
-                f"{grid:.3g} voxel grid"
+                f"{grid:.3g} m voxel grid"
             )
         if len(points) > FINE_POINT_BUDGET:
             points = points[np.sort(rng.choice(len(points), FINE_POINT_BUDGET, replace=False))]

@@ -195,6 +195,12 @@ class Job(Base):
     request_id: Mapped[str | None] = mapped_column(String(64), nullable=True)
     # The current review verdict ({"verdict", "note", "set_by", "set_at"}); history: JobVerdict.
     verdict: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
+    # Issue 15/19 (branch i19/explain): the sensor origins used (per side a list of {origin,
+    # source, confidence}), quality warnings ([{code, message, ...}]) and the decision's
+    # explanation ({..., text}); null until the job succeeded.
+    sensor_origins: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
+    warnings: Mapped[list[dict[str, Any]] | None] = mapped_column(JSON, nullable=True)
+    explanation: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
 
     regions: Mapped[list[Region]] = relationship(
         back_populates="job", cascade="all, delete-orphan", order_by="Region.ordinal"

@@ -18,11 +18,14 @@ from sqlalchemy import delete, select
 
 from app.clock import utc_now
 from app.config import Settings
+from app.core.explanation import explain_comparison
 from app.core.files import TEMP_MARKER, write_atomically
 from app.core.jsonable import json_safe
+from app.core.quality import quality_warnings
 from app.db.models import Job, JobStatus, Region
 from app.db.session import transaction
 from app.jobs.leases import ClaimedJob, held_by
+from app.jobs.site_history import region_count_warning
 
 LABELS_FILENAME = "labels.npz"
 DETAILS_FILENAME = "details.npz"
@@ -52,7 +55,11 @@ def write_result_files(job: ClaimedJob, settings: Settings, result: Any) -> str:
 def store_results(
     job: ClaimedJob, settings: Settings, result: Any, labels_path: str, timings: dict[str, float]
 ) -> bool:
-    """One short transaction: results and Region rows, only if the lease is still ours."""
+    """One short transaction: results and Region rows, only if the lease is still ours.
+
+    With them: the sensor origins used, the quality warnings (the core's, and a region count
+    far above the site's history) and the explanation of the decision.
+    """
     with transaction(settings.sqlalchemy_url) as session:
         row = session.execute(
             select(Job).where(held_by(job.id, job.lease_owner)).with_for_update()
@@ -82,6 +89,11 @@ def store_results(
         row.effective_params = json_safe(getattr(result, "params", None))
         row.registration = json_safe(result.registration)
         row.n_regions = len(result.regions)
+        warnings = quality_warnings(result)
+        history_warning = region_count_warning(session, row, len(result.regions))
+        row.warnings = json_safe(warnings + ([history_warning] if history_warning else []))
+        row.explanation = json_safe(explain_comparison(result))
+        row.sensor_origins = json_safe(getattr(result, "sensor_origins", None))
         row.timings = json_safe(timings)
         row.labels_path = labels_path
         row.error = None

@@ -16,6 +16,7 @@ from pydantic import (
     ConfigDict,
     Field,
     StringConstraints,
+    computed_field,
 )
 
 from app.clock import as_utc
@@ -205,6 +206,33 @@ class JobRead(RowRead):
     verdict: VerdictRead | None = Field(
         default=None, description="The current review verdict (POST /jobs/{id}/verdict)."
     )
+    sensor_origins: dict[str, list[dict[str, Any]]] | None = Field(
+        default=None,
+        description="The sensor origins the comparison used, per side (reference, scan) a list "
+        "of {origin: [x, y, z] in that file's frame, source: given | file | estimated | "
+        "recovered, confidence}; an empty list: unknown.",
+    )
+    warnings: list[dict[str, Any]] | None = Field(
+        default=None,
+        description="Quality warnings on the result, each {code, message, ...}: "
+        "low_registration_fitness, large_rotation, large_translation, low_overlap, "
+        "sensor_origin, sensor_origin_unknown, region_count_above_history.",
+    )
+    explanation: dict[str, Any] | None = Field(
+        default=None,
+        description="Why the job decided what it did: the decision rule, the regions' and the "
+        "detector's evidence, and a one-line text.",
+    )
+
+    @computed_field  # type: ignore[prop-decorator]
+    @property
+    def will_retry(self) -> bool:
+        """Whether the worker will try the job again (an attempt failed, attempts are left)."""
+        return (
+            self.status == JobStatus.QUEUED
+            and self.error is not None
+            and self.attempts < self.max_attempts
+        )
 
 
 class RegionRead(RowRead):

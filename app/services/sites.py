@@ -10,6 +10,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from app.config import Settings
+from app.core.detectors import canonical_method
 from app.core.errors import InputError
 from app.core.pipeline import parse_comparison_params  # imported here, never in a transaction
 from app.db.models import Job, JobVerdict, ReferenceHistory, Region, Scan, Site
@@ -26,12 +27,15 @@ DEFAULT_METHOD = "gmm"
 DEFAULT_VARIANT = "improved"
 
 
-def validate_detector(method: str, variant: str, params: dict[str, Any]) -> None:
-    """Check that ``compare`` would accept these settings; 422 with the core's message otherwise."""
+def validate_detector(method: str, variant: str, params: dict[str, Any]) -> str:
+    """Check that ``compare`` would accept these settings; the canonical method name (the
+    paper's ``pe``, ``PE-EMD``... are aliases); 422 with the core's message otherwise."""
     try:
+        method = canonical_method(method)
         parse_comparison_params(method, variant, params)
     except InputError as exc:
         raise ValidationFailedError(str(exc), code="invalid_detector") from exc
+    return method
 
 
 def resolve_detector(
@@ -42,7 +46,7 @@ def resolve_detector(
     Without explicit ``params`` the site's parameters are kept only when method and variant
     are the site's (another detector takes its own defaults).
     """
-    chosen_method = method or site.detector_method
+    chosen_method = canonical_method_or_422(method) if method else site.detector_method
     chosen_variant = variant or site.detector_variant
     if params is None:
         same_detector = (chosen_method, chosen_variant) == (
@@ -50,8 +54,16 @@ def resolve_detector(
             site.detector_variant,
         )
         params = dict(site.detector_params or {}) if same_detector else {}
-    validate_detector(chosen_method, chosen_variant, params)
+    chosen_method = validate_detector(chosen_method, chosen_variant, params)
     return chosen_method, chosen_variant, params
+
+
+def canonical_method_or_422(method: str) -> str:
+    """The canonical name of a detector method or alias; 422 naming the valid ones."""
+    try:
+        return canonical_method(method)
+    except InputError as exc:
+        raise ValidationFailedError(str(exc), code="invalid_detector") from exc
 
 
 def get_site(session: Session, principal: Principal, site_id: str) -> Site:
@@ -80,7 +92,7 @@ def create_site(session: Session, principal: Principal, payload: SiteCreate) -> 
     method = detector.method if detector else DEFAULT_METHOD
     variant = detector.variant if detector else DEFAULT_VARIANT
     params = dict(detector.params) if detector else {}
-    validate_detector(method, variant, params)
+    method = validate_detector(method, variant, params)
     site = Site(
         organisation_id=principal.organisation_id,
         name=payload.name,
@@ -108,8 +120,9 @@ def update_site(session: Session, principal: Principal, site_id: str, payload: S
         if payload.detector is None:
             raise ValidationFailedError("detector cannot be null")
         params = dict(payload.detector.params)
-        validate_detector(payload.detector.method, payload.detector.variant, params)
-        site.detector_method = payload.detector.method
+        site.detector_method = validate_detector(
+            payload.detector.method, payload.detector.variant, params
+        )
         site.detector_variant = payload.detector.variant
         site.detector_params = params
     _flush_unique_name(session, site.name)

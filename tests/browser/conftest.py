@@ -58,7 +58,10 @@ def chrome_factory(chromium: tuple[str, str]) -> Iterator[Callable[[], Any]]:
     drivers: list[Any] = []
     profiles: list[str] = []
 
-    def start() -> Any:
+    def start(*extra_arguments: str, performance_log: bool = False) -> Any:
+        """A new session; ``extra_arguments`` are more Chromium flags (e.g. a network block);
+        ``performance_log`` records DevTools network events (``session.get_log("performance")``).
+        """
         profile = tempfile.mkdtemp(prefix="scandiff-chromium-")
         profiles.append(profile)
         options = Options()
@@ -76,8 +79,11 @@ def chrome_factory(chromium: tuple[str, str]) -> Iterator[Callable[[], Any]]:
             "--window-size=1280,860",
             "--force-device-scale-factor=1",
             f"--user-data-dir={profile}",
+            *extra_arguments,
         ):
             options.add_argument(argument)
+        if performance_log:
+            options.set_capability("goog:loggingPrefs", {"performance": "ALL"})
         session = webdriver.Chrome(options=options, service=Service(executable_path=driver))
         session.set_page_load_timeout(60)
         drivers.append(session)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from typing import Any
@@ -142,10 +143,13 @@ def finish_job(
     *,
     changed: bool = True,
     transform: list[list[float]] | None = None,
+    **result_fields: Any,
 ) -> dict[str, NDArray]:
     """Play the worker on queued job ``job_id``: claim it, write its result files and rows
     through the real ``claim_job``, ``write_result_files`` and ``store_results`` (one added
-    region, random labels and distances); the per-point arrays written."""
+    region, random labels and distances; ``result_fields`` replace fields of the
+    ``ComparisonResult``, e.g. ``regions``, ``registration``, ``sensor_origins``); the
+    per-point arrays written."""
     rng = np.random.default_rng(7)
     reference_label = rng.integers(-1, 2, n_reference).astype(np.int8)
     scan_label = rng.integers(-1, 2, n_scan).astype(np.int8)
@@ -175,6 +179,7 @@ def finish_job(
         reference_region=np.full(n_reference, -1, dtype=np.int32),
         scan_region=np.full(n_scan, -1, dtype=np.int32),
     )
+    result = dataclasses.replace(result, **result_fields)
     labels_path = write_result_files(job, settings, result)
     assert store_results(job, settings, result, labels_path, {"align": 0.1})
     return {

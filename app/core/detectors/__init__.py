@@ -20,11 +20,44 @@ from app.core.errors import InputError
 
 METHODS = ("gmm", "pca", "planes")
 
+METHOD_ALIASES: dict[str, str] = {
+    "gmm-emd": "gmm",
+    "pca-emd": "pca",
+    "pe": "planes",
+    "pe-emd": "planes",
+    "planes-emd": "planes",
+}
+"""The paper's names (GMM-EMD, PCA-EMD, PE-EMD for plane extraction) and their canonical method;
+matched case-insensitively, like the canonical names, by :func:`canonical_method`."""
+
 _DETECTORS: dict[str, type[ChangeDetector]] = {
     "gmm": GmmDetector,
     "pca": PcaDetector,
     "planes": PlanesDetector,
 }
+
+
+def canonical_method(method: str) -> str:
+    """The canonical name of a detector method, given it or one of the paper's names.
+
+    ``"PE-EMD"``, ``"pe"`` and ``"planes"`` all give ``"planes"`` (case-insensitive, surrounding
+    spaces ignored); the canonical name is what results and stored settings carry.
+
+    Raises
+    ------
+    InputError
+        Not a method or alias; the message lists the valid names.
+    """
+    if not isinstance(method, str):
+        raise InputError(f"detector method must be a string, got {method!r}")
+    name = method.strip().lower()
+    name = METHOD_ALIASES.get(name, name)
+    if name not in _DETECTORS:
+        raise InputError(
+            f"unknown detector method {method!r}; valid: {list(METHODS)} "
+            f"(or the paper's names: {', '.join(sorted(METHOD_ALIASES))})"
+        )
+    return name
 
 
 def make_detector(
@@ -35,6 +68,7 @@ def make_detector(
     Parameters
     ----------
     method : {"gmm", "pca", "planes"}
+        Or one of the paper's names (:data:`METHOD_ALIASES`, e.g. ``"PE-EMD"``).
     variant : {"improved", "paper"}
     random_state : int
         Seeds every random choice; same inputs and seed give the same result.
@@ -48,8 +82,7 @@ def make_detector(
         Unknown method, variant or parameter, or an invalid value; the message names the
         valid ones.
     """
-    if method not in _DETECTORS:
-        raise InputError(f"unknown detector method {method!r}; valid: {list(METHODS)}")
+    method = canonical_method(method)
     if variant not in VARIANTS:
         raise InputError(f"unknown detector variant {variant!r}; valid: {list(VARIANTS)}")
     return _DETECTORS[method](variant, random_state=random_state, **params)
@@ -57,11 +90,13 @@ def make_detector(
 
 __all__ = [
     "METHODS",
+    "METHOD_ALIASES",
     "VARIANTS",
     "ChangeDetector",
     "Detection",
     "GmmDetector",
     "PcaDetector",
     "PlanesDetector",
+    "canonical_method",
     "make_detector",
 ]

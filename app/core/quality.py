@@ -1,0 +1,232 @@
+"""Quality warnings on a comparison: what makes a result less trustworthy than it looks.
+
+A comparison of two scans of different places, or one the alignment had to turn a lot, can
+still "succeed" with many regions.  :func:`quality_warnings` says so, from the result alone:
+
+``low_registration_fitness``
+    fewer than :data:`LOW_FITNESS` of the scan's (downsampled) points lie near the reference
+    after alignment.
+``large_rotation`` / ``large_translation``
+    the alignment turned the scan by more than :data:`LARGE_ROTATION_DEGREES` or moved its
+    centre by more than :data:`LARGE_TRANSLATION_METRES`.
+``low_overlap``
+    less than :data:`LOW_OVERLAP_FRACTION` of a cloud's points were observed by the other
+    scan (the rest is ``unobserved``: no evidence either way).
+``sensor_origin_unknown``
+    no sensor origin is known for a cloud (none given, none in the file, none estimated):
+    occlusion cannot be told from removal.
+``sensor_origin``
+    an origin was given but the data contradict it (the origins' own warnings).
+
+The site's history (a region count far above the site's usual) needs the database; the
+service adds it.  Every warning is ``{"code", "message", ...}`` plus the measured ``value``
+and the ``limit`` it crossed where there is one; messages carry units and name the parameter
+that changes the outcome.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.core.registration import NO_ALIGN_HINT
+
+LOW_FITNESS = 0.6
+"""Registration fitness below which the alignment (or the pairing of the scans) is suspect.
+Rescans of one place align at 0.9 and more (``docs/performance.md``); two different street
+frames reached 0.39."""
+
+LARGE_ROTATION_DEGREES = 2.0
+"""An alignment turning the scan by more than this (degrees) is reported: files in one world
+frame rarely need it, and a wrong alignment often looks like that."""
+
+LARGE_TRANSLATION_METRES = 0.5
+"""An alignment moving the scan's centre by more than this (metres) is reported."""
+
+LOW_OVERLAP_FRACTION = 0.5
+"""A cloud of which less than this fraction was observed by the other scan: most of it is
+``unobserved``, so the decision rests on a small part of the place."""
+
+LABEL_UNOBSERVED = -1
+CORRECTION_HINT = (
+    "expected for files in their moving sensor's frame; for files in one world frame, check "
+    f"that the alignment found the right match, or {NO_ALIGN_HINT}"
+)
+ORIGIN_HINT = (
+    "give the sensor position: sensor_origin=x,y,z (metres, the file's frame) on upload, "
+    '"reference_origin"/"scan_origin" in the job\'s params, or --param on the CLI'
+)
+
+
+def registration_warnings(
+    registration: Mapping[str, Any],
+    *,
+    low_fitness: float = LOW_FITNESS,
+    large_rotation_degrees: float = LARGE_ROTATION_DEGREES,
+    large_translation_metres: float = LARGE_TRANSLATION_METRES,
+) -> list[dict[str, Any]]:
+    """Warnings about the alignment, from a result's ``registration`` report.
+
+    Parameters
+    ----------
+    registration : mapping
+        ``fitness`` (fraction in [0, 1]), ``rotation_degrees``, ``translation_m`` (how far the
+        alignment moved the scan's centre, metres), ``max_correspondence_distance`` (metres)
+        and ``enabled`` (False: ``--no-align``); missing keys are not checked.
+    low_fitness, large_rotation_degrees, large_translation_metres : float
+        The limits (defaults: the module's constants).
+
+    Returns
+    -------
+    list of dict
+    """
+    warnings: list[dict[str, Any]] = []
+    aligned = registration.get("enabled", True) is not False
+    fitness = _finite(registration.get("fitness"))
+    if fitness is not None and fitness < low_fitness:
+        distance = _finite(registration.get("max_correspondence_distance"))
+        within = f" within {distance:.3g} m of the reference" if distance is not None else ""
+        after = " after alignment" if aligned else " (not aligned)"
+        warnings.append(
+            {
+                "code": "low_registration_fitness",
+                "message": f"low registration fitness {fitness:.2f} (below {low_fitness:g}): "
+                f"only {fitness:.0%} of the scan's points lie{within}{after}; the scans may "
+                "be of different places or badly aligned, so regions may be false",
+                "value": fitness,
+                "limit": low_fitness,
+            }
+        )
+    if not aligned:
+        return warnings
+    rotation = _finite(registration.get("rotation_degrees"))
+    if rotation is not None and rotation > large_rotation_degrees:
+        warnings.append(
+            {
+                "code": "large_rotation",
+                "message": f"the alignment rotated the scan by {rotation:.1f} degrees (more "
+                f"than {large_rotation_degrees:g} degrees): {CORRECTION_HINT}",
+                "value": rotation,
+                "limit": large_rotation_degrees,
+                "unit": "degrees",
+            }
+        )
+    translation = _finite(registration.get("translation_m"))
+    if translation is not None and translation > large_translation_metres:
+        warnings.append(
+            {
+                "code": "large_translation",
+                "message": f"the alignment moved the scan's centre by {translation:.2f} m "
+                f"(more than {large_translation_metres:g} m): {CORRECTION_HINT}",
+                "value": translation,
+                "limit": large_translation_metres,
+                "unit": "m",
+            }
+        )
+    return warnings
+
+
+def overlap_warnings(
+    reference_label: NDArray[np.integer],
+    scan_label: NDArray[np.integer],
+    *,
+    low_overlap: float = LOW_OVERLAP_FRACTION,
+) -> list[dict[str, Any]]:
+    """A warning when too little of either cloud was observed by the other scan.
+
+    Parameters
+    ----------
+    reference_label, scan_label : ndarray, shape (n,) and (m,), int
+        Per-point labels (-1 unobserved or dropped, 0 unchanged, 1 changed).
+    low_overlap : float
+        The limit (default :data:`LOW_OVERLAP_FRACTION`).
+
+    Returns
+    -------
+    list of dict
+        At most one warning, about the less observed cloud.
+    """
+    observed = {
+        side: float(np.count_nonzero(labels != LABEL_UNOBSERVED) / len(labels))
+        for side, labels in (("reference", reference_label), ("scan", scan_label))
+        if len(labels)
+    }
+    if not observed:
+        return []
+    side = min(observed, key=lambda name: observed[name])
+    fraction = observed[side]
+    if fraction >= low_overlap:
+        return []
+    other = "scan" if side == "reference" else "reference"
+    return [
+        {
+            "code": "low_overlap",
+            "message": f"low overlap: only {fraction:.0%} of the {side}'s points were observed "
+            f"by the {other} (less than {low_overlap:.0%}); the rest is unobserved, so the "
+            "decision rests on a small part of the place",
+            "value": fraction,
+            "limit": low_overlap,
+            "side": side,
+        }
+    ]
+
+
+def origin_warnings(
+    sensor_origins: Mapping[str, Sequence[Mapping[str, Any]]] | None,
+    origin_messages: Sequence[str] = (),
+) -> list[dict[str, Any]]:
+    """Warnings about the sensor origins: unknown ones, and those the data contradicted.
+
+    Parameters
+    ----------
+    sensor_origins : mapping or None
+        ``{"reference": [...], "scan": [...]}``, each a list of ``{origin, source,
+        confidence}`` (empty: no origin known).  A side not reported is not checked.
+    origin_messages : sequence of str
+        The origins' own warnings (``ComparisonResult.warnings``).
+
+    Returns
+    -------
+    list of dict
+    """
+    warnings = [{"code": "sensor_origin", "message": str(text)} for text in origin_messages]
+    for side in ("reference", "scan"):
+        if sensor_origins is not None and side in sensor_origins and not sensor_origins[side]:
+            warnings.append(
+                {
+                    "code": "sensor_origin_unknown",
+                    "message": f"the {side}'s sensor origin is unknown (none given, none in "
+                    "the file, none estimated with confidence): points hidden from one sensor "
+                    "cannot be told from removed ones, so some regions may be shadows; "
+                    + ORIGIN_HINT,
+                    "side": side,
+                }
+            )
+    return warnings
+
+
+def quality_warnings(result: Any) -> list[dict[str, Any]]:
+    """Every warning :mod:`app.core.quality` can tell from a comparison result.
+
+    ``result`` is a :class:`~app.core.pipeline.ComparisonResult` (or an object with its
+    ``registration``, ``reference_label`` and ``scan_label``; ``sensor_origins`` and
+    ``warnings`` are read when present).
+    """
+    warnings = registration_warnings(getattr(result, "registration", None) or {})
+    warnings += overlap_warnings(np.asarray(result.reference_label), np.asarray(result.scan_label))
+    warnings += origin_warnings(
+        getattr(result, "sensor_origins", None), list(getattr(result, "warnings", None) or [])
+    )
+    return warnings
+
+
+def _finite(value: Any) -> float | None:
+    """``value`` as a finite float, else None."""
+    if isinstance(value, bool) or not isinstance(value, int | float | np.floating):
+        return None
+    number = float(value)
+    return number if math.isfinite(number) else None
