@@ -142,10 +142,11 @@ def finish_job(
     *,
     changed: bool = True,
     transform: list[list[float]] | None = None,
+    regions: list[RegionSummary] | None = None,
 ) -> dict[str, NDArray]:
     """Play the worker on queued job ``job_id``: claim it, write its result files and rows
-    through the real ``claim_job``, ``write_result_files`` and ``store_results`` (one added
-    region, random labels and distances); the per-point arrays written."""
+    through the real ``claim_job``, ``write_result_files`` and ``store_results`` (``regions``,
+    default one added region; random labels and distances); the per-point arrays written."""
     rng = np.random.default_rng(7)
     reference_label = rng.integers(-1, 2, n_reference).astype(np.int8)
     scan_label = rng.integers(-1, 2, n_scan).astype(np.int8)
@@ -163,7 +164,9 @@ def finish_job(
         changed=changed,
         calibration={},
         registration={"transform": transform or np.eye(4).tolist(), "rmse": 0.01},
-        regions=[
+        regions=regions
+        if regions is not None
+        else [
             RegionSummary("added", 12, [1.0, 2.0, 0.5], [0.5, 1.5, 0.0], [1.5, 2.5, 1.0], 0.4, 0.9)
         ],
         n_reference=n_reference,
@@ -185,3 +188,25 @@ def finish_job(
         "reference_distance": reference_distance,
         "scan_distance": scan_distance,
     }
+
+
+def random_regions(count: int, seed: int) -> list[RegionSummary]:
+    """``count`` regions of both kinds with random sizes, positions and distances."""
+    rng = np.random.default_rng(seed)
+    regions = []
+    for _ in range(count):
+        low = rng.uniform(-5, 5, 3)
+        high = low + rng.uniform(0.05, 2.0, 3)
+        mean_distance = float(rng.uniform(0.05, 0.5))
+        regions.append(
+            RegionSummary(
+                str(rng.choice(["added", "removed"])),
+                int(rng.integers(5, 5000)),
+                ((low + high) / 2).tolist(),
+                low.tolist(),
+                high.tolist(),
+                mean_distance,
+                mean_distance + float(rng.uniform(0, 0.5)),
+            )
+        )
+    return regions
