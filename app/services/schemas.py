@@ -203,6 +203,7 @@ class RegionRead(RowRead):
     """A connected cluster of changed points (``added``: new in the scan; ``removed``: gone)."""
 
     id: str
+    ordinal: int = Field(description="Position in the job's region list (0 first).")
     kind: str
     n_points: int
     centroid: list[float]

@@ -119,6 +119,8 @@ def test_regions_are_filtered_sorted_and_paged(api: ApiServer, writer: httpx.Cli
     assert_error(writer.get(f"/api/v1/jobs/{job_id}/regions", params={"limit": 0}), 422)
     assert_error(writer.get(f"/api/v1/jobs/{job_id}/regions", params={"order": "up"}), 422)
     assert_error(writer.get(f"/api/v1/jobs/{'0' * 32}/regions"), 404)
+    stranger = api.client(api.token("writer"))
+    assert_error(stranger.get(f"/api/v1/jobs/{job_id}/regions"), 404)
 
 
 def test_rerun_a_job_with_another_detector(api: ApiServer, writer: httpx.Client) -> None:
@@ -152,8 +154,13 @@ def test_rerun_a_job_with_another_detector(api: ApiServer, writer: httpx.Client)
         "paper",
         {},
     )
+    key = {"Idempotency-Key": "rerun-once"}
+    first = writer.post(f"/api/v1/jobs/{original['id']}/rerun", json={"method": "pca"}, headers=key)
+    again = writer.post(f"/api/v1/jobs/{original['id']}/rerun", json={"method": "pca"}, headers=key)
+    assert first.status_code == again.status_code == 202
+    assert first.json()["id"] == again.json()["id"]
     listed = writer.get(f"/api/v1/sites/{site['id']}/jobs").json()["items"]
-    assert len(listed) == 4
+    assert len(listed) == 5
 
     detail = assert_error(
         writer.post(f"/api/v1/jobs/{original['id']}/rerun", json={"method": "magic"}),
