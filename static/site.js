@@ -112,6 +112,11 @@ export async function renderSite(siteId) {
 }
 
 async function refreshSite(siteId) {
+  // Not under an open dialog (re-attaching a modal dialog would drop its modality); later.
+  if (document.querySelector("dialog[open]")) {
+    schedulePoll(() => refreshSite(siteId));
+    return;
+  }
   // Re-render in place, keeping the scroll position.
   const scroll = window.scrollY;
   try {

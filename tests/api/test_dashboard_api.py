@@ -118,6 +118,10 @@ def test_regions_are_filtered_sorted_and_paged(api: ApiServer, writer: httpx.Cli
     assert "n_points" in detail
     assert_error(writer.get(f"/api/v1/jobs/{job_id}/regions", params={"limit": 0}), 422)
     assert_error(writer.get(f"/api/v1/jobs/{job_id}/regions", params={"order": "up"}), 422)
+    detail = assert_error(
+        writer.get(f"/api/v1/jobs/{job_id}/regions", params={"kind": "gone"}), 422
+    )
+    assert "removed" in detail
     assert_error(writer.get(f"/api/v1/jobs/{'0' * 32}/regions"), 404)
     stranger = api.client(api.token("writer"))
     assert_error(stranger.get(f"/api/v1/jobs/{job_id}/regions"), 404)

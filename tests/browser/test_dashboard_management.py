@@ -9,6 +9,7 @@ played by :func:`tests.helpers.jobs.finish_job`.
 from __future__ import annotations
 
 import re
+import time
 from collections.abc import Iterator
 from datetime import timedelta
 from typing import Any
@@ -137,10 +138,16 @@ def test_site_created_with_a_detector_edited_and_deleted(api: ApiServer, chrome_
     job = upload(writer, site["id"], ply_bytes(room_points(1500, seed=2)), method="pca").json()[
         "job"
     ]
+    driver.refresh()  # the page now polls: its job is queued
+    by_css(driver, f"#jobs-table tr[data-job-id='{job['id']}']")
     by_css(driver, "#delete-site").click()
     dialog = by_css(driver, "#delete-site-dialog")
     assert dialog.get_attribute("open") is not None
     assert new_name in dialog.text and "cannot be undone" in dialog.text
+    time.sleep(3.5)  # the page's live refresh (every 1.5 s while a job is queued) passes by
+    assert driver.execute_script(
+        "return document.querySelector('#delete-site-dialog').matches(':modal')"
+    ), "a live refresh of the page dropped the dialog's modality"
     save_screenshot(driver, "dashboard-delete-site")
     by_css(driver, "#cancel-delete-site").click()
     wait_until(lambda: not rows(driver, "#delete-site-dialog[open]"), 10, "cancel kept it open")

@@ -78,7 +78,9 @@ def list_regions(
     response: Response,
     session: SessionDep,
     principal: PrincipalDep,
-    kind: Annotated[str | None, Query(max_length=16, description="Only this kind.")] = None,
+    kind: Annotated[
+        Literal["added", "removed"] | None, Query(description="Only regions of this kind.")
+    ] = None,
     min_points: Annotated[
         int | None, Query(ge=0, description="Only regions of at least this many points.")
     ] = None,
