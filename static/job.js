@@ -1,16 +1,22 @@
 // One comparison job: its numbers, its changed regions, the 3D view, view links and downloads.
 
-import { API, ApiError, api, describeError, itemsOf } from "./api.js";
-import { decisionBadge, formatDate, formatNumber, formatVector, h, jobProgress, statusBadge } from "./dom.js";
+import { API, ApiError, api, describeError } from "./api.js";
+import { loadCapabilities } from "./capabilities.js";
+import { decisionBadge, formatDate, formatNumber, h, jobProgress, statusBadge } from "./dom.js";
 import { attemptsText, explanationPanel, sensorOriginsText, warningBadge, warningsPanel } from "./explain.js";
 import { app, currentRender, schedulePoll, setCrumbs } from "./page.js";
-import { handleFailure } from "./session.js";
+import { regionsPanel } from "./regions.js";
+import { rerunCard } from "./rerun.js";
+import { canWrite, handleFailure } from "./session.js";
+import { jobFiles } from "./site.js";
 import { reviewPanel } from "./verdicts.js";
 
 function numbersTable(job) {
   const registration = job.registration || {};
   const timings = job.timings || {};
   const rows = [
+    ["Scan", h("span", { id: "job-scan-file" }, job.scan_filename || "—")],
+    ["Reference", h("span", { id: "job-reference-file" }, job.reference_filename || "—")],
     ["Status", [statusBadge(job), " ", jobProgress(job)]],
     ["Decision", [decisionBadge(job), " ", warningBadge(job)]],
     ["Score", formatNumber(job.score)],
@@ -31,34 +37,18 @@ function numbersTable(job) {
     h("tbody", {}, rows.map(([name, value]) => h("tr", {}, h("th", {}, name), h("td", {}, value)))));
 }
 
-function regionsTable(regions) {
-  if (!regions.length) return h("p", { class: "muted", id: "no-regions" }, "No changed region.");
-  return h("table", { class: "table", id: "regions-table" },
-    h("thead", {}, h("tr", {}, ["#", "Kind", "Points", "Centroid (m)", "Size (m)", "Mean distance", "Max distance"].map((title) => h("th", {}, title)))),
-    h("tbody", {}, regions.map((region, index) => {
-      const size = region.bbox_min && region.bbox_max ? region.bbox_max.map((value, axis) => value - region.bbox_min[axis]) : null;
-      return h("tr", { dataset: { kind: region.kind } },
-        h("td", {}, String(index + 1)),
-        h("td", {}, h("span", { class: `badge badge-${region.kind}` }, region.kind)),
-        h("td", { class: "num" }, formatNumber(region.n_points)),
-        h("td", {}, formatVector(region.centroid)),
-        h("td", {}, size ? size.map((value) => formatNumber(value, 3)).join(" × ") : "—"),
-        h("td", { class: "num" }, formatNumber(region.mean_distance)),
-        h("td", { class: "num" }, formatNumber(region.max_distance)));
-    })));
-}
-
 export async function renderJob(jobId) {
   const generation = currentRender();
   const job = await api(`jobs/${jobId}`);
-  const [site, regions] = await Promise.all([
+  const rerunnable = canWrite() && (job.status === "succeeded" || job.status === "failed");
+  const [site, capabilities] = await Promise.all([
     api(`sites/${job.site_id}`).catch(() => null),
-    job.status === "succeeded" ? api(`jobs/${jobId}/regions`).then(itemsOf) : Promise.resolve([]),
+    rerunnable ? loadCapabilities().catch(() => null) : Promise.resolve(null),
   ]);
   if (generation !== currentRender()) return;
   setCrumbs(h("a", { href: "#/" }, "Sites"),
     site ? h("a", { href: `#/sites/${site.id}` }, site.name) : h("span", {}, "site"),
-    h("span", {}, `job ${jobId.slice(0, 8)}`));
+    h("span", {}, job.scan_filename ? `job · ${job.scan_filename}` : `job ${jobId.slice(0, 8)}`));
 
   const finished = job.status === "succeeded";
   const linkOutput = h("div", { id: "view-link-output", class: "view-link" });
@@ -108,14 +98,17 @@ export async function renderJob(jobId) {
   app.replaceChildren(
     h("section", { class: "card" },
       h("div", { class: "title-row" }, h("h1", {}, "Comparison job"), h("div", { class: "actions" }, viewButton, shareButton)),
+      h("p", { class: "job-files", id: "job-files" }, jobFiles(job)),
       linkOutput,
       failure,
       explanationPanel(job),
       warningsPanel(job),
       numbersTable(job)),
     reviewPanel(job, () => renderJob(jobId).catch((failure) => handleFailure(failure, "Refreshing the job"))),
-    h("section", { class: "card" }, h("h2", {}, `Regions (${finished ? regions.length : "—"})`), finished ? regionsTable(regions) : h("p", { class: "muted" }, "Regions appear when the job has succeeded.")),
-    h("section", { class: "card" }, h("h2", {}, "Downloads"), downloads));
+    h("section", { class: "card", id: "regions-card" }, h("h2", {}, `Regions (${finished ? job.n_regions ?? "—" : "—"})`),
+      finished ? regionsPanel(jobId, job.n_regions, (failure) => handleFailure(failure, "Reading the regions")) : h("p", { class: "muted" }, "Regions appear when the job has succeeded.")),
+    h("section", { class: "card" }, h("h2", {}, "Downloads"), downloads),
+    capabilities ? rerunCard(job, capabilities) : null);
 
   if (job.status === "queued" || job.status === "running") {
     schedulePoll(() => renderJob(jobId).catch((failure) => handleFailure(failure, "Refreshing the job")));

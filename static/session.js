@@ -56,6 +56,11 @@ function renderSignIn(message = "") {
   input.focus();
 }
 
+/** Whether the signed-in token may change things (writer or admin; a reader only reads). */
+export function canWrite() {
+  return Boolean(me) && me.role !== "reader";
+}
+
 /** Wire the sign-out button; `afterSignIn()` runs when the sign-in form has opened a session. */
 export function startSessions(afterSignIn) {
   onSignedIn = afterSignIn;

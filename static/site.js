@@ -1,10 +1,13 @@
 // One site: its reference, the upload panel, the timeline of scores and the filtered list of jobs.
 
 import { api, itemsOf } from "./api.js";
+import { loadCapabilities } from "./capabilities.js";
 import { decisionBadge, formatDate, formatNumber, h, jobProgress, statusBadge } from "./dom.js";
 import { warningBadge } from "./explain.js";
 import { app, currentRender, schedulePoll, setCrumbs, startRender } from "./page.js";
-import { handleFailure } from "./session.js";
+import { siteScansCard } from "./scans.js";
+import { canWrite, handleFailure } from "./session.js";
+import { reusableSiteAdminPanel } from "./site_admin.js";
 import { drawTimeline } from "./timeline.js";
 import { reusableUploadPanel } from "./upload.js";
 
@@ -28,15 +31,24 @@ async function fetchSiteJobs(siteId, filters) {
   return jobs;
 }
 
+/** "scan.ply vs reference.ply": the files a job compared. */
+export function jobFiles(job) {
+  return [h("span", { class: "scan-name" }, job.scan_filename || "?"), h("span", { class: "muted" }, " vs "),
+    h("span", { class: "reference-name" }, job.reference_filename || "?")];
+}
+
 export async function renderSite(siteId) {
   const generation = currentRender();
   const filters = siteFilters.get(siteId) || { changed: false, status: "" };
   siteFilters.set(siteId, filters);
   const site = await api(`sites/${siteId}`);
-  const [reference, jobs, allJobs] = await Promise.all([
+  const writable = canWrite();
+  const [reference, jobs, allJobs, scansCard, capabilities] = await Promise.all([
     site.reference_scan_id ? api(`scans/${site.reference_scan_id}`).catch(() => null) : Promise.resolve(null),
     fetchSiteJobs(siteId, filters),
     filters.changed || filters.status ? fetchSiteJobs(siteId, { changed: false, status: "" }) : Promise.resolve(null),
+    siteScansCard(site, writable, rerender),
+    writable ? loadCapabilities() : Promise.resolve(null),
   ]);
   if (generation !== currentRender()) return;
   const timelineJobs = allJobs || jobs;
@@ -58,6 +70,7 @@ export async function renderSite(siteId) {
 
   const rows = jobs.map((job) => h("tr", { dataset: { jobId: job.id, status: job.status } },
     h("td", {}, h("a", { href: `#/jobs/${job.id}`, class: "job-link" }, formatDate(job.created_at))),
+    h("td", { class: "job-files" }, jobFiles(job)),
     h("td", {}, statusBadge(job), " ", jobProgress(job)),
     h("td", { class: "num" }, formatNumber(job.score)),
     h("td", {}, decisionBadge(job), " ", warningBadge(job)),
@@ -73,7 +86,8 @@ export async function renderSite(siteId) {
         h("dt", {}, "Reference"),
         h("dd", {}, reference ? `${reference.filename} · ${reference.n_points.toLocaleString()} points · uploaded ${formatDate(reference.created_at)}` : "none yet"),
         h("dt", {}, "Detector"),
-        h("dd", {}, site.detector ? `${site.detector.method} · ${site.detector.variant}` : "default"))),
+        h("dd", {}, site.detector ? `${site.detector.method} · ${site.detector.variant}` : "default")),
+      writable && capabilities ? reusableSiteAdminPanel(site, capabilities, rerender) : null),
     reusableUploadPanel(site, rerender),
     h("section", { class: "card" }, h("h2", {}, "Timeline"), timeline),
     h("section", { class: "card" },
@@ -83,9 +97,10 @@ export async function renderSite(siteId) {
         h("label", {}, "Status ", statusSelect)),
       jobs.length
         ? h("table", { class: "table", id: "jobs-table" },
-          h("thead", {}, h("tr", {}, ["Created", "Status", "Score", "Decision", "Regions", "Detector", "Error"].map((title) => h("th", {}, title)))),
+          h("thead", {}, h("tr", {}, ["Created", "Files", "Status", "Score", "Decision", "Regions", "Detector", "Error"].map((title) => h("th", {}, title)))),
           h("tbody", {}, rows))
-        : h("p", { class: "muted", id: "no-jobs" }, filters.changed || filters.status ? "No job matches these filters." : "No comparison yet.")));
+        : h("p", { class: "muted", id: "no-jobs" }, filters.changed || filters.status ? "No job matches these filters." : "No comparison yet.")),
+    scansCard);
 
   if (timelineJobs.some((job) => job.status === "queued" || job.status === "running")) {
     schedulePoll(() => refreshSite(siteId));
@@ -98,6 +113,11 @@ export async function renderSite(siteId) {
 }
 
 async function refreshSite(siteId) {
+  // Not under an open dialog (re-attaching a modal dialog would drop its modality); later.
+  if (document.querySelector("dialog[open]")) {
+    schedulePoll(() => refreshSite(siteId));
+    return;
+  }
   // Re-render in place, keeping the scroll position.
   const scroll = window.scrollY;
   try {

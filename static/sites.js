@@ -1,9 +1,11 @@
 // The sites list: each site's reference, last scan and decision, and the form for a new site.
 
 import { ApiError, api, describeError, itemsOf } from "./api.js";
+import { loadCapabilities } from "./capabilities.js";
+import { detectorFields } from "./detector.js";
 import { decisionBadge, formatDate, formatNumber, h, jobProgress, statusBadge } from "./dom.js";
 import { app, currentRender, schedulePoll, setCrumbs } from "./page.js";
-import { handleFailure } from "./session.js";
+import { canWrite, handleFailure } from "./session.js";
 
 async function siteSummary(site) {
   const [jobs, reference] = await Promise.all([
@@ -17,30 +19,45 @@ export async function renderSites() {
   const generation = currentRender();
   setCrumbs(h("span", {}, "Sites"));
   const sites = itemsOf(await api("sites"));
-  const summaries = await Promise.all(sites.map(siteSummary));
+  const writable = canWrite();
+  const [summaries, capabilities] = await Promise.all([
+    Promise.all(sites.map(siteSummary)),
+    writable ? loadCapabilities() : Promise.resolve(null),
+  ]);
   if (generation !== currentRender()) return;
 
   const rows = summaries.map(({ site, last, reference }) => h("tr", { dataset: { siteId: site.id } },
     h("td", {}, h("a", { href: `#/sites/${site.id}`, class: "site-link" }, site.name)),
-    h("td", {}, reference ? formatDate(reference.created_at) : h("span", { class: "muted" }, "no reference yet")),
-    h("td", {}, last ? formatDate(last.created_at) : h("span", { class: "muted" }, "no scan yet")),
+    h("td", {}, reference ? `${reference.filename} · ${formatDate(reference.created_at)}` : h("span", { class: "muted" }, "no reference yet")),
+    h("td", {}, last ? `${last.scan_filename || "?"} · ${formatDate(last.created_at)}` : h("span", { class: "muted" }, "no scan yet")),
     h("td", { class: "num" }, last ? formatNumber(last.score) : "—"),
     h("td", {}, last ? decisionBadge(last) : "—"),
     h("td", {}, last ? [statusBadge(last), " ", jobProgress(last)] : "—")));
 
   const nameInput = h("input", { id: "new-site-name", name: "name", required: true, maxlength: 200, placeholder: "e.g. Warehouse 3, aisle B" });
   const descriptionInput = h("input", { id: "new-site-description", name: "description", maxlength: 2000, placeholder: "optional" });
-  const formError = h("p", { class: "form-error", role: "alert" });
-  const form = h("form", { id: "new-site-form", class: "inline-form" },
-    h("label", { for: "new-site-name" }, "Name"), nameInput,
-    h("label", { for: "new-site-description" }, "Description"), descriptionInput,
-    h("button", { type: "submit", class: "primary", id: "create-site" }, "Create site"), formError);
+  const formError = h("p", { class: "form-error", role: "alert", id: "new-site-error" });
+  const detector = capabilities ? detectorFields(capabilities, null, "new-site") : null;
+  const form = h("form", { id: "new-site-form", class: "stacked-form" },
+    h("div", { class: "inline-form" },
+      h("label", { for: "new-site-name" }, "Name"), nameInput,
+      h("label", { for: "new-site-description" }, "Description"), descriptionInput),
+    detector ? detector.element : null,
+    h("div", { class: "actions" }, h("button", { type: "submit", class: "primary", id: "create-site" }, "Create site")), formError);
   form.addEventListener("submit", async (event) => {
     event.preventDefault();
     formError.textContent = "";
     try {
       const body = { name: nameInput.value.trim() };
       if (descriptionInput.value.trim()) body.description = descriptionInput.value.trim();
+      if (detector) {
+        try {
+          body.detector = detector.read();
+        } catch (failure) {
+          formError.textContent = `The site was not created: ${failure.message}.`;
+          return;
+        }
+      }
       const site = await api("sites", { method: "POST", body });
       location.hash = `#/sites/${site.id}`;
     } catch (failure) {
@@ -54,10 +71,10 @@ export async function renderSites() {
       h("h1", {}, "Sites"),
       sites.length
         ? h("table", { class: "table", id: "sites-table" },
-          h("thead", {}, h("tr", {}, ["Site", "Reference from", "Last scan", "Last score", "Decision", "Last job"].map((title) => h("th", {}, title)))),
+          h("thead", {}, h("tr", {}, ["Site", "Reference", "Last scan", "Last score", "Decision", "Last job"].map((title) => h("th", {}, title)))),
           h("tbody", {}, rows))
         : h("p", { class: "muted", id: "no-sites" }, "No site yet. Create one below, then upload its reference scan.")),
-    h("section", { class: "card" }, h("h2", {}, "New site"), form));
+    writable ? h("section", { class: "card" }, h("h2", {}, "New site"), form) : null);
 
   if (summaries.some(({ last }) => last && (last.status === "queued" || last.status === "running"))) {
     schedulePoll(() => renderSites().catch((failure) => handleFailure(failure, "Refreshing the sites")));

@@ -1,13 +1,20 @@
 // A site's upload panel: a new reference or a scan to compare, with the upload's progress.
 
 import { ApiError, describeError, uploadScan } from "./api.js";
+import { loadCapabilities } from "./capabilities.js";
 import { formatBytes, h, progressBar } from "./dom.js";
 import { handleFailure } from "./session.js";
 
 let uploadCard = { siteId: null, node: null };
 
 function uploadPanel(site, onDone) {
-  const fileInput = h("input", { type: "file", id: "scan-file", name: "file", accept: ".ply,.pcd,.las,.laz,.xyz,.csv,.txt,.npy,.npz,.e57" });
+  // The picker offers what the server reads (GET /capabilities), never a hard-coded list.
+  const fileInput = h("input", { type: "file", id: "scan-file", name: "file" });
+  const formats = h("p", { class: "muted", id: "upload-formats" }, "A new reference replaces the current one (the history is kept); a scan is compared with the current reference.");
+  loadCapabilities().then((capabilities) => {
+    fileInput.setAttribute("accept", capabilities.upload_extensions.join(","));
+    formats.prepend(`Formats read: ${capabilities.upload_formats.join(", ")}. `);
+  }).catch(() => {});
   const originInput = h("input", {
     type: "text", id: "sensor-origin", name: "sensor_origin", placeholder: "sensor x,y,z (optional)",
     title: "Where the lidar was, in the file's frame (0,0,0 for a scan in its sensor's frame): lets scandiff tell occluded parts from removed ones. PCD files may carry it as VIEWPOINT.",
@@ -60,7 +67,7 @@ function uploadPanel(site, onDone) {
   scanButton.addEventListener("click", () => send(false));
   return h("section", { class: "card", id: "upload-card" },
     h("h2", {}, "Upload"),
-    h("p", { class: "muted" }, "PLY, PCD, LAS/LAZ, XYZ/CSV/TXT or NPY. A new reference replaces the current one (the history is kept); a scan is compared with the current reference."),
+    formats,
     h("div", { class: "upload-row" }, fileInput, originInput, referenceButton, scanButton),
     hint, bar, status);
 }

@@ -205,6 +205,9 @@ class Job(Base):
     regions: Mapped[list[Region]] = relationship(
         back_populates="job", cascade="all, delete-orphan", order_by="Region.ordinal"
     )
+    # The compared scans (their file names appear in JobRead); lists load them in one query each.
+    reference_scan: Mapped[Scan] = relationship(foreign_keys=[reference_scan_id], viewonly=True)
+    scan: Mapped[Scan] = relationship(foreign_keys=[scan_id], viewonly=True)
 
 
 class Region(Base):

@@ -14,8 +14,8 @@ from collections.abc import Sequence
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import select
-from sqlalchemy.orm import Session
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session, selectinload
 
 from app.clock import as_utc
 from app.config import Settings
@@ -27,7 +27,7 @@ from app.services.auth import Principal
 from app.services.errors import ValidationFailedError
 from app.services.idempotency import StoredResponse
 from app.services.paging import newest_first_page
-from app.services.schemas import JobCreate, JobRead
+from app.services.schemas import JobCreate, JobRead, JobRerun
 from app.services.scoping import get_owned, scoped
 from app.services.transaction import after_commit
 
@@ -114,6 +114,47 @@ def create_job(
     return idempotency.remember(record, response)
 
 
+def rerun_job(
+    session: Session,
+    settings: Settings,
+    principal: Principal,
+    job_id: str,
+    payload: JobRerun,
+    idempotency_key: str | None,
+) -> StoredResponse:
+    """Queue a new job on a job's reference and scan, with another detector or parameters."""
+    key = idempotency.validate_key(idempotency_key)
+    record = None
+    if key is not None:
+        fingerprint = idempotency.request_fingerprint(
+            "POST", f"/api/v1/jobs/{job_id}/rerun", payload.model_dump(mode="json")
+        )
+        record, stored = idempotency.claim(session, principal, key, fingerprint)
+        if stored is not None:
+            return stored
+    original = get_job(session, principal, job_id)
+    method = payload.method or original.method
+    variant = payload.variant or original.variant
+    params = payload.params
+    if params is None:
+        same_detector = (method, variant) == (original.method, original.variant)
+        params = dict(original.params or {}) if same_detector else {}
+    sites.validate_detector(method, variant, params)
+    job = new_job(
+        session,
+        settings,
+        principal,
+        site_id=original.site_id,
+        reference_scan_id=original.reference_scan_id,
+        scan_id=original.scan_id,
+        method=method,
+        variant=variant,
+        params=params,
+    )
+    response = StoredResponse(202, JobRead.from_model(job).model_dump(mode="json"))
+    return idempotency.remember(record, response)
+
+
 def get_job(session: Session, principal: Principal, job_id: str) -> Job:
     """The principal's job ``job_id``; 404 when it does not exist or is another's."""
     return get_owned(session, principal, Job, job_id)
@@ -139,12 +180,52 @@ def list_site_jobs(
         statement = statement.where(Job.status == status)
     if since is not None:
         statement = statement.where(Job.created_at >= as_utc(since))
+    # the scans' file names of the whole page in two queries, not two per job
+    statement = statement.options(selectinload(Job.reference_scan), selectinload(Job.scan))
     return newest_first_page(session, statement, Job, limit, cursor)
 
 
-def list_regions(session: Session, principal: Principal, job_id: str) -> Sequence[Region]:
-    """The changed regions a job found, in the job's order (empty until it succeeded)."""
+REGION_SORT_KEYS = {
+    "ordinal": Region.ordinal,
+    "kind": Region.kind,
+    "n_points": Region.n_points,
+    "mean_distance": Region.mean_distance,
+    "max_distance": Region.max_distance,
+}
+"""What ``GET /jobs/{id}/regions?sort=`` accepts, and the columns they order by."""
+
+
+def list_regions(
+    session: Session,
+    principal: Principal,
+    job_id: str,
+    *,
+    kind: str | None = None,
+    min_points: int | None = None,
+    sort: str = "ordinal",
+    descending: bool = False,
+    offset: int = 0,
+    limit: int | None = None,
+) -> tuple[Sequence[Region], int]:
+    """A job's regions, filtered, sorted and paged (empty until it succeeded); and their total.
+
+    Ties keep the job's order; ``limit=None`` returns every region from ``offset``.
+    """
+    if sort not in REGION_SORT_KEYS:
+        raise ValidationFailedError(
+            f"cannot sort regions by {sort!r}; sort by one of {', '.join(REGION_SORT_KEYS)}",
+            code="invalid_sort",
+        )
     job = get_job(session, principal, job_id)
-    return session.scalars(
-        select(Region).where(Region.job_id == job.id).order_by(Region.ordinal)
-    ).all()
+    statement = select(Region).where(Region.job_id == job.id)
+    if kind:
+        statement = statement.where(Region.kind == kind)
+    if min_points is not None:
+        statement = statement.where(Region.n_points >= min_points)
+    total = session.scalar(select(func.count()).select_from(statement.subquery())) or 0
+    column = REGION_SORT_KEYS[sort]
+    statement = statement.order_by(column.desc() if descending else column.asc(), Region.ordinal)
+    statement = statement.offset(offset)
+    if limit is not None:
+        statement = statement.limit(limit)
+    return session.scalars(statement).all(), int(total)

@@ -234,11 +234,41 @@ class JobRead(RowRead):
             and self.attempts < self.max_attempts
         )
 
+    reference_filename: str | None = Field(
+        default=None, description="File name of the reference scan as uploaded."
+    )
+    scan_filename: str | None = Field(
+        default=None, description="File name of the compared scan as uploaded."
+    )
+
+    @classmethod
+    def from_model(cls, row: object) -> Self:
+        """Build from a ``Job`` row, with the file names of its two scans."""
+        read = cls.model_validate(row)
+        reference_scan = getattr(row, "reference_scan", None)
+        scan = getattr(row, "scan", None)
+        read.reference_filename = reference_scan.filename if reference_scan else None
+        read.scan_filename = scan.filename if scan else None
+        return read
+
+
+class JobRerun(StrictBody):
+    """A re-run of a job on the same reference and scan; absent fields keep the job's.
+
+    Without ``params``, the job's parameters are kept when method and variant are the job's
+    (another detector takes its own defaults).
+    """
+
+    method: Identifier | None = None
+    variant: Identifier | None = None
+    params: dict[str, Any] | None = None
+
 
 class RegionRead(RowRead):
     """A connected cluster of changed points (``added``: new in the scan; ``removed``: gone)."""
 
     id: str
+    ordinal: int = Field(description="Position in the job's region list (0 first).")
     kind: str
     n_points: int
     centroid: list[float]
@@ -246,6 +276,16 @@ class RegionRead(RowRead):
     bbox_max: list[float]
     mean_distance: float
     max_distance: float
+
+
+class CapabilitiesRead(BaseModel):
+    """What this server reads and runs: the dashboard builds its file picker and forms from it."""
+
+    upload_formats: list[str] = Field(description="Formats an upload may be in.")
+    upload_extensions: list[str] = Field(description="File name suffixes of those formats.")
+    detector_methods: list[str]
+    detector_variants: list[str]
+    default_detector: DetectorConfig
 
 
 class UploadRead(BaseModel):

@@ -9,11 +9,12 @@ from sqlalchemy import delete, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from app.clock import as_utc, utc_now
 from app.config import Settings
 from app.core.detectors import canonical_method
 from app.core.errors import InputError
 from app.core.pipeline import parse_comparison_params  # imported here, never in a transaction
-from app.db.models import Job, JobVerdict, ReferenceHistory, Region, Scan, Site
+from app.db.models import Job, JobStatus, JobVerdict, ReferenceHistory, Region, Scan, Site
 from app.jobs.results import job_results_dir
 from app.services import storage
 from app.services.auth import Principal
@@ -129,9 +130,43 @@ def update_site(session: Session, principal: Principal, site_id: str, payload: S
     return site
 
 
+def _refuse_running_jobs(session: Session, site: Site) -> None:
+    """409 when a worker holds a live lease on a job of the site (its results would be lost).
+
+    The site's unfinished jobs are locked (PostgreSQL; SQLite write transactions are
+    exclusive), so a worker cannot claim a queued one before it is deleted with the site; a
+    worker that later picks up a deleted job's id skips it.
+    """
+    now = utc_now()
+    unfinished = session.execute(
+        select(Job.id, Job.status, Job.lease_expires_at)
+        .where(Job.site_id == site.id, Job.status.in_(JobStatus.unfinished()))
+        .with_for_update()
+    ).all()
+    running = [
+        job_id
+        for job_id, status, lease_expires_at in unfinished
+        if status == JobStatus.RUNNING
+        and lease_expires_at is not None
+        and as_utc(lease_expires_at) >= now
+    ]
+    if running:
+        raise ConflictError(
+            f"site {site.id} has {len(running)} running job(s) (e.g. job {running[0]}); "
+            f"deleting it now would throw their work away. Wait until they finish "
+            f"(GET /api/v1/jobs/{running[0]}) and delete again; queued jobs are deleted "
+            f"with the site.",
+            code="site_has_running_jobs",
+        )
+
+
 def delete_site(session: Session, settings: Settings, principal: Principal, site_id: str) -> None:
-    """Delete a site with its scans, jobs and regions; their files go once the rows are gone."""
+    """Delete a site with its scans, jobs and regions; their files go once the rows are gone.
+
+    Refused (409) while one of its jobs is running; its queued jobs are deleted with it.
+    """
     site = get_site(session, principal, site_id)
+    _refuse_running_jobs(session, site)
     job_ids = list(session.scalars(select(Job.id).where(Job.site_id == site.id)))
     if job_ids:
         session.execute(delete(Region).where(Region.job_id.in_(job_ids)))

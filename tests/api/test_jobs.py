@@ -221,10 +221,10 @@ def test_regions_and_labels_of_a_succeeded_job(
     regions = writer.get(f"/api/v1/jobs/{job['id']}/regions").json()
     assert len(regions) == 1
     assert set(regions[0]) == {
-        "id", "kind", "n_points", "centroid", "bbox_min", "bbox_max", "mean_distance",
+        "id", "ordinal", "kind", "n_points", "centroid", "bbox_min", "bbox_max", "mean_distance",
         "max_distance",
     }  # fmt: skip
-    assert regions[0]["kind"] == "added"
+    assert regions[0]["kind"] == "added" and regions[0]["ordinal"] == 0
 
     response = writer.get(f"/api/v1/jobs/{job['id']}/labels")
     assert response.status_code == 200

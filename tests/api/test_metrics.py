@@ -12,7 +12,6 @@ from __future__ import annotations
 import random
 from collections import Counter, defaultdict
 from collections.abc import Iterator
-from contextlib import contextmanager
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
@@ -20,13 +19,14 @@ from typing import Any
 import httpx
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
-from sqlalchemy import delete, event, insert, select, text
+from sqlalchemy import delete, insert, select, text
 
 from app.clock import utc_now
 from app.config import Settings
 from app.db.models import Job, JobStatus, Organisation
-from app.db.session import get_engine, transaction
+from app.db.session import transaction
 from app.services.metrics import DURATION_BUCKETS_SECONDS, QUERIES_PER_SCRAPE
+from tests.helpers.database import counted_selects
 from tests.helpers.files import ply_bytes
 from tests.helpers.http import (
     assert_error,
@@ -65,23 +65,6 @@ def metrics_api(tmp_path: Path) -> Iterator[ApiServer]:
     """A server of its own (a scrape here sees only this test's requests)."""
     with running_api(Settings(data_dir=tmp_path / "data")) as api:
         yield api
-
-
-@contextmanager
-def counted_selects(settings: Settings) -> Iterator[list[str]]:
-    """The queries (SELECT or WITH) run on the app's engine inside the block."""
-    statements: list[str] = []
-    engine = get_engine(settings.sqlalchemy_url)
-
-    def note(_conn: Any, _cursor: Any, statement: str, *_args: Any) -> None:
-        if statement.lstrip().upper().startswith(("SELECT", "WITH")):
-            statements.append(statement)
-
-    event.listen(engine, "before_cursor_execute", note)
-    try:
-        yield statements
-    finally:
-        event.remove(engine, "before_cursor_execute", note)
 
 
 def seed_jobs(api: ApiServer, count: int, seed: int) -> tuple[str, list[dict[str, Any]]]:

@@ -81,6 +81,31 @@ def wait_for_page(condition: Callable[[], Value], timeout: float, message: str) 
     )
 
 
+def by_css(driver: Any, selector: str, timeout: float = 20.0) -> Any:
+    """The first element matching ``selector`` once it is displayed."""
+    from selenium.webdriver.common.by import By
+
+    return wait_for_page(
+        lambda: next(
+            (e for e in driver.find_elements(By.CSS_SELECTOR, selector) if e.is_displayed()), None
+        ),
+        timeout,
+        f"no visible {selector!r} on {driver.current_url}",
+    )
+
+
+def retry(action: Any, timeout: float = 10.0) -> None:
+    """Do ``action`` again while the live page replaces its elements under it."""
+    wait_for_page(lambda: action() or True, timeout, "the page kept changing under the action")
+
+
+def text_of(driver: Any, selector: str) -> str:
+    """Text of every element matching ``selector``."""
+    from selenium.webdriver.common.by import By
+
+    return " ".join(element.text for element in driver.find_elements(By.CSS_SELECTOR, selector))
+
+
 @dataclass
 class ScanFiles:
     """Synthetic reference and scan files of one place, with a changed object."""

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import sqlite3
 from collections import Counter
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import func, select
+from sqlalchemy import event, func, select
 
-from app.db.session import transaction
+from app.config import Settings
+from app.db.session import get_engine, transaction
 from tests.helpers.server import ApiServer
 
 
@@ -39,3 +42,20 @@ def database_rows(data_dir: Path, table: str) -> list[dict[str, Any]]:
 def job_status_counts(data_dir: Path) -> Counter[str]:
     """How many jobs of a ``scandiff serve`` data directory are in each status."""
     return Counter(job["status"] for job in database_rows(data_dir, "job"))
+
+
+@contextmanager
+def counted_selects(settings: Settings) -> Iterator[list[str]]:
+    """The queries (SELECT or WITH) run on the app's engine inside the block."""
+    statements: list[str] = []
+    engine = get_engine(settings.sqlalchemy_url)
+
+    def note(_conn: Any, _cursor: Any, statement: str, *_args: Any) -> None:
+        if statement.lstrip().upper().startswith(("SELECT", "WITH")):
+            statements.append(statement)
+
+    event.listen(engine, "before_cursor_execute", note)
+    try:
+        yield statements
+    finally:
+        event.remove(engine, "before_cursor_execute", note)

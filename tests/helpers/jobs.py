@@ -190,3 +190,25 @@ def finish_job(
         "reference_distance": reference_distance,
         "scan_distance": scan_distance,
     }
+
+
+def random_regions(count: int, seed: int) -> list[RegionSummary]:
+    """``count`` regions of both kinds with random sizes, positions and distances."""
+    rng = np.random.default_rng(seed)
+    regions = []
+    for _ in range(count):
+        low = rng.uniform(-5, 5, 3)
+        high = low + rng.uniform(0.05, 2.0, 3)
+        mean_distance = float(rng.uniform(0.05, 0.5))
+        regions.append(
+            RegionSummary(
+                str(rng.choice(["added", "removed"])),
+                int(rng.integers(5, 5000)),
+                ((low + high) / 2).tolist(),
+                low.tolist(),
+                high.tolist(),
+                mean_distance,
+                mean_distance + float(rng.uniform(0, 0.5)),
+            )
+        )
+    return regions

@@ -95,6 +95,7 @@ OPERATIONS = [
     Operation("GET", "/api/v1/sites", "reader", 200, scoped=False),
     Operation("GET", "/api/v1/session", "reader", 200, scoped=False),
     Operation("GET", "/api/v1/organisation", "reader", 200, scoped=False),
+    Operation("GET", "/api/v1/capabilities", "reader", 200, scoped=False),
     Operation("GET", "/api/v1/sites/{site_id}", "reader", 200),
     Operation(
         "PATCH",
@@ -124,6 +125,7 @@ OPERATIONS = [
         json=lambda ids: {"reference_scan_id": ids.reference_scan_id, "scan_id": ids.scan_id},
     ),
     Operation("GET", "/api/v1/jobs/{job_id}", "reader", 200),
+    Operation("POST", "/api/v1/jobs/{job_id}/rerun", "writer", 202, json=lambda ids: {}),
     Operation("GET", "/api/v1/jobs/{job_id}/regions", "reader", 200),
     Operation("GET", "/api/v1/jobs/{job_id}/labels", "reader", 200, params={"format": "npz"}),
     Operation("POST", "/api/v1/jobs/{job_id}/view-link", "reader", 200),

@@ -7,7 +7,16 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from app.api.routes import health, jobs, metrics, organisation, scans, sites, verdicts
+from app.api.routes import (
+    capabilities,
+    health,
+    jobs,
+    metrics,
+    organisation,
+    scans,
+    sites,
+    verdicts,
+)
 
 v1_router = APIRouter(prefix="/api/v1")
 v1_router.include_router(health.router)
@@ -16,6 +25,7 @@ v1_router.include_router(scans.router)
 v1_router.include_router(jobs.router)
 v1_router.include_router(verdicts.router)
 v1_router.include_router(organisation.router)
+v1_router.include_router(capabilities.router)
 
 api_router = APIRouter()
 api_router.include_router(v1_router)

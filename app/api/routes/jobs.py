@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Header, Query
+from fastapi import APIRouter, Header, Query, Response
 from fastapi.responses import FileResponse, JSONResponse
 from starlette.concurrency import run_in_threadpool
 
@@ -12,9 +12,14 @@ from app.api.deps import PrincipalDep, SessionDep, SettingsDep, WriterDep
 from app.api.errors import QUEUED_JOBS_RESPONSE
 from app.services import jobs as jobs_service
 from app.services import results as results_service
-from app.services.schemas import ErrorRead, JobCreate, JobRead, RegionRead
+from app.services.schemas import ErrorRead, JobCreate, JobRead, JobRerun, RegionRead
 
 router = APIRouter(tags=["jobs"])
+
+REGION_TOTAL_HEADER = {
+    "description": "How many regions match the filters (all pages).",
+    "schema": {"type": "integer"},
+}
 
 
 @router.post(
@@ -42,10 +47,68 @@ async def get_job(job_id: str, session: SessionDep, principal: PrincipalDep) -> 
     )
 
 
-@router.get("/jobs/{job_id}/regions", response_model=list[RegionRead])
-def list_regions(job_id: str, session: SessionDep, principal: PrincipalDep) -> list[RegionRead]:
-    """The changed regions the job found (empty until it succeeded)."""
-    regions = jobs_service.list_regions(session, principal, job_id)
+@router.post(
+    "/jobs/{job_id}/rerun",
+    status_code=202,
+    response_model=JobRead,
+    responses={429: QUEUED_JOBS_RESPONSE},
+)
+def rerun_job(
+    job_id: str,
+    session: SessionDep,
+    settings: SettingsDep,
+    principal: WriterDep,
+    payload: JobRerun | None = None,
+    idempotency_key: Annotated[str | None, Header(alias="Idempotency-Key")] = None,
+) -> JSONResponse:
+    """Queue a new job on this job's reference and scan, with another detector or parameters."""
+    stored = jobs_service.rerun_job(
+        session, settings, principal, job_id, payload or JobRerun(), idempotency_key
+    )
+    return JSONResponse(stored.body, status_code=stored.status_code)
+
+
+@router.get(
+    "/jobs/{job_id}/regions",
+    response_model=list[RegionRead],
+    responses={200: {"headers": {"X-Total-Count": REGION_TOTAL_HEADER}}},
+)
+def list_regions(
+    job_id: str,
+    response: Response,
+    session: SessionDep,
+    principal: PrincipalDep,
+    kind: Annotated[
+        Literal["added", "removed"] | None, Query(description="Only regions of this kind.")
+    ] = None,
+    min_points: Annotated[
+        int | None, Query(ge=0, description="Only regions of at least this many points.")
+    ] = None,
+    sort: Annotated[
+        str,
+        Query(
+            description="ordinal (the job's order), kind, n_points, mean_distance or max_distance."
+        ),
+    ] = "ordinal",
+    order: Annotated[Literal["asc", "desc"], Query(description="Sort direction.")] = "asc",
+    offset: Annotated[int, Query(ge=0, description="Regions to skip.")] = 0,
+    limit: Annotated[
+        int | None, Query(ge=1, le=1000, description="Page size; default: all the rest.")
+    ] = None,
+) -> list[RegionRead]:
+    """The changed regions the job found (empty until it succeeded); X-Total-Count: matches."""
+    regions, total = jobs_service.list_regions(
+        session,
+        principal,
+        job_id,
+        kind=kind,
+        min_points=min_points,
+        sort=sort,
+        descending=order == "desc",
+        offset=offset,
+        limit=limit,
+    )
+    response.headers["X-Total-Count"] = str(total)
     return [RegionRead.from_model(region) for region in regions]
 
 

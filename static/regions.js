@@ -1,0 +1,128 @@
+// A job's region table: sortable columns, filters by kind and minimum points, 25 per page.
+// The API filters, sorts and pages (a job can have thousands of regions); X-Total-Count
+// gives the number of matches. Lengths are in metres with 2 decimals (centimetres).
+
+import { API, ApiError, describeError } from "./api.js";
+import { formatNumber, h } from "./dom.js";
+
+export const REGIONS_PER_PAGE = 25;
+const KINDS = ["added", "removed"];
+const COLUMNS = [
+  { title: "#", sort: "ordinal" },
+  { title: "Kind", sort: "kind" },
+  { title: "Points", sort: "n_points" },
+  { title: "Centroid (m)" },
+  { title: "Size (m)" },
+  { title: "Mean distance (m)", sort: "mean_distance" },
+  { title: "Max distance (m)", sort: "max_distance" },
+];
+
+/** Metres with centimetre precision. */
+export function metres(value) {
+  return Number.isFinite(value) ? value.toFixed(2) : "—";
+}
+
+async function fetchRegions(jobId, state) {
+  const query = new URLSearchParams({
+    sort: state.sort, order: state.order, offset: String(state.page * REGIONS_PER_PAGE), limit: String(REGIONS_PER_PAGE),
+  });
+  if (state.kind) query.set("kind", state.kind);
+  if (state.minPoints > 0) query.set("min_points", String(state.minPoints));
+  const response = await fetch(`${API}/jobs/${encodeURIComponent(jobId)}/regions?${query}`,
+    { credentials: "same-origin", headers: { Accept: "application/json" } });
+  const payload = await response.json().catch(() => null);
+  if (!response.ok) throw new ApiError(response.status, payload && payload.error, payload && payload.detail);
+  return { regions: payload, total: Number(response.headers.get("X-Total-Count") || payload.length) };
+}
+
+function regionRow(region) {
+  const size = region.bbox_min && region.bbox_max ? region.bbox_max.map((value, axis) => value - region.bbox_min[axis]) : null;
+  return h("tr", { dataset: { kind: region.kind, regionId: region.id, points: region.n_points } },
+    h("td", { class: "num" }, String(region.ordinal + 1)),
+    h("td", {}, h("span", { class: `badge badge-${region.kind}` }, region.kind)),
+    h("td", { class: "num" }, formatNumber(region.n_points)),
+    h("td", { class: "num" }, Array.isArray(region.centroid) ? region.centroid.map(metres).join(", ") : "—"),
+    h("td", { class: "num" }, size ? size.map(metres).join(" × ") : "—"),
+    h("td", { class: "num" }, metres(region.mean_distance)),
+    h("td", { class: "num" }, metres(region.max_distance)));
+}
+
+/** The region card's body for job `jobId` with `count` regions; fetches its pages itself. */
+export function regionsPanel(jobId, count, onUnauthorised) {
+  const state = { sort: "ordinal", order: "asc", kind: "", minPoints: 0, page: 0 };
+  const kindSelect = h("select", { id: "regions-kind" },
+    h("option", { value: "" }, "any kind"), KINDS.map((kind) => h("option", { value: kind }, kind)));
+  const minPointsInput = h("input", { type: "number", id: "regions-min-points", min: 0, step: 1, value: 0, size: 7 });
+  const summary = h("span", { id: "regions-summary", class: "muted" });
+  const previous = h("button", { type: "button", id: "regions-previous" }, "‹ Previous");
+  const next = h("button", { type: "button", id: "regions-next" }, "Next ›");
+  const error = h("p", { class: "form-error", id: "regions-error", role: "alert" });
+  const headerRow = h("tr", {});
+  const body = h("tbody", {});
+  const table = h("table", { class: "table", id: "regions-table" }, h("thead", {}, headerRow), body);
+  let request = 0;
+
+  function drawHeader() {
+    headerRow.replaceChildren(...COLUMNS.map((column) => {
+      if (!column.sort) return h("th", {}, column.title);
+      const active = state.sort === column.sort;
+      const arrow = active ? (state.order === "asc" ? " ▲" : " ▼") : "";
+      const button = h("button", { type: "button", class: "sort-button", dataset: { sort: column.sort } }, column.title + arrow);
+      button.addEventListener("click", () => {
+        if (active) state.order = state.order === "asc" ? "desc" : "asc";
+        else Object.assign(state, { sort: column.sort, order: column.sort === "ordinal" || column.sort === "kind" ? "asc" : "desc" });
+        state.page = 0;
+        load();
+      });
+      return h("th", { "aria-sort": active ? (state.order === "asc" ? "ascending" : "descending") : "none" }, button);
+    }));
+  }
+
+  async function load() {
+    const mine = ++request;
+    drawHeader();
+    error.textContent = "";
+    try {
+      const { regions, total } = await fetchRegions(jobId, state);
+      if (mine !== request) return;
+      const pages = Math.max(1, Math.ceil(total / REGIONS_PER_PAGE));
+      if (state.page >= pages && total) {
+        state.page = pages - 1;
+        load();
+        return;
+      }
+      body.replaceChildren(...regions.map(regionRow));
+      const first = total ? state.page * REGIONS_PER_PAGE + 1 : 0;
+      summary.textContent = total
+        ? `${first}–${first + regions.length - 1} of ${total} (page ${state.page + 1} of ${pages})`
+        : "No region matches these filters.";
+      previous.disabled = state.page === 0;
+      next.disabled = state.page + 1 >= pages;
+    } catch (failure) {
+      if (failure instanceof ApiError && failure.status === 401) return onUnauthorised(failure);
+      error.textContent = `The regions could not be read: ${describeError(failure)}`;
+    }
+  }
+
+  kindSelect.addEventListener("change", () => { state.kind = kindSelect.value; state.page = 0; load(); });
+  minPointsInput.addEventListener("change", () => {
+    const value = Number.parseInt(minPointsInput.value, 10);
+    state.minPoints = Number.isFinite(value) && value > 0 ? value : 0;
+    minPointsInput.value = String(state.minPoints);
+    state.page = 0;
+    load();
+  });
+  previous.addEventListener("click", () => { state.page = Math.max(0, state.page - 1); load(); });
+  next.addEventListener("click", () => { state.page += 1; load(); });
+
+  if (count === 0) return h("p", { class: "muted", id: "no-regions" }, "No changed region.");
+  load();
+  return h("div", { id: "regions-panel" },
+    h("div", { class: "filters" },
+      h("label", {}, "Kind ", kindSelect),
+      h("label", {}, "Min. points ", minPointsInput),
+      summary),
+    table,
+    h("div", { class: "pager" }, previous, next),
+    error);
+}
