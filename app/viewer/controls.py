@@ -238,20 +238,21 @@ def _add_change_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> Non
     low = float(np.floor(floor / step) * step) if enabled else 0.0
     high = max(float(np.ceil(far / step) * step), low + 10 * step)
     lock = threading.Lock()
+    start_distance = float(np.clip(round((threshold or low) / step) * step, low, high))
     with gui.add_folder("Change"):
         distance = gui.add_slider(
             "Min. distance (m)",
             min=low,
             max=high,
             step=step,
-            initial_value=float(np.clip(round((threshold or low) / step) * step, low, high)),
+            initial_value=start_distance,
             disabled=not enabled,
             hint="a point this far from the other scan's surface is a change candidate",
         )
         size = gui.add_slider(
             "Min. region (pts)",
             min=1,
-            max=max(4 * data.min_region_points, 50),
+            max=max(4 * data.min_region_points, 50, *(2 * r.n_points for r in data.regions)),
             step=1,
             initial_value=data.min_region_points,
             disabled=not enabled,
@@ -277,9 +278,12 @@ def _add_change_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> Non
         if resetting.is_set() or not enabled:
             return
         with lock:
-            record.state.min_distance = float(distance.value)
+            # the slider's start is the job's threshold rounded to a step: it means the threshold
+            untouched = distance.value == start_distance and threshold is not None
+            min_distance = float(threshold if untouched else distance.value)  # type: ignore[arg-type]
+            record.state.min_distance = min_distance
             record.state.min_region_points = int(size.value)
-            record.relabelled = relabel(data, float(distance.value), int(size.value))
+            record.relabelled = relabel(data, min_distance, int(size.value))
             record.redraw_points()
             record.redraw_regions()
             status.content = _change_status(record, data)
@@ -298,8 +302,8 @@ def _add_change_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> Non
         with lock:
             resetting.set()
             try:
-                distance.value = distance.initial_value
-                size.value = size.initial_value
+                distance.value = start_distance
+                size.value = data.min_region_points
             finally:
                 resetting.clear()
             record.state.min_distance = record.state.min_region_points = None

@@ -214,9 +214,10 @@ def pick_point(
     ray_origin: NDArray[np.floating],
     ray_direction: NDArray[np.floating],
     pixel_angle: float,
+    point_radius: float = 0.0,
 ) -> Picked | None:
     """The visible drawn point nearest the camera among those within :data:`PICK_PIXELS` of
-    the ray (``pixel_angle``: radians per screen pixel), or None."""
+    the ray (``pixel_angle``: radians per screen pixel) plus their drawn radius, or None."""
     origin = np.asarray(ray_origin, dtype=np.float64)
     direction = np.asarray(ray_direction, dtype=np.float64)
     direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
@@ -227,7 +228,7 @@ def pick_point(
         offsets = layer.points.astype(np.float64) - origin
         along = offsets @ direction
         across = np.linalg.norm(offsets - along[:, None] * direction, axis=1)
-        tolerance = np.maximum(along, 0.0) * np.tan(pixel_angle * PICK_PIXELS) + data.spacing
+        tolerance = np.maximum(along, 0.0) * np.tan(pixel_angle * PICK_PIXELS) + point_radius
         hits = np.flatnonzero((along > 0) & (across <= tolerance))
         if len(hits) == 0:
             continue

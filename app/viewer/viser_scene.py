@@ -264,6 +264,7 @@ class ClientScene:
                 np.asarray(ray_origin),
                 np.asarray(ray_direction),
                 pixel_angle,
+                point_radius=self.world_point_size / 2.0,
             )
             self.picked = picked
             if picked is None:

@@ -9,7 +9,6 @@ box handles equal the API's regions).  Views without auth are refused, over HTTP
 
 from __future__ import annotations
 
-import io
 import time
 from typing import Any
 
@@ -18,34 +17,21 @@ import numpy as np
 import pytest
 import viser
 
-from tests.helpers.browser import FAILING_SCAN_REASON, ReviewService, save_screenshot
+from tests.helpers.browser import (
+    FAILING_SCAN_REASON,
+    ReviewService,
+    by_css,
+    count_colour,
+    dismiss_notifications,
+    save_screenshot,
+    view_scene,
+)
 from tests.helpers.browser import wait_for_page as wait_until
 
 pytestmark = pytest.mark.timeout(240)
 
 RED = (230, 25, 25)
 GREEN = (20, 200, 50)
-
-
-def count_colour(png: bytes, colour: tuple[int, int, int], tolerance: int = 40) -> int:
-    """Pixels of a screenshot within ``tolerance`` (per channel) of ``colour``."""
-    from PIL import Image
-
-    pixels = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.int16)
-    return int((np.abs(pixels - np.array(colour)).max(axis=2) <= tolerance).sum())
-
-
-def by_css(driver: Any, selector: str, timeout: float = 20.0) -> Any:
-    """The first element matching ``selector`` once it is displayed."""
-    from selenium.webdriver.common.by import By
-
-    return wait_until(
-        lambda: next(
-            (e for e in driver.find_elements(By.CSS_SELECTOR, selector) if e.is_displayed()), None
-        ),
-        timeout,
-        f"no visible {selector!r} on {driver.current_url}",
-    )
 
 
 def retry(action: Any, timeout: float = 10.0) -> None:
@@ -58,22 +44,6 @@ def text_of(driver: Any, selector: str) -> str:
     from selenium.webdriver.common.by import By
 
     return " ".join(element.text for element in driver.find_elements(By.CSS_SELECTOR, selector))
-
-
-def view_scene(service: ReviewService, job_id: str) -> dict[str, Any]:
-    """The server-side record of the job's 3D view."""
-    with service.client() as client:
-        answer = client.get(f"/api/v1/jobs/{job_id}/view/scene")
-        answer.raise_for_status()
-        return answer.json()
-
-
-def dismiss_notifications(driver: Any) -> None:
-    """Close viser's toasts (e.g. "software WebGL rendering detected") before a screenshot."""
-    driver.execute_script(
-        "document.querySelectorAll('.mantine-Notification-closeButton, "
-        "[class*=Notification] button').forEach(b => b.click())"
-    )
 
 
 def wait_for_view(driver: Any, service: ReviewService, job_id: str, clients: int = 1) -> bytes:

@@ -180,7 +180,7 @@ def test_a_click_picks_the_nearest_drawn_point_on_its_ray(job) -> None:
     picked = pick_point(data, layers, visible, labels, camera, target - camera, angle)
     assert picked is not None
     local = np.asarray(picked.position) - data.origin
-    tolerance = 3.0 * math.tan(angle * PICK_PIXELS) + data.spacing
+    tolerance = 3.0 * math.tan(angle * PICK_PIXELS)
     assert np.linalg.norm((local - target)[:2]) <= tolerance and local[2] >= target[2] - 1e-4
     if picked.layer == "removed":
         assert picked.label_name == "removed" and picked.distance < 0
