@@ -88,12 +88,15 @@ def _add_warnings(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
             for item in data.warnings
         )
         content = (
-            '<div class="scandiff-warnings" style="font-size:12px;color:#b35c00">'
+            '<div class="scandiff-warnings" style="font-size:12px;color:#b35c00;padding:0 0.75em">'
             f"<b>Quality warnings ({len(data.warnings)})</b>"
             f'<ul style="margin:2px 0;padding-left:16px">{items}</ul></div>'
         )
     else:
-        content = '<div class="scandiff-warnings" style="font-size:12px">No quality warnings.</div>'
+        content = (
+            '<div class="scandiff-warnings" style="font-size:12px;padding:0 0.75em">'
+            "No quality warnings.</div>"
+        )
     record.controls["warnings"] = gui.add_html(content)
 
 

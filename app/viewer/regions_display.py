@@ -223,40 +223,61 @@ def quaternion_matrix(wxyz: Sequence[float]) -> NDArray[np.float64]:
     )
 
 
+LABEL_ANCHORS = ("bottom-left", "top-left", "bottom-right", "top-right")
+"""Where a label may sit around its point, in order of preference (viser's ``anchor``)."""
+
+
+def label_box(
+    pixel: NDArray[np.floating], text: str, anchor: str
+) -> tuple[float, float, float, float]:
+    """Screen box (left, top, right, bottom) of a label's text placed by ``anchor``."""
+    width = LABEL_CHAR_PIXELS * len(text) + 8
+    x, y = float(pixel[0]), float(pixel[1])
+    left = x if anchor.endswith("left") else x - width
+    top = y - LABEL_HEIGHT_PIXELS if anchor.startswith("bottom") else y
+    return (left, top, left + width, top + LABEL_HEIGHT_PIXELS)
+
+
+def _overlaps(box: tuple[float, ...], others: Sequence[tuple[float, ...]]) -> bool:
+    """Whether ``box`` overlaps any of ``others``."""
+    return any(
+        box[0] < other[2] and other[0] < box[2] and box[1] < other[3] and other[1] < box[3]
+        for other in others
+    )
+
+
 def declutter(
     anchors: NDArray[np.floating],
     texts: Sequence[str],
     camera: CameraView | None,
     world_separation: float,
-) -> NDArray[np.bool_]:
-    """Which labels to show, in priority order (first = most important) so none overlap.
+) -> list[str | None]:
+    """Where to show each label (a viser anchor) or None to hide it, so that none overlap.
 
-    With a camera, a label's text box (bottom-left at its anchor, :data:`LABEL_CHAR_PIXELS`
-    per character) must not overlap one already kept, and its anchor must be in front of the
-    camera; without one, its anchor must be ``world_separation`` from every kept anchor.
+    Labels come in priority order (first = largest region).  With a camera, a label takes the
+    first of :data:`LABEL_ANCHORS` whose text box (:data:`LABEL_CHAR_PIXELS` a character)
+    overlaps no label already placed, and is hidden when none is free or its point is behind
+    the camera; without one, it is shown at its default place only ``world_separation`` from
+    every shown label's point.
     """
     anchors = np.asarray(anchors, dtype=np.float64).reshape(-1, 3)
-    shown = np.zeros(len(anchors), dtype=bool)
+    placed: list[str | None] = [None] * len(anchors)
     if camera is None:
-        for index in range(len(anchors)):
-            kept = anchors[shown]
-            if not len(kept) or np.linalg.norm(kept - anchors[index], axis=1).min() >= (
-                world_separation
-            ):
-                shown[index] = True
-        return shown
+        shown: list[NDArray[np.float64]] = []
+        for index, point in enumerate(anchors):
+            if all(np.linalg.norm(other - point) >= world_separation for other in shown):
+                shown.append(point)
+                placed[index] = LABEL_ANCHORS[0]
+        return placed
     pixels, in_front = camera.project(anchors)
     boxes: list[tuple[float, float, float, float]] = []
     for index, text in enumerate(texts):
         if not in_front[index]:
             continue
-        left, bottom = pixels[index]
-        box = (left, bottom - LABEL_HEIGHT_PIXELS, left + LABEL_CHAR_PIXELS * len(text) + 8, bottom)
-        if any(
-            box[0] < other[2] and other[0] < box[2] and box[1] < other[3] and other[1] < box[3]
-            for other in boxes
-        ):
-            continue
-        boxes.append(box)
-        shown[index] = True
-    return shown
+        for anchor in LABEL_ANCHORS:
+            box = label_box(pixels[index], text, anchor)
+            if not _overlaps(box, boxes):
+                boxes.append(box)
+                placed[index] = anchor
+                break
+    return placed

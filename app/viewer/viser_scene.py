@@ -190,8 +190,10 @@ class ClientScene:
                 self.camera_view(),
                 world_separation=self.data.extent / 30.0,
             )
-            for (_text, handle), keep in zip(self.labels, shown, strict=True):
-                visible = bool(keep) and self.boxes_visible
+            for (_text, handle), anchor in zip(self.labels, shown, strict=True):
+                visible = anchor is not None and self.boxes_visible
+                if anchor is not None and handle.anchor != anchor:
+                    handle.anchor = anchor
                 if handle.visible != visible:
                     handle.visible = visible
 
@@ -312,6 +314,7 @@ class ClientScene:
                     {
                         "text": text,
                         "visible": bool(handle.visible),
+                        "anchor": handle.anchor,
                         "position": (np.asarray(handle.position) + origin).tolist(),
                     }
                     for text, handle in self.labels

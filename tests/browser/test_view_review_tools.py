@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from app.core.formats import read_point_cloud
-from app.viewer.regions_display import CameraView
+from app.viewer.regions_display import CameraView, label_box
 from app.viewer.rendering import PICK_PIXELS
 from tests.helpers.browser import (
     ReviewService,
@@ -120,8 +120,8 @@ def assert_labels_do_not_overlap(scene: dict[str, Any]) -> None:
     shown = [label for label in scene["labels"] if label["visible"]]
     pixels, _ = camera.project(np.array([label["position"] for label in shown]).reshape(-1, 3))
     boxes = [
-        (x, y - 18, x + 7 * len(label["text"]) + 8, y)
-        for (x, y), label in zip(pixels, shown, strict=True)
+        label_box(pixel, label["text"], label["anchor"])
+        for pixel, label in zip(pixels, shown, strict=True)
     ]
     for index, box in enumerate(boxes):
         for other in boxes[:index]:

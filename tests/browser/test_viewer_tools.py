@@ -159,13 +159,19 @@ def test_labels_that_would_overlap_on_screen_are_dropped() -> None:
         width=800,
         height=600,
     )
-    anchors = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [3.0, 3.0, 0.0], [0.0, 0.0, -20.0]])
-    shown = declutter(anchors, ["#1 added", "#2 removed", "#3 added", "#4 x"], camera, 0.5)
-    assert shown.tolist() == [True, False, True, False]  # overlap; behind the camera
+    anchors = np.array([[0.0, 0.0, 0.0]] * 5 + [[3.0, 3.0, 0.0], [0.0, 0.0, -20.0]])
+    texts = [f"#{number} added" for number in range(1, 8)]
+    placed = declutter(anchors, texts, camera, 0.5)
+    # five labels at one point: four places around it, then none; the last is behind
+    assert placed == [
+        "bottom-left", "top-left", "bottom-right", "top-right", None, "bottom-left", None
+    ]  # fmt: skip
     pixels, in_front = camera.project(anchors[:1])
-    np.testing.assert_allclose(pixels[0], (400.0, 300.0)) and in_front[0]
-    world = declutter(anchors[:3], ["a", "b", "c"], None, world_separation=0.5)
-    assert world.tolist() == [True, False, True]
+    np.testing.assert_allclose(pixels[0], (400.0, 300.0))
+    assert in_front[0]
+    world = declutter(anchors[4:6], texts[4:6], None, world_separation=0.5)
+    assert world == ["bottom-left", "bottom-left"]
+    assert declutter(anchors[:2], texts[:2], None, world_separation=0.5) == ["bottom-left", None]
 
 
 def test_a_click_picks_the_nearest_drawn_point_on_its_ray(job) -> None:
