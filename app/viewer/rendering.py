@@ -227,9 +227,9 @@ def pick_point(
             continue
         offsets = layer.points.astype(np.float64) - origin
         along = offsets @ direction
-        across = np.linalg.norm(offsets - along[:, None] * direction, axis=1)
+        across_squared = np.einsum("ij,ij->i", offsets, offsets) - along * along
         tolerance = np.maximum(along, 0.0) * np.tan(pixel_angle * PICK_PIXELS) + point_radius
-        hits = np.flatnonzero((along > 0) & (across <= tolerance))
+        hits = np.flatnonzero((along > 0) & (across_squared <= tolerance * tolerance))
         if len(hits) == 0:
             continue
         nearest = hits[np.argmin(along[hits])]

@@ -184,8 +184,6 @@ class SceneData:
     """The smallest distance of a changed point (metres): the job's threshold, from above."""
     min_region_points: int = 1
     """The job's minimum region size (points), as far as the viewer knows it."""
-    spacing: float = 0.05
-    """Median point spacing of the drawn points (metres)."""
 
     @property
     def has_distances(self) -> bool:
@@ -481,7 +479,6 @@ def build_scene_data(
         ),
         change_threshold=change_threshold,
         min_region_points=max(int(min_region_points), 1),
-        spacing=point_size / 1.5,
     )
 
 

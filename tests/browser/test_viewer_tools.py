@@ -251,3 +251,21 @@ def test_constant_screen_size_inverts_visers_point_shader() -> None:
         size = screen_constant_size(3.0, distance, fov, height)
         pixels = size / math.tan(fov / 2) * height / distance  # viser's gl_PointSize
         assert math.isclose(pixels, 3.0)
+
+
+def test_a_job_without_stored_distances_keeps_its_labels_and_turns_the_sliders_off(job) -> None:
+    pair, result = job.pair, job.result
+    data = build_scene_data(
+        pair.reference,
+        pair.scan,
+        reference_labels=result.reference_label,
+        scan_labels=result.scan_label,
+        transform=result.registration["transform"],
+        regions=result.to_json_dict()["regions"],
+    )
+    assert not data.has_distances and data.change_threshold is None
+    assert all(len(pool.indices) == 0 for pool in data.pools.values())
+    labels = {side: data.sides[side].labels for side in data.sides}
+    layers = render_layers(data, ViewState(colour_mode="distance", depth_cue=False), labels)
+    assert layers["removed"].n_points == job.data.layer("removed").n_shown
+    assert {tuple(colour) for colour in layers["removed"].colours} == {NO_DISTANCE_COLOUR}
