@@ -131,19 +131,19 @@ def _add_view_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
     def _(event: viser.GuiEvent) -> None:
         choice = {title: key for key, title in SHOW_CHOICES.items()}[event.target.value]
         record.state.show = choice
-        record.redraw_points()
+        record.request_redraw(points=True)
 
     @colour.on_update
     def _(event: viser.GuiEvent) -> None:
         mode = {title: key for key, title in COLOUR_MODES.items()}[event.target.value]
         record.state.colour_mode = mode
         bar.visible = mode == "distance"
-        record.redraw_points()
+        record.request_redraw(points=True)
 
     @depth.on_update
     def _(event: viser.GuiEvent) -> None:
         record.state.depth_cue = bool(event.target.value)
-        record.redraw_points()
+        record.request_redraw(points=True)
 
     @constant.on_update
     def _(event: viser.GuiEvent) -> None:
@@ -209,8 +209,7 @@ def _add_clip_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
     def _(event: viser.GuiEvent) -> None:
         bottom, top = (float(value) - offset for value in event.target.value)
         record.state.clip_low, record.state.clip_high = bottom, top
-        record.redraw_points()
-        record.redraw_regions()
+        record.request_redraw(points=True, regions=True)
 
     @ceiling.on_click
     def _(_event: viser.GuiEvent) -> None:
@@ -287,9 +286,7 @@ def _add_change_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> Non
             record.state.min_distance = min_distance
             record.state.min_region_points = int(size.value)
             record.relabelled = relabel(data, min_distance, int(size.value))
-            record.redraw_points()
-            record.redraw_regions()
-            status.content = _change_status(record, data)
+            record.request_redraw(points=True, regions=True)
 
     distance.on_update(apply)
     size.on_update(apply)
@@ -297,8 +294,7 @@ def _add_change_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> Non
     @moved.on_update
     def _(event: viser.GuiEvent) -> None:
         record.state.moved_within = float(event.target.value)
-        record.redraw_regions()
-        status.content = _change_status(record, data)
+        record.request_redraw(regions=True)
 
     @reset.on_click
     def _(_event: viser.GuiEvent) -> None:
@@ -311,9 +307,14 @@ def _add_change_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> Non
                 resetting.clear()
             record.state.min_distance = record.state.min_region_points = None
             record.relabelled = None
-            record.redraw_points()
-            record.redraw_regions()
-            status.content = _change_status(record, data)
+            record.request_redraw(points=True, regions=True)
+
+
+def refresh_change_status(record: Any) -> None:
+    """Say in the panel how many regions are drawn (after each redraw of the regions)."""
+    handle = record.controls.get("change_status")
+    if handle is not None:
+        handle.content = _change_status(record, record.data)
 
 
 def _change_status(record: Any, data: SceneData) -> str:
@@ -361,7 +362,7 @@ def _add_layer_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None
     @boxes.on_update
     def _(event: viser.GuiEvent) -> None:
         record.boxes_visible = bool(event.target.value)
-        record.redraw_regions()
+        record.request_redraw(regions=True)
 
 
 def _visibility_toggle(record: Any, name: str) -> Any:

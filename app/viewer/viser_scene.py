@@ -15,6 +15,7 @@ moves, and shades points by height as a depth cue (:mod:`app.viewer.colours`).
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
 import threading
 from collections.abc import Sequence
@@ -42,6 +43,8 @@ from app.viewer.scene import (
     SceneData,
     SensorMarker,
 )
+
+logger = logging.getLogger("scandiff.viewer")
 
 MAX_REGION_LABELS = 20
 """Regions whose box gets a text label in the scene (the largest); more would hide the data."""
@@ -74,6 +77,10 @@ class ClientScene:
     controls: dict[str, Any] = field(default_factory=dict)
     lock: threading.RLock = field(default_factory=threading.RLock)
     _layer_digest: dict[str, str] = field(default_factory=dict)
+    _redraw_lock: threading.Lock = field(default_factory=threading.Lock)
+    _pending_points: bool = False
+    _pending_regions: bool = False
+    _redrawing: bool = False
 
     # -- what is drawn ------------------------------------------------------------------------
 
@@ -95,6 +102,36 @@ class ClientScene:
         return self.state.layer_visible.get(name, STYLE_BY_NAME[name].visible) and bool(
             self.rendered.get(name) is not None and self.rendered[name].n_points
         )
+
+    def request_redraw(self, points: bool = False, regions: bool = False) -> None:
+        """Redraw soon, on one thread per browser: requests made while a redraw runs are merged
+        into the next one, so dragging a slider over a large scene does not queue up redraws."""
+        with self._redraw_lock:
+            self._pending_points |= points
+            self._pending_regions |= regions
+            if self._redrawing:
+                return
+            self._redrawing = True
+        threading.Thread(
+            target=self._drain_redraws, name="scandiff-view-redraw", daemon=True
+        ).start()
+
+    def _drain_redraws(self) -> None:
+        """Run the pending redraws until none is left."""
+        while True:
+            with self._redraw_lock:
+                points, regions = self._pending_points, self._pending_regions
+                self._pending_points = self._pending_regions = False
+                if not (points or regions):
+                    self._redrawing = False
+                    return
+            try:
+                if points:
+                    self.redraw_points()
+                if regions:
+                    self.redraw_regions()
+            except Exception:  # a browser that left mid-redraw, or a bug: log, keep serving
+                logger.exception("3D view redraw failed")
 
     def redraw_points(self) -> None:
         """Send every layer whose points or colours changed."""
@@ -176,6 +213,7 @@ class ClientScene:
                 )
                 self.labels.append((text, label))
         self.declutter()
+        controls.refresh_change_status(self)
 
     def declutter(self) -> None:
         """Hide the labels that would overlap a larger region's label from this camera."""
