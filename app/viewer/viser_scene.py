@@ -240,19 +240,19 @@ class ClientScene:
         if self.client is None:
             return None
         camera = self.client.camera
-        try:
+        try:  # viser asserts that the browser has reported its camera
             width, height = int(camera.image_width), int(camera.image_height)
-        except (AttributeError, TypeError):
+            if width <= 0 or height <= 0:
+                return None
+            return CameraView(
+                position=np.asarray(camera.position, dtype=np.float64),
+                wxyz=np.asarray(camera.wxyz, dtype=np.float64),
+                fov=float(camera.fov),
+                width=width,
+                height=height,
+            )
+        except (AssertionError, AttributeError, TypeError):
             return None
-        if width <= 0 or height <= 0:
-            return None
-        return CameraView(
-            position=np.asarray(camera.position, dtype=np.float64),
-            wxyz=np.asarray(camera.wxyz, dtype=np.float64),
-            fov=float(camera.fov),
-            width=width,
-            height=height,
-        )
 
     def _inside_clip(self, region: RegionBox) -> bool:
         """Whether a region's box reaches into the height clip."""
