@@ -17,9 +17,31 @@ from app.config import Settings
 from app.core.formats import read_point_cloud
 from app.db.models import Job, JobStatus, Region, Scan, Site
 from app.db.session import session_factory
+from app.jobs.results import DETAILS_FILENAME
 from app.viewer.scene import DEFAULT_POINT_BUDGET, SceneData, build_scene_data
 
 LABELS_FILE = "labels.npz"
+
+
+def job_sensor_origins(job: Any) -> dict[str, Any]:
+    """The sensor positions the job reports, ``{"reference": [...], "scan": [...]}`` (jobs
+    stored before migration 0008 have none)."""
+    value = job.sensor_origins or {}
+    return value if isinstance(value, dict) else {}
+
+
+def job_warnings(job: Any) -> list[dict[str, Any]]:
+    """The job's quality warnings, a list of ``{code, message, ...}`` (none before 0008)."""
+    value = job.warnings or []
+    return [item for item in value if isinstance(item, dict)] if isinstance(value, list) else []
+
+
+def job_min_region_points(job: Any) -> int | None:
+    """The minimum region size the job asked for, if it set one."""
+    params = getattr(job, "effective_params", None) or {}
+    localisation = params.get("localisation") if isinstance(params, dict) else None
+    value = localisation.get("min_region_points") if isinstance(localisation, dict) else None
+    return int(value) if isinstance(value, int | float) and value >= 1 else None
 
 
 class ViewUnavailableError(Exception):
@@ -91,6 +113,10 @@ def load_job_scene(
         )
         names = (reference.filename, scan.filename)
         labels_path = job_labels_path(settings, job)
+        details_path = labels_path.with_name(DETAILS_FILENAME)
+        sensor_origins = job_sensor_origins(job)
+        warnings = job_warnings(job)
+        min_region_points = job_min_region_points(job)
         transform = (job.registration or {}).get("transform")
         summary = {
             "score": job.score,
@@ -115,6 +141,15 @@ def load_job_scene(
     with np.load(labels_path) as labels:
         reference_labels = reference_cloud.from_source_order(labels["reference_label"])
         scan_labels = scan_cloud.from_source_order(labels["scan_label"])
+    distances: dict[str, Any] = {}
+    if details_path.is_file():  # jobs from before details.npz have labels only
+        with np.load(details_path) as details:
+            distances = {
+                "reference_distances": reference_cloud.from_source_order(
+                    details["reference_distance"]
+                ),
+                "scan_distances": scan_cloud.from_source_order(details["scan_distance"]),
+            }
     data = build_scene_data(
         reference_cloud.points,
         scan_cloud.points,
@@ -124,6 +159,10 @@ def load_job_scene(
         regions=regions,
         point_budget=point_budget,
         summary=summary,
+        sensor_origins=sensor_origins,
+        warnings=warnings,
+        min_region_points=min_region_points,
+        **distances,
     )
     site_name = summary["site"] or "site"
     title = f"{site_name}: {names[1]} vs {names[0]}"

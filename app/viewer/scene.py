@@ -14,6 +14,7 @@ states how many of its points are shown.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -23,7 +24,17 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from app.config import DEFAULT_VIEWER_POINT_BUDGET
+from app.core.localise.changes import MIN_REGION_POINTS_FLOOR, MIN_REGION_POINTS_PER_SQRT
 from app.core.registration import apply_transform
+from app.viewer.scene_parts import (
+    SIDES,
+    CandidatePool,
+    SensorMarker,
+    SideCloud,
+    candidate_pool,
+    check_distances,
+    sensor_markers,
+)
 
 LABEL_UNOBSERVED = -1
 LABEL_UNCHANGED = 0
@@ -54,8 +65,8 @@ class LayerStyle:
 
 
 LAYER_STYLES: tuple[LayerStyle, ...] = (
-    LayerStyle("reference", "Reference", (150, 150, 150), True, "unchanged reference points"),
-    LayerStyle("scan", "Scan", (110, 150, 200), True, "unchanged scan points"),
+    LayerStyle("reference", "Reference", (160, 110, 210), True, "unchanged reference points"),
+    LayerStyle("scan", "Scan", (40, 160, 230), True, "unchanged scan points"),
     LayerStyle("removed", "Removed", (230, 25, 25), True, "in the reference, gone from the scan"),
     LayerStyle("added", "Added", (20, 200, 50), True, "in the scan, not in the reference"),
     LayerStyle(
@@ -63,10 +74,18 @@ LAYER_STYLES: tuple[LayerStyle, ...] = (
     ),
 )
 STYLE_BY_NAME: dict[str, LayerStyle] = {style.name: style for style in LAYER_STYLES}
+MOVED_COLOR: RGB = (250, 170, 0)
+"""A removed region and an added one close by, shown as one moved object."""
 KIND_COLORS: dict[str, RGB] = {
     "removed": STYLE_BY_NAME["removed"].color,
     "added": STYLE_BY_NAME["added"].color,
+    "moved": MOVED_COLOR,
 }
+SIDE_LAYERS: dict[str, tuple[str, str]] = {
+    "reference": ("reference", "removed"),
+    "scan": ("scan", "added"),
+}
+"""Per side: the layer of its unchanged points and the layer of its changed points."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -157,6 +176,19 @@ class SceneData:
     point_size: float
     point_budget: int
     summary: Mapping[str, Any] = field(default_factory=dict)
+    sides: Mapping[str, SideCloud] = field(default_factory=dict)
+    pools: Mapping[str, CandidatePool] = field(default_factory=dict)
+    sensors: tuple[SensorMarker, ...] = ()
+    warnings: tuple[Mapping[str, str], ...] = ()
+    change_threshold: float | None = None
+    """The smallest distance of a changed point (metres): the job's threshold, from above."""
+    min_region_points: int = 1
+    """The job's minimum region size (points), as far as the viewer knows it."""
+
+    @property
+    def has_distances(self) -> bool:
+        """Whether per-point distances were stored (jobs before details.npz have none)."""
+        return any(np.isfinite(side.distances).any() for side in self.sides.values())
 
     def layer(self, name: str) -> Layer:
         """The layer called ``name``."""
@@ -196,6 +228,19 @@ class SceneData:
             "layers": [layer.to_json_dict() for layer in self.layers],
             "regions": [region.to_json_dict() for region in self.regions],
             "summary": dict(self.summary),
+            "change_threshold": self.change_threshold,
+            "min_region_points": self.min_region_points,
+            "has_distances": self.has_distances,
+            "sensors": [
+                {
+                    "side": marker.side,
+                    "position": list(marker.position),
+                    "source": marker.source,
+                    "confidence": marker.confidence,
+                }
+                for marker in self.sensors
+            ],
+            "warnings": [dict(warning) for warning in self.warnings],
         }
 
 
@@ -297,10 +342,15 @@ def build_scene_data(
     *,
     reference_labels: NDArray | None = None,
     scan_labels: NDArray | None = None,
+    reference_distances: NDArray | None = None,
+    scan_distances: NDArray | None = None,
     transform: NDArray | Sequence[Sequence[float]] | None = None,
     regions: Sequence[Mapping[str, Any]] = (),
     point_budget: int = DEFAULT_POINT_BUDGET,
     summary: Mapping[str, Any] | None = None,
+    sensor_origins: Mapping[str, Any] | None = None,
+    warnings: Sequence[Mapping[str, Any]] = (),
+    min_region_points: int | None = None,
     random_state: int = 0,
 ) -> SceneData:
     """Layers and region boxes of one job.
@@ -312,12 +362,21 @@ def build_scene_data(
     reference_labels, scan_labels : ndarray of int8, per point of each cloud, optional
         0 unchanged, 1 changed, -1 unobserved (labels stored in file order are mapped with
         ``PointCloud.from_source_order``); None draws every point as unchanged.
+    reference_distances, scan_distances : ndarray of float, per point of each cloud, optional
+        Distance to the other cloud's surface (``details.npz``), NaN where unknown.
     transform : 4x4, optional
         Registration of the scan onto the reference (file frames); identity when None.
     regions : sequence of mappings
         The job's regions as the API returns them (``kind``, ``n_points``, ``bbox_min`` ...).
     point_budget : int
         Most points drawn over all layers.
+    sensor_origins : mapping, optional
+        ``{"reference": [{"origin": [x, y, z], "source": ..., "confidence": ...}], "scan": ...}``
+        in each file's frame (the scan's are moved by ``transform``).
+    warnings : sequence of mappings
+        The job's quality warnings (``code``, ``message``).
+    min_region_points : int, optional
+        The job's minimum region size; else the localiser's default for these cloud sizes.
     """
     reference_points = np.asarray(reference_points, dtype=np.float64).reshape(-1, 3)
     scan_points = np.asarray(scan_points, dtype=np.float64).reshape(-1, 3)
@@ -325,28 +384,35 @@ def build_scene_data(
     if matrix.shape != (4, 4) or not np.isfinite(matrix).all():
         raise ValueError(f"the registration transform must be a finite 4x4 matrix, got {matrix!r}")
     scan_in_reference = apply_transform(scan_points, matrix)
-    reference_labels = _check_labels(reference_labels, len(reference_points), "reference")
-    scan_labels = _check_labels(scan_labels, len(scan_points), "scan")
+    clouds = {"reference": reference_points, "scan": scan_in_reference}
+    labels = {
+        "reference": _check_labels(reference_labels, len(reference_points), "reference"),
+        "scan": _check_labels(scan_labels, len(scan_points), "scan"),
+    }
+    distances = {
+        "reference": check_distances(reference_distances, len(reference_points), "reference"),
+        "scan": check_distances(scan_distances, len(scan_points), "scan"),
+    }
 
     origin = local_origin(reference_points if len(reference_points) else scan_in_reference)
-    selections: dict[str, NDArray[np.float64]] = {
-        "reference": reference_points[reference_labels == LABEL_UNCHANGED],
-        "scan": scan_in_reference[scan_labels == LABEL_UNCHANGED],
-        "removed": reference_points[reference_labels == LABEL_CHANGED],
-        "added": scan_in_reference[scan_labels == LABEL_CHANGED],
-        "unobserved": np.concatenate(
-            [
-                reference_points[reference_labels == LABEL_UNOBSERVED],
-                scan_in_reference[scan_labels == LABEL_UNOBSERVED],
-            ]
-        ),
+    selections: dict[str, list[tuple[str, NDArray[np.int64]]]] = {
+        "reference": [("reference", np.flatnonzero(labels["reference"] == LABEL_UNCHANGED))],
+        "scan": [("scan", np.flatnonzero(labels["scan"] == LABEL_UNCHANGED))],
+        "removed": [("reference", np.flatnonzero(labels["reference"] == LABEL_CHANGED))],
+        "added": [("scan", np.flatnonzero(labels["scan"] == LABEL_CHANGED))],
+        "unobserved": [(side, np.flatnonzero(labels[side] == LABEL_UNOBSERVED)) for side in SIDES],
     }
-    totals = {name: len(points) for name, points in selections.items()}
+    totals = {name: sum(len(rows) for _side, rows in parts) for name, parts in selections.items()}
     counts = allocate_budget(totals, point_budget)
     rng = np.random.default_rng(random_state)
     layers = []
+    shown_rows: dict[str, list[NDArray[np.int64]]] = {side: [] for side in SIDES}
     for style in LAYER_STYLES:
-        shown = subsample(selections[style.name], counts[style.name], rng)
+        parts = selections[style.name]
+        kept = _subsample_parts(parts, counts[style.name], totals[style.name], rng)
+        for side, rows in kept:
+            shown_rows[side].append(rows)
+        points = [clouds[side][rows] for side, rows in kept]
         layers.append(
             Layer(
                 name=style.name,
@@ -354,9 +420,19 @@ def build_scene_data(
                 color=style.color,
                 visible=style.visible,
                 description=style.description,
-                points=np.ascontiguousarray(shown - origin, dtype=np.float32),
+                points=np.ascontiguousarray(np.concatenate(points) - origin, dtype=np.float32),
                 n_total=totals[style.name],
             )
+        )
+    sides = {}
+    for side in SIDES:
+        rows = np.sort(np.concatenate(shown_rows[side])).astype(np.int64)
+        sides[side] = SideCloud(
+            side=side,
+            points=np.ascontiguousarray(clouds[side][rows] - origin, dtype=np.float32),
+            labels=labels[side][rows],
+            distances=distances[side][rows].astype(np.float32),
+            indices=rows,
         )
     drawn = [layer.points for layer in layers if layer.n_shown]
     if drawn:
@@ -364,16 +440,62 @@ def build_scene_data(
     else:
         bounds_min = bounds_max = np.zeros(3)
     extent = float(np.linalg.norm(bounds_max - bounds_min))
+    point_size = estimate_point_size(np.concatenate(drawn), extent) if drawn else 0.05
+    changed_distances = np.concatenate(
+        [distances[side][labels[side] == LABEL_CHANGED] for side in SIDES]
+    )
+    changed_distances = changed_distances[np.isfinite(changed_distances)]
+    change_threshold = float(changed_distances.min()) if changed_distances.size else None
+    boxes = region_boxes(regions, origin)
+    if min_region_points is None:  # the localiser's default for clouds of these sizes
+        min_region_points = max(
+            MIN_REGION_POINTS_FLOOR,
+            round(
+                MIN_REGION_POINTS_PER_SQRT * math.sqrt(min(len(reference_points), len(scan_points)))
+            ),
+        )
+    pools = {
+        side: candidate_pool(
+            side, clouds[side], labels[side], distances[side], origin, change_threshold
+        )
+        for side in SIDES
+    }
     return SceneData(
         origin=origin,
         layers=tuple(layers),
-        regions=region_boxes(regions, origin),
+        regions=boxes,
         bounds_min=bounds_min,
         bounds_max=bounds_max,
-        point_size=estimate_point_size(np.concatenate(drawn), extent) if drawn else 0.05,
+        point_size=point_size,
         point_budget=int(point_budget),
         summary=dict(summary or {}),
+        sides=sides,
+        pools=pools,
+        sensors=sensor_markers(sensor_origins or {}, matrix, origin),
+        warnings=tuple(
+            {"code": str(item.get("code", "")), "message": str(item.get("message", ""))}
+            for item in warnings
+            if isinstance(item, Mapping)
+        ),
+        change_threshold=change_threshold,
+        min_region_points=max(int(min_region_points), 1),
     )
+
+
+def _subsample_parts(
+    parts: list[tuple[str, NDArray[np.int64]]], count: int, total: int, rng: np.random.Generator
+) -> list[tuple[str, NDArray[np.int64]]]:
+    """``count`` rows chosen uniformly over the concatenated ``parts``, per part, in order."""
+    if count >= total:
+        return parts
+    chosen = np.sort(rng.choice(total, size=count, replace=False))
+    kept = []
+    start = 0
+    for side, rows in parts:
+        inside = chosen[(chosen >= start) & (chosen < start + len(rows))] - start
+        kept.append((side, rows[inside]))
+        start += len(rows)
+    return kept
 
 
 def _check_labels(labels: NDArray | None, n_points: int, which: str) -> NDArray[np.int8]:

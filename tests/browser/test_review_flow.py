@@ -9,7 +9,6 @@ box handles equal the API's regions).  Views without auth are refused, over HTTP
 
 from __future__ import annotations
 
-import io
 import time
 from typing import Any
 
@@ -22,9 +21,12 @@ from tests.helpers.browser import (
     FAILING_SCAN_REASON,
     ReviewService,
     by_css,
+    count_colour,
+    dismiss_notifications,
     retry,
     save_screenshot,
     text_of,
+    view_scene,
 )
 from tests.helpers.browser import wait_for_page as wait_until
 
@@ -32,30 +34,6 @@ pytestmark = pytest.mark.timeout(240)
 
 RED = (230, 25, 25)
 GREEN = (20, 200, 50)
-
-
-def count_colour(png: bytes, colour: tuple[int, int, int], tolerance: int = 40) -> int:
-    """Pixels of a screenshot within ``tolerance`` (per channel) of ``colour``."""
-    from PIL import Image
-
-    pixels = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.int16)
-    return int((np.abs(pixels - np.array(colour)).max(axis=2) <= tolerance).sum())
-
-
-def view_scene(service: ReviewService, job_id: str) -> dict[str, Any]:
-    """The server-side record of the job's 3D view."""
-    with service.client() as client:
-        answer = client.get(f"/api/v1/jobs/{job_id}/view/scene")
-        answer.raise_for_status()
-        return answer.json()
-
-
-def dismiss_notifications(driver: Any) -> None:
-    """Close viser's toasts (e.g. "software WebGL rendering detected") before a screenshot."""
-    driver.execute_script(
-        "document.querySelectorAll('.mantine-Notification-closeButton, "
-        "[class*=Notification] button').forEach(b => b.click())"
-    )
 
 
 def wait_for_view(driver: Any, service: ReviewService, job_id: str, clients: int = 1) -> bytes:

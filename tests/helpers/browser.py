@@ -69,6 +69,33 @@ def write_small_png(source: Path, target: Path, max_bytes: int = 300_000) -> Non
         width = int(width * 0.85)
 
 
+def count_colour(png: bytes, colour: tuple[int, int, int], tolerance: int = 40) -> int:
+    """Pixels of a screenshot within ``tolerance`` (per channel) of ``colour``."""
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    pixels = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.int16)
+    return int((np.abs(pixels - np.array(colour)).max(axis=2) <= tolerance).sum())
+
+
+def view_scene(service: ReviewService, job_id: str) -> dict[str, Any]:
+    """The server-side record of the job's 3D view (``/api/v1/jobs/{id}/view/scene``)."""
+    with service.client() as client:
+        answer = client.get(f"/api/v1/jobs/{job_id}/view/scene")
+        answer.raise_for_status()
+        return answer.json()
+
+
+def dismiss_notifications(driver: Any) -> None:
+    """Close viser's toasts (e.g. "software WebGL rendering detected") before a screenshot."""
+    driver.execute_script(
+        "document.querySelectorAll('.mantine-Notification-closeButton, "
+        "[class*=Notification] button').forEach(b => b.click())"
+    )
+
+
 def wait_for_page(condition: Callable[[], Value], timeout: float, message: str) -> Value:
     """Poll ``condition`` every 0.2 s until it returns something truthy (a page that
     re-rendered under us, live updates, only means "look again"); that value."""
