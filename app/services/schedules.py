@@ -204,7 +204,7 @@ def run_now(
     session: Session, settings: Settings, principal: Principal, schedule_id: str
 ) -> ScheduleRunRead:
     """Run a schedule's period now (a manual run); its source's refusals are 4xx."""
-    schedule = get_schedule(session, principal, schedule_id)
+    owned_id = get_schedule(session, principal, schedule_id).id
     end_read_transaction(session)  # the run has its own transactions; a fetch holds no lock
-    run = schedule_runs.run_manual(settings, schedule.id)
+    run = schedule_runs.run_manual(settings, owned_id)
     return ScheduleRunRead.from_model(run)
