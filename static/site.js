@@ -5,6 +5,7 @@ import { decisionBadge, formatDate, formatNumber, h, jobProgress, statusBadge } 
 import { app, currentRender, schedulePoll, setCrumbs, startRender } from "./page.js";
 import { handleFailure } from "./session.js";
 import { drawTimeline } from "./timeline.js";
+import { reusableSchedulesSection } from "./schedules.js";
 import { reusableUploadPanel } from "./upload.js";
 
 const JOBS_PAGE = 100;
@@ -74,6 +75,7 @@ export async function renderSite(siteId) {
         h("dt", {}, "Detector"),
         h("dd", {}, site.detector ? `${site.detector.method} · ${site.detector.variant}` : "default"))),
     reusableUploadPanel(site, rerender),
+    reusableSchedulesSection(site),
     h("section", { class: "card" }, h("h2", {}, "Timeline"), timeline),
     h("section", { class: "card" },
       h("h2", {}, "Jobs"),
