@@ -202,7 +202,7 @@ def check_url(settings: Settings, url: str) -> UrlTarget:
     port = port or (443 if parts.scheme == "https" else 80)
     try:
         infos = socket.getaddrinfo(parts.hostname, port, type=socket.SOCK_STREAM)
-    except OSError as exc:
+    except (OSError, ValueError) as exc:
         raise source_error(
             f"url {url!r}: host {parts.hostname!r} cannot be resolved ({exc})", code="invalid_url"
         ) from exc

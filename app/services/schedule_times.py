@@ -39,8 +39,10 @@ def parse_timezone(name: str) -> ZoneInfo:
 def check_cron(expression: str) -> None:
     """422 with cronsim's reason when ``expression`` is not a five-field cron expression."""
     try:
-        CronSim(expression, datetime.now(UTC))
-    except CronSimError as exc:
+        if len(expression.split()) != 5:
+            raise CronSimError("it needs exactly five fields (no seconds field)")
+        next(CronSim(expression, datetime.now(UTC)))
+    except (CronSimError, StopIteration) as exc:
         raise ValidationFailedError(
             f"invalid cron expression {expression!r} ({exc}): give five fields "
             "'minute hour day-of-month month day-of-week', e.g. '0 2 * * *' for 02:00 daily",

@@ -68,6 +68,8 @@ def test_bad_rhythms_and_zones_are_422_saying_what_to_fix(writer: httpx.Client) 
     detail = assert_error(create_schedule(writer, site_id, cron="61 * * * *"), 422, "invalid_cron")
     assert "five fields" in detail
     assert_error(create_schedule(writer, site_id, cron="every night"), 422, "invalid_cron")
+    detail = assert_error(create_schedule(writer, site_id, cron="* * * * * *"), 422, "invalid_cron")
+    assert "no seconds field" in detail
     detail = assert_error(
         create_schedule(writer, site_id, cron="0 2 * * *", timezone="Mars/Olympus"),
         422,
