@@ -242,6 +242,20 @@ def _record_failure(settings: Settings, run_id: str, error: str) -> None:
             run.finished_at = utc_now()
 
 
+def _take_marker(settings: Settings, schedule_id: str, marker: Any) -> bool:
+    """Note ``marker`` as the source's last file unless another run did; whether this one did.
+
+    Taken before the file is stored: a file that cannot be stored (malformed, over the quota)
+    fails its run once and is not tried again; the next new file is.
+    """
+    with unit_of_work(settings) as session:
+        schedule = session.get(Schedule, schedule_id, with_for_update=True)
+        if schedule is None or schedule.source_marker == marker:
+            return False
+        schedule.source_marker = marker
+        return True
+
+
 def complete_period(settings: Settings, run_id: str) -> ScheduleRun:
     """Run a claimed period: take its scan, compare, or record it missed (or failed, raising)."""
     with unit_of_work(settings) as session:
@@ -252,12 +266,14 @@ def complete_period(settings: Settings, run_id: str) -> ScheduleRun:
         session.expunge(schedule)
     try:
         fetched = None if schedule.source.get("kind") == "uploads" else _fetch(settings, schedule)
+        if fetched is not None and not _take_marker(settings, schedule.id, fetched[2]):
+            storage.remove_file(fetched[0].path)  # another run took this very file meanwhile
+            fetched = None
         with unit_of_work(settings) as session:
-            run = session.get_one(ScheduleRun, run_id)
-            schedule = session.get_one(Schedule, schedule.id)
+            scan: Scan | None = None
             if fetched is not None:
-                received, filename, marker = fetched
-                scan: Scan | None = schedule_ingest.store_received_scan(
+                received, filename, _marker = fetched
+                scan = schedule_ingest.store_received_scan(
                     session,
                     settings,
                     schedule_principal(schedule),
@@ -265,8 +281,10 @@ def complete_period(settings: Settings, run_id: str) -> ScheduleRun:
                     received,
                     filename,
                 )
-                schedule.source_marker = marker
-            else:
+            run = session.get_one(ScheduleRun, run_id)
+            # Locked: runs of one schedule finish one at a time, each seeing the last's marks.
+            schedule = session.get_one(Schedule, schedule.id, with_for_update=True)
+            if schedule.source.get("kind") == "uploads":
                 site = session.get_one(Site, schedule.site_id)
                 until = as_utc(run.period_start) if run.kind == "scheduled" else utc_now()
                 scan = _newest_upload(session, schedule, site, until)

@@ -6,9 +6,10 @@ from pathlib import Path
 
 import httpx
 
-from app.db.models import ScheduleRun
+from app.db.models import Schedule, ScheduleRun
 from tests.helpers.database import count_rows
-from tests.helpers.http import assert_error, create_site, site_with_reference
+from tests.helpers.files import room_ply
+from tests.helpers.http import assert_error, create_site, site_with_reference, upload_accepted
 from tests.helpers.server import ApiServer
 
 NIGHTLY = {"cron": "0 2 * * *", "timezone": "Europe/Lisbon"}
@@ -178,3 +179,18 @@ def organisation_of(api: ApiServer, client: httpx.Client) -> str:
     response = client.get("/api/v1/organisation")
     assert response.status_code == 200, response.text
     return str(response.json()["name"])
+
+
+def test_deleting_a_site_deletes_its_schedules_and_runs(
+    api: ApiServer, writer: httpx.Client
+) -> None:
+    site, _reference = site_with_reference(writer)
+    schedule = create_schedule(writer, site["id"], **NIGHTLY).json()
+    upload_accepted(writer, site["id"], "night.ply", room_ply(5, with_box=True))
+    run = writer.post(f"/api/v1/schedules/{schedule['id']}/run")
+    assert run.status_code == 201, run.text
+    assert run.json()["status"] == "compared"
+    assert writer.delete(f"/api/v1/sites/{site['id']}").status_code == 204
+    assert_error(writer.get(f"/api/v1/schedules/{schedule['id']}"), 404)
+    assert count_rows(api, Schedule, site_id=site["id"]) == 0
+    assert count_rows(api, ScheduleRun, schedule_id=schedule["id"]) == 0

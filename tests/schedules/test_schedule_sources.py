@@ -14,7 +14,7 @@ from app.db.models import Scan, ScheduleRun
 from tests.helpers.database import count_rows
 from tests.helpers.file_server import serving_files
 from tests.helpers.files import room_ply
-from tests.helpers.http import assert_error, site_with_reference
+from tests.helpers.http import assert_error, site_with_reference, upload_accepted
 from tests.helpers.server import MAX_UPLOAD_BYTES, ApiServer, fresh_api
 
 NIGHTLY = {"cron": "0 2 * * *", "timezone": "Europe/Lisbon"}
@@ -77,11 +77,12 @@ def test_a_directory_source_ingests_the_newest_new_file(
     job = writer.get(f"/api/v1/jobs/{run['job_id']}").json()
     assert job["scan_id"] == run["scan_id"]
     assert job["reference_scan_id"] == reference["id"]
-    # nothing new: missed; a newer file: taken
+    # nothing new in the directory (an upload through the API is not its source): missed
+    upload_accepted(writer, site["id"], "pushed.ply", room_ply(8))
     assert run_now(writer, schedule["id"]).json()["status"] == "missed"
     write_file(directory / "later.ply", room_ply(6), mtime=1_700_000_200)
     assert run_now(writer, schedule["id"]).json()["status"] == "compared"
-    assert site_scans(api, site["id"]) == 3  # the reference and two ingested files
+    assert site_scans(api, site["id"]) == 4  # the reference, the upload, two ingested files
 
 
 def test_directory_traversal_and_symlinks_out_of_the_root_are_refused(

@@ -3,6 +3,8 @@ two tickers racing for the same periods (each period runs once)."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
 from collections import Counter
 from datetime import datetime, timedelta
@@ -14,6 +16,7 @@ from app.clock import as_utc
 from app.db.models import Job, ScheduleRun
 from app.services.schedule_runs import TickReport, tick
 from tests.helpers.database import count_rows
+from tests.helpers.environment import PROJECT_ROOT
 from tests.helpers.files import room_ply
 from tests.helpers.http import site_with_reference, upload_accepted
 from tests.helpers.server import ApiServer
@@ -171,3 +174,35 @@ def test_two_tickers_racing_run_each_period_once(api: ApiServer, writer: httpx.C
     )
     # the three schedules compared the same scan: one comparison job, the upload's
     assert jobs_before == 1
+
+
+TICKER_SCRIPT = """
+import sys
+from datetime import datetime
+from app.config import Settings
+from app.services.schedule_runs import tick
+settings = Settings(data_dir=sys.argv[1])
+report = tick(settings, datetime.fromisoformat(sys.argv[2]))
+print(sum(len(ids) for ids in report.runs.values()))
+"""
+
+
+def test_two_ticker_processes_run_each_period_once(api: ApiServer, writer: httpx.Client) -> None:
+    site, _reference = site_with_reference(writer)
+    schedule = interval_schedule(writer, site["id"], 60, catch_up="each")
+    upload_accepted(writer, site["id"], "night.ply", room_ply(5, with_box=True))
+    now = created(schedule) + timedelta(seconds=30 * 60 + 5)
+    tickers = [
+        subprocess.Popen(
+            [sys.executable, "-c", TICKER_SCRIPT, str(api.data_dir), now.isoformat()],
+            cwd=PROJECT_ROOT,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        for _ in range(2)
+    ]
+    handled = [int(ticker.communicate(timeout=180)[0].strip()) for ticker in tickers]
+    runs = runs_of(writer, schedule["id"])
+    assert len(runs) == 30 == sum(handled)
+    assert len({run["period_start"] for run in runs}) == 30
+    assert Counter(run["status"] for run in runs) == {"compared": 1, "missed": 29}
