@@ -128,6 +128,39 @@ def claim_period(
         return None
 
 
+def record_skipped(settings: Settings, schedule_id: str, starts: list[datetime]) -> list[str]:
+    """Record the periods ``starts`` as ``skipped`` in one transaction (a savepoint each: a
+    period another claimant has is left to it); the ids of the rows inserted."""
+    if not starts:
+        return []
+    inserted: list[str] = []
+    with unit_of_work(settings) as session:
+        schedule = session.get(Schedule, schedule_id)
+        if schedule is None:
+            return []
+        for start in starts:
+            run = ScheduleRun(
+                organisation_id=schedule.organisation_id,
+                schedule_id=schedule.id,
+                period_start=as_utc(start),
+                kind="scheduled",
+                status="skipped",
+                created_at=utc_now(),
+                finished_at=utc_now(),
+            )
+            try:
+                with session.begin_nested():
+                    session.add(run)
+                    session.flush()
+            except IntegrityError:
+                continue
+            inserted.append(run.id)
+        newest = as_utc(max(starts))
+        if schedule.last_period_start is None or as_utc(schedule.last_period_start) < newest:
+            schedule.last_period_start = newest
+    return inserted
+
+
 def _fetch(settings: Settings, schedule: Schedule) -> tuple[ReceivedFile, str, Any] | None:
     """The new file of a directory or URL source: ``(received, filename, marker)``, or None."""
     source = schedule.source
@@ -327,11 +360,9 @@ def _tick_schedule(
     settings: Settings, schedule: Schedule, now: datetime, report: TickReport
 ) -> None:
     to_run, to_skip = plan_periods(schedule, now)
-    for start in to_skip:
-        run_id = claim_period(settings, schedule.id, start, "scheduled", "skipped")
-        if run_id is not None:
-            report.skipped += 1
-            report.add("skipped", run_id)
+    for run_id in record_skipped(settings, schedule.id, to_skip):
+        report.skipped += 1
+        report.add("skipped", run_id)
     for start in to_run:
         run_id = claim_period(settings, schedule.id, start, "scheduled", "running")
         if run_id is None:
