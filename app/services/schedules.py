@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
 from app.clock import as_utc, utc_now
@@ -157,6 +157,8 @@ def update_schedule(
     """Change the fields given; the result is checked as a whole (422 saying what to fix)."""
     schedule = get_schedule(session, principal, schedule_id)
     fields = payload.model_fields_set
+    if payload.enabled and not schedule.enabled:
+        schedule.last_period_start = utc_now()  # re-enabled: no catch-up of the paused periods
     for name in ("timezone", "catch_up", "compare_previous", "enabled"):
         if name in fields:
             value = getattr(payload, name)
@@ -186,7 +188,7 @@ def update_schedule(
 def delete_schedule(session: Session, principal: Principal, schedule_id: str) -> None:
     """Delete a schedule and its runs (the scans and jobs they made stay)."""
     schedule = get_schedule(session, principal, schedule_id)
-    session.query(ScheduleRun).filter(ScheduleRun.schedule_id == schedule.id).delete()
+    session.execute(delete(ScheduleRun).where(ScheduleRun.schedule_id == schedule.id))
     session.delete(schedule)
     session.flush()
 

@@ -206,3 +206,18 @@ def test_two_ticker_processes_run_each_period_once(api: ApiServer, writer: httpx
     assert len(runs) == 30 == sum(handled)
     assert len({run["period_start"] for run in runs}) == 30
     assert Counter(run["status"] for run in runs) == {"compared": 1, "missed": 29}
+
+
+def test_a_paused_schedule_does_not_catch_up_when_enabled_again(
+    api: ApiServer, writer: httpx.Client
+) -> None:
+    site, _reference = site_with_reference(writer)
+    schedule = interval_schedule(writer, site["id"], 60, catch_up="each", enabled=False)
+    assert writer.get(f"/api/v1/schedules/{schedule['id']}").json()["next_run_at"] is None
+    assert tick(api.settings, created(schedule) + timedelta(minutes=10)).runs == {}
+    enabled = writer.patch(f"/api/v1/schedules/{schedule['id']}", json={"enabled": True}).json()
+    assert enabled["next_run_at"] is not None
+    # the periods of the pause are not run, the next one after enabling is
+    next_run = datetime.fromisoformat(enabled["next_run_at"].replace("Z", "+00:00"))
+    tick(api.settings, next_run + timedelta(seconds=1))
+    assert [run["status"] for run in runs_of(writer, schedule["id"])] == ["missed"]
