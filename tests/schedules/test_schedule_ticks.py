@@ -14,7 +14,7 @@ import httpx
 
 from app.clock import as_utc
 from app.db.models import Job, ScheduleRun
-from app.services.schedule_runs import TickReport, tick
+from app.services.schedule_runs import TickReport, claim_period, tick
 from tests.helpers.database import count_rows
 from tests.helpers.environment import PROJECT_ROOT
 from tests.helpers.files import room_ply
@@ -221,3 +221,19 @@ def test_a_paused_schedule_does_not_catch_up_when_enabled_again(
     next_run = datetime.fromisoformat(enabled["next_run_at"].replace("Z", "+00:00"))
     tick(api.settings, next_run + timedelta(seconds=1))
     assert [run["status"] for run in runs_of(writer, schedule["id"])] == ["missed"]
+
+
+def test_a_period_claimed_by_a_process_that_died_is_not_run_again(
+    api: ApiServer, writer: httpx.Client
+) -> None:
+    site, _reference = site_with_reference(writer)
+    schedule = interval_schedule(writer, site["id"], 600, catch_up="each")
+    upload_accepted(writer, site["id"], "night.ply", room_ply(5, with_box=True))
+    first_period = created(schedule) + timedelta(seconds=600)
+    # a ticker claimed the first period, then was killed before running it
+    assert claim_period(api.settings, schedule["id"], first_period, "scheduled", "running")
+    report = tick(api.settings, first_period + timedelta(seconds=605))
+    runs = runs_of(writer, schedule["id"])
+    assert [run["status"] for run in runs] == ["running", "compared"]
+    assert [run["id"] for run in runs[1:]] == report.runs["compared"]
+    assert count_rows(api, Job, site_id=site["id"]) == 1
