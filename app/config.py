@@ -6,12 +6,13 @@ directory, workers are local processes, nothing else needs to run.
 
 from __future__ import annotations
 
+import os
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, ValidationInfo, field_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 GIB = 1024**3
 DISABLED_WORDS = frozenset({"none", "null", "off", "unlimited"})
@@ -121,6 +122,29 @@ class Settings(BaseSettings):
         description="On SIGTERM, seconds a worker's running job may take to finish before it "
         "is interrupted and handed back to the queue without using an attempt.",
     )
+    schedule_directory_roots: Annotated[list[Path], NoDecode] = Field(
+        default_factory=list,
+        description="Directories under which a schedule may read scans (source "
+        "{'directory': ...}); none by default. In the environment: paths separated by "
+        "os.pathsep (':') or commas.",
+    )
+    schedule_allow_private_urls: bool = Field(
+        default=False,
+        description="Let a schedule's URL source reach loopback, private and link-local "
+        "addresses (off: a URL resolving to any such address is refused).",
+    )
+    schedule_fetch_timeout_seconds: float = Field(
+        default=60.0, gt=0, allow_inf_nan=False, description="Longest a URL source's fetch takes."
+    )
+    schedule_min_interval_seconds: int = Field(
+        default=60, ge=1, description="Shortest interval_seconds a schedule may have."
+    )
+    schedule_tick_seconds: float = Field(
+        default=15.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="How often the job consumer runs the schedules that are due.",
+    )
     secret_key: str | None = Field(
         default=None, description="Signs view links and cookies; generated in data_dir if unset."
     )
@@ -195,6 +219,19 @@ class Settings(BaseSettings):
                 f"token cache), got {value}"
             )
         return value
+
+    @field_validator("schedule_directory_roots", mode="before")
+    @classmethod
+    def _path_list(cls, value: Any) -> Any:
+        if isinstance(value, str):
+            parts = value.replace(",", os.pathsep).split(os.pathsep)
+            return [part.strip() for part in parts if part.strip()]
+        return value
+
+    @field_validator("schedule_directory_roots")
+    @classmethod
+    def _resolved_roots(cls, value: list[Path]) -> list[Path]:
+        return [root.expanduser().resolve() for root in value]
 
     @field_validator("data_dir")
     @classmethod

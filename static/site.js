@@ -9,6 +9,7 @@ import { siteScansCard } from "./scans.js";
 import { canWrite, handleFailure } from "./session.js";
 import { reusableSiteAdminPanel } from "./site_admin.js";
 import { drawTimeline } from "./timeline.js";
+import { reusableSchedulesSection } from "./schedules.js";
 import { reusableUploadPanel } from "./upload.js";
 
 const JOBS_PAGE = 100;
@@ -89,6 +90,7 @@ export async function renderSite(siteId) {
         h("dd", {}, site.detector ? `${site.detector.method} · ${site.detector.variant}` : "default")),
       writable && capabilities ? reusableSiteAdminPanel(site, capabilities, rerender) : null),
     reusableUploadPanel(site, rerender),
+    reusableSchedulesSection(site),
     h("section", { class: "card" }, h("h2", {}, "Timeline"), timeline),
     h("section", { class: "card" },
       h("h2", {}, "Jobs"),

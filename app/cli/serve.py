@@ -264,12 +264,13 @@ def run_child(role: str) -> int:
     """Run one child of ``serve`` (settings from ``SCANDIFF_*``), dying with its parent."""
     from app.jobs.consumer import run_consumer
     from app.jobs.lifecycle import die_with_supervisor
+    from app.services.schedule_runs import tick
 
     die_with_supervisor()
     settings = Settings()
     if role == "api":
         return run_api_child(settings)
-    return run_consumer(settings, settings.workers)
+    return run_consumer(settings, settings.workers, schedule_tick=tick)
 
 
 def handle_serve(args: argparse.Namespace) -> int:

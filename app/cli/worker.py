@@ -93,6 +93,7 @@ def build_settings(args: argparse.Namespace) -> Settings:
 def handle_worker(args: argparse.Namespace) -> int:
     """Entry of ``scandiff worker``."""
     from app.jobs.consumer import DatabaseNotReadyError, run_consumer
+    from app.services.schedule_runs import tick
 
     settings = build_settings(args)
     try:
@@ -101,6 +102,7 @@ def handle_worker(args: argparse.Namespace) -> int:
             settings.workers,
             settings.shutdown_grace_seconds,
             wait_for_database_seconds=args.wait_for_database,
+            schedule_tick=tick,
         )
     except DatabaseNotReadyError as exc:
         print(f"scandiff worker: error: {exc}", file=sys.stderr)

@@ -265,3 +265,71 @@ class JobVerdict(Base):
     token_name: Mapped[str | None] = mapped_column(String(200), nullable=True)
     role: Mapped[str] = mapped_column(String(16))
     created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)
+
+
+# --- i16/schedules: scheduled comparisons of a site and the periods they ran -----------------
+
+
+class Schedule(Base):
+    """A rhythm (cron in a time zone, or a fixed interval) on which a site's scans are compared."""
+
+    __tablename__ = "schedule"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    organisation_id: Mapped[str] = mapped_column(
+        ForeignKey("organisation.id", ondelete="CASCADE"), index=True
+    )
+    site_id: Mapped[str] = mapped_column(ForeignKey("site.id", ondelete="CASCADE"), index=True)
+    cron: Mapped[str | None] = mapped_column(String(200), nullable=True)
+    interval_seconds: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    timezone: Mapped[str] = mapped_column(String(64), default="UTC")
+    # {"kind": "uploads"} | {"kind": "directory", "directory": ...} | {"kind": "url", "url": ...}
+    source: Mapped[dict[str, Any]] = mapped_column(JSON)
+    stale_after_seconds: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    detector: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
+    catch_up: Mapped[str] = mapped_column(String(16), default="latest")  # latest | each | none
+    compare_previous: Mapped[bool] = mapped_column(Boolean, default=False)
+    enabled: Mapped[bool] = mapped_column(Boolean, default=True)
+    # The newest period handled (run, missed or skipped); None: none since created_at.
+    last_period_start: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
+    # The scan the last compared run used: the next run takes a newer one.
+    last_scan_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    last_scan_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
+    # What the source showed last (a directory's newest file, a URL's SHA-256).
+    source_marker: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
+    # Set when site.stale was published; cleared when a scan arrives (one event per spell).
+    stale_since: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
+    created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)
+    updated_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now, onupdate=utc_now)
+
+
+class ScheduleRun(Base):
+    """One period of a schedule: at most one row per (schedule, period), whoever ticks."""
+
+    __tablename__ = "schedule_run"
+    __table_args__ = (
+        UniqueConstraint("schedule_id", "period_start"),
+        Index("ix_schedule_run_schedule_created", "schedule_id", "created_at"),
+    )
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    organisation_id: Mapped[str] = mapped_column(
+        ForeignKey("organisation.id", ondelete="CASCADE"), index=True
+    )
+    schedule_id: Mapped[str] = mapped_column(ForeignKey("schedule.id", ondelete="CASCADE"))
+    period_start: Mapped[datetime] = mapped_column(Timestamp)  # UTC
+    kind: Mapped[str] = mapped_column(String(16), default="scheduled")  # scheduled | manual
+    # running -> compared | missed | failed; skipped (catch-up policy) is final at once
+    status: Mapped[str] = mapped_column(String(16))
+    scan_id: Mapped[str | None] = mapped_column(
+        ForeignKey("scan.id", ondelete="SET NULL"), nullable=True
+    )
+    job_id: Mapped[str | None] = mapped_column(
+        ForeignKey("job.id", ondelete="SET NULL"), nullable=True
+    )
+    trend_job_id: Mapped[str | None] = mapped_column(
+        ForeignKey("job.id", ondelete="SET NULL"), nullable=True
+    )
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)
+    finished_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)

@@ -6,7 +6,8 @@ Run by ``scandiff serve`` as a child, or alone on another host for scale-out
 for a migrated database)::
 
     consumer (this process: supervises workers, runs the recovery sweep every
-    │         recovery_interval_seconds, notes it is alive in the queue for /health)
+    │         recovery_interval_seconds, the schedule tick every schedule_tick_seconds
+    │         when given one, notes it is alive in the queue for /health)
     ├── Huey scheduler (process)
     └── Huey worker 1..N (processes; each runs one job at a time)
 
@@ -26,7 +27,7 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -156,6 +157,7 @@ class ScandiffConsumer(Consumer):  # type: ignore[misc]
         settings: Settings,
         workers: int,
         shutdown_grace_seconds: float,
+        schedule_tick: Callable[[Settings], object] | None = None,
     ) -> None:
         super().__init__(
             huey,
@@ -176,6 +178,8 @@ class ScandiffConsumer(Consumer):  # type: ignore[misc]
         self.settings = settings
         self._next_sweep = 0.0
         self._next_alive_note = 0.0
+        self.schedule_tick = schedule_tick
+        self._next_schedule_tick = 0.0
 
     def loop(self, health_check_ts: float | None = None) -> float | None:
         """Huey's supervision loop, plus the recovery sweep and the liveness note when due."""
@@ -185,6 +189,9 @@ class ScandiffConsumer(Consumer):  # type: ignore[misc]
             if now >= self._next_sweep:
                 self._next_sweep = now + self.settings.recovery_interval_seconds
                 self.sweep()
+            if self.schedule_tick is not None and now >= self._next_schedule_tick:
+                self._next_schedule_tick = now + self.settings.schedule_tick_seconds
+                self.tick_schedules()
             if now >= self._next_alive_note:
                 self._next_alive_note = now + CONSUMER_HEARTBEAT_SECONDS
                 self.note_alive()
@@ -200,6 +207,17 @@ class ScandiffConsumer(Consumer):  # type: ignore[misc]
             recovery_sweep(self.settings)
         except Exception:
             logger.exception("recovery sweep failed", extra={"stage": "recovery"})
+        finally:
+            self.close_connections()
+
+    def tick_schedules(self) -> None:
+        """Run the schedules' due periods (the service's tick); errors are logged, never fatal."""
+        if self.schedule_tick is None:
+            return
+        try:
+            self.schedule_tick(self.settings)
+        except Exception:
+            logger.exception("schedule tick failed", extra={"stage": "schedules"})
         finally:
             self.close_connections()
 
@@ -246,11 +264,14 @@ def run_consumer(
     shutdown_grace_seconds: float | None = None,
     *,
     wait_for_database_seconds: float | None = None,
+    schedule_tick: Callable[[Settings], object] | None = None,
 ) -> int:
     """Run the consumer until SIGTERM/SIGINT; the exit status.
 
     ``shutdown_grace_seconds`` None takes ``settings.shutdown_grace_seconds``.  With
     ``wait_for_database_seconds`` it first waits that long for a migrated database.
+    ``schedule_tick`` (the service layer's :func:`app.services.schedule_runs.tick`, passed by
+    the commands that start consumers) runs every ``schedule_tick_seconds`` in this process.
     """
     configure_process_logging(settings.log_level, settings.log_format)
     if shutdown_grace_seconds is None:
@@ -280,7 +301,9 @@ def run_consumer(
             "shutdown_grace_seconds": shutdown_grace_seconds,
         },
     )
-    consumer = ScandiffConsumer(huey, settings, workers, shutdown_grace_seconds)
+    consumer = ScandiffConsumer(
+        huey, settings, workers, shutdown_grace_seconds, schedule_tick=schedule_tick
+    )
     try:
         consumer.run()
     finally:

@@ -58,6 +58,8 @@ class Objects:
     job_id: str
     queued_job_id: str
     spare_site_ids: list[str] = field(default_factory=list)
+    schedule_id: str = ""
+    spare_schedule_ids: list[str] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -75,13 +77,18 @@ class Operation:
     destroys: bool = False
 
     def url(self, ids: Objects, *, owner: bool) -> str:
-        site_id = ids.site_id
-        if self.destroys and owner:
+        site_id, schedule_id = ids.site_id, ids.schedule_id
+        if self.destroys and owner and "{schedule_id}" in self.path:
+            schedule_id = ids.spare_schedule_ids.pop()
+        elif self.destroys and owner:
             site_id = ids.spare_site_ids.pop()
-        return self.path.format(site_id=site_id, scan_id=ids.scan_id, job_id=ids.job_id)
+        return self.path.format(
+            site_id=site_id, scan_id=ids.scan_id, job_id=ids.job_id, schedule_id=schedule_id
+        )
 
 
 SCAN_CONTENT = ply_bytes(room_points(1500, seed=21))
+NIGHTLY = {"cron": "0 2 * * *", "timezone": "Europe/Lisbon"}
 
 OPERATIONS = [
     Operation(
@@ -130,6 +137,19 @@ OPERATIONS = [
     Operation("GET", "/api/v1/jobs/{job_id}/labels", "reader", 200, params={"format": "npz"}),
     Operation("POST", "/api/v1/jobs/{job_id}/view-link", "reader", 200),
     Operation("GET", "/api/v1/jobs/{job_id}/view/scene", "reader", 200),
+    Operation("POST", "/api/v1/sites/{site_id}/schedules", "writer", 201, json=lambda ids: NIGHTLY),
+    Operation("GET", "/api/v1/sites/{site_id}/schedules", "reader", 200),
+    Operation("GET", "/api/v1/schedules/{schedule_id}", "reader", 200),
+    Operation(
+        "PATCH",
+        "/api/v1/schedules/{schedule_id}",
+        "writer",
+        200,
+        json=lambda ids: {"enabled": True},
+    ),
+    Operation("POST", "/api/v1/schedules/{schedule_id}/run", "writer", 201),
+    Operation("GET", "/api/v1/schedules/{schedule_id}/runs", "reader", 200),
+    Operation("DELETE", "/api/v1/schedules/{schedule_id}", "writer", 204, destroys=True),
 ]
 
 
@@ -270,6 +290,7 @@ def world(service: ApiServer) -> dict[str, Any]:
     markers["scan sha256"] = scan["sha256"]
     markers["organisation name"] = org_a
     ids = Objects(site["id"], reference["id"], scan["id"], job["id"], queued["id"])
+    ids.schedule_id = create_schedule(a_writer, site["id"])
     b_writer = service.client(tokens[("B", "writer")])
     b_site = create_site(b_writer)
     b_reference = upload(
@@ -308,8 +329,20 @@ def world(service: ApiServer) -> dict[str, Any]:
         "a_writer": a_writer,
         "tokens": tokens,
         "org_b": org_b,
-        "b_ids": {"site": b_site["id"], "scan": b_reference["id"], "job": b_job["id"]},
+        "b_ids": {
+            "site": b_site["id"],
+            "scan": b_reference["id"],
+            "job": b_job["id"],
+            "schedule": create_schedule(b_writer, b_site["id"]),
+        },
     }
+
+
+def create_schedule(client: httpx.Client, site_id: str) -> str:
+    """A nightly schedule of the site; its id."""
+    response = client.post(f"/api/v1/sites/{site_id}/schedules", json=NIGHTLY)
+    assert response.status_code == 201, response.text
+    return str(response.json()["id"])
 
 
 def leaked_markers(text: str, markers: dict[str, str]) -> list[str]:
@@ -388,6 +421,7 @@ def test_only_the_owner_path_succeeds_and_nothing_leaks(service: ApiServer, worl
         ]
         for caller in owners:
             ids.spare_site_ids.append(create_site(a_writer)["id"])
+            ids.spare_schedule_ids.append(create_schedule(a_writer, ids.site_id))
             for operation in OPERATIONS:
                 response = call(clients[caller.name], operation, ids, caller)
                 calls += 1
@@ -406,9 +440,15 @@ def test_only_the_owner_path_succeeds_and_nothing_leaks(service: ApiServer, worl
                 uuid.uuid4().hex,
                 uuid.uuid4().hex,
                 uuid.uuid4().hex,
+                schedule_id=uuid.uuid4().hex,
             ),
             "other organisation's": Objects(
-                b_ids["site"], b_ids["scan"], b_ids["scan"], b_ids["job"], b_ids["job"]
+                b_ids["site"],
+                b_ids["scan"],
+                b_ids["scan"],
+                b_ids["job"],
+                b_ids["job"],
+                schedule_id=b_ids["schedule"],
             ),
             "off by one": Objects(
                 off_by_one(ids.site_id),
@@ -416,8 +456,11 @@ def test_only_the_owner_path_succeeds_and_nothing_leaks(service: ApiServer, worl
                 off_by_one(ids.scan_id),
                 off_by_one(ids.job_id),
                 "0",
+                schedule_id=off_by_one(ids.schedule_id),
             ),
-            "junk": Objects("..", "%2e%2e%2fadmin-token", "0 OR 1=1", "*", "null"),
+            "junk": Objects(
+                "..", "%2e%2e%2fadmin-token", "0 OR 1=1", "*", "null", schedule_id="%00"
+            ),
         }
         owner = next(c for c in owners if c.role == "writer")
         for label, guessed in guesses.items():
@@ -425,6 +468,7 @@ def test_only_the_owner_path_succeeds_and_nothing_leaks(service: ApiServer, worl
                 if not operation.scoped:
                     continue
                 guessed.spare_site_ids.append(guessed.site_id)
+                guessed.spare_schedule_ids.append(guessed.schedule_id)
                 response = call(clients[owner.name], operation, guessed, owner)
                 calls += 1
                 statuses[response.status_code] += 1

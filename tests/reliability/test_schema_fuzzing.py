@@ -38,7 +38,10 @@ from tests.helpers.server import ApiServer
 EXAMPLES_PER_OPERATION = int(os.environ.get("SCANDIFF_SCHEMATHESIS_EXAMPLES", "12"))
 SLOW_EXAMPLES_PER_OPERATION = 100
 CHECKS = [not_a_server_error, response_schema_conformance, content_type_conformance]
-NEVER_AIMED_AT_REAL_OBJECTS = {("DELETE", "/api/v1/sites/{site_id}")}
+NEVER_AIMED_AT_REAL_OBJECTS = {
+    ("DELETE", "/api/v1/sites/{site_id}"),
+    ("DELETE", "/api/v1/schedules/{schedule_id}"),
+}
 
 
 @pytest.fixture(scope="module")
@@ -50,12 +53,17 @@ def fuzz_target(service: ApiServer) -> dict[str, Any]:
     reference = upload(writer, site["id"], ply_bytes(room_points(3000, seed=1)), reference=True)
     created = upload(writer, site["id"], ply_bytes(room_points(2000, seed=2))).json()
     finish_job(service, created["job"]["id"], 3000, 2000)
+    schedule = writer.post(
+        f"/api/v1/sites/{site['id']}/schedules", json={"cron": "0 2 * * *", "timezone": "UTC"}
+    )
+    assert schedule.status_code == 201, schedule.text
     return {
         "token": token,
         "ids": {
             "site_id": site["id"],
             "scan_id": created["scan"]["id"],
             "job_id": created["job"]["id"],
+            "schedule_id": schedule.json()["id"],
         },
         "reference_id": reference.json()["scan"]["id"],
     }

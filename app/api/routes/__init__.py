@@ -14,6 +14,7 @@ from app.api.routes import (
     metrics,
     organisation,
     scans,
+    schedules,
     sites,
     verdicts,
 )
@@ -26,6 +27,7 @@ v1_router.include_router(jobs.router)
 v1_router.include_router(verdicts.router)
 v1_router.include_router(organisation.router)
 v1_router.include_router(capabilities.router)
+v1_router.include_router(schedules.router)
 
 api_router = APIRouter()
 api_router.include_router(v1_router)
