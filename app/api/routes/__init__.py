@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from app.api.routes import health, jobs, metrics, organisation, scans, sites
+from app.api.routes import health, jobs, metrics, organisation, scans, sites, webhooks
 
 v1_router = APIRouter(prefix="/api/v1")
 v1_router.include_router(health.router)
@@ -15,6 +15,7 @@ v1_router.include_router(sites.router)
 v1_router.include_router(scans.router)
 v1_router.include_router(jobs.router)
 v1_router.include_router(organisation.router)
+v1_router.include_router(webhooks.router)
 
 api_router = APIRouter()
 api_router.include_router(v1_router)
