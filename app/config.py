@@ -172,6 +172,20 @@ class Settings(BaseSettings):
         default=1.0, gt=0, allow_inf_nan=False, description="How often deliveries are looked for."
     )
 
+    smtp_host: str | None = Field(
+        default=None,
+        description="SMTP server for e-mail alerts (a webhook whose url is mailto:...); "
+        "unset: e-mail alerts are refused.",
+    )
+    smtp_port: int = Field(default=587, ge=1, le=65535)
+    smtp_security: Literal["starttls", "ssl", "none"] = Field(
+        default="starttls",
+        description="starttls (port 587), ssl (implicit TLS, port 465) or none (a local relay).",
+    )
+    smtp_username: str | None = None
+    smtp_password: str | None = None
+    smtp_from: str = Field(default="scandiff@localhost", description="The alerts' From address.")
+
     @field_validator("log_format", mode="before")
     @classmethod
     def _log_format_word(cls, value: Any) -> Any:

@@ -10,9 +10,10 @@ or network).  No web, database or settings imports.
 from __future__ import annotations
 
 import ipaddress
+import re
 import socket
 from dataclasses import dataclass
-from urllib.parse import urlsplit
+from urllib.parse import unquote, urlsplit
 
 ALLOWED_SCHEMES = ("http", "https")
 MAX_URL_LENGTH = 2000
@@ -114,3 +115,29 @@ def _is_ip_literal(host: str) -> bool:
     except ValueError:
         return False
     return True
+
+
+MAILTO_SCHEME = "mailto:"
+MAX_RECIPIENTS = 10
+_ADDRESS = re.compile(r"^[^@\s,<>()\[\]\\;:\"]+@[A-Za-z0-9](?:[A-Za-z0-9.-]*[A-Za-z0-9])?$")
+
+
+def is_mailto(url: str) -> bool:
+    """Whether ``url`` is an e-mail alert target (``mailto:a@example.com,b@example.com``)."""
+    return url.strip().lower().startswith(MAILTO_SCHEME)
+
+
+def mailto_recipients(url: str) -> list[str]:
+    """The addresses of a ``mailto:`` URL; :class:`OutboundUrlError` says what is wrong."""
+    text = url.strip()[len(MAILTO_SCHEME) :].split("?", 1)[0]
+    addresses = [unquote(part).strip() for part in text.split(",") if part.strip()]
+    if not addresses:
+        raise OutboundUrlError("the mailto: url names no address (example: mailto:ops@example.com)")
+    if len(addresses) > MAX_RECIPIENTS:
+        raise OutboundUrlError(f"a mailto: url may name at most {MAX_RECIPIENTS} addresses")
+    for address in addresses:
+        if not _ADDRESS.match(address):
+            raise OutboundUrlError(
+                f"{address!r} is not an e-mail address (example: ops@example.com)"
+            )
+    return addresses

@@ -42,10 +42,11 @@ from sqlalchemy import and_, or_, select, update
 
 from app.clock import as_utc, iso_utc, utc_now
 from app.config import Settings
-from app.core.outbound import OutboundUrlError, check_outbound_url
+from app.core.outbound import OutboundUrlError, check_outbound_url, is_mailto, mailto_recipients
 from app.core.signing import signing_key, view_link_value, webhook_signature
 from app.db.models import DeliveryStatus, Event, Webhook, WebhookDelivery
 from app.db.session import get_engine, transaction
+from app.jobs.email_alerts import send_email
 from app.jobs.leases import lease_owner_is_dead_here, make_lease_owner
 
 logger = logging.getLogger("scandiff.webhooks")
@@ -84,6 +85,7 @@ class AttemptOutcome:
     def delivered(self) -> bool:
         """Whether the receiver took it (a 2xx answer)."""
         return self.error is None and self.status_code is not None and 200 <= self.status_code < 300
+        # (an e-mail accepted by the SMTP server is 250)
 
 
 def backoff_seconds(
@@ -215,13 +217,8 @@ def _give_up(session: Any, row: WebhookDelivery, now: datetime) -> None:
 
 
 def send_attempt(delivery: ClaimedDelivery, settings: Settings) -> AttemptOutcome:
-    """POST the signed body once; never follows redirects; bounded by the timeout setting."""
-    try:
-        target = check_outbound_url(
-            delivery.url, allow_private=settings.webhook_allow_private_addresses
-        )
-    except OutboundUrlError as exc:
-        return AttemptOutcome(None, f"not sent: {exc}")
+    """POST the signed body once (or e-mail it to a ``mailto:`` url); never follows redirects;
+    bounded by the timeout setting."""
     timestamp = int(time.time())
     headers = {
         "Content-Type": "application/json",
@@ -232,6 +229,15 @@ def send_attempt(delivery: ClaimedDelivery, settings: Settings) -> AttemptOutcom
         "Scandiff-Delivery-Attempt": str(delivery.attempt),
         "Scandiff-Signature": webhook_signature(delivery.secret, delivery.body, timestamp),
     }
+    try:
+        if is_mailto(delivery.url):
+            recipients = mailto_recipients(delivery.url)
+            return AttemptOutcome(*send_email(recipients, delivery.body, headers, settings))
+        target = check_outbound_url(
+            delivery.url, allow_private=settings.webhook_allow_private_addresses
+        )
+    except OutboundUrlError as exc:
+        return AttemptOutcome(None, f"not sent: {exc}")
     connection_class = (
         http.client.HTTPSConnection if target.scheme == "https" else http.client.HTTPConnection
     )

@@ -2,8 +2,9 @@
 
 Creating and deleting need an admin token; reading needs any token of the organisation.  The
 URL is checked (http or https, a public address unless the operator allows private ones) when
-the webhook is created and again at every attempt (:mod:`app.jobs.deliveries`).  The secret is
-stored as is: an HMAC key cannot be hashed, and it is not encrypted at rest.
+the webhook is created and again at every attempt (:mod:`app.jobs.deliveries`).  A
+``mailto:`` url makes an e-mail alert (:mod:`app.jobs.email_alerts`) when SMTP is set up.
+The secret is stored as is: an HMAC key cannot be hashed, and it is not encrypted at rest.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
 from app.config import Settings
-from app.core.outbound import OutboundUrlError, check_outbound_url
+from app.core.outbound import OutboundUrlError, check_outbound_url, is_mailto, mailto_recipients
 from app.db.events import EVENT_TYPES, TEST_EVENT_TYPE, record_event
 from app.db.models import Webhook, WebhookDelivery
 from app.services.auth import Principal, require_role
@@ -56,7 +57,15 @@ def create_webhook(
     """Create a webhook (admin); the row and its secret, which is shown only now."""
     require_role(principal, "admin")
     try:
-        check_outbound_url(payload.url, allow_private=settings.webhook_allow_private_addresses)
+        if is_mailto(payload.url):
+            if not settings.smtp_host:
+                raise OutboundUrlError(
+                    "e-mail alerts are not set up on this service (the operator sets "
+                    "SCANDIFF_SMTP_HOST); use an http(s) url"
+                )
+            mailto_recipients(payload.url)
+        else:
+            check_outbound_url(payload.url, allow_private=settings.webhook_allow_private_addresses)
     except OutboundUrlError as exc:
         raise ValidationFailedError(f"url: {exc}", code="invalid_url") from exc
     events = checked_events(payload.events)

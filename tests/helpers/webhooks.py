@@ -19,7 +19,20 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
 from tests.helpers.environment import PROJECT_ROOT
+from tests.helpers.server import ApiServer
 from tests.helpers.waiting import wait_until
+from tests.helpers.worker import WorkerProcess
+
+WEBHOOK_SETTINGS: dict[str, Any] = {
+    "webhook_allow_private_addresses": True,  # receivers are on 127.0.0.1
+    "webhook_backoff_seconds": 0.2,
+    "webhook_backoff_max_seconds": 1.0,
+    "webhook_timeout_seconds": 5.0,
+    "webhook_lease_seconds": 30.0,
+    "webhook_poll_seconds": 0.2,
+    "webhook_max_attempts": 5,
+}
+"""Fast retries, local receivers allowed: the settings of the delivery tests."""
 
 DOCS_PAGE = PROJECT_ROOT / "docs" / "webhooks.md"
 DOCS_FUNCTION = "verify_scandiff_signature"
@@ -136,3 +149,22 @@ class WebhookReceiver:
         self.release()
         self.server.shutdown()
         self.server.server_close()
+
+
+def environment_of(values: dict[str, Any]) -> dict[str, str]:
+    """``SCANDIFF_*`` variables of these settings (for child processes)."""
+    return {
+        f"SCANDIFF_{name.upper()}": str(value).lower() if isinstance(value, bool) else str(value)
+        for name, value in values.items()
+    }
+
+
+def start_delivery_worker(
+    worker_factory: Callable[..., WorkerProcess], api: ApiServer, **extra: Any
+) -> WorkerProcess:
+    """A ``scandiff worker`` (fake pipeline) on ``api``'s data with :data:`WEBHOOK_SETTINGS`,
+    ``public_url`` = the API's address, and ``extra`` settings; once its workers run."""
+    env = environment_of({**WEBHOOK_SETTINGS, "public_url": api.base_url, **extra})
+    worker = worker_factory(api.settings, env=env)
+    worker.wait_for_workers()
+    return worker

@@ -27,23 +27,13 @@ from tests.helpers.http import site_with_reference, upload_accepted
 from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer, running_api
 from tests.helpers.waiting import wait_until
-from tests.helpers.webhooks import WebhookReceiver, docs_verifier
+from tests.helpers.webhooks import (
+    WEBHOOK_SETTINGS,
+    WebhookReceiver,
+    docs_verifier,
+    start_delivery_worker,
+)
 from tests.helpers.worker import WorkerProcess
-
-WEBHOOK_SETTINGS: dict[str, Any] = {
-    "webhook_allow_private_addresses": True,  # the receiver is on 127.0.0.1
-    "webhook_backoff_seconds": 0.2,
-    "webhook_backoff_max_seconds": 1.0,
-    "webhook_timeout_seconds": 5.0,
-    "webhook_lease_seconds": 30.0,
-    "webhook_poll_seconds": 0.2,
-    "webhook_max_attempts": 5,
-}
-
-
-def environment_of(values: dict[str, Any]) -> dict[str, str]:
-    """``SCANDIFF_*`` variables of these settings (for the worker processes)."""
-    return {f"SCANDIFF_{name.upper()}": str(value).lower() for name, value in values.items()}
 
 
 @pytest.fixture
@@ -52,16 +42,6 @@ def webhook_api(job_settings: Settings) -> Iterator[ApiServer]:
     settings = job_settings.model_copy(update=WEBHOOK_SETTINGS)
     with running_api(settings) as api:
         yield api
-
-
-def start_worker(
-    worker_factory: Callable[..., WorkerProcess], api: ApiServer, **extra: Any
-) -> WorkerProcess:
-    """A ``scandiff worker`` (fake pipeline) on the API's data, with the webhook settings."""
-    env = environment_of({**WEBHOOK_SETTINGS, "public_url": api.base_url, **extra})
-    worker = worker_factory(api.settings, env=env)
-    worker.wait_for_workers()
-    return worker
 
 
 def create_webhook(admin: httpx.Client, receiver: WebhookReceiver, events: list[str]) -> str:
@@ -86,7 +66,7 @@ def test_job_event_is_retried_until_accepted_with_one_event_id(
     with WebhookReceiver(fail_first=fail_first) as receiver:
         admin = webhook_api.client(webhook_api.token("admin"))
         webhook_id = create_webhook(admin, receiver, ["job.changed", "job.unchanged", "job.failed"])
-        start_worker(worker_factory, webhook_api)
+        start_delivery_worker(worker_factory, webhook_api)
         site, _ = site_with_reference(admin)
         job_id = upload_accepted(
             admin, site["id"], "scan.ply", ply_bytes(room_points(3000, seed=2))
@@ -132,7 +112,7 @@ def test_gives_up_after_max_attempts(
     with WebhookReceiver(fail_first=100) as receiver:
         admin = webhook_api.client(webhook_api.token("admin"))
         webhook_id = create_webhook(admin, receiver, ["job.failed"])
-        start_worker(worker_factory, webhook_api, webhook_max_attempts=max_attempts)
+        start_delivery_worker(worker_factory, webhook_api, webhook_max_attempts=max_attempts)
         test = admin.post(f"/api/v1/webhooks/{webhook_id}/test")
         assert test.status_code == 202, test.text
         assert test.json()["status"] == "pending"
@@ -159,7 +139,7 @@ def test_worker_killed_during_a_delivery_delivers_after_restart(
     with WebhookReceiver(hold_first=1) as receiver:
         admin = webhook_api.client(webhook_api.token("admin"))
         webhook_id = create_webhook(admin, receiver, ["job.changed"])
-        worker = start_worker(worker_factory, webhook_api)
+        worker = start_delivery_worker(worker_factory, webhook_api)
         assert admin.post(f"/api/v1/webhooks/{webhook_id}/test").status_code == 202
         wait_until(receiver.held.is_set, 60, "the first attempt reached the receiver")
         [row] = deliveries(admin, webhook_id)
@@ -167,7 +147,7 @@ def test_worker_killed_during_a_delivery_delivers_after_restart(
 
         os.killpg(worker.process.pid, signal.SIGKILL)  # the worker and all its processes
         worker.process.wait(10)
-        start_worker(worker_factory, webhook_api)
+        start_delivery_worker(worker_factory, webhook_api)
 
         received = receiver.wait_for_accepted(1)
         [row] = wait_until(
@@ -189,7 +169,7 @@ def test_docs_snippet_refuses_tampering_and_replays(
     with WebhookReceiver() as receiver:
         admin = webhook_api.client(webhook_api.token("admin"))
         webhook_id = create_webhook(admin, receiver, ["job.changed"])
-        start_worker(worker_factory, webhook_api)
+        start_delivery_worker(worker_factory, webhook_api)
         assert admin.post(f"/api/v1/webhooks/{webhook_id}/test").status_code == 202
         [delivery] = receiver.wait_for_accepted(1)
 
