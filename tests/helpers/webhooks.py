@@ -5,7 +5,7 @@ with its headers and raw body, and checks its ``Scandiff-Signature`` with the ve
 ``docs/webhooks.md`` shows (:func:`docs_verifier`, the Python block of that page, executed).
 A request whose signature does not check is answered 401.  It can answer 500 to the first
 ``fail_first`` requests, and hold the first ``hold_first`` requests without answering until
-:meth:`release` (a delivery caught in flight).
+:meth:`release` (a delivery caught in flight), or redirect every request (``redirect_to``).
 """
 
 from __future__ import annotations
@@ -75,8 +75,11 @@ class ReceivedDelivery:
 class WebhookReceiver:
     """A local HTTP receiver that checks signatures, fails or holds requests on purpose."""
 
-    def __init__(self, *, fail_first: int = 0, hold_first: int = 0) -> None:
+    def __init__(
+        self, *, fail_first: int = 0, hold_first: int = 0, redirect_to: str | None = None
+    ) -> None:
         self.secret = ""
+        self.redirect_to = redirect_to
         self.fail_first = fail_first
         self.hold_first = hold_first
         self.received: list[ReceivedDelivery] = []
@@ -120,9 +123,12 @@ class WebhookReceiver:
             return  # no answer: the sender is gone by now (or gives up at its timeout)
         status = 500 if number <= self.hold_first + self.fail_first else 200
         status = status if valid else 401
+        status = 307 if self.redirect_to else status
         self.received.append(ReceivedDelivery(headers, body, valid, status))
         answer = b'{"ok": true}' if status == 200 else b'{"error": "on purpose"}'
         handler.send_response(status)
+        if self.redirect_to:
+            handler.send_header("Location", self.redirect_to)
         handler.send_header("Content-Type", "application/json")
         handler.send_header("Content-Length", str(len(answer)))
         handler.end_headers()
