@@ -38,7 +38,7 @@ from datetime import UTC, datetime, timedelta
 from multiprocessing.process import BaseProcess
 from typing import Any
 
-from sqlalchemy import and_, or_, select, update
+from sqlalchemy import select, update
 
 from app.clock import as_utc, iso_utc, utc_now
 from app.config import Settings
@@ -56,7 +56,7 @@ MAX_RESPONSE_BYTES = 64 * 1024
 """Read at most this much of a receiver's answer (the body is not kept, only its status)."""
 MAX_ERROR_CHARACTERS = 500
 CLAIM_BATCH = 20
-"""Candidates read per claim round (each is then claimed with its own conditional update)."""
+"""Due deliveries read per claim round (each is then claimed with its own conditional update)."""
 
 
 @dataclass(frozen=True)
@@ -121,17 +121,6 @@ def delivery_body(event: Event, webhook: Webhook, settings: Settings) -> bytes:
     return json.dumps(document, separators=(",", ":"), sort_keys=True).encode()
 
 
-def _due(now: datetime) -> Any:
-    """SQL condition: a delivery that may be claimed now (dead local owners are checked after)."""
-    return or_(
-        and_(
-            WebhookDelivery.status == DeliveryStatus.PENDING,
-            WebhookDelivery.next_attempt_at <= now,
-        ),
-        WebhookDelivery.status == DeliveryStatus.DELIVERING,
-    )
-
-
 def _claimable(row: WebhookDelivery, now: datetime) -> bool:
     if row.status == DeliveryStatus.PENDING:
         return True
@@ -150,12 +139,21 @@ def claim_next_delivery(
     now = now or utc_now()
     lease_seconds = max(settings.webhook_lease_seconds, settings.webhook_timeout_seconds * 2)
     with transaction(settings.sqlalchemy_url) as session:
-        candidates = session.scalars(
+        # Rows in flight first (few: one per sender; those of dead senders are taken over),
+        # then the pending ones that are due, oldest first.
+        in_flight = session.scalars(
+            select(WebhookDelivery).where(WebhookDelivery.status == DeliveryStatus.DELIVERING)
+        ).all()
+        due = session.scalars(
             select(WebhookDelivery)
-            .where(_due(now))
+            .where(
+                WebhookDelivery.status == DeliveryStatus.PENDING,
+                WebhookDelivery.next_attempt_at <= now,
+            )
             .order_by(WebhookDelivery.next_attempt_at)
             .limit(CLAIM_BATCH)
         ).all()
+        candidates = [*in_flight, *due]
         for row in candidates:
             if not _claimable(row, now):
                 continue
