@@ -173,6 +173,56 @@ class Settings(BaseSettings):
         "unset (default), /metrics is public, as usual for Prometheus on a private network.",
     )
 
+    # -- webhooks (issue 16: alerts) --
+    public_url: str | None = Field(
+        default=None,
+        description="The service's address as people reach it (https://scandiff.example.com), "
+        "for the view links in webhook payloads; default http://<host>:<port>.",
+    )
+    webhook_allow_private_addresses: bool = Field(
+        default=False,
+        description="Accept webhook URLs on loopback, private and link-local addresses "
+        "(a receiver on this host or network). Off by default: an organisation cannot make "
+        "the service call into its own network.",
+    )
+    webhook_max_attempts: int = Field(default=8, ge=1, description="Attempts per delivery.")
+    webhook_backoff_seconds: float = Field(
+        default=10.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="Delay before the second attempt; doubles each attempt (with jitter).",
+    )
+    webhook_backoff_max_seconds: float = Field(
+        default=3600.0, gt=0, allow_inf_nan=False, description="Longest delay between attempts."
+    )
+    webhook_timeout_seconds: float = Field(
+        default=10.0, gt=0, allow_inf_nan=False, description="Time limit of one HTTP attempt."
+    )
+    webhook_lease_seconds: float = Field(
+        default=60.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="How long a worker holds a delivery it claimed; a delivery of a dead "
+        "worker is retried once its lease expires (at once when the worker ran on this host).",
+    )
+    webhook_poll_seconds: float = Field(
+        default=1.0, gt=0, allow_inf_nan=False, description="How often deliveries are looked for."
+    )
+
+    smtp_host: str | None = Field(
+        default=None,
+        description="SMTP server for e-mail alerts (a webhook whose url is mailto:...); "
+        "unset: e-mail alerts are refused.",
+    )
+    smtp_port: int = Field(default=587, ge=1, le=65535)
+    smtp_security: Literal["starttls", "ssl", "none"] = Field(
+        default="starttls",
+        description="starttls (port 587), ssl (implicit TLS, port 465) or none (a local relay).",
+    )
+    smtp_username: str | None = None
+    smtp_password: str | None = None
+    smtp_from: str = Field(default="scandiff@localhost", description="The alerts' From address.")
+
     @field_validator("log_format", mode="before")
     @classmethod
     def _log_format_word(cls, value: Any) -> Any:
@@ -242,6 +292,11 @@ class Settings(BaseSettings):
     def sqlalchemy_url(self) -> str:
         """The database URL in effect."""
         return self.database_url or f"sqlite:///{self.data_dir / 'scandiff.sqlite3'}"
+
+    @property
+    def public_base_url(self) -> str:
+        """The service's address as people reach it (``public_url``, else host and port)."""
+        return (self.public_url or f"http://{self.host}:{self.port}").rstrip("/")
 
     @property
     def queue_path(self) -> Path:

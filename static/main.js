@@ -1,7 +1,7 @@
 // scandiff dashboard: sign in, sites, per-site timelines and jobs, job results, 3D view links.
 // Plain ES modules, no framework and nothing from a CDN. Every request goes to this service
 // with the HttpOnly session cookie (the page never holds the token after signing in).
-// This module routes the hash (#/, #/sites/<id>, #/jobs/<id>) to its view.
+// This module routes the hash (#/, #/sites/<id>, #/jobs/<id>, #/webhooks[/<id>]) to its view.
 
 import { ApiError, describeError } from "./api.js";
 import { h } from "./dom.js";
@@ -10,6 +10,7 @@ import { app, showBanner, startRender } from "./page.js";
 import { ensureSignedIn, handleFailure, startSessions } from "./session.js";
 import { renderSite } from "./site.js";
 import { renderSites } from "./sites.js";
+import { renderWebhooks } from "./webhooks.js";
 
 async function route() {
   startRender();
@@ -18,9 +19,11 @@ async function route() {
   const hash = location.hash.replace(/^#/, "") || "/";
   const siteMatch = hash.match(/^\/sites\/([^/]+)$/);
   const jobMatch = hash.match(/^\/jobs\/([^/]+)$/);
+  const webhooksMatch = hash.match(/^\/webhooks(?:\/([^/]+))?$/);
   try {
     if (siteMatch) await renderSite(decodeURIComponent(siteMatch[1]));
     else if (jobMatch) await renderJob(decodeURIComponent(jobMatch[1]));
+    else if (webhooksMatch) await renderWebhooks(webhooksMatch[1] ? decodeURIComponent(webhooksMatch[1]) : null);
     else await renderSites();
   } catch (failure) {
     if (failure instanceof ApiError && failure.status === 404) {

@@ -19,40 +19,29 @@ The API's bearer-token dependency accepts the session cookie too by calling
 
 from __future__ import annotations
 
-import base64
-import hashlib
-import hmac
-import json
-import secrets
 import time
-from functools import lru_cache
-from pathlib import Path
-from typing import Any
 from urllib.parse import urlsplit
 
 from sqlalchemy.orm import Session
 from starlette.requests import HTTPConnection
 
 from app.config import Settings
-from app.core.files import write_private_file
+from app.core.signing import (
+    VIEW_LINK_PURPOSE,
+    SignatureInvalidError,
+    sign,
+    signing_key,
+    verify,
+    view_link_value,
+)
 from app.db.models import ApiToken
 from app.services.auth import Principal
 from app.viewer.access import ViewGrant
 
 SESSION_COOKIE = "scandiff_session"
 SESSION_TTL_SECONDS = 12 * 3600
-SECRET_KEY_FILE = "secret-key"
 SESSION_PURPOSE = "session"
-VIEW_LINK_PURPOSE = "view-link"
 SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
-
-
-class SignatureInvalidError(Exception):
-    """A signed value was tampered with, malformed, signed for another purpose or expired."""
-
-    def __init__(self, message: str, *, expired: bool = False) -> None:
-        super().__init__(message)
-        self.expired = expired
 
 
 # -- keys and signatures -----------------------------------------------------------------------
@@ -60,65 +49,7 @@ class SignatureInvalidError(Exception):
 
 def secret_key(settings: Settings) -> bytes:
     """The signing key: ``settings.secret_key`` or the one generated in the data directory."""
-    if settings.secret_key:
-        return settings.secret_key.encode()
-    return _data_dir_secret(settings.data_dir)
-
-
-@lru_cache(maxsize=16)
-def _data_dir_secret(data_dir: Path) -> bytes:
-    """Read ``<data_dir>/secret-key``, creating it (0600, atomically) on first use."""
-    path = data_dir / SECRET_KEY_FILE
-    if not path.exists():
-        write_private_file(path, secrets.token_urlsafe(48) + "\n", overwrite=False)
-    key = path.read_text().strip()
-    if len(key) < 32:
-        raise RuntimeError(f"{path} holds no usable secret key; delete it to make a new one")
-    return key.encode()
-
-
-def _b64encode(data: bytes) -> str:
-    return base64.urlsafe_b64encode(data).rstrip(b"=").decode("ascii")
-
-
-def _b64decode(text: str) -> bytes:
-    return base64.urlsafe_b64decode(text + "=" * (-len(text) % 4))
-
-
-def _mac(key: bytes, purpose: str, body: str) -> bytes:
-    return hmac.new(key, f"{purpose}.{body}".encode(), hashlib.sha256).digest()
-
-
-def sign(payload: dict[str, Any], purpose: str, key: bytes) -> str:
-    """``payload`` (JSON, with an ``exp`` timestamp) signed for ``purpose``: ``body.mac``."""
-    body = _b64encode(json.dumps(payload, separators=(",", ":"), sort_keys=True).encode())
-    return f"{body}.{_b64encode(_mac(key, purpose, body))}"
-
-
-def verify(value: str, purpose: str, key: bytes, *, now: float | None = None) -> dict[str, Any]:
-    """The payload of a value made by :func:`sign` for ``purpose``.
-
-    Raises
-    ------
-    SignatureInvalidError
-        Bad format or signature (``expired=False``), or past its ``exp`` (``expired=True``).
-    """
-    body, _, mac = value.partition(".")
-    try:
-        given = _b64decode(mac)
-    except (ValueError, TypeError) as exc:
-        raise SignatureInvalidError("malformed signature") from exc
-    if not body or not hmac.compare_digest(given, _mac(key, purpose, body)):
-        raise SignatureInvalidError("bad signature")
-    try:
-        payload = json.loads(_b64decode(body))
-    except (ValueError, TypeError) as exc:
-        raise SignatureInvalidError("malformed payload") from exc
-    if not isinstance(payload, dict) or not isinstance(payload.get("exp"), (int, float)):
-        raise SignatureInvalidError("payload without expiry")
-    if (time.time() if now is None else now) >= payload["exp"]:
-        raise SignatureInvalidError("expired", expired=True)
-    return payload
+    return signing_key(settings.secret_key, settings.data_dir)
 
 
 # -- tokens and sessions -----------------------------------------------------------------------
@@ -190,9 +121,7 @@ def principal_from_session_cookie(
 
 def make_view_link(job_id: str, token: ApiToken, key: bytes, ttl: float) -> tuple[str, float]:
     """A signed view-link value for ``job_id`` and when it expires (epoch seconds)."""
-    expires_at = float(int(time.time() + ttl))
-    value = sign({"job": job_id, "tid": token.id, "exp": expires_at}, VIEW_LINK_PURPOSE, key)
-    return value, expires_at
+    return view_link_value(job_id, token.id, key, ttl)
 
 
 def verify_view_link(value: str, job_id: str, key: bytes, session: Session) -> ViewGrant:

@@ -9,7 +9,8 @@ for a migrated database)::
     │         recovery_interval_seconds, the schedule tick every schedule_tick_seconds
     │         when given one, notes it is alive in the queue for /health)
     ├── Huey scheduler (process)
-    └── Huey worker 1..N (processes; each runs one job at a time)
+    ├── Huey worker 1..N (processes; each runs one job at a time)
+    └── webhook deliveries (process: :mod:`app.jobs.deliveries`, replaced when it dies)
 
 SIGTERM or SIGINT stop it gracefully: idle workers exit at once (no new job is taken), running
 jobs get the shutdown grace (``SCANDIFF_SHUTDOWN_GRACE_SECONDS``, default 10 s) to finish,
@@ -38,6 +39,7 @@ from app.config import Settings, get_settings
 from app.db.migrate import current_revision, head_revision
 from app.db.session import get_engine
 from app.jobs import queue, runner
+from app.jobs.deliveries import DeliveryProcess
 from app.jobs.hooks import job_hooks
 from app.jobs.lifecycle import die_with_supervisor, set_parent_death_signal
 from app.jobs.limits import job_memory_limit, job_threads
@@ -176,6 +178,7 @@ class ScandiffConsumer(Consumer):  # type: ignore[misc]
         # a second signal interrupts at once.  Workers still treat SIGTERM as "interrupt now".
         self._signal_actions[signal.SIGTERM] = (False, True)
         self.settings = settings
+        self.deliveries = DeliveryProcess(settings)  # webhook deliveries beside the job workers
         self._next_sweep = 0.0
         self._next_alive_note = 0.0
         self.schedule_tick = schedule_tick
@@ -185,6 +188,8 @@ class ScandiffConsumer(Consumer):  # type: ignore[misc]
         """Huey's supervision loop, plus the recovery sweep and the liveness note when due."""
         health_check_ts = super().loop(health_check_ts)
         now = time.monotonic()
+        if not self.stop_flag.is_set():
+            self.deliveries.ensure_running()
         try:
             if now >= self._next_sweep:
                 self._next_sweep = now + self.settings.recovery_interval_seconds
@@ -308,6 +313,7 @@ def run_consumer(
         consumer.run()
     finally:
         consumer.stop_flag.set()  # idle workers exit by themselves even if run() failed
+        consumer.deliveries.stop(timeout=settings.webhook_timeout_seconds + 1.0)
     return 0
 
 

@@ -30,6 +30,7 @@ from app.clock import utc_now
 from app.config import Settings
 from app.db.models import Job, JobStatus, Scan, Site
 from app.db.session import transaction
+from app.jobs.alerts import publish_job_finished
 from app.log import job_request_id, remember_job_request_id
 
 logger = logging.getLogger("scandiff.jobs")
@@ -217,6 +218,7 @@ def give_up_if_used_up(session: Session, job: Job, now: datetime) -> bool:
         .execution_options(synchronize_session=False)
     ).rowcount
     if failed:
+        publish_job_finished(session, job.id)  # job.failed, in the claim's transaction
         job_log("job failed", job.id, "failed", attempt=job.attempts, error=reason)
     else:
         logger.info(
@@ -333,6 +335,8 @@ def fail_job(job: ClaimedJob, settings: Settings, message: str) -> bool:
             )
             .execution_options(synchronize_session=False)
         ).rowcount
+        if failed:
+            publish_job_finished(session, job.id)  # job.failed, same transaction
     if failed:
         job_log("job failed", job.id, "failed", attempt=job.attempt, error=message)
     return bool(failed)
@@ -366,5 +370,7 @@ def release_job(job: ClaimedJob, settings: Settings, error: str, *, count_attemp
         row.lease_expires_at = None
         status = row.status
         final_error = row.error
+        if status == JobStatus.FAILED:
+            publish_job_finished(session, job.id)  # job.failed, same transaction
     job_log(f"job {status}", job.id, status, attempt=job.attempt, error=final_error)
     return status

@@ -29,6 +29,7 @@ from app.clock import as_utc, utc_now
 from app.config import Settings
 from app.db.models import Job, JobStatus
 from app.db.session import transaction
+from app.jobs.alerts import publish_job_finished
 from app.jobs.leases import job_log, lease_owner_is_dead_here
 from app.jobs.queue import mark_not_enqueued, pending_job_ids, send_job_message
 from app.jobs.results import remove_stale_temp_files
@@ -109,6 +110,8 @@ def recover_expired_leases(settings: Settings, now: datetime, report: RecoveryRe
                 report.requeued_expired.append(job.id)
             job.lease_owner = None
             job.lease_expires_at = None
+        for job_id in report.failed_expired:
+            publish_job_finished(session, job_id)  # job.failed, same transaction
     for job_id in report.failed_expired:
         job_log("job failed: attempts used up", job_id, "failed")
     for job_id in report.requeued_expired:

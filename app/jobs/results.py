@@ -3,8 +3,9 @@
 :func:`write_result_files` writes ``labels.npz`` (the arrays of ``scandiff compare --labels``)
 and ``details.npz`` (``reference_distance``, ``scan_distance``, float32, source order), each
 atomically (:func:`app.core.files.write_atomically`).  :func:`store_results` stores score, decision,
-regions, registration and timings in **one short transaction**, only if the worker still holds
-the job's lease.  :func:`remove_stale_temp_files` deletes what a worker killed while writing left.
+regions, registration, timings and the job's event in **one short transaction**, only if the
+worker still holds the job's lease.  :func:`remove_stale_temp_files` deletes what a worker
+killed while writing left.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from app.core.jsonable import json_safe
 from app.core.quality import quality_warnings
 from app.db.models import Job, JobStatus, Region
 from app.db.session import transaction
+from app.jobs.alerts import publish_job_finished
 from app.jobs.leases import ClaimedJob, held_by
 from app.jobs.site_history import region_count_warning
 
@@ -101,6 +103,7 @@ def store_results(
         row.stage = "succeeded"
         row.finished_at = utc_now()
         row.lease_expires_at = None
+        publish_job_finished(session, job.id)  # job.changed / job.unchanged, same transaction
     return True
 
 

@@ -338,6 +338,7 @@ def require_role(principal: Principal, role: str) -> Principal:
     """``principal`` if it has at least ``role``; :class:`PermissionDeniedError` otherwise."""
     if not principal.can(role):
         raise PermissionDeniedError(
-            f"this token's role ({principal.role}) cannot do this; a {role} token is needed"
+            f"this token's role ({principal.role}) cannot do this; "
+            f"{'an' if role.startswith('a') else 'a'} {role} token is needed"
         )
     return principal

@@ -57,9 +57,11 @@ class Objects:
     scan_id: str
     job_id: str
     queued_job_id: str
+    webhook_id: str = ""
     spare_site_ids: list[str] = field(default_factory=list)
     schedule_id: str = ""
     spare_schedule_ids: list[str] = field(default_factory=list)
+    spare_webhook_ids: list[str] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -68,7 +70,7 @@ class Operation:
 
     method: str
     path: str
-    min_role: str  # "reader" or "writer"
+    min_role: str  # "reader", "writer" or "admin"
     owner_status: int
     scoped: bool = True  # addresses A's objects (other organisations must get 404)
     json: Callable[[Objects], dict[str, Any]] | None = None
@@ -77,18 +79,25 @@ class Operation:
     destroys: bool = False
 
     def url(self, ids: Objects, *, owner: bool) -> str:
-        site_id, schedule_id = ids.site_id, ids.schedule_id
+        site_id, schedule_id, webhook_id = ids.site_id, ids.schedule_id, ids.webhook_id
         if self.destroys and owner and "{schedule_id}" in self.path:
             schedule_id = ids.spare_schedule_ids.pop()
+        elif self.destroys and owner and "{webhook_id}" in self.path:
+            webhook_id = ids.spare_webhook_ids.pop()
         elif self.destroys and owner:
             site_id = ids.spare_site_ids.pop()
         return self.path.format(
-            site_id=site_id, scan_id=ids.scan_id, job_id=ids.job_id, schedule_id=schedule_id
+            site_id=site_id,
+            scan_id=ids.scan_id,
+            job_id=ids.job_id,
+            schedule_id=schedule_id,
+            webhook_id=webhook_id,
         )
 
 
 SCAN_CONTENT = ply_bytes(room_points(1500, seed=21))
 NIGHTLY = {"cron": "0 2 * * *", "timezone": "Europe/Lisbon"}
+WEBHOOK_URL = "https://93.184.215.14/hooks/matrix"
 
 OPERATIONS = [
     Operation(
@@ -133,6 +142,14 @@ OPERATIONS = [
     ),
     Operation("GET", "/api/v1/jobs/{job_id}", "reader", 200),
     Operation("POST", "/api/v1/jobs/{job_id}/rerun", "writer", 202, json=lambda ids: {}),
+    Operation(
+        "POST",
+        "/api/v1/jobs/{job_id}/verdict",
+        "writer",
+        200,
+        json=lambda ids: {"verdict": "confirmed"},
+    ),
+    Operation("GET", "/api/v1/jobs/{job_id}/verdicts", "reader", 200),
     Operation("GET", "/api/v1/jobs/{job_id}/regions", "reader", 200),
     Operation("GET", "/api/v1/jobs/{job_id}/labels", "reader", 200, params={"format": "npz"}),
     Operation("POST", "/api/v1/jobs/{job_id}/view-link", "reader", 200),
@@ -150,6 +167,19 @@ OPERATIONS = [
     Operation("POST", "/api/v1/schedules/{schedule_id}/run", "writer", 201),
     Operation("GET", "/api/v1/schedules/{schedule_id}/runs", "reader", 200),
     Operation("DELETE", "/api/v1/schedules/{schedule_id}", "writer", 204, destroys=True),
+    Operation(
+        "POST",
+        "/api/v1/webhooks",
+        "admin",
+        201,
+        scoped=False,
+        json=lambda ids: {"url": WEBHOOK_URL},
+    ),
+    Operation("GET", "/api/v1/webhooks", "reader", 200, scoped=False),
+    Operation("GET", "/api/v1/webhooks/{webhook_id}", "reader", 200),
+    Operation("DELETE", "/api/v1/webhooks/{webhook_id}", "admin", 204, destroys=True),
+    Operation("GET", "/api/v1/webhooks/{webhook_id}/deliveries", "reader", 200),
+    Operation("POST", "/api/v1/webhooks/{webhook_id}/test", "admin", 202),
 ]
 
 
@@ -173,7 +203,11 @@ def expected_status(operation: Operation, caller: Caller) -> int:
     """What the caller must get from the operation on A's objects."""
     if caller.organisation is None:
         return 401
-    may = caller.role in ("writer", "admin") or operation.min_role == "reader"
+    may = (
+        caller.role == "admin"
+        or (caller.role == "writer" and operation.min_role != "admin")
+        or operation.min_role == "reader"
+    )
     if not may:
         return 403
     if caller.organisation == "A" or not operation.scoped:
@@ -289,7 +323,9 @@ def world(service: ApiServer) -> dict[str, Any]:
     markers["reference sha256"] = reference["sha256"]
     markers["scan sha256"] = scan["sha256"]
     markers["organisation name"] = org_a
-    ids = Objects(site["id"], reference["id"], scan["id"], job["id"], queued["id"])
+    a_admin = service.client(tokens[("A", "admin")])
+    webhook = a_admin.post("/api/v1/webhooks", json={"url": WEBHOOK_URL}).json()
+    ids = Objects(site["id"], reference["id"], scan["id"], job["id"], queued["id"], webhook["id"])
     ids.schedule_id = create_schedule(a_writer, site["id"])
     b_writer = service.client(tokens[("B", "writer")])
     b_site = create_site(b_writer)
@@ -297,6 +333,8 @@ def world(service: ApiServer) -> dict[str, Any]:
         b_writer, b_site["id"], ply_bytes(room_points(3000, seed=2)), reference=True
     ).json()["scan"]
     b_job = upload(b_writer, b_site["id"], ply_bytes(room_points(2000, seed=3))).json()["job"]
+    b_admin = service.client(tokens[("B", "admin")])
+    b_webhook = b_admin.post("/api/v1/webhooks", json={"url": WEBHOOK_URL}).json()
     link_as_token = a_writer.post(f"/api/v1/jobs/{ids.job_id}/view-link").json()["url"]
     link_value = link_as_token.split("link=", 1)[1]
     revoke(service, revoked_token)
@@ -327,6 +365,7 @@ def world(service: ApiServer) -> dict[str, Any]:
         "callers": callers,
         "secrets": secrets,
         "a_writer": a_writer,
+        "a_admin": a_admin,
         "tokens": tokens,
         "org_b": org_b,
         "b_ids": {
@@ -334,6 +373,7 @@ def world(service: ApiServer) -> dict[str, Any]:
             "scan": b_reference["id"],
             "job": b_job["id"],
             "schedule": create_schedule(b_writer, b_site["id"]),
+            "webhook": b_webhook["id"],
         },
     }
 
@@ -398,13 +438,13 @@ def test_only_the_owner_path_succeeds_and_nothing_leaks(service: ApiServer, worl
                     if response.status_code < 400 and operation.scoped:
                         found += [
                             f"id {value}"
-                            for value in (ids.site_id, ids.scan_id, ids.job_id)
+                            for value in (ids.site_id, ids.scan_id, ids.job_id, ids.webhook_id)
                             if value in response.text
                         ]
                     if caller.organisation == "B" and not operation.scoped:
                         found += [
                             f"id {value}"
-                            for value in (ids.site_id, ids.scan_id, ids.job_id)
+                            for value in (ids.site_id, ids.scan_id, ids.job_id, ids.webhook_id)
                             if value in response.text
                         ]
                     if SCAN_CONTENT[-64:] in response.content:
@@ -415,19 +455,21 @@ def test_only_the_owner_path_succeeds_and_nothing_leaks(service: ApiServer, worl
                     wrong.append(f"server error: {response.text[:200]}")
         after_refused = state_of(service, a_writer, ids)
         # A's readers may read (the session cookie ones too) and so change nothing either.
-        # Then A's writers and admins: every operation succeeds.
+        # Then A's writers and admins: every operation succeeds (but admin ones for writers).
         owners = [
             c for c in world["callers"] if c.organisation == "A" and c.role in ("writer", "admin")
         ]
         for caller in owners:
             ids.spare_site_ids.append(create_site(a_writer)["id"])
             ids.spare_schedule_ids.append(create_schedule(a_writer, ids.site_id))
+            spare_webhook = world["a_admin"].post("/api/v1/webhooks", json={"url": WEBHOOK_URL})
+            ids.spare_webhook_ids.append(spare_webhook.json()["id"])
             for operation in OPERATIONS:
                 response = call(clients[caller.name], operation, ids, caller)
                 calls += 1
                 statuses[response.status_code] += 1
-                if response.status_code != operation.owner_status:
-                    wrong.append(
+                if response.status_code != expected_status(operation, caller):  # 403: writers
+                    wrong.append(  # on admin operations
                         f"{caller.name} {operation.method} {operation.path}: "
                         f"{response.status_code}: {response.text[:160]}"
                     )
@@ -435,6 +477,7 @@ def test_only_the_owner_path_succeeds_and_nothing_leaks(service: ApiServer, worl
         b_ids = world["b_ids"]
         guesses = {
             "random": Objects(
+                uuid.uuid4().hex,
                 uuid.uuid4().hex,
                 uuid.uuid4().hex,
                 uuid.uuid4().hex,
@@ -448,6 +491,7 @@ def test_only_the_owner_path_succeeds_and_nothing_leaks(service: ApiServer, worl
                 b_ids["scan"],
                 b_ids["job"],
                 b_ids["job"],
+                b_ids["webhook"],
                 schedule_id=b_ids["schedule"],
             ),
             "off by one": Objects(
@@ -456,19 +500,21 @@ def test_only_the_owner_path_succeeds_and_nothing_leaks(service: ApiServer, worl
                 off_by_one(ids.scan_id),
                 off_by_one(ids.job_id),
                 "0",
+                off_by_one(ids.webhook_id),
                 schedule_id=off_by_one(ids.schedule_id),
             ),
             "junk": Objects(
-                "..", "%2e%2e%2fadmin-token", "0 OR 1=1", "*", "null", schedule_id="%00"
+                "..", "%2e%2e%2fadmin-token", "0 OR 1=1", "*", "null", "..", schedule_id="%00"
             ),
         }
-        owner = next(c for c in owners if c.role == "writer")
+        owner = next(c for c in owners if c.role == "admin")  # passes every role check
         for label, guessed in guesses.items():
             for operation in OPERATIONS:
                 if not operation.scoped:
                     continue
                 guessed.spare_site_ids.append(guessed.site_id)
                 guessed.spare_schedule_ids.append(guessed.schedule_id)
+                guessed.spare_webhook_ids.append(guessed.webhook_id)
                 response = call(clients[owner.name], operation, guessed, owner)
                 calls += 1
                 statuses[response.status_code] += 1

@@ -17,6 +17,7 @@ from app.api.routes import (
     schedules,
     sites,
     verdicts,
+    webhooks,
 )
 
 v1_router = APIRouter(prefix="/api/v1")
@@ -28,6 +29,7 @@ v1_router.include_router(verdicts.router)
 v1_router.include_router(organisation.router)
 v1_router.include_router(capabilities.router)
 v1_router.include_router(schedules.router)
+v1_router.include_router(webhooks.router)
 
 api_router = APIRouter()
 api_router.include_router(v1_router)
