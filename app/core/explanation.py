@@ -56,6 +56,7 @@ def explain_decision(
     regions: Sequence[Any],
     min_region_points: int | None = None,
     dropped_clusters: int | None = None,
+    site_test: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The structured explanation of one decision and its one-line ``text``.
 
@@ -75,6 +76,10 @@ def explain_decision(
         The size floor a cluster of changed points had to reach to be a region.
     dropped_clusters : int, optional
         Clusters of changed points dropped for being below that floor.
+    site_test : mapping, optional
+        The decision test that used the site's learned threshold
+        (:func:`app.core.site_calibration.decide`: ``statistic``, ``value``, ``threshold``,
+        ``fires``), when one did; the text then says the site's threshold decided.
 
     Returns
     -------
@@ -83,7 +88,7 @@ def explain_decision(
         ``n_region_points``, ``min_region_points``, ``dropped_clusters``, ``largest_region``
         (``index``, ``kind``, ``n_points``, ``size_m``: 3 extents in metres; None without
         regions), ``score``, ``threshold``, ``detector_changed``, ``agrees`` (whether the
-        regions and the detector say the same) and ``text``.
+        regions and the detector say the same), ``site_test`` and ``text``.
     """
     if detector_changed is None and score is not None and threshold is not None:
         detector_changed = bool(score > threshold)
@@ -121,11 +126,32 @@ def explain_decision(
         "threshold": threshold,
         "detector_changed": detector_changed,
         "agrees": detector_changed is None or bool(detector_changed) == (n_regions > 0),
+        "site_test": dict(site_test) if site_test else None,
         "text": _text(
             changed, rule, score, threshold, detector_changed, n_regions, n_region_points,
             min_region_points, dropped_clusters, largest,
-        ),
+        ) + _site_text(site_test),
     }  # fmt: skip
+
+
+STATISTIC_NAMES = {
+    "largest_region_extent_m": ("the largest region's extent", " m"),
+    "score": ("the detector's score", ""),
+}
+"""How a site-calibrated statistic is named in the text, and its unit."""
+
+
+def _site_text(site_test: Mapping[str, Any] | None) -> str:
+    """ "; the site's learned threshold: ..." when a learned threshold took part, else ""."""
+    if not site_test:
+        return ""
+    name, unit = STATISTIC_NAMES.get(str(site_test.get("statistic")), ("the statistic", ""))
+    value, limit = site_test.get("value"), site_test.get("threshold")
+    relation = "above" if site_test.get("fires") else "not above"
+    return (
+        f"; {name} {_number(value)}{unit} is {relation} the site's learned threshold "
+        f"{_number(limit)}{unit} (from reviews)"
+    )
 
 
 def _text(
@@ -188,4 +214,7 @@ def explain_comparison(result: Any) -> dict[str, Any]:
         regions=list(result.regions),
         min_region_points=None if min_points is None else int(min_points),
         dropped_clusters=None if dropped is None else int(dropped),
+        site_test=next(
+            (test for test in decision.get("tests") or [] if test.get("source") == "site"), None
+        ),
     )

@@ -148,3 +148,30 @@ def test_an_unchanged_copy_explains_no_change(box_pair) -> None:
     assert not result.changed
     assert explanation["decision"] == "unchanged"
     assert explanation["text"].startswith("no change: no region of changed points")
+
+
+@pytest.mark.parametrize(("fires", "relation"), [(False, "not above"), (True, "above")])
+def test_a_site_threshold_that_took_part_is_named(fires: bool, relation: str) -> None:
+    site_test = {
+        "statistic": "largest_region_extent_m",
+        "value": 0.74,
+        "comparison": ">",
+        "threshold": 0.91,
+        "source": "site",
+        "fires": fires,
+    }
+    explanation = explain_decision(
+        changed=fires,
+        rule="regions",
+        score=0.2,
+        threshold=0.1,
+        detector_changed=True,
+        regions=[region("added", 120, [0.0, 0.0, 0.0], [0.4, 0.4, 0.5])],
+        site_test=site_test,
+    )
+    assert explanation["site_test"] == site_test
+    assert explanation["text"].startswith("changed: " if fires else "no change: ")
+    assert explanation["text"].endswith(
+        f"the largest region's extent 0.74 m is {relation} the site's learned threshold "
+        "0.91 m (from reviews)"
+    )

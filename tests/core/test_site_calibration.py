@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from app.core.cloud import PointCloud
+from app.core.explanation import explain_comparison
 from app.core.pipeline import compare
 from app.core.site_calibration import (
     DecisionInputs,
@@ -201,6 +202,9 @@ def test_compare_applies_a_site_calibration_and_reports_it() -> None:
     assert calibrated.calibration["site"]["applied"] is True
     assert not calibrated.changed  # equal to the learned bound: not above it
     assert len(calibrated.regions) == len(plain.regions)  # the regions are still reported
+    assert "learned threshold" not in explain_comparison(plain)["text"]
+    text = explain_comparison(calibrated)["text"]
+    assert text.startswith("no change: ") and "not above the site's learned threshold" in text
 
 
 def test_largest_extent_is_the_largest_bounding_box_diagonal() -> None:
