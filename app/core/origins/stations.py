@@ -378,10 +378,12 @@ def resolve_stations(
 ) -> ResolvedOrigin:
     """The origin(s) of one cloud: several given, or one resolved, or stations recovered.
 
-    Several given origins (a merged survey's stations) are used as given.  One origin (given,
-    from the file or estimated) goes through :func:`~app.core.origins.resolve.resolve_origin`.
-    When that leaves the cloud without an origin and ``recover``, the cloud's stations are
-    recovered (:func:`recover_stations`) and used when there are several.
+    Several given origins (a merged survey's stations), or several from the file (an E57
+    file's scans, per-point origin fields) when none are given, are used as they are.  One
+    origin (given, from the file or estimated) goes through
+    :func:`~app.core.origins.resolve.resolve_origin`.  When that leaves the cloud without an
+    origin and ``recover``, the cloud's stations are recovered (:func:`recover_stations`) and
+    used when there are several.
 
     Parameters
     ----------
@@ -389,7 +391,7 @@ def resolve_stations(
     points : ndarray, shape (n, 3)
         In the frame the origins are used in (z up).
     given : ndarray, shape (k, 3), or None
-    from_file : ndarray, shape (1, 3) or (3,), or None
+    from_file : ndarray, shape (3,) or (k, 3), or None
     estimate, recover : bool
     random_state : int
 
@@ -401,6 +403,8 @@ def resolve_stations(
     """
     if given is not None and len(given) > 1:
         return ResolvedOrigin(given, "given", None)
+    if given is None and from_file is not None and np.asarray(from_file).size > 3:
+        return ResolvedOrigin(np.asarray(from_file).reshape(-1, 3), "file", None)
     resolved = resolve_origin(
         side,
         points,
