@@ -113,8 +113,11 @@ class Scan(Base):
     bbox_min: Mapped[list[float]] = mapped_column(JSON)
     bbox_max: Mapped[list[float]] = mapped_column(JSON)
     # Where the sensor was, in the file's frame: from the upload's ?sensor_origin= or the file
-    # itself (a PCD VIEWPOINT). Lets localisation tell occluded (unobserved) from removed.
-    sensor_origin: Mapped[list[float] | None] = mapped_column(JSON, nullable=True)
+    # itself (a PCD VIEWPOINT, E57 scan poses). Lets localisation tell occluded (unobserved)
+    # from removed. [x, y, z], or [[x, y, z], ...] for a cloud merged from several stations.
+    sensor_origin: Mapped[list[float] | list[list[float]] | None] = mapped_column(
+        JSON, nullable=True
+    )
     created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now, index=True)
 
 

@@ -129,10 +129,12 @@ async def upload_scan(
     sensor_origin: Annotated[
         str | None,
         Query(
-            max_length=200,
+            max_length=65_536,
             description="Sensor position 'x,y,z' in the file's frame (0,0,0 for a scan in its "
-            "sensor's frame); enables the visibility test. Default: the file's own (PCD "
-            "VIEWPOINT), else unknown.",
+            "sensor's frame), or for a cloud merged from several stations a JSON list "
+            "'[[x,y,z],...]' in the order of the file's per-point station index; enables the "
+            "visibility test. Default: the file's own (PCD VIEWPOINT, E57 scan poses, per-point "
+            "origin_x/y/z), else estimated from the points.",
         ),
     ] = None,
     idempotency_key: Annotated[str | None, Header(alias="Idempotency-Key")] = None,
