@@ -14,6 +14,7 @@ from app.api.uploads import RawBody, UploadBodyDep, declared_length
 from app.db.models import JobStatus
 from app.services import jobs as jobs_service
 from app.services import scans as scans_service
+from app.services import sensor_origins as sensor_origins_service
 from app.services import sites as sites_service
 from app.services.paging import DEFAULT_LIMIT, MAX_LIMIT
 from app.services.schemas import (
@@ -147,7 +148,7 @@ async def upload_scan(
         method=method,
         variant=variant,
         idempotency_key=idempotency_key,
-        sensor_origin=scans_service.parse_sensor_origin(sensor_origin),
+        sensor_origin=sensor_origins_service.parse_sensor_origin(sensor_origin),
         declared_size=declared_length(request) if isinstance(body, RawBody) else None,
     )
     stored = await scans_service.upload_scan(session, settings, principal, options, body)
