@@ -21,7 +21,7 @@ import functools
 import numpy as np
 import pytest
 
-from app.core.errors import PointCloudError
+from app.core.errors import InputError, PointCloudError
 from app.core.formats import detect_format, read_point_cloud, summarise_point_cloud
 from app.core.pipeline import compare
 from app.core.synthetic_lidar import LidarPair, lidar_pair
@@ -258,3 +258,16 @@ def test_compare_uses_the_stations_of_e57_files():
     np.testing.assert_allclose(reported, pair.scan_origins, atol=1e-6)
     assert result.changed
     assert changed_iou(pair, result) >= 0.9
+
+
+def test_one_given_origin_for_a_file_of_several_stations_is_refused():
+    cloud = read_point_cloud(e57_content(), filename="two.e57")
+    with pytest.raises(InputError, match=r"station_index must lie in 0\.\.0"):
+        compare(
+            cloud,
+            cloud,
+            method="gmm",
+            variant="improved",
+            align=False,
+            params={"reference_origin": [1.0, 2.0, 3.0]},
+        )

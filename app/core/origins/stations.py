@@ -403,8 +403,10 @@ def resolve_stations(
     """
     if given is not None and len(given) > 1:
         return ResolvedOrigin(given, "given", None)
-    if given is None and from_file is not None and np.asarray(from_file).size > 3:
-        return ResolvedOrigin(np.asarray(from_file).reshape(-1, 3), "file", None)
+    if from_file is not None and np.asarray(from_file).size > 3:
+        if given is None:
+            return ResolvedOrigin(np.asarray(from_file).reshape(-1, 3), "file", None)
+        from_file = None  # one given origin overrides the file's stations
     resolved = resolve_origin(
         side,
         points,
