@@ -104,7 +104,7 @@ class Scan(Base):
     )
     site_id: Mapped[str] = mapped_column(ForeignKey("site.id", ondelete="CASCADE"), index=True)
     filename: Mapped[str] = mapped_column(String(255))  # sanitised display name
-    format: Mapped[str] = mapped_column(String(16))  # ply, pcd, las, laz, e57, xyz, csv, txt, npy, npz
+    format: Mapped[str] = mapped_column(String(16))  # ply pcd las laz e57 xyz csv txt npy npz
     size_bytes: Mapped[int] = mapped_column(Integer)
     sha256: Mapped[str] = mapped_column(String(64))
     storage_path: Mapped[str] = mapped_column(String(500))  # relative to the data directory
