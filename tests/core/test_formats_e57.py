@@ -271,3 +271,36 @@ def test_one_given_origin_for_a_file_of_several_stations_is_refused():
             align=False,
             params={"reference_origin": [1.0, 2.0, 3.0]},
         )
+
+
+def test_a_station_index_alone_gets_each_station_origin_estimated():
+    pair = lidar_pair(
+        layout="warehouse", change="added", n_stations=3, angular_step_deg=1.0, random_state=6
+    )
+    reference = read_point_cloud(
+        ply_bytes(
+            pair.reference,
+            coordinate_type="f8",
+            extra={"station": pair.reference_station.astype(np.int32)},
+        ),
+        filename="reference.ply",
+    )
+    scan = read_point_cloud(
+        ply_bytes(
+            pair.scan,
+            coordinate_type="f8",
+            extra={"scan_index": pair.scan_station.astype(np.int32)},
+        ),
+        filename="scan.ply",
+    )
+
+    result = compare(reference, scan, method="gmm", variant="improved", align=False)
+
+    for side, truth in (("reference", pair.reference_origins), ("scan", pair.scan_origins)):
+        entries = result.sensor_origins[side]
+        assert [entry["source"] for entry in entries] == ["estimated"] * 3
+        found = np.array([entry["origin"] for entry in entries])
+        assert np.linalg.norm(found - truth, axis=1).max() < 0.05
+    assert result.localisation["scan_station_assignment"] == "given"
+    assert result.changed
+    assert changed_iou(pair, result) >= 0.9
