@@ -23,6 +23,7 @@ import pytest
 
 from app.core.errors import InputError, PointCloudError
 from app.core.formats import detect_format, read_point_cloud, summarise_point_cloud
+from app.core.origins.stations import estimate_each_station
 from app.core.pipeline import compare
 from app.core.synthetic_lidar import LidarPair, lidar_pair
 from tests.helpers.clouds import assert_summary_of
@@ -275,7 +276,7 @@ def test_one_given_origin_for_a_file_of_several_stations_is_refused():
 
 def test_a_station_index_alone_gets_each_station_origin_estimated():
     pair = lidar_pair(
-        layout="warehouse", change="added", n_stations=3, angular_step_deg=1.0, random_state=6
+        layout="room", change="added", n_stations=3, angular_step_deg=1.2, random_state=3
     )
     reference = read_point_cloud(
         ply_bytes(
@@ -304,3 +305,11 @@ def test_a_station_index_alone_gets_each_station_origin_estimated():
     assert result.localisation["scan_station_assignment"] == "given"
     assert result.changed
     assert changed_iou(pair, result) >= 0.9
+
+
+def test_a_station_index_without_lidar_structure_gets_no_estimated_origins():
+    points = np.random.default_rng(8).uniform(0, 10, (9000, 3))
+    station = np.repeat([0, 1, 2], 3000)
+    assert estimate_each_station("reference", points, station) is None
+    with pytest.raises(InputError, match="whole numbers"):
+        estimate_each_station("reference", points, station + 0.5)
