@@ -19,7 +19,7 @@ import httpx
 import numpy as np
 import pytest
 
-from tests.helpers.files import e57_bytes, ply_bytes
+from tests.helpers.files import e57_bytes, las_bytes, ply_bytes
 from tests.helpers.http import assert_error, site_with_reference, upload
 from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
@@ -111,6 +111,18 @@ def test_sensor_origin_takes_a_json_list_of_stations(
         "invalid_sensor_origin",
     )
     assert "names 3 stations" in too_few and "one origin per station" in too_few
+    las_too_few = assert_error(
+        upload(
+            writer,
+            site["id"],
+            las_bytes(points, extra={"scan_index": station.astype(np.int32)}),
+            filename="s.las",
+            sensor_origin=json.dumps(ORIGINS[:1]),
+        ),
+        422,
+        "invalid_sensor_origin",
+    )
+    assert "names 3 stations" in las_too_few
     e57_too_few = assert_error(
         upload(writer, site["id"], survey_e57(), filename="s.e57", sensor_origin="0,0,0"),
         422,

@@ -39,6 +39,7 @@ from app.core.formats import text as _text
 from app.core.formats._common import RawCloud, Source, SourceLike, file_rows_of, open_source
 from app.core.formats.e57 import E57_SIGNATURE, read_e57
 from app.core.formats.las import (
+    extra_dimension_names,
     is_compressed_point_format,
     read_las,
     summarise_las,
@@ -47,7 +48,7 @@ from app.core.formats.las import (
 from app.core.formats.npy import read_npy, read_npz
 from app.core.formats.pcd import read_pcd
 from app.core.formats.ply import read_ply, write_ply
-from app.core.formats.stations import with_station_fields
+from app.core.formats.stations import has_station_fields, with_station_fields
 from app.core.threads import available_threads
 
 SUPPORTED_FORMATS: tuple[str, ...] = (
@@ -318,6 +319,8 @@ def summarise_point_cloud(
         )
 
     def build_las(opened: Source, max_points: int | None, threads: int) -> CloudSummary:
+        if has_station_fields(extra_dimension_names(opened)):  # decoded whole, to count them
+            return build(read_las(opened, max_points, threads=threads), opened)
         return summarise_las(opened, max_points, threads=threads)
 
     return _decode(source, format, filename, max_points, threads, build, build_las)

@@ -95,6 +95,12 @@ def summarise_las(source: Source, max_points: int | None, *, threads: int = 1) -
         return bounds.summary(n_points)
 
 
+def extra_dimension_names(source: Source) -> tuple[str, ...]:
+    """Names of the extra-bytes dimensions the LAS/LAZ header declares (after its checks)."""
+    with _opened_points(source, None, 1) as (reader, _, _):
+        return tuple(reader.header.point_format.extra_dimension_names)
+
+
 @contextmanager
 def _opened_points(
     source: Source, max_points: int | None, threads: int

@@ -19,6 +19,8 @@ E57 files carry both already (:mod:`app.core.formats.e57`).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -31,6 +33,11 @@ ORIGIN_NAMES = ("origin_x", "origin_y", "origin_z")
 """Field names read as a per-point sensor origin (case-insensitive)."""
 MAX_STATIONS = 1024
 """Most distinct per-point origins accepted (more is a trajectory, not a set of stations)."""
+
+
+def has_station_fields(names: Iterable[str]) -> bool:
+    """Whether any of the field ``names`` is a station index or a per-point origin field."""
+    return bool({name.lower() for name in names} & {*STATION_INDEX_NAMES, *ORIGIN_NAMES})
 
 
 def with_station_fields(raw: RawCloud) -> RawCloud:
