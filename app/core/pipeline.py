@@ -45,7 +45,6 @@ from app.core.localise import (
     start_neighbourhood_search,
 )
 from app.core.localise.settings import as_origins
-from app.core.localise.stations import STATION_INDEX_ATTRIBUTE
 from app.core.origins.resolve import ResolvedOrigin
 from app.core.origins.stations import origins_in_local_frame, resolve_stations, station_index_of
 from app.core.parameters import ParamSpec, validate_parameters
@@ -397,7 +396,7 @@ def compare(
         from_file=origins_in_local_frame(None, reference.sensor_origin, local_origin),
         estimate=settings.estimate_origins,
         recover=settings.recover_stations,
-        station=reference.attributes.get(STATION_INDEX_ATTRIBUTE),
+        station_of=reference,
     )
     reference_origin = resolved_reference.origin
     reference_station = station_index_of(reference, resolved_reference, "reference")
@@ -574,5 +573,5 @@ def _resolve_scan_origin(
         from_file=aligned(origins_in_local_frame(None, scan.sensor_origin, local_origin)),
         estimate=settings.estimate_origins,
         recover=settings.recover_stations,
-        station=scan.attributes.get(STATION_INDEX_ATTRIBUTE),
+        station_of=scan,
     )

@@ -319,7 +319,8 @@ def summarise_point_cloud(
         )
 
     def build_las(opened: Source, max_points: int | None, threads: int) -> CloudSummary:
-        if has_station_fields(extra_dimension_names(opened)):  # decoded whole, to count them
+        # station fields: decoded whole, to count the stations
+        if has_station_fields(extra_dimension_names(opened, max_points)):
             return build(read_las(opened, max_points, threads=threads), opened)
         return summarise_las(opened, max_points, threads=threads)
 

@@ -376,7 +376,7 @@ def resolve_stations(
     estimate: bool,
     recover: bool,
     random_state: int = 0,
-    station: NDArray | None = None,
+    station_of: PointCloud | None = None,
 ) -> ResolvedOrigin:
     """The origin(s) of one cloud: several given, or one resolved, or stations recovered.
 
@@ -396,10 +396,11 @@ def resolve_stations(
     from_file : ndarray, shape (3,) or (k, 3), or None
     estimate, recover : bool
     random_state : int
-    station : ndarray, shape (n,), optional
-        The cloud's per-point station index (a file's ``station_index`` field).  With no
-        origin given or in the file and several stations, each station's origin is estimated
-        from its own points (:func:`estimate_each_station`).
+    station_of : PointCloud, optional
+        The cloud ``points`` come from (in its order): its ``station_index`` attribute, if any,
+        says which station took each point.  With no origin given or in the file and several
+        stations, each station's origin is estimated from its own points
+        (:func:`estimate_each_station`).
 
     Returns
     -------
@@ -413,6 +414,7 @@ def resolve_stations(
         if given is None:
             return ResolvedOrigin(np.asarray(from_file).reshape(-1, 3), "file", None)
         from_file = None  # one given origin overrides the file's stations
+    station = None if station_of is None else station_of.attributes.get(STATION_INDEX_ATTRIBUTE)
     if given is None and from_file is None and estimate and station is not None:
         each = estimate_each_station(side, points, station, random_state)
         if each is not None:
