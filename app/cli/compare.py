@@ -63,7 +63,43 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="both files are in their sensor's frame (sensor at 0,0,0): enables the "
         "visibility test that tells occluded from removed",
     )
+    parser.add_argument(
+        "--sensor-origin",
+        action="append",
+        default=[],
+        metavar="X,Y,Z",
+        help="where the sensor stood for REFERENCE, in its file's frame; repeat once per "
+        "station for a cloud merged from several stations (in the order of its per-point "
+        "station index, if any). Default: the file's own (PCD VIEWPOINT, E57 scan poses, "
+        "origin_x/y/z fields), else estimated from the points",
+    )
+    parser.add_argument(
+        "--scan-origin",
+        action="append",
+        default=[],
+        metavar="X,Y,Z",
+        help="the same for SCAN (repeatable, one per station)",
+    )
     parser.set_defaults(handler=run)
+
+
+def _parse_origins(values: list[str], flag: str) -> list[list[float]] | None:
+    """``--sensor-origin``/``--scan-origin`` values as (k, 3) nested lists (None: not given)."""
+    import math
+
+    origins = []
+    for value in values:
+        try:
+            numbers = [float(part) for part in value.split(",")]
+        except ValueError:
+            numbers = []
+        if len(numbers) != 3 or not all(math.isfinite(number) for number in numbers):
+            raise InputError(
+                f"{flag} takes three finite numbers X,Y,Z (e.g. {flag} 12.5,-3,1.4; repeat it "
+                f"once per station), got {value!r}"
+            )
+        origins.append(numbers)
+    return origins or None
 
 
 def _parse_params(pairs: list[str]) -> dict[str, Any]:
@@ -189,6 +225,17 @@ def run(args: argparse.Namespace) -> int:
             if path is not None and path.suffix.lower() not in allowed:
                 raise InputError(f"{path} must end in one of {', '.join(sorted(allowed))}")
         params = _parse_params(args.param)
+        for flag, values, key in (
+            ("--sensor-origin", args.sensor_origin, "reference_origin"),
+            ("--scan-origin", args.scan_origin, "scan_origin"),
+        ):
+            origins = _parse_origins(values, flag)
+            if origins is None:
+                continue
+            if key in params or args.sensor_frame:
+                given = f"--param {key}" if key in params else "--sensor-frame"
+                raise InputError(f"give either {flag} or {given}, not both")
+            params[key] = origins[0] if len(origins) == 1 else origins
         if args.sensor_frame:
             params.setdefault("reference_origin", [0.0, 0.0, 0.0])
             params.setdefault("scan_origin", [0.0, 0.0, 0.0])

@@ -204,24 +204,30 @@ def checked_attributes(
 
 
 def checked_sensor_origin(sensor_origin: NDArray | None) -> NDArray[np.float64] | None:
-    """The sensor origin as a finite float64 array (None stays None).
+    """The sensor origin(s) as a finite float64 array (None stays None).
 
     Parameters
     ----------
-    sensor_origin : array_like, shape (3,), or None
+    sensor_origin : array_like, shape (3,) or (k, 3), or None
+        One origin, or one per station of a cloud merged from k stations (an E57 file's
+        scans, per-point origin fields).
 
     Returns
     -------
-    ndarray, shape (3,), float64, or None
+    ndarray, shape (3,) or (k, 3), float64, or None
 
     Raises
     ------
     PointCloudError
-        A coordinate is NaN or infinite.
+        A coordinate is NaN or infinite, or the shape is neither (3,) nor (k, 3).
     """
     if sensor_origin is None:
         return None
-    origin = np.asarray(sensor_origin, dtype=np.float64).reshape(3)
+    origin = np.asarray(sensor_origin, dtype=np.float64)
+    if origin.size == 3:
+        origin = origin.reshape(3)
+    elif origin.ndim != 2 or origin.shape[1] != 3 or origin.shape[0] == 0:
+        raise PointCloudError(f"sensor origins must have shape (3,) or (k, 3), got {origin.shape}")
     if not np.isfinite(origin).all():
         raise PointCloudError(f"sensor origin {origin.tolist()} is not finite")
     return origin
@@ -242,9 +248,11 @@ class PointCloud:
         Number of rows in the source, including dropped non-finite rows.
     attributes : mapping of str to ndarray, each shape (n, ...)
         Extra per-point fields kept from the file (intensity, rgb, normals, ...).
-    sensor_origin : ndarray, shape (3,), float64, or None
+    sensor_origin : ndarray, shape (3,) or (k, 3), float64, or None
         Where the sensor was when the scan was taken, in the same frame as ``points``, when
-        known (a PCD ``VIEWPOINT``, a synthetic scene, or given by the caller).
+        known (a PCD ``VIEWPOINT``, a synthetic scene, or given by the caller); (k, 3) for a
+        cloud merged from k stations (an E57 file's scans, per-point origin fields), whose
+        ``station_index`` attribute says which station took each point.
     """
 
     points: NDArray[np.float64]
@@ -271,8 +279,8 @@ class PointCloud:
             Coordinates in file order; converted to float64.
         attributes : mapping of str to array_like, each shape (n, ...), optional
             Per-point fields in the same order; rows are dropped together with the points.
-        sensor_origin : array_like, shape (3,), optional
-            Sensor position in the same frame.
+        sensor_origin : array_like, shape (3,) or (k, 3), optional
+            Sensor position(s) in the same frame.
         min_points : int
             Raise :class:`PointCloudError` when fewer finite points remain.
         threads : int, optional

@@ -53,7 +53,10 @@ class CloudSummary:
         Finite rows: the points the cloud would hold.
     low, high : ndarray, shape (3,), float64
         Axis-aligned bounding box of the finite points (``PointCloud.bounds()``).
-    sensor_origin : ndarray, shape (3,), float64, or None
+    sensor_origin : ndarray, shape (3,) or (k, 3), float64, or None
+    n_stations : int or None
+        With a ``station_index`` attribute: the number of stations it refers to (its largest
+        value + 1), which origins given for the cloud must match.
     """
 
     n_source: int
@@ -61,6 +64,7 @@ class CloudSummary:
     low: NDArray[np.float64]
     high: NDArray[np.float64]
     sensor_origin: NDArray[np.float64] | None = None
+    n_stations: int | None = None
 
     @property
     def n_dropped(self) -> int:
@@ -89,7 +93,7 @@ def summarise_array(
         Coordinates in file order, any numeric dtype, strides and alignment.
     attributes : mapping of str to array_like, each shape (n, ...), optional
         Per-point fields: only their row counts are checked.
-    sensor_origin : array_like, shape (3,), optional
+    sensor_origin : array_like, shape (3,) or (k, 3), optional
     min_points : int
         Raise :class:`PointCloudError` when fewer finite points remain.
     threads : int, optional
@@ -236,7 +240,7 @@ class FiniteBounds:
             Raise :class:`PointCloudError` when fewer finite points were added.
         attributes : mapping of str to array_like, each shape (n_source, ...), optional
             Per-point fields: only their row counts are checked.
-        sensor_origin : array_like, shape (3,), optional
+        sensor_origin : array_like, shape (3,) or (k, 3), optional
 
         Returns
         -------
@@ -244,8 +248,10 @@ class FiniteBounds:
         """
         check_not_empty(n_source)
         check_finite_count(self.n_finite, n_source, min_points)
-        checked_attributes(attributes, n_source)
+        checked = checked_attributes(attributes, n_source)
         low, high = self.bounds()
+        station = checked.get("station_index")
+        n_stations = int(np.max(station)) + 1 if station is not None and station.size else None
         return CloudSummary(
-            n_source, self.n_finite, low, high, checked_sensor_origin(sensor_origin)
+            n_source, self.n_finite, low, high, checked_sensor_origin(sensor_origin), n_stations
         )

@@ -409,6 +409,7 @@ def compare(
         from_file=origins_in_local_frame(None, reference.sensor_origin, local_origin),
         estimate=settings.estimate_origins,
         recover=settings.recover_stations,
+        station_of=reference,
     )
     reference_origin = resolved_reference.origin
     reference_station = station_index_of(reference, resolved_reference, "reference")
@@ -595,4 +596,5 @@ def _resolve_scan_origin(
         from_file=aligned(origins_in_local_frame(None, scan.sensor_origin, local_origin)),
         estimate=settings.estimate_origins,
         recover=settings.recover_stations,
+        station_of=scan,
     )

@@ -107,7 +107,7 @@ class Scan(Base):
     )
     site_id: Mapped[str] = mapped_column(ForeignKey("site.id", ondelete="CASCADE"), index=True)
     filename: Mapped[str] = mapped_column(String(255))  # sanitised display name
-    format: Mapped[str] = mapped_column(String(16))  # ply, pcd, las, laz, xyz, csv, txt, npy, npz
+    format: Mapped[str] = mapped_column(String(16))  # ply pcd las laz e57 xyz csv txt npy npz
     size_bytes: Mapped[int] = mapped_column(Integer)
     sha256: Mapped[str] = mapped_column(String(64))
     storage_path: Mapped[str] = mapped_column(String(500))  # relative to the data directory
@@ -116,8 +116,11 @@ class Scan(Base):
     bbox_min: Mapped[list[float]] = mapped_column(JSON)
     bbox_max: Mapped[list[float]] = mapped_column(JSON)
     # Where the sensor was, in the file's frame: from the upload's ?sensor_origin= or the file
-    # itself (a PCD VIEWPOINT). Lets localisation tell occluded (unobserved) from removed.
-    sensor_origin: Mapped[list[float] | None] = mapped_column(JSON, nullable=True)
+    # itself (a PCD VIEWPOINT, E57 scan poses). Lets localisation tell occluded (unobserved)
+    # from removed. [x, y, z], or [[x, y, z], ...] for a cloud merged from several stations.
+    sensor_origin: Mapped[list[float] | list[list[float]] | None] = mapped_column(
+        JSON, nullable=True
+    )
     created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now, index=True)
 
 

@@ -121,8 +121,9 @@ class ClaimedJob:
     scan_path: Path | None
     scan_format: str | None
     scan_filename: str | None
-    reference_sensor_origin: list[float] | None = None
-    scan_sensor_origin: list[float] | None = None
+    reference_sensor_origin: list[float] | list[list[float]] | None = None
+    """One origin, or one per station of a merged cloud (as stored on the scan)."""
+    scan_sensor_origin: list[float] | list[list[float]] | None = None
     request_id: str | None = None
     """The id of the API request that created the job (carried by its log lines)."""
     site_calibration: dict[str, Any] | None = None

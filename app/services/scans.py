@@ -15,7 +15,6 @@ the rolled-back transaction.
 from __future__ import annotations
 
 import dataclasses
-import math
 import threading
 from collections.abc import AsyncIterator, Sequence
 from dataclasses import dataclass
@@ -30,11 +29,12 @@ from app.config import Settings
 from app.db.models import IdempotencyRecord, Scan, new_id
 from app.services import idempotency, jobs, quotas, sites, storage
 from app.services.auth import Principal
-from app.services.errors import ConflictError, NotFoundError, ValidationFailedError
+from app.services.errors import ConflictError, NotFoundError
 from app.services.idempotency import StoredResponse
 from app.services.paging import newest_first_page
 from app.services.schemas import JobRead, ScanRead, UploadRead
 from app.services.scoping import get_owned, scoped
+from app.services.sensor_origins import SensorOrigin, check_stations_match
 from app.services.transaction import after_rollback, end_read_transaction
 
 PARSE_SLOTS = threading.BoundedSemaphore(2)
@@ -52,7 +52,7 @@ class UploadOptions:
     method: str | None = None
     variant: str | None = None
     idempotency_key: str | None = None
-    sensor_origin: list[float] | None = None
+    sensor_origin: SensorOrigin | None = None
     declared_size: int | None = None
     """The file's size when known before reading the body (a raw body's ``Content-Length``)."""
 
@@ -79,7 +79,9 @@ class ParsedScan:
     n_dropped: int
     bbox_min: list[float]
     bbox_max: list[float]
-    sensor_origin: list[float] | None = None
+    sensor_origin: SensorOrigin | None = None
+    n_stations: int | None = None
+    """Stations the file's per-point station index names (None: no index)."""
 
 
 @dataclass(frozen=True)
@@ -155,24 +157,6 @@ def _find_replay(
     return stored
 
 
-def parse_sensor_origin(text: str | None) -> list[float] | None:
-    """``"x,y,z"`` as three finite floats; 422 with a message otherwise."""
-    if text is None or text == "":
-        return None
-    parts = text.split(",")
-    try:
-        values = [float(part) for part in parts]
-    except ValueError:
-        values = []
-    if len(values) != 3 or not all(math.isfinite(value) for value in values):
-        raise ValidationFailedError(
-            f"sensor_origin must be three finite numbers 'x,y,z' in the file's frame "
-            f"(e.g. 0,0,0 for a scan in its sensor's frame), got {text!r}",
-            code="invalid_sensor_origin",
-        )
-    return values
-
-
 def parse_upload(path: Path, filename: str | None, head: bytes, max_points: int) -> ParsedScan:
     """Detect the format and check the cloud with the core, without loading it (raises the
     core's errors)."""
@@ -189,9 +173,8 @@ def parse_upload(path: Path, filename: str | None, head: bytes, max_points: int)
             n_dropped=summary.n_dropped,
             bbox_min=[float(value) for value in summary.low],
             bbox_max=[float(value) for value in summary.high],
-            sensor_origin=(
-                None if summary.sensor_origin is None else [float(v) for v in summary.sensor_origin]
-            ),
+            sensor_origin=None if summary.sensor_origin is None else summary.sensor_origin.tolist(),
+            n_stations=summary.n_stations,
         )
 
 
@@ -287,6 +270,7 @@ async def upload_scan(
         parsed = await anyio.to_thread.run_sync(
             parse_upload, received.path, filename, received.head, settings.max_points
         )
+        check_stations_match(options.sensor_origin, parsed.n_stations)
         scan_id = new_id()
         storage_path = storage.scan_storage_path(options.site_id, scan_id, parsed.format)
         final_path = storage.resolve_data_path(settings, storage_path)

@@ -126,7 +126,11 @@ class ScanRead(RowRead):
     n_dropped: int
     bbox_min: list[float]
     bbox_max: list[float]
-    sensor_origin: list[float] | None = None
+    sensor_origin: list[float] | list[list[float]] | None = Field(
+        default=None,
+        description="Where the sensor was, in the file's frame: [x, y, z], or one per station "
+        "[[x, y, z], ...] for a cloud merged from several stations (an E57 file's scans).",
+    )
     created_at: UtcDatetime
 
 

@@ -12,6 +12,7 @@ import pytest
 from plyfile import PlyData
 
 from app.core.synthetic import raycast_scene
+from app.core.synthetic_lidar import lidar_pair
 from tests.helpers.files import ply_bytes
 
 REQUIRED_KEYS = {
@@ -145,3 +146,66 @@ def test_token_cli_roles_match_the_service():
     from app.services import auth
 
     assert tokens.ROLES == auth.ROLES
+
+
+@pytest.fixture(scope="module")
+def survey_files(tmp_path_factory):
+    """A 3-station survey pair (a box added) as PLY files with a per-point ``station`` field."""
+    directory = tmp_path_factory.mktemp("survey")
+    pair = lidar_pair(
+        layout="room", change="added", n_stations=3, angular_step_deg=1.5, random_state=4
+    )
+    paths = []
+    for name, points, station in (
+        ("reference", pair.reference, pair.reference_station),
+        ("scan", pair.scan, pair.scan_station),
+    ):
+        path = directory / f"{name}.ply"
+        path.write_bytes(
+            ply_bytes(points, coordinate_type="f8", extra={"station": station.astype(np.uint8)})
+        )
+        paths.append(path)
+    return paths[0], paths[1], pair
+
+
+def origin_flags(flag: str, origins: np.ndarray) -> list[str]:
+    return [part for origin in origins for part in (flag, ",".join(map(repr, origin.tolist())))]
+
+
+def test_station_origins_on_the_command_line(survey_files):
+    reference_path, scan_path, pair = survey_files
+    completed = run_cli(
+        reference_path,
+        scan_path,
+        "--json",
+        "--no-align",
+        *origin_flags("--sensor-origin", pair.reference_origins),
+        *origin_flags("--scan-origin", pair.scan_origins),
+    )
+    assert completed.returncode == 0, completed.stderr
+    report = json.loads(completed.stdout)
+    for side, origins in (("reference", pair.reference_origins), ("scan", pair.scan_origins)):
+        entries = report["sensor_origins"][side]
+        assert [entry["source"] for entry in entries] == ["given"] * 3
+        np.testing.assert_allclose([entry["origin"] for entry in entries], origins)
+    assert report["changed"] is True
+
+
+@pytest.mark.parametrize(
+    ("flags", "fragment"),
+    [
+        (["--sensor-origin", "1,2"], "--sensor-origin takes three finite numbers"),
+        (["--scan-origin", "1,2,nan"], "--scan-origin takes three finite numbers"),
+        (["--sensor-origin", "1,2,3", "--sensor-frame"], "not both"),
+        (["--scan-origin", "1,2,3", "--param", "scan_origin=[0,0,0]"], "not both"),
+        (["--sensor-origin", "1,2,3", "--sensor-origin", "4,5,6"], "station_index"),
+    ],
+    ids=["two-numbers", "nan", "sensor-frame", "param", "fewer-than-stations"],
+)
+def test_bad_origins_exit_2_saying_what_to_fix(survey_files, flags, fragment):
+    reference_path, scan_path, _ = survey_files
+    completed = run_cli(reference_path, scan_path, "--no-align", *flags)
+    assert completed.returncode == 2, completed.stdout
+    lines = completed.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("scandiff: error:")
+    assert fragment in lines[0]

@@ -414,7 +414,7 @@ def test_undetectable_content_is_unsupported_and_lists_formats(filename):
 
 def test_unknown_explicit_format_is_unsupported():
     with pytest.raises(UnsupportedFormatError, match="supported formats"):
-        read_point_cloud(b"whatever", format="e57")
+        read_point_cloud(b"whatever", format="rcp")
 
 
 # ----------------------------------------------------------------------------------------------

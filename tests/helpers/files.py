@@ -1,18 +1,22 @@
 """Point-cloud files as bytes, one writer per format (the reference libraries write them).
 
 PLY through plyfile, PCD through pypcd4 (or by hand for record layouts pypcd4 cannot write),
-LAS/LAZ through laspy, NPY/NPZ through numpy, XYZ/CSV as text.  Each takes (n, 3) points and
-the options the tests need; write to disk with ``path.write_bytes(ply_bytes(points))``.
+LAS/LAZ through laspy, E57 through pye57, NPY/NPZ through numpy, XYZ/CSV as text.  Each takes
+(n, 3) points and the options the tests need; write to disk with
+``path.write_bytes(ply_bytes(points))``.
 """
 
 from __future__ import annotations
 
 import io
+import tempfile
 from collections.abc import Iterator, Sequence
+from pathlib import Path
 
 import laspy
 import numpy as np
 import plyfile
+import pye57
 import pypcd4
 from numpy.typing import NDArray
 
@@ -161,6 +165,41 @@ def las_bytes(
     stream = io.BytesIO()
     las.write(stream, do_compress=compress)
     return stream.getvalue()
+
+
+def e57_bytes(
+    scans: Sequence[NDArray[np.float64]],
+    poses: Sequence[tuple[Sequence[float], Sequence[float]]] | None = None,
+    intensity: bool = False,
+    invalid: Sequence[NDArray[np.bool_] | None] | None = None,
+) -> bytes:
+    """An E57 file with one scan per (n_i, 3) array of ``scans``, each in its sensor's frame.
+
+    ``poses[i]`` is ``(rotation quaternion w, x, y, z; translation x, y, z)`` placing scan i in
+    the file's frame (default: the identity); ``intensity`` adds an intensity that counts up;
+    ``invalid[i]`` flags points of scan i invalid (``cartesianInvalidState``).
+    """
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "scans.e57"
+        with pye57.E57(str(path), mode="w") as writer:
+            for index, points in enumerate(scans):
+                data = {
+                    "cartesianX": points[:, 0],
+                    "cartesianY": points[:, 1],
+                    "cartesianZ": points[:, 2],
+                }
+                if intensity:
+                    data["intensity"] = np.arange(len(points), dtype=np.float32)
+                if invalid is not None and invalid[index] is not None:
+                    data["cartesianInvalidState"] = np.asarray(invalid[index], dtype=np.int8)
+                rotation, translation = ((1, 0, 0, 0), (0, 0, 0)) if poses is None else poses[index]
+                writer.write_scan_raw(
+                    data,
+                    name=f"scan {index}",
+                    rotation=np.asarray(rotation, dtype=np.float64),
+                    translation=np.asarray(translation, dtype=np.float64),
+                )
+        return path.read_bytes()
 
 
 def npy_bytes(array: NDArray) -> bytes:

@@ -222,8 +222,8 @@ def test_sensor_origins_stored_with_the_scans_reach_compare(
     with transaction(job_settings.sqlalchemy_url) as session:
         job = session.get(Job, job_id)
         session.get(Scan, job.reference_scan_id).sensor_origin = [1.0, 2.0, 3.0]
-        session.get(Scan, job.scan_id).sensor_origin = [0.0, 0.0, 0.5]
+        session.get(Scan, job.scan_id).sensor_origin = [[0.0, 0.0, 0.5], [4.0, 1.0, 1.5]]
 
     assert execute_job(job_id, job_settings) == "succeeded"
     np.testing.assert_array_equal(seen["reference"], [1.0, 2.0, 3.0])
-    np.testing.assert_array_equal(seen["scan"], [0.0, 0.0, 0.5])
+    np.testing.assert_array_equal(seen["scan"], [[0.0, 0.0, 0.5], [4.0, 1.0, 1.5]])  # stations

@@ -14,6 +14,7 @@ from app.api.uploads import RawBody, UploadBodyDep, declared_length
 from app.db.models import JobStatus
 from app.services import jobs as jobs_service
 from app.services import scans as scans_service
+from app.services import sensor_origins as sensor_origins_service
 from app.services import sites as sites_service
 from app.services.paging import DEFAULT_LIMIT, MAX_LIMIT
 from app.services.schemas import (
@@ -129,10 +130,12 @@ async def upload_scan(
     sensor_origin: Annotated[
         str | None,
         Query(
-            max_length=200,
+            max_length=65_536,
             description="Sensor position 'x,y,z' in the file's frame (0,0,0 for a scan in its "
-            "sensor's frame); enables the visibility test. Default: the file's own (PCD "
-            "VIEWPOINT), else unknown.",
+            "sensor's frame), or for a cloud merged from several stations a JSON list "
+            "'[[x,y,z],...]' in the order of the file's per-point station index; enables the "
+            "visibility test. Default: the file's own (PCD VIEWPOINT, E57 scan poses, per-point "
+            "origin_x/y/z), else estimated from the points.",
         ),
     ] = None,
     idempotency_key: Annotated[str | None, Header(alias="Idempotency-Key")] = None,
@@ -145,7 +148,7 @@ async def upload_scan(
         method=method,
         variant=variant,
         idempotency_key=idempotency_key,
-        sensor_origin=scans_service.parse_sensor_origin(sensor_origin),
+        sensor_origin=sensor_origins_service.parse_sensor_origin(sensor_origin),
         declared_size=declared_length(request) if isinstance(body, RawBody) else None,
     )
     stored = await scans_service.upload_scan(session, settings, principal, options, body)

@@ -1,6 +1,7 @@
 """Point-cloud file formats: detection, reading and writing.
 
-One module per format family (:mod:`.ply`, :mod:`.pcd`, :mod:`.las`, :mod:`.text`, :mod:`.npy`);
+One module per format family (:mod:`.ply`, :mod:`.pcd`, :mod:`.las`, :mod:`.e57`, :mod:`.text`,
+:mod:`.npy`);
 this package chooses the family from the file suffix or, when the suffix is missing, unknown or
 contradicted by the content, from the content's magic bytes.
 
@@ -36,7 +37,9 @@ from app.core.cloud_summary import CloudSummary, summarise_array
 from app.core.errors import PointCloudError, UnsupportedFormatError
 from app.core.formats import text as _text
 from app.core.formats._common import RawCloud, Source, SourceLike, file_rows_of, open_source
+from app.core.formats.e57 import E57_SIGNATURE, read_e57
 from app.core.formats.las import (
+    extra_dimension_names,
     is_compressed_point_format,
     read_las,
     summarise_las,
@@ -45,9 +48,21 @@ from app.core.formats.las import (
 from app.core.formats.npy import read_npy, read_npz
 from app.core.formats.pcd import read_pcd
 from app.core.formats.ply import read_ply, write_ply
+from app.core.formats.stations import has_station_fields, with_station_fields
 from app.core.threads import available_threads
 
-SUPPORTED_FORMATS: tuple[str, ...] = ("ply", "pcd", "las", "laz", "xyz", "csv", "txt", "npy", "npz")
+SUPPORTED_FORMATS: tuple[str, ...] = (
+    "ply",
+    "pcd",
+    "las",
+    "laz",
+    "e57",
+    "xyz",
+    "csv",
+    "txt",
+    "npy",
+    "npz",
+)
 """Formats :func:`read_point_cloud` reads (names are the usual file suffixes)."""
 
 WRITABLE_FORMATS: tuple[str, ...] = ("ply", "las", "laz")
@@ -64,6 +79,7 @@ _READERS: dict[str, Callable[[Source, int | None], RawCloud]] = {
     "pcd": read_pcd,
     "las": read_las,
     "laz": read_las,
+    "e57": read_e57,
     "xyz": _text.read_text,
     "csv": _text.read_text,
     "txt": _text.read_text,
@@ -129,7 +145,8 @@ def sniff_format(head: bytes) -> str | None:
     """The format the content's first bytes identify, or None.
 
     Magic bytes: ``ply`` + newline (PLY), ``# .PCD`` or a first header line ``VERSION``/``FIELDS``
-    (PCD), ``LASF`` (LAS/LAZ), ``\\x93NUMPY`` (NPY), ``PK\\x03\\x04`` (NPZ, a zip archive);
+    (PCD), ``LASF`` (LAS/LAZ), ``ASTM-E57`` (E57), ``\\x93NUMPY`` (NPY), ``PK\\x03\\x04`` (NPZ, a
+    zip archive);
     otherwise UTF-8 text whose first data row has at least three numbers is ``csv`` when
     comma-separated and ``xyz`` otherwise.
     """
@@ -139,6 +156,8 @@ def sniff_format(head: bytes) -> str | None:
         if len(head) > 104 and is_compressed_point_format(head[104]):
             return "laz"
         return "las"
+    if head.startswith(E57_SIGNATURE):
+        return "e57"
     if head.startswith(b"\x93NUMPY"):
         return "npy"
     if head.startswith((b"PK\x03\x04", b"PK\x05\x06")):
@@ -223,7 +242,10 @@ def read_point_cloud(
     -------
     PointCloud
         ``points`` (n, 3) float64; ``attributes`` holds the file's other per-point fields;
-        ``sensor_origin`` comes from a PCD ``VIEWPOINT`` when it is not the default one.
+        ``sensor_origin`` comes from a PCD ``VIEWPOINT`` when it is not the default one, from
+        an E57 file's scan poses ((k, 3) for k scans) or from per-point origin fields; a
+        ``station_index`` attribute says which station took each point (E57 scans, per-point
+        fields: :mod:`app.core.formats.stations`).
 
     Raises
     ------
@@ -234,6 +256,7 @@ def read_point_cloud(
     """
 
     def build(raw: RawCloud, opened: Source) -> PointCloud:
+        raw = with_station_fields(raw)
         return PointCloud.from_array(
             raw.points,
             raw.attributes,
@@ -286,6 +309,7 @@ def summarise_point_cloud(
     """
 
     def build(raw: RawCloud, opened: Source) -> CloudSummary:
+        raw = with_station_fields(raw)
         return summarise_array(
             raw.points,
             raw.attributes,
@@ -295,6 +319,9 @@ def summarise_point_cloud(
         )
 
     def build_las(opened: Source, max_points: int | None, threads: int) -> CloudSummary:
+        # station fields: decoded whole, to count the stations
+        if has_station_fields(extra_dimension_names(opened, max_points)):
+            return build(read_las(opened, max_points, threads=threads), opened)
         return summarise_las(opened, max_points, threads=threads)
 
     return _decode(source, format, filename, max_points, threads, build, build_las)

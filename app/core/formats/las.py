@@ -95,6 +95,13 @@ def summarise_las(source: Source, max_points: int | None, *, threads: int = 1) -
         return bounds.summary(n_points)
 
 
+def extra_dimension_names(source: Source, max_points: int | None) -> tuple[str, ...]:
+    """Names of the extra-bytes dimensions the LAS/LAZ header declares (after the checks of
+    :func:`read_las`, same errors)."""
+    with _opened_points(source, max_points, 1) as (reader, _, _):
+        return tuple(reader.header.point_format.extra_dimension_names)
+
+
 @contextmanager
 def _opened_points(
     source: Source, max_points: int | None, threads: int

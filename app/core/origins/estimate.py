@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from app.core.origins.columns import column_lines, fit_column_centre, lattice_patches
 from app.core.origins.rings import fit_ring_height
+from app.core.origins.sharpen import sharpen_origin
 
 __all__ = ["CONFIDENT", "MIN_POINTS", "OriginEstimate", "estimate_origin"]
 
@@ -35,6 +36,12 @@ RING_SHARE_RANGE = (0.6, 0.85)
 """Ring share mapped onto confidence 0..1 (single stations: 0.95-1; four merged: 0.1-0.6)."""
 CONCURRING_RANGE = (0.04, 0.08)
 """Concurring-line share mapped onto confidence 0..1 (single stations ~0.10, four merged ~0.015)."""
+SHARPEN_RING_SHARE = 0.7
+"""An unconfident estimate with at least this ring share is sharpened on the rings
+(:mod:`~app.core.origins.sharpen`: real lidars whose columns are not half-planes)."""
+SPIKE_RANGE = (1.5, 3.0)
+"""Sharpened origins: elevation-sharpness spike mapped onto confidence 0..1 (KITTI HDL-64
+frames 3.4-3.6; merged stations and clouds without one origin 0.6-2.6)."""
 
 
 @dataclass(frozen=True)
@@ -49,7 +56,8 @@ class OriginEstimate:
         In [0, 1]; use the origin only from :data:`CONFIDENT`.
     evidence : dict
         ``concurring_share``, ``second_peak_ratio``, ``ring_share``, ``sharpness_gain``,
-        ``n_points``, ``seconds``.
+        ``n_points``, ``seconds``; ``sharpened_spike`` and ``sharpened_ring_share`` when the
+        estimate was sharpened on the rings (:mod:`~app.core.origins.sharpen`).
     """
 
     origin: NDArray[np.float64]
@@ -107,10 +115,16 @@ def estimate_origin(
         "ring_share": rings.ring_share,
         "sharpness_gain": rings.sharpness_gain,
         "n_points": float(len(points)),
-        "seconds": time.perf_counter() - started,
     }
-    return OriginEstimate(
-        origin=np.array([*columns.centre, rings.height]),
-        confidence=confidence,
-        evidence=evidence,
-    )
+    origin = np.array([*columns.centre, rings.height])
+    if confidence < CONFIDENT and rings.ring_share >= SHARPEN_RING_SHARE:
+        sharpened = sharpen_origin(points, patch, origin, rng)
+        sharpened_confidence = min(
+            _ramp(sharpened.ring_share, RING_SHARE_RANGE), _ramp(sharpened.spike, SPIKE_RANGE)
+        )
+        evidence["sharpened_spike"] = sharpened.spike
+        evidence["sharpened_ring_share"] = sharpened.ring_share
+        if sharpened_confidence > confidence:
+            origin, confidence = sharpened.origin, sharpened_confidence
+    evidence["seconds"] = time.perf_counter() - started
+    return OriginEstimate(origin=origin, confidence=confidence, evidence=evidence)

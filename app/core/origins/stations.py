@@ -36,6 +36,7 @@ from app.core.localise.stations import (
     STATION_INDEX_ATTRIBUTE,
     ring_contrast,
 )
+from app.core.origins.estimate import estimate_origin
 from app.core.origins.resolve import ResolvedOrigin, resolve_origin
 
 __all__ = [
@@ -375,13 +376,16 @@ def resolve_stations(
     estimate: bool,
     recover: bool,
     random_state: int = 0,
+    station_of: PointCloud | None = None,
 ) -> ResolvedOrigin:
     """The origin(s) of one cloud: several given, or one resolved, or stations recovered.
 
-    Several given origins (a merged survey's stations) are used as given.  One origin (given,
-    from the file or estimated) goes through :func:`~app.core.origins.resolve.resolve_origin`.
-    When that leaves the cloud without an origin and ``recover``, the cloud's stations are
-    recovered (:func:`recover_stations`) and used when there are several.
+    Several given origins (a merged survey's stations), or several from the file (an E57
+    file's scans, per-point origin fields) when none are given, are used as they are.  One
+    origin (given, from the file or estimated) goes through
+    :func:`~app.core.origins.resolve.resolve_origin`.  When that leaves the cloud without an
+    origin and ``recover``, the cloud's stations are recovered (:func:`recover_stations`) and
+    used when there are several.
 
     Parameters
     ----------
@@ -389,9 +393,14 @@ def resolve_stations(
     points : ndarray, shape (n, 3)
         In the frame the origins are used in (z up).
     given : ndarray, shape (k, 3), or None
-    from_file : ndarray, shape (1, 3) or (3,), or None
+    from_file : ndarray, shape (3,) or (k, 3), or None
     estimate, recover : bool
     random_state : int
+    station_of : PointCloud, optional
+        The cloud ``points`` come from (in its order): its ``station_index`` attribute, if any,
+        says which station took each point.  With no origin given or in the file and several
+        stations, each station's origin is estimated from its own points
+        (:func:`estimate_each_station`).
 
     Returns
     -------
@@ -401,6 +410,15 @@ def resolve_stations(
     """
     if given is not None and len(given) > 1:
         return ResolvedOrigin(given, "given", None)
+    if from_file is not None and np.asarray(from_file).size > 3:
+        if given is None:
+            return ResolvedOrigin(np.asarray(from_file).reshape(-1, 3), "file", None)
+        from_file = None  # one given origin overrides the file's stations
+    station = None if station_of is None else station_of.attributes.get(STATION_INDEX_ATTRIBUTE)
+    if given is None and from_file is None and estimate and station is not None:
+        each = estimate_each_station(side, points, station, random_state)
+        if each is not None:
+            return each
     resolved = resolve_origin(
         side,
         points,
@@ -421,6 +439,52 @@ def resolve_stations(
         resolved.warnings,
         resolved.evidence,
         station_confidence=[round(float(share), 3) for share in found.ring_share],
+    )
+
+
+def estimate_each_station(
+    side: str, points: NDArray[np.float64], station: NDArray, random_state: int = 0
+) -> ResolvedOrigin | None:
+    """Each station's origin estimated from its own points, when every estimate is confident.
+
+    Parameters
+    ----------
+    side : str
+    points : ndarray, shape (n, 3)
+    station : ndarray, shape (n,)
+        Station index of each point (whole numbers from 0).
+    random_state : int
+
+    Returns
+    -------
+    ResolvedOrigin or None
+        ``origin`` (k, 3) with ``source`` "estimated" and per-station confidences, when the
+        index names at least two stations and each one's estimate is confident; else None.
+
+    Raises
+    ------
+    InputError
+        ``station`` is not one whole number >= 0 per point.
+    """
+    try:
+        count = int(np.max(np.asarray(station))) + 1 if np.size(station) else 1
+    except (TypeError, ValueError):
+        count = 1  # not numbers: as_station_index says so
+    index = as_station_index(station, len(points), max(count, 1), f"the {side}'s station_index")
+    if index is None or index.size == 0 or index.max() < 1:
+        return None
+    estimates = [
+        estimate_origin(points[index == number], random_state=random_state)
+        for number in range(int(index.max()) + 1)
+    ]
+    if not all(found.confident for found in estimates):
+        return None
+    confidences = [round(float(found.confidence), 3) for found in estimates]
+    return ResolvedOrigin(
+        np.array([found.origin for found in estimates]),
+        "estimated",
+        min(confidences),
+        station_confidence=confidences,
     )
 
 
@@ -445,7 +509,8 @@ def origins_in_local_frame(
 def station_index_of(cloud: PointCloud, resolved: ResolvedOrigin, name: str) -> NDArray | None:
     """The cloud's ``station_index`` attribute, checked against origins given for it.
 
-    Used only with given (or file) origins, whose order it refers to; ignored otherwise.
+    Used only with given (or file) origins, whose order it refers to, or with origins estimated
+    station by station from it; ignored otherwise.
 
     Raises
     ------
@@ -453,7 +518,10 @@ def station_index_of(cloud: PointCloud, resolved: ResolvedOrigin, name: str) -> 
         Not one integer per point in ``0 .. k-1`` for the k origins.
     """
     station = cloud.attributes.get(STATION_INDEX_ATTRIBUTE)
-    if station is None or resolved.origin is None or resolved.source not in ("given", "file"):
+    if station is None or resolved.origin is None:
+        return None
+    per_station = resolved.source == "estimated" and np.asarray(resolved.origin).ndim == 2
+    if resolved.source not in ("given", "file") and not per_station:
         return None
     count = np.asarray(resolved.origin).reshape(-1, 3).shape[0]
     return as_station_index(station, len(cloud), count, f"the {name}'s station_index")
