@@ -35,14 +35,15 @@ from app.core.cloud import MIN_POINTS, PointCloud, choose_local_origin
 from app.core.detectors import make_detector
 from app.core.detectors.base import ChangeDetector
 from app.core.errors import InputError
+from app.core.geometry_cache import GeometryCache, reference_neighbourhoods
 from app.core.jsonable import json_safe
 from app.core.localise import (
     LABEL_CHANGED,
     LABEL_UNCHANGED,
     LABEL_UNOBSERVED,
+    Neighbourhoods,
     NeighbourhoodSearch,
     localise_changes,
-    start_neighbourhood_search,
 )
 from app.core.localise.settings import as_origins
 from app.core.origins.resolve import ResolvedOrigin
@@ -297,18 +298,20 @@ def _reference_neighbourhoods_ahead(
     reference_points: NDArray[np.float64],
     localisation_params: Mapping[str, Any],
     enabled: bool,
-) -> Iterator[NeighbourhoodSearch | None]:
+    cache: GeometryCache | None = None,
+) -> Iterator[Neighbourhoods | NeighbourhoodSearch | None]:
     """The reference's neighbourhood search running on a second thread, or None (not
     ``enabled``, a small cloud, or see :func:`start_neighbourhood_search`).  On leaving, a
     search still running is stopped at its next chunk and waited for, so no thread outlives
-    the comparison."""
-    search = None
-    if enabled and len(reference_points) >= REFERENCE_AHEAD_MIN_POINTS:
-        search = start_neighbourhood_search(reference_points, **localisation_params)
+    the comparison.  With a ``cache``, from it when it holds them, else written to it."""
+    ahead = enabled and len(reference_points) >= REFERENCE_AHEAD_MIN_POINTS
+    search = reference_neighbourhoods(
+        reference_points, localisation_params, cache=cache, ahead=ahead
+    )
     try:
         yield search
     finally:
-        if search is not None:
+        if isinstance(search, NeighbourhoodSearch):
             search.cancel()
 
 
@@ -323,6 +326,7 @@ def compare(
     params: Mapping[str, Any] | None = None,
     progress: ProgressCallback | None = None,
     threads: int | None = None,
+    geometry_cache: GeometryCache | None = None,
 ) -> ComparisonResult:
     """Compare ``scan`` against ``reference``; see the module docstring.
 
@@ -356,6 +360,9 @@ def compare(
         Threads the localiser may use (default: ``OMP_NUM_THREADS`` if set, else every CPU
         this process may run on).  Detectors run their BLAS calls on one thread (small
         matrices: more threads only contend).  Results do not depend on it.
+    geometry_cache : GeometryCache, optional
+        Where the reference's k-NN geometry is kept between comparisons (read when valid,
+        written otherwise, :mod:`app.core.geometry_cache`).  Results do not depend on it.
 
     Returns
     -------
@@ -404,7 +411,7 @@ def compare(
     threads = available_threads() if threads is None else max(1, int(threads))
     report("align", 0.05)
     with _reference_neighbourhoods_ahead(
-        reference_points, localisation_params, enabled=align and threads >= 2
+        reference_points, localisation_params, align and threads >= 2, geometry_cache
     ) as reference_neighbourhoods:
         started = time.perf_counter()
         if align:

@@ -1,4 +1,4 @@
-"""A spatial (Z-order) permutation of a cloud, to query and gather it a cache-friendly chunk at a time.
+"""A spatial (Z-order) permutation of a cloud, to visit it a cache-friendly chunk at a time.
 
 KD-tree queries and neighbourhood gathers over a cloud in file order jump across the whole
 cloud from one point to the next (synthetic pairs and many merged scans are shuffled), so

@@ -7,6 +7,7 @@ e.g. for the reference while the scan is still being aligned (:func:`start_neigh
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -119,9 +120,25 @@ class NeighbourhoodSearch:
     openmp_threads : int
         OpenMP threads of the search's own KD-tree queries (1 when it shares the machine with
         other work).
+    on_found : callable, optional
+        Called with the result on the search's thread before :meth:`take` can return it
+        (e.g. to write it to a :class:`~app.core.geometry_cache.GeometryCache`).
+    stored : callable, optional
+        Tried first on the search's thread: its neighbourhoods, if not None, are the result
+        (e.g. a :class:`~app.core.geometry_cache.GeometryCache`'s load); ``on_found`` is not
+        called for them.
     """
 
-    def __init__(self, points: NDArray[np.float64], n_neighbors: int, openmp_threads: int = 1):
+    def __init__(
+        self,
+        points: NDArray[np.float64],
+        n_neighbors: int,
+        openmp_threads: int = 1,
+        on_found: Callable[[Neighbourhoods], object] | None = None,
+        stored: Callable[[], Neighbourhoods | None] | None = None,
+    ):
+        self._on_found = on_found
+        self._stored = stored
         self._cancelled = threading.Event()
         self._result: Neighbourhoods | None = None
         self._error: BaseException | None = None
@@ -135,9 +152,16 @@ class NeighbourhoodSearch:
 
     def _run(self, points: NDArray[np.float64], n_neighbors: int, openmp_threads: int) -> None:
         try:
+            found = None if self._stored is None else self._stored()
+            if found is not None:
+                self._result = found
+                return
             # the limit applies to this thread's own OpenMP calls only
             with threadpool_limits(limits=openmp_threads, user_api="openmp"):
-                self._result = nearest_neighbourhoods(points, n_neighbors, self._cancelled)
+                result = nearest_neighbourhoods(points, n_neighbors, self._cancelled)
+            if result is not None and self._on_found is not None:
+                self._on_found(result)
+            self._result = result
         except BaseException as error:  # handed to take()'s caller
             self._error = error
 
@@ -158,7 +182,13 @@ class NeighbourhoodSearch:
         self._result = None
 
 
-def start_neighbourhood_search(reference: NDArray, **params: Any) -> NeighbourhoodSearch | None:
+def start_neighbourhood_search(
+    reference: NDArray,
+    *,
+    on_found: Callable[[Neighbourhoods], object] | None = None,
+    stored: Callable[[], Neighbourhoods | None] | None = None,
+    **params: Any,
+) -> NeighbourhoodSearch | None:
     """The :class:`NeighbourhoodSearch` that ``localise_changes(reference, ..., **params)`` can
     take as ``reference_neighbourhoods``, already running on one OpenMP thread.
 
@@ -166,6 +196,8 @@ def start_neighbourhood_search(reference: NDArray, **params: Any) -> Neighbourho
     ----------
     reference : array_like, shape (n, 3)
         The reference cloud, as ``localise_changes`` will be given it.
+    on_found, stored : callable, optional
+        See :class:`NeighbourhoodSearch`.
     **params
         Localisation keyword parameters (only ``n_neighbors`` matters here).
 
@@ -179,6 +211,8 @@ def start_neighbourhood_search(reference: NDArray, **params: Any) -> Neighbourho
     try:
         points = as_points(reference, "reference")
         n_neighbors = neighbourhood_size(len(points), **params)
-        return NeighbourhoodSearch(points, n_neighbors, openmp_threads=1)
+        return NeighbourhoodSearch(
+            points, n_neighbors, openmp_threads=1, on_found=on_found, stored=stored
+        )
     except (InputError, PointCloudError, RuntimeError):
         return None
