@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.core.cloud import PointCloud
 from app.core import geometry_cache
+from app.core.cloud import PointCloud
 from app.core.geometry_cache import GeometryCache, cache_key, code_version
 from app.core.localise.neighbourhoods import nearest_neighbourhoods
 from app.core.pipeline import REFERENCE_AHEAD_MIN_POINTS, compare

@@ -21,7 +21,8 @@ def _shuffled_surfaces(n_points: int, seed: int) -> np.ndarray:
     points[face == 1] = np.column_stack([np.zeros(np.sum(face == 1)), uv[face == 1]])
     points[face == 2, 0] = uv[face == 2, 0]
     points[face == 2, 2] = uv[face == 2, 1]
-    points += rng.normal(0.0, 0.003, points.shape) + (512_000.0, 4_300_000.0, 80.0)
+    points += rng.normal(0.0, 0.003, points.shape)
+    points += np.array([512_000.0, 4_300_000.0, 80.0])
     return points
 
 
