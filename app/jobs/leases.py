@@ -124,6 +124,9 @@ class ClaimedJob:
     scan_sensor_origin: list[float] | None = None
     request_id: str | None = None
     """The id of the API request that created the job (carried by its log lines)."""
+    reference_scan_id: str | None = None
+    reference_sha256: str | None = None
+    """The reference scan's id and file checksum (its geometry cache's key, app.jobs.geometry)."""
 
 
 def job_log(message: str, job_id: str, stage: str, **fields: Any) -> None:
@@ -182,6 +185,8 @@ def claim_job(
             reference_sensor_origin=reference.sensor_origin if reference else None,
             scan_sensor_origin=scan.sensor_origin if scan else None,
             request_id=job.request_id,
+            reference_scan_id=reference.id if reference else None,
+            reference_sha256=reference.sha256 if reference else None,
         )
     job_log(
         "job claimed",
