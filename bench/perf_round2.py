@@ -75,13 +75,21 @@ def write_pair(scene_dir: Path, n_points: int) -> dict[str, Any]:
     return {"reference": reference_path, "scan": scan_path}
 
 
-def run_command(arguments: list[str]) -> dict[str, Any]:
+def run_command(arguments: list[str], code_root: Path | None = None) -> dict[str, Any]:
     """Run ``scandiff`` with ``arguments`` as a child; wall seconds, CPU seconds, peak RSS
-    (the kernel's ``ru_maxrss`` of the child) and its JSON timings."""
+    (the kernel's ``ru_maxrss`` of the child) and its JSON timings.  ``code_root``: run the
+    ``app`` package of another checkout (e.g. the code before a change) instead."""
+    environment = dict(os.environ)
+    if code_root is not None:
+        environment["PYTHONPATH"] = str(code_root)
     started = time.perf_counter()
     with tempfile.TemporaryFile() as output:
         child = subprocess.Popen(
-            [str(SCANDIFF), *arguments], stdout=output, stderr=subprocess.PIPE, cwd=PROJECT_ROOT
+            [str(SCANDIFF), *arguments],
+            stdout=output,
+            stderr=subprocess.PIPE,
+            cwd=code_root or PROJECT_ROOT,
+            env=environment,
         )
         _, status, usage = os.wait4(child.pid, 0)
         wall = time.perf_counter() - started
@@ -101,7 +109,9 @@ def run_command(arguments: list[str]) -> dict[str, Any]:
     }
 
 
-def measure_size(n_points: int, work_dir: Path, repeats: int) -> dict[str, Any]:
+def measure_size(
+    n_points: int, work_dir: Path, repeats: int, baseline: Path | None = None
+) -> dict[str, Any]:
     """The floor, the command and the command with a filled geometry cache, interleaved."""
     scene_dir = work_dir / f"warehouse-{n_points}"
     started = time.perf_counter()
@@ -113,10 +123,14 @@ def measure_size(n_points: int, work_dir: Path, repeats: int) -> dict[str, Any]:
     cached = [*plain, "--geometry-cache", cache_dir]
     fill = run_command(["compare", *cached])  # fills the cache (its time is not a target)
     runs: dict[str, list[dict[str, Any]]] = {"floor": [], "compare": [], "again": []}
+    if baseline is not None:
+        runs["baseline"] = []
     for round_index in range(repeats):
         runs["floor"].append(run_worker("floor", scene_dir, ["--threads", "2"]))
         runs["compare"].append(run_command(["compare", *plain]))
         runs["again"].append(run_command(["compare", *cached]))
+        if baseline is not None:
+            runs["baseline"].append(run_command(["compare", *plain], code_root=baseline))
         line = ", ".join(
             f"{key} {run[-1].get('seconds', float('nan')):.2f} s" for key, run in runs.items()
         )
@@ -140,10 +154,13 @@ def summarise(size: dict[str, Any]) -> list[dict[str, Any]]:
     floor = best(size["runs"]["floor"])
     rows = []
     ratio_target, rss_target = TARGETS.get(size["n_points"], (None, None))
-    for key, label, target in (
+    configurations = [
         ("compare", "scandiff compare", ratio_target),
         ("again", "scandiff compare, reference cached", AGAIN_TARGET),
-    ):
+    ]
+    if "baseline" in size["runs"]:
+        configurations.append(("baseline", "scandiff compare, code before (--baseline)", None))
+    for key, label, target in configurations:
         run = best(size["runs"][key])
         ratio = (
             run["seconds"] / floor["seconds"] if "seconds" in run and "seconds" in floor else None
@@ -207,11 +224,12 @@ def render(rows: list[dict[str, Any]], service: dict[str, Any], loads: list[tupl
             continue
         target = row["ratio_target"]
         rss_target = row["rss_target_mb"]
+        ratio_target = "-" if target is None else f"<= {target}x {_met(row['ratio_met'])}"
         rss = "-" if rss_target is None else f"<= {rss_target:.0f} {_met(row['rss_met'])}"
         lines.append(
             f"| {row['points']:,} | {row['configuration']} | {_number(row['seconds'])} | "
             f"{_number(row['cpu_seconds'])} | {_number(row['floor_seconds'])} | "
-            f"{_number(row['ratio'])}x | <= {target}x {_met(row['ratio_met'])} | "
+            f"{_number(row['ratio'])}x | {ratio_target} | "
             f"{_number(row['peak_rss_mb'], 0)} | "
             f"{rss} | "
             f"{' / '.join(str(s) for s in row['all_seconds'] or [])} | "
@@ -244,6 +262,9 @@ def main() -> None:
     parser.add_argument("--no-service", action="store_true", help="skip the HTTP API figure")
     parser.add_argument("--work-dir", type=Path, help="keep the pairs here (reused when present)")
     parser.add_argument("--output", type=Path, default=RESULTS / "perf_round2.md")
+    parser.add_argument(
+        "--baseline", type=Path, help="a checkout of the code before, timed in the same rounds"
+    )
     args = parser.parse_args()
     loads = [os.getloadavg()]
     sizes = [*SIZES, LARGE_SIZE] if args.large else list(SIZES)
@@ -252,7 +273,7 @@ def main() -> None:
         measured = []
         for n_points in sizes:
             repeats = args.repeats if n_points < LARGE_SIZE else max(1, args.repeats // 2)
-            measured.append(measure_size(n_points, work_dir, repeats))
+            measured.append(measure_size(n_points, work_dir, repeats, args.baseline))
         service = {} if args.no_service else measure_service(work_dir, load_seconds=1.0)
     loads.append(os.getloadavg())
     rows = [row for size in measured for row in summarise(size)]
