@@ -43,7 +43,7 @@ if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``app`` and ``ben
     sys.path.insert(0, str(PROJECT_ROOT))
 
 from app.core.synthetic_lidar import lidar_pair, steps_for_points  # noqa: E402
-from bench.perf import run_worker  # noqa: E402
+from bench.perf import worker_environment  # noqa: E402
 from bench.perf_service import measure_service  # noqa: E402
 from bench.perf_workers import write_binary_ply  # noqa: E402
 
@@ -75,6 +75,44 @@ def write_pair(scene_dir: Path, n_points: int) -> dict[str, Any]:
     return {"reference": reference_path, "scan": scan_path}
 
 
+def _child(command: list[str], environment: dict[str, str], cwd: Path) -> dict[str, Any]:
+    """Run ``command``; its exit code, stdout, stderr, wall seconds, and from ``os.wait4``
+    its CPU seconds (user + system) and peak RSS."""
+    started = time.perf_counter()
+    with tempfile.TemporaryFile() as output, tempfile.TemporaryFile() as errors:
+        child = subprocess.Popen(command, stdout=output, stderr=errors, cwd=cwd, env=environment)
+        _, status, usage = os.wait4(child.pid, 0)
+        wall = time.perf_counter() - started
+        child.returncode = os.waitstatus_to_exitcode(status)
+        output.seek(0)
+        errors.seek(0)
+        return {
+            "code": child.returncode,
+            "stdout": output.read().decode(errors="replace"),
+            "stderr": errors.read().decode(errors="replace"),
+            "wall": wall,
+            "cpu_seconds": usage.ru_utime + usage.ru_stime,
+            "peak_rss_mb": usage.ru_maxrss / 1024.0,
+        }
+
+
+def run_floor(scene_dir: Path) -> dict[str, Any]:
+    """bench/perf.py's floor worker (2 query threads) as a child: its compute seconds, and
+    the whole process's CPU seconds and peak RSS."""
+    command = [sys.executable, str(PROJECT_ROOT / "bench" / "perf.py"), "--worker", "floor"]
+    command += [str(scene_dir), "--threads", "2"]
+    child = _child(command, worker_environment("floor"), PROJECT_ROOT)
+    lines = [line for line in child["stdout"].splitlines() if line.startswith("{")]
+    if child["code"] != 0 or not lines:
+        return {"error": child["stderr"].strip().splitlines()[-1:] or [f"exit {child['code']}"]}
+    report = json.loads(lines[-1])
+    return {
+        "seconds": report["seconds"],
+        "cpu_seconds": child["cpu_seconds"],
+        "peak_rss_mb": child["peak_rss_mb"],
+    }
+
+
 def run_command(arguments: list[str], code_root: Path | None = None) -> dict[str, Any]:
     """Run ``scandiff`` with ``arguments`` as a child; wall seconds, CPU seconds, peak RSS
     (the kernel's ``ru_maxrss`` of the child) and its JSON timings.  ``code_root``: run the
@@ -82,28 +120,14 @@ def run_command(arguments: list[str], code_root: Path | None = None) -> dict[str
     environment = dict(os.environ)
     if code_root is not None:
         environment["PYTHONPATH"] = str(code_root)
-    started = time.perf_counter()
-    with tempfile.TemporaryFile() as output:
-        child = subprocess.Popen(
-            [str(SCANDIFF), *arguments],
-            stdout=output,
-            stderr=subprocess.PIPE,
-            cwd=code_root or PROJECT_ROOT,
-            env=environment,
-        )
-        _, status, usage = os.wait4(child.pid, 0)
-        wall = time.perf_counter() - started
-        child.returncode = os.waitstatus_to_exitcode(status)
-        stderr = child.stderr.read().decode(errors="replace") if child.stderr else ""
-        output.seek(0)
-        text = output.read().decode(errors="replace")
-    if child.returncode != 0:
-        return {"error": stderr.strip().splitlines()[-1:] or [f"exit {child.returncode}"]}
-    report = json.loads(text.strip().splitlines()[-1])
+    child = _child([str(SCANDIFF), *arguments], environment, code_root or PROJECT_ROOT)
+    if child["code"] != 0:
+        return {"error": child["stderr"].strip().splitlines()[-1:] or [f"exit {child['code']}"]}
+    report = json.loads(child["stdout"].strip().splitlines()[-1])
     return {
-        "seconds": wall,
-        "cpu_seconds": usage.ru_utime + usage.ru_stime,
-        "peak_rss_mb": usage.ru_maxrss / 1024.0,
+        "seconds": child["wall"],
+        "cpu_seconds": child["cpu_seconds"],
+        "peak_rss_mb": child["peak_rss_mb"],
         "timings": report.get("timings", {}),
         "changed": report.get("changed"),
     }
@@ -126,7 +150,7 @@ def measure_size(
     if baseline is not None:
         runs["baseline"] = []
     for round_index in range(repeats):
-        runs["floor"].append(run_worker("floor", scene_dir, ["--threads", "2"]))
+        runs["floor"].append(run_floor(scene_dir))
         runs["compare"].append(run_command(["compare", *plain]))
         runs["again"].append(run_command(["compare", *cached]))
         if baseline is not None:
@@ -174,6 +198,7 @@ def summarise(size: dict[str, Any]) -> list[dict[str, Any]]:
                 "cpu_seconds": run.get("cpu_seconds"),
                 "floor_seconds": floor.get("seconds"),
                 "floor_all_seconds": floor.get("all_seconds"),
+                "floor_cpu_seconds": floor.get("cpu_seconds"),
                 "ratio": ratio,
                 "ratio_target": target,
                 "ratio_met": None if ratio is None or target is None else ratio <= target,
@@ -199,6 +224,14 @@ def _met(value: bool | None) -> str:
     return "-" if value is None else ("met" if value else "NOT met")
 
 
+def _cpu_ratio(row: dict[str, Any]) -> str:
+    """CPU seconds of the command over those of the floor's process (both whole processes:
+    imports and load included): a figure a busy machine disturbs less than wall time."""
+    if row.get("cpu_seconds") is None or not row.get("floor_cpu_seconds"):
+        return "-"
+    return f"{row['cpu_seconds'] / row['floor_cpu_seconds']:.2f}x"
+
+
 def _loads(values: tuple) -> str:
     return ", ".join(f"{value:.1f}" for value in values)
 
@@ -214,9 +247,10 @@ def render(rows: list[dict[str, Any]], service: dict[str, Any], loads: list[tupl
         "process (fastest of the interleaved rounds); floor: one cKDTree build + NN query each "
         "way, 2 query threads, same run; peak RSS: the child's `ru_maxrss` (os.wait4).",
         "",
-        "| points a scan | configuration | seconds | CPU s | floor s | ratio | target | "
-        "peak RSS MB | RSS target | all runs s | floor runs s |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| points a scan | configuration | seconds | floor s | ratio | target | "
+        "peak RSS MB | RSS target | CPU s (process) | floor CPU s (process) | CPU ratio | "
+        "all runs s | floor runs s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
         if row.get("error"):
@@ -228,10 +262,9 @@ def render(rows: list[dict[str, Any]], service: dict[str, Any], loads: list[tupl
         rss = "-" if rss_target is None else f"<= {rss_target:.0f} {_met(row['rss_met'])}"
         lines.append(
             f"| {row['points']:,} | {row['configuration']} | {_number(row['seconds'])} | "
-            f"{_number(row['cpu_seconds'])} | {_number(row['floor_seconds'])} | "
-            f"{_number(row['ratio'])}x | {ratio_target} | "
-            f"{_number(row['peak_rss_mb'], 0)} | "
-            f"{rss} | "
+            f"{_number(row['floor_seconds'])} | {_number(row['ratio'])}x | {ratio_target} | "
+            f"{_number(row['peak_rss_mb'], 0)} | {rss} | {_number(row['cpu_seconds'])} | "
+            f"{_number(row['floor_cpu_seconds'])} | {_cpu_ratio(row)} | "
             f"{' / '.join(str(s) for s in row['all_seconds'] or [])} | "
             f"{' / '.join(str(s) for s in row['floor_all_seconds'] or [])} |"
         )
