@@ -307,7 +307,9 @@ def main() -> None:
         for n_points in sizes:
             repeats = args.repeats if n_points < LARGE_SIZE else max(1, args.repeats // 2)
             measured.append(measure_size(n_points, work_dir, repeats, args.baseline))
-        service = {} if args.no_service else measure_service(work_dir, load_seconds=1.0)
+        # a fresh data directory each run (a kept --work-dir would hold last run's site)
+        service_dir = Path(tempfile.mkdtemp(prefix="service-", dir=work_dir))
+        service = {} if args.no_service else measure_service(service_dir, load_seconds=1.0)
     loads.append(os.getloadavg())
     rows = [row for size in measured for row in summarise(size)]
     report = render(rows, service, loads)
