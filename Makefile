@@ -64,6 +64,7 @@ bench: $(BENCH_STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/python bench/visibility.py --quick
 	OMP_NUM_THREADS=1 $(BIN)/python bench/calibration.py --quick
 	$(BIN)/python bench/perf.py
+	$(BIN)/python bench/perf_round2.py
 	$(BIN)/python bench/perf_scaling.py --json bench/results/scaling.json
 
 clean:

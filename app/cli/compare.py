@@ -80,6 +80,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         metavar="X,Y,Z",
         help="the same for SCAN (repeatable, one per station)",
     )
+    parser.add_argument(
+        "--geometry-cache",
+        type=Path,
+        metavar="DIR",
+        help="keep the reference's neighbourhood geometry in DIR: comparing the same "
+        "reference again skips its k-NN search (files are checked before use)",
+    )
     parser.set_defaults(handler=run)
 
 
@@ -210,6 +217,24 @@ def _export(path: Path, reference: PointCloud, scan: PointCloud, result: Compari
     write_point_cloud(path, points, fields)
 
 
+def _geometry_cache(directory: Path | None, reference: Path, params: dict[str, Any]) -> Any:
+    """The GeometryCache for ``reference`` in ``directory`` (keyed by the file's SHA-256 and
+    the localisation parameters), or None without a directory."""
+    if directory is None:
+        return None
+    import hashlib
+
+    from app.core.geometry_cache import GeometryCache, cache_key
+
+    digest = hashlib.sha256()
+    with open(reference, "rb") as source:
+        while block := source.read(1 << 20):
+            digest.update(block)
+    localisation = params.get("localisation")
+    key = cache_key(digest.hexdigest(), localisation if isinstance(localisation, dict) else None)
+    return GeometryCache(directory / f"{key[:32]}.geometry", key)
+
+
 def run(args: argparse.Namespace) -> int:
     """Run one comparison; exit status 0, or 2 on bad input."""
     from app.core.allocator import release_freed_memory_promptly
@@ -252,6 +277,7 @@ def run(args: argparse.Namespace) -> int:
             random_state=args.seed,
             params=params,
             progress=_StageProgress(),
+            geometry_cache=_geometry_cache(args.geometry_cache, args.reference, params),
         )
         result.timings["load"] = load_seconds
         if args.labels is not None:

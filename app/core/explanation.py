@@ -1,10 +1,10 @@
 """Why a comparison decided what it decided, as data and as one line of text.
 
-The decision rule is :data:`app.core.pipeline.DECISION_RULES`: by default (``"regions"``) a
-scan is *changed* when localisation kept at least one region of changed points of at least
-``min_region_points`` points, whatever the global detector's score.  A reader who sees
-"score 0.037, threshold 0.042: changed" is misled unless the page says so; the explanation
-says which evidence decided and what the other evidence said::
+The decision rule is :data:`app.core.comparison_settings.DECISION_RULES`: by default
+(``"regions"``) a scan is *changed* when localisation kept at least one region of changed
+points of at least ``min_region_points`` points, whatever the global detector's score.  A
+reader who sees "score 0.037, threshold 0.042: changed" is misled unless the page says so; the
+explanation says which evidence decided and what the other evidence said::
 
     changed: 1 region of 1,282 points (>= 200 each), largest 0.82 x 0.82 x 1.00 m; the
     detector's score 0.037 is below its threshold 0.0424 (the regions decide)

@@ -19,7 +19,6 @@ Stages
 
 from __future__ import annotations
 
-import inspect
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
@@ -32,23 +31,24 @@ from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 
 from app.core.cloud import MIN_POINTS, PointCloud, choose_local_origin
-from app.core.detectors import canonical_method, make_detector
-from app.core.detectors.base import ChangeDetector
-from app.core.errors import InputError
+from app.core.comparison_settings import (
+    ComparisonSettings,
+    parse_comparison_params,
+)
+from app.core.detectors import canonical_method
 from app.core.explanation import explain_comparison
+from app.core.geometry_cache import GeometryCache, reference_neighbourhoods
 from app.core.jsonable import json_safe
 from app.core.localise import (
     LABEL_CHANGED,
     LABEL_UNCHANGED,
     LABEL_UNOBSERVED,
+    Neighbourhoods,
     NeighbourhoodSearch,
     localise_changes,
-    start_neighbourhood_search,
 )
-from app.core.localise.settings import as_origins
 from app.core.origins.resolve import ResolvedOrigin
 from app.core.origins.stations import origins_in_local_frame, resolve_stations, station_index_of
-from app.core.parameters import ParamSpec, validate_parameters
 from app.core.quality import quality_warnings
 from app.core.registration import (
     apply_transform,
@@ -60,25 +60,6 @@ from app.core.threads import available_threads
 
 ProgressCallback = Callable[[str, float], None]
 """Called as ``progress(stage, fraction_done)`` with fraction in [0, 1]."""
-
-DECISION_RULES = ("regions", "either", "detector")
-"""How ``changed`` is decided:
-
-``"regions"`` (default)
-    localisation found at least one region of changed points: points farther from the other
-    cloud's local surface than a threshold calibrated from the measured noise and local point
-    spacing, seen by the other sensor (not unobserved), in a connected cluster above the size
-    floor that spurious edge clusters never reach.  It is the default because the global
-    detectors' threshold models resampling noise, not the change of viewpoint between two
-    rescans (``bench/scenes.py``; figures in ``docs/performance.md``).
-``"either"``
-    the global score exceeds its calibrated threshold, or a region was found.
-``"detector"``
-    the paper's rule: the global EMD score against its calibrated threshold only.
-
-Whatever the rule, the global score, its threshold and the detector's own verdict are
-reported (``calibration["decision"]``).
-"""
 
 
 @dataclass(frozen=True)
@@ -198,99 +179,6 @@ def _file_frame_transform(
     return shift @ local_transform @ unshift
 
 
-@dataclass(frozen=True)
-class ComparisonSettings:
-    """A comparison's parameters, split by stage and validated."""
-
-    detector: ChangeDetector
-    align: bool
-    registration: dict[str, Any]
-    localisation: dict[str, Any]
-    reference_origin: Any
-    scan_origin: Any
-    decision: str
-    estimate_origins: bool = True
-    recover_stations: bool = False
-
-
-REGISTRATION_SPECS: dict[str, ParamSpec] = {
-    name: ParamSpec("any")
-    for name, parameter in inspect.signature(register_scan).parameters.items()
-    if parameter.kind == parameter.KEYWORD_ONLY
-}
-"""The registration stage's keyword parameters: those :func:`register_scan` takes (values are
-checked by the registration itself)."""
-
-
-def parse_comparison_params(
-    method: str,
-    variant: str,
-    params: Mapping[str, Any] | None,
-    *,
-    random_state: int = 0,
-    align: bool = True,
-) -> ComparisonSettings:
-    """Validate and split a comparison's ``params`` (see :func:`compare`).
-
-    Parameters stored with an earlier result (``result.params``) replay it exactly: their
-    ``random_state`` and ``align`` take precedence over the keyword arguments.
-
-    Raises
-    ------
-    InputError
-        Unknown method, variant or parameter, or a value of the wrong type.
-    """
-    if params is not None and not isinstance(params, Mapping):
-        raise InputError("params must be an object of keyword parameters")
-    remaining = dict(params or {})
-    random_state = remaining.pop("random_state", random_state)
-    if isinstance(random_state, bool) or not isinstance(random_state, int):
-        raise InputError(f"random_state must be an integer, got {random_state!r}")
-    align = remaining.pop("align", align)
-    if not isinstance(align, bool):
-        raise InputError(f"align must be true or false, got {align!r}")
-    stored_variant = remaining.pop("variant", variant)
-    if stored_variant != variant:
-        raise InputError(
-            f"params say variant {stored_variant!r} but variant {variant!r} was requested"
-        )
-    stage_params: dict[str, dict[str, Any]] = {}
-    for stage in ("registration", "localisation"):
-        value = remaining.pop(stage, None) or {}
-        if not isinstance(value, Mapping):
-            raise InputError(f"{stage} must be an object of keyword parameters, got {value!r}")
-        stage_params[stage] = dict(value)
-    validate_parameters(REGISTRATION_SPECS, stage_params["registration"], stage="registration")
-    decision = remaining.pop("decision", DECISION_RULES[0])
-    if decision not in DECISION_RULES:
-        raise InputError(f"decision must be one of {', '.join(DECISION_RULES)}, got {decision!r}")
-    reference_origin = remaining.pop("reference_origin", None)
-    scan_origin = remaining.pop("scan_origin", None)
-    estimate_origins = remaining.pop("estimate_origins", True)
-    if not isinstance(estimate_origins, bool):
-        raise InputError(f"estimate_origins must be true or false, got {estimate_origins!r}")
-    recover = remaining.pop("recover_stations", False)
-    if not isinstance(recover, bool):
-        raise InputError(f"recover_stations must be true or false, got {recover!r}")
-    for origin, name in ((reference_origin, "reference_origin"), (scan_origin, "scan_origin")):
-        as_origins(origin, name)  # validates: 3 numbers or a list of them
-    try:
-        detector = make_detector(method, variant, random_state=random_state, **remaining)
-    except TypeError as exc:
-        raise InputError(f"invalid parameters for {method}/{variant}: {exc}") from exc
-    return ComparisonSettings(
-        detector=detector,
-        align=align,
-        registration=stage_params["registration"],
-        localisation=stage_params["localisation"],
-        reference_origin=reference_origin,
-        scan_origin=scan_origin,
-        decision=decision,
-        estimate_origins=estimate_origins,
-        recover_stations=recover,
-    )
-
-
 REFERENCE_AHEAD_MIN_POINTS = 50_000
 """From this many reference points (and with >= 2 threads) the reference's nearest-neighbour
 search starts on a second thread while the scan is aligned: alignment uses one core, and the
@@ -302,18 +190,20 @@ def _reference_neighbourhoods_ahead(
     reference_points: NDArray[np.float64],
     localisation_params: Mapping[str, Any],
     enabled: bool,
-) -> Iterator[NeighbourhoodSearch | None]:
+    cache: GeometryCache | None = None,
+) -> Iterator[Neighbourhoods | NeighbourhoodSearch | None]:
     """The reference's neighbourhood search running on a second thread, or None (not
     ``enabled``, a small cloud, or see :func:`start_neighbourhood_search`).  On leaving, a
     search still running is stopped at its next chunk and waited for, so no thread outlives
-    the comparison."""
-    search = None
-    if enabled and len(reference_points) >= REFERENCE_AHEAD_MIN_POINTS:
-        search = start_neighbourhood_search(reference_points, **localisation_params)
+    the comparison.  With a ``cache``, from it when it holds them, else written to it."""
+    ahead = enabled and len(reference_points) >= REFERENCE_AHEAD_MIN_POINTS
+    search = reference_neighbourhoods(
+        reference_points, localisation_params, cache=cache, ahead=ahead
+    )
     try:
         yield search
     finally:
-        if search is not None:
+        if isinstance(search, NeighbourhoodSearch):
             search.cancel()
 
 
@@ -329,6 +219,7 @@ def compare(
     progress: ProgressCallback | None = None,
     threads: int | None = None,
     site_calibration: Mapping[str, Any] | None = None,
+    geometry_cache: GeometryCache | None = None,
 ) -> ComparisonResult:
     """Compare ``scan`` against ``reference``; see the module docstring.
 
@@ -347,7 +238,7 @@ def compare(
     params : mapping, optional
         Detector keyword parameters, plus the reserved keys ``"registration"`` and
         ``"localisation"`` (dicts of keyword parameters for those stages), ``"decision"``
-        (one of :data:`DECISION_RULES`) and
+        (one of :data:`app.core.comparison_settings.DECISION_RULES`) and
         ``"reference_origin"`` / ``"scan_origin"`` (sensor positions in each file's frame,
         overriding what the file says: 3 numbers, or a list of them for a cloud merged from
         several stations, whose ``station_index`` attribute, if any, says which took each
@@ -368,6 +259,9 @@ def compare(
         A site's thresholds learned from its reviewed jobs
         (:func:`app.core.site_calibration.learn_site_calibration`); applied when learned for
         this method and variant.  Its provenance is in ``calibration["site"]`` either way.
+    geometry_cache : GeometryCache, optional
+        Where the reference's k-NN geometry is kept between comparisons (read when valid,
+        written otherwise, :mod:`app.core.geometry_cache`).  Results do not depend on it.
 
     Returns
     -------
@@ -418,7 +312,7 @@ def compare(
     threads = available_threads() if threads is None else max(1, int(threads))
     report("align", 0.05)
     with _reference_neighbourhoods_ahead(
-        reference_points, localisation_params, enabled=align and threads >= 2
+        reference_points, localisation_params, align and threads >= 2, geometry_cache
     ) as reference_neighbourhoods:
         started = time.perf_counter()
         if align:

@@ -1,7 +1,8 @@
 """Per-site thresholds learned from reviewed jobs, and the decision that applies them.
 
-A comparison decides ``changed`` by a rule (:data:`app.core.pipeline.DECISION_RULES`); each
-rule is one or two *tests* of a statistic against a threshold:
+A comparison decides ``changed`` by a rule
+(:data:`app.core.comparison_settings.DECISION_RULES`); each rule is one or two *tests* of a
+statistic against a threshold:
 
 ``"regions"``
     ``largest_region_extent_m > 0``: a region of changed points survived the localiser's size

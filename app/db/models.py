@@ -110,6 +110,8 @@ class Scan(Base):
     format: Mapped[str] = mapped_column(String(16))  # ply pcd las laz e57 xyz csv txt npy npz
     size_bytes: Mapped[int] = mapped_column(Integer)
     sha256: Mapped[str] = mapped_column(String(64))
+    # bytes of the cached k-NN geometry of this scan as a reference (counted in the quota)
+    geometry_cache_bytes: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     storage_path: Mapped[str] = mapped_column(String(500))  # relative to the data directory
     n_points: Mapped[int] = mapped_column(Integer)  # finite points
     n_dropped: Mapped[int] = mapped_column(Integer, default=0)  # NaN/inf rows dropped

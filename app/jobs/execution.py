@@ -29,6 +29,7 @@ from app.config import Settings
 from app.core.allocator import release_freed_memory_promptly
 from app.core.errors import InputError
 from app.core.formats import read_point_cloud
+from app.jobs.geometry import geometry_cache_of, record_geometry_cache
 from app.jobs.hooks import job_hooks
 from app.jobs.leases import (
     PROGRESS_COMPARED,
@@ -73,6 +74,7 @@ def compute(
         )
     load_seconds = time.perf_counter() - started
     keeper.report("comparing", PROGRESS_LOADED)
+    cache = geometry_cache_of(job)
     result = compare(
         reference,
         scan,
@@ -82,7 +84,10 @@ def compute(
         progress=keeper.compare_progress,
         threads=threads,
         site_calibration=job.site_calibration,  # learned from the site's reviewed jobs
+        geometry_cache=cache,
     )
+    if cache is not None:
+        record_geometry_cache(job, settings, cache)
     return result, {"load_inputs": load_seconds}
 
 

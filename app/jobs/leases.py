@@ -128,6 +128,9 @@ class ClaimedJob:
     """The id of the API request that created the job (carried by its log lines)."""
     site_calibration: dict[str, Any] | None = None
     """The site's thresholds learned from reviewed jobs, as they were when the job was claimed."""
+    reference_scan_id: str | None = None
+    reference_sha256: str | None = None
+    """The reference scan's id and file checksum (its geometry cache's key, app.jobs.geometry)."""
 
 
 def job_log(message: str, job_id: str, stage: str, **fields: Any) -> None:
@@ -188,6 +191,8 @@ def claim_job(
             scan_sensor_origin=scan.sensor_origin if scan else None,
             request_id=job.request_id,
             site_calibration=dict(site.calibration) if site and site.calibration else None,
+            reference_scan_id=reference.id if reference else None,
+            reference_sha256=reference.sha256 if reference else None,
         )
     job_log(
         "job claimed",

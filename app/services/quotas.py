@@ -1,7 +1,9 @@
 """Per-organisation quotas: unfinished jobs (429) and stored scan bytes (507), and their usage.
 
 *Queued jobs* are an organisation's jobs that have not finished (``queued`` or ``running``);
-*stored bytes* are the sizes of its scan files as uploaded (``scan.size_bytes``).  Result files
+*stored bytes* are the sizes of its scan files as uploaded (``scan.size_bytes``) and of the k-NN
+geometry cached for the scans compared as references (``scan.geometry_cache_bytes``, written by
+the job workers: :mod:`app.jobs.geometry`).  Result files
 (labels, PLY/LAS exports) are not counted: they are derived from the scans, bounded by them and
 deleted with them.
 
@@ -68,8 +70,9 @@ def queued_jobs(session: Session, principal: Principal) -> int:
 
 
 def stored_bytes(session: Session, principal: Principal) -> int:
-    """Bytes of the organisation's scan files."""
-    total = session.scalar(scoped(select(func.coalesce(func.sum(Scan.size_bytes), 0)), principal))
+    """Bytes of the organisation's scan files and of their cached reference geometry."""
+    stored = func.sum(Scan.size_bytes + Scan.geometry_cache_bytes)
+    total = session.scalar(scoped(select(func.coalesce(stored, 0)), principal))
     return int(total or 0)
 
 

@@ -11,9 +11,9 @@ from sqlalchemy.orm import Session
 
 from app.clock import as_utc, utc_now
 from app.config import Settings
+from app.core.comparison_settings import parse_comparison_params  # never in a transaction
 from app.core.detectors import canonical_method
 from app.core.errors import InputError
-from app.core.pipeline import parse_comparison_params  # imported here, never in a transaction
 from app.db.models import Job, JobStatus, JobVerdict, ReferenceHistory, Region, Scan, Site
 from app.jobs.results import job_results_dir
 from app.services import storage

@@ -2,7 +2,7 @@
 event and webhook that workers claim with a lease.
 
 Revision ID: 0006
-Revises: 0004
+Revises: 0005
 Create Date: 2026-12-02 05:42:44.856237
 
 """

@@ -2,7 +2,7 @@
 site learned from them (``site.calibration``).
 
 Revision ID: 0007
-Revises: 0004
+Revises: 0006
 Create Date: 2026-12-02 06:00:00
 
 """

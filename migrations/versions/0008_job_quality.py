@@ -5,7 +5,7 @@
 ``text``): all JSON, null until the job succeeded (and for jobs stored before this revision).
 
 Revision ID: 0008
-Revises: 0004
+Revises: 0007
 Create Date: 2026-12-02 05:50:00
 
 """

@@ -209,3 +209,29 @@ def test_bad_origins_exit_2_saying_what_to_fix(survey_files, flags, fragment):
     lines = completed.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("scandiff: error:")
     assert fragment in lines[0]
+
+
+def test_geometry_cache_directory_is_filled_then_used_with_the_same_labels(scene_files, tmp_path):
+    reference_path, scan_path, _ = scene_files
+    cache_dir = tmp_path / "geometry"
+    plain = run_cli(reference_path, scan_path, "--json", "--labels", tmp_path / "plain.npz")
+    assert plain.returncode == 0, plain.stderr
+    for run in ("first", "second"):
+        cached = run_cli(
+            reference_path,
+            scan_path,
+            "--json",
+            "--labels",
+            tmp_path / f"{run}.npz",
+            "--geometry-cache",
+            cache_dir,
+        )
+        assert cached.returncode == 0, cached.stderr
+        files = list(cache_dir.iterdir())
+        assert len(files) == 1 and files[0].suffix == ".geometry"
+        if run == "first":
+            written = files[0].stat().st_mtime_ns
+        assert files[0].stat().st_mtime_ns == written  # the second run read it, wrote nothing
+        with np.load(tmp_path / "plain.npz") as expected, np.load(tmp_path / f"{run}.npz") as got:
+            for name in expected.files:
+                np.testing.assert_array_equal(got[name], expected[name])

@@ -7,11 +7,11 @@ import re
 import numpy as np
 import pytest
 
+from app.core.comparison_settings import parse_comparison_params
 from app.core.detectors import make_detector
 from app.core.errors import InputError
 from app.core.localise.settings import resolve_parameters
 from app.core.parameters import ParamSpec, validate_parameters
-from app.core.pipeline import parse_comparison_params
 
 
 @pytest.mark.parametrize(

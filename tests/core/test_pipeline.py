@@ -164,9 +164,9 @@ def test_the_reference_search_run_during_alignment_changes_nothing_and_ends_with
     started: list[int] = []
 
     class CountedSearch(neighbourhoods.NeighbourhoodSearch):
-        def __init__(self, points, n_neighbors, openmp_threads=1):
+        def __init__(self, points, n_neighbors, openmp_threads=1, **options):
             started.append(len(points))
-            super().__init__(points, n_neighbors, openmp_threads)
+            super().__init__(points, n_neighbors, openmp_threads, **options)
 
     monkeypatch.setattr(neighbourhoods, "NeighbourhoodSearch", CountedSearch)
     pair = raycast_scene(

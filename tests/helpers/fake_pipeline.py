@@ -81,6 +81,7 @@ def fake_compare(
     progress: Callable[[str, float], None] | None = None,
     threads: int | None = None,
     site_calibration: Mapping[str, Any] | None = None,
+    geometry_cache: object | None = None,
 ) -> FakeResult:
     """A deterministic result: the scan's points beyond x > 1 are an "added" region."""
     for stage, fraction in (("align", 0.05), ("localise", 0.35), ("detect", 0.65)):

@@ -232,8 +232,8 @@ def localise_changes(
     )
     (reference_nn_distance, reference_nn_index), (scan_nn_distance, scan_nn_index) = _in_parallel(
         threads,
-        partial(nearest_in, reference_points, scan_geometry),
-        partial(nearest_in, scan_points, reference_geometry),
+        partial(nearest_in, reference_points, scan_geometry, reference_geometry.order),
+        partial(nearest_in, scan_points, reference_geometry, scan_geometry.order),
     )
     reference_side = Side(
         name="reference",

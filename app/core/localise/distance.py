@@ -18,8 +18,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.cloud import MIN_POINTS
-from app.core.localise.settings import CHUNK, GATHER_CHUNK
+from app.core.localise.settings import CHUNK, GATHER_CHUNK, QUERY_CHUNK
 from app.core.localise.surface import LocalGeometry
+from app.core.spatial_order import ordered_chunks
 
 __all__ = ["Side", "alignment_residual", "nearest_in", "support_factor", "surface_distance"]
 
@@ -68,7 +69,9 @@ class Side:
 
 
 def nearest_in(
-    points: NDArray[np.float64], other: LocalGeometry
+    points: NDArray[np.float64],
+    other: LocalGeometry,
+    order: NDArray[np.intp] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.uint32]]:
     """Distance to and index of each point's nearest point in ``other``.
 
@@ -76,13 +79,22 @@ def nearest_in(
     ----------
     points : ndarray, shape (p, 3)
     other : LocalGeometry
+    order : ndarray, shape (p,), intp, optional
+        ``points``' :func:`~app.core.spatial_order.spatial_order`: queried a chunk of nearby
+        points at a time (faster on a shuffled cloud; the same answers).
 
     Returns
     -------
     distance : ndarray, shape (p,), float64
     index : ndarray, shape (p,), uint32
     """
-    return other.tree.query(points, k=1)
+    if order is None:
+        return other.tree.query(points, k=1)
+    distance = np.empty(len(points))
+    index = np.empty(len(points), dtype=np.uint32)
+    for rows in ordered_chunks(order, len(points), QUERY_CHUNK):
+        distance[rows], index[rows] = other.tree.query(points[rows], k=1)
+    return distance, index
 
 
 def support_factor(nn_distance_over_spacing: NDArray[np.float64], requested: float | None) -> float:

