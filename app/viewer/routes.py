@@ -94,11 +94,19 @@ def message_page(status: int, title: str, message: str) -> HTMLResponse:
     return HTMLResponse(body, status_code=status, headers=NO_STORE)
 
 
+REVIEW_SCRIPT = "/static/view-review.js"
+"""The dashboard's review panel, loaded by the 3D view page (static/view-review.js)."""
+
+
 @lru_cache(maxsize=1)
 def viser_client_page() -> tuple[bytes, bytes]:
-    """viser's single-file web client (plain and gzipped), titled for scandiff."""
+    """viser's single-file web client (plain and gzipped), titled for scandiff, with the
+    review panel's script."""
     page = VISER_CLIENT_PAGE.read_text(encoding="utf-8")
     page = page.replace("<title>Viser</title>", "<title>3D view · scandiff</title>", 1)
+    # The review panel (verdict buttons) over the scene: the dashboard's own module.
+    review = f'<script type="module" src="{REVIEW_SCRIPT}"></script>'
+    page = page.replace("</body>", review + "</body>", 1)
     encoded = page.encode("utf-8")
     return encoded, gzip.compress(encoded, compresslevel=6)
 

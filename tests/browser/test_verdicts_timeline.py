@@ -281,3 +281,36 @@ def test_timeline_axis_grouping_series_and_empty_state(
     mixed = drawn["mixed"]  # one chart per detector; a job without the statistic is explained
     assert sorted(mixed["detectors"]) == ["gmm · improved", "pca · improved"]
     assert len(mixed["cx"]) == 2 and "1 job without" in mixed["notes"][0]
+
+
+def test_verdict_buttons_in_the_3d_view(
+    review_service: ReviewService, site_history: dict[str, Any], chrome_factory
+) -> None:
+    service = review_service
+    job = site_history["jobs"][1]
+    driver = chrome_factory()
+    sign_in(driver, service)
+    driver.get(f"{service.base_url}/jobs/{job['id']}/view")
+    assert "largest changed region" in visible(driver, "#view-review #decision-explained").text
+    visible(driver, "#view-review #verdict-note").send_keys("seen in 3D: the bin")
+    visible(driver, "#view-review #verdict-false_alarm").click()
+    wait_until(
+        lambda: (
+            visible(driver, "#view-review #current-verdict").get_attribute("data-verdict")
+            == "false_alarm"
+        ),
+        20,
+        "the 3D view's review panel did not show the false alarm",
+    )
+    with service.client() as client:
+        verdict = client.get(f"/api/v1/jobs/{job['id']}").json()["verdict"]
+        link = client.post(f"/api/v1/jobs/{job['id']}/view-link").json()["url"]
+    assert (verdict["verdict"], verdict["note"]) == ("false_alarm", "seen in 3D: the bin")
+    assert verdict["set_by"]["role"] == "admin"
+
+    # a visitor with only a view link sees the scene and is told where to sign in to review
+    visitor = chrome_factory()
+    visitor.get(link)
+    unavailable = visible(visitor, "#view-review #view-review-unavailable")
+    assert "Sign in" in unavailable.text
+    assert not visitor.find_elements("css selector", "#view-review #verdict-false_alarm")
