@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session, selectinload
 
 from app.clock import as_utc
 from app.config import Settings
-from app.db.models import Job, JobStatus, Region, Scan
+from app.db.models import IdempotencyRecord, Job, JobStatus, Region, Scan
 from app.jobs.queue import enqueue_job
 from app.log import current_request_id
 from app.services import idempotency, quotas, sites
@@ -99,10 +99,11 @@ def create_job(
     method, variant, params = sites.resolve_detector(
         site, payload.method, payload.variant, payload.params
     )
-    job = new_job(
+    return _queue_and_remember(
         session,
         settings,
         principal,
+        record,
         site_id=site.id,
         reference_scan_id=reference.id,
         scan_id=scan.id,
@@ -110,8 +111,6 @@ def create_job(
         variant=variant,
         params=params,
     )
-    response = StoredResponse(202, JobRead.from_model(job).model_dump(mode="json"))
-    return idempotency.remember(record, response)
 
 
 def rerun_job(
@@ -140,10 +139,11 @@ def rerun_job(
         same_detector = (method, variant) == (original.method, original.variant)
         params = dict(original.params or {}) if same_detector else {}
     sites.validate_detector(method, variant, params)
-    job = new_job(
+    return _queue_and_remember(
         session,
         settings,
         principal,
+        record,
         site_id=original.site_id,
         reference_scan_id=original.reference_scan_id,
         scan_id=original.scan_id,
@@ -151,6 +151,17 @@ def rerun_job(
         variant=variant,
         params=params,
     )
+
+
+def _queue_and_remember(
+    session: Session,
+    settings: Settings,
+    principal: Principal,
+    record: IdempotencyRecord | None,
+    **job_fields: Any,
+) -> StoredResponse:
+    """Queue a new job and remember the 202 answer under the request's idempotency record."""
+    job = new_job(session, settings, principal, **job_fields)
     response = StoredResponse(202, JobRead.from_model(job).model_dump(mode="json"))
     return idempotency.remember(record, response)
 

@@ -157,6 +157,35 @@ def _find_replay(
     return stored
 
 
+def scan_row(
+    principal: Principal,
+    *,
+    scan_id: str,
+    site_id: str,
+    filename: str | None,
+    storage_path: str,
+    received: storage.ReceivedFile,
+    parsed: ParsedScan,
+    sensor_origin: SensorOrigin | None = None,
+) -> Scan:
+    """The ``Scan`` row of a stored file (a given ``sensor_origin`` overrides the file's)."""
+    return Scan(
+        id=scan_id,
+        organisation_id=principal.organisation_id,
+        site_id=site_id,
+        filename=filename or f"scan.{parsed.format}",
+        format=parsed.format,
+        size_bytes=received.size_bytes,
+        sha256=received.sha256,
+        storage_path=storage_path,
+        n_points=parsed.n_points,
+        n_dropped=parsed.n_dropped,
+        bbox_min=parsed.bbox_min,
+        bbox_max=parsed.bbox_max,
+        sensor_origin=sensor_origin or parsed.sensor_origin,
+    )
+
+
 def parse_upload(path: Path, filename: str | None, head: bytes, max_points: int) -> ParsedScan:
     """Detect the format and check the cloud with the core, without loading it (raises the
     core's errors)."""
@@ -276,20 +305,15 @@ async def upload_scan(
         final_path = storage.resolve_data_path(settings, storage_path)
         await anyio.to_thread.run_sync(storage.install_file, received.path, final_path)
         after_rollback(session, lambda: storage.remove_file(final_path))
-        scan = Scan(
-            id=scan_id,
-            organisation_id=principal.organisation_id,
+        scan = scan_row(
+            principal,
+            scan_id=scan_id,
             site_id=options.site_id,
-            filename=filename or f"scan.{parsed.format}",
-            format=parsed.format,
-            size_bytes=received.size_bytes,
-            sha256=received.sha256,
+            filename=filename,
             storage_path=storage_path,
-            n_points=parsed.n_points,
-            n_dropped=parsed.n_dropped,
-            bbox_min=parsed.bbox_min,
-            bbox_max=parsed.bbox_max,
-            sensor_origin=options.sensor_origin or parsed.sensor_origin,
+            received=received,
+            parsed=parsed,
+            sensor_origin=options.sensor_origin,
         )
         response, created = await anyio.to_thread.run_sync(
             _register_upload, session, settings, principal, keyed_options, fingerprint, scan

@@ -48,20 +48,14 @@ def store_received_scan(
         after_rollback(session, lambda: storage.remove_file(final_path))
         quotas.lock_organisation(session, principal)
         quotas.check_stored_bytes(session, settings, principal, received.size_bytes)
-        scan = Scan(
-            id=scan_id,
-            organisation_id=principal.organisation_id,
+        scan = scans.scan_row(
+            principal,
+            scan_id=scan_id,
             site_id=site_id,
-            filename=clean_name or f"scan.{parsed.format}",
-            format=parsed.format,
-            size_bytes=received.size_bytes,
-            sha256=received.sha256,
+            filename=clean_name,
             storage_path=storage_path,
-            n_points=parsed.n_points,
-            n_dropped=parsed.n_dropped,
-            bbox_min=parsed.bbox_min,
-            bbox_max=parsed.bbox_max,
-            sensor_origin=parsed.sensor_origin,
+            received=received,
+            parsed=parsed,
         )
         session.add(scan)
         session.flush()
