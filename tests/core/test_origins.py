@@ -7,9 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from app.core.cloud import PointCloud
 from app.core.formats import read_point_cloud
 from app.core.origins import CONFIDENT, estimate_origin
 from app.core.origins.resolve import resolve_origin
+from app.core.pipeline import compare
 from app.core.synthetic import paper_corridor, raycast_scene
 from app.core.synthetic_lidar import LAYOUTS, lidar_pair
 
@@ -129,3 +131,29 @@ def test_real_velodyne_frame_moved_rigidly_origin_within_20_cm(
     found = estimate_origin(_kitti_frame(real_data_dir, frame) @ rotation.T + moved_by)
     assert np.linalg.norm(found.origin - moved_by) < 0.2
     assert found.confident
+
+
+def test_real_velodyne_pair_without_origins_is_compared_like_with_them(
+    real_data_dir: Path,
+) -> None:
+    # Two frames of a moving car: the alignment tilts the scan onto the reference's pitch, so
+    # the scan's origin is estimated in its own file (where its rings are level) and moved by
+    # the alignment.  Both origins must come out near the sensor (0, 0, 0 in each file) and the
+    # changed points must be those found with the origins given.
+    reference, scan = (
+        PointCloud.from_array(_kitti_frame(real_data_dir, frame)) for frame in ("frame0", "frame1")
+    )
+    estimated = compare(reference, scan)
+    given = compare(
+        reference, scan, params={"reference_origin": [0, 0, 0], "scan_origin": [0, 0, 0]}
+    )
+    for side in ("reference", "scan"):
+        (entry,) = estimated.sensor_origins[side]
+        assert entry["source"] == "estimated"
+        assert np.linalg.norm(entry["origin"]) < 0.2
+    for side in ("reference", "scan"):
+        with_origins = getattr(given, f"{side}_label") == 1
+        without = getattr(estimated, f"{side}_label") == 1
+        union = int((with_origins | without).sum())
+        assert union > 0
+        assert (with_origins & without).sum() / union >= 0.7, side
