@@ -36,6 +36,7 @@ from app.config import Settings
 from app.core.files import fsync_directory
 from app.db.models import Job, Scan, new_id
 from app.db.session import transaction
+from app.jobs.geometry import CACHE_SUFFIX as GEOMETRY_CACHE_SUFFIX
 from app.jobs.results import remove_stale_temp_files
 from app.services.errors import BadRequestError, PayloadTooLargeError
 
@@ -201,8 +202,9 @@ def sweep_temporary_files(settings: Settings, *, min_age_seconds: float = 0.0) -
     Call it at start-up, before serving (``min_age_seconds=0``); periodic calls while uploads
     run must pass a generous ``min_age_seconds`` (say 3600).  Removes temporary upload files,
     temporary result files of job workers killed while writing (``results/<job>/.*.tmp*``),
-    scan files that no scan row references, and result directories of jobs that no longer
-    exist.  Never raises (a database that is not migrated yet only skips the last two).
+    files beside the scans that no scan row references (a reference's ``.geometry`` cache is
+    its scan's), and result directories of jobs that no longer exist.  Never raises (a
+    database that is not migrated yet only skips the last two).
     """
     now = time.time()
     removed = 0
@@ -219,7 +221,9 @@ def sweep_temporary_files(settings: Settings, *, min_age_seconds: float = 0.0) -
     except SQLAlchemyError:
         logger.warning("sweep: database not readable, orphaned files not checked", exc_info=True)
         return removed
-    referenced = {resolve_data_path(settings, path) for path in scan_paths}
+    stored = [resolve_data_path(settings, path) for path in scan_paths]
+    # a reference's geometry cache belongs to its scan (checked before use, app/jobs/geometry.py)
+    referenced = {*stored, *(path.with_suffix(GEOMETRY_CACHE_SUFFIX) for path in stored)}
     if settings.scans_dir.is_dir():
         for site_directory in settings.scans_dir.iterdir():
             if not site_directory.is_dir() or not _HEX_ID.match(site_directory.name):

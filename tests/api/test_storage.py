@@ -86,13 +86,22 @@ def test_the_sweep_removes_leftovers_and_keeps_what_rows_reference(tmp_path: Pat
         session.flush()
         site_id, job_id = site.id, job.id
     kept_scan = settings.scans_dir / site_id / f"{'a' * 32}.ply"
+    kept_cache = kept_scan.with_suffix(".geometry")  # the reference's k-NN geometry cache
     orphan_scan = settings.scans_dir / site_id / f"{'b' * 32}.ply"
+    orphan_cache = orphan_scan.with_suffix(".geometry")
     orphan_site_directory = settings.scans_dir / ("c" * 32)
     kept_results = settings.results_dir / job_id
     orphan_results = settings.results_dir / ("d" * 32)
     foreign_results = settings.results_dir / "not-a-job-directory"
     temporary = settings.tmp_dir / "123-abc.part"
-    for path in (kept_scan, orphan_scan, orphan_site_directory / "x.ply", temporary):
+    for path in (
+        kept_scan,
+        kept_cache,
+        orphan_scan,
+        orphan_cache,
+        orphan_site_directory / "x.ply",
+        temporary,
+    ):
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(b"data")
     for directory in (kept_results, orphan_results, foreign_results):
@@ -106,10 +115,11 @@ def test_the_sweep_removes_leftovers_and_keeps_what_rows_reference(tmp_path: Pat
     old = time.time() - 10
     os.utime(temporary, (old, old))
     removed = sweep_temporary_files(settings)
-    assert removed == 4
+    assert removed == 5
     assert kept_scan.exists() and kept_results.exists() and foreign_results.exists()
+    assert kept_cache.exists()
     assert not temporary.exists()
-    assert not orphan_scan.exists()
+    assert not orphan_scan.exists() and not orphan_cache.exists()
     assert not orphan_site_directory.exists()
     assert not orphan_results.exists()
 

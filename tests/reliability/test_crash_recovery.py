@@ -185,8 +185,13 @@ def check_nothing_half_written(
 
 
 def leftovers(data_dir: Path) -> dict[str, list[Path]]:
-    """What a kill may leave: temporary uploads, temporary result files, unreferenced scans."""
-    referenced = {scan["storage_path"] for scan in database_rows(data_dir, "scan")}
+    """What a kill may leave: temporary uploads, temporary result files, unreferenced scans.
+
+    A reference's geometry cache (``<scan>.geometry`` beside its file, app/jobs/geometry.py)
+    belongs to its scan: checked before every use, rebuilt when damaged.
+    """
+    stored = [scan["storage_path"] for scan in database_rows(data_dir, "scan")]
+    referenced = {*stored, *(Path(path).with_suffix(".geometry").as_posix() for path in stored)}
     return {
         "tmp": sorted((data_dir / "tmp").glob("*")),
         "result_tmp": sorted(data_dir.glob("results/*/.*.tmp*")),
