@@ -187,7 +187,11 @@ def test_the_whole_flow_then_a_kill_mid_upload_and_a_restart(
     assert list((service.data_dir / "tmp").iterdir()) == []
     stored = sorted(path.name for path in (service.data_dir / "scans" / site["id"]).iterdir())
     scans = [before[f"/api/v1/scans/{scan_id}"] for scan_id in scan_ids]
-    assert stored == sorted(f"{scan['id']}.{scan['format']}" for scan in scans)
+    expected = {f"{scan['id']}.{scan['format']}" for scan in scans}
+    # the reference's k-NN geometry cache stays beside it (app/jobs/geometry.py)
+    reference_cache = f"{reference['id']}.geometry"
+    assert reference_cache in stored
+    assert stored == sorted(expected | {reference_cache})
     with service.client() as client:
         assert {path: client.get(path).json() for path in paths} == before
         assert {path: client.get(path).content for path in file_paths} == files_before
