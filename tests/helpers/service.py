@@ -30,6 +30,7 @@ import signal
 import subprocess
 import sys
 import time
+import uuid
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
@@ -286,8 +287,28 @@ class ServiceProcess:
 
     @property
     def admin_token(self) -> str:
-        """The admin token written by ``serve`` on first start."""
-        return (self.data_dir / ADMIN_TOKEN_FILE).read_text().strip()
+        """The admin token written by ``serve`` on its database's first start.
+
+        A database an earlier service already started (the PostgreSQL pass of ``.ci/run``
+        shares one) gets no such token: then an admin of a new organisation, from ``scandiff
+        token create``, kept in the same file.
+        """
+        path = self.data_dir / ADMIN_TOKEN_FILE
+        if not path.exists():
+            organisation = f"service-{uuid.uuid4().hex[:12]}"
+            command = [sys.executable, "-m", "app", "token", "create", "--role", "admin"]
+            created = subprocess.run(
+                [*command, "--org", organisation, "--data-dir", str(self.data_dir)],
+                cwd=PROJECT_ROOT,
+                env=self.environment(),
+                stdin=subprocess.DEVNULL,
+                capture_output=True,
+                text=True,
+                timeout=120,
+                check=True,
+            )
+            path.write_text(created.stdout.strip() + "\n")
+        return path.read_text().strip()
 
     def client(self, token: str | None = None, **kwargs: Any) -> httpx.Client:
         """An ``httpx.Client`` on ``base_url`` sending ``token`` (default: the admin token)."""
