@@ -10,6 +10,7 @@ from typing import Any
 import pytest
 
 from tests.helpers.browser import ReviewService, save_screenshot, wait_for_page
+from tests.helpers.browser import by_css as visible
 from tests.helpers.http import upload
 
 pytestmark = pytest.mark.timeout(300)
@@ -24,15 +25,6 @@ def elements(driver: Any, selector: str) -> list[Any]:
     from selenium.webdriver.common.by import By
 
     return driver.find_elements(By.CSS_SELECTOR, selector)
-
-
-def visible(driver: Any, selector: str, timeout: float = 30.0) -> Any:
-    """The first displayed element matching ``selector``."""
-    return wait_for_page(
-        lambda: next((e for e in elements(driver, selector) if e.is_displayed()), None),
-        timeout,
-        f"no visible {selector!r} on {driver.current_url}",
-    )
 
 
 def sign_in(driver: Any, service: ReviewService) -> None:

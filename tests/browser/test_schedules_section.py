@@ -9,23 +9,11 @@ from typing import Any
 import pytest
 
 from tests.helpers.browser import ReviewService, save_screenshot
+from tests.helpers.browser import by_css as visible
 from tests.helpers.browser import wait_for_page as wait_until
 from tests.helpers.http import upload
 
 pytestmark = pytest.mark.timeout(240)
-
-
-def visible(driver: Any, selector: str, timeout: float = 20.0) -> Any:
-    """The first element matching ``selector`` once it is displayed."""
-    from selenium.webdriver.common.by import By
-
-    return wait_until(
-        lambda: next(
-            (e for e in driver.find_elements(By.CSS_SELECTOR, selector) if e.is_displayed()), None
-        ),
-        timeout,
-        f"no visible {selector!r} on {driver.current_url}",
-    )
 
 
 def text_of(driver: Any, selector: str) -> str:

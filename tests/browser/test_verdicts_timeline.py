@@ -16,6 +16,7 @@ import pytest
 
 from app.core.synthetic_site import SiteVisit, site_visit
 from tests.helpers.browser import ReviewService, save_screenshot
+from tests.helpers.browser import by_css as visible
 from tests.helpers.browser import wait_for_page as wait_until
 from tests.helpers.files import ply_bytes
 from tests.helpers.http import upload
@@ -23,19 +24,6 @@ from tests.helpers.http import upload
 pytestmark = pytest.mark.timeout(300)
 
 N_POINTS = 12_000
-
-
-def visible(driver: Any, selector: str, timeout: float = 30.0) -> Any:
-    """The first displayed element matching ``selector``."""
-    from selenium.webdriver.common.by import By
-
-    return wait_until(
-        lambda: next(
-            (e for e in driver.find_elements(By.CSS_SELECTOR, selector) if e.is_displayed()), None
-        ),
-        timeout,
-        f"no visible {selector!r} on {driver.current_url}",
-    )
 
 
 def attribute_of_all(driver: Any, selector: str, name: str) -> list[str]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+from tests.helpers.browser import by_css as visible
 from tests.helpers.browser import save_screenshot, wait_for_page
 from tests.helpers.service import ServiceProcess
 from tests.helpers.webhooks import WebhookReceiver
@@ -20,19 +21,6 @@ WEBHOOK_ENV = {
     "SCANDIFF_WEBHOOK_BACKOFF_SECONDS": "0.3",
     "SCANDIFF_WEBHOOK_POLL_SECONDS": "0.2",
 }
-
-
-def visible(driver: Any, selector: str, timeout: float = 20.0) -> Any:
-    """The first displayed element matching ``selector``."""
-    from selenium.webdriver.common.by import By
-
-    return wait_for_page(
-        lambda: next(
-            (e for e in driver.find_elements(By.CSS_SELECTOR, selector) if e.is_displayed()), None
-        ),
-        timeout,
-        f"no visible {selector!r} on {driver.current_url}",
-    )
 
 
 def texts(driver: Any, selector: str) -> str:

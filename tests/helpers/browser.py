@@ -108,7 +108,7 @@ def wait_for_page(condition: Callable[[], Value], timeout: float, message: str) 
     )
 
 
-def by_css(driver: Any, selector: str, timeout: float = 20.0) -> Any:
+def by_css(driver: Any, selector: str, timeout: float = 30.0) -> Any:
     """The first element matching ``selector`` once it is displayed."""
     from selenium.webdriver.common.by import By
 
