@@ -39,10 +39,10 @@ from app.core.origins.rings import FINE_BIN_DEG, elevation_sharpness, fit_ring_h
 __all__ = ["ApexFit", "search_apex"]
 
 SAMPLE_POINTS = 4000
-MIN_RANGE = 3.0
+MIN_RANGE = 2.0
 """Returns closer than this (metres, top view) to a candidate are left out (the vehicle's own
 body, and angles that a decimetre moves by degrees)."""
-MIN_USABLE_SHARE = 0.5
+MIN_USABLE_SHARE = 0.25
 """A candidate from which fewer of the sampled returns lie beyond :data:`MIN_RANGE` scores
 0: its rings would say nothing about most of the cloud (a small cloud seen from outside)."""
 SCALES = (
@@ -59,11 +59,11 @@ SPIKE_DISTANCE = 1.0
 SPIKE_BIN_DEG = FINE_BIN_DEG
 DOWNWARD_HEIGHT_SPAN = 0.3
 MIN_DOWNWARD = 200
-FIELD_OF_VIEW_QUANTILES = (0.005, 0.995)
-"""Elevation quantiles taken as the lidar's field of view."""
-STEEP_SHARE = 0.25
-"""The height is fitted on the returns in this lowest share of the field of view: the steepest
-rays, which reach the ground round the sensor (on an HDL-64 its lower laser block)."""
+STEEP_SHARE = 0.1
+"""The height is fitted on this steepest share of the downward returns (at least
+:data:`MIN_DOWNWARD`): the rays that reach the ground nearest the sensor (on an HDL-64 its
+lower laser block; a share of the span of elevations instead would mix in the upper block's
+rings on frames with few steep returns)."""
 DOWNWARD_POINTS = 20_000
 MIN_WALL_POINTS = 500
 
@@ -134,19 +134,18 @@ def _refine(
 
 
 def _downward_height(points: NDArray[np.float64], centre: NDArray, apex_height: float) -> float:
-    """The height within :data:`DOWNWARD_HEIGHT_SPAN` of the apex from which the returns in
-    the lowest :data:`STEEP_SHARE` of the lidar's elevation span fall on the sharpest rings
-    (1 cm, then 2 mm steps)."""
+    """The height within :data:`DOWNWARD_HEIGHT_SPAN` of the apex from which the steepest
+    :data:`STEEP_SHARE` of the downward returns fall on the sharpest rings (1 cm, then 2 mm
+    steps)."""
     horizontal = np.hypot(points[:, 0] - centre[0], points[:, 1] - centre[1])
     usable = horizontal > MIN_RANGE
-    if np.count_nonzero(usable) < 2 * MIN_DOWNWARD:
-        return apex_height
     elevation = np.arctan2(points[usable, 2] - apex_height, horizontal[usable])
-    low, high = np.quantile(elevation, FIELD_OF_VIEW_QUANTILES)
-    lower = elevation < low + STEEP_SHARE * (high - low)
-    if np.count_nonzero(lower) < MIN_DOWNWARD:
+    downward = np.flatnonzero(elevation < 0.0)
+    count = max(MIN_DOWNWARD, int(STEEP_SHARE * len(downward)))
+    if len(downward) < count:
         return apex_height
-    z, horizontal = points[usable, 2][lower], horizontal[usable][lower]
+    steepest = downward[np.argsort(elevation[downward])[:count]]
+    z, horizontal = points[usable, 2][steepest], horizontal[usable][steepest]
     best = apex_height
     for span, step in ((DOWNWARD_HEIGHT_SPAN, 0.01), (0.01, 0.002)):
         heights = np.arange(best - span, best + span + step / 2, step)
