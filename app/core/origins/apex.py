@@ -16,15 +16,18 @@ column lines concur only roughly, 0.3-8 m off.  This search needs only the rings
    scales (0.5 m steps with 0.1 degree bins down to 2 cm steps with 0.02 degree bins).  At the
    first scale the sharpness peak is about 1 m wide in the top view and 0.2 m in height, so
    the joint search must move both; the best :data:`KEEP` starts go on to the finer scales;
-3. the height reported is that of the downward rings (the returns below the sensor, nearer
-   half): on an HDL-64 the lower laser block's cones meet 0.12 m above the sensor frame's
-   origin, the upper block's 0.2 m (both blocks are fitted jointly in steps 1-2); the rays that
-   reach the ground round the sensor matter most for visibility;
+3. the height reported is that of the steepest downward rays (:data:`STEEP_SHARE` of the
+   returns below the apex): on an HDL-64 the lower laser block's cones meet 0.12 m above the
+   sensor frame's origin, the upper block's 0.2 m (steps 1-2 fit both blocks jointly, so the
+   upper one dominates); the rays that reach the ground round the sensor matter most for
+   visibility;
 4. the evidence: the spike (sharpness at the apex over the largest of eight positions
    :data:`SPIKE_DISTANCE` away) and the share of returns on rings from the apex.
 
 A cloud merged from several stations has one apex per station, each explaining only its own
-share of the returns (ring share < 0.6): the confidence stays low.
+share of the returns (two Budapest frames merged: ring share 0.58-0.62): the confidence stays
+low.  No start within about 2 m of the sensor, no apex found: the search then says so (spike
+and ring share low), it does not search the whole cloud.
 """
 
 from __future__ import annotations
