@@ -19,7 +19,6 @@ Stages
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
@@ -33,7 +32,6 @@ from threadpoolctl import threadpool_limits
 
 from app.core.cloud import MIN_POINTS, PointCloud, choose_local_origin
 from app.core.comparison_settings import (
-    ComparisonSettings,
     parse_comparison_params,
 )
 from app.core.detectors import canonical_method
@@ -48,8 +46,7 @@ from app.core.localise import (
     NeighbourhoodSearch,
     localise_changes,
 )
-from app.core.origins.estimate import RING_SHARE_RANGE
-from app.core.origins.resolve import ResolvedOrigin
+from app.core.origins.own_frame import resolve_moved_cloud
 from app.core.origins.stations import origins_in_local_frame, resolve_stations, station_index_of
 from app.core.quality import quality_warnings
 from app.core.registration import (
@@ -324,8 +321,16 @@ def compare(
         aligned_scan = apply_transform(scan_points, registration.transform)
         timings["align"] = time.perf_counter() - started
         started = time.perf_counter()
-        resolved_scan = _resolve_scan_origin(
-            settings, scan, scan_points, aligned_scan, registration.transform, local_origin
+        resolved_scan = resolve_moved_cloud(
+            "scan",
+            scan_points,
+            registration.transform,
+            aligned_points=aligned_scan,
+            given=origins_in_local_frame(settings.scan_origin, None, local_origin, "scan_origin"),
+            from_file=origins_in_local_frame(None, scan.sensor_origin, local_origin),
+            estimate=settings.estimate_origins,
+            recover=settings.recover_stations,
+            station_of=scan,
         )
         scan_origin = resolved_scan.origin
         scan_station = station_index_of(scan, resolved_scan, "scan")
@@ -469,52 +474,3 @@ def _to_scan_file(
     """Positions in the aligned local frame, in the scan file's coordinates, shape (3,)/(k, 3)."""
     moved = apply_transform(origin.reshape(-1, 3), np.linalg.inv(transform)) + local_origin
     return moved.reshape(origin.shape)
-
-
-OWN_FRAME_RETRY_RING_SHARE = RING_SHARE_RANGE[0]
-"""The scan's origin is estimated again in its own frame only when this share of its returns
-lay on rings once aligned (a KITTI frame: 0.70; the synthetic merged surveys: at most 0.49, so
-they skip the second estimate, ~0.3 s at 100k points, which could not succeed)."""
-
-
-def _resolve_scan_origin(
-    settings: ComparisonSettings,
-    scan: PointCloud,
-    scan_points: NDArray[np.float64],
-    aligned_scan: NDArray[np.float64],
-    transform: NDArray[np.float64],
-    local_origin: NDArray[np.float64],
-) -> ResolvedOrigin:
-    """The scan's origin in the aligned local frame (z up like the reference's).
-
-    Resolved on the aligned scan first; when nothing was given and no confident estimate came
-    from it, estimated again in the scan's own frame (before alignment) and moved by the
-    alignment: a sensor level in its own file (a Velodyne frame) can look tilted once aligned
-    onto a reference taken at another pitch, while a file tilted against the world (a
-    misaligned export) is level only after alignment.
-    """
-
-    def aligned(origins: NDArray[np.float64] | None) -> NDArray[np.float64] | None:
-        return None if origins is None else apply_transform(origins, transform)
-
-    given = origins_in_local_frame(settings.scan_origin, None, local_origin, "scan_origin")
-    from_file = origins_in_local_frame(None, scan.sensor_origin, local_origin)
-    options = {
-        "estimate": settings.estimate_origins,
-        "recover": settings.recover_stations,
-        "station_of": scan,
-    }
-    resolved = resolve_stations(
-        "scan", aligned_scan, given=aligned(given), from_file=aligned(from_file), **options
-    )
-    if resolved.origin is not None or given is not None or from_file is not None:
-        return resolved
-    ring_share = (resolved.evidence or {}).get("ring_share", 0.0)
-    if not settings.estimate_origins or ring_share < OWN_FRAME_RETRY_RING_SHARE:
-        return resolved  # not a single spinning lidar's rings (e.g. a merged survey): no retry
-    own_frame = resolve_stations("scan", scan_points, given=None, from_file=None, **options)
-    if own_frame.origin is None:
-        return resolved
-    origin = np.asarray(own_frame.origin, dtype=np.float64)
-    moved = apply_transform(origin.reshape(-1, 3), transform).reshape(origin.shape)
-    return dataclasses.replace(own_frame, origin=moved)

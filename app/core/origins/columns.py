@@ -12,7 +12,7 @@ stations has several such points; random points have none.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,12 +48,17 @@ class ColumnFit:
     second_peak_ratio : float
         Votes of the strongest other accumulator peak (1 m away or more) over the chosen one's.
     n_lines : int
+    candidates : ndarray, shape (k, 2)
+        The refined accumulator peaks, most concurring lines first (``centre`` is the first):
+        starts for :func:`~app.core.origins.apex.search_apex` when the lines concur only
+        roughly.
     """
 
     centre: NDArray[np.float64]
     concurring_share: float
     second_peak_ratio: float
     n_lines: int
+    candidates: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 def lattice_patches(
@@ -193,9 +198,11 @@ def fit_column_centre(
     shares = [concurring_share(anchor, direction, centre) for centre in refined]
     best = int(np.argmax(shares))
     others = [peak for index, peak in enumerate(peaks) if index != best]
+    order = sorted(range(len(refined)), key=lambda index: (index != best, -shares[index]))
     return ColumnFit(
         centre=refined[best],
         concurring_share=shares[best],
         second_peak_ratio=max(others, default=0.0) / peaks[best] if peaks[best] > 0 else 1.0,
         n_lines=len(anchor),
+        candidates=np.array([refined[index] for index in order]).reshape(-1, 2),
     )

@@ -6,9 +6,14 @@ height from which the returns' elevations fall on sharp rings.  Both use only an
 range noise does not move, so on a single upright station the origin comes out to millimetres.
 
 The confidence is high only when both signals say "one upright spinning lidar": most lines
-concur at the centre and nearly every return lies on a ring.  Clouds merged from several
-stations, random points and tilted sensors fail one or both and get a low confidence; the
-pipeline then does not use the estimate (:data:`CONFIDENT`).
+concur at the centre and nearly every return lies on a ring.  Real lidars whose columns are
+not half-planes are sharpened on their rings (:mod:`~app.core.origins.sharpen`, from the rough
+centre, needs level ground round the sensor); when that fails too, the ring cones' apex is
+searched from each point where the column lines concur (:mod:`~app.core.origins.apex`: frames
+whose ground was removed).  Clouds merged from several stations, random points and tilted
+sensors fail one or both and get a low confidence; the pipeline then does not use the
+estimate (:data:`CONFIDENT`; a tilted cloud may be estimated in its own frame instead,
+:mod:`~app.core.origins.own_frame`).
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from app.core.origins.apex import search_apex
 from app.core.origins.columns import column_lines, fit_column_centre, lattice_patches
 from app.core.origins.rings import fit_ring_height
 from app.core.origins.sharpen import sharpen_origin
@@ -42,6 +48,14 @@ SHARPEN_RING_SHARE = 0.7
 SPIKE_RANGE = (1.5, 3.0)
 """Sharpened origins: elevation-sharpness spike mapped onto confidence 0..1 (KITTI HDL-64
 frames 3.4-3.6; merged stations and clouds without one origin 0.6-2.6)."""
+APEX_SPIKE_RANGE = (1.5, 2.5)
+"""Apex searches (:mod:`~app.core.origins.apex`): wall returns' sharpness at the apex over 1 m
+away mapped onto confidence 0..1 (Budapest HDL-64 frames without ground 4.3-5.4; random points
+and the paper's corridor 0.9-1.05; two Budapest frames merged ~3: there the ring share tells)."""
+APEX_RING_SHARE_RANGE = (0.7, 0.85)
+"""Apex searches: ring share from the apex mapped onto confidence 0..1 (Budapest frames
+0.85-0.95; two Budapest frames merged 0.58-0.62: the apex search finds one station's apex,
+which explains only its own returns; random points 0.25)."""
 
 
 @dataclass(frozen=True)
@@ -57,7 +71,8 @@ class OriginEstimate:
     evidence : dict
         ``concurring_share``, ``second_peak_ratio``, ``ring_share``, ``sharpness_gain``,
         ``n_points``, ``seconds``; ``sharpened_spike`` and ``sharpened_ring_share`` when the
-        estimate was sharpened on the rings (:mod:`~app.core.origins.sharpen`).
+        estimate was sharpened on the rings (:mod:`~app.core.origins.sharpen`); ``apex_spike``
+        and ``apex_ring_share`` when the rings' apex was searched (:mod:`~app.core.origins.apex`).
     """
 
     origin: NDArray[np.float64]
@@ -128,5 +143,14 @@ def estimate_origin(
         evidence["sharpened_ring_share"] = sharpened.ring_share
         if sharpened_confidence > confidence:
             origin, confidence = sharpened.origin, sharpened_confidence
+    if confidence < CONFIDENT:
+        apex = search_apex(wall_points, points, columns.candidates, rng)
+        apex_confidence = min(
+            _ramp(apex.ring_share, APEX_RING_SHARE_RANGE), _ramp(apex.spike, APEX_SPIKE_RANGE)
+        )
+        evidence["apex_spike"] = apex.spike
+        evidence["apex_ring_share"] = apex.ring_share
+        if apex_confidence > confidence:
+            origin, confidence = apex.origin, apex_confidence
     evidence["seconds"] = time.perf_counter() - started
     return OriginEstimate(origin=origin, confidence=confidence, evidence=evidence)

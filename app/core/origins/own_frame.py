@@ -1,0 +1,100 @@
+"""A moved cloud's origin, from whichever of its two frames has the lidar's rings level.
+
+A scan is compared after alignment onto the reference, but its lidar's axis is vertical in
+only one of its two frames: a Velodyne frame is level in its own file and tilted once aligned
+onto a reference taken at another pitch (the car pitched between frames), while a file tilted
+against the world (a misaligned export) is level only after alignment.  The estimators
+(:mod:`~app.core.origins.estimate`) assume the axis is vertical within a degree or so, so:
+resolve in the aligned frame first; when nothing was given and no confident origin came out,
+but the returns still lie on rings (one spinning lidar, seen a little tilted), estimate again
+in the cloud's own frame, where its axis is vertical, and move that origin by the alignment.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.core.cloud import PointCloud
+from app.core.origins.estimate import RING_SHARE_RANGE
+from app.core.origins.resolve import ResolvedOrigin
+from app.core.origins.stations import resolve_stations
+from app.core.registration import apply_transform
+
+__all__ = ["OWN_FRAME_RETRY_RING_SHARE", "resolve_moved_cloud"]
+
+OWN_FRAME_RETRY_RING_SHARE = RING_SHARE_RANGE[0]
+"""The origin is estimated again in the cloud's own frame when this share of its returns lay
+on rings once aligned (a KITTI frame: 0.70; the synthetic merged surveys: at most 0.49, so
+they skip the second estimate, ~0.3 s at 100k points, which could not succeed) ..."""
+OWN_FRAME_RETRY_TILT_DEG = 1.0
+"""... or when the alignment tilts the cloud's z axis by more than this (degrees): a few
+degrees of tilt blur a lidar's rings, so the aligned ring share no longer tells (the synthetic
+misaligned pairs tilt 0.3-0.4 degrees)."""
+
+
+def resolve_moved_cloud(
+    side: str,
+    own_points: NDArray[np.float64],
+    transform: NDArray[np.float64],
+    *,
+    aligned_points: NDArray[np.float64] | None = None,
+    given: NDArray[np.float64] | None,
+    from_file: NDArray[np.float64] | None,
+    estimate: bool,
+    recover: bool,
+    station_of: PointCloud | None = None,
+) -> ResolvedOrigin:
+    """The origin(s) of a cloud moved by ``transform``, in the moved (aligned) frame.
+
+    Parameters
+    ----------
+    side : str
+        "reference" or "scan" (for the warnings).
+    own_points : ndarray, shape (n, 3)
+        The cloud in its own frame.
+    transform : ndarray, shape (4, 4)
+        From its own frame to the aligned one.
+    aligned_points : ndarray, shape (n, 3), optional
+        ``own_points`` moved by ``transform`` (computed when not given).
+    given, from_file : ndarray, shape (k, 3) / (3,), or None
+        Origins in the cloud's own frame.
+    estimate, recover : bool
+        As for :func:`~app.core.origins.stations.resolve_stations`.
+    station_of : PointCloud, optional
+        The cloud ``own_points`` come from (its per-point station index, if any).
+
+    Returns
+    -------
+    ResolvedOrigin
+        Resolved in the aligned frame; or, when nothing was given and that gave no origin
+        though at least :data:`OWN_FRAME_RETRY_RING_SHARE` of the returns lay on rings or the
+        alignment tilts the cloud by more than :data:`OWN_FRAME_RETRY_TILT_DEG`, resolved in
+        the own frame and moved by ``transform``.
+    """
+    if aligned_points is None:
+        aligned_points = apply_transform(own_points, transform)
+
+    def aligned(origins: NDArray[np.float64] | None) -> NDArray[np.float64] | None:
+        return None if origins is None else apply_transform(origins, transform)
+
+    options = {"estimate": estimate, "recover": recover, "station_of": station_of}
+    resolved = resolve_stations(
+        side, aligned_points, given=aligned(given), from_file=aligned(from_file), **options
+    )
+    if resolved.origin is not None or given is not None or from_file is not None:
+        return resolved
+    ring_share = (resolved.evidence or {}).get("ring_share", 0.0)
+    tilt = np.rad2deg(np.arccos(np.clip(np.asarray(transform)[2, 2], -1.0, 1.0)))
+    if not estimate or (
+        ring_share < OWN_FRAME_RETRY_RING_SHARE and tilt <= OWN_FRAME_RETRY_TILT_DEG
+    ):
+        return resolved  # level, and not a single lidar's rings (a merged survey): no retry
+    own_frame = resolve_stations(side, own_points, given=None, from_file=None, **options)
+    if own_frame.origin is None:
+        return resolved
+    origin = np.asarray(own_frame.origin, dtype=np.float64)
+    moved = apply_transform(origin.reshape(-1, 3), transform).reshape(origin.shape)
+    return dataclasses.replace(own_frame, origin=moved)
