@@ -25,7 +25,11 @@ def real_data_dir() -> Path:
 
 @pytest.fixture
 def service_factory(tmp_path: Path) -> Iterator[Callable[..., ServiceProcess]]:
-    """Make started services (``service_factory(workers=2, env={...})``); all stopped after."""
+    """Make started services (``service_factory(workers=2, env={...})``); all killed after.
+
+    Killed, not stopped: a graceful stop waits seconds for idle workers, and the tests that check
+    it call ``stop()`` themselves (tests/jobs/test_serve.py).
+    """
     started: list[ServiceProcess] = []
 
     def make(
@@ -43,4 +47,4 @@ def service_factory(tmp_path: Path) -> Iterator[Callable[..., ServiceProcess]]:
 
     yield make
     for service in started:
-        service.stop(timeout=15.0)
+        service.kill()

@@ -54,6 +54,8 @@ def decisive(job: dict) -> dict:
     return test
 
 
+@pytest.mark.slow  # seven real comparisons of 20k-point visits; make test keeps the parts:
+# tests/api/test_verdicts.py (learning over the API), tests/core/test_site_calibration.py
 def test_a_site_learns_to_ignore_its_recurring_false_alarm(service_factory: ServiceFactory) -> None:
     service = service_factory(workers=1)
     client = service.client()

@@ -43,15 +43,22 @@ def scandiff(service: ServiceProcess, *arguments: str) -> subprocess.CompletedPr
     )
 
 
-def issue_token(service: ServiceProcess) -> tuple[str, str]:
-    """A writer token of a new organisation from ``scandiff token create``: (secret, id)."""
-    organisation = unique_name("revoke-org")
+def issue_token(service: ServiceProcess, organisation: str | None = None) -> str:
+    """A writer token of ``organisation`` (default: a new one) from ``scandiff token create``."""
+    organisation = organisation or unique_name("revoke-org")
     created = scandiff(service, "token", "create", "--org", organisation, "--role", "writer")
     assert created.returncode == 0, created.stderr
+    return created.stdout.strip()
+
+
+def issue_listed_token(service: ServiceProcess) -> tuple[str, str]:
+    """A writer token from ``scandiff token create``, its id from ``token list``: (secret, id)."""
+    organisation = unique_name("revoke-org")
+    secret = issue_token(service, organisation)
     listed = scandiff(service, "token", "list", "--org", organisation, "--json")
     assert listed.returncode == 0, listed.stderr
     [token] = json.loads(listed.stdout)
-    return created.stdout.strip(), token["id"]
+    return secret, token["id"]
 
 
 def authenticated_and_cached(service: ServiceProcess, secret: str) -> httpx.Client:
@@ -80,10 +87,10 @@ def assert_unauthorized(response: httpx.Response) -> None:
 def test_cli_revocation_ends_a_cached_token_at_once_whatever_the_ttl(
     service_factory: ServiceFactory,
 ) -> None:
-    service = service_factory(env={"SCANDIFF_TOKEN_CACHE_SECONDS": "3600"})
+    service = service_factory(workers=0, env={"SCANDIFF_TOKEN_CACHE_SECONDS": "3600"})
 
-    secret, token_id = issue_token(service)
-    bystander_secret, _ = issue_token(service)
+    secret, token_id = issue_listed_token(service)
+    bystander_secret = issue_token(service)
     client = authenticated_and_cached(service, secret)
     bystander = authenticated_and_cached(service, bystander_secret)
     revoked = scandiff(service, "token", "revoke", token_id)
@@ -93,7 +100,7 @@ def test_cli_revocation_ends_a_cached_token_at_once_whatever_the_ttl(
     assert bystander.get("/api/v1/sites").status_code == 200  # other tokens keep working
 
     # Behind the service's back the hour-long cache keeps the token alive, past the default TTL.
-    secret, token_id = issue_token(service)
+    secret, token_id = issue_listed_token(service)
     client = authenticated_and_cached(service, secret)
     revoke_in_database(service, secret)
     assert client.get("/api/v1/sites").status_code == 200
@@ -109,8 +116,8 @@ def test_cli_revocation_ends_a_cached_token_at_once_whatever_the_ttl(
 def test_a_database_only_revocation_is_seen_when_a_short_ttl_expires(
     service_factory: ServiceFactory,
 ) -> None:
-    service = service_factory(env={"SCANDIFF_TOKEN_CACHE_SECONDS": "1"})
-    secret, _ = issue_token(service)
+    service = service_factory(workers=0, env={"SCANDIFF_TOKEN_CACHE_SECONDS": "1"})
+    secret = issue_token(service)
     client = authenticated_and_cached(service, secret)
     revoke_in_database(service, secret)
     deadline = time.monotonic() + EXPIRY_DEADLINE_SECONDS
@@ -125,8 +132,8 @@ def test_a_database_only_revocation_is_seen_when_a_short_ttl_expires(
 def test_a_zero_ttl_disables_the_cache(
     service_factory: ServiceFactory,
 ) -> None:
-    service = service_factory(env={"SCANDIFF_TOKEN_CACHE_SECONDS": "0"})
-    secret, _ = issue_token(service)
+    service = service_factory(workers=0, env={"SCANDIFF_TOKEN_CACHE_SECONDS": "0"})
+    secret = issue_token(service)
     client = authenticated_and_cached(service, secret)
     revoke_in_database(service, secret)
     assert_unauthorized(client.get("/api/v1/sites"))

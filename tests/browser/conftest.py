@@ -123,11 +123,13 @@ def scan_files(tmp_path_factory: pytest.TempPathFactory) -> ScanFiles:
     )
 
 
-@pytest.fixture(scope="module")
-def review_service(
-    tmp_path_factory: pytest.TempPathFactory, scan_files: ScanFiles
-) -> Iterator[ReviewService]:
-    """``scandiff serve`` with one worker; scans named like the failing one fail at once."""
+@pytest.fixture(scope="session")
+def review_process(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """``scandiff serve`` with one worker; scans named like the failing one fail at once.
+
+    One for the session (starting one costs seconds): each module makes its own sites and jobs
+    through :func:`review_service`, so modules do not read each other's.
+    """
     hooks = json.dumps({"scan_filename": FAILING_SCAN_NAME, "raise_error": FAILING_SCAN_REASON})
     process = ServiceProcess(
         tmp_path_factory.mktemp("service") / "data",
@@ -140,6 +142,12 @@ def review_service(
     )
     process.start()
     try:
-        yield ReviewService(process, scan_files)
+        yield process
     finally:
-        process.stop(timeout=20)
+        process.kill()  # no graceful stop to wait for: nothing here checks it
+
+
+@pytest.fixture(scope="module")
+def review_service(review_process: ServiceProcess, scan_files: ScanFiles) -> ReviewService:
+    """The review service with an empty record of what this module's tests made."""
+    return ReviewService(review_process, scan_files)

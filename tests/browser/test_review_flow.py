@@ -317,6 +317,8 @@ def test_view_refused_without_auth(review_service: ReviewService) -> None:
         assert connection.recv(timeout=30)  # viser's first messages arrive through the proxy
 
 
+@pytest.mark.slow  # a second software-WebGL render of the view; test_view_review_tools opens
+# its view from a link in a fresh profile in make test, test_view_any_process checks the link
 def test_view_link_opens_without_a_token(review_service: ReviewService, chrome_factory) -> None:
     service = review_service
     job = service.finished_job()

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from tests.helpers.environment import PROJECT_ROOT
-from tests.helpers.http import upload
+from tests.helpers.http import unique_name, upload
 from tests.helpers.service import ServiceProcess, process_group_members
 from tests.helpers.waiting import wait_until
 
@@ -189,7 +189,7 @@ class ReviewService:
         if "job" in self.made:
             return self.made["job"]
         with self.client() as client:
-            site = client.post("/api/v1/sites", json={"name": "API-made site"})
+            site = client.post("/api/v1/sites", json={"name": unique_name("API-made site")})
             site.raise_for_status()
             site_id = site.json()["id"]
             for path, reference in ((self.files.reference, True), (self.files.scan, False)):

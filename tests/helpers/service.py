@@ -455,6 +455,10 @@ class ConsumerProcess:
         self.process.wait(5)
         return self.process.returncode
 
+    def kill(self) -> None:
+        """SIGKILL the whole group at once (fixture clean-up: no graceful stop to wait for)."""
+        kill_process_group(self.process)
+
 
 class ApiProcess(ServiceProcess):
     """The API alone, ``uvicorn --factory app.main:create_app`` (no migrations, no consumer).

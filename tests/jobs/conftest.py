@@ -47,7 +47,8 @@ def without_consumer_exports(monkeypatch: pytest.MonkeyPatch) -> None:
 def consumer_factory(
     job_settings: Settings, tmp_path: Path
 ) -> Iterator[Callable[..., ConsumerProcess]]:
-    """Start consumers on ``job_settings`` (stopped after the test)."""
+    """Start consumers on ``job_settings`` (killed after the test: the tests that check a
+    graceful stop call ``stop()`` themselves)."""
     started: list[ConsumerProcess] = []
 
     def make(**kwargs: Any) -> ConsumerProcess:
@@ -59,12 +60,13 @@ def consumer_factory(
 
     yield make
     for consumer in started:
-        consumer.stop()
+        consumer.kill()
 
 
 @pytest.fixture
 def worker_factory(tmp_path: Path) -> Iterator[Callable[..., WorkerProcess]]:
-    """Start ``scandiff worker`` processes: ``worker_factory(settings, concurrency=1, ...)``."""
+    """Start ``scandiff worker`` processes: ``worker_factory(settings, concurrency=1, ...)``;
+    killed after the test (the tests that check a graceful stop call ``terminate()``)."""
     started: list[WorkerProcess] = []
 
     def make(settings: Settings, **kwargs: Any) -> WorkerProcess:
@@ -74,7 +76,7 @@ def worker_factory(tmp_path: Path) -> Iterator[Callable[..., WorkerProcess]]:
 
     yield make
     for worker in started:
-        worker.stop(timeout=15.0)
+        worker.kill()
 
 
 @pytest.fixture
