@@ -75,12 +75,19 @@ def _text_variants() -> dict[str, bytes]:
 TEXT_VARIANTS = _text_variants()
 
 
+@pytest.mark.parametrize("from_disk", [False, True], ids=["bytes", "file"])
 @pytest.mark.parametrize("variant", sorted(TEXT_VARIANTS))
-def test_text_summary_in_small_chunks_equals_the_read_cloud(small_chunks, variant):
+def test_text_summary_in_small_chunks_equals_the_read_cloud(
+    small_chunks, tmp_path, variant, from_disk
+):
     content = TEXT_VARIANTS[variant]
     assert len(content) > 20 * SMALL_CHUNK_BYTES
+    source = content
+    if from_disk:  # read with pread from the file, not through its memory map
+        source = tmp_path / "scan.xyz"
+        source.write_bytes(content)
     cloud = read_point_cloud(content, filename="scan.xyz")
-    summary = summarise_point_cloud(content, filename="scan.xyz")
+    summary = summarise_point_cloud(source, filename="scan.xyz")
     assert_summary_of(summary, cloud)
     assert summary.n_dropped == 4
 
@@ -133,10 +140,14 @@ REFUSALS = _refusals()
 
 
 @pytest.mark.parametrize("case", sorted(REFUSALS))
-def test_text_summary_in_small_chunks_refuses_with_the_reading_message(small_chunks, case):
+def test_text_summary_in_small_chunks_refuses_with_the_reading_message(
+    small_chunks, tmp_path, case
+):
     content = REFUSALS[case]
+    path = tmp_path / "scan.xyz"
+    path.write_bytes(content)
     read = _outcome(read_point_cloud, content, filename="scan.xyz")
-    summary = _outcome(summarise_point_cloud, content, filename="scan.xyz")
+    summary = _outcome(summarise_point_cloud, path)
     if case == "one very long line":  # the reader takes it whole; a summary stops at a line
         assert read[0] == "error" and summary[0] == "error"
         assert "longer than" in summary[1]

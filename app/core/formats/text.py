@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import codecs
 import io
-import mmap
+import os
 import re
 import warnings
 from collections.abc import Iterator
@@ -39,13 +39,13 @@ COMMENT_PREFIX = "#"
 LEADING_LINES = 1000
 """Lines searched for the header and the first data row (the rest is parsed by numpy only)."""
 _UNITS = re.compile(r"[\(\[\{].*?[\)\]\}]")
-CHUNK_BYTES = 4 * 1024 * 1024
-"""Text parsed at a time by :func:`summarise_text` (its rows: about a third of it as float64)."""
+CHUNK_BYTES = 1024 * 1024
+"""Text parsed at a time by :func:`summarise_text` (``io.StringIO`` holds it as 4 bytes a
+character for ``numpy.loadtxt``; its rows take about a third of its size as float64)."""
 HEAD_BYTES = 1024 * 1024
 """Least text :func:`summarise_text` searches for the header and the first data row."""
 MAX_LINE_BYTES = 1024 * 1024
 """Longest line :func:`summarise_text` accepts (a row of numbers is far shorter)."""
-Buffer = bytes | memoryview | mmap.mmap
 
 
 @dataclass(frozen=True)
@@ -225,9 +225,35 @@ def _parse_rows(body: str, layout: TextLayout, rows_before: int) -> NDArray[np.f
         raise PointCloudError(_describe_loadtxt_error(exc, layout.first_data_index)) from exc
 
 
-def line_chunks(buffer: Buffer, start: int, chunk_bytes: int) -> Iterator[tuple[int, bytes]]:
-    """``buffer[start:]`` in pieces of about ``chunk_bytes`` that end at a newline (the last
-    piece: at the end), as (offset in ``buffer``, bytes).
+class FileContent:
+    """Reads pieces of a :class:`Source`: with ``pread`` from its file when it has one (the
+    memory map is never touched, so the pages read do not stay in this process's memory),
+    else from its buffer."""
+
+    def __init__(self, source: Source) -> None:
+        self.source = source
+        self.size = source.size
+
+    def read(self, offset: int, n_bytes: int) -> bytes:
+        """Up to ``n_bytes`` bytes from ``offset`` (fewer only at the end)."""
+        n_bytes = max(0, min(n_bytes, self.size - offset))
+        descriptor = self.source.file_descriptor
+        if descriptor is None:
+            return bytes(self.source.buffer[offset : offset + n_bytes])
+        pieces = []
+        while n_bytes > 0:
+            piece = os.pread(descriptor, n_bytes, offset)
+            if not piece:
+                break
+            pieces.append(piece)
+            offset += len(piece)
+            n_bytes -= len(piece)
+        return b"".join(pieces)
+
+
+def line_chunks(content: FileContent, start: int, chunk_bytes: int) -> Iterator[tuple[int, bytes]]:
+    """The content from ``start`` on, in pieces of about ``chunk_bytes`` that end at a newline
+    (the last piece: at the end), as (offset in the content, bytes).
 
     A piece holds whole lines only, so it decodes on its own (a newline byte is never part of
     a multi-byte UTF-8 character) and ``numpy.loadtxt`` sees whole rows.
@@ -237,40 +263,33 @@ def line_chunks(buffer: Buffer, start: int, chunk_bytes: int) -> Iterator[tuple[
     PointCloudError
         A line longer than :data:`MAX_LINE_BYTES` (not a row of numbers).
     """
-    size = len(buffer)
     position = start
-    while position < size:
-        end = min(position + max(1, chunk_bytes), size)
-        if end < size:
-            cut = _find_newline(buffer, end - 1, position)
-            if cut < 0:  # no newline in the piece: one long line, look further
-                cut = _find_newline_ahead(buffer, end, position)
-            end = cut + 1 if cut >= 0 else size
-        yield position, bytes(buffer[position:end])
-        position = end
+    while position < content.size:
+        piece = content.read(position, max(1, chunk_bytes))
+        if position + len(piece) < content.size:
+            cut = piece.rfind(b"\n")
+            if cut >= 0:
+                piece = piece[: cut + 1]
+            else:  # no newline in the piece: one long line, read on to its end
+                piece += _rest_of_line(content, position + len(piece), position)
+        yield position, piece
+        position += len(piece)
 
 
-def _find_newline(buffer: Buffer, last: int, first: int) -> int:
-    """The offset of the last newline in ``buffer[first : last + 1]``, or -1."""
-    piece = bytes(buffer[first : last + 1])
-    found = piece.rfind(b"\n")
-    return first + found if found >= 0 else -1
-
-
-def _find_newline_ahead(buffer: Buffer, start: int, line_start: int) -> int:
-    """The offset of the first newline at or after ``start``, or -1 at the end; the line
-    that began at ``line_start`` may not pass :data:`MAX_LINE_BYTES`."""
-    limit = min(len(buffer), line_start + MAX_LINE_BYTES)
-    piece = bytes(buffer[start:limit])
+def _rest_of_line(content: FileContent, start: int, line_start: int) -> bytes:
+    """The bytes from ``start`` up to and including the next newline (to the end when there is
+    none); the line that began at ``line_start`` may not pass :data:`MAX_LINE_BYTES`."""
+    limit = min(content.size, line_start + MAX_LINE_BYTES)
+    piece = content.read(start, limit - start)
     found = piece.find(b"\n")
     if found >= 0:
-        return start + found
-    if limit < len(buffer):
+        return piece[: found + 1]
+    if limit < content.size:
         raise PointCloudError(
             f"a line longer than {MAX_LINE_BYTES:,} bytes starts at offset {line_start}; "
             "expected rows of x y z numbers"
         )
-    return -1
+    return piece
 
 
 def summarise_text(
@@ -298,11 +317,11 @@ def summarise_text(
         As :func:`read_text`.
     """
     chunk_bytes = CHUNK_BYTES if chunk_bytes is None else chunk_bytes
-    buffer = source.buffer
+    content = FileContent(source)
     newlines = 0
     first_bad: str | None = None
     has_nul = False
-    for offset, piece in line_chunks(buffer, 0, chunk_bytes):
+    for offset, piece in line_chunks(content, 0, chunk_bytes):
         codec = "utf-8-sig" if offset == 0 else "utf-8"
         if first_bad is None:
             try:
@@ -319,7 +338,7 @@ def summarise_text(
     if has_nul:
         raise PointCloudError(NUL_MESSAGE)
 
-    head_offset, head = next(line_chunks(buffer, 0, max(chunk_bytes, HEAD_BYTES)))
+    head_offset, head = next(line_chunks(content, 0, max(chunk_bytes, HEAD_BYTES)))
     head_text = head.decode("utf-8-sig")
     layout = text_layout(head_text)
     if has_station_fields(layout.attribute_names):
@@ -330,7 +349,7 @@ def summarise_text(
         data_start = head.index(b"\n", data_start) + 1
     bounds = FiniteBounds()
     n_rows = 0
-    for _, piece in line_chunks(buffer, head_offset + data_start, chunk_bytes):
+    for _, piece in line_chunks(content, head_offset + data_start, chunk_bytes):
         table = _parse_rows(piece.decode("utf-8"), layout, n_rows)
         if table.shape[0]:
             bounds.add(np.ascontiguousarray(table[:, :3]))
