@@ -186,6 +186,13 @@ class Settings(BaseSettings):
         "the service call into its own network.",
     )
     webhook_max_attempts: int = Field(default=8, ge=1, description="Attempts per delivery.")
+    event_retention_days: float = Field(
+        default=30.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="Events (and their webhook deliveries) older than this are deleted by the "
+        "recovery sweep once none of their deliveries is still pending or in flight.",
+    )
     webhook_backoff_seconds: float = Field(
         default=10.0,
         gt=0,

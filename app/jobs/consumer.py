@@ -6,11 +6,12 @@ Run by ``scandiff serve`` as a child, or alone on another host for scale-out
 for a migrated database)::
 
     consumer (this process: supervises workers, runs the recovery sweep every
-    │         recovery_interval_seconds, the schedule tick every schedule_tick_seconds
-    │         when given one, notes it is alive in the queue for /health)
+    │         recovery_interval_seconds, notes it is alive in the queue for /health)
     ├── Huey scheduler (process)
     ├── Huey worker 1..N (processes; each runs one job at a time)
-    └── webhook deliveries (process: :mod:`app.jobs.deliveries`, replaced when it dies)
+    ├── webhook deliveries (process: :mod:`app.jobs.deliveries`, replaced when it dies)
+    └── schedule ticker (process, when given a tick: every schedule_tick_seconds; replaced
+                         when it dies, so a slow URL fetch never delays supervision)
 
 SIGTERM or SIGINT stop it gracefully: idle workers exit at once (no new job is taken), running
 jobs get the shutdown grace (``SCANDIFF_SHUTDOWN_GRACE_SECONDS``, default 10 s) to finish,
@@ -27,6 +28,7 @@ import logging
 import os
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -39,12 +41,13 @@ from app.config import Settings, get_settings
 from app.db.migrate import current_revision, head_revision
 from app.db.session import get_engine
 from app.jobs import queue, runner
-from app.jobs.deliveries import DeliveryProcess
+from app.jobs.deliveries import delivery_process
 from app.jobs.doorbell import Doorbell, doorbell_path, ring
 from app.jobs.hooks import job_hooks
 from app.jobs.lifecycle import die_with_supervisor, set_parent_death_signal
 from app.jobs.limits import job_memory_limit, job_threads
 from app.jobs.recovery import recovery_sweep
+from app.jobs.side_process import Loop, SideProcess
 from app.log import bind_job, configure_process_logging
 
 logger = logging.getLogger("scandiff.jobs.consumer")
@@ -151,6 +154,21 @@ def remove_stale_worker_pid_files(settings: Settings) -> None:
             path.unlink(missing_ok=True)
 
 
+def schedule_loop(schedule_tick: Callable[[Settings], object]) -> Loop:
+    """The schedule ticker's body: ``schedule_tick`` every ``schedule_tick_seconds`` until
+    stopped; a failed tick is logged, never fatal."""
+
+    def run_schedule_ticks(settings: Settings, stop: threading.Event) -> None:
+        while not stop.is_set():
+            try:
+                schedule_tick(settings)
+            except Exception:
+                logger.exception("schedule tick failed", extra={"stage": "schedules"})
+            stop.wait(settings.schedule_tick_seconds)
+
+    return run_schedule_ticks
+
+
 class DoorbellWorker(Worker):  # type: ignore[misc]
     """Huey's worker that sleeps on the queue's doorbell (:mod:`app.jobs.doorbell`) while idle.
 
@@ -210,11 +228,15 @@ class ScandiffConsumer(Consumer):  # type: ignore[misc]
         # a second signal interrupts at once.  Workers still treat SIGTERM as "interrupt now".
         self._signal_actions[signal.SIGTERM] = (False, True)
         self.settings = settings
-        self.deliveries = DeliveryProcess(settings)  # webhook deliveries beside the job workers
+        self.deliveries = delivery_process(settings)  # webhook deliveries beside the job workers
+        # The schedule tick in a process of its own: a slow URL fetch never delays supervision.
+        self.schedule_ticker = (
+            None
+            if schedule_tick is None
+            else SideProcess(settings, "schedule-ticker", schedule_loop(schedule_tick))
+        )
         self._next_sweep = 0.0
         self._next_alive_note = 0.0
-        self.schedule_tick = schedule_tick
-        self._next_schedule_tick = 0.0
 
     def _create_worker(self) -> Worker:
         """A :class:`DoorbellWorker` (listening when the queue is the SQLite file)."""
@@ -244,13 +266,12 @@ class ScandiffConsumer(Consumer):  # type: ignore[misc]
         now = time.monotonic()
         if not self.stop_flag.is_set():
             self.deliveries.ensure_running()
+            if self.schedule_ticker is not None:
+                self.schedule_ticker.ensure_running()
         try:
             if now >= self._next_sweep:
                 self._next_sweep = now + self.settings.recovery_interval_seconds
                 self.sweep()
-            if self.schedule_tick is not None and now >= self._next_schedule_tick:
-                self._next_schedule_tick = now + self.settings.schedule_tick_seconds
-                self.tick_schedules()
             if now >= self._next_alive_note:
                 self._next_alive_note = now + CONSUMER_HEARTBEAT_SECONDS
                 self.note_alive()
@@ -266,17 +287,6 @@ class ScandiffConsumer(Consumer):  # type: ignore[misc]
             recovery_sweep(self.settings)
         except Exception:
             logger.exception("recovery sweep failed", extra={"stage": "recovery"})
-        finally:
-            self.close_connections()
-
-    def tick_schedules(self) -> None:
-        """Run the schedules' due periods (the service's tick); errors are logged, never fatal."""
-        if self.schedule_tick is None:
-            return
-        try:
-            self.schedule_tick(self.settings)
-        except Exception:
-            logger.exception("schedule tick failed", extra={"stage": "schedules"})
         finally:
             self.close_connections()
 
@@ -368,6 +378,8 @@ def run_consumer(
     finally:
         consumer.stop_flag.set()  # idle workers exit by themselves even if run() failed
         consumer.deliveries.stop(timeout=settings.webhook_timeout_seconds + 1.0)
+        if consumer.schedule_ticker is not None:
+            consumer.schedule_ticker.stop(timeout=settings.schedule_fetch_timeout_seconds + 1.0)
     return 0
 
 

@@ -17,25 +17,21 @@ over (at once on the same host, else when the lease expires), so the receiver ma
 twice; the ``Scandiff-Event-Id`` header (the event id, the same on every attempt) lets it drop
 the duplicate.
 
-:class:`DeliveryProcess` is the process a job consumer runs beside its job workers
+:func:`delivery_process` is the process a job consumer runs beside its job workers
 (``scandiff serve`` and ``scandiff worker``), so deliveries need no extra service.
 """
 
 from __future__ import annotations
 
-import contextlib
 import http.client
 import json
 import logging
-import multiprocessing
 import random
-import signal
 import socket
 import threading
 import time
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
-from multiprocessing.process import BaseProcess
 from typing import Any
 
 from sqlalchemy import select, update
@@ -45,9 +41,10 @@ from app.config import Settings
 from app.core.outbound import OutboundUrlError, check_outbound_url, is_mailto, mailto_recipients
 from app.core.signing import signing_key, view_link_value, webhook_signature
 from app.db.models import DeliveryStatus, Event, Webhook, WebhookDelivery
-from app.db.session import get_engine, transaction
+from app.db.session import transaction
 from app.jobs.email_alerts import send_email
 from app.jobs.leases import lease_owner_is_dead_here, make_lease_owner
+from app.jobs.side_process import SideProcess
 
 logger = logging.getLogger("scandiff.webhooks")
 
@@ -338,47 +335,7 @@ def run_delivery_loop(settings: Settings, stop: threading.Event) -> None:
             stop.wait(settings.webhook_poll_seconds)
 
 
-def _delivery_process_main(settings: Settings) -> None:
-    """Entry of the delivery process: SIGTERM stops it after the attempt in flight."""
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the consumer decides when to stop
-    get_engine(settings.sqlalchemy_url).dispose(close=False)  # never the parent's connections
-    run_delivery_loop(settings, stop)
-
-
-class DeliveryProcess:
-    """The webhook delivery process of a job consumer, replaced when it dies."""
-
-    def __init__(self, settings: Settings) -> None:
-        self.settings = settings
-        self.process: BaseProcess | None = None
-
-    def ensure_running(self) -> None:
-        """Start the process, or a new one if it died."""
-        if self.process is not None and self.process.is_alive():
-            return
-        if self.process is not None:
-            logger.warning(
-                "webhook delivery process died; starting another",
-                extra={"exitcode": self.process.exitcode},
-            )
-        self.process = multiprocessing.get_context("fork").Process(
-            target=_delivery_process_main,
-            args=(self.settings,),
-            name="scandiff-webhook-deliveries",
-            daemon=True,
-        )
-        self.process.start()
-
-    def stop(self, timeout: float) -> None:
-        """SIGTERM, then SIGKILL after ``timeout`` seconds."""
-        process = self.process
-        if process is None or not process.is_alive():
-            return
-        process.terminate()
-        process.join(timeout)
-        if process.is_alive():
-            with contextlib.suppress(OSError):
-                process.kill()
-            process.join(1.0)
+def delivery_process(settings: Settings) -> SideProcess:
+    """The webhook delivery process of a job consumer (SIGTERM stops it after the attempt in
+    flight), replaced when it dies."""
+    return SideProcess(settings, "webhook-deliveries", run_delivery_loop)

@@ -9,7 +9,9 @@ serve`` at start-up and by the consumer every ``recovery_interval_seconds``:
 * sends a message again for ``queued`` jobs that have none waiting in the queue and were not
   enqueued within the grace period (``job_lease_seconds``: a dequeued message is claimed within
   milliseconds), or were never enqueued (``enqueued_at`` null);
-* deletes temporary result files left by killed workers.
+* deletes temporary result files left by killed workers;
+* deletes events (and their webhook deliveries) past ``event_retention_days`` whose deliveries
+  are all final (:mod:`app.jobs.retention`).
 
 When the queue cannot be reached (Redis down) the jobs whose message could not be sent keep
 ``enqueued_at`` null, so the first sweep after the queue is back sends them: an upload accepted
@@ -33,6 +35,7 @@ from app.jobs.alerts import publish_job_finished
 from app.jobs.leases import job_log, lease_owner_is_dead_here
 from app.jobs.queue import mark_not_enqueued, pending_job_ids, send_job_message
 from app.jobs.results import remove_stale_temp_files
+from app.jobs.retention import prune_events
 
 logger = logging.getLogger("scandiff.jobs.recovery")
 
@@ -50,6 +53,7 @@ class RecoveryReport:
     unsent: list[str] = field(default_factory=list)
     """Jobs due a message that the queue did not take (unreachable); the next sweep sends them."""
     removed_temp_files: int = 0
+    pruned_events: int = 0
 
     @property
     def enqueued(self) -> list[str]:
@@ -64,7 +68,12 @@ class RecoveryReport:
 
     def is_empty(self) -> bool:
         """Whether the sweep changed nothing."""
-        return not (self.due_messages or self.failed_expired or self.removed_temp_files)
+        return not (
+            self.due_messages
+            or self.failed_expired
+            or self.removed_temp_files
+            or self.pruned_events
+        )
 
 
 def recover_expired_leases(settings: Settings, now: datetime, report: RecoveryReport) -> None:
@@ -180,6 +189,7 @@ def recovery_sweep(
     resend_orphaned_queued(settings, now, pending, report)
     send_due_messages(settings, report)
     report.removed_temp_files = remove_stale_temp_files(settings, temp_file_max_age_seconds)
+    report.pruned_events = prune_events(settings, now)
     if not report.is_empty():
         logger.info(
             "recovery sweep",
@@ -189,6 +199,7 @@ def recovery_sweep(
                 "resent_queued": len(report.resent_queued),
                 "unsent": len(report.unsent),
                 "removed_temp_files": report.removed_temp_files,
+                "pruned_events": report.pruned_events,
             },
         )
     return report

@@ -414,10 +414,50 @@ def check_stale(settings: Settings, schedule_id: str, now: datetime) -> bool:
         return True
 
 
+def abandoned_after(settings: Settings) -> timedelta:
+    """How long a run may stay ``running`` before it counts as left by a process that died.
+
+    A run does one fetch (at most the fetch timeout) and a few commits; five fetch timeouts,
+    and never under ten minutes, is far beyond any live run.
+    """
+    return timedelta(seconds=max(600.0, 5 * settings.schedule_fetch_timeout_seconds))
+
+
+def fail_abandoned_runs(settings: Settings) -> list[str]:
+    """Mark ``failed`` the runs still ``running`` long after their claim; their ids.
+
+    Their period is not run again (the claim is the once-only guard); the failure says why, so
+    that the runs list does not show a run in progress for ever. Measured on the wall clock (a
+    tick's ``now`` may be a chosen period time; a run's claim time is always the wall clock's).
+    """
+    now = utc_now()
+    claimed_before = now - abandoned_after(settings)
+    with unit_of_work(settings) as session:
+        abandoned = session.scalars(
+            select(ScheduleRun.id).where(
+                ScheduleRun.status == "running", ScheduleRun.created_at < claimed_before
+            )
+        ).all()
+        if abandoned:
+            session.execute(
+                update(ScheduleRun)
+                .where(ScheduleRun.id.in_(abandoned), ScheduleRun.status == "running")
+                .values(
+                    status="failed",
+                    error="interrupted: the process running it stopped before it finished; "
+                    "the period is not run again (run the schedule now to compare at once)",
+                    finished_at=now,
+                )
+            )
+    return list(abandoned)
+
+
 def tick(settings: Settings, now: datetime | None = None) -> TickReport:
     """Run every enabled schedule's due periods and staleness check at ``now`` (default: now)."""
     now = as_utc(now or utc_now())
     report = TickReport()
+    for run_id in fail_abandoned_runs(settings):
+        report.add("failed", run_id)
     with unit_of_work(settings) as session:
         schedules = session.scalars(
             select(Schedule).where(Schedule.enabled.is_(True)).order_by(Schedule.created_at)

@@ -22,6 +22,7 @@ from app.services.errors import ConflictError, ValidationFailedError
 from app.services.paging import newest_first_page
 from app.services.schemas import SiteCreate, SiteUpdate
 from app.services.scoping import get_owned, scoped
+from app.services.site_calibration import recompute_site_calibration
 from app.services.transaction import after_commit
 
 DEFAULT_METHOD = "gmm"
@@ -107,8 +108,11 @@ def create_site(session: Session, principal: Principal, payload: SiteCreate) -> 
     return site
 
 
-def update_site(session: Session, principal: Principal, site_id: str, payload: SiteUpdate) -> Site:
-    """Change a site's name, description or detector (only the fields given)."""
+def update_site(
+    session: Session, settings: Settings, principal: Principal, site_id: str, payload: SiteUpdate
+) -> Site:
+    """Change a site's name, description or detector (only the fields given; a new detector
+    recomputes the site's calibration from that detector's reviewed jobs)."""
     site = get_site(session, principal, site_id)
     fields = payload.model_fields_set
     if "name" in fields:
@@ -126,6 +130,7 @@ def update_site(session: Session, principal: Principal, site_id: str, payload: S
         )
         site.detector_variant = payload.detector.variant
         site.detector_params = params
+        recompute_site_calibration(session, settings, site)
     _flush_unique_name(session, site.name)
     return site
 

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import viser
 
+from app.viewer.ceiling import ceiling_cut_height
 from app.viewer.colours import colour_bar_html, legend_html
 from app.viewer.regions_display import DEFAULT_MOVED_WITHIN, relabel
 from app.viewer.rendering import COLOUR_MODES, SHOW_CHOICES, Picked, colour_limit
@@ -190,20 +191,32 @@ def _add_clip_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
     low = float(np.floor(heights.min() * 10) / 10) if len(heights) else offset - 1.0
     high = float(np.ceil(heights.max() * 10) / 10) if len(heights) else offset + 1.0
     high = max(high, low + 0.1)
+    # Indoors, open below the ceiling: from the default camera it hides every change.
+    local_points = np.concatenate([side.points for side in data.sides.values()])
+    ceiling_cut = ceiling_cut_height(local_points)
+    region_tops = [r.center_local[2] + r.dimensions[2] / 2 for r in data.regions]
+    if ceiling_cut is not None and region_tops:  # never hide a change
+        ceiling_cut = max(ceiling_cut, max(region_tops) + 0.05)
+    opening_top = high
+    if ceiling_cut is not None:
+        opening_top = float(
+            np.clip(np.ceil((ceiling_cut + offset) / 0.05) * 0.05, low + 0.05, high)
+        )
     with gui.add_folder("Clip"):
         clip = gui.add_multi_slider(
             "Height (m)",
             min=low,
             max=high,
             step=0.05,
-            initial_value=(low, high),
+            initial_value=(low, opening_top),
             min_range=0.05,
-            hint="z in the reference's frame: only points in the range are drawn",
+            hint="z in the reference's frame: only points in the range are drawn"
+            + ("; opened just below the ceiling" if ceiling_cut is not None else ""),
         )
         ceiling = gui.add_button("Cut the ceiling", hint="keep what lies below the ceiling")
         reset = gui.add_button("No clipping")
     record.controls["clip"] = clip
-    record.state.clip_low, record.state.clip_high = low - offset, high - offset
+    record.state.clip_low, record.state.clip_high = low - offset, opening_top - offset
 
     @clip.on_update
     def _(event: viser.GuiEvent) -> None:

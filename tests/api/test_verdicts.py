@@ -170,3 +170,29 @@ def test_site_calibration_is_learned_from_reviewed_null_jobs(
     # a verdict changed back to confirmed removes the sample again
     calibration = give(changed_jobs[0], "confirmed")
     assert calibration["status"] == "learning" and calibration["n_samples"] == 4
+
+
+def test_a_new_detector_recomputes_the_site_calibration(
+    api: ApiServer, writer: httpx.Client
+) -> None:
+    site, _reference = site_with_reference(writer)
+    jobs = [finished_job(api, writer, site["id"], seed=40 + index) for index in range(5)]
+    for job in jobs:
+        response = writer.post(f"/api/v1/jobs/{job['id']}/verdict", json={"verdict": "false_alarm"})
+        assert response.status_code == 200, response.text
+    learned = writer.get(f"/api/v1/sites/{site['id']}").json()["calibration"]
+    assert learned["status"] == "learned" and learned["method"] == site["detector"]["method"]
+
+    def set_detector(detector: dict) -> dict:
+        response = writer.patch(f"/api/v1/sites/{site['id']}", json={"detector": detector})
+        assert response.status_code == 200, response.text
+        return response.json()["calibration"]
+
+    # the samples were the old detector's: under another one the site learns afresh
+    other = set_detector({"method": "pca", "variant": "improved", "params": {}})
+    assert other["status"] == "learning" and other["n_samples"] == 0
+    assert (other["method"], other["variant"]) == ("pca", "improved")
+    # back to the first detector: its reviewed jobs count again
+    again = set_detector(site["detector"])
+    assert again["status"] == "learned" and again["n_samples"] == 5
+    assert again["thresholds"] == learned["thresholds"]

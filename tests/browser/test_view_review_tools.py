@@ -185,12 +185,24 @@ def test_review_tools_in_the_3d_view(review_service: ReviewService, chrome_facto
     bar = by_css(driver, ".scandiff-colour-bar")
     assert float(bar.get_attribute("data-limit")) > 0 and "removed" in bar.text
 
-    # The ceiling hides the change: cut it, then look from the top.
-    before_clip = scene["layers"]["reference"]["n_points"]
+    # Indoors the view opens below the ceiling (it would hide the change); "No clipping" shows
+    # it, "Cut the ceiling" cuts again, at most just above the highest region.
+    opened = scene["layers"]["reference"]["n_points"]
+    _low, opened_high = scene["state"]["clip"]
+    click_button(driver, "No clipping")
+    scene = wait_until(
+        lambda: (
+            (s := client_scene(service, job_id))["layers"]["reference"]["n_points"] > opened and s
+        ),
+        30,
+        "no clipping showed no more points than the view opened with",
+    )
+    unclipped = scene["layers"]["reference"]["n_points"]
+    assert scene["state"]["clip"][1] > opened_high
     click_button(driver, "Cut the ceiling")
     scene = wait_until(
         lambda: (
-            (s := client_scene(service, job_id))["layers"]["reference"]["n_points"] < before_clip
+            (s := client_scene(service, job_id))["layers"]["reference"]["n_points"] < unclipped
             and s
         ),
         30,

@@ -12,9 +12,10 @@ from typing import Any
 
 import httpx
 
-from app.clock import as_utc
+from app.clock import as_utc, utc_now
 from app.db.models import Job, ScheduleRun
-from app.services.schedule_runs import TickReport, claim_period, tick
+from app.db.session import transaction
+from app.services.schedule_runs import TickReport, abandoned_after, claim_period, tick
 from tests.helpers.database import count_rows
 from tests.helpers.environment import PROJECT_ROOT
 from tests.helpers.files import room_ply
@@ -231,9 +232,22 @@ def test_a_period_claimed_by_a_process_that_died_is_not_run_again(
     upload_accepted(writer, site["id"], "night.ply", room_ply(5, with_box=True))
     first_period = created(schedule) + timedelta(seconds=600)
     # a ticker claimed the first period, then was killed before running it
-    assert claim_period(api.settings, schedule["id"], first_period, "scheduled", "running")
+    abandoned = claim_period(api.settings, schedule["id"], first_period, "scheduled", "running")
+    assert abandoned
+    # soon after the claim, the run may still be live: left alone
+    early = tick(api.settings, first_period + timedelta(seconds=5))
+    assert "failed" not in early.runs
+    # long after it (on the wall clock), the run is marked failed, saying why, and its period
+    # is not run again
+    with transaction(api.settings.sqlalchemy_url) as session:
+        run = session.get_one(ScheduleRun, abandoned)
+        run.created_at = utc_now() - abandoned_after(api.settings) - timedelta(seconds=5)
     report = tick(api.settings, first_period + timedelta(seconds=605))
     runs = runs_of(writer, schedule["id"])
-    assert [run["status"] for run in runs] == ["running", "compared"]
-    assert [run["id"] for run in runs[1:]] == report.runs["compared"]
+    assert runs[0]["id"] == abandoned
+    assert runs[0]["status"] == "failed"
+    assert "interrupted" in runs[0]["error"]
+    assert report.runs["failed"] == [abandoned]
+    assert all(run["status"] != "running" for run in runs)
+    assert count_rows(api, ScheduleRun, schedule_id=schedule["id"], status="running") == 0
     assert count_rows(api, Job, site_id=site["id"]) == 1

@@ -77,10 +77,16 @@ def get_site(site_id: str, session: SessionDep, principal: PrincipalDep) -> Site
 
 @router.patch("/sites/{site_id}", response_model=SiteRead)
 def update_site(
-    site_id: str, payload: SiteUpdate, session: SessionDep, principal: WriterDep
+    site_id: str,
+    payload: SiteUpdate,
+    session: SessionDep,
+    settings: SettingsDep,
+    principal: WriterDep,
 ) -> SiteRead:
     """Change a site's name, description or detector."""
-    return SiteRead.from_model(sites_service.update_site(session, principal, site_id, payload))
+    return SiteRead.from_model(
+        sites_service.update_site(session, settings, principal, site_id, payload)
+    )
 
 
 @router.delete("/sites/{site_id}", status_code=204, response_class=Response)
