@@ -24,6 +24,8 @@ compare again <= 2x; service <= 2 s.
 
 Run: ``.venv/bin/python bench/perf_round2.py [--large] [--repeats 3]``; writes
 ``bench/results/perf_round2.md`` and ``.json``.
+``--only service`` times just the HTTP API figure and prints where each upload's seconds went
+(upload, worker pickup, run, seen by the poll, the job's stage timings), writing no file.
 """
 
 from __future__ import annotations
@@ -288,17 +290,69 @@ def render(rows: list[dict[str, Any]], service: dict[str, Any], loads: list[tupl
     return "\n".join(lines) + "\n"
 
 
+def render_service_breakdown(service: dict[str, Any]) -> str:
+    """One line a timed upload: where its seconds went (bench/perf_service.py's breakdown)."""
+    lines = []
+    for index, parts in enumerate(service.get("breakdown", []), start=1):
+        phases = ", ".join(
+            f"{key} {parts[key]:.2f}"
+            for key in ("upload", "pickup", "run", "seen", "total", "worker_cpu")
+            if key in parts
+        )
+        stages = ", ".join(f"{key} {value:.2f}" for key, value in parts["timings"].items())
+        lines.append(f"- run {index}: {phases}; job timings: {stages}")
+    return "\n".join(lines)
+
+
+def run_service_only(repeats: int, idle_seconds: float = 0.0) -> None:
+    """``--only service``: the HTTP API figure and where its time goes, printed (no file)."""
+    with tempfile.TemporaryDirectory(prefix="scandiff-round2-service-") as temporary:
+        load_before = os.getloadavg()
+        service = measure_service(
+            Path(temporary), load_seconds=0.0, repeats=repeats, idle_seconds=idle_seconds
+        )
+        load_after = os.getloadavg()
+    if "error" in service:
+        print(f"service: error: {service['error']}")
+        return
+    all_seconds = " / ".join(f"{value:.2f}" for value in service["latency_all_seconds"])
+    print(
+        f"service (100k-point scan, upload to succeeded): median {service['latency_seconds']:.2f} s"
+        f" (runs {all_seconds}); target <= {SERVICE_TARGET_SECONDS} s "
+        f"{_met(service['latency_seconds'] <= SERVICE_TARGET_SECONDS)}; load average "
+        f"{_loads(load_before)} -> {_loads(load_after)}"
+    )
+    print(render_service_breakdown(service))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--large", action="store_true", help="add the 5M-point pair")
     parser.add_argument("--repeats", type=int, default=3, help="interleaved rounds a size")
     parser.add_argument("--no-service", action="store_true", help="skip the HTTP API figure")
+    parser.add_argument(
+        "--only",
+        choices=("service",),
+        help="run only this part (service: the HTTP API figure, its breakdown, no load test)",
+    )
+    parser.add_argument(
+        "--service-repeats", type=int, default=3, help="uploads timed for the service figure"
+    )
+    parser.add_argument(
+        "--idle-seconds",
+        type=float,
+        default=0.0,
+        help="with --only service: leave the service idle this long before each upload",
+    )
     parser.add_argument("--work-dir", type=Path, help="keep the pairs here (reused when present)")
     parser.add_argument("--output", type=Path, default=RESULTS / "perf_round2.md")
     parser.add_argument(
         "--baseline", type=Path, help="a checkout of the code before, timed in the same rounds"
     )
     args = parser.parse_args()
+    if args.only == "service":
+        run_service_only(args.service_repeats, args.idle_seconds)
+        return
     loads = [os.getloadavg()]
     sizes = [*SIZES, LARGE_SIZE] if args.large else list(SIZES)
     with tempfile.TemporaryDirectory(prefix="scandiff-round2-") as temporary:
@@ -309,7 +363,11 @@ def main() -> None:
             measured.append(measure_size(n_points, work_dir, repeats, args.baseline))
         # a fresh data directory each run (a kept --work-dir would hold last run's site)
         service_dir = Path(tempfile.mkdtemp(prefix="service-", dir=work_dir))
-        service = {} if args.no_service else measure_service(service_dir, load_seconds=1.0)
+        service = (
+            {}
+            if args.no_service
+            else measure_service(service_dir, load_seconds=1.0, repeats=args.service_repeats)
+        )
     loads.append(os.getloadavg())
     rows = [row for size in measured for row in summarise(size)]
     report = render(rows, service, loads)

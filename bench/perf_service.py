@@ -50,9 +50,17 @@ THROUGHPUT_POLL_SECONDS = 0.5
 
 
 def time_one_comparison(
-    client: httpx.Client, scans_path: str, scan_bytes: bytes, filename: str
+    client: httpx.Client,
+    scans_path: str,
+    scan_bytes: bytes,
+    filename: str,
+    breakdown: list[dict[str, Any]] | None = None,
 ) -> tuple[float, float, str]:
-    """Upload one scan; (upload seconds, seconds until ``succeeded`` was seen, job id)."""
+    """Upload one scan; (upload seconds, seconds until ``succeeded`` was seen, job id).
+
+    ``breakdown``: gets one :func:`service_breakdown` of the run appended.
+    """
+    wall_started = time.time()
     started = time.perf_counter()
     response = client.post(
         scans_path,
@@ -64,15 +72,43 @@ def time_one_comparison(
     response.raise_for_status()
     job_id = response.json()["job"]["id"]
     status = ""
+    job: dict[str, Any] = {}
     while time.perf_counter() - started < JOB_TIMEOUT_SECONDS:
-        status = client.get(f"/api/v1/jobs/{job_id}").json()["status"]
+        job = client.get(f"/api/v1/jobs/{job_id}").json()
+        status = job["status"]
         if status in ("succeeded", "failed"):
             break
         time.sleep(POLL_SECONDS)
     latency_seconds = time.perf_counter() - started
     if status != "succeeded":
         raise RuntimeError(f"job {job_id} ended {status or 'nowhere'} after {latency_seconds} s")
+    if breakdown is not None:
+        breakdown.append(service_breakdown(job, wall_started, upload_seconds, latency_seconds))
     return upload_seconds, latency_seconds, job_id
+
+
+def service_breakdown(
+    job: dict[str, Any], wall_started: float, upload_seconds: float, latency_seconds: float
+) -> dict[str, Any]:
+    """Where one upload-to-``succeeded`` went, from the job's own times (same host's clock):
+    ``upload`` (POST until its response), ``pickup`` (``created_at`` until a worker's
+    ``started_at``), ``run`` (``started_at`` to ``finished_at``), ``seen`` (``finished_at``
+    until the client's poll saw it), and the job's stage ``timings``."""
+    created, started, finished = (
+        _parse_time(job.get(key)) for key in ("created_at", "started_at", "finished_at")
+    )
+    parts: dict[str, Any] = {"upload": upload_seconds, "total": latency_seconds}
+    if created and started and finished:
+        parts["created_after_post_start"] = created.timestamp() - wall_started
+        parts["pickup"] = (started - created).total_seconds()
+        parts["run"] = (finished - started).total_seconds()
+        parts["seen"] = wall_started + latency_seconds - finished.timestamp()
+    parts["timings"] = {
+        key: round(value, 3)
+        for key, value in (job.get("timings") or {}).items()
+        if isinstance(value, int | float)
+    }
+    return parts
 
 
 def load_test(
@@ -192,8 +228,15 @@ def create_site_with_reference(
     return scans_path
 
 
-def measure_service(work_dir: Path, load_seconds: float = 5.0) -> dict[str, Any]:
-    """Latency of one 100k-point comparison and the status-vs-health load test."""
+def measure_service(
+    work_dir: Path,
+    load_seconds: float = 5.0,
+    repeats: int = LATENCY_REPEATS,
+    idle_seconds: float = 0.0,
+) -> dict[str, Any]:
+    """Latency of one 100k-point comparison (median of ``repeats``) and the status-vs-health
+    load test (skipped when ``load_seconds`` is 0).  ``idle_seconds``: the service is left idle
+    that long before each upload (as between a site's scans), else they follow each other."""
     pair = raycast_scene(n_points=SERVICE_POINTS, change="box", random_state=SCENE_SEED)
     reference_path = work_dir / "service-reference.ply"
     scan_path = work_dir / "service-scan.ply"
@@ -208,20 +251,27 @@ def measure_service(work_dir: Path, load_seconds: float = 5.0) -> dict[str, Any]
             scans_path = create_site_with_reference(client, "perf", method, reference_path)
             scan_bytes = scan_path.read_bytes()
             latencies, uploads = [], []
-            for attempt in range(LATENCY_REPEATS):
+            breakdown: list[dict[str, Any]] = []
+            workers = service.worker_pids()
+            for attempt in range(repeats):
+                time.sleep(idle_seconds)
+                cpu_before = processes_cpu_seconds(workers)
                 upload_seconds, latency_seconds, job_id = time_one_comparison(
-                    client, scans_path, scan_bytes, f"scan-{attempt}.ply"
+                    client, scans_path, scan_bytes, f"scan-{attempt}.ply", breakdown
                 )
+                breakdown[-1]["worker_cpu"] = processes_cpu_seconds(workers) - cpu_before
                 uploads.append(upload_seconds)
                 latencies.append(latency_seconds)
         headers = {"Authorization": f"Bearer {service.admin_token}"}
-        load = compare_load(
-            service.base_url,
-            {"job": f"/api/v1/jobs/{job_id}", "health": "/api/v1/health"},
-            headers,
-            load_seconds,
-            CONCURRENT_CLIENTS,
-        )
+        load: dict[str, Any] = {"job": None, "health": None, "round_rps": None}
+        if load_seconds > 0:
+            load = compare_load(
+                service.base_url,
+                {"job": f"/api/v1/jobs/{job_id}", "health": "/api/v1/health"},
+                headers,
+                load_seconds,
+                CONCURRENT_CLIENTS,
+            )
     except Exception as exc:  # a benchmark reports what failed instead of losing the run
         return {"error": f"{type(exc).__name__}: {exc}"}
     finally:
@@ -232,10 +282,25 @@ def measure_service(work_dir: Path, load_seconds: float = 5.0) -> dict[str, Any]
         "upload_seconds": float(np.median(uploads)),
         "latency_seconds": float(np.median(latencies)),
         "latency_all_seconds": latencies,
+        "breakdown": breakdown,
         "job": load["job"],
         "health": load["health"],
         "round_rps": load["round_rps"],
     }
+
+
+def processes_cpu_seconds(pids: list[int]) -> float:
+    """CPU seconds (user + system, threads included) the processes ``pids`` used so far."""
+    ticks = os.sysconf("SC_CLK_TCK")
+    total = 0.0
+    for pid in pids:
+        try:
+            stat = Path(f"/proc/{pid}/stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()
+        total += (int(fields[11]) + int(fields[12])) / ticks  # utime, stime
+    return total
 
 
 def _parse_time(value: str | None) -> datetime | None:

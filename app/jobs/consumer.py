@@ -35,13 +35,14 @@ from pathlib import Path
 from typing import Any
 
 from huey import Huey
-from huey.consumer import Consumer, ConsumerStopped
+from huey.consumer import Consumer, ConsumerStopped, Worker
 
 from app.config import Settings, get_settings
 from app.db.migrate import current_revision, head_revision
 from app.db.session import get_engine
 from app.jobs import queue, runner
 from app.jobs.deliveries import delivery_process
+from app.jobs.doorbell import Doorbell, doorbell_path, ring
 from app.jobs.hooks import job_hooks
 from app.jobs.lifecycle import die_with_supervisor, set_parent_death_signal
 from app.jobs.limits import job_memory_limit, job_threads
@@ -168,6 +169,36 @@ def schedule_loop(schedule_tick: Callable[[Settings], object]) -> Loop:
     return run_schedule_ticks
 
 
+class DoorbellWorker(Worker):  # type: ignore[misc]
+    """Huey's worker that sleeps on the queue's doorbell (:mod:`app.jobs.doorbell`) while idle.
+
+    Between two empty polls it waits for a ring or its back-off delay, whichever comes first:
+    a job sent to an idle worker is taken at once instead of at the next poll (up to
+    ``QUEUE_POLL_MAX_DELAY_SECONDS`` later).  Without a doorbell it is Huey's worker.
+    """
+
+    def __init__(self, *args: Any, doorbell: Doorbell | None = None, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.doorbell = doorbell  # opened in the worker process, at its first sleep
+
+    def sleep(self) -> None:
+        """Wait for a ring or the back-off delay after an empty poll."""
+        if self.doorbell is None or not self.doorbell.open():
+            super().sleep()
+            return
+        # The poll just found nothing: rings waiting now were for messages already taken,
+        # unless one came in since; poll once more rather than risk sleeping through it.
+        if self.doorbell.drain():
+            return
+        self.delay = min(self.delay, self.max_delay)
+        if self.stop_flag.is_set():
+            return
+        if self.doorbell.wait(self.delay):
+            self.delay = self.default_delay
+        else:
+            self.delay *= self.backoff
+
+
 class ScandiffConsumer(Consumer):  # type: ignore[misc]
     """Huey's consumer with process workers, SIGTERM as a graceful stop and the recovery sweep."""
 
@@ -179,6 +210,7 @@ class ScandiffConsumer(Consumer):  # type: ignore[misc]
         shutdown_grace_seconds: float,
         schedule_tick: Callable[[Settings], object] | None = None,
     ) -> None:
+        self.settings = settings  # before Huey's __init__: it creates the workers
         super().__init__(
             huey,
             workers=workers,
@@ -205,6 +237,28 @@ class ScandiffConsumer(Consumer):  # type: ignore[misc]
         )
         self._next_sweep = 0.0
         self._next_alive_note = 0.0
+
+    def _create_worker(self) -> Worker:
+        """A :class:`DoorbellWorker` (listening when the queue is the SQLite file)."""
+        doorbell = None
+        if queue.queue_backend(self.settings) == "sqlite":
+            doorbell = Doorbell(doorbell_path(self.settings.data_dir))
+        return DoorbellWorker(
+            huey=self.huey,
+            stop_flag=self.stop_flag,
+            default_delay=self.default_delay,
+            max_delay=self.max_delay,
+            backoff=self.backoff,
+            max_tasks=self.max_tasks,
+            doorbell=doorbell,
+        )
+
+    def stop(self, graceful: bool = False) -> None:
+        """Huey's stop, with every idle worker woken to see the stop flag at once."""
+        self.stop_flag.set()
+        if queue.queue_backend(self.settings) == "sqlite":
+            ring(doorbell_path(self.settings.data_dir), times=self.workers)
+        super().stop(graceful)
 
     def loop(self, health_check_ts: float | None = None) -> float | None:
         """Huey's supervision loop, plus the recovery sweep and the liveness note when due."""

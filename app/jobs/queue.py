@@ -28,6 +28,7 @@ from app.clock import utc_now
 from app.config import Settings
 from app.db.models import Job, JobStatus
 from app.db.session import transaction
+from app.jobs.doorbell import doorbell_path, ring
 
 logger = logging.getLogger("scandiff.jobs.queue")
 
@@ -123,8 +124,11 @@ def job_task(huey: Huey) -> Callable[..., Any]:
 
 
 def send_job_message(job_id: str, settings: Settings) -> None:
-    """Put one ``run_job(job_id)`` message on the queue (no database write)."""
+    """Put one ``run_job(job_id)`` message on the queue (no database write), then wake an idle
+    worker of an SQLite queue (:mod:`app.jobs.doorbell`; a hint, the message is the record)."""
     job_task(get_huey(settings))(job_id)
+    if queue_backend(settings) == "sqlite":
+        ring(doorbell_path(settings.data_dir))
 
 
 def mark_not_enqueued(job_ids: list[str], settings: Settings) -> None:

@@ -38,8 +38,9 @@ from app.services.sensor_origins import SensorOrigin, check_stations_match
 from app.services.transaction import after_rollback, end_read_transaction
 
 PARSE_SLOTS = threading.BoundedSemaphore(2)
-"""At most this many clouds are parsed at once per process: checking a binary PLY/PCD or a
-LAS/LAZ upload takes a few MB, but text and NumPy files are decoded whole (gigabytes)."""
+"""At most this many clouds are parsed at once per process: checking a binary PLY/PCD, a
+LAS/LAZ, a text or a ``.npy`` upload takes a few MB, but an E57 or ``.npz`` file, or a text
+file with station columns, is decoded whole (gigabytes)."""
 
 
 @dataclass(frozen=True)

@@ -287,8 +287,10 @@ def summarise_point_cloud(
     (:func:`~app.core.cloud_summary.summarise_array`), so no float64 copy of the coordinates is
     made: for a binary PLY/PCD the coordinates cost one block of memory whatever the cloud's
     size (extra fields are still copied out, as for reading), for a LAS/LAZ one chunk of
-    decoded points (:func:`~app.core.formats.las.summarise_las`). Text and NumPy files are
-    decoded as for reading, then summarised.
+    decoded points (:func:`~app.core.formats.las.summarise_las`), for text a chunk of lines
+    (:func:`~app.core.formats.text.summarise_text`), for a ``.npy`` one block (its coordinates
+    are a view of the file, as a binary PLY's). An ``.npz`` is decoded as for reading, then
+    summarised.
 
     Parameters
     ----------
@@ -324,7 +326,12 @@ def summarise_point_cloud(
             return build(read_las(opened, max_points, threads=threads), opened)
         return summarise_las(opened, max_points, threads=threads)
 
-    return _decode(source, format, filename, max_points, threads, build, build_las)
+    def build_text(opened: Source, max_points: int | None) -> CloudSummary:
+        summary = _text.summarise_text(opened, max_points)
+        # station fields: decoded whole, to count the stations
+        return build(_text.read_text(opened, max_points), opened) if summary is None else summary
+
+    return _decode(source, format, filename, max_points, threads, build, build_las, build_text)
 
 
 def _decode(
@@ -335,10 +342,12 @@ def _decode(
     threads: int | None,
     build: Callable[[RawCloud, Source], Decoded],
     build_las: Callable[[Source, int | None, int], Decoded],
+    build_text: Callable[[Source, int | None], Decoded] | None = None,
 ) -> Decoded:
     """Open ``source``, choose its format, decode it and hand the raw cloud to ``build``
-    (LAS/LAZ go to ``build_las`` with the decoder's thread count); every error becomes a
-    :class:`PointCloudError` whose message starts with the file name."""
+    (LAS/LAZ go to ``build_las`` with the decoder's thread count, text to ``build_text`` when
+    given); every error becomes a :class:`PointCloudError` whose message starts with the file
+    name."""
     with open_source(source, filename) as opened:
         label = opened.name or "input"
         chosen = "unknown"
@@ -352,6 +361,8 @@ def _decode(
             if reader is read_las:
                 laz_threads = available_threads() if threads is None else threads
                 return build_las(opened, max_points, laz_threads)
+            if reader is _text.read_text and build_text is not None:
+                return build_text(opened, max_points)
             return build(reader(opened, max_points), opened)
         except PointCloudError as exc:
             raise type(exc)(f"{label}: {exc}") from exc

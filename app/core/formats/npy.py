@@ -34,6 +34,7 @@ from app.core.formats._common import (
     owned,
     structured_attributes,
     xyz_from_columns,
+    xyz_points,
 )
 
 NPY_MAGIC = b"\x93NUMPY"
@@ -241,7 +242,7 @@ def _cloud_from_array(array: NDArray, what: str) -> RawCloud:
         x_name, y_name, z_name = find_xyz_names(list(array.dtype.names), what)
         for name in (x_name, y_name, z_name):
             _require_numeric(array.dtype[name], f"{what} field {name!r}")
-        points = xyz_from_columns(array[x_name], array[y_name], array[z_name])
+        points = xyz_points(array[x_name], array[y_name], array[z_name])
         attributes = {
             name: values
             for name, values in structured_attributes(array, (x_name, y_name, z_name)).items()
@@ -254,7 +255,9 @@ def _cloud_from_array(array: NDArray, what: str) -> RawCloud:
             f"{what} has shape {array.shape}; expected (n, 3) (or (n, k) with k >= 3, "
             "x y z first) or a structured array with x, y, z fields"
         )
-    return RawCloud(xyz_from_columns(array[:, 0], array[:, 1], array[:, 2]))
+    # a view of the buffer when the columns allow it (no copy: PointCloud.from_array widens
+    # it once; summarise_array visits it a block at a time)
+    return RawCloud(xyz_points(array[:, 0], array[:, 1], array[:, 2]))
 
 
 def _require_numeric(dtype: np.dtype, what: str) -> None:
