@@ -8,6 +8,9 @@ crossing) means it was occluded, no return means out of range or field of view (
 *unobserved*); rays that cross the candidate's plane near it, where its own cloud has surface,
 and carry on clearly beyond it saw free space there (*seen through*); rays that end there saw
 the surface (*surface*); a candidate whose plane no ray meets near it was seen *edge-on*.
+A return short of the candidate hides it only when the candidate lies behind that return's
+surface (its fitted plane): near the floor or a wall seen at a grazing angle, the rays just
+beside the candidate's direction end on that surface short of the candidate without hiding it.
 """
 
 from __future__ import annotations
@@ -106,6 +109,8 @@ class _Rays:
     range: NDArray[np.float64]  # (m,) distance of each return from the origin
     direction: NDArray[np.float32]  # (m, 3) unit vector from the origin to each return
     tree: KDTree  # on ``direction``
+    normal: NDArray[np.float32] | None  # (m, 3) each return's surface normal, or None
+    linear: NDArray[np.bool_] | None  # (m,) no plane fitted at the return (its normal unused)
 
 
 def ray_visibility(
@@ -115,6 +120,8 @@ def ray_visibility(
     other_points: NDArray[np.float64],
     other_origin: NDArray[np.float64],
     test: RayTest,
+    other_normals: NDArray[np.float32] | None = None,
+    other_linear: NDArray[np.bool_] | None = None,
 ) -> tuple[NDArray[np.int8], float]:
     """What the other sensor saw in the direction of each candidate.
 
@@ -122,9 +129,10 @@ def ray_visibility(
     the returns within ``test.angle_factor`` typical angular steps of its direction are
     compared with where each of those rays would meet the candidate's own surface (the plane
     through it with its normal): a ray that stops clearly before the candidate (or before
-    meeting that plane) means something is in front of it; a ray that meets the plane near
-    the candidate (within ``max(miss_factor * spacing, surface_distance)``) and carries on
-    clearly beyond it saw free space where the candidate's surface would be.
+    meeting that plane) means something is in front of it, unless the candidate lies clearly
+    in front of the plane of the surface that return hit (:func:`_hides`); a ray that meets
+    the plane near the candidate (within ``max(miss_factor * spacing, surface_distance)``)
+    and carries on clearly beyond it saw free space where the candidate's surface would be.
 
     Parameters
     ----------
@@ -137,6 +145,12 @@ def ray_visibility(
         The other cloud, whose sensor was at ``other_origin``.
     other_origin : ndarray, shape (3,)
     test : RayTest
+    other_normals : ndarray, shape (m, 3), optional
+        Unit normal of the surface at each return.  Without them every return short of a
+        candidate hides it.
+    other_linear : ndarray, shape (m,), bool, optional
+        Returns without a fitted plane (their normals are not used: they hide what lies
+        beyond them).
 
     Returns
     -------
@@ -149,14 +163,22 @@ def ray_visibility(
     angular_step : float
         The other sensor's typical angular step (radians).
     """
-    other_range, other_direction = _ranges_and_directions(other_points, other_origin)
+    other_range, other_direction, kept = _ranges_and_directions(other_points, other_origin)
+    if other_normals is None:
+        other_linear = None
+    elif other_linear is None:
+        other_linear = np.zeros(other_normals.shape[0], dtype=bool)
+    if other_normals is not None and other_linear is not None and kept is not None:
+        other_normals, other_linear = other_normals[kept], other_linear[kept]
     direction_tree = KDTree(other_direction)
     sample = np.linspace(0, other_range.shape[0] - 1, min(ANGULAR_SAMPLE, other_range.shape[0]))
     sample_step, _ = direction_tree.query(
         np.ascontiguousarray(other_direction[sample.astype(np.int64)]), k=3
     )
     angular_step = float(np.median(sample_step[:, 2]))
-    rays = _Rays(other_origin, other_range, other_direction, direction_tree)
+    rays = _Rays(
+        other_origin, other_range, other_direction, direction_tree, other_normals, other_linear
+    )
     status = np.empty(candidates.points.shape[0], dtype=np.int8)
     for start in range(0, candidates.points.shape[0], GATHER_CHUNK):
         chunk = slice(start, start + GATHER_CHUNK)
@@ -166,13 +188,14 @@ def ray_visibility(
             rays=rays,
             test=test,
             max_angle=test.angle_factor * angular_step,
+            angular_step=angular_step,
         )
     return status, angular_step
 
 
 def _ranges_and_directions(
     points: NDArray[np.float64], origin: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float32]]:
+) -> tuple[NDArray[np.float64], NDArray[np.float32], NDArray[np.bool_] | None]:
     """Range and unit direction of each return from the sensor (returns at the origin dropped).
 
     Computed in chunks into float32 directions (angular resolution ~1e-7 rad, far below any
@@ -187,6 +210,8 @@ def _ranges_and_directions(
     -------
     range : ndarray, shape (r,), float64
     direction : ndarray, shape (r, 3), float32
+    kept : ndarray, shape (m,), bool, or None
+        Which returns were kept (None: all of them).
     """
     count = points.shape[0]
     ranges = np.empty(count)
@@ -199,8 +224,8 @@ def _ranges_and_directions(
             directions[chunk] = offset / ranges[chunk, None]
     valid = ranges > 0
     if not valid.all():
-        return ranges[valid], directions[valid]
-    return ranges, directions
+        return ranges[valid], directions[valid], valid
+    return ranges, directions, None
 
 
 def _ray_status(
@@ -210,6 +235,7 @@ def _ray_status(
     rays: _Rays,
     test: RayTest,
     max_angle: float,
+    angular_step: float,
 ) -> NDArray[np.int8]:
     """Visibility status of a chunk of candidates (the body of :func:`ray_visibility`).
 
@@ -223,6 +249,8 @@ def _ray_status(
     max_angle : float
         Returns within this angle (radians, as a chord of unit vectors) of a candidate's
         direction are the other sensor's view of it.
+    angular_step : float
+        The other sensor's typical angular step (radians).
 
     Returns
     -------
@@ -264,12 +292,27 @@ def _ray_status(
     # a point off its surface by e lies e / cos(incidence) along the ray from the surface
     cos_incidence = np.where(grazing, 1.0, np.abs(ray_dot_normal))
     margin = margin_factor * np.sqrt((normal_tolerance / cos_incidence) ** 2 + range_tolerance**2)
-    # A ray that stops clearly before both the point and its crossing occludes the point
+    # A return short of the point hides it only when the point lies behind that return's
+    # surface (without the other cloud's normals: every short return hides it).
+    hides = found & (ray_range < point_range[:, None] - margin)
+    if rays.normal is not None and rays.linear is not None:
+        short_rows, short_rays = np.nonzero(hides)
+        short_returns = ray[short_rows, short_rays]
+        hides[short_rows, short_rays] = rays.linear[short_returns] | _hides(
+            points[short_rows],
+            rays.origin,
+            ray_range[short_rows, short_rays],
+            ray_direction[short_rows, short_rays],
+            rays.normal[short_returns],
+            tolerance=np.maximum(
+                margin_factor * math.hypot(normal_tolerance, range_tolerance),
+                0.5 * angular_step * point_range[short_rows],
+            ),
+        )
+    # A ray that hides the point and stops clearly before its crossing too occludes the point
     # whatever the test below decides (the expected stop is one of the two): such points are
     # unobserved already, and most candidates of a moved sensor are (its shadows).
-    occluded_anyway = ~found.any(axis=1) | (
-        found & (ray_range < np.minimum(crossing, point_range[:, None]) - margin)
-    ).any(axis=1)
+    occluded_anyway = ~found.any(axis=1) | (hides & (ray_range < crossing - margin)).any(axis=1)
     # ... and only where the point's own cloud has surface: a ray crossing the plane beyond
     # the edge of a table top says nothing about the table
     near_rows, near_rays = np.nonzero(crosses_near & ~occluded_anyway[:, None])
@@ -279,7 +322,7 @@ def _ray_status(
     expected_stop = np.where(
         crosses_near, np.minimum(crossing, point_range[:, None]), point_range[:, None]
     )
-    stops_before = found & (ray_range < expected_stop - margin)
+    stops_before = hides & (ray_range < expected_stop - margin)
     passes_beyond = crosses_near & (ray_range > crossing + margin)
     n_near = crosses_near.sum(axis=1)
     occluded = (~found.any(axis=1)) | stops_before.any(axis=1)
@@ -287,3 +330,50 @@ def _ray_status(
     status = np.where(seen_through, STATUS_SEEN_THROUGH, STATUS_SURFACE)
     status = np.where(n_near == 0, STATUS_EDGE_ON, status)
     return np.where(occluded, STATUS_UNOBSERVED, status).astype(np.int8)
+
+
+def _hides(
+    points: NDArray[np.float64],
+    origin: NDArray[np.float64],
+    ray_range: NDArray[np.float64],
+    ray_direction: NDArray[np.float64],
+    ray_normal: NDArray[np.float32],
+    *,
+    tolerance: NDArray[np.float64],
+) -> NDArray[np.bool_]:
+    """Whether a return short of a point hides it: the point is not clearly in front of its surface.
+
+    A return's surface (the plane through it with its fitted normal) separates the sensor's
+    side from the solid behind it; a point lying on the sensor's side of that plane, by more
+    than ``tolerance``, sees the sensor along a segment that never enters the solid (for a
+    convex one), so that return does not hide it.  This is what happens next to a floor or
+    a wall seen at a grazing angle: the ray just below a box's foot ends on the floor short
+    of the box.
+
+    Parameters
+    ----------
+    points : ndarray, shape (s, 3)
+        One point per short return.
+    origin : ndarray, shape (3,)
+        The sensor.
+    ray_range : ndarray, shape (s,)
+    ray_direction : ndarray, shape (s, 3)
+        Range and unit direction of each return.
+    ray_normal : ndarray, shape (s, 3)
+        Normal of the surface at each return.
+    tolerance : ndarray, shape (s,)
+        How far (metres) in front of the plane each point must lie: the errors of the point
+        and of the plane, and at least half the sensor's angular step times the point's
+        range (nearer than that to a surface, the sensor cannot tell the point from it).
+
+    Returns
+    -------
+    ndarray, shape (s,), bool
+    """
+    normal = ray_normal.astype(np.float64)
+    return_point = origin + ray_range[:, None] * ray_direction
+    point_offset = np.einsum("sd,sd->s", points - return_point, normal)
+    # the sensor's offset from the plane is -range * (direction . normal): its sign is the
+    # sensor's side (zero for a ray along the plane: such a return hides the point)
+    sensor_side = -np.sign(np.einsum("sd,sd->s", ray_direction, normal))
+    return ~(point_offset * sensor_side > tolerance)

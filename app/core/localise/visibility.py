@@ -166,7 +166,8 @@ def _any_station_status(
     """Ray status of each candidate as seen by any station of the other cloud.
 
     Each station's rays are its own returns (``other.station``; all of them with one
-    station); the statuses are combined by :func:`combine_station_status`.
+    station), with their surfaces' normals; the statuses are combined by
+    :func:`combine_station_status`.
 
     Returns
     -------
@@ -178,10 +179,12 @@ def _any_station_status(
     statuses = []
     angular_steps = []
     for number, origin in enumerate(other.origins):
+        normal, linear = other.geometry.normal, other.geometry.linear
         if other.station is None:
             station_points = other.points
         else:
-            station_points = other.points[other.station == number]
+            mine = other.station == number
+            station_points, normal, linear = other.points[mine], normal[mine], linear[mine]
         if station_points.shape[0] < MIN_STATION_POINTS:
             continue  # a station without returns saw nothing: all unobserved
         status, angular_step = ray_visibility(
@@ -190,6 +193,8 @@ def _any_station_status(
             other_points=station_points,
             other_origin=origin,
             test=test,
+            other_normals=normal,
+            other_linear=linear,
         )
         statuses.append(status)
         angular_steps.append(angular_step)

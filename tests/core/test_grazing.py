@@ -1,0 +1,102 @@
+"""Grazing incidence: a box's foot seen past the floor from far away (issue 15, stations given).
+
+Rules checked (bench numbers in bench/results/visibility.md, "Several stations per cloud"):
+
+* the ray visibility test: the other sensor's rays just below a removed box's foot end on the
+  floor short of it, at a grazing angle; they do not hide it (it lies in front of the floor's
+  plane by more than half the sensor's angular step at its range), so the rays passing over
+  the floor where the box stood see through it; closer to the floor than that the sensor
+  cannot tell the foot from the floor (unobserved, as before); a box standing between the
+  sensor and the foot still hides it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from app.core.localise.rays import (
+    STATUS_SEEN_THROUGH,
+    STATUS_UNOBSERVED,
+    Candidates,
+    RayTest,
+    ray_visibility,
+)
+from app.core.localise.surface import local_geometry
+from app.core.synthetic_lidar import LidarWorld, lidar_directions
+
+SENSOR = np.array([0.0, 0.0, 0.85])
+FACE_X = 11.5
+"""The removed box's face (the candidates' own surface) stands across the floor at x = 11.5."""
+TEST = RayTest(
+    normal_tolerance=0.035,
+    range_tolerance=0.035,
+    margin_factor=1.0,
+    angle_factor=2.5,
+    beyond_fraction=0.5,
+    miss_factor=4.0,
+)
+
+
+def other_station(box_low: list[list[float]], box_high: list[list[float]]):
+    """Returns of a 1 degree lidar at SENSOR in a 40 x 20 m hall, and their local surfaces."""
+    world = LidarWorld(
+        shell_low=np.array([-5.0, -10.0, 0.0]),
+        shell_high=np.array([35.0, 10.0, 6.0]),
+        box_low=np.array(box_low, dtype=np.float64).reshape(-1, 3),
+        box_high=np.array(box_high, dtype=np.float64).reshape(-1, 3),
+    )
+    directions = lidar_directions(1.0, 1.0, yaw_deg=0.5)
+    distance, _ = world.cast(SENSOR, directions)
+    points = SENSOR + distance[:, None] * directions
+    return points, local_geometry(points, 10)
+
+
+def foot_of_removed_box(low: float, high: float) -> tuple[Candidates, object]:
+    """Candidates ``low``-``high`` metres up the face of a box (3 cm grid) now gone."""
+    grid = np.arange(-0.3, 0.3, 0.03)
+    heights = np.arange(0.0, 0.6, 0.03)
+    y, z = np.meshgrid(grid, heights, indexing="ij")
+    face = np.column_stack([np.full(y.size, FACE_X), y.ravel(), z.ravel()])
+    own = local_geometry(face, 10)
+    chosen = np.flatnonzero((np.abs(face[:, 1]) < 0.1) & (face[:, 2] >= low) & (face[:, 2] <= high))
+    candidates = Candidates(
+        index=chosen,
+        points=face[chosen],
+        normal=np.tile(np.array([-1.0, 0.0, 0.0], dtype=np.float32), (chosen.size, 1)),
+        linear=np.zeros(chosen.size, dtype=bool),
+        spacing=own.spacing[chosen],
+        surface_distance=face[chosen, 2],  # the floor is the nearest surface left
+    )
+    return candidates, own
+
+
+def status_seen_from(box_low: list, box_high: list, low: float, high: float) -> np.ndarray:
+    candidates, own = foot_of_removed_box(low, high)
+    points, surfaces = other_station(box_low, box_high)
+    status, _ = ray_visibility(
+        candidates,
+        own=own,
+        other_points=points,
+        other_origin=SENSOR,
+        test=TEST,
+        other_normals=surfaces.normal,
+        other_linear=surfaces.linear,
+    )
+    return status
+
+
+def test_rays_ending_on_the_floor_short_of_a_removed_boxs_foot_do_not_hide_it():
+    # at 11.5 m the rays one degree below the foot's direction end on the floor 1-2 m short;
+    # half a degree there is 10 cm: from 15 cm up the sensor tells the foot from the floor
+    status = status_seen_from([], [], 0.15, 0.45)
+    assert (status == STATUS_SEEN_THROUGH).all()
+
+
+def test_a_point_closer_to_the_floor_than_the_sensor_resolves_stays_unobserved():
+    status = status_seen_from([], [], 0.02, 0.07)
+    assert (status == STATUS_UNOBSERVED).all()
+
+
+def test_a_box_between_the_sensor_and_the_foot_still_hides_it():
+    status = status_seen_from([[7.0, -1.0, 0.0]], [[8.0, 1.0, 1.0]], 0.15, 0.45)
+    assert (status == STATUS_UNOBSERVED).all()
