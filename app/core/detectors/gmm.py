@@ -401,7 +401,12 @@ class GmmDetector(ChangeDetector):
 
     @property
     def _ignored_warnings(self) -> tuple[type[Warning], ...]:  # type: ignore[override]
-        """EM stopping at max_iter is intended: the anchored refinements, bounded cost."""
+        """EM stopping at max_iter is intended: the anchored refinements, bounded cost.
+
+        Read before each call's thread limit is set (``_numerics``): it imports scikit-learn's
+        k-means too, so that its OpenMP pool exists and is limited like the others.
+        """
+        import sklearn.cluster  # noqa: F401
         from sklearn.exceptions import ConvergenceWarning
 
         return (ConvergenceWarning,)
