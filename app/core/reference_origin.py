@@ -74,7 +74,7 @@ def origin_record(resolved: ResolvedOrigin) -> dict[str, Any] | None:
         "source": resolved.source,
         "confidence": resolved.confidence,
         "warnings": list(resolved.warnings),
-        "evidence": dict(resolved.evidence),
+        "evidence": _kept_evidence(resolved.evidence),
         "station_confidence": resolved.station_confidence,
     }
     try:
@@ -104,6 +104,15 @@ def origin_from_record(record: Any) -> ResolvedOrigin | None:
         return None
 
 
+VOLATILE_EVIDENCE = ("seconds",)
+"""Evidence not kept in the record (the estimate's run time: it would make every rewrite of a
+cache file differ; the reference's evidence is not reported)."""
+
+
+def _kept_evidence(evidence: Mapping[str, Any]) -> dict[str, Any]:
+    return {name: value for name, value in evidence.items() if name not in VOLATILE_EVIDENCE}
+
+
 def _same_origin(first: ResolvedOrigin, second: ResolvedOrigin) -> bool:
     if (first.origin is None) != (second.origin is None):
         return False
@@ -115,7 +124,7 @@ def _same_origin(first: ResolvedOrigin, second: ResolvedOrigin) -> bool:
         first.source == second.source
         and first.confidence == second.confidence
         and list(first.warnings) == list(second.warnings)
-        and dict(first.evidence) == dict(second.evidence)
+        and _kept_evidence(first.evidence) == _kept_evidence(second.evidence)
         and first.station_confidence == second.station_confidence
     )
 
