@@ -9,11 +9,13 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
-
-from pydantic import ValidationError
+from typing import TYPE_CHECKING
 
 from app.cli import compare, serve, tokens, worker
 from app.cli.exit_status import EXIT_BAD_INPUT
+
+if TYPE_CHECKING:  # pydantic is imported by the commands that read settings, not to parse
+    from pydantic import ValidationError
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -37,7 +39,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     try:
         return int(handler(args) or 0)
-    except ValidationError as exc:  # a SCANDIFF_* variable (or option) the settings reject
+    except Exception as exc:  # a SCANDIFF_* variable (or option) the settings reject
+        pydantic = sys.modules.get("pydantic")  # not imported: not a settings error
+        if pydantic is None or not isinstance(exc, pydantic.ValidationError):
+            raise
         if exc.title != "Settings":
             raise
         print(f"scandiff: error: {settings_error_message(exc)}", file=sys.stderr)

@@ -84,8 +84,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--geometry-cache",
         type=Path,
         metavar="DIR",
-        help="keep the reference's neighbourhood geometry in DIR: comparing the same "
-        "reference again skips its k-NN search (files are checked before use)",
+        help="keep the reference's neighbourhood geometry (k-NN, fitted surfaces, sensor "
+        "origin) in DIR: comparing the same reference again skips that work (files are "
+        "checked before use)",
     )
     parser.set_defaults(handler=run)
 

@@ -23,10 +23,12 @@ import sys
 import time
 from pathlib import Path
 from types import FrameType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from app.config import Settings
 from app.core.files import write_private_file
+
+if TYPE_CHECKING:  # pydantic-settings is imported when the command runs
+    from app.config import Settings
 
 logger = logging.getLogger("scandiff.serve")
 
@@ -82,6 +84,8 @@ def build_settings(args: argparse.Namespace) -> Settings:
         )
         if value is not None
     }
+    from app.config import Settings
+
     return Settings(**overrides)
 
 
@@ -267,6 +271,8 @@ def run_child(role: str) -> int:
     from app.services.schedule_runs import tick
 
     die_with_supervisor()
+    from app.config import Settings
+
     settings = Settings()
     if role == "api":
         return run_api_child(settings)

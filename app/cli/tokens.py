@@ -24,9 +24,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from app.cli.exit_status import EXIT_BAD_INPUT
-from app.config import Settings
 
-if TYPE_CHECKING:  # SQLAlchemy is imported when a command runs, not to build the parser
+if TYPE_CHECKING:  # SQLAlchemy and pydantic are imported when a command runs, not to parse
+    from app.config import Settings
     from app.services.auth import TokenSummary
 
 ROLES = ("reader", "writer", "admin")  # app.services.auth.ROLES, without importing SQLAlchemy
@@ -78,6 +78,8 @@ def add_parser(subparsers: Any) -> None:
 
 
 def _settings(args: argparse.Namespace) -> Settings:
+    from app.config import Settings
+
     return Settings(data_dir=args.data_dir) if args.data_dir else Settings()
 
 

@@ -18,9 +18,11 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from app.config import Settings
+if TYPE_CHECKING:  # pydantic-settings is imported when the command runs
+    from app.config import Settings
+
 
 DATABASE_WAIT_SECONDS = 120.0
 """Default of ``--wait-for-database``: how long to wait for a reachable, migrated database."""
@@ -87,6 +89,8 @@ def build_settings(args: argparse.Namespace) -> Settings:
         overrides["workers"] = args.concurrency
     if args.shutdown_grace is not None:
         overrides["shutdown_grace_seconds"] = args.shutdown_grace
+    from app.config import Settings
+
     return Settings(**overrides)
 
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import ot
 from numpy.typing import NDArray
 
 EQUAL_MASS_RTOL = 1e-9
@@ -96,6 +95,8 @@ def earth_movers_distance(
     if (cost < 0).any():
         raise ValueError(f"ground_distance contains negative entries (min {cost.min():g})")
     cost = np.ascontiguousarray(cost)
+
+    import ot  # on first use, not with the package (app.core.detectors.warm_up)
 
     total_a = float(weights_a.sum())
     total_b = float(weights_b.sum())

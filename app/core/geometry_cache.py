@@ -4,7 +4,9 @@ A site's reference is compared with every new scan of the site, and its k-NN sea
 localiser's largest single cost) gives the same answer every time.  :class:`GeometryCache`
 stores it once (neighbour index, k-th distance and spatial order: 4 (k + 1) + 16 bytes a
 point) and hands it back to :func:`app.core.pipeline.compare`, which then builds only the
-KD-tree (a fraction of the query's cost).
+KD-tree (a fraction of the query's cost).  Its header also keeps small *facts* about the
+reference that cost seconds to work out and do not depend on the scan (its resolved sensor
+origin, :mod:`app.core.reference_origin`), each under its own key and checksum.
 
 Nothing read back is trusted blindly: the file must carry the expected key (reference,
 code version and localisation parameters, :func:`cache_key`), the expected point count and k,
@@ -19,6 +21,7 @@ import contextlib
 import hashlib
 import json
 import os
+import shutil
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from functools import partial
@@ -35,11 +38,13 @@ from app.core.localise import neighbourhoods as neighbourhoods_module
 from app.core.localise.neighbourhoods import (
     Neighbourhoods,
     NeighbourhoodSearch,
+    Surfaces,
     nearest_neighbourhoods,
     neighbourhood_size,
     start_neighbourhood_search,
 )
 from app.core.localise.settings import resolve_parameters
+from app.core.localise.surface import LINEAR_EIGENVALUE_RATIO, neighbourhood_planes, with_surfaces
 
 __all__ = [
     "CACHE_FORMAT",
@@ -49,12 +54,17 @@ __all__ = [
     "reference_neighbourhoods",
 ]
 
-CACHE_FORMAT = 1
+CACHE_FORMAT = 2
 """Bumped whenever the file layout changes."""
 MAGIC = b"SCANDIFF-GEOMETRY\n"
 VERIFIED_ROWS = 256
 """Rows whose k-th neighbour distance is recomputed from the points on every load."""
-_CODE_FILES = ("localise/neighbourhoods.py", "spatial_order.py", "geometry_cache.py")
+_CODE_FILES = (
+    "localise/neighbourhoods.py",
+    "localise/surface.py",
+    "spatial_order.py",
+    "geometry_cache.py",
+)
 """Sources (under app/core) whose text is part of the code version."""
 
 
@@ -102,6 +112,14 @@ def cache_key(reference_identity: str, localisation_params: Mapping[str, Any] | 
     return hashlib.sha256(text.encode()).hexdigest()
 
 
+def _fact_digest(value: Any) -> str:
+    return hashlib.sha256(json.dumps(value, sort_keys=True).encode()).hexdigest()
+
+
+def _fact_entry(key: str, value: Any) -> dict[str, Any]:
+    return {"key": key, "value": value, "sha256": _fact_digest(value)}
+
+
 def _arrays_digest(arrays: tuple[NDArray, ...]) -> str:
     digest = hashlib.sha256()
     for array in arrays:
@@ -123,6 +141,78 @@ class GeometryCache:
 
     path: Path
     key: str
+
+    def _header(self) -> dict[str, Any] | None:
+        """The file's header when it is this key's (None: missing, unreadable or another's)."""
+        try:
+            with open(self.path, "rb") as source:
+                if source.readline() != MAGIC:
+                    return None
+                header = json.loads(source.readline())
+        except (OSError, ValueError, UnicodeDecodeError):
+            return None
+        if not isinstance(header, dict) or header.get("key") != self.key:
+            return None
+        return header
+
+    def load_fact(self, name: str, key: str) -> Any | None:
+        """The fact ``name`` stored under ``key`` (None: missing, for another key, or damaged).
+
+        Parameters
+        ----------
+        name : str
+            E.g. :data:`ORIGIN_FACT`.
+        key : str
+            What the fact must have been stored for (e.g. :func:`reference_origin_key`).
+
+        Returns
+        -------
+        JSON value or None
+        """
+        header = self._header()
+        facts = None if header is None else header.get("facts")
+        entry = facts.get(name) if isinstance(facts, dict) else None
+        if not isinstance(entry, dict) or entry.get("key") != key or "value" not in entry:
+            return None
+        if entry.get("sha256") != _fact_digest(entry["value"]):
+            return None
+        return entry["value"]
+
+    def store_fact(self, name: str, key: str, value: Any) -> bool:
+        """Add (or replace) a fact in the existing file, which keeps its arrays.
+
+        The file is rewritten (a temporary copy with the new header, then renamed); nothing is
+        written when there is no valid file of this key yet (:meth:`store` writes the facts it
+        is given) or the fact is there already.
+
+        Returns
+        -------
+        bool
+            Whether the file was rewritten.
+        """
+        header = self._header()
+        if header is None or self.load_fact(name, key) == value:
+            return False
+        facts = header.get("facts")
+        header["facts"] = {
+            **(facts if isinstance(facts, dict) else {}),
+            name: _fact_entry(key, value),
+        }
+        temporary = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
+        try:
+            with open(self.path, "rb") as source, open(temporary, "wb") as target:
+                source.readline()
+                if json.loads(source.readline()).get("sha256") != header.get("sha256"):
+                    return False  # replaced meanwhile (another comparison rebuilt it)
+                target.write(MAGIC)
+                target.write(json.dumps(header).encode() + b"\n")
+                shutil.copyfileobj(source, target, 1 << 22)
+            os.replace(temporary, self.path)
+        except (OSError, ValueError, UnicodeDecodeError, AttributeError):
+            return False
+        finally:
+            temporary.unlink(missing_ok=True)
+        return True
 
     def load(self, points: NDArray[np.float64], n_neighbors: int) -> Neighbourhoods | None:
         """The cached neighbourhoods of ``points``, or None when missing or not to be trusted.
@@ -150,32 +240,52 @@ class GeometryCache:
                     return None
                 if (header.get("key"), header.get("n"), header.get("k")) != (self.key, n, k):
                     return None
-                neighbor_index = np.fromfile(source, dtype="<u4", count=n * (k + 1))
-                kth_distance = np.fromfile(source, dtype="<f8", count=n)
-                order = np.fromfile(source, dtype="<i8", count=n)
+                noise = header.get("noise")
+                layout = _LAYOUT if isinstance(noise, float) else _LAYOUT[:3]
+                arrays = tuple(
+                    np.fromfile(source, dtype=dtype, count=n * width(k)) for dtype, width in layout
+                )
                 if source.read(1):
                     return None
         except (OSError, ValueError, UnicodeDecodeError):
             return None
-        if len(neighbor_index) != n * (k + 1) or len(kth_distance) != n or len(order) != n:
+        if any(
+            len(array) != n * width(k) for array, (_, width) in zip(arrays, layout, strict=True)
+        ):
             return None
-        arrays = (neighbor_index, kth_distance, order)
         if _arrays_digest(arrays) != header.get("sha256"):
             return None
+        neighbor_index, kth_distance, order = arrays[:3]
         neighbor_index = neighbor_index.reshape(n, k + 1)
         if not _sample_agrees(points, neighbor_index, kth_distance, order):
             return None
+        surfaces = None
+        if len(arrays) > 3:
+            normal, plane_constant, spacing, linear, variation = arrays[3:]
+            surfaces = Surfaces(
+                normal.reshape(n, 3), plane_constant, spacing, noise, linear.view(bool), variation
+            )
+            if not _surfaces_agree(points, neighbor_index, surfaces):
+                return None
         return Neighbourhoods(
-            KDTree(points), neighbor_index, kth_distance, order.astype(np.intp, copy=False)
+            KDTree(points),
+            neighbor_index,
+            kth_distance,
+            order.astype(np.intp, copy=False),
+            surfaces,
         )
 
-    def store(self, neighbourhoods: Neighbourhoods) -> int:
+    def store(
+        self, neighbourhoods: Neighbourhoods, facts: Mapping[str, tuple[str, Any]] | None = None
+    ) -> int:
         """Write ``neighbourhoods`` (replacing any older file); the bytes written.
 
         Parameters
         ----------
         neighbourhoods : Neighbourhoods
             Of the reference this cache is for, with its spatial order.
+        facts : mapping, optional
+            ``{name: (key, JSON value)}`` kept in the header (:meth:`load_fact`).
 
         Returns
         -------
@@ -191,7 +301,25 @@ class GeometryCache:
             np.ascontiguousarray(neighbourhoods.kth_distance, dtype="<f8"),
             np.ascontiguousarray(order, dtype="<i8"),
         )
-        header = {"key": self.key, "n": n, "k": width - 1, "sha256": _arrays_digest(arrays)}
+        surfaces = neighbourhoods.surfaces
+        if surfaces is not None:
+            arrays += (
+                np.ascontiguousarray(surfaces.normal, dtype="<f4"),
+                np.ascontiguousarray(surfaces.plane_constant, dtype="<f8"),
+                np.ascontiguousarray(surfaces.spacing, dtype="<f8"),
+                np.ascontiguousarray(surfaces.linear, dtype="u1"),
+                np.ascontiguousarray(surfaces.variation, dtype="<f8"),
+            )
+        header: dict[str, Any] = {
+            "key": self.key,
+            "n": n,
+            "k": width - 1,
+            "sha256": _arrays_digest(arrays),
+        }
+        if surfaces is not None:
+            header["noise"] = float(surfaces.noise)
+        if facts:
+            header["facts"] = {name: _fact_entry(*entry) for name, entry in facts.items()}
         self.path.parent.mkdir(parents=True, exist_ok=True)
         temporary = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
         try:
@@ -204,6 +332,40 @@ class GeometryCache:
         finally:
             temporary.unlink(missing_ok=True)
         return self.path.stat().st_size
+
+
+_LAYOUT: tuple[tuple[str, Callable[[int], int]], ...] = (
+    ("<u4", lambda k: k + 1),  # neighbour index
+    ("<f8", lambda k: 1),  # k-th distance
+    ("<i8", lambda k: 1),  # spatial order
+    ("<f4", lambda k: 3),  # surfaces: normal
+    ("<f8", lambda k: 1),  # plane constant
+    ("<f8", lambda k: 1),  # spacing
+    ("u1", lambda k: 1),  # linear
+    ("<f8", lambda k: 1),  # variation
+)
+"""The arrays of a file in order: type and values a point for k neighbours (the last five only
+with ``noise`` in the header: the reference's :class:`Surfaces`)."""
+
+
+def _surfaces_agree(
+    points: NDArray[np.float64], neighbor_index: NDArray[np.uint32], surfaces: Surfaces
+) -> bool:
+    """Whether the cached planes fit ``points``: on :data:`VERIFIED_ROWS` evenly spread rows
+    whose k neighbours are not a line (those are refitted wider), the plane fitted again is
+    the cached one."""
+    n = len(points)
+    rows = np.unique(np.linspace(0, n - 1, min(VERIFIED_ROWS, n)).astype(np.int64))
+    normal, plane_constant, _, middle_over_largest, _ = neighbourhood_planes(
+        points, neighbor_index[rows]
+    )
+    planar = middle_over_largest >= LINEAR_EIGENVALUE_RATIO
+    return bool(
+        np.allclose(normal[planar], surfaces.normal[rows][planar], rtol=0, atol=1e-5)
+        and np.allclose(
+            plane_constant[planar], surfaces.plane_constant[rows][planar], rtol=0, atol=1e-6
+        )
+    )
 
 
 def _sample_agrees(
@@ -235,6 +397,7 @@ def reference_neighbourhoods(
     *,
     cache: GeometryCache | None,
     ahead: bool,
+    facts: Mapping[str, tuple[str, Any]] | None = None,
 ) -> Neighbourhoods | NeighbourhoodSearch | None:
     """The reference's neighbourhoods for ``localise_changes``: from ``cache`` when it holds
     them, else a search started now (on a thread of its own when ``ahead``) that writes them to
@@ -252,6 +415,9 @@ def reference_neighbourhoods(
     cache : GeometryCache or None
     ahead : bool
         Start the search on its own thread (the pipeline aligns the scan meanwhile).
+    facts : mapping, optional
+        Written with the neighbourhoods (:meth:`GeometryCache.store`): what it holds when they
+        are written (the caller may add to it meanwhile).
 
     Returns
     -------
@@ -265,25 +431,29 @@ def reference_neighbourhoods(
         n_neighbors = neighbourhood_size(len(reference_points), **localisation_params)
     except InputError:
         return None  # localise_changes reports the parameter itself
-    store = _storing(cache)
+    store = _storing(cache, facts)
     if ahead:  # loading (read, checksum, KD-tree build) overlaps the alignment too
         return start_neighbourhood_search(
             reference_points,
             on_found=store,
             stored=partial(cache.load, reference_points, n_neighbors),
+            finish=partial(with_surfaces, reference_points),
             **localisation_params,
         )
     found = cache.load(reference_points, n_neighbors)
     if found is None:
         found = nearest_neighbourhoods(reference_points, n_neighbors)
         if found is not None:
+            found = with_surfaces(reference_points, found)
             store(found)
     return found
 
 
-def _storing(cache: GeometryCache) -> Callable[[Neighbourhoods], None]:
+def _storing(
+    cache: GeometryCache, facts: Mapping[str, tuple[str, Any]] | None
+) -> Callable[[Neighbourhoods], None]:
     def store(found: Neighbourhoods) -> None:
         with contextlib.suppress(OSError):  # not cached: the next comparison searches again
-            cache.store(found)
+            cache.store(found, None if facts is None else dict(facts))
 
     return store

@@ -20,6 +20,7 @@ Stages
 from __future__ import annotations
 
 import time
+import zipfile
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -34,7 +35,7 @@ from app.core.cloud import MIN_POINTS, PointCloud, choose_local_origin
 from app.core.comparison_settings import (
     parse_comparison_params,
 )
-from app.core.detectors import canonical_method
+from app.core.detectors import canonical_method, warm_up
 from app.core.explanation import explain_comparison
 from app.core.geometry_cache import GeometryCache, reference_neighbourhoods
 from app.core.jsonable import json_safe
@@ -45,10 +46,13 @@ from app.core.localise import (
     Neighbourhoods,
     NeighbourhoodSearch,
     localise_changes,
+    start_neighbourhood_search,
 )
 from app.core.origins.own_frame import resolve_moved_cloud
+from app.core.origins.resolve import ResolvedOrigin
 from app.core.origins.stations import origins_in_local_frame, resolve_stations, station_index_of
 from app.core.quality import quality_warnings
+from app.core.reference_origin import ReferenceOriginCache
 from app.core.registration import (
     apply_transform,
     identity_registration,
@@ -156,15 +160,28 @@ class ComparisonResult:
         )
 
     def write_labels_npz(self, path: str | Path) -> None:
-        """Write ``reference_changed``, ``scan_changed``, ``reference_label``, ``scan_label``."""
-        with open(path, "wb") as handle:
-            np.savez_compressed(
-                handle,
-                reference_changed=self.reference_label == LABEL_CHANGED,
-                scan_changed=self.scan_label == LABEL_CHANGED,
-                reference_label=self.reference_label.astype(np.int8),
-                scan_label=self.scan_label.astype(np.int8),
-            )
+        """Write ``reference_changed``, ``scan_changed``, ``reference_label``, ``scan_label``.
+
+        A ``numpy.savez_compressed`` file (``numpy.load`` reads it), deflated at level 1: a
+        third of the time of its default level for 1.5x the bytes (labels compress well
+        either way).
+        """
+        arrays = {
+            "reference_changed": self.reference_label == LABEL_CHANGED,
+            "scan_changed": self.scan_label == LABEL_CHANGED,
+            "reference_label": self.reference_label.astype(np.int8),
+            "scan_label": self.scan_label.astype(np.int8),
+        }
+        with zipfile.ZipFile(
+            path, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=LABELS_COMPRESS_LEVEL
+        ) as archive:
+            for name, array in arrays.items():
+                with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+                    np.lib.format.write_array(member, array, allow_pickle=False)
+
+
+LABELS_COMPRESS_LEVEL = 1
+"""zlib level of the labels file (:meth:`ComparisonResult.write_labels_npz`)."""
 
 
 def _file_frame_transform(
@@ -190,14 +207,16 @@ def _reference_neighbourhoods_ahead(
     localisation_params: Mapping[str, Any],
     enabled: bool,
     cache: GeometryCache | None = None,
+    facts: Mapping[str, tuple[str, Any]] | None = None,
 ) -> Iterator[Neighbourhoods | NeighbourhoodSearch | None]:
     """The reference's neighbourhood search running on a second thread, or None (not
     ``enabled``, a small cloud, or see :func:`start_neighbourhood_search`).  On leaving, a
     search still running is stopped at its next chunk and waited for, so no thread outlives
-    the comparison.  With a ``cache``, from it when it holds them, else written to it."""
+    the comparison.  With a ``cache``, from it when it holds them, else written to it (with
+    ``facts``)."""
     ahead = enabled and len(reference_points) >= REFERENCE_AHEAD_MIN_POINTS
     search = reference_neighbourhoods(
-        reference_points, localisation_params, cache=cache, ahead=ahead
+        reference_points, localisation_params, cache=cache, ahead=ahead, facts=facts
     )
     try:
         yield search
@@ -275,6 +294,7 @@ def compare(
     settings = parse_comparison_params(
         method, variant, params, random_state=random_state, align=align
     )
+    warm_up()  # the detector's libraries load on a thread while the clouds are aligned
     align = settings.align
     registration_params = settings.registration
     localisation_params = settings.localisation
@@ -292,27 +312,50 @@ def compare(
     # modifies these arrays in place
     reference_points = reference.points - local_origin if local_origin.any() else reference.points
     scan_points = scan.points - local_origin if local_origin.any() else scan.points
-    started = time.perf_counter()
-    resolved_reference = resolve_stations(
-        "reference",
-        reference_points,
-        given=origins_in_local_frame(
-            explicit_reference_origin, None, local_origin, "reference_origin"
-        ),
-        from_file=origins_in_local_frame(None, reference.sensor_origin, local_origin),
+    threads = available_threads() if threads is None else max(1, int(threads))
+    ahead = align and threads >= 2 and len(reference_points) >= REFERENCE_AHEAD_MIN_POINTS
+    origin_cache = ReferenceOriginCache.of(
+        geometry_cache,
+        reference,
+        local_origin,
+        given=explicit_reference_origin,
         estimate=settings.estimate_origins,
         recover=settings.recover_stations,
-        station_of=reference,
     )
-    reference_origin = resolved_reference.origin
-    reference_station = station_index_of(reference, resolved_reference, "reference")
-    timings["origins"] = time.perf_counter() - started
+    facts: dict[str, tuple[str, Any]] = {}
 
-    threads = available_threads() if threads is None else max(1, int(threads))
+    def resolve_reference() -> ResolvedOrigin:
+        started = time.perf_counter()
+        resolved = origin_cache.load(facts) if origin_cache is not None else None
+        if resolved is None:
+            resolved = resolve_stations(
+                "reference",
+                reference_points,
+                given=origins_in_local_frame(
+                    explicit_reference_origin, None, local_origin, "reference_origin"
+                ),
+                from_file=origins_in_local_frame(None, reference.sensor_origin, local_origin),
+                estimate=settings.estimate_origins,
+                recover=settings.recover_stations,
+                station_of=reference,
+            )
+            if origin_cache is not None:
+                origin_cache.remember(resolved, facts)
+        timings["origins"] = timings.get("origins", 0.0) + time.perf_counter() - started
+        return resolved
+
+    # With a second thread the reference's neighbour search starts first and runs while the
+    # reference's origin is resolved and the scan aligned (none of which needs it); on one
+    # thread the origin comes first, so that a cache written by the search holds it.
+    resolved_reference = None if ahead else resolve_reference()
     report("align", 0.05)
     with _reference_neighbourhoods_ahead(
-        reference_points, localisation_params, align and threads >= 2, geometry_cache
+        reference_points, localisation_params, ahead, geometry_cache, facts
     ) as reference_neighbourhoods:
+        if resolved_reference is None:
+            resolved_reference = resolve_reference()
+        reference_origin = resolved_reference.origin
+        reference_station = station_index_of(reference, resolved_reference, "reference")
         started = time.perf_counter()
         if align:
             registration = register_scan(reference_points, scan_points, **registration_params)
@@ -320,49 +363,64 @@ def compare(
             registration = identity_registration(reference_points, scan_points)
         aligned_scan = apply_transform(scan_points, registration.transform)
         timings["align"] = time.perf_counter() - started
-        started = time.perf_counter()
-        resolved_scan = resolve_moved_cloud(
-            "scan",
-            scan_points,
-            registration.transform,
-            aligned_points=aligned_scan,
-            given=origins_in_local_frame(settings.scan_origin, None, local_origin, "scan_origin"),
-            from_file=origins_in_local_frame(None, scan.sensor_origin, local_origin),
-            estimate=settings.estimate_origins,
-            recover=settings.recover_stations,
-            station_of=scan,
+        # the scan's own neighbour search runs while its origin is resolved
+        scan_neighbourhoods = (
+            start_neighbourhood_search(aligned_scan, openmp_threads=threads, **localisation_params)
+            if ahead and len(aligned_scan) >= REFERENCE_AHEAD_MIN_POINTS
+            else None
         )
-        scan_origin = resolved_scan.origin
-        scan_station = station_index_of(scan, resolved_scan, "scan")
-        timings["origins"] += time.perf_counter() - started
-        registration_report = registration.to_json_dict()
-        registration_report["transform"] = _file_frame_transform(
-            registration.transform, local_origin
-        ).tolist()
-        registration_report["enabled"] = align
-        centre = scan_points.mean(axis=0)  # how far the alignment moved the scan (metres)
-        moved = apply_transform(centre[None], registration.transform)[0] - centre
-        registration_report["translation_m"] = float(np.linalg.norm(moved))
-
-        report("localise", 0.35)
-        started = time.perf_counter()
-        with threadpool_limits(limits=threads, user_api="openmp"):
-            localisation = localise_changes(
-                reference_points,
-                aligned_scan,
-                reference_origin=reference_origin,
-                scan_origin=scan_origin,
-                reference_station=reference_station,
-                scan_station=scan_station,
-                # Not registration.rmse: that includes sampling distance and real change
-                # (0.15 m on KITTI); localise measures the remaining misalignment itself from
-                # local surfaces.
-                registration_rmse=0.0,
-                threads=threads,
-                reference_neighbourhoods=reference_neighbourhoods,
-                **localisation_params,
+        try:
+            started = time.perf_counter()
+            resolved_scan = resolve_moved_cloud(
+                "scan",
+                scan_points,
+                registration.transform,
+                aligned_points=aligned_scan,
+                given=origins_in_local_frame(
+                    settings.scan_origin, None, local_origin, "scan_origin"
+                ),
+                from_file=origins_in_local_frame(None, scan.sensor_origin, local_origin),
+                estimate=settings.estimate_origins,
+                recover=settings.recover_stations,
+                station_of=scan,
             )
+            scan_origin = resolved_scan.origin
+            scan_station = station_index_of(scan, resolved_scan, "scan")
+            timings["origins"] += time.perf_counter() - started
+            registration_report = registration.to_json_dict()
+            registration_report["transform"] = _file_frame_transform(
+                registration.transform, local_origin
+            ).tolist()
+            registration_report["enabled"] = align
+            centre = scan_points.mean(axis=0)  # how far the alignment moved the scan (metres)
+            moved = apply_transform(centre[None], registration.transform)[0] - centre
+            registration_report["translation_m"] = float(np.linalg.norm(moved))
+
+            report("localise", 0.35)
+            started = time.perf_counter()
+            with threadpool_limits(limits=threads, user_api="openmp"):
+                localisation = localise_changes(
+                    reference_points,
+                    aligned_scan,
+                    reference_origin=reference_origin,
+                    scan_origin=scan_origin,
+                    reference_station=reference_station,
+                    scan_station=scan_station,
+                    # Not registration.rmse: that includes sampling distance and real change
+                    # (0.15 m on KITTI); localise measures the remaining misalignment itself
+                    # from local surfaces.
+                    registration_rmse=0.0,
+                    threads=threads,
+                    reference_neighbourhoods=reference_neighbourhoods,
+                    scan_neighbourhoods=scan_neighbourhoods,
+                    **localisation_params,
+                )
+        finally:
+            if isinstance(scan_neighbourhoods, NeighbourhoodSearch):
+                scan_neighbourhoods.cancel()
     timings["localise"] = time.perf_counter() - started
+    if origin_cache is not None:
+        origin_cache.keep()
 
     report("detect", 0.65)
     started = time.perf_counter()

@@ -1,15 +1,28 @@
-"""The reference's cached k-NN geometry: keyed, verified, rebuilt when missing or corrupt."""
+"""The reference's cached geometry (k-NN, surfaces, origin): keyed, verified, rebuilt when missing
+or corrupt."""
 
 from __future__ import annotations
+
+import dataclasses
+import json
 
 import numpy as np
 import pytest
 
-from app.core import geometry_cache
-from app.core.cloud import PointCloud
+from app.core import geometry_cache, pipeline
+from app.core.cloud import PointCloud, choose_local_origin
 from app.core.geometry_cache import GeometryCache, cache_key, code_version
+from app.core.localise import neighbourhoods, surface
 from app.core.localise.neighbourhoods import nearest_neighbourhoods
+from app.core.localise.surface import with_surfaces
+from app.core.origins.resolve import ResolvedOrigin
 from app.core.pipeline import REFERENCE_AHEAD_MIN_POINTS, compare
+from app.core.reference_origin import (
+    ORIGIN_FACT,
+    ReferenceOriginCache,
+    origin_from_record,
+    origin_record,
+)
 from app.core.synthetic import raycast_scene
 
 N_NEIGHBORS = 10
@@ -115,3 +128,116 @@ def test_an_unwritable_cache_costs_nothing_but_time(tmp_path, pair, uncached):
     cache = GeometryCache(blocker / "ref.geometry", cache_key("ref", None))
     assert_same_result(compare(reference, scan, threads=1, geometry_cache=cache), uncached[1])
     assert not cache.path.exists()
+
+
+def test_surfaces_are_cached_with_the_neighbourhoods_and_checked(tmp_path, pair):
+    points = pair.reference
+    found = with_surfaces(points, nearest_neighbourhoods(points, N_NEIGHBORS))
+    cache = GeometryCache(tmp_path / "ref.geometry", cache_key("ref", None))
+    cache.store(found)
+    loaded = cache.load(points, N_NEIGHBORS)
+    for name in ("normal", "plane_constant", "spacing", "linear", "variation"):
+        np.testing.assert_array_equal(
+            getattr(loaded.surfaces, name), getattr(found.surfaces, name), err_msg=name
+        )
+    assert loaded.surfaces.noise == found.surfaces.noise
+    assert loaded.surfaces.linear.dtype == bool
+    # a flipped byte among the surfaces (after the neighbour index): not trusted
+    data = bytearray(cache.path.read_bytes())
+    data[-len(points) * 10] ^= 0x10
+    cache.path.write_bytes(bytes(data))
+    assert cache.load(points, N_NEIGHBORS) is None
+    # planes of other points, with a checksum that matches: the sample refit disagrees
+    tilted = dataclasses.replace(
+        found.surfaces, normal=np.roll(found.surfaces.normal, 1, axis=1).copy()
+    )
+    cache.store(dataclasses.replace(found, surfaces=tilted))
+    assert cache.load(points, N_NEIGHBORS) is None
+
+
+def count_calls(monkeypatch, calls, *targets):
+    """Count calls of each ``(module, name)`` in ``calls[name]`` (modules that import a
+    function by name each get their own patch)."""
+    for module, name in targets:
+        original = getattr(module, name)
+
+        def counted(*args, _name=name, _original=original, **kwargs):
+            calls[_name] = calls.get(_name, 0) + 1
+            return _original(*args, **kwargs)
+
+        monkeypatch.setattr(module, name, counted)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_cache_hit_does_only_the_scan_side_work(tmp_path, pair, uncached, monkeypatch, threads):
+    """A comparison with the reference cached reads its neighbourhoods, surfaces and origin
+    (one search, one fit and one origin resolution fewer than when the cache is filled) and
+    gives the uncached result; a damaged origin fact is resolved again and written back."""
+    reference, scan = PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan)
+    cache = GeometryCache(tmp_path / "ref.geometry", cache_key("ref", None))
+    calls: dict[str, int] = {}
+    count_calls(
+        monkeypatch,
+        calls,
+        (neighbourhoods, "nearest_neighbourhoods"),
+        (surface, "nearest_neighbourhoods"),
+        (geometry_cache, "nearest_neighbourhoods"),
+        (surface, "fit_surfaces"),
+        (pipeline, "resolve_stations"),
+    )
+    compare(reference, scan, threads=threads, geometry_cache=cache)  # fills it
+    filling = dict(calls)
+    assert cache.load_fact(ORIGIN_FACT, origin_key(cache, reference)) is not None
+    calls.clear()
+    hit = compare(reference, scan, threads=threads, geometry_cache=cache)
+    assert_same_result(hit, uncached[threads])
+    assert hit.sensor_origins == uncached[threads].sensor_origins
+    assert hit.localisation == uncached[threads].localisation
+    assert calls == {name: count - 1 for name, count in filling.items()}
+
+    # the origin fact damaged (its value no longer matches its checksum): resolved again
+    lines = cache.path.read_bytes().split(b"\n", 2)
+    header = json.loads(lines[1])
+    header["facts"][ORIGIN_FACT]["value"]["source"] = "given"
+    cache.path.write_bytes(b"\n".join([lines[0], json.dumps(header).encode(), lines[2]]))
+    assert cache.load_fact(ORIGIN_FACT, origin_key(cache, reference)) is None
+    calls.clear()
+    again = compare(reference, scan, threads=threads, geometry_cache=cache)
+    assert_same_result(again, uncached[threads])
+    assert again.sensor_origins == uncached[threads].sensor_origins
+    assert calls["resolve_stations"] == filling["resolve_stations"]
+    assert calls["fit_surfaces"] == filling["fit_surfaces"] - 1  # the surfaces were still good
+    assert cache.load_fact(ORIGIN_FACT, origin_key(cache, reference)) is not None  # rewritten
+    assert cache.load(pair.reference, N_NEIGHBORS) is not None  # with its arrays
+
+
+def origin_key(cache, reference):
+    return ReferenceOriginCache.of(
+        cache,
+        reference,
+        choose_local_origin(reference.points),
+        given=None,
+        estimate=True,
+        recover=False,
+    ).key
+
+
+def test_an_origin_record_gives_the_resolution_back_exactly():
+    resolved = ResolvedOrigin(
+        np.array([1.0, 2.0 / 3.0, -1e-17]),
+        "estimated",
+        0.873,
+        ["a warning"],
+        {"ring_share": 0.91, "seconds": 0.52},  # its run time is not kept (files would differ)
+    )
+    back = origin_from_record(json.loads(json.dumps(origin_record(resolved))))
+    np.testing.assert_array_equal(back.origin, resolved.origin)
+    assert (back.source, back.confidence, back.warnings, back.evidence) == (
+        "estimated",
+        0.873,
+        ["a warning"],
+        {"ring_share": 0.91},
+    )
+    assert origin_from_record({"origin": [1, 2, 3]}) is None  # not a record
+    stations = ResolvedOrigin(np.zeros((2, 3)), "recovered", None, station_confidence=[0.9, 0.8])
+    assert origin_from_record(origin_record(stations)).station_confidence == [0.9, 0.8]

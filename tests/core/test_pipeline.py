@@ -160,7 +160,8 @@ def test_the_reference_search_run_during_alignment_changes_nothing_and_ends_with
     monkeypatch,
 ):
     """From REFERENCE_AHEAD_MIN_POINTS points and 2 threads the reference's neighbour search
-    runs while the scan is aligned: the result is exactly the one-thread result."""
+    runs while the scan is aligned, and the scan's while its origin is resolved: the result is
+    exactly the one-thread result."""
     started: list[int] = []
 
     class CountedSearch(neighbourhoods.NeighbourhoodSearch):
@@ -183,7 +184,7 @@ def test_the_reference_search_run_during_alignment_changes_nothing_and_ends_with
     one = compare(reference, scan, params=params, threads=1)
     assert started == []
     two = compare(reference, scan, params=params, threads=2)
-    assert started == [len(pair.reference)]
+    assert started == [len(pair.reference), len(pair.scan)]
     assert searches_running() == []
     assert one.changed and one.regions
     assert two.score == one.score and two.registration == one.registration
@@ -196,7 +197,7 @@ def test_the_reference_search_run_during_alignment_changes_nothing_and_ends_with
     far_away = PointCloud.from_array(pair.scan + np.array([500.0, 0.0, 0.0]))
     with pytest.raises(InputError, match="does not overlap"):
         compare(reference, far_away, threads=2)
-    assert len(started) == 2
+    assert len(started) == 3  # the reference's only: the scan's starts once aligned
     assert searches_running() == []
     # no thread to be had for the search (as under a job's address-space cap): the reference
     # is searched in line instead
@@ -210,7 +211,7 @@ def test_the_reference_search_run_during_alignment_changes_nothing_and_ends_with
     with monkeypatch.context() as refusing:
         refusing.setattr(threading.Thread, "start", refuse)
         without_thread = compare(reference, scan, params=params, threads=2)
-    assert len(started) == 3
+    assert len(started) == 5  # both searches tried, neither started
     np.testing.assert_array_equal(without_thread.scan_label, one.scan_label)
     assert without_thread.score == one.score
     # bad localisation parameters are reported by localisation, as without the search

@@ -10,6 +10,9 @@ Each method comes as ``variant="paper"`` (the paper as written, for reproduction
 
 from __future__ import annotations
 
+import importlib
+import sys
+import threading
 from typing import Any
 
 from app.core.detectors.base import VARIANTS, ChangeDetector, Detection
@@ -29,6 +32,40 @@ METHOD_ALIASES: dict[str, str] = {
 }
 """The paper's names (GMM-EMD, PCA-EMD, PE-EMD for plane extraction) and their canonical method;
 matched case-insensitively, like the canonical names, by :func:`canonical_method`."""
+
+LIBRARIES = ("sklearn.cluster", "sklearn.exceptions", "scipy.stats", "ot")
+"""What the detectors import on first use (about a second of a command's start-up): scikit-learn
+(k-means), scipy.stats (the calibration's t quantile) and POT (the EMD)."""
+
+
+def warm_up() -> threading.Thread | None:
+    """Import :data:`LIBRARIES` on a thread of their own, while the caller does other work (a
+    comparison aligns and localises first, mostly in numpy and KD-tree code that releases the
+    GIL); the detectors' own imports then find them loaded, or wait for them.
+
+    Returns
+    -------
+    threading.Thread or None
+        The thread (a daemon), or None when they are loaded already or no thread can start.
+    """
+    missing = [name for name in LIBRARIES if name not in sys.modules]
+    if not missing:
+        return None
+
+    def load() -> None:
+        for name in missing:
+            try:
+                importlib.import_module(name)
+            except Exception:  # the detector's own import reports it
+                return
+
+    thread = threading.Thread(target=load, name="detector-imports", daemon=True)
+    try:
+        thread.start()
+    except RuntimeError:  # no thread to be had (an address-space cap): imported when used
+        return None
+    return thread
+
 
 _DETECTORS: dict[str, type[ChangeDetector]] = {
     "gmm": GmmDetector,
@@ -89,6 +126,7 @@ def make_detector(
 
 
 __all__ = [
+    "LIBRARIES",
     "METHODS",
     "METHOD_ALIASES",
     "VARIANTS",
@@ -99,4 +137,5 @@ __all__ = [
     "PlanesDetector",
     "canonical_method",
     "make_detector",
+    "warm_up",
 ]

@@ -406,8 +406,11 @@ class ChangeDetector(ABC):
     @contextmanager
     def _numerics(self) -> Iterator[None]:
         """One BLAS/OpenMP thread and :attr:`_ignored_warnings` ignored, for one call."""
+        # read first: a detector's libraries, imported on first use, load before the limit
+        # is set, so that it applies to their thread pools too
+        ignored = self._ignored_warnings
         with threadpool_limits(limits=1), warnings.catch_warnings():
-            for category in self._ignored_warnings:
+            for category in ignored:
                 warnings.simplefilter("ignore", category)
             yield
 

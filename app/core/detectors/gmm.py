@@ -41,19 +41,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy import linalg
-from sklearn.cluster import KMeans
-from sklearn.exceptions import ConvergenceWarning
-from sklearn.mixture import GaussianMixture
 
 from app.core.detectors.base import ChangeDetector
 from app.core.emd import earth_movers_distance, euclidean_ground_distances
 from app.core.errors import InputError
 from app.core.parameters import ParamSpec
+
+if TYPE_CHECKING:  # scikit-learn is imported when a detector first runs (see detectors.warm_up)
+    from sklearn.mixture import GaussianMixture
 
 
 def _psd_sqrt(matrices: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -306,6 +306,8 @@ def fit_mixture(
     -------
     Mixture
     """
+    from sklearn.cluster import KMeans
+
     points = np.asarray(points, dtype=np.float64)
     labels = (
         KMeans(n_clusters=n_components, n_init=1, random_state=np.random.RandomState(seed))
@@ -396,8 +398,19 @@ class GmmDetector(ChangeDetector):
     """
 
     method: ClassVar[str] = "gmm"
-    # EM stopping at max_iter is intended: the anchored refinements, bounded cost.
-    _ignored_warnings: ClassVar[tuple[type[Warning], ...]] = (ConvergenceWarning,)
+
+    @property
+    def _ignored_warnings(self) -> tuple[type[Warning], ...]:  # type: ignore[override]
+        """EM stopping at max_iter is intended: the anchored refinements, bounded cost.
+
+        Read before each call's thread limit is set (``_numerics``): it imports scikit-learn's
+        k-means too, so that its OpenMP pool exists and is limited like the others.
+        """
+        import sklearn.cluster  # noqa: F401
+        from sklearn.exceptions import ConvergenceWarning
+
+        return (ConvergenceWarning,)
+
     _specs: ClassVar[dict[str, ParamSpec]] = {
         "n_components": ParamSpec("int", 1, 256),
         "max_iter": ParamSpec("int", 1, 10_000),

@@ -151,6 +151,7 @@ def localise_changes(
     min_region_points: int | None = None,
     threads: int | None = None,
     reference_neighbourhoods: Neighbourhoods | NeighbourhoodSearch | None = None,
+    scan_neighbourhoods: Neighbourhoods | NeighbourhoodSearch | None = None,
     reference_station: NDArray | None = None,
     scan_station: NDArray | None = None,
     **params: Any,
@@ -185,6 +186,9 @@ def localise_changes(
         computed ahead (the pipeline starts one with
         :func:`~app.core.localise.neighbourhoods.start_neighbourhood_search` while the scan
         is aligned).  The result is the same as without it.
+    scan_neighbourhoods : Neighbourhoods or NeighbourhoodSearch, optional
+        The same for ``scan`` (the pipeline searches them while the scan's origin is
+        resolved).
     reference_station, scan_station : array_like, shape (n,) / (m,), int, optional
         Index into the cloud's origins of the station that took each point.  Without it a
         cloud with several origins has its points assigned to stations
@@ -228,7 +232,7 @@ def localise_changes(
         lambda: local_geometry(
             reference_points, n_neighbors, neighbourhoods=reference_neighbourhoods
         ),
-        lambda: local_geometry(scan_points, n_neighbors),
+        lambda: local_geometry(scan_points, n_neighbors, neighbourhoods=scan_neighbourhoods),
     )
     (reference_nn_distance, reference_nn_index), (scan_nn_distance, scan_nn_index) = _in_parallel(
         threads,

@@ -24,10 +24,35 @@ from app.core.spatial_order import ordered_chunks, spatial_order
 __all__ = [
     "NeighbourhoodSearch",
     "Neighbourhoods",
+    "Surfaces",
     "nearest_neighbourhoods",
     "neighbourhood_size",
     "start_neighbourhood_search",
 ]
+
+
+@dataclass(frozen=True)
+class Surfaces:
+    """The local surfaces fitted to a cloud's neighbourhoods
+    (:func:`~app.core.localise.surface.fit_surfaces`; fields as in
+    :class:`~app.core.localise.surface.LocalGeometry`).
+
+    Attributes
+    ----------
+    normal : ndarray, shape (n, 3), float32
+    plane_constant : ndarray, shape (n,), float64
+    spacing : ndarray, shape (n,), float64
+    noise : float
+    linear : ndarray, shape (n,), bool
+    variation : ndarray, shape (n,), float64
+    """
+
+    normal: NDArray[np.float32]
+    plane_constant: NDArray[np.float64]
+    spacing: NDArray[np.float64]
+    noise: float
+    linear: NDArray[np.bool_]
+    variation: NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -45,12 +70,15 @@ class Neighbourhoods:
     order : ndarray, shape (n,), intp, or None
         The cloud's :func:`~app.core.spatial_order.spatial_order`, with which later passes
         over the cloud visit it chunk by chunk of nearby points (None: file order).
+    surfaces : Surfaces or None
+        Fitted already (e.g. read from a reference's geometry cache), or None.
     """
 
     tree: KDTree
     neighbor_index: NDArray[np.uint32]
     kth_distance: NDArray[np.float64]
     order: NDArray[np.intp] | None = None
+    surfaces: Surfaces | None = None
 
 
 def neighbourhood_size(n_points: int, **params: Any) -> int:
@@ -127,6 +155,9 @@ class NeighbourhoodSearch:
         Tried first on the search's thread: its neighbourhoods, if not None, are the result
         (e.g. a :class:`~app.core.geometry_cache.GeometryCache`'s load); ``on_found`` is not
         called for them.
+    finish : callable, optional
+        Applied on the search's thread to the neighbourhoods found (before ``on_found``): what
+        it returns is the result (e.g. with their surfaces fitted, to be cached with them).
     """
 
     def __init__(
@@ -136,9 +167,11 @@ class NeighbourhoodSearch:
         openmp_threads: int = 1,
         on_found: Callable[[Neighbourhoods], object] | None = None,
         stored: Callable[[], Neighbourhoods | None] | None = None,
+        finish: Callable[[Neighbourhoods], Neighbourhoods] | None = None,
     ):
         self._on_found = on_found
         self._stored = stored
+        self._finish = finish
         self._cancelled = threading.Event()
         self._result: Neighbourhoods | None = None
         self._error: BaseException | None = None
@@ -159,6 +192,8 @@ class NeighbourhoodSearch:
             # the limit applies to this thread's own OpenMP calls only
             with threadpool_limits(limits=openmp_threads, user_api="openmp"):
                 result = nearest_neighbourhoods(points, n_neighbors, self._cancelled)
+                if result is not None and self._finish is not None:
+                    result = self._finish(result)
             if result is not None and self._on_found is not None:
                 self._on_found(result)
             self._result = result
@@ -187,17 +222,22 @@ def start_neighbourhood_search(
     *,
     on_found: Callable[[Neighbourhoods], object] | None = None,
     stored: Callable[[], Neighbourhoods | None] | None = None,
+    finish: Callable[[Neighbourhoods], Neighbourhoods] | None = None,
+    openmp_threads: int = 1,
     **params: Any,
 ) -> NeighbourhoodSearch | None:
     """The :class:`NeighbourhoodSearch` that ``localise_changes(reference, ..., **params)`` can
-    take as ``reference_neighbourhoods``, already running on one OpenMP thread.
+    take as ``reference_neighbourhoods`` (or, for its scan, ``scan_neighbourhoods``), already
+    running on ``openmp_threads`` OpenMP threads.
 
     Parameters
     ----------
     reference : array_like, shape (n, 3)
-        The reference cloud, as ``localise_changes`` will be given it.
-    on_found, stored : callable, optional
+        The cloud, as ``localise_changes`` will be given it.
+    on_found, stored, finish : callable, optional
         See :class:`NeighbourhoodSearch`.
+    openmp_threads : int
+        Threads of the search's KD-tree queries (1: it shares the machine with other work).
     **params
         Localisation keyword parameters (only ``n_neighbors`` matters here).
 
@@ -212,7 +252,12 @@ def start_neighbourhood_search(
         points = as_points(reference, "reference")
         n_neighbors = neighbourhood_size(len(points), **params)
         return NeighbourhoodSearch(
-            points, n_neighbors, openmp_threads=1, on_found=on_found, stored=stored
+            points,
+            n_neighbors,
+            openmp_threads=max(1, int(openmp_threads)),
+            on_found=on_found,
+            stored=stored,
+            finish=finish,
         )
     except (InputError, PointCloudError, RuntimeError):
         return None

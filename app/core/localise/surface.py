@@ -21,12 +21,20 @@ from pykdtree.kdtree import KDTree
 from app.core.localise.neighbourhoods import (
     Neighbourhoods,
     NeighbourhoodSearch,
+    Surfaces,
     nearest_neighbourhoods,
 )
 from app.core.localise.settings import CHUNK
 from app.core.spatial_order import ordered_chunks
 
-__all__ = ["LocalGeometry", "local_geometry", "neighbourhood_planes", "plane_fit"]
+__all__ = [
+    "LocalGeometry",
+    "fit_surfaces",
+    "local_geometry",
+    "neighbourhood_planes",
+    "plane_fit",
+    "with_surfaces",
+]
 
 LINEAR_EIGENVALUE_RATIO = 0.1
 """A neighbourhood whose middle/largest eigenvalue ratio is below this is a line, not a plane."""
@@ -212,12 +220,13 @@ def neighbourhood_planes(
     return normal, plane_constant, residual_variance, middle_over_largest, variation
 
 
-def local_geometry(
+def fit_surfaces(
     points: NDArray[np.float64],
-    n_neighbors: int,
-    *,
-    neighbourhoods: Neighbourhoods | NeighbourhoodSearch | None = None,
-) -> LocalGeometry:
+    tree: KDTree,
+    neighbor_index: NDArray[np.uint32],
+    kth_distance: NDArray[np.float64],
+    order: NDArray[np.intp] | None = None,
+) -> Surfaces:
     """Fit a plane to every point's neighbourhood; estimate spacing and noise.
 
     Neighbourhoods that are nearly a line (the k nearest points all on one scan ring, as on
@@ -227,47 +236,27 @@ def local_geometry(
     Parameters
     ----------
     points : ndarray, shape (n, 3)
-    n_neighbors : int
-        Neighbours besides the point itself (reduced to n - 1 for tiny clouds).
-    neighbourhoods : Neighbourhoods or NeighbourhoodSearch, optional
-        Of ``points``, computed ahead; found here otherwise.
+    tree : pykdtree.kdtree.KDTree
+        Over ``points``.
+    neighbor_index : ndarray, shape (n, k + 1), uint32
+    kth_distance : ndarray, shape (n,)
+    order : ndarray, shape (n,), intp, optional
+        The cloud's spatial order (:class:`Neighbourhoods`).
 
     Returns
     -------
-    LocalGeometry
-
-    Raises
-    ------
-    ValueError
-        ``neighbourhoods`` were computed for another cloud or k.
+    Surfaces
     """
     n = points.shape[0]
-    k = min(n_neighbors, n - 1)
-    if isinstance(neighbourhoods, NeighbourhoodSearch):
-        neighbourhoods = neighbourhoods.take()
-    if neighbourhoods is None:
-        neighbourhoods = nearest_neighbourhoods(points, k)
-    elif neighbourhoods.neighbor_index.shape != (n, k + 1):
-        raise ValueError(
-            f"neighbourhoods of shape {neighbourhoods.neighbor_index.shape} were computed for "
-            f"another cloud or k; this cloud needs {(n, k + 1)}"
-        )
-    tree, neighbor_index, kth_distance, order = (
-        neighbourhoods.tree,
-        neighbourhoods.neighbor_index,
-        neighbourhoods.kth_distance,
-        neighbourhoods.order,
-    )
-    del neighbourhoods
+    k = neighbor_index.shape[1] - 1
     normal, plane_constant, residual_variance, middle_over_largest, variation = (
         neighbourhood_planes(points, neighbor_index, order)
     )
     is_linear = middle_over_largest < LINEAR_EIGENVALUE_RATIO
     del middle_over_largest
     # side of the area each point stands for: k points in a disc of radius r_k (a new array:
-    # ``neighbourhoods`` may be the caller's, and is left as it was)
+    # ``kth_distance`` may be the caller's, and is left as it was)
     raw_spacing = kth_distance * math.sqrt(math.pi / k)
-    del kth_distance
     # plane fit of k+1 points has k+1-3 residual degrees of freedom
     residual_variance *= (k + 1) / max(k + 1 - 3, 1)
     # the linear points in spatial order, so that their query and gathers stay local
@@ -291,16 +280,78 @@ def local_geometry(
     del raw_spacing
     np.maximum(spacing, 1e-12, out=spacing)
     noise = float(np.sqrt(np.median(residual_variance)))
-    del residual_variance
+    return Surfaces(normal, plane_constant, spacing, noise, is_linear, variation)
+
+
+def with_surfaces(points: NDArray[np.float64], neighbourhoods: Neighbourhoods) -> Neighbourhoods:
+    """``neighbourhoods`` with their :func:`fit_surfaces` (as they are if fitted already)."""
+    if neighbourhoods.surfaces is not None:
+        return neighbourhoods
+    surfaces = fit_surfaces(
+        points,
+        neighbourhoods.tree,
+        neighbourhoods.neighbor_index,
+        neighbourhoods.kth_distance,
+        neighbourhoods.order,
+    )
+    return dataclasses.replace(neighbourhoods, surfaces=surfaces)
+
+
+def local_geometry(
+    points: NDArray[np.float64],
+    n_neighbors: int,
+    *,
+    neighbourhoods: Neighbourhoods | NeighbourhoodSearch | None = None,
+) -> LocalGeometry:
+    """Each point's neighbourhood and local surface (:func:`fit_surfaces`).
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    n_neighbors : int
+        Neighbours besides the point itself (reduced to n - 1 for tiny clouds).
+    neighbourhoods : Neighbourhoods or NeighbourhoodSearch, optional
+        Of ``points``, computed ahead (with their surfaces, or not); found here otherwise.
+
+    Returns
+    -------
+    LocalGeometry
+
+    Raises
+    ------
+    ValueError
+        ``neighbourhoods`` were computed for another cloud or k.
+    """
+    n = points.shape[0]
+    k = min(n_neighbors, n - 1)
+    if isinstance(neighbourhoods, NeighbourhoodSearch):
+        neighbourhoods = neighbourhoods.take()
+    if neighbourhoods is None:
+        neighbourhoods = nearest_neighbourhoods(points, k)
+    elif neighbourhoods.neighbor_index.shape != (n, k + 1):
+        raise ValueError(
+            f"neighbourhoods of shape {neighbourhoods.neighbor_index.shape} were computed for "
+            f"another cloud or k; this cloud needs {(n, k + 1)}"
+        )
+    tree, neighbor_index, order = (
+        neighbourhoods.tree,
+        neighbourhoods.neighbor_index,
+        neighbourhoods.order,
+    )
+    surfaces = neighbourhoods.surfaces
+    if surfaces is None:
+        kth_distance = neighbourhoods.kth_distance
+        del neighbourhoods  # its k-th distances go once the spacing is made from them
+        surfaces = fit_surfaces(points, tree, neighbor_index, kth_distance, order)
     return LocalGeometry(
         points=points,
         tree=tree,
         neighbor_index=neighbor_index,
-        normal=normal,
-        plane_constant=plane_constant,
-        spacing=spacing,
-        noise=noise,
-        linear=is_linear,
-        variation=variation,
+        normal=surfaces.normal,
+        plane_constant=surfaces.plane_constant,
+        spacing=surfaces.spacing,
+        noise=surfaces.noise,
+        linear=surfaces.linear,
+        variation=surfaces.variation,
         order=order,
     )
