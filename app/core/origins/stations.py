@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
+from scipy.ndimage import maximum_filter, uniform_filter
 
 from app.core.cloud import PointCloud
 from app.core.localise.settings import as_origins, as_station_index
@@ -50,7 +51,8 @@ __all__ = [
 ]
 
 MAX_POINTS = 300_000
-"""Points used (a random subset of whole voxels beyond this): lines need lattice neighbours."""
+"""Points used (a seeded random subset of whole voxels beyond this): lines need lattice
+neighbours."""
 PATCH = 1.0
 """Edge (metres) of the voxels the subset is made of."""
 PAIR_NEIGHBOURS = 4
@@ -58,25 +60,39 @@ MAX_PAIR_LENGTH = 0.5
 MIN_HORIZONTAL_SHARE = 0.3
 """A pair whose top-view part is shorter than this share of its length gives no line."""
 MAX_LINES = 30_000
+PAIR_QUERIES = 40_000
+"""Points (a seeded random share) whose neighbour pairs are made into lines."""
 VOTE_REACH = 10.0
 """Each line votes within this many metres of its pair (a lidar's dense returns are near it)."""
-CELL = 0.1
+CELL = 0.02
+"""Hough cell (metres): fine, so that the few lines of a station hidden among others' still
+stand out of the lines that pass by chance."""
+PEAK_SEPARATION = 7
+"""A Hough peak is the largest of this many cells square around it."""
+MAX_CANDIDATES = 60
+"""Hough peaks refined and tested per pass (most are not stations)."""
 MAX_STATIONS = 8
-MAX_PEAKS = 16
-"""Hough peaks examined (most are not stations: ring pairs and pairs across stations)."""
+MAX_PASSES = 4
+"""Searches: each after removing the points that the stations found so far explain."""
 MIN_CONCURRING = 50
-MIN_PEAK_SHARE = 0.2
-"""A peak with fewer concurring lines than this share of the first one's is not a station."""
 CONCUR_DISTANCE = 0.003
-FINE_REACH = 0.3
-REFINE_LINES = 2500
-"""Lines (in random order) near a peak that its refinement uses."""
 """A line concurs with a station when it passes within this many metres of it (column lines
 are exact: range noise moves a return along its ray)."""
+BACKGROUND_DISTANCE = 0.03
+"""Lines passing 3-30 mm from a candidate estimate the chance concurrences at it."""
+MIN_SIGNIFICANCE = 8.0
+"""A candidate's concurring lines, less the chance ones, must exceed this many standard
+deviations (Poisson) of the chance count."""
+MIN_SEPARATION = 0.03
+"""Candidates closer than this (metres, top view) to a kept station are that station."""
+REFINE_LINES = 3000
+"""Lines near a peak that its refinement uses (the first ones, in the lines' seeded order)."""
 MIN_RING_SHARE = 0.05
 """A recovered station is kept when at least this share of the points (and MIN_RING_POINTS)
 lie on its rings."""
 MIN_RING_POINTS = 500
+MIN_RESIDUAL_POINTS = 5_000
+"""No further search on fewer points than this left unexplained."""
 HEIGHT_SAMPLE = 40_000
 HEIGHT_COARSE_SAMPLE = 4_000
 HEIGHT_CHUNK = 64
@@ -95,18 +111,22 @@ class RecoveredStations:
     Attributes
     ----------
     origins : ndarray, shape (k, 3)
-        Kept stations, most supported first (k may be 0 or 1).
+        Kept stations, in the order found (k may be 0 or 1).
     ring_share : ndarray, shape (k,)
         Share of the cloud's points on each station's rings (its confidence).
     concurring_lines : ndarray, shape (k,), int64
         Top-view lines through each station.
     n_lines : int
+        Lines of all passes.
+    passes : int
+        Searches made (the first on all points, each next one on the points left unexplained).
     """
 
     origins: NDArray[np.float64]
     ring_share: NDArray[np.float64]
     concurring_lines: NDArray[np.int64]
     n_lines: int
+    passes: int = 1
 
     @property
     def several(self) -> bool:
@@ -131,13 +151,18 @@ def _pair_lines(
     points: NDArray[np.float64], rng: np.random.Generator
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Top-view lines of neighbour pairs: anchors (l, 2) and unit directions (l, 2)."""
-    tree = KDTree(points)
+    if points.shape[0] < PAIR_NEIGHBOURS + 4:
+        return np.empty((0, 2)), np.empty((0, 2))
+    tree_points = points
+    tree = KDTree(tree_points)
+    if points.shape[0] > PAIR_QUERIES:  # enough lines from a seeded share of the points
+        points = points[np.sort(rng.choice(points.shape[0], PAIR_QUERIES, replace=False))]
     distance, index = tree.query(points, k=max(PAIR_NEIGHBOURS + 1, 8))
-    neighbourhood = points[index] - points[index].mean(axis=1, keepdims=True)
+    neighbourhood = tree_points[index] - tree_points[index].mean(axis=1, keepdims=True)
     _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", neighbourhood, neighbourhood))
     level = np.abs(vectors[:, 2, 0]) >= MIN_NORMAL_Z
     distance, index = distance[:, : PAIR_NEIGHBOURS + 1], index[:, : PAIR_NEIGHBOURS + 1]
-    offset = points[index[:, 1:]] - points[:, None, :]  # (n, k, 3)
+    offset = tree_points[index[:, 1:]] - points[:, None, :]  # (n, k, 3)
     length = distance[:, 1:]
     horizontal = np.hypot(offset[..., 0], offset[..., 1])
     usable = (
@@ -148,11 +173,12 @@ def _pair_lines(
     )
     rows, columns = np.nonzero(usable)
     if rows.size > MAX_LINES:
-        pick = rng.choice(rows.size, MAX_LINES, replace=False)
+        pick = np.sort(rng.choice(rows.size, MAX_LINES, replace=False))
         rows, columns = rows[pick], columns[pick]
     anchor = points[rows, :2]
     direction = offset[rows, columns, :2] / horizontal[rows, columns, None]
-    return anchor, direction
+    order = rng.permutation(rows.size)  # refinements take the first lines near a peak
+    return anchor[order], direction[order]
 
 
 def _distance_to_lines(anchor: NDArray, direction: NDArray, centre: NDArray) -> NDArray:
@@ -170,95 +196,119 @@ def _least_squares_point(anchor: NDArray, direction: NDArray) -> NDArray[np.floa
 
 
 def _refined_centre(anchor: NDArray, direction: NDArray, centre: NDArray) -> NDArray:
-    """A Hough peak made exact: finer votes around it, then least squares on its lines."""
-    for reach, cell in ((FINE_REACH, 0.03), (0.045, 0.003)):
-        near = np.flatnonzero(_distance_to_lines(anchor, direction, centre) <= reach)
-        anchor, direction = anchor[near[:REFINE_LINES]], direction[near[:REFINE_LINES]]
-        if anchor.shape[0] < 2:
+    """A Hough peak made exact: the densest concurrence on finer grids, then least squares."""
+    for reach, step, band in ((2.5 * CELL, 0.005, 0.005), (0.006, 0.001, 0.002)):
+        near = np.flatnonzero(_distance_to_lines(anchor, direction, centre) <= reach + band)
+        near = near[:REFINE_LINES]
+        if near.size < 2:
             return centre
-        offsets = np.arange(-reach, reach + 1e-9, cell)
+        offsets = np.arange(-reach, reach + 1e-9, step)
         grid = centre + np.stack(np.meshgrid(offsets, offsets, indexing="ij"), -1).reshape(-1, 2)
-        counts = np.zeros(grid.shape[0])
-        for start in range(0, grid.shape[0], 128):
-            candidates = grid[start : start + 128]
-            relative = candidates[:, None, :] - anchor[None, :, :]
-            distance = np.abs(
-                relative[..., 0] * direction[:, 1] - relative[..., 1] * direction[:, 0]
-            )
-            counts[start : start + 128] = (distance <= cell).sum(axis=1)
-        centre = grid[int(np.argmax(counts))]
+        relative = grid[:, None, :] - anchor[None, near, :]
+        distance = np.abs(
+            relative[..., 0] * direction[near, 1] - relative[..., 1] * direction[near, 0]
+        )
+        centre = grid[int(np.argmax((distance <= band).sum(axis=1)))]
     close = _distance_to_lines(anchor, direction, centre) <= CONCUR_DISTANCE
     if close.sum() >= 2:
         centre = _least_squares_point(anchor[close], direction[close])
     return centre
 
 
+def _hough_peaks(
+    points: NDArray[np.float64], anchor: NDArray, direction: NDArray
+) -> NDArray[np.float64]:
+    """Top-view cells where many lines cross, strongest first, shape (c, 2)."""
+    low = points[:, :2].min(axis=0) - 1.0
+    shape = np.ceil((points[:, :2].max(axis=0) + 1.0 - low) / CELL).astype(np.int64) + 1
+    # in cell units, single precision: the vote is the costly part of a search
+    steps = np.arange(-VOTE_REACH / CELL, VOTE_REACH / CELL, dtype=np.float32)
+    start_cell = ((anchor - low) / CELL).astype(np.float32)
+    direction32 = direction.astype(np.float32)
+    votes = np.zeros(int(shape[0] * shape[1]))
+    for start in range(0, anchor.shape[0], 1024):
+        part = slice(start, start + 1024)
+        row = start_cell[part, 0, None] + steps * direction32[part, 0, None]
+        column = start_cell[part, 1, None] + steps * direction32[part, 1, None]
+        inside = (row >= 0) & (row < shape[0]) & (column >= 0) & (column < shape[1])
+        flat = row[inside].astype(np.int64) * shape[1] + column[inside].astype(np.int64)
+        votes += np.bincount(flat, minlength=votes.size)
+    smoothed = uniform_filter(votes.reshape(shape), size=3, mode="constant")
+    peaks = (smoothed == maximum_filter(smoothed, size=PEAK_SEPARATION, mode="constant")) & (
+        smoothed > 0
+    )
+    flat = np.flatnonzero(peaks.ravel())
+    flat = flat[np.argsort(-smoothed.ravel()[flat], kind="stable")[:MAX_CANDIDATES]]
+    rows, columns = np.unravel_index(flat, shape)
+    return low + (np.column_stack([rows, columns]) + 0.5) * CELL
+
+
+def _significance(anchor: NDArray, direction: NDArray, centre: NDArray) -> tuple[int, float]:
+    """Lines concurring at ``centre`` and how far (in standard deviations) above chance."""
+    distance = _distance_to_lines(anchor, direction, centre)
+    concurring = int(np.count_nonzero(distance <= CONCUR_DISTANCE))
+    nearby = int(np.count_nonzero(distance <= BACKGROUND_DISTANCE)) - concurring
+    chance = nearby * CONCUR_DISTANCE / (BACKGROUND_DISTANCE - CONCUR_DISTANCE)
+    return concurring, (concurring - chance) / math.sqrt(max(chance, 1.0))
+
+
 def column_centres(
-    points: NDArray[np.float64], rng: np.random.Generator
+    points: NDArray[np.float64],
+    rng: np.random.Generator,
+    known: NDArray[np.float64] | None = None,
 ) -> list[tuple[NDArray[np.float64], int]]:
-    """Top-view points where neighbour-pair lines concur, strongest first.
+    """Top-view points where neighbour-pair lines concur far above chance, strongest first.
+
+    Hough peaks (:data:`CELL` grid) are refined to the point the most lines pass within a
+    millimetre or two of; a peak is a centre when its concurring lines (within
+    :data:`CONCUR_DISTANCE`) number at least :data:`MIN_CONCURRING` and exceed the chance count
+    (from the lines passing a little farther) by :data:`MIN_SIGNIFICANCE` standard deviations.
+    Lines used by a centre are not counted for the next ones.
 
     Parameters
     ----------
     points : ndarray, shape (n, 3)
         In a frame whose z axis is the lidars' spin axis (upright stations).
     rng : numpy.random.Generator
+    known : ndarray, shape (m, 2), optional
+        Centres already found: peaks within :data:`MIN_SEPARATION` of them are skipped.
 
     Returns
     -------
     list of (ndarray shape (2,), int)
-        Each centre and its number of concurring lines (within :data:`CONCUR_DISTANCE`).
+        Each centre and its number of concurring lines.
     """
+    return _search(points, rng, known)[0]
+
+
+def _search(
+    points: NDArray[np.float64], rng: np.random.Generator, known: NDArray[np.float64] | None
+) -> tuple[list[tuple[NDArray[np.float64], int]], int]:
+    """:func:`column_centres` and the number of lines it used."""
     anchor, direction = _pair_lines(points, rng)
     if anchor.shape[0] < 10:
-        return []
-    low = points[:, :2].min(axis=0) - 1.0
-    shape = np.ceil((points[:, :2].max(axis=0) + 1.0 - low) / CELL).astype(np.int64) + 1
-
-    def votes_of(lines: NDArray[np.int64]) -> NDArray[np.float64]:
-        steps = np.arange(-VOTE_REACH, VOTE_REACH, CELL)
-        votes = np.zeros(int(shape[0] * shape[1]))
-        for start in range(0, lines.size, 2048):
-            part = lines[start : start + 2048]
-            samples = anchor[part, None, :] + steps[None, :, None] * direction[part, None, :]
-            cells = np.floor((samples - low) / CELL).astype(np.int64)
-            inside = (cells >= 0).all(axis=2) & (cells < shape).all(axis=2)
-            flat = cells[..., 0] * shape[1] + cells[..., 1]
-            votes += np.bincount(flat[inside], minlength=votes.size)
-        grid = votes.reshape(shape)
-        for axis in (0, 1):
-            grid = grid + np.roll(grid, 1, axis) + np.roll(grid, -1, axis)
-        return grid
-
-    smoothed = votes_of(np.arange(anchor.shape[0]))
+        return [], int(anchor.shape[0])
+    refined = [
+        _refined_centre(anchor, direction, peak) for peak in _hough_peaks(points, anchor, direction)
+    ]
+    taken = [] if known is None else [np.asarray(centre) for centre in known]
     remaining = np.ones(anchor.shape[0], dtype=bool)
     centres: list[tuple[NDArray[np.float64], int]] = []
-    first_support = 0
-    for _ in range(MAX_PEAKS):
+    scores = [_significance(anchor, direction, centre) for centre in refined]
+    order = sorted(range(len(refined)), key=lambda number: -scores[number][0])
+    for number in order:
+        centre = refined[number]
+        if any(np.hypot(*(centre - other)) < MIN_SEPARATION for other in taken):
+            continue
+        support, significance = _significance(anchor[remaining], direction[remaining], centre)
+        if support < MIN_CONCURRING or significance < MIN_SIGNIFICANCE:
+            continue
+        remaining &= _distance_to_lines(anchor, direction, centre) > CONCUR_DISTANCE
+        taken.append(centre)
+        centres.append((centre, support))
         if len(centres) >= MAX_STATIONS:
             break
-        cell = np.unravel_index(int(np.argmax(smoothed)), smoothed.shape)
-        if smoothed[cell] <= 0:
-            break
-        centre = _refined_centre(
-            anchor[remaining], direction[remaining], low + (np.asarray(cell) + 0.5) * CELL
-        )
-        concurring = remaining & (_distance_to_lines(anchor, direction, centre) <= CONCUR_DISTANCE)
-        support = int(concurring.sum())
-        first_support = max(first_support, support)
-        if support < max(MIN_CONCURRING, MIN_PEAK_SHARE * first_support):
-            # not a station: clear the peak's cell so that the next pass finds another one
-            row, column = cell
-            smoothed[max(row - 3, 0) : row + 4, max(column - 3, 0) : column + 4] = 0
-            continue
-        smoothed -= votes_of(np.flatnonzero(concurring))
-        remaining &= ~concurring
-        centres.append((centre, support))
-    return [
-        (centre, support)
-        for centre, support in centres
-        if support >= MIN_PEAK_SHARE * first_support
-    ]
+    return centres, int(anchor.shape[0])
 
 
 def _ring_scores(
@@ -335,6 +385,12 @@ def recover_stations(
 ) -> RecoveredStations:
     """The lidar stations a cloud was merged from (upright spinning lidars).
 
+    Searches are repeated on the points left unexplained: after each one, the points lying on
+    a kept station's rings (elevation bins far above the background, seen from its origin) are
+    removed, which leaves the returns of stations standing close to it (whose neighbour pairs
+    were mixed with its own) with neighbours of their own.  Seeded: the same points and
+    ``random_state`` give the same stations.
+
     Parameters
     ----------
     points : ndarray, shape (n, 3)
@@ -347,23 +403,43 @@ def recover_stations(
         Possibly none (no lidar structure) or one (a single-station cloud).
     """
     rng = np.random.default_rng(random_state)
-    subset = _subset(points, rng)
-    origins, shares, supports = [], [], []
-    for centre, support in column_centres(subset, rng):
-        height = station_height(subset, centre, rng)
-        origin = np.array([centre[0], centre[1], height])
-        on_rings = ring_contrast(subset, origin) >= RING_CONTRAST
-        share = float(on_rings.mean())
-        if share >= MIN_RING_SHARE and on_rings.sum() >= MIN_RING_POINTS:
-            origins.append(origin)
-            shares.append(share)
-            supports.append(support)
+    subset = _subset(np.asarray(points, dtype=np.float64), rng)
+    unexplained = np.ones(subset.shape[0], dtype=bool)
+    origins: list[NDArray[np.float64]] = []
+    shares: list[float] = []
+    supports: list[int] = []
+    passes = 0
     n_lines = 0
+    while passes < MAX_PASSES and len(origins) < MAX_STATIONS:
+        residual = subset[unexplained]
+        if residual.shape[0] < MIN_RESIDUAL_POINTS:
+            break
+        passes += 1
+        known = np.array([origin[:2] for origin in origins]).reshape(-1, 2)
+        found = 0
+        centres, lines = _search(residual, rng, known)
+        n_lines += lines
+        for centre, support in centres:
+            height = station_height(residual, centre, rng)
+            origin = np.array([centre[0], centre[1], height])
+            on_rings = ring_contrast(subset, origin) >= RING_CONTRAST
+            share = float(on_rings.mean())
+            if share >= MIN_RING_SHARE and on_rings.sum() >= MIN_RING_POINTS:
+                origins.append(origin)
+                shares.append(share)
+                supports.append(support)
+                unexplained &= ~on_rings
+                found += 1
+                if len(origins) >= MAX_STATIONS:
+                    break
+        if found == 0:
+            break
     return RecoveredStations(
         origins=np.array(origins, dtype=np.float64).reshape(-1, 3),
         ring_share=np.array(shares, dtype=np.float64),
         concurring_lines=np.array(supports, dtype=np.int64),
         n_lines=n_lines,
+        passes=passes,
     )
 
 
