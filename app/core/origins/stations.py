@@ -64,6 +64,9 @@ PAIR_QUERIES = 40_000
 """Points (a seeded random share) whose neighbour pairs are made into lines."""
 VOTE_REACH = 10.0
 """Each line votes within this many metres of its pair (a lidar's dense returns are near it)."""
+MIN_VOTE_DISTANCE = 0.3
+"""Nor nearer than this: every line passes through its own pair, so dense patches of returns
+(a lidar's first rings on the floor) would otherwise outvote the stations."""
 CELL = 0.02
 """Hough cell (metres): fine, so that the few lines of a station hidden among others' still
 stand out of the lines that pass by chance."""
@@ -222,7 +225,8 @@ def _hough_peaks(
     low = points[:, :2].min(axis=0) - 1.0
     shape = np.ceil((points[:, :2].max(axis=0) + 1.0 - low) / CELL).astype(np.int64) + 1
     # in cell units, single precision: the vote is the costly part of a search
-    steps = np.arange(-VOTE_REACH / CELL, VOTE_REACH / CELL, dtype=np.float32)
+    steps = np.arange(MIN_VOTE_DISTANCE / CELL, VOTE_REACH / CELL, dtype=np.float32)
+    steps = np.concatenate([-steps[::-1], steps])
     start_cell = ((anchor - low) / CELL).astype(np.float32)
     direction32 = direction.astype(np.float32)
     votes = np.zeros(int(shape[0] * shape[1]))
