@@ -6,16 +6,24 @@ view, two neighbouring returns of one column lie on a line through the station's
 exactly.  Neighbour pairs of a merged cloud give many lines; those of each station's columns
 concur at its (x, y), the rest (ring pairs, pairs across stations) scatter.  So:
 
-1. **Top view** (:func:`column_centres`): a Hough vote of the pair lines on a grid, then, peak
-   by peak, a robust least-squares point of the lines that pass near it (lines used up by a
-   station are removed before the next peak).
+1. **Top view** (:func:`column_centres`): a Hough vote of the pair lines on a fine grid
+   (:data:`CELL`; a line does not vote near its own pair, where dense returns would pile
+   votes up), then each of the strongest peaks is refined to the point the most lines pass
+   within a millimetre or two of, and kept when its concurring lines exceed those passing by
+   chance (estimated from the lines passing a little farther) by many standard deviations.
 2. **Height** (:func:`station_height`): from the right origin a lidar's returns lie on a few
    cones of fixed elevation (its rings); the height whose elevation histogram is sharpest,
    coarse then fine, is the station's.
 3. **Acceptance**: a station is kept when many points lie on its rings
-   (:func:`~app.core.localise.stations.ring_contrast`); a cloud with two or more kept stations
-   was not taken from one place.  Points are then assigned to the stations
-   (:func:`~app.core.localise.stations.assign_stations`).
+   (:func:`~app.core.localise.stations.ring_contrast`).
+4. **Again on the rest** (:func:`recover_stations`): the points on a kept station's rings are
+   removed and the search is repeated on the others, until a pass finds nothing: stations
+   standing close together interleave their returns, so that few neighbour pairs of one
+   station's columns are left until the other stations' returns are gone.
+
+A cloud with two or more kept stations was not taken from one place; its points are then
+assigned to the stations (:func:`~app.core.localise.stations.assign_stations`).  Every random
+choice is seeded (``random_state``): the same cloud gives the same stations.
 """
 
 from __future__ import annotations
