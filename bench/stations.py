@@ -51,13 +51,27 @@ def localise(pair, scan, scan_origins, mode: str):
             options["reference_station"] = pair.reference_station
             options["scan_station"] = pair.scan_station
     elif mode == "recovered":
+        started = time.perf_counter()
         recovered = (recover_stations(pair.reference), recover_stations(scan))
+        options["recovery_seconds"] = time.perf_counter() - started
         for side, found in zip(("reference", "scan"), recovered, strict=True):
             if found.several:
                 options[f"{side}_origin"] = found.origins
     elif mode == "origin-free":
         options["origin_free_test"] = "gaps"
-    return localise_changes(pair.reference, scan, **options), recovered
+    recovery_seconds = options.pop("recovery_seconds", 0.0)
+    return localise_changes(pair.reference, scan, **options), recovered, recovery_seconds
+
+
+def station_error(recovered, true_origins, n_stations: int) -> float:
+    """Largest distance (m) from a true station to the nearest recovered one (inf: too few)."""
+    worst = 0.0
+    for found, true in zip(recovered, true_origins, strict=True):
+        if len(found.origins) != n_stations:
+            return float("inf")
+        distance = np.linalg.norm(true[:, None, :] - found.origins[None], axis=2)
+        worst = max(worst, float(distance.min(axis=1).max()))
+    return worst
 
 
 def main() -> None:
@@ -87,12 +101,21 @@ def main() -> None:
                 scan_origins = _transform_points(pair.scan_origins, pair.true_transform)
                 for mode in modes:
                     started = time.perf_counter()
-                    localisation, recovered = localise(pair, scan, scan_origins, mode)
+                    localisation, recovered, recovery_seconds = localise(
+                        pair, scan, scan_origins, mode
+                    )
                     seconds = time.perf_counter() - started
                     found = (
                         ""
                         if recovered is None
                         else "/".join(str(len(side.origins)) for side in recovered)
+                    )
+                    error = (
+                        float("nan")
+                        if recovered is None
+                        else station_error(
+                            recovered, (pair.reference_origins, scan_origins), n_stations
+                        )
                     )
                     row = {
                         "layout": layout,
@@ -105,13 +128,20 @@ def main() -> None:
                         "right": (len(localisation.regions) > 0) == (change != "none"),
                         "iou": changed_iou(pair, localisation),
                         "found": found,
+                        "station_error": error,
                         "seconds": seconds,
+                        "recovery_seconds": recovery_seconds,
                     }
                     rows.append(row)
                     print(
                         f"{layout:9s} {change:7s} seed {seed} k={n_stations} {mode:11s} "
                         f"regions {row['regions']:3d} right {row['right']!s:5s} "
-                        f"IoU {row['iou']:.3f} {found:5s} {seconds:5.1f} s",
+                        f"IoU {row['iou']:.3f} {found:5s} {seconds:5.1f} s"
+                        + (
+                            f" (recovery {recovery_seconds:.1f} s, station error {error:.4f} m)"
+                            if recovered is not None
+                            else ""
+                        ),
                         flush=True,
                     )
     lines = [

@@ -263,9 +263,8 @@ def compare(
         point), ``"estimate_origins"`` (default true: estimate a missing or contradicted
         origin from the points, :mod:`app.core.origins.resolve`) and ``"recover_stations"``
         (default false, opt-in: a cloud with no origin that was merged from several stations
-        gets them recovered, :func:`app.core.origins.stations.recover_stations`; it misses
-        stations standing close together and costs seconds per cloud, see
-        ``bench/results/visibility.md``).
+        gets them recovered, :func:`app.core.origins.stations.recover_stations`; it costs
+        seconds per cloud, see ``bench/results/visibility.md``).
         The origins used are reported in ``sensor_origins``, contradicted ones in ``warnings``.
     progress : callable, optional
         ``progress(stage, fraction)`` after each stage.

@@ -6,16 +6,25 @@ view, two neighbouring returns of one column lie on a line through the station's
 exactly.  Neighbour pairs of a merged cloud give many lines; those of each station's columns
 concur at its (x, y), the rest (ring pairs, pairs across stations) scatter.  So:
 
-1. **Top view** (:func:`column_centres`): a Hough vote of the pair lines on a grid, then, peak
-   by peak, a robust least-squares point of the lines that pass near it (lines used up by a
-   station are removed before the next peak).
+1. **Top view** (:func:`~app.core.origins.concurrence.column_centres`): a Hough vote of the
+   pair lines on a fine 2 cm grid (a line does not vote near its own pair, where dense returns
+   would pile votes up), then each of the strongest peaks is refined to the point the most
+   lines pass within a millimetre or two of, and kept when its concurring lines exceed those
+   passing by chance (estimated from the lines passing a little farther) by many standard
+   deviations.
 2. **Height** (:func:`station_height`): from the right origin a lidar's returns lie on a few
    cones of fixed elevation (its rings); the height whose elevation histogram is sharpest,
    coarse then fine, is the station's.
 3. **Acceptance**: a station is kept when many points lie on its rings
-   (:func:`~app.core.localise.stations.ring_contrast`); a cloud with two or more kept stations
-   was not taken from one place.  Points are then assigned to the stations
-   (:func:`~app.core.localise.stations.assign_stations`).
+   (:func:`~app.core.localise.stations.ring_contrast`).
+4. **Again on the rest** (:func:`recover_stations`): the points on a kept station's rings are
+   removed and the search is repeated on the others, until a pass finds nothing: stations
+   standing close together interleave their returns, so that few neighbour pairs of one
+   station's columns are left until the other stations' returns are gone.
+
+A cloud with two or more kept stations was not taken from one place; its points are then
+assigned to the stations (:func:`~app.core.localise.stations.assign_stations`).  Every random
+choice is seeded (``random_state``): the same cloud gives the same stations.
 """
 
 from __future__ import annotations
@@ -26,7 +35,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pykdtree.kdtree import KDTree
 
 from app.core.cloud import PointCloud
 from app.core.localise.settings import as_origins, as_station_index
@@ -36,6 +44,7 @@ from app.core.localise.stations import (
     STATION_INDEX_ATTRIBUTE,
     ring_contrast,
 )
+from app.core.origins.concurrence import MAX_STATIONS, column_centres, search_centres
 from app.core.origins.estimate import estimate_origin
 from app.core.origins.resolve import ResolvedOrigin, resolve_origin
 
@@ -50,42 +59,24 @@ __all__ = [
 ]
 
 MAX_POINTS = 300_000
-"""Points used (a random subset of whole voxels beyond this): lines need lattice neighbours."""
+"""Points used (a seeded random subset of whole voxels beyond this): lines need lattice
+neighbours."""
 PATCH = 1.0
 """Edge (metres) of the voxels the subset is made of."""
-PAIR_NEIGHBOURS = 4
-MAX_PAIR_LENGTH = 0.5
-MIN_HORIZONTAL_SHARE = 0.3
-"""A pair whose top-view part is shorter than this share of its length gives no line."""
-MAX_LINES = 30_000
-VOTE_REACH = 10.0
-"""Each line votes within this many metres of its pair (a lidar's dense returns are near it)."""
-CELL = 0.1
-MAX_STATIONS = 8
-MAX_PEAKS = 16
-"""Hough peaks examined (most are not stations: ring pairs and pairs across stations)."""
-MIN_CONCURRING = 50
-MIN_PEAK_SHARE = 0.2
-"""A peak with fewer concurring lines than this share of the first one's is not a station."""
-CONCUR_DISTANCE = 0.003
-FINE_REACH = 0.3
-REFINE_LINES = 2500
-"""Lines (in random order) near a peak that its refinement uses."""
-"""A line concurs with a station when it passes within this many metres of it (column lines
-are exact: range noise moves a return along its ray)."""
+MAX_PASSES = 4
+"""Searches: each after removing the points that the stations found so far explain."""
 MIN_RING_SHARE = 0.05
 """A recovered station is kept when at least this share of the points (and MIN_RING_POINTS)
 lie on its rings."""
 MIN_RING_POINTS = 500
+MIN_RESIDUAL_POINTS = 5_000
+"""No further search on fewer points than this left unexplained."""
 HEIGHT_SAMPLE = 40_000
 HEIGHT_COARSE_SAMPLE = 4_000
 HEIGHT_CHUNK = 64
 HEIGHT_REACH = 8.0
 SURFACE_CLEARANCE = 0.3
 """A station is searched at least this far above the lowest and below the highest points."""
-MIN_NORMAL_Z = 0.5
-"""Only pairs on floors, ceilings and tops (normal within 60 degrees of vertical) give lines:
-ring pairs on a wall give lines along the wall, which all concur with each other."""
 
 
 @dataclass(frozen=True)
@@ -95,18 +86,22 @@ class RecoveredStations:
     Attributes
     ----------
     origins : ndarray, shape (k, 3)
-        Kept stations, most supported first (k may be 0 or 1).
+        Kept stations, in the order found (k may be 0 or 1).
     ring_share : ndarray, shape (k,)
         Share of the cloud's points on each station's rings (its confidence).
     concurring_lines : ndarray, shape (k,), int64
         Top-view lines through each station.
     n_lines : int
+        Lines of all passes.
+    passes : int
+        Searches made (the first on all points, each next one on the points left unexplained).
     """
 
     origins: NDArray[np.float64]
     ring_share: NDArray[np.float64]
     concurring_lines: NDArray[np.int64]
     n_lines: int
+    passes: int = 1
 
     @property
     def several(self) -> bool:
@@ -125,140 +120,6 @@ def _subset(points: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np
     keep_share = MAX_POINTS / points.shape[0]
     chosen = rng.random(n_voxels) < keep_share
     return points[chosen[voxel]]
-
-
-def _pair_lines(
-    points: NDArray[np.float64], rng: np.random.Generator
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Top-view lines of neighbour pairs: anchors (l, 2) and unit directions (l, 2)."""
-    tree = KDTree(points)
-    distance, index = tree.query(points, k=max(PAIR_NEIGHBOURS + 1, 8))
-    neighbourhood = points[index] - points[index].mean(axis=1, keepdims=True)
-    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", neighbourhood, neighbourhood))
-    level = np.abs(vectors[:, 2, 0]) >= MIN_NORMAL_Z
-    distance, index = distance[:, : PAIR_NEIGHBOURS + 1], index[:, : PAIR_NEIGHBOURS + 1]
-    offset = points[index[:, 1:]] - points[:, None, :]  # (n, k, 3)
-    length = distance[:, 1:]
-    horizontal = np.hypot(offset[..., 0], offset[..., 1])
-    usable = (
-        level[:, None]
-        & (length > 0)
-        & (length <= MAX_PAIR_LENGTH)
-        & (horizontal >= MIN_HORIZONTAL_SHARE * length)
-    )
-    rows, columns = np.nonzero(usable)
-    if rows.size > MAX_LINES:
-        pick = rng.choice(rows.size, MAX_LINES, replace=False)
-        rows, columns = rows[pick], columns[pick]
-    anchor = points[rows, :2]
-    direction = offset[rows, columns, :2] / horizontal[rows, columns, None]
-    return anchor, direction
-
-
-def _distance_to_lines(anchor: NDArray, direction: NDArray, centre: NDArray) -> NDArray:
-    """Perpendicular top-view distance of ``centre`` (2,) to each line, shape (l,)."""
-    relative = centre - anchor
-    return np.abs(relative[:, 0] * direction[:, 1] - relative[:, 1] * direction[:, 0])
-
-
-def _least_squares_point(anchor: NDArray, direction: NDArray) -> NDArray[np.float64]:
-    """The point nearest (least squares) to all the lines, shape (2,)."""
-    normal = np.column_stack([-direction[:, 1], direction[:, 0]])
-    matrix = normal.T @ normal
-    vector = normal.T @ np.einsum("ld,ld->l", normal, anchor)
-    return np.linalg.solve(matrix + 1e-12 * np.eye(2), vector)
-
-
-def _refined_centre(anchor: NDArray, direction: NDArray, centre: NDArray) -> NDArray:
-    """A Hough peak made exact: finer votes around it, then least squares on its lines."""
-    for reach, cell in ((FINE_REACH, 0.03), (0.045, 0.003)):
-        near = np.flatnonzero(_distance_to_lines(anchor, direction, centre) <= reach)
-        anchor, direction = anchor[near[:REFINE_LINES]], direction[near[:REFINE_LINES]]
-        if anchor.shape[0] < 2:
-            return centre
-        offsets = np.arange(-reach, reach + 1e-9, cell)
-        grid = centre + np.stack(np.meshgrid(offsets, offsets, indexing="ij"), -1).reshape(-1, 2)
-        counts = np.zeros(grid.shape[0])
-        for start in range(0, grid.shape[0], 128):
-            candidates = grid[start : start + 128]
-            relative = candidates[:, None, :] - anchor[None, :, :]
-            distance = np.abs(
-                relative[..., 0] * direction[:, 1] - relative[..., 1] * direction[:, 0]
-            )
-            counts[start : start + 128] = (distance <= cell).sum(axis=1)
-        centre = grid[int(np.argmax(counts))]
-    close = _distance_to_lines(anchor, direction, centre) <= CONCUR_DISTANCE
-    if close.sum() >= 2:
-        centre = _least_squares_point(anchor[close], direction[close])
-    return centre
-
-
-def column_centres(
-    points: NDArray[np.float64], rng: np.random.Generator
-) -> list[tuple[NDArray[np.float64], int]]:
-    """Top-view points where neighbour-pair lines concur, strongest first.
-
-    Parameters
-    ----------
-    points : ndarray, shape (n, 3)
-        In a frame whose z axis is the lidars' spin axis (upright stations).
-    rng : numpy.random.Generator
-
-    Returns
-    -------
-    list of (ndarray shape (2,), int)
-        Each centre and its number of concurring lines (within :data:`CONCUR_DISTANCE`).
-    """
-    anchor, direction = _pair_lines(points, rng)
-    if anchor.shape[0] < 10:
-        return []
-    low = points[:, :2].min(axis=0) - 1.0
-    shape = np.ceil((points[:, :2].max(axis=0) + 1.0 - low) / CELL).astype(np.int64) + 1
-
-    def votes_of(lines: NDArray[np.int64]) -> NDArray[np.float64]:
-        steps = np.arange(-VOTE_REACH, VOTE_REACH, CELL)
-        votes = np.zeros(int(shape[0] * shape[1]))
-        for start in range(0, lines.size, 2048):
-            part = lines[start : start + 2048]
-            samples = anchor[part, None, :] + steps[None, :, None] * direction[part, None, :]
-            cells = np.floor((samples - low) / CELL).astype(np.int64)
-            inside = (cells >= 0).all(axis=2) & (cells < shape).all(axis=2)
-            flat = cells[..., 0] * shape[1] + cells[..., 1]
-            votes += np.bincount(flat[inside], minlength=votes.size)
-        grid = votes.reshape(shape)
-        for axis in (0, 1):
-            grid = grid + np.roll(grid, 1, axis) + np.roll(grid, -1, axis)
-        return grid
-
-    smoothed = votes_of(np.arange(anchor.shape[0]))
-    remaining = np.ones(anchor.shape[0], dtype=bool)
-    centres: list[tuple[NDArray[np.float64], int]] = []
-    first_support = 0
-    for _ in range(MAX_PEAKS):
-        if len(centres) >= MAX_STATIONS:
-            break
-        cell = np.unravel_index(int(np.argmax(smoothed)), smoothed.shape)
-        if smoothed[cell] <= 0:
-            break
-        centre = _refined_centre(
-            anchor[remaining], direction[remaining], low + (np.asarray(cell) + 0.5) * CELL
-        )
-        concurring = remaining & (_distance_to_lines(anchor, direction, centre) <= CONCUR_DISTANCE)
-        support = int(concurring.sum())
-        first_support = max(first_support, support)
-        if support < max(MIN_CONCURRING, MIN_PEAK_SHARE * first_support):
-            # not a station: clear the peak's cell so that the next pass finds another one
-            row, column = cell
-            smoothed[max(row - 3, 0) : row + 4, max(column - 3, 0) : column + 4] = 0
-            continue
-        smoothed -= votes_of(np.flatnonzero(concurring))
-        remaining &= ~concurring
-        centres.append((centre, support))
-    return [
-        (centre, support)
-        for centre, support in centres
-        if support >= MIN_PEAK_SHARE * first_support
-    ]
 
 
 def _ring_scores(
@@ -335,6 +196,12 @@ def recover_stations(
 ) -> RecoveredStations:
     """The lidar stations a cloud was merged from (upright spinning lidars).
 
+    Searches are repeated on the points left unexplained: after each one, the points lying on
+    a kept station's rings (elevation bins far above the background, seen from its origin) are
+    removed, which leaves the returns of stations standing close to it (whose neighbour pairs
+    were mixed with its own) with neighbours of their own.  Seeded: the same points and
+    ``random_state`` give the same stations.
+
     Parameters
     ----------
     points : ndarray, shape (n, 3)
@@ -347,23 +214,43 @@ def recover_stations(
         Possibly none (no lidar structure) or one (a single-station cloud).
     """
     rng = np.random.default_rng(random_state)
-    subset = _subset(points, rng)
-    origins, shares, supports = [], [], []
-    for centre, support in column_centres(subset, rng):
-        height = station_height(subset, centre, rng)
-        origin = np.array([centre[0], centre[1], height])
-        on_rings = ring_contrast(subset, origin) >= RING_CONTRAST
-        share = float(on_rings.mean())
-        if share >= MIN_RING_SHARE and on_rings.sum() >= MIN_RING_POINTS:
-            origins.append(origin)
-            shares.append(share)
-            supports.append(support)
+    subset = _subset(np.asarray(points, dtype=np.float64), rng)
+    unexplained = np.ones(subset.shape[0], dtype=bool)
+    origins: list[NDArray[np.float64]] = []
+    shares: list[float] = []
+    supports: list[int] = []
+    passes = 0
     n_lines = 0
+    while passes < MAX_PASSES and len(origins) < MAX_STATIONS:
+        residual = subset[unexplained]
+        if residual.shape[0] < MIN_RESIDUAL_POINTS:
+            break
+        passes += 1
+        known = np.array([origin[:2] for origin in origins]).reshape(-1, 2)
+        found = 0
+        centres, lines = search_centres(residual, rng, known)
+        n_lines += lines
+        for centre, support in centres:
+            height = station_height(residual, centre, rng)
+            origin = np.array([centre[0], centre[1], height])
+            on_rings = ring_contrast(subset, origin) >= RING_CONTRAST
+            share = float(on_rings.mean())
+            if share >= MIN_RING_SHARE and on_rings.sum() >= MIN_RING_POINTS:
+                origins.append(origin)
+                shares.append(share)
+                supports.append(support)
+                unexplained &= ~on_rings
+                found += 1
+                if len(origins) >= MAX_STATIONS:
+                    break
+        if found == 0:
+            break
     return RecoveredStations(
         origins=np.array(origins, dtype=np.float64).reshape(-1, 3),
         ring_share=np.array(shares, dtype=np.float64),
         concurring_lines=np.array(supports, dtype=np.int64),
         n_lines=n_lines,
+        passes=passes,
     )
 
 
