@@ -216,5 +216,6 @@ def test_npy_summary_from_disk_is_a_view_of_the_file(tmp_path, array):
     path = tmp_path / "scan.npy"
     path.write_bytes(npy_bytes(array))
     summary_peak = peak_traced_bytes(lambda: summarise_point_cloud(path))
-    assert summary_peak < array.nbytes / 4  # reading it takes a float64 copy of x, y, z
+    float64_copy = len(array) * 3 * 8  # what reading takes: a float64 copy of x, y, z
+    assert summary_peak < float64_copy / 2  # a chunk and a per-point flag at most
     assert_summary_of(summarise_point_cloud(path), read_point_cloud(path))
