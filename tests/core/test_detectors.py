@@ -350,6 +350,24 @@ def test_plane_vote_reusing_its_buffers_or_with_a_floor_gives_the_same_weights()
         assert np.abs(reused - expected).sum() <= 0.001 * count * count  # ties at a threshold
 
 
+def test_voxel_ids_by_blocks_equal_the_whole_array_formula(monkeypatch):
+    """Voxel ids computed a block of rows at a time (the grid taken from the coordinates'
+    extremes first) equal the ids and grid size of the whole-array formula, for a grid anchored
+    below, inside and above the points and blocks that do not divide the row count."""
+    rng = np.random.default_rng(18)
+    points = rng.uniform(-7.0, 4.0, size=(10_001, 3)) * [1.0, 3.0, 0.3]
+    monkeypatch.setattr(base, "VOXEL_BLOCK_ROWS", 1_000)
+    for origin in (points.min(axis=0) - 0.3, np.zeros(3), points.max(axis=0) + 0.7):
+        for size in (0.01, 0.37, 5.0):
+            cells = np.floor((points - origin) / size).astype(np.int64)
+            cells -= cells.min(axis=0)
+            extent = cells.max(axis=0) + 1
+            expected = (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
+            voxels, n_cells = base._voxel_ids(points, size, origin)
+            np.testing.assert_array_equal(voxels, expected)
+            assert n_cells == int(np.prod(extent))
+
+
 def test_voxel_thinning_on_a_dense_grid_picks_what_the_sort_picks(monkeypatch):
     """The dense per-cell path (grids up to a few cells a point) and the sort path choose the
     same representatives and count the same voxels, ties between duplicates included."""

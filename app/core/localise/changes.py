@@ -261,17 +261,25 @@ def localise_changes(
     )
     del reference_geometry, scan_geometry  # the sides hold them (and release their indices)
 
-    median_spacing = float(
-        np.median(np.concatenate([reference_side.geometry.spacing, scan_side.geometry.spacing]))
+    # both clouds' values in one array, partitioned in place (no copy: 80 MB at 5M + 5M)
+    both_spacings = np.concatenate([reference_side.geometry.spacing, scan_side.geometry.spacing])
+    median_spacing = float(np.median(both_spacings, overwrite_input=True))
+    del both_spacings
+    relative_nn_distance = np.empty(len(reference_points) + len(scan_points))
+    np.divide(
+        reference_nn_distance,
+        scan_side.geometry.spacing[reference_nn_index],
+        out=relative_nn_distance[: len(reference_points)],
     )
-    relative_nn_distance = np.concatenate(
-        [
-            reference_nn_distance / scan_side.geometry.spacing[reference_nn_index],
-            scan_nn_distance / reference_side.geometry.spacing[scan_nn_index],
-        ]
+    np.divide(
+        scan_nn_distance,
+        reference_side.geometry.spacing[scan_nn_index],
+        out=relative_nn_distance[len(reference_points) :],
     )
     support = support_factor(relative_nn_distance, settings["support_factor"])
-    nn_distance_quartile = float(np.quantile(relative_nn_distance, SUPPORT_FACTOR_QUANTILE))
+    nn_distance_quartile = float(
+        np.quantile(relative_nn_distance, SUPPORT_FACTOR_QUANTILE, overwrite_input=True)
+    )
     del relative_nn_distance  # 8 bytes a point of both clouds
     noises = (reference_side.geometry.noise, scan_side.geometry.noise)
     resolution_floor = RESOLUTION_THRESHOLD_FRACTION * median_spacing

@@ -42,6 +42,8 @@ LINEAR_REFIT_FACTOR = 3
 """Linear neighbourhoods are refitted with this many times more neighbours."""
 _RELEASED_INDEX = np.empty((0, 0), dtype=np.uint32)
 """Stands for a geometry's neighbour index once the localiser no longer needs it."""
+_RELEASED_VARIATION = np.empty(0)
+"""Stands for a geometry's ``variation`` once released with the neighbour index."""
 
 
 @dataclass(frozen=True)
@@ -66,7 +68,8 @@ class LocalGeometry:
     linear : ndarray, shape (n,), bool
         The neighbourhood is a line even when widened: no normal.
     variation : ndarray, shape (n,), float64
-        Smallest eigenvalue over the trace: 0 flat, 1/3 isotropic.
+        Smallest eigenvalue over the trace: 0 flat, 1/3 isotropic; empty once released with
+        the neighbour index.
     order : ndarray, shape (n,), intp, or None
         The cloud's :func:`~app.core.spatial_order.spatial_order` (None: file order), for
         passes that visit it a chunk of nearby points at a time.
@@ -95,8 +98,11 @@ class LocalGeometry:
         return neighbours[np.arange(neighbours.shape[0]), best]
 
     def without_neighbour_index(self) -> LocalGeometry:
-        """This geometry with its neighbour index (4 (k + 1) bytes a point) released."""
-        return dataclasses.replace(self, neighbor_index=_RELEASED_INDEX)
+        """This geometry with its neighbour index (4 (k + 1) bytes a point) released, and
+        ``variation`` (8 bytes a point), which only :meth:`flattest_neighbour` reads."""
+        return dataclasses.replace(
+            self, neighbor_index=_RELEASED_INDEX, variation=_RELEASED_VARIATION
+        )
 
 
 def plane_fit(
