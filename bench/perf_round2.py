@@ -61,20 +61,40 @@ SCANDIFF = Path(sys.executable).with_name("scandiff")
 
 
 def write_pair(scene_dir: Path, n_points: int) -> dict[str, Any]:
-    """Write a warehouse pair of about ``n_points`` points a scan (once: reused if present)."""
+    """Write a warehouse pair of about ``n_points`` points a scan (once: reused if present).
+
+    Generated in a child process: Linux counts the parent's resident pages at ``fork`` in each
+    child's ``ru_maxrss``, so a bench process grown by the generation would report its own size
+    as every command's peak.
+    """
     scene_dir.mkdir(parents=True, exist_ok=True)
     reference_path, scan_path = scene_dir / "reference.ply", scene_dir / "scan.ply"
     if not (reference_path.exists() and scan_path.exists()):
-        pair = lidar_pair(
-            layout="warehouse",
-            change="added",
-            angular_step_deg=steps_for_points(n_points),
-            misaligned=True,
-            random_state=SCENE_SEED,
+        subprocess.run(
+            [
+                sys.executable,
+                str(Path(__file__).resolve()),
+                "--write-pair",
+                str(scene_dir),
+                str(n_points),
+            ],
+            check=True,
+            cwd=PROJECT_ROOT,
         )
-        write_binary_ply(reference_path, pair.reference)
-        write_binary_ply(scan_path, pair.scan)
     return {"reference": reference_path, "scan": scan_path}
+
+
+def _write_pair_here(scene_dir: Path, n_points: int) -> None:
+    """The child of :func:`write_pair`: generate and write the pair."""
+    pair = lidar_pair(
+        layout="warehouse",
+        change="added",
+        angular_step_deg=steps_for_points(n_points),
+        misaligned=True,
+        random_state=SCENE_SEED,
+    )
+    write_binary_ply(scene_dir / "reference.ply", pair.reference)
+    write_binary_ply(scene_dir / "scan.ply", pair.scan)
 
 
 def _child(command: list[str], environment: dict[str, str], cwd: Path) -> dict[str, Any]:
@@ -379,4 +399,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    if len(sys.argv) == 4 and sys.argv[1] == "--write-pair":
+        _write_pair_here(Path(sys.argv[2]), int(sys.argv[3]))
+        sys.exit(0)
     main()
