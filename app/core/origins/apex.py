@@ -37,7 +37,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.origins.rings import FINE_BIN_DEG, elevation_sharpness, fit_ring_height, ring_share
+from app.core.origins.rings import (
+    FINE_BIN_DEG,
+    elevation_sharpness,
+    fit_ring_height,
+    ring_share,
+    sharpest_height,
+)
 
 __all__ = ["ApexFit", "search_apex"]
 
@@ -149,12 +155,7 @@ def _downward_height(points: NDArray[np.float64], centre: NDArray, apex_height: 
         return apex_height
     steepest = downward[np.argsort(elevation[downward])[:count]]
     z, horizontal = points[usable, 2][steepest], horizontal[usable][steepest]
-    best = apex_height
-    for span, step in ((DOWNWARD_HEIGHT_SPAN, 0.01), (0.01, 0.002)):
-        heights = np.arange(best - span, best + span + step / 2, step)
-        values = [elevation_sharpness(z, horizontal, h, FINE_BIN_DEG) for h in heights]
-        best = float(heights[int(np.argmax(values))])
-    return best
+    return sharpest_height(z, horizontal, apex_height, DOWNWARD_HEIGHT_SPAN)
 
 
 def search_apex(

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["RingFit", "elevation_sharpness", "fit_ring_height", "ring_share"]
+__all__ = ["RingFit", "elevation_sharpness", "fit_ring_height", "ring_share", "sharpest_height"]
 
 FINE_BIN_DEG = 0.02
 COARSE_BIN_DEG = 0.1
@@ -56,6 +56,33 @@ def elevation_sharpness(
     bins = np.floor((_elevation_deg(z, horizontal, height) + 90.0) / bin_deg).astype(np.int64)
     counts = np.bincount(bins)
     return float(np.sum(counts.astype(np.float64) ** 2) / max(len(z), 1) ** 2)
+
+
+def sharpest_height(
+    z: NDArray[np.float64], horizontal: NDArray[np.float64], start: float, span: float
+) -> float:
+    """The height within ``span`` of ``start`` from which the elevation rings are sharpest.
+
+    Parameters
+    ----------
+    z, horizontal : ndarray, shape (n,)
+        Heights of the returns and their horizontal distances from the candidate axis.
+    start : float
+        Where the search starts (m).
+    span : float
+        The search covers ``start +- span`` in 1 cm steps, then +-1 cm around the best in 2 mm.
+
+    Returns
+    -------
+    float
+        The best height (m).
+    """
+    best = start
+    for half_width, step in ((span, 0.01), (0.01, 0.002)):
+        heights = np.arange(best - half_width, best + half_width + step / 2, step)
+        values = [elevation_sharpness(z, horizontal, h, FINE_BIN_DEG) for h in heights]
+        best = float(heights[int(np.argmax(values))])
+    return best
 
 
 def ring_share(z: NDArray[np.float64], horizontal: NDArray[np.float64], height: float) -> float:

@@ -31,7 +31,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from app.core.origins.rings import FINE_BIN_DEG, elevation_sharpness, fit_ring_height
+from app.core.origins.rings import (
+    elevation_sharpness,
+    fit_ring_height,
+    sharpest_height,
+)
 
 __all__ = ["SharpenedOrigin", "sharpen_origin"]
 
@@ -99,12 +103,7 @@ def _level_height(level: NDArray[np.float64], centre: NDArray, rough: float) -> 
         return rough
     usable &= horizontal <= np.median(horizontal[usable])  # the nearer half: the ground round
     z, horizontal = level[usable, 2], horizontal[usable]  # the sensor, where height matters most
-    best = rough
-    for span, step in ((HEIGHT_SPAN, 0.01), (0.01, 0.002)):
-        heights = np.arange(best - span, best + span + step / 2, step)
-        values = [elevation_sharpness(z, horizontal, h, FINE_BIN_DEG) for h in heights]
-        best = float(heights[int(np.argmax(values))])
-    return best
+    return sharpest_height(z, horizontal, rough, HEIGHT_SPAN)
 
 
 def sharpen_origin(
