@@ -20,7 +20,7 @@ from app.viewer.ceiling import ceiling_cut_height
 from app.viewer.colours import colour_bar_html, legend_html
 from app.viewer.regions_display import DEFAULT_MOVED_WITHIN, relabel
 from app.viewer.rendering import COLOUR_MODES, SHOW_CHOICES, Picked, colour_limit
-from app.viewer.scene import MOVED_COLOR, Layer, RegionBox, SceneData
+from app.viewer.scene import LABEL_CHANGED, MOVED_COLOR, Layer, RegionBox, SceneData
 
 MAX_REGION_BUTTONS = 40
 """Region list length in the GUI; the largest regions are listed first beyond this."""
@@ -194,9 +194,13 @@ def _add_clip_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
     # Indoors, open below the ceiling: from the default camera it hides every change.
     local_points = np.concatenate([side.points for side in data.sides.values()])
     ceiling_cut = ceiling_cut_height(local_points)
-    region_tops = [r.center_local[2] + r.dimensions[2] / 2 for r in data.regions]
-    if ceiling_cut is not None and region_tops:  # never hide a change
-        ceiling_cut = max(ceiling_cut, max(region_tops) + 0.05)
+    change_tops = [r.center_local[2] + r.dimensions[2] / 2 for r in data.regions] + [
+        float(side.points[side.labels == LABEL_CHANGED, 2].max())
+        for side in data.sides.values()
+        if np.any(side.labels == LABEL_CHANGED)
+    ]
+    if ceiling_cut is not None and change_tops:  # never hide a change
+        ceiling_cut = max(ceiling_cut, max(change_tops) + 0.05)
     opening_top = high
     if ceiling_cut is not None:
         opening_top = float(

@@ -193,7 +193,11 @@ def test_a_cache_hit_does_only_the_scan_side_work(tmp_path, pair, uncached, monk
     assert_same_result(hit, uncached[threads])
     assert hit.sensor_origins == uncached[threads].sensor_origins
     assert hit.localisation == uncached[threads].localisation
-    assert calls == {name: count - 1 for name, count in filling.items()}
+    # (the pipeline resolves only the reference's origin itself; the scan's goes through
+    # origins.own_frame: the filling run counted one call, the hit none)
+    assert {name: calls.get(name, 0) for name in filling} == {
+        name: count - 1 for name, count in filling.items()
+    }
 
     # the origin fact damaged (its value no longer matches its checksum): resolved again
     lines = cache.path.read_bytes().split(b"\n", 2)
@@ -205,7 +209,7 @@ def test_a_cache_hit_does_only_the_scan_side_work(tmp_path, pair, uncached, monk
     again = compare(reference, scan, threads=threads, geometry_cache=cache)
     assert_same_result(again, uncached[threads])
     assert again.sensor_origins == uncached[threads].sensor_origins
-    assert calls["resolve_stations"] == filling["resolve_stations"]
+    assert calls.get("resolve_stations", 0) == filling["resolve_stations"]
     assert calls["fit_surfaces"] == filling["fit_surfaces"] - 1  # the surfaces were still good
     assert cache.load_fact(ORIGIN_FACT, origin_key(cache, reference)) is not None  # rewritten
     assert cache.load(pair.reference, N_NEIGHBORS) is not None  # with its arrays
