@@ -10,6 +10,7 @@ not overlap, clean box outlines, moved pairs, live relabelling and picking a poi
 from __future__ import annotations
 
 import math
+import time
 from typing import Any
 
 import numpy as np
@@ -100,6 +101,21 @@ def click_button(driver: Any, text: str) -> None:
         20,
         f"no button {text!r}",
     ).click()
+
+
+def settled_camera(service: ReviewService, job_id: str) -> dict[str, Any]:
+    """The browser's scene once its camera has stopped moving (the same pose 0.5 s apart)."""
+
+    def pose(scene: dict[str, Any]) -> tuple[Any, Any]:
+        return scene["camera"]["position"], scene["camera"]["wxyz"]
+
+    def settled() -> dict[str, Any] | None:
+        before = client_scene(service, job_id)
+        time.sleep(0.5)
+        after = client_scene(service, job_id)
+        return after if pose(after) == pose(before) else None
+
+    return wait_until(settled, 30, "the camera did not come to rest")
 
 
 def camera_view(scene: dict[str, Any]) -> CameraView:
@@ -266,6 +282,7 @@ def test_review_tools_in_the_3d_view(review_service: ReviewService, chrome_facto
         axis=1,
     )
     target = cloud.points[inside][np.argmax(cloud.points[inside][:, 2])]
+    near = settled_camera(service, job_id)  # the flight to the region may still be moving
     camera = camera_view(near)
     target_pixels, in_front = camera.project(target.reshape(1, 3))
     u, v = target_pixels[0]
