@@ -103,19 +103,31 @@ def click_button(driver: Any, text: str) -> None:
     ).click()
 
 
-def settled_camera(service: ReviewService, job_id: str) -> dict[str, Any]:
-    """The browser's scene once its camera has stopped moving (the same pose 0.5 s apart)."""
+def settled_camera(service: ReviewService, job_id: str, driver: Any) -> tuple[dict[str, Any], Any]:
+    """The browser's scene once its camera has stopped moving (the same pose 0.5 s apart), and
+    the canvas it renders into (the page has more than one canvas: the one of the camera's
+    image size)."""
+    from selenium.webdriver.common.by import By
 
-    def pose(scene: dict[str, Any]) -> tuple[Any, Any]:
-        return scene["camera"]["position"], scene["camera"]["wxyz"]
+    def pose(scene: dict[str, Any]) -> tuple[Any, Any, Any]:
+        camera = scene["camera"]
+        return camera["position"], camera["wxyz"], camera["image_size"]
 
-    def settled() -> dict[str, Any] | None:
+    def settled() -> tuple[dict[str, Any], Any] | None:
         before = client_scene(service, job_id)
         time.sleep(0.5)
         after = client_scene(service, job_id)
-        return after if pose(after) == pose(before) else None
+        if pose(after) != pose(before):
+            return None
+        size = after["camera"]["image_size"]
+        canvases = [
+            canvas
+            for canvas in driver.find_elements(By.CSS_SELECTOR, "canvas")
+            if [canvas.size["width"], canvas.size["height"]] == size
+        ]
+        return (after, canvases[0]) if canvases else None
 
-    return wait_until(settled, 30, "the camera did not come to rest")
+    return wait_until(settled, 30, "the camera did not come to rest on a canvas of its size")
 
 
 def camera_view(scene: dict[str, Any]) -> CameraView:
@@ -282,12 +294,11 @@ def test_review_tools_in_the_3d_view(review_service: ReviewService, chrome_facto
         axis=1,
     )
     target = cloud.points[inside][np.argmax(cloud.points[inside][:, 2])]
-    near = settled_camera(service, job_id)  # the flight to the region may still be moving
+    near, canvas = settled_camera(service, job_id, driver)  # the flight may still be moving
     camera = camera_view(near)
     target_pixels, in_front = camera.project(target.reshape(1, 3))
     u, v = target_pixels[0]
     assert in_front[0]
-    canvas = by_css(driver, "canvas")
     ActionChains(driver).move_to_element_with_offset(
         canvas, round(u - canvas.size["width"] / 2), round(v - canvas.size["height"] / 2)
     ).click().perform()
