@@ -32,20 +32,19 @@ and ring share low), it does not search the whole cloud.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from numpy.typing import NDArray
 
 from app.core.origins.rings import (
     FINE_BIN_DEG,
+    RingOriginFit,
     elevation_sharpness,
     fit_ring_height,
     ring_share,
     sharpest_height,
 )
 
-__all__ = ["ApexFit", "search_apex"]
+__all__ = ["search_apex"]
 
 SAMPLE_POINTS = 4000
 MIN_RANGE = 2.0
@@ -75,26 +74,6 @@ lower laser block; a share of the span of elevations instead would mix in the up
 rings on frames with few steep returns)."""
 DOWNWARD_POINTS = 20_000
 MIN_WALL_POINTS = 500
-
-
-@dataclass(frozen=True)
-class ApexFit:
-    """The apex found and its evidence.
-
-    Attributes
-    ----------
-    origin : ndarray, shape (3,)
-        Top-view apex and the downward rings' height.
-    spike : float
-        Elevation sharpness at the apex over the largest of eight positions
-        :data:`SPIKE_DISTANCE` away (about 1 where no single apex is sharp).
-    ring_share : float
-        Share of the sampled returns on ring bins from the apex.
-    """
-
-    origin: NDArray[np.float64]
-    spike: float
-    ring_share: float
 
 
 def _usable(sample: NDArray[np.float64], centre: NDArray) -> tuple[NDArray, NDArray[np.bool_]]:
@@ -163,7 +142,7 @@ def search_apex(
     points: NDArray[np.float64],
     starts: NDArray[np.float64],
     rng: np.random.Generator,
-) -> ApexFit:
+) -> RingOriginFit:
     """Search the ring cones' apex from top-view ``starts``.
 
     Parameters
@@ -180,13 +159,13 @@ def search_apex(
 
     Returns
     -------
-    ApexFit
+    RingOriginFit
         Spike 0 and ring share 0 when there are no starts or too few points.
     """
     starts = np.asarray(starts, dtype=np.float64).reshape(-1, 2)
     if len(starts) == 0 or len(walls) < MIN_WALL_POINTS:
         centre = points.mean(axis=0) if len(points) else np.zeros(3)
-        return ApexFit(centre, 0.0, 0.0)
+        return RingOriginFit(centre, 0.0, 0.0)
     sample = walls[rng.choice(len(walls), size=min(len(walls), SAMPLE_POINTS), replace=False)]
     fits = []
     for start in starts:
@@ -215,7 +194,7 @@ def search_apex(
     )
     horizontal, usable = _usable(sample, centre)
     share = ring_share(sample[usable, 2], horizontal[usable], height) if usable.any() else 0.0
-    return ApexFit(
+    return RingOriginFit(
         origin=np.array([*centre, _downward_height(everything, centre, height)]),
         spike=float(peak / max(around, 1e-12)),
         ring_share=float(share),

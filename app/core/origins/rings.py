@@ -16,7 +16,14 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["RingFit", "elevation_sharpness", "fit_ring_height", "ring_share", "sharpest_height"]
+__all__ = [
+    "RingFit",
+    "RingOriginFit",
+    "elevation_sharpness",
+    "fit_ring_height",
+    "ring_share",
+    "sharpest_height",
+]
 
 FINE_BIN_DEG = 0.02
 COARSE_BIN_DEG = 0.1
@@ -47,6 +54,26 @@ class RingFit:
 
 def _elevation_deg(z: NDArray, horizontal: NDArray, height: float) -> NDArray[np.float64]:
     return np.rad2deg(np.arctan2(z - height, horizontal))
+
+
+@dataclass(frozen=True)
+class RingOriginFit:
+    """An origin found on the elevation rings, with its evidence (the sharpening's and the
+    apex search's result).
+
+    Attributes
+    ----------
+    origin : ndarray, shape (3,)
+    spike : float
+        Elevation sharpness at ``origin`` over the largest of eight positions about a metre
+        away (about 1 where there is no single sharp origin).
+    ring_share : float
+        Share of the examined returns on ring bins seen from ``origin``.
+    """
+
+    origin: NDArray[np.float64]
+    spike: float
+    ring_share: float
 
 
 def elevation_sharpness(

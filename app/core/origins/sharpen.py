@@ -25,19 +25,18 @@ nor has a cloud without rings.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from app.core.origins.rings import (
+    RingOriginFit,
     elevation_sharpness,
     fit_ring_height,
     sharpest_height,
 )
 
-__all__ = ["SharpenedOrigin", "sharpen_origin"]
+__all__ = ["sharpen_origin"]
 
 SEARCH_STEPS = ((1.6, 0.1), (0.1, 0.02), (0.02, 0.005))
 """(half-width, step) in metres of the successive top-view grid searches."""
@@ -52,25 +51,6 @@ WALL_NORMAL_Z = 0.2
 NEIGHBOURS = 9
 SURFACE_QUERIES = 12_000
 """Returns of the patch whose neighbours are examined (level or wall)."""
-
-
-@dataclass(frozen=True)
-class SharpenedOrigin:
-    """The sharpened origin and its evidence.
-
-    Attributes
-    ----------
-    origin : ndarray, shape (3,)
-    spike : float
-        Elevation sharpness at ``origin`` over the largest of eight positions
-        :data:`SPIKE_DISTANCE` away (about 1 where there is no single sharp origin).
-    ring_share : float
-        Share of wall returns on ring bins seen from ``origin``'s top-view position.
-    """
-
-    origin: NDArray[np.float64]
-    spike: float
-    ring_share: float
 
 
 def _sharpness(
@@ -111,7 +91,7 @@ def sharpen_origin(
     patch: NDArray[np.float64],
     start: NDArray[np.float64],
     rng: np.random.Generator,
-) -> SharpenedOrigin:
+) -> RingOriginFit:
     """Sharpen a rough origin ``start`` (3,) on the elevation rings of ``points`` (n, 3).
 
     Parameters
@@ -130,7 +110,7 @@ def sharpen_origin(
     near = points[(horizontal > NEAR_RANGE[0]) & (horizontal < NEAR_RANGE[1])]
     level, walls = _surfaces(patch, rng)
     if len(near) < 500 or len(walls) < 100:
-        return SharpenedOrigin(np.asarray(start, dtype=np.float64), 0.0, 0.0)
+        return RingOriginFit(np.asarray(start, dtype=np.float64), 0.0, 0.0)
     sample = near[rng.choice(len(near), size=min(len(near), SAMPLE_POINTS), replace=False)]
     for span, step in SEARCH_STEPS:
         offsets = np.arange(-span, span + step / 2, step)
@@ -158,7 +138,7 @@ def sharpen_origin(
         for a in angles
     )
     rings = fit_ring_height(walls, centre, rng)
-    return SharpenedOrigin(
+    return RingOriginFit(
         origin=np.array([*centre, height]),
         spike=float(peak / max(around, 1e-12)),
         ring_share=rings.ring_share,
