@@ -44,7 +44,11 @@ if str(PROJECT_ROOT) not in sys.path:  # run as a script: app, bench, tests impo
     sys.path.insert(0, str(PROJECT_ROOT))
 
 from app.core.synthetic import raycast_scene  # noqa: E402
-from bench.perf_service import _upload, create_site_with_reference  # noqa: E402
+from bench.perf_service import (  # noqa: E402
+    _upload,
+    create_site_with_reference,
+    processes_cpu_seconds,
+)
 from bench.perf_workers import SCENE_SEED, write_binary_ply  # noqa: E402
 from tests.helpers.topology import (  # noqa: E402
     POSTGRES_ADMIN_URL,
@@ -92,25 +96,11 @@ def percentile(values: list[float], fraction: float) -> float | None:
     return float(np.percentile(values, 100 * fraction)) if values else None
 
 
-def cpu_seconds(pids: list[int]) -> float:
-    """User + system CPU time of ``pids`` so far (children that exited excluded)."""
-    ticks = os.sysconf("SC_CLK_TCK")
-    total = 0
-    for pid in pids:
-        try:
-            stat = Path(f"/proc/{pid}/stat").read_text()
-        except OSError:
-            continue
-        fields = stat[stat.rindex(")") + 2 :].split()
-        total += int(fields[11]) + int(fields[12])  # utime, stime
-    return total / ticks
-
-
 def group_cpu(topology: Topology) -> dict[str, float]:
     """CPU seconds so far of the API processes and of the workers (their process groups)."""
     return {
-        "api": cpu_seconds([pid for api in topology.apis for pid in api.group_pids()]),
-        "workers": cpu_seconds([pid for w in topology.workers for pid in w.group_pids()]),
+        "api": processes_cpu_seconds([pid for api in topology.apis for pid in api.group_pids()]),
+        "workers": processes_cpu_seconds([pid for w in topology.workers for pid in w.group_pids()]),
     }
 
 
