@@ -105,13 +105,12 @@ def click_button(driver: Any, text: str) -> None:
 
 def settled_camera(service: ReviewService, job_id: str, driver: Any) -> tuple[dict[str, Any], Any]:
     """The browser's scene once its camera has stopped moving (the same pose 0.5 s apart), and
-    the canvas it renders into (the page has more than one canvas: the one of the camera's
-    image size)."""
+    the canvas three.js renders the 3D view into (the page has another canvas of the window's
+    size, without a drawing buffer, and the server's ``image_size`` may lag a resize)."""
     from selenium.webdriver.common.by import By
 
-    def pose(scene: dict[str, Any]) -> tuple[Any, Any, Any]:
-        camera = scene["camera"]
-        return camera["position"], camera["wxyz"], camera["image_size"]
+    def pose(scene: dict[str, Any]) -> tuple[Any, Any]:
+        return scene["camera"]["position"], scene["camera"]["wxyz"]
 
     def settled() -> tuple[dict[str, Any], Any] | None:
         before = client_scene(service, job_id)
@@ -119,26 +118,29 @@ def settled_camera(service: ReviewService, job_id: str, driver: Any) -> tuple[di
         after = client_scene(service, job_id)
         if pose(after) != pose(before):
             return None
-        size = after["camera"]["image_size"]
         canvases = [
             canvas
             for canvas in driver.find_elements(By.CSS_SELECTOR, "canvas")
-            if [canvas.size["width"], canvas.size["height"]] == size
+            if (canvas.get_attribute("data-engine") or "").startswith("three.js")
         ]
-        return (after, canvases[0]) if canvases else None
+        return (after, canvases[0]) if len(canvases) == 1 else None
 
-    return wait_until(settled, 30, "the camera did not come to rest on a canvas of its size")
+    return wait_until(settled, 30, "the camera did not come to rest on the 3D view's canvas")
 
 
-def camera_view(scene: dict[str, Any]) -> CameraView:
-    """The browser's camera as the server knows it (file frame)."""
+def camera_view(scene: dict[str, Any], canvas: Any | None = None) -> CameraView:
+    """The browser's camera as the server knows it (file frame), in the pixels of ``canvas``
+    when given (the vertical field of view spans the canvas's height)."""
     camera = scene["camera"]
+    width, height = camera["image_size"]
+    if canvas is not None:
+        width, height = canvas.size["width"], canvas.size["height"]
     return CameraView(
         position=np.asarray(camera["position"]),
         wxyz=np.asarray(camera["wxyz"]),
         fov=camera["fov"],
-        width=camera["image_size"][0],
-        height=camera["image_size"][1],
+        width=width,
+        height=height,
     )
 
 
@@ -295,7 +297,7 @@ def test_review_tools_in_the_3d_view(review_service: ReviewService, chrome_facto
     )
     target = cloud.points[inside][np.argmax(cloud.points[inside][:, 2])]
     near, canvas = settled_camera(service, job_id, driver)  # the flight may still be moving
-    camera = camera_view(near)
+    camera = camera_view(near, canvas)
     target_pixels, in_front = camera.project(target.reshape(1, 3))
     u, v = target_pixels[0]
     assert in_front[0]
