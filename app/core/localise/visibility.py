@@ -20,6 +20,13 @@ from numpy.typing import NDArray
 
 from app.core.localise.distance import Side
 from app.core.localise.gaps import in_sampling_gap
+from app.core.localise.origin_free import (
+    UNMATCHED_FACTOR,
+    behind_evidence,
+    keep_evidenced_clusters,
+    origin_free_status,
+    settle_clusters,
+)
 from app.core.localise.rays import (
     STATUS_EDGE_ON,
     STATUS_SEEN_THROUGH,
@@ -116,7 +123,41 @@ def label_candidates(
     index = candidates.index
     side = own.name
     report: dict[str, Any] = {f"{side}_candidates": int(index.size)}
-    if other.origins is None:
+    if other.origins is None and settings["origin_free_test"] == "surfaces":
+        report[f"{side}_visibility"] = "surfaces"
+        status = origin_free_status(
+            candidates.points,
+            candidates.normal,
+            own.nearest_distance[index],
+            own=own.geometry,
+            other=other.geometry,
+            tolerance=threshold,
+        )
+        report[f"{side}_candidates_in_sampling_gaps"] = int((status == STATUS_SURFACE).sum())
+        report[f"{side}_candidates_on_other_planes"] = int((status == STATUS_UNOBSERVED).sum())
+        status = settle_clusters(
+            candidates.points,
+            spacing=candidates.spacing,
+            status=status,
+            cluster_factor=settings["cluster_factor"],
+        )
+        other_unmatched = other.nearest_distance > UNMATCHED_FACTOR * np.maximum(
+            own.geometry.spacing[other.nearest_index], threshold
+        )
+        evidence = behind_evidence(
+            candidates.points,
+            candidates.normal,
+            other_points=other.points,
+            other_unmatched=other_unmatched,
+        )
+        status = keep_evidenced_clusters(
+            candidates.points,
+            spacing=candidates.spacing,
+            status=status,
+            evidence=evidence,
+            cluster_factor=settings["cluster_factor"],
+        )
+    elif other.origins is None:
         report[f"{side}_visibility"] = "coverage"
         covered = (
             own.nearest_distance[index]

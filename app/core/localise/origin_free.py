@@ -1,0 +1,299 @@
+"""The origin-free visibility test: no sensor origin and no stations, only the two surfaces.
+
+Without a viewpoint, a change candidate (a point far from the other cloud's surface) is one of
+
+- **a sampling gap** of the other cloud: the other epoch sampled the same surface around it,
+  only sparsely (a floor or ceiling seen at grazing angles, the blind disc under or over a
+  station of a merged survey);
+- **unobserved**: the candidate lies on a plane that the other cloud has nearby but not here
+  (a shadow: the other epoch saw the lit part of the wall or floor, not the part behind an
+  occluder);
+- **changed**: nothing of the other epoch lies on its plane anywhere near (a removed box's
+  faces, an added box's faces).
+
+Each candidate probes :data:`SECTORS` directions of its own tangent plane at distances that
+double from its nearest-point distance (the other cloud's local gap) up to :data:`MAX_REACH`,
+in both clouds: a *coplanar hit* is a point on the candidate's plane (within the tolerance,
+with an agreeing normal) in that direction.  The neighbourhood adapts to the local spacing
+(the probes start at the gap to the other cloud and grow from there), so a sparsely sampled
+grazing surface is not mistaken for a missing one.
+
+- In a sampling gap: the other cloud has coplanar hits in at least :data:`MIN_GAP_SECTORS`
+  directions, and in every other direction the candidate's own surface ends too (an edge of
+  the surface, e.g. a ceiling patch against a wall), before twice the gap.
+- Unobserved: the other cloud has a coplanar hit in some direction.
+- Changed: otherwise.
+
+Then per cluster of candidates (within ``cluster_factor`` local spacings): a cluster most of
+whose points lie on the other cloud's planes is a shadow or a gap, and the few changed points
+in it (its rim, where the plane tolerance ran out) become unobserved
+(:func:`settle_clusters`).  Last, a cluster of changed candidates must show that the other
+epoch saw through it (:func:`behind_evidence`, :func:`keep_evidenced_clusters`): on the
+normal lines of some of its points the other cloud has surface that this cloud lacks (the
+floor under a removed box, the floor and wall behind an added one).  A face of an unchanged
+object that the other epoch never saw has no such surface behind it: unobserved.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+from pykdtree.kdtree import KDTree
+
+from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_SURFACE, STATUS_UNOBSERVED
+from app.core.localise.regions import cluster_labels
+from app.core.localise.settings import GATHER_CHUNK
+from app.core.localise.surface import LocalGeometry
+
+__all__ = [
+    "MAX_REACH",
+    "SECTORS",
+    "behind_evidence",
+    "keep_evidenced_clusters",
+    "origin_free_status",
+    "settle_clusters",
+]
+
+SECTORS = 8
+"""Directions (45 degrees apart) probed in the candidate's tangent plane."""
+SECTOR_HALF_ANGLE_COSINE = math.cos(math.radians(35.0))
+"""A point counts for a direction within 35 degrees of it."""
+PROBE_DOUBLINGS = 7
+"""Probes at 1, 2, 4, ... 64 nearest-point distances in each direction (capped at MAX_REACH)."""
+MAX_REACH = 4.0
+"""Largest distance (metres) at which the other cloud's plane counts."""
+MIN_GAP_SECTORS = 4
+"""A sampling gap has the other cloud's surface in at least half the directions."""
+PLANE_SLOPE = math.sin(math.radians(1.0))
+"""The plane tolerance grows by this much a metre away from the candidate (surfaces bend)."""
+NORMAL_AGREEMENT_COSINE = math.cos(math.radians(30.0))
+PROBE_NEIGHBOURS = 4
+SETTLE_SHARE = 0.5
+"""A cluster whose share of coplanar (gap or unobserved) candidates reaches this is not a
+change: its changed points become unobserved."""
+BEHIND_STEPS = (0.05, 0.1, 0.2, 0.4, 0.8, 1.6, 3.2)
+"""Distances (metres) along a candidate's normal, both ways, at which the other cloud's
+unmatched points are looked for."""
+BEHIND_RADIUS_FRACTION = 0.35
+"""A point within this fraction of the probe's distance along the normal (at least
+:data:`BEHIND_MIN_RADIUS`) of the probe counts: above 1/3 the doubling probes' balls overlap,
+so no distance along the line is missed."""
+BEHIND_MIN_RADIUS = 0.05
+UNMATCHED_FACTOR = 2.0
+"""A point of the other cloud is unmatched when its nearest point in this cloud is farther
+than this many of that point's spacings (and tau)."""
+EVIDENCE_SHARE = 0.1
+"""A cluster of changed candidates stays changed when this share of its points has the other
+cloud's unmatched surface on its normal line; else it is unobserved (a face the other epoch
+never saw)."""
+
+
+def _plane_hits(
+    query: NDArray[np.float64],
+    unit: NDArray[np.float64],
+    directions: NDArray[np.float64],
+    reach: NDArray[np.float64],
+    cloud: LocalGeometry,
+    tolerance: float,
+) -> NDArray[np.bool_]:
+    """Whether ``cloud`` has a point on each query's plane near each probe, shape (c, S)."""
+    k = min(PROBE_NEIGHBOURS, cloud.points.shape[0])
+    count, sectors = directions.shape[:2]
+    probes = query[:, None, :] + reach[:, None, None] * directions
+    _, index = cloud.tree.query(probes.reshape(-1, 3), k=k)
+    index = np.asarray(index).reshape(count, sectors, k)
+    offset = cloud.points[index] - query[:, None, None, :]  # (c, S, k, 3)
+    distance = np.linalg.norm(offset, axis=3)
+    across = np.abs(np.einsum("cskd,cd->csk", offset, unit))
+    along = np.einsum("cskd,csd->csk", offset, directions)
+    agrees = np.abs(np.einsum("cskd,cd->csk", cloud.normal[index], unit))
+    hit = (
+        (distance <= MAX_REACH)
+        & (across <= tolerance + PLANE_SLOPE * distance)
+        & (along >= SECTOR_HALF_ANGLE_COSINE * distance)
+        & (agrees >= NORMAL_AGREEMENT_COSINE)
+    )
+    return hit.any(axis=2)
+
+
+def origin_free_status(
+    points: NDArray[np.float64],
+    normal: NDArray[np.floating],
+    nearest_distance: NDArray[np.float64],
+    *,
+    own: LocalGeometry,
+    other: LocalGeometry,
+    tolerance: float,
+) -> NDArray[np.int8]:
+    """Status of each candidate from the two clouds' surfaces alone.
+
+    Parameters
+    ----------
+    points : ndarray, shape (c, 3)
+        Change candidates of one cloud.
+    normal : ndarray, shape (c, 3)
+        Unit normal of each candidate's own surface.
+    nearest_distance : ndarray, shape (c,)
+        Distance of each candidate to its nearest point in the other cloud.
+    own : LocalGeometry
+        The candidates' cloud (its KD-tree, points and normals).
+    other : LocalGeometry
+        The other cloud.
+    tolerance : float
+        Largest offset (metres) from the candidate's plane, at the candidate: ``tau``.
+
+    Returns
+    -------
+    ndarray, shape (c,), int8
+        STATUS_SURFACE (a sampling gap of the other cloud: unchanged), STATUS_UNOBSERVED (on
+        a plane the other cloud has nearby) or STATUS_SEEN_THROUGH (changed).
+    """
+    count = points.shape[0]
+    status = np.full(count, STATUS_SEEN_THROUGH, dtype=np.int8)
+    if count == 0:
+        return status
+    angles = 2.0 * math.pi * np.arange(SECTORS) / SECTORS
+    for start in range(0, count, GATHER_CHUNK):
+        chunk = slice(start, start + GATHER_CHUNK)
+        query = points[chunk]
+        unit = normal[chunk].astype(np.float64)
+        unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-12)[:, None]
+        helper = np.where(np.abs(unit[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+        first = np.cross(unit, helper)
+        first /= np.linalg.norm(first, axis=1)[:, None]
+        second = np.cross(unit, first)
+        directions = (
+            np.cos(angles)[None, :, None] * first[:, None, :]
+            + np.sin(angles)[None, :, None] * second[:, None, :]
+        )  # (c, S, 3)
+        other_found = np.zeros((query.shape[0], SECTORS), dtype=bool)
+        own_beyond = np.zeros((query.shape[0], SECTORS), dtype=bool)
+        gap = np.maximum(nearest_distance[chunk], 1e-3)
+        for doubling in range(PROBE_DOUBLINGS):
+            reach = np.minimum(gap * 2.0**doubling, MAX_REACH)
+            other_found |= _plane_hits(query, unit, directions, reach, other, tolerance)
+            if doubling >= 1:  # own surface at twice the gap or farther: it continues
+                own_beyond |= _plane_hits(query, unit, directions, reach, own, tolerance)
+        coplanar = other_found.any(axis=1)
+        in_gap = (other_found.sum(axis=1) >= MIN_GAP_SECTORS) & (other_found | ~own_beyond).all(
+            axis=1
+        )
+        status[chunk] = np.where(
+            in_gap, STATUS_SURFACE, np.where(coplanar, STATUS_UNOBSERVED, STATUS_SEEN_THROUGH)
+        )
+    return status
+
+
+def settle_clusters(
+    points: NDArray[np.float64],
+    *,
+    spacing: NDArray[np.float64],
+    status: NDArray[np.int8],
+    cluster_factor: float,
+) -> NDArray[np.int8]:
+    """Changed candidates in clusters that mostly lie on the other cloud's planes become
+    unobserved.
+
+    Parameters
+    ----------
+    points : ndarray, shape (c, 3)
+        The candidates.
+    spacing : ndarray, shape (c,)
+        Their cloud's local spacing.
+    status : ndarray, shape (c,), int8
+        From :func:`origin_free_status`.
+    cluster_factor : float
+        Candidates closer than this many local spacings are one cluster.
+
+    Returns
+    -------
+    ndarray, shape (c,), int8
+    """
+    if status.size == 0:
+        return status
+    labels = cluster_labels(points, cluster_factor * spacing)
+    coplanar_share = np.bincount(
+        labels, weights=(status != STATUS_SEEN_THROUGH).astype(np.float64)
+    ) / np.bincount(labels)
+    settled = status.copy()
+    settled[(status == STATUS_SEEN_THROUGH) & (coplanar_share[labels] >= SETTLE_SHARE)] = (
+        STATUS_UNOBSERVED
+    )
+    return settled
+
+
+def behind_evidence(
+    points: NDArray[np.float64],
+    normal: NDArray[np.floating],
+    *,
+    other_points: NDArray[np.float64],
+    other_unmatched: NDArray[np.bool_],
+) -> NDArray[np.bool_]:
+    """Whether the other cloud has surface that this one lacks on each candidate's normal line.
+
+    A removed box's top has the other epoch's floor below it, which this epoch could not see
+    (the box hid it); an added box has the reference's floor and wall behind it.  A face of an
+    unchanged object that the other epoch never saw has only surfaces both epochs share (or
+    nothing) on its normal line.
+
+    Parameters
+    ----------
+    points : ndarray, shape (c, 3)
+    normal : ndarray, shape (c, 3)
+    other_points : ndarray, shape (m, 3)
+    other_unmatched : ndarray, shape (m,), bool
+        The other cloud's points with no point of this cloud near them.
+
+    Returns
+    -------
+    ndarray, shape (c,), bool
+    """
+    count = points.shape[0]
+    found = np.zeros(count, dtype=bool)
+    unmatched = other_points[other_unmatched]
+    if count == 0 or unmatched.shape[0] == 0:
+        return found
+    tree = KDTree(unmatched)
+    unit = normal.astype(np.float64)
+    unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-12)[:, None]
+    for step in BEHIND_STEPS:
+        radius = max(BEHIND_MIN_RADIUS, BEHIND_RADIUS_FRACTION * step)
+        for sign in (1.0, -1.0):
+            probes = points + sign * step * unit
+            distance, _ = tree.query(probes, k=1, distance_upper_bound=radius)
+            found |= np.isfinite(distance) & (distance <= radius)
+    return found
+
+
+def keep_evidenced_clusters(
+    points: NDArray[np.float64],
+    *,
+    spacing: NDArray[np.float64],
+    status: NDArray[np.int8],
+    evidence: NDArray[np.bool_],
+    cluster_factor: float,
+) -> NDArray[np.int8]:
+    """Changed clusters without enough :func:`behind_evidence` become unobserved.
+
+    Parameters
+    ----------
+    points : ndarray, shape (c, 3)
+    spacing : ndarray, shape (c,)
+    status : ndarray, shape (c,), int8
+    evidence : ndarray, shape (c,), bool
+    cluster_factor : float
+
+    Returns
+    -------
+    ndarray, shape (c,), int8
+    """
+    changed = np.flatnonzero(status == STATUS_SEEN_THROUGH)
+    if changed.size == 0:
+        return status
+    labels = cluster_labels(points[changed], cluster_factor * spacing[changed])
+    share = np.bincount(labels, weights=evidence[changed].astype(np.float64)) / np.bincount(labels)
+    kept = status.copy()
+    kept[changed[share[labels] < EVIDENCE_SHARE]] = STATUS_UNOBSERVED
+    return kept
