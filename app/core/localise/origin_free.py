@@ -93,29 +93,61 @@ never saw)."""
 def _plane_hits(
     query: NDArray[np.float64],
     unit: NDArray[np.float64],
-    directions: NDArray[np.float64],
+    direction: NDArray[np.float64],
     reach: NDArray[np.float64],
     cloud: LocalGeometry,
     tolerance: float,
 ) -> NDArray[np.bool_]:
-    """Whether ``cloud`` has a point on each query's plane near each probe, shape (c, S)."""
+    """Whether ``cloud`` has a point on each query's plane near its probe.
+
+    Parameters
+    ----------
+    query, unit, direction : ndarray, shape (p, 3)
+        Candidate, its unit normal, the probe's unit direction in its plane.
+    reach : ndarray, shape (p,)
+        The probe's distance from the candidate.
+    cloud : LocalGeometry
+    tolerance : float
+
+    Returns
+    -------
+    ndarray, shape (p,), bool
+    """
     k = min(PROBE_NEIGHBOURS, cloud.points.shape[0])
-    count, sectors = directions.shape[:2]
-    probes = query[:, None, :] + reach[:, None, None] * directions
-    _, index = cloud.tree.query(probes.reshape(-1, 3), k=k)
-    index = np.asarray(index).reshape(count, sectors, k)
-    offset = cloud.points[index] - query[:, None, None, :]  # (c, S, k, 3)
-    distance = np.linalg.norm(offset, axis=3)
-    across = np.abs(np.einsum("cskd,cd->csk", offset, unit))
-    along = np.einsum("cskd,csd->csk", offset, directions)
-    agrees = np.abs(np.einsum("cskd,cd->csk", cloud.normal[index], unit))
+    _, index = cloud.tree.query(query + reach[:, None] * direction, k=k)
+    index = np.asarray(index).reshape(query.shape[0], k)
+    offset = cloud.points[index] - query[:, None, :]  # (p, k, 3)
+    distance = np.linalg.norm(offset, axis=2)
+    across = np.abs(np.einsum("pkd,pd->pk", offset, unit))
+    along = np.einsum("pkd,pd->pk", offset, direction)
+    agrees = np.abs(np.einsum("pkd,pd->pk", cloud.normal[index], unit))
     hit = (
         (distance <= MAX_REACH)
         & (across <= tolerance + PLANE_SLOPE * distance)
         & (along >= SECTOR_HALF_ANGLE_COSINE * distance)
         & (agrees >= NORMAL_AGREEMENT_COSINE)
     )
-    return hit.any(axis=2)
+    return hit.any(axis=1)
+
+
+def _probe(
+    found: NDArray[np.bool_],
+    todo: NDArray[np.bool_],
+    query: NDArray[np.float64],
+    unit: NDArray[np.float64],
+    directions: NDArray[np.float64],
+    reach: NDArray[np.float64],
+    cloud: LocalGeometry,
+    tolerance: float,
+) -> None:
+    """Set ``found[c, s]`` where ``todo[c, s]`` and ``cloud`` has a point on candidate c's
+    plane near its probe in direction s at ``reach[c]`` (in place; shapes (c, S))."""
+    rows, sectors = np.nonzero(todo)
+    if rows.size == 0:
+        return
+    found[rows, sectors] = _plane_hits(
+        query[rows], unit[rows], directions[rows, sectors], reach[rows], cloud, tolerance
+    )
 
 
 def origin_free_status(
@@ -171,11 +203,21 @@ def origin_free_status(
         other_found = np.zeros((query.shape[0], SECTORS), dtype=bool)
         own_beyond = np.zeros((query.shape[0], SECTORS), dtype=bool)
         gap = np.maximum(nearest_distance[chunk], 1e-3)
-        for doubling in range(PROBE_DOUBLINGS):
-            reach = np.minimum(gap * 2.0**doubling, MAX_REACH)
-            other_found |= _plane_hits(query, unit, directions, reach, other, tolerance)
-            if doubling >= 1:  # own surface at twice the gap or farther: it continues
-                own_beyond |= _plane_hits(query, unit, directions, reach, own, tolerance)
+        reaches = [
+            np.minimum(gap * 2.0**doubling, MAX_REACH) for doubling in range(PROBE_DOUBLINGS)
+        ]
+        for doubling, reach in enumerate(reaches):
+            # a reach capped at MAX_REACH repeats the last probe: skip it
+            fresh = reach > reaches[doubling - 1] if doubling else np.ones_like(reach, bool)
+            todo = ~other_found & fresh[:, None]
+            _probe(other_found, todo, query, unit, directions, reach, other, tolerance)
+        # the own surface matters only where the other's might close a sampling gap
+        possible_gap = other_found.sum(axis=1) >= MIN_GAP_SECTORS
+        for doubling, reach in enumerate(reaches[1:], start=1):
+            # own surface at twice the gap or farther: it continues in that direction
+            fresh = reach > reaches[doubling - 1]
+            todo = possible_gap[:, None] & ~other_found & ~own_beyond & fresh[:, None]
+            _probe(own_beyond, todo, query, unit, directions, reach, own, tolerance)
         coplanar = other_found.any(axis=1)
         in_gap = (other_found.sum(axis=1) >= MIN_GAP_SECTORS) & (other_found | ~own_beyond).all(
             axis=1
