@@ -134,14 +134,25 @@ def test_the_other_epochs_surface_behind_a_change_is_its_evidence():
     top = _box_top((0.0, 0.0), 0.3, 0.6)
     floor = _floor(_grid((-1.0, 1.0), (-1.0, 1.0)))
     up = np.tile([0.0, 0.0, 1.0], (len(top), 1))
+    floor_up = np.tile([0.0, 0.0, 1.0], (len(floor), 1))
+    unmatched = np.ones(len(floor), dtype=bool)
     seen_only_there = behind_evidence(
-        top, up, other_points=floor, other_unmatched=np.ones(len(floor), dtype=bool)
+        top, up, other_points=floor, other_normal=floor_up, other_unmatched=unmatched
     )
     shared = behind_evidence(
-        top, up, other_points=floor, other_unmatched=np.zeros(len(floor), dtype=bool)
+        top, up, other_points=floor, other_normal=floor_up, other_unmatched=~unmatched
+    )
+    # the same points standing for a wall's edge (normals across): not the surface behind
+    across = behind_evidence(
+        top,
+        up,
+        other_points=floor,
+        other_normal=np.tile([1.0, 0.0, 0.0], (len(floor), 1)),
+        other_unmatched=unmatched,
     )
     assert seen_only_there.all()
     assert not shared.any()
+    assert not across.any()
 
 
 def test_a_changed_cluster_without_evidence_is_unobserved():

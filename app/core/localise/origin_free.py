@@ -73,14 +73,17 @@ PROBE_NEIGHBOURS = 4
 SETTLE_SHARE = 0.5
 """A cluster whose share of coplanar (gap or unobserved) candidates reaches this is not a
 change: its changed points become unobserved."""
-BEHIND_STEPS = (0.05, 0.1, 0.2, 0.4, 0.8, 1.6, 3.2)
-"""Distances (metres) along a candidate's normal, both ways, at which the other cloud's
-unmatched points are looked for."""
-BEHIND_RADIUS_FRACTION = 0.35
+BEHIND_STEP_RATIO = 1.25
+"""Probes along a candidate's normal, both ways, at distances growing by this ratio from
+:data:`BEHIND_FIRST` to :data:`MAX_REACH`, look for the other cloud's unmatched points."""
+BEHIND_FIRST = 0.05
+BEHIND_RADIUS_FRACTION = 0.12
 """A point within this fraction of the probe's distance along the normal (at least
-:data:`BEHIND_MIN_RADIUS`) of the probe counts: above 1/3 the doubling probes' balls overlap,
-so no distance along the line is missed."""
+:data:`BEHIND_MIN_RADIUS`, at most :data:`BEHIND_MAX_RADIUS`) of the probe counts: above
+(ratio - 1) / (ratio + 1) = 0.11 the probes' balls overlap, so no distance along the line is
+missed, and the cone stays narrow (the floor beside a box's footprint is not under it)."""
 BEHIND_MIN_RADIUS = 0.05
+BEHIND_MAX_RADIUS = 0.3
 UNMATCHED_FACTOR = 2.0
 """A point of the other cloud is unmatched when its nearest point in this cloud is farther
 than this many of that point's spacings (and tau)."""
@@ -235,8 +238,8 @@ def settle_clusters(
     status: NDArray[np.int8],
     cluster_factor: float,
 ) -> NDArray[np.int8]:
-    """Changed candidates in clusters that mostly lie on the other cloud's planes become
-    unobserved.
+    """Changed candidates in clusters that mostly lie on the other cloud's planes (off its
+    samples) become unobserved; sampling gaps (unchanged) link no cluster.
 
     Parameters
     ----------
@@ -253,16 +256,15 @@ def settle_clusters(
     -------
     ndarray, shape (c,), int8
     """
-    if status.size == 0:
+    involved = np.flatnonzero(status != STATUS_SURFACE)  # gaps are unchanged: they link nothing
+    if involved.size == 0:
         return status
-    labels = cluster_labels(points, cluster_factor * spacing)
+    labels = cluster_labels(points[involved], cluster_factor * spacing[involved])
     coplanar_share = np.bincount(
-        labels, weights=(status != STATUS_SEEN_THROUGH).astype(np.float64)
+        labels, weights=(status[involved] == STATUS_UNOBSERVED).astype(np.float64)
     ) / np.bincount(labels)
     settled = status.copy()
-    settled[(status == STATUS_SEEN_THROUGH) & (coplanar_share[labels] >= SETTLE_SHARE)] = (
-        STATUS_UNOBSERVED
-    )
+    settled[involved[coplanar_share[labels] >= SETTLE_SHARE]] = STATUS_UNOBSERVED
     return settled
 
 
@@ -271,6 +273,7 @@ def behind_evidence(
     normal: NDArray[np.floating],
     *,
     other_points: NDArray[np.float64],
+    other_normal: NDArray[np.floating],
     other_unmatched: NDArray[np.bool_],
 ) -> NDArray[np.bool_]:
     """Whether the other cloud has surface that this one lacks on each candidate's normal line.
@@ -285,6 +288,9 @@ def behind_evidence(
     points : ndarray, shape (c, 3)
     normal : ndarray, shape (c, 3)
     other_points : ndarray, shape (m, 3)
+    other_normal : ndarray, shape (m, 3)
+        Unit normals of the other cloud: its surface counts where parallel to the
+        candidate's (a floor under a box top, a wall behind a box face).
     other_unmatched : ndarray, shape (m,), bool
         The other cloud's points with no point of this cloud near them.
 
@@ -297,15 +303,26 @@ def behind_evidence(
     unmatched = other_points[other_unmatched]
     if count == 0 or unmatched.shape[0] == 0:
         return found
+    unmatched_normal = other_normal[other_unmatched]
     tree = KDTree(unmatched)
     unit = normal.astype(np.float64)
     unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-12)[:, None]
-    for step in BEHIND_STEPS:
-        radius = max(BEHIND_MIN_RADIUS, BEHIND_RADIUS_FRACTION * step)
+    k = min(PROBE_NEIGHBOURS, unmatched.shape[0])
+    steps = BEHIND_FIRST * BEHIND_STEP_RATIO ** np.arange(
+        math.ceil(math.log(MAX_REACH / BEHIND_FIRST, BEHIND_STEP_RATIO)) + 1
+    )
+    for step in steps:
+        radius = min(max(BEHIND_MIN_RADIUS, BEHIND_RADIUS_FRACTION * step), BEHIND_MAX_RADIUS)
         for sign in (1.0, -1.0):
             probes = points + sign * step * unit
-            distance, _ = tree.query(probes, k=1, distance_upper_bound=radius)
-            found |= np.isfinite(distance) & (distance <= radius)
+            distance, index = tree.query(probes, k=k, distance_upper_bound=radius)
+            distance = np.asarray(distance).reshape(count, k)
+            index = np.minimum(np.asarray(index).reshape(count, k), unmatched.shape[0] - 1)
+            parallel = (
+                np.abs(np.einsum("ckd,cd->ck", unmatched_normal[index], unit))
+                >= NORMAL_AGREEMENT_COSINE
+            )
+            found |= ((distance <= radius) & parallel).any(axis=1)
     return found
 
 

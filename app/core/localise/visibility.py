@@ -144,10 +144,13 @@ def label_candidates(
         other_unmatched = other.nearest_distance > UNMATCHED_FACTOR * np.maximum(
             own.geometry.spacing[other.nearest_index], threshold
         )
-        evidence = behind_evidence(
-            candidates.points,
-            candidates.normal,
+        changed = status == STATUS_SEEN_THROUGH
+        evidence = np.zeros(index.size, dtype=bool)
+        evidence[changed] = behind_evidence(
+            candidates.points[changed],
+            candidates.normal[changed],
             other_points=other.points,
+            other_normal=other.geometry.normal,
             other_unmatched=other_unmatched,
         )
         status = keep_evidenced_clusters(
