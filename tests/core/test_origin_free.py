@@ -74,7 +74,7 @@ def test_each_candidate_is_a_gap_a_shadow_or_a_change():
             [0.5, 0.0, 0.0],  # the blind disc's centre: a sampling gap
             [3.8, -2.5, 0.0],  # the patch against the wall: a gap bounded by the wall
             [-2.2, 0.0, 0.0],  # just inside the shadow: its rim
-            [-3.5, -1.0, 0.0],  # deep inside the shadow
+            [-2.8, -1.0, 0.0],  # inside the shadow, 0.8 m from its rim
             [-1.0, 2.5, 0.6],  # the box top's centre, 0.6 m from the other's floor
         ]
     )
@@ -150,9 +150,19 @@ def test_the_other_epochs_surface_behind_a_change_is_its_evidence():
         other_normal=np.tile([1.0, 0.0, 0.0], (len(floor), 1)),
         other_unmatched=unmatched,
     )
+    # a side face of the box (normal along x) has that floor straight below it
+    side = np.column_stack([np.full(10, 0.3), np.zeros(10), np.linspace(0.1, 0.6, 10)])
+    below = behind_evidence(
+        side,
+        np.tile([1.0, 0.0, 0.0], (len(side), 1)),
+        other_points=floor,
+        other_normal=floor_up,
+        other_unmatched=unmatched,
+    )
     assert seen_only_there.all()
     assert not shared.any()
     assert not across.any()
+    assert below.all()
 
 
 def test_a_changed_cluster_without_evidence_is_unobserved():

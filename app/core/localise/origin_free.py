@@ -64,6 +64,10 @@ PROBE_DOUBLINGS = 7
 """Probes at 1, 2, 4, ... 64 nearest-point distances in each direction (capped at MAX_REACH)."""
 MAX_REACH = 4.0
 """Largest distance (metres) at which the other cloud's plane counts."""
+SHADOW_REACH = 1.0
+"""A candidate is on the other cloud's plane (a shadow, unobserved) when that plane is found
+within this distance (metres) of it; farther, a coplanar face is a coincidence (another box's
+face in line with a changed one), and the cluster and evidence steps decide."""
 MIN_GAP_SECTORS = 4
 """A sampling gap has the other cloud's surface in at least half the directions."""
 PLANE_SLOPE = math.sin(math.radians(1.0))
@@ -209,11 +213,13 @@ def origin_free_status(
         reaches = [
             np.minimum(gap * 2.0**doubling, MAX_REACH) for doubling in range(PROBE_DOUBLINGS)
         ]
+        other_near = np.zeros((query.shape[0], SECTORS), dtype=bool)
         for doubling, reach in enumerate(reaches):
             # a reach capped at MAX_REACH repeats the last probe: skip it
             fresh = reach > reaches[doubling - 1] if doubling else np.ones_like(reach, bool)
             todo = ~other_found & fresh[:, None]
             _probe(other_found, todo, query, unit, directions, reach, other, tolerance)
+            other_near |= other_found & (reach <= SHADOW_REACH)[:, None]
         # the own surface matters only where the other's might close a sampling gap
         possible_gap = other_found.sum(axis=1) >= MIN_GAP_SECTORS
         for doubling, reach in enumerate(reaches[1:], start=1):
@@ -221,7 +227,7 @@ def origin_free_status(
             fresh = reach > reaches[doubling - 1]
             todo = possible_gap[:, None] & ~other_found & ~own_beyond & fresh[:, None]
             _probe(own_beyond, todo, query, unit, directions, reach, own, tolerance)
-        coplanar = other_found.any(axis=1)
+        coplanar = other_near.any(axis=1)
         in_gap = (other_found.sum(axis=1) >= MIN_GAP_SECTORS) & (other_found | ~own_beyond).all(
             axis=1
         )
@@ -276,12 +282,14 @@ def behind_evidence(
     other_normal: NDArray[np.floating],
     other_unmatched: NDArray[np.bool_],
 ) -> NDArray[np.bool_]:
-    """Whether the other cloud has surface that this one lacks on each candidate's normal line.
+    """Whether the other cloud has surface that this one lacks behind each candidate.
 
-    A removed box's top has the other epoch's floor below it, which this epoch could not see
-    (the box hid it); an added box has the reference's floor and wall behind it.  A face of an
-    unchanged object that the other epoch never saw has only surfaces both epochs share (or
-    nothing) on its normal line.
+    Looked for on the candidate's normal line (both ways: a surface parallel to the
+    candidate's) and straight down (z up: a floor, the footprint of the object the candidate
+    is on).  A removed box's top has the other epoch's floor below it, which this epoch could
+    not see (the box hid it), and so do its side faces; an added box has the reference's floor and
+    wall behind it.  A face of an unchanged object that the other epoch never saw has only
+    surfaces both epochs share (or nothing) behind it.
 
     Parameters
     ----------
@@ -311,15 +319,19 @@ def behind_evidence(
     steps = BEHIND_FIRST * BEHIND_STEP_RATIO ** np.arange(
         math.ceil(math.log(MAX_REACH / BEHIND_FIRST, BEHIND_STEP_RATIO)) + 1
     )
+    down = np.tile([0.0, 0.0, -1.0], (count, 1))
+    # along the normal both ways, a surface parallel to the candidate's; straight down, a
+    # floor (the footprint of a removed or added object, under its side faces too)
+    lines = ((unit, unit), (-unit, unit), (down, -down))
     for step in steps:
         radius = min(max(BEHIND_MIN_RADIUS, BEHIND_RADIUS_FRACTION * step), BEHIND_MAX_RADIUS)
-        for sign in (1.0, -1.0):
-            probes = points + sign * step * unit
+        for direction, facing in lines:
+            probes = points + step * direction
             distance, index = tree.query(probes, k=k, distance_upper_bound=radius)
             distance = np.asarray(distance).reshape(count, k)
             index = np.minimum(np.asarray(index).reshape(count, k), unmatched.shape[0] - 1)
             parallel = (
-                np.abs(np.einsum("ckd,cd->ck", unmatched_normal[index], unit))
+                np.abs(np.einsum("ckd,cd->ck", unmatched_normal[index], facing))
                 >= NORMAL_AGREEMENT_COSINE
             )
             found |= ((distance <= radius) & parallel).any(axis=1)
