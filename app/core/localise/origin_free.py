@@ -37,12 +37,19 @@ object that the other epoch never saw has no such surface behind it: unobserved.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
-from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_SURFACE, STATUS_UNOBSERVED
+from app.core.localise.distance import Side
+from app.core.localise.rays import (
+    STATUS_SEEN_THROUGH,
+    STATUS_SURFACE,
+    STATUS_UNOBSERVED,
+    Candidates,
+)
 from app.core.localise.regions import cluster_labels
 from app.core.localise.settings import GATHER_CHUNK
 from app.core.localise.surface import LocalGeometry
@@ -54,6 +61,7 @@ __all__ = [
     "keep_evidenced_clusters",
     "origin_free_status",
     "settle_clusters",
+    "surface_test",
 ]
 
 SECTORS = 8
@@ -368,3 +376,72 @@ def keep_evidenced_clusters(
     kept = status.copy()
     kept[changed[share[labels] < EVIDENCE_SHARE]] = STATUS_UNOBSERVED
     return kept
+
+
+def surface_test(
+    candidates: Candidates,
+    *,
+    own: Side,
+    other: Side,
+    threshold: float,
+    cluster_factor: float,
+) -> tuple[NDArray[np.int8], dict[str, Any]]:
+    """The whole origin-free test of one cloud's candidates (the module's steps in order).
+
+    Parameters
+    ----------
+    candidates : Candidates
+        ``own``'s change candidates.
+    own, other : Side
+        The candidates' cloud and the other one (neither needs an origin).
+    threshold : float
+        ``tau``: the plane tolerance.
+    cluster_factor : float
+        Candidates closer than this many local spacings are one cluster.
+
+    Returns
+    -------
+    status : ndarray, shape (c,), int8
+        STATUS_SURFACE, STATUS_SEEN_THROUGH or STATUS_UNOBSERVED per candidate.
+    counts : dict
+        ``candidates_in_sampling_gaps``, ``candidates_on_other_planes`` (before the cluster
+        steps) and ``candidates_without_evidence`` (changed clusters made unobserved).
+    """
+    status = origin_free_status(
+        candidates.points,
+        candidates.normal,
+        own.nearest_distance[candidates.index],
+        own=own.geometry,
+        other=other.geometry,
+        tolerance=threshold,
+    )
+    counts = {
+        "candidates_in_sampling_gaps": int((status == STATUS_SURFACE).sum()),
+        "candidates_on_other_planes": int((status == STATUS_UNOBSERVED).sum()),
+    }
+    status = settle_clusters(
+        candidates.points, spacing=candidates.spacing, status=status, cluster_factor=cluster_factor
+    )
+    other_unmatched = other.nearest_distance > UNMATCHED_FACTOR * np.maximum(
+        own.geometry.spacing[other.nearest_index], threshold
+    )
+    changed = status == STATUS_SEEN_THROUGH
+    evidence = np.zeros(status.shape[0], dtype=bool)
+    evidence[changed] = behind_evidence(
+        candidates.points[changed],
+        candidates.normal[changed],
+        other_points=other.points,
+        other_normal=other.geometry.normal,
+        other_unmatched=other_unmatched,
+    )
+    status = keep_evidenced_clusters(
+        candidates.points,
+        spacing=candidates.spacing,
+        status=status,
+        evidence=evidence,
+        cluster_factor=cluster_factor,
+    )
+    counts["candidates_without_evidence"] = int(
+        np.count_nonzero(changed & (status == STATUS_UNOBSERVED))
+    )
+    return status, counts

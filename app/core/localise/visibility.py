@@ -7,7 +7,9 @@ surface it saw only edge-on gets no evidence of its own; it is changed when conn
 candidates mostly seen through (a removed box's side face), unobserved otherwise.  Without an
 origin, a coverage test: a candidate whose nearest point in the other cloud is farther than
 ``coverage_factor`` local spacings is unobserved (single-viewpoint scans should pass origins,
-or their shadows' rims come out as changes).
+or their shadows' rims come out as changes); with ``origin_free_test="surfaces"`` the
+surface test of :mod:`app.core.localise.origin_free` instead (merged clouds whose stations
+are not known).
 """
 
 from __future__ import annotations
@@ -20,13 +22,7 @@ from numpy.typing import NDArray
 
 from app.core.localise.distance import Side
 from app.core.localise.gaps import in_sampling_gap
-from app.core.localise.origin_free import (
-    UNMATCHED_FACTOR,
-    behind_evidence,
-    keep_evidenced_clusters,
-    origin_free_status,
-    settle_clusters,
-)
+from app.core.localise.origin_free import surface_test
 from app.core.localise.rays import (
     STATUS_EDGE_ON,
     STATUS_SEEN_THROUGH,
@@ -125,41 +121,14 @@ def label_candidates(
     report: dict[str, Any] = {f"{side}_candidates": int(index.size)}
     if other.origins is None and settings["origin_free_test"] == "surfaces":
         report[f"{side}_visibility"] = "surfaces"
-        status = origin_free_status(
-            candidates.points,
-            candidates.normal,
-            own.nearest_distance[index],
-            own=own.geometry,
-            other=other.geometry,
-            tolerance=threshold,
-        )
-        report[f"{side}_candidates_in_sampling_gaps"] = int((status == STATUS_SURFACE).sum())
-        report[f"{side}_candidates_on_other_planes"] = int((status == STATUS_UNOBSERVED).sum())
-        status = settle_clusters(
-            candidates.points,
-            spacing=candidates.spacing,
-            status=status,
+        status, counts = surface_test(
+            candidates,
+            own=own,
+            other=other,
+            threshold=threshold,
             cluster_factor=settings["cluster_factor"],
         )
-        other_unmatched = other.nearest_distance > UNMATCHED_FACTOR * np.maximum(
-            own.geometry.spacing[other.nearest_index], threshold
-        )
-        changed = status == STATUS_SEEN_THROUGH
-        evidence = np.zeros(index.size, dtype=bool)
-        evidence[changed] = behind_evidence(
-            candidates.points[changed],
-            candidates.normal[changed],
-            other_points=other.points,
-            other_normal=other.geometry.normal,
-            other_unmatched=other_unmatched,
-        )
-        status = keep_evidenced_clusters(
-            candidates.points,
-            spacing=candidates.spacing,
-            status=status,
-            evidence=evidence,
-            cluster_factor=settings["cluster_factor"],
-        )
+        report.update({f"{side}_{name}": count for name, count in counts.items()})
     elif other.origins is None:
         report[f"{side}_visibility"] = "coverage"
         covered = (
