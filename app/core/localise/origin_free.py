@@ -99,6 +99,9 @@ BEHIND_MAX_RADIUS = 0.3
 UNMATCHED_FACTOR = 2.0
 """A point of the other cloud is unmatched when its nearest point in this cloud is farther
 than this many of that point's spacings (and tau)."""
+FOOTPRINT_MARGIN = 0.05
+FOOTPRINT_HEIGHT = 0.3
+FOOTPRINT_MIN_POINTS = 5
 EVIDENCE_SHARE = 0.1
 """A cluster of changed candidates stays changed when this share of its points has the other
 cloud's unmatched surface on its normal line; else it is unobserved (a face the other epoch
@@ -293,11 +296,11 @@ def behind_evidence(
     """Whether the other cloud has surface that this one lacks behind each candidate.
 
     Looked for on the candidate's normal line (both ways: a surface parallel to the
-    candidate's) and straight down (z up: a floor, the footprint of the object the candidate
-    is on).  A removed box's top has the other epoch's floor below it, which this epoch could
-    not see (the box hid it), and so do its side faces; an added box has the reference's floor and
-    wall behind it.  A face of an unchanged object that the other epoch never saw has only
-    surfaces both epochs share (or nothing) behind it.
+    candidate's).  A removed box's top has the other epoch's floor below it, which this epoch
+    could not see (the box hid it); an added box has the reference's floor and wall behind
+    it (its side faces have the floor in their footprint: :func:`keep_evidenced_clusters`).
+    A face of an unchanged object that the other epoch never saw has only surfaces both
+    epochs share (or nothing) behind it.
 
     Parameters
     ----------
@@ -327,10 +330,8 @@ def behind_evidence(
     steps = BEHIND_FIRST * BEHIND_STEP_RATIO ** np.arange(
         math.ceil(math.log(MAX_REACH / BEHIND_FIRST, BEHIND_STEP_RATIO)) + 1
     )
-    down = np.tile([0.0, 0.0, -1.0], (count, 1))
-    # along the normal both ways, a surface parallel to the candidate's; straight down, a
-    # floor (the footprint of a removed or added object, under its side faces too)
-    lines = ((unit, unit), (-unit, unit), (down, -down))
+    # along the normal both ways, a surface parallel to the candidate's
+    lines = ((unit, unit), (-unit, unit))
     for step in steps:
         radius = min(max(BEHIND_MIN_RADIUS, BEHIND_RADIUS_FRACTION * step), BEHIND_MAX_RADIUS)
         for direction, facing in lines:
@@ -353,8 +354,10 @@ def keep_evidenced_clusters(
     status: NDArray[np.int8],
     evidence: NDArray[np.bool_],
     cluster_factor: float,
+    floor_points: NDArray[np.float64] | None = None,
 ) -> NDArray[np.int8]:
-    """Changed clusters without enough :func:`behind_evidence` become unobserved.
+    """Changed clusters without enough :func:`behind_evidence` (nor floor in their
+    footprint) become unobserved.
 
     Parameters
     ----------
@@ -363,6 +366,12 @@ def keep_evidenced_clusters(
     status : ndarray, shape (c,), int8
     evidence : ndarray, shape (c,), bool
     cluster_factor : float
+    floor_points : ndarray, shape (f, 3), optional
+        The other cloud's unmatched points on level surfaces (z up).  A cluster without
+        enough evidence is still changed when :data:`FOOTPRINT_MIN_POINTS` of them lie in its
+        footprint (its bounding box shrunk by :data:`FOOTPRINT_MARGIN`, near its lowest
+        point): the floor under a removed box seen only from the side.  A single face has no
+        footprint; the floor under an unchanged box was never seen.
 
     Returns
     -------
@@ -373,8 +382,22 @@ def keep_evidenced_clusters(
         return status
     labels = cluster_labels(points[changed], cluster_factor * spacing[changed])
     share = np.bincount(labels, weights=evidence[changed].astype(np.float64)) / np.bincount(labels)
+    evidenced = share >= EVIDENCE_SHARE
+    if floor_points is not None and floor_points.shape[0]:
+        for label in np.flatnonzero(~evidenced):
+            cluster = points[changed[labels == label]]
+            low = cluster.min(axis=0) + FOOTPRINT_MARGIN
+            high = cluster.max(axis=0) - FOOTPRINT_MARGIN
+            inside = (
+                (floor_points[:, 0] > low[0])
+                & (floor_points[:, 0] < high[0])
+                & (floor_points[:, 1] > low[1])
+                & (floor_points[:, 1] < high[1])
+                & (np.abs(floor_points[:, 2] - cluster[:, 2].min()) <= FOOTPRINT_HEIGHT)
+            )
+            evidenced[label] = np.count_nonzero(inside) >= FOOTPRINT_MIN_POINTS
     kept = status.copy()
-    kept[changed[share[labels] < EVIDENCE_SHARE]] = STATUS_UNOBSERVED
+    kept[changed[~evidenced[labels]]] = STATUS_UNOBSERVED
     return kept
 
 
@@ -434,12 +457,14 @@ def surface_test(
         other_normal=other.geometry.normal,
         other_unmatched=other_unmatched,
     )
+    level = np.abs(other.geometry.normal[:, 2]) >= NORMAL_AGREEMENT_COSINE
     status = keep_evidenced_clusters(
         candidates.points,
         spacing=candidates.spacing,
         status=status,
         evidence=evidence,
         cluster_factor=cluster_factor,
+        floor_points=other.points[other_unmatched & level],
     )
     counts["candidates_without_evidence"] = int(
         np.count_nonzero(changed & (status == STATUS_UNOBSERVED))
