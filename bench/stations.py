@@ -10,7 +10,10 @@ put back with the true transform so that only visibility is measured).  Modes:
   (:func:`app.core.origins.stations.recover_stations`), else the origin-free test;
 - ``origin-free``: nothing given; the sampling-gap and coverage tests
   (``origin_free_test="gaps"``);
-- ``coverage``: nothing given, the coverage test alone (before issue 15).
+- ``coverage``: nothing given, the coverage test alone (before issue 15);
+- ``fallback``: nothing given and no recovery: the origin-free surface test
+  (``origin_free_test="surfaces"``, :mod:`app.core.localise.origin_free`), what a merged
+  cloud whose stations are not recovered needs.
 
 Per scene and mode: changed regions (the decision: changed when there is one), IoU of changed
 points over the points some station of the other epoch saw.
@@ -35,7 +38,7 @@ from app.core.synthetic_lidar import lidar_pair
 from tests.helpers.scenes import changed_iou
 
 RESULTS = Path(__file__).resolve().parent / "results"
-MODES = ("given", "origins", "recovered", "origin-free", "coverage")
+MODES = ("given", "origins", "recovered", "origin-free", "coverage", "fallback")
 CHANGES = ("added", "removed", "mixed", "none")
 LAYOUTS = ("room", "corridor", "warehouse")
 SECTION = "Several stations per cloud (bench/stations.py)"
@@ -59,6 +62,8 @@ def localise(pair, scan, scan_origins, mode: str):
                 options[f"{side}_origin"] = found.origins
     elif mode == "origin-free":
         options["origin_free_test"] = "gaps"
+    elif mode == "fallback":
+        options["origin_free_test"] = "surfaces"
     recovery_seconds = options.pop("recovery_seconds", 0.0)
     return localise_changes(pair.reference, scan, **options), recovered, recovery_seconds
 

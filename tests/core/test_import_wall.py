@@ -79,6 +79,7 @@ LOCALISE_LAYERS = (
     "regions",
     "gaps",
     "rays",
+    "origin_free",
     "visibility",
     "changes",
 )

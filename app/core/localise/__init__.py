@@ -13,6 +13,8 @@ Modules, each depending only on those below it:
 - :mod:`~app.core.localise.changes`: :func:`localise_changes` and :class:`Localisation`;
 - :mod:`~app.core.localise.visibility`: candidates become changed or unobserved;
 - :mod:`~app.core.localise.rays`: the ray test from the other sensor's origin;
+- :mod:`~app.core.localise.origin_free`: without any origin or station, the surface test
+  (``origin_free_test="surfaces"``): sampling gap, shadow on the other's plane, or change;
 - :mod:`~app.core.localise.regions`: connected regions of changed points;
 - :mod:`~app.core.localise.distance`: point-to-surface distances, support factor, alignment
   residual, and the per-cloud :class:`~app.core.localise.distance.Side`;

@@ -66,6 +66,9 @@ origin_free_test
     floor seen only at grazing angles, is unchanged; then the coverage test:
     :mod:`~app.core.localise.gaps`).  ``"gaps"`` is opt-in: it removes false changes in the
     blind discs of merged surveys but also parts of true changes on the paper's corridor.
+    ``"surfaces"``: gaps, shadows and changes told apart from both clouds' surfaces alone,
+    with neighbourhoods that grow from the local gap (:mod:`~app.core.localise.origin_free`);
+    for merged clouds whose stations are not known nor recovered.
 """
 
 PARAMETER_SPECS: dict[str, ParamSpec] = {
@@ -78,7 +81,7 @@ PARAMETER_SPECS: dict[str, ParamSpec] = {
     "visibility_angle_factor": ParamSpec("positive"),
     "visibility_beyond_fraction": ParamSpec("positive", high=1.0),
     "visibility_miss_factor": ParamSpec("positive"),
-    "origin_free_test": ParamSpec("choice", choices=("gaps", "coverage")),
+    "origin_free_test": ParamSpec("choice", choices=("gaps", "coverage", "surfaces")),
 }
 """How each of :data:`DEFAULT_PARAMETERS` is validated (same names, same order)."""
 

@@ -7,7 +7,9 @@ surface it saw only edge-on gets no evidence of its own; it is changed when conn
 candidates mostly seen through (a removed box's side face), unobserved otherwise.  Without an
 origin, a coverage test: a candidate whose nearest point in the other cloud is farther than
 ``coverage_factor`` local spacings is unobserved (single-viewpoint scans should pass origins,
-or their shadows' rims come out as changes).
+or their shadows' rims come out as changes); with ``origin_free_test="surfaces"`` the
+surface test of :mod:`app.core.localise.origin_free` instead (merged clouds whose stations
+are not known).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from numpy.typing import NDArray
 
 from app.core.localise.distance import Side
 from app.core.localise.gaps import in_sampling_gap
+from app.core.localise.origin_free import surface_test
 from app.core.localise.rays import (
     STATUS_EDGE_ON,
     STATUS_SEEN_THROUGH,
@@ -116,7 +119,17 @@ def label_candidates(
     index = candidates.index
     side = own.name
     report: dict[str, Any] = {f"{side}_candidates": int(index.size)}
-    if other.origins is None:
+    if other.origins is None and settings["origin_free_test"] == "surfaces":
+        report[f"{side}_visibility"] = "surfaces"
+        status, counts = surface_test(
+            candidates,
+            own=own,
+            other=other,
+            threshold=threshold,
+            cluster_factor=settings["cluster_factor"],
+        )
+        report.update({f"{side}_{name}": count for name, count in counts.items()})
+    elif other.origins is None:
         report[f"{side}_visibility"] = "coverage"
         covered = (
             own.nearest_distance[index]
