@@ -131,8 +131,10 @@ def ray_visibility(
     through it with its normal): a ray that stops clearly before the candidate (or before
     meeting that plane) means something is in front of it, unless the candidate lies clearly
     in front of the plane of the surface that return hit (:func:`_hides`); a ray that meets
-    the plane near the candidate (within ``max(miss_factor * spacing, surface_distance)``)
-    and carries on clearly beyond it saw free space where the candidate's surface would be.
+    the plane near the candidate (within ``max(miss_factor * spacing, surface_distance)``),
+    where its own cloud has surface all along the stretch over which it may meet that surface
+    (:func:`_over_own_surface`), and carries on clearly beyond it saw free space where the
+    candidate's surface would be.
 
     Parameters
     ----------
