@@ -131,8 +131,10 @@ def ray_visibility(
     through it with its normal): a ray that stops clearly before the candidate (or before
     meeting that plane) means something is in front of it, unless the candidate lies clearly
     in front of the plane of the surface that return hit (:func:`_hides`); a ray that meets
-    the plane near the candidate (within ``max(miss_factor * spacing, surface_distance)``)
-    and carries on clearly beyond it saw free space where the candidate's surface would be.
+    the plane near the candidate (within ``max(miss_factor * spacing, surface_distance)``),
+    where its own cloud has surface all along the stretch over which it may meet that surface
+    (:func:`_over_own_surface`), and carries on clearly beyond it saw free space where the
+    candidate's surface would be.
 
     Parameters
     ----------
@@ -316,9 +318,15 @@ def _ray_status(
     # ... and only where the point's own cloud has surface: a ray crossing the plane beyond
     # the edge of a table top says nothing about the table
     near_rows, near_rays = np.nonzero(crosses_near & ~occluded_anyway[:, None])
-    own_distance, own_nearest = own.tree.query(crossing_point[near_rows, near_rays], k=1)
-    own_support = np.maximum(OWN_SUPPORT_FACTOR * own.spacing[own_nearest], normal_tolerance)
-    crosses_near[near_rows, near_rays] = own_distance <= own_support
+    crosses_near[near_rows, near_rays] = _over_own_surface(
+        own,
+        crossing_point[near_rows, near_rays],
+        ray_direction[near_rows, near_rays],
+        normals[near_rows],
+        ray_dot_normal[near_rows, near_rays],
+        reach=margin_factor * normal_tolerance,
+        normal_tolerance=normal_tolerance,
+    )
     expected_stop = np.where(
         crosses_near, np.minimum(crossing, point_range[:, None]), point_range[:, None]
     )
@@ -330,6 +338,63 @@ def _ray_status(
     status = np.where(seen_through, STATUS_SEEN_THROUGH, STATUS_SURFACE)
     status = np.where(n_near == 0, STATUS_EDGE_ON, status)
     return np.where(occluded, STATUS_UNOBSERVED, status).astype(np.int8)
+
+
+def _over_own_surface(
+    own: LocalGeometry,
+    crossing_point: NDArray[np.float64],
+    ray_direction: NDArray[np.float64],
+    normal: NDArray[np.float64],
+    ray_dot_normal: NDArray[np.float64],
+    *,
+    reach: float,
+    normal_tolerance: float,
+) -> NDArray[np.bool_]:
+    """Whether a ray meets the candidate's own surface wherever it may meet it, not beside it.
+
+    The surface is known to within ``reach`` of its plane, so a ray meets it somewhere within
+    ``reach / cos(incidence)`` of its plane crossing along the ray: on the plane, within
+    ``reach * tan(incidence)`` of the crossing along the ray's in-plane direction.  The ray
+    went through the surface only if the own cloud has surface (a point within
+    :data:`OWN_SUPPORT_FACTOR` spacings) at the crossing and at both ends of that stretch.  At
+    a grazing incidence the stretch is long: a ray passing just beside a silhouette edge
+    crosses the plane just beyond the edge's last points and is no evidence that the surface
+    is gone (it can only be where the surface is when the edge is farther than the stretch).
+
+    Parameters
+    ----------
+    own : LocalGeometry
+        The candidates' own cloud.
+    crossing_point : ndarray, shape (s, 3)
+        Where each ray meets its candidate's plane.
+    ray_direction : ndarray, shape (s, 3)
+        Unit direction of each ray.
+    normal : ndarray, shape (s, 3)
+        Unit normal of each ray's candidate.
+    ray_dot_normal : ndarray, shape (s,)
+        ``ray_direction . normal`` (not grazing: at least :data:`MIN_INCIDENCE_COSINE` in
+        absolute value).
+    reach : float
+        How far (metres) the surface may lie off its plane.
+    normal_tolerance : float
+        The smallest own support radius (metres).
+
+    Returns
+    -------
+    ndarray, shape (s,), bool
+    """
+    if crossing_point.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    # the ray's in-plane component has length sin(incidence); over reach / cos(incidence)
+    # along the ray it moves reach * tan(incidence) along the plane
+    in_plane = ray_direction - ray_dot_normal[:, None] * normal
+    stretch = (reach / np.abs(ray_dot_normal))[:, None] * in_plane
+    supported = np.ones(crossing_point.shape[0], dtype=bool)
+    for along in (crossing_point, crossing_point - stretch, crossing_point + stretch):
+        own_distance, own_nearest = own.tree.query(along, k=1)
+        own_support = np.maximum(OWN_SUPPORT_FACTOR * own.spacing[own_nearest], normal_tolerance)
+        supported &= own_distance <= own_support
+    return supported
 
 
 def _hides(
