@@ -8,20 +8,19 @@ when the cached entry expires: never before the TTL, and at once with the cache 
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 import time
 from collections.abc import Callable
 
 import httpx
-from sqlalchemy import update
+from sqlalchemy import select, update
 
 from app.clock import utc_now
 from app.config import Settings
 from app.db.models import ApiToken
 from app.db.session import transaction
-from app.services.auth import TOKEN_CACHE_SECONDS, hash_token
+from app.services.auth import TOKEN_CACHE_SECONDS, create_token, hash_token
 from tests.helpers.environment import PROJECT_ROOT
 from tests.helpers.http import unique_name
 from tests.helpers.service import ServiceProcess
@@ -43,22 +42,25 @@ def scandiff(service: ServiceProcess, *arguments: str) -> subprocess.CompletedPr
     )
 
 
-def issue_token(service: ServiceProcess, organisation: str | None = None) -> str:
-    """A writer token of ``organisation`` (default: a new one) from ``scandiff token create``."""
-    organisation = organisation or unique_name("revoke-org")
-    created = scandiff(service, "token", "create", "--org", organisation, "--role", "writer")
-    assert created.returncode == 0, created.stderr
-    return created.stdout.strip()
+def issue_listed_token(service: ServiceProcess, organisation: str | None = None) -> tuple[str, str]:
+    """A writer token of ``organisation`` (default: a new one) and its id: (secret, id).
+
+    Issued in this process on the service's database (``scandiff token create`` and ``list`` as
+    subprocesses are tests/cli/test_token_cli.py's subject); only the revocations here run the
+    command, from another process than the service's.
+    """
+    with transaction(Settings(data_dir=service.data_dir).sqlalchemy_url) as session:
+        secret = create_token(session, organisation or unique_name("revoke-org"), "writer")
+        token_id = session.execute(
+            select(ApiToken.id).where(ApiToken.token_hash == hash_token(secret))
+        ).scalar_one()
+    return secret, str(token_id)
 
 
-def issue_listed_token(service: ServiceProcess) -> tuple[str, str]:
-    """A writer token from ``scandiff token create``, its id from ``token list``: (secret, id)."""
-    organisation = unique_name("revoke-org")
-    secret = issue_token(service, organisation)
-    listed = scandiff(service, "token", "list", "--org", organisation, "--json")
-    assert listed.returncode == 0, listed.stderr
-    [token] = json.loads(listed.stdout)
-    return secret, token["id"]
+def issue_token(service: ServiceProcess) -> str:
+    """A writer token of a new organisation (see :func:`issue_listed_token`)."""
+    secret, _ = issue_listed_token(service)
+    return secret
 
 
 def authenticated_and_cached(service: ServiceProcess, secret: str) -> httpx.Client:

@@ -233,12 +233,16 @@ def in_station_order(pair: LidarPair) -> LidarPair:
     return dataclasses.replace(pair, **fields)
 
 
-def test_compare_uses_the_stations_of_e57_files():
-    pair = in_station_order(
-        lidar_pair(
-            layout="room", change="added", n_stations=3, angular_step_deg=1.2, random_state=3
-        )
+@pytest.fixture(scope="module")
+def three_station_room() -> LidarPair:
+    """A merged three-station survey of a room with a box added (made once for the module)."""
+    return lidar_pair(
+        layout="room", change="added", n_stations=3, angular_step_deg=1.2, random_state=3
     )
+
+
+def test_compare_uses_the_stations_of_e57_files(three_station_room: LidarPair):
+    pair = in_station_order(three_station_room)
     reference = read_point_cloud(
         stations_as_e57(pair.reference, pair.reference_station, pair.reference_origins, seed=2),
         filename="reference.e57",
@@ -274,10 +278,8 @@ def test_one_given_origin_for_a_file_of_several_stations_is_refused():
         )
 
 
-def test_a_station_index_alone_gets_each_station_origin_estimated():
-    pair = lidar_pair(
-        layout="room", change="added", n_stations=3, angular_step_deg=1.2, random_state=3
-    )
+def test_a_station_index_alone_gets_each_station_origin_estimated(three_station_room: LidarPair):
+    pair = three_station_room
     reference = read_point_cloud(
         ply_bytes(
             pair.reference,

@@ -22,6 +22,7 @@ from collections import Counter
 from collections.abc import Callable
 
 import httpx
+import pytest
 
 from tests.helpers.database import database_rows, job_status_counts
 from tests.helpers.figures import percentile, record_figure
@@ -44,6 +45,10 @@ CONTENTION_ENV = {
 LOCKED = "database is locked"
 
 
+@pytest.mark.slow  # a 12 s load window on a 3-worker service, then its backlog; make test keeps
+# the same lock checks shorter: tests/jobs/test_sqlite_contention.py (heartbeats, API-style writes
+# and sweeps from several processes) and tests/reliability/test_concurrency.py (reads while a
+# writer holds the lock, a storm of mixed requests).
 def test_status_reads_under_worker_writes_see_no_lock_errors(
     service_factory: Callable[..., ServiceProcess],
 ) -> None:
