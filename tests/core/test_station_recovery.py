@@ -11,8 +11,10 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+import pytest
 
-from app.core.origins.stations import recover_stations
+from app.core.origins import estimate, stations
+from app.core.origins.stations import recover_stations, resolve_stations
 from app.core.synthetic_lidar import LidarWorld, lidar_directions
 
 STEP = 1.2  # degrees: ~27k points a station in this room
@@ -83,3 +85,67 @@ def test_one_station_in_the_same_room_is_not_split_into_several():
     distance = distance + rng.normal(0.0, 0.01, distance.shape)
     found = recover_stations(rng.permutation(origin + distance[:, None] * directions))
     assert not found.several
+
+
+def test_the_subset_of_a_large_cloud_is_whole_voxels_and_seeded(monkeypatch):
+    monkeypatch.setattr(stations, "MAX_POINTS", 30_000)
+    points, _ = close_survey(0)
+    first = stations._subset(points, np.random.default_rng(5))
+    again = stations._subset(points.copy(), np.random.default_rng(5))
+    other = stations._subset(points, np.random.default_rng(6))
+    np.testing.assert_array_equal(first, again)
+    assert not np.array_equal(first, other)
+    assert 0.5 * 30_000 <= len(first) <= 2.0 * 30_000
+    # a voxel is kept with all its points (neighbours stay lattice neighbours) or not at all
+    voxel_of = {tuple(key) for key in np.floor(first / stations.PATCH).astype(int).tolist()}
+    in_kept = [tuple(key) in voxel_of for key in np.floor(points / stations.PATCH).astype(int)]
+    assert int(np.count_nonzero(in_kept)) == len(first)
+
+
+def test_stations_are_recovered_from_a_subset_of_the_points(monkeypatch):
+    monkeypatch.setattr(stations, "MAX_POINTS", 50_000)  # the survey has ~80k points
+    points, origins = close_survey(0)
+    found = recover_stations(points)
+    assert found.origins.shape == (3, 3)
+    error = np.linalg.norm(origins[:, None, :] - found.origins[None], axis=2)
+    assert (error.min(axis=1) <= 0.02).all(), error.min(axis=1)
+
+
+def test_a_merged_survey_is_recovered_without_searching_an_apex(monkeypatch):
+    def no_apex_search(*args, **kwargs):
+        raise AssertionError("the apex search ran on a merged survey")
+
+    monkeypatch.setattr(estimate, "search_apex", no_apex_search)
+    points, origins = close_survey(0)
+    resolved = resolve_stations(
+        "reference", points, given=None, from_file=None, estimate=True, recover=True
+    )
+    assert resolved.source == "recovered"
+    assert np.asarray(resolved.origin).shape == origins.shape
+
+
+@pytest.mark.parametrize("recover", [False, True])
+def test_a_single_station_left_unconfident_still_gets_the_apex_search(monkeypatch, recover):
+    searched = []
+    search = estimate.search_apex
+
+    def counted(*args, **kwargs):
+        searched.append(True)
+        return search(*args, **kwargs)
+
+    monkeypatch.setattr(estimate, "search_apex", counted)
+    # a lidar's wall returns only (no floor, no ceiling: no column lines to concur)
+    world = LidarWorld(
+        shell_low=np.zeros(3),
+        shell_high=np.array([9.0, 7.0, 2.8]),
+        box_low=np.zeros((0, 3)),
+        box_high=np.zeros((0, 3)),
+    )
+    rng = np.random.default_rng(4)
+    directions = lidar_directions(0.8, 0.8, yaw_deg=5.0)
+    origin = np.array([4.2, 3.1, 1.1])
+    distance, _ = world.cast(origin, directions)
+    points = origin + (distance + rng.normal(0.0, 0.01, distance.shape))[:, None] * directions
+    walls = points[(points[:, 2] > 0.05) & (points[:, 2] < 2.75)]
+    resolve_stations("reference", walls, given=None, from_file=None, estimate=True, recover=recover)
+    assert searched

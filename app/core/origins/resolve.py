@@ -97,6 +97,7 @@ def resolve_origin(
     from_file: NDArray[np.float64] | None,
     estimate: bool = True,
     random_state: int = 0,
+    apex: bool = True,
 ) -> ResolvedOrigin:
     """Pick and check the origin of one cloud.
 
@@ -113,6 +114,9 @@ def resolve_origin(
     random_state : int
         Seeds the estimate's subsamples (fixed by default, so a comparison replays exactly
         whatever its own seed).
+    apex : bool
+        Let the estimate search the rings' apex
+        (:func:`~app.core.origins.estimate.estimate_origin`).
 
     Returns
     -------
@@ -124,7 +128,7 @@ def resolve_origin(
         return ResolvedOrigin(origin, source, None)
     found: OriginEstimate | None = None
     if estimate or origin is not None:
-        found = estimate_origin(points, random_state=random_state)
+        found = estimate_origin(points, random_state=random_state, apex=apex)
     warnings: list[str] = []
     if origin is not None:
         described = f"the {side}'s {source} sensor origin {np.round(origin, 3).tolist()}"

@@ -1,0 +1,185 @@
+"""What finding the sensor origins costs at 1M points a scan (issue 15: <= 15 % of a compare).
+
+Scenes from :func:`app.core.synthetic_lidar.lidar_pair` at about ``--points`` points per scan
+(denser rays: :func:`~app.core.synthetic_lidar.steps_for_points`): single-station pairs
+(nothing given, the origins estimated) and merged surveys of 3-5 stations per epoch (nothing
+given, ``recover_stations``).  Each pair goes through :func:`app.core.pipeline.compare` once;
+per pair the bench prints the compare's wall time, the time spent on origins
+(``timings["origins"]``: estimation, checks and station recovery of both clouds), their
+ratios (``origins / compare`` and ``origins / (compare - origins)``, what estimation adds), the
+IoU of changed points and, for merged surveys, the largest distance from a true station to the
+nearest recovered one.  All numbers of a row come from the same run.
+
+The machine may be shared: run with ``OMP_NUM_THREADS=1``; the load average is printed with the
+results.  ``--profile`` prints the top of a cProfile of the origins' stage of the first pair.
+
+Run: ``OMP_NUM_THREADS=1 .venv/bin/python -m bench.origins_speed [--points 1000000]
+[--seeds 1] [--kinds single,merged] [--changes added,none]``.  Writes nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import os
+import pstats
+import time
+
+import numpy as np
+
+from app.core import pipeline
+from app.core.cloud import PointCloud
+from app.core.pipeline import compare
+from app.core.synthetic_lidar import lidar_pair, steps_for_points
+from bench.scenes import changed_points_iou
+
+KINDS = ("single", "merged")
+LAYOUTS = ("room", "corridor", "warehouse")
+
+
+def station_error(entries: list[dict], truth: np.ndarray) -> float:
+    """Largest distance (m) from a true station to the nearest reported one (inf: wrong count)."""
+    if len(entries) != len(truth):
+        return float("inf")
+    found = np.array([entry["origin"] for entry in entries])
+    return float(np.linalg.norm(truth[:, None] - found[None], axis=2).min(axis=1).max())
+
+
+class _CpuClock:
+    """Process CPU seconds spent in the pipeline's origin stages (wrapped in place).
+
+    On a shared machine wall times stretch with the load; the CPU time of one thread does not
+    (the compare runs on one thread here, so nothing else runs during these stages).
+    """
+
+    def __init__(self) -> None:
+        self.seconds = 0.0
+
+    def wrap(self, function):
+        def timed(*args, **kwargs):
+            started = time.process_time()
+            try:
+                return function(*args, **kwargs)
+            finally:
+                self.seconds += time.process_time() - started
+
+        return timed
+
+
+def run_pair(pair, merged: bool, profile: bool = False) -> dict:
+    """One compare with nothing given; its timings, IoU and origin errors."""
+    clock = _CpuClock()
+    originals = pipeline.resolve_stations, pipeline.resolve_moved_cloud
+    pipeline.resolve_stations = clock.wrap(originals[0])
+    pipeline.resolve_moved_cloud = clock.wrap(originals[1])
+    params = {"recover_stations": True} if merged else {}
+    profiler = cProfile.Profile() if profile else None
+    started = time.perf_counter()
+    cpu_started = time.process_time()
+    if profiler is not None:
+        profiler.enable()
+    result = compare(
+        PointCloud.from_array(pair.reference),
+        PointCloud.from_array(pair.scan),
+        params=params,
+        threads=1,
+    )
+    pipeline.resolve_stations, pipeline.resolve_moved_cloud = originals
+    if profiler is not None:
+        profiler.disable()
+        pstats.Stats(profiler).sort_stats("cumulative").print_stats(40)
+    total = time.perf_counter() - started
+    cpu = time.process_time() - cpu_started
+    origins = result.timings.get("origins", 0.0)
+    errors = [
+        station_error(result.sensor_origins[side], truth)
+        for side, truth in (
+            ("reference", pair.reference_origins),
+            # the scan file is misaligned when asked: its origins are in its own frame
+            ("scan", pair.scan_origins),
+        )
+    ]
+    return {
+        "seconds": total,
+        "cpu_seconds": cpu,
+        "origins": origins,
+        "share": origins / total,
+        "adds": origins / max(total - origins, 1e-9),
+        "origins_cpu": clock.seconds,
+        "adds_cpu": clock.seconds / max(cpu - clock.seconds, 1e-9),
+        "iou": changed_points_iou(result, pair),
+        "regions": len(result.regions),
+        "decided": result.changed,
+        "origin_error": max(errors),
+        "sources": "/".join(
+            ",".join(sorted({entry["source"] for entry in result.sensor_origins[side]}) or "-")
+            for side in ("reference", "scan")
+        ),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--points", type=int, default=1_000_000, help="points per scan")
+    parser.add_argument("--seeds", type=int, default=1)
+    parser.add_argument("--first-seed", type=int, default=0)
+    parser.add_argument("--kinds", default=",".join(KINDS))
+    parser.add_argument("--layouts", default=",".join(LAYOUTS))
+    parser.add_argument("--changes", default="added,none")
+    parser.add_argument("--profile", action="store_true", help="cProfile the first compare")
+    args = parser.parse_args()
+    print(f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}", flush=True)
+    rows = []
+    profile = args.profile
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
+        for kind in args.kinds.split(","):
+            for layout in args.layouts.split(","):
+                for change in args.changes.split(","):
+                    merged = kind == "merged"
+                    n_stations = 3 + (seed + len(layout) + len(change)) % 3 if merged else 1
+                    pair = lidar_pair(
+                        layout=layout,
+                        change=change,
+                        n_stations=n_stations,
+                        angular_step_deg=steps_for_points(args.points, n_stations),
+                        misaligned=bool((seed + len(change)) % 2),
+                        random_state=3000 + seed,
+                    )
+                    row = run_pair(pair, merged, profile)
+                    profile = False
+                    row.update(
+                        kind=kind, layout=layout, change=change, seed=seed, stations=n_stations
+                    )
+                    row["points"] = len(pair.reference)
+                    rows.append(row)
+                    print(
+                        f"{kind:6s} {layout:9s} {change:6s} seed {seed} k={n_stations} "
+                        f"n={row['points']:8d} compare {row['seconds']:6.1f} s "
+                        f"(cpu {row['cpu_seconds']:6.1f} s) origins {row['origins']:5.2f} s "
+                        f"= {100 * row['share']:4.1f} % of compare, adds "
+                        f"{100 * row['adds']:4.1f} % (cpu {row['origins_cpu']:5.2f} s, adds "
+                        f"{100 * row['adds_cpu']:4.1f} %); IoU {row['iou']:.3f} "
+                        f"regions {row['regions']:3d} origin error {row['origin_error']:.4f} m "
+                        f"[{row['sources']}] load {os.getloadavg()[0]:.1f}",
+                        flush=True,
+                    )
+    for kind in args.kinds.split(","):
+        mine = [row for row in rows if row["kind"] == kind]
+        if not mine:
+            continue
+        changed = [row["iou"] for row in mine if row["change"] != "none"]
+        print(
+            f"{kind}: {len(mine)} pairs; origins adds to the compare: max "
+            f"{100 * max(row['adds'] for row in mine):.1f} %, mean "
+            f"{100 * np.mean([row['adds'] for row in mine]):.1f} % (wall); in CPU time max "
+            f"{100 * max(row['adds_cpu'] for row in mine):.1f} %, mean "
+            f"{100 * np.mean([row['adds_cpu'] for row in mine]):.1f} %; IoU min (changed) "
+            f"{min(changed, default=float('nan')):.3f}; largest origin error "
+            f"{max(row['origin_error'] for row in mine):.4f} m; quiet regions "
+            f"{sum(row['regions'] for row in mine if row['change'] == 'none')}"
+        )
+    print(f"load average {os.getloadavg()}")
+
+
+if __name__ == "__main__":
+    main()
