@@ -6,7 +6,9 @@ stores it once (neighbour index, k-th distance and spatial order: 4 (k + 1) + 16
 point) and hands it back to :func:`app.core.pipeline.compare`, which then builds only the
 KD-tree (a fraction of the query's cost).  Its header also keeps small *facts* about the
 reference that cost seconds to work out and do not depend on the scan (its resolved sensor
-origin, :mod:`app.core.reference_origin`), each under its own key and checksum.
+origin, :mod:`app.core.reference_origin`), each under its own key and checksum, and
+*array facts* after its arrays (the reference's alignment grids,
+:mod:`app.core.reference_alignment`), likewise keyed and checksummed.
 
 Nothing read back is trusted blindly: the file must carry the expected key (reference,
 code version and localisation parameters, :func:`cache_key`), the expected point count and k,
@@ -21,13 +23,12 @@ import contextlib
 import hashlib
 import json
 import os
-import shutil
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from functools import partial
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 from numpy.typing import NDArray
@@ -54,8 +55,8 @@ __all__ = [
     "reference_neighbourhoods",
 ]
 
-CACHE_FORMAT = 2
-"""Bumped whenever the file layout changes."""
+CACHE_FORMAT = 3
+"""Bumped whenever the file layout changes (3: array facts after the arrays)."""
 MAGIC = b"SCANDIFF-GEOMETRY\n"
 VERIFIED_ROWS = 256
 """Rows whose k-th neighbour distance is recomputed from the points on every load."""
@@ -127,6 +128,58 @@ def _arrays_digest(arrays: tuple[NDArray, ...]) -> str:
     return digest.hexdigest()
 
 
+def _array_fact_entry(name: str, key: str, array: NDArray) -> dict[str, Any]:
+    array = np.ascontiguousarray(array)
+    return {
+        "name": name,
+        "key": key,
+        "dtype": array.dtype.str,
+        "shape": list(array.shape),
+        "sha256": _arrays_digest((array,)),
+    }
+
+
+def _array_fact_bytes(entry: Any) -> int | None:
+    """Bytes of an array fact's payload (None: not a valid entry)."""
+    try:
+        dtype = np.dtype(entry["dtype"])
+        shape = [int(size) for size in entry["shape"]]
+        if dtype.hasobject or any(size < 0 for size in shape) or not isinstance(entry["key"], str):
+            return None
+        return dtype.itemsize * int(np.prod(shape, dtype=np.int64))
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+def _array_fact_entries(header: Mapping[str, Any]) -> list[dict[str, Any]] | None:
+    """The header's array facts, in file order (None: malformed)."""
+    entries = header.get("array_facts", [])
+    if not isinstance(entries, list) or not all(
+        isinstance(entry, dict) and _array_fact_bytes(entry) is not None for entry in entries
+    ):
+        return None
+    return entries
+
+
+def _copy_bytes(source: BinaryIO, target: BinaryIO, count: int) -> None:
+    """Copy ``count`` bytes from ``source`` to ``target``, 4 MiB at a time."""
+    while count > 0:
+        chunk = source.read(min(count, 1 << 22))
+        if not chunk:
+            raise ValueError("the file ended early")
+        target.write(chunk)
+        count -= len(chunk)
+
+
+def _arrays_bytes(header: Mapping[str, Any]) -> int | None:
+    """Bytes of a file's neighbourhood arrays (between its header and its array facts)."""
+    n, k = header.get("n"), header.get("k")
+    if not isinstance(n, int) or not isinstance(k, int) or n < 0 or k < 0:
+        return None
+    layout = _LAYOUT if isinstance(header.get("noise"), float) else _LAYOUT[:3]
+    return sum(n * width(k) * np.dtype(dtype).itemsize for dtype, width in layout)
+
+
 @dataclass(frozen=True)
 class GeometryCache:
     """One reference's cached k-NN geometry: a file and the key it must carry.
@@ -190,29 +243,122 @@ class GeometryCache:
         bool
             Whether the file was rewritten.
         """
+        return self.store_facts({name: (key, value)})
+
+    def store_facts(self, facts: Mapping[str, tuple[str, Any]]) -> bool:
+        """Add (or replace) facts, JSON values or arrays, in the existing file in one rewrite.
+
+        Parameters
+        ----------
+        facts : mapping
+            ``{name: (key, value)}``; a numpy array ``value`` is an array fact
+            (:meth:`load_array_fact`), anything else a JSON fact (:meth:`load_fact`).
+
+        Returns
+        -------
+        bool
+            Whether the file was rewritten (not when there is no valid file of this key, or
+            every fact is there already).
+        """
         header = self._header()
-        if header is None or self.load_fact(name, key) == value:
+        entries = None if header is None else _array_fact_entries(header)
+        if header is None or entries is None:
             return False
-        facts = header.get("facts")
-        header["facts"] = {
-            **(facts if isinstance(facts, dict) else {}),
-            name: _fact_entry(key, value),
-        }
+        json_facts = header.get("facts")
+        json_facts = dict(json_facts) if isinstance(json_facts, dict) else {}
+        new_arrays: dict[str, NDArray] = {}
+        for name, (key, value) in facts.items():
+            if isinstance(value, np.ndarray):
+                stored = self.load_array_fact(name, key)  # checked: a damaged one is replaced
+                if (
+                    stored is None
+                    or stored.dtype != value.dtype
+                    or not np.array_equal(stored, value)
+                ):
+                    new_arrays[name] = np.ascontiguousarray(value)
+            elif self.load_fact(name, key) != value:
+                json_facts[name] = _fact_entry(key, value)
+        if not new_arrays and json_facts == (header.get("facts") or {}):
+            return False
+        header["facts"] = json_facts
         temporary = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
         try:
             with open(self.path, "rb") as source, open(temporary, "wb") as target:
                 source.readline()
                 if json.loads(source.readline()).get("sha256") != header.get("sha256"):
                     return False  # replaced meanwhile (another comparison rebuilt it)
+                arrays_bytes = _arrays_bytes(header)
+                if arrays_bytes is None:
+                    return False
+                added = {
+                    name: _array_fact_entry(name, facts[name][0], array)
+                    for name, array in new_arrays.items()
+                }
+                header["array_facts"] = [
+                    *(entry for entry in entries if entry["name"] not in added),
+                    *added.values(),
+                ]
                 target.write(MAGIC)
                 target.write(json.dumps(header).encode() + b"\n")
-                shutil.copyfileobj(source, target, 1 << 22)
+                _copy_bytes(source, target, arrays_bytes)
+                for entry in entries:
+                    payload = source.read(_array_fact_bytes(entry) or 0)
+                    if entry["name"] not in added:
+                        target.write(payload)
+                for array in new_arrays.values():
+                    array.tofile(target)
             os.replace(temporary, self.path)
         except (OSError, ValueError, UnicodeDecodeError, AttributeError):
             return False
         finally:
             temporary.unlink(missing_ok=True)
         return True
+
+    def load_array_fact(self, name: str, key: str) -> NDArray | None:
+        """The array fact ``name`` stored under ``key`` (None: missing, for another key, or
+        damaged: its checksum does not match).
+
+        Parameters
+        ----------
+        name : str
+        key : str
+            What the array must have been stored for.
+
+        Returns
+        -------
+        ndarray or None
+            Of the dtype and shape it was stored with.
+        """
+        try:
+            with open(self.path, "rb") as source:
+                if source.readline() != MAGIC:
+                    return None
+                header = json.loads(source.readline())
+                if not isinstance(header, dict) or header.get("key") != self.key:
+                    return None
+                entries = _array_fact_entries(header)
+                offset = _arrays_bytes(header)
+                if entries is None or offset is None:
+                    return None
+                for entry in entries:
+                    size = _array_fact_bytes(entry) or 0
+                    if entry["name"] == name:
+                        if entry["key"] != key:
+                            return None
+                        source.seek(offset, os.SEEK_CUR)
+                        payload = source.read(size)
+                        break
+                    offset += size
+                else:
+                    return None
+        except (OSError, ValueError, UnicodeDecodeError):
+            return None
+        if len(payload) != size:
+            return None
+        array = np.frombuffer(payload, dtype=np.dtype(entry["dtype"])).reshape(entry["shape"])
+        if _arrays_digest((array,)) != entry.get("sha256"):
+            return None
+        return array
 
     def load(self, points: NDArray[np.float64], n_neighbors: int) -> Neighbourhoods | None:
         """The cached neighbourhoods of ``points``, or None when missing or not to be trusted.
@@ -242,10 +388,14 @@ class GeometryCache:
                     return None
                 noise = header.get("noise")
                 layout = _LAYOUT if isinstance(noise, float) else _LAYOUT[:3]
+                entries = _array_fact_entries(header)
+                if entries is None:
+                    return None
                 arrays = tuple(
                     np.fromfile(source, dtype=dtype, count=n * width(k)) for dtype, width in layout
                 )
-                if source.read(1):
+                after = sum(_array_fact_bytes(entry) or 0 for entry in entries)
+                if os.fstat(source.fileno()).st_size != source.tell() + after:
                     return None
         except (OSError, ValueError, UnicodeDecodeError):
             return None
@@ -285,7 +435,8 @@ class GeometryCache:
         neighbourhoods : Neighbourhoods
             Of the reference this cache is for, with its spatial order.
         facts : mapping, optional
-            ``{name: (key, JSON value)}`` kept in the header (:meth:`load_fact`).
+            ``{name: (key, value)}``: JSON values kept in the header (:meth:`load_fact`),
+            numpy arrays after the neighbourhood arrays (:meth:`load_array_fact`).
 
         Returns
         -------
@@ -318,8 +469,22 @@ class GeometryCache:
         }
         if surfaces is not None:
             header["noise"] = float(surfaces.noise)
-        if facts:
-            header["facts"] = {name: _fact_entry(*entry) for name, entry in facts.items()}
+        array_facts = {
+            name: (key, np.ascontiguousarray(value))
+            for name, (key, value) in (facts or {}).items()
+            if isinstance(value, np.ndarray)
+        }
+        json_facts = {
+            name: _fact_entry(key, value)
+            for name, (key, value) in (facts or {}).items()
+            if name not in array_facts
+        }
+        if json_facts:
+            header["facts"] = json_facts
+        if array_facts:
+            header["array_facts"] = [
+                _array_fact_entry(name, key, value) for name, (key, value) in array_facts.items()
+            ]
         self.path.parent.mkdir(parents=True, exist_ok=True)
         temporary = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
         try:
@@ -328,6 +493,8 @@ class GeometryCache:
                 target.write(json.dumps(header).encode() + b"\n")
                 for array in arrays:
                     array.tofile(target)
+                for _, value in array_facts.values():
+                    value.tofile(target)
             os.replace(temporary, self.path)
         finally:
             temporary.unlink(missing_ok=True)
