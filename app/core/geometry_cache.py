@@ -294,19 +294,21 @@ class GeometryCache:
                     name: _array_fact_entry(name, facts[name][0], array)
                     for name, array in new_arrays.items()
                 }
-                header["array_facts"] = [
-                    *(entry for entry in entries if entry["name"] not in added),
-                    *added.values(),
+                present = {entry["name"] for entry in entries}
+                header["array_facts"] = [  # a replaced fact keeps its place
+                    *(added.get(entry["name"], entry) for entry in entries),
+                    *(entry for name, entry in added.items() if name not in present),
                 ]
                 target.write(MAGIC)
                 target.write(json.dumps(header).encode() + b"\n")
                 _copy_bytes(source, target, arrays_bytes)
                 for entry in entries:
                     payload = source.read(_array_fact_bytes(entry) or 0)
-                    if entry["name"] not in added:
-                        target.write(payload)
-                for array in new_arrays.values():
-                    array.tofile(target)
+                    name = entry["name"]
+                    target.write(payload if name not in added else new_arrays[name].tobytes())
+                for name, array in new_arrays.items():
+                    if name not in present:
+                        array.tofile(target)
             os.replace(temporary, self.path)
         except (OSError, ValueError, UnicodeDecodeError, AttributeError):
             return False
