@@ -100,7 +100,7 @@ class ReferenceAlignmentCache:
         """The array kept for ``name`` and ``parameters`` (None: missing, stale or damaged)."""
         fact_name, fact_key = self._fact(name, parameters)
         array = self.cache.load_array_fact(fact_name, fact_key)
-        if array is None or array.dtype != np.float64 or not np.isfinite(array).all():
+        if array is None or not _plausible(name, array):
             return None
         self.facts[fact_name] = (fact_key, array)
         return array
@@ -118,3 +118,13 @@ class ReferenceAlignmentCache:
         if self.computed:
             with contextlib.suppress(OSError):
                 self.cache.store_facts(self.computed)
+
+
+def _plausible(name: str, array: NDArray) -> bool:
+    """Whether ``array`` has the form of a :class:`~app.core.registration.ReferenceMemory`
+    array called ``name``: finite float64, (1,) non-negative for the spacing, else (m, 3)."""
+    if array.dtype != np.float64 or not np.isfinite(array).all():
+        return False
+    if name == "spacing":
+        return array.shape == (1,) and bool(array[0] >= 0.0)
+    return array.ndim == 2 and array.shape[1] == 3

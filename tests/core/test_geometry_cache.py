@@ -17,7 +17,7 @@ from app.core.localise.neighbourhoods import nearest_neighbourhoods
 from app.core.localise.surface import with_surfaces
 from app.core.origins.resolve import ResolvedOrigin
 from app.core.pipeline import REFERENCE_AHEAD_MIN_POINTS, compare
-from app.core.reference_alignment import ALIGNMENT_FACT_PREFIX
+from app.core.reference_alignment import ALIGNMENT_FACT_PREFIX, ReferenceAlignmentCache
 from app.core.reference_origin import (
     ORIGIN_FACT,
     ReferenceOriginCache,
@@ -326,3 +326,27 @@ def test_a_cache_hit_recalls_the_reference_alignment_work(
     assert_same_result(again, uncached[threads])
     assert calls["estimate_point_spacing"] == 2
     assert cache.path.read_bytes() == written
+
+
+def test_the_alignment_memory_recalls_only_its_own_plausible_arrays(tmp_path, pair):
+    cache = GeometryCache(tmp_path / "ref.geometry", cache_key("ref", None))
+    cache.store(nearest_neighbourhoods(pair.reference[:2_000], N_NEIGHBORS))
+    assert ReferenceAlignmentCache.of(None, {}) is None
+    facts: dict = {}
+    memory = ReferenceAlignmentCache.of(cache, facts)
+    grid = np.random.default_rng(0).normal(size=(50, 3))
+    assert memory.recall("grid", (0.1,)) is None
+    memory.remember("grid", (0.1,), grid)
+    memory.remember("spacing", (), np.array([0.05]))
+    assert set(facts) == {"alignment.grid", "alignment.spacing"}  # written with the arrays
+    memory.keep()  # or added to the file afterwards
+    fresh = ReferenceAlignmentCache.of(cache, {})
+    np.testing.assert_array_equal(fresh.recall("grid", (0.1,)), grid)
+    assert fresh.recall("spacing", ())[0] == 0.05
+    assert fresh.recall("grid", (np.nextafter(0.1, 1.0),)) is None  # other parameters
+    other_reference = GeometryCache(cache.path, cache_key("other", None))
+    assert ReferenceAlignmentCache.of(other_reference, {}).recall("spacing", ()) is None
+    # an array of the wrong form under the right key and checksum: not used
+    name, key = fresh._fact("grid", (0.2,))
+    assert cache.store_facts({name: (key, np.zeros((4, 2)))})
+    assert fresh.recall("grid", (0.2,)) is None
