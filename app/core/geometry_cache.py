@@ -28,13 +28,24 @@ from dataclasses import dataclass
 from functools import partial
 from importlib import metadata
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
 from app.core.errors import InputError
+from app.core.geometry_cache_format import (
+    LAYOUT,
+    array_fact_bytes,
+    array_fact_entries,
+    array_fact_entry,
+    arrays_bytes,
+    arrays_digest,
+    copy_bytes,
+    fact_digest,
+    fact_entry,
+)
 from app.core.localise import neighbourhoods as neighbourhoods_module
 from app.core.localise.neighbourhoods import (
     Neighbourhoods,
@@ -65,6 +76,7 @@ _CODE_FILES = (
     "localise/surface.py",
     "spatial_order.py",
     "geometry_cache.py",
+    "geometry_cache_format.py",
 )
 """Sources (under app/core) whose text is part of the code version."""
 
@@ -111,73 +123,6 @@ def cache_key(reference_identity: str, localisation_params: Mapping[str, Any] | 
         default=str,
     )
     return hashlib.sha256(text.encode()).hexdigest()
-
-
-def _fact_digest(value: Any) -> str:
-    return hashlib.sha256(json.dumps(value, sort_keys=True).encode()).hexdigest()
-
-
-def _fact_entry(key: str, value: Any) -> dict[str, Any]:
-    return {"key": key, "value": value, "sha256": _fact_digest(value)}
-
-
-def _arrays_digest(arrays: tuple[NDArray, ...]) -> str:
-    digest = hashlib.sha256()
-    for array in arrays:
-        digest.update(memoryview(np.ascontiguousarray(array)).cast("B"))
-    return digest.hexdigest()
-
-
-def _array_fact_entry(name: str, key: str, array: NDArray) -> dict[str, Any]:
-    array = np.ascontiguousarray(array)
-    return {
-        "name": name,
-        "key": key,
-        "dtype": array.dtype.str,
-        "shape": list(array.shape),
-        "sha256": _arrays_digest((array,)),
-    }
-
-
-def _array_fact_bytes(entry: Any) -> int | None:
-    """Bytes of an array fact's payload (None: not a valid entry)."""
-    try:
-        dtype = np.dtype(entry["dtype"])
-        shape = [int(size) for size in entry["shape"]]
-        if dtype.hasobject or any(size < 0 for size in shape) or not isinstance(entry["key"], str):
-            return None
-        return dtype.itemsize * int(np.prod(shape, dtype=np.int64))
-    except (KeyError, TypeError, ValueError):
-        return None
-
-
-def _array_fact_entries(header: Mapping[str, Any]) -> list[dict[str, Any]] | None:
-    """The header's array facts, in file order (None: malformed)."""
-    entries = header.get("array_facts", [])
-    if not isinstance(entries, list) or not all(
-        isinstance(entry, dict) and _array_fact_bytes(entry) is not None for entry in entries
-    ):
-        return None
-    return entries
-
-
-def _copy_bytes(source: BinaryIO, target: BinaryIO, count: int) -> None:
-    """Copy ``count`` bytes from ``source`` to ``target``, 4 MiB at a time."""
-    while count > 0:
-        chunk = source.read(min(count, 1 << 22))
-        if not chunk:
-            raise ValueError("the file ended early")
-        target.write(chunk)
-        count -= len(chunk)
-
-
-def _arrays_bytes(header: Mapping[str, Any]) -> int | None:
-    """Bytes of a file's neighbourhood arrays (between its header and its array facts)."""
-    n, k = header.get("n"), header.get("k")
-    if not isinstance(n, int) or not isinstance(k, int) or n < 0 or k < 0:
-        return None
-    layout = _LAYOUT if isinstance(header.get("noise"), float) else _LAYOUT[:3]
-    return sum(n * width(k) * np.dtype(dtype).itemsize for dtype, width in layout)
 
 
 @dataclass(frozen=True)
@@ -227,7 +172,7 @@ class GeometryCache:
         entry = facts.get(name) if isinstance(facts, dict) else None
         if not isinstance(entry, dict) or entry.get("key") != key or "value" not in entry:
             return None
-        if entry.get("sha256") != _fact_digest(entry["value"]):
+        if entry.get("sha256") != fact_digest(entry["value"]):
             return None
         return entry["value"]
 
@@ -261,7 +206,7 @@ class GeometryCache:
             every fact is there already).
         """
         header = self._header()
-        entries = None if header is None else _array_fact_entries(header)
+        entries = None if header is None else array_fact_entries(header)
         if header is None or entries is None:
             return False
         json_facts = header.get("facts")
@@ -277,7 +222,7 @@ class GeometryCache:
                 ):
                     new_arrays[name] = np.ascontiguousarray(value)
             elif self.load_fact(name, key) != value:
-                json_facts[name] = _fact_entry(key, value)
+                json_facts[name] = fact_entry(key, value)
         if not new_arrays and json_facts == (header.get("facts") or {}):
             return False
         header["facts"] = json_facts
@@ -287,11 +232,11 @@ class GeometryCache:
                 source.readline()
                 if json.loads(source.readline()).get("sha256") != header.get("sha256"):
                     return False  # replaced meanwhile (another comparison rebuilt it)
-                arrays_bytes = _arrays_bytes(header)
-                if arrays_bytes is None:
+                neighbourhood_bytes = arrays_bytes(header)
+                if neighbourhood_bytes is None:
                     return False
                 added = {
-                    name: _array_fact_entry(name, facts[name][0], array)
+                    name: array_fact_entry(name, facts[name][0], array)
                     for name, array in new_arrays.items()
                 }
                 present = {entry["name"] for entry in entries}
@@ -301,9 +246,9 @@ class GeometryCache:
                 ]
                 target.write(MAGIC)
                 target.write(json.dumps(header).encode() + b"\n")
-                _copy_bytes(source, target, arrays_bytes)
+                copy_bytes(source, target, neighbourhood_bytes)
                 for entry in entries:
-                    payload = source.read(_array_fact_bytes(entry) or 0)
+                    payload = source.read(array_fact_bytes(entry) or 0)
                     name = entry["name"]
                     target.write(payload if name not in added else new_arrays[name].tobytes())
                 for name, array in new_arrays.items():
@@ -338,12 +283,12 @@ class GeometryCache:
                 header = json.loads(source.readline())
                 if not isinstance(header, dict) or header.get("key") != self.key:
                     return None
-                entries = _array_fact_entries(header)
-                offset = _arrays_bytes(header)
+                entries = array_fact_entries(header)
+                offset = arrays_bytes(header)
                 if entries is None or offset is None:
                     return None
                 for entry in entries:
-                    size = _array_fact_bytes(entry) or 0
+                    size = array_fact_bytes(entry) or 0
                     if entry["name"] == name:
                         if entry["key"] != key:
                             return None
@@ -358,7 +303,7 @@ class GeometryCache:
         if len(payload) != size:
             return None
         array = np.frombuffer(payload, dtype=np.dtype(entry["dtype"])).reshape(entry["shape"])
-        if _arrays_digest((array,)) != entry.get("sha256"):
+        if arrays_digest((array,)) != entry.get("sha256"):
             return None
         return array
 
@@ -389,14 +334,14 @@ class GeometryCache:
                 if (header.get("key"), header.get("n"), header.get("k")) != (self.key, n, k):
                     return None
                 noise = header.get("noise")
-                layout = _LAYOUT if isinstance(noise, float) else _LAYOUT[:3]
-                entries = _array_fact_entries(header)
+                layout = LAYOUT if isinstance(noise, float) else LAYOUT[:3]
+                entries = array_fact_entries(header)
                 if entries is None:
                     return None
                 arrays = tuple(
                     np.fromfile(source, dtype=dtype, count=n * width(k)) for dtype, width in layout
                 )
-                after = sum(_array_fact_bytes(entry) or 0 for entry in entries)
+                after = sum(array_fact_bytes(entry) or 0 for entry in entries)
                 if os.fstat(source.fileno()).st_size != source.tell() + after:
                     return None
         except (OSError, ValueError, UnicodeDecodeError):
@@ -405,7 +350,7 @@ class GeometryCache:
             len(array) != n * width(k) for array, (_, width) in zip(arrays, layout, strict=True)
         ):
             return None
-        if _arrays_digest(arrays) != header.get("sha256"):
+        if arrays_digest(arrays) != header.get("sha256"):
             return None
         neighbor_index, kth_distance, order = arrays[:3]
         neighbor_index = neighbor_index.reshape(n, k + 1)
@@ -467,7 +412,7 @@ class GeometryCache:
             "key": self.key,
             "n": n,
             "k": width - 1,
-            "sha256": _arrays_digest(arrays),
+            "sha256": arrays_digest(arrays),
         }
         if surfaces is not None:
             header["noise"] = float(surfaces.noise)
@@ -477,7 +422,7 @@ class GeometryCache:
             if isinstance(value, np.ndarray)
         }
         json_facts = {
-            name: _fact_entry(key, value)
+            name: fact_entry(key, value)
             for name, (key, value) in (facts or {}).items()
             if name not in array_facts
         }
@@ -485,7 +430,7 @@ class GeometryCache:
             header["facts"] = json_facts
         if array_facts:
             header["array_facts"] = [
-                _array_fact_entry(name, key, value) for name, (key, value) in array_facts.items()
+                array_fact_entry(name, key, value) for name, (key, value) in array_facts.items()
             ]
         self.path.parent.mkdir(parents=True, exist_ok=True)
         temporary = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
@@ -501,20 +446,6 @@ class GeometryCache:
         finally:
             temporary.unlink(missing_ok=True)
         return self.path.stat().st_size
-
-
-_LAYOUT: tuple[tuple[str, Callable[[int], int]], ...] = (
-    ("<u4", lambda k: k + 1),  # neighbour index
-    ("<f8", lambda k: 1),  # k-th distance
-    ("<i8", lambda k: 1),  # spatial order
-    ("<f4", lambda k: 3),  # surfaces: normal
-    ("<f8", lambda k: 1),  # plane constant
-    ("<f8", lambda k: 1),  # spacing
-    ("u1", lambda k: 1),  # linear
-    ("<f8", lambda k: 1),  # variation
-)
-"""The arrays of a file in order: type and values a point for k neighbours (the last five only
-with ``noise`` in the header: the reference's :class:`Surfaces`)."""
 
 
 def _surfaces_agree(

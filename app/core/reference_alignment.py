@@ -4,7 +4,7 @@
 points: its point spacing, a KD-tree build of 0.3 s; its voxel-grid centroids; their coarse and
 quality-figure downsamplings), and a site's reference is aligned with every new scan of the
 site.  :class:`ReferenceAlignmentCache` is the
-:class:`~app.core.registration.ReferenceMemory` that keeps those arrays as *array facts* of the
+:class:`~app.core.reference_memory.ReferenceMemory` that keeps those arrays as *array facts* of the
 reference's :class:`~app.core.geometry_cache.GeometryCache` file (so they count in its size, and
 go with it), each under a key made of the file's key (reference, code, localisation
 parameters), the text of the registration code, small_gicp's version, what the array is and the
@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from app.core import reference_memory as reference_memory_module
 from app.core import registration as registration_module
 from app.core.geometry_cache import GeometryCache
 
@@ -32,7 +33,7 @@ __all__ = ["ALIGNMENT_FACT_PREFIX", "ReferenceAlignmentCache", "reference_alignm
 
 ALIGNMENT_FACT_PREFIX = "alignment."
 """Array facts of a cache file named ``alignment.<name>`` hold
-:class:`~app.core.registration.ReferenceMemory` arrays."""
+:class:`~app.core.reference_memory.ReferenceMemory` arrays."""
 
 
 def reference_alignment_key(geometry_key: str) -> str:
@@ -49,7 +50,8 @@ def reference_alignment_key(geometry_key: str) -> str:
         64 hex digits; changes with the file's key, the registration code and small_gicp.
     """
     digest = hashlib.sha256(geometry_key.encode())
-    digest.update(Path(registration_module.__file__).read_bytes())
+    for module in (registration_module, reference_memory_module):
+        digest.update(Path(module.__file__).read_bytes())
     try:
         digest.update(metadata.version("small_gicp").encode())
     except metadata.PackageNotFoundError:  # pragma: no cover - small_gicp is a dependency
@@ -59,7 +61,7 @@ def reference_alignment_key(geometry_key: str) -> str:
 
 @dataclass
 class ReferenceAlignmentCache:
-    """A :class:`~app.core.registration.ReferenceMemory` in the reference's cache file.
+    """A :class:`~app.core.reference_memory.ReferenceMemory` in the reference's cache file.
 
     Arrays recalled or computed are put into ``facts`` (written with the neighbourhoods when
     the file is written during the comparison); those computed and not in the file then are
@@ -121,7 +123,7 @@ class ReferenceAlignmentCache:
 
 
 def _plausible(name: str, array: NDArray) -> bool:
-    """Whether ``array`` has the form of a :class:`~app.core.registration.ReferenceMemory`
+    """Whether ``array`` has the form of a :class:`~app.core.reference_memory.ReferenceMemory`
     array called ``name``: finite float64, (1,) non-negative for the spacing, else (m, 3)."""
     if array.dtype != np.float64 or not np.isfinite(array).all():
         return False

@@ -42,20 +42,18 @@ the coarse stage starts from them too.  A fitness
 below ``min_fitness`` means the clouds do not overlap (different sites, or a scan so far off
 that alignment failed): :class:`RegistrationError`.
 
-**What depends on the reference alone** (its point spacing, its ``grid`` centroids, their
-coarse-stage and quality-figure downsamplings) can be handed over by a
-:class:`ReferenceMemory` (a site's reference is aligned with every new scan of the site:
-:mod:`app.core.reference_alignment` keeps them in the reference's geometry cache); each is
-recalled under the parameters it was computed with, so the result is the same with or
-without one.
+**What depends on the reference alone** (its point spacing, ``grid`` centroids, their coarse
+and quality-figure downsamplings) can be handed over by a
+:class:`~app.core.reference_memory.ReferenceMemory` (:mod:`app.core.reference_alignment` keeps
+them in the reference's geometry cache); each is recalled under the parameters it was computed
+with, so the result is the same with or without one.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -63,6 +61,7 @@ from pykdtree.kdtree import KDTree
 
 from app.core.cloud import PointCloud, column_extreme
 from app.core.errors import RegistrationError
+from app.core.reference_memory import ReferenceMemory, recalled
 
 FINE_POINT_BUDGET = 30_000
 """Most points per cloud in the fine stage (a uniform random sample beyond this)."""
@@ -86,40 +85,6 @@ VOXEL_GRID_LIMIT = 2**19
 halved for safety. Points beyond would be silently dropped."""
 
 CloudLike = PointCloud | NDArray[np.floating]
-
-
-class ReferenceMemory(Protocol):
-    """Arrays worked out from the reference alone, kept between its alignments.
-
-    ``name`` says what an array is (``"spacing"``, ``"grid"``, ``"coarse"``, ``"fit"``) and
-    ``parameters`` the numbers it was computed with; :meth:`recall` returns an array only for
-    the same name and parameters (and the same reference, which the memory is for).
-    """
-
-    def recall(self, name: str, parameters: tuple[float, ...]) -> NDArray | None:
-        """The array remembered for ``name`` and ``parameters``, or None."""
-        ...
-
-    def remember(self, name: str, parameters: tuple[float, ...], array: NDArray) -> None:
-        """Keep ``array``, computed for ``name`` and ``parameters``."""
-        ...
-
-
-def _recalled(
-    memory: ReferenceMemory | None,
-    name: str,
-    parameters: tuple[float, ...],
-    compute: Callable[[], NDArray[np.float64]],
-) -> NDArray[np.float64]:
-    """``memory``'s array for ``name`` and ``parameters``, else ``compute()`` (remembered)."""
-    if memory is not None:
-        recalled = memory.recall(name, parameters)
-        if recalled is not None:
-            return recalled
-    array = compute()
-    if memory is not None:
-        memory.remember(name, parameters, array)
-    return array
 
 
 @dataclass(frozen=True)
@@ -480,7 +445,7 @@ class _Plan:
             )
         reference_points = _points_of(self.reference_grid, "reference")
         centre = _centre_of(reference_points)
-        reference_fit = _recalled(
+        reference_fit = recalled(
             self.reference_memory,
             "fit",
             (self.grid, self.voxel_size),
@@ -524,7 +489,7 @@ def _plan(
                 f"voxel_size {voxel_size:.3g} m is too small for a cloud reaching {reach:.3g} m "
                 f"from its centre (at least {grid_floor:.3g} m); pass a larger voxel_size"
             )
-    reference_spacing = _recalled(
+    reference_spacing = recalled(
         reference_memory,
         "spacing",
         (),
@@ -534,7 +499,7 @@ def _plan(
     grid = max(FINE_VOXELS_PER_SPACING * spacing, grid_floor, 1e-9)
     if voxel_size is not None:
         grid = min(grid, voxel_size)
-    reference_grid = _recalled(
+    reference_grid = recalled(
         reference_memory, "grid", (grid,), lambda: _downsample(local_reference(), grid)
     )
     scan_grid = _downsample(local_scan, grid)
