@@ -6,7 +6,9 @@ stores it once (neighbour index, k-th distance and spatial order: 4 (k + 1) + 16
 point) and hands it back to :func:`app.core.pipeline.compare`, which then builds only the
 KD-tree (a fraction of the query's cost).  Its header also keeps small *facts* about the
 reference that cost seconds to work out and do not depend on the scan (its resolved sensor
-origin, :mod:`app.core.reference_origin`), each under its own key and checksum.
+origin, :mod:`app.core.reference_origin`), each under its own key and checksum, and
+*array facts* after its arrays (the reference's alignment grids,
+:mod:`app.core.reference_alignment`), likewise keyed and checksummed.
 
 Nothing read back is trusted blindly: the file must carry the expected key (reference,
 code version and localisation parameters, :func:`cache_key`), the expected point count and k,
@@ -21,7 +23,6 @@ import contextlib
 import hashlib
 import json
 import os
-import shutil
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from functools import partial
@@ -34,6 +35,17 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
 from app.core.errors import InputError
+from app.core.geometry_cache_format import (
+    LAYOUT,
+    array_fact_bytes,
+    array_fact_entries,
+    array_fact_entry,
+    arrays_bytes,
+    arrays_digest,
+    copy_bytes,
+    fact_digest,
+    fact_entry,
+)
 from app.core.localise import neighbourhoods as neighbourhoods_module
 from app.core.localise.neighbourhoods import (
     Neighbourhoods,
@@ -54,8 +66,8 @@ __all__ = [
     "reference_neighbourhoods",
 ]
 
-CACHE_FORMAT = 2
-"""Bumped whenever the file layout changes."""
+CACHE_FORMAT = 3
+"""Bumped whenever the file layout changes (3: array facts after the arrays)."""
 MAGIC = b"SCANDIFF-GEOMETRY\n"
 VERIFIED_ROWS = 256
 """Rows whose k-th neighbour distance is recomputed from the points on every load."""
@@ -64,6 +76,7 @@ _CODE_FILES = (
     "localise/surface.py",
     "spatial_order.py",
     "geometry_cache.py",
+    "geometry_cache_format.py",
 )
 """Sources (under app/core) whose text is part of the code version."""
 
@@ -110,21 +123,6 @@ def cache_key(reference_identity: str, localisation_params: Mapping[str, Any] | 
         default=str,
     )
     return hashlib.sha256(text.encode()).hexdigest()
-
-
-def _fact_digest(value: Any) -> str:
-    return hashlib.sha256(json.dumps(value, sort_keys=True).encode()).hexdigest()
-
-
-def _fact_entry(key: str, value: Any) -> dict[str, Any]:
-    return {"key": key, "value": value, "sha256": _fact_digest(value)}
-
-
-def _arrays_digest(arrays: tuple[NDArray, ...]) -> str:
-    digest = hashlib.sha256()
-    for array in arrays:
-        digest.update(memoryview(np.ascontiguousarray(array)).cast("B"))
-    return digest.hexdigest()
 
 
 @dataclass(frozen=True)
@@ -174,7 +172,7 @@ class GeometryCache:
         entry = facts.get(name) if isinstance(facts, dict) else None
         if not isinstance(entry, dict) or entry.get("key") != key or "value" not in entry:
             return None
-        if entry.get("sha256") != _fact_digest(entry["value"]):
+        if entry.get("sha256") != fact_digest(entry["value"]):
             return None
         return entry["value"]
 
@@ -190,29 +188,124 @@ class GeometryCache:
         bool
             Whether the file was rewritten.
         """
+        return self.store_facts({name: (key, value)})
+
+    def store_facts(self, facts: Mapping[str, tuple[str, Any]]) -> bool:
+        """Add (or replace) facts, JSON values or arrays, in the existing file in one rewrite.
+
+        Parameters
+        ----------
+        facts : mapping
+            ``{name: (key, value)}``; a numpy array ``value`` is an array fact
+            (:meth:`load_array_fact`), anything else a JSON fact (:meth:`load_fact`).
+
+        Returns
+        -------
+        bool
+            Whether the file was rewritten (not when there is no valid file of this key, or
+            every fact is there already).
+        """
         header = self._header()
-        if header is None or self.load_fact(name, key) == value:
+        entries = None if header is None else array_fact_entries(header)
+        if header is None or entries is None:
             return False
-        facts = header.get("facts")
-        header["facts"] = {
-            **(facts if isinstance(facts, dict) else {}),
-            name: _fact_entry(key, value),
-        }
+        json_facts = header.get("facts")
+        json_facts = dict(json_facts) if isinstance(json_facts, dict) else {}
+        new_arrays: dict[str, NDArray] = {}
+        for name, (key, value) in facts.items():
+            if isinstance(value, np.ndarray):
+                stored = self.load_array_fact(name, key)  # checked: a damaged one is replaced
+                if (
+                    stored is None
+                    or stored.dtype != value.dtype
+                    or not np.array_equal(stored, value)
+                ):
+                    new_arrays[name] = np.ascontiguousarray(value)
+            elif self.load_fact(name, key) != value:
+                json_facts[name] = fact_entry(key, value)
+        if not new_arrays and json_facts == (header.get("facts") or {}):
+            return False
+        header["facts"] = json_facts
         temporary = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
         try:
             with open(self.path, "rb") as source, open(temporary, "wb") as target:
                 source.readline()
                 if json.loads(source.readline()).get("sha256") != header.get("sha256"):
                     return False  # replaced meanwhile (another comparison rebuilt it)
+                neighbourhood_bytes = arrays_bytes(header)
+                if neighbourhood_bytes is None:
+                    return False
+                added = {
+                    name: array_fact_entry(name, facts[name][0], array)
+                    for name, array in new_arrays.items()
+                }
+                present = {entry["name"] for entry in entries}
+                header["array_facts"] = [  # a replaced fact keeps its place
+                    *(added.get(entry["name"], entry) for entry in entries),
+                    *(entry for name, entry in added.items() if name not in present),
+                ]
                 target.write(MAGIC)
                 target.write(json.dumps(header).encode() + b"\n")
-                shutil.copyfileobj(source, target, 1 << 22)
+                copy_bytes(source, target, neighbourhood_bytes)
+                for entry in entries:
+                    payload = source.read(array_fact_bytes(entry) or 0)
+                    name = entry["name"]
+                    target.write(payload if name not in added else new_arrays[name].tobytes())
+                for name, array in new_arrays.items():
+                    if name not in present:
+                        array.tofile(target)
             os.replace(temporary, self.path)
         except (OSError, ValueError, UnicodeDecodeError, AttributeError):
             return False
         finally:
             temporary.unlink(missing_ok=True)
         return True
+
+    def load_array_fact(self, name: str, key: str) -> NDArray | None:
+        """The array fact ``name`` stored under ``key`` (None: missing, for another key, or
+        damaged: its checksum does not match).
+
+        Parameters
+        ----------
+        name : str
+        key : str
+            What the array must have been stored for.
+
+        Returns
+        -------
+        ndarray or None
+            Of the dtype and shape it was stored with.
+        """
+        try:
+            with open(self.path, "rb") as source:
+                if source.readline() != MAGIC:
+                    return None
+                header = json.loads(source.readline())
+                if not isinstance(header, dict) or header.get("key") != self.key:
+                    return None
+                entries = array_fact_entries(header)
+                offset = arrays_bytes(header)
+                if entries is None or offset is None:
+                    return None
+                for entry in entries:
+                    size = array_fact_bytes(entry) or 0
+                    if entry["name"] == name:
+                        if entry["key"] != key:
+                            return None
+                        source.seek(offset, os.SEEK_CUR)
+                        payload = source.read(size)
+                        break
+                    offset += size
+                else:
+                    return None
+        except (OSError, ValueError, UnicodeDecodeError):
+            return None
+        if len(payload) != size:
+            return None
+        array = np.frombuffer(payload, dtype=np.dtype(entry["dtype"])).reshape(entry["shape"])
+        if arrays_digest((array,)) != entry.get("sha256"):
+            return None
+        return array
 
     def load(self, points: NDArray[np.float64], n_neighbors: int) -> Neighbourhoods | None:
         """The cached neighbourhoods of ``points``, or None when missing or not to be trusted.
@@ -241,11 +334,15 @@ class GeometryCache:
                 if (header.get("key"), header.get("n"), header.get("k")) != (self.key, n, k):
                     return None
                 noise = header.get("noise")
-                layout = _LAYOUT if isinstance(noise, float) else _LAYOUT[:3]
+                layout = LAYOUT if isinstance(noise, float) else LAYOUT[:3]
+                entries = array_fact_entries(header)
+                if entries is None:
+                    return None
                 arrays = tuple(
                     np.fromfile(source, dtype=dtype, count=n * width(k)) for dtype, width in layout
                 )
-                if source.read(1):
+                after = sum(array_fact_bytes(entry) or 0 for entry in entries)
+                if os.fstat(source.fileno()).st_size != source.tell() + after:
                     return None
         except (OSError, ValueError, UnicodeDecodeError):
             return None
@@ -253,7 +350,7 @@ class GeometryCache:
             len(array) != n * width(k) for array, (_, width) in zip(arrays, layout, strict=True)
         ):
             return None
-        if _arrays_digest(arrays) != header.get("sha256"):
+        if arrays_digest(arrays) != header.get("sha256"):
             return None
         neighbor_index, kth_distance, order = arrays[:3]
         neighbor_index = neighbor_index.reshape(n, k + 1)
@@ -285,7 +382,8 @@ class GeometryCache:
         neighbourhoods : Neighbourhoods
             Of the reference this cache is for, with its spatial order.
         facts : mapping, optional
-            ``{name: (key, JSON value)}`` kept in the header (:meth:`load_fact`).
+            ``{name: (key, value)}``: JSON values kept in the header (:meth:`load_fact`),
+            numpy arrays after the neighbourhood arrays (:meth:`load_array_fact`).
 
         Returns
         -------
@@ -314,12 +412,26 @@ class GeometryCache:
             "key": self.key,
             "n": n,
             "k": width - 1,
-            "sha256": _arrays_digest(arrays),
+            "sha256": arrays_digest(arrays),
         }
         if surfaces is not None:
             header["noise"] = float(surfaces.noise)
-        if facts:
-            header["facts"] = {name: _fact_entry(*entry) for name, entry in facts.items()}
+        array_facts = {
+            name: (key, np.ascontiguousarray(value))
+            for name, (key, value) in (facts or {}).items()
+            if isinstance(value, np.ndarray)
+        }
+        json_facts = {
+            name: fact_entry(key, value)
+            for name, (key, value) in (facts or {}).items()
+            if name not in array_facts
+        }
+        if json_facts:
+            header["facts"] = json_facts
+        if array_facts:
+            header["array_facts"] = [
+                array_fact_entry(name, key, value) for name, (key, value) in array_facts.items()
+            ]
         self.path.parent.mkdir(parents=True, exist_ok=True)
         temporary = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
         try:
@@ -328,24 +440,12 @@ class GeometryCache:
                 target.write(json.dumps(header).encode() + b"\n")
                 for array in arrays:
                     array.tofile(target)
+                for _, value in array_facts.values():
+                    value.tofile(target)
             os.replace(temporary, self.path)
         finally:
             temporary.unlink(missing_ok=True)
         return self.path.stat().st_size
-
-
-_LAYOUT: tuple[tuple[str, Callable[[int], int]], ...] = (
-    ("<u4", lambda k: k + 1),  # neighbour index
-    ("<f8", lambda k: 1),  # k-th distance
-    ("<i8", lambda k: 1),  # spatial order
-    ("<f4", lambda k: 3),  # surfaces: normal
-    ("<f8", lambda k: 1),  # plane constant
-    ("<f8", lambda k: 1),  # spacing
-    ("u1", lambda k: 1),  # linear
-    ("<f8", lambda k: 1),  # variation
-)
-"""The arrays of a file in order: type and values a point for k neighbours (the last five only
-with ``noise`` in the header: the reference's :class:`Surfaces`)."""
 
 
 def _surfaces_agree(

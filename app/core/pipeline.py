@@ -52,6 +52,7 @@ from app.core.origins.own_frame import resolve_moved_cloud
 from app.core.origins.resolve import ResolvedOrigin
 from app.core.origins.stations import origins_in_local_frame, resolve_stations, station_index_of
 from app.core.quality import quality_warnings
+from app.core.reference_alignment import ReferenceAlignmentCache
 from app.core.reference_origin import ReferenceOriginCache
 from app.core.registration import (
     apply_transform,
@@ -277,8 +278,10 @@ def compare(
         (:func:`app.core.site_calibration.learn_site_calibration`); applied when learned for
         this method and variant.  Its provenance is in ``calibration["site"]`` either way.
     geometry_cache : GeometryCache, optional
-        Where the reference's k-NN geometry is kept between comparisons (read when valid,
-        written otherwise, :mod:`app.core.geometry_cache`).  Results do not depend on it.
+        Where the reference's k-NN geometry, resolved origin and alignment arrays are kept
+        between comparisons (read when valid, written otherwise, :mod:`app.core.geometry_cache`,
+        :mod:`app.core.reference_origin`, :mod:`app.core.reference_alignment`).  Results do
+        not depend on it.
 
     Returns
     -------
@@ -322,6 +325,7 @@ def compare(
         recover=settings.recover_stations,
     )
     facts: dict[str, tuple[str, Any]] = {}
+    alignment_cache = ReferenceAlignmentCache.of(geometry_cache, facts)
 
     def resolve_reference() -> ResolvedOrigin:
         started = time.perf_counter()
@@ -357,9 +361,16 @@ def compare(
         reference_station = station_index_of(reference, resolved_reference, "reference")
         started = time.perf_counter()
         if align:
-            registration = register_scan(reference_points, scan_points, **registration_params)
+            registration = register_scan(
+                reference_points,
+                scan_points,
+                reference_memory=alignment_cache,
+                **registration_params,
+            )
         else:
-            registration = identity_registration(reference_points, scan_points)
+            registration = identity_registration(
+                reference_points, scan_points, reference_memory=alignment_cache
+            )
         aligned_scan = apply_transform(scan_points, registration.transform)
         timings["align"] = time.perf_counter() - started
         # the scan's own neighbour search runs while its origin is resolved
@@ -421,6 +432,8 @@ def compare(
     timings["localise"] = time.perf_counter() - started
     if origin_cache is not None:
         origin_cache.keep()
+    if alignment_cache is not None:
+        alignment_cache.keep()
 
     report("detect", 0.65)
     started = time.perf_counter()

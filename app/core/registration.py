@@ -41,11 +41,18 @@ every point again (faster, with the same quality figures to 1e-3; see docs/perfo
 the coarse stage starts from them too.  A fitness
 below ``min_fitness`` means the clouds do not overlap (different sites, or a scan so far off
 that alignment failed): :class:`RegistrationError`.
+
+**What depends on the reference alone** (its point spacing, ``grid`` centroids, their coarse
+and quality-figure downsamplings) can be handed over by a
+:class:`~app.core.reference_memory.ReferenceMemory` (:mod:`app.core.reference_alignment` keeps
+them in the reference's geometry cache); each is recalled under the parameters it was computed
+with, so the result is the same with or without one.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
 from typing import Any
 
 import numpy as np
@@ -54,6 +61,7 @@ from pykdtree.kdtree import KDTree
 
 from app.core.cloud import PointCloud, column_extreme
 from app.core.errors import RegistrationError
+from app.core.reference_memory import ReferenceMemory, recalled
 
 FINE_POINT_BUDGET = 30_000
 """Most points per cloud in the fine stage (a uniform random sample beyond this)."""
@@ -230,6 +238,16 @@ def evaluate_alignment(
         centre = _centre_of(reference_points)
         reference_points = _downsample(reference_points - centre, voxel_size) + centre
         scan_points = _downsample(scan_points - centre, voxel_size) + centre
+    return _inlier_fit(reference_points, scan_points, transform, max_correspondence_distance)
+
+
+def _inlier_fit(
+    reference_points: NDArray[np.float64],
+    scan_points: NDArray[np.float64],
+    transform: NDArray,
+    max_correspondence_distance: float,
+) -> tuple[float, float]:
+    """Fitness and RMSE of :func:`evaluate_alignment` on the points as given."""
     moved = apply_transform(scan_points, transform)
     distances, _ = KDTree(np.ascontiguousarray(reference_points)).query(
         np.ascontiguousarray(moved), k=1, distance_upper_bound=max_correspondence_distance
@@ -246,17 +264,22 @@ def identity_registration(
     *,
     max_correspondence_distance: float | None = None,
     voxel_size: float | None = None,
+    reference_memory: ReferenceMemory | None = None,
 ) -> Registration:
     """No alignment (``--no-align``): the identity, with fitness and RMSE measured.
 
     ``voxel_size`` and ``max_correspondence_distance`` default to the rule of
-    :func:`register_scan`, so the figures are comparable with an aligned run.
+    :func:`register_scan`, so the figures are comparable with an aligned run;
+    ``reference_memory`` as there.
     """
     reference_points = _points_of(reference, "reference")
     scan_points = _points_of(scan, "scan")
-    centre = _centre_of(reference_points)
     plan = _plan(
-        reference_points - centre, scan_points - centre, voxel_size, max_correspondence_distance
+        reference_points,
+        scan_points - _centre_of(reference_points),
+        voxel_size,
+        max_correspondence_distance,
+        reference_memory,
     )
     identity = np.eye(4)
     fitness, rmse = plan.fit_quality(identity)
@@ -272,6 +295,7 @@ def register_scan(
     initial_transform: NDArray | None = None,
     min_fitness: float = 0.3,
     num_threads: int = 1,
+    reference_memory: ReferenceMemory | None = None,
 ) -> Registration:
     """Align ``scan`` to ``reference`` (coarse-to-fine GICP; see the module docstring).
 
@@ -290,6 +314,9 @@ def register_scan(
         Raise :class:`RegistrationError` when the final fitness is lower.
     num_threads : int
         Threads small_gicp may use.
+    reference_memory : ReferenceMemory, optional
+        What was worked out from this reference before (the same result either way; what it
+        lacks is computed and handed to it).
 
     Returns
     -------
@@ -306,17 +333,31 @@ def register_scan(
     reference_points = _points_of(reference, "reference")
     scan_points = _points_of(scan, "scan")
     centre = _centre_of(reference_points)
-    local_reference = reference_points - centre
     local_scan = scan_points - centre
-    plan = _plan(local_reference, local_scan, voxel_size, max_correspondence_distance)
+    plan = _plan(
+        reference_points, local_scan, voxel_size, max_correspondence_distance, reference_memory
+    )
     initial = np.eye(4) if initial_transform is None else _checked_transform(initial_transform)
     local_transform = _translated(initial, -centre)
 
     coarse_voxel = COARSE_VOXEL_FACTOR * plan.voxel_size
     coarse_distance = CORRESPONDENCE_VOXEL_FACTOR * coarse_voxel
-    coarse_target, coarse_tree = small_gicp.preprocess_points(
-        plan.reference_grid, coarse_voxel, num_neighbors=NUM_NEIGHBOURS, num_threads=num_threads
-    )
+    coarse_points = None
+    if reference_memory is not None:
+        coarse_points = reference_memory.recall("coarse", (plan.grid, coarse_voxel, num_threads))
+    if coarse_points is not None:  # what preprocess_points gave: the same cloud and tree
+        coarse_target, coarse_tree = _gicp_cloud(coarse_points, num_threads)
+    else:
+        coarse_target, coarse_tree = small_gicp.preprocess_points(
+            plan.reference_grid,
+            coarse_voxel,
+            num_neighbors=NUM_NEIGHBOURS,
+            num_threads=num_threads,
+        )
+        if reference_memory is not None:
+            reference_memory.remember(
+                "coarse", (plan.grid, coarse_voxel, num_threads), _xyz(coarse_target.points())
+            )
     coarse_source, _ = small_gicp.preprocess_points(
         plan.scan_grid, coarse_voxel, num_neighbors=NUM_NEIGHBOURS, num_threads=num_threads
     )
@@ -393,26 +434,52 @@ class _Plan:
     grid: float
     reference_grid: NDArray[np.float64]  # (p, 3) voxel-grid centroids at ``grid``, local frame
     scan_grid: NDArray[np.float64]  # (q, 3)
+    reference_memory: ReferenceMemory | None = None
 
     def fit_quality(self, local_transform: NDArray[np.float64]) -> tuple[float, float]:
-        """:func:`evaluate_alignment` of the grid centroids at ``voxel_size`` (local frame)."""
-        return evaluate_alignment(
-            self.reference_grid,
-            self.scan_grid,
-            local_transform,
-            self.distance,
-            voxel_size=self.voxel_size if self.voxel_size > self.grid else None,
+        """:func:`evaluate_alignment` of the grid centroids at ``voxel_size`` (local frame);
+        the reference's side recalled from :attr:`reference_memory` when it has it."""
+        if self.voxel_size <= self.grid:
+            return evaluate_alignment(
+                self.reference_grid, self.scan_grid, local_transform, self.distance
+            )
+        reference_points = _points_of(self.reference_grid, "reference")
+        centre = _centre_of(reference_points)
+        reference_fit = recalled(
+            self.reference_memory,
+            "fit",
+            (self.grid, self.voxel_size),
+            lambda: _downsample(reference_points - centre, self.voxel_size) + centre,
         )
+        scan_points = _points_of(self.scan_grid, "scan")
+        scan_fit = _downsample(scan_points - centre, self.voxel_size) + centre
+        return _inlier_fit(reference_fit, scan_fit, local_transform, self.distance)
 
 
 def _plan(
-    local_reference: NDArray[np.float64],
+    reference_points: NDArray[np.float64],
     local_scan: NDArray[np.float64],
     voxel_size: float | None,
     max_correspondence_distance: float | None,
+    reference_memory: ReferenceMemory | None = None,
 ) -> _Plan:
-    """Apply the documented parameter rule; draw the fine-stage samples."""
-    reach = max(np.abs(local_reference).max(), np.abs(local_scan).max())
+    """Apply the documented parameter rule; draw the fine-stage samples.
+
+    ``reference_points`` in the callers' frame (shifted here by their bounding-box centre,
+    only when something is not recalled from ``reference_memory``), ``local_scan`` already
+    shifted by that centre.
+    """
+    low = column_extreme(reference_points, np.minimum)
+    high = column_extreme(reference_points, np.maximum)
+    centre = (low + high) / 2.0  # _centre_of(reference_points)
+
+    @cache
+    def local_reference() -> NDArray[np.float64]:
+        return reference_points - centre
+
+    # = np.abs(local_reference()).max(): subtracting ``centre`` keeps the order of each column
+    reference_reach = float(max(np.abs(low - centre).max(), np.abs(high - centre).max()))
+    reach = max(reference_reach, np.abs(local_scan).max())
     grid_floor = reach / VOXEL_GRID_LIMIT
     if voxel_size is not None:
         if voxel_size <= 0:
@@ -422,11 +489,19 @@ def _plan(
                 f"voxel_size {voxel_size:.3g} m is too small for a cloud reaching {reach:.3g} m "
                 f"from its centre (at least {grid_floor:.3g} m); pass a larger voxel_size"
             )
-    spacing = min(estimate_point_spacing(local_reference), estimate_point_spacing(local_scan))
+    reference_spacing = recalled(
+        reference_memory,
+        "spacing",
+        (),
+        lambda: np.array([estimate_point_spacing(local_reference())]),
+    )
+    spacing = min(float(reference_spacing[0]), estimate_point_spacing(local_scan))
     grid = max(FINE_VOXELS_PER_SPACING * spacing, grid_floor, 1e-9)
     if voxel_size is not None:
         grid = min(grid, voxel_size)
-    reference_grid = _downsample(local_reference, grid)
+    reference_grid = recalled(
+        reference_memory, "grid", (grid,), lambda: _downsample(local_reference(), grid)
+    )
     scan_grid = _downsample(local_scan, grid)
     if voxel_size is None:
         count = max(len(reference_grid), len(scan_grid))
@@ -441,7 +516,7 @@ def _plan(
         if len(points) < MIN_POINTS_AFTER_DOWNSAMPLING:
             if grid <= grid_floor:  # the grid was widened because of how far the clouds reach
                 reaches = {
-                    "reference": float(np.abs(local_reference).max()),
+                    "reference": reference_reach,
                     "scan": float(np.abs(local_scan).max()),
                 }
                 farthest = max(reaches, key=lambda name: reaches[name])
@@ -465,6 +540,7 @@ def _plan(
         grid,
         reference_grid,
         scan_grid,
+        reference_memory,
     )
 
 
@@ -484,6 +560,11 @@ def _downsample(points: NDArray[np.float64], voxel_size: float) -> NDArray[np.fl
 
     downsampled = small_gicp.voxelgrid_sampling(points, voxel_size, 1)
     return np.asarray(downsampled.points(), dtype=np.float64)[:, :3]
+
+
+def _xyz(points: NDArray) -> NDArray[np.float64]:
+    """The (n, 3) coordinates of small_gicp's (n, 4) homogeneous points, a contiguous copy."""
+    return np.ascontiguousarray(np.asarray(points, dtype=np.float64)[:, :3])
 
 
 def _points_of(cloud: CloudLike, role: str) -> NDArray[np.float64]:

@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from app.core import geometry_cache, pipeline
+from app.core import geometry_cache, pipeline, registration
 from app.core.cloud import PointCloud, choose_local_origin
 from app.core.geometry_cache import GeometryCache, cache_key, code_version
 from app.core.localise import neighbourhoods, surface
@@ -17,6 +17,7 @@ from app.core.localise.neighbourhoods import nearest_neighbourhoods
 from app.core.localise.surface import with_surfaces
 from app.core.origins.resolve import ResolvedOrigin
 from app.core.pipeline import REFERENCE_AHEAD_MIN_POINTS, compare
+from app.core.reference_alignment import ALIGNMENT_FACT_PREFIX, ReferenceAlignmentCache
 from app.core.reference_origin import (
     ORIGIN_FACT,
     ReferenceOriginCache,
@@ -245,3 +246,107 @@ def test_an_origin_record_gives_the_resolution_back_exactly():
     assert origin_from_record({"origin": [1, 2, 3]}) is None  # not a record
     stations = ResolvedOrigin(np.zeros((2, 3)), "recovered", None, station_confidence=[0.9, 0.8])
     assert origin_from_record(origin_record(stations)).station_confidence == [0.9, 0.8]
+
+
+def test_array_facts_are_kept_after_the_arrays_checked_and_replaced(tmp_path, pair):
+    points = pair.reference
+    cache = GeometryCache(tmp_path / "ref.geometry", cache_key("ref", None))
+    grid = np.arange(30.0).reshape(10, 3)
+    cache.store(nearest_neighbourhoods(points, N_NEIGHBORS), {"grid": ("k1", grid)})
+    np.testing.assert_array_equal(cache.load_array_fact("grid", "k1"), grid)
+    assert cache.load_array_fact("grid", "k2") is None  # stored for another key
+    assert cache.load_array_fact("other", "k1") is None
+    assert cache.load(points, N_NEIGHBORS) is not None  # the arrays before it are still read
+    assert not cache.store_facts({"grid": ("k1", grid.copy())})  # there already: no rewrite
+    spacing = np.array([0.25])
+    assert cache.store_facts({"spacing": ("k3", spacing), "note": ("k4", {"a": 1})})
+    np.testing.assert_array_equal(cache.load_array_fact("spacing", "k3"), spacing)
+    np.testing.assert_array_equal(cache.load_array_fact("grid", "k1"), grid)
+    assert cache.load_fact("note", "k4") == {"a": 1}
+    assert cache.load(points, N_NEIGHBORS) is not None
+    written = cache.path.read_bytes()
+    # a flipped byte in the first array fact: that fact is not trusted, the rest still are
+    damaged = bytearray(written)
+    damaged[-spacing.nbytes - 5] ^= 0x20
+    cache.path.write_bytes(bytes(damaged))
+    assert cache.load_array_fact("grid", "k1") is None
+    np.testing.assert_array_equal(cache.load_array_fact("spacing", "k3"), spacing)
+    assert cache.load(points, N_NEIGHBORS) is not None
+    assert cache.store_facts({"grid": ("k1", grid)})  # written again, as it was
+    np.testing.assert_array_equal(cache.load_array_fact("grid", "k1"), grid)
+    # a file cut short, or with bytes added, is not used at all
+    cache.path.write_bytes(written[:-3])
+    assert cache.load(points, N_NEIGHBORS) is None
+    assert cache.load_array_fact("spacing", "k3") is None
+    cache.path.write_bytes(written + b"x")
+    assert cache.load(points, N_NEIGHBORS) is None
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_cache_hit_recalls_the_reference_alignment_work(
+    tmp_path, pair, uncached, monkeypatch, threads
+):
+    """With the reference cached, its point spacing, grid centroids and their downsamplings
+    are read from the file (only the scan's spacing is estimated), with the uncached result;
+    a damaged alignment array is computed again and written back."""
+    reference, scan = PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan)
+    cache = GeometryCache(tmp_path / "ref.geometry", cache_key("ref", None))
+    calls: dict[str, int] = {}
+    count_calls(
+        monkeypatch,
+        calls,
+        (registration, "estimate_point_spacing"),
+        (registration, "_downsample"),
+    )
+    compare(reference, scan, threads=threads, geometry_cache=cache)  # fills it
+    filling = dict(calls)
+    header = json.loads(cache.path.read_bytes().split(b"\n", 2)[1])
+    names = [entry["name"] for entry in header["array_facts"]]
+    assert {"alignment.spacing", "alignment.grid", "alignment.coarse"} <= set(names)
+    assert all(name.startswith(ALIGNMENT_FACT_PREFIX) for name in names)
+    written = cache.path.read_bytes()
+    calls.clear()
+    hit = compare(reference, scan, threads=threads, geometry_cache=cache)
+    assert_same_result(hit, uncached[threads])
+    assert hit.registration == uncached[threads].registration
+    assert filling["estimate_point_spacing"] == 2 and calls["estimate_point_spacing"] == 1
+    assert calls["_downsample"] == filling["_downsample"] - (1 + ("alignment.fit" in names))
+    assert cache.path.read_bytes() == written  # nothing rewritten
+    # the spacing's value damaged (its checksum no longer matches): estimated again, rewritten
+    offset = len(written) - sum(int(np.prod(entry["shape"])) * 8 for entry in header["array_facts"])
+    for entry in header["array_facts"]:
+        if entry["name"] == "alignment.spacing":
+            break
+        offset += int(np.prod(entry["shape"])) * 8
+    damaged = bytearray(written)
+    damaged[offset] ^= 0x01
+    cache.path.write_bytes(bytes(damaged))
+    calls.clear()
+    again = compare(reference, scan, threads=threads, geometry_cache=cache)
+    assert_same_result(again, uncached[threads])
+    assert calls["estimate_point_spacing"] == 2
+    assert cache.path.read_bytes() == written
+
+
+def test_the_alignment_memory_recalls_only_its_own_plausible_arrays(tmp_path, pair):
+    cache = GeometryCache(tmp_path / "ref.geometry", cache_key("ref", None))
+    cache.store(nearest_neighbourhoods(pair.reference[:2_000], N_NEIGHBORS))
+    assert ReferenceAlignmentCache.of(None, {}) is None
+    facts: dict = {}
+    memory = ReferenceAlignmentCache.of(cache, facts)
+    grid = np.random.default_rng(0).normal(size=(50, 3))
+    assert memory.recall("grid", (0.1,)) is None
+    memory.remember("grid", (0.1,), grid)
+    memory.remember("spacing", (), np.array([0.05]))
+    assert set(facts) == {"alignment.grid", "alignment.spacing"}  # written with the arrays
+    memory.keep()  # or added to the file afterwards
+    fresh = ReferenceAlignmentCache.of(cache, {})
+    np.testing.assert_array_equal(fresh.recall("grid", (0.1,)), grid)
+    assert fresh.recall("spacing", ())[0] == 0.05
+    assert fresh.recall("grid", (np.nextafter(0.1, 1.0),)) is None  # other parameters
+    other_reference = GeometryCache(cache.path, cache_key("other", None))
+    assert ReferenceAlignmentCache.of(other_reference, {}).recall("spacing", ()) is None
+    # an array of the wrong form under the right key and checksum: not used
+    name, key = fresh._fact("grid", (0.2,))
+    assert cache.store_facts({name: (key, np.zeros((4, 2)))})
+    assert fresh.recall("grid", (0.2,)) is None

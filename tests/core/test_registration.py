@@ -238,3 +238,89 @@ def test_kitti_consecutive_frames_align(real_data_dir: Path):
     assert result.translation[0] == pytest.approx(0.88, abs=0.05)
     assert np.abs(result.translation[1:]).max() < 0.1
     assert result.rotation_degrees < 1.0
+
+
+class DictMemory:
+    """A :class:`~app.core.registration.ReferenceMemory` in a dict, counting what it gives."""
+
+    def __init__(self):
+        self.arrays: dict[tuple, np.ndarray] = {}
+        self.recalled: list[str] = []
+
+    def recall(self, name, parameters):
+        array = self.arrays.get((name, tuple(parameters)))
+        if array is not None:
+            self.recalled.append(name)
+        return array
+
+    def remember(self, name, parameters, array):
+        self.arrays[(name, tuple(parameters))] = np.array(array, dtype=np.float64)
+
+
+def count_calls(monkeypatch, calls, *targets):
+    for module, name in targets:
+        original = getattr(module, name)
+
+        def counted(*args, _name=name, _original=original, **kwargs):
+            calls[_name] = calls.get(_name, 0) + 1
+            return _original(*args, **kwargs)
+
+        monkeypatch.setattr(module, name, counted)
+
+
+@pytest.mark.parametrize("voxel_size", [None, 0.1], ids=["default", "fit-downsampled"])
+def test_a_reference_memory_gives_the_same_alignment_without_the_reference_work(
+    reference, rescan, monkeypatch, voxel_size
+):
+    """The reference's spacing, grid centroids and coarse / fit downsamplings are remembered
+    on the first alignment and recalled on the next (only the scan's spacing is estimated
+    again), with the result of an alignment without a memory, bit for bit."""
+    import small_gicp
+
+    from app.core import registration
+
+    scan = apply_transform(rescan, rigid_transform(0.03, 0.4))
+    plain = register_scan(reference, scan, voxel_size=voxel_size)
+    memory = DictMemory()
+    first = register_scan(reference, scan, voxel_size=voxel_size, reference_memory=memory)
+    remembered = {name for name, _ in memory.arrays}
+    assert remembered == ({"spacing", "grid", "coarse"} | ({"fit"} if voxel_size else set()))
+    calls: dict[str, int] = {}
+    count_calls(
+        monkeypatch,
+        calls,
+        (registration, "estimate_point_spacing"),
+        (registration, "_downsample"),
+        (small_gicp, "preprocess_points"),
+    )
+    second = register_scan(reference, scan, voxel_size=voxel_size, reference_memory=memory)
+    assert sorted(memory.recalled) == sorted(remembered)
+    assert calls["estimate_point_spacing"] == 1  # the scan's
+    assert calls["_downsample"] == (2 if voxel_size else 1)  # the scan's grid (and fit)
+    assert calls["preprocess_points"] == 1  # the scan's coarse cloud
+    for result in (first, second):
+        np.testing.assert_array_equal(result.transform, plain.transform)
+        assert (result.fitness, result.rmse, result.iterations, result.voxel_size) == (
+            plain.fitness,
+            plain.rmse,
+            plain.iterations,
+            plain.voxel_size,
+        )
+    # arrays remembered for other parameters (a grid a hair finer) are not used
+    memory.arrays = {
+        (name, tuple(value * (1 + 1e-12) for value in parameters)): array + 1.0
+        for (name, parameters), array in memory.arrays.items()
+        if name != "spacing"
+    }
+    memory.recalled.clear()
+    third = register_scan(reference, scan, voxel_size=voxel_size, reference_memory=memory)
+    assert memory.recalled == []
+    np.testing.assert_array_equal(third.transform, plain.transform)
+    identity = identity_registration(reference, scan, voxel_size=voxel_size)
+    remembered_identity = identity_registration(
+        reference, scan, voxel_size=voxel_size, reference_memory=memory
+    )
+    assert (remembered_identity.fitness, remembered_identity.rmse) == (
+        identity.fitness,
+        identity.rmse,
+    )
