@@ -30,6 +30,7 @@ DEFAULT_PARAMETERS: dict[str, Any] = {
     "visibility_beyond_fraction": 0.5,
     "visibility_miss_factor": 4.0,
     "origin_free_test": "coverage",
+    "min_change_distance": 0.10,
 }
 """Keyword parameters of :func:`~app.core.localise.changes.localise_changes` and their defaults.
 
@@ -66,6 +67,16 @@ origin_free_test
     floor seen only at grazing angles, is unchanged; then the coverage test:
     :mod:`~app.core.localise.gaps`).  ``"gaps"`` is opt-in: it removes false changes in the
     blind discs of merged surveys but also parts of true changes on the paper's corridor.
+min_change_distance
+    Smallest change reported (metres): a point is changed only when it lies farther than
+    ``max(tau, min_change_distance)`` from the other cloud's surface.  0.10: the issue-15
+    definition of a change ("more than 10 cm from every surface of the other epoch's world"),
+    which keeps the band where a removed or added object met the floor (its lowest few
+    centimetres, within 10 cm of the floor left) unchanged; 0 reports every change the noise
+    lets through (``tau`` alone, ~2-4 cm on 1 cm range noise).  It is also the tolerance along
+    the normal of a point near a surface sampled sparsely (a floor at grazing angles, whose
+    support radius reaches tens of centimetres): farther off its plane, the point is not on
+    it.
 """
 
 PARAMETER_SPECS: dict[str, ParamSpec] = {
@@ -79,6 +90,7 @@ PARAMETER_SPECS: dict[str, ParamSpec] = {
     "visibility_beyond_fraction": ParamSpec("positive", high=1.0),
     "visibility_miss_factor": ParamSpec("positive"),
     "origin_free_test": ParamSpec("choice", choices=("gaps", "coverage")),
+    "min_change_distance": ParamSpec("float", low=0.0),
 }
 """How each of :data:`DEFAULT_PARAMETERS` is validated (same names, same order)."""
 
