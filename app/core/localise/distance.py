@@ -135,17 +135,20 @@ def surface_distance(
     """Distance of each point to the other cloud's supported local surface.
 
     A point whose nearest point in the other cloud lies within that point's support radius
-    (``max(support_factor * spacing, tau)``) and within ``change_threshold`` of that point's
-    plane is *matched*: the other cloud has surface right there, so it is never a candidate,
-    and its distance is the offset from the plane of its nearest point's neighbourhood (one
-    plane: most points are matched, and this keeps their cost at one gather).  Any other point
-    is compared with every neighbour ``q`` of its nearest point (a disc of radius
-    ``max(support_factor * s(q), tau)`` on ``q``'s plane) and is a candidate when farther than
-    ``change_threshold`` from all of them.
+    (``max(support_factor * spacing, tau)``), and within ``change_threshold`` of that point's
+    plane or of the point itself, is *matched*: the other cloud has surface right there, so it
+    is never a candidate, and its distance is the offset from the plane of its nearest point's
+    neighbourhood (one plane: most points are matched, and this keeps their cost at one
+    gather).  Any other point is compared with every neighbour ``q`` of its nearest point (a
+    disc of radius ``max(support_factor * s(q), tau)`` on ``q``'s plane) and is a candidate
+    when farther than ``change_threshold`` from all of them and from its nearest point.
 
     The support radius is a tolerance *across* the other cloud's surface (its sampling): on a
     floor seen at grazing angles it reaches tens of centimetres, and a point that far *above*
-    the floor is not on it.  Along the normal the tolerance is the change threshold.
+    the floor is not on it.  Along the normal the tolerance is the change threshold.  A point
+    of the other cloud is itself on that cloud's surface, so a point within the change
+    threshold of one is not a change, whatever the plane fitted there (across an edge or a
+    corner, or on a sparse cloud, it can be tilted far off both).
 
     Parameters
     ----------
@@ -172,7 +175,8 @@ def surface_distance(
         the smallest point-to-plane distance over the neighbours of the nearest point whose
         support disc ``p`` projects into; the nearest-point distance when there is none.
     candidate : ndarray, shape (p,), bool
-        Unmatched and ``distance > change_threshold``.
+        Unmatched, ``distance > change_threshold`` and farther than that from the nearest
+        point (``distance > tau`` without ``change_threshold``).
     nearest_plane_offset : ndarray, shape (p,), or None
         With ``with_plane_offset``: the signed offset from the nearest point's plane for
         matched points, NaN elsewhere.
@@ -193,7 +197,10 @@ def surface_distance(
         )
         matched = nn_distance[chunk] <= nearest_support
         if change_threshold is not None:
-            matched &= np.abs(offset) <= change_threshold
+            # on the nearest point's plane, or as close to that point (a sample of the surface)
+            # as a change may be: a plane fitted across an edge or a corner can be far off both
+            near_surface = np.abs(offset) <= change_threshold
+            matched &= near_surface | (nn_distance[chunk] <= change_threshold)
         unmatched_parts.append(start + np.flatnonzero(~matched))
         rows = start + np.flatnonzero(matched)
         if nearest_plane_offset is not None:
@@ -213,9 +220,12 @@ def surface_distance(
         plane_offset = np.einsum("cd,ckd->ck", query, normals) - other.plane_constant[neighbours]
         plane_distance = np.where(supported, np.abs(plane_offset), np.inf).min(axis=1)
         distance[rows] = np.where(np.isfinite(plane_distance), plane_distance, nn_distance[rows])
-        candidate[rows] = distance[rows] > (
-            threshold if change_threshold is None else change_threshold
-        )
+        if change_threshold is None:
+            candidate[rows] = distance[rows] > threshold
+        else:
+            candidate[rows] = (distance[rows] > change_threshold) & (
+                nn_distance[rows] > change_threshold
+            )
     return distance, candidate, nearest_plane_offset
 
 
