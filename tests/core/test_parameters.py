@@ -28,7 +28,8 @@ from app.core.parameters import ParamSpec, validate_parameters
         (
             lambda: resolve_parameters({"n_neighbours": 5}),
             "unknown localisation parameter(s) ['n_neighbours']; valid: ['cluster_factor', "
-            "'coverage_factor', 'n_neighbors', 'origin_free_test', 'support_factor', "
+            "'coverage_factor', 'min_change_distance', 'n_neighbors', 'origin_free_test', "
+            "'support_factor', "
             "'threshold_factor', "
             "'visibility_angle_factor', 'visibility_beyond_fraction', "
             "'visibility_margin_factor', 'visibility_miss_factor']",

@@ -8,11 +8,13 @@ The steps, each in its own module (imports go one way: changes -> visibility -> 
    neighbours of :mod:`~app.core.localise.neighbourhoods`): a plane, spacing ``s`` and
    residual per point; the median residual is the cloud's noise ``sigma``.
 2. **Distance to the other cloud's surface** (:mod:`~app.core.localise.distance`).
-3. **Change candidates.**  ``p`` is a candidate when that distance exceeds
-   ``tau = threshold_factor * sqrt(sigma_ref^2 + sigma_scan^2 + registration_rmse^2)`` AND no
-   point of the other cloud lies within the support radius of it: the threshold along the
-   normal follows the measured noise, the one across the surface the other cloud's local
-   spacing.
+3. **Change candidates.**  ``p`` is a candidate when that distance exceeds the change
+   threshold ``max(tau, min_change_distance)``, with
+   ``tau = threshold_factor * sqrt(sigma_ref^2 + sigma_scan^2 + registration_rmse^2)``, AND
+   it is not on the other cloud's surface (its nearest point there within the support radius
+   and it within the change threshold of that point's plane): the threshold along the normal
+   follows the measured noise and the smallest change asked for, the one across the surface
+   the other cloud's local spacing.
 4. **Visibility: unobserved is never change** (:mod:`~app.core.localise.visibility`): ray
    tests from the other sensor's origin (:mod:`~app.core.localise.rays`), or a coverage test
    without one.
@@ -294,6 +296,7 @@ def localise_changes(
         settings["threshold_factor"] * math.hypot(*noises, registration_rmse, residual),
         resolution_floor,
     )
+    change_threshold = max(threshold, settings["min_change_distance"])
 
     def distance_to(own: Side, other: Side) -> tuple[NDArray, NDArray]:
         distance, candidate, _ = surface_distance(
@@ -303,6 +306,7 @@ def localise_changes(
             other=other.geometry,
             threshold=threshold,
             support_factor=support,
+            change_threshold=change_threshold,
         )
         return distance, candidate
 
@@ -384,6 +388,7 @@ def localise_changes(
         "scan_noise": scan_side.geometry.noise,
         "alignment_residual": residual,
         "threshold": threshold,
+        "change_threshold": change_threshold,
         "reference_spacing_median": float(np.median(reference_side.geometry.spacing)),
         "scan_spacing_median": float(np.median(scan_side.geometry.spacing)),
         "nn_distance_over_spacing_quartile": nn_distance_quartile,

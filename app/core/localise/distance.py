@@ -4,7 +4,8 @@ Each neighbour ``q`` (in the other cloud, around the point's nearest point there
 disc of radius ``r(q) = max(f * s(q), tau)`` on its fitted plane.  The distance of ``p`` is the
 smallest point-to-plane distance to the discs ``p`` projects into, or its nearest-point
 distance when it projects into none (the other cloud has no surface there).  A matched point
-(its nearest point's disc contains it: never a candidate) gets that one plane's offset.  The
+(its nearest point lies within that point's support radius and ``p`` within the change
+threshold of that point's plane: never a candidate) gets that one plane's offset.  The
 support factor ``f`` is calibrated on the data (:func:`support_factor`), and the misalignment
 left after registration is measured on matched points (:func:`alignment_residual`).
 """
@@ -128,16 +129,26 @@ def surface_distance(
     other: LocalGeometry,
     threshold: float,
     support_factor: float,
+    change_threshold: float | None = None,
     with_plane_offset: bool = False,
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64] | None]:
     """Distance of each point to the other cloud's supported local surface.
 
     A point whose nearest point in the other cloud lies within that point's support radius
-    (``max(support_factor * spacing, tau)``) is *matched*: the other cloud has surface right
-    there, so it is never a candidate, and its distance is the offset from the plane of its
-    nearest point's neighbourhood (one plane: most points are matched, and this keeps their
-    cost at one gather).  An unmatched point is compared with every neighbour ``q`` of its
-    nearest point (a disc of radius ``max(support_factor * s(q), tau)`` on ``q``'s plane).
+    (``max(support_factor * spacing, tau)``), and within ``change_threshold`` of that point's
+    plane or of the point itself, is *matched*: the other cloud has surface right there, so it
+    is never a candidate, and its distance is the offset from the plane of its nearest point's
+    neighbourhood (one plane: most points are matched, and this keeps their cost at one
+    gather).  Any other point is compared with every neighbour ``q`` of its nearest point (a
+    disc of radius ``max(support_factor * s(q), tau)`` on ``q``'s plane) and is a candidate
+    when farther than ``change_threshold`` from all of them and from its nearest point.
+
+    The support radius is a tolerance *across* the other cloud's surface (its sampling): on a
+    floor seen at grazing angles it reaches tens of centimetres, and a point that far *above*
+    the floor is not on it.  Along the normal the tolerance is the change threshold.  A point
+    of the other cloud is itself on that cloud's surface, so a point within the change
+    threshold of one is not a change, whatever the plane fitted there (across an edge or a
+    corner, or on a sparse cloud, it can be tilted far off both).
 
     Parameters
     ----------
@@ -147,8 +158,13 @@ def surface_distance(
     other : LocalGeometry
         The other cloud (its neighbour index not yet released).
     threshold : float
-        ``tau``.
+        ``tau``: the noise threshold, the smallest support radius.
     support_factor : float
+    change_threshold : float, optional
+        ``max(tau, min_change_distance)``: the largest distance from the other cloud's surface
+        that is not a change (at least ``threshold``).  None: ``threshold``, and every point
+        within the support radius of its nearest point is matched whatever its plane offset
+        (the alignment residual's sample).
     with_plane_offset : bool
         Also return the signed offsets (for the alignment residual; 8 bytes a point).
 
@@ -159,29 +175,37 @@ def surface_distance(
         the smallest point-to-plane distance over the neighbours of the nearest point whose
         support disc ``p`` projects into; the nearest-point distance when there is none.
     candidate : ndarray, shape (p,), bool
-        Unmatched and ``distance > tau``.
+        Unmatched, ``distance > change_threshold`` and farther than that from the nearest
+        point (``distance > tau`` without ``change_threshold``).
     nearest_plane_offset : ndarray, shape (p,), or None
         With ``with_plane_offset``: the signed offset from the nearest point's plane for
         matched points, NaN elsewhere.
     """
+    if change_threshold is not None and change_threshold < threshold:
+        raise ValueError(f"change_threshold {change_threshold} is below tau {threshold}")
     nearest_plane_offset = np.full(points.shape[0], np.nan) if with_plane_offset else None
     distance = np.empty(points.shape[0])
     candidate = np.zeros(points.shape[0], dtype=bool)
     unmatched_parts = []
     for start in range(0, points.shape[0], CHUNK):
         chunk = slice(start, start + CHUNK)
-        nearest_support = np.maximum(support_factor * other.spacing[nn_index[chunk]], threshold)
-        matched = nn_distance[chunk] <= nearest_support
-        unmatched_parts.append(start + np.flatnonzero(~matched))
-        rows = start + np.flatnonzero(matched)
-        nearest = nn_index[rows]
+        nearest = nn_index[chunk]
+        nearest_support = np.maximum(support_factor * other.spacing[nearest], threshold)
         offset = (
-            np.einsum("pd,pd->p", points[rows], other.normal[nearest])
+            np.einsum("pd,pd->p", points[chunk], other.normal[nearest])
             - other.plane_constant[nearest]
         )
+        matched = nn_distance[chunk] <= nearest_support
+        if change_threshold is not None:
+            # on the nearest point's plane, or as close to that point (a sample of the surface)
+            # as a change may be: a plane fitted across an edge or a corner can be far off both
+            near_surface = np.abs(offset) <= change_threshold
+            matched &= near_surface | (nn_distance[chunk] <= change_threshold)
+        unmatched_parts.append(start + np.flatnonzero(~matched))
+        rows = start + np.flatnonzero(matched)
         if nearest_plane_offset is not None:
-            nearest_plane_offset[rows] = offset
-        distance[rows] = np.abs(offset)
+            nearest_plane_offset[rows] = offset[matched]
+        distance[rows] = np.abs(offset[matched])
     unmatched = np.concatenate(unmatched_parts)
     for start in range(0, unmatched.shape[0], GATHER_CHUNK):
         rows = unmatched[start : start + GATHER_CHUNK]
@@ -196,7 +220,12 @@ def surface_distance(
         plane_offset = np.einsum("cd,ckd->ck", query, normals) - other.plane_constant[neighbours]
         plane_distance = np.where(supported, np.abs(plane_offset), np.inf).min(axis=1)
         distance[rows] = np.where(np.isfinite(plane_distance), plane_distance, nn_distance[rows])
-        candidate[rows] = distance[rows] > threshold
+        if change_threshold is None:
+            candidate[rows] = distance[rows] > threshold
+        else:
+            candidate[rows] = (distance[rows] > change_threshold) & (
+                nn_distance[rows] > change_threshold
+            )
     return distance, candidate, nearest_plane_offset
 
 

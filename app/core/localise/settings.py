@@ -30,6 +30,7 @@ DEFAULT_PARAMETERS: dict[str, Any] = {
     "visibility_beyond_fraction": 0.5,
     "visibility_miss_factor": 4.0,
     "origin_free_test": "coverage",
+    "min_change_distance": 0.10,
 }
 """Keyword parameters of :func:`~app.core.localise.changes.localise_changes` and their defaults.
 
@@ -69,6 +70,16 @@ origin_free_test
     ``"surfaces"``: gaps, shadows and changes told apart from both clouds' surfaces alone,
     with neighbourhoods that grow from the local gap (:mod:`~app.core.localise.origin_free`);
     for merged clouds whose stations are not known nor recovered.
+min_change_distance
+    Smallest change reported (metres): a point is changed only when it lies farther than
+    ``max(tau, min_change_distance)`` from the other cloud's surface.  0.10: the issue-15
+    definition of a change ("more than 10 cm from every surface of the other epoch's world"),
+    which keeps the band where a removed or added object met the floor (its lowest few
+    centimetres, within 10 cm of the floor left) unchanged; 0 reports every change the noise
+    lets through (``tau`` alone, ~2-4 cm on 1 cm range noise).  It is also the tolerance along
+    the normal of a point near a surface sampled sparsely (a floor at grazing angles, whose
+    support radius reaches tens of centimetres): farther off its plane, the point is not on
+    it.
 """
 
 PARAMETER_SPECS: dict[str, ParamSpec] = {
@@ -82,6 +93,7 @@ PARAMETER_SPECS: dict[str, ParamSpec] = {
     "visibility_beyond_fraction": ParamSpec("positive", high=1.0),
     "visibility_miss_factor": ParamSpec("positive"),
     "origin_free_test": ParamSpec("choice", choices=("gaps", "coverage", "surfaces")),
+    "min_change_distance": ParamSpec("float", low=0.0),
 }
 """How each of :data:`DEFAULT_PARAMETERS` is validated (same names, same order)."""
 

@@ -1,0 +1,129 @@
+"""The change distance: how far off the other epoch's surface a point must lie to be a change.
+
+A removed box stood on a floor that the scan samples only at grazing angles (rings 33 cm apart,
+8 cm along a ring, as a lidar sees a floor several metres away).  Each of the box's points has
+a scan floor point within the support radius (the scan's spacing is large there), but the
+floor's plane shows the points 10-50 cm above it: they are changes.  The band up to
+``min_change_distance`` (0.10 m) above the floor is not (bench numbers in
+bench/results/visibility.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.core.cloud import PointCloud
+from app.core.errors import InputError
+from app.core.geometry_cache import cache_key
+from app.core.localise import LABEL_CHANGED, localise_changes
+from app.core.localise.distance import nearest_in, surface_distance
+from app.core.localise.settings import DEFAULT_PARAMETERS
+from app.core.localise.surface import local_geometry
+from app.core.pipeline import compare
+
+BOX_LOW = np.array([2.12, -0.25, 0.0])
+BOX_HIGH = np.array([2.62, 0.25, 0.5])
+
+
+def grid(low: tuple[float, float], high: tuple[float, float], step: tuple[float, float]):
+    """Points of the floor z = 0 on a ``step`` grid, shape (n, 3)."""
+    x, y = np.meshgrid(
+        np.arange(low[0], high[0], step[0]), np.arange(low[1], high[1], step[1]), indexing="ij"
+    )
+    return np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+
+
+def box_faces(step: float = 0.02) -> np.ndarray:
+    """The four sides and the top of the box, on a ``step`` grid, shape (n, 3)."""
+    across = np.arange(BOX_LOW[1], BOX_HIGH[1], step)
+    along = np.arange(BOX_LOW[0], BOX_HIGH[0], step)
+    heights = np.arange(0.01, BOX_HIGH[2], step)
+    faces = []
+    for x in (BOX_LOW[0], BOX_HIGH[0]):
+        y, z = np.meshgrid(across, heights, indexing="ij")
+        faces.append(np.column_stack([np.full(y.size, x), y.ravel(), z.ravel()]))
+    for y in (BOX_LOW[1], BOX_HIGH[1]):
+        x, z = np.meshgrid(along, heights, indexing="ij")
+        faces.append(np.column_stack([x.ravel(), np.full(x.size, y), z.ravel()]))
+    x, y = np.meshgrid(along, across, indexing="ij")
+    faces.append(np.column_stack([x.ravel(), y.ravel(), np.full(x.size, BOX_HIGH[2])]))
+    return np.vstack(faces)
+
+
+def removed_box_on_a_grazing_floor():
+    """Reference: a dense floor and a box; scan: the floor alone, seen at grazing angles."""
+    rng = np.random.default_rng(0)
+    floor = grid((0.0, -1.5), (4.0, 1.5), (0.04, 0.04))
+    under_box = np.all((floor[:, :2] > BOX_LOW[:2]) & (floor[:, :2] < BOX_HIGH[:2]), axis=1)
+    box = box_faces()
+    reference = np.vstack([floor[~under_box], box])
+    scan = grid((0.02, -1.48), (4.0, 1.5), (0.33, 0.08))
+    reference += rng.normal(0.0, 0.002, reference.shape)
+    scan += rng.normal(0.0, 0.002, scan.shape)
+    is_box = np.zeros(len(reference), dtype=bool)
+    is_box[-len(box) :] = True
+    return reference, scan, is_box
+
+
+def test_points_off_a_sparsely_sampled_floors_plane_are_candidates_above_the_change_distance():
+    reference, scan, is_box = removed_box_on_a_grazing_floor()
+    face = reference[is_box & (np.abs(reference[:, 0] - BOX_LOW[0]) < 0.01)]  # the side at x low
+    other = local_geometry(scan, 10)
+    nn_distance, nn_index = nearest_in(face, other)
+    height = face[:, 2]
+    # every point of the side up to 20 cm has a scan floor point within its support radius
+    support_radius = 1.3 * other.spacing[nn_index]
+    assert (nn_distance[height < 0.2] <= support_radius[height < 0.2]).all()
+
+    _, candidate, _ = surface_distance(
+        face,
+        nn_distance,
+        nn_index,
+        other=other,
+        threshold=0.02,
+        support_factor=1.3,
+        change_threshold=0.10,
+    )
+    assert candidate[height > 0.12].all()
+    assert not candidate[height < 0.08].any()
+
+
+@pytest.mark.parametrize("min_change_distance", [None, 0.3])
+def test_a_removed_box_on_a_grazing_floor_is_changed_from_the_change_distance_up(
+    min_change_distance,
+):
+    reference, scan, is_box = removed_box_on_a_grazing_floor()
+    params = {} if min_change_distance is None else {"min_change_distance": min_change_distance}
+    localisation = localise_changes(reference, scan, threads=1, **params)
+    change_distance = localisation.parameters["min_change_distance"]
+    assert change_distance == (min_change_distance or DEFAULT_PARAMETERS["min_change_distance"])
+    changed = localisation.reference_label == LABEL_CHANGED
+    height = reference[:, 2]
+    margin = 0.03  # noise, and the floor's fitted plane
+    assert changed[is_box & (height > change_distance + margin)].all()
+    assert not changed[is_box & (height < change_distance - margin)].any()
+    assert not changed[~is_box].any()  # the floor
+
+
+def test_min_change_distance_must_be_a_non_negative_number():
+    reference, scan, _ = removed_box_on_a_grazing_floor()
+    with pytest.raises(InputError, match="min_change_distance must be >= 0"):
+        localise_changes(reference, scan, min_change_distance=-0.1)
+
+
+def test_min_change_distance_is_a_localisation_parameter_of_compare_and_of_the_cache_key():
+    reference, scan, is_box = removed_box_on_a_grazing_floor()
+    result = compare(
+        PointCloud.from_array(reference),
+        PointCloud.from_array(scan),
+        params={"align": False, "localisation": {"min_change_distance": 0.3}},
+        threads=1,
+    )
+    assert result.localisation["min_change_distance"] == 0.3
+    assert result.localisation["change_threshold"] == 0.3
+    changed = result.reference_label == LABEL_CHANGED
+    assert not changed[reference[:, 2] < 0.25].any()
+    assert changed[is_box & (reference[:, 2] > 0.35)].all()
+    assert cache_key("a scan", {"min_change_distance": 0.3}) != cache_key("a scan", None)
+    assert cache_key("a scan", {"min_change_distance": 0.1}) == cache_key("a scan", None)
