@@ -53,13 +53,17 @@ class ComparisonSettings:
     recover_stations: bool = False
 
 
+INTERNAL_REGISTRATION_ARGUMENTS = frozenset({"reference_memory"})
+"""Arguments of :func:`register_scan` that are not user parameters (the geometry cache's
+reference facts, passed by the pipeline)."""
+
 REGISTRATION_SPECS: dict[str, ParamSpec] = {
     name: ParamSpec("any")
     for name, parameter in inspect.signature(register_scan).parameters.items()
-    if parameter.kind == parameter.KEYWORD_ONLY
+    if parameter.kind == parameter.KEYWORD_ONLY and name not in INTERNAL_REGISTRATION_ARGUMENTS
 }
 """The registration stage's keyword parameters: those :func:`register_scan` takes (values are
-checked by the registration itself)."""
+checked by the registration itself), less the ones the pipeline passes itself."""
 
 
 def parse_comparison_params(
