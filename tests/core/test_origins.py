@@ -34,6 +34,30 @@ def test_single_station_origin_is_found_to_two_centimetres(layout: str) -> None:
     assert found.confident and found.confidence >= CONFIDENT
 
 
+def test_dense_step_origin_is_found_to_two_centimetres() -> None:
+    # at 0.3 degree steps neighbour pairs are 1-2 cm long, as long as the range noise, so many
+    # of their lines miss the lidar and pulled the column centre's least squares off the truth
+    pair = lidar_pair(layout="corridor", change="none", angular_step_deg=0.3, random_state=1000)
+    found = estimate_origin(pair.reference)
+    assert np.linalg.norm(found.origin - pair.reference_origin) < 0.02
+    assert found.confident
+
+
+def test_dense_rings_height_is_found_to_two_centimetres() -> None:
+    # rings 0.2 degrees apart: the coarse height scan's 2 cm steps with 0.1 degree bins chose a
+    # height some centimetres off, where the rings alias onto their neighbours
+    pair = lidar_pair(
+        layout="room",
+        change="none",
+        angular_step_deg=(0.2, 0.6),
+        misaligned=True,
+        random_state=2003,
+    )
+    found = estimate_origin(pair.reference)
+    assert np.linalg.norm(found.origin - pair.reference_origin) < 0.02
+    assert found.confident
+
+
 def test_estimate_ignores_point_order_and_is_deterministic() -> None:
     pair = lidar_pair(layout="room", change="none", angular_step_deg=STEP, random_state=22)
     first = estimate_origin(pair.reference, random_state=3)

@@ -26,7 +26,12 @@ __all__ = [
 ]
 
 FINE_BIN_DEG = 0.02
-COARSE_BIN_DEG = 0.1
+COARSE_BIN_DEG = 0.05
+COARSE_HEIGHT_STEP = 0.01
+"""The coarse height scan (far returns, :data:`COARSE_BIN_DEG` bins) steps by this (metres): a
+centimetre off moves a wall's rings at 5 m by 0.1 degree, half the spacing of 0.2 degree rings;
+2 cm steps with 0.1 degree bins let a height 8-16 cm off (rings aliased onto their neighbours)
+win at 0.2 degree steps."""
 PEAK_FACTOR = 4.0
 """A histogram bin is a ring when it holds this many times the bins' mean count."""
 MIN_HORIZONTAL_RANGE = 1.0
@@ -142,10 +147,10 @@ def fit_ring_height(
     sample = usable[rng.choice(len(usable), size=min(len(usable), 60_000), replace=False)]
     z = sample[:, 2]
     horizontal = np.linalg.norm(sample[:, :2] - centre, axis=1)
-    # coarse: far returns (angles move least per metre of height), 2 cm steps
+    # coarse: far returns (angles move least per metre of height), 1 cm steps
     far = horizontal > np.quantile(horizontal, 0.5)
     low, high = np.quantile(z, [0.001, 0.999])
-    heights = np.arange(low, high, 0.02)
+    heights = np.arange(low, high, COARSE_HEIGHT_STEP)
     coarse = np.array(
         [elevation_sharpness(z[far], horizontal[far], h, COARSE_BIN_DEG) for h in heights]
     )
