@@ -248,3 +248,24 @@ def test_cropped_frames_without_floor_are_found_on_ring_cones_or_not_trusted() -
             assert not found.confident or error < 0.05, (layout, seed, error)
             found_count += found.confident
     assert found_count >= 3
+
+
+def test_grid_votes_count_the_lines_near_each_grid_point_as_distances_do():
+    from app.core.origins.columns import _grid_votes
+
+    rng = np.random.default_rng(7)
+    for trial in range(60):
+        count = int(rng.integers(10, 800))
+        angle = rng.uniform(0.0, 2.0 * np.pi, count)
+        if trial % 4 == 0:
+            angle[: count // 3] = 0.0  # lines along the grid's rows
+        normal = np.column_stack([np.cos(angle), np.sin(angle)])
+        centre = rng.normal(size=2)
+        half_width, step, band = [(1.0, 0.05, 0.03), (0.05, 0.01, 0.01)][trial % 2]
+        target = centre + rng.normal(scale=half_width / 2, size=2)
+        constant = normal @ target + rng.normal(scale=2 * band, size=count)
+        offsets = np.arange(-half_width, half_width + step / 2, step)
+        grid = np.stack(np.meshgrid(offsets, offsets, indexing="ij"), -1).reshape(-1, 2)
+        expected = (np.abs((centre + grid) @ normal.T - constant) <= band).sum(axis=1)
+        votes = _grid_votes(normal, constant, centre, offsets, band)
+        np.testing.assert_array_equal(votes.ravel(), expected)
