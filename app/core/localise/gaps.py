@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 from app.core.localise.settings import GATHER_CHUNK
 from app.core.localise.surface import LocalGeometry
 
-__all__ = ["MAX_GAP", "SECTORS", "in_sampling_gap"]
+__all__ = ["MAX_GAP", "SECTORS", "coplanar_near_probe", "in_sampling_gap", "tangent_directions"]
 
 SECTORS = 6
 """Directions (60 degrees apart) in which the other cloud's surface must be found."""
@@ -38,6 +38,83 @@ PLANE_SLOPE = math.sin(math.radians(1.0))
 """The plane tolerance grows by this much a metre away from the candidate (surfaces bend)."""
 NORMAL_AGREEMENT_COSINE = math.cos(math.radians(30.0))
 PROBE_NEIGHBOURS = 4
+
+
+def tangent_directions(
+    normal: NDArray[np.floating], sectors: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Unit normals and ``sectors`` evenly spread unit directions in each point's tangent plane.
+
+    Parameters
+    ----------
+    normal : ndarray, shape (c, 3)
+    sectors : int
+
+    Returns
+    -------
+    unit : ndarray, shape (c, 3)
+    directions : ndarray, shape (c, sectors, 3)
+    """
+    unit = normal.astype(np.float64)
+    unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-12)[:, None]
+    helper = np.where(np.abs(unit[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    first = np.cross(unit, helper)
+    first /= np.linalg.norm(first, axis=1)[:, None]
+    second = np.cross(unit, first)
+    angles = 2.0 * math.pi * np.arange(sectors) / sectors
+    directions = (
+        np.cos(angles)[None, :, None] * first[:, None, :]
+        + np.sin(angles)[None, :, None] * second[:, None, :]
+    )
+    return unit, directions
+
+
+def coplanar_near_probe(
+    query: NDArray[np.float64],
+    unit: NDArray[np.float64],
+    direction: NDArray[np.float64],
+    reach: NDArray[np.float64],
+    cloud: LocalGeometry,
+    tolerance: float,
+    *,
+    max_distance: float,
+    half_angle_cosine: float,
+) -> NDArray[np.bool_]:
+    """Whether ``cloud`` has a point on each query's plane near its probe, in its direction.
+
+    Parameters
+    ----------
+    query, unit, direction : ndarray, shape (p, 3)
+        Candidate, its unit normal, the probe's unit direction in its plane.
+    reach : ndarray, shape (p,)
+        The probe's distance from the candidate.
+    cloud : LocalGeometry
+    tolerance : float
+        Largest offset (metres) from the candidate's plane, at the candidate.
+    max_distance : float
+        Points farther (metres) from the candidate do not count.
+    half_angle_cosine : float
+        A point counts for the direction within this cosine of it.
+
+    Returns
+    -------
+    ndarray, shape (p,), bool
+    """
+    k = min(PROBE_NEIGHBOURS, cloud.points.shape[0])
+    _, index = cloud.tree.query(query + reach[:, None] * direction, k=k)
+    index = np.asarray(index).reshape(query.shape[0], k)
+    offset = cloud.points[index] - query[:, None, :]  # (p, k, 3)
+    distance = np.linalg.norm(offset, axis=2)
+    across = np.abs(np.einsum("pkd,pd->pk", offset, unit))
+    along = np.einsum("pkd,pd->pk", offset, direction)
+    agrees = np.abs(np.einsum("pkd,pd->pk", cloud.normal[index], unit))
+    hit = (
+        (distance <= max_distance)
+        & (across <= tolerance + PLANE_SLOPE * distance)
+        & (along >= half_angle_cosine * distance)
+        & (agrees >= NORMAL_AGREEMENT_COSINE)
+    )
+    return hit.any(axis=1)
 
 
 def in_sampling_gap(
@@ -71,41 +148,26 @@ def in_sampling_gap(
     """
     count = points.shape[0]
     result = np.zeros(count, dtype=bool)
-    k = min(PROBE_NEIGHBOURS, other.points.shape[0])
     if count == 0:
         return result
-    angles = 2.0 * math.pi * np.arange(SECTORS) / SECTORS
     for start in range(0, count, GATHER_CHUNK):
         chunk = slice(start, start + GATHER_CHUNK)
         query = points[chunk]
-        unit = normal[chunk].astype(np.float64)
-        unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-12)[:, None]
-        helper = np.where(np.abs(unit[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
-        first = np.cross(unit, helper)
-        first /= np.linalg.norm(first, axis=1)[:, None]
-        second = np.cross(unit, first)
-        directions = (
-            np.cos(angles)[None, :, None] * first[:, None, :]
-            + np.sin(angles)[None, :, None] * second[:, None, :]
-        )  # (c, S, 3)
+        unit, directions = tangent_directions(normal[chunk], SECTORS)
         found = np.zeros((query.shape[0], SECTORS), dtype=bool)
         step = np.maximum(nearest_distance[chunk], 1e-3)
         for doubling in range(PROBE_DOUBLINGS):
             reach = np.minimum(step * 2.0**doubling, MAX_GAP)
-            probes = query[:, None, :] + reach[:, None, None] * directions
-            _, index = other.tree.query(probes.reshape(-1, 3), k=k)
-            index = index.reshape(query.shape[0], SECTORS, k)
-            offset = other.points[index] - query[:, None, None, :]  # (c, S, k, 3)
-            distance = np.linalg.norm(offset, axis=3)
-            across = np.abs(np.einsum("cskd,cd->csk", offset, unit))
-            along = np.einsum("cskd,csd->csk", offset, directions)
-            agrees = np.abs(np.einsum("cskd,cd->csk", other.normal[index], unit))
-            hit = (
-                (distance <= MAX_GAP)
-                & (across <= tolerance + PLANE_SLOPE * distance)
-                & (along >= SECTOR_HALF_ANGLE_COSINE * distance)
-                & (agrees >= NORMAL_AGREEMENT_COSINE)
+            hit = coplanar_near_probe(
+                np.repeat(query, SECTORS, axis=0),
+                np.repeat(unit, SECTORS, axis=0),
+                directions.reshape(-1, 3),
+                np.repeat(reach, SECTORS),
+                other,
+                tolerance,
+                max_distance=MAX_GAP,
+                half_angle_cosine=SECTOR_HALF_ANGLE_COSINE,
             )
-            found |= hit.any(axis=2)
+            found |= hit.reshape(query.shape[0], SECTORS)
         result[chunk] = found.all(axis=1)
     return result

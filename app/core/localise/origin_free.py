@@ -44,6 +44,11 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
+from app.core.localise.gaps import (
+    NORMAL_AGREEMENT_COSINE,
+    coplanar_near_probe,
+    tangent_directions,
+)
 from app.core.localise.rays import (
     STATUS_SEEN_THROUGH,
     STATUS_SURFACE,
@@ -78,9 +83,6 @@ within this distance (metres) of it; farther, a coplanar face is a coincidence (
 face in line with a changed one), and the cluster and evidence steps decide."""
 MIN_GAP_SECTORS = 4
 """A sampling gap has the other cloud's surface in at least half the directions."""
-PLANE_SLOPE = math.sin(math.radians(1.0))
-"""The plane tolerance grows by this much a metre away from the candidate (surfaces bend)."""
-NORMAL_AGREEMENT_COSINE = math.cos(math.radians(30.0))
 PROBE_NEIGHBOURS = 4
 SETTLE_SHARE = 0.5
 """A cluster whose share of coplanar (gap or unobserved) candidates reaches this is not a
@@ -116,36 +118,17 @@ def _plane_hits(
     cloud: LocalGeometry,
     tolerance: float,
 ) -> NDArray[np.bool_]:
-    """Whether ``cloud`` has a point on each query's plane near its probe.
-
-    Parameters
-    ----------
-    query, unit, direction : ndarray, shape (p, 3)
-        Candidate, its unit normal, the probe's unit direction in its plane.
-    reach : ndarray, shape (p,)
-        The probe's distance from the candidate.
-    cloud : LocalGeometry
-    tolerance : float
-
-    Returns
-    -------
-    ndarray, shape (p,), bool
-    """
-    k = min(PROBE_NEIGHBOURS, cloud.points.shape[0])
-    _, index = cloud.tree.query(query + reach[:, None] * direction, k=k)
-    index = np.asarray(index).reshape(query.shape[0], k)
-    offset = cloud.points[index] - query[:, None, :]  # (p, k, 3)
-    distance = np.linalg.norm(offset, axis=2)
-    across = np.abs(np.einsum("pkd,pd->pk", offset, unit))
-    along = np.einsum("pkd,pd->pk", offset, direction)
-    agrees = np.abs(np.einsum("pkd,pd->pk", cloud.normal[index], unit))
-    hit = (
-        (distance <= MAX_REACH)
-        & (across <= tolerance + PLANE_SLOPE * distance)
-        & (along >= SECTOR_HALF_ANGLE_COSINE * distance)
-        & (agrees >= NORMAL_AGREEMENT_COSINE)
+    """:func:`~app.core.localise.gaps.coplanar_near_probe` with this test's reach and cone."""
+    return coplanar_near_probe(
+        query,
+        unit,
+        direction,
+        reach,
+        cloud,
+        tolerance,
+        max_distance=MAX_REACH,
+        half_angle_cosine=SECTOR_HALF_ANGLE_COSINE,
     )
-    return hit.any(axis=1)
 
 
 def _probe(
@@ -204,20 +187,10 @@ def origin_free_status(
     status = np.full(count, STATUS_SEEN_THROUGH, dtype=np.int8)
     if count == 0:
         return status
-    angles = 2.0 * math.pi * np.arange(SECTORS) / SECTORS
     for start in range(0, count, GATHER_CHUNK):
         chunk = slice(start, start + GATHER_CHUNK)
         query = points[chunk]
-        unit = normal[chunk].astype(np.float64)
-        unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-12)[:, None]
-        helper = np.where(np.abs(unit[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
-        first = np.cross(unit, helper)
-        first /= np.linalg.norm(first, axis=1)[:, None]
-        second = np.cross(unit, first)
-        directions = (
-            np.cos(angles)[None, :, None] * first[:, None, :]
-            + np.sin(angles)[None, :, None] * second[:, None, :]
-        )  # (c, S, 3)
+        unit, directions = tangent_directions(normal[chunk], SECTORS)
         other_found = np.zeros((query.shape[0], SECTORS), dtype=bool)
         own_beyond = np.zeros((query.shape[0], SECTORS), dtype=bool)
         gap = np.maximum(nearest_distance[chunk], 1e-3)
