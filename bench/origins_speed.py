@@ -32,6 +32,7 @@ from app.core.cloud import PointCloud
 from app.core.pipeline import compare
 from app.core.synthetic_lidar import lidar_pair, steps_for_points
 from bench.scenes import changed_points_iou
+from bench.stations import nearest_station_error
 
 KINDS = ("single", "merged")
 LAYOUTS = ("room", "corridor", "warehouse")
@@ -39,10 +40,8 @@ LAYOUTS = ("room", "corridor", "warehouse")
 
 def station_error(entries: list[dict], truth: np.ndarray) -> float:
     """Largest distance (m) from a true station to the nearest reported one (inf: wrong count)."""
-    if len(entries) != len(truth):
-        return float("inf")
-    found = np.array([entry["origin"] for entry in entries])
-    return float(np.linalg.norm(truth[:, None] - found[None], axis=2).min(axis=1).max())
+    found = np.array([entry["origin"] for entry in entries]).reshape(-1, 3)
+    return nearest_station_error(found, truth)
 
 
 class _CpuClock:

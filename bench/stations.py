@@ -68,15 +68,20 @@ def localise(pair, scan, scan_origins, mode: str):
     return localise_changes(pair.reference, scan, **options), recovered, recovery_seconds
 
 
-def station_error(recovered, true_origins, n_stations: int) -> float:
+def nearest_station_error(found: np.ndarray, truth: np.ndarray) -> float:
+    """Largest distance (m) from a true station (n, 3) to the nearest found one (k, 3); inf
+    when their counts differ."""
+    if len(found) != len(truth):
+        return float("inf")
+    return float(np.linalg.norm(truth[:, None, :] - found[None], axis=2).min(axis=1).max())
+
+
+def station_error(recovered, true_origins) -> float:
     """Largest distance (m) from a true station to the nearest recovered one (inf: too few)."""
-    worst = 0.0
-    for found, true in zip(recovered, true_origins, strict=True):
-        if len(found.origins) != n_stations:
-            return float("inf")
-        distance = np.linalg.norm(true[:, None, :] - found.origins[None], axis=2)
-        worst = max(worst, float(distance.min(axis=1).max()))
-    return worst
+    return max(
+        nearest_station_error(np.asarray(found.origins).reshape(-1, 3), true)
+        for found, true in zip(recovered, true_origins, strict=True)
+    )
 
 
 def main() -> None:
@@ -118,9 +123,7 @@ def main() -> None:
                     error = (
                         float("nan")
                         if recovered is None
-                        else station_error(
-                            recovered, (pair.reference_origins, scan_origins), n_stations
-                        )
+                        else station_error(recovered, (pair.reference_origins, scan_origins))
                     )
                     row = {
                         "layout": layout,
