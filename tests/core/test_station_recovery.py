@@ -149,3 +149,33 @@ def test_a_single_station_left_unconfident_still_gets_the_apex_search(monkeypatc
     walls = points[(points[:, 2] > 0.05) & (points[:, 2] < 2.75)]
     resolve_stations("reference", walls, given=None, from_file=None, estimate=True, recover=recover)
     assert searched
+
+
+def test_neighbour_queries_in_space_order_give_the_tree_s_answers():
+    from pykdtree.kdtree import KDTree
+
+    from app.core.origins.concurrence import _query_in_space_order
+
+    rng = np.random.default_rng(4)
+    points = rng.uniform(-5.0, 5.0, (3000, 3))
+    tree = KDTree(points)
+    queries = points[rng.choice(3000, 500, replace=False)]
+    distance, index = _query_in_space_order(tree, queries, 6)
+    expected_distance, expected_index = tree.query(queries, k=6)
+    np.testing.assert_array_equal(index, expected_index)
+    np.testing.assert_array_equal(distance, expected_distance)
+
+
+def test_peaks_tested_on_their_near_lines_give_the_centres_of_all_lines(monkeypatch):
+    from app.core.origins import concurrence
+
+    points, _ = close_survey(0)
+    near = concurrence.search_centres(points, np.random.default_rng(2), None)
+    monkeypatch.setattr(concurrence, "NEAR_PEAK", 1e9)  # every line for every peak
+    every = concurrence.search_centres(points, np.random.default_rng(2), None)
+    assert len(near[0]) >= 2
+    assert near[1] == every[1]
+    assert [support for _, support in near[0]] == [support for _, support in every[0]]
+    np.testing.assert_array_equal(
+        np.array([centre for centre, _ in near[0]]), np.array([centre for centre, _ in every[0]])
+    )

@@ -74,7 +74,9 @@ MIN_RESIDUAL_POINTS = 5_000
 """No further search on fewer points than this left unexplained."""
 HEIGHT_SAMPLE = 40_000
 HEIGHT_COARSE_SAMPLE = 4_000
-HEIGHT_CHUNK = 64
+HEIGHT_CHUNK = 8
+"""Candidate heights histogrammed at once: 8 keep the bins to a few hundred kilobytes (64 at
+once spent a third of the search on fresh memory for them)."""
 HEIGHT_REACH = 8.0
 SURFACE_CLEARANCE = 0.3
 """A station is searched at least this far above the lowest and below the highest points."""
