@@ -179,3 +179,22 @@ def test_peaks_tested_on_their_near_lines_give_the_centres_of_all_lines(monkeypa
     np.testing.assert_array_equal(
         np.array([centre for centre, _ in near[0]]), np.array([centre for centre, _ in every[0]])
     )
+
+
+def test_the_strongest_peaks_are_those_of_a_maximum_filter_over_the_whole_grid():
+    from scipy.ndimage import maximum_filter, uniform_filter
+
+    from app.core.origins.concurrence import _strongest_peaks
+
+    rng = np.random.default_rng(9)
+    for trial in range(30):
+        shape = tuple(rng.integers(5, 120, 2))
+        # small integers, smoothed: plateaus, ties and zeros, maxima on the edges
+        grid = uniform_filter(rng.poisson(0.3 + trial % 3, shape).astype(float), size=3)
+        if trial % 5 == 0:
+            grid[:] = 0.0
+        count = int(rng.integers(1, 80))
+        peaks = (grid == maximum_filter(grid, size=7, mode="constant")) & (grid > 0)
+        flat = np.flatnonzero(peaks.ravel())
+        expected = flat[np.argsort(-grid.ravel()[flat], kind="stable")[:count]]
+        np.testing.assert_array_equal(_strongest_peaks(grid, 7, count), expected)

@@ -13,7 +13,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
-from scipy.ndimage import maximum_filter, uniform_filter
+from scipy.ndimage import uniform_filter
 
 from app.core.origins.columns import _grid_votes
 
@@ -34,8 +34,11 @@ MIN_VOTE_DISTANCE = 0.3
 CELL = 0.02
 """Hough cell (metres): fine, so that the few lines of a station hidden among others' still
 stand out of the lines that pass by chance."""
-HOUGH_STRIDE = 1
-"""A line votes every this many cells along it."""
+VOTE_STRIDE = 2
+"""A line votes every this many cells along it (every cell of a 3 x 3 peak window gets a vote
+or two from a line through its middle): half the votes of one a cell, the same stations."""
+VOTE_BATCH = 4_000_000
+"""Votes counted into the grid at once (each count adds a whole grid)."""
 PEAK_SEPARATION = 7
 """A Hough peak is the largest of this many cells square around it."""
 MAX_CANDIDATES = 60
@@ -161,26 +164,71 @@ def _hough_peaks(
     low = points[:, :2].min(axis=0) - 1.0
     shape = np.ceil((points[:, :2].max(axis=0) + 1.0 - low) / CELL).astype(np.int64) + 1
     # in cell units, single precision: the vote is the costly part of a search
-    steps = np.arange(MIN_VOTE_DISTANCE / CELL, VOTE_REACH / CELL, HOUGH_STRIDE, dtype=np.float32)
+    steps = np.arange(MIN_VOTE_DISTANCE / CELL, VOTE_REACH / CELL, VOTE_STRIDE, dtype=np.float32)
     steps = np.concatenate([-steps[::-1], steps])
     start_cell = ((anchor - low) / CELL).astype(np.float32)
     direction32 = direction.astype(np.float32)
-    votes = np.zeros(int(shape[0] * shape[1]))
+    size = int(shape[0] * shape[1])
+    index_type = np.int32 if size < 2**31 else np.int64
+    votes = np.zeros(size)
+    batch: list[NDArray] = []  # cells voted for, counted a few million at a time
     for start in range(0, anchor.shape[0], 1024):
         part = slice(start, start + 1024)
         row = start_cell[part, 0, None] + steps * direction32[part, 0, None]
         column = start_cell[part, 1, None] + steps * direction32[part, 1, None]
         inside = (row >= 0) & (row < shape[0]) & (column >= 0) & (column < shape[1])
-        flat = row[inside].astype(np.int64) * shape[1] + column[inside].astype(np.int64)
-        votes += np.bincount(flat, minlength=votes.size)
+        batch.append(
+            row[inside].astype(index_type) * index_type(shape[1])
+            + column[inside].astype(index_type)
+        )
+        if sum(cells.size for cells in batch) >= VOTE_BATCH or start + 1024 >= anchor.shape[0]:
+            votes += np.bincount(np.concatenate(batch), minlength=size)
+            batch = []
     smoothed = uniform_filter(votes.reshape(shape), size=3, mode="constant")
-    peaks = (smoothed == maximum_filter(smoothed, size=PEAK_SEPARATION, mode="constant")) & (
-        smoothed > 0
-    )
-    flat = np.flatnonzero(peaks.ravel())
-    flat = flat[np.argsort(-smoothed.ravel()[flat], kind="stable")[:MAX_CANDIDATES]]
+    flat = _strongest_peaks(smoothed, PEAK_SEPARATION, MAX_CANDIDATES)
     rows, columns = np.unravel_index(flat, shape)
     return low + (np.column_stack([rows, columns]) + 0.5) * CELL
+
+
+def _strongest_peaks(grid: NDArray[np.float64], separation: int, count: int) -> NDArray[np.int64]:
+    """Flat indices of the ``count`` largest positive local maxima of ``grid`` (r, c), largest
+    first (ties: lower index first).
+
+    A local maximum is at least every value in the ``separation`` square round it (zero beyond
+    the edges), as ``grid == maximum_filter(grid, separation, mode="constant")``; only the
+    largest cells are tested (more while too few of them are maxima), not the whole grid.
+    """
+    values = grid.ravel()
+    half = separation // 2
+    offsets = np.arange(-half, separation - half)
+    tested = 0
+    while True:
+        tested = min(values.size, max(4 * count, 2 * tested, 512))
+        threshold = np.partition(values, values.size - tested)[values.size - tested]
+        cells = np.flatnonzero((values >= threshold) & (values > 0))
+        rows, columns = np.divmod(cells, grid.shape[1])
+        around_rows = rows[:, None, None] + offsets[None, :, None]
+        around_columns = columns[:, None, None] + offsets[None, None, :]
+        inside = (
+            (around_rows >= 0)
+            & (around_rows < grid.shape[0])
+            & (around_columns >= 0)
+            & (around_columns < grid.shape[1])
+        )
+        around = np.where(
+            inside,
+            values[
+                np.clip(around_rows, 0, grid.shape[0] - 1) * grid.shape[1]
+                + np.clip(around_columns, 0, grid.shape[1] - 1)
+            ],
+            0.0,
+        )
+        peaks = cells[
+            values[cells] >= around.reshape(cells.size, separation**2).max(axis=1, initial=0.0)
+        ]
+        # every maximum above the threshold is among the tested cells: enough of them, or all
+        if peaks.size >= count or tested == values.size or threshold <= 0:
+            return peaks[np.argsort(-values[peaks], kind="stable")[:count]]
 
 
 def _significance(anchor: NDArray, direction: NDArray, centre: NDArray) -> tuple[int, float]:
