@@ -198,3 +198,15 @@ def test_the_strongest_peaks_are_those_of_a_maximum_filter_over_the_whole_grid()
         flat = np.flatnonzero(peaks.ravel())
         expected = flat[np.argsort(-grid.ravel()[flat], kind="stable")[:count]]
         np.testing.assert_array_equal(_strongest_peaks(grid, 7, count), expected)
+
+
+def test_voting_every_second_cell_finds_the_centres_of_voting_every_cell(monkeypatch):
+    from app.core.origins import concurrence
+
+    points, origins = close_survey(1)
+    sparse = concurrence.search_centres(points, np.random.default_rng(3), None)
+    monkeypatch.setattr(concurrence, "VOTE_STRIDE", 1)
+    dense = concurrence.search_centres(points, np.random.default_rng(3), None)
+    assert len(sparse[0]) == len(dense[0]) >= 2
+    for (centre, _), (other, _) in zip(sparse[0], dense[0], strict=True):
+        assert np.hypot(*(centre - other)) < 1e-3

@@ -175,8 +175,9 @@ def station_height(
 ) -> float:
     """The height of a station at top-view ``centre`` whose rings the points lie on.
 
-    A coarse search over the cloud's height range (elevation bins of 0.1 degree, 5 mm
-    steps), then a fine one (0.01 degree, 0.25 mm) around the best.
+    A coarse search over the cloud's height range (elevation bins of 0.04 degree, 2 mm steps,
+    :data:`HEIGHT_COARSE_SAMPLE` points), then a fine one (0.01 degree, 0.2 mm steps, every
+    point) 4 mm round the best.
 
     Parameters
     ----------
