@@ -203,7 +203,7 @@ def test_the_strongest_peaks_are_those_of_a_maximum_filter_over_the_whole_grid()
 def test_voting_every_second_cell_finds_the_centres_of_voting_every_cell(monkeypatch):
     from app.core.origins import concurrence
 
-    points, origins = close_survey(1)
+    points, _ = close_survey(1)
     sparse = concurrence.search_centres(points, np.random.default_rng(3), None)
     monkeypatch.setattr(concurrence, "VOTE_STRIDE", 1)
     dense = concurrence.search_centres(points, np.random.default_rng(3), None)
