@@ -149,3 +149,64 @@ def test_a_single_station_left_unconfident_still_gets_the_apex_search(monkeypatc
     walls = points[(points[:, 2] > 0.05) & (points[:, 2] < 2.75)]
     resolve_stations("reference", walls, given=None, from_file=None, estimate=True, recover=recover)
     assert searched
+
+
+def test_neighbour_queries_in_space_order_give_the_tree_s_answers():
+    from pykdtree.kdtree import KDTree
+
+    from app.core.origins.concurrence import _query_in_space_order
+
+    rng = np.random.default_rng(4)
+    points = rng.uniform(-5.0, 5.0, (3000, 3))
+    tree = KDTree(points)
+    queries = points[rng.choice(3000, 500, replace=False)]
+    distance, index = _query_in_space_order(tree, queries, 6)
+    expected_distance, expected_index = tree.query(queries, k=6)
+    np.testing.assert_array_equal(index, expected_index)
+    np.testing.assert_array_equal(distance, expected_distance)
+
+
+def test_peaks_tested_on_their_near_lines_give_the_centres_of_all_lines(monkeypatch):
+    from app.core.origins import concurrence
+
+    points, _ = close_survey(0)
+    near = concurrence.search_centres(points, np.random.default_rng(2), None)
+    monkeypatch.setattr(concurrence, "NEAR_PEAK", 1e9)  # every line for every peak
+    every = concurrence.search_centres(points, np.random.default_rng(2), None)
+    assert len(near[0]) >= 2
+    assert near[1] == every[1]
+    assert [support for _, support in near[0]] == [support for _, support in every[0]]
+    np.testing.assert_array_equal(
+        np.array([centre for centre, _ in near[0]]), np.array([centre for centre, _ in every[0]])
+    )
+
+
+def test_the_strongest_peaks_are_those_of_a_maximum_filter_over_the_whole_grid():
+    from scipy.ndimage import maximum_filter, uniform_filter
+
+    from app.core.origins.concurrence import _strongest_peaks
+
+    rng = np.random.default_rng(9)
+    for trial in range(30):
+        shape = tuple(rng.integers(5, 120, 2))
+        # small integers, smoothed: plateaus, ties and zeros, maxima on the edges
+        grid = uniform_filter(rng.poisson(0.3 + trial % 3, shape).astype(float), size=3)
+        if trial % 5 == 0:
+            grid[:] = 0.0
+        count = int(rng.integers(1, 80))
+        peaks = (grid == maximum_filter(grid, size=7, mode="constant")) & (grid > 0)
+        flat = np.flatnonzero(peaks.ravel())
+        expected = flat[np.argsort(-grid.ravel()[flat], kind="stable")[:count]]
+        np.testing.assert_array_equal(_strongest_peaks(grid, 7, count), expected)
+
+
+def test_voting_every_second_cell_finds_the_centres_of_voting_every_cell(monkeypatch):
+    from app.core.origins import concurrence
+
+    points, _ = close_survey(1)
+    sparse = concurrence.search_centres(points, np.random.default_rng(3), None)
+    monkeypatch.setattr(concurrence, "VOTE_STRIDE", 1)
+    dense = concurrence.search_centres(points, np.random.default_rng(3), None)
+    assert len(sparse[0]) == len(dense[0]) >= 2
+    for (centre, _), (other, _) in zip(sparse[0], dense[0], strict=True):
+        assert np.hypot(*(centre - other)) < 1e-3

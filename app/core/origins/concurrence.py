@@ -13,7 +13,9 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
-from scipy.ndimage import maximum_filter, uniform_filter
+from scipy.ndimage import uniform_filter
+
+from app.core.origins.columns import _grid_votes
 
 __all__ = ["MAX_STATIONS", "column_centres", "search_centres"]
 
@@ -32,6 +34,11 @@ MIN_VOTE_DISTANCE = 0.3
 CELL = 0.02
 """Hough cell (metres): fine, so that the few lines of a station hidden among others' still
 stand out of the lines that pass by chance."""
+VOTE_STRIDE = 2
+"""A line votes every this many cells along it (every cell of a 3 x 3 peak window gets a vote
+or two from a line through its middle): half the votes of one a cell, the same stations."""
+VOTE_BATCH = 4_000_000
+"""Votes counted into the grid at once (each count adds a whole grid)."""
 PEAK_SEPARATION = 7
 """A Hough peak is the largest of this many cells square around it."""
 MAX_CANDIDATES = 60
@@ -50,6 +57,12 @@ MIN_SEPARATION = 0.03
 """Candidates closer than this (metres, top view) to a kept station are that station."""
 REFINE_LINES = 3000
 """Lines near a peak that its refinement uses (the first ones, in the lines' seeded order)."""
+NEAR_PEAK = 0.2
+"""A peak is refined and tested on the lines passing within this many metres of it: the
+refinement moves it by less than 8 cm, and the tests count lines within
+:data:`BACKGROUND_DISTANCE` of where it ends."""
+QUERY_CELL = 0.5
+"""Neighbour queries are made cell by cell of this edge (metres)."""
 MIN_NORMAL_Z = 0.5
 """Only pairs on floors, ceilings and tops (normal within 60 degrees of vertical) give lines:
 ring pairs on a wall give lines along the wall, which all concur with each other."""
@@ -65,8 +78,9 @@ def _pair_lines(
     tree = KDTree(tree_points)
     if points.shape[0] > PAIR_QUERIES:  # enough lines from a seeded share of the points
         points = points[np.sort(rng.choice(points.shape[0], PAIR_QUERIES, replace=False))]
-    distance, index = tree.query(points, k=max(PAIR_NEIGHBOURS + 1, 8))
-    neighbourhood = tree_points[index] - tree_points[index].mean(axis=1, keepdims=True)
+    distance, index = _query_in_space_order(tree, points, max(PAIR_NEIGHBOURS + 1, 8))
+    neighbourhood = tree_points[index]
+    neighbourhood -= neighbourhood.mean(axis=1, keepdims=True)
     _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", neighbourhood, neighbourhood))
     level = np.abs(vectors[:, 2, 0]) >= MIN_NORMAL_Z
     distance, index = distance[:, : PAIR_NEIGHBOURS + 1], index[:, : PAIR_NEIGHBOURS + 1]
@@ -87,6 +101,26 @@ def _pair_lines(
     direction = offset[rows, columns, :2] / horizontal[rows, columns, None]
     order = rng.permutation(rows.size)  # refinements take the first lines near a peak
     return anchor[order], direction[order]
+
+
+def _query_in_space_order(
+    tree: KDTree, points: NDArray[np.float64], k: int
+) -> tuple[NDArray[np.float64], NDArray[np.uint32]]:
+    """``tree.query(points, k=k)``, the queries made in order of :data:`QUERY_CELL` cells.
+
+    Queries in the cloud's (shuffled) order jump across the tree; sorted by cell they reuse
+    what the previous one loaded (40k queries at 1M points: 0.14 -> 0.08 s).  Same results,
+    in the order of ``points``.
+    """
+    cell = np.floor((points - points.min(axis=0)) / QUERY_CELL).astype(np.int64)
+    span = cell.max(axis=0) + 1
+    order = np.argsort((cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2], kind="stable")
+    sorted_distance, sorted_index = tree.query(points[order], k=k)
+    distance = np.empty_like(sorted_distance)
+    index = np.empty_like(sorted_index)
+    distance[order] = sorted_distance
+    index[order] = sorted_index
+    return distance, index
 
 
 def _distance_to_lines(anchor: NDArray, direction: NDArray, centre: NDArray) -> NDArray:
@@ -111,12 +145,12 @@ def _refined_centre(anchor: NDArray, direction: NDArray, centre: NDArray) -> NDA
         if near.size < 2:
             return centre
         offsets = np.arange(-reach, reach + 1e-9, step)
-        grid = centre + np.stack(np.meshgrid(offsets, offsets, indexing="ij"), -1).reshape(-1, 2)
-        relative = grid[:, None, :] - anchor[None, near, :]
-        distance = np.abs(
-            relative[..., 0] * direction[near, 1] - relative[..., 1] * direction[near, 0]
-        )
-        centre = grid[int(np.argmax((distance <= band).sum(axis=1)))]
+        # lines as normal . x == constant; votes per grid point as runs of columns per row
+        normal = np.column_stack([direction[near, 1], -direction[near, 0]])
+        constant = np.einsum("ld,ld->l", normal, anchor[near])
+        votes = _grid_votes(normal, constant, centre, offsets, band)
+        first, second = np.unravel_index(int(np.argmax(votes)), votes.shape)
+        centre = centre + np.array([offsets[first], offsets[second]])
     close = _distance_to_lines(anchor, direction, centre) <= CONCUR_DISTANCE
     if close.sum() >= 2:
         centre = _least_squares_point(anchor[close], direction[close])
@@ -130,26 +164,71 @@ def _hough_peaks(
     low = points[:, :2].min(axis=0) - 1.0
     shape = np.ceil((points[:, :2].max(axis=0) + 1.0 - low) / CELL).astype(np.int64) + 1
     # in cell units, single precision: the vote is the costly part of a search
-    steps = np.arange(MIN_VOTE_DISTANCE / CELL, VOTE_REACH / CELL, dtype=np.float32)
+    steps = np.arange(MIN_VOTE_DISTANCE / CELL, VOTE_REACH / CELL, VOTE_STRIDE, dtype=np.float32)
     steps = np.concatenate([-steps[::-1], steps])
     start_cell = ((anchor - low) / CELL).astype(np.float32)
     direction32 = direction.astype(np.float32)
-    votes = np.zeros(int(shape[0] * shape[1]))
+    size = int(shape[0] * shape[1])
+    index_type = np.int32 if size < 2**31 else np.int64
+    votes = np.zeros(size)
+    batch: list[NDArray] = []  # cells voted for, counted a few million at a time
     for start in range(0, anchor.shape[0], 1024):
         part = slice(start, start + 1024)
         row = start_cell[part, 0, None] + steps * direction32[part, 0, None]
         column = start_cell[part, 1, None] + steps * direction32[part, 1, None]
         inside = (row >= 0) & (row < shape[0]) & (column >= 0) & (column < shape[1])
-        flat = row[inside].astype(np.int64) * shape[1] + column[inside].astype(np.int64)
-        votes += np.bincount(flat, minlength=votes.size)
+        batch.append(
+            row[inside].astype(index_type) * index_type(shape[1])
+            + column[inside].astype(index_type)
+        )
+        if sum(cells.size for cells in batch) >= VOTE_BATCH or start + 1024 >= anchor.shape[0]:
+            votes += np.bincount(np.concatenate(batch), minlength=size)
+            batch = []
     smoothed = uniform_filter(votes.reshape(shape), size=3, mode="constant")
-    peaks = (smoothed == maximum_filter(smoothed, size=PEAK_SEPARATION, mode="constant")) & (
-        smoothed > 0
-    )
-    flat = np.flatnonzero(peaks.ravel())
-    flat = flat[np.argsort(-smoothed.ravel()[flat], kind="stable")[:MAX_CANDIDATES]]
+    flat = _strongest_peaks(smoothed, PEAK_SEPARATION, MAX_CANDIDATES)
     rows, columns = np.unravel_index(flat, shape)
     return low + (np.column_stack([rows, columns]) + 0.5) * CELL
+
+
+def _strongest_peaks(grid: NDArray[np.float64], separation: int, count: int) -> NDArray[np.int64]:
+    """Flat indices of the ``count`` largest positive local maxima of ``grid`` (r, c), largest
+    first (ties: lower index first).
+
+    A local maximum is at least every value in the ``separation`` square round it (zero beyond
+    the edges), as ``grid == maximum_filter(grid, separation, mode="constant")``; only the
+    largest cells are tested (more while too few of them are maxima), not the whole grid.
+    """
+    values = grid.ravel()
+    half = separation // 2
+    offsets = np.arange(-half, separation - half)
+    tested = 0
+    while True:
+        tested = min(values.size, max(4 * count, 2 * tested, 512))
+        threshold = np.partition(values, values.size - tested)[values.size - tested]
+        cells = np.flatnonzero((values >= threshold) & (values > 0))
+        rows, columns = np.divmod(cells, grid.shape[1])
+        around_rows = rows[:, None, None] + offsets[None, :, None]
+        around_columns = columns[:, None, None] + offsets[None, None, :]
+        inside = (
+            (around_rows >= 0)
+            & (around_rows < grid.shape[0])
+            & (around_columns >= 0)
+            & (around_columns < grid.shape[1])
+        )
+        around = np.where(
+            inside,
+            values[
+                np.clip(around_rows, 0, grid.shape[0] - 1) * grid.shape[1]
+                + np.clip(around_columns, 0, grid.shape[1] - 1)
+            ],
+            0.0,
+        )
+        peaks = cells[
+            values[cells] >= around.reshape(cells.size, separation**2).max(axis=1, initial=0.0)
+        ]
+        # every maximum above the threshold is among the tested cells: enough of them, or all
+        if peaks.size >= count or tested == values.size or threshold <= 0:
+            return peaks[np.argsort(-values[peaks], kind="stable")[:count]]
 
 
 def _significance(anchor: NDArray, direction: NDArray, centre: NDArray) -> tuple[int, float]:
@@ -193,26 +272,55 @@ def column_centres(
 def search_centres(
     points: NDArray[np.float64], rng: np.random.Generator, known: NDArray[np.float64] | None
 ) -> tuple[list[tuple[NDArray[np.float64], int]], int]:
-    """:func:`column_centres` and the number of lines it used."""
+    """:func:`column_centres` and the number of lines it used.
+
+    Each peak is refined and tested on the lines passing within :data:`NEAR_PEAK` of it (one
+    matrix product for all peaks): every line that the refinement and the tests count at the
+    refined point is among them (the full set is used when a refinement moves farther), so the
+    centres are those of testing every line, at a tenth of the cost.
+    """
     anchor, direction = _pair_lines(points, rng)
     if anchor.shape[0] < 10:
         return [], int(anchor.shape[0])
-    refined = [
-        _refined_centre(anchor, direction, peak) for peak in _hough_peaks(points, anchor, direction)
-    ]
+    peaks = _hough_peaks(points, anchor, direction)
+    everything = np.arange(anchor.shape[0])
+    near_sets = []
+    refined = []
+    # distance of each peak to each line as one product: |p x d - a x d|, shape (c, l)
+    cross = anchor[:, 0] * direction[:, 1] - anchor[:, 1] * direction[:, 0]
+    for start in range(0, peaks.shape[0], 16):
+        part = peaks[start : start + 16]
+        distance = np.abs(
+            np.outer(part[:, 0], direction[:, 1]) - np.outer(part[:, 1], direction[:, 0]) - cross
+        )
+        for peak, row in zip(part, distance, strict=True):
+            near = np.flatnonzero(row <= NEAR_PEAK)
+            centre = _refined_centre(anchor[near], direction[near], peak)
+            if np.hypot(*(centre - peak)) > NEAR_PEAK - BACKGROUND_DISTANCE - 1e-3:
+                near = everything  # moved out of reach: refined again on every line
+                centre = _refined_centre(anchor, direction, peak)
+            near_sets.append(near)
+            refined.append(centre)
     taken = [] if known is None else [np.asarray(centre) for centre in known]
     remaining = np.ones(anchor.shape[0], dtype=bool)
     centres: list[tuple[NDArray[np.float64], int]] = []
-    scores = [_significance(anchor, direction, centre) for centre in refined]
+    scores = [
+        _significance(anchor[near], direction[near], centre)
+        for near, centre in zip(near_sets, refined, strict=True)
+    ]
     order = sorted(range(len(refined)), key=lambda number: -scores[number][0])
     for number in order:
         centre = refined[number]
         if any(np.hypot(*(centre - other)) < MIN_SEPARATION for other in taken):
             continue
-        support, significance = _significance(anchor[remaining], direction[remaining], centre)
+        near = near_sets[number][remaining[near_sets[number]]]
+        support, significance = _significance(anchor[near], direction[near], centre)
         if support < MIN_CONCURRING or significance < MIN_SIGNIFICANCE:
             continue
-        remaining &= _distance_to_lines(anchor, direction, centre) > CONCUR_DISTANCE
+        near = near_sets[number]
+        remaining[
+            near[_distance_to_lines(anchor[near], direction[near], centre) <= CONCUR_DISTANCE]
+        ] = False
         taken.append(centre)
         centres.append((centre, support))
         if len(centres) >= MAX_STATIONS:

@@ -74,7 +74,9 @@ MIN_RESIDUAL_POINTS = 5_000
 """No further search on fewer points than this left unexplained."""
 HEIGHT_SAMPLE = 40_000
 HEIGHT_COARSE_SAMPLE = 4_000
-HEIGHT_CHUNK = 64
+HEIGHT_CHUNK = 8
+"""Candidate heights histogrammed at once: 8 keep the bins to a few hundred kilobytes (64 at
+once spent a third of the search on fresh memory for them)."""
 HEIGHT_REACH = 8.0
 SURFACE_CLEARANCE = 0.3
 """A station is searched at least this far above the lowest and below the highest points."""
@@ -173,8 +175,9 @@ def station_height(
 ) -> float:
     """The height of a station at top-view ``centre`` whose rings the points lie on.
 
-    A coarse search over the cloud's height range (elevation bins of 0.1 degree, 5 mm
-    steps), then a fine one (0.01 degree, 0.25 mm) around the best.
+    A coarse search over the cloud's height range (elevation bins of 0.04 degree, 2 mm steps,
+    :data:`HEIGHT_COARSE_SAMPLE` points), then a fine one (0.01 degree, 0.2 mm steps, every
+    point) 4 mm round the best.
 
     Parameters
     ----------
