@@ -125,15 +125,20 @@ def test_a_merged_survey_is_recovered_without_searching_an_apex(monkeypatch):
 
 
 @pytest.mark.parametrize("recover", [False, True])
-def test_a_single_station_left_unconfident_still_gets_the_apex_search(monkeypatch, recover):
+def test_a_single_station_left_unconfident_still_gets_the_ring_searches(monkeypatch, recover):
     searched = []
-    search = estimate.search_apex
+    search, sharpen = estimate.search_apex, estimate.sharpen_origin
 
-    def counted(*args, **kwargs):
-        searched.append(True)
-        return search(*args, **kwargs)
+    def counted(function):
+        def call(*args, **kwargs):
+            searched.append(function.__name__)
+            return function(*args, **kwargs)
 
-    monkeypatch.setattr(estimate, "search_apex", counted)
+        return call
+
+    # the sharpening, then the apex search if that fails (the columns concur weakly here)
+    monkeypatch.setattr(estimate, "search_apex", counted(search))
+    monkeypatch.setattr(estimate, "sharpen_origin", counted(sharpen))
     # a lidar's wall returns only (no floor, no ceiling: no column lines to concur)
     world = LidarWorld(
         shell_low=np.zeros(3),
@@ -147,8 +152,12 @@ def test_a_single_station_left_unconfident_still_gets_the_apex_search(monkeypatc
     distance, _ = world.cast(origin, directions)
     points = origin + (distance + rng.normal(0.0, 0.01, distance.shape))[:, None] * directions
     walls = points[(points[:, 2] > 0.05) & (points[:, 2] < 2.75)]
-    resolve_stations("reference", walls, given=None, from_file=None, estimate=True, recover=recover)
+    resolved = resolve_stations(
+        "reference", walls, given=None, from_file=None, estimate=True, recover=recover
+    )
     assert searched
+    assert resolved.source == "estimated"
+    assert np.linalg.norm(resolved.origin - origin) < 0.02
 
 
 def test_neighbour_queries_in_space_order_give_the_tree_s_answers():

@@ -44,7 +44,11 @@ CONCURRING_RANGE = (0.04, 0.08)
 """Concurring-line share mapped onto confidence 0..1 (single stations ~0.10, four merged ~0.015)."""
 SHARPEN_RING_SHARE = 0.7
 """An unconfident estimate with at least this ring share is sharpened on the rings
-(:mod:`~app.core.origins.sharpen`: real lidars whose columns are not half-planes)."""
+(:mod:`~app.core.origins.sharpen`: real lidars whose columns are not half-planes).  With the
+apex search allowed, one whose column lines concur weakly (below the top of
+:data:`CONCURRING_RANGE`) is sharpened whatever its ring share: a spinning lidar with a random
+phase per ring or azimuth jitter has no half-plane columns either, its column centre lies
+0.02-1.8 m off and its rings blur there (ring share 0.1-0.85 though 0.95-1 from the sensor)."""
 SPIKE_RANGE = (1.5, 3.0)
 """Sharpened origins: elevation-sharpness spike mapped onto confidence 0..1 (KITTI HDL-64
 frames 3.4-3.6; merged stations and clouds without one origin 0.6-2.6)."""
@@ -141,7 +145,13 @@ def estimate_origin(
         "n_points": float(len(points)),
     }
     origin = np.array([*columns.centre, rings.height])
-    if confidence < CONFIDENT and rings.ring_share >= SHARPEN_RING_SHARE:
+    # columns that concur only roughly leave the centre decimetres to a metre off, where the
+    # rings blur whatever the lidar: their ring share there says nothing, so the sharpening
+    # (0.3-0.8 s) is tried before the apex search (1-2.5 s) would be
+    weak_columns = columns.concurring_share < CONCURRING_RANGE[1]
+    if confidence < CONFIDENT and (
+        rings.ring_share >= SHARPEN_RING_SHARE or (apex and weak_columns)
+    ):
         sharpened = sharpen_origin(points, patch, origin, rng)
         sharpened_confidence = min(
             _ramp(sharpened.ring_share, RING_SHARE_RANGE), _ramp(sharpened.spike, SPIKE_RANGE)

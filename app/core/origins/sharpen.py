@@ -13,9 +13,10 @@ comb of sharp peaks, and it blurs within a decimetre of it (the spike measured o
    0.1 m in 0.02 m, then 0.02 m in 0.005 m;
 2. the height: the sharpest elevation histogram of the nearer half of the returns on level
    surfaces (the ground rings round the sensor, where the height matters most for visibility)
-   within 0.5 m of the rough height; on the HDL-64 the wall returns' rings converge 0.2 m
-   above the sensor frame's origin and the near ground rings 0.12-0.15 m above it (its two
-   laser blocks sit at different heights);
+   within 0.5 m of the rough height (on a lidar with one apex only when clearly sharper than
+   from there, :data:`LEVEL_GAIN`: else it is noise); on the HDL-64
+   the wall returns' rings converge 0.2 m above the sensor frame's origin and the near ground
+   rings 0.12-0.15 m above it (its two laser blocks sit at different heights);
 3. the evidence: the spike (sharpness at the origin over the largest of eight 0.3 m away) and
    the share of wall returns on rings from there (:func:`~app.core.origins.rings.fit_ring_height`).
 
@@ -30,6 +31,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from app.core.origins.rings import (
+    FINE_BIN_DEG,
     RingOriginFit,
     elevation_sharpness,
     fit_ring_height,
@@ -46,6 +48,17 @@ NEAR_RANGE = (2.5, 15.0)
 SAMPLE_POINTS = 4000
 SPIKE_DISTANCE = 0.3
 HEIGHT_SPAN = 0.5
+LEVEL_GAIN = 1.5
+"""The level returns' height replaces the rough (wall rings') height only when its rings are
+this many times sharper: on KITTI HDL-64 frames 1.9-2.1 (the lower laser block's ground rings
+converge 5-8 cm below the wall rings); on a lidar with one apex 1.0-1.15, where the near ground
+rings blur within the top-view search's last 5 mm step (0.02 degree bins) and their sharpest
+height is noise, 1-7 cm off."""
+ONE_APEX_RING_SHARE = 0.9
+"""Wall returns' ring share from the sharpened centre from which the lidar is taken to have one
+apex and :data:`LEVEL_GAIN` applies (ray-cast lidars 0.95-1; Budapest HDL-64 frames without
+ground 0.83-0.86: their wall rings' height is the upper laser block's, 0.2 m above the sensor,
+and the level returns' height decides whether the apex search runs)."""
 LEVEL_NORMAL_Z = 0.97
 WALL_NORMAL_Z = 0.2
 NEIGHBOURS = 9
@@ -74,16 +87,23 @@ def _surfaces(
     return queries[normal_z > LEVEL_NORMAL_Z], queries[normal_z < WALL_NORMAL_Z]
 
 
-def _level_height(level: NDArray[np.float64], centre: NDArray, rough: float) -> float:
+def _level_height(
+    level: NDArray[np.float64], centre: NDArray, rough: float, one_apex: bool
+) -> float:
     """The height within :data:`HEIGHT_SPAN` of ``rough`` whose level returns fall on the
-    sharpest rings (1 cm, then 2 mm steps)."""
+    sharpest rings; with ``one_apex`` (the wall rings explain nearly every wall return) only
+    if :data:`LEVEL_GAIN` times sharper than from ``rough``, else ``rough``."""
     horizontal = np.hypot(level[:, 0] - centre[0], level[:, 1] - centre[1])
     usable = horizontal > 1.0
     if np.count_nonzero(usable) < 200:
         return rough
     usable &= horizontal <= np.median(horizontal[usable])  # the nearer half: the ground round
     z, horizontal = level[usable, 2], horizontal[usable]  # the sensor, where height matters most
-    return sharpest_height(z, horizontal, rough, HEIGHT_SPAN)
+    best = sharpest_height(z, horizontal, rough, HEIGHT_SPAN)
+    gain = elevation_sharpness(z, horizontal, best, FINE_BIN_DEG) / max(
+        elevation_sharpness(z, horizontal, rough, FINE_BIN_DEG), 1e-12
+    )
+    return best if gain >= LEVEL_GAIN or not one_apex else rough
 
 
 def sharpen_origin(
@@ -125,7 +145,8 @@ def sharpen_origin(
         )
         row, column = np.unravel_index(int(np.argmax(grid)), grid.shape)
         centre = centre + np.array([offsets[row], offsets[column]])
-    height = _level_height(level, centre, height)
+    rings = fit_ring_height(walls, centre, rng)
+    height = _level_height(level, centre, height, rings.ring_share >= ONE_APEX_RING_SHARE)
     peak = _sharpness(sample, centre, height, SEARCH_BIN_DEG)
     angles = np.linspace(0.0, 2.0 * np.pi, 8, endpoint=False)
     around = max(
@@ -137,7 +158,6 @@ def sharpen_origin(
         )
         for a in angles
     )
-    rings = fit_ring_height(walls, centre, rng)
     return RingOriginFit(
         origin=np.array([*centre, height]),
         spike=float(peak / max(around, 1e-12)),
