@@ -18,6 +18,7 @@ from app.core.comparison_settings import parse_comparison_params
 from app.core.errors import InputError
 from app.core.localise import localise_changes
 from app.core.origins import stations
+from app.core.origins.resolve import ResolvedOrigin
 from app.core.origins.sampling import lidar_sampling
 from app.core.origins.stations import RecoveredStations, resolve_stations
 from app.core.pipeline import compare
@@ -45,6 +46,17 @@ def _no_stations(points, **kwargs) -> RecoveredStations:
 
 def _must_not_search(points, **kwargs):
     raise AssertionError("stations were searched")
+
+
+@pytest.fixture
+def unconfident(monkeypatch):
+    """Every single-origin estimate made and unconfident, at once (the real one takes seconds
+    on a merged cloud: its apex search)."""
+
+    def estimate(side, points, **kwargs):
+        return ResolvedOrigin(None, None, None, evidence={"ring_share": 0.4})
+
+    monkeypatch.setattr(stations, "resolve_origin", estimate)
 
 
 def test_lidar_sampling_tells_lidar_clouds_from_uniform_random_and_gridded_ones():
@@ -80,11 +92,11 @@ def test_recover_stations_defaults_to_auto():
 
 def _resolve(points, recover):
     return resolve_stations(
-        "reference", points, given=None, from_file=None, estimate=False, recover=recover
+        "reference", points, given=None, from_file=None, estimate=True, recover=recover
     )
 
 
-def test_auto_recovers_the_stations_of_a_merged_lidar_cloud(monkeypatch):
+def test_auto_recovers_the_stations_of_a_merged_lidar_cloud(monkeypatch, unconfident):
     pair = merged()
     searched = []
 
@@ -131,10 +143,11 @@ def test_a_uniform_cloud_is_not_searched_for_stations(monkeypatch):
     assert result.changed
 
 
-def test_unfound_stations_of_a_merged_lidar_cloud_route_to_the_surface_test(monkeypatch):
+def test_unfound_stations_of_a_merged_lidar_cloud_route_to_the_surface_test(
+    monkeypatch, unconfident
+):
     monkeypatch.setattr(stations, "recover_stations", _no_stations)
-    # no estimate (its apex search costs seconds on a merged cloud): recovery still runs
-    result = compare(*_clouds(merged()), align=False, params={"estimate_origins": False})
+    result = compare(*_clouds(merged()), align=False)
     assert result.sensor_origins == {"reference": [], "scan": []}
     for side in ("reference", "scan"):
         assert result.visibility[side]["stations_unknown"] is True
@@ -143,7 +156,7 @@ def test_unfound_stations_of_a_merged_lidar_cloud_route_to_the_surface_test(monk
     assert sum("could not be recovered" in warning for warning in result.warnings) == 2
 
 
-def test_recovery_turned_off_searches_nothing(monkeypatch):
+def test_recovery_turned_off_searches_nothing(monkeypatch, unconfident):
     monkeypatch.setattr(stations, "recover_stations", _must_not_search)
     resolved = _resolve(merged().reference, False)
     assert resolved.origin is None and not resolved.stations_unknown
@@ -152,22 +165,29 @@ def test_recovery_turned_off_searches_nothing(monkeypatch):
     assert settings.recover_stations is False
 
 
-def test_recovery_forced_searches_whatever_the_sampling(monkeypatch):
+def test_recovery_forced_searches_whatever_the_sampling(monkeypatch, unconfident):
     monkeypatch.setattr(stations, "recover_stations", _no_stations)
     uniform = paper_corridor(3000, random_state=0).reference
     assert _resolve(uniform, True).visibility_report()["stations_recovered"] == 0
     assert "stations_recovered" not in _resolve(uniform, "auto").visibility_report()
 
 
-def test_recovered_stations_that_explain_few_points_are_not_used(monkeypatch):
+def test_no_estimate_no_search(monkeypatch):
+    # estimate_origins=false: nothing says that no single origin explains the cloud
+    monkeypatch.setattr(stations, "recover_stations", _must_not_search)
+    resolved = resolve_stations(
+        "scan", merged().reference, given=None, from_file=None, estimate=False, recover="auto"
+    )
+    assert resolved.origin is None and not resolved.stations_unknown
+
+
+def test_recovered_stations_that_explain_few_points_are_not_used(monkeypatch, unconfident):
     def artefacts(points, **kwargs):
         origins = np.array([[1.0, 1.0, 1.0], [3.0, 2.0, 1.0]])
         return RecoveredStations(origins, np.array([0.1, 0.1]), np.array([60, 60]), 100)
 
     monkeypatch.setattr(stations, "recover_stations", artefacts)
-    resolved = resolve_stations(
-        "scan", merged().reference, given=None, from_file=None, estimate=False, recover="auto"
-    )
+    resolved = _resolve(merged().reference, "auto")
     assert resolved.origin is None and resolved.stations_unknown
     assert resolved.evidence["stations_explained_share"] == pytest.approx(0.2)
 

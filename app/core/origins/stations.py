@@ -316,6 +316,7 @@ def resolve_stations(
     recover: bool | str,
     random_state: int = 0,
     station_of: PointCloud | None = None,
+    resolved: ResolvedOrigin | None = None,
 ) -> ResolvedOrigin:
     """The origin(s) of one cloud: several given, or one resolved, or stations recovered.
 
@@ -352,6 +353,10 @@ def resolve_stations(
         says which station took each point.  With no origin given or in the file and several
         stations, each station's origin is estimated from its own points
         (:func:`estimate_each_station`).
+    resolved : ResolvedOrigin, optional
+        This cloud's resolution already made with ``recover=False`` (and the same other
+        arguments): only the stations are searched (:mod:`~app.core.origins.own_frame` tries
+        the cloud's own frame before that).
 
     Returns
     -------
@@ -361,28 +366,34 @@ def resolve_stations(
         the sampling was measured (``lidar_*``) and the stations searched
         (``stations_recovered``).
     """
-    if given is not None and len(given) > 1:
-        return ResolvedOrigin(given, "given", None)
-    if from_file is not None and np.asarray(from_file).size > 3:
-        if given is None:
-            return ResolvedOrigin(np.asarray(from_file).reshape(-1, 3), "file", None)
-        from_file = None  # one given origin overrides the file's stations
-    station = None if station_of is None else station_of.attributes.get(STATION_INDEX_ATTRIBUTE)
-    if given is None and from_file is None and estimate and station is not None:
-        each = estimate_each_station(side, points, station, random_state)
-        if each is not None:
-            return each
+    if resolved is None:
+        if given is not None and len(given) > 1:
+            return ResolvedOrigin(given, "given", None)
+        if from_file is not None and np.asarray(from_file).size > 3:
+            if given is None:
+                return ResolvedOrigin(np.asarray(from_file).reshape(-1, 3), "file", None)
+            from_file = None  # one given origin overrides the file's stations
+        station = None if station_of is None else station_of.attributes.get(STATION_INDEX_ATTRIBUTE)
+        if given is None and from_file is None and estimate and station is not None:
+            each = estimate_each_station(side, points, station, random_state)
+            if each is not None:
+                return each
     # nothing to check: an estimate that fails the column and ring signals is taken for a
     # merged survey, whose stations are recovered before the costly apex search is tried
-    recover_first = recover is True and given is None and from_file is None
+    recover_first = recover is True and given is None and from_file is None and resolved is None
     options = {
         "given": None if given is None else given[0],
         "from_file": None if from_file is None else np.asarray(from_file).reshape(3),
         "estimate": estimate,
         "random_state": random_state,
     }
-    resolved = resolve_origin(side, points, apex=not recover_first, **options)
+    if resolved is None:
+        resolved = resolve_origin(side, points, apex=not recover_first, **options)
     if resolved.origin is not None or recover is False:
+        return resolved
+    # an estimate was made and no single origin explains the cloud (not merely left undone)
+    not_one_station = "ring_share" in resolved.evidence
+    if recover == "auto" and not not_one_station:
         return resolved
     sampling = lidar_sampling(points, random_state=random_state)
     evidence = {**resolved.evidence, **sampling.evidence()}
@@ -406,8 +417,9 @@ def resolve_stations(
         if resolved.origin is not None:
             return resolved
         evidence = {**resolved.evidence, **evidence}
+        not_one_station = "ring_share" in resolved.evidence
     warnings = list(resolved.warnings)
-    if sampling.lidar_like:
+    if sampling.lidar_like and not_one_station:
         evidence[STATIONS_UNKNOWN] = 1.0
         warnings.append(
             f"the {side} was sampled by a lidar but no single sensor origin explains it (a "
