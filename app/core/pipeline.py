@@ -479,6 +479,14 @@ def compare(
         ),
         site_calibration,
     )
+    visibility = {  # what was found out about each cloud's sensors, and the test it got
+        side: {
+            **resolved.visibility_report(),
+            "test": localisation.parameters.get(f"{side}_visibility"),
+        }
+        for side, resolved in (("reference", resolved_reference), ("scan", resolved_scan))
+    }
+    calibration["visibility"] = visibility  # stored with a job's result (the API shows it)
     calibration["decision"] = {
         "rule": settings.decision,
         "detector_changed": bool(detection.changed),
@@ -548,13 +556,7 @@ def compare(
             ),
         },
         warnings=[*resolved_reference.warnings, *resolved_scan.warnings],
-        visibility={
-            side: {
-                **resolved.visibility_report(),
-                "test": localisation.parameters.get(f"{side}_visibility"),
-            }
-            for side, resolved in (("reference", resolved_reference), ("scan", resolved_scan))
-        },
+        visibility=visibility,
     )
 
 

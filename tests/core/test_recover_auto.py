@@ -154,6 +154,7 @@ def test_unfound_stations_of_a_merged_lidar_cloud_route_to_the_surface_test(
         assert result.visibility[side]["stations_recovered"] == 0
         assert result.visibility[side]["test"] == "surfaces"
     assert sum("could not be recovered" in warning for warning in result.warnings) == 2
+    assert result.calibration["visibility"] == result.to_json_dict()["visibility"]
 
 
 def test_recovery_turned_off_searches_nothing(monkeypatch, unconfident):
