@@ -13,14 +13,20 @@ put back with the true transform so that only visibility is measured).  Modes:
 - ``coverage``: nothing given, the coverage test alone (before issue 15);
 - ``fallback``: nothing given and no recovery: the origin-free surface test
   (``origin_free_test="surfaces"``, :mod:`app.core.localise.origin_free`), what a merged
-  cloud whose stations are not recovered needs.
+  cloud whose stations are not recovered needs;
+- ``default``: nothing given, no parameter at all: :func:`app.core.pipeline.compare` on the
+  two files as a new user runs it (the scan aligned by the pipeline; origins estimated, the
+  stations of lidar clouds recovered, ``recover_stations="auto"``).
 
 Per scene and mode: changed regions (the decision: changed when there is one), IoU of changed
 points over the points some station of the other epoch saw.
 
-Run: ``.venv/bin/python -m bench.stations [--seeds 2] [--step 1.0] [--modes given,recovered]``;
-prints a table and writes it as the section "Several stations per cloud" of
-``bench/results/visibility.md`` (other sections are kept).
+Run: ``.venv/bin/python -m bench.stations [--seeds 2] [--step 1.0] [--modes given,recovered]
+[--output FILE]``; prints a table and writes it as the section "Several stations per cloud" of
+``bench/results/visibility.md`` (other sections are kept) or ``FILE``.
+``--sampling`` instead prints :func:`app.core.origins.sampling.lidar_sampling`'s figures on
+each class of cloud (single and merged lidar scans, the paper's scenes, random points, the
+real Velodyne frames in ``../shared/data/real``).
 """
 
 from __future__ import annotations
@@ -28,17 +34,21 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
+from app.core.cloud import PointCloud
 from app.core.localise import localise_changes
+from app.core.origins.sampling import lidar_sampling
 from app.core.origins.stations import recover_stations
-from app.core.synthetic import _transform_points
+from app.core.pipeline import compare
+from app.core.synthetic import _transform_points, paper_corridor, raycast_scene
 from app.core.synthetic_lidar import lidar_pair
 from tests.helpers.scenes import changed_iou
 
 RESULTS = Path(__file__).resolve().parent / "results"
-MODES = ("given", "origins", "recovered", "origin-free", "coverage", "fallback")
+MODES = ("given", "origins", "recovered", "origin-free", "coverage", "fallback", "default")
 CHANGES = ("added", "removed", "mixed", "none")
 LAYOUTS = ("room", "corridor", "warehouse")
 SECTION = "Several stations per cloud (bench/stations.py)"
@@ -64,6 +74,13 @@ def localise(pair, scan, scan_origins, mode: str):
         options["origin_free_test"] = "gaps"
     elif mode == "fallback":
         options["origin_free_test"] = "surfaces"
+    elif mode == "default":
+        result = compare(PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan))
+        recovered = tuple(
+            SimpleNamespace(origins=np.array([entry["origin"] for entry in entries]).reshape(-1, 3))
+            for entries in (result.sensor_origins["reference"], result.sensor_origins["scan"])
+        )
+        return result, recovered, result.timings.get("origins", 0.0)
     recovery_seconds = options.pop("recovery_seconds", 0.0)
     return localise_changes(pair.reference, scan, **options), recovered, recovery_seconds
 
@@ -92,7 +109,12 @@ def main() -> None:
     parser.add_argument("--modes", default=",".join(MODES))
     parser.add_argument("--changes", default=",".join(CHANGES))
     parser.add_argument("--layouts", default=",".join(LAYOUTS))
+    parser.add_argument("--output", type=Path, default=RESULTS / "visibility.md")
+    parser.add_argument("--sampling", action="store_true", help="lidar-likeness per cloud class")
     args = parser.parse_args()
+    if args.sampling:
+        print_sampling(args.seeds, args.first_seed)
+        return
     modes = args.modes.split(",")
     rows = []
     for seed in range(args.first_seed, args.first_seed + args.seeds):
@@ -123,7 +145,13 @@ def main() -> None:
                     error = (
                         float("nan")
                         if recovered is None
-                        else station_error(recovered, (pair.reference_origins, scan_origins))
+                        else station_error(
+                            recovered,
+                            (
+                                pair.reference_origins,
+                                pair.scan_origins if mode == "default" else scan_origins,
+                            ),
+                        )
                     )
                     row = {
                         "layout": layout,
@@ -133,7 +161,8 @@ def main() -> None:
                         "points": len(pair.reference) + len(pair.scan),
                         "mode": mode,
                         "regions": len(localisation.regions),
-                        "right": (len(localisation.regions) > 0) == (change != "none"),
+                        "right": getattr(localisation, "changed", len(localisation.regions) > 0)
+                        == (change != "none"),
                         "iou": changed_iou(pair, localisation),
                         "found": found,
                         "station_error": error,
@@ -171,7 +200,56 @@ def main() -> None:
         )
     table = "\n".join(lines)
     print(table)
-    write_section(RESULTS / "visibility.md", SECTION, table)
+    write_section(args.output, SECTION, table)
+
+
+def sampling_clouds(seeds: int, first_seed: int):
+    """(class, name, points) of each class of cloud :func:`lidar_sampling` must tell apart."""
+    for seed in range(first_seed, first_seed + seeds):
+        for layout in LAYOUTS:
+            single = lidar_pair(layout=layout, change="added", random_state=1000 + seed)
+            yield "single lidar", f"{layout} seed {seed}", single.reference
+            n_stations = 3 + (seed + len(layout)) % 3
+            merged = lidar_pair(
+                layout=layout,
+                change="added",
+                n_stations=n_stations,
+                angular_step_deg=1.0,
+                misaligned=True,
+                random_state=seed,
+            )
+            yield "merged lidar", f"{layout} seed {seed} k={n_stations}", merged.reference
+        scene = raycast_scene(n_points=200_000, change="box", random_state=100 + seed)
+        yield "paper ray-cast scene", f"seed {seed}", scene.reference
+        for n_points in (300, 30_000):
+            corridor = paper_corridor(n_points, noise_variance=1e-4, random_state=seed)
+            yield "paper corridor (uniform)", f"{n_points} points seed {seed}", corridor.reference
+        rng = np.random.default_rng(seed)
+        yield "random points", f"seed {seed}", rng.uniform(0.0, 10.0, (50_000, 3))
+        grid = np.stack(np.meshgrid(*[np.arange(0.0, 10.0, 0.05)] * 2, indexing="ij"), -1)
+        flat = np.column_stack([grid.reshape(-1, 2), np.zeros(grid[..., 0].size)])
+        yield "regular grid", f"5 cm seed {seed}", flat + rng.normal(0.0, 0.003, flat.shape)
+    real = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
+    from app.core.formats import read_point_cloud
+
+    for path in sorted(real.glob("*/*.p[cl][dy]")):
+        points = np.asarray(read_point_cloud(path).points, dtype=np.float64)
+        yield "real Velodyne frame", f"{path.parent.name[:12]}/{path.name}", points
+
+
+def print_sampling(seeds: int, first_seed: int) -> None:
+    """Print :func:`lidar_sampling`'s figures for each cloud of :func:`sampling_clouds`."""
+    print("| class | cloud | points | twin share | spacing spread | lidar-like | ms |")
+    print("|---|---|---|---|---|---|---|")
+    for kind, name, points in sampling_clouds(seeds, first_seed):
+        started = time.perf_counter()
+        found = lidar_sampling(points)
+        milliseconds = 1000 * (time.perf_counter() - started)
+        print(
+            f"| {kind} | {name} | {len(points)} | {found.twin_share:.3f} | "
+            f"{found.spacing_spread:.1f} | {found.lidar_like} | {milliseconds:.0f} |",
+            flush=True,
+        )
 
 
 def write_section(path: Path, title: str, body: str) -> None:

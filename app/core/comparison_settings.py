@@ -15,6 +15,7 @@ from app.core.detectors import make_detector
 from app.core.detectors.base import ChangeDetector
 from app.core.errors import InputError
 from app.core.localise.settings import as_origins
+from app.core.origins.stations import as_recover_setting
 from app.core.parameters import ParamSpec, validate_parameters
 from app.core.registration import register_scan
 
@@ -50,7 +51,7 @@ class ComparisonSettings:
     scan_origin: Any
     decision: str
     estimate_origins: bool = True
-    recover_stations: bool = False
+    recover_stations: bool | str = "auto"
 
 
 INTERNAL_REGISTRATION_ARGUMENTS = frozenset({"reference_memory"})
@@ -113,9 +114,7 @@ def parse_comparison_params(
     estimate_origins = remaining.pop("estimate_origins", True)
     if not isinstance(estimate_origins, bool):
         raise InputError(f"estimate_origins must be true or false, got {estimate_origins!r}")
-    recover = remaining.pop("recover_stations", False)
-    if not isinstance(recover, bool):
-        raise InputError(f"recover_stations must be true or false, got {recover!r}")
+    recover = as_recover_setting(remaining.pop("recover_stations", "auto"))
     for origin, name in ((reference_origin, "reference_origin"), (scan_origin, "scan_origin")):
         as_origins(origin, name)  # validates: 3 numbers or a list of them
     try:

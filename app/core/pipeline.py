@@ -98,6 +98,11 @@ class ComparisonResult:
     Per-point arrays have one entry per row of the source file (points dropped on load keep
     their place): labels are 0 unchanged, 1 changed, -1 unobserved or dropped; distances are
     NaN there.  ``reference_region``/``scan_region`` index ``regions`` (-1: none).
+    ``visibility`` says per cloud where its origins came from (``"origins"``: given, file,
+    estimated, recovered or none), whether its sampling was measured to be a lidar's
+    (``lidar_like``, with its figures) and stations searched (``stations_recovered``), whether
+    it is a merged lidar cloud whose stations are unknown (``stations_unknown``), and the
+    visibility test its change candidates got (``test``: ray, coverage or surfaces).
     """
 
     method: str
@@ -121,6 +126,7 @@ class ComparisonResult:
     timings: dict[str, float] = field(default_factory=dict)
     sensor_origins: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    visibility: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def label_counts(self) -> dict[str, dict[str, int]]:
         """How many points of each cloud are unchanged, changed and unobserved."""
@@ -155,6 +161,7 @@ class ComparisonResult:
                 "timings": self.timings,
                 "sensor_origins": self.sensor_origins,
                 "warnings": self.warnings,
+                "visibility": self.visibility,
                 "quality_warnings": quality_warnings(self),  # structured, with the above
                 "explanation": explain_comparison(self),
             }
@@ -263,9 +270,12 @@ def compare(
         several stations, whose ``station_index`` attribute, if any, says which took each
         point), ``"estimate_origins"`` (default true: estimate a missing or contradicted
         origin from the points, :mod:`app.core.origins.resolve`) and ``"recover_stations"``
-        (default false, opt-in: a cloud with no origin that was merged from several stations
-        gets them recovered, :func:`app.core.origins.stations.recover_stations`; it costs
-        seconds per cloud, see ``bench/results/visibility.md``).
+        (``"auto"``, default: a cloud left without an origin whose sampling is a lidar's,
+        :func:`app.core.origins.sampling.lidar_sampling`, gets its stations recovered,
+        :func:`app.core.origins.stations.recover_stations`, a second or two per cloud; when
+        none are, it is a merged lidar cloud with unknown stations and the other cloud's
+        candidates get the origin-free surface test; ``true``: recover whatever the sampling;
+        ``false``: never).
         The origins used are reported in ``sensor_origins``, contradicted ones in ``warnings``.
     progress : callable, optional
         ``progress(stage, fraction)`` after each stage.
@@ -417,6 +427,8 @@ def compare(
                     scan_origin=scan_origin,
                     reference_station=reference_station,
                     scan_station=scan_station,
+                    reference_stations_unknown=resolved_reference.stations_unknown,
+                    scan_stations_unknown=resolved_scan.stations_unknown,
                     # Not registration.rmse: that includes sampling distance and real change
                     # (0.15 m on KITTI); localise measures the remaining misalignment itself
                     # from local surfaces.
@@ -467,6 +479,14 @@ def compare(
         ),
         site_calibration,
     )
+    visibility = {  # what was found out about each cloud's sensors, and the test it got
+        side: {
+            **resolved.visibility_report(),
+            "test": localisation.parameters.get(f"{side}_visibility"),
+        }
+        for side, resolved in (("reference", resolved_reference), ("scan", resolved_scan))
+    }
+    calibration["visibility"] = visibility  # stored with a job's result (the API shows it)
     calibration["decision"] = {
         "rule": settings.decision,
         "detector_changed": bool(detection.changed),
@@ -498,8 +518,8 @@ def compare(
     ):
         if explicit is not None:  # as given: one origin, or a list of them
             effective_params[key] = np.asarray(explicit, dtype=np.float64).tolist()
-    if settings.recover_stations:
-        effective_params["recover_stations"] = True
+    if settings.recover_stations != "auto":
+        effective_params["recover_stations"] = settings.recover_stations
     if not settings.estimate_origins:
         effective_params["estimate_origins"] = False
     report("done", 1.0)
@@ -536,6 +556,7 @@ def compare(
             ),
         },
         warnings=[*resolved_reference.warnings, *resolved_scan.warnings],
+        visibility=visibility,
     )
 
 

@@ -148,7 +148,7 @@ class ReferenceOriginCache:
         *,
         given: Any,
         estimate: bool,
-        recover: bool,
+        recover: bool | str,
     ) -> ReferenceOriginCache | None:
         """The origin cache of ``reference`` (its origins ``given``, the ``estimate`` and
         ``recover`` switches of :func:`~app.core.origins.stations.resolve_stations`), or None
@@ -161,7 +161,7 @@ class ReferenceOriginCache:
             "from_file": None if sensor_origin is None else np.asarray(sensor_origin).tolist(),
             "local_origin": np.asarray(local_origin).tolist(),
             "estimate": bool(estimate),
-            "recover": bool(recover),
+            "recover": recover if isinstance(recover, str) else bool(recover),
             "n_points": len(reference),
         }
         return cls(cache, reference_origin_key(cache.key, inputs))

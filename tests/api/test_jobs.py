@@ -82,6 +82,12 @@ def test_post_jobs_validation(writer: httpx.Client, site_scans: tuple[dict, dict
         "invalid_detector",
     )
     assert "no_such_knob" in detail
+    detail = assert_error(
+        writer.post("/api/v1/jobs", json={**pair, "params": {"recover_stations": "maybe"}}),
+        422,
+        "invalid_detector",
+    )
+    assert "recover_stations" in detail and '"auto"' in detail
     assert_error(writer.post("/api/v1/jobs", json={**pair, "method": "bogus"}), 422)
     assert_error(writer.post("/api/v1/jobs", json={"scan_id": scan["id"]}), 422)
     assert_error(writer.post("/api/v1/jobs", json={**pair, "params": [1, 2]}), 422)

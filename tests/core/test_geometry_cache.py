@@ -223,7 +223,7 @@ def origin_key(cache, reference):
         choose_local_origin(reference.points),
         given=None,
         estimate=True,
-        recover=False,
+        recover="auto",
     ).key
 
 

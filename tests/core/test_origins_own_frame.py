@@ -51,3 +51,20 @@ def test_a_given_origin_is_moved_by_the_alignment_and_not_estimated() -> None:
     truth = apply_transform(pair.reference_origin[None], transform)[0]
     assert resolved.source == "given"
     np.testing.assert_allclose(resolved.origin, truth, atol=1e-9)
+
+
+def test_auto_searches_no_stations_when_the_own_frame_gives_the_origin(monkeypatch) -> None:
+    # a tilted single station fails the estimate once aligned: with recover_stations="auto"
+    # its own frame is tried before any station search (seconds on a real frame)
+    from app.core.origins import stations
+
+    def must_not_search(points, **kwargs):
+        raise AssertionError("stations were searched before the own frame was tried")
+
+    monkeypatch.setattr(stations, "recover_stations", must_not_search)
+    pair = lidar_pair(layout="room", change="none", angular_step_deg=1.5, random_state=41)
+    transform = _tilting_transform(3.0, 25.0, (3.0, -2.0, 0.5))
+    resolved = resolve_moved_cloud(
+        "scan", pair.reference, transform, given=None, from_file=None, estimate=True, recover="auto"
+    )
+    assert resolved.source == "estimated"

@@ -156,6 +156,8 @@ def localise_changes(
     scan_neighbourhoods: Neighbourhoods | NeighbourhoodSearch | None = None,
     reference_station: NDArray | None = None,
     scan_station: NDArray | None = None,
+    reference_stations_unknown: bool = False,
+    scan_stations_unknown: bool = False,
     **params: Any,
 ) -> Localisation:
     """Label each point unchanged, changed or unobserved and group changes into regions.
@@ -195,6 +197,10 @@ def localise_changes(
         Index into the cloud's origins of the station that took each point.  Without it a
         cloud with several origins has its points assigned to stations
         (:func:`~app.core.localise.stations.assign_stations`).
+    reference_stations_unknown, scan_stations_unknown : bool
+        The cloud was sampled by lidars from several stations that are not known (nor
+        recovered): the other cloud's candidates get the origin-free surface test
+        (``origin_free_test="auto"``, :func:`~app.core.localise.visibility.label_candidates`).
     **params
         See :data:`~app.core.localise.settings.DEFAULT_PARAMETERS`.
 
@@ -247,6 +253,7 @@ def localise_changes(
         points=reference_points,
         origins=reference_origins,
         station=reference_station,
+        stations_unknown=reference_stations_unknown and reference_origins is None,
         geometry=reference_geometry,
         nearest_distance=reference_nn_distance,
         nearest_index=reference_nn_index,
@@ -257,6 +264,7 @@ def localise_changes(
         points=scan_points,
         origins=scan_origins,
         station=scan_station,
+        stations_unknown=scan_stations_unknown and scan_origins is None,
         geometry=scan_geometry,
         nearest_distance=scan_nn_distance,
         nearest_index=scan_nn_index,

@@ -51,6 +51,9 @@ class Side:
     station : ndarray, shape (n,), int64, or None
         Index into ``origins`` of the station that took each point, if known or recovered
         (None with one station: every point is its).
+    stations_unknown : bool
+        A lidar cloud merged from several stations that are neither known nor recovered
+        (``origins`` None): ``origin_free_test="auto"`` uses the surface test against it.
     geometry : LocalGeometry
         Of ``points``.
     nearest_distance : ndarray, shape (n,), float64
@@ -67,6 +70,7 @@ class Side:
     nearest_distance: NDArray[np.float64]
     nearest_index: NDArray[np.uint32]
     station: NDArray[np.int64] | None = None
+    stations_unknown: bool = False
 
 
 def nearest_in(

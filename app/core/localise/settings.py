@@ -29,7 +29,7 @@ DEFAULT_PARAMETERS: dict[str, Any] = {
     "visibility_angle_factor": 2.5,
     "visibility_beyond_fraction": 0.5,
     "visibility_miss_factor": 4.0,
-    "origin_free_test": "coverage",
+    "origin_free_test": "auto",
     "min_change_distance": 0.10,
 }
 """Keyword parameters of :func:`~app.core.localise.changes.localise_changes` and their defaults.
@@ -69,7 +69,12 @@ origin_free_test
     blind discs of merged surveys but also parts of true changes on the paper's corridor.
     ``"surfaces"``: gaps, shadows and changes told apart from both clouds' surfaces alone,
     with neighbourhoods that grow from the local gap (:mod:`~app.core.localise.origin_free`);
-    for merged clouds whose stations are not known nor recovered.
+    for merged clouds whose stations are not known nor recovered.  ``"auto"`` (default):
+    ``"surfaces"`` against a cloud that the pipeline found sampled by lidars, explained by no
+    single origin and whose stations it could not recover (``*_stations_unknown`` of
+    :func:`~app.core.localise.changes.localise_changes`), ``"coverage"`` otherwise (uniform or
+    non-lidar clouds: the surface test assumes a lidar's sampling).  A value set explicitly
+    is used whatever the clouds.
 min_change_distance
     Smallest change reported (metres): a point is changed only when it lies farther than
     ``max(tau, min_change_distance)`` from the other cloud's surface.  0.10: the issue-15
@@ -92,7 +97,7 @@ PARAMETER_SPECS: dict[str, ParamSpec] = {
     "visibility_angle_factor": ParamSpec("positive"),
     "visibility_beyond_fraction": ParamSpec("positive", high=1.0),
     "visibility_miss_factor": ParamSpec("positive"),
-    "origin_free_test": ParamSpec("choice", choices=("gaps", "coverage", "surfaces")),
+    "origin_free_test": ParamSpec("choice", choices=("auto", "gaps", "coverage", "surfaces")),
     "min_change_distance": ParamSpec("float", low=0.0),
 }
 """How each of :data:`DEFAULT_PARAMETERS` is validated (same names, same order)."""

@@ -9,7 +9,9 @@ origin, a coverage test: a candidate whose nearest point in the other cloud is f
 ``coverage_factor`` local spacings is unobserved (single-viewpoint scans should pass origins,
 or their shadows' rims come out as changes); with ``origin_free_test="surfaces"`` the
 surface test of :mod:`app.core.localise.origin_free` instead (merged clouds whose stations
-are not known).
+are not known).  The default ``"auto"`` routes here: the surface test against a cloud the
+pipeline found to be a merged lidar survey whose stations it could not recover
+(``Side.stations_unknown``), the coverage test against any other cloud without origins.
 """
 
 from __future__ import annotations
@@ -119,7 +121,10 @@ def label_candidates(
     index = candidates.index
     side = own.name
     report: dict[str, Any] = {f"{side}_candidates": int(index.size)}
-    if other.origins is None and settings["origin_free_test"] == "surfaces":
+    origin_free_test = settings["origin_free_test"]
+    if origin_free_test == "auto":  # the surface test only against merged lidar clouds
+        origin_free_test = "surfaces" if other.stations_unknown else "coverage"
+    if other.origins is None and origin_free_test == "surfaces":
         report[f"{side}_visibility"] = "surfaces"
         status, counts = surface_test(
             candidates,
@@ -136,7 +141,7 @@ def label_candidates(
             <= settings["coverage_factor"] * other.geometry.spacing[own.nearest_index[index]]
         )
         status = np.where(covered, STATUS_SEEN_THROUGH, STATUS_UNOBSERVED)
-        if settings["origin_free_test"] == "gaps":
+        if origin_free_test == "gaps":
             gap = in_sampling_gap(
                 candidates.points,
                 candidates.normal,

@@ -44,7 +44,7 @@ def resolve_moved_cloud(
     given: NDArray[np.float64] | None,
     from_file: NDArray[np.float64] | None,
     estimate: bool,
-    recover: bool,
+    recover: bool | str,
     station_of: PointCloud | None = None,
 ) -> ResolvedOrigin:
     """The origin(s) of a cloud moved by ``transform``, in the moved (aligned) frame.
@@ -61,8 +61,11 @@ def resolve_moved_cloud(
         ``own_points`` moved by ``transform`` (computed when not given).
     given, from_file : ndarray, shape (k, 3) / (3,), or None
         Origins in the cloud's own frame.
-    estimate, recover : bool
-        As for :func:`~app.core.origins.stations.resolve_stations`.
+    estimate : bool
+    recover : {True, False, "auto"}
+        As for :func:`~app.core.origins.stations.resolve_stations`; with ``"auto"`` the
+        stations are searched (in the aligned frame) only when the own frame gives no
+        origin either.
     station_of : PointCloud, optional
         The cloud ``own_points`` come from (its per-point station index, if any).
 
@@ -80,7 +83,28 @@ def resolve_moved_cloud(
     def aligned(origins: NDArray[np.float64] | None) -> NDArray[np.float64] | None:
         return None if origins is None else apply_transform(origins, transform)
 
-    options = {"estimate": estimate, "recover": recover, "station_of": station_of}
+    # "auto": the stations are searched only once the own frame gave no origin either
+    deferred = recover == "auto" and given is None and from_file is None
+    options = {
+        "estimate": estimate,
+        "recover": False if deferred else recover,
+        "station_of": station_of,
+    }
+
+    def unresolved(resolved: ResolvedOrigin) -> ResolvedOrigin:
+        if not deferred:
+            return resolved
+        return resolve_stations(
+            side,
+            aligned_points,
+            given=None,
+            from_file=None,
+            resolved=resolved,
+            recover="auto",
+            estimate=estimate,
+            station_of=station_of,
+        )
+
     resolved = resolve_stations(
         side, aligned_points, given=aligned(given), from_file=aligned(from_file), **options
     )
@@ -91,10 +115,10 @@ def resolve_moved_cloud(
     if not estimate or (
         ring_share < OWN_FRAME_RETRY_RING_SHARE and tilt <= OWN_FRAME_RETRY_TILT_DEG
     ):
-        return resolved  # level, and not a single lidar's rings (a merged survey): no retry
+        return unresolved(resolved)  # level, not a single lidar's rings: no retry
     own_frame = resolve_stations(side, own_points, given=None, from_file=None, **options)
     if own_frame.origin is None:
-        return resolved
+        return unresolved(resolved)
     origin = np.asarray(own_frame.origin, dtype=np.float64)
     moved = apply_transform(origin.reshape(-1, 3), transform).reshape(origin.shape)
     return dataclasses.replace(own_frame, origin=moved)

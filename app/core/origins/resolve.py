@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -21,7 +22,7 @@ from numpy.typing import NDArray
 from app.core.origins.estimate import OriginEstimate, estimate_origin
 from app.core.origins.rings import ring_share
 
-__all__ = ["CONTRADICTION_DISTANCE", "ResolvedOrigin", "resolve_origin"]
+__all__ = ["CONTRADICTION_DISTANCE", "STATIONS_UNKNOWN", "ResolvedOrigin", "resolve_origin"]
 
 CONTRADICTION_DISTANCE = 0.3
 """A given origin this far (metres) from a confident estimate is contradicted by the data."""
@@ -29,6 +30,9 @@ CONSISTENT_RING_SHARE = 0.85
 """From a right origin nearly every return of a lidar lies on a ring; so many is enough."""
 BOUNDING_BOX_MARGIN = 0.5
 CHECK_POINTS = 60_000
+STATIONS_UNKNOWN = "stations_unknown"
+"""Evidence entry (1.0) of a lidar cloud that no single origin explains and whose stations
+were not recovered (:func:`~app.core.origins.stations.resolve_stations`)."""
 
 
 @dataclass(frozen=True)
@@ -43,7 +47,8 @@ class ResolvedOrigin:
         The estimate's confidence (None for a given or file origin kept unchecked-for-cause).
     warnings : list of str
     evidence : dict
-        The estimate's evidence when one was made.
+        The estimate's evidence when one was made; the cloud's sampling and the stations
+        searched when they were (:func:`~app.core.origins.stations.resolve_stations`).
     station_confidence : list of float, optional
         Per station of a merged cloud whose stations were recovered: the share of points on
         its rings (:mod:`app.core.origins.stations`).
@@ -55,6 +60,28 @@ class ResolvedOrigin:
     warnings: list[str] = field(default_factory=list)
     evidence: dict[str, float] = field(default_factory=dict)
     station_confidence: list[float] | None = None
+
+    @property
+    def stations_unknown(self) -> bool:
+        """A lidar cloud merged from several stations that are not known nor recovered."""
+        return self.origin is None and bool(self.evidence.get(STATIONS_UNKNOWN))
+
+    def visibility_report(self) -> dict[str, Any]:
+        """What was found out about the cloud's sensors: ``{"origins", "lidar_like", ...}``.
+
+        ``origins``: "given", "file", "estimated", "recovered" or "none"; ``lidar_like`` (when
+        the sampling was measured, with its figures), ``stations_recovered`` (when searched),
+        ``stations_unknown``.
+        """
+        report: dict[str, Any] = {"origins": self.source or "none"}
+        if "lidar_like" in self.evidence:
+            report["lidar_like"] = bool(self.evidence["lidar_like"])
+            report["lidar_twin_share"] = self.evidence.get("lidar_twin_share")
+            report["lidar_spacing_spread"] = self.evidence.get("lidar_spacing_spread")
+        if "stations_recovered" in self.evidence:
+            report["stations_recovered"] = int(self.evidence["stations_recovered"])
+        report["stations_unknown"] = self.stations_unknown
+        return report
 
     def report(self, to_file: Callable[[NDArray[np.float64]], NDArray[np.float64]]) -> list:
         """``[{"origin", "source", "confidence"}]``, one per station, mapped by ``to_file``."""

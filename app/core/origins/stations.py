@@ -29,6 +29,7 @@ choice is seeded (``random_state``): the same cloud gives the same stations.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -37,6 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.cloud import PointCloud
+from app.core.errors import InputError
 from app.core.localise.settings import as_origins, as_station_index
 from app.core.localise.stations import (
     RING_CONTRAST,
@@ -46,10 +48,13 @@ from app.core.localise.stations import (
 )
 from app.core.origins.concurrence import MAX_STATIONS, column_centres, search_centres
 from app.core.origins.estimate import estimate_origin
-from app.core.origins.resolve import ResolvedOrigin, resolve_origin
+from app.core.origins.resolve import STATIONS_UNKNOWN, ResolvedOrigin, resolve_origin
+from app.core.origins.sampling import lidar_sampling
 
 __all__ = [
+    "RECOVER_CHOICES",
     "RecoveredStations",
+    "as_recover_setting",
     "column_centres",
     "origins_in_local_frame",
     "recover_stations",
@@ -275,6 +280,35 @@ def recover_stations(
     )
 
 
+RECOVER_CHOICES = (True, False, "auto")
+"""Values of the ``recover_stations`` comparison parameter: recover the stations of a cloud
+left without an origin always, never, or (``"auto"``, the default) when its sampling is a
+lidar's (:func:`~app.core.origins.sampling.lidar_sampling`)."""
+
+
+def as_recover_setting(value: Any) -> bool | str:
+    """The ``recover_stations`` parameter checked: True, False or ``"auto"``.
+
+    Raises
+    ------
+    InputError
+        Any other value.
+    """
+    if isinstance(value, bool) or value == "auto":
+        return value
+    raise InputError(
+        "recover_stations must be true (always recover the stations of a cloud left without "
+        'an origin), false (never) or "auto" (when its sampling is a lidar\'s: the default), '
+        f"got {value!r}"
+    )
+
+
+MIN_EXPLAINED_SHARE = 0.5
+"""Stations recovered are used when their rings hold at least this share of the points
+together (merged synthetic surveys: 1.00-1.08; three Hough artefacts in a real Velodyne frame
+without its ground, which one origin explains once the apex is searched: 0.21)."""
+
+
 def resolve_stations(
     side: str,
     points: NDArray[np.float64],
@@ -282,9 +316,10 @@ def resolve_stations(
     given: NDArray[np.float64] | None,
     from_file: NDArray[np.float64] | None,
     estimate: bool,
-    recover: bool,
+    recover: bool | str,
     random_state: int = 0,
     station_of: PointCloud | None = None,
+    resolved: ResolvedOrigin | None = None,
 ) -> ResolvedOrigin:
     """The origin(s) of one cloud: several given, or one resolved, or stations recovered.
 
@@ -292,10 +327,19 @@ def resolve_stations(
     file's scans, per-point origin fields) when none are given, are used as they are.  One
     origin (given, from the file or estimated) goes through
     :func:`~app.core.origins.resolve.resolve_origin`.  When that leaves the cloud without an
-    origin and ``recover``, the cloud's stations are recovered (:func:`recover_stations`) and
-    used when there are several.  With ``recover`` and no origin given or in the file, the
-    estimate's apex search (:mod:`~app.core.origins.apex`) waits until the recovery has found
-    fewer than two stations: a merged survey does not pay for it.
+    origin, its stations are recovered (:func:`recover_stations`) and used when there are
+    several: with ``recover=True`` always, with ``"auto"`` only when its sampling is a
+    lidar's (:func:`~app.core.origins.sampling.lidar_sampling`; uniform, random or gridded
+    clouds do not pay the search).  A lidar cloud that no single origin explains and whose
+    stations are not recovered is reported as such (``stations_unknown``: the localiser then
+    uses the origin-free surface test for it) with a warning.  Stations are used only when
+    their rings hold :data:`MIN_EXPLAINED_SHARE` of the points together.
+
+    With ``recover=True`` and no origin given or in the file, the estimate's apex search
+    (:mod:`~app.core.origins.apex`) waits until the recovery has found fewer than two
+    stations: a merged survey does not pay for it.  With ``"auto"`` it comes first: a
+    single station that only the apex search finds (a frame without its ground) is never
+    taken for a merged survey.
 
     Parameters
     ----------
@@ -304,56 +348,89 @@ def resolve_stations(
         In the frame the origins are used in (z up).
     given : ndarray, shape (k, 3), or None
     from_file : ndarray, shape (3,) or (k, 3), or None
-    estimate, recover : bool
+    estimate : bool
+    recover : {True, False, "auto"}
     random_state : int
     station_of : PointCloud, optional
         The cloud ``points`` come from (in its order): its ``station_index`` attribute, if any,
         says which station took each point.  With no origin given or in the file and several
         stations, each station's origin is estimated from its own points
         (:func:`estimate_each_station`).
+    resolved : ResolvedOrigin, optional
+        This cloud's resolution already made with ``recover=False`` (and the same other
+        arguments): only the stations are searched (:mod:`~app.core.origins.own_frame` tries
+        the cloud's own frame before that).
 
     Returns
     -------
     ResolvedOrigin
         ``origin`` of shape (k, 3) with k >= 2 for several stations, else as
-        :func:`~app.core.origins.resolve.resolve_origin` gives it.
+        :func:`~app.core.origins.resolve.resolve_origin` gives it; its evidence says whether
+        the sampling was measured (``lidar_*``) and the stations searched
+        (``stations_recovered``).
     """
-    if given is not None and len(given) > 1:
-        return ResolvedOrigin(given, "given", None)
-    if from_file is not None and np.asarray(from_file).size > 3:
-        if given is None:
-            return ResolvedOrigin(np.asarray(from_file).reshape(-1, 3), "file", None)
-        from_file = None  # one given origin overrides the file's stations
-    station = None if station_of is None else station_of.attributes.get(STATION_INDEX_ATTRIBUTE)
-    if given is None and from_file is None and estimate and station is not None:
-        each = estimate_each_station(side, points, station, random_state)
-        if each is not None:
-            return each
+    if resolved is None:
+        if given is not None and len(given) > 1:
+            return ResolvedOrigin(given, "given", None)
+        if from_file is not None and np.asarray(from_file).size > 3:
+            if given is None:
+                return ResolvedOrigin(np.asarray(from_file).reshape(-1, 3), "file", None)
+            from_file = None  # one given origin overrides the file's stations
+        station = None if station_of is None else station_of.attributes.get(STATION_INDEX_ATTRIBUTE)
+        if given is None and from_file is None and estimate and station is not None:
+            each = estimate_each_station(side, points, station, random_state)
+            if each is not None:
+                return each
     # nothing to check: an estimate that fails the column and ring signals is taken for a
     # merged survey, whose stations are recovered before the costly apex search is tried
-    recover_first = recover and given is None and from_file is None
+    recover_first = recover is True and given is None and from_file is None and resolved is None
     options = {
         "given": None if given is None else given[0],
         "from_file": None if from_file is None else np.asarray(from_file).reshape(3),
         "estimate": estimate,
         "random_state": random_state,
     }
-    resolved = resolve_origin(side, points, apex=not recover_first, **options)
-    if resolved.origin is not None or not recover:
+    if resolved is None:
+        resolved = resolve_origin(side, points, apex=not recover_first, **options)
+    if resolved.origin is not None or recover is False:
         return resolved
+    # an estimate was made and no single origin explains the cloud (not merely left undone)
+    not_one_station = "ring_share" in resolved.evidence
+    if recover == "auto" and not not_one_station:
+        return resolved
+    sampling = lidar_sampling(points, random_state=random_state)
+    evidence = {**resolved.evidence, **sampling.evidence()}
+    if recover == "auto" and not sampling.lidar_like:
+        return dataclasses.replace(resolved, evidence=evidence)
     found = recover_stations(points, random_state=random_state)
-    if not found.several:
-        if recover_first and estimate:  # one station after all: the full estimate
-            return resolve_origin(side, points, **options)
-        return resolved
-    return ResolvedOrigin(
-        found.origins,
-        "recovered",
-        None,
-        resolved.warnings,
-        resolved.evidence,
-        station_confidence=[round(float(share), 3) for share in found.ring_share],
-    )
+    evidence["stations_recovered"] = float(found.origins.shape[0])
+    explained = float(found.ring_share.sum())
+    evidence["stations_explained_share"] = round(explained, 3)
+    if found.several and explained >= MIN_EXPLAINED_SHARE:
+        return ResolvedOrigin(
+            found.origins,
+            "recovered",
+            None,
+            resolved.warnings,
+            evidence,
+            station_confidence=[round(float(share), 3) for share in found.ring_share],
+        )
+    if recover_first and estimate:  # one station after all: the full estimate
+        resolved = resolve_origin(side, points, **options)
+        if resolved.origin is not None:
+            return resolved
+        evidence = {**resolved.evidence, **evidence}
+        not_one_station = "ring_share" in resolved.evidence
+    warnings = list(resolved.warnings)
+    if sampling.lidar_like and not_one_station:
+        evidence[STATIONS_UNKNOWN] = 1.0
+        warnings.append(
+            f"the {side} was sampled by a lidar but no single sensor origin explains it (a "
+            "cloud merged from several stations?), and its stations could not be recovered "
+            f"(found {found.origins.shape[0]}); changes against it were told apart without "
+            "origins (origin-free surface test): give each station's origin for the ray test"
+        )
+    return dataclasses.replace(resolved, warnings=warnings, evidence=evidence)
 
 
 def estimate_each_station(

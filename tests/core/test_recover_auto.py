@@ -1,0 +1,213 @@
+"""Nothing given: a merged lidar cloud gets its stations by default, other clouds do not pay.
+
+``recover_stations="auto"`` (default): a cloud left without an origin is searched for stations
+only when its sampling is a lidar's (:func:`~app.core.origins.sampling.lidar_sampling`); a
+merged lidar cloud whose stations are not found gets the origin-free surface test
+(``origin_free_test="auto"``), unless the user chose a test.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+
+from app.core.cloud import PointCloud
+from app.core.comparison_settings import parse_comparison_params
+from app.core.errors import InputError
+from app.core.localise import localise_changes
+from app.core.origins import stations
+from app.core.origins.resolve import ResolvedOrigin
+from app.core.origins.sampling import lidar_sampling
+from app.core.origins.stations import RecoveredStations, resolve_stations
+from app.core.pipeline import compare
+from app.core.synthetic import paper_corridor
+from app.core.synthetic_lidar import lidar_pair
+
+STEP = 2.0  # degrees: ~10k points a station
+
+
+@functools.cache
+def merged(change: str = "none"):
+    """A small survey merged from three stations per epoch (scan in the reference frame)."""
+    return lidar_pair(
+        layout="room", change=change, n_stations=3, angular_step_deg=STEP, random_state=3
+    )
+
+
+def _clouds(pair) -> tuple[PointCloud, PointCloud]:
+    return PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan)
+
+
+def _no_stations(points, **kwargs) -> RecoveredStations:
+    return RecoveredStations(np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), 0)
+
+
+def _must_not_search(points, **kwargs):
+    raise AssertionError("stations were searched")
+
+
+@pytest.fixture
+def unconfident(monkeypatch):
+    """Every single-origin estimate made and unconfident, at once (the real one takes seconds
+    on a merged cloud: its apex search)."""
+
+    def estimate(side, points, **kwargs):
+        return ResolvedOrigin(None, None, None, evidence={"ring_share": 0.4})
+
+    monkeypatch.setattr(stations, "resolve_origin", estimate)
+
+
+def test_lidar_sampling_tells_lidar_clouds_from_uniform_random_and_gridded_ones():
+    rng = np.random.default_rng(0)
+    single = lidar_pair(layout="corridor", change="none", angular_step_deg=STEP, random_state=4)
+    grid = np.stack(np.meshgrid(*[np.arange(0.0, 6.0, 0.05)] * 2, indexing="ij"), -1)
+    grid = np.column_stack([grid.reshape(-1, 2), np.zeros(grid[..., 0].size)])
+    lidar = {"merged": merged().reference, "single": single.reference}
+    other = {
+        "uniform corridor": paper_corridor(3000, random_state=0).reference,
+        "random": rng.uniform(0.0, 5.0, (20_000, 3)),
+        "grid": grid + rng.normal(0.0, 0.003, grid.shape),
+        "tiny": rng.uniform(0.0, 1.0, (4, 3)),
+    }
+    for name, points in lidar.items():
+        assert lidar_sampling(points).lidar_like, name
+    for name, points in other.items():
+        assert not lidar_sampling(points).lidar_like, name
+
+
+@pytest.mark.parametrize("value", ["yes", 1, None, "Auto"])
+def test_recover_stations_is_true_false_or_auto(value):
+    with pytest.raises(InputError, match=r'recover_stations must be true .* or "auto"'):
+        parse_comparison_params("gmm", "improved", {"recover_stations": value})
+
+
+def test_recover_stations_defaults_to_auto():
+    assert parse_comparison_params("gmm", "improved", {}).recover_stations == "auto"
+    for value in (True, False, "auto"):
+        settings = parse_comparison_params("gmm", "improved", {"recover_stations": value})
+        assert settings.recover_stations is value or settings.recover_stations == value
+
+
+def _resolve(points, recover):
+    return resolve_stations(
+        "reference", points, given=None, from_file=None, estimate=True, recover=recover
+    )
+
+
+def test_auto_recovers_the_stations_of_a_merged_lidar_cloud(monkeypatch, unconfident):
+    pair = merged()
+    searched = []
+
+    def true_stations(points, **kwargs):
+        searched.append(len(points))
+        shares = np.full(len(pair.reference_origins), 1.0 / len(pair.reference_origins))
+        return RecoveredStations(pair.reference_origins, shares, np.full(len(shares), 500), 9)
+
+    monkeypatch.setattr(stations, "recover_stations", true_stations)
+    resolved = _resolve(pair.reference, "auto")
+    assert searched == [len(pair.reference)]
+    assert resolved.source == "recovered"
+    np.testing.assert_array_equal(resolved.origin, pair.reference_origins)
+    assert resolved.visibility_report()["lidar_like"] is True
+    assert resolved.visibility_report()["stations_recovered"] == 3
+
+
+@pytest.mark.slow
+def test_a_merged_lidar_cloud_gets_its_stations_without_being_asked():
+    pair = merged()
+    result = compare(*_clouds(pair), align=False)
+    for side, truth in (("reference", pair.reference_origins), ("scan", pair.scan_origins)):
+        entries = result.sensor_origins[side]
+        assert {entry["source"] for entry in entries} == {"recovered"}
+        found = np.array([entry["origin"] for entry in entries])
+        assert found.shape == truth.shape
+        assert np.linalg.norm(truth[:, None] - found[None], axis=2).min(axis=1).max() < 0.02
+        assert result.visibility[side]["lidar_like"] is True
+        assert result.visibility[side]["test"] == "ray"
+    assert not result.changed and result.regions == []
+    assert "recover_stations" not in result.params  # the default is not recorded
+
+
+def test_a_uniform_cloud_is_not_searched_for_stations(monkeypatch):
+    monkeypatch.setattr(stations, "recover_stations", _must_not_search)
+    pair = paper_corridor(3000, change_fraction=0.1, random_state=0)
+    result = compare(PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan))
+    for side in ("reference", "scan"):
+        report = result.visibility[side]
+        assert report["origins"] == "none"
+        assert report["lidar_like"] is False
+        assert "stations_recovered" not in report
+        assert report["test"] == "coverage"
+    assert result.changed
+
+
+def test_unfound_stations_of_a_merged_lidar_cloud_route_to_the_surface_test(
+    monkeypatch, unconfident
+):
+    monkeypatch.setattr(stations, "recover_stations", _no_stations)
+    result = compare(*_clouds(merged()), align=False)
+    assert result.sensor_origins == {"reference": [], "scan": []}
+    for side in ("reference", "scan"):
+        assert result.visibility[side]["stations_unknown"] is True
+        assert result.visibility[side]["stations_recovered"] == 0
+        assert result.visibility[side]["test"] == "surfaces"
+    assert sum("could not be recovered" in warning for warning in result.warnings) == 2
+    assert result.calibration["visibility"] == result.to_json_dict()["visibility"]
+
+
+def test_recovery_turned_off_searches_nothing(monkeypatch, unconfident):
+    monkeypatch.setattr(stations, "recover_stations", _must_not_search)
+    resolved = _resolve(merged().reference, False)
+    assert resolved.origin is None and not resolved.stations_unknown
+    assert resolved.visibility_report() == {"origins": "none", "stations_unknown": False}
+    settings = parse_comparison_params("gmm", "improved", {"recover_stations": False})
+    assert settings.recover_stations is False
+
+
+def test_recovery_forced_searches_whatever_the_sampling(monkeypatch, unconfident):
+    monkeypatch.setattr(stations, "recover_stations", _no_stations)
+    uniform = paper_corridor(3000, random_state=0).reference
+    assert _resolve(uniform, True).visibility_report()["stations_recovered"] == 0
+    assert "stations_recovered" not in _resolve(uniform, "auto").visibility_report()
+
+
+def test_no_estimate_no_search(monkeypatch):
+    # estimate_origins=false: nothing says that no single origin explains the cloud
+    monkeypatch.setattr(stations, "recover_stations", _must_not_search)
+    resolved = resolve_stations(
+        "scan", merged().reference, given=None, from_file=None, estimate=False, recover="auto"
+    )
+    assert resolved.origin is None and not resolved.stations_unknown
+
+
+def test_recovered_stations_that_explain_few_points_are_not_used(monkeypatch, unconfident):
+    def artefacts(points, **kwargs):
+        origins = np.array([[1.0, 1.0, 1.0], [3.0, 2.0, 1.0]])
+        return RecoveredStations(origins, np.array([0.1, 0.1]), np.array([60, 60]), 100)
+
+    monkeypatch.setattr(stations, "recover_stations", artefacts)
+    resolved = _resolve(merged().reference, "auto")
+    assert resolved.origin is None and resolved.stations_unknown
+    assert resolved.evidence["stations_explained_share"] == pytest.approx(0.2)
+
+
+def test_the_surface_test_is_used_against_a_cloud_of_unknown_stations_only():
+    pair = merged("added")
+    localisation = localise_changes(pair.reference, pair.scan, scan_stations_unknown=True)
+    assert localisation.parameters["reference_visibility"] == "surfaces"
+    assert localisation.parameters["scan_visibility"] == "coverage"
+
+
+def test_a_test_chosen_by_the_user_wins_over_the_routing():
+    pair = merged("added")
+    localisation = localise_changes(
+        pair.reference,
+        pair.scan,
+        reference_stations_unknown=True,
+        scan_stations_unknown=True,
+        origin_free_test="coverage",
+    )
+    assert localisation.parameters["reference_visibility"] == "coverage"
+    assert localisation.parameters["scan_visibility"] == "coverage"
