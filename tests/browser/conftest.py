@@ -14,6 +14,7 @@ import os
 import shutil
 import tempfile
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from typing import Any
 
 import pytest
@@ -47,23 +48,67 @@ def chromium() -> tuple[str, str]:
     return str(browser), str(driver)
 
 
+def reset_session(session: Any) -> None:
+    """Bring a used session back to a fresh one's state: one blank tab, the default window
+    size, no cookies (the only state the dashboard and the view keep), no cached files."""
+    handles = session.window_handles
+    for handle in handles[1:]:
+        session.switch_to.window(handle)
+        session.close()
+    session.switch_to.window(handles[0])
+    session.get("about:blank")
+    session.execute_cdp_cmd("Network.clearBrowserCookies", {})
+    session.execute_cdp_cmd("Network.clearBrowserCache", {})
+    session.set_window_size(1280, 860)
+    session.set_page_load_timeout(60)
+    session.set_script_timeout(30)
+    assert not session.get_cookies()
+
+
+@dataclass
+class ChromePool:
+    """A module's plain Chromium sessions by their extra flags, and the profiles they use."""
+
+    sessions: dict[tuple[str, ...], list[Any]] = field(default_factory=dict)
+    profiles: list[str] = field(default_factory=list)
+
+
+@pytest.fixture(scope="module")
+def chrome_pool(chromium: tuple[str, str]) -> Iterator[ChromePool]:
+    """The module's Chromium sessions, reused from test to test (starting one costs seconds);
+    all quit after the module."""
+    pool = ChromePool()
+    yield pool
+    for sessions in pool.sessions.values():
+        for session in sessions:
+            with contextlib.suppress(Exception):
+                session.quit()
+    for profile in pool.profiles:
+        shutil.rmtree(profile, ignore_errors=True)
+
+
 @pytest.fixture
-def chrome_factory(chromium: tuple[str, str]) -> Iterator[Callable[[], Any]]:
-    """Start headless Chromium sessions (each with a fresh profile); all quit after the test."""
+def chrome_factory(
+    chromium: tuple[str, str], chrome_pool: ChromePool
+) -> Iterator[Callable[[], Any]]:
+    """Headless Chromium sessions, as fresh ones: cookies cleared, one blank tab.
+
+    The n-th session a test asks for with the same flags is the module's n-th such session,
+    reset after each test (a test's sessions are distinct); sessions with the performance log
+    are started for the test alone and quit after it.
+    """
     from selenium import webdriver
     from selenium.webdriver.chrome.options import Options
     from selenium.webdriver.chrome.service import Service
 
     browser, driver = chromium
-    drivers: list[Any] = []
+    own: list[Any] = []
     profiles: list[str] = []
+    used: dict[tuple[str, ...], int] = {}
 
-    def start(*extra_arguments: str, performance_log: bool = False) -> Any:
-        """A new session; ``extra_arguments`` are more Chromium flags (e.g. a network block);
-        ``performance_log`` records DevTools network events (``session.get_log("performance")``).
-        """
+    def launch(extra_arguments: tuple[str, ...], performance_log: bool, into: list[str]) -> Any:
         profile = tempfile.mkdtemp(prefix="scandiff-chromium-")
-        profiles.append(profile)
+        into.append(profile)
         options = Options()
         options.binary_location = browser
         for argument in (
@@ -86,14 +131,37 @@ def chrome_factory(chromium: tuple[str, str]) -> Iterator[Callable[[], Any]]:
             options.set_capability("goog:loggingPrefs", {"performance": "ALL"})
         session = webdriver.Chrome(options=options, service=Service(executable_path=driver))
         session.set_page_load_timeout(60)
-        drivers.append(session)
         return session
+
+    def start(*extra_arguments: str, performance_log: bool = False) -> Any:
+        """A session; ``extra_arguments`` are more Chromium flags (e.g. a network block);
+        ``performance_log`` records DevTools network events (``session.get_log("performance")``).
+        """
+        if performance_log:
+            session = launch(extra_arguments, performance_log, profiles)
+            own.append(session)
+            return session
+        sessions = chrome_pool.sessions.setdefault(extra_arguments, [])
+        index = used.get(extra_arguments, 0)
+        used[extra_arguments] = index + 1
+        if index == len(sessions):
+            sessions.append(launch(extra_arguments, performance_log, chrome_pool.profiles))
+        return sessions[index]
 
     os.environ.setdefault("SE_AVOID_STATS", "true")
     yield start
-    for session in drivers:
+    for session in own:
         with contextlib.suppress(Exception):
             session.quit()
+    for arguments, count in used.items():
+        sessions = chrome_pool.sessions[arguments]
+        for session in list(sessions[:count]):
+            try:
+                reset_session(session)
+            except Exception:  # a session the test broke: started again when next asked for
+                sessions.remove(session)
+                with contextlib.suppress(Exception):
+                    session.quit()
     for profile in profiles:
         shutil.rmtree(profile, ignore_errors=True)
 

@@ -61,13 +61,22 @@ def scene_files(tmp_path_factory):
     return reference_path, directory / "scan.xyz", pair
 
 
-def test_json_output_labels_and_export(scene_files, tmp_path):
-    reference_path, scan_path, pair = scene_files
-    labels_path = tmp_path / "labels.npz"
-    export_path = tmp_path / "export.ply"
+@pytest.fixture(scope="module")
+def plain_run(scene_files, tmp_path_factory):
+    """One ``compare --json --labels --export`` of the scene (no cache): its answer and files."""
+    reference_path, scan_path, _ = scene_files
+    directory = tmp_path_factory.mktemp("plain")
+    labels_path = directory / "labels.npz"
+    export_path = directory / "export.ply"
     completed = run_cli(
         reference_path, scan_path, "--json", "--labels", labels_path, "--export", export_path
     )
+    return completed, labels_path, export_path
+
+
+def test_json_output_labels_and_export(scene_files, plain_run):
+    _, _, pair = scene_files
+    completed, labels_path, export_path = plain_run
     assert completed.returncode == 0, completed.stderr
     report = json.loads(completed.stdout)  # exactly one JSON object
     assert REQUIRED_KEYS <= report.keys()
@@ -211,10 +220,12 @@ def test_bad_origins_exit_2_saying_what_to_fix(survey_files, flags, fragment):
     assert fragment in lines[0]
 
 
-def test_geometry_cache_directory_is_filled_then_used_with_the_same_labels(scene_files, tmp_path):
+def test_geometry_cache_directory_is_filled_then_used_with_the_same_labels(
+    scene_files, plain_run, tmp_path
+):
     reference_path, scan_path, _ = scene_files
+    plain, plain_labels, _ = plain_run  # the same comparison without a cache
     cache_dir = tmp_path / "geometry"
-    plain = run_cli(reference_path, scan_path, "--json", "--labels", tmp_path / "plain.npz")
     assert plain.returncode == 0, plain.stderr
     for run in ("first", "second"):
         cached = run_cli(
@@ -232,6 +243,6 @@ def test_geometry_cache_directory_is_filled_then_used_with_the_same_labels(scene
         if run == "first":
             written = files[0].stat().st_mtime_ns
         assert files[0].stat().st_mtime_ns == written  # the second run read it, wrote nothing
-        with np.load(tmp_path / "plain.npz") as expected, np.load(tmp_path / f"{run}.npz") as got:
+        with np.load(plain_labels) as expected, np.load(tmp_path / f"{run}.npz") as got:
             for name in expected.files:
                 np.testing.assert_array_equal(got[name], expected[name])

@@ -7,15 +7,18 @@ import threading
 import numpy as np
 import pytest
 
+from app.core import pipeline
 from app.core.cloud import PointCloud
 from app.core.detectors import METHODS, VARIANTS
 from app.core.errors import InputError
 from app.core.localise import LABEL_CHANGED, neighbourhoods
-from app.core.pipeline import REFERENCE_AHEAD_MIN_POINTS, compare
+from app.core.pipeline import compare
 from app.core.registration import apply_transform
 from app.core.synthetic import raycast_scene
 
 SCENE_POINTS = 20_000
+SMALL_AHEAD_MIN_POINTS = 10_000
+"""REFERENCE_AHEAD_MIN_POINTS in the run-ahead test: its scene is 15k points, not 55k."""
 
 
 @pytest.fixture(scope="module")
@@ -159,9 +162,9 @@ def searches_running() -> list[str]:
 def test_the_reference_search_run_during_alignment_changes_nothing_and_ends_with_it(
     monkeypatch,
 ):
-    """From REFERENCE_AHEAD_MIN_POINTS points and 2 threads the reference's neighbour search
-    runs while the scan is aligned, and the scan's while its origin is resolved: the result is
-    exactly the one-thread result."""
+    """From REFERENCE_AHEAD_MIN_POINTS points (lowered here) and 2 threads the reference's
+    neighbour search runs while the scan is aligned, and the scan's while its origin is
+    resolved: the result is exactly the one-thread result."""
     started: list[int] = []
 
     class CountedSearch(neighbourhoods.NeighbourhoodSearch):
@@ -170,8 +173,10 @@ def test_the_reference_search_run_during_alignment_changes_nothing_and_ends_with
             super().__init__(points, n_neighbors, openmp_threads, **options)
 
     monkeypatch.setattr(neighbourhoods, "NeighbourhoodSearch", CountedSearch)
+    # the threshold lowered for a smaller scene (what runs ahead does not depend on the size)
+    monkeypatch.setattr(pipeline, "REFERENCE_AHEAD_MIN_POINTS", SMALL_AHEAD_MIN_POINTS)
     pair = raycast_scene(
-        n_points=REFERENCE_AHEAD_MIN_POINTS + 5_000,
+        n_points=SMALL_AHEAD_MIN_POINTS + 5_000,
         change="box",
         pose_error=(0.03, 0.4),
         random_state=5,

@@ -17,6 +17,7 @@ from app.db.models import Job, Organisation, Region, Scan, Site
 from app.db.session import transaction
 from app.jobs.leases import claim_job, make_lease_owner
 from app.jobs.results import store_results, write_result_files
+from tests.helpers.job_rows import new_job
 from tests.helpers.scenes import corridor_points
 from tests.helpers.server import ApiServer
 
@@ -27,19 +28,6 @@ FAST_LEASES = {
     "job_max_attempts": 3,
 }
 """Short leases so that recovery after a kill takes seconds in tests."""
-
-
-def new_job(site: Site, reference_scan_id: str, scan_id: str, **columns: Any) -> Job:
-    """A Job row of ``site`` comparing two scans with the default detector; ``columns`` added."""
-    return Job(
-        organisation_id=site.organisation_id,
-        site_id=site.id,
-        reference_scan_id=reference_scan_id,
-        scan_id=scan_id,
-        method="gmm",
-        variant="improved",
-        **columns,
-    )
 
 
 def write_scan_file(settings: Settings, name: str, points: NDArray[np.float64]) -> str:
