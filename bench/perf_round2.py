@@ -25,7 +25,9 @@ compare again <= 2x; service <= 2 s.
 Run: ``.venv/bin/python bench/perf_round2.py [--large] [--repeats 3]``; writes
 ``bench/results/perf_round2.md`` and ``.json``.
 ``--only service`` times just the HTTP API figure and prints where each upload's seconds went
-(upload, worker pickup, run, seen by the poll, the job's stage timings), writing no file.
+(upload, worker pickup, run, seen by the client's long poll, the CPU seconds of the worker and of
+the service's other processes, the job's stage timings), writing no file; ``--poll-seconds S``
+reads the job every S seconds instead of the long poll (a client without it, for comparison).
 """
 
 from __future__ import annotations
@@ -316,7 +318,7 @@ def render_service_breakdown(service: dict[str, Any]) -> str:
     for index, parts in enumerate(service.get("breakdown", []), start=1):
         phases = ", ".join(
             f"{key} {parts[key]:.2f}"
-            for key in ("upload", "pickup", "run", "seen", "total", "worker_cpu")
+            for key in ("upload", "pickup", "run", "seen", "total", "worker_cpu", "other_cpu")
             if key in parts
         )
         stages = ", ".join(f"{key} {value:.2f}" for key, value in parts["timings"].items())
@@ -324,12 +326,16 @@ def render_service_breakdown(service: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def run_service_only(repeats: int, idle_seconds: float = 0.0) -> None:
+def run_service_only(repeats: int, idle_seconds: float = 0.0, poll_seconds: float = 0.0) -> None:
     """``--only service``: the HTTP API figure and where its time goes, printed (no file)."""
     with tempfile.TemporaryDirectory(prefix="scandiff-round2-service-") as temporary:
         load_before = os.getloadavg()
         service = measure_service(
-            Path(temporary), load_seconds=0.0, repeats=repeats, idle_seconds=idle_seconds
+            Path(temporary),
+            load_seconds=0.0,
+            repeats=repeats,
+            idle_seconds=idle_seconds,
+            poll_seconds=poll_seconds,
         )
         load_after = os.getloadavg()
     if "error" in service:
@@ -364,6 +370,12 @@ def main() -> None:
         default=0.0,
         help="with --only service: leave the service idle this long before each upload",
     )
+    parser.add_argument(
+        "--poll-seconds",
+        type=float,
+        default=0.0,
+        help="with --only service: read the job this often instead of the long poll",
+    )
     parser.add_argument("--work-dir", type=Path, help="keep the pairs here (reused when present)")
     parser.add_argument("--output", type=Path, default=RESULTS / "perf_round2.md")
     parser.add_argument(
@@ -371,7 +383,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     if args.only == "service":
-        run_service_only(args.service_repeats, args.idle_seconds)
+        run_service_only(args.service_repeats, args.idle_seconds, args.poll_seconds)
         return
     loads = [os.getloadavg()]
     sizes = [*SIZES, LARGE_SIZE] if args.large else list(SIZES)

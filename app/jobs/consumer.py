@@ -24,6 +24,7 @@ expires.
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import os
 import signal
@@ -305,10 +306,36 @@ class ScandiffConsumer(Consumer):  # type: ignore[misc]
         queue.close_queue_connections()
 
 
+REGISTRATION_LIBRARIES = ("small_gicp",)
+"""What the registration imports on first use (:mod:`app.core.registration`)."""
+
+
+def first_use_libraries() -> tuple[str, ...]:
+    """The libraries the comparison imports on its first run, not with its modules.
+
+    The detectors' (scikit-learn, scipy.stats, POT: :data:`app.core.detectors.LIBRARIES`,
+    about 0.6 CPU seconds) and the registration's.  The command line keeps them lazy, loading
+    them on a thread while it aligns; a worker loaded them in its first job, on the cores the
+    job needs.
+    """
+    from app.core.detectors import LIBRARIES  # loaded with the pipeline already
+
+    return (*LIBRARIES, "sklearn.mixture", *REGISTRATION_LIBRARIES)
+
+
 def preload_pipeline() -> None:
-    """Load the comparison here once, so forked workers start ready (copy-on-write)."""
+    """Load the comparison here once, with the libraries it would import in a worker's first
+    job, so forked workers start ready (copy-on-write).  Importing starts no thread, so
+    forking stays safe.  A test's stand-in comparison (:data:`app.jobs.hooks.job_hooks`) needs
+    none of the libraries."""
     started = time.perf_counter()
     job_hooks.comparison()
+    if job_hooks.compare is None:
+        for name in first_use_libraries():
+            try:
+                importlib.import_module(name)
+            except ImportError:  # the job that needs it reports it
+                logger.warning("library not preloaded", extra={"library": name})
     logger.info("pipeline preloaded", extra={"seconds": round(time.perf_counter() - started, 2)})
 
 

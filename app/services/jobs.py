@@ -10,16 +10,19 @@ recovery sweep).  Running jobs is the worker's business (:mod:`app.jobs`).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from datetime import datetime
 from typing import Any
 
+import anyio
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload
 
 from app.clock import as_utc
 from app.config import Settings
 from app.db.models import IdempotencyRecord, Job, JobStatus, Region, Scan
+from app.db.session import session_factory
 from app.jobs.queue import enqueue_job
 from app.log import current_request_id
 from app.services import idempotency, quotas, sites
@@ -169,6 +172,41 @@ def _queue_and_remember(
 def get_job(session: Session, principal: Principal, job_id: str) -> Job:
     """The principal's job ``job_id``; 404 when it does not exist or is another's."""
     return get_owned(session, principal, Job, job_id)
+
+
+JOB_ENDED = frozenset({JobStatus.SUCCEEDED, JobStatus.FAILED})
+"""Statuses a job never leaves."""
+JOB_WAIT_MAX_SECONDS = 10.0
+"""Longest wait ``GET /jobs/{id}?wait=`` may ask for (clients ask again)."""
+JOB_WAIT_CHECK_SECONDS = 0.05
+"""How often a waiting request reads the job's status (one indexed column, no HTTP round trip)."""
+
+
+def job_has_ended(settings: Settings, job_id: str) -> bool:
+    """Whether job ``job_id`` succeeded or failed (or no longer exists), from one short read."""
+    session = session_factory(settings.sqlalchemy_url, read_only=True)()
+    try:
+        status = session.scalar(select(Job.status).where(Job.id == job_id))
+    finally:
+        session.close()
+    return status is None or status in JOB_ENDED
+
+
+async def wait_for_job_end(settings: Settings, job_id: str, seconds: float) -> bool:
+    """Wait until job ``job_id`` has ended or ``seconds`` passed; whether it ended.
+
+    The long poll of ``GET /jobs/{id}?wait=``: the status is read every
+    :data:`JOB_WAIT_CHECK_SECONDS` in a worker thread, the request sleeping on the event loop
+    in between, so a waiting client costs a small read a check instead of a whole request.
+    """
+    deadline = time.monotonic() + min(max(seconds, 0.0), JOB_WAIT_MAX_SECONDS)
+    while True:
+        if await anyio.to_thread.run_sync(job_has_ended, settings, job_id):
+            return True
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            return False
+        await anyio.sleep(min(JOB_WAIT_CHECK_SECONDS, remaining))
 
 
 def list_site_jobs(

@@ -286,3 +286,36 @@ def test_concurrent_retries_with_one_key_create_one_scan(
     assert count(api, Scan, site_id=site["id"]) == 2
     assert count(api, Job, site_id=site["id"]) == 1
     assert len(list((api.settings.scans_dir / site["id"]).iterdir())) == 2
+
+
+def test_a_long_poll_answers_once_the_job_ends(
+    api: ApiServer, writer: httpx.Client, site_scans: tuple[dict, dict, dict]
+) -> None:
+    site, reference, scan = site_scans
+    job = writer.get(f"/api/v1/sites/{site['id']}/jobs").json()["items"][0]
+    assert job["status"] == JobStatus.QUEUED
+    with ThreadPoolExecutor(1) as pool:
+        waiting = pool.submit(writer.get, f"/api/v1/jobs/{job['id']}", params={"wait": 10})
+        time.sleep(0.3)  # the request is waiting (a late start only reads the ended job)
+        assert not waiting.done()
+        finish_job(api, job["id"], reference["n_points"], scan["n_points"])
+        response = waiting.result(timeout=30)
+    assert response.status_code == 200, response.text
+    assert response.json()["status"] == JobStatus.SUCCEEDED
+    assert response.json()["n_regions"] == 1
+    # an ended job answers at once, as without ``wait``
+    again = writer.get(f"/api/v1/jobs/{job['id']}", params={"wait": 10})
+    assert again.json() == writer.get(f"/api/v1/jobs/{job['id']}").json()
+
+
+def test_a_long_poll_that_runs_out_returns_the_job_as_it_is(
+    api: ApiServer, writer: httpx.Client, site_scans: tuple[dict, dict, dict]
+) -> None:
+    site, _, _ = site_scans
+    job = writer.get(f"/api/v1/sites/{site['id']}/jobs").json()["items"][0]
+    response = writer.get(f"/api/v1/jobs/{job['id']}", params={"wait": 0.2})
+    assert response.status_code == 200 and response.json()["status"] == JobStatus.QUEUED
+    assert_error(writer.get(f"/api/v1/jobs/{job['id']}", params={"wait": 11}), 422)
+    assert_error(writer.get(f"/api/v1/jobs/{job['id']}", params={"wait": -1}), 422)
+    other = api.client(api.token("writer"))  # another organisation: 404, no wait
+    assert_error(other.get(f"/api/v1/jobs/{job['id']}", params={"wait": 5}), 404)

@@ -38,10 +38,38 @@ def create_job(
 
 
 @router.get("/jobs/{job_id}", response_model=JobRead)
-async def get_job(job_id: str, session: SessionDep, principal: PrincipalDep) -> JobRead:
-    """Read a job's state and results."""
+async def get_job(
+    job_id: str,
+    session: SessionDep,
+    settings: SettingsDep,
+    principal: PrincipalDep,
+    wait: Annotated[
+        float,
+        Query(
+            ge=0,
+            le=jobs_service.JOB_WAIT_MAX_SECONDS,
+            description=(
+                "Long poll: when the job has not ended (succeeded or failed), hold the answer "
+                "until it ends or this many seconds pass, then return the job as it is then."
+            ),
+        ),
+    ] = 0.0,
+) -> JobRead:
+    """Read a job's state and results; with ``wait``, once it ended or the wait is over."""
+
+    def read() -> tuple[JobRead, bool]:
+        job = jobs_service.get_job(session, principal, job_id)
+        answer, ended = JobRead.from_model(job), job.status in jobs_service.JOB_ENDED
+        if wait > 0 and not ended:
+            session.rollback()  # end the read transaction: the wait and re-read see new commits
+        return answer, ended
+
     # the most polled endpoint: one thread hop for the query (an async route's response is
     # also validated on the event loop, where a sync route would need a second hop)
+    job, ended = await run_in_threadpool(read)
+    if wait <= 0 or ended:
+        return job
+    await jobs_service.wait_for_job_end(settings, job.id, wait)
     return await run_in_threadpool(
         lambda: JobRead.from_model(jobs_service.get_job(session, principal, job_id))
     )
