@@ -291,3 +291,25 @@ def test_grid_votes_count_the_lines_near_each_grid_point_as_distances_do():
         expected = (np.abs((centre + grid) @ normal.T - constant) <= band).sum(axis=1)
         votes = _grid_votes(normal, constant, centre, offsets, band)
         np.testing.assert_array_equal(votes.ravel(), expected)
+
+
+def test_horizontal_bounds_are_the_smallest_and_largest_x_and_y():
+    from app.core.origins.columns import horizontal_bounds
+
+    points = np.random.default_rng(5).normal(size=(1000, 3)) * [3.0, 0.5, 9.0] - [2.0, 7.0, 0.0]
+    low, high = horizontal_bounds(points)
+    assert np.array_equal(low, points[:, :2].min(axis=0))
+    assert np.array_equal(high, points[:, :2].max(axis=0))
+
+
+def test_rows_that_are_not_finite_are_left_out_of_the_estimate():
+    pair = lidar_pair(layout="room", change="none", angular_step_deg=STEP, random_state=22)
+    points = pair.reference
+    spoilt = points.copy()
+    spoilt[::97, 1] = np.nan
+    spoilt[5::101, 2] = np.inf
+    kept = np.isfinite(spoilt).all(axis=1)
+    found = estimate_origin(spoilt, random_state=3, apex=False)
+    expected = estimate_origin(points[kept], random_state=3, apex=False)
+    assert np.array_equal(found.origin, expected.origin)
+    assert found.confidence == expected.confidence
