@@ -159,14 +159,13 @@ def _hough(
     grid = np.zeros(int(shape[0] * shape[1]), dtype=np.float64)
     for start in range(0, len(anchor), 4000):
         a, d = anchor[start : start + 4000], direction[start : start + 4000]
-        samples = a[:, None, :] + steps[None, :, None] * d[:, None, :]
-        cell = ((samples - low) / size).astype(np.int64).reshape(-1, 2)
-        inside = (
-            (samples.reshape(-1, 2) >= low).all(axis=1)
-            & (cell[:, 0] < shape[0])
-            & (cell[:, 1] < shape[1])
-        )
-        grid += np.bincount(cell[inside, 0] * shape[1] + cell[inside, 1], minlength=grid.size)
+        # x and y apart: tests along the last axis of (lines, steps, 2) arrays took 3x longer
+        x = a[:, 0, None] + steps[None, :] * d[:, 0, None]
+        y = a[:, 1, None] + steps[None, :] * d[:, 1, None]
+        cell_x = ((x - low[0]) / size).astype(np.int64)
+        cell_y = ((y - low[1]) / size).astype(np.int64)
+        inside = (x >= low[0]) & (y >= low[1]) & (cell_x < shape[0]) & (cell_y < shape[1])
+        grid += np.bincount(cell_x[inside] * shape[1] + cell_y[inside], minlength=grid.size)
     votes = grid.reshape(shape)
     smooth = votes.copy()
     smooth[1:, :] += votes[:-1, :]
