@@ -291,3 +291,62 @@ def test_grid_votes_count_the_lines_near_each_grid_point_as_distances_do():
         expected = (np.abs((centre + grid) @ normal.T - constant) <= band).sum(axis=1)
         votes = _grid_votes(normal, constant, centre, offsets, band)
         np.testing.assert_array_equal(votes.ravel(), expected)
+
+
+def test_horizontal_bounds_are_the_smallest_and_largest_x_and_y():
+    from app.core.origins.columns import horizontal_bounds
+
+    points = np.random.default_rng(5).normal(size=(1000, 3)) * [3.0, 0.5, 9.0] - [2.0, 7.0, 0.0]
+    low, high = horizontal_bounds(points)
+    assert np.array_equal(low, points[:, :2].min(axis=0))
+    assert np.array_equal(high, points[:, :2].max(axis=0))
+
+
+def test_rows_that_are_not_finite_are_left_out_of_the_estimate():
+    pair = lidar_pair(layout="room", change="none", angular_step_deg=STEP, random_state=22)
+    points = pair.reference
+    spoilt = points.copy()
+    spoilt[::97, 1] = np.nan
+    spoilt[5::101, 2] = np.inf
+    kept = np.isfinite(spoilt).all(axis=1)
+    found = estimate_origin(spoilt, random_state=3, apex=False)
+    expected = estimate_origin(points[kept], random_state=3, apex=False)
+    assert np.array_equal(found.origin, expected.origin)
+    assert found.confidence == expected.confidence
+
+
+def _hough_votes_by_sample_pairs(anchor, direction, low, high):
+    """Reference for columns._hough's vote: every (x, y) sample of every line as one pair."""
+    from app.core.origins.columns import HOUGH_CELLS
+
+    size = float(np.max(high - low)) / HOUGH_CELLS
+    shape = np.ceil((high - low) / size).astype(np.int64) + 1
+    steps = np.arange(-float(np.linalg.norm(high - low)), float(np.linalg.norm(high - low)), size)
+    samples = (anchor[:, None, :] + steps[None, :, None] * direction[:, None, :]).reshape(-1, 2)
+    cell = ((samples - low) / size).astype(np.int64)
+    inside = (samples >= low).all(axis=1) & (cell[:, 0] < shape[0]) & (cell[:, 1] < shape[1])
+    return np.bincount(cell[inside, 0] * shape[1] + cell[inside, 1], minlength=shape.prod())
+
+
+def test_the_column_hough_votes_as_one_sample_pair_at_a_time(monkeypatch):
+    from app.core.origins import columns
+
+    rng = np.random.default_rng(8)
+    anchor = rng.uniform([-3.0, 1.0], [9.0, 6.0], size=(5000, 2))  # 4000 a batch: two batches
+    angle = rng.uniform(0, np.pi, 5000)
+    direction = np.column_stack([np.cos(angle), np.sin(angle)])
+    low, high = np.array([-3.0, 1.0]), np.array([9.0, 6.0])
+    counted = []
+    bincount = np.bincount
+
+    def recorded(*args, **kwargs):
+        counted.append(bincount(*args, **kwargs))
+        return counted[-1]
+
+    monkeypatch.setattr(np, "bincount", recorded)
+    columns._hough(anchor, direction, low, high)
+    monkeypatch.undo()
+    expected = _hough_votes_by_sample_pairs(anchor, direction, low, high)
+    assert len(counted) == 2
+    assert np.array_equal(sum(counted), expected)
+    assert expected.sum() > 20 * len(anchor)  # dozens of cells a line

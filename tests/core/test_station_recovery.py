@@ -219,3 +219,29 @@ def test_voting_every_second_cell_finds_the_centres_of_voting_every_cell(monkeyp
     assert len(sparse[0]) == len(dense[0]) >= 2
     for (centre, _), (other, _) in zip(sparse[0], dense[0], strict=True):
         assert np.hypot(*(centre - other)) < 1e-3
+
+
+def _ring_scores_by_histogram(rho, z, heights, bin_size):
+    """Reference for stations._ring_scores: one histogram and moving sum per height."""
+    from app.core.localise.stations import RING_CONTRAST, SMOOTHING_BINS
+
+    n_bins = int(np.pi / bin_size) + 2
+    scores = []
+    for height in heights:
+        elevation = np.arctan2(z.astype(np.float32) - np.float32(height), rho.astype(np.float32))
+        bins = (elevation * np.float32(1 / bin_size) + np.float32(np.pi / 2 / bin_size)).astype(int)
+        counts = np.bincount(bins, minlength=n_bins)
+        window = np.convolve(counts, np.ones(SMOOTHING_BINS, dtype=int), mode="same")
+        on_ring = counts * SMOOTHING_BINS >= RING_CONTRAST * window
+        scores.append((counts * on_ring).sum() / rho.size)
+    return np.array(scores)
+
+
+def test_ring_scores_counted_in_chunks_of_32_bit_bins_are_those_of_one_histogram_a_height():
+    points, origins = close_survey(0)
+    rho = np.hypot(points[:3000, 0] - origins[0, 0], points[:3000, 1] - origins[0, 1])
+    z = points[:3000, 2]
+    heights = origins[0, 2] + np.arange(-0.05, 0.05, 2e-3)  # 50: several chunks, one partial
+    expected = _ring_scores_by_histogram(rho, z, heights, np.radians(0.04))
+    assert np.array_equal(stations._ring_scores(rho, z, heights, np.radians(0.04)), expected)
+    assert abs(heights[np.argmax(expected)] - origins[0, 2]) < 5e-3  # the rings' height

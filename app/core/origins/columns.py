@@ -19,7 +19,13 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-__all__ = ["ColumnFit", "column_lines", "fit_column_centre", "lattice_patches"]
+__all__ = [
+    "ColumnFit",
+    "column_lines",
+    "fit_column_centre",
+    "horizontal_bounds",
+    "lattice_patches",
+]
 
 NEIGHBOURS = 8
 """Neighbour pairs per query point."""
@@ -66,6 +72,20 @@ class ColumnFit:
     second_peak_ratio: float
     n_lines: int
     candidates: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
+
+
+def horizontal_bounds(
+    points: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The smallest and largest x and y of ``points`` (n, 3): two arrays of shape (2,).
+
+    Column by column: ``points[:, :2].min(axis=0)`` walks the rows a few values at a time and
+    took 70-80 ms at 1M points, this takes 5.
+    """
+    columns = (points[:, 0], points[:, 1])
+    low = np.array([column.min() for column in columns])
+    high = np.array([column.max() for column in columns])
+    return low, high
 
 
 def lattice_patches(
@@ -139,14 +159,13 @@ def _hough(
     grid = np.zeros(int(shape[0] * shape[1]), dtype=np.float64)
     for start in range(0, len(anchor), 4000):
         a, d = anchor[start : start + 4000], direction[start : start + 4000]
-        samples = a[:, None, :] + steps[None, :, None] * d[:, None, :]
-        cell = ((samples - low) / size).astype(np.int64).reshape(-1, 2)
-        inside = (
-            (samples.reshape(-1, 2) >= low).all(axis=1)
-            & (cell[:, 0] < shape[0])
-            & (cell[:, 1] < shape[1])
-        )
-        grid += np.bincount(cell[inside, 0] * shape[1] + cell[inside, 1], minlength=grid.size)
+        # x and y apart: tests along the last axis of (lines, steps, 2) arrays took 3x longer
+        x = a[:, 0, None] + steps[None, :] * d[:, 0, None]
+        y = a[:, 1, None] + steps[None, :] * d[:, 1, None]
+        cell_x = ((x - low[0]) / size).astype(np.int64)
+        cell_y = ((y - low[1]) / size).astype(np.int64)
+        inside = (x >= low[0]) & (y >= low[1]) & (cell_x < shape[0]) & (cell_y < shape[1])
+        grid += np.bincount(cell_x[inside] * shape[1] + cell_y[inside], minlength=grid.size)
     votes = grid.reshape(shape)
     smooth = votes.copy()
     smooth[1:, :] += votes[:-1, :]

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 from scipy.ndimage import uniform_filter
 
-from app.core.origins.columns import _grid_votes
+from app.core.origins.columns import _grid_votes, horizontal_bounds
 
 __all__ = ["MAX_STATIONS", "column_centres", "search_centres"]
 
@@ -161,8 +161,9 @@ def _hough_peaks(
     points: NDArray[np.float64], anchor: NDArray, direction: NDArray
 ) -> NDArray[np.float64]:
     """Top-view cells where many lines cross, strongest first, shape (c, 2)."""
-    low = points[:, :2].min(axis=0) - 1.0
-    shape = np.ceil((points[:, :2].max(axis=0) + 1.0 - low) / CELL).astype(np.int64) + 1
+    low, high = horizontal_bounds(points)
+    low = low - 1.0
+    shape = np.ceil((high + 1.0 - low) / CELL).astype(np.int64) + 1
     # in cell units, single precision: the vote is the costly part of a search
     steps = np.arange(MIN_VOTE_DISTANCE / CELL, VOTE_REACH / CELL, VOTE_STRIDE, dtype=np.float32)
     steps = np.concatenate([-steps[::-1], steps])
