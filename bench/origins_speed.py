@@ -3,15 +3,18 @@
 Scenes from :func:`app.core.synthetic_lidar.lidar_pair` at about ``--points`` points per scan
 (denser rays: :func:`~app.core.synthetic_lidar.steps_for_points`): single-station pairs
 (nothing given, the origins estimated) and merged surveys of 3-5 stations per epoch (nothing
-given, ``recover_stations``).  Each pair goes through :func:`app.core.pipeline.compare` once;
-per pair the bench prints the compare's wall time, the time spent on origins
-(``timings["origins"]``: estimation, checks and station recovery of both clouds), their
-ratios (``origins / compare`` and ``origins / (compare - origins)``, what estimation adds), the
-IoU of changed points and, for merged surveys, the largest distance from a true station to the
-nearest recovered one.  All numbers of a row come from the same run.
+given: the stations are recovered by default).  Each pair goes through
+:func:`app.core.pipeline.compare` once; per pair the bench prints the compare's wall time, the
+time spent on origins (``timings["origins"]``: estimation, checks and station recovery of both
+clouds), their ratios (``origins / compare`` and ``origins / (compare - origins)``, what
+estimation adds), the IoU of changed points and, for merged surveys, the largest distance from
+a true station to the nearest recovered one.  All numbers of a row come from the same run.
 
 The machine may be shared: run with ``OMP_NUM_THREADS=1``; the load average is printed with the
 results.  ``--profile`` prints the top of a cProfile of the origins' stage of the first pair.
+``--against-given N`` also times each pair N times with nothing given and N times with its
+true origins given, alternately, on ``--threads`` threads (2 by default: as ``scandiff
+compare`` runs), and prints what not giving them adds to the wall time (fastest of each).
 
 Run: ``OMP_NUM_THREADS=1 .venv/bin/python -m bench.origins_speed [--points 1000000]
 [--seeds 1] [--kinds single,merged] [--changes added,none]``.  Writes nothing.
@@ -65,13 +68,45 @@ class _CpuClock:
         return timed
 
 
+def given_origins(pair) -> dict:
+    """The true sensor origins as parameters (one per station; the scan's in its file's frame)."""
+    return {
+        name: (origins[0] if len(origins) == 1 else origins).tolist()
+        for name, origins in (
+            ("reference_origin", pair.reference_origins),
+            ("scan_origin", pair.scan_origins),
+        )
+    }
+
+
+def wall_against_given(pair, threads: int, repeats: int) -> dict:
+    """What not giving the origins adds to a compare's wall time, on ``threads`` threads.
+
+    The pair is compared with nothing given and with its true origins given, alternately,
+    ``repeats`` times each; the fastest of each is kept (the machine may be shared).
+    """
+    times: dict[str, list[float]] = {"nothing": [], "given": []}
+    for _ in range(repeats):
+        for name, params in (("nothing", {}), ("given", given_origins(pair))):
+            started = time.perf_counter()
+            compare(
+                PointCloud.from_array(pair.reference),
+                PointCloud.from_array(pair.scan),
+                params=params,
+                threads=threads,
+            )
+            times[name].append(time.perf_counter() - started)
+    nothing, given = min(times["nothing"]), min(times["given"])
+    return {"wall_nothing": nothing, "wall_given": given, "adds_wall": nothing / given - 1.0}
+
+
 def run_pair(pair, merged: bool, profile: bool = False) -> dict:
-    """One compare with nothing given; its timings, IoU and origin errors."""
+    """One compare with nothing given (defaults); its timings, IoU and origin errors."""
     clock = _CpuClock()
     originals = pipeline.resolve_stations, pipeline.resolve_moved_cloud
     pipeline.resolve_stations = clock.wrap(originals[0])
     pipeline.resolve_moved_cloud = clock.wrap(originals[1])
-    params = {"recover_stations": True} if merged else {}
+    params: dict = {}  # merged surveys: stations recovered by default (recover_stations="auto")
     profiler = cProfile.Profile() if profile else None
     started = time.perf_counter()
     cpu_started = time.process_time()
@@ -126,6 +161,15 @@ def main() -> None:
     parser.add_argument("--layouts", default=",".join(LAYOUTS))
     parser.add_argument("--changes", default="added,none")
     parser.add_argument("--profile", action="store_true", help="cProfile the first compare")
+    parser.add_argument(
+        "--against-given",
+        type=int,
+        default=0,
+        metavar="REPEATS",
+        help="also time each pair with nothing given against its true origins given, "
+        "alternately REPEATS times each on --threads threads (wall time, fastest of each)",
+    )
+    parser.add_argument("--threads", type=int, default=2, help="threads for --against-given")
     args = parser.parse_args()
     print(f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}", flush=True)
     rows = []
@@ -150,6 +194,8 @@ def main() -> None:
                         kind=kind, layout=layout, change=change, seed=seed, stations=n_stations
                     )
                     row["points"] = len(pair.reference)
+                    if args.against_given:
+                        row.update(wall_against_given(pair, args.threads, args.against_given))
                     rows.append(row)
                     print(
                         f"{kind:6s} {layout:9s} {change:6s} seed {seed} k={n_stations} "
@@ -162,6 +208,14 @@ def main() -> None:
                         f"[{row['sources']}] load {os.getloadavg()[0]:.1f}",
                         flush=True,
                     )
+                    if args.against_given:
+                        print(
+                            f"    {args.threads} threads: nothing given "
+                            f"{row['wall_nothing']:6.2f} s, origins given "
+                            f"{row['wall_given']:6.2f} s: not giving them adds "
+                            f"{100 * row['adds_wall']:5.1f} %",
+                            flush=True,
+                        )
     for kind in args.kinds.split(","):
         mine = [row for row in rows if row["kind"] == kind]
         if not mine:
@@ -177,6 +231,12 @@ def main() -> None:
             f"{max(row['origin_error'] for row in mine):.4f} m; quiet regions "
             f"{sum(row['regions'] for row in mine if row['change'] == 'none')}"
         )
+        if args.against_given:
+            adds = [row["adds_wall"] for row in mine]
+            print(
+                f"{kind}: nothing given against origins given, {args.threads} threads, wall: "
+                f"adds max {100 * max(adds):.1f} %, mean {100 * np.mean(adds):.1f} %"
+            )
     print(f"load average {os.getloadavg()}")
 
 
