@@ -23,7 +23,7 @@ from app.core.origins.sampling import lidar_sampling
 from app.core.origins.stations import RecoveredStations, resolve_stations
 from app.core.pipeline import compare
 from app.core.synthetic import paper_corridor
-from app.core.synthetic_lidar import lidar_pair
+from app.core.synthetic_lidar import lidar_pair, steps_for_points
 
 STEP = 2.0  # degrees: ~10k points a station
 
@@ -75,6 +75,19 @@ def test_lidar_sampling_tells_lidar_clouds_from_uniform_random_and_gridded_ones(
         assert lidar_sampling(points).lidar_like, name
     for name, points in other.items():
         assert not lidar_sampling(points).lidar_like, name
+
+
+def test_a_corridor_lidar_whose_walls_are_seen_at_similar_ranges_is_lidar_sampled():
+    # one spacing nearly everywhere (spread ~2.2): dense merged corridors at 1M points are alike
+    corridor = lidar_pair(
+        layout="corridor",
+        change="none",
+        angular_step_deg=steps_for_points(100_000, 1),
+        random_state=1,
+    )
+    found = lidar_sampling(corridor.reference)
+    assert found.spacing_spread < 2.5
+    assert found.lidar_like
 
 
 @pytest.mark.parametrize("value", ["yes", 1, None, "Auto"])
