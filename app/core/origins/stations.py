@@ -58,6 +58,7 @@ __all__ = [
     "column_centres",
     "origins_in_local_frame",
     "recover_stations",
+    "recovered_before_apex",
     "resolve_stations",
     "station_height",
     "station_index_of",
@@ -401,7 +402,7 @@ def resolve_stations(
     }
     early: tuple[ResolvedOrigin, Any, RecoveredStations | None] | None = None
     if resolved is None and recover == "auto" and given is None and from_file is None and estimate:
-        early = _recovered_before_apex(side, points, options, random_state)
+        early = recovered_before_apex(side, points, options, random_state)
         if early is not None and early[0].origin is not None:
             return early[0]
     if resolved is None:
@@ -468,7 +469,7 @@ def _recovered(
     )
 
 
-def _recovered_before_apex(
+def recovered_before_apex(
     side: str, points: NDArray[np.float64], options: dict[str, Any], random_state: int
 ) -> tuple[ResolvedOrigin, Any, RecoveredStations | None] | None:
     """With ``recover="auto"``: the stations of a merged survey, before the apex search.
