@@ -32,7 +32,7 @@ from app.core.localise.rays import (
     STATUS_SURFACE,
     STATUS_UNOBSERVED,
 )
-from app.core.localise.stations import assign_stations
+from app.core.localise.stations import RING_CONTRAST, assign_stations, ring_contrast
 from app.core.localise.surface import local_geometry
 from app.core.localise.visibility import combine_station_status
 from app.core.origins.stations import recover_stations
@@ -128,6 +128,24 @@ def test_observed_means_observed_by_any_station():
     # and what no reference station could see stays unobserved, never changed
     unseen = ~pair.scan_observed
     assert not (every.scan_label[unseen] == LABEL_CHANGED).any()
+
+
+def test_assigned_stations_tie_to_the_first_and_off_ring_points_to_the_nearest():
+    pair, _ = survey("added")
+    origins = pair.reference_origins
+    # the same station twice: every tie goes to the first of them, as an argmax does
+    doubled = assign_stations(pair.reference, np.vstack([origins[:1], origins[:1]]))
+    assert (doubled == 0).all()
+    # the station with the largest contrast, else (on no station's rings) the nearest
+    rng = np.random.default_rng(0)
+    noise = rng.uniform(pair.reference.min(axis=0), pair.reference.max(axis=0), (20_000, 3))
+    points = np.vstack([pair.reference[::20], noise])
+    contrast = np.stack([ring_contrast(points, origin) for origin in origins])
+    squared = ((points[:, None, :] - origins[None, :, :]) ** 2).sum(axis=2)
+    on_rings = contrast.max(axis=0) >= RING_CONTRAST
+    assert 0 < np.count_nonzero(~on_rings) < len(points)
+    expected = np.where(on_rings, contrast.argmax(axis=0), squared.argmin(axis=1))
+    np.testing.assert_array_equal(assign_stations(points, origins), expected)
 
 
 def test_origins_without_station_index_are_assigned_from_the_rings():

@@ -78,11 +78,19 @@ def assign_stations(points: NDArray[np.float64], origins: NDArray[np.float64]) -
         Index into ``origins``: the station on whose rings the point lies most clearly
         (contrast >= :data:`RING_CONTRAST`), else the nearest station.
     """
-    contrast = np.stack([ring_contrast(points, origin) for origin in origins])
-    best = np.argmax(contrast, axis=0)
-    on_rings = contrast[best, np.arange(points.shape[0])] >= RING_CONTRAST
-    nearest = np.empty(points.shape[0], dtype=np.int64)
-    for start in range(0, points.shape[0], CHUNK):
-        offset = points[start : start + CHUNK, None, :] - origins[None, :, :]
-        nearest[start : start + CHUNK] = np.argmin(np.einsum("pkd,pkd->pk", offset, offset), 1)
-    return np.where(on_rings, best, nearest).astype(np.int64)
+    # the best station so far and its contrast, station by station (as an argmax over the
+    # stacked contrasts, the first of equal ones, without the (k, n) stack)
+    best = np.zeros(points.shape[0], dtype=np.int64)
+    best_contrast = ring_contrast(points, origins[0])
+    for number in range(1, origins.shape[0]):
+        contrast = ring_contrast(points, origins[number])
+        better = contrast > best_contrast
+        best[better] = number
+        np.maximum(best_contrast, contrast, out=best_contrast)
+    # only the points on no station's rings need their nearest station
+    off_rings = np.flatnonzero(best_contrast < RING_CONTRAST)
+    for start in range(0, off_rings.size, CHUNK):
+        part = off_rings[start : start + CHUNK]
+        offset = points[part, None, :] - origins[None, :, :]
+        best[part] = np.argmin(np.einsum("pkd,pkd->pk", offset, offset), 1)
+    return best

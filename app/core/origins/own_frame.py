@@ -18,9 +18,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.cloud import PointCloud
+from app.core.localise.stations import STATION_INDEX_ATTRIBUTE
 from app.core.origins.estimate import RING_SHARE_RANGE
 from app.core.origins.resolve import ResolvedOrigin
-from app.core.origins.stations import resolve_stations
+from app.core.origins.stations import recovered_before_apex, resolve_stations
 from app.core.registration import apply_transform
 
 __all__ = ["OWN_FRAME_RETRY_RING_SHARE", "resolve_moved_cloud"]
@@ -105,13 +106,24 @@ def resolve_moved_cloud(
             station_of=station_of,
         )
 
+    tilt = np.rad2deg(np.arccos(np.clip(np.asarray(transform)[2, 2], -1.0, 1.0)))
+    by_station = station_of is not None and STATION_INDEX_ATTRIBUTE in station_of.attributes
+    if deferred and estimate and tilt <= OWN_FRAME_RETRY_TILT_DEG and not by_station:
+        # a merged survey's stations before the apex search, when no retry in the own frame
+        # would come first (rings too unclear for one and not tilted)
+        early = recovered_before_apex(
+            side, aligned_points, {"given": None, "from_file": None, "estimate": estimate}, 0
+        )
+        if early is not None and early[0].origin is not None:
+            ring_share = early[0].evidence.get("ring_share", 1.0)
+            if early[0].source != "recovered" or ring_share < OWN_FRAME_RETRY_RING_SHARE:
+                return early[0]
     resolved = resolve_stations(
         side, aligned_points, given=aligned(given), from_file=aligned(from_file), **options
     )
     if resolved.origin is not None or given is not None or from_file is not None:
         return resolved
     ring_share = (resolved.evidence or {}).get("ring_share", 0.0)
-    tilt = np.rad2deg(np.arccos(np.clip(np.asarray(transform)[2, 2], -1.0, 1.0)))
     if not estimate or (
         ring_share < OWN_FRAME_RETRY_RING_SHARE and tilt <= OWN_FRAME_RETRY_TILT_DEG
     ):
