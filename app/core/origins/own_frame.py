@@ -21,7 +21,7 @@ from app.core.cloud import PointCloud
 from app.core.localise.stations import STATION_INDEX_ATTRIBUTE
 from app.core.origins.estimate import RING_SHARE_RANGE
 from app.core.origins.resolve import ResolvedOrigin
-from app.core.origins.stations import recovered_before_apex, resolve_stations
+from app.core.origins.stations import EarlySearch, recovered_before_apex, resolve_stations
 from app.core.registration import apply_transform
 
 __all__ = ["OWN_FRAME_RETRY_RING_SHARE", "resolve_moved_cloud"]
@@ -101,11 +101,13 @@ def resolve_moved_cloud(
             given=None,
             from_file=None,
             resolved=resolved,
+            early=early,
             recover="auto",
             estimate=estimate,
             station_of=station_of,
         )
 
+    early: EarlySearch | None = None  # the stations searched before the apex search, if so
     tilt = np.rad2deg(np.arccos(np.clip(np.asarray(transform)[2, 2], -1.0, 1.0)))
     by_station = station_of is not None and STATION_INDEX_ATTRIBUTE in station_of.attributes
     if deferred and estimate and tilt <= OWN_FRAME_RETRY_TILT_DEG and not by_station:
@@ -118,6 +120,8 @@ def resolve_moved_cloud(
             ring_share = early[0].evidence.get("ring_share", 1.0)
             if early[0].source != "recovered" or ring_share < OWN_FRAME_RETRY_RING_SHARE:
                 return early[0]
+        if early is not None and early[0].origin is not None:
+            early = None  # a single origin found there; the rest does not reuse it
     resolved = resolve_stations(
         side, aligned_points, given=aligned(given), from_file=aligned(from_file), **options
     )

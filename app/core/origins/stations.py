@@ -330,6 +330,7 @@ def resolve_stations(
     random_state: int = 0,
     station_of: PointCloud | None = None,
     resolved: ResolvedOrigin | None = None,
+    early: EarlySearch | None = None,
 ) -> ResolvedOrigin:
     """The origin(s) of one cloud: several given, or one resolved, or stations recovered.
 
@@ -370,6 +371,9 @@ def resolve_stations(
         This cloud's resolution already made with ``recover=False`` (and the same other
         arguments): only the stations are searched (:mod:`~app.core.origins.own_frame` tries
         the cloud's own frame before that).
+    early : tuple, optional
+        :func:`recovered_before_apex`'s answer for these points and ``random_state``, already
+        had by the caller: its sampling and stations are used instead of being measured again.
 
     Returns
     -------
@@ -400,8 +404,13 @@ def resolve_stations(
         "estimate": estimate,
         "random_state": random_state,
     }
-    early: tuple[ResolvedOrigin, Any, RecoveredStations | None] | None = None
-    if resolved is None and recover == "auto" and given is None and from_file is None and estimate:
+    if (
+        early is None
+        and resolved is None
+        and recover == "auto"
+        and given is None
+        and (from_file is None and estimate)
+    ):
         early = recovered_before_apex(side, points, options, random_state)
         if early is not None and early[0].origin is not None:
             return early[0]
@@ -469,9 +478,13 @@ def _recovered(
     )
 
 
+EarlySearch = tuple[ResolvedOrigin, Any, RecoveredStations | None]
+""":func:`recovered_before_apex`'s answer: the resolution, the sampling, the stations."""
+
+
 def recovered_before_apex(
     side: str, points: NDArray[np.float64], options: dict[str, Any], random_state: int
-) -> tuple[ResolvedOrigin, Any, RecoveredStations | None] | None:
+) -> EarlySearch | None:
     """With ``recover="auto"``: the stations of a merged survey, before the apex search.
 
     The estimate without its apex search (and without the sharpening that only the apex
