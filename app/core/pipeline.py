@@ -48,9 +48,10 @@ from app.core.localise import (
     localise_changes,
     start_neighbourhood_search,
 )
+from app.core.origins.known_stations import origins_in_local_frame, station_index_of
 from app.core.origins.own_frame import resolve_moved_cloud
 from app.core.origins.resolve import ResolvedOrigin
-from app.core.origins.stations import origins_in_local_frame, resolve_stations, station_index_of
+from app.core.origins.stations import resolve_stations
 from app.core.quality import quality_warnings
 from app.core.reference_alignment import ReferenceAlignmentCache
 from app.core.reference_origin import ReferenceOriginCache

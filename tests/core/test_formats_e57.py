@@ -23,7 +23,7 @@ import pytest
 
 from app.core.errors import InputError, PointCloudError
 from app.core.formats import detect_format, read_point_cloud, summarise_point_cloud
-from app.core.origins.stations import estimate_each_station
+from app.core.origins.known_stations import estimate_each_station
 from app.core.pipeline import compare
 from app.core.synthetic_lidar import LidarPair, lidar_pair
 from tests.helpers.clouds import assert_summary_of
