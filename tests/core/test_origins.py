@@ -293,6 +293,27 @@ def test_grid_votes_count_the_lines_near_each_grid_point_as_distances_do():
         np.testing.assert_array_equal(votes.ravel(), expected)
 
 
+def test_pointing_share_of_precomputed_lines_is_the_concurring_share():
+    from app.core.origins.columns import _pointing_share, concurring_share
+
+    rng = np.random.default_rng(11)
+    for _ in range(20):
+        count = int(rng.integers(50, 3000))
+        centre = rng.normal(scale=5.0, size=2)
+        anchor = rng.normal(scale=8.0, size=(count, 2))
+        towards = centre - anchor
+        angle = np.arctan2(towards[:, 1], towards[:, 0]) + rng.normal(scale=0.03, size=count)
+        angle[: count // 4] = rng.uniform(0.0, 2.0 * np.pi, count // 4)  # lines passing by
+        direction = np.column_stack([np.cos(angle), np.sin(angle)])
+        normal = np.column_stack([-direction[:, 1], direction[:, 0]])
+        constant = np.einsum("ij,ij->i", normal, anchor)
+        expected = concurring_share(anchor, direction, centre)
+        assert 0.2 < expected < 0.9
+        assert _pointing_share(normal, constant, anchor, centre) == pytest.approx(
+            expected, abs=1.0 / count
+        )
+
+
 def test_horizontal_bounds_are_the_smallest_and_largest_x_and_y():
     from app.core.origins.columns import horizontal_bounds
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
+from pykdtree.kdtree import KDTree
 
 __all__ = [
     "ColumnFit",
@@ -97,7 +97,7 @@ def lattice_patches(
     """
     if len(points) <= max_points:
         return points
-    keys = np.floor(points / cell).astype(np.int64)
+    keys = np.floor(points if cell == 1.0 else points / cell).astype(np.int64)
     hashed = (keys[:, 0] * 73856093) ^ (keys[:, 1] * 19349663) ^ (keys[:, 2] * 83492791)
     salt = int(rng.integers(1, 2**31 - 1))
     bucket = ((hashed ^ salt) * 2654435761) % 1000
@@ -120,9 +120,12 @@ def column_lines(
         Query points on surfaces facing sideways (their elevations show the lidar's rings;
         floors and ceilings would add a false ring at their own height).
     """
-    tree = cKDTree(patch)
+    # pykdtree: built and queried in half scipy's time; a missing neighbour (fewer points than
+    # NEIGHBOURS + 1) has an index past the end, as scipy gives it
+    tree = KDTree(patch)
     queries = rng.choice(len(patch), size=min(n_queries, len(patch)), replace=False)
     _, neighbour = tree.query(patch[queries], k=NEIGHBOURS + 1)
+    neighbour = neighbour.astype(np.int64)
     # walls give no column lines (their columns are vertical) but long ridges of ring lines:
     # keep query points on surfaces facing up or down
     local = patch[np.minimum(neighbour, len(patch) - 1)]
@@ -238,32 +241,34 @@ def _grid_votes(
     last[flat] = count - 1
     first = np.clip(first, 0, count).astype(np.int64)
     last = np.clip(last, -1, count - 1).astype(np.int64)
-    rows = np.broadcast_to(np.arange(count), first.shape)
     keep = first <= last
-    difference = np.zeros((count, count + 1), dtype=np.int64)
-    np.add.at(difference, (rows[keep], first[keep]), 1)
-    np.add.at(difference, (rows[keep], last[keep] + 1), -1)
-    return np.cumsum(difference[:, :count], axis=1)
+    # each run as +1 at its first column and -1 after its last, rows of count + 1 cells
+    row_start = np.broadcast_to(np.arange(count) * (count + 1), first.shape)[keep]
+    size = count * (count + 1)
+    difference = np.bincount(row_start + first[keep], minlength=size) - np.bincount(
+        row_start + last[keep] + 1, minlength=size
+    )
+    return np.cumsum(difference.reshape(count, count + 1)[:, :count], axis=1)
 
 
 def _refine(
-    anchor: NDArray, direction: NDArray, centre: NDArray, reach: float
+    normal: NDArray, constant: NDArray, centre: NDArray, reach: float
 ) -> NDArray[np.float64]:
     """The densest concurrence within ``reach`` (m) of ``centre``, then the least-squares point
-    of the lines passing within a shrinking distance of it."""
-    normal = np.column_stack([-direction[:, 1], direction[:, 0]])
-    constant = np.einsum("ij,ij->i", normal, anchor)
+    of the lines passing within a shrinking distance of it.
+
+    Lines are ``normal @ x == constant`` (unit normals (l, 2), constants (l,)).
+    """
     centre = _densest_concurrence(normal, constant, np.asarray(centre, dtype=np.float64), reach)
     for tolerance in (0.03, 0.01):
-        miss = np.abs(np.einsum("ij,ij->i", normal, centre - anchor))
-        near = miss < tolerance
+        near = np.abs(normal @ centre - constant) < tolerance
         if np.count_nonzero(near) < 10:
             break
         n = normal[near]
         matrix = n.T @ n
         if np.linalg.cond(matrix) > 1e8:
             break
-        centre = np.linalg.solve(matrix, n.T @ np.einsum("ij,ij->i", n, anchor[near]))
+        centre = np.linalg.solve(matrix, n.T @ constant[near])
     return centre
 
 
@@ -274,6 +279,13 @@ def concurring_share(anchor: NDArray, direction: NDArray, centre: NDArray) -> fl
     cross = np.abs(towards[:, 0] * direction[:, 1] - towards[:, 1] * direction[:, 0])
     pointing = cross < CONCUR_SINE * np.maximum(distance, 1e-9)
     return float(np.mean(pointing)) if len(anchor) else 0.0
+
+
+def _pointing_share(normal: NDArray, constant: NDArray, anchor: NDArray, centre: NDArray) -> float:
+    """:func:`concurring_share` of the lines ``normal @ x == constant`` through ``anchor``."""
+    cross = np.abs(normal @ centre - constant)
+    distance = np.hypot(anchor[:, 0] - centre[0], anchor[:, 1] - centre[1])
+    return float(np.count_nonzero(cross < CONCUR_SINE * np.maximum(distance, 1e-9))) / len(anchor)
 
 
 def fit_column_centre(
@@ -290,8 +302,10 @@ def fit_column_centre(
     centres, peaks = _hough(anchor[voters], direction[voters], low, high)
     reach = max(1.5 * float(np.max(high - low)) / HOUGH_CELLS, REFINE_REACH)
     anchor, direction = anchor[shuffled], direction[shuffled]  # the refinements sample lines
-    refined = [_refine(anchor, direction, centre, reach) for centre in centres]
-    shares = [concurring_share(anchor, direction, centre) for centre in refined]
+    normal = np.column_stack([-direction[:, 1], direction[:, 0]])
+    constant = np.einsum("ij,ij->i", normal, anchor)
+    refined = [_refine(normal, constant, centre, reach) for centre in centres]
+    shares = [_pointing_share(normal, constant, anchor, centre) for centre in refined]
     best = int(np.argmax(shares))
     others = [peak for index, peak in enumerate(peaks) if index != best]
     order = sorted(range(len(refined)), key=lambda index: (index != best, -shares[index]))
