@@ -13,7 +13,7 @@ import functools
 import numpy as np
 import pytest
 
-from app.core.origins import estimate, stations
+from app.core.origins import estimate, station_height, stations
 from app.core.origins.stations import recover_stations, resolve_stations
 from app.core.synthetic_lidar import LidarWorld, lidar_directions
 
@@ -222,7 +222,7 @@ def test_voting_every_second_cell_finds_the_centres_of_voting_every_cell(monkeyp
 
 
 def _ring_scores_by_histogram(rho, z, heights, bin_size):
-    """Reference for stations._ring_scores: one histogram and moving sum per height."""
+    """Reference for station_height.ring_scores: one histogram and moving sum per height."""
     from app.core.localise.stations import RING_CONTRAST, SMOOTHING_BINS
 
     n_bins = int(np.pi / bin_size) + 2
@@ -243,5 +243,48 @@ def test_ring_scores_counted_in_chunks_of_32_bit_bins_are_those_of_one_histogram
     z = points[:3000, 2]
     heights = origins[0, 2] + np.arange(-0.05, 0.05, 2e-3)  # 50: several chunks, one partial
     expected = _ring_scores_by_histogram(rho, z, heights, np.radians(0.04))
-    assert np.array_equal(stations._ring_scores(rho, z, heights, np.radians(0.04)), expected)
+    assert np.array_equal(station_height.ring_scores(rho, z, heights, np.radians(0.04)), expected)
     assert abs(heights[np.argmax(expected)] - origins[0, 2]) < 5e-3  # the rings' height
+
+
+def _exhaustive_station_height(points, centre, rng):
+    """Reference for station_height.station_height: 2 mm steps over the whole height range,
+    then 0.2 mm ones round the best (the search before the scouting pass)."""
+    horizontal = np.hypot(points[:, 0] - centre[0], points[:, 1] - centre[1])
+    near = np.flatnonzero((horizontal <= station_height.HEIGHT_REACH) & (horizontal > 0.05))
+    if near.size > station_height.HEIGHT_SAMPLE:
+        near = rng.choice(near, station_height.HEIGHT_SAMPLE, replace=False)
+    rho, z = horizontal[near], points[near, 2]
+    clearance = station_height.SURFACE_CLEARANCE
+    low, high = np.quantile(z, [0.01, 0.99]) + np.array([clearance, -clearance])
+    sample = station_height.HEIGHT_COARSE_SAMPLE
+    heights = np.arange(low, high, 2e-3)
+    scores = station_height.ring_scores(rho[:sample], z[:sample], heights, np.radians(0.04))
+    heights = heights[np.argmax(scores)] + np.arange(-4e-3, 4e-3, 2e-4)
+    scores = station_height.ring_scores(rho, z, heights, np.radians(0.01))
+    return float(heights[np.argmax(scores)])
+
+
+@pytest.mark.parametrize("layout", ["room", "corridor", "warehouse"])
+def test_scouted_station_heights_are_those_of_scoring_the_whole_range(layout):
+    from app.core.synthetic_lidar import lidar_pair
+
+    for seed in range(2):
+        pair = lidar_pair(
+            layout=layout,
+            change="none",
+            n_stations=3 + seed,
+            angular_step_deg=1.0,
+            random_state=40 + seed,
+        )
+        for cloud, origins in ((pair.reference, pair.reference_origins),):
+            for origin in origins:
+                rng_seed = int(1000 * origin[0]) % 997
+                expected = _exhaustive_station_height(
+                    cloud, origin[:2], np.random.default_rng(rng_seed)
+                )
+                found = station_height.station_height(
+                    cloud, origin[:2], np.random.default_rng(rng_seed)
+                )
+                assert abs(expected - origin[2]) < 5e-3  # the reference finds the station
+                assert abs(found - expected) < 5e-4, (layout, seed, origin, found, expected)

@@ -30,7 +30,6 @@ choice is seeded (``random_state``): the same cloud gives the same stations.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,7 +40,6 @@ from app.core.cloud import PointCloud
 from app.core.errors import InputError
 from app.core.localise.stations import (
     RING_CONTRAST,
-    SMOOTHING_BINS,
     STATION_INDEX_ATTRIBUTE,
     ring_contrast,
 )
@@ -49,6 +47,7 @@ from app.core.origins.concurrence import MAX_STATIONS, column_centres, search_ce
 from app.core.origins.known_stations import estimate_each_station
 from app.core.origins.resolve import STATIONS_UNKNOWN, ResolvedOrigin, resolve_origin
 from app.core.origins.sampling import lidar_sampling
+from app.core.origins.station_height import station_height
 
 __all__ = [
     "RECOVER_CHOICES",
@@ -75,14 +74,6 @@ lie on its rings."""
 MIN_RING_POINTS = 500
 MIN_RESIDUAL_POINTS = 5_000
 """No further search on fewer points than this left unexplained."""
-HEIGHT_SAMPLE = 40_000
-HEIGHT_COARSE_SAMPLE = 4_000
-HEIGHT_CHUNK = 16
-"""Candidate heights histogrammed at once: 16 keep the 32-bit bins to a few hundred kilobytes
-(64 at once spent a third of the search on fresh memory for them)."""
-HEIGHT_REACH = 8.0
-SURFACE_CLEARANCE = 0.3
-"""A station is searched at least this far above the lowest and below the highest points."""
 
 
 @dataclass(frozen=True)
@@ -140,88 +131,6 @@ def _subset(points: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np
         mixed ^= mixed >> np.uint64(31)
     uniform = (mixed >> np.uint64(11)).astype(np.float64) / float(2**53)
     return points[uniform < MAX_POINTS / points.shape[0]]
-
-
-def _ring_scores(
-    rho: NDArray[np.float64], z: NDArray[np.float64], heights: NDArray[np.float64], bin_size: float
-) -> NDArray[np.float64]:
-    """For each candidate height, the share of points whose elevation bin is on a ring.
-
-    A bin is on a ring when its count is at least :data:`RING_CONTRAST` times the moving
-    average of :data:`SMOOTHING_BINS` bins around it.  Shape (h,).
-
-    The bins are counted in 32-bit integers (a count is at most the number of points): the
-    search spends most of its time on the bins, not on the points, and 64-bit ones took
-    twice as long.
-    """
-    n_bins = int(math.pi / bin_size) + 2
-    half = SMOOTHING_BINS // 2
-    # each height's row: half + 1 empty bins, its n_bins, half empty bins (the moving window
-    # sees zeros beyond the ends)
-    width = n_bins + SMOOTHING_BINS + 1
-    contrast = np.int32(RING_CONTRAST) if float(RING_CONTRAST).is_integer() else RING_CONTRAST
-    scores = np.empty(heights.size)
-    # single precision: a bin is 1.7e-4 rad at the finest, far above float32's rounding
-    rho32, z32 = rho.astype(np.float32), z.astype(np.float32)
-    scale = np.float32(1.0 / bin_size)
-    shift = np.float32(math.pi / 2 / bin_size)
-    for start in range(0, heights.size, HEIGHT_CHUNK):
-        part = heights[start : start + HEIGHT_CHUNK].astype(np.float32)
-        elevation = np.arctan2(z32[None, :] - part[:, None], rho32[None, :])
-        bins = (elevation * scale + shift).astype(np.int32)  # elevations are >= -pi/2
-        bins += (np.arange(part.size, dtype=np.int32) * width + half + 1)[:, None]
-        counts = np.bincount(bins.ravel(), minlength=part.size * width)
-        counts = counts.astype(np.int32).reshape(part.size, width)
-        cumulative = np.cumsum(counts, axis=1, dtype=np.int32)
-        # bins b - half .. b + half: cumulative[b + half] - cumulative[b - half - 1]
-        own = counts[:, half + 1 : half + 1 + n_bins]
-        window = cumulative[:, SMOOTHING_BINS : SMOOTHING_BINS + n_bins] - cumulative[:, :n_bins]
-        on_ring = own * np.int32(SMOOTHING_BINS) >= contrast * window
-        ring_points = (own * on_ring).sum(axis=1, dtype=np.int32)
-        scores[start : start + HEIGHT_CHUNK] = ring_points / max(rho.size, 1)
-    return scores
-
-
-def station_height(
-    points: NDArray[np.float64], centre: NDArray[np.float64], rng: np.random.Generator
-) -> float:
-    """The height of a station at top-view ``centre`` whose rings the points lie on.
-
-    A coarse search over the cloud's height range (elevation bins of 0.04 degree, 2 mm steps,
-    :data:`HEIGHT_COARSE_SAMPLE` points), then a fine one (0.01 degree, 0.2 mm steps, every
-    point) 4 mm round the best.
-
-    Parameters
-    ----------
-    points : ndarray, shape (n, 3)
-    centre : ndarray, shape (2,)
-    rng : numpy.random.Generator
-
-    Returns
-    -------
-    float
-    """
-    horizontal = np.hypot(points[:, 0] - centre[0], points[:, 1] - centre[1])
-    near = np.flatnonzero((horizontal <= HEIGHT_REACH) & (horizontal > 0.05))
-    if near.size > HEIGHT_SAMPLE:
-        near = rng.choice(near, HEIGHT_SAMPLE, replace=False)
-    rho, z = horizontal[near], points[near, 2]
-    # not at a floor's or ceiling's own height: their points would pile up at 0 degrees
-    low, high = np.quantile(z, [0.01, 0.99]) + np.array([SURFACE_CLEARANCE, -SURFACE_CLEARANCE])
-    if high <= low:
-        low = high = float(np.median(z))
-        high += 2e-3
-    best = (low + high) / 2.0
-    for step, span, bin_deg, sample in (
-        (2e-3, None, 0.04, HEIGHT_COARSE_SAMPLE),
-        (2e-4, 4e-3, 0.01, rho.size),
-    ):
-        heights = (
-            np.arange(low, high, step) if span is None else best + np.arange(-span, span, step)
-        )
-        scores = _ring_scores(rho[:sample], z[:sample], heights, math.radians(bin_deg))
-        best = float(heights[int(np.argmax(scores))])
-    return best
 
 
 def recover_stations(
