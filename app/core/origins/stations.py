@@ -114,7 +114,7 @@ def _subset(points: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np
     """
     if points.shape[0] <= MAX_POINTS:
         return points
-    cell = np.floor(points / PATCH).astype(np.int64)
+    cell = np.floor(points if PATCH == 1.0 else points / PATCH).astype(np.int64)
     salt = np.uint64(rng.integers(1, 2**62))
     with np.errstate(over="ignore"):
         mixed = (
