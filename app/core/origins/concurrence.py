@@ -26,6 +26,12 @@ MIN_HORIZONTAL_SHARE = 0.3
 MAX_LINES = 30_000
 PAIR_QUERIES = 40_000
 """Points (a seeded random share) whose neighbour pairs are made into lines."""
+FULL_SEARCH_POINTS = 200_000
+"""Points searched with all of :data:`MAX_LINES` and :data:`PAIR_QUERIES` (a full subset of
+:mod:`app.core.origins.stations`); fewer get proportionally fewer, the same lines per station,
+as a residual of a few stations' returns holds their pairs at the density of a full search."""
+MIN_LINES = 4_000
+"""Nor fewer than this many lines (and the queries for them) in a small cloud."""
 VOTE_REACH = 10.0
 """Each line votes within this many metres of its pair (a lidar's dense returns are near it)."""
 MIN_VOTE_DISTANCE = 0.3
@@ -76,13 +82,12 @@ def _pair_lines(
         return np.empty((0, 2)), np.empty((0, 2))
     tree_points = points
     tree = KDTree(tree_points)
-    if points.shape[0] > PAIR_QUERIES:  # enough lines from a seeded share of the points
-        points = points[np.sort(rng.choice(points.shape[0], PAIR_QUERIES, replace=False))]
+    share = min(1.0, max(points.shape[0] / FULL_SEARCH_POINTS, MIN_LINES / MAX_LINES))
+    max_lines, queries = round(MAX_LINES * share), round(PAIR_QUERIES * share)
+    if points.shape[0] > queries:  # enough lines from a seeded share of the points
+        points = points[np.sort(rng.choice(points.shape[0], queries, replace=False))]
     distance, index = _query_in_space_order(tree, points, max(PAIR_NEIGHBOURS + 1, 8))
-    neighbourhood = tree_points[index]
-    neighbourhood -= neighbourhood.mean(axis=1, keepdims=True)
-    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", neighbourhood, neighbourhood))
-    level = np.abs(vectors[:, 2, 0]) >= MIN_NORMAL_Z
+    level = _normal_z(tree_points[index]) >= MIN_NORMAL_Z
     distance, index = distance[:, : PAIR_NEIGHBOURS + 1], index[:, : PAIR_NEIGHBOURS + 1]
     offset = tree_points[index[:, 1:]] - points[:, None, :]  # (n, k, 3)
     length = distance[:, 1:]
@@ -94,13 +99,62 @@ def _pair_lines(
         & (horizontal >= MIN_HORIZONTAL_SHARE * length)
     )
     rows, columns = np.nonzero(usable)
-    if rows.size > MAX_LINES:
-        pick = np.sort(rng.choice(rows.size, MAX_LINES, replace=False))
+    if rows.size > max_lines:
+        pick = np.sort(rng.choice(rows.size, max_lines, replace=False))
         rows, columns = rows[pick], columns[pick]
     anchor = points[rows, :2]
     direction = offset[rows, columns, :2] / horizontal[rows, columns, None]
     order = rng.permutation(rows.size)  # refinements take the first lines near a peak
     return anchor[order], direction[order]
+
+
+def _normal_z(neighbourhood: NDArray[np.float64]) -> NDArray[np.float64]:
+    """|z| of the unit normal (least-variance direction) of each neighbourhood.
+
+    Closed form, as :func:`numpy.linalg.eigh` of the (n, 3, 3) scatter matrices would give it
+    (a fifth of its cost): the smallest eigenvalue from the trigonometric solution of the
+    characteristic cubic, its eigenvector the longest cross product of two rows of the scatter
+    matrix less that eigenvalue.
+
+    Parameters
+    ----------
+    neighbourhood : ndarray, shape (n, k, 3)
+        Each point's neighbours (itself included).
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        In [0, 1]; 1 for a level (horizontal) neighbourhood.
+    """
+    centred = neighbourhood - neighbourhood.mean(axis=1, keepdims=True)
+    x, y, z = centred[..., 0], centred[..., 1], centred[..., 2]
+    xx, yy, zz = (x * x).sum(axis=1), (y * y).sum(axis=1), (z * z).sum(axis=1)
+    xy, xz, yz = (x * y).sum(axis=1), (x * z).sum(axis=1), (y * z).sum(axis=1)
+    mean = (xx + yy + zz) / 3
+    spread = np.sqrt(
+        ((xx - mean) ** 2 + (yy - mean) ** 2 + (zz - mean) ** 2) / 6
+        + (xy * xy + xz * xz + yz * yz) / 3
+    )
+    scale = np.where(spread > 0, spread, 1.0)
+    a, b, c = (xx - mean) / scale, (yy - mean) / scale, (zz - mean) / scale
+    d, e, f = xy / scale, xz / scale, yz / scale
+    half_determinant = (a * (b * c - f * f) - d * (d * c - f * e) + e * (d * f - b * e)) / 2
+    angle = np.arccos(np.clip(half_determinant, -1.0, 1.0)) / 3
+    smallest = mean + 2 * spread * np.cos(angle + 2 * np.pi / 3)
+    # rows (xx - s, xy, xz), (xy, yy - s, yz), (xz, yz, zz - s): their cross products
+    a, b, c = xx - smallest, yy - smallest, zz - smallest
+    crosses = np.stack(
+        [
+            [xy * yz - xz * b, xz * xy - a * yz, a * b - xy * xy],
+            [xy * c - xz * yz, xz * xz - a * c, a * yz - xy * xz],
+            [b * c - yz * yz, yz * xz - xy * c, xy * yz - b * xz],
+        ]
+    )  # (3 products, 3 components, n)
+    squared = (crosses**2).sum(axis=1)
+    longest = np.argmax(squared, axis=0)
+    picked = np.arange(longest.size)
+    normal_z = np.abs(crosses[longest, 2, picked])
+    return normal_z / np.sqrt(np.maximum(squared[longest, picked], np.finfo(float).tiny))
 
 
 def _query_in_space_order(
