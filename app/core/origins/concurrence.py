@@ -218,31 +218,63 @@ def _hough_peaks(
     low, high = horizontal_bounds(points)
     low = low - 1.0
     shape = np.ceil((high + 1.0 - low) / CELL).astype(np.int64) + 1
-    # in cell units, single precision: the vote is the costly part of a search
-    steps = np.arange(MIN_VOTE_DISTANCE / CELL, VOTE_REACH / CELL, VOTE_STRIDE, dtype=np.float32)
-    steps = np.concatenate([-steps[::-1], steps])
-    start_cell = ((anchor - low) / CELL).astype(np.float32)
-    direction32 = direction.astype(np.float32)
-    size = int(shape[0] * shape[1])
-    index_type = np.int32 if size < 2**31 else np.int64
-    votes = np.zeros(size)
-    batch: list[NDArray] = []  # cells voted for, counted a few million at a time
-    for start in range(0, anchor.shape[0], 1024):
-        part = slice(start, start + 1024)
-        row = start_cell[part, 0, None] + steps * direction32[part, 0, None]
-        column = start_cell[part, 1, None] + steps * direction32[part, 1, None]
-        inside = (row >= 0) & (row < shape[0]) & (column >= 0) & (column < shape[1])
-        batch.append(
-            row[inside].astype(index_type) * index_type(shape[1])
-            + column[inside].astype(index_type)
-        )
-        if sum(cells.size for cells in batch) >= VOTE_BATCH or start + 1024 >= anchor.shape[0]:
-            votes += np.bincount(np.concatenate(batch), minlength=size)
-            batch = []
+    votes = _hough_votes(((anchor - low) / CELL).astype(np.float32), direction, shape)
     smoothed = uniform_filter(votes.reshape(shape), size=3, mode="constant")
     flat = _strongest_peaks(smoothed, PEAK_SEPARATION, MAX_CANDIDATES)
     rows, columns = np.unravel_index(flat, shape)
     return low + (np.column_stack([rows, columns]) + 0.5) * CELL
+
+
+def _vote_steps() -> NDArray[np.float32]:
+    """Distances (cells) along a line at which it votes, ascending, shape (s,)."""
+    steps = np.arange(MIN_VOTE_DISTANCE / CELL, VOTE_REACH / CELL, VOTE_STRIDE, dtype=np.float32)
+    return np.concatenate([-steps[::-1], steps])
+
+
+def _hough_votes(
+    start_cell: NDArray[np.float32], direction: NDArray[np.float64], shape: NDArray[np.int64]
+) -> NDArray[np.float64]:
+    """Votes of the lines per cell of a grid, flat, shape (shape[0] * shape[1],).
+
+    Line ``i`` votes for the cell of ``start_cell[i] + step * direction[i]`` (in cell units,
+    single precision: the vote is the costly part of a search) at each of :func:`_vote_steps`
+    that falls inside the grid.  Lines are voted a block at a time into reused buffers, in
+    place (a third faster than a new array per operation).
+    """
+    steps = _vote_steps()
+    direction32 = direction.astype(np.float32)
+    size = int(shape[0] * shape[1])
+    index_type = np.int32 if size < 2**31 else np.int64
+    # float32 holds the grid's edges exactly (a grid of fewer than 2**24 cells a side)
+    rows, columns = np.float32(shape[0]), np.float32(shape[1])
+    votes = np.zeros(size, dtype=np.int64)
+    block = 1024
+    row = np.empty((block, steps.size), dtype=np.float32)
+    column = np.empty_like(row)
+    test = np.empty(row.shape, dtype=bool)
+    batch: list[NDArray] = []  # cells voted for, counted a few million at a time
+    pending = 0
+    for start in range(0, start_cell.shape[0], block):
+        part = slice(start, start + block)
+        count = min(block, start_cell.shape[0] - start)
+        line_row, line_column, line_test = row[:count], column[:count], test[:count]
+        np.multiply(steps, direction32[part, 0, None], out=line_row)
+        line_row += start_cell[part, 0, None]
+        np.multiply(steps, direction32[part, 1, None], out=line_column)
+        line_column += start_cell[part, 1, None]
+        inside = line_row >= 0
+        inside &= np.less(line_row, rows, out=line_test)
+        inside &= np.greater_equal(line_column, 0, out=line_test)
+        inside &= np.less(line_column, columns, out=line_test)
+        cells = line_row[inside].astype(index_type)
+        cells *= index_type(shape[1])
+        cells += line_column[inside].astype(index_type)
+        batch.append(cells)
+        pending += cells.size
+        if pending >= VOTE_BATCH or start + block >= start_cell.shape[0]:
+            votes += np.bincount(np.concatenate(batch), minlength=size)
+            batch, pending = [], 0
+    return votes.astype(np.float64)
 
 
 def _strongest_peaks(grid: NDArray[np.float64], separation: int, count: int) -> NDArray[np.int64]:
