@@ -90,10 +90,10 @@ def _pair_lines(
     if points.shape[0] > queries:  # enough lines from a seeded share of the points
         points = points[np.sort(rng.choice(points.shape[0], queries, replace=False))]
     distance, index = _query_in_space_order(tree, points, max(PAIR_NEIGHBOURS + 1, 8))
-    level = _normal_z(tree_points[index]) >= MIN_NORMAL_Z
-    distance, index = distance[:, : PAIR_NEIGHBOURS + 1], index[:, : PAIR_NEIGHBOURS + 1]
-    offset = tree_points[index[:, 1:]] - points[:, None, :]  # (n, k, 3)
-    length = distance[:, 1:]
+    neighbourhood = np.take(tree_points, index, axis=0)  # (a third of indexing's cost)
+    level = _normal_z(neighbourhood) >= MIN_NORMAL_Z
+    offset = neighbourhood[:, 1 : PAIR_NEIGHBOURS + 1] - points[:, None, :]  # (n, k, 3)
+    length = distance[:, 1 : PAIR_NEIGHBOURS + 1]
     horizontal = np.hypot(offset[..., 0], offset[..., 1])
     usable = (
         level[:, None]
