@@ -286,14 +286,16 @@ def _strongest_peaks(grid: NDArray[np.float64], separation: int, count: int) -> 
 
     A local maximum is at least every value in the ``separation`` square round it (zero beyond
     the edges), as ``grid == maximum_filter(grid, separation, mode="constant")``; only the
-    largest cells are tested (more while too few of them are maxima), not the whole grid.
+    largest cells are tested (more while too few of them are maxima), not the whole grid: first
+    64 a maximum wanted, which on the station searches' votes is enough at once (each further
+    round partitions the whole grid again).
     """
     values = grid.ravel()
     half = separation // 2
     offsets = np.arange(-half, separation - half)
     tested = 0
     while True:
-        tested = min(values.size, max(4 * count, 2 * tested, 512))
+        tested = min(values.size, max(64 * count, 4 * tested, 512))
         threshold = np.partition(values, values.size - tested)[values.size - tested]
         cells = np.flatnonzero((values >= threshold) & (values > 0))
         rows, columns = np.divmod(cells, grid.shape[1])
