@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 from scipy.ndimage import uniform_filter
 
-from app.core.origins.columns import _grid_votes, horizontal_bounds
+from app.core.origins.columns import _grid_votes, horizontal_bounds, normal_z
 
 __all__ = ["MAX_STATIONS", "column_centres", "search_centres"]
 
@@ -91,7 +91,7 @@ def _pair_lines(
         points = points[np.sort(rng.choice(points.shape[0], queries, replace=False))]
     distance, index = _query_in_space_order(tree, points, max(PAIR_NEIGHBOURS + 1, 8))
     neighbourhood = np.take(tree_points, index, axis=0)  # (a third of indexing's cost)
-    level = _normal_z(neighbourhood) >= MIN_NORMAL_Z
+    level = normal_z(neighbourhood) >= MIN_NORMAL_Z
     offset = neighbourhood[:, 1 : PAIR_NEIGHBOURS + 1] - points[:, None, :]  # (n, k, 3)
     length = distance[:, 1 : PAIR_NEIGHBOURS + 1]
     horizontal = np.hypot(offset[..., 0], offset[..., 1])
@@ -109,55 +109,6 @@ def _pair_lines(
     direction = offset[rows, columns, :2] / horizontal[rows, columns, None]
     order = rng.permutation(rows.size)  # refinements take the first lines near a peak
     return anchor[order], direction[order]
-
-
-def _normal_z(neighbourhood: NDArray[np.float64]) -> NDArray[np.float64]:
-    """|z| of the unit normal (least-variance direction) of each neighbourhood.
-
-    Closed form, as :func:`numpy.linalg.eigh` of the (n, 3, 3) scatter matrices would give it
-    (a fifth of its cost): the smallest eigenvalue from the trigonometric solution of the
-    characteristic cubic, its eigenvector the longest cross product of two rows of the scatter
-    matrix less that eigenvalue.
-
-    Parameters
-    ----------
-    neighbourhood : ndarray, shape (n, k, 3)
-        Each point's neighbours (itself included).
-
-    Returns
-    -------
-    ndarray, shape (n,)
-        In [0, 1]; 1 for a level (horizontal) neighbourhood.
-    """
-    centred = neighbourhood - neighbourhood.mean(axis=1, keepdims=True)
-    x, y, z = centred[..., 0], centred[..., 1], centred[..., 2]
-    xx, yy, zz = (x * x).sum(axis=1), (y * y).sum(axis=1), (z * z).sum(axis=1)
-    xy, xz, yz = (x * y).sum(axis=1), (x * z).sum(axis=1), (y * z).sum(axis=1)
-    mean = (xx + yy + zz) / 3
-    spread = np.sqrt(
-        ((xx - mean) ** 2 + (yy - mean) ** 2 + (zz - mean) ** 2) / 6
-        + (xy * xy + xz * xz + yz * yz) / 3
-    )
-    scale = np.where(spread > 0, spread, 1.0)
-    a, b, c = (xx - mean) / scale, (yy - mean) / scale, (zz - mean) / scale
-    d, e, f = xy / scale, xz / scale, yz / scale
-    half_determinant = (a * (b * c - f * f) - d * (d * c - f * e) + e * (d * f - b * e)) / 2
-    angle = np.arccos(np.clip(half_determinant, -1.0, 1.0)) / 3
-    smallest = mean + 2 * spread * np.cos(angle + 2 * np.pi / 3)
-    # rows (xx - s, xy, xz), (xy, yy - s, yz), (xz, yz, zz - s): their cross products
-    a, b, c = xx - smallest, yy - smallest, zz - smallest
-    crosses = np.stack(
-        [
-            [xy * yz - xz * b, xz * xy - a * yz, a * b - xy * xy],
-            [xy * c - xz * yz, xz * xz - a * c, a * yz - xy * xz],
-            [b * c - yz * yz, yz * xz - xy * c, xy * yz - b * xz],
-        ]
-    )  # (3 products, 3 components, n)
-    squared = (crosses**2).sum(axis=1)
-    longest = np.argmax(squared, axis=0)
-    picked = np.arange(longest.size)
-    normal_z = np.abs(crosses[longest, 2, picked])
-    return normal_z / np.sqrt(np.maximum(squared[longest, picked], np.finfo(float).tiny))
 
 
 def _query_in_space_order(
