@@ -404,6 +404,8 @@ def compare(
                 estimate=settings.estimate_origins,
                 recover=settings.recover_stations,
                 station_of=scan,
+                # a reference surveyed from several stations: the scan's are searched first
+                stations_first=resolved_reference.source == "recovered",
             )
             scan_origin = resolved_scan.origin
             scan_station = station_index_of(scan, resolved_scan, "scan")

@@ -243,3 +243,56 @@ def test_whole_voxels_keep_the_voxels_a_floor_modulo_of_their_hash_picks():
     expected = points[(mixed % 65536) < 65536 * 50_000 / points.shape[0]]
     assert np.array_equal(kept, expected)
     assert 35_000 < kept.shape[0] < 65_000
+
+
+def _no_estimate(side, points, **kwargs):
+    raise AssertionError("a single-origin estimate was made")
+
+
+def test_stations_searched_first_skip_the_single_origin_estimate(monkeypatch):
+    points = merged().reference
+    options = {"given": None, "from_file": None, "estimate": True}
+    default = stations.recovered_before_apex("scan", points, options, 0)
+    monkeypatch.setattr(stations, "resolve_origin", _no_estimate)
+    first = stations.recovered_before_apex("scan", points, options, 0, stations_first=True)
+    assert default[0].source == first[0].source == "recovered"
+    assert first[0].evidence[stations.STATIONS_FIRST] == 1.0
+    # the same stations (the same points and seed), without the estimate's evidence
+    np.testing.assert_array_equal(first[0].origin, default[0].origin)
+    assert "ring_share" in default[0].evidence and "ring_share" not in first[0].evidence
+
+
+def test_a_single_station_searched_first_still_gets_its_estimate(monkeypatch):
+    pair = lidar_pair(layout="room", change="none", n_stations=1, angular_step_deg=1.0)
+    options = {"given": None, "from_file": None, "estimate": True}
+    default = stations.recovered_before_apex("scan", pair.scan, options, 0)
+    searches = []
+    original = stations.recover_stations
+
+    def counted(points, **kwargs):
+        searches.append(1)
+        return original(points, **kwargs)
+
+    monkeypatch.setattr(stations, "recover_stations", counted)
+    first = stations.recovered_before_apex("scan", pair.scan, options, 0, stations_first=True)
+    assert searches == [1]  # searched first, found one station: the estimate decides
+    assert first[0].source == default[0].source == "estimated"
+    np.testing.assert_allclose(first[0].origin, default[0].origin)
+    assert np.linalg.norm(first[0].origin - pair.scan_origins[0]) < 0.05
+
+
+def test_a_scan_against_a_merged_reference_searches_its_stations_first(monkeypatch):
+    from app.core import pipeline
+
+    calls = {}
+    original = pipeline.resolve_moved_cloud
+
+    def spy(*args, **kwargs):
+        calls["stations_first"] = kwargs.get("stations_first")
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "resolve_moved_cloud", spy)
+    result = compare(*_clouds(merged("added")), params={}, threads=1)
+    assert calls["stations_first"] is True
+    scan_entries = result.sensor_origins["scan"]
+    assert len(scan_entries) == 3 and {entry["source"] for entry in scan_entries} == {"recovered"}

@@ -21,7 +21,12 @@ from app.core.cloud import PointCloud
 from app.core.localise.stations import STATION_INDEX_ATTRIBUTE
 from app.core.origins.estimate import RING_SHARE_RANGE
 from app.core.origins.resolve import ResolvedOrigin
-from app.core.origins.stations import EarlySearch, recovered_before_apex, resolve_stations
+from app.core.origins.stations import (
+    STATIONS_FIRST,
+    EarlySearch,
+    recovered_before_apex,
+    resolve_stations,
+)
 from app.core.registration import apply_transform
 
 __all__ = ["OWN_FRAME_RETRY_RING_SHARE", "resolve_moved_cloud"]
@@ -47,6 +52,7 @@ def resolve_moved_cloud(
     estimate: bool,
     recover: bool | str,
     station_of: PointCloud | None = None,
+    stations_first: bool = False,
 ) -> ResolvedOrigin:
     """The origin(s) of a cloud moved by ``transform``, in the moved (aligned) frame.
 
@@ -69,6 +75,10 @@ def resolve_moved_cloud(
         origin either.
     station_of : PointCloud, optional
         The cloud ``own_points`` come from (its per-point station index, if any).
+    stations_first : bool
+        The other epoch was a merged survey: with ``"auto"``, the stations are searched before
+        the single-origin estimate (:func:`~app.core.origins.stations.recovered_before_apex`),
+        and used without the own-frame retry when they qualify.
 
     Returns
     -------
@@ -114,11 +124,19 @@ def resolve_moved_cloud(
         # a merged survey's stations before the apex search, when no retry in the own frame
         # would come first (rings too unclear for one and not tilted)
         early = recovered_before_apex(
-            side, aligned_points, {"given": None, "from_file": None, "estimate": estimate}, 0
+            side,
+            aligned_points,
+            {"given": None, "from_file": None, "estimate": estimate},
+            0,
+            stations_first=stations_first,
         )
         if early is not None and early[0].origin is not None:
             ring_share = early[0].evidence.get("ring_share", 1.0)
-            if early[0].source != "recovered" or ring_share < OWN_FRAME_RETRY_RING_SHARE:
+            if (
+                early[0].source != "recovered"
+                or ring_share < OWN_FRAME_RETRY_RING_SHARE
+                or STATIONS_FIRST in early[0].evidence
+            ):
                 return early[0]
         if early is not None and early[0].origin is not None:
             early = None  # a single origin found there; the rest does not reuse it
