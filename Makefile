@@ -68,13 +68,13 @@ bench: $(BENCH_STAMP)
 	$(BIN)/python bench/perf_scaling.py --json bench/results/scaling.json
 	$(MAKE) bench-origins
 
-# issue 15's multi-station and 1M-point targets (~15 min): merged 3-5-station surveys with
+# issue 15's multi-station and 1M-point targets (~25 min): merged 3-5-station surveys with
 # nothing given and with their stations given (decisions, IoU, quiet regions), then what
 # estimating the origins adds to a compare at 1M points a scan (CPU on one thread, and wall
 # time on two threads against the true origins given).
 bench-origins: $(BENCH_STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/python -m bench.stations --seeds 1 --modes default,given --output bench/results/stations.md
-	OMP_NUM_THREADS=1 $(BIN)/python -m bench.origins_speed --kinds single,merged --against-given 1
+	OMP_NUM_THREADS=1 $(BIN)/python -m bench.origins_speed --kinds single,merged --against-given 3
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache *.egg-info
