@@ -293,8 +293,19 @@ def test_grid_votes_count_the_lines_near_each_grid_point_as_distances_do():
         np.testing.assert_array_equal(votes.ravel(), expected)
 
 
-def test_pointing_share_of_precomputed_lines_is_the_concurring_share():
-    from app.core.origins.columns import _pointing_share, concurring_share
+def _pointing_share_by_directions(anchor, direction, centre):
+    """Reference for columns.concurring_share: the sine of each line's angle to its anchor's
+    bearing from ``centre``, from the directions."""
+    from app.core.origins.columns import CONCUR_SINE
+
+    towards = anchor - centre
+    distance = np.linalg.norm(towards, axis=1)
+    cross = np.abs(towards[:, 0] * direction[:, 1] - towards[:, 1] * direction[:, 0])
+    return float(np.mean(cross < CONCUR_SINE * np.maximum(distance, 1e-9)))
+
+
+def test_concurring_share_of_lines_in_normal_form_is_that_of_their_directions():
+    from app.core.origins.columns import concurring_share
 
     rng = np.random.default_rng(11)
     for _ in range(20):
@@ -307,9 +318,9 @@ def test_pointing_share_of_precomputed_lines_is_the_concurring_share():
         direction = np.column_stack([np.cos(angle), np.sin(angle)])
         normal = np.column_stack([-direction[:, 1], direction[:, 0]])
         constant = np.einsum("ij,ij->i", normal, anchor)
-        expected = concurring_share(anchor, direction, centre)
+        expected = _pointing_share_by_directions(anchor, direction, centre)
         assert 0.2 < expected < 0.9
-        assert _pointing_share(normal, constant, anchor, centre) == pytest.approx(
+        assert concurring_share(normal, constant, anchor, centre) == pytest.approx(
             expected, abs=1.0 / count
         )
 

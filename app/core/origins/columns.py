@@ -26,6 +26,7 @@ __all__ = [
     "horizontal_bounds",
     "lattice_patches",
     "normal_z",
+    "voxel_hash",
 ]
 
 NEIGHBOURS = 8
@@ -89,6 +90,36 @@ def horizontal_bounds(
     return low, high
 
 
+VOXEL_HASH_FACTORS = (73856093, 19349663, 83492791)
+"""Primes of the voxel hash (x, y, z)."""
+
+
+def voxel_hash(points: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
+    """A hash of each point's ``cell``-metre voxel, shape (n,), int64.
+
+    The xor of the voxel's integer coordinates times :data:`VOXEL_HASH_FACTORS` (wrapping
+    round in 64 bits), formed column by column into reused (n,) buffers: forming the (n, 3)
+    voxel coordinates in floats then integers took twice as long.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    cell : float
+        Voxel edge (metres).
+    """
+    hashed = np.empty(points.shape[0], dtype=np.int64)
+    term = np.empty(points.shape[0], dtype=np.int64)
+    coordinate = np.empty(points.shape[0], dtype=np.float64)
+    for axis, factor in enumerate(VOXEL_HASH_FACTORS):
+        np.floor(points[:, axis] if cell == 1.0 else points[:, axis] / cell, out=coordinate)
+        target = hashed if axis == 0 else term
+        target[...] = coordinate  # truncation of whole floats: their value
+        target *= np.int64(factor)
+        if axis:
+            hashed ^= term
+    return hashed
+
+
 def lattice_patches(
     points: NDArray[np.float64], max_points: int, rng: np.random.Generator, cell: float = 1.0
 ) -> NDArray[np.float64]:
@@ -98,8 +129,7 @@ def lattice_patches(
     """
     if len(points) <= max_points:
         return points
-    keys = np.floor(points if cell == 1.0 else points / cell).astype(np.int64)
-    hashed = (keys[:, 0] * 73856093) ^ (keys[:, 1] * 19349663) ^ (keys[:, 2] * 83492791)
+    hashed = voxel_hash(points, cell)
     salt = int(rng.integers(1, 2**31 - 1))
     bucket = ((hashed ^ salt) * 2654435761) % 1000
     keep = bucket < max(1, int(1000 * max_points / len(points)))
@@ -319,20 +349,13 @@ def _refine(
     return centre
 
 
-def concurring_share(anchor: NDArray, direction: NDArray, centre: NDArray) -> float:
-    """Share of lines pointing at ``centre`` within :data:`CONCUR_SINE`."""
-    towards = anchor - centre
-    distance = np.linalg.norm(towards, axis=1)
-    cross = np.abs(towards[:, 0] * direction[:, 1] - towards[:, 1] * direction[:, 0])
-    pointing = cross < CONCUR_SINE * np.maximum(distance, 1e-9)
-    return float(np.mean(pointing)) if len(anchor) else 0.0
-
-
-def _pointing_share(normal: NDArray, constant: NDArray, anchor: NDArray, centre: NDArray) -> float:
-    """:func:`concurring_share` of the lines ``normal @ x == constant`` through ``anchor``."""
+def concurring_share(normal: NDArray, constant: NDArray, anchor: NDArray, centre: NDArray) -> float:
+    """Share of the lines ``normal @ x == constant`` through ``anchor`` (l, 2) pointing at
+    ``centre`` within :data:`CONCUR_SINE`."""
     cross = np.abs(normal @ centre - constant)
     distance = np.hypot(anchor[:, 0] - centre[0], anchor[:, 1] - centre[1])
-    return float(np.count_nonzero(cross < CONCUR_SINE * np.maximum(distance, 1e-9))) / len(anchor)
+    pointing = np.count_nonzero(cross < CONCUR_SINE * np.maximum(distance, 1e-9))
+    return float(pointing) / len(anchor) if len(anchor) else 0.0
 
 
 def fit_column_centre(
@@ -352,7 +375,7 @@ def fit_column_centre(
     normal = np.column_stack([-direction[:, 1], direction[:, 0]])
     constant = np.einsum("ij,ij->i", normal, anchor)
     refined = [_refine(normal, constant, centre, reach) for centre in centres]
-    shares = [_pointing_share(normal, constant, anchor, centre) for centre in refined]
+    shares = [concurring_share(normal, constant, anchor, centre) for centre in refined]
     best = int(np.argmax(shares))
     others = [peak for index, peak in enumerate(peaks) if index != best]
     order = sorted(range(len(refined)), key=lambda index: (index != best, -shares[index]))

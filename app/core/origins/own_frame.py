@@ -21,12 +21,7 @@ from app.core.cloud import PointCloud
 from app.core.localise.stations import STATION_INDEX_ATTRIBUTE
 from app.core.origins.estimate import RING_SHARE_RANGE
 from app.core.origins.resolve import ResolvedOrigin
-from app.core.origins.stations import (
-    STATIONS_FIRST,
-    EarlySearch,
-    recovered_before_apex,
-    resolve_stations,
-)
+from app.core.origins.stations import EarlySearch, recovered_before_apex, resolve_stations
 from app.core.registration import apply_transform
 
 __all__ = ["OWN_FRAME_RETRY_RING_SHARE", "resolve_moved_cloud"]
@@ -132,10 +127,11 @@ def resolve_moved_cloud(
         )
         if early is not None and early[0].origin is not None:
             ring_share = early[0].evidence.get("ring_share", 1.0)
+            # searched first, against a merged reference: no single lidar to retry for
             if (
                 early[0].source != "recovered"
                 or ring_share < OWN_FRAME_RETRY_RING_SHARE
-                or STATIONS_FIRST in early[0].evidence
+                or stations_first
             ):
                 return early[0]
         if early is not None and early[0].origin is not None:

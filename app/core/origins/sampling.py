@@ -15,12 +15,12 @@ import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
+from app.core.origins.columns import voxel_hash
+
 __all__ = ["LidarSampling", "lidar_sampling"]
 
 PATCH = 1.0
 """Edge (metres) of the voxels a large cloud's measured subset is made of."""
-VOXEL_HASH_FACTORS = (73856093, 19349663, 83492791)
-"""Primes of the voxel hash (x, y, z), xor-ed with a seeded draw."""
 SAMPLING_MAX_POINTS = 100_000
 """Points whose sampling is measured (a seeded random subset of whole voxels beyond this)."""
 SAMPLING_QUERIES = 5_000
@@ -85,23 +85,12 @@ def _whole_voxels(
     """About ``max_points`` of ``points`` (n, 3) as whole :data:`PATCH`-metre voxels.
 
     A voxel is kept when a seeded hash of its integer coordinates falls in the first
-    ``max_points / n`` of 2**16 buckets, so that neighbours within it are kept together.  The
-    hash is formed column by column into reused (n,) buffers: forming the (n, 3) voxel
-    coordinates in floats then integers took twice as long for the same voxels.
+    ``max_points / n`` of 2**16 buckets (:func:`~app.core.origins.columns.voxel_hash` xor a
+    seeded draw), so that neighbours within it are kept together.
     """
     if points.shape[0] <= max_points:
         return points
-    mixed = np.empty(points.shape[0], dtype=np.int64)
-    term = np.empty(points.shape[0], dtype=np.int64)
-    coordinate = np.empty(points.shape[0], dtype=np.float64)
-    for axis, factor in enumerate(VOXEL_HASH_FACTORS):
-        column = points[:, axis] if PATCH == 1.0 else points[:, axis] / PATCH
-        np.floor(column, out=coordinate)
-        target = mixed if axis == 0 else term
-        target[...] = coordinate  # truncation of whole floats: their value
-        target *= np.int64(factor)  # wraps round like the hash always did
-        if axis:
-            mixed ^= term
+    mixed = voxel_hash(points, PATCH)
     mixed ^= np.int64(rng.integers(1, 2**31))
     buckets = 1 << 16  # a power of two: the floor modulo is a bit mask (4x quicker)
     mixed &= np.int64(buckets - 1)

@@ -42,8 +42,10 @@ SURFACE_CLEARANCE = 0.3
 """A station is searched at least this far above the lowest and below the highest points."""
 COARSE_BIN_DEG = 0.04
 FINE_BIN_DEG = 0.01
-FINE_PASSES = ((2e-4, 4e-3),)
-"""(step, span) of the fine passes round the best height (metres), each on every point."""
+FINE_STEP = 2e-4
+FINE_SPAN = 4e-3
+"""The fine pass: :data:`FINE_STEP` steps within this many metres of the best 2 mm height,
+on every sampled point."""
 
 
 def ring_scores(
@@ -115,7 +117,7 @@ def station_height(
     Coarse to fine: a scouting pass over the cloud's height range (:data:`SCOUT_STEP` steps,
     0.04 degree bins, :data:`HEIGHT_COARSE_SAMPLE` points), whose best
     :data:`SCOUT_CANDIDATES` local maxima are looked at again in 2 mm steps (the same bins and
-    points); then :data:`FINE_PASSES` round the best (0.01 degree bins, every sampled point).
+    points); then :data:`FINE_STEP` steps round the best (0.01 degree bins, every sampled point).
     Scoring every 2 mm of the range instead found the same heights in twice the time.
 
     Parameters
@@ -151,8 +153,6 @@ def station_height(
     candidates = candidates[(candidates >= low - SCOUT_SPAN) & (candidates < high + SCOUT_SPAN)]
     scores = ring_scores(coarse_rho, coarse_z, candidates, coarse_bin)
     best = float(candidates[int(np.argmax(scores))])
-    for step, span in FINE_PASSES:
-        heights = best + np.arange(-span, span, step)
-        scores = ring_scores(rho, z, heights, math.radians(FINE_BIN_DEG))
-        best = float(heights[int(np.argmax(scores))])
-    return best
+    heights = best + np.arange(-FINE_SPAN, FINE_SPAN, FINE_STEP)
+    scores = ring_scores(rho, z, heights, math.radians(FINE_BIN_DEG))
+    return float(heights[int(np.argmax(scores))])

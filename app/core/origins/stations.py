@@ -46,7 +46,7 @@ from app.core.localise.stations import (
 from app.core.origins.concurrence import MAX_STATIONS, column_centres, search_centres
 from app.core.origins.known_stations import estimate_each_station
 from app.core.origins.resolve import STATIONS_UNKNOWN, ResolvedOrigin, resolve_origin
-from app.core.origins.sampling import lidar_sampling
+from app.core.origins.sampling import LidarSampling, lidar_sampling
 from app.core.origins.station_height import station_height
 
 __all__ = [
@@ -402,7 +402,7 @@ def _early_enough(found: RecoveredStations) -> bool:
     )
 
 
-def _recovered_evidence(found: RecoveredStations, sampling: Any) -> dict[str, float]:
+def _recovered_evidence(found: RecoveredStations, sampling: LidarSampling) -> dict[str, float]:
     """Evidence entries of recovered stations and the sampling that let them be searched."""
     return {
         **sampling.evidence(),
