@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from app.core.blocks import FileRows, float64_checked
 from app.core.errors import PointCloudError
+from app.core.trajectory import Trajectory
 
 MIN_POINTS = 10
 """Fewest finite points a cloud may have: below this no detector or registration is meaningful."""
@@ -253,6 +254,9 @@ class PointCloud:
         known (a PCD ``VIEWPOINT``, a synthetic scene, or given by the caller); (k, 3) for a
         cloud merged from k stations (an E57 file's scans, per-point origin fields), whose
         ``station_index`` attribute says which station took each point.
+    trajectory : Trajectory or None
+        The moving sensor's path, when the cloud was taken from one (a trajectory file, a ROS
+        bag); per-point times, when known, are the ``"time"`` attribute.
     """
 
     points: NDArray[np.float64]
@@ -260,6 +264,7 @@ class PointCloud:
     n_source: int
     attributes: Mapping[str, NDArray] = field(default_factory=dict)
     sensor_origin: NDArray[np.float64] | None = None
+    trajectory: Trajectory | None = None
 
     @classmethod
     def from_array(
