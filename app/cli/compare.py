@@ -169,9 +169,18 @@ def _print_summary(result: ComparisonResult, reference: Path, scan: Path) -> Non
     print(f"  regions: {len(result.regions)}")
     for region in result.regions[:10]:
         centroid = ", ".join(f"{value:.2f}" for value in region.centroid)
-        print(f"    {region.kind:<7} {region.n_points:>7} points at ({centroid})")
+        print(
+            f"    {region.kind:<7} {region.n_points:>7} points at ({centroid})"
+            f"  {region.evidence}, confidence {region.confidence:.2f}"
+        )
     if len(result.regions) > 10:
         print(f"    ... and {len(result.regions) - 10} more")
+    if result.uncertain_regions:
+        points = sum(region.n_points for region in result.uncertain_regions)
+        print(
+            f"  not covered by the other scan (not counted as change): "
+            f"{len(result.uncertain_regions)} regions, {points} points"
+        )
     timing = ", ".join(f"{stage} {seconds:.2f} s" for stage, seconds in result.timings.items())
     print(f"  timings: {timing}")
 
