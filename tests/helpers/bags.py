@@ -70,13 +70,15 @@ def write_lidar_bag(
     n_sweeps: int = 8,
     extra_cloud_topic: bool = False,
     extra_pose_topic: bool = False,
+    with_clouds: bool = True,
     seed: int = 0,
 ) -> WrittenBag:
     """Write a bag (``storage``: ``bag``, ``db3`` or ``mcap``) of ``n_sweeps`` lidar sweeps.
 
-    ``poses``: ``"tf"`` (``/tf`` + ``/tf_static``) or ``"odometry"`` (``/odom`` +
-    ``/tf_static``). The ROS 2 storages are written as a bag directory and the bare storage
-    file is returned (no ``metadata.yaml`` beside it), as an upload would be.
+    ``poses``: ``"tf"`` (``/tf`` + ``/tf_static``), ``"odometry"`` (``/odom`` +
+    ``/tf_static``) or ``"none"`` (no poses at all). The ROS 2 storages are written as a bag
+    directory and the bare storage file is returned (no ``metadata.yaml`` beside it), as an
+    upload would be.
     """
     rng = np.random.default_rng(seed)
     world = room_world()
@@ -115,8 +117,9 @@ def write_lidar_bag(
     ]
     if poses == "odometry":
         static = static[1:]
-    messages.append(("/tf_static", tf_type, START_TIME, types[tf_type](static)))
-    for time in pose_times:
+    if poses != "none":
+        messages.append(("/tf_static", tf_type, START_TIME, types[tf_type](static)))
+    for time in pose_times if poses != "none" else ():
         position, rotation = _base_pose(time)
         if poses == "tf":
             stamped = transform(time, "odom", "base_link", position, rotation)
@@ -139,7 +142,8 @@ def write_lidar_bag(
         n_raw += int(np.isfinite(local).all(axis=1).sum())
         frame_id = "lidar"
         message = _point_cloud(types, header(time, frame_id), local, offsets)
-        messages.append(("/velodyne_points", "sensor_msgs/msg/PointCloud2", time, message))
+        if with_clouds:
+            messages.append(("/velodyne_points", "sensor_msgs/msg/PointCloud2", time, message))
         if extra_cloud_topic:
             messages.append(("/front/points", "sensor_msgs/msg/PointCloud2", time, message))
         positions.append(position)

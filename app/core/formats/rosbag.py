@@ -28,11 +28,21 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation, Slerp
 
 from app.core.errors import PointCloudError
 from app.core.formats._common import RawCloud, Source
+from app.core.formats.ros_messages import (
+    TimedPoses,
+    Transform,
+    TransformTree,
+    VoxelMap,
+    decode_point_cloud2,
+    frame_name,
+    point_times,
+    quaternion_of,
+    stamp_seconds,
+    vector_of,
+)
 from app.core.trajectory import Trajectory
 
 BAG_FORMATS: tuple[str, ...] = ("bag", "db3", "mcap")
@@ -49,22 +59,6 @@ POSE_TYPES = (
     "geometry_msgs/msg/PoseStamped",
     "geometry_msgs/msg/PoseWithCovarianceStamped",
 )
-TIME_FIELDS = ("t", "time", "timestamp")
-"""PointCloud2 field names read as per-point times (offsets from the stamp, or absolute)."""
-
-EXTRAPOLATION_SECONDS = 0.1
-"""A sweep stamped at most this long before the first or after the last pose takes that pose;
-sweeps further outside the poses' time span are skipped (and counted in the error if none is
-left)."""
-
-CHUNK_POINTS = 1_000_000
-"""Raw points gathered from consecutive sweeps before they are merged into the voxel map."""
-
-VOXEL_KEY_BITS = 21
-"""Bits per axis of a packed voxel key: the map may span 2**21 voxels (105 km at 5 cm) a side."""
-
-_FLOAT_TYPES = {7: "f4", 8: "f8"}
-_POINT_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", **_FLOAT_TYPES}
 
 
 @dataclass(frozen=True)
@@ -145,147 +139,6 @@ def sniff_bag(head: bytes) -> str | None:
     return None
 
 
-@dataclass(frozen=True)
-class _Transform:
-    """A rigid transform mapping points of a child frame into its parent frame."""
-
-    rotation: Rotation
-    translation: NDArray[np.float64]
-
-    def __mul__(self, other: _Transform) -> _Transform:
-        return _Transform(
-            self.rotation * other.rotation,
-            self.rotation.apply(other.translation) + self.translation,
-        )
-
-    def inverse(self) -> _Transform:
-        inverse_rotation = self.rotation.inv()
-        return _Transform(inverse_rotation, -inverse_rotation.apply(self.translation))
-
-
-_IDENTITY = _Transform(Rotation.identity(), np.zeros(3))
-
-
-class _TimedPoses:
-    """Poses sampled in time (one TF edge, or a pose topic), interpolated between samples."""
-
-    def __init__(self) -> None:
-        self._samples: dict[float, tuple[list[float], list[float]]] = {}
-
-    def add(self, time: float, translation: list[float], quaternion: list[float]) -> None:
-        self._samples[time] = (translation, quaternion)
-
-    def __len__(self) -> int:
-        return len(self._samples)
-
-    def freeze(self) -> None:
-        times = np.array(sorted(self._samples), dtype=np.float64)
-        self.times = times
-        self.translations = np.array([self._samples[t][0] for t in times], dtype=np.float64)
-        quaternions = np.array([self._samples[t][1] for t in times], dtype=np.float64)
-        norms = np.linalg.norm(quaternions, axis=1)
-        if not (np.isfinite(quaternions).all() and np.isfinite(self.translations).all()):
-            raise PointCloudError("the bag holds a pose with non-finite values")
-        if (norms < 1e-6).any():
-            raise PointCloudError("the bag holds a pose whose quaternion is zero")
-        rotations = Rotation.from_quat(quaternions / norms[:, None])
-        self.rotations = rotations
-        self._slerp = Slerp(times, rotations) if len(times) > 1 else None
-
-    def at(self, time: float) -> _Transform | None:
-        """The pose at ``time``, or None outside the samples' span (plus the tolerance)."""
-        if time < self.times[0] - EXTRAPOLATION_SECONDS:
-            return None
-        if time > self.times[-1] + EXTRAPOLATION_SECONDS:
-            return None
-        if self._slerp is None:
-            return _Transform(self.rotations[0], self.translations[0])
-        clamped = min(max(time, self.times[0]), self.times[-1])
-        index = int(np.clip(np.searchsorted(self.times, clamped), 1, len(self.times) - 1))
-        t0, t1 = self.times[index - 1], self.times[index]
-        weight = (clamped - t0) / (t1 - t0)
-        translation = (1 - weight) * self.translations[index - 1] + weight * self.translations[
-            index
-        ]
-        return _Transform(self._slerp([clamped])[0], translation)
-
-
-class _TransformTree:
-    """The bag's TF tree: each child frame's parent, with static or timed transforms."""
-
-    def __init__(self) -> None:
-        self.parent: dict[str, str] = {}
-        self.static: dict[str, _Transform] = {}
-        self.dynamic: dict[str, _TimedPoses] = {}
-
-    def add(self, message: Any, is_static: bool) -> None:
-        for stamped in message.transforms:
-            child = _frame(stamped.child_frame_id)
-            parent = _frame(stamped.header.frame_id)
-            if not child or not parent or child == parent:
-                continue
-            self.parent[child] = parent
-            translation = _vector(stamped.transform.translation)
-            quaternion = _quaternion(stamped.transform.rotation)
-            if is_static:
-                self.static[child] = _Transform(
-                    Rotation.from_quat(quaternion), np.array(translation)
-                )
-            else:
-                self.dynamic.setdefault(child, _TimedPoses()).add(
-                    _seconds(stamped.header.stamp), translation, quaternion
-                )
-
-    def freeze(self) -> None:
-        for poses in self.dynamic.values():
-            poses.freeze()
-
-    @property
-    def frames(self) -> list[str]:
-        return sorted({*self.parent, *self.parent.values()})
-
-    def root_of(self, frame: str) -> str:
-        seen = {frame}
-        while frame in self.parent:
-            frame = self.parent[frame]
-            if frame in seen:
-                raise PointCloudError(f"the bag's TF tree has a cycle through frame {frame!r}")
-            seen.add(frame)
-        return frame
-
-    def moves(self, frame: str) -> bool:
-        """Whether a timed transform lies between ``frame`` and the root of its tree."""
-        self.root_of(frame)  # raises on a cycle
-        while frame in self.parent:
-            if frame not in self.static:
-                return True
-            frame = self.parent[frame]
-        return False
-
-    def to_root(self, frame: str, time: float) -> _Transform | None:
-        """Transform from ``frame`` to the root of its tree at ``time``; None when a timed link
-        has no pose near ``time``."""
-        transform = _IDENTITY
-        while frame in self.parent:
-            if frame in self.static:
-                link = self.static[frame]
-            else:
-                link = self.dynamic[frame].at(time)
-                if link is None:
-                    return None
-            transform = link * transform
-            frame = self.parent[frame]
-        return transform
-
-    def lookup(self, target: str, source: str, time: float) -> _Transform | None:
-        """Transform from ``source`` into ``target`` (same tree) at ``time``, or None."""
-        source_to_root = self.to_root(source, time)
-        target_to_root = self.to_root(target, time)
-        if source_to_root is None or target_to_root is None:
-            return None
-        return target_to_root.inverse() * source_to_root
-
-
 def read_rosbag(
     source: Source, max_points: int | None, kind: str, options: BagOptions | None = None
 ) -> RawCloud:
@@ -322,16 +175,19 @@ def read_rosbag(
         try:
             reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             reader.open()
-        except Exception as exc:
+            try:
+                return _read_map(reader, options, max_points)
+            finally:
+                reader.close()
+        except (PointCloudError, MemoryError, AttributeError, NameError, AssertionError):
+            raise
+        except Exception as exc:  # rosbags' reader, storage and deserialisation errors
+            reason = str(exc).replace(str(path), "the file")  # no temporary paths in messages
+            hint = " (a ROS 1 bag must be indexed: run 'rosbag reindex' on it)" * (kind == "bag")
             raise PointCloudError(
-                f"cannot open the ROS bag ({type(exc).__name__}: {exc}); the file may be "
-                "truncated or corrupt: upload the complete recording (a ROS 1 bag must be "
-                "indexed: run 'rosbag reindex' on it)"
+                f"cannot read the ROS bag ({type(exc).__name__}: {reason}); the file may be "
+                f"truncated or corrupt: upload the complete recording{hint}"
             ) from exc
-        try:
-            return _read_map(reader, options, max_points)
-        finally:
-            reader.close()
 
 
 @contextmanager
@@ -352,30 +208,31 @@ def _bag_path(source: Source, kind: str) -> Iterator[Path]:
 def _read_map(reader: Any, options: BagOptions, max_points: int | None) -> RawCloud:
     connections = reader.connections
     cloud_connections = _cloud_connections(connections, options.cloud_topic)
-    tree = _TransformTree()
+    tree = TransformTree()
     tf_connections = [c for c in connections if c.msgtype in TF_TYPES]
-    for connection, _, raw in reader.messages(connections=tf_connections):
+    # an empty connection list would mean every message: read TF only when there is some
+    for connection, _, raw in reader.messages(connections=tf_connections) if tf_connections else ():
         tree.add(
             reader.deserialize(raw, connection.msgtype), connection.topic.lstrip("/") == "tf_static"
         )
     tree.freeze()
     cloud_frame = _first_cloud_frame(reader, cloud_connections)
     locate = _pose_source(reader, connections, tree, cloud_frame, options)
-    voxel_map = _VoxelMap(options.voxel_size)
+    voxel_map = VoxelMap(options.voxel_size)
     stamps: list[float] = []
-    poses: list[_Transform] = []
+    poses: list[Transform] = []
     skipped = 0
     for connection, log_time, raw in reader.messages(connections=cloud_connections):
         if options.max_sweeps is not None and len(stamps) >= options.max_sweeps:
             break
         message = reader.deserialize(raw, connection.msgtype)
-        stamp = _seconds(message.header.stamp) or log_time * 1e-9
-        pose = locate(_frame(message.header.frame_id), stamp)
+        stamp = stamp_seconds(message.header.stamp) or log_time * 1e-9
+        pose = locate(frame_name(message.header.frame_id), stamp)
         if pose is None:
             skipped += 1
             continue
         points, offsets = decode_point_cloud2(message)
-        times = _point_times(stamp, offsets, len(points))
+        times = point_times(stamp, offsets, len(points))
         voxel_map.add(pose.rotation.apply(points) + pose.translation, times)
         stamps.append(stamp)
         poses.append(pose)
@@ -421,12 +278,12 @@ def _cloud_connections(connections: list[Any], cloud_topic: str | None) -> list[
 
 def _first_cloud_frame(reader: Any, cloud_connections: list[Any]) -> str:
     for connection, _, raw in reader.messages(connections=cloud_connections):
-        return _frame(reader.deserialize(raw, connection.msgtype).header.frame_id)
+        return frame_name(reader.deserialize(raw, connection.msgtype).header.frame_id)
     raise PointCloudError(f"the topic {cloud_connections[0].topic!r} has no messages")
 
 
 def _pose_source(
-    reader: Any, connections: list[Any], tree: _TransformTree, cloud_frame: str, options: BagOptions
+    reader: Any, connections: list[Any], tree: TransformTree, cloud_frame: str, options: BagOptions
 ) -> Any:
     """A function ``(frame, stamp) -> transform into the fixed frame or None``."""
     pose_topics = sorted({c.topic for c in connections if c.msgtype in POSE_TYPES})
@@ -436,11 +293,14 @@ def _pose_source(
             f"pose_topic {topic!r} is not an odometry or pose topic of the bag; its pose "
             f"topics: {', '.join(pose_topics) or 'none'}"
         )
-    if topic is None and cloud_frame in tree.parent:
-        # TF places the sweeps when it moves them (or nothing else could): a static chain up
-        # to the robot's body leaves the motion to the pose topic
-        if tree.moves(cloud_frame) or not pose_topics or options.fixed_frame is not None:
-            return _tf_source(tree, cloud_frame, options.fixed_frame)
+    # TF places the sweeps when it moves them (or nothing else could): a static chain up to
+    # the robot's body leaves the motion to the pose topic
+    if (
+        topic is None
+        and cloud_frame in tree.parent
+        and (tree.moves(cloud_frame) or not pose_topics or options.fixed_frame is not None)
+    ):
+        return _tf_source(tree, cloud_frame, options.fixed_frame)
     if topic is None and options.fixed_frame is not None and cloud_frame != options.fixed_frame:
         raise PointCloudError(
             f"fixed_frame {options.fixed_frame!r} is not linked by TF to the cloud's frame "
@@ -460,7 +320,7 @@ def _pose_source(
                 "odometry with the clouds, or set pose_topic"
             )
         topic = pose_topics[0]
-    poses = _TimedPoses()
+    poses = TimedPoses()
     child_frames: set[str] = set()
     for connection, log_time, raw in reader.messages(
         connections=[c for c in connections if c.topic == topic]
@@ -468,17 +328,17 @@ def _pose_source(
         message = reader.deserialize(raw, connection.msgtype)
         pose = message.pose.pose if hasattr(message.pose, "pose") else message.pose
         poses.add(
-            _seconds(message.header.stamp) or log_time * 1e-9,
-            _vector(pose.position),
-            _quaternion(pose.orientation),
+            stamp_seconds(message.header.stamp) or log_time * 1e-9,
+            vector_of(pose.position),
+            quaternion_of(pose.orientation),
         )
-        child_frames.add(_frame(getattr(message, "child_frame_id", "")))
+        child_frames.add(frame_name(getattr(message, "child_frame_id", "")))
     if not len(poses):
         raise PointCloudError(f"the pose topic {topic!r} has no messages")
     poses.freeze()
     child = child_frames.pop() if len(child_frames) == 1 else ""
 
-    def locate(frame: str, stamp: float) -> _Transform | None:
+    def locate(frame: str, stamp: float) -> Transform | None:
         body_pose = poses.at(stamp)
         if body_pose is None:
             return None
@@ -490,7 +350,7 @@ def _pose_source(
     return locate
 
 
-def _tf_source(tree: _TransformTree, cloud_frame: str, fixed_frame: str | None) -> Any:
+def _tf_source(tree: TransformTree, cloud_frame: str, fixed_frame: str | None) -> Any:
     root = tree.root_of(cloud_frame)
     if fixed_frame is None:
         fixed_frame = root
@@ -501,7 +361,7 @@ def _tf_source(tree: _TransformTree, cloud_frame: str, fixed_frame: str | None) 
             f"{', '.join(f for f in tree.frames if tree.root_of(f) == root)}"
         )
 
-    def locate(frame: str, stamp: float) -> _Transform | None:
+    def locate(frame: str, stamp: float) -> Transform | None:
         if frame not in tree.parent or tree.root_of(frame) != tree.root_of(fixed_frame):
             return None
         return tree.lookup(fixed_frame, frame, stamp)
@@ -509,156 +369,8 @@ def _tf_source(tree: _TransformTree, cloud_frame: str, fixed_frame: str | None) 
     return locate
 
 
-def decode_point_cloud2(
-    message: Any,
-) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-    """The finite points of a ``sensor_msgs/PointCloud2`` and their time field, if any.
-
-    Parameters
-    ----------
-    message : PointCloud2
-        A deserialised message: ``x``, ``y``, ``z`` fields of type float32 or float64 at any
-        offsets of a ``point_step`` record (padding allowed), rows of ``row_step`` bytes, either
-        byte order.
-
-    Returns
-    -------
-    points : ndarray, shape (n, 3), float64
-        In the message's frame; points with a non-finite coordinate, and points at exactly the
-        origin (no return), are dropped.
-    times : ndarray, shape (n,), float64, or None
-        The ``t``/``time``/``timestamp`` field in seconds (integers are read as nanoseconds):
-        an offset from the stamp or an absolute time (see :func:`_point_times`).
-    """
-    fields = {field.name: field for field in message.fields}
-    missing = [name for name in "xyz" if name not in fields]
-    if missing:
-        raise PointCloudError(
-            f"a PointCloud2 message has no {', '.join(missing)} field (fields: "
-            f"{', '.join(fields)}); the cloud topic must hold x, y, z points"
-        )
-    order = ">" if message.is_bigendian else "<"
-    names, formats, offsets = [], [], []
-    for name in "xyz":
-        field = fields[name]
-        if field.datatype not in _FLOAT_TYPES:
-            raise PointCloudError(
-                f"PointCloud2 field {name!r} has datatype {field.datatype}; x, y, z must be "
-                "float32 (7) or float64 (8)"
-            )
-        names.append(name)
-        formats.append(order + _FLOAT_TYPES[field.datatype])
-        offsets.append(field.offset)
-    time_name = next((name for name in TIME_FIELDS if name in fields), None)
-    if time_name is not None and fields[time_name].datatype in _POINT_FIELD_TYPES:
-        names.append("time")
-        formats.append(order + _POINT_FIELD_TYPES[fields[time_name].datatype])
-        offsets.append(fields[time_name].offset)
-    else:
-        time_name = None
-    width, height, step = int(message.width), int(message.height), int(message.point_step)
-    row_step = int(message.row_step) or width * step
-    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
-    data = np.asarray(message.data, dtype=np.uint8)
-    if step < dtype.itemsize or row_step < width * step or data.size < row_step * height:
-        raise PointCloudError(
-            f"a PointCloud2 message is inconsistent: {height} rows of {width} points of "
-            f"{step} bytes (row_step {row_step}) need more than its {data.size} data bytes"
-        )
-    rows = data[: row_step * height].reshape(height, row_step)[:, : width * step]
-    records = np.ascontiguousarray(rows).view(dtype).reshape(-1)
-    points = np.column_stack([records[n].astype(np.float64) for n in "xyz"])
-    keep = np.isfinite(points).all(axis=1) & (points != 0).any(axis=1)
-    times = None
-    if time_name is not None:
-        times = records["time"].astype(np.float64)[keep]
-        if records.dtype["time"].kind in "iu":
-            times *= 1e-9
-    return points[keep], times
-
-
-def _point_times(stamp: float, offsets: NDArray[np.float64] | None, n: int) -> NDArray:
-    """Absolute times: the stamp, plus per-point offsets; values beyond 1e6 s are absolute
-    already (floats beyond 1e12 are nanoseconds)."""
-    if offsets is None or offsets.size == 0:
-        return np.full(n, stamp)
-    largest = float(np.abs(offsets).max())
-    if largest > 1e12:
-        return offsets * 1e-9
-    if largest > 1e6:
-        return offsets
-    return stamp + offsets
-
-
-class _VoxelMap:
-    """Points merged a chunk of sweeps at a time, keeping the newest point of each voxel."""
-
-    def __init__(self, voxel_size: float) -> None:
-        self.voxel_size = voxel_size
-        self.points = np.empty((0, 3))
-        self.times = np.empty(0)
-        self._pending: list[tuple[NDArray, NDArray]] = []
-        self._pending_count = 0
-        self._origin: NDArray[np.int64] | None = None
-
-    def add(self, points: NDArray[np.float64], times: NDArray[np.float64]) -> None:
-        self._pending.append((points, times))
-        self._pending_count += len(points)
-        if self._pending_count >= CHUNK_POINTS:
-            self._merge()
-
-    def result(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        self._merge()
-        return self.points, self.times
-
-    def _merge(self) -> None:
-        if not self._pending:
-            return
-        points = np.concatenate([self.points, *(p for p, _ in self._pending)])
-        times = np.concatenate([self.times, *(t for _, t in self._pending)])
-        self._pending, self._pending_count = [], 0
-        if self.voxel_size > 0 and len(points):
-            newest = _newest_per_voxel(self._keys(points))
-            points, times = points[newest], times[newest]
-        self.points, self.times = points, times
-
-    def _keys(self, points: NDArray[np.float64]) -> NDArray[np.int64]:
-        cells = np.floor(points / self.voxel_size).astype(np.int64)
-        if self._origin is None:
-            self._origin = cells[0] - (1 << (VOXEL_KEY_BITS - 1))
-        cells -= self._origin
-        if cells.min() < 0 or cells.max() >= 1 << VOXEL_KEY_BITS:
-            raise PointCloudError(
-                f"the bag's map spans more than {1 << VOXEL_KEY_BITS} voxels of "
-                f"{self.voxel_size} m along an axis; set a larger voxel_size"
-            )
-        return (cells[:, 0] << (2 * VOXEL_KEY_BITS)) | (cells[:, 1] << VOXEL_KEY_BITS) | cells[:, 2]
-
-
-def _newest_per_voxel(keys: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Rows (ascending) of the last row of each distinct key."""
-    _, first_in_reversed = np.unique(keys[::-1], return_index=True)
-    return np.sort(len(keys) - 1 - first_in_reversed)
-
-
-def _trajectory(stamps: list[float], poses: list[_Transform]) -> Trajectory:
+def _trajectory(stamps: list[float], poses: list[Transform]) -> Trajectory:
     times, first = np.unique(np.array(stamps), return_index=True)
     positions = np.array([poses[i].translation for i in first])
     orientations = np.array([poses[i].rotation.as_quat() for i in first])
     return Trajectory(times, positions, orientations)
-
-
-def _frame(name: str) -> str:
-    return name.lstrip("/")
-
-
-def _seconds(stamp: Any) -> float:
-    return float(stamp.sec) + float(stamp.nanosec) * 1e-9
-
-
-def _vector(value: Any) -> list[float]:
-    return [float(value.x), float(value.y), float(value.z)]
-
-
-def _quaternion(value: Any) -> list[float]:
-    return [float(value.x), float(value.y), float(value.z), float(value.w)]
