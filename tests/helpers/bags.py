@@ -44,8 +44,10 @@ class WrittenBag:
     n_raw_points: int
 
 
-def room_world() -> LidarWorld:
-    """The room the sweeps see (map frame)."""
+def room_world(with_box: bool = True) -> LidarWorld:
+    """The room the sweeps see (map frame), with its 1 m box or without it."""
+    if not with_box:
+        return LidarWorld(SHELL_LOW, SHELL_HIGH, np.empty((0, 3)), np.empty((0, 3)))
     return LidarWorld(SHELL_LOW, SHELL_HIGH, BOX_LOW, BOX_HIGH)
 
 
@@ -71,6 +73,7 @@ def write_lidar_bag(
     extra_cloud_topic: bool = False,
     extra_pose_topic: bool = False,
     with_clouds: bool = True,
+    with_box: bool = True,
     seed: int = 0,
 ) -> WrittenBag:
     """Write a bag (``storage``: ``bag``, ``db3`` or ``mcap``) of ``n_sweeps`` lidar sweeps.
@@ -81,7 +84,7 @@ def write_lidar_bag(
     upload would be.
     """
     rng = np.random.default_rng(seed)
-    world = room_world()
+    world = room_world(with_box)
     directions = lidar_directions(7.0, 4.0)  # 16 rings, 90 columns
     offsets = np.linspace(0.0, 0.09, len(directions), dtype=np.float32)
     sweep_times = START_TIME + POSE_PERIOD * (np.arange(n_sweeps) + 0.5)
@@ -151,10 +154,10 @@ def write_lidar_bag(
     path = _write(directory, storage, typestore, messages)
     if poses == "odometry":
         world = LidarWorld(
-            SHELL_LOW - MAP_TO_ODOM,
-            SHELL_HIGH - MAP_TO_ODOM,
-            BOX_LOW - MAP_TO_ODOM,
-            BOX_HIGH - MAP_TO_ODOM,
+            world.shell_low - MAP_TO_ODOM,
+            world.shell_high - MAP_TO_ODOM,
+            world.box_low - MAP_TO_ODOM,
+            world.box_high - MAP_TO_ODOM,
         )
     return WrittenBag(path, world, sweep_times, np.array(positions), np.array(orientations), n_raw)
 

@@ -293,19 +293,22 @@ def _pose_source(
             f"pose_topic {topic!r} is not an odometry or pose topic of the bag; its pose "
             f"topics: {', '.join(pose_topics) or 'none'}"
         )
-    # TF places the sweeps when it moves them (or nothing else could): a static chain up to
-    # the robot's body leaves the motion to the pose topic
+    fixed = options.fixed_frame
+    fixed_in_tf = (
+        fixed is not None
+        and cloud_frame in tree.parent
+        and fixed in tree.frames
+        and tree.root_of(fixed) == tree.root_of(cloud_frame)
+    )
+    # TF places the sweeps when it moves them, when the fixed frame is one of its frames, or
+    # when nothing else could: a static chain up to the robot's body leaves the motion to the
+    # pose topic
     if (
         topic is None
         and cloud_frame in tree.parent
-        and (tree.moves(cloud_frame) or not pose_topics or options.fixed_frame is not None)
+        and (tree.moves(cloud_frame) or not pose_topics or fixed_in_tf)
     ):
-        return _tf_source(tree, cloud_frame, options.fixed_frame)
-    if topic is None and options.fixed_frame is not None and cloud_frame != options.fixed_frame:
-        raise PointCloudError(
-            f"fixed_frame {options.fixed_frame!r} is not linked by TF to the cloud's frame "
-            f"{cloud_frame!r}; frames in the bag's TF: {', '.join(tree.frames) or 'none'}"
-        )
+        return _tf_source(tree, cloud_frame, fixed)
     if topic is None:
         if len(pose_topics) > 1:
             raise PointCloudError(
@@ -322,6 +325,7 @@ def _pose_source(
         topic = pose_topics[0]
     poses = TimedPoses()
     child_frames: set[str] = set()
+    pose_frames: set[str] = set()
     for connection, log_time, raw in reader.messages(
         connections=[c for c in connections if c.topic == topic]
     ):
@@ -333,8 +337,15 @@ def _pose_source(
             quaternion_of(pose.orientation),
         )
         child_frames.add(frame_name(getattr(message, "child_frame_id", "")))
+        pose_frames.add(frame_name(message.header.frame_id))
     if not len(poses):
         raise PointCloudError(f"the pose topic {topic!r} has no messages")
+    if fixed is not None and pose_frames != {fixed}:
+        raise PointCloudError(
+            f"fixed_frame {fixed!r} is neither linked by TF to the cloud's frame {cloud_frame!r} "
+            f"nor the frame of the poses of {topic!r} ({', '.join(sorted(pose_frames))}); "
+            "leave fixed_frame unset or name one of these"
+        )
     poses.freeze()
     child = child_frames.pop() if len(child_frames) == 1 else ""
 
