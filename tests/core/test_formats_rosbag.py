@@ -17,6 +17,7 @@ box room, placed by TF or by an odometry topic with a static mount TF):
 
 from __future__ import annotations
 
+import sqlite3
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -205,3 +206,24 @@ def test_point_cloud2_layouts() -> None:
     message.fields = fields[:2]
     with pytest.raises(PointCloudError, match="no z field"):
         decode_point_cloud2(message)
+
+
+def test_db3_without_message_definitions_uses_the_ros2_types(tmp_path: Path) -> None:
+    """Recorders before ROS 2 Iron store no definitions in the .db3 (schema version 3)."""
+    written = _bag(tmp_path, "db3", n_sweeps=3)
+    with sqlite3.connect(written.path) as database:
+        database.execute("DROP TABLE message_definitions")
+        database.execute("UPDATE schema SET schema_version = 3")
+    database.close()
+
+    cloud = read_point_cloud(written.path)
+
+    assert written.world.surface_distance(cloud.points).max() < 5 * NOISE
+    assert cloud.trajectory is not None and len(cloud.trajectory) == 3
+
+
+def test_map_larger_than_max_points_is_refused(tmp_path: Path) -> None:
+    written = _bag(tmp_path, "bag", n_sweeps=3)
+
+    with pytest.raises(PointCloudError, match=r"limit of 1,000 points.*voxel_size"):
+        read_point_cloud(written.path, max_points=1000)

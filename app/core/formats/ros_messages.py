@@ -272,6 +272,13 @@ class VoxelMap:
         if self._pending_count >= CHUNK_POINTS:
             self._merge()
 
+    def holds_at_most(self, limit: int) -> bool:
+        """Whether the merged map has at most ``limit`` points (merges the pending sweeps only
+        when their raw count passes the limit)."""
+        if len(self.points) + self._pending_count > limit:
+            self._merge()
+        return len(self.points) <= limit
+
     def result(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         self._merge()
         return self.points, self.times

@@ -234,6 +234,11 @@ def _read_map(reader: Any, options: BagOptions, max_points: int | None) -> RawCl
         points, offsets = decode_point_cloud2(message)
         times = point_times(stamp, offsets, len(points))
         voxel_map.add(pose.rotation.apply(points) + pose.translation, times)
+        if max_points is not None and not voxel_map.holds_at_most(max_points):
+            raise PointCloudError(
+                f"the bag's map passed the limit of {max_points:,} points after "
+                f"{len(stamps) + 1} sweeps; set a larger voxel_size or max_sweeps"
+            )
         stamps.append(stamp)
         poses.append(pose)
     if not stamps:
