@@ -75,20 +75,23 @@ def write_lidar_bag(
     with_clouds: bool = True,
     with_box: bool = True,
     seed: int = 0,
+    period: float = POSE_PERIOD,
+    azimuth_step_deg: float = 4.0,
 ) -> WrittenBag:
     """Write a bag (``storage``: ``bag``, ``db3`` or ``mcap``) of ``n_sweeps`` lidar sweeps.
 
     ``poses``: ``"tf"`` (``/tf`` + ``/tf_static``), ``"odometry"`` (``/odom`` +
     ``/tf_static``) or ``"none"`` (no poses at all). The ROS 2 storages are written as a bag
     directory and the bare storage file is returned (no ``metadata.yaml`` beside it), as an
-    upload would be.
+    upload would be. ``period``: seconds between pose samples and between sweeps (the robot
+    moves 0.8 m/s: keep ``n_sweeps * period`` under 7 s to stay in the room).
     """
     rng = np.random.default_rng(seed)
     world = room_world(with_box)
-    directions = lidar_directions(7.0, 4.0)  # 16 rings, 90 columns
+    directions = lidar_directions(7.0, azimuth_step_deg)  # 16 rings, 90 columns by default
     offsets = np.linspace(0.0, 0.09, len(directions), dtype=np.float32)
-    sweep_times = START_TIME + POSE_PERIOD * (np.arange(n_sweeps) + 0.5)
-    pose_times = START_TIME + POSE_PERIOD * np.arange(n_sweeps + 1)
+    sweep_times = START_TIME + period * (np.arange(n_sweeps) + 0.5)
+    pose_times = START_TIME + period * np.arange(n_sweeps + 1)
     is_ros1 = storage == "bag"
     typestore = get_typestore(Stores.ROS1_NOETIC if is_ros1 else Stores.ROS2_HUMBLE)
     if is_ros1:
