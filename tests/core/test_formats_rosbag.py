@@ -92,6 +92,8 @@ def test_max_sweeps_and_fixed_frame(tmp_path: Path) -> None:
     )
     shifted = written.world.surface_distance(cloud.points + MAP_TO_ODOM)
     assert shifted.max() < 5 * NOISE
+    with pytest.raises(PointCloudError, match=r"fixed_frame 'earth' is not linked.*map, odom"):
+        read_point_cloud(written.path, bag_options=BagOptions(fixed_frame="earth"))
 
 
 @pytest.mark.parametrize("storage", STORAGES)

@@ -370,7 +370,7 @@ def _tf_source(tree: TransformTree, cloud_frame: str, fixed_frame: str | None) -
     root = tree.root_of(cloud_frame)
     if fixed_frame is None:
         fixed_frame = root
-    elif fixed_frame not in tree.parent and fixed_frame != root:
+    elif fixed_frame not in tree.frames or tree.root_of(fixed_frame) != root:
         raise PointCloudError(
             f"fixed_frame {fixed_frame!r} is not linked by TF to the cloud's frame "
             f"{cloud_frame!r}; frames linked to it: "
