@@ -61,12 +61,15 @@ class TimedPoses:
         self._samples: dict[float, tuple[list[float], list[float]]] = {}
 
     def add(self, time: float, translation: list[float], quaternion: list[float]) -> None:
+        """Record the pose at ``time`` (seconds): translation (3,), quaternion (x, y, z, w)."""
         self._samples[time] = (translation, quaternion)
 
     def __len__(self) -> int:
         return len(self._samples)
 
     def freeze(self) -> None:
+        """Sort the samples into ``times`` (m,), ``translations`` (m, 3) and ``rotations``;
+        call once, after the last :meth:`add` and before :meth:`at`."""
         times = np.array(sorted(self._samples), dtype=np.float64)
         self.times = times
         self.translations = np.array([self._samples[t][0] for t in times], dtype=np.float64)
@@ -107,6 +110,8 @@ class TransformTree:
         self.dynamic: dict[str, TimedPoses] = {}
 
     def add(self, message: Any, is_static: bool) -> None:
+        """Record the transforms of a ``tf2_msgs/TFMessage`` (from ``/tf_static`` when
+        ``is_static``); leading slashes of frame names are dropped."""
         for stamped in message.transforms:
             child = frame_name(stamped.child_frame_id)
             parent = frame_name(stamped.header.frame_id)
@@ -125,14 +130,17 @@ class TransformTree:
                 )
 
     def freeze(self) -> None:
+        """Prepare every timed link for interpolation (after the last :meth:`add`)."""
         for poses in self.dynamic.values():
             poses.freeze()
 
     @property
     def frames(self) -> list[str]:
+        """Every frame named by a transform, sorted."""
         return sorted({*self.parent, *self.parent.values()})
 
     def root_of(self, frame: str) -> str:
+        """The frame at the top of ``frame``'s chain of parents (``frame`` itself if none)."""
         seen = {frame}
         while frame in self.parent:
             frame = self.parent[frame]
@@ -267,6 +275,8 @@ class VoxelMap:
         self._origin: NDArray[np.int64] | None = None
 
     def add(self, points: NDArray[np.float64], times: NDArray[np.float64]) -> None:
+        """Queue one placed sweep: ``points`` (n, 3) and their ``times`` (n,), newer than
+        everything queued before."""
         self._pending.append((points, times))
         self._pending_count += len(points)
         if self._pending_count >= CHUNK_POINTS:
@@ -280,6 +290,7 @@ class VoxelMap:
         return len(self.points) <= limit
 
     def result(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The merged map: points (n, 3) and times (n,), in the order they were added."""
         self._merge()
         return self.points, self.times
 
