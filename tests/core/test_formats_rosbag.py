@@ -33,7 +33,7 @@ from app.core.formats import (
 )
 from app.core.formats.ros_messages import decode_point_cloud2
 from app.core.formats.rosbag import bag_options_from_strings
-from tests.helpers.bags import MAP_TO_ODOM, NOISE, WrittenBag, write_lidar_bag
+from tests.helpers.bags import MAP_TO_ODOM, MOUNT_TRANSLATION, NOISE, WrittenBag, write_lidar_bag
 from tests.helpers.clouds import assert_summary_of
 
 STORAGES = ("bag", "db3", "mcap")
@@ -94,6 +94,23 @@ def test_max_sweeps_and_fixed_frame(tmp_path: Path) -> None:
     assert shifted.max() < 5 * NOISE
     with pytest.raises(PointCloudError, match=r"fixed_frame 'earth' is not linked.*map, odom"):
         read_point_cloud(written.path, bag_options=BagOptions(fixed_frame="earth"))
+
+
+@pytest.mark.parametrize("poses", ["odometry", "tf"])
+def test_registered_sweeps_stay_in_place(tmp_path: Path, poses: str) -> None:
+    """Sweeps already in the poses' frame (a SLAM's output) are not moved again; the odometry
+    poses (of the robot's body, not the lidar) are the trajectory; with TF alone there is none."""
+    written = _bag(tmp_path, "mcap", poses=poses, registered=True, n_sweeps=4)
+    cloud = read_point_cloud(written.path)
+
+    assert written.world.surface_distance(cloud.points).max() < 5 * NOISE
+    if poses == "tf":
+        assert cloud.trajectory is None
+        return
+    assert cloud.trajectory is not None
+    np.testing.assert_allclose(cloud.trajectory.times, written.sweep_times, atol=1e-6)
+    offsets = np.linalg.norm(cloud.trajectory.positions - written.sensor_positions, axis=1)
+    np.testing.assert_allclose(offsets, np.linalg.norm(MOUNT_TRANSLATION), atol=1e-6)
 
 
 @pytest.mark.parametrize("storage", STORAGES)

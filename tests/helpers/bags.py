@@ -74,6 +74,7 @@ def write_lidar_bag(
     extra_pose_topic: bool = False,
     with_clouds: bool = True,
     with_box: bool = True,
+    registered: bool = False,
     seed: int = 0,
     period: float = POSE_PERIOD,
     azimuth_step_deg: float = 4.0,
@@ -83,8 +84,10 @@ def write_lidar_bag(
     ``poses``: ``"tf"`` (``/tf`` + ``/tf_static``), ``"odometry"`` (``/odom`` +
     ``/tf_static``) or ``"none"`` (no poses at all). The ROS 2 storages are written as a bag
     directory and the bare storage file is returned (no ``metadata.yaml`` beside it), as an
-    upload would be. ``period``: seconds between pose samples and between sweeps (the robot
-    moves 0.8 m/s: keep ``n_sweeps * period`` under 7 s to stay in the room).
+    upload would be. ``registered``: sweeps written in the fixed frame (``odom`` with
+    odometry poses, else ``map``) instead of the lidar's. ``period``: seconds between pose
+    samples and between sweeps (the robot moves 0.8 m/s: keep ``n_sweeps * period`` under 7 s
+    to stay in the room).
     """
     rng = np.random.default_rng(seed)
     world = room_world(with_box)
@@ -147,6 +150,9 @@ def write_lidar_bag(
         local[rng.random(len(local)) < 0.05] = np.nan  # no returns
         n_raw += int(np.isfinite(local).all(axis=1).sum())
         frame_id = "lidar"
+        if registered:  # sweeps in the fixed frame already, as a SLAM publishes them
+            frame_id = "odom" if poses == "odometry" else "map"
+            local = rotation.apply(local) + position
         message = _point_cloud(types, header(time, frame_id), local, offsets)
         if with_clouds:
             messages.append(("/velodyne_points", "sensor_msgs/msg/PointCloud2", time, message))

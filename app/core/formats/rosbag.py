@@ -32,6 +32,7 @@ import numpy as np
 from app.core.errors import PointCloudError
 from app.core.formats._common import RawCloud, Source
 from app.core.formats.ros_messages import (
+    IDENTITY,
     TimedPoses,
     Transform,
     TransformTree,
@@ -221,27 +222,30 @@ def _read_map(reader: Any, options: BagOptions, max_points: int | None) -> RawCl
     voxel_map = VoxelMap(options.voxel_size)
     stamps: list[float] = []
     poses: list[Transform] = []
-    skipped = 0
+    skipped = n_sweeps = 0
     for connection, log_time, raw in reader.messages(connections=cloud_connections):
-        if options.max_sweeps is not None and len(stamps) >= options.max_sweeps:
+        if options.max_sweeps is not None and n_sweeps >= options.max_sweeps:
             break
         message = reader.deserialize(raw, connection.msgtype)
         stamp = stamp_seconds(message.header.stamp) or log_time * 1e-9
-        pose = locate(frame_name(message.header.frame_id), stamp)
-        if pose is None:
+        located = locate(frame_name(message.header.frame_id), stamp)
+        if located is None:
             skipped += 1
             continue
+        placement, sensor_pose = located
         points, offsets = decode_point_cloud2(message)
         times = point_times(stamp, offsets, len(points))
-        voxel_map.add(pose.rotation.apply(points) + pose.translation, times)
+        voxel_map.add(placement.rotation.apply(points) + placement.translation, times)
+        n_sweeps += 1
         if max_points is not None and not voxel_map.holds_at_most(max_points):
             raise PointCloudError(
                 f"the bag's map passed the limit of {max_points:,} points after "
-                f"{len(stamps) + 1} sweeps; set a larger voxel_size or max_sweeps"
+                f"{n_sweeps} sweeps; set a larger voxel_size or max_sweeps"
             )
-        stamps.append(stamp)
-        poses.append(pose)
-    if not stamps:
+        if sensor_pose is not None:
+            stamps.append(stamp)
+            poses.append(sensor_pose)
+    if not n_sweeps:
         raise PointCloudError(
             f"none of the {skipped} sweeps of {cloud_connections[0].topic!r} has a pose at its "
             "stamp: the bag's poses do not cover the sweeps' times; record the poses with the "
@@ -253,7 +257,8 @@ def _read_map(reader: Any, options: BagOptions, max_points: int | None) -> RawCl
             f"the bag's map has {len(points):,} points, more than the limit of {max_points:,}; "
             "set a larger voxel_size"
         )
-    return RawCloud(points, {"time": times}, trajectory=_trajectory(stamps, poses))
+    trajectory = _trajectory(stamps, poses) if stamps else None
+    return RawCloud(points, {"time": times}, trajectory=trajectory)
 
 
 def _cloud_connections(connections: list[Any], cloud_topic: str | None) -> list[Any]:
@@ -290,7 +295,12 @@ def _first_cloud_frame(reader: Any, cloud_connections: list[Any]) -> str:
 def _pose_source(
     reader: Any, connections: list[Any], tree: TransformTree, cloud_frame: str, options: BagOptions
 ) -> Any:
-    """A function ``(frame, stamp) -> transform into the fixed frame or None``."""
+    """A function ``(frame, stamp) -> (placement, sensor pose) or None``.
+
+    ``placement`` takes the sweep's points into the fixed frame; ``sensor pose`` is the
+    sensor's pose in that frame, None when unknown (sweeps recorded in the fixed frame already,
+    with no pose of the sensor); None for both when the poses do not reach ``stamp``.
+    """
     pose_topics = sorted({c.topic for c in connections if c.msgtype in POSE_TYPES})
     topic = options.pose_topic
     if topic is not None and topic not in pose_topics:
@@ -314,6 +324,13 @@ def _pose_source(
         and (tree.moves(cloud_frame) or not pose_topics or fixed_in_tf)
     ):
         return _tf_source(tree, cloud_frame, fixed)
+    if (
+        topic is None
+        and not pose_topics
+        and cloud_frame in tree.frames
+        and fixed in (None, cloud_frame)
+    ):
+        return lambda frame, stamp: (IDENTITY, None) if frame == cloud_frame else None
     if topic is None:
         if len(pose_topics) > 1:
             raise PointCloudError(
@@ -353,15 +370,18 @@ def _pose_source(
         )
     poses.freeze()
     child = child_frames.pop() if len(child_frames) == 1 else ""
+    pose_frame = pose_frames.pop() if len(pose_frames) == 1 else None
 
-    def locate(frame: str, stamp: float) -> Transform | None:
+    def locate(frame: str, stamp: float) -> tuple[Transform, Transform | None] | None:
         body_pose = poses.at(stamp)
         if body_pose is None:
             return None
+        if frame == pose_frame:  # registered sweeps (e.g. a SLAM's output): in place already
+            return IDENTITY, body_pose
         if child and frame != child and tree.root_of(frame) == tree.root_of(child):
             mount = tree.lookup(child, frame, stamp)
-            return None if mount is None else body_pose * mount
-        return body_pose
+            return None if mount is None else (body_pose * mount, body_pose * mount)
+        return body_pose, body_pose
 
     return locate
 
@@ -377,10 +397,11 @@ def _tf_source(tree: TransformTree, cloud_frame: str, fixed_frame: str | None) -
             f"{', '.join(f for f in tree.frames if tree.root_of(f) == root)}"
         )
 
-    def locate(frame: str, stamp: float) -> Transform | None:
+    def locate(frame: str, stamp: float) -> tuple[Transform, Transform] | None:
         if frame not in tree.parent or tree.root_of(frame) != tree.root_of(fixed_frame):
             return None
-        return tree.lookup(fixed_frame, frame, stamp)
+        pose = tree.lookup(fixed_frame, frame, stamp)
+        return None if pose is None else (pose, pose)
 
     return locate
 
