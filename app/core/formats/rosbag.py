@@ -8,7 +8,9 @@ child frame composed with a static TF to the sensor), thins the merged points on
 chunk of sweeps at a time (one point per voxel, the newest, with its time) and returns the map
 with the sensor's poses at the sweep stamps as its :class:`~app.core.trajectory.Trajectory` and
 each point's time (sweep stamp plus the point's own offset when the message has one) as the
-``"time"`` attribute.
+``"time"`` attribute. Sweeps recorded in the pose topic's frame already (a SLAM's registered
+clouds) are kept in place, with the pose topic's poses as the trajectory; sweeps in the root
+frame of TF with no pose topic are kept in place without a trajectory.
 
 Formats (all read with the pure-Python ``rosbags`` package): ROS 1 ``.bag`` (message
 definitions embedded), ROS 2 ``.mcap`` (schemas embedded) and a bare ROS 2 ``.db3`` SQLite
