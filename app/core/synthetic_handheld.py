@@ -122,7 +122,7 @@ def _render(
     directions = np.einsum("fij,fpj->fpi", path.rotations, local).reshape(-1, 3)
     pose = np.repeat(np.arange(n_frames), rows * columns)
     origins = path.positions[pose]
-    distance, box = cast_rays(world, origins, directions)
+    distance, box = cast_rays(world, origins, directions, world_and_owner[1])
     depth = distance * local.reshape(-1, 3)[:, 2]
     keep = (depth >= CAMERA.range_limits[0]) & (depth <= CAMERA.range_limits[1])
     exact = origins[keep] + distance[keep, None] * directions[keep]

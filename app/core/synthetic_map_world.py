@@ -46,6 +46,8 @@ __all__ = [
 
 MISALIGNMENT = ((0.02, 0.03), 0.3)
 """(translation range in metres, rotation in degrees) of a misaligned scan file."""
+TESTED_POSES = 24
+"""With ``stride=None``, the truth's ``scored`` tests about this many poses of the other epoch."""
 MIN_VISIBLE_CHANGE = 50
 """A changed pair has at least this many changed, scored points (else the layout is redrawn)."""
 
@@ -173,7 +175,8 @@ class MapPair:
     seed : int
     misaligned : bool
     visibility_stride : int
-        Every this many poses of the other epoch were tested for ``*_scored``.
+        Every this many poses of the other epoch were tested for ``*_scored`` (the larger of
+        the two epochs' strides): a place seen only between tested poses is not scored.
     """
 
     reference: PointCloud
@@ -234,7 +237,10 @@ def world_of(
 
 
 def cast_rays(
-    world: LidarWorld, origins: NDArray[np.float64], directions: NDArray[np.float64]
+    world: LidarWorld,
+    origins: NDArray[np.float64],
+    directions: NDArray[np.float64],
+    owner: NDArray[np.int64] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """First hit of rays with one origin each, inside the closed shell of ``world``.
 
@@ -243,6 +249,9 @@ def cast_rays(
     world : LidarWorld
     origins, directions : ndarray, shape (r, 3)
         Ray origins (inside the shell, outside every box) and unit directions.
+    owner : ndarray, shape (b,), int64, optional
+        The object each box belongs to (:func:`world_of`): a ray is tested against an object's
+        boxes only when it passes the object's bounds (the same hits, sooner).
 
     Returns
     -------
@@ -259,30 +268,39 @@ def cast_rays(
         )
         distance = np.where(np.isfinite(exit_distance), exit_distance, np.inf).min(axis=1)
         box = np.full(len(directions), -1, dtype=np.int64)
-        # each ray's segment inside the shell, as a box: most boxes are far from most segments
+        # each ray's segment inside the shell, as a box: most objects are far from most
+        # segments; test an object's boxes only on the rays whose segment meets its bounds
         ends = origins + distance[:, None] * directions
         segment_low, segment_high = np.minimum(origins, ends), np.maximum(origins, ends)
-        for index in range(len(world.box_low)):
-            low, high = world.box_low[index], world.box_high[index]
-            rows = np.flatnonzero(
-                (segment_low[:, 0] <= high[0])
-                & (segment_high[:, 0] >= low[0])
-                & (segment_low[:, 1] <= high[1])
-                & (segment_high[:, 1] >= low[1])
-                & (segment_low[:, 2] <= high[2])
-                & (segment_high[:, 2] >= low[2])
+
+        def meeting(rows: NDArray[np.int64], low: NDArray, high: NDArray) -> NDArray[np.int64]:
+            inside = np.ones(len(rows), dtype=bool)
+            for axis in range(3):
+                inside &= segment_low[rows, axis] <= high[axis]
+                inside &= segment_high[rows, axis] >= low[axis]
+            return rows[inside]
+
+        all_rows = np.arange(len(directions))
+        groups = np.arange(len(world.box_low)) if owner is None else owner
+        for group in np.unique(groups):
+            members = np.flatnonzero(groups == group)
+            group_rows = meeting(
+                all_rows, world.box_low[members].min(axis=0), world.box_high[members].max(axis=0)
             )
-            if rows.size == 0:
-                continue
-            t_low = (low - origins[rows]) * inverse[rows]
-            t_high = (high - origins[rows]) * inverse[rows]
-            t_near = np.fmin(t_low, t_high)
-            t_far = np.fmax(t_low, t_high)
-            t_near = np.where(np.isnan(t_near), -np.inf, t_near).max(axis=1)
-            t_far = np.where(np.isnan(t_far), np.inf, t_far).min(axis=1)
-            hits = (t_near <= t_far) & (t_near > 0.0) & (t_near < distance[rows])
-            distance[rows[hits]] = t_near[hits]
-            box[rows[hits]] = index
+            for index in members:
+                low, high = world.box_low[index], world.box_high[index]
+                rows = meeting(group_rows, low, high) if len(members) > 1 else group_rows
+                if rows.size == 0:
+                    continue
+                t_low = (low - origins[rows]) * inverse[rows]
+                t_high = (high - origins[rows]) * inverse[rows]
+                t_near = np.fmin(t_low, t_high)
+                t_far = np.fmax(t_low, t_high)
+                t_near = np.where(np.isnan(t_near), -np.inf, t_near).max(axis=1)
+                t_far = np.where(np.isnan(t_far), np.inf, t_far).min(axis=1)
+                hits = (t_near <= t_far) & (t_near > 0.0) & (t_near < distance[rows])
+                distance[rows[hits]] = t_near[hits]
+                box[rows[hits]] = index
     return distance, box
 
 
@@ -312,10 +330,13 @@ def seen_by_path(
     path: SensorPath,
     points: NDArray[np.float64],
     stride: int,
+    owner: NDArray[np.int64] | None = None,
     batch: int = 60_000,
 ) -> NDArray[np.bool_]:
     """Whether some pose (every ``stride``-th of ``path``) sees the exact ``points`` (p, 3) in
-    ``world``: in range and view, and no surface of ``world`` before it, shape (p,)."""
+    ``world``: in range and view, and no surface of ``world`` before it, shape (p,).
+
+    ``owner`` (b,): the object of each box of ``world``, as for :func:`cast_rays`."""
     seen = np.zeros(len(points), dtype=bool)
     pending_points: list[NDArray] = []
     pending_origins: list[NDArray] = []
@@ -328,7 +349,7 @@ def seen_by_path(
         origins = np.vstack(pending_origins)
         offset = np.vstack(pending_points) - origins
         distance = np.linalg.norm(offset, axis=1)
-        first, _ = cast_rays(world, origins, offset / distance[:, None])
+        first, _ = cast_rays(world, origins, offset / distance[:, None], owner)
         seen[rows[first >= distance - (1e-6 + 1e-6 * distance)]] = True
         pending_points.clear()
         pending_origins.clear()
@@ -368,8 +389,11 @@ def voxel_thin(
         Row of ``points`` nearest each centroid: its time, pose and exact position stand for
         the voxel's.
     """
-    keys = np.floor(points / voxel).astype(np.int64)
-    _, group, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    cells = np.floor(points / voxel).astype(np.int64)
+    cells -= cells.min(axis=0)
+    span = cells.max(axis=0) + 1
+    keys = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+    _, group, counts = np.unique(keys, return_inverse=True, return_counts=True)
     group = group.reshape(-1)
     centroids = np.column_stack(
         [np.bincount(group, weights=points[:, axis]) / counts for axis in range(3)]
@@ -428,7 +452,7 @@ def assemble_pair(
     samples: tuple[EpochSamples, EpochSamples],
     sensor: SensorModel,
     voxel: float,
-    stride: int,
+    stride: int | None,
     misaligned: bool,
     rng: np.random.Generator,
     labels: dict,
@@ -437,17 +461,26 @@ def assemble_pair(
 
     ``labels`` gives ``map_class``, ``layout``, ``change``, ``seed`` (and optional
     ``metadata``).  The reference file is the world shifted away from the origin; the scan file
-    is that, moved by a :func:`misalignment` when ``misaligned``.
+    is that, moved by a :func:`misalignment` when ``misaligned``.  ``stride``: test every
+    this many poses of the other epoch for ``scored``; None: a stride that tests about
+    :data:`TESTED_POSES` poses.
     """
     worlds = [world_of(shell, objects) for objects in (reference_objects, scan_objects)]
     thinned = [_thin(epoch, world[1], voxel) for epoch, world in zip(samples, worlds, strict=True)]
     other = (1, 0)
     changed, scored, membership = [], [], []
+    strides = [1, 1]
     for side in (0, 1):
         other_world = worlds[other[side]][0]
         exact = thinned[side].exact
         changed.append(far_from_surfaces(other_world, exact, CHANGE_DISTANCE))
-        scored.append(seen_by_path(other_world, sensor, samples[other[side]].path, exact, stride))
+        other_path = samples[other[side]].path
+        strides[side] = stride or max(1, -(-len(other_path.times) // TESTED_POSES))
+        scored.append(
+            seen_by_path(
+                other_world, sensor, other_path, exact, strides[side], worlds[other[side]][1]
+            )
+        )
         names = [obj.name for obj in (reference_objects, scan_objects)[side]]
         index = np.full(len(exact), -1, dtype=np.int64)
         for number, change in enumerate(changes):
@@ -486,6 +519,6 @@ def assemble_pair(
         change=labels["change"],
         seed=labels["seed"],
         misaligned=misaligned,
-        visibility_stride=stride,
+        visibility_stride=max(strides),
         metadata=dict(labels.get("metadata", {})),
     )
