@@ -24,13 +24,13 @@ from app.core.synthetic_furniture import (
     place_object,
 )
 from app.core.synthetic_map_world import (
-    MIN_VISIBLE_CHANGE,
     EpochSamples,
     MapPair,
     SensorModel,
     SensorPath,
     assemble_pair,
     cast_rays,
+    visible_enough,
     world_of,
 )
 
@@ -191,11 +191,8 @@ def handheld_pair(
     rng = np.random.default_rng(random_state)
     for _ in range(10):
         pair = _draw(rng, change, misaligned, n_frames, pixels, voxel, visibility_stride)
-        pair = replace(pair, seed=random_state)
-        visible = np.count_nonzero(pair.reference_changed & pair.reference_scored)
-        visible += np.count_nonzero(pair.scan_changed & pair.scan_scored)
-        if change == "none" or (pair.changes and visible >= MIN_VISIBLE_CHANGE):
-            return pair
+        if visible_enough(pair):
+            return replace(pair, seed=random_state)
     raise ValueError(f"no visible {change!r} change in 10 layouts; try another seed")
 
 

@@ -49,7 +49,20 @@ MISALIGNMENT = ((0.02, 0.03), 0.3)
 TESTED_POSES = 24
 """With ``stride=None``, the truth's ``scored`` tests about this many poses of the other epoch."""
 MIN_VISIBLE_CHANGE = 50
-"""A changed pair has at least this many changed, scored points (else the layout is redrawn)."""
+"""A changed pair has at least this many changed, scored points (fewer for small pairs:
+:func:`visible_enough`); else the layout is redrawn."""
+
+
+def visible_enough(pair: MapPair) -> bool:
+    """Whether a pair is unchanged, or its changes have enough changed, scored points: at least
+    :data:`MIN_VISIBLE_CHANGE`, or one in 400 of the pair's points when that is fewer (at
+    least 10)."""
+    if pair.change == "none":
+        return True
+    visible = np.count_nonzero(pair.reference_changed & pair.reference_scored)
+    visible += np.count_nonzero(pair.scan_changed & pair.scan_scored)
+    total = len(pair.reference_changed) + len(pair.scan_changed)
+    return bool(pair.changes) and visible >= max(10, min(MIN_VISIBLE_CHANGE, total // 400))
 
 
 @dataclass(frozen=True)
@@ -171,6 +184,8 @@ class MapPair:
     changes : list of MapChange
     true_transform : ndarray, shape (4, 4)
         Maps scan-file coordinates into the reference frame (identity unless misaligned).
+    reference_world, scan_world : LidarWorld
+        Each epoch's boxes and shell, in the reference file's frame (the truth's worlds).
     map_class, layout, change : str
     seed : int
     misaligned : bool
@@ -191,6 +206,8 @@ class MapPair:
     scan_exact: NDArray[np.float64]
     changes: list[MapChange]
     true_transform: NDArray[np.float64]
+    reference_world: LidarWorld
+    scan_world: LidarWorld
     map_class: str
     layout: str
     change: str
@@ -433,6 +450,15 @@ def _thin(samples: EpochSamples, owner: NDArray[np.int64], voxel: float) -> _Thi
     return _Thinned(centroids, samples.exact[kept], samples.path.times[samples.pose[kept]], objects)
 
 
+def _shifted(world: LidarWorld, offset: NDArray[np.float64]) -> LidarWorld:
+    return LidarWorld(
+        world.shell_low + offset,
+        world.shell_high + offset,
+        world.box_low + offset,
+        world.box_high + offset,
+    )
+
+
 def _cloud(
     points: NDArray, times: NDArray, path: SensorPath, pose: NDArray[np.float64]
 ) -> PointCloud:
@@ -514,6 +540,8 @@ def assemble_pair(
         scan_exact=thinned[1].exact[orders[1]] + offset,
         changes=changes,
         true_transform=to_file @ np.linalg.inv(scan_pose),
+        reference_world=_shifted(worlds[0][0], offset),
+        scan_world=_shifted(worlds[1][0], offset),
         map_class=labels["map_class"],
         layout=labels["layout"],
         change=labels["change"],

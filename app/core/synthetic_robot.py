@@ -33,13 +33,13 @@ from app.core.synthetic_furniture import (
 )
 from app.core.synthetic_lidar import ELEVATION_RANGE_DEG, lidar_directions
 from app.core.synthetic_map_world import (
-    MIN_VISIBLE_CHANGE,
     EpochSamples,
     MapPair,
     SensorModel,
     SensorPath,
     assemble_pair,
     cast_rays,
+    visible_enough,
     world_of,
 )
 
@@ -273,7 +273,7 @@ def robot_pair(
         pair = _draw(
             "robot", layout, change, misaligned, rays_per_epoch, voxel, visibility_stride, rng
         )
-        if _visible_enough(pair):
+        if visible_enough(pair):
             return replace(pair, seed=random_state)
     raise ValueError(f"no visible {change!r} change in 10 layouts; try another seed")
 
@@ -295,15 +295,9 @@ def terrestrial_pair(
     rng = np.random.default_rng(random_state)
     for _ in range(10):
         pair = _draw("tls", layout, change, misaligned, rays_per_epoch, voxel, 1, rng)
-        if _visible_enough(pair):
+        if visible_enough(pair):
             return replace(pair, seed=random_state)
     raise ValueError(f"no visible {change!r} change in 10 layouts; try another seed")
-
-
-def _visible_enough(pair: MapPair) -> bool:
-    visible = np.count_nonzero(pair.reference_changed & pair.reference_scored)
-    visible += np.count_nonzero(pair.scan_changed & pair.scan_scored)
-    return pair.change == "none" or (bool(pair.changes) and visible >= MIN_VISIBLE_CHANGE)
 
 
 def _stations(
