@@ -11,7 +11,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, ValidationInfo, field_validator
+from pydantic import AliasChoices, Field, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 GIB = 1024**3
@@ -42,10 +42,18 @@ DEFAULT_VIEWER_IDLE_SECONDS = 300.0
 browser connection."""
 
 
+DEPRECATED_PRIVATE_ADDRESS_SETTINGS = (
+    "SCANDIFF_WEBHOOK_ALLOW_PRIVATE_ADDRESSES",
+    "SCANDIFF_SCHEDULE_ALLOW_PRIVATE_URLS",
+)
+"""Former environment names of ``allow_private_addresses`` (one for webhooks, one for schedule
+URL sources), still accepted."""
+
+
 class Settings(BaseSettings):
     """Service settings; ``SCANDIFF_DATA_DIR=/srv/scandiff`` etc. override the defaults."""
 
-    model_config = SettingsConfigDict(env_prefix="SCANDIFF_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="SCANDIFF_", extra="ignore", populate_by_name=True)
 
     data_dir: Path = Field(default=Path("data"), description="Database, queue and scan files.")
     database_url: str | None = Field(
@@ -128,11 +136,6 @@ class Settings(BaseSettings):
         "{'directory': ...}); none by default. In the environment: paths separated by "
         "os.pathsep (':') or commas.",
     )
-    schedule_allow_private_urls: bool = Field(
-        default=False,
-        description="Let a schedule's URL source reach loopback, private and link-local "
-        "addresses (off: a URL resolving to any such address is refused).",
-    )
     schedule_fetch_timeout_seconds: float = Field(
         default=60.0, gt=0, allow_inf_nan=False, description="Longest a URL source's fetch takes."
     )
@@ -179,11 +182,18 @@ class Settings(BaseSettings):
         description="The service's address as people reach it (https://scandiff.example.com), "
         "for the view links in webhook payloads; default http://<host>:<port>.",
     )
-    webhook_allow_private_addresses: bool = Field(
+    allow_private_addresses: bool = Field(
         default=False,
-        description="Accept webhook URLs on loopback, private and link-local addresses "
-        "(a receiver on this host or network). Off by default: an organisation cannot make "
-        "the service call into its own network.",
+        validation_alias=AliasChoices(
+            "SCANDIFF_ALLOW_PRIVATE_ADDRESSES",
+            *DEPRECATED_PRIVATE_ADDRESS_SETTINGS,
+        ),
+        description="Let the service's own requests (webhooks, schedule URL sources) go to "
+        "loopback, private, link-local and the other refused address classes listed in "
+        "docs/webhooks.md (a receiver on this host or network). Off by default: an "
+        "organisation cannot make the service call into its own network. The former "
+        "SCANDIFF_WEBHOOK_ALLOW_PRIVATE_ADDRESSES and SCANDIFF_SCHEDULE_ALLOW_PRIVATE_URLS "
+        "are deprecated aliases.",
     )
     webhook_max_attempts: int = Field(default=8, ge=1, description="Attempts per delivery.")
     event_retention_days: float = Field(

@@ -238,9 +238,9 @@ def _geometry_cache(directory: Path | None, reference: Path, params: dict[str, A
 
 def run(args: argparse.Namespace) -> int:
     """Run one comparison; exit status 0, or 2 on bad input."""
-    from app.core.allocator import release_freed_memory_promptly
     from app.core.formats import read_point_cloud
     from app.core.pipeline import compare
+    from app.kit.allocator import release_freed_memory_promptly
 
     release_freed_memory_promptly()
     try:

@@ -25,7 +25,7 @@ from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING, Any
 
-from app.core.files import write_private_file
+from app.kit.files import write_private_file
 
 if TYPE_CHECKING:  # pydantic-settings is imported when the command runs
     from app.config import Settings

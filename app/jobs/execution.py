@@ -26,7 +26,6 @@ from typing import Any
 import numpy as np
 
 from app.config import Settings
-from app.core.allocator import release_freed_memory_promptly
 from app.core.errors import InputError
 from app.core.formats import read_point_cloud
 from app.jobs.geometry import geometry_cache_of, record_geometry_cache
@@ -45,6 +44,7 @@ from app.jobs.leases import (
 )
 from app.jobs.limits import job_memory_limit, job_threads, memory_limit
 from app.jobs.results import store_results, write_result_files
+from app.kit.allocator import release_freed_memory_promptly
 
 logger = logging.getLogger("scandiff.jobs")
 

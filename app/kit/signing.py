@@ -19,7 +19,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-from app.core.files import write_private_file
+from app.kit.files import write_private_file
 
 SECRET_KEY_FILE = "secret-key"
 VIEW_LINK_PURPOSE = "view-link"
