@@ -14,6 +14,8 @@ from typing import Annotated, Any, Literal
 from pydantic import AliasChoices, Field, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from app.kit.data_layout import DataLayout
+
 GIB = 1024**3
 DISABLED_WORDS = frozenset({"none", "null", "off", "unlimited"})
 """Environment values that turn a cap off (as does 0 for the memory cap); empty = default."""
@@ -308,7 +310,7 @@ class Settings(BaseSettings):
     @property
     def sqlalchemy_url(self) -> str:
         """The database URL in effect."""
-        return self.database_url or f"sqlite:///{self.data_dir / 'scandiff.sqlite3'}"
+        return self.database_url or f"sqlite:///{self.data_layout.database_file}"
 
     @property
     def public_base_url(self) -> str:
@@ -316,24 +318,29 @@ class Settings(BaseSettings):
         return (self.public_url or f"http://{self.host}:{self.port}").rstrip("/")
 
     @property
+    def data_layout(self) -> DataLayout:
+        """Where each file lives under ``data_dir`` (:class:`app.kit.data_layout.DataLayout`)."""
+        return DataLayout(self.data_dir)
+
+    @property
     def queue_path(self) -> Path:
         """The Huey SQLite queue file (used when ``queue_url`` is unset)."""
-        return self.data_dir / "queue.sqlite3"
+        return self.data_layout.queue_file
 
     @property
     def scans_dir(self) -> Path:
         """Where uploaded scan files are stored."""
-        return self.data_dir / "scans"
+        return self.data_layout.scans_dir
 
     @property
     def results_dir(self) -> Path:
         """Where per-point label files of jobs are stored."""
-        return self.data_dir / "results"
+        return self.data_layout.results_dir
 
     @property
     def tmp_dir(self) -> Path:
         """Where uploads are streamed before the atomic rename (same filesystem)."""
-        return self.data_dir / "tmp"
+        return self.data_layout.tmp_dir
 
 
 @lru_cache

@@ -31,6 +31,7 @@ from app.config import Settings
 from app.db.models import Job, JobStatus, Scan, Site
 from app.db.session import transaction
 from app.jobs.alerts import publish_job_finished
+from app.kit.data_layout import StoredPathError
 from app.log import job_request_id, remember_job_request_id
 
 logger = logging.getLogger("scandiff.jobs")
@@ -131,6 +132,22 @@ class ClaimedJob:
     reference_scan_id: str | None = None
     reference_sha256: str | None = None
     """The reference scan's id and file checksum (its geometry cache's key, app.jobs.geometry)."""
+    storage_problem: str | None = None
+    """Why a scan's stored path cannot be read (it leads outside the data directory); the job
+    fails with it."""
+
+
+def scan_paths(
+    settings: Settings, reference: Scan | None, scan: Scan | None
+) -> tuple[tuple[Path | None, Path | None], str | None]:
+    """The files of a job's reference and scan (None: deleted), checked; and what is wrong."""
+    try:
+        return (
+            settings.data_layout.resolve(reference.storage_path) if reference else None,
+            settings.data_layout.resolve(scan.storage_path) if scan else None,
+        ), None
+    except StoredPathError as exc:
+        return (None, None), str(exc)
 
 
 def job_log(message: str, job_id: str, stage: str, **fields: Any) -> None:
@@ -174,6 +191,7 @@ def claim_job(
         reference = session.get(Scan, job.reference_scan_id)
         scan = session.get(Scan, job.scan_id)
         site = session.get(Site, job.site_id)
+        stored_paths, storage_problem = scan_paths(settings, reference, scan)
         claimed_job = ClaimedJob(
             id=job.id,
             attempt=job.attempts,
@@ -182,9 +200,9 @@ def claim_job(
             method=job.method,
             variant=job.variant,
             params=dict(job.params or {}),
-            reference_path=settings.data_dir / reference.storage_path if reference else None,
+            reference_path=stored_paths[0],
             reference_format=reference.format if reference else None,
-            scan_path=settings.data_dir / scan.storage_path if scan else None,
+            scan_path=stored_paths[1],
             scan_format=scan.format if scan else None,
             scan_filename=scan.filename if scan else None,
             reference_sensor_origin=reference.sensor_origin if reference else None,
@@ -193,6 +211,7 @@ def claim_job(
             site_calibration=dict(site.calibration) if site and site.calibration else None,
             reference_scan_id=reference.id if reference else None,
             reference_sha256=reference.sha256 if reference else None,
+            storage_problem=storage_problem,
         )
     job_log(
         "job claimed",

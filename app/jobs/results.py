@@ -11,7 +11,6 @@ killed while writing left.
 from __future__ import annotations
 
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -28,19 +27,12 @@ from app.db.session import transaction
 from app.jobs.alerts import publish_job_finished
 from app.jobs.leases import ClaimedJob, held_by
 from app.jobs.site_history import region_count_warning
-
-LABELS_FILENAME = "labels.npz"
-DETAILS_FILENAME = "details.npz"
-
-
-def job_results_dir(settings: Settings, job_id: str) -> Path:
-    """Where the per-point files of job ``job_id`` live."""
-    return settings.results_dir / job_id
+from app.kit.data_layout import DETAILS_FILENAME, LABELS_FILENAME
 
 
 def write_result_files(job: ClaimedJob, settings: Settings, result: Any) -> str:
     """Write ``labels.npz`` and ``details.npz`` atomically; the labels path relative to data_dir."""
-    directory = job_results_dir(settings, job.id)
+    directory = settings.data_layout.job_results_dir(job.id)
     labels_path = directory / LABELS_FILENAME
     write_atomically(labels_path, result.write_labels_npz)
     write_atomically(
@@ -51,7 +43,7 @@ def write_result_files(job: ClaimedJob, settings: Settings, result: Any) -> str:
             scan_distance=np.asarray(result.scan_distance, dtype=np.float32),
         ),
     )
-    return labels_path.relative_to(settings.data_dir).as_posix()
+    return settings.data_layout.stored_form(labels_path)
 
 
 def store_results(

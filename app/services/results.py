@@ -21,14 +21,12 @@ from sqlalchemy.orm import Session
 from app.config import Settings
 from app.core.registration import apply_transform
 from app.db.models import JobStatus, new_id
+from app.kit.data_layout import DETAILS_FILENAME
 from app.services import jobs, scans, storage
 from app.services.auth import Principal
 from app.services.errors import ConflictError, NotFoundError
 from app.services.scans import PARSE_SLOTS, DownloadFile
 from app.services.transaction import end_read_transaction
-
-LABEL_FORMATS = ("npz", "ply", "las")
-DETAILS_FILE = "details.npz"
 
 
 @dataclass(frozen=True)
@@ -90,7 +88,7 @@ def build_labels_cloud(
         with np.load(labels_path) as labels_file:
             reference_label = np.asarray(labels_file["reference_label"])
             scan_label = np.asarray(labels_file["scan_label"])
-        details_path = labels_path.parent / DETAILS_FILE
+        details_path = labels_path.parent / DETAILS_FILENAME
         reference_distance = scan_distance = None
         if details_path.is_file():
             with np.load(details_path) as details_file:
@@ -129,7 +127,7 @@ def labels_file(
             f"job {job.id} is {job.status}; its labels exist once it has succeeded",
             code="job_not_succeeded",
         )
-    labels_path = storage.resolve_data_path(settings, job.labels_path)
+    labels_path = storage.stored_file(settings, job.labels_path)
     if not labels_path.is_file():
         raise NotFoundError(f"the labels of job {job.id} are missing from storage")
     download_name = f"{job.id}-labels.{file_format}"
@@ -139,12 +137,12 @@ def labels_file(
     reference_scan = scans.get_scan(session, principal, job.reference_scan_id)
     scan = scans.get_scan(session, principal, job.scan_id)
     reference = CloudSource(
-        path=storage.resolve_data_path(settings, reference_scan.storage_path),
+        path=storage.stored_file(settings, reference_scan.storage_path),
         format=reference_scan.format,
         filename=reference_scan.filename,
     )
     compared = CloudSource(
-        path=storage.resolve_data_path(settings, scan.storage_path),
+        path=storage.stored_file(settings, scan.storage_path),
         format=scan.format,
         filename=scan.filename,
     )

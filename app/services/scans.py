@@ -302,8 +302,10 @@ async def upload_scan(
         )
         check_stations_match(options.sensor_origin, parsed.n_stations)
         scan_id = new_id()
-        storage_path = storage.scan_storage_path(options.site_id, scan_id, parsed.format)
-        final_path = storage.resolve_data_path(settings, storage_path)
+        storage_path = settings.data_layout.scan_storage_path(
+            options.site_id, scan_id, parsed.format
+        )
+        final_path = settings.data_layout.resolve(storage_path)
         await anyio.to_thread.run_sync(storage.install_file, received.path, final_path)
         after_rollback(session, lambda: storage.remove_file(final_path))
         scan = scan_row(
@@ -345,7 +347,7 @@ def scan_file(
 ) -> DownloadFile:
     """The original bytes of a scan as uploaded."""
     scan = get_scan(session, principal, scan_id)
-    path = storage.resolve_data_path(settings, scan.storage_path)
+    path = storage.stored_file(settings, scan.storage_path)
     if not path.is_file():
         raise NotFoundError(f"the file of scan {scan_id} is missing from storage")
     return DownloadFile(path=path, filename=scan.filename)
