@@ -34,6 +34,7 @@ from app.jobs.leases import (
     PROGRESS_COMPARED,
     PROGRESS_LOADED,
     ClaimedJob,
+    JobOutcome,
     LeaseKeeper,
     LeaseLostError,
     claim_job,
@@ -155,7 +156,7 @@ def label_upload_origins(result: Any, given_at_upload: dict[str, bool]) -> Any:
     )
 
 
-def execute_job(job_id: str, settings: Settings) -> str:
+def execute_job(job_id: str, settings: Settings) -> JobOutcome:
     """Run job ``job_id`` once if it needs running; the outcome.
 
     Outcomes: ``succeeded``, ``failed``, ``queued`` (to be retried: the caller sends its message
@@ -165,7 +166,7 @@ def execute_job(job_id: str, settings: Settings) -> str:
     owner = make_lease_owner()
     job = claim_job(job_id, settings, owner)
     if job is None:
-        return "skipped"
+        return JobOutcome.SKIPPED
     keeper = LeaseKeeper(job, settings).start()
     started = time.perf_counter()
     limit_bytes = job_memory_limit(settings)
@@ -182,24 +183,26 @@ def execute_job(job_id: str, settings: Settings) -> str:
         job_timings["job_total"] = time.perf_counter() - started
         timings = {**dict(result.timings), **job_timings}
         if not store_results(job, settings, result, labels_path, timings):
-            job_log("job lease lost before storing; nothing stored", job.id, "lease-lost")
-            return "lease-lost"
+            job_log("job lease lost before storing; nothing stored", job.id, JobOutcome.LEASE_LOST)
+            return JobOutcome.LEASE_LOST
         job_log(
             "job succeeded",
             job.id,
-            "succeeded",
+            JobOutcome.SUCCEEDED,
             attempt=job.attempt,
             seconds=round(job_timings["job_total"], 3),
             n_regions=len(result.regions),
             changed=bool(result.changed),
         )
-        return "succeeded"
+        return JobOutcome.SUCCEEDED
     except LeaseLostError:
-        job_log("job lease lost; nothing stored", job.id, "lease-lost", attempt=job.attempt)
-        return "lease-lost"
+        job_log(
+            "job lease lost; nothing stored", job.id, JobOutcome.LEASE_LOST, attempt=job.attempt
+        )
+        return JobOutcome.LEASE_LOST
     except InputError as exc:
         keeper.stop()
-        return "failed" if fail_job(job, settings, str(exc)) else "lease-lost"
+        return JobOutcome.FAILED if fail_job(job, settings, str(exc)) else JobOutcome.LEASE_LOST
     except MemoryError:
         keeper.stop()
         message = (
@@ -208,7 +211,7 @@ def execute_job(job_id: str, settings: Settings) -> str:
             if limit_bytes
             else "out of memory"
         )
-        return "failed" if fail_job(job, settings, message) else "lease-lost"
+        return JobOutcome.FAILED if fail_job(job, settings, message) else JobOutcome.LEASE_LOST
     except KeyboardInterrupt:
         keeper.stop()
         release_job(job, settings, "interrupted by a worker shutdown", count_attempt=False)

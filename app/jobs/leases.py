@@ -20,6 +20,7 @@ import threading
 import uuid
 from dataclasses import dataclass
 from datetime import datetime, timedelta
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -104,6 +105,19 @@ def claimable(now: datetime) -> ColumnElement[bool]:
 def held_by(job_id: str, owner: str) -> ColumnElement[bool]:
     """SQL condition: job ``job_id`` is running under ``owner``'s lease."""
     return and_(Job.id == job_id, Job.status == JobStatus.RUNNING, Job.lease_owner == owner)
+
+
+class JobOutcome(StrEnum):
+    """What one run of a job's message did (:func:`app.jobs.execution.execute_job`)."""
+
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    QUEUED = "queued"
+    """The attempt failed with attempts left: the job is queued again (its message is resent)."""
+    SKIPPED = "skipped"
+    """Nothing to run: a duplicate message, a job already finished or leased elsewhere."""
+    LEASE_LOST = "lease-lost"
+    """Another worker took the job over; nothing was written."""
 
 
 @dataclass(frozen=True)
@@ -367,7 +381,9 @@ def fail_job(job: ClaimedJob, settings: Settings, message: str) -> bool:
     return bool(failed)
 
 
-def release_job(job: ClaimedJob, settings: Settings, error: str, *, count_attempt: bool) -> str:
+def release_job(
+    job: ClaimedJob, settings: Settings, error: str, *, count_attempt: bool
+) -> JobOutcome:
     """Give the job back (``queued``) or fail it when attempts are used up; the new status.
 
     ``count_attempt=False`` (shutdown interrupted the attempt) does not use up an attempt and
@@ -378,7 +394,7 @@ def release_job(job: ClaimedJob, settings: Settings, error: str, *, count_attemp
             select(Job).where(held_by(job.id, job.lease_owner)).with_for_update()
         ).scalar_one_or_none()
         if row is None:
-            return "lease-lost"
+            return JobOutcome.LEASE_LOST
         if count_attempt and row.attempts >= row.max_attempts:
             row.status = JobStatus.FAILED
             row.error = f"failed after {row.attempts} attempts; last error: {error}"
@@ -398,4 +414,4 @@ def release_job(job: ClaimedJob, settings: Settings, error: str, *, count_attemp
         if status == JobStatus.FAILED:
             publish_job_finished(session, job.id)  # job.failed, same transaction
     job_log(f"job {status}", job.id, status, attempt=job.attempt, error=final_error)
-    return status
+    return JobOutcome(str(status))

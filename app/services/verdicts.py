@@ -25,6 +25,7 @@ from app.services.errors import ConflictError
 from app.services.schemas import VerdictCreate
 from app.services.site_calibration import recompute_site_calibration
 
+
 def set_verdict(
     session: Session, settings: Settings, principal: Principal, job_id: str, payload: VerdictCreate
 ) -> Job:

@@ -51,7 +51,9 @@ def test_a_missing_library_is_skipped(
     with caplog.at_level(logging.WARNING, logger=consumer.logger.name):
         consumer.preload_pipeline()  # does not raise: the job that needs it reports it
     assert tried == list(consumer.first_use_libraries())  # the ones after it are still loaded
-    skipped = [record for record in caplog.records if record.getMessage() == "library not preloaded"]
+    skipped = [
+        record for record in caplog.records if record.getMessage() == "library not preloaded"
+    ]
     assert [record.library for record in skipped] == [missing]  # type: ignore[attr-defined]
 
 
