@@ -16,7 +16,7 @@ from app.kit.net import (
     check_url,
     pinned_connection,
 )
-from tests.api.test_outgoing_urls import REFUSED_HOSTS
+from tests.helpers.addresses import REFUSED_HOSTS
 
 
 @pytest.mark.parametrize(("host", "address_class"), REFUSED_HOSTS)
