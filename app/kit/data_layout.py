@@ -11,6 +11,7 @@ for the service's settings), so no other module joins ``data_dir`` with a name o
     run/                             doorbell and worker pid files of the running consumers
     tmp/<pid>-<random>.part          uploads being received
     scans/<site_id>/<scan_id>.<fmt>  original bytes of every scan (path stored relative)
+    scans/<site_id>/<scan_id>.geometry  a reference's cached k-NN geometry (app.jobs.geometry)
     results/<job_id>/labels.npz      per-point labels of a job (written by the job worker)
     results/<job_id>/details.npz     per-point distances of a job
 
