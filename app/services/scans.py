@@ -15,6 +15,7 @@ the rolled-back transaction.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import threading
 from collections.abc import AsyncIterator, Sequence
 from dataclasses import dataclass
@@ -187,6 +188,41 @@ def scan_row(
     )
 
 
+def store_scan_file(
+    session: Session,
+    settings: Settings,
+    principal: Principal,
+    *,
+    site_id: str,
+    received: storage.ReceivedFile,
+    filename: str | None,
+    sensor_origin: SensorOrigin | None = None,
+) -> Scan:
+    """Parse a received file with the core, rename it into place and build its row (not added).
+
+    The one way a received scan is stored, for uploads and schedule runs alike: the file goes
+    under the data layout's scan path, and is removed again if ``session`` rolls back.  Slow
+    (parsing): call it with no transaction open.
+    """
+    parsed = parse_upload(received.path, filename, received.head, settings.max_points)
+    check_stations_match(sensor_origin, parsed.n_stations)
+    scan_id = new_id()
+    storage_path = settings.data_layout.scan_storage_path(site_id, scan_id, parsed.format)
+    final_path = settings.data_layout.resolve(storage_path)
+    storage.install_file(received.path, final_path)
+    after_rollback(session, lambda: storage.remove_file(final_path))
+    return scan_row(
+        principal,
+        scan_id=scan_id,
+        site_id=site_id,
+        filename=filename,
+        storage_path=storage_path,
+        received=received,
+        parsed=parsed,
+        sensor_origin=sensor_origin,
+    )
+
+
 def parse_upload(path: Path, filename: str | None, head: bytes, max_points: int) -> ParsedScan:
     """Detect the format and check the cloud with the core, without loading it (raises the
     core's errors)."""
@@ -297,30 +333,23 @@ async def upload_scan(
         await anyio.to_thread.run_sync(
             _check_stored_bytes, session, settings, principal, received.size_bytes
         )
-        parsed = await anyio.to_thread.run_sync(
-            parse_upload, received.path, filename, received.head, settings.max_points
-        )
-        check_stations_match(options.sensor_origin, parsed.n_stations)
-        scan_id = new_id()
-        storage_path = storage.scan_storage_path(options.site_id, scan_id, parsed.format)
-        final_path = storage.resolve_data_path(settings, storage_path)
-        await anyio.to_thread.run_sync(storage.install_file, received.path, final_path)
-        after_rollback(session, lambda: storage.remove_file(final_path))
-        scan = scan_row(
-            principal,
-            scan_id=scan_id,
-            site_id=options.site_id,
-            filename=filename,
-            storage_path=storage_path,
-            received=received,
-            parsed=parsed,
-            sensor_origin=options.sensor_origin,
+        scan = await anyio.to_thread.run_sync(
+            functools.partial(
+                store_scan_file,
+                session,
+                settings,
+                principal,
+                site_id=options.site_id,
+                received=received,
+                filename=filename,
+                sensor_origin=options.sensor_origin,
+            )
         )
         response, created = await anyio.to_thread.run_sync(
             _register_upload, session, settings, principal, keyed_options, fingerprint, scan
         )
         if not created:
-            storage.remove_file(final_path)
+            storage.remove_file(settings.data_layout.resolve(scan.storage_path))
         return response
     finally:
         storage.remove_file(received.path)  # gone already when it was installed
@@ -345,7 +374,7 @@ def scan_file(
 ) -> DownloadFile:
     """The original bytes of a scan as uploaded."""
     scan = get_scan(session, principal, scan_id)
-    path = storage.resolve_data_path(settings, scan.storage_path)
+    path = storage.stored_file(settings, scan.storage_path)
     if not path.is_file():
         raise NotFoundError(f"the file of scan {scan_id} is missing from storage")
     return DownloadFile(path=path, filename=scan.filename)

@@ -25,8 +25,6 @@ from app.services.errors import ConflictError
 from app.services.schemas import VerdictCreate
 from app.services.site_calibration import recompute_site_calibration
 
-VERDICTS = ("confirmed", "false_alarm", "new_reference")
-
 
 def set_verdict(
     session: Session, settings: Settings, principal: Principal, job_id: str, payload: VerdictCreate
