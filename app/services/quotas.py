@@ -3,7 +3,8 @@
 *Queued jobs* are an organisation's jobs that have not finished (``queued`` or ``running``);
 *stored bytes* are the sizes of its scan files as uploaded (``scan.size_bytes``) and of the k-NN
 geometry cached for the scans compared as references (``scan.geometry_cache_bytes``, written by
-the job workers: :mod:`app.jobs.geometry`).  Result files
+the job workers: :mod:`app.jobs.geometry`), plus the bytes already accepted by the unexpired
+resumable uploads still receiving (:mod:`app.services.resumable_uploads`).  Result files
 (labels, PLY/LAS exports) are not counted: they are derived from the scans, bounded by them and
 deleted with them.
 
@@ -23,8 +24,9 @@ from dataclasses import dataclass
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from app.clock import utc_now
 from app.config import Settings
-from app.db.models import Job, JobStatus, Organisation, Scan
+from app.db.models import Job, JobStatus, Organisation, ResumableUpload, Scan
 from app.services.auth import Principal
 from app.services.errors import InsufficientStorageError, NotFoundError, TooManyRequestsError
 from app.services.scoping import scoped
@@ -70,10 +72,15 @@ def queued_jobs(session: Session, principal: Principal) -> int:
 
 
 def stored_bytes(session: Session, principal: Principal) -> int:
-    """Bytes of the organisation's scan files and of their cached reference geometry."""
+    """Bytes of the organisation's scan files, their cached reference geometry and what its
+    resumable uploads accepted so far (until they complete, expire or are terminated)."""
     stored = func.sum(Scan.size_bytes + Scan.geometry_cache_bytes)
     total = session.scalar(scoped(select(func.coalesce(stored, 0)), principal))
-    return int(total or 0)
+    receiving = select(func.coalesce(func.sum(ResumableUpload.offset), 0)).where(
+        ResumableUpload.state == "active", ResumableUpload.expires_at > utc_now()
+    )
+    reserved = session.scalar(scoped(receiving, principal))
+    return int(total or 0) + int(reserved or 0)
 
 
 def queued_jobs_message(queued: int, cap: int) -> str:
