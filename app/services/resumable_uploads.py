@@ -22,8 +22,6 @@ bytes in, becoming a scan), ``completed``, ``failed``, ``terminated``, ``expired
 
 from __future__ import annotations
 
-import base64
-import binascii
 import contextlib
 import dataclasses
 import fcntl
@@ -59,16 +57,8 @@ from app.services.idempotency import StoredResponse
 from app.services.scoping import get_owned
 from app.services.sensor_origins import parse_sensor_origin
 from app.services.transaction import end_read_transaction, rollback
+from app.services.tus_protocol import CHECKSUM_ALGORITHMS, PATCH_CONTENT_TYPE, parse_metadata
 
-TUS_VERSION = "1.0.0"
-TUS_EXTENSIONS = "creation,expiration,termination,checksum"
-PATCH_CONTENT_TYPE = "application/offset+octet-stream"
-CHECKSUM_ALGORITHMS: dict[str, Callable[[], Any]] = {
-    "sha1": hashlib.sha1,
-    "sha256": hashlib.sha256,
-    "md5": hashlib.md5,
-}
-"""Algorithms of the ``Upload-Checksum`` header (tuspy sends sha1 by default)."""
 FILE_CHECKSUM = re.compile(r"^sha256:([0-9a-fA-F]{64})$")
 UPLOAD_SUFFIX = ".part"
 HASH_BLOCK_BYTES = 1 << 20
@@ -82,10 +72,6 @@ class ChecksumMismatchError(AppError, status_code=460, code="checksum_mismatch")
 
 class UploadGoneError(AppError, status_code=410, code="upload_gone"):
     """The upload expired, was terminated or failed: its bytes are gone."""
-
-
-class TusVersionError(AppError, status_code=412, code="unsupported_tus_version"):
-    """The request's ``Tus-Resumable`` is not 1.0.0."""
 
 
 @dataclass(frozen=True)
@@ -131,41 +117,6 @@ class UploadView:
             result_status=upload.result_status,
             result=upload.result,
         )
-
-
-def check_tus_version(value: str | None) -> None:
-    """412 unless the client speaks tus 1.0.0."""
-    if value != TUS_VERSION:
-        raise TusVersionError(
-            f"send the header Tus-Resumable: {TUS_VERSION} (got {value!r}): this server speaks "
-            f"tus {TUS_VERSION}"
-        )
-
-
-def parse_metadata(header: str | None) -> dict[str, str]:
-    """``Upload-Metadata`` (``key base64,key base64``) as text; 400 when malformed."""
-    metadata: dict[str, str] = {}
-    for pair in (header or "").split(","):
-        if not pair.strip():
-            continue
-        key, _, encoded = pair.strip().partition(" ")
-        try:
-            metadata[key] = base64.b64decode(encoded.strip(), validate=True).decode("utf-8")
-        except (binascii.Error, UnicodeDecodeError) as exc:
-            raise BadRequestError(
-                f"Upload-Metadata: the value of {key!r} is not base64 of UTF-8 text",
-                code="malformed_upload_metadata",
-            ) from exc
-    return metadata
-
-
-def parse_non_negative(value: str | None, header: str) -> int | None:
-    """A header that holds a byte count; 400 when it is not a non-negative integer."""
-    if value is None:
-        return None
-    if not value.strip().isdigit():
-        raise BadRequestError(f"{header} must be a non-negative integer (got {value!r})")
-    return int(value)
 
 
 def _upload_options(metadata: dict[str, str]) -> dict[str, Any]:
@@ -422,23 +373,6 @@ async def _write_body(
         handle.truncate(upload.offset)
         raise
     return written
-
-
-def parse_checksum(header: str | None) -> tuple[str, bytes] | None:
-    """``Upload-Checksum: <algorithm> <base64>``; 400 when malformed or the algorithm unknown."""
-    if header is None:
-        return None
-    algorithm, _, encoded = header.strip().partition(" ")
-    if algorithm not in CHECKSUM_ALGORITHMS:
-        raise BadRequestError(
-            f"Upload-Checksum algorithm {algorithm!r} is not supported: use one of "
-            f"{', '.join(CHECKSUM_ALGORITHMS)}",
-            code="unsupported_checksum",
-        )
-    try:
-        return algorithm, base64.b64decode(encoded.strip(), validate=True)
-    except binascii.Error as exc:
-        raise BadRequestError("Upload-Checksum: the digest is not base64") from exc
 
 
 def _commit_offset(settings: Settings, upload_id: str, offset: int, completing: bool) -> UploadView:

@@ -27,10 +27,16 @@ from tusclient.uploader import Uploader
 
 from tests.helpers.files import room_ply
 from tests.helpers.http import assert_error, create_site, site_with_reference
+from tests.helpers.resumable import (
+    TUS,
+    create_upload,
+    metadata_header,
+    new_upload,
+    offset_of,
+    patch,
+)
 from tests.helpers.server import MAX_UPLOAD_BYTES, ApiServer, fresh_api
 
-TUS = {"Tus-Resumable": "1.0.0"}
-OCTETS = {**TUS, "Content-Type": "application/offset+octet-stream"}
 QUOTA_BYTES = 150_000
 """Storage cap of the small server: one ~60 kB scan and most of another."""
 EXPIRY_SECONDS = 2
@@ -52,48 +58,6 @@ def small_api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ApiServer]:
         max_stored_bytes_per_organisation=QUOTA_BYTES,
         resumable_upload_expiry_seconds=EXPIRY_SECONDS,
     )
-
-
-def metadata_header(**values: str) -> str:
-    """``Upload-Metadata`` of ``values`` (key base64, ...)."""
-    return ",".join(
-        f"{key} {base64.b64encode(value.encode()).decode()}" for key, value in values.items()
-    )
-
-
-def create_upload(client: httpx.Client, length: int, **metadata: str) -> httpx.Response:
-    """POST a new upload of ``length`` bytes."""
-    return client.post(
-        "/api/v1/uploads",
-        headers={
-            **TUS,
-            "Upload-Length": str(length),
-            "Upload-Metadata": metadata_header(**metadata),
-        },
-    )
-
-
-def new_upload(client: httpx.Client, length: int, **metadata: str) -> str:
-    """Create an upload (asserting 201); its path."""
-    response = create_upload(client, length, **metadata)
-    assert response.status_code == 201, response.text
-    return response.headers["Location"]
-
-
-def patch(
-    client: httpx.Client, location: str, offset: int, content: bytes, **headers: str
-) -> httpx.Response:
-    """PATCH ``content`` at ``offset``."""
-    return client.patch(
-        location, content=content, headers={**OCTETS, "Upload-Offset": str(offset), **headers}
-    )
-
-
-def offset_of(client: httpx.Client, location: str) -> int:
-    """The upload's offset from HEAD (asserting 200)."""
-    response = client.head(location, headers=TUS)
-    assert response.status_code == 200, response.headers
-    return int(response.headers["Upload-Offset"])
 
 
 def tus_client(base_url: str, token: str) -> TusClient:

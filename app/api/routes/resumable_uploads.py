@@ -14,26 +14,27 @@ from starlette.requests import ClientDisconnect
 from app.api.deps import PrincipalDep, SessionDep, SettingsDep, WriterDep
 from app.api.uploads import declared_length
 from app.services import resumable_uploads as uploads_service
+from app.services import tus_protocol
 from app.services.errors import AppError
 from app.services.resumable_upload_schemas import ResumableUploadRead
 
-TUS_HEADERS = {"Tus-Resumable": uploads_service.TUS_VERSION}
+TUS_HEADERS = {"Tus-Resumable": tus_protocol.TUS_VERSION}
 
 
-async def tus_protocol(
+async def tus_headers(
     request: Request, tus_resumable: Annotated[str | None, Header()] = None
 ) -> AsyncIterator[None]:
     """Every answer carries ``Tus-Resumable``; requests but OPTIONS and GET must send it (412)."""
     try:
         if request.method not in ("OPTIONS", "GET"):
-            uploads_service.check_tus_version(tus_resumable)
+            tus_protocol.check_tus_version(tus_resumable)
         yield
     except AppError as exc:
         exc.headers.update(TUS_HEADERS)
         raise
 
 
-router = APIRouter(tags=["resumable uploads"], dependencies=[Depends(tus_protocol)])
+router = APIRouter(tags=["resumable uploads"], dependencies=[Depends(tus_headers)])
 
 
 def _progress_headers(progress: uploads_service.UploadProgress) -> dict[str, str]:
@@ -69,10 +70,10 @@ def upload_capabilities(principal: PrincipalDep, settings: SettingsDep) -> Respo
         status_code=204,
         headers={
             **TUS_HEADERS,
-            "Tus-Version": uploads_service.TUS_VERSION,
-            "Tus-Extension": uploads_service.TUS_EXTENSIONS,
+            "Tus-Version": tus_protocol.TUS_VERSION,
+            "Tus-Extension": tus_protocol.TUS_EXTENSIONS,
             "Tus-Max-Size": str(settings.max_upload_bytes),
-            "Tus-Checksum-Algorithm": ",".join(uploads_service.CHECKSUM_ALGORITHMS),
+            "Tus-Checksum-Algorithm": ",".join(tus_protocol.CHECKSUM_ALGORITHMS),
         },
     )
 
@@ -86,7 +87,7 @@ def create_upload(
     upload_metadata: Annotated[str | None, Header(max_length=65_536)] = None,
 ) -> Response:
     """Create a resumable upload (`Upload-Length`, `Upload-Metadata` with `site`); 201 Location."""
-    length = uploads_service.parse_non_negative(upload_length, "Upload-Length")
+    length = tus_protocol.parse_non_negative(upload_length, "Upload-Length")
     progress = uploads_service.create_upload(
         session, settings, principal, length, upload_metadata or ""
     )
@@ -125,11 +126,11 @@ async def append_to_upload(
         settings,
         principal,
         upload_id,
-        offset=uploads_service.parse_non_negative(upload_offset, "Upload-Offset"),
+        offset=tus_protocol.parse_non_negative(upload_offset, "Upload-Offset"),
         content_type=content_type.split(";")[0].strip().lower(),
         content_length=declared_length(request),
-        declared_length=uploads_service.parse_non_negative(upload_length, "Upload-Length"),
-        checksum=uploads_service.parse_checksum(upload_checksum),
+        declared_length=tus_protocol.parse_non_negative(upload_length, "Upload-Length"),
+        checksum=tus_protocol.parse_checksum(upload_checksum),
         chunks=body.chunks(),
         disconnected=lambda: body.disconnected,
     )
