@@ -510,7 +510,8 @@ def _record_result(session: Session, upload_id: str, response: StoredResponse) -
 
 
 def remove_expired_uploads(session: Session, settings: Settings) -> int:
-    """Release expired uploads (their bytes and quota) and forget old finished ones; how many."""
+    """Release expired uploads (their bytes and quota), forget old finished ones and delete the
+    bytes of uploads whose site was deleted; how many expired (run on each creation)."""
     now = utc_now()
     expired = session.scalars(
         select(ResumableUpload).where(
@@ -532,4 +533,12 @@ def remove_expired_uploads(session: Session, settings: Settings) -> int:
         .execution_options(synchronize_session=False)
     )
     session.flush()
+    receiving = select(ResumableUpload.id).where(
+        ResumableUpload.state.in_(("active", "completing"))
+    )
+    kept = {f"{upload_id}{UPLOAD_SUFFIX}" for upload_id in session.scalars(receiving)}
+    if settings.uploads_dir.is_dir():
+        for path in settings.uploads_dir.glob(f"*{UPLOAD_SUFFIX}"):
+            if path.name not in kept:  # its site was deleted with its uploads
+                storage.remove_file(path)
     return len(expired)

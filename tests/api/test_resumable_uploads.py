@@ -344,3 +344,17 @@ def test_tuspy_sees_refusals_as_errors(api: ApiServer) -> None:
             client=tus_client(api.base_url, token),
             metadata={"site": "0" * 32},
         ).upload()
+
+
+def test_deleting_the_site_drops_its_unfinished_uploads(api: ApiServer) -> None:
+    client = api.client(api.token("writer"))
+    site, _ = site_with_reference(client)
+    location = new_upload(client, 5000, site=site["id"])
+    assert patch(client, location, 0, b"\0" * 500).status_code == 204
+    assert part_file(api, location).exists()
+    response = client.delete(f"/api/v1/sites/{site['id']}")
+    assert response.status_code == 204, response.text
+    assert client.head(location, headers=TUS).status_code == 404
+    other, _ = site_with_reference(client)
+    new_upload(client, 100, site=other["id"])  # creations clean up
+    assert not part_file(api, location).exists()
