@@ -14,6 +14,7 @@ from __future__ import annotations
 import base64
 import hashlib
 import io
+import socket
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -358,3 +359,33 @@ def test_deleting_the_site_drops_its_unfinished_uploads(api: ApiServer) -> None:
     other, _ = site_with_reference(client)
     new_upload(client, 100, site=other["id"])  # creations clean up
     assert not part_file(api, location).exists()
+
+
+def send_half_and_hang_up(server: ApiServer, token: str, location: str, content: bytes) -> None:
+    """A PATCH announcing all of ``content`` whose connection drops after 80 % of it."""
+    host, port = server.base_url.removeprefix("http://").split(":")
+    cut = int(0.8 * len(content))
+    head = (
+        f"PATCH {location} HTTP/1.1\r\nHost: {host}\r\nAuthorization: Bearer {token}\r\n"
+        "Tus-Resumable: 1.0.0\r\nContent-Type: application/offset+octet-stream\r\n"
+        f"Upload-Offset: 0\r\nContent-Length: {len(content)}\r\n\r\n"
+    ).encode()
+    with socket.create_connection((host, int(port))) as connection:
+        connection.sendall(head + content[:cut])
+        time.sleep(0.3)
+
+
+def test_a_connection_lost_mid_patch_keeps_the_bytes_that_arrived(api: ApiServer) -> None:
+    token = api.token("writer")
+    client = api.client(token)
+    site, _ = site_with_reference(client)
+    content = room_ply(13, n_points=5000)
+    location = new_upload(client, len(content), site=site["id"])
+    send_half_and_hang_up(api, token, location, content)
+    deadline = time.monotonic() + 10
+    while (offset := offset_of(client, location)) == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert offset == int(0.8 * len(content))
+    response = patch(client, location, offset, content[offset:])
+    assert response.status_code == 202, response.text
+    assert response.json()["scan"]["sha256"] == hashlib.sha256(content).hexdigest()
