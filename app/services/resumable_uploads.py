@@ -389,6 +389,13 @@ def _commit_offset(settings: Settings, upload_id: str, offset: int, completing: 
         return UploadView.of(upload)
 
 
+def _recorded_state(settings: Settings, upload_id: str) -> tuple[str, int]:
+    """The upload's state and committed offset as the database has them now."""
+    with transaction(settings.sqlalchemy_url) as session:
+        upload = session.get(ResumableUpload, upload_id)
+        return ("gone", -1) if upload is None else (upload.state, upload.offset)
+
+
 def _mark_failed(settings: Settings, upload_id: str, message: str) -> None:
     with transaction(settings.sqlalchemy_url) as session:
         upload = session.get(ResumableUpload, upload_id)
@@ -437,6 +444,13 @@ async def append(
         return _progress(upload, StoredResponse(upload.result_status, upload.result or {}))
     path = upload_path(settings, upload.id)
     with _locked(path, upload.id) as handle:
+        current = await anyio.to_thread.run_sync(_recorded_state, settings, upload.id)
+        if current != (upload.state, upload.offset):  # another PATCH ended meanwhile
+            raise ConflictError(
+                f"upload {upload.id} changed while this PATCH waited (now {current[0]} at "
+                f"{current[1]} bytes): HEAD the upload for its offset and resume from there",
+                code="offset_mismatch",
+            )
         if upload.state == "completing" or upload.offset == upload.length:
             # the completion of an earlier PATCH was interrupted: an empty PATCH retries it
             return await _complete(session, settings, principal, upload, path)

@@ -389,3 +389,28 @@ def test_a_connection_lost_mid_patch_keeps_the_bytes_that_arrived(api: ApiServer
     response = patch(client, location, offset, content[offset:])
     assert response.status_code == 202, response.text
     assert response.json()["scan"]["sha256"] == hashlib.sha256(content).hexdigest()
+
+
+def test_a_second_patch_while_one_is_writing_is_a_409(api: ApiServer) -> None:
+    token = api.token("writer")
+    client = api.client(token)
+    site, _ = site_with_reference(client)
+    content = room_ply(14)
+    location = new_upload(client, len(content), site=site["id"])
+    host, port = api.base_url.removeprefix("http://").split(":")
+    head = (
+        f"PATCH {location} HTTP/1.1\r\nHost: {host}\r\nAuthorization: Bearer {token}\r\n"
+        "Tus-Resumable: 1.0.0\r\nContent-Type: application/offset+octet-stream\r\n"
+        f"Upload-Offset: 0\r\nContent-Length: 2000\r\nConnection: close\r\n\r\n"
+    ).encode()
+    with socket.create_connection((host, int(port))) as slow:
+        slow.sendall(head + content[:1000])
+        deadline = time.monotonic() + 10
+        while not part_file(api, location).exists() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        detail = assert_error(patch(client, location, 0, content[:500]), 409, "upload_locked")
+        assert "HEAD" in detail
+        slow.sendall(content[1000:2000])
+        assert slow.recv(4096).startswith(b"HTTP/1.1 204")
+    assert offset_of(client, location) == 2000
+    assert_error(patch(client, location, 0, content[:500]), 409, "offset_mismatch")
