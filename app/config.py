@@ -70,6 +70,11 @@ class Settings(BaseSettings):
     workers: int = Field(default=2, ge=1, description="Job worker processes.")
     max_upload_bytes: int = Field(default=512 * 1024 * 1024, ge=1)
     max_points: int = Field(default=50_000_000, ge=10, description="Largest cloud accepted.")
+    resumable_upload_expiry_seconds: int = Field(
+        default=24 * 3600,
+        gt=0,
+        description="A resumable (tus) upload expires this long after its last accepted bytes.",
+    )
     job_lease_seconds: float = Field(default=60.0, gt=0)
     job_heartbeat_seconds: float = Field(default=10.0, gt=0)
     job_max_attempts: int = Field(default=3, ge=1)
@@ -341,6 +346,11 @@ class Settings(BaseSettings):
     def tmp_dir(self) -> Path:
         """Where uploads are streamed before the atomic rename (same filesystem)."""
         return self.data_layout.tmp_dir
+
+    @property
+    def uploads_dir(self) -> Path:
+        """Where resumable (tus) uploads keep their bytes between requests (kept on restart)."""
+        return self.data_dir / "uploads"
 
 
 @lru_cache

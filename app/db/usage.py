@@ -10,7 +10,8 @@ from __future__ import annotations
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from app.db.models import Organisation, Scan
+from app.clock import utc_now
+from app.db.models import Organisation, ResumableUpload, Scan
 
 
 def lock_organisation(session: Session, organisation_id: str) -> None:
@@ -30,7 +31,14 @@ def lock_organisation(session: Session, organisation_id: str) -> None:
 
 
 def stored_bytes(session: Session, organisation_id: str) -> int:
-    """Bytes of the organisation's scan files and of their cached reference geometry."""
+    """Bytes of the organisation's scan files, their cached reference geometry and what its
+    resumable uploads accepted so far (until they complete, expire or are terminated)."""
     stored = func.coalesce(func.sum(Scan.size_bytes + Scan.geometry_cache_bytes), 0)
     total = session.scalar(select(stored).where(Scan.organisation_id == organisation_id))
-    return int(total or 0)
+    receiving = select(func.coalesce(func.sum(ResumableUpload.offset), 0)).where(
+        ResumableUpload.organisation_id == organisation_id,
+        ResumableUpload.state == "active",
+        ResumableUpload.expires_at > utc_now(),
+    )
+    reserved = session.scalar(receiving)
+    return int(total or 0) + int(reserved or 0)

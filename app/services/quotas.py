@@ -3,7 +3,8 @@
 *Queued jobs* are an organisation's jobs that have not finished (``queued`` or ``running``);
 *stored bytes* are the sizes of its scan files as uploaded (``scan.size_bytes``) and of the k-NN
 geometry cached for the scans compared as references (``scan.geometry_cache_bytes``, written by
-the job workers: :mod:`app.jobs.geometry`).  Result files
+the job workers: :mod:`app.jobs.geometry`), plus the bytes already accepted by the unexpired
+resumable uploads still receiving (:mod:`app.services.resumable_uploads`).  Result files
 (labels, PLY/LAS exports) are not counted: they are derived from the scans, bounded by them and
 deleted with them.
 
@@ -61,8 +62,9 @@ def queued_jobs(session: Session, principal: Principal) -> int:
 
 
 def stored_bytes(session: Session, principal: Principal) -> int:
-    """Bytes of the organisation's scan files and of their cached reference geometry
-    (:func:`app.db.usage.stored_bytes`, the sum the job workers count too)."""
+    """Bytes of the organisation's scan files, their cached reference geometry and its
+    resumable uploads in progress (:func:`app.db.usage.stored_bytes`, the sum the job workers
+    count too)."""
     return usage.stored_bytes(session, principal.organisation_id)
 
 

@@ -111,7 +111,7 @@ def _key_was_used(session: Session, principal: Principal, key: str | None) -> bo
     return session.scalar(used) is not None
 
 
-def _check_upload_target(
+def check_upload_target(
     session: Session, settings: Settings, principal: Principal, options: UploadOptions
 ) -> int | None:
     """Site, reference, detector and storage quota before the body is read; the storage left."""
@@ -303,7 +303,7 @@ async def upload_scan(
     key = idempotency.validate_key(options.idempotency_key)
     keyed_options = dataclasses.replace(options, idempotency_key=key)
     remaining = await anyio.to_thread.run_sync(
-        _check_upload_target, session, settings, principal, keyed_options
+        check_upload_target, session, settings, principal, keyed_options
     )
     chunks = body.chunks()
     cap = settings.max_stored_bytes_per_organisation
@@ -311,48 +311,65 @@ async def upload_scan(
         chunks = _within_storage_left(chunks, remaining, cap)
     received = await storage.receive_stream(chunks, settings, settings.max_upload_bytes)
     try:
-        filename = storage.sanitise_filename(options.filename or body.filename)
-        fingerprint = idempotency.request_fingerprint(
-            "POST",
-            f"/api/v1/sites/{options.site_id}/scans",
-            {
-                "reference": options.reference,
-                "filename": filename,
-                "method": options.method,
-                "variant": options.variant,
-                "sensor_origin": options.sensor_origin,
-                "sha256": received.sha256,
-            },
+        return await store_received_scan(
+            session, settings, principal, keyed_options, received, body.filename
         )
-        if key is not None:
-            stored = await anyio.to_thread.run_sync(
-                _find_replay, session, principal, key, fingerprint
-            )
-            if stored is not None:
-                return stored
-        await anyio.to_thread.run_sync(
-            _check_stored_bytes, session, settings, principal, received.size_bytes
-        )
-        scan = await anyio.to_thread.run_sync(
-            functools.partial(
-                store_scan_file,
-                session,
-                settings,
-                principal,
-                site_id=options.site_id,
-                received=received,
-                filename=filename,
-                sensor_origin=options.sensor_origin,
-            )
-        )
-        response, created = await anyio.to_thread.run_sync(
-            _register_upload, session, settings, principal, keyed_options, fingerprint, scan
-        )
-        if not created:
-            storage.remove_file(settings.data_layout.resolve(scan.storage_path))
-        return response
     finally:
         storage.remove_file(received.path)  # gone already when it was installed
+
+
+async def store_received_scan(
+    session: Session,
+    settings: Settings,
+    principal: Principal,
+    options: UploadOptions,
+    received: storage.ReceivedFile,
+    body_filename: str | None = None,
+) -> StoredResponse:
+    """Make a received file a scan (and its job): quota, parse, install, register.
+
+    The second half of every upload, the normal one and a completed resumable one; the caller
+    removes ``received.path`` afterwards (it is gone already when it was installed).
+    """
+    key = options.idempotency_key
+    filename = storage.sanitise_filename(options.filename or body_filename)
+    fingerprint = idempotency.request_fingerprint(
+        "POST",
+        f"/api/v1/sites/{options.site_id}/scans",
+        {
+            "reference": options.reference,
+            "filename": filename,
+            "method": options.method,
+            "variant": options.variant,
+            "sensor_origin": options.sensor_origin,
+            "sha256": received.sha256,
+        },
+    )
+    if key is not None:
+        stored = await anyio.to_thread.run_sync(_find_replay, session, principal, key, fingerprint)
+        if stored is not None:
+            return stored
+    await anyio.to_thread.run_sync(
+        _check_stored_bytes, session, settings, principal, received.size_bytes
+    )
+    scan = await anyio.to_thread.run_sync(
+        functools.partial(
+            store_scan_file,
+            session,
+            settings,
+            principal,
+            site_id=options.site_id,
+            received=received,
+            filename=filename,
+            sensor_origin=options.sensor_origin,
+        )
+    )
+    response, created = await anyio.to_thread.run_sync(
+        _register_upload, session, settings, principal, options, fingerprint, scan
+    )
+    if not created:
+        storage.remove_file(settings.data_layout.resolve(scan.storage_path))
+    return response
 
 
 def get_scan(session: Session, principal: Principal, scan_id: str) -> Scan:
