@@ -48,11 +48,16 @@ class RowRead(BaseModel):
         return cls.model_validate(row)
 
 
+DEFAULT_DETECTOR_VARIANT = "improved"
+"""The variant a detector given by its method alone gets (``{"method": "pe"}``)."""
+
+
 class DetectorConfig(StrictBody):
-    """A detector: method (``pca``, ``gmm``, ``planes``...), variant and keyword parameters."""
+    """A detector: method (``pca``, ``gmm``, ``planes``...), variant (default ``improved``) and
+    keyword parameters."""
 
     method: Identifier
-    variant: Identifier
+    variant: Identifier = DEFAULT_DETECTOR_VARIANT
     params: dict[str, Any] = Field(default_factory=dict)
 
 
