@@ -20,6 +20,18 @@ class PointCloudError(InputError):
     """
 
 
+class PointLimitError(PointCloudError):
+    """A cloud has more points than the caller's limit allows.
+
+    ``limit_name`` names the limit as the core knows it (``"max_points"``); the interface that
+    set the limit names its own knob for it (the service: ``SCANDIFF_MAX_POINTS``).
+    """
+
+    def __init__(self, message: str, *, limit_name: str = "max_points") -> None:
+        super().__init__(message)
+        self.limit_name = limit_name
+
+
 class UnsupportedFormatError(PointCloudError):
     """The content is not any supported point-cloud format (the service answers 415)."""
 
