@@ -199,6 +199,10 @@ CLI_FIXES: dict[str, tuple[str, list[str]]] = {
 """For each ``how_to_fix["action"]`` of :mod:`app.core.quality`: the CLI's advice and flags."""
 
 
+CLI_FIXES_OF_ERRORS = {"skip_alignment": " (--no-align)"}
+"""The CLI's flag for each ``how_to_fix`` a core error names."""
+
+
 def cli_warnings(warnings: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Quality warnings with ``how_to_fix`` in the CLI's flags."""
     rendered = []
@@ -324,7 +328,8 @@ def run(args: argparse.Namespace) -> int:
         if args.export is not None:
             _export(args.export, reference, scan, result)
     except InputError as exc:
-        print(f"scandiff: error: {exc}", file=sys.stderr)
+        flag = CLI_FIXES_OF_ERRORS.get(getattr(exc, "how_to_fix", None) or "", "")
+        print(f"scandiff: error: {exc}{flag}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except OSError as exc:
         print(f"scandiff: error: {exc.strerror or exc}: {exc.filename or ''}", file=sys.stderr)

@@ -37,4 +37,10 @@ class UnsupportedFormatError(PointCloudError):
 
 
 class RegistrationError(InputError):
-    """The scan cannot be aligned to the reference (e.g. the clouds do not overlap)."""
+    """The scan cannot be aligned to the reference (e.g. the clouds do not overlap).
+
+    ``how_to_fix`` names the fix without an interface's words (``"skip_alignment"``): the
+    interface that reports the error names its own knob for it.
+    """
+
+    how_to_fix = "skip_alignment"

@@ -49,6 +49,17 @@ from app.jobs.results import store_results, write_result_files
 logger = logging.getLogger("scandiff.jobs")
 
 
+API_FIXES_OF_ERRORS = {
+    "skip_alignment": ' ("align": false in the job\'s params: POST /api/v1/jobs/{job_id}/rerun)',
+}
+"""The API's knob for each ``how_to_fix`` a core error names (a job's error is read over HTTP)."""
+
+
+def api_error_message(exc: InputError) -> str:
+    """A core input error as a job's ``error``: its message, with the API's knob for the fix."""
+    return str(exc) + API_FIXES_OF_ERRORS.get(getattr(exc, "how_to_fix", None) or "", "")
+
+
 def compute(
     job: ClaimedJob, settings: Settings, keeper: LeaseKeeper
 ) -> tuple[Any, dict[str, float]]:
@@ -135,7 +146,7 @@ def execute_job(job_id: str, settings: Settings) -> str:
         return "lease-lost"
     except InputError as exc:
         keeper.stop()
-        return "failed" if fail_job(job, settings, str(exc)) else "lease-lost"
+        return "failed" if fail_job(job, settings, api_error_message(exc)) else "lease-lost"
     except MemoryError:
         keeper.stop()
         message = (

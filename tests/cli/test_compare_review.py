@@ -109,3 +109,15 @@ def test_the_papers_name_as_method(scene) -> None:
     refused = run_cli(paths["reference"], paths["scan"], "--method", "pe-gmm")
     assert refused.returncode == 2
     assert "pe-gmm" in refused.stderr and "pe-emd" in refused.stderr
+
+
+def test_a_failed_alignment_names_the_clis_flag(scene, tmp_path: Path) -> None:
+    paths, pair = scene
+    elsewhere = tmp_path / "elsewhere.ply"
+    elsewhere.write_bytes(ply_bytes(pair.scan + np.array([500.0, 0.0, 0.0]), coordinate_type="f8"))
+    completed = run_cli(paths["reference"], elsewhere)
+    assert completed.returncode == 2, completed.stderr
+    (line,) = completed.stderr.strip().splitlines()
+    assert line.startswith("scandiff: error: ") and "does not overlap" in line
+    assert line.endswith("(--no-align)")
+    assert '"align"' not in line and "API" not in line
