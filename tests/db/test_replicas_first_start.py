@@ -140,12 +140,14 @@ def _rounds_on_postgresql(tmp_path: Path, rounds: int, n_api: int, n_workers: in
         assert problems == [], f"round {round_index + 1}: {problems}"
 
 
+@pytest.mark.timeout(600)
 def test_four_apis_and_three_workers_start_together_on_a_fresh_sqlite_file(
     tmp_path: Path,
 ) -> None:
     _rounds_on_sqlite(tmp_path, ROUNDS_QUICK)
 
 
+@pytest.mark.timeout(600)
 def test_four_apis_and_three_workers_start_together_on_a_fresh_postgresql_database(
     tmp_path: Path,
 ) -> None:
@@ -153,11 +155,13 @@ def test_four_apis_and_three_workers_start_together_on_a_fresh_postgresql_databa
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1800)  # ten rounds of seven processes starting on two shared cores
 def test_ten_simultaneous_starts_on_a_fresh_sqlite_file_are_all_healthy(tmp_path: Path) -> None:
     _rounds_on_sqlite(tmp_path, ROUNDS_FULL)
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1800)
 def test_ten_simultaneous_starts_on_a_fresh_postgresql_database_are_all_healthy(
     tmp_path: Path,
 ) -> None:
@@ -165,6 +169,7 @@ def test_ten_simultaneous_starts_on_a_fresh_postgresql_database_are_all_healthy(
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1200)
 def test_ten_simultaneous_starts_of_two_api_replicas_on_fresh_postgresql_are_healthy(
     tmp_path: Path,
 ) -> None:
