@@ -117,19 +117,16 @@ def child_environment(settings: Settings) -> dict[str, str]:
 
 def ensure_admin_token(settings: Settings) -> str | None:
     """On first start, create organisation ``default`` and an admin token; the new token."""
-    from sqlalchemy import select
-
-    from app.db.models import Organisation
     from app.db.session import transaction
-    from app.services.auth import create_token
+    from app.services.auth import create_token, insert_organisation_if_absent
 
     token_path = settings.data_layout.admin_token_file
     with transaction(settings.sqlalchemy_url) as session:
-        exists = session.execute(
-            select(Organisation.id).where(Organisation.name == DEFAULT_ORGANISATION)
-        ).first()
-        if exists:
-            return None  # not the first start
+        # Replicas starting together: one inserts the organisation, the others find it (their
+        # insert does nothing) and leave the token to it.
+        _organisation, created = insert_organisation_if_absent(session, DEFAULT_ORGANISATION)
+        if not created:
+            return None  # not the first start, or another replica's
         token = create_token(session, DEFAULT_ORGANISATION, "admin", name="admin (first start)")
         # Written before the commit: a crash in between leaves no organisation, so the next
         # start creates a new token and overwrites this file.

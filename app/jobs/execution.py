@@ -50,6 +50,17 @@ from app.kit.allocator import release_freed_memory_promptly
 logger = logging.getLogger("scandiff.jobs")
 
 
+API_FIXES_OF_ERRORS = {
+    "skip_alignment": ' ("align": false in the job\'s params: POST /api/v1/jobs/{job_id}/rerun)',
+}
+"""The API's knob for each ``how_to_fix`` a core error names (a job's error is read over HTTP)."""
+
+
+def api_error_message(exc: InputError) -> str:
+    """A core input error as a job's ``error``: its message, with the API's knob for the fix."""
+    return str(exc) + API_FIXES_OF_ERRORS.get(getattr(exc, "how_to_fix", None) or "", "")
+
+
 def compute(
     job: ClaimedJob, settings: Settings, keeper: LeaseKeeper
 ) -> tuple[Any, dict[str, float]]:
@@ -202,7 +213,11 @@ def execute_job(job_id: str, settings: Settings) -> JobOutcome:
         return JobOutcome.LEASE_LOST
     except InputError as exc:
         keeper.stop()
-        return JobOutcome.FAILED if fail_job(job, settings, str(exc)) else JobOutcome.LEASE_LOST
+        return (
+            JobOutcome.FAILED
+            if fail_job(job, settings, api_error_message(exc))
+            else JobOutcome.LEASE_LOST
+        )
     except MemoryError:
         keeper.stop()
         message = (

@@ -19,13 +19,13 @@ from app.services import storage
 from app.services.auth import Principal
 from app.services.errors import ConflictError, ValidationFailedError
 from app.services.paging import newest_first_page
-from app.services.schemas import SiteCreate, SiteUpdate
+from app.services.schemas import DEFAULT_DETECTOR_VARIANT, SiteCreate, SiteUpdate
 from app.services.scoping import get_owned, scoped
 from app.services.site_calibration import recompute_site_calibration
 from app.services.transaction import after_commit
 
 DEFAULT_METHOD = "gmm"
-DEFAULT_VARIANT = "improved"
+DEFAULT_VARIANT = DEFAULT_DETECTOR_VARIANT
 
 
 def validate_detector(method: str, variant: str, params: dict[str, Any]) -> str:
