@@ -18,7 +18,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from app.cli.serve import ADMIN_TOKEN_FILE
+from app.kit.data_layout import DataLayout
 from tests.helpers.environment import require
 from tests.helpers.network import free_port
 from tests.helpers.topology import (
@@ -94,7 +94,7 @@ def start_together(
                 process.wait_ready()
             except (RuntimeError, TimeoutError) as exc:
                 problems.append(f"{process.name}: {str(exc)[-3000:]}")
-        token_path = data_dir / ADMIN_TOKEN_FILE
+        token_path = DataLayout(data_dir.resolve()).admin_token_file
         if not token_path.exists():
             problems.append("no admin token was written on the first start")
         else:
