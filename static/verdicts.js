@@ -88,6 +88,6 @@ export function reviewPanel(job, onChanged) {
     sure,
     h("label", { class: "verdict-note" }, "Note ", note),
     status,
-    h("details", {}, h("summary", {}, "Verdict history"), history));
+    h("details", {}, h("summary", {}, "Verdict history (newest first)"), history));
   return section;
 }

@@ -213,7 +213,10 @@ def test_regions_and_labels_of_a_succeeded_job(
 ) -> None:
     site, reference, scan = site_scans
     job = writer.get(f"/api/v1/sites/{site['id']}/jobs").json()["items"][0]
-    assert writer.get(f"/api/v1/jobs/{job['id']}/regions").json() == []
+    assert writer.get(f"/api/v1/jobs/{job['id']}/regions").json() == {
+        "items": [],
+        "next_cursor": None,
+    }
     for file_format in ("npz", "ply", "las"):
         response = writer.get(f"/api/v1/jobs/{job['id']}/labels", params={"format": file_format})
         assert_error(response, 409, "job_not_succeeded")
@@ -224,7 +227,7 @@ def test_regions_and_labels_of_a_succeeded_job(
     )
     fetched = writer.get(f"/api/v1/jobs/{job['id']}").json()
     assert fetched["status"] == JobStatus.SUCCEEDED and fetched["changed"] is True
-    regions = writer.get(f"/api/v1/jobs/{job['id']}/regions").json()
+    regions = writer.get(f"/api/v1/jobs/{job['id']}/regions").json()["items"]
     assert len(regions) == 1
     assert set(regions[0]) == {
         "id", "ordinal", "kind", "n_points", "centroid", "bbox_min", "bbox_max", "mean_distance",

@@ -142,7 +142,9 @@ def test_review_with_the_mouse(review_service: ReviewService, chrome_factory) ->
     # Filters: "changed only" keeps this job iff the detector said changed.
     with service.client() as client:
         job = client.get(f"/api/v1/jobs/{job_id}").json()
-        regions = client.get(f"/api/v1/jobs/{job_id}/regions").json()
+        regions = client.get(f"/api/v1/jobs/{job_id}/regions", params={"limit": 1000}).json()[
+            "items"
+        ]
     service.made.update(job=job, regions=regions)
     retry(lambda: by_css(driver, "#filter-changed").click())
     wait_until(
