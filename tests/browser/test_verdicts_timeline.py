@@ -94,7 +94,7 @@ def test_verdict_buttons_on_the_job_page(
     driver = chrome_factory()
     sign_in(driver, service)
     driver.get(f"{service.base_url}/#/jobs/{job['id']}")
-    assert "largest changed region" in visible(driver, "#decision-explained").text
+    assert "the largest region (region " in visible(driver, "#decision-explained").text
     assert visible(driver, "#current-verdict").get_attribute("data-verdict") == ""
 
     visible(driver, "#verdict-note").send_keys("the bin again")
@@ -279,7 +279,8 @@ def test_verdict_buttons_in_the_3d_view(
     driver = chrome_factory()
     sign_in(driver, service)
     driver.get(f"{service.base_url}/jobs/{job['id']}/view")
-    assert "largest changed region" in visible(driver, "#view-review #decision-explained").text
+    explained = visible(driver, "#view-review #decision-explained").text
+    assert "the largest region (region " in explained
     visible(driver, "#view-review #verdict-note").send_keys("seen in 3D: the bin")
     visible(driver, "#view-review #verdict-false_alarm").click()
     wait_until(
