@@ -127,7 +127,7 @@ def test_verdict_buttons_on_the_job_page(
     wait_until(
         lambda: (
             attribute_of_all(driver, "#verdict-history li", "data-verdict")
-            == ["false_alarm", "new_reference"]
+            == ["new_reference", "false_alarm"]  # newest first
         ),
         10,
         "the verdict history does not list both verdicts",
