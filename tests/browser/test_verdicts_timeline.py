@@ -94,7 +94,12 @@ def test_verdict_buttons_on_the_job_page(
     driver = chrome_factory()
     sign_in(driver, service)
     driver.get(f"{service.base_url}/#/jobs/{job['id']}")
-    assert "the largest region (region " in visible(driver, "#decision-explained").text
+    explained = visible(driver, "#decision-explained").text
+    # in sentences, naming the Why line's largest region (the most points)
+    largest = job["explanation"]["largest_region"]
+    named = f"region {largest['index'] + 1}: {largest['kind']}, {largest['n_points']:,} points"
+    assert f"the largest region ({named})" in explained, explained
+    assert "→" not in explained and "fires" not in explained, explained
     assert visible(driver, "#current-verdict").get_attribute("data-verdict") == ""
 
     visible(driver, "#verdict-note").send_keys("the bin again")
