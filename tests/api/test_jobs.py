@@ -231,7 +231,7 @@ def test_regions_and_labels_of_a_succeeded_job(
     assert len(regions) == 1
     assert set(regions[0]) == {
         "id", "ordinal", "kind", "n_points", "centroid", "bbox_min", "bbox_max", "mean_distance",
-        "max_distance",
+        "max_distance", "evidence", "confidence",
     }  # fmt: skip
     assert regions[0]["kind"] == "added" and regions[0]["ordinal"] == 0
 
