@@ -1,7 +1,7 @@
 """What the job page's region table costs: one page of 25 against every region (issue 19, item 5).
 
-    .venv/bin/python bench/regions_page.py                     # 100, 1k, 10k regions, SQLite
-    .venv/bin/python bench/regions_page.py --regions 50000 --repeats 5
+    .venv/bin/python -m bench.regions_page                     # 100, 1k, 10k regions, SQLite
+    .venv/bin/python -m bench.regions_page --regions 50000 --repeats 5
 
 For each size it fills a fresh, migrated SQLite file with one job of that many regions (random
 kinds, sizes and distances), then reads them as ``GET /jobs/{id}/regions`` does (the service
@@ -16,7 +16,6 @@ import argparse
 import json
 import random
 import statistics
-import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -26,17 +25,13 @@ from typing import Any
 
 from sqlalchemy import insert
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``app`` importable
-    sys.path.insert(0, str(PROJECT_ROOT))
-
-from app.config import Settings  # noqa: E402
-from app.db.migrate import upgrade_to_head  # noqa: E402
-from app.db.models import Job, JobStatus, Organisation, Region, Scan, Site, new_id  # noqa: E402
-from app.db.session import get_engine, transaction  # noqa: E402
-from app.services.auth import Principal  # noqa: E402
-from app.services.jobs import list_regions  # noqa: E402
-from app.services.schemas import RegionRead  # noqa: E402
+from app.config import Settings
+from app.db.migrate import upgrade_to_head
+from app.db.models import Job, JobStatus, Organisation, Region, Scan, Site, new_id
+from app.db.session import get_engine, transaction
+from app.services.auth import Principal
+from app.services.jobs import list_regions
+from app.services.schemas import RegionRead
 
 
 def fill(settings: Settings, count: int, seed: int = 0) -> tuple[Principal, str]:

@@ -228,32 +228,26 @@ def _export(path: Path, reference: PointCloud, scan: PointCloud, result: Compari
     import numpy as np
 
     from app.core.formats import write_point_cloud
+    from app.core.pair_export import both_clouds
     from app.core.registration import apply_transform
 
     transform = np.asarray(result.registration["transform"], dtype=np.float64)
-    aligned_scan = apply_transform(scan.points, transform)
-    points = np.vstack([reference.points, aligned_scan])
-    fields = {
-        "cloud": np.concatenate([np.zeros(len(reference), np.uint8), np.ones(len(scan), np.uint8)]),
-        "label": np.concatenate(
-            [
-                reference.from_source_order(result.reference_label),
-                scan.from_source_order(result.scan_label),
-            ]
-        ).astype(np.int8),
-        "distance": np.concatenate(
-            [
-                reference.from_source_order(result.reference_distance),
-                scan.from_source_order(result.scan_distance),
-            ]
-        ).astype(np.float32),
-        "region": np.concatenate(
-            [
-                reference.from_source_order(result.reference_region),
-                scan.from_source_order(result.scan_region),
-            ]
-        ).astype(np.int32),
-    }
+    points, fields = both_clouds(
+        reference.points,
+        apply_transform(scan.points, transform),
+        labels=(
+            reference.from_source_order(result.reference_label),
+            scan.from_source_order(result.scan_label),
+        ),
+        distances=(
+            reference.from_source_order(result.reference_distance),
+            scan.from_source_order(result.scan_distance),
+        ),
+        regions=(
+            reference.from_source_order(result.reference_region),
+            scan.from_source_order(result.scan_region),
+        ),
+    )
     write_point_cloud(path, points, fields)
 
 
@@ -277,10 +271,10 @@ def _geometry_cache(directory: Path | None, reference: Path, params: dict[str, A
 
 def run(args: argparse.Namespace) -> int:
     """Run one comparison; exit status 0, or 2 on bad input."""
-    from app.core.allocator import release_freed_memory_promptly
     from app.core.formats import read_point_cloud
     from app.core.formats.rosbag import bag_options_from_strings
     from app.core.pipeline import compare
+    from app.kit.allocator import release_freed_memory_promptly
 
     release_freed_memory_promptly()
     try:

@@ -25,14 +25,13 @@ from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING, Any
 
-from app.core.files import write_private_file
+from app.kit.files import write_private_file
 
 if TYPE_CHECKING:  # pydantic-settings is imported when the command runs
     from app.config import Settings
 
 logger = logging.getLogger("scandiff.serve")
 
-ADMIN_TOKEN_FILE = "admin-token"
 DEFAULT_ORGANISATION = "default"
 CHILD_STOP_TIMEOUT_SECONDS = 30.0
 """How long the children get to stop after SIGTERM before SIGKILL (jobs get 10 s of it)."""
@@ -124,7 +123,7 @@ def ensure_admin_token(settings: Settings) -> str | None:
     from app.db.session import transaction
     from app.services.auth import create_token
 
-    token_path = settings.data_dir / ADMIN_TOKEN_FILE
+    token_path = settings.data_layout.admin_token_file
     with transaction(settings.sqlalchemy_url) as session:
         exists = session.execute(
             select(Organisation.id).where(Organisation.name == DEFAULT_ORGANISATION)
@@ -238,7 +237,7 @@ def serve(settings: Settings, roles: tuple[str, ...] = CHILD_ROLES) -> int:
         print("no job workers here (--workers 0): run `scandiff worker` for the jobs", flush=True)
     if token:
         print(
-            f"admin token (first start; also in {settings.data_dir / ADMIN_TOKEN_FILE}):\n{token}",
+            f"admin token (first start; also in {settings.data_layout.admin_token_file}):\n{token}",
             flush=True,
         )
     supervisor = Supervisor(settings, roles)

@@ -15,6 +15,7 @@ from typing import Any
 
 from sqlalchemy import (
     JSON,
+    BigInteger,
     Boolean,
     DateTime,
     Float,
@@ -425,4 +426,32 @@ class WebhookDelivery(Base):
     last_error: Mapped[str | None] = mapped_column(Text, nullable=True)
     last_attempt_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
     delivered_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
+    created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)
+
+
+# --- i30/resumable uploads: tus uploads being received (app/services/resumable_uploads.py) ---
+
+
+class ResumableUpload(Base):
+    """A tus upload: its declared length, the bytes accepted so far (durable) and its fate."""
+
+    __tablename__ = "resumable_upload"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    organisation_id: Mapped[str] = mapped_column(
+        ForeignKey("organisation.id", ondelete="CASCADE"), index=True
+    )
+    site_id: Mapped[str] = mapped_column(ForeignKey("site.id", ondelete="CASCADE"), index=True)
+    length: Mapped[int] = mapped_column(BigInteger)  # Upload-Length
+    offset: Mapped[int] = mapped_column(BigInteger, default=0)  # bytes fsynced and accepted
+    # the upload's options as the normal upload takes them (reference, filename, method, ...),
+    # the raw Upload-Metadata and the whole-file checksum the client declared
+    options: Mapped[dict[str, Any]] = mapped_column(JSON)
+    upload_metadata: Mapped[str] = mapped_column(Text, default="")
+    # active | completed | failed | terminated (expired: active with expires_at passed)
+    state: Mapped[str] = mapped_column(String(16), default="active")
+    result_status: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    result: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    expires_at: Mapped[datetime] = mapped_column(Timestamp, index=True)
     created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)

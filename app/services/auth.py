@@ -31,6 +31,7 @@ from sqlalchemy.orm import Session
 from app.clock import iso_utc, utc_now
 from app.config import DEFAULT_TOKEN_CACHE_SECONDS
 from app.db.models import ApiToken, Organisation
+from app.kit.data_layout import DataLayout
 from app.services.errors import (
     AuthenticationError,
     ConflictError,
@@ -52,7 +53,6 @@ bound on how long a token revoked behind the service's back (plain SQL) keeps wo
 disables the cache.  The default of the ``token_cache_seconds`` setting
 (``SCANDIFF_TOKEN_CACHE_SECONDS``), which :func:`configure_token_cache` applies at API start."""
 TOKEN_CACHE_MAX_ENTRIES = 4096
-REVOCATIONS_FILE = "token-revocations"
 """In the data directory: one line appended per revocation; its size is the revocation counter
 every process checks (one ``stat``) before trusting its cache."""
 
@@ -107,7 +107,7 @@ def create_token(
 
 def revocations_path(data_dir: Path) -> Path:
     """The revocation counter file of the service using ``data_dir``."""
-    return data_dir / REVOCATIONS_FILE
+    return DataLayout(data_dir).revocations_file
 
 
 def revocation_counter(path: Path | None) -> int:

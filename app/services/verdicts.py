@@ -26,8 +26,6 @@ from app.services.paging import newest_first_page
 from app.services.schemas import VerdictCreate
 from app.services.site_calibration import recompute_site_calibration
 
-VERDICTS = ("confirmed", "false_alarm", "new_reference")
-
 
 def set_verdict(
     session: Session, settings: Settings, principal: Principal, job_id: str, payload: VerdictCreate

@@ -49,9 +49,11 @@ __all__ = ["MapEvidence", "map_test"]
 
 BORDER_NEIGHBOURS = 16
 """Own neighbours of a candidate looked at for its cluster's border."""
-CONTINUATION_SHARE = 0.5
+CONTINUATION_SHARE = 0.3
 """A cluster is a coverage difference when this share of its border points continues into a
-surface the other epoch has (and no see-through evidence overrides it)."""
+surface the other epoch has (and no see-through evidence overrides it).  A removed object's
+border continues into nothing parallel (its faces meet the floor and walls at an angle); a
+patch of a wall or ceiling also meets the room's corners, so half its border may not."""
 SURFACE_REACH = 0.8
 """The other epoch's surface must extend this far (metres) from a continuing border point, in
 at least :data:`SURFACE_SECTORS` directions of its plane: a floor, a wall, a ceiling, not the
@@ -62,7 +64,12 @@ SECTOR_HALF_ANGLE_COSINE = math.cos(math.radians(35.0))
 PROBE_NEIGHBOURS = 4
 SEE_THROUGH_SHARE = 0.3
 """A coverage-difference cluster is still a change when this share of its points has the
-other epoch's surface, missing from this epoch, on its normal line."""
+other epoch's surface, missing from this epoch, on its normal line within
+:data:`SEE_THROUGH_REACH`."""
+SEE_THROUGH_REACH = 1.2
+"""Farther along the normal line, the other epoch's unmatched surface is as likely another
+coverage difference (the ceiling a path saw above a floor patch the other path saw) as what
+stood in front of or behind the cluster."""
 SPARSE_PROBE_FACTOR = 1.5
 """The see-through probes' balls are at least this many of the other cloud's median spacings
 wide (a sparse cloud's surface is found between its samples)."""
@@ -254,6 +261,7 @@ def map_test(
         other_points=other.points,
         other_normal=other.geometry.normal,
         other_unmatched=other_unmatched,
+        max_reach=SEE_THROUGH_REACH,
         min_radius=max(
             BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))
         ),
