@@ -63,6 +63,10 @@ class PayloadTooLargeError(AppError, status_code=413, code="payload_too_large"):
     """The body is larger than the configured cap."""
 
 
+class UnsupportedMediaError(AppError, status_code=415, code="unsupported_media_type"):
+    """The request's content type is not the one the route takes (a tus PATCH body)."""
+
+
 class ValidationFailedError(AppError, status_code=422, code="validation_error"):
     """The request is well-formed but its values are not acceptable."""
 
