@@ -345,6 +345,22 @@ class Page(BaseModel, Generic[ItemT]):
     next_cursor: str | None
 
 
+class SiteAwaitingReview(BaseModel):
+    """A site's succeeded jobs that await a verdict: how many, and the newest one's time."""
+
+    site_id: str
+    site_name: str | None
+    count: int
+    newest_at: UtcDatetime
+
+
+class AwaitingReviewCounts(BaseModel):
+    """The review inbox's counts: all jobs awaiting a verdict, and per site (newest first)."""
+
+    total: int
+    sites: list[SiteAwaitingReview]
+
+
 class ErrorRead(BaseModel):
     """Every error: a stable code and a human-readable message."""
 

@@ -213,7 +213,10 @@ def test_regions_and_labels_of_a_succeeded_job(
 ) -> None:
     site, reference, scan = site_scans
     job = writer.get(f"/api/v1/sites/{site['id']}/jobs").json()["items"][0]
-    assert writer.get(f"/api/v1/jobs/{job['id']}/regions").json() == []
+    assert writer.get(f"/api/v1/jobs/{job['id']}/regions").json() == {
+        "items": [],
+        "next_cursor": None,
+    }
     for file_format in ("npz", "ply", "las"):
         response = writer.get(f"/api/v1/jobs/{job['id']}/labels", params={"format": file_format})
         assert_error(response, 409, "job_not_succeeded")
@@ -231,11 +234,11 @@ def test_regions_and_labels_of_a_succeeded_job(
     regions_per_point = np.concatenate([np.full(reference["n_points"], -1), scan_region])
     fetched = writer.get(f"/api/v1/jobs/{job['id']}").json()
     assert fetched["status"] == JobStatus.SUCCEEDED and fetched["changed"] is True
-    regions = writer.get(f"/api/v1/jobs/{job['id']}/regions").json()
+    regions = writer.get(f"/api/v1/jobs/{job['id']}/regions").json()["items"]
     assert len(regions) == 1
     assert set(regions[0]) == {
         "id", "ordinal", "kind", "n_points", "centroid", "bbox_min", "bbox_max", "mean_distance",
-        "max_distance",
+        "max_distance", "evidence", "confidence",
     }  # fmt: skip
     assert regions[0]["kind"] == "added" and regions[0]["ordinal"] == 0
 

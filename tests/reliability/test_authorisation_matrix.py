@@ -140,6 +140,8 @@ OPERATIONS = [
         202,
         json=lambda ids: {"reference_scan_id": ids.reference_scan_id, "scan_id": ids.scan_id},
     ),
+    Operation("GET", "/api/v1/jobs", "reader", 200, scoped=False),
+    Operation("GET", "/api/v1/jobs/awaiting-review/counts", "reader", 200, scoped=False),
     Operation("GET", "/api/v1/jobs/{job_id}", "reader", 200),
     Operation("POST", "/api/v1/jobs/{job_id}/rerun", "writer", 202, json=lambda ids: {}),
     Operation(
@@ -519,6 +521,11 @@ def test_only_the_owner_path_succeeds_and_nothing_leaks(service: ApiServer, worl
                 calls += 1
                 statuses[response.status_code] += 1
                 acceptable = {404} if label != "junk" else {404, 405, 422}
+                dot_segment = "{site_id}" in operation.path or "{webhook_id}" in operation.path
+                if label == "junk" and dot_segment and ".." not in response.request.url.path:
+                    # the client resolved the junk id "..": /sites/../jobs is GET /jobs, another
+                    # route of the matrix (checked there), answering for the caller's own data
+                    acceptable.add(200)
                 if response.status_code not in acceptable:
                     wrong.append(
                         f"guessed ({label}) {operation.method} {operation.path}: "
