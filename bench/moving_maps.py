@@ -218,14 +218,20 @@ def main() -> None:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             for map_class, layout, change, misaligned in scenes(seed, classes):
                 started = time.perf_counter()
-                pair = map_pair(
-                    map_class,
-                    layout=layout,
-                    change=change,
-                    misaligned=misaligned,
-                    size=args.size,
-                    random_state=seed,
-                )
+                try:
+                    pair = map_pair(
+                        map_class,
+                        layout=layout,
+                        change=change,
+                        misaligned=misaligned,
+                        size=args.size,
+                        random_state=seed,
+                    )
+                except ValueError as error:  # no visible change drawn: say so, go on
+                    line = f"| {map_class} | {layout} | {change} | | {seed} | skipped: {error} |"
+                    print(line, flush=True)
+                    table.append(line)
+                    continue
                 generated = time.perf_counter() - started
                 for mode in modes:
                     row = run_scene(pair, mode)
