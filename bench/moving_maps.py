@@ -164,12 +164,13 @@ def target_lines(rows: list[dict], classes: list[str], modes: list[str]) -> list
     return lines
 
 
-def run_real() -> list[str]:
-    """Region counts, changed points per side and seconds on the real co-registered pairs."""
+def run_real(real: Path = REAL) -> list[str]:
+    """Region counts, changed points per side and seconds on the real co-registered pairs
+    under ``real`` (the folder holding ``multichange3d_samples``)."""
     lines = ["| real pair | points (epoch 0 / 1) | regions | changed points (0 / 1) | s |"]
     lines.append("|---|---|---|---|---|")
     for name in REAL_PAIRS:
-        folder = REAL / "multichange3d_samples" / name
+        folder = real / "multichange3d_samples" / name
         if not folder.is_dir():
             lines.append(f"| {name} | missing ({folder}) | | | |")
             continue
@@ -199,9 +200,10 @@ def main() -> None:
     parser.add_argument("--size", type=float, default=1.0, help="scales the rays per epoch")
     parser.add_argument("--output", type=Path, help="also write the report to this file")
     parser.add_argument("--real", action="store_true", help="run the real pairs instead")
+    parser.add_argument("--real-dir", type=Path, default=REAL, help="where the real data is")
     args = parser.parse_args()
     if args.real:
-        report = run_real()
+        report = run_real(args.real_dir)
     else:
         classes = args.classes.split(",")
         modes = args.modes.split(",")
