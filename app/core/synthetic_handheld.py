@@ -23,6 +23,7 @@ from app.core.synthetic_furniture import (
     make_object,
     place_object,
 )
+from app.core.synthetic_lidar import LidarWorld
 from app.core.synthetic_map_world import (
     EpochSamples,
     MapPair,
@@ -101,7 +102,7 @@ def _camera_loop(
 
 
 def _render(
-    world_and_owner: tuple,
+    world_and_owner: tuple[LidarWorld, NDArray[np.int64]],
     path: SensorPath,
     pixels: tuple[int, int],
     rng: np.random.Generator,
@@ -132,9 +133,7 @@ def _render(
     return EpochSamples(points, exact, box[keep], pose[keep], path)
 
 
-def _furnish(
-    rng: np.random.Generator, placement: Placement
-) -> tuple[list[MapObject], dict[str, int]]:
+def _furnish(rng: np.random.Generator, placement: Placement) -> list[MapObject]:
     """Desks first (against a wall or free-standing), then chairs, boxes and boards."""
     objects: list[MapObject] = []
     counts = {"desk": int(rng.integers(1, 4)), "chair": int(rng.integers(2, 6))}
@@ -146,7 +145,7 @@ def _furnish(
             )
             if placed is not None:
                 objects.append(placed)
-    return objects, counts
+    return objects
 
 
 def handheld_pair(
@@ -215,7 +214,7 @@ def _draw(
         )
     keep_out = np.vstack([dense for _, dense in paths])
     placement = Placement(shell[0], shell_high, keep_out, clearance=0.4)
-    objects, _ = _furnish(rng, placement)
+    objects = _furnish(rng, placement)
 
     def new_object(name: str) -> MapObject:
         kind = str(rng.choice(MOVABLE_KINDS))

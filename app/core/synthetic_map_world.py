@@ -170,8 +170,11 @@ class MapPair:
     Attributes
     ----------
     reference, scan : PointCloud
-        The maps with their ``"time"`` attribute (float64 seconds of the frame or sweep that
-        produced each kept point) and ``trajectory``; :meth:`clouds` gives them without.
+        The maps with their ``"time"`` attribute (float64 seconds of the frame, sweep or
+        station that produced each kept point) and ``trajectory`` (one pose per rendered frame,
+        sweep or station, as estimated: pose errors included; orientations map sensor axes to
+        the file's axes: a camera's x right, y down, z forward; a lidar's x forward, z up);
+        :meth:`clouds` gives them without.
     reference_changed, scan_changed : ndarray, shape (n,) and (m,), bool
         More than :data:`CHANGE_DISTANCE` from every surface of the other epoch's world.
     reference_scored, scan_scored : ndarray, bool

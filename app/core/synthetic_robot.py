@@ -31,7 +31,7 @@ from app.core.synthetic_furniture import (
     make_object,
     place_object,
 )
-from app.core.synthetic_lidar import ELEVATION_RANGE_DEG, lidar_directions
+from app.core.synthetic_lidar import ELEVATION_RANGE_DEG, LidarWorld, lidar_directions
 from app.core.synthetic_map_world import (
     EpochSamples,
     MapPair,
@@ -165,7 +165,7 @@ def _pose_errors(
 
 
 def _sweep(
-    world_and_owner: tuple,
+    world_and_owner: tuple[LidarWorld, NDArray[np.int64]],
     path: SensorPath,
     local_directions: list[NDArray[np.float64]],
     kind: str,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from app.core.synthetic_map_world import SensorModel, cast_rays, voxel_thin
+from app.core.synthetic_map_world import SensorModel, cast_rays, far_from_surfaces, voxel_thin
 from app.core.synthetic_maps import MAP_CLASSES, map_pair
 
 SMALL = {"rgbd": 0.03, "robot": 0.03, "tls": 0.12}
@@ -197,3 +197,32 @@ def test_bad_arguments_say_what_to_fix() -> None:
         map_pair("rgbd", layout="warehouse")
     with pytest.raises(ValueError, match="change"):
         map_pair("robot", change="exploded", size=SMALL["robot"])
+
+
+def test_casting_with_object_bounds_gives_the_same_hits() -> None:
+    pair = small_pair("rgbd", "moved", seed=3)
+    world = pair.reference_world
+    rng = np.random.default_rng(1)
+    origin = (world.shell_low + world.shell_high) / 2.0
+    origin[2] = world.shell_low[2] + 1.7
+    directions = rng.normal(size=(3000, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    expected_distance, expected_box = world.cast(origin, directions)
+    origins = np.broadcast_to(origin, directions.shape)
+    owner = np.repeat(np.arange(len(world.box_low)), 1)
+    for groups in (None, owner // 3):
+        distance, box = cast_rays(world, origins, directions, groups)
+        np.testing.assert_allclose(distance, expected_distance, rtol=1e-12)
+        np.testing.assert_array_equal(box, expected_box)
+    assert (expected_box >= 0).any()
+
+
+def test_far_from_surfaces_is_the_surface_distance_test() -> None:
+    pair = small_pair("rgbd", "moved", seed=3)
+    world = pair.scan_world
+    rng = np.random.default_rng(2)
+    points = rng.uniform(world.shell_low, world.shell_high, (20_000, 3))
+    points = np.vstack([points, pair.reference_exact])
+    np.testing.assert_array_equal(
+        far_from_surfaces(world, points, 0.1), world.surface_distance(points) > 0.1
+    )
