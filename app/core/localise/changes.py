@@ -158,6 +158,8 @@ def localise_changes(
     scan_station: NDArray | None = None,
     reference_stations_unknown: bool = False,
     scan_stations_unknown: bool = False,
+    reference_trajectory: bool = False,
+    scan_trajectory: bool = False,
     **params: Any,
 ) -> Localisation:
     """Label each point unchanged, changed or unobserved and group changes into regions.
@@ -201,6 +203,11 @@ def localise_changes(
         The cloud was sampled by lidars from several stations that are not known (nor
         recovered): the other cloud's candidates get the origin-free surface test
         (``origin_free_test="auto"``, :func:`~app.core.localise.visibility.label_candidates`).
+    reference_trajectory, scan_trajectory : bool
+        The cloud was taken along a trajectory: its origins are its pseudo-stations' sensor
+        positions and its station index each point's pseudo-station
+        (:mod:`app.core.trajectory_poses`); the other cloud's candidates get the trajectory
+        test (:mod:`~app.core.localise.trajectory_visibility`).
     **params
         See :data:`~app.core.localise.settings.DEFAULT_PARAMETERS`.
 
@@ -254,6 +261,7 @@ def localise_changes(
         origins=reference_origins,
         station=reference_station,
         stations_unknown=reference_stations_unknown and reference_origins is None,
+        trajectory=reference_trajectory and reference_station is not None,
         geometry=reference_geometry,
         nearest_distance=reference_nn_distance,
         nearest_index=reference_nn_index,
@@ -265,6 +273,7 @@ def localise_changes(
         origins=scan_origins,
         station=scan_station,
         stations_unknown=scan_stations_unknown and scan_origins is None,
+        trajectory=scan_trajectory and scan_station is not None,
         geometry=scan_geometry,
         nearest_distance=scan_nn_distance,
         nearest_index=scan_nn_index,

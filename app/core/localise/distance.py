@@ -54,6 +54,11 @@ class Side:
     stations_unknown : bool
         A lidar cloud merged from several stations that are neither known nor recovered
         (``origins`` None): ``origin_free_test="auto"`` uses the surface test against it.
+    trajectory : bool
+        Taken along a trajectory: ``origins`` are its pseudo-stations' sensor positions and
+        ``station`` each point's pseudo-station (:mod:`app.core.trajectory_poses`); the other
+        cloud's candidates get the trajectory test
+        (:mod:`app.core.localise.trajectory_visibility`).
     geometry : LocalGeometry
         Of ``points``.
     nearest_distance : ndarray, shape (n,), float64
@@ -71,6 +76,7 @@ class Side:
     nearest_index: NDArray[np.uint32]
     station: NDArray[np.int64] | None = None
     stations_unknown: bool = False
+    trajectory: bool = False
 
 
 def nearest_in(

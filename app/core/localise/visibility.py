@@ -11,7 +11,9 @@ or their shadows' rims come out as changes); with ``origin_free_test="surfaces"`
 surface test of :mod:`app.core.localise.origin_free` instead (merged clouds whose stations
 are not known).  The default ``"auto"`` routes here: the surface test against a cloud the
 pipeline found to be a merged lidar survey whose stations it could not recover
-(``Side.stations_unknown``), the coverage test against any other cloud without origins.
+(``Side.stations_unknown``), the coverage test against any other cloud without origins.  A
+cloud taken along a trajectory (``Side.trajectory``) gives the trajectory test
+(:mod:`app.core.localise.trajectory_visibility`): the ray test from its pseudo-stations.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from app.core.localise.rays import (
     ray_visibility,
 )
 from app.core.localise.regions import cluster_labels
+from app.core.localise.trajectory_visibility import trajectory_visibility
 
 __all__ = [
     "LABEL_CHANGED",
@@ -152,7 +155,6 @@ def label_candidates(
             report[f"{side}_candidates_in_sampling_gaps"] = int(gap.sum())
             status = np.where(gap, STATUS_SURFACE, status)
     else:
-        report[f"{side}_visibility"] = "ray"
         test = RayTest(
             normal_tolerance=settings["threshold_factor"]
             * math.hypot(own.geometry.noise, misalignment),
@@ -162,9 +164,15 @@ def label_candidates(
             beyond_fraction=settings["visibility_beyond_fraction"],
             miss_factor=settings["visibility_miss_factor"],
         )
-        status, angular_steps = _any_station_status(candidates, own=own, other=other, test=test)
-        report[f"{side}_other_stations"] = len(angular_steps)
-        report[f"{side}_other_angular_step_deg"] = math.degrees(float(np.median(angular_steps)))
+        if other.trajectory and other.station is not None:
+            report[f"{side}_visibility"] = "trajectory"
+            status, figures = trajectory_visibility(candidates, own=own, other=other, test=test)
+            report.update({f"{side}_other_{name}": value for name, value in figures.items()})
+        else:
+            report[f"{side}_visibility"] = "ray"
+            status, steps = _any_station_status(candidates, own=own, other=other, test=test)
+            report[f"{side}_other_stations"] = len(steps)
+            report[f"{side}_other_angular_step_deg"] = math.degrees(float(np.median(steps)))
         report[f"{side}_candidates_on_other_surface"] = int((status == STATUS_SURFACE).sum())
         report[f"{side}_candidates_edge_on"] = int((status == STATUS_EDGE_ON).sum())
         status = resolve_edge_on(
