@@ -29,6 +29,7 @@ from app.config import Settings
 from app.core.allocator import release_freed_memory_promptly
 from app.core.errors import InputError
 from app.core.formats import read_point_cloud
+from app.core.trajectory_store import with_stored_trajectory
 from app.jobs.geometry import geometry_cache_of, record_geometry_cache
 from app.jobs.hooks import job_hooks
 from app.jobs.leases import (
@@ -63,6 +64,8 @@ def compute(
     threads = job_threads(settings)  # the result does not depend on it
     reference = read_point_cloud(job.reference_path, format=job.reference_format, threads=threads)
     scan = read_point_cloud(job.scan_path, format=job.scan_format, threads=threads)
+    reference = with_stored_trajectory(reference, job.reference_path)  # if one was given
+    scan = with_stored_trajectory(scan, job.scan_path)
     # The origin given at upload wins over the file's; a job's params override both.
     if job.reference_sensor_origin is not None:
         reference = dataclasses.replace(

@@ -19,7 +19,7 @@ import threading
 from collections.abc import AsyncIterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import anyio
 from sqlalchemy import select
@@ -27,7 +27,7 @@ from sqlalchemy.orm import Session
 
 from app.config import Settings
 from app.db.models import IdempotencyRecord, Scan, new_id
-from app.services import idempotency, jobs, quotas, sites, storage
+from app.services import idempotency, jobs, quotas, sites, storage, trajectories
 from app.services.auth import Principal
 from app.services.errors import ConflictError, NotFoundError
 from app.services.idempotency import StoredResponse
@@ -56,6 +56,9 @@ class UploadOptions:
     sensor_origin: SensorOrigin | None = None
     declared_size: int | None = None
     """The file's size when known before reading the body (a raw body's ``Content-Length``)."""
+    trajectory_rate: float | None = None
+    """KITTI poses' constant rate (poses a second), when the ``trajectory`` part is KITTI."""
+    trajectory_format: str | None = None
 
 
 class UploadBody(Protocol):
@@ -286,6 +289,7 @@ async def upload_scan(
                 "variant": options.variant,
                 "sensor_origin": options.sensor_origin,
                 "sha256": received.sha256,
+                "trajectory": trajectories.parts_digest(body, options.trajectory_rate),
             },
         )
         if key is not None:
@@ -301,11 +305,18 @@ async def upload_scan(
             parse_upload, received.path, filename, received.head, settings.max_points
         )
         check_stations_match(options.sensor_origin, parsed.n_stations)
+        trajectory = await anyio.to_thread.run_sync(
+            _upload_trajectory, body, options, received.path, parsed.format
+        )
         scan_id = new_id()
         storage_path = storage.scan_storage_path(options.site_id, scan_id, parsed.format)
         final_path = storage.resolve_data_path(settings, storage_path)
         await anyio.to_thread.run_sync(storage.install_file, received.path, final_path)
         after_rollback(session, lambda: storage.remove_file(final_path))
+        if trajectory is not None:
+            saved = trajectories.trajectory_path(final_path)
+            await anyio.to_thread.run_sync(trajectories.save_trajectory, saved, trajectory)
+            after_rollback(session, lambda: storage.remove_file(saved))
         scan = scan_row(
             principal,
             scan_id=scan_id,
@@ -321,9 +332,30 @@ async def upload_scan(
         )
         if not created:
             storage.remove_file(final_path)
+            storage.remove_file(trajectories.trajectory_path(final_path))
         return response
     finally:
         storage.remove_file(received.path)  # gone already when it was installed
+
+
+def _upload_trajectory(
+    body: UploadBody, options: UploadOptions, path: Path, file_format: str
+) -> Any:
+    """The upload's ``trajectory`` part parsed and checked against the scan (None without)."""
+    parts = getattr(body, "parts", {})
+    data, times = parts.get("trajectory"), parts.get("trajectory_times")
+    trajectories.check_times_without_trajectory(data is not None, times, options.trajectory_rate)
+    if data is None:
+        return None
+    trajectory = trajectories.parse_trajectory(
+        bytes(data),
+        getattr(body, "part_filenames", {}).get("trajectory"),
+        times=None if times is None else bytes(times),
+        rate=options.trajectory_rate,
+        trajectory_format=options.trajectory_format,
+    )
+    trajectories.check_fits(path, file_format, trajectory)
+    return trajectory
 
 
 def get_scan(session: Session, principal: Principal, scan_id: str) -> Scan:

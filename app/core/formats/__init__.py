@@ -48,6 +48,7 @@ from app.core.formats.las import (
 from app.core.formats.npy import read_npy, read_npz
 from app.core.formats.pcd import read_pcd
 from app.core.formats.ply import read_ply, write_ply
+from app.core.formats.trajectory_files import with_point_times
 from app.core.formats.stations import has_station_fields, with_station_fields
 from app.core.threads import available_threads
 
@@ -259,7 +260,7 @@ def read_point_cloud(
         raw = with_station_fields(raw)
         return PointCloud.from_array(
             raw.points,
-            raw.attributes,
+            with_point_times(raw.attributes),  # times under "time", whatever the field's name
             raw.sensor_origin,
             threads=conversion_threads() if threads is None else threads,
             file_rows=file_rows_of(raw.points, opened),

@@ -346,3 +346,23 @@ def _read_kitti(text: str, times: Source | NDArray | None, rate: float | None) -
         pose_times = np.arange(count, dtype=np.float64)
         has_times = False
     return Trajectory(pose_times, positions, orientations, has_times=has_times)
+
+
+POINT_TIME_FIELDS = ("time", "gps_time", "timestamp", "timeStamp", "t")
+"""Per-point time fields, first found wins (case-insensitive): PLY/PCD ``time``, ``timestamp``,
+``t``; LAS/LAZ ``gps_time``; E57 ``timeStamp``."""
+
+
+def with_point_times(attributes: dict[str, NDArray]) -> dict[str, NDArray]:
+    """``attributes`` with the per-point times, if any, also under ``"time"`` as float64.
+
+    The first of :data:`POINT_TIME_FIELDS` present (case-insensitive) is used; a float64 field
+    is shared, not copied.  Attributes without times are returned unchanged.
+    """
+    by_lower = {name.lower(): name for name in attributes}
+    for candidate in POINT_TIME_FIELDS:
+        name = by_lower.get(candidate.lower())
+        values = None if name is None else np.asarray(attributes[name])
+        if values is not None and values.ndim == 1 and values.dtype.kind in "iuf":
+            return {**attributes, "time": values.astype(np.float64, copy=False)}
+    return attributes

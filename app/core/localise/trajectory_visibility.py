@@ -6,7 +6,8 @@ from it and its mean sensor position).  Each pseudo-station is a station of the 
 ray test (:func:`~app.core.localise.rays.ray_visibility`): its returns, indexed by direction
 from its position, say whether it saw the candidate's place empty (rays through the candidate
 to returns beyond it), saw a surface there, or could not see it.  The statuses are combined as
-for stations (:func:`~app.core.localise.visibility.combine_station_status`).
+for stations (the caller combines them with
+:func:`~app.core.localise.visibility.combine_station_status`).
 
 Cost stays bounded: a candidate is tested only against the pseudo-stations that took the other
 cloud's returns nearest to it (they looked at its place) and the few nearest along the path,
@@ -25,7 +26,7 @@ from pykdtree.kdtree import KDTree
 from app.core.localise.distance import Side
 from app.core.localise.rays import STATUS_UNOBSERVED, Candidates, RayTest, ray_visibility
 
-__all__ = ["NEAREST_GROUPS", "NEIGHBOUR_RETURNS", "trajectory_visibility"]
+__all__ = ["NEAREST_GROUPS", "NEIGHBOUR_RETURNS", "trajectory_statuses"]
 
 NEIGHBOUR_RETURNS = 16
 """The groups of a candidate's this many nearest returns of the other cloud are tested."""
@@ -60,10 +61,10 @@ def _group_slots(
     return slots
 
 
-def trajectory_visibility(
+def trajectory_statuses(
     candidates: Candidates, *, own: Side, other: Side, test: RayTest
 ) -> tuple[NDArray[np.int8], dict[str, Any]]:
-    """Ray status of each candidate as seen from the other cloud's trajectory.
+    """Ray status of each candidate from each pseudo-station of the other cloud tested.
 
     Parameters
     ----------
@@ -78,22 +79,22 @@ def trajectory_visibility(
 
     Returns
     -------
-    status : ndarray, shape (c,), int8
-        As :func:`~app.core.localise.rays.ray_visibility` (edge-on not yet resolved).
+    statuses : ndarray, shape (s, c), int8
+        :func:`~app.core.localise.rays.ray_visibility` status of each candidate from the
+        pseudo-station in its slot (STATUS_UNOBSERVED for empty slots: no evidence); combine
+        with :func:`~app.core.localise.visibility.combine_station_status`.
     report : dict
         ``groups`` (the other cloud's pseudo-stations), ``groups_tested`` (those tested against
         some candidate), ``tests_per_candidate`` (mean), ``angular_step_deg`` (median of the
         tested groups').
     """
-    from app.core.localise.visibility import combine_station_status
-
     assert other.origins is not None and other.station is not None
     origins = np.asarray(other.origins, dtype=np.float64).reshape(-1, 3)
     count = candidates.points.shape[0]
     report: dict[str, Any] = {"groups": int(origins.shape[0]), "groups_tested": 0}
     if count == 0:
         report.update(tests_per_candidate=0.0, angular_step_deg=math.nan)
-        return np.empty(0, dtype=np.int8), report
+        return np.empty((1, 0), dtype=np.int8), report
     slots = _group_slots(candidates, other, origins)
     statuses = np.full(slots.T.shape, STATUS_UNOBSERVED, dtype=np.int8)  # (s, c)
     # each group's returns, contiguous: the groups in order of their index
@@ -131,4 +132,4 @@ def trajectory_visibility(
     report["angular_step_deg"] = (
         math.degrees(float(np.median(angular_steps))) if angular_steps else math.nan
     )
-    return combine_station_status(statuses), report
+    return statuses, report

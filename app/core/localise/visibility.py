@@ -37,7 +37,7 @@ from app.core.localise.rays import (
     ray_visibility,
 )
 from app.core.localise.regions import cluster_labels
-from app.core.localise.trajectory_visibility import trajectory_visibility
+from app.core.localise.trajectory_visibility import trajectory_statuses
 
 __all__ = [
     "LABEL_CHANGED",
@@ -166,7 +166,8 @@ def label_candidates(
         )
         if other.trajectory and other.station is not None:
             report[f"{side}_visibility"] = "trajectory"
-            status, figures = trajectory_visibility(candidates, own=own, other=other, test=test)
+            statuses, figures = trajectory_statuses(candidates, own=own, other=other, test=test)
+            status = combine_station_status(statuses)
             report.update({f"{side}_other_{name}": value for name, value in figures.items()})
         else:
             report[f"{side}_visibility"] = "ray"
