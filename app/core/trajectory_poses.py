@@ -12,6 +12,7 @@ at most ``group_length``: the ray visibility test runs per group from its mean s
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -19,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
+from app.core.cloud import PointCloud
 from app.core.trajectory import Trajectory, TrajectoryError
 
 __all__ = [
@@ -26,6 +28,7 @@ __all__ = [
     "interpolate_positions",
     "line_of_sight_poses",
     "sensor_groups",
+    "with_trajectory",
 ]
 
 TIME_TOLERANCE = 0.05
@@ -287,3 +290,18 @@ def sensor_groups(
     report["groups"] = count
     report["group_length_m"] = length
     return SensorGroups(origins=origins, group=group, report=report)
+
+
+def with_trajectory(cloud: PointCloud, trajectory: Trajectory) -> PointCloud:
+    """``cloud`` with ``trajectory``, checked against its per-point times when it has them.
+
+    Raises
+    ------
+    TrajectoryError
+        The trajectory does not cover the points' times, or has no times while they do
+        (:func:`interpolate_positions`).
+    """
+    times = cloud.attributes.get("time")
+    if times is not None:
+        interpolate_positions(trajectory, np.asarray(times, dtype=np.float64))
+    return dataclasses.replace(cloud, trajectory=trajectory)

@@ -52,9 +52,9 @@ def check_times_without_trajectory(has_trajectory: bool, times: bytes | None, ra
 def check_fits(scan_path: Path, scan_format: str | None, trajectory: Trajectory) -> dict[str, Any]:
     """Check the trajectory against the scan's points; its summary (raises TrajectoryError).
 
-    With per-point times they must lie within the trajectory's span (mostly), and the
-    trajectory must have times; every scan's sensor positions are derived once as the
-    comparison will (:func:`~app.core.trajectory_poses.interpolate_positions`).
+    With per-point times (the cloud is read whole for them) they must lie within the
+    trajectory's span, most of them, and the trajectory must have times
+    (:func:`~app.core.trajectory_poses.interpolate_positions`).
     """
     from app.core.formats import read_point_cloud
     from app.core.trajectory_poses import interpolate_positions
