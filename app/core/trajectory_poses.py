@@ -2,9 +2,8 @@
 
 With per-point times, a point's sensor position is the trajectory interpolated at its time
 (linear in position).  Without them, each point takes the nearest pose from which it is in line
-of sight within the sensor's range: the cloud is cut into small cells, and each cell's centre
-is tried against its nearest poses, nearest first, the first whose segment to the cell crosses
-no occupied voxel of the cloud winning (the nearest pose when none is clear).  The points are
+of sight within the sensor's range: each pose's coarse depth image of the points near it says
+which of them nothing hides from it (the nearest pose when none does).  The points are
 then grouped into pseudo-stations, consecutive stretches of the path over which the sensor moved
 at most ``group_length``: the ray visibility test runs per group from its mean sensor position
 (:mod:`app.core.localise.trajectory_visibility`).
@@ -41,12 +40,19 @@ MAX_GROUPS = 4096
 """Most pseudo-stations per cloud (a longer path gets longer groups): bounds the test's cost."""
 SENSOR_RANGE = 30.0
 """Metres: poses farther than this from a point are not candidates to have seen it."""
-LINE_OF_SIGHT_POSES = 6
-"""Nearest poses tried per cell, nearest first."""
-CELL_FACTOR = 4.0
-"""Line-of-sight cells are this many voxels wide (points in a cell share their pose)."""
-CLEARANCE_VOXELS = 2.0
-"""The last voxels before a cell (its own surface) are not checked for blocking."""
+LINE_OF_SIGHT_POSES = 4
+"""Nearest poses tried per point, nearest first."""
+DEPTH_BIN_DEG = 1.5
+"""Bins (degrees of azimuth and elevation) of the depth images line of sight is read from."""
+SPLAT_FACTOR = 1.5
+"""A point hides the bins within this many spacings of it (sampling leaves holes)."""
+MAX_SPLAT_BINS = 4
+DEPTH_BLOCK_POSES = 64
+"""Depth images built at a time (64 x 29k bins of float32: 7 MB)."""
+"""A point near a pose hides at most this many bins around its own (its spacing's width)."""
+DEPTH_TOLERANCE = 0.05
+DEPTH_RELATIVE_TOLERANCE = 0.1
+"""A point sees a pose when its range is at most 1.1 x the bin's nearest range + 5 cm."""
 
 
 @dataclass(frozen=True)
@@ -126,106 +132,110 @@ def _path_length(positions: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.concatenate([[0.0], np.cumsum(steps)])
 
 
-def _voxel_keys(cells: NDArray[np.int64]) -> NDArray[np.int64]:
-    """One int64 per (i, j, k) voxel (21 bits an axis, offset to non-negative)."""
-    shifted = cells + (1 << 20)
-    return (shifted[:, 0] << 42) | (shifted[:, 1] << 21) | shifted[:, 2]
+def _spacing(points: NDArray[np.float64]) -> float:
+    """The cloud's median nearest-neighbour spacing, from a sample of at most 20k points."""
+    sample = points[:: max(1, len(points) // 20_000)]
+    distances, _ = KDTree(sample).query(sample, k=2)
+    # a surface sample: its spacing grows as the square root of the thinning
+    return float(np.median(distances[:, 1])) * (len(sample) / len(points)) ** 0.5
 
 
 def line_of_sight_poses(
     points: NDArray[np.float64],
     trajectory: Trajectory,
     *,
-    voxel: float | None = None,
     sensor_range: float = SENSOR_RANGE,
+    poses_tried: int = LINE_OF_SIGHT_POSES,
 ) -> NDArray[np.int64]:
     """Each point's nearest pose from which it is in line of sight.
+
+    Each point is paired with its ``poses_tried`` nearest poses; each pose gets a coarse
+    depth image (:data:`DEPTH_BIN_DEG` bins of azimuth and elevation) of the points paired
+    with it, each bin holding its nearest range.  A point sees a pose when its range is at most
+    the nearest range in its bin (within :data:`DEPTH_TOLERANCE` and
+    :data:`DEPTH_RELATIVE_TOLERANCE` of it): nothing paired with that pose lies clearly in
+    front of it.  The nearest pose it sees (within ``sensor_range``) wins; a point that sees
+    none takes its nearest pose.  Cost: ``n * poses_tried`` pairs, one sort.
 
     Parameters
     ----------
     points : ndarray, shape (n, 3)
     trajectory : Trajectory
         m poses (their times are not used).
-    voxel : float, optional
-        Occupancy voxel (metres); default twice the cloud's median nearest-neighbour spacing
-        (measured on a sample), at least 2 cm.
     sensor_range : float
         Poses farther than this are not tried.
+    poses_tried : int
 
     Returns
     -------
     ndarray, shape (n,), int64
-        Index of the pose.  Cost is bounded: cells of :data:`CELL_FACTOR` voxels share their
-        pose, at most :data:`LINE_OF_SIGHT_POSES` poses are tried per cell.
+        Index of the pose.
     """
     points = np.asarray(points, dtype=np.float64)
     poses = trajectory.positions
-    if len(poses) == 1 or len(points) == 0:
-        return np.zeros(len(points), dtype=np.int64)
-    if voxel is None:
-        sample = points[:: max(1, len(points) // 20_000)]
-        distances, _ = KDTree(sample).query(sample, k=2)
-        spacing = float(np.median(distances[:, 1])) * (len(sample) / len(points)) ** 0.5
-        voxel = max(0.02, 2.0 * spacing)  # a surface sample: spacing grows as its square root
-    low = points.min(axis=0) - voxel
-    occupied = np.unique(_voxel_keys(np.floor((points - low) / voxel).astype(np.int64)))
-    cell = CELL_FACTOR * voxel
-    cell_of_point = np.floor((points - low) / cell).astype(np.int64)
-    cell_keys, point_cell = np.unique(_voxel_keys(cell_of_point), return_inverse=True)
-    centres = np.zeros((len(cell_keys), 3))
-    np.add.at(centres, point_cell, points)
-    centres /= np.bincount(point_cell, minlength=len(cell_keys))[:, None]
-    k = min(LINE_OF_SIGHT_POSES, len(poses))
-    distance, nearest = KDTree(poses).query(centres, k=k)
-    distance = distance.reshape(len(centres), k)
-    nearest = nearest.reshape(len(centres), k).astype(np.int64)
-    chosen = nearest[:, 0].copy()
-    open_cells = np.ones(len(centres), dtype=bool)
-    for rank in range(k):
-        rows = np.flatnonzero(open_cells & (distance[:, rank] <= sensor_range))
-        if rows.size == 0:
-            continue
-        clear = _segments_clear(
-            poses[nearest[rows, rank]], centres[rows], occupied, low, voxel, CLEARANCE_VOXELS
-        )
-        chosen[rows[clear]] = nearest[rows[clear], rank]
-        open_cells[rows[clear]] = False
-    return chosen[point_cell]
-
-
-def _segments_clear(
-    starts: NDArray[np.float64],
-    ends: NDArray[np.float64],
-    occupied: NDArray[np.int64],
-    low: NDArray[np.float64],
-    voxel: float,
-    clearance: float,
-) -> NDArray[np.bool_]:
-    """Whether each segment (stopped ``clearance`` voxels short of its end) meets no occupied
-    voxel, sampled every half voxel, shape (s,)."""
-    clear = np.ones(len(starts), dtype=bool)
-    offset = ends - starts
-    length = np.linalg.norm(offset, axis=1)
-    usable = np.maximum(length - clearance * voxel, 0.0)
-    steps = np.ceil(usable / (0.5 * voxel)).astype(np.int64)
-    chunk = 200_000
-    order = np.argsort(steps)
-    for start in range(0, len(order), 4096):
-        rows = order[start : start + 4096]
-        most = int(steps[rows].max()) if rows.size else 0
-        if most == 0:
-            continue
-        for first in range(1, most + 1, max(1, chunk // len(rows))):
-            samples = np.arange(first, min(most + 1, first + max(1, chunk // len(rows))))
-            live = samples[None, :] <= steps[rows, None]
-            fraction = samples[None, :] * (0.5 * voxel) / np.maximum(length[rows, None], 1e-12)
-            where = starts[rows, None, :] + fraction[:, :, None] * offset[rows, None, :]
-            keys = _voxel_keys(np.floor((where.reshape(-1, 3) - low) / voxel).astype(np.int64))
-            found = np.searchsorted(occupied, keys)
-            hit = occupied[np.minimum(found, len(occupied) - 1)] == keys
-            blocked = (hit.reshape(live.shape) & live).any(axis=1)
-            clear[rows[blocked]] = False
-    return clear
+    count = points.shape[0]
+    if len(poses) == 1 or count == 0:
+        return np.zeros(count, dtype=np.int64)
+    k = min(poses_tried, len(poses))
+    distance, nearest = KDTree(poses).query(points, k=k)
+    distance = np.asarray(distance, dtype=np.float64).reshape(count, k)
+    nearest = np.asarray(nearest, dtype=np.int64).reshape(count, k)
+    bin_size = np.radians(DEPTH_BIN_DEG)
+    azimuth_bins = int(np.ceil(2 * np.pi / bin_size))
+    elevation_bins = int(np.ceil(np.pi / bin_size)) + 1
+    azimuth = np.empty((count, k), dtype=np.int64)
+    elevation = np.empty((count, k), dtype=np.int64)
+    for start in range(0, count, 250_000):
+        rows = slice(start, start + 250_000)
+        offset = points[rows, None, :] - poses[nearest[rows]]
+        horizontal = np.hypot(offset[..., 0], offset[..., 1])
+        azimuth[rows] = np.floor((np.arctan2(offset[..., 1], offset[..., 0]) + np.pi) / bin_size)
+        elevation[rows] = np.floor((np.arctan2(offset[..., 2], horizontal) + np.pi / 2) / bin_size)
+    azimuth %= azimuth_bins
+    per_pose = azimuth_bins * elevation_bins
+    cell = (elevation * azimuth_bins + azimuth).reshape(-1)
+    pair_range = distance.reshape(-1).astype(np.float32)
+    pair_pose = nearest.reshape(-1)
+    # a near point hides the bins its surface patch covers, not only its own: it is splatted
+    # over the bins within SPLAT_FACTOR spacings of it (at most MAX_SPLAT_BINS away)
+    reach = np.minimum(
+        np.ceil(SPLAT_FACTOR * _spacing(points) / (np.maximum(pair_range, 1e-6) * bin_size)) - 1,
+        MAX_SPLAT_BINS,
+    ).astype(np.int64)
+    front = np.empty(pair_range.size, dtype=np.float32)
+    image = np.full(DEPTH_BLOCK_POSES * per_pose, np.inf, dtype=np.float32)
+    block_of_pair = pair_pose // DEPTH_BLOCK_POSES
+    for block in np.unique(block_of_pair):  # the depth images of a block of poses at a time
+        pairs = np.flatnonzero(block_of_pair == block)
+        base = (pair_pose[pairs] - block * DEPTH_BLOCK_POSES) * per_pose
+        np.minimum.at(image, base + cell[pairs], pair_range[pairs])
+        for ring in range(1, MAX_SPLAT_BINS + 1):
+            near = np.flatnonzero(reach[pairs] >= ring)
+            if near.size == 0:
+                break
+            chosen = pairs[near]
+            steps = range(-ring, ring + 1)
+            for shift_azimuth in steps:
+                for shift_elevation in steps:
+                    if max(abs(shift_azimuth), abs(shift_elevation)) != ring:
+                        continue
+                    moved = (
+                        np.clip(
+                            elevation.reshape(-1)[chosen] + shift_elevation, 0, elevation_bins - 1
+                        )
+                        * azimuth_bins
+                        + (azimuth.reshape(-1)[chosen] + shift_azimuth) % azimuth_bins
+                    )
+                    np.minimum.at(image, base[near] + moved, pair_range[chosen])
+        front[pairs] = image[base + cell[pairs]]
+        image.fill(np.inf)
+    front = front.reshape(count, k)
+    sees = (distance <= front * (1 + DEPTH_RELATIVE_TOLERANCE) + DEPTH_TOLERANCE) & (
+        distance <= sensor_range
+    )
+    first = np.argmax(sees, axis=1)  # nearest first: the first pose seen
+    rank = np.where(sees.any(axis=1), first, 0)
+    return nearest[np.arange(count), rank]
 
 
 def sensor_groups(

@@ -1,0 +1,99 @@
+"""Per-point sensor positions along a trajectory, and the pseudo-stations cut from them.
+
+Rules checked: with times, positions are the trajectory interpolated linearly; points outside
+the span by more than the tolerance are counted, and when most are outside the error gives both
+spans; a trajectory without times cannot place points with times; without times each point
+takes the nearest pose in line of sight (not one behind a wall, even when nearer); groups are
+stretches of the path no longer than the group length, with their mean sensor positions.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.core.cloud import PointCloud
+from app.core.trajectory import Trajectory, TrajectoryError
+from app.core.trajectory_poses import (
+    interpolate_positions,
+    line_of_sight_poses,
+    sensor_groups,
+    with_trajectory,
+)
+
+LINE = Trajectory(
+    np.array([10.0, 11.0, 12.0, 14.0]),
+    np.array([[0.0, 0, 1], [1.0, 0, 1], [2.0, 0, 1], [2.0, 2.0, 1]]),
+)
+
+
+def test_positions_are_interpolated_linearly_at_the_points_times() -> None:
+    positions, outside = interpolate_positions(LINE, np.array([10.0, 10.25, 11.5, 13.0, 14.0]))
+
+    np.testing.assert_allclose(
+        positions, [[0, 0, 1], [0.25, 0, 1], [1.5, 0, 1], [2.0, 1.0, 1], [2.0, 2.0, 1]]
+    )
+    assert not outside.any()
+
+
+def test_points_outside_the_span_are_counted_and_most_outside_is_an_error() -> None:
+    times = np.concatenate([np.linspace(10, 14, 8), [20.0, 30.0]])
+    positions, outside = interpolate_positions(LINE, times)
+
+    assert outside.sum() == 2
+    np.testing.assert_allclose(positions[-1], LINE.positions[-1])  # clamped to the end
+    with pytest.raises(TrajectoryError, match=r"points span 100\.0+\.\.200\.0+, trajectory 10"):
+        interpolate_positions(LINE, np.linspace(100, 200, 10))
+
+
+def test_a_trajectory_without_times_cannot_place_points_with_times() -> None:
+    untimed = Trajectory(np.arange(4.0), LINE.positions, has_times=False)
+    cloud = PointCloud.from_array(
+        np.random.default_rng(0).uniform(0, 1, (50, 3)), {"time": np.linspace(10, 14, 50)}
+    )
+
+    with pytest.raises(TrajectoryError, match="trajectory has none"):
+        interpolate_positions(untimed, np.array([1.0]))
+    with pytest.raises(TrajectoryError, match="trajectory has none"):
+        with_trajectory(cloud, untimed)
+    assert with_trajectory(cloud, LINE).trajectory is LINE
+
+
+def wall_scene() -> tuple[np.ndarray, Trajectory]:
+    """A wall in the plane x = 0 (|y| <= 3, 0 <= z <= 2), a floor patch behind it at x = 0.5,
+    and two poses: one 0.3 m in front of the wall (x = -0.3), one 1.5 m behind it (x = 2)."""
+    grid = np.mgrid[-3:3:0.05, 0:2:0.05].reshape(2, -1).T
+    wall = np.column_stack([np.zeros(len(grid)), grid])
+    patch_grid = np.mgrid[0.3:0.8:0.05, -0.5:0.5:0.05].reshape(2, -1).T
+    patch = np.column_stack([patch_grid, np.zeros(len(patch_grid))])
+    poses = Trajectory(np.array([0.0, 1.0]), np.array([[-0.3, 0.0, 1.0], [2.0, 0.0, 1.0]]))
+    return np.vstack([wall, patch]), poses
+
+
+def test_without_times_a_point_takes_the_nearest_pose_that_sees_it() -> None:
+    points, poses = wall_scene()
+    on_patch = points[:, 0] > 0.2
+
+    pose = line_of_sight_poses(points, poses)  # voxel: twice the spacing
+
+    # the patch is nearer the pose in front of the wall, but only the one behind it sees it
+    nearest = np.argmin(np.linalg.norm(points[on_patch, None] - poses.positions[None], axis=2), 1)
+    assert (nearest == 0).mean() > 0.5
+    assert (pose[on_patch] == 1).all()
+
+
+def test_groups_are_short_stretches_of_the_path_with_their_mean_position() -> None:
+    times = np.linspace(10, 13.99, 400)  # the path's last stretch ends before its end
+    points = np.random.default_rng(1).uniform(-5, 5, (400, 3))
+
+    groups = sensor_groups(points, LINE, times, group_length=0.5)
+
+    assert groups.report["source"] == "trajectory"
+    assert groups.report["assignment"] == "times"
+    assert groups.report["poses"] == 4 and groups.report["time_span"] == [10.0, 14.0]
+    assert groups.origins.shape == (8, 3)  # 4 m of path in 0.5 m stretches
+    positions, _ = interpolate_positions(LINE, times)
+    for number, origin in enumerate(groups.origins):
+        mine = positions[groups.group == number]
+        np.testing.assert_allclose(origin, mine.mean(axis=0))
+        assert np.linalg.norm(mine - origin, axis=1).max() <= 0.5
