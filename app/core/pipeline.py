@@ -52,7 +52,7 @@ from app.core.origins.known_stations import origins_in_local_frame
 from app.core.origins.own_frame import resolve_moved_cloud
 from app.core.origins.resolve import ResolvedOrigin
 from app.core.origins.stations import resolve_stations
-from app.core.origins.trajectory_origin import TrajectoryOrigin, station_index, trajectory_origin
+from app.core.origins.trajectory_origin import station_index, trajectory_origin, trajectory_rays
 from app.core.quality import quality_warnings
 from app.core.reference_alignment import ReferenceAlignmentCache
 from app.core.reference_origin import ReferenceOriginCache
@@ -444,8 +444,8 @@ def compare(
                     scan_station=scan_station,
                     reference_stations_unknown=resolved_reference.stations_unknown,
                     scan_stations_unknown=resolved_scan.stations_unknown,
-                    reference_trajectory=isinstance(resolved_reference, TrajectoryOrigin),
-                    scan_trajectory=isinstance(resolved_scan, TrajectoryOrigin),
+                    reference_trajectory_rays=trajectory_rays(resolved_reference),
+                    scan_trajectory_rays=trajectory_rays(resolved_scan),
                     # Not registration.rmse: that includes sampling distance and real change
                     # (0.15 m on KITTI); localise measures the remaining misalignment itself
                     # from local surfaces.

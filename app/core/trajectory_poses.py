@@ -40,7 +40,7 @@ MAX_GROUPS = 4096
 """Most pseudo-stations per cloud (a longer path gets longer groups): bounds the test's cost."""
 SENSOR_RANGE = 30.0
 """Metres: poses farther than this from a point are not candidates to have seen it."""
-LINE_OF_SIGHT_POSES = 4
+LINE_OF_SIGHT_POSES = 8
 """Nearest poses tried per point, nearest first."""
 DEPTH_BIN_DEG = 1.5
 """Bins (degrees of azimuth and elevation) of the depth images line of sight is read from."""
@@ -65,6 +65,11 @@ class SensorGroups:
         Each group's mean sensor position, in the points' frame.
     group : ndarray, shape (n,), int64
         Each point's group (index into ``origins``).
+    returns : ndarray, shape (r,), int64
+        The points each group's rays end on, group after group (without times a point is a
+        ray of the group of every pose in line of sight of it; with times of its own group).
+    bounds : ndarray, shape (k + 1,), int64
+        Group g's returns are ``returns[bounds[g]:bounds[g + 1]]``.
     report : dict
         ``{"source": "trajectory", "poses", "time_span", "points_outside", "assignment",
         "groups"}`` (JSON-serialisable).
@@ -72,6 +77,8 @@ class SensorGroups:
 
     origins: NDArray[np.float64]
     group: NDArray[np.int64]
+    returns: NDArray[np.int64]
+    bounds: NDArray[np.int64]
     report: dict[str, Any] = field(default_factory=dict)
 
 
@@ -140,22 +147,21 @@ def _spacing(points: NDArray[np.float64]) -> float:
     return float(np.median(distances[:, 1])) * (len(sample) / len(points)) ** 0.5
 
 
-def line_of_sight_poses(
+def line_of_sight(
     points: NDArray[np.float64],
     trajectory: Trajectory,
     *,
     sensor_range: float = SENSOR_RANGE,
     poses_tried: int = LINE_OF_SIGHT_POSES,
-) -> NDArray[np.int64]:
-    """Each point's nearest pose from which it is in line of sight.
+) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    """Which of its nearest poses each point is in line of sight of.
 
     Each point is paired with its ``poses_tried`` nearest poses; each pose gets a coarse
     depth image (:data:`DEPTH_BIN_DEG` bins of azimuth and elevation) of the points paired
     with it, each bin holding its nearest range.  A point sees a pose when its range is at most
     the nearest range in its bin (within :data:`DEPTH_TOLERANCE` and
     :data:`DEPTH_RELATIVE_TOLERANCE` of it): nothing paired with that pose lies clearly in
-    front of it.  The nearest pose it sees (within ``sensor_range``) wins; a point that sees
-    none takes its nearest pose.  Cost: ``n * poses_tried`` pairs, one sort.
+    front of it (and it lies within ``sensor_range``).  Cost: ``n * poses_tried`` pairs.
 
     Parameters
     ----------
@@ -168,14 +174,16 @@ def line_of_sight_poses(
 
     Returns
     -------
-    ndarray, shape (n,), int64
-        Index of the pose.
+    nearest : ndarray, shape (n, k), int64
+        Each point's k = min(poses_tried, m) nearest poses, nearest first.
+    sees : ndarray, shape (n, k), bool
+        Whether the point is in line of sight of each.
     """
     points = np.asarray(points, dtype=np.float64)
     poses = trajectory.positions
     count = points.shape[0]
     if len(poses) == 1 or count == 0:
-        return np.zeros(count, dtype=np.int64)
+        return np.zeros((count, 1), dtype=np.int64), np.ones((count, 1), dtype=bool)
     k = min(poses_tried, len(poses))
     distance, nearest = KDTree(poses).query(points, k=k)
     distance = np.asarray(distance, dtype=np.float64).reshape(count, k)
@@ -233,9 +241,23 @@ def line_of_sight_poses(
     sees = (distance <= front * (1 + DEPTH_RELATIVE_TOLERANCE) + DEPTH_TOLERANCE) & (
         distance <= sensor_range
     )
-    first = np.argmax(sees, axis=1)  # nearest first: the first pose seen
-    rank = np.where(sees.any(axis=1), first, 0)
-    return nearest[np.arange(count), rank]
+    return nearest, sees
+
+
+def line_of_sight_poses(
+    points: NDArray[np.float64],
+    trajectory: Trajectory,
+    *,
+    sensor_range: float = SENSOR_RANGE,
+    poses_tried: int = LINE_OF_SIGHT_POSES,
+) -> NDArray[np.int64]:
+    """Each point's nearest pose from which it is in line of sight (:func:`line_of_sight`;
+    its nearest pose when it sees none), shape (n,), int64."""
+    nearest, sees = line_of_sight(
+        points, trajectory, sensor_range=sensor_range, poses_tried=poses_tried
+    )
+    rank = np.where(sees.any(axis=1), np.argmax(sees, axis=1), 0)  # nearest first
+    return nearest[np.arange(nearest.shape[0]), rank]
 
 
 def sensor_groups(
@@ -287,19 +309,42 @@ def sensor_groups(
         along = np.interp(times, trajectory.times, travelled)
         report.update(assignment="times", points_outside=int(outside.sum()))
     else:
-        pose = line_of_sight_poses(points, trajectory, sensor_range=sensor_range)
+        nearest, sees = line_of_sight(points, trajectory, sensor_range=sensor_range)
+        rank = np.where(sees.any(axis=1), np.argmax(sees, axis=1), 0)  # nearest seen first
+        pose = nearest[np.arange(nearest.shape[0]), rank]
         positions = trajectory.positions[pose]
         along = travelled[pose]
         report.update(assignment="line_of_sight", points_outside=0)
-    _, group = np.unique(np.floor(along / length).astype(np.int64), return_inverse=True)
+    point_stretch = np.floor(along / length).astype(np.int64)
+    used, group = np.unique(point_stretch, return_inverse=True)
     group = group.reshape(-1).astype(np.int64)
     count = int(group.max()) + 1 if group.size else 0
+    member_point, member_group = np.arange(group.size), group
+    if times is None:  # a ray from the group of every pose in line of sight (with points)
+        seen_point, seen_rank = np.nonzero(sees)
+        seen_stretch = np.floor(travelled[nearest[seen_point, seen_rank]] / length)
+        slot = np.minimum(np.searchsorted(used, seen_stretch.astype(np.int64)), used.size - 1)
+        known = used[slot] == seen_stretch
+        pairs = np.unique(
+            np.concatenate([group, slot[known]]) * group.size
+            + np.concatenate([member_point, seen_point[known]])
+        )
+        member_group, member_point = np.divmod(pairs, max(group.size, 1))
+    order = np.argsort(member_group, kind="stable")
+    bounds = np.searchsorted(member_group[order], np.arange(count + 1)).astype(np.int64)
     origins = np.zeros((count, 3))
     np.add.at(origins, group, positions)
     origins /= np.maximum(np.bincount(group, minlength=count), 1)[:, None]
     report["groups"] = count
     report["group_length_m"] = length
-    return SensorGroups(origins=origins, group=group, report=report)
+    report["rays"] = int(member_point.size)
+    return SensorGroups(
+        origins=origins,
+        group=group,
+        returns=member_point[order].astype(np.int64),
+        bounds=bounds,
+        report=report,
+    )
 
 
 def with_trajectory(cloud: PointCloud, trajectory: Trajectory) -> PointCloud:

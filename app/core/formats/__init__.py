@@ -48,8 +48,8 @@ from app.core.formats.las import (
 from app.core.formats.npy import read_npy, read_npz
 from app.core.formats.pcd import read_pcd
 from app.core.formats.ply import read_ply, write_ply
-from app.core.formats.trajectory_files import with_point_times
 from app.core.formats.stations import has_station_fields, with_station_fields
+from app.core.formats.trajectory_files import with_point_times
 from app.core.threads import available_threads
 
 SUPPORTED_FORMATS: tuple[str, ...] = (

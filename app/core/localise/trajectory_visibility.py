@@ -74,7 +74,8 @@ def trajectory_statuses(
         The candidates' cloud.
     other : Side
         The other cloud, taken along a trajectory: ``origins`` (k, 3) are its pseudo-stations'
-        sensor positions and ``station`` (m,) each return's pseudo-station.
+        sensor positions, ``station`` (m,) each return's pseudo-station and
+        ``trajectory_rays`` the returns each pseudo-station's rays end on.
     test : RayTest
 
     Returns
@@ -89,6 +90,8 @@ def trajectory_statuses(
         tested groups').
     """
     assert other.origins is not None and other.station is not None
+    assert other.trajectory_rays is not None
+    group_returns, group_bounds = other.trajectory_rays
     origins = np.asarray(other.origins, dtype=np.float64).reshape(-1, 3)
     count = candidates.points.shape[0]
     report: dict[str, Any] = {"groups": int(origins.shape[0]), "groups_tested": 0}
@@ -97,9 +100,6 @@ def trajectory_statuses(
         return np.empty((1, 0), dtype=np.int8), report
     slots = _group_slots(candidates, other, origins)
     statuses = np.full(slots.T.shape, STATUS_UNOBSERVED, dtype=np.int8)  # (s, c)
-    # each group's returns, contiguous: the groups in order of their index
-    return_order = np.argsort(other.station, kind="stable")
-    return_bounds = np.searchsorted(other.station[return_order], np.arange(origins.shape[0] + 1))
     candidate, slot = np.nonzero(slots >= 0)
     group = slots[candidate, slot]
     pair_order = np.argsort(group, kind="stable")
@@ -111,7 +111,7 @@ def trajectory_statuses(
     tested = 0
     for start, end in zip(starts, ends, strict=True):
         number = int(group[start])
-        returns = return_order[return_bounds[number] : return_bounds[number + 1]]
+        returns = group_returns[group_bounds[number] : group_bounds[number + 1]]
         if returns.size < MIN_GROUP_POINTS:
             continue
         rows = candidate[start:end]

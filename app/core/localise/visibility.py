@@ -12,7 +12,7 @@ surface test of :mod:`app.core.localise.origin_free` instead (merged clouds whos
 are not known).  The default ``"auto"`` routes here: the surface test against a cloud the
 pipeline found to be a merged lidar survey whose stations it could not recover
 (``Side.stations_unknown``), the coverage test against any other cloud without origins.  A
-cloud taken along a trajectory (``Side.trajectory``) gives the trajectory test
+cloud taken along a trajectory (``Side.trajectory_rays``) gives the trajectory test
 (:mod:`app.core.localise.trajectory_visibility`): the ray test from its pseudo-stations.
 """
 
@@ -164,7 +164,7 @@ def label_candidates(
             beyond_fraction=settings["visibility_beyond_fraction"],
             miss_factor=settings["visibility_miss_factor"],
         )
-        if other.trajectory and other.station is not None:
+        if other.trajectory_rays is not None and other.station is not None:
             report[f"{side}_visibility"] = "trajectory"
             statuses, figures = trajectory_statuses(candidates, own=own, other=other, test=test)
             status = combine_station_status(statuses)

@@ -28,6 +28,7 @@ __all__ = [
     "TrajectoryOrigin",
     "station_index",
     "trajectory_origin",
+    "trajectory_rays",
 ]
 
 TIME_ATTRIBUTE = "time"
@@ -43,11 +44,15 @@ class TrajectoryOrigin(ResolvedOrigin):
     ----------
     station : ndarray, shape (n,), int64
         Each point's pseudo-station.
+    rays : (ndarray, ndarray)
+        ``(returns, bounds)``: the points each pseudo-station's rays end on
+        (:class:`~app.core.trajectory_poses.SensorGroups`).
     path_report : dict
         The trajectory's entry of ``sensor_origins`` (file frame).
     """
 
     station: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    rays: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None
     path_report: dict[str, Any] = field(default_factory=dict)
 
     def visibility_report(self) -> dict[str, Any]:
@@ -105,6 +110,7 @@ def trajectory_origin(
         source="trajectory",
         confidence=None,
         station=groups.group,
+        rays=(groups.returns, groups.bounds),
         path_report=report,
     )
 
@@ -115,3 +121,8 @@ def station_index(cloud: PointCloud, resolved: ResolvedOrigin, name: str) -> NDA
     if isinstance(resolved, TrajectoryOrigin):
         return resolved.station
     return station_index_of(cloud, resolved, name)
+
+
+def trajectory_rays(resolved: ResolvedOrigin) -> tuple[NDArray, NDArray] | None:
+    """The pseudo-stations' rays of a trajectory's resolution, else None."""
+    return resolved.rays if isinstance(resolved, TrajectoryOrigin) else None
