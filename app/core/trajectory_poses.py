@@ -41,7 +41,10 @@ MAX_GROUPS = 4096
 SENSOR_RANGE = 30.0
 """Metres: poses farther than this from a point are not candidates to have seen it."""
 LINE_OF_SIGHT_POSES = 8
-"""Nearest poses tried per point, nearest first."""
+"""Nearest poses tried per point, nearest first (each one it sees gets it as a ray)."""
+LINE_OF_SIGHT_SAMPLE = 250_000
+"""Most points whose line of sight is checked (evenly spread; they are the rays): bounds the
+cost of clouds without times (the others take their nearest pose)."""
 DEPTH_BIN_DEG = 1.5
 """Bins (degrees of azimuth and elevation) of the depth images line of sight is read from."""
 SPLAT_FACTOR = 1.5
@@ -308,10 +311,13 @@ def sensor_groups(
         positions, outside = interpolate_positions(trajectory, times)
         along = np.interp(times, trajectory.times, travelled)
         report.update(assignment="times", points_outside=int(outside.sum()))
-    else:
-        nearest, sees = line_of_sight(points, trajectory, sensor_range=sensor_range)
+    else:  # line of sight of a sample of points (they are the rays), the nearest pose else
+        sampled = np.arange(0, len(points), -(-len(points) // LINE_OF_SIGHT_SAMPLE))
+        _, pose = KDTree(trajectory.positions).query(points, k=1)
+        pose = np.asarray(pose, dtype=np.int64).reshape(-1)
+        nearest, sees = line_of_sight(points[sampled], trajectory, sensor_range=sensor_range)
         rank = np.where(sees.any(axis=1), np.argmax(sees, axis=1), 0)  # nearest seen first
-        pose = nearest[np.arange(nearest.shape[0]), rank]
+        pose[sampled] = nearest[np.arange(nearest.shape[0]), rank]
         positions = trajectory.positions[pose]
         along = travelled[pose]
         report.update(assignment="line_of_sight", points_outside=0)
@@ -326,8 +332,8 @@ def sensor_groups(
         slot = np.minimum(np.searchsorted(used, seen_stretch.astype(np.int64)), used.size - 1)
         known = used[slot] == seen_stretch
         pairs = np.unique(
-            np.concatenate([group, slot[known]]) * group.size
-            + np.concatenate([member_point, seen_point[known]])
+            np.concatenate([group[sampled], slot[known]]) * group.size
+            + np.concatenate([sampled, sampled[seen_point[known]]])
         )
         member_group, member_point = np.divmod(pairs, max(group.size, 1))
     order = np.argsort(member_group, kind="stable")
