@@ -97,3 +97,37 @@ def test_groups_are_short_stretches_of_the_path_with_their_mean_position() -> No
         mine = positions[groups.group == number]
         np.testing.assert_allclose(origin, mine.mean(axis=0))
         assert np.linalg.norm(mine - origin, axis=1).max() <= 0.5
+
+
+def test_without_times_each_point_is_a_ray_of_every_pose_that_sees_it() -> None:
+    points, poses = wall_scene()
+    on_patch = np.flatnonzero(points[:, 0] > 0.2)
+    # the wall (a sheet) in front of both poses: its part facing them squarely
+    on_wall = np.flatnonzero(
+        (points[:, 0] == 0.0) & (np.abs(points[:, 1]) < 0.5) & (np.abs(points[:, 2] - 1.0) < 0.5)
+    )
+
+    groups = sensor_groups(points, poses, group_length=0.05)
+
+    assert groups.report["assignment"] == "line_of_sight"
+    rays = [
+        set(groups.returns[groups.bounds[number] : groups.bounds[number + 1]].tolist())
+        for number in range(len(groups.origins))
+    ]
+    front = int(np.argmin(groups.origins[:, 0]))  # the group of the pose in front of the wall
+    behind = 1 - front
+    assert rays[behind] >= set(on_patch.tolist())  # the patch: only from behind the wall
+    assert not rays[front] & set(on_patch.tolist())
+    assert len(rays[front] & rays[behind] & set(on_wall.tolist())) > 0.9 * on_wall.size
+    assert groups.report["rays"] == sum(len(ray) for ray in rays)
+
+
+def test_with_times_each_point_is_a_ray_of_its_own_group_only() -> None:
+    times = np.linspace(10, 13.99, 400)
+    points = np.random.default_rng(2).uniform(-5, 5, (400, 3))
+
+    groups = sensor_groups(points, LINE, times, group_length=0.5)
+
+    for number in range(len(groups.origins)):
+        returns = groups.returns[groups.bounds[number] : groups.bounds[number + 1]]
+        np.testing.assert_array_equal(np.sort(returns), np.flatnonzero(groups.group == number))
