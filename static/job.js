@@ -5,7 +5,7 @@ import { loadCapabilities } from "./capabilities.js";
 import { decisionBadge, formatDate, formatNumber, h, jobProgress, statusBadge } from "./dom.js";
 import { attemptsText, explanationPanel, sensorOriginsText, warningBadge, warningsPanel } from "./explain.js";
 import { app, currentRender, schedulePoll, setCrumbs } from "./page.js";
-import { regionsPanel } from "./regions.js";
+import { evidenceBadge, metres, regionsPanel } from "./regions.js";
 import { rerunCard } from "./rerun.js";
 import { canWrite, handleFailure } from "./session.js";
 import { jobFiles } from "./site.js";
@@ -107,10 +107,29 @@ export async function renderJob(jobId) {
     reviewPanel(job, () => renderJob(jobId).catch((failure) => handleFailure(failure, "Refreshing the job"))),
     h("section", { class: "card", id: "regions-card" }, h("h2", {}, `Regions (${finished ? job.n_regions ?? "—" : "—"})`),
       finished ? regionsPanel(jobId, job.n_regions, (failure) => handleFailure(failure, "Reading the regions")) : h("p", { class: "muted" }, "Regions appear when the job has succeeded.")),
+    uncertainRegionsCard(job),
     h("section", { class: "card" }, h("h2", {}, "Downloads"), downloads),
     capabilities ? rerunCard(job, capabilities) : null);
 
   if (job.status === "queued" || job.status === "running") {
     schedulePoll(() => renderJob(jobId).catch((failure) => handleFailure(failure, "Refreshing the job")));
   }
+}
+
+/** Places the other scan did not cover: listed for review, never counted as change. */
+function uncertainRegionsCard(job) {
+  const regions = job.uncertain_regions || [];
+  if (!regions.length) return null;
+  const points = regions.reduce((sum, region) => sum + region.n_points, 0);
+  return h("section", { class: "card", id: "uncertain-regions-card" },
+    h("h2", {}, `Not covered by the other scan (${regions.length})`),
+    h("p", { class: "muted" }, `${formatNumber(points)} points lie where the other scan has no view of them (a surface it did not reach, a place it never came near). They are listed for review and do not count as change.`),
+    h("table", { class: "table", id: "uncertain-regions-table" },
+      h("thead", {}, h("tr", {}, ["Side", "Points", "Centroid (m)", "Size (m)", "Evidence"].map((title) => h("th", {}, title)))),
+      h("tbody", {}, regions.slice(0, 50).map((region) => h("tr", { dataset: { kind: region.kind } },
+        h("td", {}, region.kind === "removed" ? "reference" : "scan"),
+        h("td", { class: "num" }, formatNumber(region.n_points)),
+        h("td", { class: "num" }, region.centroid.map(metres).join(", ")),
+        h("td", { class: "num" }, region.bbox_max.map((value, axis) => metres(value - region.bbox_min[axis])).join(" × ")),
+        h("td", {}, evidenceBadge(region)))))));
 }

@@ -15,7 +15,27 @@ const COLUMNS = [
   { title: "Size (m)" },
   { title: "Mean distance (m)", sort: "mean_distance" },
   { title: "Max distance (m)", sort: "max_distance" },
+  { title: "Evidence" },
 ];
+
+const EVIDENCE_TEXT = {
+  seen_empty: "seen empty",
+  surface_moved: "surface moved",
+  no_coverage: "not covered",
+};
+const EVIDENCE_HINT = {
+  seen_empty: "the other scan saw this place empty: through, behind or beneath it",
+  surface_moved: "the surface is found again, displaced, within a metre",
+  no_coverage: "the other scan did not cover this place: not counted as change",
+};
+
+/** A region's evidence and confidence, as a badge with its meaning on hover. */
+export function evidenceBadge(region) {
+  const evidence = region.evidence || "seen_empty";
+  const confidence = Number.isFinite(region.confidence) ? ` ${Math.round(region.confidence * 100)} %` : "";
+  return h("span", { class: `badge badge-evidence badge-${evidence}`, title: EVIDENCE_HINT[evidence] || evidence },
+    (EVIDENCE_TEXT[evidence] || evidence) + confidence);
+}
 
 /** Metres with centimetre precision. */
 export function metres(value) {
@@ -44,7 +64,8 @@ function regionRow(region) {
     h("td", { class: "num" }, Array.isArray(region.centroid) ? region.centroid.map(metres).join(", ") : "—"),
     h("td", { class: "num" }, size ? size.map(metres).join(" × ") : "—"),
     h("td", { class: "num" }, metres(region.mean_distance)),
-    h("td", { class: "num" }, metres(region.max_distance)));
+    h("td", { class: "num" }, metres(region.max_distance)),
+    h("td", {}, evidenceBadge(region)));
 }
 
 /** The region card's body for job `jobId` with `count` regions; fetches its pages itself. */

@@ -109,6 +109,23 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "origin) in DIR: comparing the same reference again skips that work (files are "
         "checked before use)",
     )
+    parser.add_argument(
+        "--bag-param",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="how to read a ROS bag (.bag, .db3, .mcap) given as REFERENCE or SCAN: "
+        "cloud_topic, fixed_frame, pose_topic, voxel_size (metres, default 0.05), max_sweeps "
+        "(repeatable; default: the bag's only PointCloud2 topic, placed by TF or its only "
+        "odometry topic)",
+    )
+    parser.add_argument(
+        "--scan-bag-param",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="the same for SCAN only, overriding --bag-param (repeatable)",
+    )
     parser.set_defaults(handler=run)
 
 
@@ -147,6 +164,19 @@ def _parse_origins(values: list[str], flag: str) -> list[list[float]] | None:
             )
         origins.append(numbers)
     return origins or None
+
+
+def _parse_bag_params(pairs: list[str], flag: str) -> dict[str, str]:
+    """``--bag-param``/``--scan-bag-param`` values as a dict of strings."""
+    values: dict[str, str] = {}
+    for pair in pairs:
+        key, separator, value = pair.partition("=")
+        if not separator or not key:
+            raise InputError(
+                f"{flag} takes KEY=VALUE (e.g. {flag} cloud_topic=/points), got {pair!r}"
+            )
+        values[key.strip()] = value.strip()
+    return values
 
 
 def _parse_params(pairs: list[str]) -> dict[str, Any]:
@@ -215,9 +245,18 @@ def _print_summary(result: ComparisonResult, reference: Path, scan: Path) -> Non
     print(f"  regions: {len(result.regions)}")
     for region in result.regions[:10]:
         centroid = ", ".join(f"{value:.2f}" for value in region.centroid)
-        print(f"    {region.kind:<7} {region.n_points:>7} points at ({centroid})")
+        print(
+            f"    {region.kind:<7} {region.n_points:>7} points at ({centroid})"
+            f"  {region.evidence}, confidence {region.confidence:.2f}"
+        )
     if len(result.regions) > 10:
         print(f"    ... and {len(result.regions) - 10} more")
+    if result.uncertain_regions:
+        points = sum(region.n_points for region in result.uncertain_regions)
+        print(
+            f"  not covered by the other scan (not counted as change): "
+            f"{len(result.uncertain_regions)} regions, {points} points"
+        )
     timing = ", ".join(f"{stage} {seconds:.2f} s" for stage, seconds in result.timings.items())
     print(f"  timings: {timing}")
 
@@ -286,6 +325,7 @@ def run(args: argparse.Namespace) -> int:
     """Run one comparison; exit status 0, or 2 on bad input."""
     from app.core.allocator import release_freed_memory_promptly
     from app.core.formats import read_point_cloud
+    from app.core.formats.rosbag import bag_options_from_strings
     from app.core.pipeline import compare
 
     release_freed_memory_promptly()
@@ -297,6 +337,11 @@ def run(args: argparse.Namespace) -> int:
             if path is not None and path.suffix.lower() not in allowed:
                 raise InputError(f"{path} must end in one of {', '.join(sorted(allowed))}")
         params = _parse_params(args.param)
+        bag_values = _parse_bag_params(args.bag_param, "--bag-param")
+        reference_bag = bag_options_from_strings(bag_values)
+        scan_bag = bag_options_from_strings(
+            {**bag_values, **_parse_bag_params(args.scan_bag_param, "--scan-bag-param")}
+        )
         for flag, values, key in (
             ("--sensor-origin", args.sensor_origin, "reference_origin"),
             ("--scan-origin", args.scan_origin, "scan_origin"),
@@ -312,8 +357,12 @@ def run(args: argparse.Namespace) -> int:
             params.setdefault("reference_origin", [0.0, 0.0, 0.0])
             params.setdefault("scan_origin", [0.0, 0.0, 0.0])
         started = time.perf_counter()
-        reference = _with_trajectory(read_point_cloud(args.reference), args, "trajectory")
-        scan = _with_trajectory(read_point_cloud(args.scan), args, "scan_trajectory")
+        reference = _with_trajectory(
+            read_point_cloud(args.reference, bag_options=reference_bag), args, "trajectory"
+        )
+        scan = _with_trajectory(
+            read_point_cloud(args.scan, bag_options=scan_bag), args, "scan_trajectory"
+        )
         load_seconds = time.perf_counter() - started
         result = compare(
             reference,

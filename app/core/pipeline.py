@@ -79,6 +79,8 @@ class RegionSummary:
     bbox_max: list[float]
     mean_distance: float
     max_distance: float
+    evidence: str = "seen_empty"  # seen_empty | surface_moved | no_coverage
+    confidence: float = 1.0
 
     def to_json_dict(self) -> dict[str, Any]:
         """Plain JSON types."""
@@ -90,6 +92,8 @@ class RegionSummary:
             "bbox_max": self.bbox_max,
             "mean_distance": self.mean_distance,
             "max_distance": self.max_distance,
+            "evidence": self.evidence,
+            "confidence": self.confidence,
         }
 
 
@@ -129,6 +133,7 @@ class ComparisonResult:
     sensor_origins: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     visibility: dict[str, dict[str, Any]] = field(default_factory=dict)
+    uncertain_regions: list[RegionSummary] = field(default_factory=list)
 
     def label_counts(self) -> dict[str, dict[str, int]]:
         """How many points of each cloud are unchanged, changed and unobserved."""
@@ -156,6 +161,7 @@ class ComparisonResult:
                 "registration": self.registration,
                 "regions": [region.to_json_dict() for region in self.regions],
                 "n_regions": len(self.regions),
+                "uncertain_regions": [region.to_json_dict() for region in self.uncertain_regions],
                 "n_reference": self.n_reference,
                 "n_scan": self.n_scan,
                 "label_counts": self.label_counts(),
@@ -192,6 +198,21 @@ class ComparisonResult:
 
 LABELS_COMPRESS_LEVEL = 1
 """zlib level of the labels file (:meth:`ComparisonResult.write_labels_npz`)."""
+
+
+def _region_summary(region: Any, local_origin: NDArray[np.float64]) -> RegionSummary:
+    """A localised region in file coordinates (the local origin added back)."""
+    return RegionSummary(
+        kind=region.kind,
+        n_points=int(region.n_points),
+        centroid=(np.asarray(region.centroid) + local_origin).tolist(),
+        bbox_min=(np.asarray(region.bbox_min) + local_origin).tolist(),
+        bbox_max=(np.asarray(region.bbox_max) + local_origin).tolist(),
+        mean_distance=float(region.mean_distance),
+        max_distance=float(region.max_distance),
+        evidence=str(region.evidence),
+        confidence=round(float(region.confidence), 3),
+    )
 
 
 def _file_frame_transform(
@@ -510,17 +531,9 @@ def compare(
         "n_regions": len(localisation.regions),
         "tests": tests,
     }
-    regions = [
-        RegionSummary(
-            kind=region.kind,
-            n_points=int(region.n_points),
-            centroid=(np.asarray(region.centroid) + local_origin).tolist(),
-            bbox_min=(np.asarray(region.bbox_min) + local_origin).tolist(),
-            bbox_max=(np.asarray(region.bbox_max) + local_origin).tolist(),
-            mean_distance=float(region.mean_distance),
-            max_distance=float(region.max_distance),
-        )
-        for region in localisation.regions
+    regions = [_region_summary(region, local_origin) for region in localisation.regions]
+    uncertain_regions = [
+        _region_summary(region, local_origin) for region in localisation.uncertain_regions
     ]
     effective_params: dict[str, Any] = {
         **detector.get_params(),
@@ -550,6 +563,7 @@ def compare(
         calibration=calibration,
         registration=registration_report,
         regions=regions,
+        uncertain_regions=uncertain_regions,
         n_reference=len(reference),
         n_scan=len(scan),
         reference_label=reference.to_source_order(

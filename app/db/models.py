@@ -204,6 +204,9 @@ class Job(Base):
     # source, confidence}), quality warnings ([{code, message, ...}]) and the decision's
     # explanation ({..., text}); null until the job succeeded.
     sensor_origins: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
+    # clusters of candidates the other epoch did not cover (evidence no_coverage): listed for
+    # review, never counted as change
+    uncertain_regions: Mapped[list[dict[str, Any]] | None] = mapped_column(JSON, nullable=True)
     warnings: Mapped[list[dict[str, Any]] | None] = mapped_column(JSON, nullable=True)
     explanation: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
 
@@ -230,6 +233,9 @@ class Region(Base):
     bbox_max: Mapped[list[float]] = mapped_column(JSON)
     mean_distance: Mapped[float] = mapped_column(Float)
     max_distance: Mapped[float] = mapped_column(Float)
+    # seen_empty | surface_moved (why it is a change; no_coverage regions live on the job)
+    evidence: Mapped[str] = mapped_column(String(16), default="seen_empty")
+    confidence: Mapped[float | None] = mapped_column(Float, nullable=True)
 
     job: Mapped[Job] = relationship(back_populates="regions")
 

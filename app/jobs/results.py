@@ -80,6 +80,8 @@ def store_results(
                 bbox_max=json_safe(list(region.bbox_max)),
                 mean_distance=float(region.mean_distance),
                 max_distance=float(region.max_distance),
+                evidence=str(getattr(region, "evidence", "seen_empty")),
+                confidence=getattr(region, "confidence", None),
             )
             for ordinal, region in enumerate(result.regions)
         )
@@ -96,6 +98,9 @@ def store_results(
         row.warnings = json_safe(warnings + ([history_warning] if history_warning else []))
         row.explanation = json_safe(explain_comparison(result))
         row.sensor_origins = json_safe(getattr(result, "sensor_origins", None))
+        row.uncertain_regions = json_safe(
+            [region.to_json_dict() for region in getattr(result, "uncertain_regions", [])]
+        )
         row.timings = json_safe(timings)
         row.labels_path = labels_path
         row.error = None

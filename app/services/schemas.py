@@ -227,6 +227,13 @@ class JobRead(RowRead):
         description="Why the job decided what it did: the decision rule, the regions' and the "
         "detector's evidence, and a one-line text.",
     )
+    uncertain_regions: list[UncertainRegionRead] | None = Field(
+        default=None,
+        description="Clusters of points the other epoch did not cover (evidence no_coverage: "
+        "a patch of a surface that continues unmoved in the other epoch, or a place it never "
+        "came near). Listed for review; they never count as change and their points are "
+        "unobserved.",
+    )
 
     @computed_field  # type: ignore[prop-decorator]
     @property
@@ -268,6 +275,20 @@ class JobRerun(StrictBody):
     params: dict[str, Any] | None = None
 
 
+class UncertainRegionRead(BaseModel):
+    """A cluster the other epoch did not cover: reported, not counted as change."""
+
+    kind: str = Field(description="removed (a reference part) or added (a scan part).")
+    n_points: int
+    centroid: list[float]
+    bbox_min: list[float]
+    bbox_max: list[float]
+    mean_distance: float
+    max_distance: float
+    evidence: str = Field(default="no_coverage")
+    confidence: float | None = None
+
+
 class RegionRead(RowRead):
     """A connected cluster of changed points (``added``: new in the scan; ``removed``: gone)."""
 
@@ -280,6 +301,17 @@ class RegionRead(RowRead):
     bbox_max: list[float]
     mean_distance: float
     max_distance: float
+    evidence: str = Field(
+        default="seen_empty",
+        description="Why it is a change: seen_empty (the other epoch saw its place empty: "
+        "through, behind or beneath it) or surface_moved (the surface is found again, "
+        "displaced, within a metre: a removed and an added region side by side).",
+    )
+    confidence: float | None = Field(
+        default=None,
+        description="Mean confidence of its points' labels, 0-1 (direct evidence: 1); "
+        "null for regions stored before it was measured.",
+    )
 
 
 class CapabilitiesRead(BaseModel):

@@ -80,6 +80,7 @@ LOCALISE_LAYERS = (
     "gaps",
     "rays",
     "origin_free",
+    "map_evidence",
     "visibility",
     "changes",
 )

@@ -293,7 +293,7 @@ def test_corridor_box_is_localised(noise_variance, change_fraction):
             noise_variance=noise_variance, change_fraction=change_fraction, random_state=seed
         )
         localisation = localise_changes(pair.reference, pair.scan)
-        assert localisation.parameters["reference_visibility"] == "coverage"
+        assert localisation.parameters["reference_visibility"] == "maps"
         ious.append(changed_iou(pair, localisation))
         assert region_containing(localisation, "added", box_front_centre) is not None
     assert np.mean(ious) >= 0.85

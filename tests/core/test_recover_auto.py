@@ -152,7 +152,7 @@ def test_a_uniform_cloud_is_not_searched_for_stations(monkeypatch):
         assert report["origins"] == "none"
         assert report["lidar_like"] is False
         assert "stations_recovered" not in report
-        assert report["test"] == "coverage"
+        assert report["test"] == "maps"
     assert result.changed
 
 
@@ -210,7 +210,7 @@ def test_the_surface_test_is_used_against_a_cloud_of_unknown_stations_only():
     pair = merged("added")
     localisation = localise_changes(pair.reference, pair.scan, scan_stations_unknown=True)
     assert localisation.parameters["reference_visibility"] == "surfaces"
-    assert localisation.parameters["scan_visibility"] == "coverage"
+    assert localisation.parameters["scan_visibility"] == "maps"
 
 
 def test_a_test_chosen_by_the_user_wins_over_the_routing():

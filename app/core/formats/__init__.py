@@ -1,7 +1,7 @@
 """Point-cloud file formats: detection, reading and writing.
 
 One module per format family (:mod:`.ply`, :mod:`.pcd`, :mod:`.las`, :mod:`.e57`, :mod:`.text`,
-:mod:`.npy`);
+:mod:`.npy`, :mod:`.rosbag`);
 this package chooses the family from the file suffix or, when the suffix is missing, unknown or
 contradicted by the content, from the content's magic bytes.
 
@@ -23,6 +23,7 @@ Example
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Callable, Mapping
 from pathlib import PurePath
@@ -48,6 +49,7 @@ from app.core.formats.las import (
 from app.core.formats.npy import read_npy, read_npz
 from app.core.formats.pcd import read_pcd
 from app.core.formats.ply import read_ply, write_ply
+from app.core.formats.rosbag import BAG_FORMATS, BagOptions, read_rosbag, sniff_bag
 from app.core.formats.stations import has_station_fields, with_station_fields
 from app.core.formats.trajectory_files import with_point_times
 from app.core.threads import available_threads
@@ -63,6 +65,7 @@ SUPPORTED_FORMATS: tuple[str, ...] = (
     "txt",
     "npy",
     "npz",
+    *BAG_FORMATS,
 )
 """Formats :func:`read_point_cloud` reads (names are the usual file suffixes)."""
 
@@ -147,7 +150,8 @@ def sniff_format(head: bytes) -> str | None:
 
     Magic bytes: ``ply`` + newline (PLY), ``# .PCD`` or a first header line ``VERSION``/``FIELDS``
     (PCD), ``LASF`` (LAS/LAZ), ``ASTM-E57`` (E57), ``\\x93NUMPY`` (NPY), ``PK\\x03\\x04`` (NPZ, a
-    zip archive);
+    zip archive), ``#ROSBAG V2.0`` (ROS 1 bag), ``SQLite format 3`` (ROS 2 ``.db3``),
+    ``\\x89MCAP0`` (ROS 2 ``.mcap``);
     otherwise UTF-8 text whose first data row has at least three numbers is ``csv`` when
     comma-separated and ``xyz`` otherwise.
     """
@@ -163,6 +167,8 @@ def sniff_format(head: bytes) -> str | None:
         return "npy"
     if head.startswith((b"PK\x03\x04", b"PK\x05\x06")):
         return "npz"
+    if (bag := sniff_bag(head)) is not None:
+        return bag
     if _looks_like_pcd(head):
         return "pcd"
     return _sniff_text(head)
@@ -215,6 +221,7 @@ def read_point_cloud(
     filename: str | None = None,
     max_points: int | None = 200_000_000,
     threads: int | None = None,
+    bag_options: BagOptions | None = None,
 ) -> PointCloud:
     """Read a point cloud from a path, bytes or a binary file object.
 
@@ -238,6 +245,9 @@ def read_point_cloud(
         machine), for LAZ :func:`~app.core.threads.available_threads` (lazrs's decoder threads
         do not hold the GIL and paid off at every load measured but the highest). The cloud
         does not depend on it.
+    bag_options : BagOptions, optional
+        Topics, frames and voxel size for a ROS bag (``bag``, ``db3``, ``mcap``); default:
+        chosen automatically (:mod:`app.core.formats.rosbag`).
 
     Returns
     -------
@@ -246,7 +256,8 @@ def read_point_cloud(
         ``sensor_origin`` comes from a PCD ``VIEWPOINT`` when it is not the default one, from
         an E57 file's scan poses ((k, 3) for k scans) or from per-point origin fields; a
         ``station_index`` attribute says which station took each point (E57 scans, per-point
-        fields: :mod:`app.core.formats.stations`).
+        fields: :mod:`app.core.formats.stations`); a ROS bag's map has a ``trajectory`` and a
+        ``"time"`` attribute.
 
     Raises
     ------
@@ -258,18 +269,21 @@ def read_point_cloud(
 
     def build(raw: RawCloud, opened: Source) -> PointCloud:
         raw = with_station_fields(raw)
-        return PointCloud.from_array(
+        cloud = PointCloud.from_array(
             raw.points,
             with_point_times(raw.attributes),  # times under "time", whatever the field's name
             raw.sensor_origin,
             threads=conversion_threads() if threads is None else threads,
             file_rows=file_rows_of(raw.points, opened),
         )
+        if raw.trajectory is not None:
+            cloud = dataclasses.replace(cloud, trajectory=raw.trajectory)
+        return cloud
 
     def build_las(opened: Source, max_points: int | None, threads: int) -> PointCloud:
         return build(read_las(opened, max_points, threads=threads), opened)
 
-    return _decode(source, format, filename, max_points, threads, build, build_las)
+    return _decode(source, format, filename, max_points, threads, build, build_las, bag_options)
 
 
 def summarise_point_cloud(
@@ -279,6 +293,7 @@ def summarise_point_cloud(
     filename: str | None = None,
     max_points: int | None = 200_000_000,
     threads: int | None = None,
+    bag_options: BagOptions | None = None,
 ) -> CloudSummary:
     """Check a point cloud as :func:`read_point_cloud` does and summarise it, without loading it.
 
@@ -295,9 +310,9 @@ def summarise_point_cloud(
 
     Parameters
     ----------
-    source, format, filename, max_points, threads
+    source, format, filename, max_points, threads, bag_options
         As for :func:`read_point_cloud` (``threads`` share the blocks of a binary PLY/PCD,
-        or decompress a LAZ).
+        or decompress a LAZ; a ROS bag's map is built as for reading, then summarised).
 
     Returns
     -------
@@ -332,7 +347,9 @@ def summarise_point_cloud(
         # station fields: decoded whole, to count the stations
         return build(_text.read_text(opened, max_points), opened) if summary is None else summary
 
-    return _decode(source, format, filename, max_points, threads, build, build_las, build_text)
+    return _decode(
+        source, format, filename, max_points, threads, build, build_las, bag_options, build_text
+    )
 
 
 def _decode(
@@ -343,6 +360,7 @@ def _decode(
     threads: int | None,
     build: Callable[[RawCloud, Source], Decoded],
     build_las: Callable[[Source, int | None, int], Decoded],
+    bag_options: BagOptions | None = None,
     build_text: Callable[[Source, int | None], Decoded] | None = None,
 ) -> Decoded:
     """Open ``source``, choose its format, decode it and hand the raw cloud to ``build``
@@ -358,6 +376,8 @@ def _decode(
                 raise PointCloudError("the file is empty (0 bytes): zero points")
             if chosen is None:
                 chosen = detect_format(opened.name, opened.head(SNIFF_BYTES))
+            if chosen in BAG_FORMATS:
+                return build(read_rosbag(opened, max_points, chosen, bag_options), opened)
             reader = _READERS[chosen]
             if reader is read_las:
                 laz_threads = available_threads() if threads is None else threads
@@ -444,8 +464,10 @@ def _normalise_format(format: str) -> str:
 
 
 __all__ = [
+    "BAG_FORMATS",
     "SUPPORTED_FORMATS",
     "WRITABLE_FORMATS",
+    "BagOptions",
     "detect_format",
     "read_point_cloud",
     "sniff_format",

@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from app.core.blocks import FileRows
 from app.core.errors import PointCloudError
+from app.core.trajectory import Trajectory
 
 SourceLike = str | os.PathLike | bytes | bytearray | memoryview | BinaryIO
 
@@ -84,11 +85,14 @@ class RawCloud:
     attributes : dict of str to ndarray, each shape (n, ...)
         Extra per-point fields, owned arrays (never views of the input buffer).
     sensor_origin : ndarray, shape (3,), or None
+    trajectory : Trajectory or None
+        The moving sensor's path (a ROS bag's poses at its sweep stamps).
     """
 
     points: NDArray[np.float64]
     attributes: dict[str, NDArray] = field(default_factory=dict)
     sensor_origin: NDArray[np.float64] | None = None
+    trajectory: Trajectory | None = None
 
 
 @contextmanager

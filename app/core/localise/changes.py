@@ -49,7 +49,7 @@ from app.core.localise.distance import (
     surface_distance,
 )
 from app.core.localise.neighbourhoods import Neighbourhoods, NeighbourhoodSearch
-from app.core.localise.regions import ChangedRegion, find_regions
+from app.core.localise.regions import ChangedRegion, find_regions, mark_moved_surfaces
 from app.core.localise.settings import (
     DEFAULT_PARAMETERS,
     as_origins,
@@ -62,6 +62,7 @@ from app.core.localise.visibility import (
     LABEL_CHANGED,
     LABEL_UNCHANGED,
     LABEL_UNOBSERVED,
+    Labelled,
     find_candidates,
     label_candidates,
 )
@@ -102,7 +103,11 @@ class Localisation:
     scan_region : ndarray, shape (m,), int32
         Likewise for scan points.
     regions : list of ChangedRegion
-        Sorted by ``n_points``, largest first.
+        Sorted by ``n_points``, largest first.  Each says its ``evidence`` (seen_empty or
+        surface_moved) and ``confidence``.
+    uncertain_regions : list of ChangedRegion
+        Clusters of candidates the other epoch did not cover (``evidence="no_coverage"``):
+        listed, never counted as change; their points are unobserved.
     parameters : dict
         JSON-serialisable effective parameters and estimates (noise, spacing, thresholds,
         support and cluster radii, minimum region size, visibility mode, counts).
@@ -116,6 +121,7 @@ class Localisation:
     scan_region: NDArray[np.int32]
     regions: list[ChangedRegion]
     parameters: dict[str, Any]
+    uncertain_regions: list[ChangedRegion] = dataclasses.field(default_factory=list)
 
 
 def _in_parallel(
@@ -343,7 +349,7 @@ def localise_changes(
     reference_side = _released(reference_side)
     scan_side = _released(scan_side)
     misalignment = math.hypot(registration_rmse, residual)
-    (reference_label, reference_report), (scan_label, scan_report) = _in_parallel(
+    reference_labelled, scan_labelled = _in_parallel(
         threads,
         lambda: label_candidates(
             reference_side,
@@ -352,6 +358,7 @@ def localise_changes(
             misalignment=misalignment,
             threshold=threshold,
             settings=settings,
+            change_threshold=change_threshold,
         ),
         lambda: label_candidates(
             scan_side,
@@ -360,27 +367,43 @@ def localise_changes(
             misalignment=misalignment,
             threshold=threshold,
             settings=settings,
+            change_threshold=change_threshold,
         ),
     )
+    reference_label, reference_report = reference_labelled.label, reference_labelled.report
+    scan_label, scan_report = scan_labelled.label, scan_labelled.report
 
-    def regions_of(side: Side, label: NDArray[np.int8], distance: NDArray) -> Any:
+    def regions_of(side: Side, labelled: Labelled, distance: NDArray, wanted: int) -> Any:
         return find_regions(
             side.points,
             kind=side.region_kind,
-            changed=label == LABEL_CHANGED,
+            changed=labelled.label == wanted,
             spacing=side.geometry.spacing,
             distance=distance,
             cluster_factor=settings["cluster_factor"],
             min_region_points=min_region_points,
+            evidence=labelled.evidence,
+            confidence=labelled.confidence,
         )
 
     (removed, dropped_removed), (added, dropped_added) = _in_parallel(
         threads,
-        lambda: regions_of(reference_side, reference_label, reference_distance),
-        lambda: regions_of(scan_side, scan_label, scan_distance),
+        lambda: regions_of(reference_side, reference_labelled, reference_distance, LABEL_CHANGED),
+        lambda: regions_of(scan_side, scan_labelled, scan_distance, LABEL_CHANGED),
     )
     regions: list[ChangedRegion] = [*removed, *added]
     regions.sort(key=lambda region: (-region.n_points, region.kind, int(region.point_indices[0])))
+    regions = mark_moved_surfaces(regions)
+    uncertain_regions = [
+        region
+        for side, labelled, distance in (
+            (reference_side, reference_labelled, reference_distance),
+            (scan_side, scan_labelled, scan_distance),
+        )
+        for region in regions_of(side, labelled, distance, LABEL_UNOBSERVED)[0]
+        if region.evidence == "no_coverage"
+    ]
+    uncertain_regions.sort(key=lambda region: (-region.n_points, region.kind))
 
     reference_region = np.full(len(reference_points), -1, dtype=np.int32)
     scan_region = np.full(len(scan_points), -1, dtype=np.int32)
@@ -423,6 +446,7 @@ def localise_changes(
         "n_scan_changed": int((scan_label == LABEL_CHANGED).sum()),
         "n_scan_unobserved": int((scan_label == LABEL_UNOBSERVED).sum()),
         "n_dropped_clusters": int(dropped_removed + dropped_added),
+        "n_uncertain_regions": len(uncertain_regions),
     }
     return Localisation(
         reference_label=reference_label,
@@ -433,6 +457,7 @@ def localise_changes(
         scan_region=scan_region,
         regions=regions,
         parameters=parameters,
+        uncertain_regions=uncertain_regions,
     )
 
 

@@ -265,6 +265,7 @@ def behind_evidence(
     other_points: NDArray[np.float64],
     other_normal: NDArray[np.floating],
     other_unmatched: NDArray[np.bool_],
+    min_radius: float = BEHIND_MIN_RADIUS,
 ) -> NDArray[np.bool_]:
     """Whether the other cloud has surface that this one lacks behind each candidate.
 
@@ -285,6 +286,9 @@ def behind_evidence(
         candidate's (a floor under a box top, a wall behind a box face).
     other_unmatched : ndarray, shape (m,), bool
         The other cloud's points with no point of this cloud near them.
+    min_radius : float
+        Smallest radius (metres) of a probe's ball (a sparse other cloud needs wider balls:
+        about its spacing).
 
     Returns
     -------
@@ -306,7 +310,7 @@ def behind_evidence(
     # along the normal both ways, a surface parallel to the candidate's
     lines = ((unit, unit), (-unit, unit))
     for step in steps:
-        radius = min(max(BEHIND_MIN_RADIUS, BEHIND_RADIUS_FRACTION * step), BEHIND_MAX_RADIUS)
+        radius = min(max(min_radius, BEHIND_RADIUS_FRACTION * step), BEHIND_MAX_RADIUS)
         for direction, facing in lines:
             probes = points + step * direction
             distance, index = tree.query(probes, k=k, distance_upper_bound=radius)

@@ -7,6 +7,7 @@ spacings (k-nearest-neighbour graph, sparse connected components); clusters smal
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,9 +16,29 @@ from pykdtree.kdtree import KDTree
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-__all__ = ["ChangedRegion", "cluster_labels", "find_regions"]
+__all__ = [
+    "EVIDENCE_NAMES",
+    "ChangedRegion",
+    "cluster_labels",
+    "find_regions",
+    "mark_moved_surfaces",
+]
 
 CLUSTER_NEIGHBOURS = 10
+EVIDENCE_NONE = 0
+EVIDENCE_SEEN_EMPTY = 1
+EVIDENCE_SURFACE_MOVED = 2
+EVIDENCE_NO_COVERAGE = 3
+EVIDENCE_NAMES = {
+    EVIDENCE_SEEN_EMPTY: "seen_empty",
+    EVIDENCE_SURFACE_MOVED: "surface_moved",
+    EVIDENCE_NO_COVERAGE: "no_coverage",
+}
+"""Per-point evidence codes of change candidates (0: not a candidate), and the names regions
+report."""
+MOVED_GAP = 1.0
+"""A removed and an added region whose boxes lie within this distance (metres) of each other
+are one surface moved."""
 
 
 @dataclass(frozen=True)
@@ -35,6 +56,13 @@ class ChangedRegion:
         Mean position and axis-aligned bounds of the points, in the reference frame.
     mean_distance, max_distance : float
         Mean and largest distance of the points to the other cloud's surface (metres).
+    evidence : {"seen_empty", "surface_moved", "no_coverage"}
+        Why it is reported: the other epoch saw its place empty (through, behind or beneath
+        it); the surface is found again displaced nearby (a region of the other kind lies
+        within :data:`MOVED_GAP`); or the other epoch did not cover it (an uncertain region:
+        it does not count for the decision, its points are unobserved).
+    confidence : float
+        Mean confidence of its points' labels, in [0, 1] (direct evidence: 1).
     """
 
     kind: str
@@ -44,6 +72,8 @@ class ChangedRegion:
     bbox_max: NDArray[np.float64]
     mean_distance: float
     max_distance: float
+    evidence: str = "seen_empty"
+    confidence: float = 1.0
 
     @property
     def n_points(self) -> int:
@@ -90,6 +120,8 @@ def find_regions(
     distance: NDArray[np.float64],
     cluster_factor: float,
     min_region_points: int,
+    evidence: NDArray[np.int8] | None = None,
+    confidence: NDArray[np.floating] | None = None,
 ) -> tuple[list[ChangedRegion], int]:
     """Cluster one cloud's changed points into regions of at least ``min_region_points``.
 
@@ -105,6 +137,11 @@ def find_regions(
         Each point's distance to the other cloud's surface.
     cluster_factor : float
     min_region_points : int
+    evidence : ndarray, shape (n,), int8, optional
+        Evidence code of each point (:data:`EVIDENCE_NAMES`); a region takes its points' most
+        common one.  Default: seen_empty.
+    confidence : ndarray, shape (n,), optional
+        Each point's confidence; a region's is their mean.  Default 1.
 
     Returns
     -------
@@ -125,6 +162,11 @@ def find_regions(
             continue
         region_points = points[members]
         region_distance = distance[members]
+        evidence_name = "seen_empty"
+        if evidence is not None:
+            codes = np.bincount(evidence[members], minlength=len(EVIDENCE_NAMES) + 1)
+            codes[0] = 0
+            evidence_name = EVIDENCE_NAMES.get(int(np.argmax(codes)), "seen_empty")
         regions.append(
             ChangedRegion(
                 kind=kind,
@@ -134,6 +176,44 @@ def find_regions(
                 bbox_max=region_points.max(axis=0),
                 mean_distance=float(region_distance.mean()),
                 max_distance=float(region_distance.max()),
+                evidence=evidence_name,
+                confidence=1.0 if confidence is None else float(np.mean(confidence[members])),
             )
         )
     return regions, int((sizes < min_region_points).sum())
+
+
+def mark_moved_surfaces(
+    regions: list[ChangedRegion], gap: float = MOVED_GAP
+) -> list[ChangedRegion]:
+    """Removed and added regions whose boxes lie within ``gap`` of each other: surface_moved.
+
+    A moved or rotated object leaves a removed region where it stood and an added one where
+    it stands; a door swung open, a wall pushed back, the same.  Uncertain regions
+    (``no_coverage``) keep their evidence.
+
+    Parameters
+    ----------
+    regions : list of ChangedRegion
+    gap : float
+        Largest distance (metres) between the two boxes.
+
+    Returns
+    -------
+    list of ChangedRegion
+        The same regions, in the same order.
+    """
+    removed = [r for r in regions if r.kind == "removed" and r.evidence != "no_coverage"]
+    added = [r for r in regions if r.kind == "added" and r.evidence != "no_coverage"]
+    moved: set[int] = set()
+    for first in removed:
+        for second in added:
+            separation = np.maximum(
+                0.0, np.maximum(first.bbox_min - second.bbox_max, second.bbox_min - first.bbox_max)
+            )
+            if float(np.linalg.norm(separation)) <= gap:
+                moved.update((id(first), id(second)))
+    return [
+        dataclasses.replace(region, evidence="surface_moved") if id(region) in moved else region
+        for region in regions
+    ]

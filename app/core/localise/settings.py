@@ -72,9 +72,12 @@ origin_free_test
     for merged clouds whose stations are not known nor recovered.  ``"auto"`` (default):
     ``"surfaces"`` against a cloud that the pipeline found sampled by lidars, explained by no
     single origin and whose stations it could not recover (``*_stations_unknown`` of
-    :func:`~app.core.localise.changes.localise_changes`), ``"coverage"`` otherwise (uniform or
-    non-lidar clouds: the surface test assumes a lidar's sampling).  A value set explicitly
-    is used whatever the clouds.
+    :func:`~app.core.localise.changes.localise_changes`), ``"maps"`` otherwise: fused maps
+    (handheld RGB-D, mobile laser scanning, voxel-filtered robot maps, thinned surveys) whose
+    candidates are judged a cluster at a time from the surfaces both epochs share
+    (:mod:`~app.core.localise.map_evidence`: a patch of a surface that continues unmoved in
+    the other epoch is a coverage difference, an object whose place the other epoch covered
+    is a change).  A value set explicitly is used whatever the clouds.
 min_change_distance
     Smallest change reported (metres): a point is changed only when it lies farther than
     ``max(tau, min_change_distance)`` from the other cloud's surface.  0.10: the issue-15
@@ -97,7 +100,9 @@ PARAMETER_SPECS: dict[str, ParamSpec] = {
     "visibility_angle_factor": ParamSpec("positive"),
     "visibility_beyond_fraction": ParamSpec("positive", high=1.0),
     "visibility_miss_factor": ParamSpec("positive"),
-    "origin_free_test": ParamSpec("choice", choices=("auto", "gaps", "coverage", "surfaces")),
+    "origin_free_test": ParamSpec(
+        "choice", choices=("auto", "maps", "gaps", "coverage", "surfaces")
+    ),
     "min_change_distance": ParamSpec("float", low=0.0),
 }
 """How each of :data:`DEFAULT_PARAMETERS` is validated (same names, same order)."""

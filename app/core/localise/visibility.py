@@ -19,6 +19,7 @@ cloud taken along a trajectory (``Side.trajectory_rays``) gives the trajectory t
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -26,6 +27,7 @@ from numpy.typing import NDArray
 
 from app.core.localise.distance import Side
 from app.core.localise.gaps import in_sampling_gap
+from app.core.localise.map_evidence import map_test
 from app.core.localise.origin_free import surface_test
 from app.core.localise.rays import (
     STATUS_EDGE_ON,
@@ -36,13 +38,18 @@ from app.core.localise.rays import (
     RayTest,
     ray_visibility,
 )
-from app.core.localise.regions import cluster_labels
+from app.core.localise.regions import (
+    EVIDENCE_NO_COVERAGE,
+    EVIDENCE_SEEN_EMPTY,
+    cluster_labels,
+)
 from app.core.localise.trajectory_visibility import trajectory_statuses
 
 __all__ = [
     "LABEL_CHANGED",
     "LABEL_UNCHANGED",
     "LABEL_UNOBSERVED",
+    "Labelled",
     "combine_station_status",
     "find_candidates",
     "label_candidates",
@@ -54,6 +61,34 @@ LABEL_CHANGED = 1
 LABEL_UNOBSERVED = -1
 
 EDGE_ON_SEEN_THROUGH_SHARE = 0.5
+INDIRECT_CONFIDENCE = 0.5
+"""Confidence of a change the test could not see directly: an edge-on face joined to faces
+seen through, or a candidate the coverage test kept."""
+
+
+@dataclass(frozen=True)
+class Labelled:
+    """One cloud's labels after the visibility test, and the evidence behind each.
+
+    Attributes
+    ----------
+    label : ndarray, shape (n,), int8
+        LABEL_UNCHANGED, LABEL_CHANGED or LABEL_UNOBSERVED.
+    evidence : ndarray, shape (n,), int8
+        :data:`~app.core.localise.regions.EVIDENCE_NAMES` code of each candidate (0 for
+        points that were not candidates).
+    confidence : ndarray, shape (n,), float32
+        Confidence in each candidate's label, in [0, 1].
+    report : dict
+        JSON-serialisable figures of the test.
+    """
+
+    label: NDArray[np.int8]
+    evidence: NDArray[np.int8]
+    confidence: NDArray[np.float32]
+    report: dict[str, Any]
+
+
 MIN_STATION_POINTS = 10
 """A station of the other cloud with fewer returns than this is ignored (it saw nothing)."""
 
@@ -94,7 +129,8 @@ def label_candidates(
     misalignment: float,
     threshold: float,
     settings: dict[str, Any],
-) -> tuple[NDArray[np.int8], dict[str, Any]]:
+    change_threshold: float | None = None,
+) -> Labelled:
     """Label one cloud's points: candidates become changed or unobserved, the rest unchanged.
 
     Parameters
@@ -112,22 +148,39 @@ def label_candidates(
         ``tau``: the sampling-gap test's tolerance (without origins).
     settings : dict
         Resolved keyword parameters.
+    change_threshold : float, optional
+        ``c``: a surface within it is the same surface (the map test); default ``threshold``.
 
     Returns
     -------
-    label : ndarray, shape (n,), int8
-        LABEL_UNCHANGED, LABEL_CHANGED or LABEL_UNOBSERVED.
-    report : dict
-        JSON-serialisable figures of the visibility test.
+    Labelled
     """
     label = np.full(own.points.shape[0], LABEL_UNCHANGED, dtype=np.int8)
+    evidence = np.zeros(own.points.shape[0], dtype=np.int8)
+    confidence = np.zeros(own.points.shape[0], dtype=np.float32)
     index = candidates.index
+    candidate_confidence = np.ones(index.shape[0], dtype=np.float32)
+    candidate_evidence: NDArray[np.int8] | None = None
     side = own.name
     report: dict[str, Any] = {f"{side}_candidates": int(index.size)}
     origin_free_test = settings["origin_free_test"]
     if origin_free_test == "auto":  # the surface test only against merged lidar clouds
-        origin_free_test = "surfaces" if other.stations_unknown else "coverage"
-    if other.origins is None and origin_free_test == "surfaces":
+        origin_free_test = "surfaces" if other.stations_unknown else "maps"
+    if other.origins is None and origin_free_test == "maps":
+        report[f"{side}_visibility"] = "maps"
+        found = map_test(
+            candidates,
+            own=own,
+            other=other,
+            threshold=threshold,
+            change_threshold=threshold if change_threshold is None else change_threshold,
+            cluster_factor=settings["cluster_factor"],
+        )
+        status = found.status
+        candidate_evidence = found.evidence
+        candidate_confidence = found.confidence
+        report.update({f"{side}_{name}": count for name, count in found.counts.items()})
+    elif other.origins is None and origin_free_test == "surfaces":
         report[f"{side}_visibility"] = "surfaces"
         status, counts = surface_test(
             candidates,
@@ -144,6 +197,7 @@ def label_candidates(
             <= settings["coverage_factor"] * other.geometry.spacing[own.nearest_index[index]]
         )
         status = np.where(covered, STATUS_SEEN_THROUGH, STATUS_UNOBSERVED)
+        candidate_confidence[:] = INDIRECT_CONFIDENCE
         if origin_free_test == "gaps":
             gap = in_sampling_gap(
                 candidates.points,
@@ -176,15 +230,24 @@ def label_candidates(
             report[f"{side}_other_angular_step_deg"] = math.degrees(float(np.median(steps)))
         report[f"{side}_candidates_on_other_surface"] = int((status == STATUS_SURFACE).sum())
         report[f"{side}_candidates_edge_on"] = int((status == STATUS_EDGE_ON).sum())
+        direct = status == STATUS_SEEN_THROUGH
         status = resolve_edge_on(
             candidates.points,
             spacing=candidates.spacing,
             status=status,
             cluster_factor=settings["cluster_factor"],
         )
+        candidate_confidence[~direct] = INDIRECT_CONFIDENCE
+    if candidate_evidence is None:
+        candidate_evidence = np.where(
+            status == STATUS_UNOBSERVED, EVIDENCE_NO_COVERAGE, EVIDENCE_SEEN_EMPTY
+        ).astype(np.int8)
     label[index[status == STATUS_SEEN_THROUGH]] = LABEL_CHANGED
     label[index[status == STATUS_UNOBSERVED]] = LABEL_UNOBSERVED
-    return label, report
+    judged = status != STATUS_SURFACE
+    evidence[index[judged]] = candidate_evidence[judged]
+    confidence[index[judged]] = candidate_confidence[judged]
+    return Labelled(label=label, evidence=evidence, confidence=confidence, report=report)
 
 
 def _any_station_status(

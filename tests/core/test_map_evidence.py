@@ -1,0 +1,86 @@
+"""The map test on fused maps without sensor positions (issue 29): removals whose place the other
+epoch covered are changes, patches of surfaces that continue unmoved in the other epoch are
+coverage differences, listed as uncertain regions and never counted."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.core.localise import localise_changes
+from app.core.localise.visibility import LABEL_CHANGED, LABEL_UNOBSERVED
+from tests.helpers.fused_rooms import CHAIR, fused_room
+
+
+def test_a_removed_object_whose_floor_the_scan_saw_is_removed():
+    rng = np.random.default_rng(0)
+    reference = fused_room(rng, box=CHAIR)
+    scan = fused_room(rng)
+    localisation = localise_changes(reference, scan)
+    assert localisation.parameters["reference_visibility"] == "maps"
+    inside = np.all((reference > CHAIR[0]) & (reference < CHAIR[1]), axis=1) & (
+        reference[:, 2] > 0.15
+    )
+    changed = localisation.reference_label[inside] == LABEL_CHANGED
+    assert changed.mean() >= 0.9
+    removed = [region for region in localisation.regions if region.kind == "removed"]
+    assert len(removed) == 1 and removed[0].evidence in {"seen_empty", "surface_moved"}
+    assert 0.0 < removed[0].confidence <= 1.0
+
+
+def test_an_added_object_is_added():
+    rng = np.random.default_rng(1)
+    reference = fused_room(rng)
+    scan = fused_room(rng, box=CHAIR)
+    localisation = localise_changes(reference, scan)
+    added = [region for region in localisation.regions if region.kind == "added"]
+    assert len(added) == 1 and added[0].n_points > 300
+    # the floor the box now hides, if reported, is that surface moved up to the box's top
+    for region in localisation.regions:
+        if region.kind == "removed":
+            assert region.evidence == "surface_moved" and region.bbox_max[2] < 0.05
+
+
+def test_coverage_differences_on_continuing_surfaces_are_uncertain_not_changed():
+    # the scan's path reached neither a 1.2 x 1 m patch of the floor nor the ceiling's far end
+    rng = np.random.default_rng(2)
+    reference = fused_room(rng)
+    scan = fused_room(rng, floor_hole=([3.5, 1.0], [4.7, 2.0]), ceiling_to=4.5)
+    localisation = localise_changes(reference, scan)
+    assert localisation.regions == []
+    assert not np.any(localisation.reference_label == LABEL_CHANGED)
+    unobserved = localisation.reference_label == LABEL_UNOBSERVED
+    in_hole = (
+        (reference[:, 0] > 3.7)
+        & (reference[:, 0] < 4.5)
+        & (reference[:, 1] > 1.2)
+        & (reference[:, 1] < 1.8)
+        & (reference[:, 2] < 0.05)
+    )
+    assert unobserved[in_hole].mean() >= 0.9
+    assert len(localisation.uncertain_regions) >= 2
+    assert {region.evidence for region in localisation.uncertain_regions} == {"no_coverage"}
+    assert localisation.parameters["n_uncertain_regions"] == len(localisation.uncertain_regions)
+
+
+def test_a_moved_object_is_a_surface_moved():
+    rng = np.random.default_rng(3)
+    moved = ([4.0, 1.5, 0.0], [4.5, 2.0, 0.9])
+    reference = fused_room(rng, box=CHAIR)
+    scan = fused_room(rng, box=moved)
+    localisation = localise_changes(reference, scan)
+    assert {region.kind for region in localisation.regions} == {"added", "removed"}
+    assert {region.evidence for region in localisation.regions} == {"surface_moved"}
+    old_place = np.all((reference > CHAIR[0]) & (reference < CHAIR[1]), axis=1)
+    new_place = np.all((scan > moved[0]) & (scan < moved[1]), axis=1)
+    assert (localisation.reference_label[old_place & (reference[:, 2] > 0.15)] == 1).mean() > 0.9
+    assert (localisation.scan_label[new_place & (scan[:, 2] > 0.15)] == 1).mean() > 0.9
+
+
+@pytest.mark.parametrize("test", ["coverage", "maps"])
+def test_the_coverage_test_stays_available(test):
+    rng = np.random.default_rng(4)
+    reference = fused_room(rng, box=CHAIR)
+    scan = fused_room(rng)
+    localisation = localise_changes(reference, scan, origin_free_test=test)
+    assert localisation.parameters["reference_visibility"] == test

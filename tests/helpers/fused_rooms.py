@@ -1,0 +1,65 @@
+"""Fused indoor maps for tests: a room's surfaces sampled uniformly (as a fused, voxel-thinned
+RGB-D or laser map is), with furniture boxes and coverage gaps, and no sensor position."""
+
+from __future__ import annotations
+
+import numpy as np
+
+CHAIR = ([2.5, 1.5, 0.0], [3.0, 2.0, 0.9])
+"""A chair-sized box standing on the floor (low and high corners)."""
+
+SPACING = 0.03
+
+
+def plane(rng, origin, first, second, spacing=SPACING, noise=0.002):
+    """Points on a rectangle (origin + s * first + t * second), jittered, with noise."""
+    first, second = np.asarray(first, float), np.asarray(second, float)
+    n_s = max(2, int(np.linalg.norm(first) / spacing))
+    n_t = max(2, int(np.linalg.norm(second) / spacing))
+    s, t = np.meshgrid((np.arange(n_s) + 0.5) / n_s, (np.arange(n_t) + 0.5) / n_t)
+    s = s.ravel() + rng.uniform(-0.3, 0.3, s.size) / n_s
+    t = t.ravel() + rng.uniform(-0.3, 0.3, t.size) / n_t
+    points = np.asarray(origin, float) + s[:, None] * first + t[:, None] * second
+    normal = np.cross(first, second)
+    normal /= np.linalg.norm(normal)
+    return points + rng.normal(0.0, noise, (points.shape[0], 1)) * normal
+
+
+def box_faces(rng, low, high):
+    """The five visible faces of a box standing on the floor (no bottom)."""
+    low, high = np.asarray(low, float), np.asarray(high, float)
+    size = high - low
+    x, y, z = np.diag(size)
+    return np.vstack(
+        [
+            plane(rng, [low[0], low[1], high[2]], x, y),
+            plane(rng, low, x, z),
+            plane(rng, [low[0], high[1], low[2]], x, z),
+            plane(rng, low, y, z),
+            plane(rng, [high[0], low[1], low[2]], y, z),
+        ]
+    )
+
+
+def fused_room(rng, *, floor_hole=None, box=None, ceiling_to=6.0):
+    """A 6 x 4 x 2.5 m room's floor, two walls and ceiling (to x = ``ceiling_to``), sampled
+    as a fused map is: uniformly, with what a box hides of the floor missing."""
+    floor = plane(rng, [0, 0, 0], [6, 0, 0], [0, 4, 0])
+    keep = np.ones(floor.shape[0], bool)
+    for hole in [h for h in (floor_hole, box) if h is not None]:
+        low, high = hole
+        keep &= ~(
+            (floor[:, 0] > low[0])
+            & (floor[:, 0] < high[0])
+            & (floor[:, 1] > low[1])
+            & (floor[:, 1] < high[1])
+        )
+    parts = [
+        floor[keep],
+        plane(rng, [0, 0, 0], [6, 0, 0], [0, 0, 2.5]),
+        plane(rng, [0, 0, 0], [0, 4, 0], [0, 0, 2.5]),
+        plane(rng, [0, 0, 2.5], [ceiling_to, 0, 0], [0, 4, 0]),
+    ]
+    if box is not None:
+        parts.append(box_faces(rng, box[0], box[1]))
+    return np.vstack(parts)
