@@ -4,7 +4,9 @@ Rules checked: with times, positions are the trajectory interpolated linearly; p
 the span by more than the tolerance are counted, and when most are outside the error gives both
 spans; a trajectory without times cannot place points with times; without times each point
 takes the nearest pose in line of sight (not one behind a wall, even when nearer); groups are
-stretches of the path no longer than the group length, with their mean sensor positions.
+stretches of the path no longer than the group length, with their mean sensor positions;
+without times a point is a ray of every pose that sees it, with times of its own group; a lone
+sighting is one pseudo-station seeing through a place others saw otherwise.
 """
 
 from __future__ import annotations
@@ -13,6 +15,13 @@ import numpy as np
 import pytest
 
 from app.core.cloud import PointCloud
+from app.core.localise.rays import (
+    STATUS_EDGE_ON,
+    STATUS_SEEN_THROUGH,
+    STATUS_SURFACE,
+    STATUS_UNOBSERVED,
+)
+from app.core.localise.trajectory_visibility import lone_sightings
 from app.core.trajectory import Trajectory, TrajectoryError
 from app.core.trajectory_poses import (
     interpolate_positions,
@@ -131,3 +140,22 @@ def test_with_times_each_point_is_a_ray_of_its_own_group_only() -> None:
     for number in range(len(groups.origins)):
         returns = groups.returns[groups.bounds[number] : groups.bounds[number + 1]]
         np.testing.assert_array_equal(np.sort(returns), np.flatnonzero(groups.group == number))
+
+
+def test_a_lone_sighting_is_one_pseudo_station_through_while_others_saw_the_place() -> None:
+    through, surface, edge_on, none = (
+        STATUS_SEEN_THROUGH,
+        STATUS_SURFACE,
+        STATUS_EDGE_ON,
+        STATUS_UNOBSERVED,
+    )
+    statuses = np.array(
+        [
+            [through, through, through, through, through],
+            [edge_on, through, none, surface, none],
+            [none, none, none, none, none],
+        ],
+        dtype=np.int8,
+    )
+
+    np.testing.assert_array_equal(lone_sightings(statuses), [True, False, False, True, False])

@@ -24,7 +24,13 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
-from app.core.localise.rays import STATUS_UNOBSERVED, Candidates, RayTest, ray_visibility
+from app.core.localise.rays import (
+    STATUS_SEEN_THROUGH,
+    STATUS_UNOBSERVED,
+    Candidates,
+    RayTest,
+    ray_visibility,
+)
 
 __all__ = ["NEAREST_GROUPS", "NEIGHBOUR_RETURNS", "trajectory_statuses"]
 
@@ -133,3 +139,22 @@ def trajectory_statuses(
         math.degrees(float(np.median(angular_steps))) if angular_steps else math.nan
     )
     return statuses, report
+
+
+def lone_sightings(statuses: NDArray[np.int8]) -> NDArray[np.bool_]:
+    """Candidates seen through by one pseudo-station only while others saw them otherwise.
+
+    Parameters
+    ----------
+    statuses : ndarray, shape (s, c), int8
+
+    Returns
+    -------
+    ndarray, shape (c,), bool
+        One slot seen through, and at least one other slot that saw the candidate's surface
+        or saw it edge-on (a moving sensor sees a removed object's place from several
+        stretches of its path; one ray through a grazed edge is not enough).
+    """
+    through = (statuses == STATUS_SEEN_THROUGH).sum(axis=0)
+    other = ((statuses != STATUS_SEEN_THROUGH) & (statuses != STATUS_UNOBSERVED)).sum(axis=0)
+    return (through == 1) & (other >= 1)

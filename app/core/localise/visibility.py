@@ -43,7 +43,7 @@ from app.core.localise.regions import (
     EVIDENCE_SEEN_EMPTY,
     cluster_labels,
 )
-from app.core.localise.trajectory_visibility import trajectory_statuses
+from app.core.localise.trajectory_visibility import lone_sightings, trajectory_statuses
 
 __all__ = [
     "LABEL_CHANGED",
@@ -89,6 +89,10 @@ class Labelled:
     report: dict[str, Any]
 
 
+LONE_SIGHTING_FACTOR = 1.5
+"""A trajectory candidate within this many change thresholds of the other cloud's surface,
+seen through by one pseudo-station while others saw it otherwise, is left to the edge-on
+resolution (a rack's edge grazed by one stretch of the path)."""
 MIN_STATION_POINTS = 10
 """A station of the other cloud with fewer returns than this is ignored (it saw nothing)."""
 
@@ -222,6 +226,12 @@ def label_candidates(
             report[f"{side}_visibility"] = "trajectory"
             statuses, figures = trajectory_statuses(candidates, own=own, other=other, test=test)
             status = combine_station_status(statuses)
+            near = candidates.surface_distance < LONE_SIGHTING_FACTOR * (
+                threshold if change_threshold is None else change_threshold
+            )  # just past the change threshold: one ray through a grazed edge is not enough
+            lone = lone_sightings(statuses) & (status == STATUS_SEEN_THROUGH) & near
+            status = np.where(lone, STATUS_EDGE_ON, status).astype(np.int8)
+            report[f"{side}_candidates_seen_through_once"] = int(lone.sum())
             report.update({f"{side}_other_{name}": value for name, value in figures.items()})
         else:
             report[f"{side}_visibility"] = "ray"
