@@ -48,7 +48,7 @@ format: install
 	$(BIN)/ruff check --fix app tests bench migrations
 
 bench-paper: install
-	$(BIN)/python bench/paper.py
+	$(BIN)/python -m bench.paper
 
 BENCH_STAMP := $(VENV)/.installed-bench
 
@@ -59,13 +59,13 @@ $(BENCH_STAMP): pyproject.toml | $(STAMP)
 # paper + scenes + visibility + per-site calibration (quick), then bench/perf.py: pipeline vs py4dgeo M3C2 and the cKDTree floor,
 # ingest, service (~3 min; --large adds 5M points); M3C2 is skipped if py4dgeo is missing.
 bench: $(BENCH_STAMP)
-	OMP_NUM_THREADS=1 $(BIN)/python bench/paper.py --quick
-	OMP_NUM_THREADS=1 $(BIN)/python bench/scenes.py --quick
-	OMP_NUM_THREADS=1 $(BIN)/python bench/visibility.py --quick
-	OMP_NUM_THREADS=1 $(BIN)/python bench/calibration.py --quick
-	$(BIN)/python bench/perf.py
-	$(BIN)/python bench/perf_round2.py
-	$(BIN)/python bench/perf_scaling.py --json bench/results/scaling.json
+	OMP_NUM_THREADS=1 $(BIN)/python -m bench.paper --quick
+	OMP_NUM_THREADS=1 $(BIN)/python -m bench.scenes --quick
+	OMP_NUM_THREADS=1 $(BIN)/python -m bench.visibility --quick
+	OMP_NUM_THREADS=1 $(BIN)/python -m bench.calibration --quick
+	$(BIN)/python -m bench.perf
+	$(BIN)/python -m bench.perf_round2
+	$(BIN)/python -m bench.perf_scaling --json bench/results/scaling.json
 	$(MAKE) bench-origins
 
 # issue 15's multi-station and 1M-point targets (~25 min): merged 3-5-station surveys with

@@ -11,8 +11,10 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, ValidationInfo, field_validator
+from pydantic import AliasChoices, Field, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+from app.kit.data_layout import DataLayout
 
 GIB = 1024**3
 DISABLED_WORDS = frozenset({"none", "null", "off", "unlimited"})
@@ -42,10 +44,18 @@ DEFAULT_VIEWER_IDLE_SECONDS = 300.0
 browser connection."""
 
 
+DEPRECATED_PRIVATE_ADDRESS_SETTINGS = (
+    "SCANDIFF_WEBHOOK_ALLOW_PRIVATE_ADDRESSES",
+    "SCANDIFF_SCHEDULE_ALLOW_PRIVATE_URLS",
+)
+"""Former environment names of ``allow_private_addresses`` (one for webhooks, one for schedule
+URL sources), still accepted."""
+
+
 class Settings(BaseSettings):
     """Service settings; ``SCANDIFF_DATA_DIR=/srv/scandiff`` etc. override the defaults."""
 
-    model_config = SettingsConfigDict(env_prefix="SCANDIFF_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="SCANDIFF_", extra="ignore", populate_by_name=True)
 
     data_dir: Path = Field(default=Path("data"), description="Database, queue and scan files.")
     database_url: str | None = Field(
@@ -60,6 +70,11 @@ class Settings(BaseSettings):
     workers: int = Field(default=2, ge=1, description="Job worker processes.")
     max_upload_bytes: int = Field(default=512 * 1024 * 1024, ge=1)
     max_points: int = Field(default=50_000_000, ge=10, description="Largest cloud accepted.")
+    resumable_upload_expiry_seconds: int = Field(
+        default=24 * 3600,
+        gt=0,
+        description="A resumable (tus) upload expires this long after its last accepted bytes.",
+    )
     job_lease_seconds: float = Field(default=60.0, gt=0)
     job_heartbeat_seconds: float = Field(default=10.0, gt=0)
     job_max_attempts: int = Field(default=3, ge=1)
@@ -128,11 +143,6 @@ class Settings(BaseSettings):
         "{'directory': ...}); none by default. In the environment: paths separated by "
         "os.pathsep (':') or commas.",
     )
-    schedule_allow_private_urls: bool = Field(
-        default=False,
-        description="Let a schedule's URL source reach loopback, private and link-local "
-        "addresses (off: a URL resolving to any such address is refused).",
-    )
     schedule_fetch_timeout_seconds: float = Field(
         default=60.0, gt=0, allow_inf_nan=False, description="Longest a URL source's fetch takes."
     )
@@ -179,11 +189,18 @@ class Settings(BaseSettings):
         description="The service's address as people reach it (https://scandiff.example.com), "
         "for the view links in webhook payloads; default http://<host>:<port>.",
     )
-    webhook_allow_private_addresses: bool = Field(
+    allow_private_addresses: bool = Field(
         default=False,
-        description="Accept webhook URLs on loopback, private and link-local addresses "
-        "(a receiver on this host or network). Off by default: an organisation cannot make "
-        "the service call into its own network.",
+        validation_alias=AliasChoices(
+            "SCANDIFF_ALLOW_PRIVATE_ADDRESSES",
+            *DEPRECATED_PRIVATE_ADDRESS_SETTINGS,
+        ),
+        description="Let the service's own requests (webhooks, schedule URL sources) go to "
+        "loopback, private, link-local and the other refused address classes listed in "
+        "docs/webhooks.md (a receiver on this host or network). Off by default: an "
+        "organisation cannot make the service call into its own network. The former "
+        "SCANDIFF_WEBHOOK_ALLOW_PRIVATE_ADDRESSES and SCANDIFF_SCHEDULE_ALLOW_PRIVATE_URLS "
+        "are deprecated aliases.",
     )
     webhook_max_attempts: int = Field(default=8, ge=1, description="Attempts per delivery.")
     event_retention_days: float = Field(
@@ -298,7 +315,7 @@ class Settings(BaseSettings):
     @property
     def sqlalchemy_url(self) -> str:
         """The database URL in effect."""
-        return self.database_url or f"sqlite:///{self.data_dir / 'scandiff.sqlite3'}"
+        return self.database_url or f"sqlite:///{self.data_layout.database_file}"
 
     @property
     def public_base_url(self) -> str:
@@ -306,24 +323,34 @@ class Settings(BaseSettings):
         return (self.public_url or f"http://{self.host}:{self.port}").rstrip("/")
 
     @property
+    def data_layout(self) -> DataLayout:
+        """Where each file lives under ``data_dir`` (:class:`app.kit.data_layout.DataLayout`)."""
+        return DataLayout(self.data_dir)
+
+    @property
     def queue_path(self) -> Path:
         """The Huey SQLite queue file (used when ``queue_url`` is unset)."""
-        return self.data_dir / "queue.sqlite3"
+        return self.data_layout.queue_file
 
     @property
     def scans_dir(self) -> Path:
         """Where uploaded scan files are stored."""
-        return self.data_dir / "scans"
+        return self.data_layout.scans_dir
 
     @property
     def results_dir(self) -> Path:
         """Where per-point label files of jobs are stored."""
-        return self.data_dir / "results"
+        return self.data_layout.results_dir
 
     @property
     def tmp_dir(self) -> Path:
         """Where uploads are streamed before the atomic rename (same filesystem)."""
-        return self.data_dir / "tmp"
+        return self.data_layout.tmp_dir
+
+    @property
+    def uploads_dir(self) -> Path:
+        """Where resumable (tus) uploads keep their bytes between requests (kept on restart)."""
+        return self.data_dir / "uploads"
 
 
 @lru_cache

@@ -19,7 +19,7 @@ both decisions come from that result's statistics.  The conformal bound promises
 rate <= ``--rate`` on exchangeable nuisance visits (here: the bin at a random other spot,
 the sensor 0.3-0.8 m from the reference's).
 
-Run: ``.venv/bin/python bench/calibration.py [--layouts 6] [--quick]``; writes
+Run: ``.venv/bin/python -m bench.calibration [--layouts 6] [--quick]``; writes
 ``bench/results/calibration.md`` (``--quick``: ``calibration_quick.md``).
 """
 
@@ -33,20 +33,16 @@ from pathlib import Path
 
 import numpy as np
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``app`` importable
-    sys.path.insert(0, str(PROJECT_ROOT))
-
-from app.core.cloud import PointCloud  # noqa: E402
-from app.core.pipeline import compare  # noqa: E402
-from app.core.site_calibration import (  # noqa: E402
+from app.core.cloud import PointCloud
+from app.core.pipeline import compare
+from app.core.site_calibration import (
     DecisionInputs,
     ReviewedSample,
     decide,
     largest_extent,
     learn_site_calibration,
 )
-from app.core.synthetic_site import SiteVisit, site_history  # noqa: E402
+from app.core.synthetic_site import SiteVisit, site_history
 
 RESULTS = Path(__file__).resolve().parent / "results"
 METHOD, VARIANT = "pca", "improved"

@@ -21,7 +21,7 @@ comparing: the labels a pipeline storing float32 local coordinates would give.  
 hold float32 coordinates (the real pairs) this changes nothing by construction; on the
 synthetic suite (float64) it shows what float32 storage would change.
 
-Run: ``.venv/bin/python bench/label_digests.py --save /tmp/after.json [--against
+Run: ``.venv/bin/python -m bench.label_digests --save /tmp/after.json [--against
 /tmp/before.json]``.
 """
 
@@ -31,21 +31,18 @@ import argparse
 import hashlib
 import json
 import os
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``app`` importable
-    sys.path.insert(0, str(PROJECT_ROOT))
+from app.core.cloud import PointCloud, choose_local_origin
+from app.core.formats import read_point_cloud
+from app.core.pipeline import compare
+from app.core.synthetic import raycast_scene
+from app.core.synthetic_lidar import lidar_pair, steps_for_points
 
-from app.core.cloud import PointCloud, choose_local_origin  # noqa: E402
-from app.core.formats import read_point_cloud  # noqa: E402
-from app.core.pipeline import compare  # noqa: E402
-from app.core.synthetic import raycast_scene  # noqa: E402
-from app.core.synthetic_lidar import lidar_pair, steps_for_points  # noqa: E402
+PROJECT_ROOT = Path(__file__).resolve().parent.parent
 
 REAL_DATA = Path(os.environ.get("SCANDIFF_SHARED_DATA", PROJECT_ROOT.parent / "shared" / "data"))
 REAL_PAIRS = (

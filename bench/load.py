@@ -1,8 +1,8 @@
 """A bounded load test of the service on loopback: uploads and job status polls (issue 5, item 9).
 
-    .venv/bin/python bench/load.py --clients 16 --seconds 30
-    .venv/bin/python bench/load.py --clients 8 --seconds 10 --upload-share 0.2 --json out.json
-    .venv/bin/python bench/load.py --clients 8 --seconds 10 --url http://127.0.0.1:8000 \\
+    .venv/bin/python -m bench.load --clients 16 --seconds 30
+    .venv/bin/python -m bench.load --clients 8 --seconds 10 --upload-share 0.2 --json out.json
+    .venv/bin/python -m bench.load --clients 8 --seconds 10 --url http://127.0.0.1:8000 \\
         --token "$(cat data/admin-token)"
 
 Without ``--url`` it starts its own ``scandiff serve`` (``--workers`` job workers) on a
@@ -40,12 +40,6 @@ from urllib.parse import urlsplit
 import httpx
 import numpy as np
 from plyfile import PlyData, PlyElement
-
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``tests`` importable
-    sys.path.insert(0, str(PROJECT_ROOT))
-
-from tests.helpers.figures import percentile  # noqa: E402  (after the sys.path line)
 
 MAX_CLIENTS = 256
 MAX_SECONDS = 600.0
@@ -89,6 +83,13 @@ def is_loopback_url(url: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False
+
+
+def lower_percentile(values: list[float], fraction: float) -> float:
+    """The ``fraction`` quantile of ``values``, nearest rank below (0.5: median); NaN if none."""
+    if not values:
+        return float("nan")
+    return float(np.percentile(values, 100 * fraction, method="lower"))
 
 
 @dataclass
@@ -217,8 +218,8 @@ def summarise(tally: Tally, elapsed: float, *, clients: int, upload_share: float
         kinds[kind] = {
             "requests": len(values),
             "throughput_per_s": round(len(values) / elapsed, 1) if elapsed > 0 else 0.0,
-            "p50_ms": round(1000 * percentile(values, 0.5), 1),
-            "p99_ms": round(1000 * percentile(values, 0.99), 1),
+            "p50_ms": round(1000 * lower_percentile(values, 0.5), 1),
+            "p99_ms": round(1000 * lower_percentile(values, 0.99), 1),
             "errors": sum(errors.values()),
             "error_kinds": dict(errors),
         }

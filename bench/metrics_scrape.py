@@ -1,8 +1,8 @@
 """What one ``GET /metrics`` scrape costs the database as the job table grows (issue 17, item 6).
 
-    .venv/bin/python bench/metrics_scrape.py                       # 1k, 10k, 100k jobs, SQLite
-    .venv/bin/python bench/metrics_scrape.py --jobs 10000 1000000 --repeats 5
-    .venv/bin/python bench/metrics_scrape.py --database-url postgresql+psycopg://postgres@127.0.0.1/empty_db
+    .venv/bin/python -m bench.metrics_scrape                       # 1k, 10k, 100k jobs, SQLite
+    .venv/bin/python -m bench.metrics_scrape --jobs 10000 1000000 --repeats 5
+    .venv/bin/python -m bench.metrics_scrape --database-url postgresql+psycopg://postgres@127.0.0.1/empty_db
 
 For each size it fills a fresh, migrated database (a temporary SQLite file, or the empty
 PostgreSQL database given, whose tables it drops afterwards) with that many job rows (all
@@ -25,16 +25,12 @@ from typing import Any
 
 from sqlalchemy import event, insert
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``app`` importable
-    sys.path.insert(0, str(PROJECT_ROOT))
-
-from app.clock import utc_now  # noqa: E402
-from app.config import Settings  # noqa: E402
-from app.db.migrate import downgrade_to_base, upgrade_to_head  # noqa: E402
-from app.db.models import Job, JobStatus, Organisation, Scan, Site, new_id  # noqa: E402
-from app.db.session import get_engine, transaction  # noqa: E402
-from app.services.metrics import render_metrics  # noqa: E402
+from app.clock import utc_now
+from app.config import Settings
+from app.db.migrate import downgrade_to_base, upgrade_to_head
+from app.db.models import Job, JobStatus, Organisation, Scan, Site, new_id
+from app.db.session import get_engine, transaction
+from app.services.metrics import render_metrics
 
 INSERT_CHUNK = 5000
 

@@ -9,35 +9,28 @@ signals alone give (confidence, centre and height error, ring share there and fr
 centre) and what :func:`~app.core.origins.estimate.estimate_origin` returns (confidence, error,
 the path taken: ``first``, ``sharp``ened or ``apex``, and its CPU seconds).
 
-Run: ``OMP_NUM_THREADS=1 .venv/bin/python bench/origins_jitter.py [--seeds 2] [--steps 0.6 1.0]``
+Run: ``OMP_NUM_THREADS=1 .venv/bin/python -m bench.origins_jitter [--seeds 2] [--steps 0.6 1.0]``
 (prints, writes no file).  Against other code: ``PYTHONPATH=/path/to/checkout`` from there.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``app`` importable
-    sys.path.insert(0, str(PROJECT_ROOT))
-
-from app.core.origins import estimate  # noqa: E402
-from app.core.origins.columns import column_lines, fit_column_centre, lattice_patches  # noqa: E402
-from app.core.origins.rings import fit_ring_height  # noqa: E402
-from app.core.synthetic import raycast_scene  # noqa: E402
-from app.core.synthetic_lidar import (  # noqa: E402
+from app.core.origins import estimate
+from app.core.origins.columns import column_lines, fit_column_centre, lattice_patches
+from app.core.origins.rings import fit_ring_height
+from app.core.synthetic import raycast_scene
+from app.core.synthetic_lidar import (
     ELEVATION_RANGE_DEG,
     LAYOUTS,
     RANGE_LIMITS,
-    _free_position,
-    _layout,
-    _world,
+    free_sensor_position,
+    random_world,
 )
 
 RAYCAST_SEEDS = (100, 101, 18)
@@ -75,9 +68,8 @@ def single_scan(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """One shuffled scan (n, 3) in a frame away from the building, and its sensor (3,)."""
     rng = np.random.default_rng(seed)
-    shell_low, shell_high, lows, highs, _ = _layout(layout, rng)
-    world = _world(shell_low, shell_high, lows, highs)
-    station = _free_position(rng, world, None, ())
+    world = random_world(layout, rng)
+    station = free_sensor_position(rng, world)
     directions = lidar_directions(*steps, jitter, rng)
     distance, _ = world.cast(station, directions)
     keep = (distance >= RANGE_LIMITS[0]) & (distance <= RANGE_LIMITS[1])

@@ -2,7 +2,7 @@
 
 Usage::
 
-    OMP_NUM_THREADS=1 .venv/bin/python bench/paper.py [--quick] [--out bench/results]
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.paper [--quick] [--out bench/results]
 
 What it does (``--quick`` uses fewer datasets and skips the 200k-point sections):
 
@@ -44,14 +44,12 @@ for _variable in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
 from app.core.detectors import METHODS, VARIANTS, make_detector  # noqa: E402
 from app.core.errors import InputError  # noqa: E402
 from app.core.localise import LABEL_CHANGED, localise_changes  # noqa: E402
 from app.core.synthetic import SyntheticPair, paper_corridor, raycast_scene  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
 
 VARIANCES = (1e-1, 1e-2, 1e-3, 1e-4, 1e-5)
 CHANGE_FRACTIONS = (0.0, 0.03, 0.06, 0.10, 0.15, 0.20, 0.25, 0.33)

@@ -23,7 +23,7 @@ Each pipeline, floor and M3C2 configuration runs in a fresh subprocess of this s
 (``--worker``), which reports its peak RSS (``VmHWM``), so configurations do not inherit each
 other's heap.
 
-Run: ``.venv/bin/python bench/perf.py [--quick] [--large]``; prints a table and writes
+Run: ``.venv/bin/python -m bench.perf [--quick] [--large]``; prints a table and writes
 ``bench/results/perf.md``.  ``--quick`` (< 2 min): 100k points only, a shorter service load.
 ``--large`` adds the 5M-point pair.
 """
@@ -44,14 +44,12 @@ from typing import Any
 
 import numpy as np
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``app`` and ``bench`` importable
-    sys.path.insert(0, str(PROJECT_ROOT))
+from app.core.threads import usable_cpus
+from bench.perf_ingest import measure_ingest
+from bench.perf_service import measure_service, measure_throughput
+from bench.perf_workers import WORKERS, write_scene
 
-from app.core.threads import usable_cpus  # noqa: E402
-from bench.perf_ingest import measure_ingest  # noqa: E402
-from bench.perf_service import measure_service, measure_throughput  # noqa: E402
-from bench.perf_workers import WORKERS, write_scene  # noqa: E402
+PROJECT_ROOT = Path(__file__).resolve().parent.parent
 
 RESULTS = Path(__file__).resolve().parent / "results"
 METHODS = ("gmm", "pca", "planes")
@@ -84,7 +82,7 @@ def worker_environment(kind: str) -> dict[str, str]:
 
 def run_worker(kind: str, scene_dir: Path, extra: list[str] | None = None) -> dict[str, Any]:
     """Run one configuration in a fresh interpreter; its JSON report (or an ``error``)."""
-    command = [sys.executable, str(Path(__file__).resolve()), "--worker", kind, str(scene_dir)]
+    command = [sys.executable, "-m", "bench.perf", "--worker", kind, str(scene_dir)]
     command += extra or []
     completed = subprocess.run(
         command,

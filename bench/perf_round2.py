@@ -22,7 +22,7 @@ scan misaligned by 0.3-0.4 degrees and 2-3 cm), float32 binary PLY as scanners w
 Targets: 1M compare <= 3x the floor and <= 600 MB; 5M (``--large``) <= 3.5x and <= 3 GB;
 compare again <= 2x; service <= 2 s.
 
-Run: ``.venv/bin/python bench/perf_round2.py [--large] [--repeats 3]``; writes
+Run: ``.venv/bin/python -m bench.perf_round2 [--large] [--repeats 3]``; writes
 ``bench/results/perf_round2.md`` and ``.json``.
 ``--only service`` times just the HTTP API figure and prints where each upload's seconds went
 (upload, worker pickup, run, seen by the client's long poll, the CPU seconds of the worker and of
@@ -42,14 +42,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``app`` and ``bench`` importable
-    sys.path.insert(0, str(PROJECT_ROOT))
+from app.core.synthetic_lidar import lidar_pair, steps_for_points
+from bench.perf import worker_environment
+from bench.perf_service import measure_service
+from bench.perf_workers import write_binary_ply
 
-from app.core.synthetic_lidar import lidar_pair, steps_for_points  # noqa: E402
-from bench.perf import worker_environment  # noqa: E402
-from bench.perf_service import measure_service  # noqa: E402
-from bench.perf_workers import write_binary_ply  # noqa: E402
+PROJECT_ROOT = Path(__file__).resolve().parent.parent
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SCENE_SEED = 18
@@ -75,7 +73,8 @@ def write_pair(scene_dir: Path, n_points: int) -> dict[str, Any]:
         subprocess.run(
             [
                 sys.executable,
-                str(Path(__file__).resolve()),
+                "-m",
+                "bench.perf_round2",
                 "--write-pair",
                 str(scene_dir),
                 str(n_points),
@@ -123,7 +122,7 @@ def _child(command: list[str], environment: dict[str, str], cwd: Path) -> dict[s
 def run_floor(scene_dir: Path) -> dict[str, Any]:
     """bench/perf.py's floor worker (2 query threads) as a child: its compute seconds, and
     the whole process's CPU seconds and peak RSS."""
-    command = [sys.executable, str(PROJECT_ROOT / "bench" / "perf.py"), "--worker", "floor"]
+    command = [sys.executable, "-m", "bench.perf", "--worker", "floor"]
     command += [str(scene_dir), "--threads", "2"]
     child = _child(command, worker_environment("floor"), PROJECT_ROOT)
     lines = [line for line in child["stdout"].splitlines() if line.startswith("{")]

@@ -8,7 +8,7 @@ bench/perf_round2.py measures them (its :func:`run_floor` and :func:`run_command
 seconds and CPU seconds of the child, peak RSS from ``os.wait4``).  The pair is written once
 into ``--work-dir`` (about 12 minutes and 2.5 GB RSS at 5M; 120 MB of PLY) and reused.
 
-Run: ``.venv/bin/python bench/perf_round2_large.py --work-dir /tmp/round2 [--repeats 2]``;
+Run: ``.venv/bin/python -m bench.perf_round2_large --work-dir /tmp/round2 [--repeats 2]``;
 prints a markdown section (the figures of bench/results/perf_round2.md's "5M pair").
 """
 
@@ -16,16 +16,11 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``app`` and ``bench`` importable
-    sys.path.insert(0, str(PROJECT_ROOT))
-
-from bench.perf_round2 import (  # noqa: E402
+from bench.perf_round2 import (
     LARGE_SIZE,
     TARGETS,
     best,

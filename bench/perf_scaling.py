@@ -22,7 +22,7 @@ same invocation with the targets (2 pinned workers >= 1.7x one; 4 workers lose <
 2).  ``--json`` writes everything.  Needs PostgreSQL on 127.0.0.1:5432 and ``redis-server``
 (see ``tests/helpers/topology.py``), and 2 cores::
 
-    .venv/bin/python bench/perf_scaling.py --duration 180
+    .venv/bin/python -m bench.perf_scaling --duration 180
 """
 
 from __future__ import annotations
@@ -39,18 +39,14 @@ from typing import Any
 
 import numpy as np
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-if str(PROJECT_ROOT) not in sys.path:  # run as a script: app, bench, tests importable
-    sys.path.insert(0, str(PROJECT_ROOT))
-
-from app.core.synthetic import raycast_scene  # noqa: E402
-from bench.perf_service import (  # noqa: E402
-    _upload,
+from app.core.synthetic import raycast_scene
+from bench.perf_service import (
     create_site_with_reference,
     processes_cpu_seconds,
+    upload_scan,
 )
-from bench.perf_workers import SCENE_SEED, write_binary_ply  # noqa: E402
-from tests.helpers.topology import (  # noqa: E402
+from bench.perf_workers import SCENE_SEED, write_binary_ply
+from tests.helpers.topology import (
     POSTGRES_ADMIN_URL,
     REDIS_SERVER,
     Topology,
@@ -130,7 +126,9 @@ def measure(
         topology.client(0, timeout=120.0) as client,
     ):
         scans_path = create_site_with_reference(client, "scaling", "gmm", reference_path)
-        warm_up = {_upload(client, scans_path, scan_bytes, f"warm-{i}.ply") for i in range(workers)}
+        warm_up = {
+            upload_scan(client, scans_path, scan_bytes, f"warm-{i}.ply") for i in range(workers)
+        }
         deadline = time.monotonic() + JOB_TIMEOUT_SECONDS
         while any(
             job["status"] not in ("succeeded", "failed")
@@ -150,7 +148,7 @@ def measure(
             queued = sum(job["status"] == "queued" for job in rows.values())
             for _ in range(workers - queued):
                 started = time.time()
-                job_id = _upload(client, scans_path, scan_bytes, f"s-{len(uploaded_at)}.ply")
+                job_id = upload_scan(client, scans_path, scan_bytes, f"s-{len(uploaded_at)}.ply")
                 uploaded_at[job_id] = started
                 upload_seconds.append(time.time() - started)
             time.sleep(POLL_SECONDS)

@@ -321,7 +321,7 @@ def _parse_time(value: str | None) -> datetime | None:
     return datetime.fromisoformat(value.replace("Z", "+00:00")) if value else None
 
 
-def _upload(client: httpx.Client, scans_path: str, scan_bytes: bytes, filename: str) -> str:
+def upload_scan(client: httpx.Client, scans_path: str, scan_bytes: bytes, filename: str) -> str:
     response = client.post(
         scans_path,
         params={"filename": filename},
@@ -359,7 +359,7 @@ def measure_throughput(
         with service.client() as client:
             scans_path = create_site_with_reference(client, "throughput", "gmm", reference_path)
             warm_up = [
-                _upload(client, scans_path, scan_bytes, f"warm-{i}.ply") for i in range(workers)
+                upload_scan(client, scans_path, scan_bytes, f"warm-{i}.ply") for i in range(workers)
             ]
             for job_id in warm_up:
                 service.wait_for_job(client, job_id, timeout=JOB_TIMEOUT_SECONDS)
@@ -373,7 +373,7 @@ def measure_throughput(
                 queued = sum(1 for job in jobs.values() if job.get("status") == "queued")
                 for _ in range(workers - queued):
                     started = time.perf_counter()
-                    job_id = _upload(client, scans_path, scan_bytes, f"scan-{len(jobs)}.ply")
+                    job_id = upload_scan(client, scans_path, scan_bytes, f"scan-{len(jobs)}.ply")
                     uploads.append(time.perf_counter() - started)
                     jobs[job_id] = {"status": "queued"}
                 time.sleep(THROUGHPUT_POLL_SECONDS)

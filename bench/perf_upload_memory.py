@@ -8,7 +8,7 @@ anonymous and file-backed pages both count) against its resident set before the 
 growth is what receiving and checking that file cost.  Bounded means: about the same for a
 file twice as large, and far below the file's size.
 
-Run: ``.venv/bin/python bench/perf_upload_memory.py [--rows 2000000]``; to measure another
+Run: ``.venv/bin/python -m bench.perf_upload_memory [--rows 2000000]``; to measure another
 checkout's code (the code before), run this file from that checkout with the same interpreter.
 """
 
@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -24,11 +23,9 @@ from typing import Any
 
 import numpy as np
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``app`` and ``tests`` importable
-    sys.path.insert(0, str(PROJECT_ROOT))
+from tests.helpers.service import ServiceProcess, process_group_members
 
-from tests.helpers.service import ServiceProcess, process_group_members  # noqa: E402
+PROJECT_ROOT = Path(__file__).resolve().parent.parent
 
 BODY_CHUNK_BYTES = 1024 * 1024
 WRITE_ROWS = 250_000

@@ -18,11 +18,11 @@ from numpy.typing import NDArray
 from plyfile import PlyData, PlyElement
 from scipy.spatial import cKDTree
 
-from app.core.allocator import release_freed_memory_promptly
 from app.core.formats import read_point_cloud
 from app.core.localise import LABEL_CHANGED
 from app.core.pipeline import compare
 from app.core.synthetic import raycast_scene
+from app.kit.allocator import release_freed_memory_promptly
 
 SCENE_SEED = 100
 M3C2_CYLINDER_RADIUS_1M = 0.025

@@ -1,13 +1,13 @@
 """What the job page's region table costs: one page of 25 against every region (issue 19, item 5).
 
-    .venv/bin/python bench/regions_page.py                     # 100, 1k, 10k regions, SQLite
-    .venv/bin/python bench/regions_page.py --regions 50000 --repeats 5
+    .venv/bin/python -m bench.regions_page                     # 100, 1k, 10k regions, SQLite
+    .venv/bin/python -m bench.regions_page --regions 50000 --repeats 5
 
 For each size it fills a fresh, migrated SQLite file with one job of that many regions (random
 kinds, sizes and distances), then reads them as ``GET /jobs/{id}/regions`` does (the service
-call and the JSON of the response model, no HTTP): every region in the job's order (what the
-page loaded before), and one page of 25 filtered by kind and sorted by max distance (what it
-loads now).  It prints the median time and the JSON size of each.
+call and the JSON of the response model, no HTTP): the largest page, 1000 in the job's order
+(near what the page loaded when it read every region), and one page of 25 filtered by kind and
+sorted by max distance (what it loads now).  It prints the median time and the JSON size of each.
 """
 
 from __future__ import annotations
@@ -16,7 +16,6 @@ import argparse
 import json
 import random
 import statistics
-import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -26,17 +25,13 @@ from typing import Any
 
 from sqlalchemy import insert
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``app`` importable
-    sys.path.insert(0, str(PROJECT_ROOT))
-
-from app.config import Settings  # noqa: E402
-from app.db.migrate import upgrade_to_head  # noqa: E402
-from app.db.models import Job, JobStatus, Organisation, Region, Scan, Site, new_id  # noqa: E402
-from app.db.session import get_engine, transaction  # noqa: E402
-from app.services.auth import Principal  # noqa: E402
-from app.services.jobs import list_regions  # noqa: E402
-from app.services.schemas import RegionRead  # noqa: E402
+from app.config import Settings
+from app.db.migrate import upgrade_to_head
+from app.db.models import Job, JobStatus, Organisation, Region, Scan, Site, new_id
+from app.db.session import get_engine, transaction
+from app.services.auth import Principal
+from app.services.jobs import list_regions
+from app.services.schemas import RegionRead
 
 
 def fill(settings: Settings, count: int, seed: int = 0) -> tuple[Principal, str]:
@@ -106,7 +101,7 @@ def fill(settings: Settings, count: int, seed: int = 0) -> tuple[Principal, str]
 def read_regions(settings: Settings, principal: Principal, job_id: str, **query: Any) -> bytes:
     """The JSON body of ``GET /jobs/{job_id}/regions`` with ``query`` (no HTTP)."""
     with transaction(settings.sqlalchemy_url) as session:
-        regions, _total = list_regions(session, principal, job_id, **query)
+        regions, _next_cursor, _total = list_regions(session, principal, job_id, **query)
         body = [RegionRead.from_model(region).model_dump(mode="json") for region in regions]
     return json.dumps(body).encode()
 
@@ -137,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
             read = partial(read_regions, settings, principal, job_id)
 
             ways: dict[str, Callable[[], bytes]] = {
-                "all, job's order": read,
+                "1000 (a full page), job's order": partial(read, limit=1000),
                 "25, removed, by max distance": partial(
                     read, kind="removed", sort="max_distance", descending=True, limit=25
                 ),

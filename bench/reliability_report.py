@@ -1,8 +1,8 @@
 """Regenerate the figures table of ``docs/reliability.md`` from the reliability tests.
 
-    .venv/bin/python bench/reliability_report.py            # run tests/reliability (slow too)
-    .venv/bin/python bench/reliability_report.py --fast     # only what `make test` runs
-    .venv/bin/python bench/reliability_report.py --no-run   # re-render the last figures
+    .venv/bin/python -m bench.reliability_report            # run tests/reliability (slow too)
+    .venv/bin/python -m bench.reliability_report --fast     # only what `make test` runs
+    .venv/bin/python -m bench.reliability_report --no-run   # re-render the last figures
 
 Each test writes one JSON row (``tests/helpers/figures.py``) to
 ``test-artifacts/reliability/``; the rows replace the text between the table markers of

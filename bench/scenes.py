@@ -6,7 +6,7 @@ the true transform).  Per method and change kind it reports how often ``changed`
 (with the global detector alone and with the default rule), the IoU of changed points over the
 points the ground truth marks observed, and the time per stage.
 
-Run: ``.venv/bin/python bench/scenes.py [--points 200000] [--seeds 3] [--quick]``; writes
+Run: ``.venv/bin/python -m bench.scenes [--points 200000] [--seeds 3] [--quick]``; writes
 ``bench/results/scenes.md``.
 """
 
@@ -26,7 +26,6 @@ from app.core.synthetic import (
     ROOM_MAX,
     ROOM_MIN,
     STATIC_BOXES,
-    _box_arrays,
     raycast_scene,
     raycast_scene_objects,
 )
@@ -63,7 +62,9 @@ def surface_truth_iou(result, pair, change: str) -> float:
     reference_only, scan_only = raycast_scene_objects(change)
     worlds = {}
     for name, boxes in (("reference", reference_only), ("scan", scan_only)):
-        low, high = _box_arrays([*STATIC_BOXES, *boxes])
+        every_box = [*STATIC_BOXES, *boxes]
+        low = np.array([box.low for box in every_box], dtype=np.float64).reshape(-1, 3)
+        high = np.array([box.high for box in every_box], dtype=np.float64).reshape(-1, 3)
         worlds[name] = LidarWorld(ROOM_MIN, ROOM_MAX, low, high)
     scan_in_world = pair.aligned_scan()
     truth = np.concatenate(

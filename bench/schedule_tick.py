@@ -1,6 +1,6 @@
 """What one schedule tick costs (the job consumer runs it every ``schedule_tick_seconds``).
 
-    .venv/bin/python bench/schedule_tick.py --schedules 200
+    .venv/bin/python -m bench.schedule_tick --schedules 200
 
 On a fresh migrated SQLite database in a temporary directory: ``--schedules`` interval
 schedules (uploads source, one site each, no scans), then three ticks at chosen times: nothing

@@ -39,13 +39,14 @@ from types import SimpleNamespace
 import numpy as np
 
 from app.core.cloud import PointCloud
+from app.core.ground_truth import changed_iou
 from app.core.localise import localise_changes
 from app.core.origins.sampling import lidar_sampling
 from app.core.origins.stations import recover_stations
 from app.core.pipeline import compare
-from app.core.synthetic import _transform_points, paper_corridor, raycast_scene
+from app.core.registration import apply_transform
+from app.core.synthetic import paper_corridor, raycast_scene
 from app.core.synthetic_lidar import lidar_pair
-from tests.helpers.scenes import changed_iou
 
 RESULTS = Path(__file__).resolve().parent / "results"
 MODES = ("given", "origins", "recovered", "origin-free", "coverage", "fallback", "default")
@@ -129,8 +130,8 @@ def main() -> None:
                     misaligned=True,
                     random_state=seed,
                 )
-                scan = _transform_points(pair.scan, pair.true_transform)
-                scan_origins = _transform_points(pair.scan_origins, pair.true_transform)
+                scan = apply_transform(pair.scan, pair.true_transform)
+                scan_origins = apply_transform(pair.scan_origins, pair.true_transform)
                 for mode in modes:
                     started = time.perf_counter()
                     localisation, recovered, recovery_seconds = localise(

@@ -1,6 +1,6 @@
 """What the 3D view's live tools cost on one scene (issue 19): build, relabel, redraw, pick.
 
-    .venv/bin/python bench/viewer_tools.py --points 200000
+    .venv/bin/python -m bench.viewer_tools --points 200000
 
 Compares a ray-cast rescan of the two rooms (``--points`` rays per scan, a box added, one
 removed, one moved) like the worker, builds the viewer's scene from the result, then times (the

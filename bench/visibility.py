@@ -8,29 +8,24 @@ scenes), changed regions (unchanged scenes), the estimated origins' error and th
 compare's time spent on origins.  ``--large`` adds a 1M-point warehouse pair; real Velodyne
 frames (sensor frame) moved by a rigid transform give the estimate's error on real data.
 
-Run: ``.venv/bin/python bench/visibility.py [--seeds 2] [--quick] [--large]``; writes
+Run: ``.venv/bin/python -m bench.visibility [--seeds 2] [--quick] [--large]``; writes
 ``bench/results/visibility.md`` (``--quick``: ``visibility_quick.md``).
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``app`` and ``bench`` importable
-    sys.path.insert(0, str(PROJECT_ROOT))
-
-from app.core.cloud import PointCloud  # noqa: E402
-from app.core.formats import read_point_cloud  # noqa: E402
-from app.core.origins import estimate_origin  # noqa: E402
-from app.core.pipeline import compare  # noqa: E402
-from app.core.synthetic_lidar import LAYOUTS, lidar_pair, steps_for_points  # noqa: E402
-from bench.scenes import changed_points_iou  # noqa: E402
+from app.core.cloud import PointCloud
+from app.core.formats import read_point_cloud
+from app.core.origins import estimate_origin
+from app.core.pipeline import compare
+from app.core.synthetic_lidar import LAYOUTS, lidar_pair, steps_for_points
+from bench.scenes import changed_points_iou
 
 RESULTS = Path(__file__).resolve().parent / "results"
 REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"

@@ -1,6 +1,6 @@
 """Webhook delivery throughput and the cost of publishing events, on loopback.
 
-    .venv/bin/python bench/webhooks.py --events 300 --senders 1 2 4
+    .venv/bin/python -m bench.webhooks --events 300 --senders 1 2 4
 
 On a fresh, migrated SQLite file in a temporary directory: one organisation with one webhook
 to a local receiver (:class:`tests.helpers.webhooks.WebhookReceiver`, which checks every
@@ -20,16 +20,13 @@ import threading
 import time
 from pathlib import Path
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(PROJECT_ROOT))
-
-from app.config import Settings  # noqa: E402
-from app.db.events import publish_event  # noqa: E402
-from app.db.migrate import upgrade_to_head  # noqa: E402
-from app.db.models import Organisation, Webhook  # noqa: E402
-from app.db.session import transaction  # noqa: E402
-from app.jobs.deliveries import deliver_due  # noqa: E402
-from tests.helpers.webhooks import WEBHOOK_SETTINGS, WebhookReceiver  # noqa: E402
+from app.config import Settings
+from app.db.events import publish_event
+from app.db.migrate import upgrade_to_head
+from app.db.models import Organisation, Webhook
+from app.db.session import transaction
+from app.jobs.deliveries import deliver_due
+from tests.helpers.webhooks import WEBHOOK_SETTINGS, WebhookReceiver
 
 
 def run(events: int, senders: int) -> tuple[float, float, bool]:

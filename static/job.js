@@ -81,7 +81,7 @@ export async function renderJob(jobId) {
       h("li", {}, h("a", { href: `${API}/jobs/${jobId}/labels?format=ply`, download: `labels-${jobId}.ply` }, "Labels as PLY")),
       h("li", {}, h("a", { href: `${API}/jobs/${jobId}/labels?format=las`, download: `labels-${jobId}.las` }, "Labels as LAS")),
       h("li", {}, h("a", { href: `${API}/jobs/${jobId}/labels?format=npz`, download: `labels-${jobId}.npz`, id: "download-labels-npz" }, "Labels as npz")),
-      h("li", {}, h("a", { href: `${API}/jobs/${jobId}/regions`, download: `regions-${jobId}.json` }, "Regions as JSON")))
+      h("li", {}, h("a", { href: `${API}/jobs/${jobId}/regions?limit=1000`, download: `regions-${jobId}.json` }, "Regions as JSON (first 1000)")))
     : h("p", { class: "muted" }, "Downloads appear when the job has succeeded.");
 
   const failure = job.status === "failed"

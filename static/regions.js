@@ -1,8 +1,8 @@
 // A job's region table: sortable columns, filters by kind and minimum points, 25 per page.
-// The API filters, sorts and pages (a job can have thousands of regions); X-Total-Count
-// gives the number of matches. Lengths are in metres with 2 decimals (centimetres).
+// The API filters, sorts and pages (a job can have thousands of regions) like its other lists,
+// `{items, next_cursor}`; X-Total-Count gives the number of matches. Lengths are in metres with 2 decimals (centimetres).
 
-import { API, ApiError, describeError } from "./api.js";
+import { API, ApiError, describeError, itemsOf } from "./api.js";
 import { formatNumber, h } from "./dom.js";
 
 export const REGIONS_PER_PAGE = 25;
@@ -43,16 +43,17 @@ export function metres(value) {
 }
 
 async function fetchRegions(jobId, state) {
-  const query = new URLSearchParams({
-    sort: state.sort, order: state.order, offset: String(state.page * REGIONS_PER_PAGE), limit: String(REGIONS_PER_PAGE),
-  });
+  const query = new URLSearchParams({ sort: state.sort, order: state.order, limit: String(REGIONS_PER_PAGE) });
+  const cursor = state.cursors[state.page];
+  if (cursor) query.set("cursor", cursor);
   if (state.kind) query.set("kind", state.kind);
   if (state.minPoints > 0) query.set("min_points", String(state.minPoints));
   const response = await fetch(`${API}/jobs/${encodeURIComponent(jobId)}/regions?${query}`,
     { credentials: "same-origin", headers: { Accept: "application/json" } });
   const payload = await response.json().catch(() => null);
   if (!response.ok) throw new ApiError(response.status, payload && payload.error, payload && payload.detail);
-  return { regions: payload, total: Number(response.headers.get("X-Total-Count") || payload.length) };
+  const regions = itemsOf(payload);
+  return { regions, nextCursor: payload.next_cursor || null, total: Number(response.headers.get("X-Total-Count") || regions.length) };
 }
 
 function regionRow(region) {
@@ -70,7 +71,9 @@ function regionRow(region) {
 
 /** The region card's body for job `jobId` with `count` regions; fetches its pages itself. */
 export function regionsPanel(jobId, count, onUnauthorised) {
-  const state = { sort: "ordinal", order: "asc", kind: "", minPoints: 0, page: 0 };
+  // cursors[i]: the cursor of page i (null for the first), so "Previous" goes back a page
+  const state = { sort: "ordinal", order: "asc", kind: "", minPoints: 0, page: 0, cursors: [null] };
+  const firstPage = () => { state.page = 0; state.cursors = [null]; };
   const kindSelect = h("select", { id: "regions-kind" },
     h("option", { value: "" }, "any kind"), KINDS.map((kind) => h("option", { value: kind }, kind)));
   const minPointsInput = h("input", { type: "number", id: "regions-min-points", min: 0, step: 1, value: 0, size: 7 });
@@ -92,7 +95,7 @@ export function regionsPanel(jobId, count, onUnauthorised) {
       button.addEventListener("click", () => {
         if (active) state.order = state.order === "asc" ? "desc" : "asc";
         else Object.assign(state, { sort: column.sort, order: column.sort === "ordinal" || column.sort === "kind" ? "asc" : "desc" });
-        state.page = 0;
+        firstPage();
         load();
       });
       return h("th", { "aria-sort": active ? (state.order === "asc" ? "ascending" : "descending") : "none" }, button);
@@ -104,37 +107,33 @@ export function regionsPanel(jobId, count, onUnauthorised) {
     drawHeader();
     error.textContent = "";
     try {
-      const { regions, total } = await fetchRegions(jobId, state);
+      const { regions, nextCursor, total } = await fetchRegions(jobId, state);
       if (mine !== request) return;
       const pages = Math.max(1, Math.ceil(total / REGIONS_PER_PAGE));
-      if (state.page >= pages && total) {
-        state.page = pages - 1;
-        load();
-        return;
-      }
+      state.cursors[state.page + 1] = nextCursor;
       body.replaceChildren(...regions.map(regionRow));
       const first = total ? state.page * REGIONS_PER_PAGE + 1 : 0;
       summary.textContent = total
         ? `${first}–${first + regions.length - 1} of ${total} (page ${state.page + 1} of ${pages})`
         : "No region matches these filters.";
       previous.disabled = state.page === 0;
-      next.disabled = state.page + 1 >= pages;
+      next.disabled = !nextCursor;
     } catch (failure) {
       if (failure instanceof ApiError && failure.status === 401) return onUnauthorised(failure);
       error.textContent = `The regions could not be read: ${describeError(failure)}`;
     }
   }
 
-  kindSelect.addEventListener("change", () => { state.kind = kindSelect.value; state.page = 0; load(); });
+  kindSelect.addEventListener("change", () => { state.kind = kindSelect.value; firstPage(); load(); });
   minPointsInput.addEventListener("change", () => {
     const value = Number.parseInt(minPointsInput.value, 10);
     state.minPoints = Number.isFinite(value) && value > 0 ? value : 0;
     minPointsInput.value = String(state.minPoints);
-    state.page = 0;
+    firstPage();
     load();
   });
   previous.addEventListener("click", () => { state.page = Math.max(0, state.page - 1); load(); });
-  next.addEventListener("click", () => { state.page += 1; load(); });
+  next.addEventListener("click", () => { if (state.cursors[state.page + 1]) { state.page += 1; load(); } });
 
   if (count === 0) return h("p", { class: "muted", id: "no-regions" }, "No changed region.");
   load();

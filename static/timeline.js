@@ -22,7 +22,7 @@ const TIME_STEPS = [SECOND, 2 * SECOND, 5 * SECOND, 10 * SECOND, 15 * SECOND, 30
   12 * HOUR, DAY, 2 * DAY, 7 * DAY, 14 * DAY, 28 * DAY, 91 * DAY, 365 * DAY];
 
 const STATISTICS = {
-  largest_region_extent_m: { title: "Largest changed region", unit: " m" },
+  largest_region_extent_m: { title: "Size of the largest region", unit: " m" },
   score: { title: "Detector score", unit: "" },
 };
 export const VERDICT_NAMES = { confirmed: "confirmed", false_alarm: "false alarm", new_reference: "new reference" };
@@ -156,6 +156,19 @@ function valueAxis(chart, yMax, y, height, unit, title, top = MARGIN.top) {
   chart.append(axes);
 }
 
+/** A decision test as a sentence: "Size of the largest region: 1.41 m, above the site's
+ * learned threshold of 1.2 m." (the default region threshold is "any region counts"). */
+function comparisonSentence(test, info) {
+  const value = formatValue(test.value, info.unit);
+  const threshold = formatValue(test.threshold, info.unit);
+  const relation = test.fires ? "above" : "not above";
+  if (test.source === "site") return `${info.title}: ${value}, ${relation} the site's learned threshold of ${threshold}.`;
+  if (test.statistic === "largest_region_extent_m") {
+    return test.fires ? `${info.title}: ${value}; any region counts (no learned threshold).` : "No region of changed points.";
+  }
+  return `${info.title}: ${value}, ${relation} the default threshold of ${threshold}.`;
+}
+
 /** Horizontal steps through each item's threshold, to the next item (the last to the edge). */
 function thresholdSteps(chart, items, placed, y, thresholdOf, classOf) {
   items.forEach((item, index) => {
@@ -178,7 +191,7 @@ function selectable(element, job, onSelect) {
 
 function drawDecisive(items, statistic, site, onSelect, tMin, tMax) {
   const info = STATISTICS[statistic] || { title: statistic, unit: "" };
-  const chart = frame(MAIN_HEIGHT, `${info.title} of ${items.length} finished jobs over time, with the threshold that decided each`, "decisive-chart");
+  const chart = frame(MAIN_HEIGHT, `${info.title} in ${items.length} finished jobs over time, with the threshold that decided each`, "decisive-chart");
   chart.dataset.statistic = statistic;
   const calibration = site && site.calibration;
   const forThisDetector = calibration && site.detector
@@ -214,7 +227,7 @@ function drawDecisive(items, statistic, site, onSelect, tMin, tMax) {
       class: item.changed ? "dot dot-changed" : "dot dot-unchanged",
       "data-job-id": item.id, "data-group": group, "data-group-size": groupSize,
     }), item, onSelect);
-    const comparison = `${formatValue(item.test.value, info.unit)} ${item.test.comparison} ${item.test.source === "site" ? "site" : "default"} threshold ${formatValue(item.test.threshold, info.unit)}`;
+    const comparison = comparisonSentence(item.test, info);
     const verdict = item.verdict ? `\nverdict: ${VERDICT_NAMES[item.verdict.verdict] || item.verdict.verdict}` : "";
     dot.append(svg("title", {}, `${new Date(item.time).toLocaleString()}\n${comparison}\n${item.changed ? "changed" : "no change"}${verdict}`));
     chart.append(dot);

@@ -5,10 +5,7 @@
 import { ApiError, api, describeError, itemsOf } from "./api.js";
 import { formatDate, formatNumber, h } from "./dom.js";
 import { handleFailure } from "./session.js";
-import { VERDICT_NAMES, decisiveTest } from "./timeline.js";
-
-const STATISTIC_NAMES = { largest_region_extent_m: "largest changed region", score: "detector score" };
-const UNITS = { largest_region_extent_m: " m" };
+import { VERDICT_NAMES } from "./timeline.js";
 
 function setByText(setBy) {
   if (!setBy) return "unknown";
@@ -21,19 +18,51 @@ function verdictText(verdict) {
   return `${VERDICT_NAMES[verdict.verdict] || verdict.verdict}, by ${setByText(verdict.set_by)} on ${formatDate(verdict.set_at)}${note}`;
 }
 
-/** What decided the job, in words: the decisive test and the site calibration's provenance. */
+/** The largest region (the most points, as in the Why line), e.g. "region 2 (added, 1,282 points)". */
+export function largestRegionName(job) {
+  const largest = job.explanation && job.explanation.largest_region;
+  if (!largest) return "the largest region";
+  const points = Number.isFinite(largest.n_points) ? `, ${largest.n_points.toLocaleString()} points` : "";
+  const number = Number.isInteger(largest.index) ? ` ${largest.index + 1}` : "";
+  return `the largest region (region${number}: ${largest.kind}${points})`;
+}
+
+/** One decision test as a sentence: what was measured, against which threshold, what followed. */
+function testSentence(job, test) {
+  const value = formatNumber(test.value);
+  const threshold = formatNumber(test.threshold);
+  const learned = test.source === "site";
+  if (test.statistic === "largest_region_extent_m") {
+    if (!test.n_regions && !(test.value > 0)) {
+      return "No region of changed points was left after the size floor, so the regions show no change.";
+    }
+    const region = largestRegionName(job);
+    if (!learned) {
+      return `A region of changed points was found, so the job counts as changed: ${region} is ${value} m across (no threshold learned from reviews applies, so any region counts).`;
+    }
+    return test.fires
+      ? `${region[0].toUpperCase()}${region.slice(1)} is ${value} m across, more than the site's learned threshold of ${threshold} m, so the job counts as changed.`
+      : `${region[0].toUpperCase()}${region.slice(1)} is ${value} m across, not more than the site's learned threshold of ${threshold} m, so the regions do not count as a change.`;
+  }
+  if (test.statistic === "score") {
+    const against = learned ? `the site's learned threshold of ${threshold}` : `its threshold of ${threshold}`;
+    return test.fires
+      ? `The detector's score ${value} is above ${against}, so the detector says changed.`
+      : `The detector's score ${value} is not above ${against}, so the detector says unchanged.`;
+  }
+  return `${test.statistic} ${value} ${test.fires ? "is above" : "is not above"} its threshold ${threshold}.`;
+}
+
+/** What decided the job, in sentences: each decision test and the site calibration's provenance. */
 function decisionText(job) {
-  const test = decisiveTest(job);
-  if (!test) return "This job was decided before decisions recorded their statistic.";
-  const unit = UNITS[test.statistic] || "";
-  const name = STATISTIC_NAMES[test.statistic] || test.statistic;
-  const threshold = test.source === "site" ? "the site's learned threshold" : "the default threshold";
-  let text = `Decided by the ${name}: ${formatNumber(test.value)}${unit} ${test.comparison} ${threshold} ${formatNumber(test.threshold)}${unit} → ${test.fires ? "fires" : "does not fire"}.`;
+  const tests = job.calibration && job.calibration.decision && job.calibration.decision.tests;
+  if (!Array.isArray(tests) || !tests.length) return "This job was decided before decisions recorded their statistic.";
+  let text = tests.map((test) => testSentence(job, test)).join(" ");
   const site = job.calibration && job.calibration.site;
   if (site && site.applied) {
-    text += ` Site calibration: ${site.rule}, ${site.n_samples} reviewed jobs, rank ${site.rank}, target false-alarm rate ${site.false_alarm_rate}.`;
+    text += ` The site's threshold was learned (${site.rule}) from ${site.n_samples} reviewed jobs, rank ${site.rank}, for a false-alarm rate of ${site.false_alarm_rate}.`;
   } else if (site && site.reason) {
-    text += ` No site calibration applied: ${site.reason}.`;
+    text += ` No threshold learned from reviews applied: ${site.reason}.`;
   }
   return text;
 }
@@ -88,6 +117,6 @@ export function reviewPanel(job, onChanged) {
     sure,
     h("label", { class: "verdict-note" }, "Note ", note),
     status,
-    h("details", {}, h("summary", {}, "Verdict history"), history));
+    h("details", {}, h("summary", {}, "Verdict history (newest first)"), history));
   return section;
 }

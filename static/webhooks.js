@@ -1,5 +1,6 @@
-// Webhooks: the organisation's webhooks, a form for a new one (its secret shown once), delete,
-// send a test, and each webhook's deliveries (status, attempts, last answer, next attempt).
+// Webhooks: the organisation's webhooks with their last delivery (status, attempts, last error),
+// a form for a new one (its secret shown once), delete, send a test, and each webhook's
+// deliveries (status, attempts, last answer, next attempt).
 // Routes: #/webhooks and #/webhooks/<id> (the same page with that webhook's deliveries).
 
 import { ApiError, api, describeError, itemsOf } from "./api.js";
@@ -18,6 +19,17 @@ const EVENTS = [
 const STATUS_BADGES = { delivered: "badge-ok", failed: "badge-bad", delivering: "badge-busy", pending: "badge-wait" };
 
 let shownSecret = null; // { id, secret }: shown once, right after creating, until the page is left
+
+/** A webhook's newest delivery in a cell: its status, attempts and last error, or "none yet". */
+function lastDeliveryCell(webhook, delivery) {
+  if (!delivery) return h("td", { class: "last-delivery muted" }, "none yet");
+  return h("td", { class: "last-delivery", dataset: { status: delivery.status, deliveryId: delivery.id } },
+    h("span", { class: `badge ${STATUS_BADGES[delivery.status] || "badge-wait"}` }, delivery.status), " ",
+    h("span", { class: "delivery-event" }, delivery.event_type), " · ",
+    h("span", { class: "delivery-attempts" }, `attempt ${delivery.attempts} of ${delivery.max_attempts}`),
+    delivery.last_error ? h("div", { class: "delivery-error error-cell" }, delivery.last_error) : null,
+    h("div", {}, h("a", { href: `#/webhooks/${webhook.id}`, class: "deliveries-link" }, "All deliveries ›")));
+}
 
 function deliveriesSection(webhook, deliveries) {
   const rows = deliveries.map((delivery) => h("tr", { dataset: { status: delivery.status, deliveryId: delivery.id } },
@@ -76,10 +88,13 @@ export async function renderWebhooks(selectedId = null) {
   setCrumbs(h("a", { href: "#/" }, "Sites"), h("span", {}, "Webhooks"));
   const webhooks = itemsOf(await api("webhooks?limit=200"));
   const selected = webhooks.find((webhook) => webhook.id === selectedId) || null;
-  const deliveries = selected ? itemsOf(await api(`webhooks/${selected.id}/deliveries?limit=50`)) : [];
+  const [deliveries, lastDeliveries] = await Promise.all([
+    selected ? api(`webhooks/${selected.id}/deliveries?limit=50`).then(itemsOf) : Promise.resolve([]),
+    Promise.all(webhooks.map((webhook) => api(`webhooks/${webhook.id}/deliveries?limit=1`).then((page) => itemsOf(page)[0] || null).catch(() => null))),
+  ]);
   if (generation !== currentRender()) return;
 
-  const rows = webhooks.map((webhook) => {
+  const rows = webhooks.map((webhook, index) => {
     const test = h("button", { type: "button", class: "test-webhook" }, "Send test");
     test.addEventListener("click", () => act(async () => {
       await api(`webhooks/${webhook.id}/test`, { method: "POST" });
@@ -98,6 +113,7 @@ export async function renderWebhooks(selectedId = null) {
       h("td", {}, h("a", { href: `#/webhooks/${webhook.id}`, class: "webhook-link" }, webhook.url)),
       h("td", {}, webhook.events.join(", ")),
       h("td", {}, formatDate(webhook.created_at)),
+      lastDeliveryCell(webhook, lastDeliveries[index]),
       h("td", {}, test, " ", remove));
   });
 
@@ -115,13 +131,14 @@ export async function renderWebhooks(selectedId = null) {
       h("h1", {}, "Webhooks"),
       webhooks.length
         ? h("table", { class: "table", id: "webhooks-table" },
-          h("thead", {}, h("tr", {}, ["URL", "Events", "Created", ""].map((title) => h("th", {}, title)))),
+          h("thead", {}, h("tr", {}, ["URL", "Events", "Created", "Last delivery", ""].map((title) => h("th", {}, title)))),
           h("tbody", {}, rows))
         : h("p", { class: "muted", id: "no-webhooks" }, "No webhook yet. Create one below to hear about changes outside the dashboard.")),
     ...(selected ? [deliveriesSection(selected, deliveries)] : []),
     h("section", { class: "card" }, h("h2", {}, "New webhook"),
       h("p", { class: "muted" }, "Admins only. The URL must be http(s) on a public address."), newWebhookForm()));
-  if (selected && deliveries.some((delivery) => delivery.status === "pending" || delivery.status === "delivering")) {
+  const unfinished = (delivery) => delivery && (delivery.status === "pending" || delivery.status === "delivering");
+  if (deliveries.some(unfinished) || lastDeliveries.some(unfinished)) {
     schedulePoll(() => renderWebhooks(selectedId).catch((failure) => handleFailure(failure, "Refreshing the deliveries")));
   }
 }

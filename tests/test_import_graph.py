@@ -4,10 +4,12 @@ Every ``import`` in ``app/`` counts, at module level, inside functions and under
 ``TYPE_CHECKING`` alike: an import hidden in a function is still an arrow.  Layers, lowest first
 (a module may import its own layer and those below it, never one above):
 
-``app.core`` < ``app.clock``, ``app.config``, ``app.log`` < ``app.db`` <
+``app.core`` < ``app.clock``, ``app.config``, ``app.log``, ``app.kit`` < ``app.db`` <
 ``app.jobs`` < ``app.services`` < ``app.viewer`` < ``app.api`` < ``app.main`` < ``app.cli``,
 ``app.__main__``.
 
+The core is numeric code only: besides the layers, it imports none of the standard library's
+network, mail, TLS or signing modules (:data:`FORBIDDEN_IN_CORE`; they belong in ``app.kit``).
 The core's own, stricter wall (no web or database library at all) is
 ``tests/core/test_import_wall.py``.
 """
@@ -23,7 +25,7 @@ APP = Path(__file__).resolve().parent.parent / "app"
 
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("app.core",),
-    ("app.clock", "app.config", "app.log"),
+    ("app.clock", "app.config", "app.log", "app.kit"),
     ("app.db",),
     ("app.jobs",),
     ("app.services",),
@@ -35,6 +37,9 @@ LAYERS: tuple[tuple[str, ...], ...] = (
 """Lowest first; a module may import from its own layer and the layers before it."""
 
 MAX_MODULE_LINES = 600
+
+FORBIDDEN_IN_CORE = ("socket", "http", "smtplib", "urllib", "email", "ssl", "hmac")
+"""Standard-library packages ``app.core`` must not import (sockets, HTTP, mail, TLS, signing)."""
 
 
 def module_name(path: Path, root: Path) -> str:
@@ -86,6 +91,26 @@ def import_graph(root: Path) -> dict[str, set[str]]:
     modules = app_modules(root)
     known = set(modules)
     return {name: imported_app_modules(name, path, known) for name, path in modules.items()}
+
+
+def forbidden_core_imports(root: Path) -> list[str]:
+    """Every import of :data:`FORBIDDEN_IN_CORE` under ``root/core``, as ``'module -> name'``."""
+    found = []
+    for path in sorted((root / "core").rglob("*.py")):
+        name = module_name(path, root)
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.Import):
+                imported = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                imported = [node.module]
+            else:
+                continue
+            found.extend(
+                f"{name} -> {module}"
+                for module in imported
+                if module.split(".")[0] in FORBIDDEN_IN_CORE
+            )
+    return sorted(found)
 
 
 def layer_of(module: str) -> int:
@@ -156,6 +181,10 @@ def test_the_import_graph_of_app_has_no_cycle():
     assert import_cycles(import_graph(APP)) == []
 
 
+def test_the_core_imports_no_network_mail_or_signing_module():
+    assert forbidden_core_imports(APP) == []
+
+
 def test_no_module_of_app_is_longer_than_the_limit():
     too_long = {
         str(path.relative_to(APP.parent)): lines
@@ -165,24 +194,49 @@ def test_no_module_of_app_is_longer_than_the_limit():
     assert too_long == {}
 
 
-# The checks themselves must be able to fail: a tree with a cycle and an upward arrow.
+# The checks themselves must be able to fail: a tree with a cycle, upward arrows (from the core
+# and from the kit) and network, mail and signing imports in the core.
 
 
 @pytest.fixture
 def broken_tree(tmp_path: Path) -> Path:
     root = tmp_path / "app"
-    for package in ("", "core", "db", "api"):
+    for package in ("", "core", "kit", "db", "api"):
         (root / package).mkdir(parents=True, exist_ok=True)
         (root / package / "__init__.py").write_text("")
     (root / "core" / "numbers.py").write_text("def f():\n    from app.db import models\n")
     (root / "db" / "models.py").write_text("from app.db.session import engine\n")
     (root / "db" / "session.py").write_text("from . import models\nengine = None\n")
     (root / "api" / "routes.py").write_text("import app.db.models\nfrom app.core import numbers\n")
+    (root / "core" / "alerts.py").write_text(
+        "import hmac\nimport http.client\n\n\ndef send():\n    import smtplib, socket\n"
+        "    from urllib.parse import urlsplit\n    from email.message import EmailMessage\n"
+        "    from ssl import create_default_context\n    from app.kit import net\n"
+    )
+    (root / "kit" / "net.py").write_text(
+        "from app.core import numbers\nfrom app.db import models\n"
+    )
     return root
 
 
 def test_the_checks_find_an_upward_arrow_and_a_cycle(broken_tree: Path):
     graph = import_graph(broken_tree)
     assert graph["app.api.routes"] == {"app.db.models", "app.core.numbers"}
-    assert upward_arrows(graph) == ["app.core.numbers -> app.db.models"]
+    assert upward_arrows(graph) == [
+        "app.core.alerts -> app.kit.net",
+        "app.core.numbers -> app.db.models",
+        "app.kit.net -> app.db.models",
+    ]
     assert import_cycles(graph) == [["app.db.models", "app.db.session"]]
+
+
+def test_the_core_wall_finds_network_mail_and_signing_imports(broken_tree: Path):
+    assert forbidden_core_imports(broken_tree) == [
+        "app.core.alerts -> email.message",
+        "app.core.alerts -> hmac",
+        "app.core.alerts -> http.client",
+        "app.core.alerts -> smtplib",
+        "app.core.alerts -> socket",
+        "app.core.alerts -> ssl",
+        "app.core.alerts -> urllib.parse",
+    ]

@@ -19,9 +19,15 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
-from app.core.errors import InputError, PointCloudError, UnsupportedFormatError
+from app.core.errors import (
+    InputError,
+    PointCloudError,
+    PointLimitError,
+    UnsupportedFormatError,
+)
 from app.db.session import DatabaseUnavailableError
 from app.services.errors import AppError, ServiceUnavailableError
+from app.services.messages import api_limit_message
 from app.services.schemas import ErrorRead
 
 logger = logging.getLogger("scandiff.api")
@@ -93,6 +99,10 @@ async def handle_input_error(request: Request, exc: Exception) -> JSONResponse:
     """Render a core input error: 415 unknown format, 400 malformed cloud, 422 other input."""
     if isinstance(exc, UnsupportedFormatError):
         return error_response(415, "unsupported_format", str(exc))
+    if isinstance(exc, PointLimitError):
+        return error_response(
+            400, "malformed_point_cloud", api_limit_message(str(exc), exc.limit_name)
+        )
     if isinstance(exc, PointCloudError):
         return error_response(400, "malformed_point_cloud", str(exc))
     return error_response(422, "invalid_input", str(exc))

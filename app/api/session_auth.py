@@ -26,7 +26,8 @@ from sqlalchemy.orm import Session
 from starlette.requests import HTTPConnection
 
 from app.config import Settings
-from app.core.signing import (
+from app.db.models import ApiToken
+from app.kit.signing import (
     VIEW_LINK_PURPOSE,
     SignatureInvalidError,
     sign,
@@ -34,7 +35,6 @@ from app.core.signing import (
     verify,
     view_link_value,
 )
-from app.db.models import ApiToken
 from app.services.auth import Principal
 from app.viewer.access import ViewGrant
 

@@ -261,12 +261,54 @@ def _print_summary(result: ComparisonResult, reference: Path, scan: Path) -> Non
     print(f"  timings: {timing}")
 
 
+CLI_FIXES: dict[str, tuple[str, list[str]]] = {
+    "check_pairing": (
+        "check that both files are of the same place, or compare without aligning (--no-align)",
+        ["--no-align"],
+    ),
+    "check_alignment": (
+        "check that the alignment found the right match, or compare without aligning (--no-align)",
+        ["--no-align"],
+    ),
+    "widen_coverage": ("rescan so that both files cover the same part of the place", []),
+    "give_sensor_origin": (
+        "give the sensor position with --sensor-origin X,Y,Z (reference) and --scan-origin "
+        "X,Y,Z (scan), or --sensor-frame when both files are in their sensor's frame",
+        ["--sensor-origin", "--scan-origin", "--sensor-frame"],
+    ),
+    "check_sensor_origin": (
+        "check the sensor position given with --sensor-origin, --scan-origin or --sensor-frame",
+        ["--sensor-origin", "--scan-origin", "--sensor-frame"],
+    ),
+}
+"""For each ``how_to_fix["action"]`` of :mod:`app.core.quality`: the CLI's advice and flags."""
+
+
+CLI_FIXES_OF_ERRORS = {"skip_alignment": " (--no-align)"}
+"""The CLI's flag for each ``how_to_fix`` a core error names."""
+
+
+def cli_warnings(warnings: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Quality warnings with ``how_to_fix`` in the CLI's flags."""
+    rendered = []
+    for warning in warnings:
+        fix = dict(warning.get("how_to_fix") or {})
+        if fix.get("action") in CLI_FIXES:
+            text, flags = CLI_FIXES[fix["action"]]
+            fix.update(text=text, flags=flags)
+        rendered.append({**warning, "how_to_fix": fix})
+    return rendered
+
+
 def _print_warnings(result: ComparisonResult) -> None:
-    """Every quality warning on stderr, one line each, whatever the output format."""
+    """Every quality warning on stderr, one line each (the sentence, then how to fix it in
+    the CLI's flags), whatever the output format."""
     from app.core.quality import quality_warnings
 
-    for warning in quality_warnings(result):
-        print(f"scandiff: warning: {warning['message']}", file=sys.stderr)
+    for warning in cli_warnings(quality_warnings(result)):
+        fix = warning["how_to_fix"].get("text")
+        advice = f" To fix: {fix}." if fix else ""
+        print(f"scandiff: warning: {warning['message']}{advice}", file=sys.stderr)
 
 
 def _export(path: Path, reference: PointCloud, scan: PointCloud, result: ComparisonResult) -> None:
@@ -274,32 +316,26 @@ def _export(path: Path, reference: PointCloud, scan: PointCloud, result: Compari
     import numpy as np
 
     from app.core.formats import write_point_cloud
+    from app.core.pair_export import both_clouds
     from app.core.registration import apply_transform
 
     transform = np.asarray(result.registration["transform"], dtype=np.float64)
-    aligned_scan = apply_transform(scan.points, transform)
-    points = np.vstack([reference.points, aligned_scan])
-    fields = {
-        "cloud": np.concatenate([np.zeros(len(reference), np.uint8), np.ones(len(scan), np.uint8)]),
-        "label": np.concatenate(
-            [
-                reference.from_source_order(result.reference_label),
-                scan.from_source_order(result.scan_label),
-            ]
-        ).astype(np.int8),
-        "distance": np.concatenate(
-            [
-                reference.from_source_order(result.reference_distance),
-                scan.from_source_order(result.scan_distance),
-            ]
-        ).astype(np.float32),
-        "region": np.concatenate(
-            [
-                reference.from_source_order(result.reference_region),
-                scan.from_source_order(result.scan_region),
-            ]
-        ).astype(np.int32),
-    }
+    points, fields = both_clouds(
+        reference.points,
+        apply_transform(scan.points, transform),
+        labels=(
+            reference.from_source_order(result.reference_label),
+            scan.from_source_order(result.scan_label),
+        ),
+        distances=(
+            reference.from_source_order(result.reference_distance),
+            scan.from_source_order(result.scan_distance),
+        ),
+        regions=(
+            reference.from_source_order(result.reference_region),
+            scan.from_source_order(result.scan_region),
+        ),
+    )
     write_point_cloud(path, points, fields)
 
 
@@ -323,10 +359,10 @@ def _geometry_cache(directory: Path | None, reference: Path, params: dict[str, A
 
 def run(args: argparse.Namespace) -> int:
     """Run one comparison; exit status 0, or 2 on bad input."""
-    from app.core.allocator import release_freed_memory_promptly
     from app.core.formats import read_point_cloud
     from app.core.formats.rosbag import bag_options_from_strings
     from app.core.pipeline import compare
+    from app.kit.allocator import release_freed_memory_promptly
 
     release_freed_memory_promptly()
     try:
@@ -381,14 +417,18 @@ def run(args: argparse.Namespace) -> int:
         if args.export is not None:
             _export(args.export, reference, scan, result)
     except InputError as exc:
-        print(f"scandiff: error: {exc}", file=sys.stderr)
+        flag = CLI_FIXES_OF_ERRORS.get(getattr(exc, "how_to_fix", None) or "", "")
+        print(f"scandiff: error: {exc}{flag}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except OSError as exc:
         print(f"scandiff: error: {exc.strerror or exc}: {exc.filename or ''}", file=sys.stderr)
         return EXIT_BAD_INPUT
     _print_warnings(result)
     if args.json:
-        json.dump(result.to_json_dict(), sys.stdout)
+        document = result.to_json_dict()
+        if isinstance(document.get("quality_warnings"), list):
+            document["quality_warnings"] = cli_warnings(document["quality_warnings"])
+        json.dump(document, sys.stdout)
         sys.stdout.write("\n")
     else:
         _print_summary(result, args.reference, args.scan)

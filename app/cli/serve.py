@@ -25,14 +25,13 @@ from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING, Any
 
-from app.core.files import write_private_file
+from app.kit.files import write_private_file
 
 if TYPE_CHECKING:  # pydantic-settings is imported when the command runs
     from app.config import Settings
 
 logger = logging.getLogger("scandiff.serve")
 
-ADMIN_TOKEN_FILE = "admin-token"
 DEFAULT_ORGANISATION = "default"
 CHILD_STOP_TIMEOUT_SECONDS = 30.0
 """How long the children get to stop after SIGTERM before SIGKILL (jobs get 10 s of it)."""
@@ -118,19 +117,16 @@ def child_environment(settings: Settings) -> dict[str, str]:
 
 def ensure_admin_token(settings: Settings) -> str | None:
     """On first start, create organisation ``default`` and an admin token; the new token."""
-    from sqlalchemy import select
-
-    from app.db.models import Organisation
     from app.db.session import transaction
-    from app.services.auth import create_token
+    from app.services.auth import create_token, insert_organisation_if_absent
 
-    token_path = settings.data_dir / ADMIN_TOKEN_FILE
+    token_path = settings.data_layout.admin_token_file
     with transaction(settings.sqlalchemy_url) as session:
-        exists = session.execute(
-            select(Organisation.id).where(Organisation.name == DEFAULT_ORGANISATION)
-        ).first()
-        if exists:
-            return None  # not the first start
+        # Replicas starting together: one inserts the organisation, the others find it (their
+        # insert does nothing) and leave the token to it.
+        _organisation, created = insert_organisation_if_absent(session, DEFAULT_ORGANISATION)
+        if not created:
+            return None  # not the first start, or another replica's
         token = create_token(session, DEFAULT_ORGANISATION, "admin", name="admin (first start)")
         # Written before the commit: a crash in between leaves no organisation, so the next
         # start creates a new token and overwrites this file.
@@ -238,7 +234,7 @@ def serve(settings: Settings, roles: tuple[str, ...] = CHILD_ROLES) -> int:
         print("no job workers here (--workers 0): run `scandiff worker` for the jobs", flush=True)
     if token:
         print(
-            f"admin token (first start; also in {settings.data_dir / ADMIN_TOKEN_FILE}):\n{token}",
+            f"admin token (first start; also in {settings.data_layout.admin_token_file}):\n{token}",
             flush=True,
         )
     supervisor = Supervisor(settings, roles)

@@ -20,9 +20,27 @@ class PointCloudError(InputError):
     """
 
 
+class PointLimitError(PointCloudError):
+    """A cloud has more points than the caller's limit allows.
+
+    ``limit_name`` names the limit as the core knows it (``"max_points"``); the interface that
+    set the limit names its own knob for it (the service: ``SCANDIFF_MAX_POINTS``).
+    """
+
+    def __init__(self, message: str, *, limit_name: str = "max_points") -> None:
+        super().__init__(message)
+        self.limit_name = limit_name
+
+
 class UnsupportedFormatError(PointCloudError):
     """The content is not any supported point-cloud format (the service answers 415)."""
 
 
 class RegistrationError(InputError):
-    """The scan cannot be aligned to the reference (e.g. the clouds do not overlap)."""
+    """The scan cannot be aligned to the reference (e.g. the clouds do not overlap).
+
+    ``how_to_fix`` names the fix without an interface's words (``"skip_alignment"``): the
+    interface that reports the error names its own knob for it.
+    """
+
+    how_to_fix = "skip_alignment"

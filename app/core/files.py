@@ -1,9 +1,10 @@
 """Durable file writes: write a temporary file, fsync it, rename it into place, fsync the directory.
 
 One module for everything that writes files a crash must not leave half-written: the core's
-exports (:mod:`app.core.formats`), the job worker's result files (:mod:`app.jobs.results`), the
-service's uploads (:mod:`app.services.storage`) and its secret files.  It uses only the
-standard library, so it works from a notebook like the rest of the core.
+exports (:mod:`app.core.formats`), the job worker's result files (:mod:`app.jobs.results`) and
+the service's uploads (:mod:`app.services.storage`); the service's secret files
+(:func:`app.kit.files.write_private_file`) use its temporary names.  It uses only the standard
+library, so it works from a notebook like the rest of the core.
 
 A temporary file is named ``.<stem>.<random><TEMP_MARKER><suffix>`` next to its target, so a
 sweep can recognise (and delete) what a killed writer left behind.
@@ -59,30 +60,3 @@ def write_atomically(path: Path, write: Callable[[Path], None]) -> None:
     """Call ``write(temp_path)`` next to ``path``, fsync it, then rename it over ``path``."""
     with atomic_output(path) as temp_path:
         write(temp_path)
-
-
-def write_private_file(path: Path, content: str, *, overwrite: bool) -> bool:
-    """Write ``content`` to ``path`` readable by its owner only (0600), durably and atomically.
-
-    With ``overwrite=False`` an existing ``path`` is kept (another process that got there first
-    wins the race); returns whether ``path`` now holds ``content``.
-    """
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temp_path = temporary_path(path)
-    descriptor = os.open(temp_path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    try:
-        with os.fdopen(descriptor, "w") as handle:
-            handle.write(content)
-            handle.flush()
-            os.fsync(handle.fileno())
-        if overwrite:
-            os.replace(temp_path, path)
-        else:
-            try:
-                os.link(temp_path, path)
-            except FileExistsError:
-                return False
-    finally:
-        temp_path.unlink(missing_ok=True)
-    fsync_directory(path.parent)
-    return True

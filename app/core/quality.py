@@ -19,9 +19,13 @@ still "succeed" with many regions.  :func:`quality_warnings` says so, from the r
     an origin was given but the data contradict it (the origins' own warnings).
 
 The site's history (a region count far above the site's usual) needs the database; the
-service adds it.  Every warning is ``{"code", "message", ...}`` plus the measured ``value``
-and the ``limit`` it crossed where there is one; messages carry units and name the parameter
-that changes the outcome.
+service adds it.  Every warning is ``{"code", "message", "detail", "how_to_fix", ...}``:
+``message`` is one sentence with units; ``detail`` holds the measured ``value``, the ``limit``
+it crossed, ``unit``, ``side`` where there is one and an ``explanation`` (what it means for the
+result); ``how_to_fix`` is ``{"action"}``, one of :data:`FIX_ACTIONS`.  The core names no
+interface's knobs: the API and the CLI add ``how_to_fix["text"]`` naming their own parameter,
+setting or flag (``app.services.messages``, ``app.cli.compare``).  ``value``, ``limit``,
+``unit`` and ``side`` are also kept at the top level, as before.
 """
 
 from __future__ import annotations
@@ -32,8 +36,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-
-from app.core.registration import NO_ALIGN_HINT
 
 LOW_FITNESS = 0.6
 """Registration fitness below which the alignment (or the pairing of the scans) is suspect.
@@ -52,14 +54,33 @@ LOW_OVERLAP_FRACTION = 0.5
 ``unobserved``, so the decision rests on a small part of the place."""
 
 LABEL_UNOBSERVED = -1
-CORRECTION_HINT = (
-    "expected for files in their moving sensor's frame; for files in one world frame, check "
-    f"that the alignment found the right match, or {NO_ALIGN_HINT}"
-)
-ORIGIN_HINT = (
-    "give the sensor position: sensor_origin=x,y,z (metres, the file's frame) on upload, "
-    '"reference_origin"/"scan_origin" in the job\'s params, or --param on the CLI'
-)
+
+FIX_ACTIONS = {
+    "check_pairing": "check that both scans are of the same place, or skip the alignment",
+    "check_alignment": "check that the alignment found the right match, or skip the alignment",
+    "widen_coverage": "rescan so that both scans cover the same part of the place",
+    "give_sensor_origin": "give the sensor position of the side named in the detail",
+    "check_sensor_origin": "check the sensor position given",
+}
+"""What each ``how_to_fix["action"]`` asks, without naming any interface's knob."""
+
+
+def _warning(
+    code: str,
+    message: str,
+    explanation: str,
+    action: str,
+    **measured: Any,
+) -> dict[str, Any]:
+    """One warning in the shape the module docstring describes."""
+    detail = {key: value for key, value in measured.items() if value is not None}
+    return {
+        "code": code,
+        "message": message,
+        **detail,
+        "detail": {**detail, "explanation": explanation},
+        "how_to_fix": {"action": action, "summary": FIX_ACTIONS[action]},
+    }
 
 
 def registration_warnings(
@@ -92,40 +113,47 @@ def registration_warnings(
         within = f" within {distance:.3g} m of the reference" if distance is not None else ""
         after = " after alignment" if aligned else " (not aligned)"
         warnings.append(
-            {
-                "code": "low_registration_fitness",
-                "message": f"low registration fitness {fitness:.2f} (below {low_fitness:g}): "
-                f"only {fitness:.0%} of the scan's points lie{within}{after}; the scans may "
-                "be of different places or badly aligned, so regions may be false",
-                "value": fitness,
-                "limit": low_fitness,
-            }
+            _warning(
+                "low_registration_fitness",
+                f"Only {fitness:.0%} of the scan's points lie{within}{after} "
+                f"(registration fitness {fitness:.2f}, below {low_fitness:g}).",
+                "the scans may be of different places or badly aligned, so regions may be false",
+                "check_pairing",
+                value=fitness,
+                limit=low_fitness,
+            )
         )
     if not aligned:
         return warnings
     rotation = _finite(registration.get("rotation_degrees"))
     if rotation is not None and rotation > large_rotation_degrees:
         warnings.append(
-            {
-                "code": "large_rotation",
-                "message": f"the alignment rotated the scan by {rotation:.1f} degrees (more "
-                f"than {large_rotation_degrees:g} degrees): {CORRECTION_HINT}",
-                "value": rotation,
-                "limit": large_rotation_degrees,
-                "unit": "degrees",
-            }
+            _warning(
+                "large_rotation",
+                f"The alignment rotated the scan by {rotation:.1f} degrees (more than "
+                f"{large_rotation_degrees:g} degrees).",
+                "scans of one place in one frame rarely need such a turn; a wrong match often "
+                "looks like this",
+                "check_alignment",
+                value=rotation,
+                limit=large_rotation_degrees,
+                unit="degrees",
+            )
         )
     translation = _finite(registration.get("translation_m"))
     if translation is not None and translation > large_translation_metres:
         warnings.append(
-            {
-                "code": "large_translation",
-                "message": f"the alignment moved the scan's centre by {translation:.2f} m "
-                f"(more than {large_translation_metres:g} m): {CORRECTION_HINT}",
-                "value": translation,
-                "limit": large_translation_metres,
-                "unit": "m",
-            }
+            _warning(
+                "large_translation",
+                f"The alignment moved the scan's centre by {translation:.2f} m (more than "
+                f"{large_translation_metres:g} m).",
+                "scans of one place in one frame rarely need such a shift; a wrong match often "
+                "looks like this",
+                "check_alignment",
+                value=translation,
+                limit=large_translation_metres,
+                unit="m",
+            )
         )
     return warnings
 
@@ -163,15 +191,16 @@ def overlap_warnings(
         return []
     other = "scan" if side == "reference" else "reference"
     return [
-        {
-            "code": "low_overlap",
-            "message": f"low overlap: only {fraction:.0%} of the {side}'s points were observed "
-            f"by the {other} (less than {low_overlap:.0%}); the rest is unobserved, so the "
-            "decision rests on a small part of the place",
-            "value": fraction,
-            "limit": low_overlap,
-            "side": side,
-        }
+        _warning(
+            "low_overlap",
+            f"Only {fraction:.0%} of the {side}'s points were observed by the {other} (less "
+            f"than {low_overlap:.0%}).",
+            "the rest is unobserved, so the decision rests on a small part of the place",
+            "widen_coverage",
+            value=fraction,
+            limit=low_overlap,
+            side=side,
+        )
     ]
 
 
@@ -193,18 +222,22 @@ def origin_warnings(
     -------
     list of dict
     """
-    warnings = [{"code": "sensor_origin", "message": str(text)} for text in origin_messages]
+    warnings = [
+        _warning("sensor_origin", _sentence(str(text)), str(text), "check_sensor_origin")
+        for text in origin_messages
+    ]
     for side in ("reference", "scan"):
         if sensor_origins is not None and side in sensor_origins and not sensor_origins[side]:
             warnings.append(
-                {
-                    "code": "sensor_origin_unknown",
-                    "message": f"the {side}'s sensor origin is unknown (none given, none in "
-                    "the file, none estimated with confidence): points hidden from one sensor "
-                    "cannot be told from removed ones, so some regions may be shadows; "
-                    + ORIGIN_HINT,
-                    "side": side,
-                }
+                _warning(
+                    "sensor_origin_unknown",
+                    f"The {side}'s sensor origin is unknown (none given, none in the file, "
+                    "none estimated with confidence).",
+                    "points hidden from one sensor cannot be told from removed ones, so some "
+                    "regions may be shadows",
+                    "give_sensor_origin",
+                    side=side,
+                )
             )
     return warnings
 
@@ -222,6 +255,16 @@ def quality_warnings(result: Any) -> list[dict[str, Any]]:
         getattr(result, "sensor_origins", None), list(getattr(result, "warnings", None) or [])
     )
     return warnings
+
+
+def _sentence(text: str) -> str:
+    """The first sentence of ``text`` (up to its first ``; `` or ``: ``), capitalised, with a
+    full stop."""
+    head = text.strip()
+    for separator in ("; ", ": "):
+        head = head.split(separator, 1)[0]
+    head = head.rstrip(" .")
+    return (head[:1].upper() + head[1:] + ".") if head else text
 
 
 def _finite(value: Any) -> float | None:

@@ -75,11 +75,10 @@ NUM_NEIGHBOURS = 20
 MAX_ITERATIONS = {"coarse": 40, "fine": 20}
 """GICP iterations per stage (the fine stage starts close to the solution)."""
 MIN_POINTS_AFTER_DOWNSAMPLING = 20
-NO_ALIGN_HINT = (
-    'compare without aligning: "align": false in the job\'s params (API: POST /api/v1/jobs) '
-    "or --no-align (CLI)"
-)
-"""How to skip the alignment, in every interface (failure messages name it)."""
+NO_ALIGN_HINT = "compare without aligning"
+"""How to skip the alignment, in no interface's words: a :class:`RegistrationError` carries
+``how_to_fix = "skip_alignment"`` and the API (the job's ``"align": false``) or the CLI
+(``--no-align``) appends its own knob."""
 VOXEL_GRID_LIMIT = 2**19
 """Largest |coordinate| / voxel accepted: small_gicp's voxel keys are 21-bit signed (2**20),
 halved for safety. Points beyond would be silently dropped."""

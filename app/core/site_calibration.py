@@ -6,8 +6,9 @@ statistic against a threshold:
 
 ``"regions"``
     ``largest_region_extent_m > 0``: a region of changed points survived the localiser's size
-    floor (``min_region_points``); the statistic is the largest diagonal of the regions'
-    bounding boxes in metres, 0 when no region survived.
+    floor (``min_region_points``); the statistic is the bounding-box diagonal in metres of the
+    largest region, the one with the most points (the region the explanation calls largest,
+    :func:`app.core.explanation.explain_decision`), 0 when no region survived.
 ``"detector"``
     ``score > threshold``: the detector's global score against its calibrated threshold.
 ``"either"``
@@ -64,25 +65,34 @@ class ReviewedSample:
 
 
 def largest_extent(regions: Iterable[Any]) -> float:
-    """The largest bounding-box diagonal (metres) of regions with ``bbox_min``/``bbox_max``.
+    """The bounding-box diagonal (metres) of the largest region: the one with the most points.
+
+    "Largest region" means the region with the most points everywhere (the explanation's
+    ``largest_region``, the dashboard); the first of equals, as in the job's region order.
 
     Parameters
     ----------
     regions : iterable
-        Objects (or mappings) with ``bbox_min`` and ``bbox_max``, each 3 numbers.
+        Objects (or mappings) with ``n_points``, ``bbox_min`` and ``bbox_max`` (3 numbers each).
 
     Returns
     -------
     float
         0.0 when there is no region.
     """
-    largest = 0.0
+
+    def field(region: Any, name: str) -> Any:
+        return region[name] if isinstance(region, Mapping) else getattr(region, name)
+
+    largest = None
     for region in regions:
-        low = region["bbox_min"] if isinstance(region, Mapping) else region.bbox_min
-        high = region["bbox_max"] if isinstance(region, Mapping) else region.bbox_max
-        diagonal = float(np.linalg.norm(np.asarray(high, float) - np.asarray(low, float)))
-        largest = max(largest, diagonal)
-    return largest
+        if largest is None or int(field(region, "n_points")) > int(field(largest, "n_points")):
+            largest = region
+    if largest is None:
+        return 0.0
+    low = np.asarray(field(largest, "bbox_min"), float)
+    high = np.asarray(field(largest, "bbox_max"), float)
+    return float(np.linalg.norm(high - low))
 
 
 def conformal_rank(n_samples: int, false_alarm_rate: float) -> int:

@@ -480,3 +480,15 @@ def _draw_pair(
         elevation_step_deg=step_pair[0],
         azimuth_step_deg=step_pair[1],
     )
+
+
+def random_world(layout: str, rng: np.random.Generator) -> LidarWorld:
+    """A random building of ``layout`` ("room", "corridor", ...), drawn as :func:`lidar_pair`
+    draws its buildings (the same draws from ``rng``)."""
+    shell_low, shell_high, lows, highs, _ = _layout(layout, rng)
+    return _world(shell_low, shell_high, lows, highs)
+
+
+def free_sensor_position(rng: np.random.Generator, world: LidarWorld) -> NDArray[np.float64]:
+    """A sensor position in ``world`` clear of its walls and boxes, shape (3,)."""
+    return _free_position(rng, world, None, ())

@@ -15,6 +15,7 @@ from typing import Any
 
 from sqlalchemy import (
     JSON,
+    BigInteger,
     Boolean,
     DateTime,
     Float,
@@ -281,6 +282,17 @@ class JobVerdict(Base):
 # --- i16/schedules: scheduled comparisons of a site and the periods they ran -----------------
 
 
+class ScheduleRunStatus(StrEnum):
+    """What came of a schedule's period: ``running -> compared | missed | failed``;
+    ``skipped`` (the catch-up policy) is final at once."""
+
+    RUNNING = "running"
+    COMPARED = "compared"
+    MISSED = "missed"
+    SKIPPED = "skipped"
+    FAILED = "failed"
+
+
 class Schedule(Base):
     """A rhythm (cron in a time zone, or a fixed interval) on which a site's scans are compared."""
 
@@ -310,6 +322,8 @@ class Schedule(Base):
     source_marker: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
     # Set when site.stale was published; cleared when a scan arrives (one event per spell).
     stale_since: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
+    # Set when schedule.missed was published; cleared when a run compares (one event per spell).
+    missed_since: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
     created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)
     updated_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now, onupdate=utc_now)
 
@@ -330,8 +344,7 @@ class ScheduleRun(Base):
     schedule_id: Mapped[str] = mapped_column(ForeignKey("schedule.id", ondelete="CASCADE"))
     period_start: Mapped[datetime] = mapped_column(Timestamp)  # UTC
     kind: Mapped[str] = mapped_column(String(16), default="scheduled")  # scheduled | manual
-    # running -> compared | missed | failed; skipped (catch-up policy) is final at once
-    status: Mapped[str] = mapped_column(String(16))
+    status: Mapped[str] = mapped_column(String(16))  # a ScheduleRunStatus
     scan_id: Mapped[str | None] = mapped_column(
         ForeignKey("scan.id", ondelete="SET NULL"), nullable=True
     )
@@ -342,6 +355,8 @@ class ScheduleRun(Base):
         ForeignKey("job.id", ondelete="SET NULL"), nullable=True
     )
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    # Why a missed (or skipped) run compared nothing, in a sentence that says what to do.
+    reason: Mapped[str | None] = mapped_column(Text, nullable=True)
     created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)
     finished_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
 
@@ -425,4 +440,32 @@ class WebhookDelivery(Base):
     last_error: Mapped[str | None] = mapped_column(Text, nullable=True)
     last_attempt_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
     delivered_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
+    created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)
+
+
+# --- i30/resumable uploads: tus uploads being received (app/services/resumable_uploads.py) ---
+
+
+class ResumableUpload(Base):
+    """A tus upload: its declared length, the bytes accepted so far (durable) and its fate."""
+
+    __tablename__ = "resumable_upload"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    organisation_id: Mapped[str] = mapped_column(
+        ForeignKey("organisation.id", ondelete="CASCADE"), index=True
+    )
+    site_id: Mapped[str] = mapped_column(ForeignKey("site.id", ondelete="CASCADE"), index=True)
+    length: Mapped[int] = mapped_column(BigInteger)  # Upload-Length
+    offset: Mapped[int] = mapped_column(BigInteger, default=0)  # bytes fsynced and accepted
+    # the upload's options as the normal upload takes them (reference, filename, method, ...),
+    # the raw Upload-Metadata and the whole-file checksum the client declared
+    options: Mapped[dict[str, Any]] = mapped_column(JSON)
+    upload_metadata: Mapped[str] = mapped_column(Text, default="")
+    # active | completed | failed | terminated (expired: active with expires_at passed)
+    state: Mapped[str] = mapped_column(String(16), default="active")
+    result_status: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    result: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    expires_at: Mapped[datetime] = mapped_column(Timestamp, index=True)
     created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)

@@ -6,6 +6,11 @@ to a write can never fail at once with "database is locked" (DESIGN.md measured 
 errors in 8 s with deferred transactions, 0 with IMMEDIATE).  Keep write transactions short and
 never do numeric work inside one.
 
+:func:`transaction` is the one way to run a transaction: it commits with :func:`commit`, which
+runs the callbacks registered with :func:`after_commit` (enqueueing a job, deleting the files of
+deleted rows) once the rows are durable, or rolls back with :func:`rollback`, which runs the
+:func:`after_rollback` clean-ups.
+
 A database that cannot be reached (refused or lost connection; on SQLite a file that stays
 locked past the busy timeout or cannot be opened) raises :class:`DatabaseUnavailableError`
 instead of the driver's error, from every engine made here: the API answers it with a 503 and
@@ -15,7 +20,8 @@ pool's pre-ping is not such an error: the pool reconnects, so the service recove
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import logging
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from functools import lru_cache
 
@@ -23,6 +29,8 @@ from sqlalchemy import Connection, Engine, create_engine, event
 from sqlalchemy.engine import ExceptionContext
 from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
+
+logger = logging.getLogger("scandiff.db")
 
 SQLITE_BUSY_TIMEOUT_MS = 60_000
 READ_ONLY_OPTION = "scandiff_read_only"
@@ -155,12 +163,59 @@ def _sessionmaker_for(engine: Engine, read_only: bool) -> sessionmaker[Session]:
     return sessionmaker(bind=engine, expire_on_commit=False)
 
 
+_AFTER_COMMIT = "scandiff_after_commit"
+_AFTER_ROLLBACK = "scandiff_after_rollback"
+
+
+def after_commit(session: Session, callback: Callable[[], None]) -> None:
+    """Run ``callback`` once the session's transaction has committed (errors are logged)."""
+    session.info.setdefault(_AFTER_COMMIT, []).append(callback)
+
+
+def after_rollback(session: Session, callback: Callable[[], None]) -> None:
+    """Run ``callback`` if the session's transaction is rolled back instead of committed."""
+    session.info.setdefault(_AFTER_ROLLBACK, []).append(callback)
+
+
+def _run(callbacks: list[Callable[[], None]], what: str) -> None:
+    for callback in callbacks:
+        try:
+            callback()
+        except Exception:
+            logger.exception("%s callback %r failed", what, callback)
+
+
+def commit(session: Session) -> None:
+    """Commit, then run the after-commit callbacks; roll back (and clean up) if commit fails."""
+    try:
+        session.commit()
+    except BaseException:
+        rollback(session)
+        raise
+    session.info.pop(_AFTER_ROLLBACK, None)
+    _run(session.info.pop(_AFTER_COMMIT, []), "after-commit")
+
+
+def rollback(session: Session) -> None:
+    """Roll back, drop the after-commit callbacks and run the after-rollback ones."""
+    try:
+        session.rollback()
+    finally:
+        session.info.pop(_AFTER_COMMIT, None)
+        _run(session.info.pop(_AFTER_ROLLBACK, []), "after-rollback")
+
+
 @contextmanager
 def transaction(url: str) -> Iterator[Session]:
-    """A session whose transaction commits on success and rolls back on error."""
+    """A session committed on success, then its after-commit callbacks run; rolled back (and
+    its after-rollback callbacks run) on error.  The one way to run a transaction outside a
+    request (the API's request session ends with the same :func:`commit` / :func:`rollback`)."""
     session = session_factory(url)()
     try:
-        with session.begin():
-            yield session
+        yield session
+        commit(session)
+    except BaseException:
+        rollback(session)
+        raise
     finally:
         session.close()

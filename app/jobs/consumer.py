@@ -60,7 +60,6 @@ WORKER_HEALTH_CHECK_SECONDS = 1.0
 QUEUE_POLL_MAX_DELAY_SECONDS = 1.0
 """Longest pause between two polls of an empty SQLite queue by an idle worker."""
 CONSUMER_HEARTBEAT_SECONDS = 5.0
-WORKER_PID_DIR = "run"
 WORKER_PID_PREFIX = "worker-"
 MEMORY_LIMIT_ENV = "SCANDIFF_JOB_MEMORY_LIMIT_BYTES"
 JOB_THREADS_ENV = "SCANDIFF_JOB_THREADS"
@@ -112,7 +111,7 @@ def wait_for_database_at_head(
 
 def worker_pid_dir(settings: Settings) -> Path:
     """Where workers note their pid (``worker-<pid>``) while alive (used by tests and ops)."""
-    return settings.data_dir / WORKER_PID_DIR
+    return settings.data_layout.run_dir
 
 
 def release_inherited_connections(settings: Settings) -> None:

@@ -27,7 +27,6 @@ import http.client
 import json
 import logging
 import random
-import socket
 import threading
 import time
 from dataclasses import dataclass
@@ -38,13 +37,19 @@ from sqlalchemy import select, update
 
 from app.clock import as_utc, iso_utc, utc_now
 from app.config import Settings
-from app.core.outbound import OutboundUrlError, check_outbound_url, is_mailto, mailto_recipients
-from app.core.signing import signing_key, view_link_value, webhook_signature
 from app.db.models import DeliveryStatus, Event, Webhook, WebhookDelivery
 from app.db.session import transaction
 from app.jobs.email_alerts import send_email
 from app.jobs.leases import lease_owner_is_dead_here, make_lease_owner
 from app.jobs.side_process import SideProcess
+from app.kit.net import (
+    OutboundUrlError,
+    check_url,
+    is_mailto,
+    mailto_recipients,
+    pinned_connection,
+)
+from app.kit.signing import signing_key, view_link_value, webhook_signature
 
 logger = logging.getLogger("scandiff.webhooks")
 
@@ -228,24 +233,10 @@ def send_attempt(delivery: ClaimedDelivery, settings: Settings) -> AttemptOutcom
         if is_mailto(delivery.url):
             recipients = mailto_recipients(delivery.url)
             return AttemptOutcome(*send_email(recipients, delivery.body, headers, settings))
-        target = check_outbound_url(
-            delivery.url, allow_private=settings.webhook_allow_private_addresses
-        )
+        target = check_url(delivery.url, allow_private=settings.allow_private_addresses)
     except OutboundUrlError as exc:
         return AttemptOutcome(None, f"not sent: {exc}")
-    connection_class = (
-        http.client.HTTPSConnection if target.scheme == "https" else http.client.HTTPConnection
-    )
-    connection = connection_class(
-        target.host, target.port, timeout=settings.webhook_timeout_seconds
-    )
-    if target.addresses:
-        pinned = target.addresses[0]
-        connection._create_connection = (  # type: ignore[attr-defined]
-            lambda address, timeout=None, source_address=None: socket.create_connection(
-                (pinned, address[1]), timeout, source_address
-            )
-        )
+    connection = pinned_connection(target, settings.webhook_timeout_seconds)
     try:
         connection.request("POST", target.path, body=delivery.body, headers=headers)
         response = connection.getresponse()

@@ -23,13 +23,14 @@ import stat
 import time
 from pathlib import Path
 
+from app.kit.data_layout import DataLayout
+
 DOORBELL_NAME = "queue-doorbell"
-RUN_DIRECTORY = "run"
 
 
 def doorbell_path(data_dir: Path) -> Path:
     """Where the doorbell of the queue of the data directory ``data_dir`` lives."""
-    return data_dir / RUN_DIRECTORY / DOORBELL_NAME
+    return DataLayout(data_dir).run_dir / DOORBELL_NAME
 
 
 def ring(path: Path, times: int = 1) -> bool:

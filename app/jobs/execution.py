@@ -26,7 +26,6 @@ from typing import Any
 import numpy as np
 
 from app.config import Settings
-from app.core.allocator import release_freed_memory_promptly
 from app.core.errors import InputError
 from app.core.formats import read_point_cloud
 from app.core.trajectory_store import with_stored_trajectory
@@ -36,6 +35,7 @@ from app.jobs.leases import (
     PROGRESS_COMPARED,
     PROGRESS_LOADED,
     ClaimedJob,
+    JobOutcome,
     LeaseKeeper,
     LeaseLostError,
     claim_job,
@@ -46,8 +46,20 @@ from app.jobs.leases import (
 )
 from app.jobs.limits import job_memory_limit, job_threads, memory_limit
 from app.jobs.results import store_results, write_result_files
+from app.kit.allocator import release_freed_memory_promptly
 
 logger = logging.getLogger("scandiff.jobs")
+
+
+API_FIXES_OF_ERRORS = {
+    "skip_alignment": ' ("align": false in the job\'s params: POST /api/v1/jobs/{job_id}/rerun)',
+}
+"""The API's knob for each ``how_to_fix`` a core error names (a job's error is read over HTTP)."""
+
+
+def api_error_message(exc: InputError) -> str:
+    """A core input error as a job's ``error``: its message, with the API's knob for the fix."""
+    return str(exc) + API_FIXES_OF_ERRORS.get(getattr(exc, "how_to_fix", None) or "", "")
 
 
 def compute(
@@ -57,6 +69,8 @@ def compute(
     release_freed_memory_promptly()  # freed temporaries go back to the system: peak = live data
     job_hooks.inject_faults(job, keeper)
     compare = job_hooks.comparison()
+    if job.storage_problem is not None:
+        raise InputError(job.storage_problem)
     if job.reference_path is None or job.scan_path is None:
         raise InputError("the job's reference scan or scan no longer exists")
     keeper.report("loading", 0.0)
@@ -66,6 +80,10 @@ def compute(
     scan = read_point_cloud(job.scan_path, format=job.scan_format, threads=threads)
     reference = with_stored_trajectory(reference, job.reference_path)  # if one was given
     scan = with_stored_trajectory(scan, job.scan_path)
+    given_at_upload = {
+        "reference": given_at_upload_only(reference.sensor_origin, job.reference_sensor_origin),
+        "scan": given_at_upload_only(scan.sensor_origin, job.scan_sensor_origin),
+    }
     # The origin given at upload wins over the file's; a job's params override both.
     if job.reference_sensor_origin is not None:
         reference = dataclasses.replace(
@@ -91,10 +109,68 @@ def compute(
     )
     if cache is not None:
         record_geometry_cache(job, settings, cache)
-    return result, {"load_inputs": load_seconds}
+    return label_upload_origins(result, given_at_upload), {"load_inputs": load_seconds}
 
 
-def execute_job(job_id: str, settings: Settings) -> str:
+def given_at_upload_only(
+    from_file: np.ndarray | None, stored: list[float] | list[list[float]] | None
+) -> bool:
+    """Whether a scan's stored origin was given at upload (the file has none, or another)."""
+    if stored is None:
+        return False
+    given = np.asarray(stored, dtype=np.float64)
+    return (
+        from_file is None
+        or np.shape(from_file) != given.shape
+        or not np.allclose(from_file, given, rtol=0.0, atol=1e-9)
+    )
+
+
+def label_upload_origins(result: Any, given_at_upload: dict[str, bool]) -> Any:
+    """``result`` with the origins given at upload reported as ``"given"``, not ``"file"``.
+
+    The worker hands a scan's upload origin to ``compare`` in the file's slot (it overrides the
+    file's own); the report names where it came from: ``sensor_origins[side][i]["source"]``,
+    ``visibility[side]["origins"]`` (also in ``calibration["visibility"]``) and the warnings.
+    """
+    sides = [side for side, given in given_at_upload.items() if given]
+    reported = ("sensor_origins", "visibility", "warnings", "calibration")
+    if not sides or not all(hasattr(result, name) for name in reported):
+        return result  # nothing to relabel (a test's stand-in comparison reports no origins)
+    sensor_origins = {
+        side: [
+            {**entry, "source": "given"}
+            if side in sides and entry.get("source") == "file"
+            else entry
+            for entry in entries
+        ]
+        for side, entries in result.sensor_origins.items()
+    }
+    visibility = {
+        side: {**report, "origins": "given"}
+        if side in sides and report.get("origins") == "file"
+        else report
+        for side, report in result.visibility.items()
+    }
+    warnings = list(result.warnings)
+    for side in sides:
+        warnings = [
+            warning.replace(f"the {side}'s file sensor origin", f"the {side}'s given sensor origin")
+            for warning in warnings
+        ]
+    calibration = dict(result.calibration)
+    if "visibility" in calibration:
+        calibration["visibility"] = visibility
+    return dataclasses.replace(
+        result,
+        sensor_origins=sensor_origins,
+        visibility=visibility,
+        warnings=warnings,
+        calibration=calibration,
+    )
+
+
+def execute_job(job_id: str, settings: Settings) -> JobOutcome:
     """Run job ``job_id`` once if it needs running; the outcome.
 
     Outcomes: ``succeeded``, ``failed``, ``queued`` (to be retried: the caller sends its message
@@ -104,7 +180,7 @@ def execute_job(job_id: str, settings: Settings) -> str:
     owner = make_lease_owner()
     job = claim_job(job_id, settings, owner)
     if job is None:
-        return "skipped"
+        return JobOutcome.SKIPPED
     keeper = LeaseKeeper(job, settings).start()
     started = time.perf_counter()
     limit_bytes = job_memory_limit(settings)
@@ -121,24 +197,30 @@ def execute_job(job_id: str, settings: Settings) -> str:
         job_timings["job_total"] = time.perf_counter() - started
         timings = {**dict(result.timings), **job_timings}
         if not store_results(job, settings, result, labels_path, timings):
-            job_log("job lease lost before storing; nothing stored", job.id, "lease-lost")
-            return "lease-lost"
+            job_log("job lease lost before storing; nothing stored", job.id, JobOutcome.LEASE_LOST)
+            return JobOutcome.LEASE_LOST
         job_log(
             "job succeeded",
             job.id,
-            "succeeded",
+            JobOutcome.SUCCEEDED,
             attempt=job.attempt,
             seconds=round(job_timings["job_total"], 3),
             n_regions=len(result.regions),
             changed=bool(result.changed),
         )
-        return "succeeded"
+        return JobOutcome.SUCCEEDED
     except LeaseLostError:
-        job_log("job lease lost; nothing stored", job.id, "lease-lost", attempt=job.attempt)
-        return "lease-lost"
+        job_log(
+            "job lease lost; nothing stored", job.id, JobOutcome.LEASE_LOST, attempt=job.attempt
+        )
+        return JobOutcome.LEASE_LOST
     except InputError as exc:
         keeper.stop()
-        return "failed" if fail_job(job, settings, str(exc)) else "lease-lost"
+        return (
+            JobOutcome.FAILED
+            if fail_job(job, settings, api_error_message(exc))
+            else JobOutcome.LEASE_LOST
+        )
     except MemoryError:
         keeper.stop()
         message = (
@@ -147,7 +229,7 @@ def execute_job(job_id: str, settings: Settings) -> str:
             if limit_bytes
             else "out of memory"
         )
-        return "failed" if fail_job(job, settings, message) else "lease-lost"
+        return JobOutcome.FAILED if fail_job(job, settings, message) else JobOutcome.LEASE_LOST
     except KeyboardInterrupt:
         keeper.stop()
         release_job(job, settings, "interrupted by a worker shutdown", count_attempt=False)

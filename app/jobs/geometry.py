@@ -13,11 +13,10 @@ from __future__ import annotations
 
 import logging
 
-from sqlalchemy import func, select
-
 from app.config import Settings
 from app.core.geometry_cache import GeometryCache, cache_key
-from app.db.models import Organisation, Scan
+from app.db import usage
+from app.db.models import Scan
 from app.db.session import transaction
 from app.jobs.leases import ClaimedJob
 
@@ -58,17 +57,9 @@ def record_geometry_cache(job: ClaimedJob, settings: Settings, cache: GeometryCa
             return size
         cap = settings.max_stored_bytes_per_organisation
         if cap is not None and size > scan.geometry_cache_bytes:
-            session.execute(
-                select(Organisation.id)
-                .where(Organisation.id == scan.organisation_id)
-                .with_for_update(key_share=True)
-            )
-            used = session.scalar(
-                select(
-                    func.coalesce(func.sum(Scan.size_bytes + Scan.geometry_cache_bytes), 0)
-                ).where(Scan.organisation_id == scan.organisation_id)
-            )
-            if int(used or 0) - scan.geometry_cache_bytes + size > cap:
+            usage.lock_organisation(session, scan.organisation_id)
+            used = usage.stored_bytes(session, scan.organisation_id)
+            if used - scan.geometry_cache_bytes + size > cap:
                 logger.info(
                     "reference geometry not cached: over the organisation's storage cap",
                     extra={"job_id": job.id, "stage": "geometry-cache"},

@@ -20,6 +20,7 @@ import threading
 import uuid
 from dataclasses import dataclass
 from datetime import datetime, timedelta
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +32,7 @@ from app.config import Settings
 from app.db.models import Job, JobStatus, Scan, Site
 from app.db.session import transaction
 from app.jobs.alerts import publish_job_finished
+from app.kit.data_layout import StoredPathError
 from app.log import job_request_id, remember_job_request_id
 
 logger = logging.getLogger("scandiff.jobs")
@@ -105,6 +107,19 @@ def held_by(job_id: str, owner: str) -> ColumnElement[bool]:
     return and_(Job.id == job_id, Job.status == JobStatus.RUNNING, Job.lease_owner == owner)
 
 
+class JobOutcome(StrEnum):
+    """What one run of a job's message did (:func:`app.jobs.execution.execute_job`)."""
+
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    QUEUED = "queued"
+    """The attempt failed with attempts left: the job is queued again (its message is resent)."""
+    SKIPPED = "skipped"
+    """Nothing to run: a duplicate message, a job already finished or leased elsewhere."""
+    LEASE_LOST = "lease-lost"
+    """Another worker took the job over; nothing was written."""
+
+
 @dataclass(frozen=True)
 class ClaimedJob:
     """What a worker needs to run a job it has claimed."""
@@ -131,6 +146,22 @@ class ClaimedJob:
     reference_scan_id: str | None = None
     reference_sha256: str | None = None
     """The reference scan's id and file checksum (its geometry cache's key, app.jobs.geometry)."""
+    storage_problem: str | None = None
+    """Why a scan's stored path cannot be read (it leads outside the data directory); the job
+    fails with it."""
+
+
+def scan_paths(
+    settings: Settings, reference: Scan | None, scan: Scan | None
+) -> tuple[tuple[Path | None, Path | None], str | None]:
+    """The files of a job's reference and scan (None: deleted), checked; and what is wrong."""
+    try:
+        return (
+            settings.data_layout.resolve(reference.storage_path) if reference else None,
+            settings.data_layout.resolve(scan.storage_path) if scan else None,
+        ), None
+    except StoredPathError as exc:
+        return (None, None), str(exc)
 
 
 def job_log(message: str, job_id: str, stage: str, **fields: Any) -> None:
@@ -174,6 +205,7 @@ def claim_job(
         reference = session.get(Scan, job.reference_scan_id)
         scan = session.get(Scan, job.scan_id)
         site = session.get(Site, job.site_id)
+        stored_paths, storage_problem = scan_paths(settings, reference, scan)
         claimed_job = ClaimedJob(
             id=job.id,
             attempt=job.attempts,
@@ -182,9 +214,9 @@ def claim_job(
             method=job.method,
             variant=job.variant,
             params=dict(job.params or {}),
-            reference_path=settings.data_dir / reference.storage_path if reference else None,
+            reference_path=stored_paths[0],
             reference_format=reference.format if reference else None,
-            scan_path=settings.data_dir / scan.storage_path if scan else None,
+            scan_path=stored_paths[1],
             scan_format=scan.format if scan else None,
             scan_filename=scan.filename if scan else None,
             reference_sensor_origin=reference.sensor_origin if reference else None,
@@ -193,6 +225,7 @@ def claim_job(
             site_calibration=dict(site.calibration) if site and site.calibration else None,
             reference_scan_id=reference.id if reference else None,
             reference_sha256=reference.sha256 if reference else None,
+            storage_problem=storage_problem,
         )
     job_log(
         "job claimed",
@@ -348,7 +381,9 @@ def fail_job(job: ClaimedJob, settings: Settings, message: str) -> bool:
     return bool(failed)
 
 
-def release_job(job: ClaimedJob, settings: Settings, error: str, *, count_attempt: bool) -> str:
+def release_job(
+    job: ClaimedJob, settings: Settings, error: str, *, count_attempt: bool
+) -> JobOutcome:
     """Give the job back (``queued``) or fail it when attempts are used up; the new status.
 
     ``count_attempt=False`` (shutdown interrupted the attempt) does not use up an attempt and
@@ -359,7 +394,7 @@ def release_job(job: ClaimedJob, settings: Settings, error: str, *, count_attemp
             select(Job).where(held_by(job.id, job.lease_owner)).with_for_update()
         ).scalar_one_or_none()
         if row is None:
-            return "lease-lost"
+            return JobOutcome.LEASE_LOST
         if count_attempt and row.attempts >= row.max_attempts:
             row.status = JobStatus.FAILED
             row.error = f"failed after {row.attempts} attempts; last error: {error}"
@@ -379,4 +414,4 @@ def release_job(job: ClaimedJob, settings: Settings, error: str, *, count_attemp
         if status == JobStatus.FAILED:
             publish_job_finished(session, job.id)  # job.failed, same transaction
     job_log(f"job {status}", job.id, status, attempt=job.attempt, error=final_error)
-    return status
+    return JobOutcome(str(status))

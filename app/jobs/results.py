@@ -1,8 +1,10 @@
 """A job's results: the per-point files under ``results/<job_id>/`` and the row, stored once.
 
 :func:`write_result_files` writes ``labels.npz`` (the arrays of ``scandiff compare --labels``)
-and ``details.npz`` (``reference_distance``, ``scan_distance``, float32, source order), each
-atomically (:func:`app.core.files.write_atomically`).  :func:`store_results` stores score, decision,
+and ``details.npz`` (``reference_distance``, ``scan_distance``, float32, and
+``reference_region``, ``scan_region``, int32, -1 outside every region; source order), each
+atomically (:func:`app.core.files.write_atomically`); :func:`read_result_files` reads them
+back (the labels downloads, the 3D view).  :func:`store_results` stores score, decision,
 regions, registration, timings and the job's event in **one short transaction**, only if the
 worker still holds the job's lease.  :func:`remove_stale_temp_files` deletes what a worker
 killed while writing left.
@@ -11,10 +13,12 @@ killed while writing left.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 from sqlalchemy import delete, select
 
 from app.clock import utc_now
@@ -28,19 +32,48 @@ from app.db.session import transaction
 from app.jobs.alerts import publish_job_finished
 from app.jobs.leases import ClaimedJob, held_by
 from app.jobs.site_history import region_count_warning
-
-LABELS_FILENAME = "labels.npz"
-DETAILS_FILENAME = "details.npz"
+from app.kit.data_layout import DETAILS_FILENAME, LABELS_FILENAME
 
 
-def job_results_dir(settings: Settings, job_id: str) -> Path:
-    """Where the per-point files of job ``job_id`` live."""
-    return settings.results_dir / job_id
+@dataclass(frozen=True)
+class StoredResults:
+    """A job's per-point results read back, one entry per source row of each file.
+
+    ``*_distance`` are None for jobs from before ``details.npz``; ``*_region`` for jobs from
+    before it held the region indices.
+    """
+
+    reference_label: NDArray[np.int8]
+    scan_label: NDArray[np.int8]
+    reference_distance: NDArray[np.float32] | None
+    scan_distance: NDArray[np.float32] | None
+    reference_region: NDArray[np.int32] | None
+    scan_region: NDArray[np.int32] | None
+
+
+def read_result_files(labels_path: Path) -> StoredResults:
+    """The labels at ``labels_path`` and the distances and regions beside them, if any."""
+    with np.load(labels_path) as labels:
+        reference_label = np.asarray(labels["reference_label"])
+        scan_label = np.asarray(labels["scan_label"])
+    details: dict[str, NDArray] = {}
+    details_path = labels_path.with_name(DETAILS_FILENAME)
+    if details_path.is_file():
+        with np.load(details_path) as stored:
+            details = {name: np.asarray(stored[name]) for name in stored.files}
+    return StoredResults(
+        reference_label=reference_label,
+        scan_label=scan_label,
+        reference_distance=details.get("reference_distance"),
+        scan_distance=details.get("scan_distance"),
+        reference_region=details.get("reference_region"),
+        scan_region=details.get("scan_region"),
+    )
 
 
 def write_result_files(job: ClaimedJob, settings: Settings, result: Any) -> str:
     """Write ``labels.npz`` and ``details.npz`` atomically; the labels path relative to data_dir."""
-    directory = job_results_dir(settings, job.id)
+    directory = settings.data_layout.job_results_dir(job.id)
     labels_path = directory / LABELS_FILENAME
     write_atomically(labels_path, result.write_labels_npz)
     write_atomically(
@@ -49,9 +82,11 @@ def write_result_files(job: ClaimedJob, settings: Settings, result: Any) -> str:
             path,
             reference_distance=np.asarray(result.reference_distance, dtype=np.float32),
             scan_distance=np.asarray(result.scan_distance, dtype=np.float32),
+            reference_region=np.asarray(result.reference_region, dtype=np.int32),
+            scan_region=np.asarray(result.scan_region, dtype=np.int32),
         ),
     )
-    return labels_path.relative_to(settings.data_dir).as_posix()
+    return settings.data_layout.stored_form(labels_path)
 
 
 def store_results(

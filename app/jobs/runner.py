@@ -8,16 +8,16 @@ runner (:func:`app.jobs.queue.install_job_runner`).
 from __future__ import annotations
 
 from app.config import Settings, get_settings
-from app.db.models import JobStatus
 from app.jobs.execution import execute_job
+from app.jobs.leases import JobOutcome
 from app.jobs.queue import install_job_runner, send_job_message
 
 
-def run_job_once(job_id: str, settings: Settings) -> str:
+def run_job_once(job_id: str, settings: Settings) -> JobOutcome:
     """Run job ``job_id`` if it still needs running; send its message again if it went back to
     ``queued`` (a failed attempt with attempts left).  The outcome of :func:`execute_job`."""
     outcome = execute_job(job_id, settings)
-    if outcome == JobStatus.QUEUED:
+    if outcome == JobOutcome.QUEUED:
         send_job_message(job_id, settings)
     return outcome
 

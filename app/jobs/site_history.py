@@ -51,13 +51,21 @@ def region_count_warning(session: Session, job: Job, n_regions: int) -> dict[str
     limit = max(REGION_COUNT_FACTOR * median, median + REGION_COUNT_MIN_EXCESS)
     if n_regions <= limit:
         return None
-    return {
-        "code": "region_count_above_history",
-        "message": f"{n_regions} regions, far above this site's usual {median:g} (the median of "
-        f"its last {len(history)} comparisons); check the registration and that both scans "
-        "are of this site before trusting them",
+    measured = {
         "value": n_regions,
         "limit": limit,
         "median": median,
         "history_jobs": len(history),
+    }
+    return {
+        "code": "region_count_above_history",
+        "message": f"{n_regions} regions, far above this site's usual {median:g} (the median of "
+        f"its last {len(history)} comparisons).",
+        **measured,
+        "detail": {
+            **measured,
+            "explanation": "so many regions more often come from a bad alignment or a scan of "
+            "another place than from real change",
+        },
+        "how_to_fix": {"action": "check_site_history"},
     }

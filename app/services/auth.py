@@ -26,11 +26,14 @@ from datetime import datetime
 from pathlib import Path
 
 from sqlalchemy import ColumnElement, event, select, update
+from sqlalchemy.dialects.postgresql import insert as postgresql_insert
+from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 from sqlalchemy.orm import Session
 
 from app.clock import iso_utc, utc_now
 from app.config import DEFAULT_TOKEN_CACHE_SECONDS
-from app.db.models import ApiToken, Organisation
+from app.db.models import ApiToken, Organisation, new_id
+from app.kit.data_layout import DataLayout
 from app.services.errors import (
     AuthenticationError,
     ConflictError,
@@ -52,7 +55,6 @@ bound on how long a token revoked behind the service's back (plain SQL) keeps wo
 disables the cache.  The default of the ``token_cache_seconds`` setting
 (``SCANDIFF_TOKEN_CACHE_SECONDS``), which :func:`configure_token_cache` applies at API start."""
 TOKEN_CACHE_MAX_ENTRIES = 4096
-REVOCATIONS_FILE = "token-revocations"
 """In the data directory: one line appended per revocation; its size is the revocation counter
 every process checks (one ``stat``) before trusting its cache."""
 
@@ -75,17 +77,43 @@ def hash_token(token: str) -> str:
     return hashlib.sha256(token.encode("utf-8", "surrogatepass")).hexdigest()
 
 
-def get_or_create_organisation(session: Session, name: str) -> Organisation:
-    """The organisation called ``name``, created if it does not exist."""
+def insert_organisation_if_absent(session: Session, name: str) -> tuple[Organisation, bool]:
+    """The organisation called ``name`` and whether this call created it.
+
+    Safe when several processes create the same organisation at once (replicas starting
+    together on a fresh database): the row is inserted with ``ON CONFLICT DO NOTHING`` on
+    PostgreSQL and SQLite alike, so the loser of the race finds the winner's row instead of
+    failing on ``uq_organisation_name``.  On PostgreSQL the conflicting insert waits for the
+    winner's commit and the re-read (a new statement, a new snapshot in READ COMMITTED) sees it;
+    SQLite transactions are serialised by the engine's ``BEGIN IMMEDIATE``.
+    """
     name = name.strip()
     if not name or len(name) > 200:
         raise ValidationFailedError("organisation name must be 1 to 200 characters")
     organisation = session.scalar(select(Organisation).where(Organisation.name == name))
-    if organisation is None:
-        organisation = Organisation(name=name)
-        session.add(organisation)
-        session.flush()
-    return organisation
+    if organisation is not None:
+        return organisation, False
+    dialect = session.get_bind().dialect.name
+    insert = postgresql_insert if dialect == "postgresql" else sqlite_insert
+    inserted = session.execute(
+        insert(Organisation)
+        .values(id=new_id(), name=name, created_at=utc_now())
+        .on_conflict_do_nothing(index_elements=[Organisation.name])
+        .returning(Organisation.id)
+    ).scalar_one_or_none()
+    organisation = session.scalar(
+        select(Organisation)
+        .where(Organisation.name == name)
+        .execution_options(populate_existing=True)
+    )
+    if organisation is None:  # pragma: no cover - the conflict means the row exists
+        raise ConflictError(f"organisation {name!r} could not be created; try again")
+    return organisation, inserted is not None
+
+
+def get_or_create_organisation(session: Session, name: str) -> Organisation:
+    """The organisation called ``name``, created if it does not exist (race-safe)."""
+    return insert_organisation_if_absent(session, name)[0]
 
 
 def create_token(
@@ -107,7 +135,7 @@ def create_token(
 
 def revocations_path(data_dir: Path) -> Path:
     """The revocation counter file of the service using ``data_dir``."""
-    return data_dir / REVOCATIONS_FILE
+    return DataLayout(data_dir).revocations_file
 
 
 def revocation_counter(path: Path | None) -> int:

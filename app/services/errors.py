@@ -64,7 +64,7 @@ class PayloadTooLargeError(AppError, status_code=413, code="payload_too_large"):
 
 
 class UnsupportedMediaError(AppError, status_code=415, code="unsupported_media_type"):
-    """The content is in no supported format."""
+    """The request's content type is not the one the route takes (a tus PATCH body)."""
 
 
 class ValidationFailedError(AppError, status_code=422, code="validation_error"):

@@ -21,7 +21,7 @@ from sqlalchemy.orm import Session, selectinload
 
 from app.clock import as_utc
 from app.config import Settings
-from app.db.models import IdempotencyRecord, Job, JobStatus, Region, Scan
+from app.db.models import IdempotencyRecord, Job, JobStatus, Region, Scan, Site
 from app.db.session import session_factory
 from app.jobs.queue import enqueue_job
 from app.log import current_request_id
@@ -29,7 +29,7 @@ from app.services import idempotency, quotas, sites
 from app.services.auth import Principal
 from app.services.errors import ValidationFailedError
 from app.services.idempotency import StoredResponse
-from app.services.paging import newest_first_page
+from app.services.paging import DEFAULT_LIMIT, newest_first_page, offset_page
 from app.services.schemas import JobCreate, JobRead, JobRerun
 from app.services.scoping import get_owned, scoped
 from app.services.transaction import after_commit
@@ -234,6 +234,75 @@ def list_site_jobs(
     return newest_first_page(session, statement, Job, limit, cursor)
 
 
+VERDICT_FILTERS = ("confirmed", "false_alarm", "new_reference", "none")
+"""What ``GET /jobs?verdict=`` accepts: a current verdict, or ``none`` (awaiting a verdict)."""
+
+
+def _verdict_of_job() -> Any:
+    """The SQL expression of a job's current verdict name (NULL without one), on any database."""
+    return Job.verdict["verdict"].as_string()
+
+
+def list_jobs(
+    session: Session,
+    principal: Principal,
+    *,
+    site_id: str | None = None,
+    status: JobStatus | None = None,
+    changed: bool | None = None,
+    verdict: str | None = None,
+    created_after: datetime | None = None,
+    created_before: datetime | None = None,
+    limit: int = DEFAULT_LIMIT,
+    cursor: str | None = None,
+) -> tuple[Sequence[Job], str | None]:
+    """The organisation's jobs, newest first, filtered by site, status, decision, verdict and
+    creation time (``created_after`` <= created_at < ``created_before``); one page."""
+    statement = scoped(select(Job), principal)
+    if site_id is not None:
+        statement = statement.where(Job.site_id == sites.get_site(session, principal, site_id).id)
+    if status is not None:
+        statement = statement.where(Job.status == status)
+    if changed is not None:
+        statement = statement.where(Job.changed.is_(changed))
+    if verdict == "none":
+        statement = statement.where(_verdict_of_job().is_(None))
+    elif verdict is not None:
+        statement = statement.where(_verdict_of_job() == verdict)
+    if created_after is not None:
+        statement = statement.where(Job.created_at >= as_utc(created_after))
+    if created_before is not None:
+        statement = statement.where(Job.created_at < as_utc(created_before))
+    statement = statement.options(selectinload(Job.reference_scan), selectinload(Job.scan))
+    return newest_first_page(session, statement, Job, limit, cursor)
+
+
+def awaiting_review_counts(session: Session, principal: Principal) -> list[dict[str, Any]]:
+    """Per site with succeeded jobs awaiting a verdict: its id, name, how many, the newest one's
+    creation time; the sites with the newest waiting job first."""
+    newest = func.max(Job.created_at)
+    statement = scoped(
+        select(Job.site_id, func.count(Job.id), newest)
+        .where(Job.status == JobStatus.SUCCEEDED, _verdict_of_job().is_(None))
+        .group_by(Job.site_id)
+        .order_by(newest.desc(), Job.site_id),
+        principal,
+    )
+    counted = session.execute(statement).all()
+    names = dict(
+        session.execute(
+            scoped(select(Site.id, Site.name), principal).where(
+                Site.id.in_([site_id for site_id, _, _ in counted])
+            )
+        ).all()
+    )
+    return [
+        {"site_id": site_id, "site_name": names.get(site_id), "count": int(count),
+         "newest_at": as_utc(newest_at)}
+        for site_id, count, newest_at in counted
+    ]  # fmt: skip
+
+
 REGION_SORT_KEYS = {
     "ordinal": Region.ordinal,
     "kind": Region.kind,
@@ -253,13 +322,11 @@ def list_regions(
     min_points: int | None = None,
     sort: str = "ordinal",
     descending: bool = False,
-    offset: int = 0,
-    limit: int | None = None,
-) -> tuple[Sequence[Region], int]:
-    """A job's regions, filtered, sorted and paged (empty until it succeeded); and their total.
-
-    Ties keep the job's order; ``limit=None`` returns every region from ``offset``.
-    """
+    limit: int = DEFAULT_LIMIT,
+    cursor: str | None = None,
+) -> tuple[Sequence[Region], str | None, int]:
+    """A job's regions, filtered, sorted, one page (empty until it succeeded); the next cursor
+    and how many match. Ties keep the job's order."""
     if sort not in REGION_SORT_KEYS:
         raise ValidationFailedError(
             f"cannot sort regions by {sort!r}; sort by one of {', '.join(REGION_SORT_KEYS)}",
@@ -274,7 +341,5 @@ def list_regions(
     total = session.scalar(select(func.count()).select_from(statement.subquery())) or 0
     column = REGION_SORT_KEYS[sort]
     statement = statement.order_by(column.desc() if descending else column.asc(), Region.ordinal)
-    statement = statement.offset(offset)
-    if limit is not None:
-        statement = statement.limit(limit)
-    return session.scalars(statement).all(), int(total)
+    rows, next_cursor = offset_page(session, statement, limit, cursor)
+    return rows, next_cursor, int(total)

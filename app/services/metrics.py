@@ -8,7 +8,7 @@ is bounded whatever the number of jobs: one aggregate query per family group, al
 read-only transaction (:data:`QUERIES_PER_SCRAPE`), plus one call to the queue backend.
 Process families (``process_*``, ``python_*``) describe the API process that answered.
 
-Webhook failures are not counted: the service has no webhooks yet.
+Webhook deliveries are not counted here yet; ``GET /webhooks/{id}/deliveries`` lists them.
 """
 
 from __future__ import annotations

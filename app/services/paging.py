@@ -59,3 +59,36 @@ def newest_first_page(
     rows = rows[:limit]
     last = rows[-1]
     return rows, encode_cursor(last.created_at, last.id)
+
+
+def encode_offset_cursor(offset: int) -> str:
+    """The opaque cursor of a list paged by position (a sorted list without a time key)."""
+    payload = json.dumps({"offset": int(offset)}, separators=(",", ":"))
+    return base64.urlsafe_b64encode(payload.encode()).decode().rstrip("=")
+
+
+def decode_offset_cursor(cursor: str) -> int:
+    """The position a cursor of :func:`encode_offset_cursor` points at; 400 when it is not one."""
+    try:
+        padded = cursor + "=" * (-len(cursor) % 4)
+        offset = json.loads(base64.urlsafe_b64decode(padded.encode()))["offset"]
+    except (ValueError, TypeError, KeyError, binascii.Error, UnicodeDecodeError) as exc:
+        raise BadRequestError(
+            "malformed cursor: pass the next_cursor of a previous page", code="bad_cursor"
+        ) from exc
+    if not isinstance(offset, int) or offset < 0:
+        raise BadRequestError(
+            "malformed cursor: pass the next_cursor of a previous page", code="bad_cursor"
+        )
+    return offset
+
+
+def offset_page(
+    session: Session, statement: Select[Any], limit: int, cursor: str | None
+) -> tuple[Sequence[Any], str | None]:
+    """One page of an ordered ``statement`` from the cursor's position, and the next cursor."""
+    offset = decode_offset_cursor(cursor) if cursor else 0
+    rows = session.scalars(statement.offset(offset).limit(limit + 1)).all()
+    if len(rows) <= limit:
+        return rows, None
+    return rows[:limit], encode_offset_cursor(offset + limit)

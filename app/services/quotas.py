@@ -3,7 +3,8 @@
 *Queued jobs* are an organisation's jobs that have not finished (``queued`` or ``running``);
 *stored bytes* are the sizes of its scan files as uploaded (``scan.size_bytes``) and of the k-NN
 geometry cached for the scans compared as references (``scan.geometry_cache_bytes``, written by
-the job workers: :mod:`app.jobs.geometry`).  Result files
+the job workers: :mod:`app.jobs.geometry`), plus the bytes already accepted by the unexpired
+resumable uploads still receiving (:mod:`app.services.resumable_uploads`).  Result files
 (labels, PLY/LAS exports) are not counted: they are derived from the scans, bounded by them and
 deleted with them.
 
@@ -24,7 +25,8 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from app.config import Settings
-from app.db.models import Job, JobStatus, Organisation, Scan
+from app.db import usage
+from app.db.models import Job, JobStatus, Organisation
 from app.services.auth import Principal
 from app.services.errors import InsufficientStorageError, NotFoundError, TooManyRequestsError
 from app.services.scoping import scoped
@@ -47,19 +49,9 @@ class Usage:
 
 
 def lock_organisation(session: Session, principal: Principal) -> None:
-    """Serialise quota checks of one organisation until the transaction ends.
-
-    ``SELECT ... FOR NO KEY UPDATE`` of the organisation row on PostgreSQL: it serialises quota
-    checks but, unlike ``FOR UPDATE``, does not clash with the ``FOR KEY SHARE`` lock that inserting
-    a row referencing the organisation takes (an upload inserts its idempotency record first: with
-    ``FOR UPDATE`` two concurrent uploads deadlocked; tests/reliability/test_scaled_out.py).
-    SQLite has no row locks and needs none (its write transactions are ``BEGIN IMMEDIATE``).
-    """
-    session.execute(
-        select(Organisation.id)
-        .where(Organisation.id == principal.organisation_id)
-        .with_for_update(key_share=True)
-    )
+    """Serialise quota checks of the principal's organisation until the transaction ends
+    (:func:`app.db.usage.lock_organisation`, the lock the job workers take too)."""
+    usage.lock_organisation(session, principal.organisation_id)
 
 
 def queued_jobs(session: Session, principal: Principal) -> int:
@@ -70,10 +62,10 @@ def queued_jobs(session: Session, principal: Principal) -> int:
 
 
 def stored_bytes(session: Session, principal: Principal) -> int:
-    """Bytes of the organisation's scan files and of their cached reference geometry."""
-    stored = func.sum(Scan.size_bytes + Scan.geometry_cache_bytes)
-    total = session.scalar(scoped(select(func.coalesce(stored, 0)), principal))
-    return int(total or 0)
+    """Bytes of the organisation's scan files, their cached reference geometry and its
+    resumable uploads in progress (:func:`app.db.usage.stored_bytes`, the sum the job workers
+    count too)."""
+    return usage.stored_bytes(session, principal.organisation_id)
 
 
 def queued_jobs_message(queued: int, cap: int) -> str:

@@ -3,14 +3,17 @@
 ``npz`` is the worker's file as written (exactly the arrays of ``scandiff compare --labels``:
 ``reference_changed, scan_changed, reference_label, scan_label``, one entry per source row).
 ``ply``/``las`` hold the finite points of both clouds in the reference's file frame (the scan
-moved by the job's registration) with per-point fields ``cloud`` (0 reference, 1 scan),
-``label`` (1 changed, 0 unchanged, -1 unobserved) and ``distance`` (NaN where unknown).  They
+moved by the job's registration) with the per-point fields of ``scandiff compare --export``
+(:func:`app.core.pair_export.both_clouds`): ``cloud`` (0 reference, 1 scan), ``label`` (1
+changed, 0 unchanged, -1 unobserved), ``distance`` (NaN where unknown) and ``region`` (the
+region's index, -1: none or a job from before regions were kept per point).  They
 are built on first request, outside any transaction, and kept next to the labels.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,16 +22,15 @@ import numpy as np
 from sqlalchemy.orm import Session
 
 from app.config import Settings
+from app.core.pair_export import both_clouds
 from app.core.registration import apply_transform
 from app.db.models import JobStatus, new_id
+from app.jobs.results import read_result_files
 from app.services import jobs, scans, storage
 from app.services.auth import Principal
 from app.services.errors import ConflictError, NotFoundError
 from app.services.scans import PARSE_SLOTS, DownloadFile
 from app.services.transaction import end_read_transaction
-
-LABEL_FORMATS = ("npz", "ply", "las")
-DETAILS_FILE = "details.npz"
 
 
 @dataclass(frozen=True)
@@ -40,12 +42,10 @@ class CloudSource:
     filename: str
 
 
-def _load_cloud_fields(
-    cloud_source: CloudSource,
-    labels: np.ndarray,
-    distances: np.ndarray | None,
-    max_points: int,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _cloud_in_file_order(
+    cloud_source: CloudSource, labels: np.ndarray, max_points: int
+) -> tuple[np.ndarray, Callable[[np.ndarray | None], np.ndarray | None]]:
+    """The cloud's points and a function putting a per-source-row array in their order."""
     from app.core.formats import read_point_cloud
 
     cloud = read_point_cloud(
@@ -59,12 +59,13 @@ def _load_cloud_fields(
             f"the job's labels have {labels.shape[0]} entries but {cloud_source.filename} has "
             f"{cloud.n_source} points; the stored results do not match the scan"
         )
-    point_labels = cloud.from_source_order(labels).astype(np.int8)
-    if distances is not None and distances.shape == (cloud.n_source,):
-        point_distances = cloud.from_source_order(distances).astype(np.float32)
-    else:
-        point_distances = np.full(len(cloud), np.nan, dtype=np.float32)
-    return cloud.points, point_labels, point_distances
+
+    def in_point_order(values: np.ndarray | None) -> np.ndarray | None:
+        if values is None or values.shape != (cloud.n_source,):
+            return None  # older results: the export fills in NaN / -1
+        return cloud.from_source_order(values)
+
+    return cloud.points, in_point_order
 
 
 def _scan_to_reference_frame(points: np.ndarray, registration: dict[str, Any] | None) -> np.ndarray:
@@ -83,34 +84,25 @@ def build_labels_cloud(
     registration: dict[str, Any] | None,
     settings: Settings,
 ) -> None:
-    """Write both clouds with ``cloud``, ``label`` and ``distance`` fields to ``target``."""
+    """Write both clouds with ``cloud``, ``label``, ``distance`` and ``region`` to ``target``."""
     from app.core.formats import write_point_cloud
 
     with PARSE_SLOTS:
-        with np.load(labels_path) as labels_file:
-            reference_label = np.asarray(labels_file["reference_label"])
-            scan_label = np.asarray(labels_file["scan_label"])
-        details_path = labels_path.parent / DETAILS_FILE
-        reference_distance = scan_distance = None
-        if details_path.is_file():
-            with np.load(details_path) as details_file:
-                reference_distance = np.asarray(details_file["reference_distance"])
-                scan_distance = np.asarray(details_file["scan_distance"])
-        reference_points, reference_labels, reference_distances = _load_cloud_fields(
-            reference, reference_label, reference_distance, settings.max_points
+        stored = read_result_files(labels_path)
+        reference_points, reference_order = _cloud_in_file_order(
+            reference, stored.reference_label, settings.max_points
         )
-        scan_points, scan_labels, scan_distances = _load_cloud_fields(
-            scan, scan_label, scan_distance, settings.max_points
-        )
-        scan_points = _scan_to_reference_frame(scan_points, registration)
-        points = np.vstack([reference_points, scan_points])
-        fields = {
-            "cloud": np.concatenate(
-                [np.zeros(len(reference_points), np.uint8), np.ones(len(scan_points), np.uint8)]
+        scan_points, scan_order = _cloud_in_file_order(scan, stored.scan_label, settings.max_points)
+        points, fields = both_clouds(
+            reference_points,
+            _scan_to_reference_frame(scan_points, registration),
+            labels=(reference_order(stored.reference_label), scan_order(stored.scan_label)),
+            distances=(
+                reference_order(stored.reference_distance),
+                scan_order(stored.scan_distance),
             ),
-            "label": np.concatenate([reference_labels, scan_labels]),
-            "distance": np.concatenate([reference_distances, scan_distances]),
-        }
+            regions=(reference_order(stored.reference_region), scan_order(stored.scan_region)),
+        )
         temporary = target.parent / f".{target.name}.{os.getpid()}-{new_id()}.tmp"
         try:
             write_point_cloud(temporary, points, fields, format=file_format)
@@ -129,7 +121,7 @@ def labels_file(
             f"job {job.id} is {job.status}; its labels exist once it has succeeded",
             code="job_not_succeeded",
         )
-    labels_path = storage.resolve_data_path(settings, job.labels_path)
+    labels_path = storage.stored_file(settings, job.labels_path)
     if not labels_path.is_file():
         raise NotFoundError(f"the labels of job {job.id} are missing from storage")
     download_name = f"{job.id}-labels.{file_format}"
@@ -139,12 +131,12 @@ def labels_file(
     reference_scan = scans.get_scan(session, principal, job.reference_scan_id)
     scan = scans.get_scan(session, principal, job.scan_id)
     reference = CloudSource(
-        path=storage.resolve_data_path(settings, reference_scan.storage_path),
+        path=storage.stored_file(settings, reference_scan.storage_path),
         format=reference_scan.format,
         filename=reference_scan.filename,
     )
     compared = CloudSource(
-        path=storage.resolve_data_path(settings, scan.storage_path),
+        path=storage.stored_file(settings, scan.storage_path),
         format=scan.format,
         filename=scan.filename,
     )

@@ -15,11 +15,12 @@ the rolled-back transaction.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import threading
 from collections.abc import AsyncIterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Protocol
 
 import anyio
 from sqlalchemy import select
@@ -113,7 +114,7 @@ def _key_was_used(session: Session, principal: Principal, key: str | None) -> bo
     return session.scalar(used) is not None
 
 
-def _check_upload_target(
+def check_upload_target(
     session: Session, settings: Settings, principal: Principal, options: UploadOptions
 ) -> int | None:
     """Site, reference, detector and storage quota before the body is read; the storage left."""
@@ -187,6 +188,50 @@ def scan_row(
         bbox_min=parsed.bbox_min,
         bbox_max=parsed.bbox_max,
         sensor_origin=sensor_origin or parsed.sensor_origin,
+    )
+
+
+def store_scan_file(
+    session: Session,
+    settings: Settings,
+    principal: Principal,
+    *,
+    site_id: str,
+    received: storage.ReceivedFile,
+    filename: str | None,
+    sensor_origin: SensorOrigin | None = None,
+    trajectory: trajectories.TrajectoryUpload | None = None,
+) -> Scan:
+    """Parse a received file with the core, rename it into place and build its row (not added).
+
+    The one way a received scan is stored, for uploads and schedule runs alike: the file goes
+    under the data layout's scan path, and is removed again if ``session`` rolls back.  Slow
+    (parsing): call it with no transaction open.
+    """
+    parsed = parse_upload(received.path, filename, received.head, settings.max_points)
+    check_stations_match(sensor_origin, parsed.n_stations)
+    # a trajectory sent with it is checked before anything is stored, then kept beside it
+    checked = (
+        None if trajectory is None else trajectory.checked_against(received.path, parsed.format)
+    )
+    scan_id = new_id()
+    storage_path = settings.data_layout.scan_storage_path(site_id, scan_id, parsed.format)
+    final_path = settings.data_layout.resolve(storage_path)
+    storage.install_file(received.path, final_path)
+    after_rollback(session, lambda: storage.remove_file(final_path))
+    if checked is not None:
+        saved = trajectories.trajectory_path(final_path)
+        trajectories.save_trajectory(saved, checked)
+        after_rollback(session, lambda: storage.remove_file(saved))
+    return scan_row(
+        principal,
+        scan_id=scan_id,
+        site_id=site_id,
+        filename=filename,
+        storage_path=storage_path,
+        received=received,
+        parsed=parsed,
+        sensor_origin=sensor_origin,
     )
 
 
@@ -270,7 +315,7 @@ async def upload_scan(
     key = idempotency.validate_key(options.idempotency_key)
     keyed_options = dataclasses.replace(options, idempotency_key=key)
     remaining = await anyio.to_thread.run_sync(
-        _check_upload_target, session, settings, principal, keyed_options
+        check_upload_target, session, settings, principal, keyed_options
     )
     chunks = body.chunks()
     cap = settings.max_stored_bytes_per_organisation
@@ -278,84 +323,73 @@ async def upload_scan(
         chunks = _within_storage_left(chunks, remaining, cap)
     received = await storage.receive_stream(chunks, settings, settings.max_upload_bytes)
     try:
-        filename = storage.sanitise_filename(options.filename or body.filename)
-        fingerprint = idempotency.request_fingerprint(
-            "POST",
-            f"/api/v1/sites/{options.site_id}/scans",
-            {
-                "reference": options.reference,
-                "filename": filename,
-                "method": options.method,
-                "variant": options.variant,
-                "sensor_origin": options.sensor_origin,
-                "sha256": received.sha256,
-                "trajectory": trajectories.parts_digest(body, options.trajectory_rate),
-            },
+        trajectory = trajectories.upload_of(
+            body, options.trajectory_rate, options.trajectory_format
         )
-        if key is not None:
-            stored = await anyio.to_thread.run_sync(
-                _find_replay, session, principal, key, fingerprint
-            )
-            if stored is not None:
-                return stored
-        await anyio.to_thread.run_sync(
-            _check_stored_bytes, session, settings, principal, received.size_bytes
+        return await store_received_scan(
+            session, settings, principal, keyed_options, received, body.filename, trajectory
         )
-        parsed = await anyio.to_thread.run_sync(
-            parse_upload, received.path, filename, received.head, settings.max_points
-        )
-        check_stations_match(options.sensor_origin, parsed.n_stations)
-        trajectory = await anyio.to_thread.run_sync(
-            _upload_trajectory, body, options, received.path, parsed.format
-        )
-        scan_id = new_id()
-        storage_path = storage.scan_storage_path(options.site_id, scan_id, parsed.format)
-        final_path = storage.resolve_data_path(settings, storage_path)
-        await anyio.to_thread.run_sync(storage.install_file, received.path, final_path)
-        after_rollback(session, lambda: storage.remove_file(final_path))
-        if trajectory is not None:
-            saved = trajectories.trajectory_path(final_path)
-            await anyio.to_thread.run_sync(trajectories.save_trajectory, saved, trajectory)
-            after_rollback(session, lambda: storage.remove_file(saved))
-        scan = scan_row(
-            principal,
-            scan_id=scan_id,
-            site_id=options.site_id,
-            filename=filename,
-            storage_path=storage_path,
-            received=received,
-            parsed=parsed,
-            sensor_origin=options.sensor_origin,
-        )
-        response, created = await anyio.to_thread.run_sync(
-            _register_upload, session, settings, principal, keyed_options, fingerprint, scan
-        )
-        if not created:
-            storage.remove_file(final_path)
-            storage.remove_file(trajectories.trajectory_path(final_path))
-        return response
     finally:
         storage.remove_file(received.path)  # gone already when it was installed
 
 
-def _upload_trajectory(
-    body: UploadBody, options: UploadOptions, path: Path, file_format: str
-) -> Any:
-    """The upload's ``trajectory`` part parsed and checked against the scan (None without)."""
-    parts = getattr(body, "parts", {})
-    data, times = parts.get("trajectory"), parts.get("trajectory_times")
-    trajectories.check_times_without_trajectory(data is not None, times, options.trajectory_rate)
-    if data is None:
-        return None
-    trajectory = trajectories.parse_trajectory(
-        bytes(data),
-        getattr(body, "part_filenames", {}).get("trajectory"),
-        times=None if times is None else bytes(times),
-        rate=options.trajectory_rate,
-        trajectory_format=options.trajectory_format,
+async def store_received_scan(
+    session: Session,
+    settings: Settings,
+    principal: Principal,
+    options: UploadOptions,
+    received: storage.ReceivedFile,
+    body_filename: str | None = None,
+    trajectory: trajectories.TrajectoryUpload | None = None,
+) -> StoredResponse:
+    """Make a received file a scan (and its job): quota, parse, install, register.
+
+    The second half of every upload, the normal one and a completed resumable one; the caller
+    removes ``received.path`` afterwards (it is gone already when it was installed).
+    """
+    key = options.idempotency_key
+    filename = storage.sanitise_filename(options.filename or body_filename)
+    fingerprint = idempotency.request_fingerprint(
+        "POST",
+        f"/api/v1/sites/{options.site_id}/scans",
+        {
+            "reference": options.reference,
+            "filename": filename,
+            "method": options.method,
+            "variant": options.variant,
+            "sensor_origin": options.sensor_origin,
+            "sha256": received.sha256,
+            **({} if trajectory is None else {"trajectory": trajectory.digest()}),
+        },
     )
-    trajectories.check_fits(path, file_format, trajectory)
-    return trajectory
+    if key is not None:
+        stored = await anyio.to_thread.run_sync(_find_replay, session, principal, key, fingerprint)
+        if stored is not None:
+            return stored
+    await anyio.to_thread.run_sync(
+        _check_stored_bytes, session, settings, principal, received.size_bytes
+    )
+    scan = await anyio.to_thread.run_sync(
+        functools.partial(
+            store_scan_file,
+            session,
+            settings,
+            principal,
+            site_id=options.site_id,
+            received=received,
+            filename=filename,
+            sensor_origin=options.sensor_origin,
+            trajectory=trajectory,
+        )
+    )
+    response, created = await anyio.to_thread.run_sync(
+        _register_upload, session, settings, principal, options, fingerprint, scan
+    )
+    if not created:
+        scan_path = settings.data_layout.resolve(scan.storage_path)
+        storage.remove_file(scan_path)
+        storage.remove_file(trajectories.trajectory_path(scan_path))
+    return response
 
 
 def get_scan(session: Session, principal: Principal, scan_id: str) -> Scan:
@@ -377,7 +411,7 @@ def scan_file(
 ) -> DownloadFile:
     """The original bytes of a scan as uploaded."""
     scan = get_scan(session, principal, scan_id)
-    path = storage.resolve_data_path(settings, scan.storage_path)
+    path = storage.stored_file(settings, scan.storage_path)
     if not path.is_file():
         raise NotFoundError(f"the file of scan {scan_id} is missing from storage")
     return DownloadFile(path=path, filename=scan.filename)

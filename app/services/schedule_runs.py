@@ -15,10 +15,14 @@ its run row is inserted first, in its own committed transaction, and the unique
 ``(schedule_id, period_start)`` makes every other claimant's insert fail, so it leaves.  The
 run then takes its scan (the newest that arrived since the last run, or a file its directory or
 URL source yields, stored as an upload would be), compares it with the site's reference through
-:func:`app.services.jobs.new_job` (an upload's own job for the same pair is reused), and with
-the previous scan too when ``compare_previous`` is set.  A period without a new scan is
-``missed`` and publishes ``schedule.missed``; a site with no scan for ``stale_after_seconds``
-publishes ``site.stale`` once per stale spell (until a scan arrives).
+:func:`app.services.jobs.new_job` with the schedule's detector (an existing job of the same pair
+is reused only when its method, variant and parameters are the same), and with the previous
+scan too when ``compare_previous`` is set.  A manual run ("run now") of an ``uploads`` schedule
+compares the site's newest scan at once, even one that arrived before the schedule.  A period
+without a scan to compare is ``missed``, with a ``reason`` saying why; ``schedule.missed`` is
+published once per missed spell (until a run compares), and a site with no scan for
+``stale_after_seconds`` publishes ``site.stale`` once per stale spell (until a scan arrives).
+Both events, like the job events, name the site (``site: {id, name}``).
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ from sqlalchemy.orm import Session
 from app.clock import as_utc, iso_utc, utc_now
 from app.config import Settings
 from app.db.events import publish_event
-from app.db.models import Job, Scan, Schedule, ScheduleRun, Site
+from app.db.models import Job, Scan, Schedule, ScheduleRun, ScheduleRunStatus, Site
 from app.db.session import session_factory
 from app.services import jobs, schedule_ingest, schedule_sources, sites, storage
 from app.services.auth import Principal
@@ -63,9 +67,9 @@ class TickReport:
     skipped: int = 0
     stale: int = 0
 
-    def add(self, status: str, run_id: str) -> None:
+    def add(self, status: ScheduleRunStatus | str, run_id: str) -> None:
         """Count run ``run_id`` under ``status``."""
-        self.runs.setdefault(status, []).append(run_id)
+        self.runs.setdefault(str(status), []).append(run_id)
 
 
 @contextmanager
@@ -100,7 +104,11 @@ def schedule_principal(schedule: Schedule) -> Principal:
 
 
 def claim_period(
-    settings: Settings, schedule_id: str, period_start: datetime, kind: str, status: str
+    settings: Settings,
+    schedule_id: str,
+    period_start: datetime,
+    kind: str,
+    status: ScheduleRunStatus,
 ) -> str | None:
     """Insert and commit the run row of a period; None when another claimant has it."""
     try:
@@ -115,7 +123,7 @@ def claim_period(
                 kind=kind,
                 status=status,
                 created_at=utc_now(),
-                finished_at=utc_now() if status == "skipped" else None,
+                finished_at=utc_now() if status == ScheduleRunStatus.SKIPPED else None,
             )
             session.add(run)
             session.flush()
@@ -144,7 +152,9 @@ def record_skipped(settings: Settings, schedule_id: str, starts: list[datetime])
                 schedule_id=schedule.id,
                 period_start=as_utc(start),
                 kind="scheduled",
-                status="skipped",
+                status=ScheduleRunStatus.SKIPPED,
+                reason=f"skipped by the catch-up policy {schedule.catch_up!r}: the scheduler "
+                "was not running when the period started",
                 created_at=utc_now(),
                 finished_at=utc_now(),
             )
@@ -179,36 +189,85 @@ def _fetch(settings: Settings, schedule: Schedule) -> tuple[ReceivedFile, str, A
 
 
 def _newest_upload(
-    session: Session, schedule: Schedule, site: Site, until: datetime
+    session: Session, schedule: Schedule, site: Site, until: datetime, *, any_age: bool = False
 ) -> Scan | None:
-    since = as_utc(schedule.last_scan_at or schedule.created_at)
+    """The newest scan of the site (not its reference) that arrived before ``until`` and, unless
+    ``any_age`` (a manual run), after the last one this schedule compared."""
     statement = (
         select(Scan)
-        .where(Scan.site_id == site.id, Scan.created_at > since, Scan.created_at <= until)
+        .where(Scan.site_id == site.id, Scan.created_at <= until)
         .order_by(Scan.created_at.desc(), Scan.id.desc())
         .limit(1)
     )
+    if not any_age:
+        since = as_utc(schedule.last_scan_at or schedule.created_at)
+        statement = statement.where(Scan.created_at > since)
     if site.reference_scan_id is not None:
         statement = statement.where(Scan.id != site.reference_scan_id)
     return session.scalar(statement)
 
 
+def _missed_reason(schedule: Schedule, site: Site, run: ScheduleRun, until: datetime) -> str:
+    """Why run ``run`` had no scan to compare, in one sentence that says what to do."""
+    kind = schedule.source.get("kind")
+    if kind == "directory":
+        return (
+            f"no new file in {schedule.source['directory']} since the last one taken: drop the "
+            "next scan there (copy it under a *.part name and rename it when complete)"
+        )
+    if kind == "url":
+        return (
+            f"{schedule.source['url']} served the same file as the last run (same SHA-256): "
+            "publish the next scan there"
+        )
+    if run.kind == "manual":
+        return (
+            f"site {site.name!r} has no scan besides its reference: upload one with "
+            f"POST /api/v1/sites/{site.id}/scans"
+        )
+    since = as_utc(schedule.last_scan_at or schedule.created_at)
+    return (
+        f"no scan of site {site.name!r} arrived between {iso_utc(since)} and {iso_utc(until)}: "
+        f"upload one with POST /api/v1/sites/{site.id}/scans, or run the schedule now "
+        f"(POST /api/v1/schedules/{schedule.id}/run) to compare the newest scan"
+    )
+
+
+def _existing_job(
+    session: Session,
+    site: Site,
+    reference: str,
+    scan: str,
+    detector: tuple[str, str, dict[str, Any]],
+) -> Job | None:
+    """The newest job of the pair that ran ``detector`` (method, variant and parameters)."""
+    method, variant, params = detector
+    candidates = session.scalars(
+        select(Job)
+        .where(
+            Job.site_id == site.id,
+            Job.reference_scan_id == reference,
+            Job.scan_id == scan,
+            Job.method == method,
+            Job.variant == variant,
+        )
+        .order_by(Job.created_at.desc())
+    ).all()
+    return next((job for job in candidates if (job.params or {}) == params), None)
+
+
 def _job_for(
     session: Session, settings: Settings, schedule: Schedule, site: Site, reference: str, scan: str
 ) -> Job:
-    """The job comparing ``scan`` with ``reference``: an existing one, else a new one."""
-    existing = session.scalar(
-        select(Job)
-        .where(Job.site_id == site.id, Job.reference_scan_id == reference, Job.scan_id == scan)
-        .order_by(Job.created_at.desc())
-        .limit(1)
-    )
-    if existing is not None:
-        return existing
+    """The job comparing ``scan`` with ``reference`` by the schedule's detector: an existing one
+    with the same method, variant and parameters (an upload's own job), else a new one."""
     detector = schedule.detector or {}
     method, variant, params = sites.resolve_detector(
         site, detector.get("method"), detector.get("variant"), detector.get("params")
     )
+    existing = _existing_job(session, site, reference, scan, (method, variant, params))
+    if existing is not None:
+        return existing
     return jobs.new_job(
         session,
         settings,
@@ -246,13 +305,31 @@ def _compare(
         if previous is not None and previous.id != site.reference_scan_id:
             run.trend_job_id = _job_for(session, settings, schedule, site, previous.id, scan.id).id
     run.scan_id = scan.id
-    run.status = "compared"
-    schedule.last_scan_id = scan.id
-    schedule.last_scan_at = as_utc(scan.created_at)
+    run.status = ScheduleRunStatus.COMPARED
+    run.reason = None
+    schedule.missed_since = None  # a comparison ends the missed spell
+    last_at = as_utc(schedule.last_scan_at) if schedule.last_scan_at is not None else None
+    if last_at is None or as_utc(scan.created_at) >= last_at:
+        schedule.last_scan_id = scan.id
+        schedule.last_scan_at = as_utc(scan.created_at)
 
 
-def _finish_missed(session: Session, schedule: Schedule, run: ScheduleRun) -> None:
-    run.status = "missed"
+def site_of_event(site: Site | None, site_id: str) -> dict[str, Any]:
+    """The site as an event body names it (as the job events do): ``{"id", "name"}``."""
+    return {"id": site_id, "name": site.name if site is not None else None}
+
+
+def _finish_missed(session: Session, schedule: Schedule, run: ScheduleRun, reason: str) -> None:
+    """Record ``run`` missed with ``reason``; publish ``schedule.missed`` once per missed spell."""
+    run.status = ScheduleRunStatus.MISSED
+    run.reason = reason
+    claimed = session.execute(
+        update(Schedule)
+        .where(Schedule.id == schedule.id, Schedule.missed_since.is_(None))
+        .values(missed_since=as_utc(run.period_start))
+    )
+    if claimed.rowcount != 1:  # type: ignore[attr-defined]
+        return  # the spell's event was published already
     publish_event(
         session,
         organisation_id=schedule.organisation_id,
@@ -260,8 +337,10 @@ def _finish_missed(session: Session, schedule: Schedule, run: ScheduleRun) -> No
         payload={
             "schedule_id": schedule.id,
             "site_id": schedule.site_id,
+            "site": site_of_event(session.get(Site, schedule.site_id), schedule.site_id),
             "run_id": run.id,
             "period_start": iso_utc(run.period_start),
+            "reason": reason,
         },
     )
 
@@ -270,7 +349,7 @@ def _record_failure(settings: Settings, run_id: str, error: str) -> None:
     with unit_of_work(settings) as session:
         run = session.get(ScheduleRun, run_id)
         if run is not None:
-            run.status = "failed"
+            run.status = ScheduleRunStatus.FAILED
             run.error = error[:2000]
             run.finished_at = utc_now()
 
@@ -317,12 +396,14 @@ def complete_period(settings: Settings, run_id: str) -> ScheduleRun:
             run = session.get_one(ScheduleRun, run_id)
             # Locked: runs of one schedule finish one at a time, each seeing the last's marks.
             schedule = session.get_one(Schedule, schedule.id, with_for_update=True)
+            site = session.get_one(Site, schedule.site_id)
+            until = as_utc(run.period_start) if run.kind == "scheduled" else utc_now()
             if schedule.source.get("kind") == "uploads":
-                site = session.get_one(Site, schedule.site_id)
-                until = as_utc(run.period_start) if run.kind == "scheduled" else utc_now()
-                scan = _newest_upload(session, schedule, site, until)
+                # "Run now" compares at once: the newest scan, even one older than the schedule.
+                manual = run.kind == "manual"
+                scan = _newest_upload(session, schedule, site, until, any_age=manual)
             if scan is None:
-                _finish_missed(session, schedule, run)
+                _finish_missed(session, schedule, run, _missed_reason(schedule, site, run, until))
             else:
                 _compare(session, settings, schedule, run, scan)
             run.finished_at = utc_now()
@@ -337,7 +418,7 @@ def complete_period(settings: Settings, run_id: str) -> ScheduleRun:
 
 def run_manual(settings: Settings, schedule_id: str) -> ScheduleRun:
     """Run a schedule now, outside its rhythm (its source's refusals are raised)."""
-    run_id = claim_period(settings, schedule_id, utc_now(), "manual", "running")
+    run_id = claim_period(settings, schedule_id, utc_now(), "manual", ScheduleRunStatus.RUNNING)
     if run_id is None:
         raise NotFoundError(f"schedule {schedule_id} not found")
     return complete_period(settings, run_id)
@@ -362,9 +443,9 @@ def _tick_schedule(
     to_run, to_skip = plan_periods(schedule, now)
     for run_id in record_skipped(settings, schedule.id, to_skip):
         report.skipped += 1
-        report.add("skipped", run_id)
+        report.add(ScheduleRunStatus.SKIPPED, run_id)
     for start in to_run:
-        run_id = claim_period(settings, schedule.id, start, "scheduled", "running")
+        run_id = claim_period(settings, schedule.id, start, "scheduled", ScheduleRunStatus.RUNNING)
         if run_id is None:
             continue
         try:
@@ -373,7 +454,7 @@ def _tick_schedule(
             logger.warning(
                 "schedule run failed: %s", exc, extra={"schedule_id": schedule.id, "run_id": run_id}
             )
-            report.add("failed", run_id)
+            report.add(ScheduleRunStatus.FAILED, run_id)
             continue
         report.add(run.status, run_id)
 
@@ -406,6 +487,7 @@ def check_stale(settings: Settings, schedule_id: str, now: datetime) -> bool:
             event_type="site.stale",
             payload={
                 "site_id": schedule.site_id,
+                "site": site_of_event(session.get(Site, schedule.site_id), schedule.site_id),
                 "schedule_id": schedule.id,
                 "last_scan_at": iso_utc(last_arrival) if newest is not None else None,
                 "stale_after_seconds": schedule.stale_after_seconds,
@@ -435,15 +517,18 @@ def fail_abandoned_runs(settings: Settings) -> list[str]:
     with unit_of_work(settings) as session:
         abandoned = session.scalars(
             select(ScheduleRun.id).where(
-                ScheduleRun.status == "running", ScheduleRun.created_at < claimed_before
+                ScheduleRun.status == ScheduleRunStatus.RUNNING,
+                ScheduleRun.created_at < claimed_before,
             )
         ).all()
         if abandoned:
             session.execute(
                 update(ScheduleRun)
-                .where(ScheduleRun.id.in_(abandoned), ScheduleRun.status == "running")
+                .where(
+                    ScheduleRun.id.in_(abandoned), ScheduleRun.status == ScheduleRunStatus.RUNNING
+                )
                 .values(
-                    status="failed",
+                    status=ScheduleRunStatus.FAILED,
                     error="interrupted: the process running it stopped before it finished; "
                     "the period is not run again (run the schedule now to compare at once)",
                     finished_at=now,
@@ -457,7 +542,7 @@ def tick(settings: Settings, now: datetime | None = None) -> TickReport:
     now = as_utc(now or utc_now())
     report = TickReport()
     for run_id in fail_abandoned_runs(settings):
-        report.add("failed", run_id)
+        report.add(ScheduleRunStatus.FAILED, run_id)
     with unit_of_work(settings) as session:
         schedules = session.scalars(
             select(Schedule).where(Schedule.enabled.is_(True)).order_by(Schedule.created_at)

@@ -6,6 +6,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, Field, StringConstraints
 
+from app.db.models import ScheduleRunStatus
 from app.services.schemas import DetectorConfig, RowRead, StrictBody, UtcDatetime
 
 CatchUp = Literal["latest", "each", "none"]
@@ -74,6 +75,11 @@ class ScheduleRead(BaseModel):
     last_period_start: UtcDatetime | None
     next_run_at: UtcDatetime | None
     stale_since: UtcDatetime | None
+    missed_since: UtcDatetime | None = Field(
+        default=None,
+        description="Start of the current spell of missed periods (schedule.missed was sent "
+        "for it); null once a run compares.",
+    )
     created_at: UtcDatetime
 
 
@@ -84,10 +90,14 @@ class ScheduleRunRead(RowRead):
     schedule_id: str
     period_start: UtcDatetime
     kind: Literal["scheduled", "manual"]
-    status: Literal["running", "compared", "missed", "skipped", "failed"]
+    status: ScheduleRunStatus
     scan_id: str | None
     job_id: str | None
     trend_job_id: str | None
     error: str | None
+    reason: str | None = Field(
+        default=None,
+        description="Why a missed or skipped run compared nothing, and what to do about it.",
+    )
     created_at: UtcDatetime
     finished_at: UtcDatetime | None

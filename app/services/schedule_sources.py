@@ -6,10 +6,11 @@
   roots once symlinks are resolved, and a file that is a symlink out of the roots or larger
   than the upload cap are refused (422 / 413) when the schedule is created and when it runs.
 * ``{"url": "https://..."}``: fetched by the run with plain GET, no redirects, within the
-  upload cap and ``SCANDIFF_SCHEDULE_FETCH_TIMEOUT_SECONDS``.  The host is resolved and every
-  address checked: loopback, private, link-local, multicast and reserved addresses are refused
-  unless ``SCANDIFF_SCHEDULE_ALLOW_PRIVATE_URLS`` is set, and the connection goes to an address
-  that was checked (a DNS answer that changes between check and connect cannot redirect it).
+  upload cap and ``SCANDIFF_SCHEDULE_FETCH_TIMEOUT_SECONDS``.  The URL is checked by the rule
+  webhooks use too (:func:`app.kit.net.check_url`: every address the host resolves to, refused
+  address classes unless ``SCANDIFF_ALLOW_PRIVATE_ADDRESSES`` is set), and the connection goes
+  to an address that was checked (a DNS answer that changes between check and connect cannot
+  redirect it).
 
 A fetched file is received exactly as an upload body (:func:`app.services.storage.receive_stream`:
 the size cap, SHA-256 and temporary file) before :mod:`app.services.schedule_ingest` stores it.
@@ -18,25 +19,23 @@ the size cap, SHA-256 and temporary file) before :mod:`app.services.schedule_ing
 from __future__ import annotations
 
 import http.client
-import ipaddress
 import os
-import socket
 import time
 from collections.abc import AsyncIterator, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit
 
 import anyio
 
 from app.config import Settings
+from app.kit import net
+from app.kit.net import UrlTarget
 from app.services import storage
 from app.services.errors import PayloadTooLargeError, ValidationFailedError
 from app.services.storage import ReceivedFile
 
 CHUNK_BYTES = 1024 * 1024
-URL_SCHEMES = ("http", "https")
 IGNORED_SUFFIXES = (".part", ".tmp", ".partial")
 """Files still being written by the scanner's copy (by convention) are not taken."""
 
@@ -163,79 +162,14 @@ def receive_directory_file(settings: Settings, found: DirectoryFile) -> Received
     )
 
 
-def _forbidden_address(address: str) -> bool:
-    ip = ipaddress.ip_address(address.split("%", 1)[0])
-    if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:
-        ip = ip.ipv4_mapped
-    return (
-        ip.is_loopback
-        or ip.is_private
-        or ip.is_link_local
-        or ip.is_multicast
-        or ip.is_reserved
-        or ip.is_unspecified
-    )
-
-
-@dataclass(frozen=True)
-class UrlTarget:
-    """A checked URL: where to connect and what to ask for."""
-
-    scheme: str
-    host: str
-    port: int
-    path: str
-    address: str
-
-
 def check_url(settings: Settings, url: str) -> UrlTarget:
-    """``url`` checked (scheme, host, every address it resolves to); 422 otherwise."""
+    """``url`` checked by the one outgoing-URL rule (:func:`app.kit.net.check_url`); else 422."""
     try:
-        parts = urlsplit(url)
-        port = parts.port
-    except ValueError as exc:
-        raise source_error(f"url {url!r} is not a valid URL ({exc})", code="invalid_url") from exc
-    if parts.scheme not in URL_SCHEMES or not parts.hostname:
-        raise source_error(
-            f"url {url!r} must be an http:// or https:// URL with a host", code="invalid_url"
-        )
-    port = port or (443 if parts.scheme == "https" else 80)
-    try:
-        infos = socket.getaddrinfo(parts.hostname, port, type=socket.SOCK_STREAM)
-    except (OSError, ValueError) as exc:
-        raise source_error(
-            f"url {url!r}: host {parts.hostname!r} cannot be resolved ({exc})", code="invalid_url"
-        ) from exc
-    addresses = [str(info[4][0]) for info in infos]
-    if not settings.schedule_allow_private_urls:
-        forbidden = sorted({address for address in addresses if _forbidden_address(address)})
-        if forbidden:
-            raise source_error(
-                f"url {url!r} resolves to a loopback, private or link-local address "
-                f"({', '.join(forbidden)}); give a public address (the operator may allow "
-                "private ones with SCANDIFF_SCHEDULE_ALLOW_PRIVATE_URLS)",
-                code="forbidden_url_address",
-            )
-    path = parts.path or "/"
-    if parts.query:
-        path = f"{path}?{parts.query}"
-    return UrlTarget(parts.scheme, parts.hostname, port, path, addresses[0])
-
-
-def _connection(target: UrlTarget, timeout: float) -> http.client.HTTPConnection:
-    connection: http.client.HTTPConnection
-    if target.scheme == "https":
-        connection = http.client.HTTPSConnection(target.host, target.port, timeout=timeout)
-    else:
-        connection = http.client.HTTPConnection(target.host, target.port, timeout=timeout)
-
-    def connect_to_checked_address(
-        _address: tuple[str, int], timeout: float | None = None, source: Any = None
-    ) -> socket.socket:
-        return socket.create_connection((target.address, target.port), timeout, source)
-
-    connection._create_connection = connect_to_checked_address  # type: ignore[attr-defined]
-    return connection
+        return net.check_url(url, allow_private=settings.allow_private_addresses)
+    except net.RefusedAddressError as exc:
+        raise source_error(f"url {url!r}: {exc}", code="forbidden_url_address") from exc
+    except net.OutboundUrlError as exc:
+        raise source_error(f"url {url!r}: {exc}", code="invalid_url") from exc
 
 
 async def _response_chunks(
@@ -252,7 +186,7 @@ def fetch_url(settings: Settings, url: str) -> ReceivedFile:
     target = check_url(settings, url)
     timeout = settings.schedule_fetch_timeout_seconds
     deadline = time.monotonic() + timeout
-    connection = _connection(target, timeout)
+    connection = net.pinned_connection(target, timeout)
     try:
         try:
             connection.request("GET", target.path, headers={"User-Agent": "scandiff-schedule"})

@@ -88,6 +88,7 @@ def schedule_read(schedule: Schedule) -> ScheduleRead:
         last_period_start=schedule.last_period_start,
         next_run_at=rhythm.next_after(after) if schedule.enabled else None,
         stale_since=schedule.stale_since,
+        missed_since=schedule.missed_since,
         created_at=schedule.created_at,
     )
 

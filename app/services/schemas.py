@@ -21,6 +21,7 @@ from pydantic import (
 
 from app.clock import as_utc
 from app.db.models import JobStatus, Site
+from app.services.messages import api_warnings
 
 UtcDatetime = Annotated[datetime, AfterValidator(as_utc)]
 Name = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=200)]
@@ -48,11 +49,16 @@ class RowRead(BaseModel):
         return cls.model_validate(row)
 
 
+DEFAULT_DETECTOR_VARIANT = "improved"
+"""The variant a detector given by its method alone gets (``{"method": "pe"}``)."""
+
+
 class DetectorConfig(StrictBody):
-    """A detector: method (``pca``, ``gmm``, ``planes``...), variant and keyword parameters."""
+    """A detector: method (``pca``, ``gmm``, ``planes``...), variant (default ``improved``) and
+    keyword parameters."""
 
     method: Identifier
-    variant: Identifier
+    variant: Identifier = DEFAULT_DETECTOR_VARIANT
     params: dict[str, Any] = Field(default_factory=dict)
 
 
@@ -216,9 +222,10 @@ class JobRead(RowRead):
         "of {origin: [x, y, z] in that file's frame, source: given | file | estimated | "
         "recovered, confidence}; an empty list: unknown.",
     )
-    warnings: list[dict[str, Any]] | None = Field(
+    warnings: Annotated[list[dict[str, Any]] | None, AfterValidator(api_warnings)] = Field(
         default=None,
-        description="Quality warnings on the result, each {code, message, ...}: "
+        description="Quality warnings on the result, each {code, message (one sentence), "
+        "detail, how_to_fix: {action, text, parameters}, ...}: "
         "low_registration_fitness, large_rotation, large_translation, low_overlap, "
         "sensor_origin, sensor_origin_unknown, region_count_above_history.",
     )
@@ -336,6 +343,22 @@ class Page(BaseModel, Generic[ItemT]):
 
     items: list[ItemT]
     next_cursor: str | None
+
+
+class SiteAwaitingReview(BaseModel):
+    """A site's succeeded jobs that await a verdict: how many, and the newest one's time."""
+
+    site_id: str
+    site_name: str | None
+    count: int
+    newest_at: UtcDatetime
+
+
+class AwaitingReviewCounts(BaseModel):
+    """The review inbox's counts: all jobs awaiting a verdict, and per site (newest first)."""
+
+    total: int
+    sites: list[SiteAwaitingReview]
 
 
 class ErrorRead(BaseModel):

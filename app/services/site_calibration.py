@@ -40,12 +40,12 @@ def reviewed_samples(session: Session, site: Site) -> list[ReviewedSample]:
     ).all()
     chosen = [job for job in rows if is_reviewed_null(job.verdict, job.changed)]
     regions: dict[str, list[dict[str, Any]]] = defaultdict(list)
-    for job_id, bbox_min, bbox_max in session.execute(
-        select(Region.job_id, Region.bbox_min, Region.bbox_max).where(
-            Region.job_id.in_([job.id for job in chosen])
-        )
+    for job_id, n_points, bbox_min, bbox_max in session.execute(
+        select(Region.job_id, Region.n_points, Region.bbox_min, Region.bbox_max)
+        .where(Region.job_id.in_([job.id for job in chosen]))
+        .order_by(Region.job_id, Region.ordinal)  # the job's order: the first of equals wins
     ):
-        regions[job_id].append({"bbox_min": bbox_min, "bbox_max": bbox_max})
+        regions[job_id].append({"n_points": n_points, "bbox_min": bbox_min, "bbox_max": bbox_max})
     return [
         ReviewedSample(
             job_id=job.id,

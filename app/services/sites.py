@@ -15,18 +15,17 @@ from app.core.comparison_settings import parse_comparison_params  # never in a t
 from app.core.detectors import canonical_method
 from app.core.errors import InputError
 from app.db.models import Job, JobStatus, JobVerdict, ReferenceHistory, Region, Scan, Site
-from app.jobs.results import job_results_dir
 from app.services import storage
 from app.services.auth import Principal
 from app.services.errors import ConflictError, ValidationFailedError
 from app.services.paging import newest_first_page
-from app.services.schemas import SiteCreate, SiteUpdate
+from app.services.schemas import DEFAULT_DETECTOR_VARIANT, SiteCreate, SiteUpdate
 from app.services.scoping import get_owned, scoped
 from app.services.site_calibration import recompute_site_calibration
 from app.services.transaction import after_commit
 
 DEFAULT_METHOD = "gmm"
-DEFAULT_VARIANT = "improved"
+DEFAULT_VARIANT = DEFAULT_DETECTOR_VARIANT
 
 
 def validate_detector(method: str, variant: str, params: dict[str, Any]) -> str:
@@ -183,9 +182,9 @@ def delete_site(session: Session, settings: Settings, principal: Principal, site
     session.flush()
 
     def remove_files() -> None:
-        storage.remove_tree(storage.site_scans_directory(settings, site_id))
+        storage.remove_tree(settings.data_layout.site_scans_dir(site_id))
         for job_id in job_ids:
-            storage.remove_tree(job_results_dir(settings, job_id))
+            storage.remove_tree(settings.data_layout.job_results_dir(job_id))
 
     after_commit(session, remove_files)
 

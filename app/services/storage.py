@@ -7,11 +7,9 @@ parsed.  A killed server leaves at most a temporary file (removed by
 commit of the row, an unreferenced scan file (removed by the same sweep); a job worker killed
 while writing its results leaves a temporary result file (removed by the same sweep too).
 
-Layout under the data directory::
-
-    tmp/<pid>-<random>.part         uploads being received
-    scans/<site_id>/<scan_id>.<fmt>  original bytes of every scan (path stored relative)
-    results/<job_id>/                per-point results of a job (written by the job worker)
+The layout of the data directory (``tmp/``, ``scans/<site_id>/``, ``results/<job_id>/``...) is
+:class:`app.kit.data_layout.DataLayout` (``settings.data_layout``), which also reads stored paths
+back, refusing one outside the data directory.
 """
 
 from __future__ import annotations
@@ -38,7 +36,8 @@ from app.db.models import Job, Scan, new_id
 from app.db.session import transaction
 from app.jobs.geometry import CACHE_SUFFIX as GEOMETRY_CACHE_SUFFIX
 from app.jobs.results import remove_stale_temp_files
-from app.services.errors import BadRequestError, PayloadTooLargeError
+from app.kit.data_layout import StoredPathError
+from app.services.errors import BadRequestError, NotFoundError, PayloadTooLargeError
 
 logger = logging.getLogger("scandiff.storage")
 
@@ -139,25 +138,14 @@ def remove_tree(path: Path) -> None:
         shutil.rmtree(path, ignore_errors=True)
 
 
-def scan_storage_path(site_id: str, scan_id: str, file_format: str) -> str:
-    """Where a scan's original bytes live, relative to the data directory."""
-    return f"scans/{site_id}/{scan_id}.{file_format}"
-
-
-def resolve_data_path(settings: Settings, stored_path: str) -> Path:
-    """The absolute path of a path stored in the database (relative to the data directory)."""
-    path = Path(stored_path)
-    if not path.is_absolute():
-        path = settings.data_dir / path
-    resolved = path.resolve()
-    if not resolved.is_relative_to(settings.data_dir):
-        raise ValueError(f"stored path {stored_path!r} points outside the data directory")
-    return resolved
-
-
-def site_scans_directory(settings: Settings, site_id: str) -> Path:
-    """The directory holding a site's scan files."""
-    return settings.scans_dir / site_id
+def stored_file(settings: Settings, stored_path: str) -> Path:
+    """A file stored in the database, read back through the data layout; 404 if it is outside."""
+    try:
+        return settings.data_layout.resolve(stored_path)
+    except StoredPathError as exc:
+        raise NotFoundError(
+            f"{exc}: the file is not served (an operator should check the row)"
+        ) from exc
 
 
 def sanitise_filename(name: str | None) -> str | None:
@@ -221,7 +209,7 @@ def sweep_temporary_files(settings: Settings, *, min_age_seconds: float = 0.0) -
     except SQLAlchemyError:
         logger.warning("sweep: database not readable, orphaned files not checked", exc_info=True)
         return removed
-    stored = [resolve_data_path(settings, path) for path in scan_paths]
+    stored = [settings.data_layout.resolve(path) for path in scan_paths]
     # a reference's geometry cache belongs to its scan (checked before use, app/jobs/geometry.py)
     referenced = {*stored, *(path.with_suffix(GEOMETRY_CACHE_SUFFIX) for path in stored)}
     if settings.scans_dir.is_dir():

@@ -8,6 +8,7 @@ times before anything is stored; it is kept beside the scan's file as ``<scan fi
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -80,19 +81,6 @@ def summary(trajectory: Trajectory, **extra: Any) -> dict[str, Any]:
     }
 
 
-def parts_digest(body: Any, rate: float | None) -> str | None:
-    """A digest of an upload's trajectory parts and rate (for its idempotency fingerprint)."""
-    import hashlib
-
-    parts = getattr(body, "parts", {})
-    if not parts and rate is None:
-        return None
-    digest = hashlib.sha256(repr(rate).encode())
-    for name in sorted(parts):
-        digest.update(name.encode() + b"\0" + hashlib.sha256(bytes(parts[name])).digest())
-    return digest.hexdigest()
-
-
 async def attach_trajectory(
     session: Any,
     settings: Any,
@@ -121,7 +109,58 @@ async def attach_trajectory(
     trajectory = parse_trajectory(
         data, filename, times=times, rate=rate, trajectory_format=trajectory_format
     )
-    scan_path = storage.resolve_data_path(settings, scan.storage_path)
+    scan_path = storage.stored_file(settings, scan.storage_path)
     fits = await anyio.to_thread.run_sync(check_fits, scan_path, scan.format, trajectory)
     await anyio.to_thread.run_sync(save_trajectory, trajectory_path(scan_path), trajectory)
     return {"scan_id": scan.id, **fits}
+
+
+@dataclass(frozen=True)
+class TrajectoryUpload:
+    """A trajectory sent with a scan: the file's bytes, its name, its pose times or rate."""
+
+    data: bytes
+    filename: str | None = None
+    times: bytes | None = None
+    rate: float | None = None
+    trajectory_format: str | None = None
+
+    def digest(self) -> str:
+        """A digest of everything sent (for the upload's idempotency fingerprint)."""
+        import hashlib
+
+        digest = hashlib.sha256(repr((self.rate, self.trajectory_format)).encode())
+        for part in (self.data, self.times or b""):
+            digest.update(hashlib.sha256(part).digest())
+        return digest.hexdigest()
+
+    def checked_against(self, scan_path: Path, scan_format: str | None) -> Trajectory:
+        """The parsed trajectory, checked against the scan's points (TrajectoryError: 422)."""
+        trajectory = parse_trajectory(
+            self.data,
+            self.filename,
+            times=self.times,
+            rate=self.rate,
+            trajectory_format=self.trajectory_format,
+        )
+        check_fits(scan_path, scan_format, trajectory)
+        return trajectory
+
+
+def upload_of(
+    body: Any, rate: float | None, trajectory_format: str | None
+) -> TrajectoryUpload | None:
+    """The trajectory parts of an upload's body (multipart ``trajectory`` and
+    ``trajectory_times``), or None without them; pose times without a trajectory: 422."""
+    parts = getattr(body, "parts", {})
+    data, times = parts.get("trajectory"), parts.get("trajectory_times")
+    check_times_without_trajectory(data is not None, times, rate)
+    if data is None:
+        return None
+    return TrajectoryUpload(
+        data=bytes(data),
+        filename=getattr(body, "part_filenames", {}).get("trajectory"),
+        times=None if times is None else bytes(times),
+        rate=rate,
+        trajectory_format=trajectory_format,
+    )

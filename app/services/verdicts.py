@@ -22,10 +22,9 @@ from app.db.models import ApiToken, Job, JobStatus, JobVerdict, Scan
 from app.services import jobs, sites
 from app.services.auth import Principal
 from app.services.errors import ConflictError
+from app.services.paging import newest_first_page
 from app.services.schemas import VerdictCreate
 from app.services.site_calibration import recompute_site_calibration
-
-VERDICTS = ("confirmed", "false_alarm", "new_reference")
 
 
 def set_verdict(
@@ -75,12 +74,12 @@ def verdict_json(record: JobVerdict) -> dict[str, Any]:
     }
 
 
-def list_verdicts(session: Session, principal: Principal, job_id: str) -> list[dict[str, Any]]:
-    """Every verdict given to a job, oldest first (the ``job.verdict`` form)."""
+def list_verdicts(
+    session: Session, principal: Principal, job_id: str, limit: int, cursor: str | None
+) -> tuple[list[dict[str, Any]], str | None]:
+    """The verdicts given to a job, newest first (the ``job.verdict`` form); one page."""
     job = jobs.get_job(session, principal, job_id)
-    rows = session.scalars(
-        select(JobVerdict)
-        .where(JobVerdict.job_id == job.id)
-        .order_by(JobVerdict.created_at, JobVerdict.id)
-    ).all()
-    return [verdict_json(row) for row in rows]
+    rows, next_cursor = newest_first_page(
+        session, select(JobVerdict).where(JobVerdict.job_id == job.id), JobVerdict, limit, cursor
+    )
+    return [verdict_json(row) for row in rows], next_cursor

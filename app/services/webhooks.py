@@ -16,9 +16,9 @@ from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
 from app.config import Settings
-from app.core.outbound import OutboundUrlError, check_outbound_url, is_mailto, mailto_recipients
 from app.db.events import EVENT_TYPES, TEST_EVENT_TYPE, record_event
 from app.db.models import Webhook, WebhookDelivery
+from app.kit.net import OutboundUrlError, check_url, is_mailto, mailto_recipients
 from app.services.auth import Principal, require_role
 from app.services.errors import NotFoundError, ValidationFailedError
 from app.services.paging import newest_first_page
@@ -65,7 +65,7 @@ def create_webhook(
                 )
             mailto_recipients(payload.url)
         else:
-            check_outbound_url(payload.url, allow_private=settings.webhook_allow_private_addresses)
+            check_url(payload.url, allow_private=settings.allow_private_addresses)
     except OutboundUrlError as exc:
         raise ValidationFailedError(f"url: {exc}", code="invalid_url") from exc
     events = checked_events(payload.events)

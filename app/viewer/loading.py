@@ -17,10 +17,8 @@ from app.config import Settings
 from app.core.formats import read_point_cloud
 from app.db.models import Job, JobStatus, Region, Scan, Site
 from app.db.session import session_factory
-from app.jobs.results import DETAILS_FILENAME
+from app.kit.data_layout import DETAILS_FILENAME
 from app.viewer.scene import DEFAULT_POINT_BUDGET, SceneData, build_scene_data
-
-LABELS_FILE = "labels.npz"
 
 
 def job_sensor_origins(job: Any) -> dict[str, Any]:
@@ -55,10 +53,9 @@ class ViewUnavailableError(Exception):
 
 def job_labels_path(settings: Settings, job: Job) -> Path:
     """Where the worker wrote the job's per-point labels."""
-    default = settings.results_dir / job.id / LABELS_FILE
+    default = settings.data_layout.labels_file(job.id)
     if job.labels_path and not default.exists():
-        stored = Path(job.labels_path)
-        return stored if stored.is_absolute() else settings.data_dir / stored
+        return settings.data_layout.resolve(job.labels_path)
     return default
 
 
@@ -108,8 +105,8 @@ def load_job_scene(
             raise ViewUnavailableError(f"the scans of job {job_id} were deleted", status=410)
         regions = [_region_dict(region) for region in job.regions]
         paths = (
-            settings.data_dir / reference.storage_path,
-            settings.data_dir / scan.storage_path,
+            settings.data_layout.resolve(reference.storage_path),
+            settings.data_layout.resolve(scan.storage_path),
         )
         names = (reference.filename, scan.filename)
         labels_path = job_labels_path(settings, job)

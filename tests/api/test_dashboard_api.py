@@ -71,11 +71,14 @@ def test_the_job_list_reads_the_file_names_in_a_fixed_number_of_queries(
     assert len(eight_job_queries) == len(one_job_queries), eight_job_queries
 
 
-def regions_of(client: httpx.Client, job_id: str, **query: Any) -> tuple[list[dict], int]:
-    """One page of a job's regions and the X-Total-Count."""
+def regions_of(
+    client: httpx.Client, job_id: str, **query: Any
+) -> tuple[list[dict], str | None, int]:
+    """One page of a job's regions, the next cursor and the X-Total-Count."""
     response = client.get(f"/api/v1/jobs/{job_id}/regions", params=query)
     assert response.status_code == 200, response.text
-    return response.json(), int(response.headers["X-Total-Count"])
+    page = response.json()
+    return page["items"], page["next_cursor"], int(response.headers["X-Total-Count"])
 
 
 def test_regions_are_filtered_sorted_and_paged(api: ApiServer, writer: httpx.Client) -> None:
@@ -85,31 +88,31 @@ def test_regions_are_filtered_sorted_and_paged(api: ApiServer, writer: httpx.Cli
     regions = random_regions(120, seed=4)
     finish_job(api, job_id, reference["n_points"], answer["scan"]["n_points"], regions=regions)
 
-    everything, total = regions_of(writer, job_id)
-    assert total == len(everything) == len(regions)
+    everything, next_cursor, total = regions_of(writer, job_id, limit=1000)
+    assert total == len(everything) == len(regions) and next_cursor is None
     assert [region["n_points"] for region in everything] == [r.n_points for r in regions]
+    first_page, next_cursor, total = regions_of(writer, job_id)  # 50 a page unless asked
+    assert len(first_page) == 50 and total == len(regions) and next_cursor
 
     removed_large = [r for r in regions if r.kind == "removed" and r.n_points >= 1000]
     expected = sorted(removed_large, key=lambda r: -r.max_distance)
     pages: list[dict] = []
-    for offset in range(0, len(expected) + 25, 25):
-        page, total = regions_of(
-            writer,
-            job_id,
-            kind="removed",
-            min_points=1000,
-            sort="max_distance",
-            order="desc",
-            offset=offset,
-            limit=25,
+    cursor: str | None = None
+    for _ in range(len(expected) // 25 + 1):
+        query = {"kind": "removed", "min_points": 1000, "sort": "max_distance", "order": "desc"}
+        page, cursor, total = regions_of(
+            writer, job_id, **query, limit=25, **({"cursor": cursor} if cursor else {})
         )
         assert total == len(expected)
         assert len(page) <= 25
         pages += page
+        if cursor is None:
+            break
+    assert cursor is None
     assert [region["max_distance"] for region in pages] == [r.max_distance for r in expected]
     assert {region["kind"] for region in pages} == {"removed"}
 
-    by_points, _ = regions_of(writer, job_id, sort="n_points", limit=5)
+    by_points, _, _ = regions_of(writer, job_id, sort="n_points", limit=5)
     assert [region["n_points"] for region in by_points] == sorted(r.n_points for r in regions)[:5]
 
     detail = assert_error(
@@ -117,6 +120,11 @@ def test_regions_are_filtered_sorted_and_paged(api: ApiServer, writer: httpx.Cli
     )
     assert "n_points" in detail
     assert_error(writer.get(f"/api/v1/jobs/{job_id}/regions", params={"limit": 0}), 422)
+    assert_error(
+        writer.get(f"/api/v1/jobs/{job_id}/regions", params={"cursor": "not-ours"}),
+        400,
+        "bad_cursor",
+    )
     assert_error(writer.get(f"/api/v1/jobs/{job_id}/regions", params={"order": "up"}), 422)
     detail = assert_error(
         writer.get(f"/api/v1/jobs/{job_id}/regions", params={"kind": "gone"}), 422

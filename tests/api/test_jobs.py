@@ -213,22 +213,32 @@ def test_regions_and_labels_of_a_succeeded_job(
 ) -> None:
     site, reference, scan = site_scans
     job = writer.get(f"/api/v1/sites/{site['id']}/jobs").json()["items"][0]
-    assert writer.get(f"/api/v1/jobs/{job['id']}/regions").json() == []
+    assert writer.get(f"/api/v1/jobs/{job['id']}/regions").json() == {
+        "items": [],
+        "next_cursor": None,
+    }
     for file_format in ("npz", "ply", "las"):
         response = writer.get(f"/api/v1/jobs/{job['id']}/labels", params={"format": file_format})
         assert_error(response, 409, "job_not_succeeded")
     shift = np.eye(4)
     shift[:3, 3] = [10.0, 0.0, 0.0]
+    scan_region = np.where(np.arange(scan["n_points"]) % 3 == 0, 0, -1).astype(np.int32)
     arrays = finish_job(
-        api, job["id"], reference["n_points"], scan["n_points"], transform=shift.tolist()
+        api,
+        job["id"],
+        reference["n_points"],
+        scan["n_points"],
+        transform=shift.tolist(),
+        scan_region=scan_region,
     )
+    regions_per_point = np.concatenate([np.full(reference["n_points"], -1), scan_region])
     fetched = writer.get(f"/api/v1/jobs/{job['id']}").json()
     assert fetched["status"] == JobStatus.SUCCEEDED and fetched["changed"] is True
-    regions = writer.get(f"/api/v1/jobs/{job['id']}/regions").json()
+    regions = writer.get(f"/api/v1/jobs/{job['id']}/regions").json()["items"]
     assert len(regions) == 1
     assert set(regions[0]) == {
         "id", "ordinal", "kind", "n_points", "centroid", "bbox_min", "bbox_max", "mean_distance",
-        "max_distance",
+        "max_distance", "evidence", "confidence",
     }  # fmt: skip
     assert regions[0]["kind"] == "added" and regions[0]["ordinal"] == 0
 
@@ -255,6 +265,7 @@ def test_regions_and_labels_of_a_succeeded_job(
         np.asarray(vertex["distance"]),
         np.concatenate([arrays["reference_distance"], arrays["scan_distance"]]),
     )
+    np.testing.assert_array_equal(np.asarray(vertex["region"]), regions_per_point)
     scan_x = np.asarray(vertex["x"])[cloud == 1]
     assert scan_x.min() == pytest.approx(scan["bbox_min"][0] + 10.0, abs=1e-3)  # registered
 
@@ -265,6 +276,7 @@ def test_regions_and_labels_of_a_succeeded_job(
     np.testing.assert_array_equal(
         np.asarray(las["label"]), np.concatenate([arrays["reference_label"], arrays["scan_label"]])
     )
+    np.testing.assert_array_equal(np.asarray(las["region"]), regions_per_point)
     assert_error(writer.get(f"/api/v1/jobs/{job['id']}/labels", params={"format": "xyz"}), 422)
 
 

@@ -46,7 +46,8 @@ def check_results(client: httpx.Client, job: dict[str, Any], n_reference: int) -
     assert job["progress"] == pytest.approx(1.0)
     assert job["score"] is not None and job["threshold"] is not None
     assert isinstance(job["changed"], bool)
-    regions = client.get(f"/api/v1/jobs/{job['id']}/regions").json()
+    regions = client.get(f"/api/v1/jobs/{job['id']}/regions", params={"limit": 1000}).json()
+    regions = regions["items"]
     assert len(regions) == job["n_regions"]
     assert all(region["kind"] in ("added", "removed") for region in regions)
     labels = load_labels(client.get(f"/api/v1/jobs/{job['id']}/labels").content)

@@ -14,7 +14,6 @@ from app.db.models import Organisation, Scan, Site
 from app.db.session import transaction
 from app.services.storage import (
     ensure_directories,
-    resolve_data_path,
     sanitise_filename,
     sweep_temporary_files,
 )
@@ -47,13 +46,6 @@ def test_long_unicode_names_stay_within_255_bytes() -> None:
     cleaned = sanitise_filename("é" * 300 + ".ply")
     assert cleaned is not None and cleaned.endswith(".ply")
     assert len(cleaned.encode()) <= 255
-
-
-def test_resolve_data_path_refuses_paths_outside_the_data_directory(tmp_path: Path) -> None:
-    settings = Settings(data_dir=tmp_path)
-    assert resolve_data_path(settings, "scans/a/b.ply") == tmp_path / "scans/a/b.ply"
-    with pytest.raises(ValueError):
-        resolve_data_path(settings, "../elsewhere.ply")
 
 
 def test_the_sweep_removes_leftovers_and_keeps_what_rows_reference(tmp_path: Path) -> None:

@@ -65,7 +65,8 @@ def test_bags_upload_and_compare_and_a_truncated_bag_is_refused(
         job = service.wait_for_job(client, response.json()["job"]["id"], timeout=180)
         assert job["status"] == "succeeded", job
         assert job["changed"] is True
-        regions = client.get(f"/api/v1/jobs/{job['id']}/regions").json()
+        regions = client.get(f"/api/v1/jobs/{job['id']}/regions", params={"limit": 1000}).json()
+        regions = regions["items"]
         removed = [region for region in regions if region["kind"] == "removed"]
         assert removed, regions
         largest = max(removed, key=lambda region: region["n_points"])

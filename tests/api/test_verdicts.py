@@ -7,6 +7,7 @@ from __future__ import annotations
 import httpx
 import pytest
 
+from app.core.pipeline import RegionSummary
 from app.db.models import JobStatus, JobVerdict, ReferenceHistory
 from tests.helpers.database import count_rows
 from tests.helpers.files import ply_bytes
@@ -60,8 +61,17 @@ def test_verdict_is_recorded_with_who_and_when_and_replaced_with_history(
     assert replaced.json()["verdict"]["verdict"] == "false_alarm"
     assert replaced.json()["verdict"]["note"] is None
     history = writer.get(f"/api/v1/jobs/{job['id']}/verdicts").json()
-    assert [entry["verdict"] for entry in history] == ["confirmed", "false_alarm"]
-    assert history[0]["note"] == "the pallet was really moved"
+    assert history["next_cursor"] is None
+    assert [entry["verdict"] for entry in history["items"]] == ["false_alarm", "confirmed"]
+    assert history["items"][1]["note"] == "the pallet was really moved"
+    first_page = writer.get(f"/api/v1/jobs/{job['id']}/verdicts", params={"limit": 1}).json()
+    assert [entry["verdict"] for entry in first_page["items"]] == ["false_alarm"]
+    second_page = writer.get(
+        f"/api/v1/jobs/{job['id']}/verdicts",
+        params={"limit": 1, "cursor": first_page["next_cursor"]},
+    ).json()
+    assert [entry["verdict"] for entry in second_page["items"]] == ["confirmed"]
+    assert second_page["next_cursor"] is None
     assert count_rows(api, JobVerdict, job_id=job["id"]) == 2
     # the job list (the timeline) carries the current verdict too
     listed = writer.get(f"/api/v1/sites/{job['site_id']}/jobs").json()["items"]
@@ -127,15 +137,27 @@ def test_a_reader_of_the_organisation_cannot_give_verdicts(
     assert_error(
         reader.post(f"/api/v1/jobs/{job['id']}/verdict", json={"verdict": "confirmed"}), 403
     )
-    assert reader.get(f"/api/v1/jobs/{job['id']}/verdicts").json() == []
+    assert reader.get(f"/api/v1/jobs/{job['id']}/verdicts").json() == {
+        "items": [],
+        "next_cursor": None,
+    }
 
 
 def test_site_calibration_is_learned_from_reviewed_null_jobs(
     api: ApiServer, writer: httpx.Client
 ) -> None:
     site, _reference = site_with_reference(writer)
-    changed_jobs = [finished_job(api, writer, site["id"], seed=20 + index) for index in range(5)]
-    unchanged_job = finished_job(api, writer, site["id"], seed=30, changed=False)
+    # each job: a 12-point region of 1 x 1 x 1 m, and a wider one of fewer points, which is not
+    # the largest region (the most points: what the Why line and the Review panel name)
+    regions = [
+        RegionSummary("added", 12, [1.0, 2.0, 0.5], [0.5, 1.5, 0.0], [1.5, 2.5, 1.0], 0.4, 0.9),
+        RegionSummary("removed", 5, [2.0, 0.0, 0.0], [0.0, 0.0, 0.0], [4.0, 0.0, 0.0], 0.2, 0.3),
+    ]
+    changed_jobs = [
+        finished_job(api, writer, site["id"], seed=20 + index, regions=regions)
+        for index in range(5)
+    ]
+    unchanged_job = finished_job(api, writer, site["id"], seed=30, changed=False, regions=regions)
 
     def give(job: dict, verdict: str) -> dict:
         response = writer.post(f"/api/v1/jobs/{job['id']}/verdict", json={"verdict": verdict})
@@ -156,8 +178,9 @@ def test_site_calibration_is_learned_from_reviewed_null_jobs(
     assert calibration["rank"] == 5 and calibration["min_samples"] == 5
     assert calibration["false_alarm_rate"] == pytest.approx(api.settings.site_false_alarm_rate)
     # thresholds: the largest of the samples' statistics (rank 5 of 5); every finished job
-    # has one region of the same box, the unchanged one too
-    region = writer.get(f"/api/v1/jobs/{unchanged_job['id']}/regions").json()[0]
+    # has the same regions, the unchanged one too: the statistic is the 12-point region's size
+    region = writer.get(f"/api/v1/jobs/{unchanged_job['id']}/regions").json()["items"][0]
+    assert region["n_points"] == 12
     diagonal = sum(
         (high - low) ** 2 for low, high in zip(region["bbox_min"], region["bbox_max"], strict=True)
     )

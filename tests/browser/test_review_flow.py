@@ -114,8 +114,11 @@ def test_review_with_the_mouse(review_service: ReviewService, chrome_factory) ->
     wait_until(lambda: "points" in text_of(driver, ".facts"), 20, "reference not shown")
     by_css(driver, "#scan-file").send_keys(str(service.files.scan))
     by_css(driver, "#upload-scan").click()
-    wait_until(
-        lambda: "comparison job is queued" in text_of(driver, "#upload-status"), 60, "no job"
+    wait_until(lambda: "uploaded" in text_of(driver, "#upload-status"), 60, "no upload")
+    wait_until(  # the upload card follows the job (queued, running, then done)
+        lambda: driver.find_elements(By.CSS_SELECTOR, "#upload-job[data-job-status] a"),
+        20,
+        "no job",
     )
     wait_until(
         lambda: driver.find_elements(By.CSS_SELECTOR, "#jobs-table tbody tr"), 20, "no job row"
@@ -131,6 +134,9 @@ def test_review_with_the_mouse(review_service: ReviewService, chrome_factory) ->
         return statuses == {"succeeded"}
 
     wait_until(job_succeeded, 150, "the job did not succeed on the page (live updates)")
+    wait_until(
+        lambda: "Comparison done" in text_of(driver, "#upload-job"), 20, "the card's job is done"
+    )
     assert seen_statuses & {"queued", "running"}, "the page never showed the job in progress"
     dot = by_css(driver, "#timeline circle.dot[data-job-id]")
     job_id = dot.get_attribute("data-job-id")
@@ -142,7 +148,9 @@ def test_review_with_the_mouse(review_service: ReviewService, chrome_factory) ->
     # Filters: "changed only" keeps this job iff the detector said changed.
     with service.client() as client:
         job = client.get(f"/api/v1/jobs/{job_id}").json()
-        regions = client.get(f"/api/v1/jobs/{job_id}/regions").json()
+        regions = client.get(f"/api/v1/jobs/{job_id}/regions", params={"limit": 1000}).json()[
+            "items"
+        ]
     service.made.update(job=job, regions=regions)
     retry(lambda: by_css(driver, "#filter-changed").click())
     wait_until(

@@ -94,7 +94,12 @@ def test_verdict_buttons_on_the_job_page(
     driver = chrome_factory()
     sign_in(driver, service)
     driver.get(f"{service.base_url}/#/jobs/{job['id']}")
-    assert "largest changed region" in visible(driver, "#decision-explained").text
+    explained = visible(driver, "#decision-explained").text
+    # in sentences, naming the Why line's largest region (the most points)
+    largest = job["explanation"]["largest_region"]
+    named = f"region {largest['index'] + 1}: {largest['kind']}, {largest['n_points']:,} points"
+    assert f"the largest region ({named})" in explained, explained
+    assert "→" not in explained and "fires" not in explained, explained
     assert visible(driver, "#current-verdict").get_attribute("data-verdict") == ""
 
     visible(driver, "#verdict-note").send_keys("the bin again")
@@ -127,7 +132,7 @@ def test_verdict_buttons_on_the_job_page(
     wait_until(
         lambda: (
             attribute_of_all(driver, "#verdict-history li", "data-verdict")
-            == ["false_alarm", "new_reference"]
+            == ["new_reference", "false_alarm"]  # newest first
         ),
         10,
         "the verdict history does not list both verdicts",
@@ -279,7 +284,8 @@ def test_verdict_buttons_in_the_3d_view(
     driver = chrome_factory()
     sign_in(driver, service)
     driver.get(f"{service.base_url}/jobs/{job['id']}/view")
-    assert "largest changed region" in visible(driver, "#view-review #decision-explained").text
+    explained = visible(driver, "#view-review #decision-explained").text
+    assert "the largest region (region " in explained
     visible(driver, "#view-review #verdict-note").send_keys("seen in 3D: the bin")
     visible(driver, "#view-review #verdict-false_alarm").click()
     wait_until(

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.cli.test_compare_cli import run_cli
 from tests.helpers.bags import BOX_HIGH, BOX_LOW, MAP_TO_ODOM, write_lidar_bag
+from tests.helpers.cli import run_cli
 
 
 @pytest.fixture(scope="module")

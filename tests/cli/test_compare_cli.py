@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +10,7 @@ from plyfile import PlyData
 
 from app.core.synthetic import raycast_scene
 from app.core.synthetic_lidar import lidar_pair
+from tests.helpers.cli import run_cli
 from tests.helpers.files import ply_bytes
 
 REQUIRED_KEYS = {
@@ -38,15 +36,6 @@ REGION_KEYS = {
     "mean_distance",
     "max_distance",
 }
-
-
-def run_cli(*arguments: str | Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "app", "compare", *map(str, arguments)],
-        capture_output=True,
-        text=True,
-        timeout=240,
-    )
 
 
 @pytest.fixture(scope="module")

@@ -60,6 +60,11 @@ def test_warnings_go_to_stderr_and_the_summary_explains(scene) -> None:
     assert warnings and all(line.startswith("scandiff: warning: ") for line in warnings)
     assert any("degrees" in line and "--no-align" in line for line in warnings)
     assert sum("sensor origin is unknown" in line for line in warnings) == 2
+    # the CLI's own flags, never the API's parameters or --param; no stale frame advice
+    unknown = [line for line in warnings if "sensor origin is unknown" in line]
+    assert all("--sensor-origin" in line and "--scan-origin" in line for line in unknown)
+    assert not any("--param" in line or "sensor_origin=" in line for line in warnings)
+    assert not any('"align"' in line or "moving sensor's frame" in line for line in warnings)
     lines = completed.stdout.splitlines()
     assert lines[1].startswith("  why: changed: ") or lines[1].startswith("  why: no change: ")
     assert "the detector's score" in lines[1]
@@ -74,8 +79,13 @@ def test_json_on_stdout_stays_parseable_with_warnings_on_stderr(scene) -> None:
     )
     assert completed.returncode == 0, completed.stderr
     report = json.loads(completed.stdout)
-    messages = [warning["message"] for warning in report["quality_warnings"]]
-    assert completed.stderr.strip().splitlines() == [f"scandiff: warning: {m}" for m in messages]
+    expected = [
+        f"scandiff: warning: {warning['message']} To fix: {warning['how_to_fix']['text']}."
+        for warning in report["quality_warnings"]
+    ]
+    assert completed.stderr.strip().splitlines() == expected
+    for warning in report["quality_warnings"]:  # flags, each a flag of this command
+        assert all(flag.startswith("--") for flag in warning["how_to_fix"]["flags"])
     assert "large_rotation" in [warning["code"] for warning in report["quality_warnings"]]
     assert report["explanation"]["decision"] == ("changed" if report["changed"] else "unchanged")
 
@@ -99,3 +109,15 @@ def test_the_papers_name_as_method(scene) -> None:
     refused = run_cli(paths["reference"], paths["scan"], "--method", "pe-gmm")
     assert refused.returncode == 2
     assert "pe-gmm" in refused.stderr and "pe-emd" in refused.stderr
+
+
+def test_a_failed_alignment_names_the_clis_flag(scene, tmp_path: Path) -> None:
+    paths, pair = scene
+    elsewhere = tmp_path / "elsewhere.ply"
+    elsewhere.write_bytes(ply_bytes(pair.scan + np.array([500.0, 0.0, 0.0]), coordinate_type="f8"))
+    completed = run_cli(paths["reference"], elsewhere)
+    assert completed.returncode == 2, completed.stderr
+    (line,) = completed.stderr.strip().splitlines()
+    assert line.startswith("scandiff: error: ") and "does not overlap" in line
+    assert line.endswith("(--no-align)")
+    assert '"align"' not in line and "API" not in line

@@ -28,6 +28,7 @@ FORBIDDEN_APP = {
     "app.config",
     "app.cli",
     "app.main",
+    "app.kit",
 }
 
 

@@ -10,6 +10,7 @@ from app.core.detectors import METHOD_ALIASES, METHODS, canonical_method, make_d
 from app.core.errors import InputError
 from app.core.pipeline import compare
 from app.core.quality import (
+    FIX_ACTIONS,
     LARGE_ROTATION_DEGREES,
     LARGE_TRANSLATION_METRES,
     LOW_FITNESS,
@@ -48,8 +49,16 @@ def test_low_fitness_and_a_large_correction_are_warned_with_units() -> None:
     assert f"{report['rotation_degrees']:.1f} degrees" in rotation["message"]
     assert rotation["unit"] == "degrees"
     assert f"{report['translation_m']:.2f} m" in translation["message"]
-    for warning in (rotation, translation):  # names the setting that skips the alignment
-        assert '"align": false' in warning["message"] and "--no-align" in warning["message"]
+    for warning in warnings:  # one sentence, no interface's knob; the fix as an action
+        message = warning["message"]
+        assert message.endswith(".") and message.count(". ") == 0 and "; " not in message
+        assert "--" not in message and '"align"' not in message
+        assert warning["how_to_fix"]["action"] in FIX_ACTIONS
+        assert warning["detail"]["value"] == warning["value"]
+        assert warning["detail"]["explanation"]
+    for warning in (rotation, translation):  # no stale "moving sensor's frame" advice
+        assert warning["how_to_fix"]["action"] == "check_alignment"
+        assert "moving sensor" not in str(warning)
 
 
 def test_limits_are_parameters() -> None:
@@ -83,9 +92,10 @@ def test_origin_warnings_unknown_and_contradicted() -> None:
     assert origin_warnings({"reference": known, "scan": known}) == []
     warnings = origin_warnings({"reference": known, "scan": []}, ["the scan's file origin ..."])
     assert codes(warnings) == ["sensor_origin", "sensor_origin_unknown"]
-    assert warnings[0]["message"] == "the scan's file origin ..."
+    assert warnings[0]["detail"]["explanation"] == "the scan's file origin ..."
     assert warnings[1]["side"] == "scan"
-    assert "sensor_origin=x,y,z" in warnings[1]["message"]
+    assert warnings[1]["how_to_fix"]["action"] == "give_sensor_origin"
+    assert "sensor_origin=" not in warnings[1]["message"] and "--" not in warnings[1]["message"]
     assert origin_warnings(None) == []  # not reported: nothing to say
 
 

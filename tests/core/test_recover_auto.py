@@ -156,16 +156,14 @@ def test_a_uniform_cloud_is_not_searched_for_stations(monkeypatch):
     assert result.changed
 
 
-def test_unfound_stations_of_a_merged_lidar_cloud_route_to_the_surface_test(
-    monkeypatch, unconfident
-):
+def test_unfound_stations_of_a_merged_lidar_cloud_route_to_the_map_test(monkeypatch, unconfident):
     monkeypatch.setattr(stations, "recover_stations", _no_stations)
     result = compare(*_clouds(merged()), align=False)
     assert result.sensor_origins == {"reference": [], "scan": []}
     for side in ("reference", "scan"):
         assert result.visibility[side]["stations_unknown"] is True
         assert result.visibility[side]["stations_recovered"] == 0
-        assert result.visibility[side]["test"] == "surfaces"
+        assert result.visibility[side]["test"] == "maps"
     assert sum("could not be recovered" in warning for warning in result.warnings) == 2
     assert result.calibration["visibility"] == result.to_json_dict()["visibility"]
 
@@ -206,11 +204,15 @@ def test_recovered_stations_that_explain_few_points_are_not_used(monkeypatch, un
     assert resolved.evidence["stations_explained_share"] == pytest.approx(0.2)
 
 
-def test_the_surface_test_is_used_against_a_cloud_of_unknown_stations_only():
+def test_the_map_test_is_used_against_any_cloud_without_origins():
     pair = merged("added")
     localisation = localise_changes(pair.reference, pair.scan, scan_stations_unknown=True)
-    assert localisation.parameters["reference_visibility"] == "surfaces"
+    assert localisation.parameters["reference_visibility"] == "maps"
     assert localisation.parameters["scan_visibility"] == "maps"
+    explicit = localise_changes(
+        pair.reference, pair.scan, scan_stations_unknown=True, origin_free_test="surfaces"
+    )
+    assert explicit.parameters["reference_visibility"] == "surfaces"
 
 
 def test_a_test_chosen_by_the_user_wins_over_the_routing():

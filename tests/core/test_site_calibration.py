@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from app.core.cloud import PointCloud
-from app.core.explanation import explain_comparison
+from app.core.explanation import explain_comparison, explain_decision
 from app.core.pipeline import compare
 from app.core.site_calibration import (
     DecisionInputs,
@@ -207,10 +207,37 @@ def test_compare_applies_a_site_calibration_and_reports_it() -> None:
     assert text.startswith("no change: ") and "not above the site's learned threshold" in text
 
 
-def test_largest_extent_is_the_largest_bounding_box_diagonal() -> None:
+def test_largest_extent_is_the_diagonal_of_the_region_with_the_most_points() -> None:
+    # the explanation's largest region (most points), not the widest box
     regions = [
-        {"bbox_min": [0.0, 0.0, 0.0], "bbox_max": [0.3, 0.4, 0.0]},
-        {"bbox_min": [1.0, 1.0, 1.0], "bbox_max": [2.0, 3.0, 3.0]},
+        {
+            "kind": "added",
+            "n_points": 900,
+            "bbox_min": [0.0, 0.0, 0.0],
+            "bbox_max": [0.3, 0.4, 0.0],
+        },
+        {
+            "kind": "removed",
+            "n_points": 40,
+            "bbox_min": [1.0, 1.0, 1.0],
+            "bbox_max": [2.0, 3.0, 3.0],
+        },
+        {
+            "kind": "added",
+            "n_points": 900,
+            "bbox_min": [0.0, 0.0, 0.0],
+            "bbox_max": [6.0, 8.0, 0.0],
+        },
     ]
-    assert largest_extent(regions) == pytest.approx(3.0)
+    assert largest_extent(regions) == pytest.approx(0.5)
+    explanation = explain_decision(
+        changed=True,
+        rule="regions",
+        score=None,
+        threshold=None,
+        detector_changed=None,
+        regions=regions,
+    )
+    assert explanation["largest_region"]["index"] == 0
+    assert largest_extent(regions[1:]) == pytest.approx(10.0)
     assert largest_extent([]) == 0.0

@@ -199,7 +199,9 @@ class ReviewService:
                 assert answer.status_code in (201, 202), answer.text
             job = self.process.wait_for_job(client, answer.json()["job"]["id"], timeout=120)
             assert job["status"] == "succeeded", job
-            regions = client.get(f"/api/v1/jobs/{job['id']}/regions").json()
+            regions = client.get(
+                f"/api/v1/jobs/{job['id']}/regions", params={"limit": 1000}
+            ).json()["items"]
         self.made["job"] = job
         self.made["regions"] = regions
         return job

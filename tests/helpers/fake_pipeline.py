@@ -54,6 +54,8 @@ class FakeResult:
     scan_label: NDArray[np.int8]
     reference_distance: NDArray[np.float32]
     scan_distance: NDArray[np.float32]
+    reference_region: NDArray[np.int32]
+    scan_region: NDArray[np.int32]
     timings: dict[str, float] = field(default_factory=dict)
     params: dict[str, Any] = field(default_factory=dict)
 
@@ -115,6 +117,8 @@ def fake_compare(
         scan_label=scan_label,
         reference_distance=np.zeros(reference.n_source, dtype=np.float32),
         scan_distance=np.where(scan_label == 1, 1.0, 0.0).astype(np.float32),
+        reference_region=np.full(reference.n_source, -1, dtype=np.int32),
+        scan_region=np.where(scan_label == 1, 0, -1).astype(np.int32),
         timings={"align": 0.001},
         params={"variant": variant, "random_state": random_state, **dict(params or {})},
     )

@@ -24,7 +24,7 @@ from tests.helpers.waiting import wait_until
 from tests.helpers.worker import WorkerProcess
 
 WEBHOOK_SETTINGS: dict[str, Any] = {
-    "webhook_allow_private_addresses": True,  # receivers are on 127.0.0.1
+    "allow_private_addresses": True,  # receivers are on 127.0.0.1
     "webhook_backoff_seconds": 0.2,
     "webhook_backoff_max_seconds": 1.0,
     "webhook_timeout_seconds": 5.0,

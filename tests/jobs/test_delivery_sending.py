@@ -61,7 +61,7 @@ def test_a_private_address_is_not_called_unless_allowed(job_settings: Settings) 
         receiver.secret = "whsec_test"
         refused = send_attempt(
             delivery_to(receiver.url),
-            local_settings(job_settings, webhook_allow_private_addresses=False),
+            local_settings(job_settings, allow_private_addresses=False),
         )
         assert refused.status_code is None and "non-public address 127.0.0.1" in refused.error
         assert receiver.received == []

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import logging
 from types import SimpleNamespace
 
 import pytest
@@ -34,13 +35,26 @@ def test_a_stand_in_comparison_preloads_no_library(
     assert imported == []
 
 
-def test_a_missing_library_is_skipped(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_missing_library_is_skipped(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    missing = "sklearn.cluster"
+    tried: list[str] = []
+
     def import_module(name: str) -> None:
-        raise ImportError(name)
+        tried.append(name)
+        if name == missing:
+            raise ImportError(name)
 
     monkeypatch.setattr(consumer, "importlib", SimpleNamespace(import_module=import_module))
     monkeypatch.setattr(job_hooks, "comparison", lambda: None)
-    consumer.preload_pipeline()  # the job that needs it reports it
+    with caplog.at_level(logging.WARNING, logger=consumer.logger.name):
+        consumer.preload_pipeline()  # does not raise: the job that needs it reports it
+    assert tried == list(consumer.first_use_libraries())  # the ones after it are still loaded
+    skipped = [
+        record for record in caplog.records if record.getMessage() == "library not preloaded"
+    ]
+    assert [record.library for record in skipped] == [missing]  # type: ignore[attr-defined]
 
 
 @pytest.mark.parametrize("name", consumer.first_use_libraries())

@@ -27,7 +27,8 @@ def test_the_load_script_runs_and_reports(tmp_path: Path) -> None:
     markdown_path = tmp_path / "load.md"
     command = [
         sys.executable,
-        "bench/load.py",
+        "-m",
+        "bench.load",
         "--clients",
         str(CLIENTS),
         "--seconds",

@@ -129,7 +129,7 @@ def test_bad_sources_are_422(writer: httpx.Client, drop_root: Path, tmp_path: Pa
             422,
             "forbidden_url_address",
         )
-        assert "SCANDIFF_SCHEDULE_ALLOW_PRIVATE_URLS" in detail
+        assert "SCANDIFF_ALLOW_PRIVATE_ADDRESSES" in detail
     outside = tmp_path / "outside"
     outside.mkdir()
     assert_error(

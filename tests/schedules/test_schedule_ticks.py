@@ -13,7 +13,7 @@ from typing import Any
 import httpx
 
 from app.clock import as_utc, utc_now
-from app.db.models import Job, ScheduleRun
+from app.db.models import Job, ScheduleRun, ScheduleRunStatus
 from app.db.session import transaction
 from app.services.schedule_runs import TickReport, abandoned_after, claim_period, tick
 from tests.helpers.database import count_rows
@@ -50,7 +50,10 @@ def test_catch_up_each_runs_every_missed_period(
     api: ApiServer, writer: httpx.Client, events: list[dict[str, Any]]
 ) -> None:
     site, _reference = site_with_reference(writer)
-    schedule = interval_schedule(writer, site["id"], 600, catch_up="each")
+    # the detector of the upload's own job (PCA): the run reuses that job
+    schedule = interval_schedule(
+        writer, site["id"], 600, catch_up="each", detector={"method": "pca"}
+    )
     scan = upload_accepted(writer, site["id"], "night.ply", room_ply(5, with_box=True))
     start = created(schedule)
     # the scan arrived within the first period (seconds after creation); periods 2 and 3 had none
@@ -61,7 +64,8 @@ def test_catch_up_each_runs_every_missed_period(
     assert runs[0]["job_id"] == scan["job"]["id"]  # the upload's own comparison, not a copy
     assert sorted(report.runs) == ["compared", "missed"]
     missed = [event for event in events if event["type"] == "schedule.missed"]
-    assert [event["run_id"] for event in missed] == [run["id"] for run in runs[1:]]
+    # one event for the spell of two missed periods (throttled as site.stale is)
+    assert [event["run_id"] for event in missed] == [runs[1]["id"]]
     assert all(event["schedule_id"] == schedule["id"] for event in missed)
     # the same tick again (a restart) runs nothing twice
     assert tick(api.settings, start + timedelta(seconds=1805)).runs == {}
@@ -98,7 +102,9 @@ def test_catch_up_none_skips_late_periods_and_runs_one_on_time(
 
 def test_compare_previous_adds_a_trend_job(api: ApiServer, writer: httpx.Client) -> None:
     site, reference = site_with_reference(writer)
-    schedule = interval_schedule(writer, site["id"], 600, compare_previous=True)
+    schedule = interval_schedule(
+        writer, site["id"], 600, compare_previous=True, detector={"method": "pca"}
+    )
     first = upload_accepted(writer, site["id"], "first.ply", room_ply(5))
     second = upload_accepted(writer, site["id"], "second.ply", room_ply(6, with_box=True))
     tick(api.settings, created(schedule) + timedelta(seconds=605))
@@ -142,7 +148,14 @@ def test_a_site_without_new_scans_goes_stale_once_per_spell(
 def test_two_tickers_racing_run_each_period_once(api: ApiServer, writer: httpx.Client) -> None:
     site, _reference = site_with_reference(writer)
     schedules = [
-        interval_schedule(writer, site["id"], 60, catch_up="each", compare_previous=True)
+        interval_schedule(
+            writer,
+            site["id"],
+            60,
+            catch_up="each",
+            compare_previous=True,
+            detector={"method": "pca"},  # the upload's detector: its job is reused
+        )
         for _ in range(3)
     ]
     upload_accepted(writer, site["id"], "night.ply", room_ply(5, with_box=True))
@@ -228,11 +241,15 @@ def test_a_period_claimed_by_a_process_that_died_is_not_run_again(
     api: ApiServer, writer: httpx.Client
 ) -> None:
     site, _reference = site_with_reference(writer)
-    schedule = interval_schedule(writer, site["id"], 600, catch_up="each")
+    schedule = interval_schedule(
+        writer, site["id"], 600, catch_up="each", detector={"method": "pca"}
+    )
     upload_accepted(writer, site["id"], "night.ply", room_ply(5, with_box=True))
     first_period = created(schedule) + timedelta(seconds=600)
     # a ticker claimed the first period, then was killed before running it
-    abandoned = claim_period(api.settings, schedule["id"], first_period, "scheduled", "running")
+    abandoned = claim_period(
+        api.settings, schedule["id"], first_period, "scheduled", ScheduleRunStatus.RUNNING
+    )
     assert abandoned
     # soon after the claim, the run may still be live: left alone
     early = tick(api.settings, first_period + timedelta(seconds=5))

@@ -13,6 +13,7 @@ from app.api.routes import (
     jobs,
     metrics,
     organisation,
+    resumable_uploads,
     scans,
     schedules,
     sites,
@@ -24,6 +25,7 @@ v1_router = APIRouter(prefix="/api/v1")
 v1_router.include_router(health.router)
 v1_router.include_router(sites.router)
 v1_router.include_router(scans.router)
+v1_router.include_router(resumable_uploads.router)
 v1_router.include_router(jobs.router)
 v1_router.include_router(verdicts.router)
 v1_router.include_router(organisation.router)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from datetime import datetime
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Header, Query, Response
@@ -10,11 +11,27 @@ from starlette.concurrency import run_in_threadpool
 
 from app.api.deps import PrincipalDep, SessionDep, SettingsDep, WriterDep
 from app.api.errors import QUEUED_JOBS_RESPONSE
+from app.db.models import JobStatus
 from app.services import jobs as jobs_service
 from app.services import results as results_service
-from app.services.schemas import ErrorRead, JobCreate, JobRead, JobRerun, RegionRead
+from app.services.paging import DEFAULT_LIMIT, MAX_LIMIT
+from app.services.schemas import (
+    AwaitingReviewCounts,
+    ErrorRead,
+    JobCreate,
+    JobRead,
+    JobRerun,
+    Page,
+    RegionRead,
+    SiteAwaitingReview,
+)
 
 router = APIRouter(tags=["jobs"])
+
+Limit = Annotated[int, Query(ge=1, le=MAX_LIMIT, description="Items per page.")]
+Cursor = Annotated[str | None, Query(description="`next_cursor` of the previous page.")]
+REGION_PAGE_MAX = 1000
+"""Largest page of ``GET /jobs/{id}/regions`` (regions are small; a job can have thousands)."""
 
 REGION_TOTAL_HEADER = {
     "description": "How many regions match the filters (all pages).",
@@ -35,6 +52,52 @@ def create_job(
     """Queue a comparison of two scans of one site (e.g. a re-run with other parameters)."""
     stored = jobs_service.create_job(session, settings, principal, payload, idempotency_key)
     return JSONResponse(stored.body, status_code=stored.status_code)
+
+
+@router.get("/jobs", response_model=Page[JobRead])
+def list_jobs(
+    session: SessionDep,
+    principal: PrincipalDep,
+    site_id: Annotated[str | None, Query(description="Only this site's jobs.")] = None,
+    status: Annotated[JobStatus | None, Query(description="Only jobs in this state.")] = None,
+    changed: Annotated[bool | None, Query(description="Only jobs with this decision.")] = None,
+    verdict: Annotated[
+        Literal["confirmed", "false_alarm", "new_reference", "none"] | None,
+        Query(description="Only jobs with this current verdict; none: awaiting a verdict."),
+    ] = None,
+    created_after: Annotated[
+        datetime | None, Query(description="Only jobs created at or after this time.")
+    ] = None,
+    created_before: Annotated[
+        datetime | None, Query(description="Only jobs created before this time.")
+    ] = None,
+    limit: Limit = DEFAULT_LIMIT,
+    cursor: Cursor = None,
+) -> Page[JobRead]:
+    """The organisation's jobs, newest first, filtered by site, status, decision and verdict."""
+    rows, next_cursor = jobs_service.list_jobs(
+        session,
+        principal,
+        site_id=site_id,
+        status=status,
+        changed=changed,
+        verdict=verdict,
+        created_after=created_after,
+        created_before=created_before,
+        limit=limit,
+        cursor=cursor,
+    )
+    return Page[JobRead](items=[JobRead.from_model(row) for row in rows], next_cursor=next_cursor)
+
+
+@router.get("/jobs/awaiting-review/counts", response_model=AwaitingReviewCounts)
+def awaiting_review_counts(session: SessionDep, principal: PrincipalDep) -> AwaitingReviewCounts:
+    """How many succeeded jobs await a verdict, in all and per site (the review inbox)."""
+    sites = [
+        SiteAwaitingReview(**entry)
+        for entry in jobs_service.awaiting_review_counts(session, principal)
+    ]
+    return AwaitingReviewCounts(total=sum(site.count for site in sites), sites=sites)
 
 
 @router.get("/jobs/{job_id}", response_model=JobRead)
@@ -98,7 +161,7 @@ def rerun_job(
 
 @router.get(
     "/jobs/{job_id}/regions",
-    response_model=list[RegionRead],
+    response_model=Page[RegionRead],
     responses={200: {"headers": {"X-Total-Count": REGION_TOTAL_HEADER}}},
 )
 def list_regions(
@@ -119,13 +182,13 @@ def list_regions(
         ),
     ] = "ordinal",
     order: Annotated[Literal["asc", "desc"], Query(description="Sort direction.")] = "asc",
-    offset: Annotated[int, Query(ge=0, description="Regions to skip.")] = 0,
     limit: Annotated[
-        int | None, Query(ge=1, le=1000, description="Page size; default: all the rest.")
-    ] = None,
-) -> list[RegionRead]:
+        int, Query(ge=1, le=REGION_PAGE_MAX, description="Regions per page.")
+    ] = DEFAULT_LIMIT,
+    cursor: Cursor = None,
+) -> Page[RegionRead]:
     """The changed regions the job found (empty until it succeeded); X-Total-Count: matches."""
-    regions, total = jobs_service.list_regions(
+    regions, next_cursor, total = jobs_service.list_regions(
         session,
         principal,
         job_id,
@@ -133,11 +196,13 @@ def list_regions(
         min_points=min_points,
         sort=sort,
         descending=order == "desc",
-        offset=offset,
         limit=limit,
+        cursor=cursor,
     )
     response.headers["X-Total-Count"] = str(total)
-    return [RegionRead.from_model(region) for region in regions]
+    return Page[RegionRead](
+        items=[RegionRead.from_model(region) for region in regions], next_cursor=next_cursor
+    )
 
 
 @router.get(

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from typing import Annotated
+
+from fastapi import APIRouter, Query
 
 from app.api.deps import PrincipalDep, SessionDep, SettingsDep, WriterDep
 from app.services import verdicts as verdicts_service
-from app.services.schemas import ErrorRead, JobRead, VerdictCreate, VerdictRead
+from app.services.paging import DEFAULT_LIMIT, MAX_LIMIT
+from app.services.schemas import ErrorRead, JobRead, Page, VerdictCreate, VerdictRead
 
 router = APIRouter(tags=["jobs"])
 
@@ -29,10 +32,16 @@ def set_verdict(
     )
 
 
-@router.get("/jobs/{job_id}/verdicts", response_model=list[VerdictRead])
-def list_verdicts(job_id: str, session: SessionDep, principal: PrincipalDep) -> list[VerdictRead]:
-    """Every verdict given to the job, oldest first."""
-    return [
-        VerdictRead.model_validate(verdict)
-        for verdict in verdicts_service.list_verdicts(session, principal, job_id)
-    ]
+@router.get("/jobs/{job_id}/verdicts", response_model=Page[VerdictRead])
+def list_verdicts(
+    job_id: str,
+    session: SessionDep,
+    principal: PrincipalDep,
+    limit: Annotated[int, Query(ge=1, le=MAX_LIMIT, description="Items per page.")] = DEFAULT_LIMIT,
+    cursor: Annotated[str | None, Query(description="`next_cursor` of the previous page.")] = None,
+) -> Page[VerdictRead]:
+    """Every verdict given to the job, newest first (the first is the current one)."""
+    entries, next_cursor = verdicts_service.list_verdicts(session, principal, job_id, limit, cursor)
+    return Page[VerdictRead](
+        items=[VerdictRead.model_validate(entry) for entry in entries], next_cursor=next_cursor
+    )

@@ -171,7 +171,7 @@ class VoteWorkspace:
 
     A round's vote works on N x N arrays (N = 300 candidates: 0.7 MB each as float64).
     Allocated per round, every one is a fresh mapping (the service fixes glibc's mmap
-    threshold at 128 KiB, :mod:`app.core.allocator`) whose page faults and zeroing cost more
+    threshold at 128 KiB, :mod:`app.kit.allocator`) whose page faults and zeroing cost more
     than the arithmetic (figures in docs/performance.md).
     """
 

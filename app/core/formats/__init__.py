@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from app.core.blocks import conversion_threads
 from app.core.cloud import PointCloud
 from app.core.cloud_summary import CloudSummary, summarise_array
-from app.core.errors import PointCloudError, UnsupportedFormatError
+from app.core.errors import PointCloudError, PointLimitError, UnsupportedFormatError
 from app.core.formats import text as _text
 from app.core.formats._common import RawCloud, Source, SourceLike, file_rows_of, open_source
 from app.core.formats.e57 import E57_SIGNATURE, read_e57
@@ -385,6 +385,8 @@ def _decode(
             if reader is _text.read_text and build_text is not None:
                 return build_text(opened, max_points)
             return build(reader(opened, max_points), opened)
+        except PointLimitError as exc:
+            raise PointLimitError(f"{label}: {exc}", limit_name=exc.limit_name) from exc
         except PointCloudError as exc:
             raise type(exc)(f"{label}: {exc}") from exc
         except MemoryError as exc:

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.blocks import FileRows
-from app.core.errors import PointCloudError
+from app.core.errors import PointCloudError, PointLimitError
 from app.core.trajectory import Trajectory
 
 SourceLike = str | os.PathLike | bytes | bytearray | memoryview | BinaryIO
@@ -185,9 +185,10 @@ def check_point_count(
     if declared < 0:
         raise PointCloudError(f"{what} declares a negative point count ({declared})")
     if max_points is not None and declared > max_points:
-        raise PointCloudError(
+        raise PointLimitError(
             f"{what} declares {declared:,} points, more than the limit of {max_points:,}; "
-            "split or downsample the scan, or raise max_points"
+            "split or downsample the scan, or raise the limit",
+            limit_name="max_points",
         )
     if available_bytes is not None and bytes_per_point:
         needed = declared * bytes_per_point

@@ -12,6 +12,8 @@ Before any point is decompressed the header's point count is checked against ``m
 and against the bytes present: an uncompressed body must hold ``count x record size`` bytes,
 and a LAZ body may not claim to expand more than :data:`LAZ_MAX_EXPANSION` times, well above
 what the most compressible input there is expands to (figures in docs/performance.md).
+A COPC file (``.copc.laz``) is a LAZ file too: its octree hierarchy must count the header's
+points (:func:`check_copc_hierarchy`; spatial queries in :mod:`app.core.formats.copc`).
 Points are then decoded in chunks into preallocated arrays (:func:`read_las`), or summarised
 chunk by chunk without keeping them (:func:`summarise_las`, for checking uploads).
 """
@@ -55,6 +57,91 @@ KEPT_STANDARD_DIMENSIONS = (
 )
 WRITE_POINT_FORMAT = 6
 """LAS 1.4 point format 6: the modern base format (no colour); extra fields go to extra bytes."""
+
+
+COPC_INFO_VLR_OFFSET = 375
+"""Where the ``copc`` info VLR starts: right after the LAS 1.4 header, as COPC requires."""
+VLR_HEADER_BYTES = 54
+COPC_USER_ID = b"copc"
+COPC_INFO_RECORD_ID = 1
+COPC_INFO_BYTES = 160
+HIERARCHY_ENTRY = struct.Struct("<4iQii")
+"""One hierarchy page entry: key (depth, x, y, z), chunk offset, chunk bytes, point count."""
+CHILD_PAGE = -1
+"""Point count of an entry that references a child hierarchy page."""
+POINT_COUNT_OFFSET = 247
+"""Byte offset of the LAS 1.4 header's 64-bit point count."""
+
+
+def is_copc(buffer: bytes | memoryview) -> bool:
+    """Whether the LAS/LAZ content starts like a COPC file (its first VLR is ``copc`` info).
+
+    Parameters
+    ----------
+    buffer : bytes-like
+        The file's content, or at least its first 431 bytes.
+    """
+    start = COPC_INFO_VLR_OFFSET
+    if len(buffer) < start + VLR_HEADER_BYTES or bytes(buffer[:4]) != b"LASF":
+        return False
+    user_id = bytes(buffer[start + 2 : start + 18]).rstrip(b"\0")
+    record_id = struct.unpack_from("<H", buffer, start + 18)[0]
+    return user_id == COPC_USER_ID and record_id == COPC_INFO_RECORD_ID
+
+
+def check_copc_hierarchy(source: Source, n_points: int) -> None:
+    """Verify the octree hierarchy of a COPC file against its header before decoding it.
+
+    Parameters
+    ----------
+    source : Source
+        The whole file (memory-mapped).
+    n_points : int
+        The point count the header declares.
+
+    Raises
+    ------
+    PointCloudError
+        A hierarchy page or chunk outside the file, a page visited twice (a cycle), or node
+        point counts whose sum differs from the header's count.
+    """
+    buffer = source.buffer
+    info_start = COPC_INFO_VLR_OFFSET + VLR_HEADER_BYTES
+    if source.size < info_start + COPC_INFO_BYTES:
+        raise PointCloudError("truncated COPC file: the copc info record is cut short")
+    root_offset, root_size = struct.unpack_from("<QQ", buffer, info_start + 40)
+    pages = [(root_offset, root_size)]
+    seen: set[int] = set()
+    counted = 0
+    while pages:
+        offset, size = pages.pop()
+        if offset in seen:
+            raise PointCloudError(f"corrupt COPC file: the hierarchy page at {offset:,} repeats")
+        seen.add(offset)
+        if size % HIERARCHY_ENTRY.size or not 0 < offset <= offset + size <= source.size:
+            raise PointCloudError(
+                f"corrupt or truncated COPC file: a hierarchy page of {size:,} bytes at "
+                f"{offset:,} lies outside the {source.size:,}-byte file"
+            )
+        for entry in range(size // HIERARCHY_ENTRY.size):
+            *_, chunk_offset, chunk_bytes, count = HIERARCHY_ENTRY.unpack_from(
+                buffer, offset + entry * HIERARCHY_ENTRY.size
+            )
+            if count == CHILD_PAGE:
+                pages.append((chunk_offset, chunk_bytes))
+                continue
+            if count < 0 or (count and chunk_offset + max(chunk_bytes, 0) > source.size):
+                raise PointCloudError(
+                    f"corrupt or truncated COPC file: a node of {count:,} points claims bytes "
+                    f"{chunk_offset:,} to {chunk_offset + chunk_bytes:,} of a "
+                    f"{source.size:,}-byte file"
+                )
+            counted += count
+    if counted != n_points:
+        raise PointCloudError(
+            f"the COPC header declares {n_points:,} points but its octree holds {counted:,}: "
+            "the header and the point data disagree (a corrupt or edited file); export it again"
+        )
 
 
 def is_compressed_point_format(point_format_byte: int) -> bool:
@@ -145,6 +232,8 @@ def _opened_points(
                         f"{LAZ_MAX_EXPANSION:,}x); the file is truncated or corrupt"
                     )
                 _check_laz_structure(source, header, n_points, record_size)
+                if is_copc(source.buffer):
+                    check_copc_hierarchy(source, n_points)
             else:
                 check_point_count(
                     n_points,

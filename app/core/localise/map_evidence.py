@@ -49,9 +49,14 @@ __all__ = ["MapEvidence", "map_test"]
 
 BORDER_NEIGHBOURS = 16
 """Own neighbours of a candidate looked at for its cluster's border."""
-CONTINUATION_SHARE = 0.5
+PLAIN_CONTINUATION_SHARE = 0.6
 """A cluster is a coverage difference when this share of its border points continues into a
-surface the other epoch has (and no see-through evidence overrides it)."""
+surface the other epoch has (and no see-through evidence overrides it).  A removed object's
+border continues into nothing parallel (its faces meet the floor and walls at an angle)."""
+CONTINUATION_SHARE = 0.3
+"""A patch of a wall or ceiling also meets the room's corners, so half its border may not
+continue: from this share on, it is a coverage difference when most of its points also lie on
+planes the other epoch has nearby (:data:`COPLANAR_SHARE`)."""
 SURFACE_REACH = 0.8
 """The other epoch's surface must extend this far (metres) from a continuing border point, in
 at least :data:`SURFACE_SECTORS` directions of its plane: a floor, a wall, a ceiling, not the
@@ -60,9 +65,17 @@ SURFACE_SECTORS = 2
 SECTORS = 8
 SECTOR_HALF_ANGLE_COSINE = math.cos(math.radians(35.0))
 PROBE_NEIGHBOURS = 4
-SEE_THROUGH_SHARE = 0.3
+COPLANAR_SHARE = 0.75
+COPLANAR_SAMPLE = 256
+COPLANAR_REACHES = (0.25, 0.5, 1.0, 2.0)
+SEE_THROUGH_SHARE = 0.6
 """A coverage-difference cluster is still a change when this share of its points has the
-other epoch's surface, missing from this epoch, on its normal line."""
+other epoch's surface, missing from this epoch, on its normal line within
+:data:`SEE_THROUGH_REACH`."""
+SEE_THROUGH_REACH = 1.2
+"""Farther along the normal line, the other epoch's unmatched surface is as likely another
+coverage difference (the ceiling a path saw above a floor patch the other path saw) as what
+stood in front of or behind the cluster."""
 SPARSE_PROBE_FACTOR = 1.5
 """The see-through probes' balls are at least this many of the other cloud's median spacings
 wide (a sparse cloud's surface is found between its samples)."""
@@ -152,6 +165,40 @@ def _border_continuation(
     return border, continues
 
 
+def _coplanar_sectors(
+    points: NDArray[np.float64],
+    normal: NDArray[np.floating],
+    cloud: LocalGeometry,
+    tolerance: float,
+    reach: float,
+) -> NDArray[np.int64]:
+    """In how many of :data:`SECTORS` directions of each point's plane ``cloud`` has surface
+    on that plane about ``reach`` away (between half and twice it; shapes (p, 3) -> (p,))."""
+    count = points.shape[0]
+    if count == 0:
+        return np.zeros(0, dtype=np.int64)
+    unit, directions = tangent_directions(normal, SECTORS)
+    k = min(PROBE_NEIGHBOURS, cloud.points.shape[0])
+    hits = np.zeros((count, SECTORS), dtype=bool)
+    for sector in range(SECTORS):
+        direction = directions[:, sector, :]
+        _, index = cloud.tree.query(points + reach * direction, k=k)
+        index = np.asarray(index).reshape(count, k)
+        offset = cloud.points[index] - points[:, None, :]
+        distance = np.linalg.norm(offset, axis=2)
+        across = np.abs(np.einsum("pkd,pd->pk", offset, unit))
+        along = np.einsum("pkd,pd->pk", offset, direction)
+        agrees = np.abs(np.einsum("pkd,pd->pk", cloud.normal[index], unit))
+        hits[:, sector] = (
+            (distance <= 2.0 * reach)
+            & (along >= SECTOR_HALF_ANGLE_COSINE * distance)
+            & (along >= 0.5 * reach)
+            & (across <= tolerance + PLANE_SLOPE * distance)
+            & (agrees >= NORMAL_AGREEMENT_COSINE)
+        ).any(axis=1)
+    return hits.sum(axis=1)
+
+
 def _extends(
     points: NDArray[np.float64],
     normal: NDArray[np.floating],
@@ -160,29 +207,37 @@ def _extends(
 ) -> NDArray[np.bool_]:
     """Whether ``cloud`` has surface on each point's plane :data:`SURFACE_REACH` away in at
     least :data:`SURFACE_SECTORS` directions (shapes (p, 3) -> (p,))."""
-    count = points.shape[0]
-    if count == 0:
-        return np.zeros(0, dtype=bool)
-    unit, directions = tangent_directions(normal, SECTORS)
-    k = min(PROBE_NEIGHBOURS, cloud.points.shape[0])
-    hits = np.zeros((count, SECTORS), dtype=bool)
-    for sector in range(SECTORS):
-        direction = directions[:, sector, :]
-        _, index = cloud.tree.query(points + SURFACE_REACH * direction, k=k)
-        index = np.asarray(index).reshape(count, k)
-        offset = cloud.points[index] - points[:, None, :]
-        distance = np.linalg.norm(offset, axis=2)
-        across = np.abs(np.einsum("pkd,pd->pk", offset, unit))
-        along = np.einsum("pkd,pd->pk", offset, direction)
-        agrees = np.abs(np.einsum("pkd,pd->pk", cloud.normal[index], unit))
-        hits[:, sector] = (
-            (distance <= 2.0 * SURFACE_REACH)
-            & (along >= SECTOR_HALF_ANGLE_COSINE * distance)
-            & (along >= 0.5 * SURFACE_REACH)
-            & (across <= tolerance + PLANE_SLOPE * distance)
-            & (agrees >= NORMAL_AGREEMENT_COSINE)
-        ).any(axis=1)
-    return hits.sum(axis=1) >= SURFACE_SECTORS
+    return _coplanar_sectors(points, normal, cloud, tolerance, SURFACE_REACH) >= SURFACE_SECTORS
+
+
+def _coplanar_share(
+    candidates: Candidates,
+    labels: NDArray[np.int64],
+    n_clusters: int,
+    other: LocalGeometry,
+    tolerance: float,
+) -> NDArray[np.float64]:
+    """Per cluster, the share of (up to :data:`COPLANAR_SAMPLE`) sampled candidates whose own
+    plane the other epoch has within :data:`COPLANAR_REACHES` of them, in some direction.
+
+    A patch of a continuing wall, floor or ceiling lies on the other epoch's plane almost
+    everywhere; a removed object's faces do not, even where one of them is in line with a
+    surface that stays (a cabinet's front above a cupboard that stays).
+    """
+    rng = np.random.default_rng(0)
+    order = rng.permutation(labels.shape[0])
+    rank = np.empty_like(order)
+    ranked = order[np.argsort(labels[order], kind="stable")]
+    starts = np.searchsorted(labels[ranked], np.arange(n_clusters))
+    rank[ranked] = np.arange(ranked.shape[0]) - starts[labels[ranked]]
+    sample = np.flatnonzero(rank < COPLANAR_SAMPLE)
+    points, normal = candidates.points[sample], candidates.normal[sample]
+    found = np.zeros(sample.shape[0], dtype=bool)
+    for reach in COPLANAR_REACHES:
+        todo = np.flatnonzero(~found)
+        found[todo] = _coplanar_sectors(points[todo], normal[todo], other, tolerance, reach) >= 1
+    hits = np.bincount(labels[sample], weights=found.astype(np.float64), minlength=n_clusters)
+    return hits / np.maximum(np.bincount(labels[sample], minlength=n_clusters), 1)
 
 
 def map_test(
@@ -254,6 +309,7 @@ def map_test(
         other_points=other.points,
         other_normal=other.geometry.normal,
         other_unmatched=other_unmatched,
+        max_reach=SEE_THROUGH_REACH,
         min_radius=max(
             BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))
         ),
@@ -270,7 +326,12 @@ def map_test(
     near_limit = max(NEAR_MIN, NEAR_FACTOR * change_threshold)
     near = near_distance <= near_limit
 
-    coverage = (continuation_share >= CONTINUATION_SHARE) & (behind_share < SEE_THROUGH_SHARE)
+    coplanar_share = _coplanar_share(candidates, labels, n_clusters, other.geometry, threshold)
+    continues_plainly = continuation_share >= PLAIN_CONTINUATION_SHARE
+    continues_in_plane = (continuation_share >= CONTINUATION_SHARE) & (
+        coplanar_share >= COPLANAR_SHARE
+    )
+    coverage = (continues_plainly | continues_in_plane) & (behind_share < SEE_THROUGH_SHARE)
     coverage |= ~near
     cluster_confidence = np.where(
         coverage,
@@ -287,5 +348,6 @@ def map_test(
         map_far_clusters=int((~near).sum()),
         map_border_points=int(border.sum()),
         map_continuing_points=int(continues.sum()),
+        map_coplanar_share_median=float(np.median(coplanar_share)) if n_clusters else 0.0,
     )
     return MapEvidence(status, evidence, confidence, counts)

@@ -266,6 +266,7 @@ def behind_evidence(
     other_normal: NDArray[np.floating],
     other_unmatched: NDArray[np.bool_],
     min_radius: float = BEHIND_MIN_RADIUS,
+    max_reach: float = MAX_REACH,
 ) -> NDArray[np.bool_]:
     """Whether the other cloud has surface that this one lacks behind each candidate.
 
@@ -289,6 +290,8 @@ def behind_evidence(
     min_radius : float
         Smallest radius (metres) of a probe's ball (a sparse other cloud needs wider balls:
         about its spacing).
+    max_reach : float
+        Farthest probe (metres) along the normal line.
 
     Returns
     -------
@@ -305,7 +308,7 @@ def behind_evidence(
     unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-12)[:, None]
     k = min(PROBE_NEIGHBOURS, unmatched.shape[0])
     steps = BEHIND_FIRST * BEHIND_STEP_RATIO ** np.arange(
-        math.ceil(math.log(MAX_REACH / BEHIND_FIRST, BEHIND_STEP_RATIO)) + 1
+        math.ceil(math.log(max_reach / BEHIND_FIRST, BEHIND_STEP_RATIO)) + 1
     )
     # along the normal both ways, a surface parallel to the candidate's
     lines = ((unit, unit), (-unit, unit))

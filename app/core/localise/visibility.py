@@ -168,8 +168,8 @@ def label_candidates(
     side = own.name
     report: dict[str, Any] = {f"{side}_candidates": int(index.size)}
     origin_free_test = settings["origin_free_test"]
-    if origin_free_test == "auto":  # the surface test only against merged lidar clouds
-        origin_free_test = "surfaces" if other.stations_unknown else "maps"
+    if origin_free_test == "auto":  # the map test against any cloud without origins
+        origin_free_test = "maps"
     if other.origins is None and origin_free_test == "maps":
         report[f"{side}_visibility"] = "maps"
         found = map_test(

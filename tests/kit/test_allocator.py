@@ -8,13 +8,13 @@ import textwrap
 
 import pytest
 
-from app.core.allocator import release_freed_memory_promptly
+from app.kit.allocator import release_freed_memory_promptly
 
 PROGRAM = textwrap.dedent(
     """
     import sys
     import numpy as np
-    from app.core.allocator import release_freed_memory_promptly
+    from app.kit.allocator import release_freed_memory_promptly
 
     if sys.argv[1] == "fixed":
         assert release_freed_memory_promptly()

@@ -19,9 +19,9 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-from app.core.files import write_private_file
+from app.kit.data_layout import DataLayout
+from app.kit.files import write_private_file
 
-SECRET_KEY_FILE = "secret-key"
 VIEW_LINK_PURPOSE = "view-link"
 
 
@@ -43,7 +43,7 @@ def signing_key(configured: str | None, data_dir: Path) -> bytes:
 @lru_cache(maxsize=16)
 def data_dir_secret(data_dir: Path) -> bytes:
     """Read ``<data_dir>/secret-key``, creating it (0600, atomically) on first use."""
-    path = data_dir / SECRET_KEY_FILE
+    path = DataLayout(data_dir).secret_key_file
     if not path.exists():
         write_private_file(path, secrets.token_urlsafe(48) + "\n", overwrite=False)
     key = path.read_text().strip()

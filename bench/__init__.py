@@ -1,0 +1,1 @@
+"""Benchmarks and reports: run each from the repository root as ``python -m bench.NAME``."""
