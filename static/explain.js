@@ -54,14 +54,16 @@ export function warningsPanel(job) {
       warning.message))));
 }
 
-/** "given (1.00, 2.00, 1.20)"... per side, or "unknown". */
+/** "given (1.00, 2.00, 1.20)", "trajectory (154 poses, ...)"... per side, or "unknown". */
 export function sensorOriginsText(job) {
   const origins = job.sensor_origins;
   if (!origins) return "—";
   return ["reference", "scan"].map((side) => {
     const entries = origins[side] || [];
     if (!entries.length) return `${side}: unknown`;
-    return `${side}: ${entries.map((entry) => `${entry.source} (${entry.origin.map((value) => formatNumber(value, 4)).join(", ")})`).join("; ")}`;
+    return `${side}: ${entries.map((entry) => (entry.source === "trajectory"
+      ? `trajectory (${entry.poses} poses, ${entry.points_outside ?? 0} points outside its times)`
+      : `${entry.source} (${entry.origin.map((value) => formatNumber(value, 4)).join(", ")})`)).join("; ")}`;
   }).join(" · ");
 }
 

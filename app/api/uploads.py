@@ -19,6 +19,10 @@ from app.services.scans import UploadBody
 from app.services.storage import too_large_message
 
 FILE_FIELD = "file"
+EXTRA_FIELDS = ("trajectory", "trajectory_times")
+"""Small parts kept in memory besides the file (a scan's trajectory and its pose times)."""
+MAX_EXTRA_BYTES = 32 * 1024 * 1024
+"""Largest such part."""
 MULTIPART_OVERHEAD_BYTES = 1024 * 1024
 """Room for boundaries, part headers and small extra fields around the file in a form."""
 
@@ -30,6 +34,8 @@ class RawBody:
 
     def __init__(self, request: Request) -> None:
         self._request = request
+        self.parts: dict[str, bytearray] = {}
+        self.part_filenames: dict[str, str] = {}
 
     async def chunks(self) -> AsyncIterator[bytes]:
         """The body as it arrives."""
@@ -38,13 +44,19 @@ class RawBody:
 
 
 class MultipartBody:
-    """The file is the multipart field ``file``; other fields are skipped (within the cap)."""
+    """The file is the multipart field ``file``; :data:`EXTRA_FIELDS` are kept in ``parts``
+    (with their file names in ``part_filenames``); other fields are skipped (within the cap)."""
 
     def __init__(self, request: Request, boundary: bytes, max_upload_bytes: int) -> None:
         self._request = request
         self._boundary = boundary
         self._max_upload_bytes = max_upload_bytes
-        self._max_total_bytes = max_upload_bytes + MULTIPART_OVERHEAD_BYTES
+        self._max_total_bytes = (
+            max_upload_bytes + MULTIPART_OVERHEAD_BYTES + len(EXTRA_FIELDS) * MAX_EXTRA_BYTES
+        )
+        self.parts: dict[str, bytearray] = {}
+        self.part_filenames: dict[str, str] = {}
+        self._extra: str | None = None
         self.filename: str | None = None
         self._header_name = b""
         self._header_value = b""
@@ -56,6 +68,7 @@ class MultipartBody:
     def _on_part_begin(self) -> None:
         self._disposition = b""
         self._in_file = False
+        self._extra = None
 
     def _on_header_field(self, data: bytes, start: int, end: int) -> None:
         self._header_name += data[start:end]
@@ -77,13 +90,27 @@ class MultipartBody:
             raw_name = options.get(b"filename")
             if raw_name is not None:
                 self.filename = raw_name.decode("utf-8", "surrogateescape")
+        name = (options.get(b"name") or b"").decode("utf-8", "replace")
+        if name in EXTRA_FIELDS and name not in self.parts:
+            self._extra = name
+            self.parts[name] = bytearray()
+            raw_name = options.get(b"filename")
+            if raw_name is not None:
+                self.part_filenames[name] = raw_name.decode("utf-8", "replace")
 
     def _on_part_data(self, data: bytes, start: int, end: int) -> None:
         if self._in_file:
             self._pending.append(bytes(data[start:end]))
+        elif self._extra is not None:
+            self.parts[self._extra] += data[start:end]
+            if len(self.parts[self._extra]) > MAX_EXTRA_BYTES:
+                raise PayloadTooLargeError(
+                    f"the '{self._extra}' part is larger than {MAX_EXTRA_BYTES // 2**20} MB"
+                )
 
     def _on_part_end(self) -> None:
         self._in_file = False
+        self._extra = None
 
     async def chunks(self) -> AsyncIterator[bytes]:
         """The bytes of the ``file`` field as the body arrives."""
@@ -151,7 +178,11 @@ def get_upload_body(request: Request, settings: SettingsDep) -> UploadBody:
         boundary = options.get(b"boundary")
         if not boundary:
             raise BadRequestError("multipart body without a boundary", code="malformed_multipart")
-        if length is not None and length > settings.max_upload_bytes + MULTIPART_OVERHEAD_BYTES:
+        extra = len(EXTRA_FIELDS) * MAX_EXTRA_BYTES
+        if (
+            length is not None
+            and length > settings.max_upload_bytes + MULTIPART_OVERHEAD_BYTES + extra
+        ):
             raise PayloadTooLargeError(too_large_message(settings.max_upload_bytes))
         return MultipartBody(request, boundary, settings.max_upload_bytes)
     if length is not None and length > settings.max_upload_bytes:

@@ -80,6 +80,27 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         metavar="X,Y,Z",
         help="the same for SCAN (repeatable, one per station)",
     )
+    for flag, whose in (("--trajectory", "REFERENCE"), ("--scan-trajectory", "SCAN")):
+        parser.add_argument(
+            flag,
+            type=Path,
+            metavar="FILE",
+            help=f"the moving sensor's trajectory of {whose}: TUM, KITTI poses or CSV "
+            "(time,x,y,z[,qx,qy,qz,qw]); per-point times (gps_time, time, timestamp, t) place "
+            "each point's sensor on it, else each point takes its nearest pose in line of sight",
+        )
+        parser.add_argument(
+            f"{flag}-times",
+            type=Path,
+            metavar="FILE",
+            help=f"times of the KITTI poses of {flag} (one a line)",
+        )
+        parser.add_argument(
+            f"{flag}-rate",
+            type=float,
+            metavar="HZ",
+            help=f"constant rate of the KITTI poses of {flag} (poses a second)",
+        )
     parser.add_argument(
         "--geometry-cache",
         type=Path,
@@ -106,6 +127,24 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="the same for SCAN only, overriding --bag-param (repeatable)",
     )
     parser.set_defaults(handler=run)
+
+
+def _with_trajectory(cloud: PointCloud, args: argparse.Namespace, name: str) -> PointCloud:
+    """``cloud`` with the trajectory of ``--trajectory``/``--scan-trajectory``, if given."""
+    from app.core.formats.trajectory_files import read_trajectory
+    from app.core.trajectory_poses import with_trajectory
+
+    path, times = getattr(args, name), getattr(args, f"{name}_times")
+    rate = getattr(args, f"{name}_rate")
+    flag = "--" + name.replace("_", "-")
+    if path is None:
+        if times is not None or rate is not None:
+            raise InputError(f"{flag}-times/{flag}-rate need {flag} FILE (the poses)")
+        return cloud
+    for given in (path, times):
+        if given is not None and not given.is_file():
+            raise InputError(f"no such file: {given}")
+    return with_trajectory(cloud, read_trajectory(path, times=times, rate=rate))
 
 
 def _parse_origins(values: list[str], flag: str) -> list[list[float]] | None:
@@ -189,6 +228,13 @@ def _print_summary(result: ComparisonResult, reference: Path, scan: Path) -> Non
     )
     for side in ("reference", "scan"):
         for entry in result.sensor_origins.get(side, []):
+            if entry.get("source") == "trajectory":
+                print(
+                    f"  {side} trajectory: {entry['poses']} poses, {entry['groups']} "
+                    f"pseudo-stations ({entry['assignment']}), {entry['points_outside']} points "
+                    "outside its times"
+                )
+                continue
             where = ", ".join(f"{value:.2f}" for value in entry["origin"])
             print(f"  {side} sensor origin: ({where}), {entry['source']}")
     from app.core.quality import quality_warnings
@@ -347,8 +393,12 @@ def run(args: argparse.Namespace) -> int:
             params.setdefault("reference_origin", [0.0, 0.0, 0.0])
             params.setdefault("scan_origin", [0.0, 0.0, 0.0])
         started = time.perf_counter()
-        reference = read_point_cloud(args.reference, bag_options=reference_bag)
-        scan = read_point_cloud(args.scan, bag_options=scan_bag)
+        reference = _with_trajectory(
+            read_point_cloud(args.reference, bag_options=reference_bag), args, "trajectory"
+        )
+        scan = _with_trajectory(
+            read_point_cloud(args.scan, bag_options=scan_bag), args, "scan_trajectory"
+        )
         load_seconds = time.perf_counter() - started
         result = compare(
             reference,

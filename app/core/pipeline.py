@@ -48,10 +48,11 @@ from app.core.localise import (
     localise_changes,
     start_neighbourhood_search,
 )
-from app.core.origins.known_stations import origins_in_local_frame, station_index_of
+from app.core.origins.known_stations import origins_in_local_frame
 from app.core.origins.own_frame import resolve_moved_cloud
 from app.core.origins.resolve import ResolvedOrigin
 from app.core.origins.stations import resolve_stations
+from app.core.origins.trajectory_origin import station_index, trajectory_origin, trajectory_rays
 from app.core.quality import quality_warnings
 from app.core.reference_alignment import ReferenceAlignmentCache
 from app.core.reference_origin import ReferenceOriginCache
@@ -362,7 +363,9 @@ def compare(
     def resolve_reference() -> ResolvedOrigin:
         started = time.perf_counter()
         resolved = origin_cache.load(facts) if origin_cache is not None else None
-        if resolved is None:
+        if reference.trajectory is not None:  # its pseudo-stations along the path
+            resolved = trajectory_origin(reference, reference_points, local_origin)
+        elif resolved is None:
             resolved = resolve_stations(
                 "reference",
                 reference_points,
@@ -390,7 +393,7 @@ def compare(
         if resolved_reference is None:
             resolved_reference = resolve_reference()
         reference_origin = resolved_reference.origin
-        reference_station = station_index_of(reference, resolved_reference, "reference")
+        reference_station = station_index(reference, resolved_reference, "reference")
         started = time.perf_counter()
         if align:
             registration = register_scan(
@@ -413,23 +416,32 @@ def compare(
         )
         try:
             started = time.perf_counter()
-            resolved_scan = resolve_moved_cloud(
-                "scan",
-                scan_points,
-                registration.transform,
-                aligned_points=aligned_scan,
-                given=origins_in_local_frame(
-                    settings.scan_origin, None, local_origin, "scan_origin"
-                ),
-                from_file=origins_in_local_frame(None, scan.sensor_origin, local_origin),
-                estimate=settings.estimate_origins,
-                recover=settings.recover_stations,
-                station_of=scan,
-                # a reference surveyed from several stations: the scan's are searched first
-                stations_first=resolved_reference.source == "recovered",
+            resolved_scan = (
+                trajectory_origin(
+                    scan,
+                    aligned_scan,
+                    local_origin,
+                    lambda origins: apply_transform(origins, registration.transform),
+                )
+                if scan.trajectory is not None
+                else resolve_moved_cloud(
+                    "scan",
+                    scan_points,
+                    registration.transform,
+                    aligned_points=aligned_scan,
+                    given=origins_in_local_frame(
+                        settings.scan_origin, None, local_origin, "scan_origin"
+                    ),
+                    from_file=origins_in_local_frame(None, scan.sensor_origin, local_origin),
+                    estimate=settings.estimate_origins,
+                    recover=settings.recover_stations,
+                    station_of=scan,
+                    # a reference surveyed from several stations: the scan's are searched first
+                    stations_first=resolved_reference.source == "recovered",
+                )
             )
             scan_origin = resolved_scan.origin
-            scan_station = station_index_of(scan, resolved_scan, "scan")
+            scan_station = station_index(scan, resolved_scan, "scan")
             timings["origins"] += time.perf_counter() - started
             registration_report = registration.to_json_dict()
             registration_report["transform"] = _file_frame_transform(
@@ -453,6 +465,8 @@ def compare(
                     scan_station=scan_station,
                     reference_stations_unknown=resolved_reference.stations_unknown,
                     scan_stations_unknown=resolved_scan.stations_unknown,
+                    reference_trajectory_rays=trajectory_rays(resolved_reference),
+                    scan_trajectory_rays=trajectory_rays(resolved_scan),
                     # Not registration.rmse: that includes sampling distance and real change
                     # (0.15 m on KITTI); localise measures the remaining misalignment itself
                     # from local surfaces.

@@ -34,11 +34,16 @@ class Trajectory:
         Sensor positions, in the frame of the cloud's points.
     orientations : ndarray, shape (m, 4), float64, or None
         Unit quaternions ``(qx, qy, qz, qw)`` of the sensor's attitude, when known.
+    has_times : bool
+        False when the file gave no times (KITTI poses without a times file or rate): ``times``
+        is then the pose order (0, 1, ...), enough for points without per-point times (each
+        takes its nearest visible pose) but not for points with times.
     """
 
     times: NDArray[np.float64]
     positions: NDArray[np.float64]
     orientations: NDArray[np.float64] | None = None
+    has_times: bool = True
 
     def __post_init__(self) -> None:
         times = np.asarray(self.times, dtype=np.float64)

@@ -28,6 +28,7 @@ import numpy as np
 from app.config import Settings
 from app.core.errors import InputError
 from app.core.formats import read_point_cloud
+from app.core.trajectory_store import with_stored_trajectory
 from app.jobs.geometry import geometry_cache_of, record_geometry_cache
 from app.jobs.hooks import job_hooks
 from app.jobs.leases import (
@@ -77,6 +78,8 @@ def compute(
     threads = job_threads(settings)  # the result does not depend on it
     reference = read_point_cloud(job.reference_path, format=job.reference_format, threads=threads)
     scan = read_point_cloud(job.scan_path, format=job.scan_format, threads=threads)
+    reference = with_stored_trajectory(reference, job.reference_path)  # if one was given
+    scan = with_stored_trajectory(scan, job.scan_path)
     given_at_upload = {
         "reference": given_at_upload_only(reference.sensor_origin, job.reference_sensor_origin),
         "scan": given_at_upload_only(scan.sensor_origin, job.scan_sensor_origin),

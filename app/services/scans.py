@@ -28,7 +28,7 @@ from sqlalchemy.orm import Session
 
 from app.config import Settings
 from app.db.models import IdempotencyRecord, Scan, new_id
-from app.services import idempotency, jobs, quotas, sites, storage
+from app.services import idempotency, jobs, quotas, sites, storage, trajectories
 from app.services.auth import Principal
 from app.services.errors import ConflictError, NotFoundError
 from app.services.idempotency import StoredResponse
@@ -57,6 +57,9 @@ class UploadOptions:
     sensor_origin: SensorOrigin | None = None
     declared_size: int | None = None
     """The file's size when known before reading the body (a raw body's ``Content-Length``)."""
+    trajectory_rate: float | None = None
+    """KITTI poses' constant rate (poses a second), when the ``trajectory`` part is KITTI."""
+    trajectory_format: str | None = None
 
 
 class UploadBody(Protocol):
@@ -197,6 +200,7 @@ def store_scan_file(
     received: storage.ReceivedFile,
     filename: str | None,
     sensor_origin: SensorOrigin | None = None,
+    trajectory: trajectories.TrajectoryUpload | None = None,
 ) -> Scan:
     """Parse a received file with the core, rename it into place and build its row (not added).
 
@@ -206,11 +210,19 @@ def store_scan_file(
     """
     parsed = parse_upload(received.path, filename, received.head, settings.max_points)
     check_stations_match(sensor_origin, parsed.n_stations)
+    # a trajectory sent with it is checked before anything is stored, then kept beside it
+    checked = (
+        None if trajectory is None else trajectory.checked_against(received.path, parsed.format)
+    )
     scan_id = new_id()
     storage_path = settings.data_layout.scan_storage_path(site_id, scan_id, parsed.format)
     final_path = settings.data_layout.resolve(storage_path)
     storage.install_file(received.path, final_path)
     after_rollback(session, lambda: storage.remove_file(final_path))
+    if checked is not None:
+        saved = trajectories.trajectory_path(final_path)
+        trajectories.save_trajectory(saved, checked)
+        after_rollback(session, lambda: storage.remove_file(saved))
     return scan_row(
         principal,
         scan_id=scan_id,
@@ -311,8 +323,11 @@ async def upload_scan(
         chunks = _within_storage_left(chunks, remaining, cap)
     received = await storage.receive_stream(chunks, settings, settings.max_upload_bytes)
     try:
+        trajectory = trajectories.upload_of(
+            body, options.trajectory_rate, options.trajectory_format
+        )
         return await store_received_scan(
-            session, settings, principal, keyed_options, received, body.filename
+            session, settings, principal, keyed_options, received, body.filename, trajectory
         )
     finally:
         storage.remove_file(received.path)  # gone already when it was installed
@@ -325,6 +340,7 @@ async def store_received_scan(
     options: UploadOptions,
     received: storage.ReceivedFile,
     body_filename: str | None = None,
+    trajectory: trajectories.TrajectoryUpload | None = None,
 ) -> StoredResponse:
     """Make a received file a scan (and its job): quota, parse, install, register.
 
@@ -343,6 +359,7 @@ async def store_received_scan(
             "variant": options.variant,
             "sensor_origin": options.sensor_origin,
             "sha256": received.sha256,
+            **({} if trajectory is None else {"trajectory": trajectory.digest()}),
         },
     )
     if key is not None:
@@ -362,13 +379,16 @@ async def store_received_scan(
             received=received,
             filename=filename,
             sensor_origin=options.sensor_origin,
+            trajectory=trajectory,
         )
     )
     response, created = await anyio.to_thread.run_sync(
         _register_upload, session, settings, principal, options, fingerprint, scan
     )
     if not created:
-        storage.remove_file(settings.data_layout.resolve(scan.storage_path))
+        scan_path = settings.data_layout.resolve(scan.storage_path)
+        storage.remove_file(scan_path)
+        storage.remove_file(trajectories.trajectory_path(scan_path))
     return response
 
 

@@ -35,6 +35,7 @@ from app.viewer.scene_parts import (
     check_distances,
     sensor_markers,
 )
+from app.viewer.trajectory_display import TrajectoryPath, trajectory_paths
 
 LABEL_UNOBSERVED = -1
 LABEL_UNCHANGED = 0
@@ -179,6 +180,7 @@ class SceneData:
     sides: Mapping[str, SideCloud] = field(default_factory=dict)
     pools: Mapping[str, CandidatePool] = field(default_factory=dict)
     sensors: tuple[SensorMarker, ...] = ()
+    trajectories: tuple[TrajectoryPath, ...] = ()
     warnings: tuple[Mapping[str, str], ...] = ()
     change_threshold: float | None = None
     """The smallest distance of a changed point (metres): the job's threshold, from above."""
@@ -472,6 +474,7 @@ def build_scene_data(
         sides=sides,
         pools=pools,
         sensors=sensor_markers(sensor_origins or {}, matrix, origin),
+        trajectories=trajectory_paths(sensor_origins or {}, matrix, origin),
         warnings=tuple(
             {"code": str(item.get("code", "")), "message": str(item.get("message", ""))}
             for item in warnings

@@ -43,6 +43,7 @@ from app.viewer.scene import (
     SceneData,
     SensorMarker,
 )
+from app.viewer.trajectory_display import draw_trajectory_paths
 
 logger = logging.getLogger("scandiff.viewer")
 
@@ -509,6 +510,11 @@ def build_client_scene(client: viser.ClientHandle, data: SceneData, title: str) 
     record.world_point_size = data.point_size
     record.sensor_nodes = draw_sensor_markers(
         client.scene, data.sensors, sensor_marker_radius(data)
+    ) + draw_trajectory_paths(  # the moving sensors' paths, in their sides' colours
+        client.scene,
+        data.trajectories,
+        {side: STYLE_BY_NAME[side].color for side in ("reference", "scan")},
+        sensor_marker_radius(data) / 2,
     )
     with client.atomic():
         controls.add_controls(record, title)

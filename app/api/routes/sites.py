@@ -145,8 +145,20 @@ async def upload_scan(
         ),
     ] = None,
     idempotency_key: Annotated[str | None, Header(alias="Idempotency-Key")] = None,
+    trajectory_rate: Annotated[
+        float | None,
+        Query(
+            description="Poses a second of a KITTI poses 'trajectory' part (or send its "
+            "times as the part 'trajectory_times').",
+            gt=0,
+        ),
+    ] = None,
+    trajectory_format: Annotated[
+        str | None, Query(max_length=16, description="tum, kitti or csv (default: detected).")
+    ] = None,
 ) -> JSONResponse:
-    """Upload a scan as the raw body or multipart field `file`; compare it to the reference."""
+    """Upload a scan as the raw body or multipart field `file` (and optionally its
+    `trajectory`); compare it to the reference."""
     options = scans_service.UploadOptions(
         site_id=site_id,
         reference=reference,
@@ -156,6 +168,8 @@ async def upload_scan(
         idempotency_key=idempotency_key,
         sensor_origin=sensor_origins_service.parse_sensor_origin(sensor_origin),
         declared_size=declared_length(request) if isinstance(body, RawBody) else None,
+        trajectory_rate=trajectory_rate,
+        trajectory_format=trajectory_format,
     )
     stored = await scans_service.upload_scan(session, settings, principal, options, body)
     return JSONResponse(stored.body, status_code=stored.status_code)

@@ -51,6 +51,7 @@ from app.core.formats.pcd import read_pcd
 from app.core.formats.ply import read_ply, write_ply
 from app.core.formats.rosbag import BAG_FORMATS, BagOptions, read_rosbag, sniff_bag
 from app.core.formats.stations import has_station_fields, with_station_fields
+from app.core.formats.trajectory_files import with_point_times
 from app.core.threads import available_threads
 
 SUPPORTED_FORMATS: tuple[str, ...] = (
@@ -270,7 +271,7 @@ def read_point_cloud(
         raw = with_station_fields(raw)
         cloud = PointCloud.from_array(
             raw.points,
-            raw.attributes,
+            with_point_times(raw.attributes),  # times under "time", whatever the field's name
             raw.sensor_origin,
             threads=conversion_threads() if threads is None else threads,
             file_rows=file_rows_of(raw.points, opened),

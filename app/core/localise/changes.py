@@ -164,6 +164,8 @@ def localise_changes(
     scan_station: NDArray | None = None,
     reference_stations_unknown: bool = False,
     scan_stations_unknown: bool = False,
+    reference_trajectory_rays: tuple[NDArray, NDArray] | None = None,
+    scan_trajectory_rays: tuple[NDArray, NDArray] | None = None,
     **params: Any,
 ) -> Localisation:
     """Label each point unchanged, changed or unobserved and group changes into regions.
@@ -207,6 +209,12 @@ def localise_changes(
         The cloud was sampled by lidars from several stations that are not known (nor
         recovered): the other cloud's candidates get the origin-free surface test
         (``origin_free_test="auto"``, :func:`~app.core.localise.visibility.label_candidates`).
+    reference_trajectory_rays, scan_trajectory_rays : (ndarray, ndarray), optional
+        The cloud was taken along a trajectory: its origins are its pseudo-stations' sensor
+        positions, its station index each point's pseudo-station, and these ``(returns,
+        bounds)`` the points each pseudo-station's rays end on
+        (:class:`app.core.trajectory_poses.SensorGroups`); the other cloud's candidates get the
+        trajectory test (:mod:`~app.core.localise.trajectory_visibility`).
     **params
         See :data:`~app.core.localise.settings.DEFAULT_PARAMETERS`.
 
@@ -260,6 +268,7 @@ def localise_changes(
         origins=reference_origins,
         station=reference_station,
         stations_unknown=reference_stations_unknown and reference_origins is None,
+        trajectory_rays=reference_trajectory_rays if reference_station is not None else None,
         geometry=reference_geometry,
         nearest_distance=reference_nn_distance,
         nearest_index=reference_nn_index,
@@ -271,6 +280,7 @@ def localise_changes(
         origins=scan_origins,
         station=scan_station,
         stations_unknown=scan_stations_unknown and scan_origins is None,
+        trajectory_rays=scan_trajectory_rays if scan_station is not None else None,
         geometry=scan_geometry,
         nearest_distance=scan_nn_distance,
         nearest_index=scan_nn_index,

@@ -54,6 +54,12 @@ class Side:
     stations_unknown : bool
         A lidar cloud merged from several stations that are neither known nor recovered
         (``origins`` None): ``origin_free_test="auto"`` uses the surface test against it.
+    trajectory_rays : (ndarray, ndarray) or None
+        Taken along a trajectory: ``origins`` are its pseudo-stations' sensor positions,
+        ``station`` each point's pseudo-station, and these ``(returns, bounds)`` the points
+        each pseudo-station's rays end on (:class:`app.core.trajectory_poses.SensorGroups`);
+        the other cloud's candidates get the trajectory test
+        (:mod:`app.core.localise.trajectory_visibility`).
     geometry : LocalGeometry
         Of ``points``.
     nearest_distance : ndarray, shape (n,), float64
@@ -71,6 +77,7 @@ class Side:
     nearest_index: NDArray[np.uint32]
     station: NDArray[np.int64] | None = None
     stations_unknown: bool = False
+    trajectory_rays: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None
 
 
 def nearest_in(

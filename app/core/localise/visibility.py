@@ -11,7 +11,9 @@ or their shadows' rims come out as changes); with ``origin_free_test="surfaces"`
 surface test of :mod:`app.core.localise.origin_free` instead (merged clouds whose stations
 are not known).  The default ``"auto"`` routes here: the surface test against a cloud the
 pipeline found to be a merged lidar survey whose stations it could not recover
-(``Side.stations_unknown``), the coverage test against any other cloud without origins.
+(``Side.stations_unknown``), the coverage test against any other cloud without origins.  A
+cloud taken along a trajectory (``Side.trajectory_rays``) gives the trajectory test
+(:mod:`app.core.localise.trajectory_visibility`): the ray test from its pseudo-stations.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from app.core.localise.regions import (
     EVIDENCE_SEEN_EMPTY,
     cluster_labels,
 )
+from app.core.localise.trajectory_visibility import lone_sightings, trajectory_statuses
 
 __all__ = [
     "LABEL_CHANGED",
@@ -86,6 +89,10 @@ class Labelled:
     report: dict[str, Any]
 
 
+LONE_SIGHTING_FACTOR = 1.5
+"""A trajectory candidate within this many change thresholds of the other cloud's surface,
+seen through by one pseudo-station while others saw it otherwise, is left to the edge-on
+resolution (a rack's edge grazed by one stretch of the path)."""
 MIN_STATION_POINTS = 10
 """A station of the other cloud with fewer returns than this is ignored (it saw nothing)."""
 
@@ -206,7 +213,6 @@ def label_candidates(
             report[f"{side}_candidates_in_sampling_gaps"] = int(gap.sum())
             status = np.where(gap, STATUS_SURFACE, status)
     else:
-        report[f"{side}_visibility"] = "ray"
         test = RayTest(
             normal_tolerance=settings["threshold_factor"]
             * math.hypot(own.geometry.noise, misalignment),
@@ -216,9 +222,22 @@ def label_candidates(
             beyond_fraction=settings["visibility_beyond_fraction"],
             miss_factor=settings["visibility_miss_factor"],
         )
-        status, angular_steps = _any_station_status(candidates, own=own, other=other, test=test)
-        report[f"{side}_other_stations"] = len(angular_steps)
-        report[f"{side}_other_angular_step_deg"] = math.degrees(float(np.median(angular_steps)))
+        if other.trajectory_rays is not None and other.station is not None:
+            report[f"{side}_visibility"] = "trajectory"
+            statuses, figures = trajectory_statuses(candidates, own=own, other=other, test=test)
+            status = combine_station_status(statuses)
+            near = candidates.surface_distance < LONE_SIGHTING_FACTOR * (
+                threshold if change_threshold is None else change_threshold
+            )  # just past the change threshold: one ray through a grazed edge is not enough
+            lone = lone_sightings(statuses) & (status == STATUS_SEEN_THROUGH) & near
+            status = np.where(lone, STATUS_EDGE_ON, status).astype(np.int8)
+            report[f"{side}_candidates_seen_through_once"] = int(lone.sum())
+            report.update({f"{side}_other_{name}": value for name, value in figures.items()})
+        else:
+            report[f"{side}_visibility"] = "ray"
+            status, steps = _any_station_status(candidates, own=own, other=other, test=test)
+            report[f"{side}_other_stations"] = len(steps)
+            report[f"{side}_other_angular_step_deg"] = math.degrees(float(np.median(steps)))
         report[f"{side}_candidates_on_other_surface"] = int((status == STATUS_SURFACE).sum())
         report[f"{side}_candidates_edge_on"] = int((status == STATUS_EDGE_ON).sum())
         direct = status == STATUS_SEEN_THROUGH

@@ -1,0 +1,160 @@
+"""The trajectory visibility test: what the other epoch's moving sensor saw at each candidate.
+
+A cloud taken along a trajectory is cut into pseudo-stations (:mod:`app.core.trajectory_poses`:
+stretches of the path over which the sensor moved a few centimetres, each with the returns taken
+from it and its mean sensor position).  Each pseudo-station is a station of the multi-station
+ray test (:func:`~app.core.localise.rays.ray_visibility`): its returns, indexed by direction
+from its position, say whether it saw the candidate's place empty (rays through the candidate
+to returns beyond it), saw a surface there, or could not see it.  The statuses are combined as
+for stations (the caller combines them with
+:func:`~app.core.localise.visibility.combine_station_status`).
+
+Cost stays bounded: a candidate is tested only against the pseudo-stations that took the other
+cloud's returns nearest to it (they looked at its place) and the few nearest along the path,
+within the sensor's range; each pseudo-station indexes only its own returns.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from pykdtree.kdtree import KDTree
+
+from app.core.localise.distance import Side
+from app.core.localise.rays import (
+    STATUS_SEEN_THROUGH,
+    STATUS_UNOBSERVED,
+    Candidates,
+    RayTest,
+    ray_visibility,
+)
+
+__all__ = ["NEAREST_GROUPS", "NEIGHBOUR_RETURNS", "trajectory_statuses"]
+
+NEIGHBOUR_RETURNS = 16
+"""The groups of a candidate's this many nearest returns of the other cloud are tested."""
+NEAREST_GROUPS = 4
+"""And the groups whose sensor positions are this many nearest to it."""
+SENSOR_RANGE = 30.0
+"""Metres: a group farther than this from a candidate is not tested against it."""
+MIN_GROUP_POINTS = 10
+"""A group with fewer returns saw too little to tell anything."""
+
+
+def _group_slots(
+    candidates: Candidates, other: Side, origins: NDArray[np.float64]
+) -> NDArray[np.int64]:
+    """The groups each candidate is tested against, shape (c, s), -1 for an empty slot."""
+    assert other.station is not None
+    count = candidates.points.shape[0]
+    k = min(NEIGHBOUR_RETURNS, other.points.shape[0])
+    _, nearest = other.geometry.tree.query(candidates.points, k=k)
+    by_returns = other.station[np.asarray(nearest, dtype=np.int64).reshape(count, k)]
+    k_groups = min(NEAREST_GROUPS, origins.shape[0])
+    distance, nearest_group = KDTree(origins).query(
+        candidates.points, k=k_groups, distance_upper_bound=SENSOR_RANGE
+    )
+    nearest_group = np.asarray(nearest_group, dtype=np.int64).reshape(count, k_groups)
+    in_range = np.isfinite(np.asarray(distance).reshape(count, k_groups))
+    by_position = np.where(in_range, nearest_group, -1)
+    slots = np.sort(np.concatenate([by_returns, by_position], axis=1), axis=1)
+    repeated = np.zeros_like(slots, dtype=bool)
+    repeated[:, 1:] = slots[:, 1:] == slots[:, :-1]
+    slots[repeated] = -1
+    return slots
+
+
+def trajectory_statuses(
+    candidates: Candidates, *, own: Side, other: Side, test: RayTest
+) -> tuple[NDArray[np.int8], dict[str, Any]]:
+    """Ray status of each candidate from each pseudo-station of the other cloud tested.
+
+    Parameters
+    ----------
+    candidates : Candidates
+        c candidates of ``own``.
+    own : Side
+        The candidates' cloud.
+    other : Side
+        The other cloud, taken along a trajectory: ``origins`` (k, 3) are its pseudo-stations'
+        sensor positions, ``station`` (m,) each return's pseudo-station and
+        ``trajectory_rays`` the returns each pseudo-station's rays end on.
+    test : RayTest
+
+    Returns
+    -------
+    statuses : ndarray, shape (s, c), int8
+        :func:`~app.core.localise.rays.ray_visibility` status of each candidate from the
+        pseudo-station in its slot (STATUS_UNOBSERVED for empty slots: no evidence); combine
+        with :func:`~app.core.localise.visibility.combine_station_status`.
+    report : dict
+        ``groups`` (the other cloud's pseudo-stations), ``groups_tested`` (those tested against
+        some candidate), ``tests_per_candidate`` (mean), ``angular_step_deg`` (median of the
+        tested groups').
+    """
+    assert other.origins is not None and other.station is not None
+    assert other.trajectory_rays is not None
+    group_returns, group_bounds = other.trajectory_rays
+    origins = np.asarray(other.origins, dtype=np.float64).reshape(-1, 3)
+    count = candidates.points.shape[0]
+    report: dict[str, Any] = {"groups": int(origins.shape[0]), "groups_tested": 0}
+    if count == 0:
+        report.update(tests_per_candidate=0.0, angular_step_deg=math.nan)
+        return np.empty((1, 0), dtype=np.int8), report
+    slots = _group_slots(candidates, other, origins)
+    statuses = np.full(slots.T.shape, STATUS_UNOBSERVED, dtype=np.int8)  # (s, c)
+    candidate, slot = np.nonzero(slots >= 0)
+    group = slots[candidate, slot]
+    pair_order = np.argsort(group, kind="stable")
+    candidate, slot, group = candidate[pair_order], slot[pair_order], group[pair_order]
+    starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+    ends = np.r_[starts[1:], group.size]
+    normal, linear = other.geometry.normal, other.geometry.linear
+    angular_steps = []
+    tested = 0
+    for start, end in zip(starts, ends, strict=True):
+        number = int(group[start])
+        returns = group_returns[group_bounds[number] : group_bounds[number + 1]]
+        if returns.size < MIN_GROUP_POINTS:
+            continue
+        rows = candidate[start:end]
+        status, angular_step = ray_visibility(
+            candidates.rows(rows),  # type: ignore[arg-type]
+            own=own.geometry,
+            other_points=other.points[returns],
+            other_origin=origins[number],
+            test=test,
+            other_normals=normal[returns],
+            other_linear=linear[returns],
+        )
+        statuses[slot[start:end], rows] = status
+        angular_steps.append(angular_step)
+        tested += 1
+    report["groups_tested"] = tested
+    report["tests_per_candidate"] = float(candidate.size) / count
+    report["angular_step_deg"] = (
+        math.degrees(float(np.median(angular_steps))) if angular_steps else math.nan
+    )
+    return statuses, report
+
+
+def lone_sightings(statuses: NDArray[np.int8]) -> NDArray[np.bool_]:
+    """Candidates seen through by one pseudo-station only while others saw them otherwise.
+
+    Parameters
+    ----------
+    statuses : ndarray, shape (s, c), int8
+
+    Returns
+    -------
+    ndarray, shape (c,), bool
+        One slot seen through, and at least one other slot that saw the candidate's surface
+        or saw it edge-on (a moving sensor sees a removed object's place from several
+        stretches of its path; one ray through a grazed edge is not enough).
+    """
+    through = (statuses == STATUS_SEEN_THROUGH).sum(axis=0)
+    other = ((statuses != STATUS_SEEN_THROUGH) & (statuses != STATUS_UNOBSERVED)).sum(axis=0)
+    return (through == 1) & (other >= 1)

@@ -1,0 +1,179 @@
+"""Trajectories over real HTTP: sent with a scan (multipart part ``trajectory``) or added later.
+
+Rules checked:
+
+* a scan with per-point times and its TUM trajectory is accepted; the trajectory is stored
+  beside the scan's file; a comparison job loads both scans' trajectories;
+* ``PUT /scans/{id}/trajectory`` adds one to a stored scan (raw body, or KITTI poses with a
+  ``trajectory_times`` part), and answers its summary;
+* bad input is a 422 that says what to fix and stores nothing: times that do not cover the
+  points' times, non-finite or non-unit quaternions, an unknown format, pose times without a
+  trajectory, KITTI poses without times for a scan with per-point times.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+
+from app.jobs.execution import execute_job
+from app.jobs.hooks import job_hooks
+from tests.helpers import fake_pipeline
+from tests.helpers.files import ply_bytes
+from tests.helpers.http import assert_error, create_site
+from tests.helpers.scenes import room_points
+from tests.helpers.server import ApiServer
+
+N_POINTS = 3000
+POINT_TIMES = np.linspace(100.0, 110.0, N_POINTS)
+
+
+def timed_ply(seed: int = 1) -> bytes:
+    return ply_bytes(room_points(N_POINTS, seed), extra={"time": POINT_TIMES})
+
+
+def tum(times: np.ndarray, quaternion: tuple[float, ...] = (0.0, 0.0, 0.0, 1.0)) -> bytes:
+    rows = [
+        f"{time!r} {1.0 + 0.1 * number} 2.0 1.2 " + " ".join(map(repr, quaternion))
+        for number, time in enumerate(map(float, times))
+    ]
+    return ("# timestamp tx ty tz qx qy qz qw\n" + "\n".join(rows)).encode()
+
+
+def kitti(count: int) -> bytes:
+    return "\n".join(f"1 0 0 {0.1 * i} 0 1 0 2 0 0 1 1.2" for i in range(count)).encode()
+
+
+GOOD = tum(np.linspace(99.0, 111.0, 25))
+
+
+def send(
+    client: httpx.Client,
+    site_id: str,
+    scan: bytes,
+    parts: dict[str, tuple[str, bytes]],
+    **params: Any,
+) -> httpx.Response:
+    files = {"file": ("scan.ply", scan, "application/octet-stream")}
+    files.update({name: (filename, data, "text/plain") for name, (filename, data) in parts.items()})
+    return client.post(f"/api/v1/sites/{site_id}/scans", params=params, files=files)
+
+
+@pytest.fixture
+def site(writer: httpx.Client) -> dict:
+    return create_site(writer)
+
+
+def test_a_scan_and_its_trajectory_are_stored_and_loaded_by_its_job(
+    api: ApiServer, writer: httpx.Client, site: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    reference = send(
+        writer, site["id"], timed_ply(1), {"trajectory": ("ref.tum", GOOD)}, reference="true"
+    )
+    assert reference.status_code == 201, reference.text
+    response = send(writer, site["id"], timed_ply(2), {"trajectory": ("scan.txt", GOOD)})
+    assert response.status_code == 202, response.text
+    stored = [path.name for path in api.stored_files()]
+    for scan in (reference.json()["scan"], response.json()["scan"]):
+        assert f"{scan['id']}.ply.trajectory.npz" in stored
+
+    seen: list[Any] = []
+
+    def capture(reference, scan, **kwargs):
+        seen.extend([reference.trajectory, scan.trajectory])
+        return fake_pipeline.fake_compare(reference, scan, **kwargs)
+
+    monkeypatch.setattr(job_hooks, "compare", capture)
+    assert execute_job(response.json()["job"]["id"], api.settings) == "succeeded"
+
+    assert [len(trajectory) for trajectory in seen] == [25, 25]
+    np.testing.assert_allclose(seen[1].times, np.linspace(99.0, 111.0, 25))
+
+
+def test_a_trajectory_is_added_to_a_stored_scan(writer: httpx.Client, site: dict) -> None:
+    scan = send(writer, site["id"], timed_ply(), {}, reference="true").json()["scan"]
+
+    raw = writer.put(
+        f"/api/v1/scans/{scan['id']}/trajectory", content=GOOD, params={"filename": "p.tum"}
+    )
+    times_file = "\n".join(repr(float(t)) for t in np.linspace(99, 111, 8)).encode()
+    kitti_with_times = writer.put(
+        f"/api/v1/scans/{scan['id']}/trajectory",
+        files={
+            "trajectory": ("poses.txt", kitti(8), "text/plain"),
+            "trajectory_times": ("times.txt", times_file, "text/plain"),
+        },
+    )
+
+    assert raw.status_code == 200, raw.text
+    assert raw.json()["poses"] == 25 and raw.json()["time_span"] == [99.0, 111.0]
+    assert raw.json()["points_outside"] == 0 and raw.json()["point_times"] is True
+    assert kitti_with_times.status_code == 200, kitti_with_times.text
+    assert kitti_with_times.json()["poses"] == 8
+
+
+@pytest.mark.parametrize(
+    ("parts", "params", "message"),
+    [
+        ({"trajectory": ("t.tum", tum(np.linspace(500, 600, 10)))}, {}, "do not cover"),
+        (
+            {"trajectory": ("t.tum", tum(np.linspace(99, 111, 10), (0, 0, 0.5, 1.0)))},
+            {},
+            "not 1: give unit quaternions",
+        ),
+        (
+            {"trajectory": ("t.tum", tum(np.linspace(99, 111, 10), (0, 0, float("nan"), 1)))},
+            {},
+            "non-finite",
+        ),
+        ({"trajectory": ("t.bin", b"\x00\x01\x02 not a trajectory")}, {}, "expected TUM"),
+        ({"trajectory_times": ("times.txt", b"1\n2\n")}, {}, "without a trajectory"),
+        ({}, {"trajectory_rate": "10"}, "without a trajectory"),
+        ({"trajectory": ("poses.txt", kitti(8))}, {}, "trajectory has none"),
+    ],
+    ids=[
+        "times-not-covered",
+        "non-unit-quaternion",
+        "nan-quaternion",
+        "unknown-format",
+        "times-without-trajectory",
+        "rate-without-trajectory",
+        "kitti-without-times",
+    ],
+)
+def test_bad_trajectories_are_422_and_store_nothing(
+    api: ApiServer,
+    writer: httpx.Client,
+    site: dict,
+    parts: dict,
+    params: dict,
+    message: str,
+) -> None:
+    before = api.stored_files()
+
+    response = send(writer, site["id"], timed_ply(), parts, reference="true", **params)
+
+    assert message in assert_error(response, 422, "invalid_input")
+    assert api.stored_files() == before
+    assert writer.get(f"/api/v1/sites/{site['id']}/scans").json()["items"] == []
+
+
+def test_a_bad_trajectory_added_later_is_422_and_keeps_none(
+    api: ApiServer, writer: httpx.Client, site: dict
+) -> None:
+    scan = send(writer, site["id"], timed_ply(), {}, reference="true").json()["scan"]
+    before = api.stored_files()
+
+    late = writer.put(
+        f"/api/v1/scans/{scan['id']}/trajectory", content=tum(np.linspace(500, 600, 10))
+    )
+    empty = writer.put(f"/api/v1/scans/{scan['id']}/trajectory", content=b"")
+    missing = writer.put("/api/v1/scans/nope/trajectory", content=GOOD)
+
+    assert "do not cover" in assert_error(late, 422, "invalid_input")
+    assert "empty" in assert_error(empty, 422, "invalid_input")
+    assert_error(missing, 404)
+    assert api.stored_files() == before
