@@ -80,6 +80,7 @@ LOCALISE_LAYERS = (
     "regions",
     "gaps",
     "rays",
+    "trajectory_visibility",
     "origin_free",
     "map_evidence",
     "visibility",
