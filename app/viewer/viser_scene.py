@@ -456,9 +456,9 @@ def configure_server(server: viser.ViserServer, data: SceneData, title: str) -> 
     # Points and boxes are flat-coloured: shadow maps only cost time (a lot in software WebGL).
     server.scene.configure_default_lights(enabled=True, cast_shadow=False)
     server.scene.configure_environment_map(hdri=None)  # its PMREM passes are slow in software
-    center = data.center
-    server.initial_camera.look_at = tuple(center)
-    server.initial_camera.position = tuple(center + default_camera_offset(data.extent))
+    opening = data.opening  # on the change, from its clearest side (or the whole scene)
+    server.initial_camera.look_at = tuple(opening.look_at)
+    server.initial_camera.position = tuple(opening.position)
     server.initial_camera.near = max(data.extent * 1e-4, 1e-3)
     server.initial_camera.far = max(data.extent * 20.0, 100.0)
     del title
