@@ -17,6 +17,7 @@ import numpy as np
 import viser
 
 from app.viewer.colours import colour_bar_html, legend_html
+from app.viewer.opening import ASSUMED_ASPECT, CAMERA_FOV, top_view_pose
 from app.viewer.regions_display import DEFAULT_MOVED_WITHIN, relabel
 from app.viewer.rendering import COLOUR_MODES, SHOW_CHOICES, Picked, colour_limit
 from app.viewer.scene import MOVED_COLOR, Layer, RegionBox, SceneData
@@ -138,6 +139,7 @@ def _add_view_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
         mode = {title: key for key, title in COLOUR_MODES.items()}[event.target.value]
         record.state.colour_mode = mode
         bar.visible = mode == "distance"
+        legend.visible = mode != "distance"  # the colour bar is the legend of distances
         record.request_redraw(points=True)
 
     @depth.on_update
@@ -159,11 +161,16 @@ def _add_view_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
 
     @top.on_click
     def _(_event: viser.GuiEvent) -> None:
-        center = data.center
-        height = max(data.extent, 1.0) * 1.2
+        view = record.camera_view()
+        position, look_at = top_view_pose(
+            data.bounds_min,
+            data.bounds_max,
+            fov=view.fov if view is not None else CAMERA_FOV,
+            aspect=view.width / view.height if view is not None else ASSUMED_ASPECT,
+        )
         with client.atomic():  # position first: viser's position setter moves look_at too
-            client.camera.position = (center[0], center[1] - height * 1e-3, center[2] + height)
-            client.camera.look_at = tuple(center)
+            client.camera.position = tuple(position)
+            client.camera.look_at = tuple(look_at)
 
     @whole.on_click
     def _(_event: viser.GuiEvent) -> None:

@@ -46,9 +46,9 @@ MAX_GRID_CELLS = 4_000_000
 """Cells of the occupancy grid at most (the voxel grows in large scenes)."""
 FRAME_MARGIN = 1.3
 """The framed sphere is this much larger than the regions' box (some context around them)."""
-MIN_FRAME_RADIUS = 1.5
+MIN_FRAME_RADIUS = 2.5
 """Radius (metres) framed at least, so a small change is seen with its surroundings."""
-CONTEXT_SHARE = 0.08
+CONTEXT_SHARE = 0.12
 """...and at least this share of the whole scene's extent."""
 
 
@@ -290,3 +290,38 @@ def choose_opening_view(
         reason=reason,
         blocked_share=share,
     )
+
+
+TOP_VIEW_MARGIN = 1.04
+"""The top view leaves this much room around the scene's footprint."""
+
+
+def top_view_pose(
+    scene_low: NDArray[np.floating],
+    scene_high: NDArray[np.floating],
+    fov: float = CAMERA_FOV,
+    aspect: float = ASSUMED_ASPECT,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Camera position and target (shape (3,) each) looking straight down so the scene's
+    footprint fills the canvas: its longer side across the wider screen axis.
+
+    Parameters
+    ----------
+    scene_low, scene_high : ndarray, shape (3,)
+        The scene's bounds (z up).
+    fov : float
+        Vertical field of view (radians).
+    aspect : float
+        Canvas width / height.
+    """
+    low, high = np.asarray(scene_low, np.float64), np.asarray(scene_high, np.float64)
+    span = np.maximum(high[:2] - low[:2], 0.1)
+    x_across = (span[0] >= span[1]) == (aspect >= 1.0)
+    across, along = (span[0], span[1]) if x_across else (span[1], span[0])
+    half_tan = math.tan(fov / 2.0)
+    distance = TOP_VIEW_MARGIN * max(along / 2.0 / half_tan, across / 2.0 / (half_tan * aspect))
+    look_at = (low + high) / 2.0  # the footprint fits at mid-height
+    # a hair to the south (or west), so the screen's up is north (or east): the up axis is z
+    nudge = np.array([0.0, -1e-3, 0.0]) if x_across else np.array([-1e-3, 0.0, 0.0])
+    position = look_at + np.array([0.0, 0.0, distance]) + nudge * distance
+    return position, look_at

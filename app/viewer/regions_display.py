@@ -251,14 +251,17 @@ def declutter(
     texts: Sequence[str],
     camera: CameraView | None,
     world_separation: float,
+    obstacles: Sequence[Sequence[tuple[float, float, float, float]]] | None = None,
 ) -> list[str | None]:
     """Where to show each label (a viser anchor) or None to hide it, so that none overlap.
 
-    Labels come in priority order (first = largest region).  With a camera, a label takes the
-    first of :data:`LABEL_ANCHORS` whose text box (:data:`LABEL_CHAR_PIXELS` a character)
-    overlaps no label already placed, and is hidden when none is free or its point is behind
-    the camera; without one, it is shown at its default place only ``world_separation`` from
-    every shown label's point.
+    Labels come in priority order (first = the sensors, then the largest region).  With a
+    camera, a label takes the first of :data:`LABEL_ANCHORS` whose text box
+    (:data:`LABEL_CHAR_PIXELS` a character) overlaps no label already placed and, when one is
+    free of them, none of its ``obstacles`` (screen boxes it should not cover: the other regions'
+    boxes); it is hidden when no anchor is free of labels or its point is behind the camera.
+    Without a camera, a label is shown at its default place only ``world_separation`` from every
+    shown label's point.
     """
     anchors = np.asarray(anchors, dtype=np.float64).reshape(-1, 3)
     placed: list[str | None] = [None] * len(anchors)
@@ -274,10 +277,28 @@ def declutter(
     for index, text in enumerate(texts):
         if not in_front[index]:
             continue
-        for anchor in LABEL_ANCHORS:
-            box = label_box(pixels[index], text, anchor)
-            if not _overlaps(box, boxes):
-                boxes.append(box)
-                placed[index] = anchor
-                break
+        free = [
+            (anchor, box)
+            for anchor in LABEL_ANCHORS
+            if not _overlaps(box := label_box(pixels[index], text, anchor), boxes)
+        ]
+        if not free:
+            continue
+        avoid = obstacles[index] if obstacles is not None else ()
+        anchor, box = next(((a, b) for a, b in free if not _overlaps(b, avoid)), free[0])
+        boxes.append(box)
+        placed[index] = anchor
     return placed
+
+
+def screen_box(
+    camera: CameraView, center: Sequence[float], dimensions: Sequence[float]
+) -> tuple[float, float, float, float] | None:
+    """Screen box (left, top, right, bottom) of a region's 3D box; None when it is (partly)
+    behind the camera."""
+    corners = box_edges(center, dimensions).reshape(-1, 3)
+    pixels, in_front = camera.project(corners)
+    if not in_front.all():
+        return None
+    low, high = pixels.min(axis=0), pixels.max(axis=0)
+    return (float(low[0]), float(low[1]), float(high[0]), float(high[1]))

@@ -68,9 +68,16 @@ class LayerStyle:
     description: str
 
 
+QUIET_REFERENCE: RGB = (180, 140, 205)
+"""Unchanged reference points: a pale violet, quieter than the changes' saturated red/green."""
+QUIET_SCAN: RGB = (80, 160, 205)
+"""Unchanged scan points: a pale blue, told apart from the reference, quieter than a change."""
+CHANGED_LAYERS = ("removed", "added")
+"""Drawn larger than the others and never darkened by the depth cue, so they stand out."""
+
 LAYER_STYLES: tuple[LayerStyle, ...] = (
-    LayerStyle("reference", "Reference", (160, 110, 210), True, "unchanged reference points"),
-    LayerStyle("scan", "Scan", (40, 160, 230), True, "unchanged scan points"),
+    LayerStyle("reference", "Reference", QUIET_REFERENCE, True, "unchanged reference points"),
+    LayerStyle("scan", "Scan", QUIET_SCAN, True, "unchanged scan points"),
     LayerStyle("removed", "Removed", REMOVED_COLOUR, True, "in the reference, gone from the scan"),
     LayerStyle("added", "Added", ADDED_COLOUR, True, "in the scan, not in the reference"),
     LayerStyle(

@@ -218,6 +218,16 @@ def test_review_tools_in_the_3d_view(review_service: ReviewService, chrome_facto
     assert scene["layers"]["reference"]["n_colours"] > 10
     bar = by_css(driver, ".scandiff-colour-bar")
     assert float(bar.get_attribute("data-limit")) > 0 and "removed" in bar.text
+    # the colour bar is the only legend: the labels' legend is hidden (issue 31)
+    wait_until(
+        lambda: (
+            not any(
+                e.is_displayed() for e in driver.find_elements(By.CSS_SELECTOR, ".scandiff-legend")
+            )
+        ),
+        20,
+        "the labels' legend stayed under the colour bar",
+    )
 
     # Indoors the view opens below the ceiling (it would hide the change); "No clipping" shows
     # it, "Cut the ceiling" cuts again, at most just above the highest region.

@@ -16,6 +16,7 @@ import pytest
 from app.core.formats import read_point_cloud
 from app.core.synthetic_lidar import lidar_pair
 from app.viewer.colours import ADDED_COLOUR, REMOVED_COLOUR
+from app.viewer.regions_display import CameraView, label_box
 from tests.helpers.browser import (
     ReviewService,
     count_colour,
@@ -123,6 +124,32 @@ def first_frame_change_pixels(
     return best, view_scene(service, job_id)
 
 
+def assert_labels_apart(record: dict[str, Any]) -> None:
+    """Every sensor keeps its label, and no two shown labels overlap on the browser's screen."""
+    client = record["clients"][0]
+    camera = client["camera"]
+    view = CameraView(
+        position=np.asarray(camera["position"]),
+        wxyz=np.asarray(camera["wxyz"]),
+        fov=camera["fov"],
+        width=camera["image_size"][0],
+        height=camera["image_size"][1],
+    )
+    sensors = [label for label in client["labels"] if label["kind"] == "sensor"]
+    assert len(sensors) == 2 and all(label["visible"] for label in sensors), sensors
+    shown = [label for label in client["labels"] if label["visible"]]
+    pixels, _ = view.project(np.array([label["position"] for label in shown]))
+    boxes = [
+        label_box(pixel, label["text"], label["anchor"])
+        for pixel, label in zip(pixels, shown, strict=True)
+    ]
+    for index, box in enumerate(boxes):
+        for other in boxes[:index]:
+            assert not (
+                box[0] < other[2] and other[0] < box[2] and box[1] < other[3] and other[1] < box[3]
+            ), shown
+
+
 def assert_looks_at_the_change(record: dict[str, Any]) -> None:
     """The opening camera looks at the regions' box, which it does not see through walls."""
     opening = record["scene"]["opening"]
@@ -152,6 +179,7 @@ def test_an_indoor_change_behind_a_wall_is_seen_at_once(
     )
     assert pixels >= MIN_CHANGE_PIXELS, f"{pixels} change pixels in the first frame"
     assert_looks_at_the_change(record)
+    assert_labels_apart(record)
 
 
 def street_with_a_parked_car() -> tuple[np.ndarray, np.ndarray]:
@@ -195,3 +223,4 @@ def test_an_outdoor_street_change_is_seen_at_once(
     )
     assert pixels >= MIN_CHANGE_PIXELS, f"{pixels} change pixels in the first frame"
     assert_looks_at_the_change(record)
+    assert_labels_apart(record)
