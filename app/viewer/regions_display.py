@@ -17,6 +17,7 @@ without overlap.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -223,6 +224,10 @@ def quaternion_matrix(wxyz: Sequence[float]) -> NDArray[np.float64]:
     )
 
 
+MAX_PLACED_TOGETHER = 3
+"""At most this many labels are placed together (4 ** 3 combinations of anchors); more, one by
+one."""
+
 LABEL_ANCHORS = ("bottom-left", "top-left", "bottom-right", "top-right")
 """Where a label may sit around its point, in order of preference (viser's ``anchor``)."""
 
@@ -252,6 +257,7 @@ def declutter(
     camera: CameraView | None,
     world_separation: float,
     obstacles: Sequence[Sequence[tuple[float, float, float, float]]] | None = None,
+    placed_together: int = 0,
 ) -> list[str | None]:
     """Where to show each label (a viser anchor) or None to hide it, so that none overlap.
 
@@ -260,6 +266,9 @@ def declutter(
     (:data:`LABEL_CHAR_PIXELS` a character) overlaps no label already placed and, when one is
     free of them, none of its ``obstacles`` (screen boxes it should not cover: the other regions'
     boxes); it is hidden when no anchor is free of labels or its point is behind the camera.
+    The first ``placed_together`` labels (the sensors', whose points are often a few
+    centimetres apart) are placed first, together: the first combination of anchors where none
+    of them overlap (two labels at one point: one above it, one below).
     Without a camera, a label is shown at its default place only ``world_separation`` from every
     shown label's point.
     """
@@ -274,8 +283,20 @@ def declutter(
         return placed
     pixels, in_front = camera.project(anchors)
     boxes: list[tuple[float, float, float, float]] = []
+    first = min(placed_together, MAX_PLACED_TOGETHER, len(anchors))
+    together = [index for index in range(first) if in_front[index]]
+    for combination in itertools.product(LABEL_ANCHORS, repeat=len(together)):
+        tried = [
+            label_box(pixels[index], texts[index], anchor)
+            for index, anchor in zip(together, combination, strict=True)
+        ]
+        if not any(_overlaps(box, tried[:number]) for number, box in enumerate(tried)):
+            boxes.extend(tried)
+            for index, anchor in zip(together, combination, strict=True):
+                placed[index] = anchor
+            break
     for index, text in enumerate(texts):
-        if not in_front[index]:
+        if not in_front[index] or placed[index] is not None:  # hidden, or placed together
             continue
         free = [
             (anchor, box)

@@ -256,6 +256,7 @@ class ClientScene:
                 obstacles=[
                     [box for index, box in screen.items() if index not in named] for named in owners
                 ],
+                placed_together=len(sensors),
             )
             for number, (handle, anchor) in enumerate(zip(handles, shown, strict=True)):
                 visible = anchor is not None and (number < len(sensors) or self.boxes_visible)
@@ -540,14 +541,8 @@ def build_client_scene(client: viser.ClientHandle, data: SceneData, title: str) 
     """Add layers, region outlines, sensors and the GUI for one browser."""
     record = ClientScene(client_id=client.client_id, client=client, data=data)
     record.world_point_size = data.point_size
-    record.sensor_nodes = draw_sensor_markers(
-        client.scene, data.sensors, sensor_marker_radius(data)
-    )
-    with client.atomic():
-        controls.add_controls(record, title)
-    record.redraw_points()
-    record.redraw_regions()
 
+    # First: a camera the browser reports while the scene is drawn must place the labels.
     @client.camera.on_update
     def _(_camera: Any) -> None:
         record.update_point_size()
@@ -557,4 +552,11 @@ def build_client_scene(client: viser.ClientHandle, data: SceneData, title: str) 
     def _(event: Any) -> None:
         record.pick(event.ray_origin, event.ray_direction)
 
+    record.sensor_nodes = draw_sensor_markers(
+        client.scene, data.sensors, sensor_marker_radius(data)
+    )
+    with client.atomic():
+        controls.add_controls(record, title)
+    record.redraw_points()
+    record.redraw_regions()
     return record

@@ -200,7 +200,11 @@ def test_review_tools_in_the_3d_view(review_service: ReviewService, chrome_facto
     assert reference["n_colours"] > 1  # the depth cue shades by height
     assert_labels_do_not_overlap(scene)
     assert any(label["visible"] for label in scene["labels"])
-    # opened with only a view link: the review panel says where to sign in, with no verdicts
+    # opened with only a view link: the review panel is a closed tab beside the scene; opened,
+    # it says where to sign in, with no verdicts
+    tab = by_css(driver, "#view-review summary")
+    assert driver.find_element(By.ID, "view-review").get_attribute("open") is None
+    tab.click()
     unavailable = by_css(driver, "#view-review #view-review-unavailable")
     assert "Sign in" in unavailable.text
     assert not driver.find_elements(By.CSS_SELECTOR, "#view-review #verdict-false_alarm")

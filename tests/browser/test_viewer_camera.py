@@ -152,12 +152,25 @@ def test_sensor_and_region_labels_never_overlap_nor_cover_another_box() -> None:
     anchors = np.array(
         [[0.0, 0.0, 1.5], [0.05, 0.0, 1.5], [0.1, 0.0, 1.4], [2.0, 0.0, 0.8]]
     )  # both sensors and a region's corner at almost the same pixel
-    placed = declutter(anchors, texts, camera, world_separation=0.5)
+    placed = declutter(anchors, texts, camera, world_separation=0.5, placed_together=2)
     assert placed[0] is not None and placed[1] is not None  # both sensors keep their labels
     pixels, _ = camera.project(anchors)
     shown = [label_box(pixels[i], texts[i], placed[i]) for i in range(4) if placed[i]]
     for index, box in enumerate(shown):
         assert not any(boxes_overlap(box, other) for other in shown[:index]), shown
+    # the blocked case of one-by-one placement: the second sensor's point lies inside the first
+    # sensor's label (just right of and above its point); placed together, both are shown
+    pixel = camera.project(anchors[:1])[0][0]
+    nearby = anchors[0] + np.array([0.3, 0.0, 0.05])
+    near_pixel = camera.project(nearby[None])[0][0]
+    assert 0 < near_pixel[0] - pixel[0] < 100 and -18 < near_pixel[1] - pixel[1] < 0
+    pair = np.vstack([anchors[0], nearby])
+    assert declutter(pair, texts[:2], camera, 0.5)[1] is None  # one by one: hidden
+    together = declutter(pair, texts[:2], camera, 0.5, placed_together=2)
+    assert None not in together
+    pair_pixels, _ = camera.project(pair)
+    first, second = (label_box(pair_pixels[i], texts[i], together[i]) for i in range(2))
+    assert not boxes_overlap(first, second)
     # a region's label moves off another region's box when an anchor is free of it
     other = screen_box(camera, (2.6, 0.0, 1.5), (1.0, 1.0, 1.0))  # above-right of #2's corner
     assert other is not None

@@ -119,7 +119,7 @@ def first_frame_change_pixels(
         png = scene_pixels(driver)
         best = max(best, count_colour(png, REMOVED_COLOUR) + count_colour(png, ADDED_COLOUR))
         time.sleep(1.0)
-    save_screenshot(driver, name)
+    save_screenshot(driver, name, docs_name=f"{name}.png")
     driver.execute_cdp_cmd("Emulation.clearDeviceMetricsOverride", {})
     return best, view_scene(service, job_id)
 
