@@ -34,6 +34,9 @@ ELEVATIONS_DEG = (25.0, 45.0, 65.0, 85.0)
 PREFERRED_AZIMUTH_DEG = -126.0
 """Among equally clear sides, the one closest to the whole-scene view's (from the south-west)."""
 PREFERRED_ELEVATION_DEG = 45.0
+FACING_WEIGHT = 1.0
+"""Among equally clear sides, how much seeing the changes' box face-on counts against the
+preferred side (penalties run from 0 to about 1.5)."""
 CLEAR_ENOUGH = 0.05
 """Candidates within this share of blocked rays of the clearest are equally clear."""
 MOSTLY_BLOCKED = 0.4
@@ -48,7 +51,7 @@ FRAME_MARGIN = 1.3
 """The framed sphere is this much larger than the regions' box (some context around them)."""
 MIN_FRAME_RADIUS = 2.5
 """Radius (metres) framed at least, so a small change is seen with its surroundings."""
-CONTEXT_SHARE = 0.12
+CONTEXT_SHARE = 0.2
 """...and at least this share of the whole scene's extent."""
 
 
@@ -259,6 +262,12 @@ def choose_opening_view(
         targets = changed[rng.choice(len(changed), MAX_TARGETS, replace=False)]
     directions, penalties = candidate_directions()
     cameras = centre + directions * distance
+    # How much of the changes' box each side sees (its projected area, 1 for the largest): a
+    # thin change, such as the one face of a box a lidar saw, is not looked at edge-on.
+    size = np.maximum(box_high - box_low, 0.01)
+    faces = np.array([size[1] * size[2], size[0] * size[2], size[0] * size[1]])
+    area = np.abs(directions) @ faces
+    facing = area / area.max()
 
     def best_for(cut: float) -> tuple[int, float]:
         """The clearest candidate under a clip at ``cut`` and its blocked share."""
@@ -271,7 +280,7 @@ def choose_opening_view(
         grid = OccupancyGrid(occluders, voxel)
         shares = blocked_shares(grid, cameras, targets, near_margin=3.0 * voxel)
         clear = np.flatnonzero(shares <= shares.min() + CLEAR_ENOUGH)
-        chosen = int(clear[np.argmin(penalties[clear])])
+        chosen = int(clear[np.argmin(penalties[clear] - FACING_WEIGHT * facing[clear])])
         return chosen, float(shares[chosen])
 
     chosen, share = best_for(clip_high)

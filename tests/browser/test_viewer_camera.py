@@ -178,3 +178,11 @@ def test_sensor_and_region_labels_never_overlap_nor_cover_another_box() -> None:
     alone = declutter(anchors[3:], texts[3:], camera, 0.5, obstacles=[[other]])
     assert alone[0] is not None
     assert not boxes_overlap(label_box(pixels[3], texts[3], alone[0]), other)
+
+
+def test_a_thin_change_is_not_looked_at_edge_on() -> None:
+    floor = grid((-10, -10, 0), (10, 10, 0), 0.2)
+    face = grid((2.0, -1.0, 0.0), (2.0, 1.0, 1.2), 0.05)  # a box's one face a lidar saw
+    view = choose_opening_view(floor, face, floor.min(axis=0), np.array([10.0, 10.0, 3.0]))
+    direction = (view.position - view.look_at) / np.linalg.norm(view.position - view.look_at)
+    assert abs(direction[0]) > 0.6, direction  # towards the face's normal (x), not along it

@@ -120,6 +120,7 @@ def first_frame_change_pixels(
         best = max(best, count_colour(png, REMOVED_COLOUR) + count_colour(png, ADDED_COLOUR))
         time.sleep(1.0)
     save_screenshot(driver, name, docs_name=f"{name}.png")
+    print(f"{name}: {best} change pixels in the first frame")
     driver.execute_cdp_cmd("Emulation.clearDeviceMetricsOverride", {})
     return best, view_scene(service, job_id)
 
@@ -184,7 +185,7 @@ def test_an_indoor_change_behind_a_wall_is_seen_at_once(
 
 def street_with_a_parked_car() -> tuple[np.ndarray, np.ndarray]:
     """A real KITTI street frame, and the same frame with a car-sized box of points added on
-    the road 12 m ahead (its sides sampled every 5 cm)."""
+    the road 12 m ahead (its sides sampled at most every 5 cm)."""
     path = shared_data_dir() / KITTI_FRAME
     require(path.exists(), f"the real KITTI frame is missing: {path} (see ../shared/data)")
     street = read_point_cloud(path).points
