@@ -17,7 +17,7 @@ import numpy as np
 import viser
 
 from app.viewer.colours import colour_bar_html, legend_html
-from app.viewer.opening import ASSUMED_ASPECT, CAMERA_FOV, top_view_pose
+from app.viewer.opening import ASSUMED_ASPECT, CAMERA_FOV, top_view_pose, whole_scene_view
 from app.viewer.regions_display import DEFAULT_MOVED_WITHIN, relabel
 from app.viewer.rendering import COLOUR_MODES, SHOW_CHOICES, Picked, colour_limit
 from app.viewer.scene import MOVED_COLOR, Layer, RegionBox, SceneData
@@ -174,11 +174,10 @@ def _add_view_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
 
     @whole.on_click
     def _(_event: viser.GuiEvent) -> None:
-        from_south_west = np.array([-0.55, -0.75, 0.55])
-        offset = from_south_west / np.linalg.norm(from_south_west) * max(data.extent, 0.5)
+        view = whole_scene_view(data.bounds_min, data.bounds_max, data.opening.clip_high)
         with client.atomic():
-            client.camera.position = tuple(data.center + offset)
-            client.camera.look_at = tuple(data.center)
+            client.camera.position = tuple(view.position)
+            client.camera.look_at = tuple(view.look_at)
 
 
 def _legend_entries(data: SceneData) -> list[tuple[str, tuple[int, int, int], str]]:

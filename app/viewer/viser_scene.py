@@ -498,12 +498,6 @@ def configure_server(server: viser.ViserServer, data: SceneData, title: str) -> 
     del title
 
 
-def default_camera_offset(extent: float) -> np.ndarray:
-    """Camera position relative to what it looks at: from the south-west, above."""
-    direction = np.array([-0.55, -0.75, 0.55])
-    return direction / np.linalg.norm(direction) * max(extent, 0.5) * 1.0
-
-
 def sensor_marker_radius(data: SceneData) -> float:
     """Radius of a sensor's marker: visible in the whole scene, small next to the rooms."""
     return max(data.extent / 150.0, 0.03)
