@@ -486,6 +486,9 @@ def configure_server(server: viser.ViserServer, data: SceneData, title: str) -> 
         control_width="medium",
         titlebar_content=None,
     )
+    # Docked to the right edge, the panel sits beside the scene: the view opens on the change
+    # at the centre of what is seen, not under the panel.
+    server.gui.main_panel.dock_right()
     server.scene.set_up_direction(UP_DIRECTION)
     # Points and boxes are flat-coloured: shadow maps only cost time (a lot in software WebGL).
     server.scene.configure_default_lights(enabled=True, cast_shadow=False)
