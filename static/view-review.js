@@ -30,7 +30,7 @@ document.head.append(h("style", {}, `
 function dock() {
   const root = document.getElementById("root");
   if (holder.open) {
-    Object.assign(holder.style, { top: "0", bottom: "0", width: `${DOCK_WIDTH_PX}px`, borderRadius: "0" });
+    Object.assign(holder.style, { top: "0", bottom: "0", left: "0", width: `${DOCK_WIDTH_PX}px`, borderRadius: "0" });
     if (root) Object.assign(root.style, { marginLeft: `${DOCK_WIDTH_PX}px`, width: `calc(100% - ${DOCK_WIDTH_PX}px)` });
   } else {
     Object.assign(holder.style, { top: "auto", bottom: "12px", left: "12px", width: "auto", borderRadius: "8px" });
