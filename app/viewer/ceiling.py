@@ -56,3 +56,30 @@ def ceiling_cut_height(points: NDArray[np.floating]) -> float | None:
     counts, edges = np.histogram(slab_heights, bins=edges)
     peak = int(np.argmax(counts))
     return float((edges[peak] + edges[peak + 1]) / 2) - BELOW_CEILING
+
+
+CHANGE_HEADROOM = 0.05
+"""The opening cut stays at least this far (metres) above the highest change."""
+
+
+def opening_clip_height(points: NDArray[np.floating], change_tops: list[float]) -> float:
+    """The height the 3D view opens clipped at: below the ceiling, never below a change.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+        The drawn points of both scans, z up, in one frame.
+    change_tops : list of float
+        The top of each changed region (and of the changed points).
+
+    Returns
+    -------
+    float
+        The cut's height, or ``inf`` when the scene has no ceiling (nothing is cut).
+    """
+    cut = ceiling_cut_height(points)
+    if cut is None:
+        return float("inf")
+    if change_tops:
+        cut = max(cut, max(change_tops) + CHANGE_HEADROOM)
+    return float(cut)

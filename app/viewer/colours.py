@@ -17,6 +17,11 @@ from numpy.typing import NDArray
 
 RGB = tuple[int, int, int]
 
+REMOVED_COLOUR: RGB = (230, 25, 25)
+"""Changed points of the reference (gone from the scan), drawn at full colour."""
+ADDED_COLOUR: RGB = (20, 200, 50)
+"""Changed points of the scan (new), drawn at full colour."""
+
 DISTANCE_MAP_ANCHORS: tuple[tuple[float, RGB], ...] = (
     (-1.0, (180, 0, 30)),
     (-0.5, (240, 90, 70)),

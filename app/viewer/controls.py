@@ -16,11 +16,11 @@ from typing import Any
 import numpy as np
 import viser
 
-from app.viewer.ceiling import ceiling_cut_height
 from app.viewer.colours import colour_bar_html, legend_html
+from app.viewer.opening import ASSUMED_ASPECT, CAMERA_FOV, top_view_pose, whole_scene_view
 from app.viewer.regions_display import DEFAULT_MOVED_WITHIN, relabel
 from app.viewer.rendering import COLOUR_MODES, SHOW_CHOICES, Picked, colour_limit
-from app.viewer.scene import LABEL_CHANGED, MOVED_COLOR, Layer, RegionBox, SceneData
+from app.viewer.scene import MOVED_COLOR, Layer, RegionBox, SceneData
 
 MAX_REGION_BUTTONS = 40
 """Region list length in the GUI; the largest regions are listed first beyond this."""
@@ -139,6 +139,7 @@ def _add_view_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
         mode = {title: key for key, title in COLOUR_MODES.items()}[event.target.value]
         record.state.colour_mode = mode
         bar.visible = mode == "distance"
+        legend.visible = mode != "distance"  # the colour bar is the legend of distances
         record.request_redraw(points=True)
 
     @depth.on_update
@@ -160,19 +161,23 @@ def _add_view_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
 
     @top.on_click
     def _(_event: viser.GuiEvent) -> None:
-        center = data.center
-        height = max(data.extent, 1.0) * 1.2
+        view = record.camera_view()
+        position, look_at = top_view_pose(
+            data.bounds_min,
+            data.bounds_max,
+            fov=view.fov if view is not None else CAMERA_FOV,
+            aspect=view.width / view.height if view is not None else ASSUMED_ASPECT,
+        )
         with client.atomic():  # position first: viser's position setter moves look_at too
-            client.camera.position = (center[0], center[1] - height * 1e-3, center[2] + height)
-            client.camera.look_at = tuple(center)
+            client.camera.position = tuple(position)
+            client.camera.look_at = tuple(look_at)
 
     @whole.on_click
     def _(_event: viser.GuiEvent) -> None:
-        from_south_west = np.array([-0.55, -0.75, 0.55])
-        offset = from_south_west / np.linalg.norm(from_south_west) * max(data.extent, 0.5)
+        view = whole_scene_view(data.bounds_min, data.bounds_max, data.opening.clip_high)
         with client.atomic():
-            client.camera.position = tuple(data.center + offset)
-            client.camera.look_at = tuple(data.center)
+            client.camera.position = tuple(view.position)
+            client.camera.look_at = tuple(view.look_at)
 
 
 def _legend_entries(data: SceneData) -> list[tuple[str, tuple[int, int, int], str]]:
@@ -191,20 +196,13 @@ def _add_clip_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
     low = float(np.floor(heights.min() * 10) / 10) if len(heights) else offset - 1.0
     high = float(np.ceil(heights.max() * 10) / 10) if len(heights) else offset + 1.0
     high = max(high, low + 0.1)
-    # Indoors, open below the ceiling: from the default camera it hides every change.
-    local_points = np.concatenate([side.points for side in data.sides.values()])
-    ceiling_cut = ceiling_cut_height(local_points)
-    change_tops = [r.center_local[2] + r.dimensions[2] / 2 for r in data.regions] + [
-        float(side.points[side.labels == LABEL_CHANGED, 2].max())
-        for side in data.sides.values()
-        if np.any(side.labels == LABEL_CHANGED)
-    ]
-    if ceiling_cut is not None and change_tops:  # never hide a change
-        ceiling_cut = max(ceiling_cut, max(change_tops) + 0.05)
+    # Indoors, open below the ceiling (it would hide every change); lower when every side of
+    # the change is blocked (app.viewer.opening).
+    opening_clip = data.opening.clip_high
     opening_top = high
-    if ceiling_cut is not None:
+    if np.isfinite(opening_clip):
         opening_top = float(
-            np.clip(np.ceil((ceiling_cut + offset) / 0.05) * 0.05, low + 0.05, high)
+            np.clip(np.ceil((opening_clip + offset) / 0.05) * 0.05, low + 0.05, high)
         )
     with gui.add_folder("Clip"):
         clip = gui.add_multi_slider(
@@ -215,7 +213,7 @@ def _add_clip_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
             initial_value=(low, opening_top),
             min_range=0.05,
             hint="z in the reference's frame: only points in the range are drawn"
-            + ("; opened just below the ceiling" if ceiling_cut is not None else ""),
+            + ("; opened cut so nothing hides the change" if opening_top < high else ""),
         )
         ceiling = gui.add_button("Cut the ceiling", hint="keep what lies below the ceiling")
         reset = gui.add_button("No clipping")

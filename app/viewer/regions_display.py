@@ -17,6 +17,7 @@ without overlap.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -223,6 +224,10 @@ def quaternion_matrix(wxyz: Sequence[float]) -> NDArray[np.float64]:
     )
 
 
+MAX_PLACED_TOGETHER = 3
+"""At most this many labels are placed together (4 ** 3 combinations of anchors); more, one by
+one."""
+
 LABEL_ANCHORS = ("bottom-left", "top-left", "bottom-right", "top-right")
 """Where a label may sit around its point, in order of preference (viser's ``anchor``)."""
 
@@ -251,14 +256,21 @@ def declutter(
     texts: Sequence[str],
     camera: CameraView | None,
     world_separation: float,
+    obstacles: Sequence[Sequence[tuple[float, float, float, float]]] | None = None,
+    placed_together: int = 0,
 ) -> list[str | None]:
     """Where to show each label (a viser anchor) or None to hide it, so that none overlap.
 
-    Labels come in priority order (first = largest region).  With a camera, a label takes the
-    first of :data:`LABEL_ANCHORS` whose text box (:data:`LABEL_CHAR_PIXELS` a character)
-    overlaps no label already placed, and is hidden when none is free or its point is behind
-    the camera; without one, it is shown at its default place only ``world_separation`` from
-    every shown label's point.
+    Labels come in priority order (first = the sensors, then the largest region).  With a
+    camera, a label takes the first of :data:`LABEL_ANCHORS` whose text box
+    (:data:`LABEL_CHAR_PIXELS` a character) overlaps no label already placed and, when one is
+    free of them, none of its ``obstacles`` (screen boxes it should not cover: the other regions'
+    boxes); it is hidden when no anchor is free of labels or its point is behind the camera.
+    The first ``placed_together`` labels (the sensors', whose points are often a few
+    centimetres apart) are placed first, together: the first combination of anchors where none
+    of them overlap (two labels at one point: one above it, one below).
+    Without a camera, a label is shown at its default place only ``world_separation`` from every
+    shown label's point.
     """
     anchors = np.asarray(anchors, dtype=np.float64).reshape(-1, 3)
     placed: list[str | None] = [None] * len(anchors)
@@ -271,13 +283,43 @@ def declutter(
         return placed
     pixels, in_front = camera.project(anchors)
     boxes: list[tuple[float, float, float, float]] = []
-    for index, text in enumerate(texts):
-        if not in_front[index]:
-            continue
-        for anchor in LABEL_ANCHORS:
-            box = label_box(pixels[index], text, anchor)
-            if not _overlaps(box, boxes):
-                boxes.append(box)
+    first = min(placed_together, MAX_PLACED_TOGETHER, len(anchors))
+    together = [index for index in range(first) if in_front[index]]
+    for combination in itertools.product(LABEL_ANCHORS, repeat=len(together)):
+        tried = [
+            label_box(pixels[index], texts[index], anchor)
+            for index, anchor in zip(together, combination, strict=True)
+        ]
+        if not any(_overlaps(box, tried[:number]) for number, box in enumerate(tried)):
+            boxes.extend(tried)
+            for index, anchor in zip(together, combination, strict=True):
                 placed[index] = anchor
-                break
+            break
+    for index, text in enumerate(texts):
+        if not in_front[index] or placed[index] is not None:  # hidden, or placed together
+            continue
+        free = [
+            (anchor, box)
+            for anchor in LABEL_ANCHORS
+            if not _overlaps(box := label_box(pixels[index], text, anchor), boxes)
+        ]
+        if not free:
+            continue
+        avoid = obstacles[index] if obstacles is not None else ()
+        anchor, box = next(((a, b) for a, b in free if not _overlaps(b, avoid)), free[0])
+        boxes.append(box)
+        placed[index] = anchor
     return placed
+
+
+def screen_box(
+    camera: CameraView, center: Sequence[float], dimensions: Sequence[float]
+) -> tuple[float, float, float, float] | None:
+    """Screen box (left, top, right, bottom) of a region's 3D box; None when it is (partly)
+    behind the camera."""
+    corners = box_edges(center, dimensions).reshape(-1, 3)
+    pixels, in_front = camera.project(corners)
+    if not in_front.all():
+        return None
+    low, high = pixels.min(axis=0), pixels.max(axis=0)
+    return (float(low[0]), float(low[1]), float(high[0]), float(high[1]))

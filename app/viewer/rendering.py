@@ -22,6 +22,7 @@ from app.viewer.colours import (
     signed_distance_colours,
 )
 from app.viewer.scene import (
+    CHANGED_LAYERS,
     LABEL_CHANGED,
     LABEL_UNCHANGED,
     LABEL_UNOBSERVED,
@@ -137,7 +138,7 @@ def render_layers(
             colours = signed_distance_colours(signed, limit)
         else:
             colours = np.broadcast_to(np.array(style.color, np.uint8), (len(points), 3))
-        if state.depth_cue and len(points):
+        if state.depth_cue and len(points) and name not in CHANGED_LAYERS:  # changes stay bright
             colours = shade_by_height(colours, points[:, 2], low, high)
         rendered[name] = RenderedLayer(
             name=name,

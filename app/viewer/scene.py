@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -26,6 +27,9 @@ from scipy.spatial import cKDTree
 from app.config import DEFAULT_VIEWER_POINT_BUDGET
 from app.core.localise.changes import MIN_REGION_POINTS_FLOOR, MIN_REGION_POINTS_PER_SQRT
 from app.core.registration import apply_transform
+from app.viewer.ceiling import opening_clip_height
+from app.viewer.colours import ADDED_COLOUR, REMOVED_COLOUR
+from app.viewer.opening import OpeningView, choose_opening_view
 from app.viewer.scene_parts import (
     SIDES,
     CandidatePool,
@@ -65,11 +69,18 @@ class LayerStyle:
     description: str
 
 
+QUIET_REFERENCE: RGB = (180, 140, 205)
+"""Unchanged reference points: a pale violet, quieter than the changes' saturated red/green."""
+QUIET_SCAN: RGB = (80, 160, 205)
+"""Unchanged scan points: a pale blue, told apart from the reference, quieter than a change."""
+CHANGED_LAYERS = ("removed", "added")
+"""Drawn larger than the others and never darkened by the depth cue, so they stand out."""
+
 LAYER_STYLES: tuple[LayerStyle, ...] = (
-    LayerStyle("reference", "Reference", (160, 110, 210), True, "unchanged reference points"),
-    LayerStyle("scan", "Scan", (40, 160, 230), True, "unchanged scan points"),
-    LayerStyle("removed", "Removed", (230, 25, 25), True, "in the reference, gone from the scan"),
-    LayerStyle("added", "Added", (20, 200, 50), True, "in the scan, not in the reference"),
+    LayerStyle("reference", "Reference", QUIET_REFERENCE, True, "unchanged reference points"),
+    LayerStyle("scan", "Scan", QUIET_SCAN, True, "unchanged scan points"),
+    LayerStyle("removed", "Removed", REMOVED_COLOUR, True, "in the reference, gone from the scan"),
+    LayerStyle("added", "Added", ADDED_COLOUR, True, "in the scan, not in the reference"),
     LayerStyle(
         "unobserved", "Unobserved", (215, 215, 235), False, "seen by one scan only (not change)"
     ),
@@ -209,6 +220,30 @@ class SceneData:
         """Length of the bounds' diagonal (metres), at least 1 mm."""
         return max(float(np.linalg.norm(self.bounds_max - self.bounds_min)), 1e-3)
 
+    @cached_property
+    def opening(self) -> OpeningView:
+        """The camera and height clip a browser opens with: on the change, unhidden."""
+        drawn = [side.points for side in self.sides.values()]
+        points = np.concatenate(drawn) if drawn else np.zeros((0, 3), np.float32)
+        changed = np.concatenate([self.layer(name).points for name in ("removed", "added")])
+        change_tops = [r.center_local[2] + r.dimensions[2] / 2 for r in self.regions]
+        if len(changed):
+            change_tops.append(float(changed[:, 2].max()))
+        clip_high = opening_clip_height(points, change_tops)
+        unchanged = np.concatenate([self.layer(name).points for name in ("reference", "scan")])
+        unchanged = unchanged[unchanged[:, 2] <= clip_high]
+        boxes_low = [np.subtract(r.center_local, np.divide(r.dimensions, 2)) for r in self.regions]
+        boxes_high = [np.add(r.center_local, np.divide(r.dimensions, 2)) for r in self.regions]
+        return choose_opening_view(
+            unchanged,
+            changed,
+            self.bounds_min,
+            self.bounds_max,
+            clip_high=clip_high,
+            regions_low=np.array(boxes_low).reshape(-1, 3),
+            regions_high=np.array(boxes_high).reshape(-1, 3),
+        )
+
     @property
     def n_shown(self) -> int:
         """Points drawn over every layer."""
@@ -243,6 +278,7 @@ class SceneData:
                 for marker in self.sensors
             ],
             "warnings": [dict(warning) for warning in self.warnings],
+            "opening": self.opening.to_json_dict(self.origin),
         }
 
 

@@ -33,9 +33,11 @@ from app.viewer.regions_display import (
     box_edges,
     declutter,
     pair_moved,
+    screen_box,
 )
 from app.viewer.rendering import Picked, RenderedLayer, ViewState, pick_point, render_layers
 from app.viewer.scene import (
+    CHANGED_LAYERS,
     MOVED_COLOR,
     SIDES,
     STYLE_BY_NAME,
@@ -52,6 +54,8 @@ MAX_REGION_LABELS = 20
 
 UP_DIRECTION = "+z"
 UNOBSERVED_SIZE_FACTOR = 0.6
+CHANGED_SIZE_FACTOR = 1.6
+"""Changed points are drawn this much larger than unchanged ones: the change stands out."""
 BOX_LINE_PIXELS = 2.0
 
 
@@ -67,6 +71,8 @@ class ClientScene:
     rendered: dict[str, RenderedLayer] = field(default_factory=dict)
     boxes: list[tuple[RegionBox, Any]] = field(default_factory=list)
     labels: list[tuple[str, Any]] = field(default_factory=list)
+    label_owners: list[tuple[int, ...]] = field(default_factory=list)
+    """Per region label, the regions it names (a moved pair's label names two)."""
     moved: tuple[MovedPair, ...] = ()
     moved_nodes: list[Any] = field(default_factory=list)
     sensor_nodes: list[Any] = field(default_factory=list)
@@ -171,6 +177,7 @@ class ClientScene:
             for node in self.moved_nodes:
                 node.remove()
             self.boxes, self.labels, self.moved_nodes = [], [], []
+            self.label_owners = []
             regions = self.regions
             self.moved = pair_moved(regions, self.state.moved_within)
             paired = {pair.removed.index for pair in self.moved} | {
@@ -187,7 +194,8 @@ class ClientScene:
                     visible=self.boxes_visible and self._inside_clip(region),
                 )
                 self.boxes.append((region, handle))
-            texts: list[tuple[str, np.ndarray, int]] = []  # text, anchor, priority (points)
+            # text, anchor, priority (points), the regions it names
+            texts: list[tuple[str, np.ndarray, int, tuple[int, ...]]] = []
             for pair in self.moved:
                 start = np.asarray(pair.removed.center_local)
                 end = np.asarray(pair.added.center_local)
@@ -202,35 +210,57 @@ class ClientScene:
                     )
                 )
                 priority = pair.removed.n_points + pair.added.n_points
-                texts.append((pair.label, (start + end) / 2.0, priority))
+                owners = (pair.removed.index, pair.added.index)
+                texts.append((pair.label, (start + end) / 2.0, priority, owners))
             for region in regions:
                 if region.index not in paired:
                     corner = np.asarray(region.center_local) + np.asarray(region.dimensions) / 2
-                    texts.append((region.short_label, corner, region.n_points))
+                    texts.append((region.short_label, corner, region.n_points, (region.index,)))
             texts.sort(key=lambda item: -item[2])
-            for number, (text, anchor, _priority) in enumerate(texts[:MAX_REGION_LABELS]):
+            for number, (text, anchor, _priority, owners) in enumerate(texts[:MAX_REGION_LABELS]):
                 label = scene.add_label(
                     f"/region_labels/{number}", text, position=tuple(anchor), anchor="bottom-left"
                 )
                 self.labels.append((text, label))
+                self.label_owners.append(owners)
         self.declutter()
         controls.refresh_change_status(self)
 
+    @property
+    def sensor_labels(self) -> list[Any]:
+        """The sensors' label nodes."""
+        return [node for node in self.sensor_nodes if isinstance(node, viser.LabelHandle)]
+
     def declutter(self) -> None:
-        """Hide the labels that would overlap a larger region's label from this camera."""
+        """Place every label (sensors first, then the largest regions) where it overlaps no
+        other label and, if it can, no other region's box, from this camera; hide the rest."""
         assert self.data is not None
         with self.lock:
-            if not self.labels:
+            sensors = self.sensor_labels
+            handles = sensors + [handle for _text, handle in self.labels]
+            if not handles:
                 return
-            anchors = np.array([np.asarray(handle.position) for _text, handle in self.labels])
+            owners = [()] * len(sensors) + list(self.label_owners)
+            camera = self.camera_view()
+            screen: dict[int, tuple[float, float, float, float]] = {}
+            if camera is not None:
+                for region, box in self.boxes:
+                    if box.visible:
+                        found = screen_box(camera, region.center_local, region.dimensions)
+                        if found is not None:
+                            screen[region.index] = found
             shown = declutter(
-                anchors,
-                [text for text, _handle in self.labels],
-                self.camera_view(),
+                np.array([np.asarray(handle.position) for handle in handles]),
+                [handle.text for handle in handles],
+                camera,
                 world_separation=self.data.extent / 30.0,
+                obstacles=[
+                    [box for index, box in screen.items() if index not in named] for named in owners
+                ],
+                placed_together=len(sensors),
             )
-            for (_text, handle), anchor in zip(self.labels, shown, strict=True):
-                visible = anchor is not None and self.boxes_visible
+            for number, (handle, anchor) in enumerate(zip(handles, shown, strict=True)):
+                visible = anchor is not None and (number < len(sensors) or self.boxes_visible)
                 if anchor is not None and handle.anchor != anchor:
                     handle.anchor = anchor
                 if handle.visible != visible:
@@ -265,7 +295,9 @@ class ClientScene:
 
     def _point_size(self, name: str) -> float:
         """World size of layer ``name``'s points now."""
-        factor = UNOBSERVED_SIZE_FACTOR if name == "unobserved" else 1.0
+        factor = {"unobserved": UNOBSERVED_SIZE_FACTOR}.get(name, 1.0)
+        if name in CHANGED_LAYERS:
+            factor = CHANGED_SIZE_FACTOR
         return float(self.world_point_size * factor)
 
     def update_point_size(self, force: bool = False) -> None:
@@ -351,12 +383,14 @@ class ClientScene:
                 "boxes": [_box_record(region, handle, origin) for region, handle in self.boxes],
                 "labels": [
                     {
-                        "text": text,
+                        "text": handle.text,
+                        "kind": kind,
                         "visible": bool(handle.visible),
                         "anchor": handle.anchor,
                         "position": (np.asarray(handle.position) + origin).tolist(),
                     }
-                    for text, handle in self.labels
+                    for kind, handle in [("sensor", node) for node in self.sensor_labels]
+                    + [("region", node) for _text, node in self.labels]
                 ],
                 "moved": [
                     {
@@ -453,22 +487,19 @@ def configure_server(server: viser.ViserServer, data: SceneData, title: str) -> 
         control_width="medium",
         titlebar_content=None,
     )
+    # Docked to the right edge, the panel sits beside the scene: the view opens on the change
+    # at the centre of what is seen, not under the panel.
+    server.gui.main_panel.dock_right()
     server.scene.set_up_direction(UP_DIRECTION)
     # Points and boxes are flat-coloured: shadow maps only cost time (a lot in software WebGL).
     server.scene.configure_default_lights(enabled=True, cast_shadow=False)
     server.scene.configure_environment_map(hdri=None)  # its PMREM passes are slow in software
-    center = data.center
-    server.initial_camera.look_at = tuple(center)
-    server.initial_camera.position = tuple(center + default_camera_offset(data.extent))
+    opening = data.opening  # on the change, from its clearest side (or the whole scene)
+    server.initial_camera.look_at = tuple(opening.look_at)
+    server.initial_camera.position = tuple(opening.position)
     server.initial_camera.near = max(data.extent * 1e-4, 1e-3)
     server.initial_camera.far = max(data.extent * 20.0, 100.0)
     del title
-
-
-def default_camera_offset(extent: float) -> np.ndarray:
-    """Camera position relative to what it looks at: from the south-west, above."""
-    direction = np.array([-0.55, -0.75, 0.55])
-    return direction / np.linalg.norm(direction) * max(extent, 0.5) * 1.0
 
 
 def sensor_marker_radius(data: SceneData) -> float:
@@ -494,11 +525,11 @@ def draw_sensor_markers(scene: Any, markers: Sequence[SensorMarker], radius: flo
         )
         confidence = "" if marker.confidence is None else f", {marker.confidence:.0%}"
         handles.append(
-            scene.add_label(
-                f"{name}/label",
+            scene.add_label(  # a node of its own (not the sphere's child): the declutter moves it
+                f"/sensor_labels/{marker.side}-{number}",
                 f"{marker.side} sensor ({marker.source}{confidence})",
-                position=(0.0, 0.0, radius * 1.5),
-                anchor="bottom-center",
+                position=tuple(np.add(marker.position_local, (0.0, 0.0, radius * 1.5))),
+                anchor="bottom-left",
             )
         )
     return handles
@@ -508,6 +539,17 @@ def build_client_scene(client: viser.ClientHandle, data: SceneData, title: str) 
     """Add layers, region outlines, sensors and the GUI for one browser."""
     record = ClientScene(client_id=client.client_id, client=client, data=data)
     record.world_point_size = data.point_size
+
+    # First: a camera the browser reports while the scene is drawn must place the labels.
+    @client.camera.on_update
+    def _(_camera: Any) -> None:
+        record.update_point_size()
+        record.declutter()
+
+    @client.scene.on_click()
+    def _(event: Any) -> None:
+        record.pick(event.ray_origin, event.ray_direction)
+
     record.sensor_nodes = draw_sensor_markers(
         client.scene, data.sensors, sensor_marker_radius(data)
     ) + draw_trajectory_paths(  # the moving sensors' paths, in their sides' colours
@@ -520,14 +562,4 @@ def build_client_scene(client: viser.ClientHandle, data: SceneData, title: str) 
         controls.add_controls(record, title)
     record.redraw_points()
     record.redraw_regions()
-
-    @client.camera.on_update
-    def _(_camera: Any) -> None:
-        record.update_point_size()
-        record.declutter()
-
-    @client.scene.on_click()
-    def _(event: Any) -> None:
-        record.pick(event.ray_origin, event.ray_direction)
-
     return record

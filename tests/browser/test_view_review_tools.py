@@ -35,6 +35,28 @@ MOVED = [250, 170, 0]
 REMOVED_RED = (230, 25, 25)
 
 
+DOCKED_SCRIPT = """
+const holder = document.getElementById('view-review');
+const canvas = [...document.querySelectorAll('canvas')]
+  .find(c => (c.getAttribute('data-engine') || '').startsWith('three.js'));
+if (!holder || !canvas) return null;
+const box = holder.getBoundingClientRect(), scene = canvas.getBoundingClientRect();
+return {panelRight: box.right, canvasLeft: scene.left, scrollWidth: holder.scrollWidth,
+        clientWidth: holder.clientWidth};
+"""
+
+
+def review_panel_docked(driver: Any) -> bool:
+    """Whether the open review panel ends where the 3D canvas starts, without scrolling
+    sideways."""
+    found = driver.execute_script(DOCKED_SCRIPT)
+    return bool(
+        found
+        and found["canvasLeft"] >= found["panelRight"] - 1
+        and found["scrollWidth"] <= found["clientWidth"]
+    )
+
+
 def client_scene(service: ReviewService, job_id: str) -> dict[str, Any]:
     """What viser holds for the one browser of the test."""
     clients = view_scene(service, job_id).get("clients", [])
@@ -200,8 +222,18 @@ def test_review_tools_in_the_3d_view(review_service: ReviewService, chrome_facto
     assert reference["n_colours"] > 1  # the depth cue shades by height
     assert_labels_do_not_overlap(scene)
     assert any(label["visible"] for label in scene["labels"])
-    # opened with only a view link: the review panel says where to sign in, with no verdicts
+    # opened with only a view link: the review panel is a closed tab beside the scene; opened,
+    # it says where to sign in, with no verdicts
+    tab = by_css(driver, "#view-review summary")
+    assert driver.find_element(By.ID, "view-review").get_attribute("open") is None
+    tab.click()
     unavailable = by_css(driver, "#view-review #view-review-unavailable")
+    # open, it is docked beside the scene (the 3D canvas starts where it ends), without a
+    # horizontal scrollbar (issue 31)
+    try:
+        wait_until(lambda: review_panel_docked(driver), 20, "the review panel is not docked")
+    except TimeoutError:
+        pytest.fail(f"the review panel covers the scene: {driver.execute_script(DOCKED_SCRIPT)}")
     assert "Sign in" in unavailable.text
     assert not driver.find_elements(By.CSS_SELECTOR, "#view-review #verdict-false_alarm")
 
@@ -218,6 +250,16 @@ def test_review_tools_in_the_3d_view(review_service: ReviewService, chrome_facto
     assert scene["layers"]["reference"]["n_colours"] > 10
     bar = by_css(driver, ".scandiff-colour-bar")
     assert float(bar.get_attribute("data-limit")) > 0 and "removed" in bar.text
+    # the colour bar is the only legend: the labels' legend is hidden (issue 31)
+    wait_until(
+        lambda: (
+            not any(
+                e.is_displayed() for e in driver.find_elements(By.CSS_SELECTOR, ".scandiff-legend")
+            )
+        ),
+        20,
+        "the labels' legend stayed under the colour bar",
+    )
 
     # Indoors the view opens below the ceiling (it would hide the change); "No clipping" shows
     # it, "Cut the ceiling" cuts again, at most just above the highest region.
