@@ -177,4 +177,6 @@ def _region_dict(region: Region) -> dict[str, Any]:
         "bbox_max": region.bbox_max,
         "mean_distance": region.mean_distance,
         "max_distance": region.max_distance,
+        "evidence": region.evidence,
+        "confidence": region.confidence,
     }

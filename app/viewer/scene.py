@@ -144,6 +144,8 @@ class RegionBox:
     dimensions: tuple[float, float, float]
     mean_distance: float | None
     max_distance: float | None
+    evidence: str = "seen_empty"
+    confidence: float | None = None
 
     @property
     def color(self) -> RGB:
@@ -152,8 +154,11 @@ class RegionBox:
 
     @property
     def label(self) -> str:
-        """Text of the region's button: number, kind and size."""
-        return f"#{self.index + 1} {self.kind} · {self.n_points:,} pts"
+        """Text of the region's button: number, kind, size and why it is a change."""
+        why = EVIDENCE_WORDS.get(self.evidence, self.evidence)
+        if self.confidence is not None:
+            why = f"{why} {round(100 * self.confidence)} %"
+        return f"#{self.index + 1} {self.kind} · {self.n_points:,} pts · {why}"
 
     @property
     def short_label(self) -> str:
@@ -173,7 +178,17 @@ class RegionBox:
             "bbox_max": list(self.bbox_max),
             "center_local": list(self.center_local),
             "dimensions": list(self.dimensions),
+            "evidence": self.evidence,
+            "confidence": self.confidence,
         }
+
+
+EVIDENCE_WORDS = {
+    "seen_empty": "seen empty",
+    "surface_moved": "surface moved",
+    "no_coverage": "not covered",
+}
+"""How a region's evidence reads on its button."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -369,6 +384,8 @@ def region_boxes(
                 dimensions=_triple(dimensions),
                 mean_distance=_optional_float(region.get("mean_distance")),
                 max_distance=_optional_float(region.get("max_distance")),
+                evidence=str(region.get("evidence") or "seen_empty"),
+                confidence=_optional_float(region.get("confidence")),
             )
         )
     return tuple(boxes)
