@@ -80,9 +80,12 @@ LOCALISE_LAYERS = (
     "regions",
     "gaps",
     "rays",
+    "interface",
+    "station_rays",
     "trajectory_visibility",
     "origin_free",
     "map_evidence",
+    "coverage",
     "visibility",
     "changes",
 )

@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
+from app.core.localise.interface import VisibilityContext, VisibilityOutcome
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS, UNMATCHED_FACTOR, behind_evidence
 from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED, Candidates
 from app.core.localise.regions import (
@@ -44,7 +45,7 @@ from app.core.localise.regions import (
 from app.core.localise.settings import GATHER_CHUNK
 from app.core.localise.surface import LocalGeometry
 
-__all__ = ["MapEvidence", "map_test"]
+__all__ = ["MapEvidence", "MapTest", "map_test"]
 
 
 BORDER_NEIGHBOURS = 16
@@ -351,3 +352,28 @@ def map_test(
         map_coplanar_share_median=float(np.median(coplanar_share)) if n_clusters else 0.0,
     )
     return MapEvidence(status, evidence, confidence, counts)
+
+
+class MapTest:
+    """The map test as a visibility test (``name = "maps"``)."""
+
+    name = "maps"
+
+    def __call__(
+        self, candidates: Candidates, *, own: Side, other: Side, context: VisibilityContext
+    ) -> VisibilityOutcome:
+        """:func:`map_test` of ``own``'s candidates."""
+        found = map_test(
+            candidates,
+            own=own,
+            other=other,
+            threshold=context.threshold,
+            change_threshold=context.change_threshold,
+            cluster_factor=context.settings["cluster_factor"],
+        )
+        return VisibilityOutcome(
+            status=found.status,
+            confidence=found.confidence,
+            report=dict(found.counts),
+            evidence=found.evidence,
+        )

@@ -49,6 +49,7 @@ from app.core.localise.gaps import (
     coplanar_near_probe,
     tangent_directions,
 )
+from app.core.localise.interface import VisibilityContext, VisibilityOutcome
 from app.core.localise.rays import (
     STATUS_SEEN_THROUGH,
     STATUS_SURFACE,
@@ -62,6 +63,7 @@ from app.core.localise.surface import LocalGeometry
 __all__ = [
     "MAX_REACH",
     "SECTORS",
+    "SurfaceTest",
     "behind_evidence",
     "keep_evidenced_clusters",
     "origin_free_status",
@@ -450,3 +452,26 @@ def surface_test(
         np.count_nonzero(changed & (status == STATUS_UNOBSERVED))
     )
     return status, counts
+
+
+class SurfaceTest:
+    """The surface test as a visibility test (``name = "surfaces"``)."""
+
+    name = "surfaces"
+
+    def __call__(
+        self, candidates: Candidates, *, own: Side, other: Side, context: VisibilityContext
+    ) -> VisibilityOutcome:
+        """:func:`surface_test` of ``own``'s candidates (changes need evidence behind them)."""
+        status, counts = surface_test(
+            candidates,
+            own=own,
+            other=other,
+            threshold=context.threshold,
+            cluster_factor=context.settings["cluster_factor"],
+        )
+        return VisibilityOutcome(
+            status=status,
+            confidence=np.ones(status.shape[0], dtype=np.float32),
+            report=dict(counts),
+        )

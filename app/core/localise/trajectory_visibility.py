@@ -7,7 +7,7 @@ ray test (:func:`~app.core.localise.rays.ray_visibility`): its returns, indexed 
 from its position, say whether it saw the candidate's place empty (rays through the candidate
 to returns beyond it), saw a surface there, or could not see it.  The statuses are combined as
 for stations (the caller combines them with
-:func:`~app.core.localise.visibility.combine_station_status`).
+:func:`~app.core.localise.station_rays.combine_station_status`).
 
 Cost stays bounded: a candidate is tested only against the pseudo-stations that took the other
 cloud's returns nearest to it (they looked at its place) and the few nearest along the path,
@@ -24,15 +24,23 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
+from app.core.localise.interface import VisibilityContext, VisibilityOutcome
 from app.core.localise.rays import (
+    STATUS_EDGE_ON,
     STATUS_SEEN_THROUGH,
     STATUS_UNOBSERVED,
     Candidates,
     RayTest,
     ray_visibility,
 )
+from app.core.localise.station_rays import combine_station_status, ray_test_for, settle_ray_status
 
-__all__ = ["NEAREST_GROUPS", "NEIGHBOUR_RETURNS", "trajectory_statuses"]
+__all__ = ["NEAREST_GROUPS", "NEIGHBOUR_RETURNS", "TrajectoryTest", "trajectory_statuses"]
+
+LONE_SIGHTING_FACTOR = 1.5
+"""A trajectory candidate within this many change thresholds of the other cloud's surface,
+seen through by one pseudo-station while others saw it otherwise, is left to the edge-on
+resolution (a rack's edge grazed by one stretch of the path)."""
 
 NEIGHBOUR_RETURNS = 16
 """The groups of a candidate's this many nearest returns of the other cloud are tested."""
@@ -89,7 +97,7 @@ def trajectory_statuses(
     statuses : ndarray, shape (s, c), int8
         :func:`~app.core.localise.rays.ray_visibility` status of each candidate from the
         pseudo-station in its slot (STATUS_UNOBSERVED for empty slots: no evidence); combine
-        with :func:`~app.core.localise.visibility.combine_station_status`.
+        with :func:`~app.core.localise.station_rays.combine_station_status`.
     report : dict
         ``groups`` (the other cloud's pseudo-stations), ``groups_tested`` (those tested against
         some candidate), ``tests_per_candidate`` (mean), ``angular_step_deg`` (median of the
@@ -158,3 +166,26 @@ def lone_sightings(statuses: NDArray[np.int8]) -> NDArray[np.bool_]:
     through = (statuses == STATUS_SEEN_THROUGH).sum(axis=0)
     other = ((statuses != STATUS_SEEN_THROUGH) & (statuses != STATUS_UNOBSERVED)).sum(axis=0)
     return (through == 1) & (other >= 1)
+
+
+class TrajectoryTest:
+    """The ray test from the pseudo-stations of the other cloud's trajectory
+    (``name = "trajectory"``)."""
+
+    name = "trajectory"
+
+    def __call__(
+        self, candidates: Candidates, *, own: Side, other: Side, context: VisibilityContext
+    ) -> VisibilityOutcome:
+        """Statuses from the pseudo-stations tested, lone sightings near the surface left to the
+        edge-on resolution."""
+        test = ray_test_for(own, other, context)
+        statuses, figures = trajectory_statuses(candidates, own=own, other=other, test=test)
+        status = combine_station_status(statuses)
+        # just past the change threshold: one ray through a grazed edge is not enough
+        near = candidates.surface_distance < LONE_SIGHTING_FACTOR * context.change_threshold
+        lone = lone_sightings(statuses) & (status == STATUS_SEEN_THROUGH) & near
+        status = np.where(lone, STATUS_EDGE_ON, status).astype(np.int8)
+        report: dict[str, Any] = {"candidates_seen_through_once": int(lone.sum())}
+        report.update({f"other_{name}": value for name, value in figures.items()})
+        return settle_ray_status(candidates, status, report, context)
