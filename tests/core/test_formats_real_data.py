@@ -53,6 +53,27 @@ EXPECTED = {
         (-39.99, -49.97, -2.95),
         (40.00, 50.00, 5.46),
     ),
+    # two-epoch maps (counts from the README; bounds read with plyfile)
+    "multichange3d_samples/classroom_tls/epoch0.ply": (
+        92_597,
+        (-5.76, -10.13, -1.53),
+        (7.81, 7.02, 1.07),
+    ),
+    "multichange3d_samples/classroom_tls/epoch1.ply": (
+        90_110,
+        (-5.75, -10.12, -1.51),
+        (7.81, 7.02, 1.07),
+    ),
+    "multichange3d_samples/bike_parking_mls/epoch0.ply": (
+        69_578,
+        (27.84, 0.05, -5.15),
+        (55.56, 20.12, 1.94),
+    ),
+    "multichange3d_samples/bike_parking_mls/epoch1.ply": (
+        52_048,
+        (27.82, 0.05, -4.35),
+        (55.35, 20.17, 2.04),
+    ),
 }
 
 
