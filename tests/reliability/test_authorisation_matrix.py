@@ -48,6 +48,9 @@ from tests.helpers.resumable import OCTETS, TUS, metadata_header, new_upload, pa
 from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
 
+TUM_PATH = b"0.0 0.5 0.5 1.2 0 0 0 1\n1.0 1.5 0.5 1.2 0 0 0 1\n2.0 2.5 0.5 1.2 0 0 0 1\n"
+"""A three-pose trajectory (TUM) through the room, for PUT /scans/{id}/trajectory."""
+
 PUBLIC_OPERATIONS = {
     ("GET", "/api/v1/health"),
     ("POST", "/api/v1/session"),  # trades a token (in the body) for a cookie
@@ -171,6 +174,14 @@ OPERATIONS = [
     Operation("GET", "/api/v1/sites/{site_id}/jobs", "reader", 200),
     Operation("GET", "/api/v1/scans/{scan_id}", "reader", 200),
     Operation("GET", "/api/v1/scans/{scan_id}/file", "reader", 200),
+    Operation(
+        "PUT",
+        "/api/v1/scans/{scan_id}/trajectory",
+        "writer",
+        200,
+        params={"filename": "path.tum"},
+        content=lambda ids: TUM_PATH,
+    ),
     Operation(
         "POST",
         "/api/v1/jobs",
