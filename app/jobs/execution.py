@@ -28,6 +28,7 @@ import numpy as np
 from app.config import Settings
 from app.core.errors import InputError
 from app.core.formats import read_point_cloud
+from app.core.formats.rosbag import stored_bag_options
 from app.core.trajectory_store import with_stored_trajectory
 from app.jobs.geometry import geometry_cache_of, record_geometry_cache
 from app.jobs.hooks import job_hooks
@@ -76,8 +77,18 @@ def compute(
     keeper.report("loading", 0.0)
     started = time.perf_counter()
     threads = job_threads(settings)  # the result does not depend on it
-    reference = read_point_cloud(job.reference_path, format=job.reference_format, threads=threads)
-    scan = read_point_cloud(job.scan_path, format=job.scan_format, threads=threads)
+    reference = read_point_cloud(
+        job.reference_path,
+        format=job.reference_format,
+        threads=threads,
+        bag_options=stored_bag_options(job.reference_path),  # the upload's, for a ROS bag
+    )
+    scan = read_point_cloud(
+        job.scan_path,
+        format=job.scan_format,
+        threads=threads,
+        bag_options=stored_bag_options(job.scan_path),
+    )
     reference = with_stored_trajectory(reference, job.reference_path)  # if one was given
     scan = with_stored_trajectory(scan, job.scan_path)
     given_at_upload = {

@@ -47,12 +47,14 @@ def _cloud_in_file_order(
 ) -> tuple[np.ndarray, Callable[[np.ndarray | None], np.ndarray | None]]:
     """The cloud's points and a function putting a per-source-row array in their order."""
     from app.core.formats import read_point_cloud
+    from app.core.formats.rosbag import stored_bag_options
 
     cloud = read_point_cloud(
         cloud_source.path,
         cloud_source.format,
         filename=cloud_source.filename,
         max_points=max_points,
+        bag_options=stored_bag_options(cloud_source.path),  # a bag reads as its job read it
     )
     if labels.shape != (cloud.n_source,):
         raise ConflictError(

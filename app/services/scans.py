@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import threading
 from collections.abc import AsyncIterator, Sequence
 from dataclasses import dataclass
@@ -27,10 +28,13 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.config import Settings
+from app.core.errors import InputError
+from app.core.files import write_atomically
+from app.core.formats.rosbag import BAG_FORMATS, bag_options_from_strings, bag_options_path
 from app.db.models import IdempotencyRecord, Scan, new_id
 from app.services import idempotency, jobs, quotas, sites, storage, trajectories
 from app.services.auth import Principal
-from app.services.errors import ConflictError, NotFoundError
+from app.services.errors import ConflictError, NotFoundError, ValidationFailedError
 from app.services.idempotency import StoredResponse
 from app.services.paging import newest_first_page
 from app.services.schemas import JobRead, ScanRead, UploadRead
@@ -60,6 +64,9 @@ class UploadOptions:
     trajectory_rate: float | None = None
     """KITTI poses' constant rate (poses a second), when the ``trajectory`` part is KITTI."""
     trajectory_format: str | None = None
+    bag_parameters: dict[str, str] | None = None
+    """How to read a ROS bag (``cloud_topic``, ``fixed_frame``, ``pose_topic``, ``voxel_size``,
+    ``max_sweeps``), when the bag's own choices are ambiguous; kept beside the stored bag."""
 
 
 class UploadBody(Protocol):
@@ -201,6 +208,7 @@ def store_scan_file(
     filename: str | None,
     sensor_origin: SensorOrigin | None = None,
     trajectory: trajectories.TrajectoryUpload | None = None,
+    bag_parameters: dict[str, str] | None = None,
 ) -> Scan:
     """Parse a received file with the core, rename it into place and build its row (not added).
 
@@ -208,7 +216,9 @@ def store_scan_file(
     under the data layout's scan path, and is removed again if ``session`` rolls back.  Slow
     (parsing): call it with no transaction open.
     """
-    parsed = parse_upload(received.path, filename, received.head, settings.max_points)
+    parsed = parse_upload(
+        received.path, filename, received.head, settings.max_points, bag_parameters
+    )
     check_stations_match(sensor_origin, parsed.n_stations)
     # a trajectory sent with it is checked before anything is stored, then kept beside it
     checked = (
@@ -219,6 +229,10 @@ def store_scan_file(
     final_path = settings.data_layout.resolve(storage_path)
     storage.install_file(received.path, final_path)
     after_rollback(session, lambda: storage.remove_file(final_path))
+    if bag_parameters and parsed.format in BAG_FORMATS:
+        kept = bag_options_path(final_path)
+        write_atomically(kept, lambda path: path.write_text(json.dumps(bag_parameters)))
+        after_rollback(session, lambda: storage.remove_file(kept))
     if checked is not None:
         saved = trajectories.trajectory_path(final_path)
         trajectories.save_trajectory(saved, checked)
@@ -235,15 +249,46 @@ def store_scan_file(
     )
 
 
-def parse_upload(path: Path, filename: str | None, head: bytes, max_points: int) -> ParsedScan:
+def parse_bag_parameters(values: Sequence[str] | None) -> dict[str, str] | None:
+    """``bag=KEY=VALUE`` query values as a mapping, checked like the CLI's ``--bag-param``
+    (422 naming the parameter when one is unknown or malformed)."""
+    if not values:
+        return None
+    parameters: dict[str, str] = {}
+    for value in values:
+        key, separator, text = value.partition("=")
+        if not separator or not key.strip():
+            raise ValidationFailedError(
+                f"bag parameter {value!r} is not KEY=VALUE: give e.g. bag=cloud_topic=/points"
+            )
+        parameters[key.strip()] = text.strip()
+    try:
+        bag_options_from_strings(parameters)
+    except InputError as exc:
+        raise ValidationFailedError(f"bag: {exc}") from exc
+    return parameters
+
+
+def parse_upload(
+    path: Path,
+    filename: str | None,
+    head: bytes,
+    max_points: int,
+    bag_parameters: dict[str, str] | None = None,
+) -> ParsedScan:
     """Detect the format and check the cloud with the core, without loading it (raises the
     core's errors)."""
     from app.core.formats import detect_format, summarise_point_cloud
 
+    bag_options = None if not bag_parameters else bag_options_from_strings(bag_parameters)
     with PARSE_SLOTS:
         file_format = detect_format(filename, head)
         summary = summarise_point_cloud(
-            path, file_format, filename=filename or "upload", max_points=max_points
+            path,
+            file_format,
+            filename=filename or "upload",
+            max_points=max_points,
+            bag_options=bag_options,
         )
         return ParsedScan(
             format=file_format,
@@ -359,6 +404,7 @@ async def store_received_scan(
             "variant": options.variant,
             "sensor_origin": options.sensor_origin,
             "sha256": received.sha256,
+            **({"bag": options.bag_parameters} if options.bag_parameters else {}),
             **({} if trajectory is None else {"trajectory": trajectory.digest()}),
         },
     )
@@ -380,6 +426,7 @@ async def store_received_scan(
             filename=filename,
             sensor_origin=options.sensor_origin,
             trajectory=trajectory,
+            bag_parameters=options.bag_parameters,
         )
     )
     response, created = await anyio.to_thread.run_sync(

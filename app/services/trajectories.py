@@ -58,9 +58,12 @@ def check_fits(scan_path: Path, scan_format: str | None, trajectory: Trajectory)
     (:func:`~app.core.trajectory_poses.interpolate_positions`).
     """
     from app.core.formats import read_point_cloud
+    from app.core.formats.rosbag import stored_bag_options
     from app.core.trajectory_poses import interpolate_positions
 
-    cloud = read_point_cloud(scan_path, format=scan_format)
+    cloud = read_point_cloud(
+        scan_path, format=scan_format, bag_options=stored_bag_options(scan_path)
+    )
     times = cloud.attributes.get("time")
     outside = 0
     if times is not None:

@@ -15,6 +15,7 @@ import numpy as np
 
 from app.config import Settings
 from app.core.formats import read_point_cloud
+from app.core.formats.rosbag import stored_bag_options
 from app.db.models import Job, JobStatus, Region, Scan, Site
 from app.db.session import session_factory
 from app.kit.data_layout import DETAILS_FILENAME
@@ -133,8 +134,8 @@ def load_job_scene(
                 f"a file of job {job_id} is missing from the data directory ({path.name})",
                 status=410,
             )
-    reference_cloud = read_point_cloud(paths[0])
-    scan_cloud = read_point_cloud(paths[1])
+    reference_cloud = read_point_cloud(paths[0], bag_options=stored_bag_options(paths[0]))
+    scan_cloud = read_point_cloud(paths[1], bag_options=stored_bag_options(paths[1]))
     with np.load(labels_path) as labels:
         reference_labels = reference_cloud.from_source_order(labels["reference_label"])
         scan_labels = scan_cloud.from_source_order(labels["scan_label"])

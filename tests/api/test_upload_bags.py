@@ -12,12 +12,13 @@ Rules checked:
 
 from __future__ import annotations
 
+import io
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from app.core.formats import read_point_cloud
+from app.core.formats import BagOptions, read_point_cloud
 from tests.helpers.bags import BOX_HIGH, BOX_LOW, write_lidar_bag
 from tests.helpers.http import assert_error, create_site, upload
 from tests.helpers.service import ServiceProcess
@@ -72,3 +73,28 @@ def test_bags_upload_and_compare_and_a_truncated_bag_is_refused(
         largest = max(removed, key=lambda region: region["n_points"])
         box_centre = (BOX_LOW[0] + BOX_HIGH[0]) / 2
         assert np.linalg.norm(np.array(largest["centroid"])[:2] - box_centre[:2]) < 0.6
+
+        # a bag with two cloud topics: refused naming them until the upload says which, then
+        # kept with that choice, which its job reads again (the same map, the same result)
+        (tmp_path / "two").mkdir()
+        two_topics = write_lidar_bag(
+            tmp_path / "two", "mcap", with_box=False, seed=2, extra_cloud_topic=True
+        ).path.read_bytes()
+        refused = upload(client, site["id"], two_topics, filename="two.mcap")
+        detail = assert_error(refused, 400, "malformed_point_cloud")
+        assert "cloud_topic" in detail and "/front/points" in detail
+        refused = upload(client, site["id"], two_topics, filename="two.mcap", bag="topic=/x")
+        assert "cloud_topic" in assert_error(refused, 422, "validation_error")
+        accepted = upload(
+            client, site["id"], two_topics, filename="two.mcap", bag="cloud_topic=/velodyne_points"
+        )
+        assert accepted.status_code == 202, accepted.text
+        chosen_map = read_point_cloud(
+            two_topics, filename="two.mcap", bag_options=BagOptions(cloud_topic="/velodyne_points")
+        )
+        assert accepted.json()["scan"]["n_points"] == len(chosen_map)
+        job = service.wait_for_job(client, accepted.json()["job"]["id"], timeout=180)
+        assert job["status"] == "succeeded", job
+        labels = client.get(f"/api/v1/jobs/{job['id']}/labels")
+        with np.load(io.BytesIO(labels.content)) as archive:
+            assert archive["scan_label"].shape == (len(chosen_map),)

@@ -156,6 +156,15 @@ async def upload_scan(
     trajectory_format: Annotated[
         str | None, Query(max_length=16, description="tum, kitti or csv (default: detected).")
     ] = None,
+    bag: Annotated[
+        list[str] | None,
+        Query(
+            max_length=1000,
+            description="For a ROS bag whose topics or frames are ambiguous: KEY=VALUE, "
+            "repeatable, KEY one of cloud_topic, fixed_frame, pose_topic, voxel_size (metres), "
+            "max_sweeps. Kept with the scan, so its jobs read the same map.",
+        ),
+    ] = None,
 ) -> JSONResponse:
     """Upload a scan as the raw body or multipart field `file` (and optionally its
     `trajectory`); compare it to the reference."""
@@ -170,6 +179,7 @@ async def upload_scan(
         declared_size=declared_length(request) if isinstance(body, RawBody) else None,
         trajectory_rate=trajectory_rate,
         trajectory_format=trajectory_format,
+        bag_parameters=scans_service.parse_bag_parameters(bag),
     )
     stored = await scans_service.upload_scan(session, settings, principal, options, body)
     return JSONResponse(stored.body, status_code=stored.status_code)
