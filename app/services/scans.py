@@ -433,9 +433,8 @@ async def store_received_scan(
         _register_upload, session, settings, principal, options, fingerprint, scan
     )
     if not created:
-        scan_path = settings.data_layout.resolve(scan.storage_path)
-        storage.remove_file(scan_path)
-        storage.remove_file(trajectories.trajectory_path(scan_path))
+        for path in storage.scan_files(settings.data_layout.resolve(scan.storage_path)):
+            storage.remove_file(path)
     return response
 
 

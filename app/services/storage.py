@@ -32,6 +32,8 @@ from sqlalchemy.exc import SQLAlchemyError
 
 from app.config import Settings
 from app.core.files import fsync_directory
+from app.core.formats.rosbag import bag_options_path
+from app.core.trajectory_store import trajectory_path
 from app.db.models import Job, Scan, new_id
 from app.db.session import transaction
 from app.jobs.geometry import CACHE_SUFFIX as GEOMETRY_CACHE_SUFFIX
@@ -184,6 +186,19 @@ def _older_than(path: Path, min_age_seconds: float, now: float) -> bool:
         return False
 
 
+def scan_files(path: Path) -> tuple[Path, ...]:
+    """A stored scan's file and the files that belong to it beside it: a reference's geometry
+    cache (checked before use, :mod:`app.jobs.geometry`), the trajectory sent with it
+    (:mod:`app.core.trajectory_store`) and the parameters its ROS bag is read with
+    (:func:`app.core.formats.rosbag.bag_options_path`)."""
+    return (
+        path,
+        path.with_suffix(GEOMETRY_CACHE_SUFFIX),
+        trajectory_path(path),
+        bag_options_path(path),
+    )
+
+
 def sweep_temporary_files(settings: Settings, *, min_age_seconds: float = 0.0) -> int:
     """Remove what an interrupted upload or deletion left behind; the number of paths removed.
 
@@ -209,9 +224,13 @@ def sweep_temporary_files(settings: Settings, *, min_age_seconds: float = 0.0) -
     except SQLAlchemyError:
         logger.warning("sweep: database not readable, orphaned files not checked", exc_info=True)
         return removed
-    stored = [settings.data_layout.resolve(path) for path in scan_paths]
-    # a reference's geometry cache belongs to its scan (checked before use, app/jobs/geometry.py)
-    referenced = {*stored, *(path.with_suffix(GEOMETRY_CACHE_SUFFIX) for path in stored)}
+    stored = []
+    for stored_path in scan_paths:
+        try:
+            stored.append(settings.data_layout.resolve(stored_path))
+        except StoredPathError:  # a row pointing outside: its jobs fail saying so; serve anyway
+            logger.warning("sweep: scan path %r is outside the data directory", stored_path)
+    referenced = {companion for path in stored for companion in scan_files(path)}
     if settings.scans_dir.is_dir():
         for site_directory in settings.scans_dir.iterdir():
             if not site_directory.is_dir() or not _HEX_ID.match(site_directory.name):

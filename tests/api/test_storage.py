@@ -72,6 +72,21 @@ def test_the_sweep_removes_leftovers_and_keeps_what_rows_reference(tmp_path: Pat
             bbox_max=[1, 1, 1],
         )
         session.add(scan)
+        # a row pointing outside the data directory (its jobs fail saying so): no reason to stop
+        session.add(
+            Scan(
+                organisation_id=organisation.id,
+                site_id=site.id,
+                filename="outside.ply",
+                format="ply",
+                size_bytes=1,
+                sha256="0" * 64,
+                storage_path=str(tmp_path / "elsewhere" / "outside.ply"),
+                n_points=10,
+                bbox_min=[0, 0, 0],
+                bbox_max=[1, 1, 1],
+            )
+        )
         session.flush()
         job = new_job(site, scan.id, scan.id)
         session.add(job)
@@ -79,7 +94,10 @@ def test_the_sweep_removes_leftovers_and_keeps_what_rows_reference(tmp_path: Pat
         site_id, job_id = site.id, job.id
     kept_scan = settings.scans_dir / site_id / f"{'a' * 32}.ply"
     kept_cache = kept_scan.with_suffix(".geometry")  # the reference's k-NN geometry cache
+    kept_trajectory = kept_scan.with_name(kept_scan.name + ".trajectory.npz")  # sent with it
+    kept_bag_options = kept_scan.with_name(kept_scan.name + ".bag-options.json")
     orphan_scan = settings.scans_dir / site_id / f"{'b' * 32}.ply"
+    orphan_trajectory = orphan_scan.with_name(orphan_scan.name + ".trajectory.npz")
     orphan_cache = orphan_scan.with_suffix(".geometry")
     orphan_site_directory = settings.scans_dir / ("c" * 32)
     kept_results = settings.results_dir / job_id
@@ -89,8 +107,11 @@ def test_the_sweep_removes_leftovers_and_keeps_what_rows_reference(tmp_path: Pat
     for path in (
         kept_scan,
         kept_cache,
+        kept_trajectory,
+        kept_bag_options,
         orphan_scan,
         orphan_cache,
+        orphan_trajectory,
         orphan_site_directory / "x.ply",
         temporary,
     ):
@@ -107,9 +128,10 @@ def test_the_sweep_removes_leftovers_and_keeps_what_rows_reference(tmp_path: Pat
     old = time.time() - 10
     os.utime(temporary, (old, old))
     removed = sweep_temporary_files(settings)
-    assert removed == 5
+    assert removed == 6
     assert kept_scan.exists() and kept_results.exists() and foreign_results.exists()
-    assert kept_cache.exists()
+    assert kept_cache.exists() and kept_trajectory.exists() and kept_bag_options.exists()
+    assert not orphan_trajectory.exists()
     assert not temporary.exists()
     assert not orphan_scan.exists() and not orphan_cache.exists()
     assert not orphan_site_directory.exists()
