@@ -28,8 +28,6 @@ import numpy as np
 from app.config import Settings
 from app.core.errors import InputError
 from app.core.formats import read_point_cloud
-from app.core.formats.rosbag import stored_bag_options
-from app.core.trajectory_store import with_stored_trajectory
 from app.jobs.geometry import geometry_cache_of, record_geometry_cache
 from app.jobs.hooks import job_hooks
 from app.jobs.leases import (
@@ -48,6 +46,7 @@ from app.jobs.leases import (
 from app.jobs.limits import job_memory_limit, job_threads, memory_limit
 from app.jobs.results import store_results, write_result_files
 from app.kit.allocator import release_freed_memory_promptly
+from app.kit.scan_files import stored_bag_options, with_stored_trajectory
 
 logger = logging.getLogger("scandiff.jobs")
 

@@ -47,7 +47,7 @@ def _cloud_in_file_order(
 ) -> tuple[np.ndarray, Callable[[np.ndarray | None], np.ndarray | None]]:
     """The cloud's points and a function putting a per-source-row array in their order."""
     from app.core.formats import read_point_cloud
-    from app.core.formats.rosbag import stored_bag_options
+    from app.kit.scan_files import stored_bag_options
 
     cloud = read_point_cloud(
         cloud_source.path,

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import threading
 from collections.abc import AsyncIterator, Sequence
 from dataclasses import dataclass
@@ -29,9 +28,9 @@ from sqlalchemy.orm import Session
 
 from app.config import Settings
 from app.core.errors import InputError
-from app.core.files import write_atomically
-from app.core.formats.rosbag import BAG_FORMATS, bag_options_from_strings, bag_options_path
+from app.core.formats.rosbag import BAG_FORMATS, bag_options_from_strings
 from app.db.models import IdempotencyRecord, Scan, new_id
+from app.kit.scan_files import save_bag_options
 from app.services import idempotency, jobs, quotas, sites, storage, trajectories
 from app.services.auth import Principal
 from app.services.errors import ConflictError, NotFoundError, ValidationFailedError
@@ -230,8 +229,7 @@ def store_scan_file(
     storage.install_file(received.path, final_path)
     after_rollback(session, lambda: storage.remove_file(final_path))
     if bag_parameters and parsed.format in BAG_FORMATS:
-        kept = bag_options_path(final_path)
-        write_atomically(kept, lambda path: path.write_text(json.dumps(bag_parameters)))
+        kept = save_bag_options(final_path, bag_parameters)
         after_rollback(session, lambda: storage.remove_file(kept))
     if checked is not None:
         saved = trajectories.trajectory_path(final_path)

@@ -32,13 +32,12 @@ from sqlalchemy.exc import SQLAlchemyError
 
 from app.config import Settings
 from app.core.files import fsync_directory
-from app.core.formats.rosbag import bag_options_path
-from app.core.trajectory_store import trajectory_path
 from app.db.models import Job, Scan, new_id
 from app.db.session import transaction
 from app.jobs.geometry import CACHE_SUFFIX as GEOMETRY_CACHE_SUFFIX
 from app.jobs.results import remove_stale_temp_files
 from app.kit.data_layout import StoredPathError
+from app.kit.scan_files import bag_options_path, trajectory_path
 from app.services.errors import BadRequestError, NotFoundError, PayloadTooLargeError
 
 logger = logging.getLogger("scandiff.storage")
@@ -189,8 +188,8 @@ def _older_than(path: Path, min_age_seconds: float, now: float) -> bool:
 def scan_files(path: Path) -> tuple[Path, ...]:
     """A stored scan's file and the files that belong to it beside it: a reference's geometry
     cache (checked before use, :mod:`app.jobs.geometry`), the trajectory sent with it
-    (:mod:`app.core.trajectory_store`) and the parameters its ROS bag is read with
-    (:func:`app.core.formats.rosbag.bag_options_path`)."""
+    (:mod:`app.kit.scan_files`) and the parameters its ROS bag is read with
+    (:func:`app.kit.scan_files.bag_options_path`)."""
     return (
         path,
         path.with_suffix(GEOMETRY_CACHE_SUFFIX),

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from app.core.trajectory import Trajectory, TrajectoryError
-from app.core.trajectory_store import save_trajectory, trajectory_path
+from app.kit.scan_files import save_trajectory, trajectory_path
 
 __all__ = ["save_trajectory", "trajectory_path"]  # (re-exported: the upload stores with them)
 
@@ -58,8 +58,8 @@ def check_fits(scan_path: Path, scan_format: str | None, trajectory: Trajectory)
     (:func:`~app.core.trajectory_poses.interpolate_positions`).
     """
     from app.core.formats import read_point_cloud
-    from app.core.formats.rosbag import stored_bag_options
     from app.core.trajectory_poses import interpolate_positions
+    from app.kit.scan_files import stored_bag_options
 
     cloud = read_point_cloud(
         scan_path, format=scan_format, bag_options=stored_bag_options(scan_path)

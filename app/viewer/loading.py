@@ -15,10 +15,10 @@ import numpy as np
 
 from app.config import Settings
 from app.core.formats import read_point_cloud
-from app.core.formats.rosbag import stored_bag_options
 from app.db.models import Job, JobStatus, Region, Scan, Site
 from app.db.session import session_factory
 from app.kit.data_layout import DETAILS_FILENAME
+from app.kit.scan_files import stored_bag_options
 from app.viewer.scene import DEFAULT_POINT_BUDGET, SceneData, build_scene_data
 
 

@@ -21,7 +21,6 @@ the error names the candidates and the :class:`BagOptions` field to set.
 
 from __future__ import annotations
 
-import json
 import os
 import tempfile
 from collections.abc import Iterator
@@ -130,24 +129,6 @@ def bag_options_from_strings(values: dict[str, str]) -> BagOptions:
             "(e.g. 0.05) and max_sweeps as a whole number"
         ) from exc
     return BagOptions(**parsed)
-
-
-BAG_OPTIONS_SUFFIX = ".bag-options.json"
-"""The bag parameters an uploaded bag was read with, kept beside it (``<file>.bag-options.json``)
-so that every later read (a job, the 3D view) builds the same map."""
-
-
-def bag_options_path(bag_path: Path) -> Path:
-    """Where the parameters of the bag stored at ``bag_path`` are kept (beside it)."""
-    return bag_path.with_name(bag_path.name + BAG_OPTIONS_SUFFIX)
-
-
-def stored_bag_options(bag_path: Path) -> BagOptions | None:
-    """The parameters kept beside ``bag_path`` (:func:`bag_options_path`), None without."""
-    path = bag_options_path(Path(bag_path))
-    if not path.is_file():
-        return None
-    return bag_options_from_strings(json.loads(path.read_text(encoding="utf-8")))
 
 
 def sniff_bag(head: bytes) -> str | None:
