@@ -9,8 +9,10 @@ import json
 import numpy as np
 import pytest
 
-from app.core import geometry_cache, pipeline, registration
+from app.core import geometry_cache, registration
 from app.core.cloud import PointCloud, choose_local_origin
+from app.core.comparison import localise as localise_stage
+from app.core.comparison import origins as origins_stage
 from app.core.geometry_cache import GeometryCache, cache_key, code_version
 from app.core.localise import neighbourhoods, surface
 from app.core.localise.neighbourhoods import nearest_neighbourhoods
@@ -35,7 +37,7 @@ reference's search still runs ahead; what the cache holds does not depend on the
 @pytest.fixture(scope="module", autouse=True)
 def small_run_ahead_threshold():
     with pytest.MonkeyPatch.context() as patched:
-        patched.setattr(pipeline, "REFERENCE_AHEAD_MIN_POINTS", SMALL_AHEAD_MIN_POINTS)
+        patched.setattr(localise_stage, "REFERENCE_AHEAD_MIN_POINTS", SMALL_AHEAD_MIN_POINTS)
         yield
 
 
@@ -221,7 +223,7 @@ def test_a_cache_hit_does_only_the_scan_side_work(tmp_path, pair, uncached, monk
         (surface, "nearest_neighbourhoods"),
         (geometry_cache, "nearest_neighbourhoods"),
         (surface, "fit_surfaces"),
-        (pipeline, "resolve_stations"),
+        (origins_stage, "resolve_stations"),
     )
     compare(reference, scan, threads=threads, geometry_cache=cache)  # fills it
     filling = dict(calls)

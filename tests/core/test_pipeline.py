@@ -7,8 +7,8 @@ import threading
 import numpy as np
 import pytest
 
-from app.core import pipeline
 from app.core.cloud import PointCloud
+from app.core.comparison import localise as localise_stage
 from app.core.detectors import METHODS, VARIANTS
 from app.core.errors import InputError
 from app.core.localise import LABEL_CHANGED, neighbourhoods
@@ -174,7 +174,7 @@ def test_the_reference_search_run_during_alignment_changes_nothing_and_ends_with
 
     monkeypatch.setattr(neighbourhoods, "NeighbourhoodSearch", CountedSearch)
     # the threshold lowered for a smaller scene (what runs ahead does not depend on the size)
-    monkeypatch.setattr(pipeline, "REFERENCE_AHEAD_MIN_POINTS", SMALL_AHEAD_MIN_POINTS)
+    monkeypatch.setattr(localise_stage, "REFERENCE_AHEAD_MIN_POINTS", SMALL_AHEAD_MIN_POINTS)
     pair = raycast_scene(
         n_points=SMALL_AHEAD_MIN_POINTS + 5_000,
         change="box",

@@ -284,16 +284,16 @@ def test_a_single_station_searched_first_still_gets_its_estimate(monkeypatch):
 
 
 def test_a_scan_against_a_merged_reference_searches_its_stations_first(monkeypatch):
-    from app.core import pipeline
+    from app.core.comparison import origins
 
     calls = {}
-    original = pipeline.resolve_moved_cloud
+    original = origins.resolve_moved_cloud
 
     def spy(*args, **kwargs):
         calls["stations_first"] = kwargs.get("stations_first")
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(pipeline, "resolve_moved_cloud", spy)
+    monkeypatch.setattr(origins, "resolve_moved_cloud", spy)
     result = compare(*_clouds(merged("added")), params={}, threads=1)
     assert calls["stations_first"] is True
     scan_entries = result.sensor_origins["scan"]
