@@ -40,7 +40,7 @@ import numpy as np
 
 from app.core.cloud import PointCloud
 from app.core.ground_truth import changed_iou
-from app.core.localise import localise_changes
+from app.core.localise import EpochCloud, localise_changes
 from app.core.origins.sampling import lidar_sampling
 from app.core.origins.stations import recover_stations
 from app.core.pipeline import compare
@@ -83,7 +83,16 @@ def localise(pair, scan, scan_origins, mode: str):
         )
         return result, recovered, result.timings.get("origins", 0.0)
     recovery_seconds = options.pop("recovery_seconds", 0.0)
-    return localise_changes(pair.reference, scan, **options), recovered, recovery_seconds
+    reference_epoch = EpochCloud(
+        pair.reference,
+        origin=options.pop("reference_origin", None),
+        station=options.pop("reference_station", None),
+    )
+    scan_epoch = EpochCloud(
+        scan, origin=options.pop("scan_origin", None), station=options.pop("scan_station", None)
+    )
+    localisation = localise_changes(reference_epoch, scan_epoch, **options)
+    return localisation, recovered, recovery_seconds
 
 
 def nearest_station_error(found: np.ndarray, truth: np.ndarray) -> float:

@@ -244,14 +244,10 @@ def _match(
             report("localise", 0.35)
             started = time.perf_counter()
             localisation = localise_pair(
-                loaded.reference_points,
-                alignment.aligned_scan,
-                reference_origins,
-                scan_origins,
+                reference_origins.epoch(loaded.reference_points, reference_neighbourhoods),
+                scan_origins.epoch(alignment.aligned_scan, scan_neighbourhoods),
                 threads=loaded.threads,
                 localisation_params=settings.localisation,
-                reference_neighbourhoods=reference_neighbourhoods,
-                scan_neighbourhoods=scan_neighbourhoods,
             )
     timings["localise"] = time.perf_counter() - started
     return Matched(SensorOrigins(reference_origins, scan_origins), alignment, localisation)

@@ -75,6 +75,7 @@ LOCALISE_LAYERS = (
     "settings",
     "stations",
     "neighbourhoods",
+    "epoch",
     "surface",
     "distance",
     "regions",

@@ -16,7 +16,7 @@ import pytest
 from app.core.cloud import PointCloud
 from app.core.comparison_settings import parse_comparison_params
 from app.core.errors import InputError
-from app.core.localise import localise_changes
+from app.core.localise import EpochCloud, localise_changes
 from app.core.origins import stations
 from app.core.origins.resolve import ResolvedOrigin
 from app.core.origins.sampling import lidar_sampling
@@ -206,11 +206,11 @@ def test_recovered_stations_that_explain_few_points_are_not_used(monkeypatch, un
 
 def test_the_map_test_is_used_against_any_cloud_without_origins():
     pair = merged("added")
-    localisation = localise_changes(pair.reference, pair.scan, scan_stations_unknown=True)
+    localisation = localise_changes(pair.reference, EpochCloud(pair.scan, stations_unknown=True))
     assert localisation.parameters["reference_visibility"] == "maps"
     assert localisation.parameters["scan_visibility"] == "maps"
     explicit = localise_changes(
-        pair.reference, pair.scan, scan_stations_unknown=True, origin_free_test="surfaces"
+        pair.reference, EpochCloud(pair.scan, stations_unknown=True), origin_free_test="surfaces"
     )
     assert explicit.parameters["reference_visibility"] == "surfaces"
 
@@ -218,10 +218,8 @@ def test_the_map_test_is_used_against_any_cloud_without_origins():
 def test_a_test_chosen_by_the_user_wins_over_the_routing():
     pair = merged("added")
     localisation = localise_changes(
-        pair.reference,
-        pair.scan,
-        reference_stations_unknown=True,
-        scan_stations_unknown=True,
+        EpochCloud(pair.reference, stations_unknown=True),
+        EpochCloud(pair.scan, stations_unknown=True),
         origin_free_test="coverage",
     )
     assert localisation.parameters["reference_visibility"] == "coverage"

@@ -17,9 +17,9 @@ import numpy as np
 from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 
-from app.core.comparison.origins import CloudOrigins
 from app.core.geometry_cache import GeometryCache, reference_neighbourhoods
 from app.core.localise import (
+    EpochCloud,
     Localisation,
     Neighbourhoods,
     NeighbourhoodSearch,
@@ -89,32 +89,24 @@ def scan_neighbourhoods_ahead(
 
 
 def localise_pair(
-    reference_points: NDArray[np.float64],
-    aligned_scan: NDArray[np.float64],
-    reference: CloudOrigins,
-    scan: CloudOrigins,
+    reference: EpochCloud,
+    scan: EpochCloud,
     *,
     threads: int,
     localisation_params: Mapping[str, Any],
-    reference_neighbourhoods: Prepared = None,
-    scan_neighbourhoods: Prepared = None,
 ) -> Localisation:
     """Labels and regions of both clouds, on ``threads`` OpenMP threads.
 
     Parameters
     ----------
-    reference_points : ndarray, shape (n, 3)
-        The reference (local frame), or any part of it (a crop: with ``reference``'s station
-        index cropped alike).
-    aligned_scan : ndarray, shape (m, 3)
-        The scan in the same frame, aligned.
-    reference, scan : CloudOrigins
-        Each cloud's sensor origins in that frame.
+    reference : EpochCloud
+        The reference (local frame) with its sensor origins, or any part of it
+        (:meth:`EpochCloud.subset`: a crop).
+    scan : EpochCloud
+        The aligned scan in the same frame, with its origins in it.
     threads : int
     localisation_params : mapping
         :data:`app.core.localise.DEFAULT_PARAMETERS` keywords.
-    reference_neighbourhoods, scan_neighbourhoods : optional
-        Searched ahead for these very points (:func:`reference_neighbourhoods_ahead`).
 
     Returns
     -------
@@ -122,21 +114,11 @@ def localise_pair(
     """
     with threadpool_limits(limits=threads, user_api="openmp"):
         return localise_changes(
-            reference_points,
-            aligned_scan,
-            reference_origin=reference.origin,
-            scan_origin=scan.origin,
-            reference_station=reference.station,
-            scan_station=scan.station,
-            reference_stations_unknown=reference.stations_unknown,
-            scan_stations_unknown=scan.stations_unknown,
-            reference_trajectory_rays=reference.trajectory_rays,
-            scan_trajectory_rays=scan.trajectory_rays,
+            reference,
+            scan,
             # Not registration.rmse: that includes sampling distance and real change (0.15 m
             # on KITTI); localise measures the remaining misalignment itself from surfaces.
             registration_rmse=0.0,
             threads=threads,
-            reference_neighbourhoods=reference_neighbourhoods,
-            scan_neighbourhoods=scan_neighbourhoods,
             **localisation_params,
         )

@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from app.core.comparison.align import Alignment
 from app.core.comparison.load import LoadedPair
 from app.core.comparison.memory import ReferenceMemory
+from app.core.localise import EpochCloud, Neighbourhoods, NeighbourhoodSearch
 from app.core.origins.known_stations import origins_in_local_frame
 from app.core.origins.own_frame import resolve_moved_cloud
 from app.core.origins.resolve import ResolvedOrigin
@@ -52,6 +53,21 @@ class CloudOrigins:
     def trajectory_rays(self) -> tuple[NDArray, NDArray] | None:
         """The pseudo-stations' ``(returns, bounds)`` of a cloud with a trajectory, else None."""
         return trajectory_rays(self.resolved)
+
+    def epoch(
+        self,
+        points: NDArray[np.float64],
+        neighbourhoods: Neighbourhoods | NeighbourhoodSearch | None = None,
+    ) -> EpochCloud:
+        """``points``, shape (n, 3), in this frame with these origins, for the localiser."""
+        return EpochCloud(
+            points=points,
+            origin=self.origin,
+            station=self.station,
+            stations_unknown=self.stations_unknown,
+            trajectory_rays=self.trajectory_rays,
+            neighbourhoods=neighbourhoods,
+        )
 
 
 @dataclass(frozen=True)
