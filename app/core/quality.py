@@ -32,10 +32,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from app.core.comparison.protocol import Comparison
 
 LOW_FITNESS = 0.6
 """Registration fitness below which the alignment (or the pairing of the scans) is suspect.
@@ -65,6 +69,55 @@ FIX_ACTIONS = {
 """What each ``how_to_fix["action"]`` asks, without naming any interface's knob."""
 
 
+@dataclass(frozen=True)
+class QualityWarning:
+    """One warning, in the shape the module docstring describes (:meth:`to_json_dict`).
+
+    Attributes
+    ----------
+    code : str
+    message : str
+        One sentence, with units.
+    explanation : str
+        What it means for the result.
+    action : str
+        One of :data:`FIX_ACTIONS`.
+    value, limit : float, optional
+        The measured value and the limit it crossed.
+    unit : str, optional
+    side : {"reference", "scan"}, optional
+    """
+
+    code: str
+    message: str
+    explanation: str
+    action: str
+    value: float | None = None
+    limit: float | None = None
+    unit: str | None = None
+    side: str | None = None
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """``{"code", "message", value..., "detail", "how_to_fix"}`` (measured fields only)."""
+        measured = {
+            key: value
+            for key, value in (
+                ("value", self.value),
+                ("limit", self.limit),
+                ("unit", self.unit),
+                ("side", self.side),
+            )
+            if value is not None
+        }
+        return {
+            "code": self.code,
+            "message": self.message,
+            **measured,
+            "detail": {**measured, "explanation": self.explanation},
+            "how_to_fix": {"action": self.action, "summary": FIX_ACTIONS[self.action]},
+        }
+
+
 def _warning(
     code: str,
     message: str,
@@ -72,15 +125,8 @@ def _warning(
     action: str,
     **measured: Any,
 ) -> dict[str, Any]:
-    """One warning in the shape the module docstring describes."""
-    detail = {key: value for key, value in measured.items() if value is not None}
-    return {
-        "code": code,
-        "message": message,
-        **detail,
-        "detail": {**detail, "explanation": explanation},
-        "how_to_fix": {"action": action, "summary": FIX_ACTIONS[action]},
-    }
+    """One warning as stored (:class:`QualityWarning`)."""
+    return QualityWarning(code, message, explanation, action, **measured).to_json_dict()
 
 
 def registration_warnings(
@@ -242,18 +288,12 @@ def origin_warnings(
     return warnings
 
 
-def quality_warnings(result: Any) -> list[dict[str, Any]]:
-    """Every warning :mod:`app.core.quality` can tell from a comparison result.
-
-    ``result`` is a :class:`~app.core.pipeline.ComparisonResult` (or an object with its
-    ``registration``, ``reference_label`` and ``scan_label``; ``sensor_origins`` and
-    ``warnings`` are read when present).
-    """
-    warnings = registration_warnings(getattr(result, "registration", None) or {})
+def quality_warnings(result: Comparison) -> list[dict[str, Any]]:
+    """Every warning :mod:`app.core.quality` can tell from a comparison result (its
+    ``registration``, labels, ``sensor_origins`` and the origins' ``warnings``)."""
+    warnings = registration_warnings(result.registration or {})
     warnings += overlap_warnings(np.asarray(result.reference_label), np.asarray(result.scan_label))
-    warnings += origin_warnings(
-        getattr(result, "sensor_origins", None), list(getattr(result, "warnings", None) or [])
-    )
+    warnings += origin_warnings(result.sensor_origins, list(result.warnings or []))
     return warnings
 
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -48,6 +48,9 @@ from app.jobs.results import store_results, write_result_files
 from app.kit.allocator import release_freed_memory_promptly
 from app.kit.scan_files import stored_bag_options, with_stored_trajectory
 
+if TYPE_CHECKING:  # not imported: the API process imports this package, not the pipeline
+    from app.core.comparison.protocol import Comparison
+
 logger = logging.getLogger("scandiff.jobs")
 
 
@@ -64,7 +67,7 @@ def api_error_message(exc: InputError) -> str:
 
 def compute(
     job: ClaimedJob, settings: Settings, keeper: LeaseKeeper
-) -> tuple[Any, dict[str, float]]:
+) -> tuple[Comparison, dict[str, float]]:
     """Read both scans and run ``compare``; the result and this job's own timings."""
     release_freed_memory_promptly()  # freed temporaries go back to the system: peak = live data
     job_hooks.inject_faults(job, keeper)
@@ -136,7 +139,7 @@ def given_at_upload_only(
     )
 
 
-def label_upload_origins(result: Any, given_at_upload: dict[str, bool]) -> Any:
+def label_upload_origins(result: Comparison, given_at_upload: dict[str, bool]) -> Comparison:
     """``result`` with the origins given at upload reported as ``"given"``, not ``"file"``.
 
     The worker hands a scan's upload origin to ``compare`` in the file's slot (it overrides the
@@ -144,8 +147,7 @@ def label_upload_origins(result: Any, given_at_upload: dict[str, bool]) -> Any:
     ``visibility[side]["origins"]`` (also in ``calibration["visibility"]``) and the warnings.
     """
     sides = [side for side, given in given_at_upload.items() if given]
-    reported = ("sensor_origins", "visibility", "warnings", "calibration")
-    if not sides or not all(hasattr(result, name) for name in reported):
+    if not sides or result.sensor_origins is None:
         return result  # nothing to relabel (a test's stand-in comparison reports no origins)
     sensor_origins = {
         side: [
@@ -171,7 +173,7 @@ def label_upload_origins(result: Any, given_at_upload: dict[str, bool]) -> Any:
     calibration = dict(result.calibration)
     if "visibility" in calibration:
         calibration["visibility"] = visibility
-    return dataclasses.replace(
+    return dataclasses.replace(  # type: ignore[type-var]  # a dataclass: warnings recomputed
         result,
         sensor_origins=sensor_origins,
         visibility=visibility,

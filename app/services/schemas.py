@@ -22,6 +22,13 @@ from pydantic import (
 from app.clock import as_utc
 from app.db.models import JobStatus, Site
 from app.services.messages import api_warnings
+from app.services.result_schemas import (
+    CalibrationRead,
+    ExplanationRead,
+    QualityWarningRead,
+    RegistrationRead,
+    SensorOriginRead,
+)
 
 UtcDatetime = Annotated[datetime, AfterValidator(as_utc)]
 Name = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=200)]
@@ -200,8 +207,11 @@ class JobRead(RowRead):
     score: float | None
     threshold: float | None
     changed: bool | None
-    calibration: dict[str, Any] | None
-    registration: dict[str, Any] | None
+    calibration: CalibrationRead | None = Field(
+        description="How the threshold was calibrated, the decision rule's tests and what was "
+        "found out about each cloud's sensors."
+    )
+    registration: RegistrationRead | None = Field(description="How the scan was aligned.")
     n_regions: int | None
     error: str | None
     timings: dict[str, Any] | None
@@ -216,20 +226,20 @@ class JobRead(RowRead):
     verdict: VerdictRead | None = Field(
         default=None, description="The current review verdict (POST /jobs/{id}/verdict)."
     )
-    sensor_origins: dict[str, list[dict[str, Any]]] | None = Field(
+    sensor_origins: dict[str, list[SensorOriginRead]] | None = Field(
         default=None,
         description="The sensor origins the comparison used, per side (reference, scan) a list "
         "of {origin: [x, y, z] in that file's frame, source: given | file | estimated | "
         "recovered, confidence}; an empty list: unknown.",
     )
-    warnings: Annotated[list[dict[str, Any]] | None, AfterValidator(api_warnings)] = Field(
+    warnings: Annotated[list[QualityWarningRead] | None, BeforeValidator(api_warnings)] = Field(
         default=None,
         description="Quality warnings on the result, each {code, message (one sentence), "
         "detail, how_to_fix: {action, text, parameters}, ...}: "
         "low_registration_fitness, large_rotation, large_translation, low_overlap, "
         "sensor_origin, sensor_origin_unknown, region_count_above_history.",
     )
-    explanation: dict[str, Any] | None = Field(
+    explanation: ExplanationRead | None = Field(
         default=None,
         description="Why the job decided what it did: the decision rule, the regions' and the "
         "detector's evidence, and a one-line text.",

@@ -14,7 +14,10 @@ align a subsample, localise a crop of both clouds, or decide on scores computed 
 6. :mod:`~app.core.comparison.assemble`: :func:`assemble_result` ->
    :class:`ComparisonResult` (:mod:`~app.core.comparison.result`).
 
-:mod:`~app.core.comparison.memory` holds what a geometry cache keeps of the reference.
+:mod:`~app.core.comparison.memory` holds what a geometry cache keeps of the reference;
+:mod:`~app.core.comparison.reports` the typed reports (:class:`RegistrationReport`,
+:class:`SideVisibility`) with the JSON each is stored as; :mod:`~app.core.comparison.protocol`
+the :class:`Comparison` protocol that the service and the reports read a result through.
 This module lists the package's public names.
 """
 
@@ -30,18 +33,23 @@ from app.core.comparison.origins import (
     resolve_reference_origins,
     resolve_scan_origins,
 )
+from app.core.comparison.protocol import Comparison
+from app.core.comparison.reports import RegistrationReport, SideVisibility
 from app.core.comparison.result import ComparisonResult, RegionSummary
 
 __all__ = [
     "Alignment",
     "CloudOrigins",
+    "Comparison",
     "ComparisonResult",
     "Decision",
     "Detected",
     "LoadedPair",
     "ReferenceMemory",
     "RegionSummary",
+    "RegistrationReport",
     "SensorOrigins",
+    "SideVisibility",
     "align_scan",
     "assemble_result",
     "decide_change",

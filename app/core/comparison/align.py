@@ -4,12 +4,12 @@ identity with its fit measured when alignment is off."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from app.core.comparison.load import LoadedPair
+from app.core.comparison.reports import RegistrationReport
 from app.core.reference_alignment import ReferenceAlignmentCache
 from app.core.registration import (
     Registration,
@@ -29,14 +29,13 @@ class Alignment:
         The transform (local frame) and its fit.
     aligned_scan : ndarray, shape (m, 3)
         The scan's local points moved by it.
-    report : dict
-        ``registration.to_json_dict()`` with the transform in the files' frame, ``enabled``
-        and ``translation_m`` (how far the scan's centre moved, metres).
+    report : RegistrationReport
+        Its fit, with the transform in the files' frame.
     """
 
     registration: Registration
     aligned_scan: NDArray[np.float64]
-    report: dict[str, Any]
+    report: RegistrationReport
 
 
 def align_scan(
@@ -75,12 +74,14 @@ def align_scan(
             loaded.reference_points, scan_points, reference_memory=reference_memory
         )
     aligned_scan = apply_transform(scan_points, registration.transform)
-    report = registration.to_json_dict()
-    report["transform"] = file_frame_transform(registration.transform, loaded.local_origin).tolist()
-    report["enabled"] = loaded.settings.align
     centre = scan_points.mean(axis=0)  # how far the alignment moved the scan (metres)
     moved = apply_transform(centre[None], registration.transform)[0] - centre
-    report["translation_m"] = float(np.linalg.norm(moved))
+    report = RegistrationReport.of(
+        registration,
+        file_frame_transform(registration.transform, loaded.local_origin),
+        enabled=loaded.settings.align,
+        translation_m=float(np.linalg.norm(moved)),
+    )
     return Alignment(registration, aligned_scan, report)
 
 

@@ -12,6 +12,7 @@ from app.core.comparison.align import Alignment
 from app.core.comparison.decide import Decision, Detected
 from app.core.comparison.load import LoadedPair
 from app.core.comparison.origins import SensorOrigins
+from app.core.comparison.reports import SideVisibility
 from app.core.comparison.result import ComparisonResult, region_summary
 from app.core.localise import LABEL_UNOBSERVED, Localisation
 from app.core.registration import apply_transform
@@ -49,7 +50,7 @@ def assemble_result(
         threshold=float(detected.detection.threshold),
         changed=decision.changed,
         calibration=calibration,
-        registration=alignment.report,
+        registration=alignment.report.to_json_dict(),
         regions=[region_summary(region, local_origin) for region in localisation.regions],
         uncertain_regions=[
             region_summary(region, local_origin) for region in localisation.uncertain_regions
@@ -84,12 +85,13 @@ def assemble_result(
 def visibility_report(
     origins: SensorOrigins, localisation: Localisation
 ) -> dict[str, dict[str, Any]]:
-    """What was found out about each cloud's sensors, and the visibility test it got."""
+    """What was found out about each cloud's sensors, and the visibility test it got
+    (:class:`SideVisibility` as stored)."""
     return {
-        side: {
-            **cloud.resolved.visibility_report(),
-            "test": localisation.parameters.get(f"{side}_visibility"),
-        }
+        side: SideVisibility.of(
+            cloud.resolved.visibility_report(),
+            localisation.parameters.get(f"{side}_visibility"),
+        ).to_json_dict()
         for side, cloud in (("reference", origins.reference), ("scan", origins.scan))
     }
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import zipfile
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -137,10 +138,22 @@ class ComparisonResult:
                 "sensor_origins": self.sensor_origins,
                 "warnings": self.warnings,
                 "visibility": self.visibility,
-                "quality_warnings": quality_warnings(self),  # structured, with the above
-                "explanation": explain_comparison(self),
+                "quality_warnings": self.quality_warnings,  # structured, with the above
+                "explanation": self.explanation,
             }
         )
+
+    @cached_property
+    def quality_warnings(self) -> list[dict[str, Any]]:
+        """Every warning :func:`app.core.quality.quality_warnings` tells from this result
+        (computed once; a result made with :func:`dataclasses.replace` computes its own)."""
+        return quality_warnings(self)
+
+    @cached_property
+    def explanation(self) -> dict[str, Any]:
+        """Why it decided what it did (:func:`app.core.explanation.explain_comparison`),
+        computed once."""
+        return explain_comparison(self)
 
     def write_labels_npz(self, path: str | Path) -> None:
         """Write ``reference_changed``, ``scan_changed``, ``reference_label``, ``scan_label``.

@@ -48,16 +48,14 @@ from app.core.localise.distance import (
     support_factor,
     surface_distance,
 )
-from app.core.localise.epoch import EpochCloud
+from app.core.localise.epoch import EpochCloud, with_checked_stations
 from app.core.localise.rays import Candidates
 from app.core.localise.regions import ChangedRegion, find_regions, mark_moved_surfaces
 from app.core.localise.settings import (
     DEFAULT_PARAMETERS,
     as_origins,
-    as_station_index,
     resolve_parameters,
 )
-from app.core.localise.stations import assign_stations
 from app.core.localise.surface import LocalGeometry, local_geometry
 from app.core.localise.visibility import (
     LABEL_CHANGED,
@@ -199,8 +197,8 @@ def localise_changes(
         reference, origin=as_origins(reference.origin, "reference_origin")
     )
     scan = dataclasses.replace(scan, origin=as_origins(scan.origin, "scan_origin"))
-    reference, reference_assignment = _with_stations(reference, "reference_station")
-    scan, scan_assignment = _with_stations(scan, "scan_station")
+    reference, reference_assignment = with_checked_stations(reference, "reference_station")
+    scan, scan_assignment = with_checked_stations(scan, "scan_station")
     if not (math.isfinite(registration_rmse) and registration_rmse >= 0):
         raise InputError(f"registration_rmse must be >= 0, got {registration_rmse}")
     n_reference, n_scan = len(reference.points), len(scan.points)  # type: ignore[arg-type]
@@ -279,14 +277,6 @@ class _Found:
         distance = self.distance.astype(np.float32)
         distance[self.labelled.label == LABEL_UNOBSERVED] = np.nan
         return distance
-
-
-def _with_stations(epoch: EpochCloud, name: str) -> tuple[EpochCloud, str]:
-    """``epoch`` with its checked station index (:func:`_stations_of`) and where it came from."""
-    points = np.asarray(epoch.points)
-    origins = None if epoch.origin is None else np.asarray(epoch.origin)
-    station, assignment = _stations_of(points, origins, epoch.station, name)
-    return dataclasses.replace(epoch, station=station), assignment
 
 
 def _side(
@@ -556,32 +546,6 @@ def _parameters(
 def _n_stations(side: Side) -> int:
     """How many origins a side has (0: none known)."""
     return 0 if side.origins is None else len(side.origins)
-
-
-def _stations_of(
-    points: NDArray[np.float64],
-    origins: NDArray[np.float64] | None,
-    station: NDArray | None,
-    name: str,
-) -> tuple[NDArray[np.int64] | None, str]:
-    """The checked per-point station index of one cloud, and where it came from.
-
-    Returns
-    -------
-    station : ndarray, shape (n,), int64, or None
-        None without origins or with one origin and no index (every point is its).
-    source : {"none", "single", "given", "assigned"}
-    """
-    checked = as_station_index(
-        station, points.shape[0], None if origins is None else len(origins), name
-    )
-    if checked is not None:
-        return checked, "given"
-    if origins is None:
-        return None, "none"
-    if len(origins) == 1:
-        return None, "single"
-    return assign_stations(points, origins), "assigned"
 
 
 def _released(side: Side) -> Side:

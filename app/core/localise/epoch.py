@@ -3,12 +3,15 @@ points and what is known of the sensor that took them."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from app.core.localise.neighbourhoods import Neighbourhoods, NeighbourhoodSearch
+from app.core.localise.settings import as_station_index
+from app.core.localise.stations import assign_stations
 
 
 @dataclass(frozen=True)
@@ -75,3 +78,45 @@ class EpochCloud:
             station=station,
             stations_unknown=self.stations_unknown,
         )
+
+
+def with_checked_stations(epoch: EpochCloud, name: str) -> tuple[EpochCloud, str]:
+    """``epoch`` with its checked per-point station index and where that came from:
+    ``"given"``, ``"assigned"`` (from the rings, several origins and no index), ``"single"``
+    (one origin) or ``"none"`` (no origin).
+
+    Raises
+    ------
+    InputError
+        An index of the wrong shape or type, out of range, or without the origins.
+    """
+    points = np.asarray(epoch.points)
+    origins = None if epoch.origin is None else np.asarray(epoch.origin)
+    station, assignment = _stations_of(points, origins, epoch.station, name)
+    return dataclasses.replace(epoch, station=station), assignment
+
+
+def _stations_of(
+    points: NDArray[np.float64],
+    origins: NDArray[np.float64] | None,
+    station: NDArray | None,
+    name: str,
+) -> tuple[NDArray[np.int64] | None, str]:
+    """The checked per-point station index of one cloud, and where it came from.
+
+    Returns
+    -------
+    station : ndarray, shape (n,), int64, or None
+        None without origins or with one origin and no index (every point is its).
+    source : {"none", "single", "given", "assigned"}
+    """
+    checked = as_station_index(
+        station, points.shape[0], None if origins is None else len(origins), name
+    )
+    if checked is not None:
+        return checked, "given"
+    if origins is None:
+        return None, "none"
+    if len(origins) == 1:
+        return None, "single"
+    return assign_stations(points, origins), "assigned"
