@@ -39,7 +39,11 @@ def job_uncertain_regions(job: Any) -> list[dict[str, Any]]:
     """The places the job's other epoch never covered, ``[{kind, n_points, bbox_min, ...}]``
     (evidence ``no_coverage``; jobs stored before migration 0010 have none)."""
     value = getattr(job, "uncertain_regions", None) or []
-    return [item for item in value if _is_region(item)] if isinstance(value, list) else []
+    return [
+        {**item, "evidence": item.get("evidence") or "no_coverage"}
+        for item in (value if isinstance(value, list) else [])
+        if _is_region(item)
+    ]
 
 
 def _is_region(item: Any) -> bool:

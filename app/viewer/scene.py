@@ -428,8 +428,8 @@ def build_scene_data(
     regions : sequence of mappings
         The job's regions as the API returns them (``kind``, ``n_points``, ``bbox_min`` ...).
     uncertain_regions : sequence of mappings
-        The job's ``uncertain_regions`` (evidence ``no_coverage``; well-formed, as
-        :func:`app.viewer.loading.job_uncertain_regions` keeps them): drawn apart, never counted.
+        The job's ``uncertain_regions`` as :func:`app.viewer.loading.job_uncertain_regions`
+        gives them (well-formed, evidence ``no_coverage``): drawn apart, never counted.
     point_budget : int
         Most points drawn over all layers.
     sensor_origins : mapping, optional
@@ -536,13 +536,7 @@ def build_scene_data(
         pools=pools,
         sensors=sensor_markers(sensor_origins or {}, matrix, origin),
         trajectories=trajectory_paths(sensor_origins or {}, matrix, origin),
-        uncertain=region_boxes(
-            [
-                {**region, "evidence": region.get("evidence") or "no_coverage"}
-                for region in uncertain_regions
-            ],
-            origin,
-        ),
+        uncertain=region_boxes(uncertain_regions, origin),
         warnings=tuple(
             {"code": str(item.get("code", "")), "message": str(item.get("message", ""))}
             for item in warnings

@@ -85,7 +85,7 @@ def test_uncertain_regions_reach_the_scene_apart_from_the_changes() -> None:
 
 
 def test_each_is_drawn_as_a_grey_dashed_outline_behind_its_toggle() -> None:
-    data = scene([FLOOR_PATCH, CEILING_PATCH])
+    data = scene(job_uncertain_regions(job_row([FLOOR_PATCH, CEILING_PATCH])))
     floor, ceiling = data.uncertain
     dashes = dashed_box_edges(floor.center_local, floor.dimensions)
     solid = box_edges(floor.center_local, floor.dimensions)
