@@ -9,6 +9,8 @@ Rules checked:
 * times on one side only are no error: a scan whose points have times but no trajectory is
   stored as any scan (its times unused), and KITTI poses without times are kept for a scan
   without per-point times (each point takes its nearest pose in line of sight);
+* an E57 scan's ``timeStamp`` values are its per-point times: a trajectory that does not cover
+  them is refused, one that does is kept;
 * bad input is a 422 that says what to fix and stores nothing: times that do not cover the
   points' times, non-finite or non-unit quaternions, an unknown format, pose times without a
   trajectory, KITTI poses without times for a scan with per-point times.
@@ -25,6 +27,7 @@ import pytest
 from app.jobs.execution import execute_job
 from app.jobs.hooks import job_hooks
 from tests.helpers import fake_pipeline
+from tests.helpers.e57_times import e57_with_times_bytes
 from tests.helpers.files import ply_bytes
 from tests.helpers.http import assert_error, create_site
 from tests.helpers.scenes import room_points
@@ -58,9 +61,10 @@ def send(
     site_id: str,
     scan: bytes,
     parts: dict[str, tuple[str, bytes]],
+    filename: str = "scan.ply",
     **params: Any,
 ) -> httpx.Response:
-    files = {"file": ("scan.ply", scan, "application/octet-stream")}
+    files = {"file": (filename, scan, "application/octet-stream")}
     files.update({name: (filename, data, "text/plain") for name, (filename, data) in parts.items()})
     return client.post(f"/api/v1/sites/{site_id}/scans", params=params, files=files)
 
@@ -135,6 +139,27 @@ def test_times_on_one_side_only_are_accepted(
     )
     assert added.status_code == 200, added.text
     assert added.json()["time_span"] is None and added.json()["point_times"] is False
+
+
+def test_an_e57_scans_time_stamps_are_checked_against_its_trajectory(
+    api: ApiServer, writer: httpx.Client, site: dict
+) -> None:
+    e57 = e57_with_times_bytes(room_points(N_POINTS, 4), POINT_TIMES)
+    before = api.stored_files()
+
+    late = send(
+        writer, site["id"], e57, {"trajectory": ("t.tum", tum(np.linspace(500, 600, 10)))},
+        filename="scan.e57", reference="true",
+    )  # fmt: skip
+    assert "do not cover" in assert_error(late, 422, "invalid_input")
+    assert api.stored_files() == before
+    accepted = send(
+        writer, site["id"], e57, {"trajectory": ("t.tum", GOOD)}, filename="scan.e57",
+        reference="true",
+    )  # fmt: skip
+    assert accepted.status_code == 201, accepted.text
+    added = writer.put(f"/api/v1/scans/{accepted.json()['scan']['id']}/trajectory", content=GOOD)
+    assert added.json()["point_times"] is True and added.json()["points_outside"] == 0
 
 
 @pytest.mark.parametrize(
