@@ -288,6 +288,11 @@ CLI_FIXES: dict[str, tuple[str, list[str]]] = {
         "check the sensor position given with --sensor-origin, --scan-origin or --sensor-frame",
         ["--sensor-origin", "--scan-origin", "--sensor-frame"],
     ),
+    "check_trajectory": (
+        "check that the file given with --trajectory or --scan-trajectory was recorded with "
+        "that cloud, on the same clock, and covers its whole recording",
+        ["--trajectory", "--scan-trajectory"],
+    ),
 }
 """For each ``how_to_fix["action"]`` of :mod:`app.core.quality`: the CLI's advice and flags."""
 

@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from app.cli.compare import cli_warnings
+from app.core.quality import origin_warnings
 from app.core.trajectory import Trajectory
 from tests.helpers.files import ply_bytes
 from tests.helpers.trajectory_scenes import SEEN_BOX, corridor_pair, in_box
@@ -133,3 +135,13 @@ def test_bad_trajectory_input_exits_2_saying_what_to_fix(
     (line,) = completed.stderr.strip().splitlines()
     assert line.startswith("scandiff: error: ") and message in line
     assert not labels.exists()
+
+
+def test_points_outside_the_trajectorys_span_are_warned_in_the_clis_flags() -> None:
+    reported = {"source": "trajectory", "time_span": [0.0, 9.5], "points_outside": 150}
+
+    (warning,) = cli_warnings(origin_warnings({"reference": [reported], "scan": []})[:1])
+
+    assert warning["code"] == "trajectory_time_span"
+    assert warning["how_to_fix"]["flags"] == ["--trajectory", "--scan-trajectory"]
+    assert "--trajectory or --scan-trajectory" in warning["how_to_fix"]["text"]
