@@ -72,6 +72,49 @@ def read_e57(source: Source, max_points: int | None) -> RawCloud:
 
 
 def _read_scans(reader, max_points: int | None) -> RawCloud:  # reader: pye57.E57
+    headers, counts, fields = _checked_headers(reader, max_points)
+    with_intensity = all("intensity" in present for present in fields)
+    # One scan's arrays at a time: each is copied into its place in the output and dropped
+    # before the next scan is decoded (the scans are never all held as separate arrays).
+    points = np.empty((sum(counts), 3), dtype=np.float64)
+    intensity: NDArray | None = None
+    station = np.empty(sum(counts), dtype=np.int32)
+    origins: list[NDArray[np.float64]] = []
+    n_filled = 0
+    for xyz, data, origin in _scans(reader, headers, counts, with_intensity):
+        if n_filled + len(xyz) > len(points):
+            raise PointCloudError(
+                f"malformed E57 file: its scans hold more points than their headers declare "
+                f"({sum(counts):,})"
+            )
+        rows = slice(n_filled, n_filled + len(xyz))
+        points[rows] = xyz
+        station[rows] = len(origins)
+        if with_intensity:
+            values = np.asarray(data["intensity"])
+            if intensity is None:
+                intensity = np.empty(len(points), dtype=values.dtype)
+            intensity[rows] = values
+        origins.append(origin)
+        n_filled += len(xyz)
+    if not origins:
+        raise PointCloudError(
+            f"the E57 file holds no points: its {len(headers)} scan(s) are empty or every point "
+            "is flagged invalid"
+        )
+    attributes: dict[str, NDArray] = {"station_index": _kept(station, n_filled)}
+    if intensity is not None:
+        attributes["intensity"] = _kept(intensity, n_filled)
+    origin_array = np.vstack(origins)
+    return RawCloud(
+        _kept(points, n_filled),
+        attributes,
+        origin_array[0] if len(origins) == 1 else origin_array,
+    )
+
+
+def _checked_headers(reader, max_points: int | None) -> tuple[list, list[int], list[set[str]]]:
+    """The scans' headers, point counts and field names, checked (see :func:`read_e57`)."""
     try:
         headers = [reader.get_header(index) for index in range(reader.scan_count)]
         fields = [set(header.point_fields) for header in headers]
@@ -87,10 +130,62 @@ def _read_scans(reader, max_points: int | None) -> RawCloud:  # reader: pye57.E5
                 f"E57 scan {index} has neither cartesianX/Y/Z nor sphericalRange/Azimuth/"
                 f"Elevation fields (it has {sorted(present)}): no coordinates to read"
             )
-    with_intensity = all("intensity" in present for present in fields)
-    points: list[NDArray[np.float64]] = []
-    intensities: list[NDArray] = []
-    origins: list[NDArray[np.float64]] = []
+    return headers, counts, fields
+
+
+def scan_blocks(
+    path: str | Path, max_points: int | None
+) -> Iterator[tuple[NDArray[np.float64], NDArray[np.float64]]]:
+    """The scans of an E57 file one at a time, in the file's frame (same checks as
+    :func:`read_e57`).
+
+    Yields
+    ------
+    points : ndarray, shape (k, 3), float64
+        One scan's valid points in the file's frame (scans without points are skipped).
+    origin : ndarray, shape (3,)
+        Where that scan's scanner stood (its pose's translation).
+    """
+    import pye57
+
+    with open(path, "rb") as handle:
+        head = handle.read(len(E57_SIGNATURE))
+    if head != E57_SIGNATURE:
+        raise PointCloudError(
+            f"not an E57 file: it does not start with the signature 'ASTM-E57' (starts with "
+            f"{head!r})"
+        )
+    try:
+        reader = pye57.E57(str(path))
+    except Exception as exc:  # libE57Format's E57Exception
+        raise PointCloudError(f"unreadable E57 file: {_reason(exc)}") from exc
+    try:
+        headers, counts, _ = _checked_headers(reader, max_points)
+        for xyz, _data, origin in _scans(reader, headers, counts, False):
+            yield xyz, origin
+    finally:
+        reader.close()
+
+
+def declared_point_count(path: str | Path) -> int:
+    """Points the scan headers of an E57 file declare (an upper bound: invalid points are
+    skipped when read)."""
+    import pye57
+
+    try:
+        reader = pye57.E57(str(path))
+    except Exception as exc:
+        raise PointCloudError(f"unreadable E57 file: {_reason(exc)}") from exc
+    try:
+        return sum(int(reader.get_header(i).point_count) for i in range(reader.scan_count))
+    finally:
+        reader.close()
+
+
+def _scans(
+    reader, headers: list, counts: list[int], with_intensity: bool
+) -> Iterator[tuple[NDArray[np.float64], dict, NDArray[np.float64]]]:
+    """``(points (k, 3) float64, pye57's fields, origin (3,))`` of each scan with points."""
     for index, header in enumerate(headers):
         if counts[index] == 0:
             continue
@@ -104,27 +199,13 @@ def _read_scans(reader, max_points: int | None) -> RawCloud:  # reader: pye57.E5
         xyz = np.column_stack(
             [np.asarray(data[name], dtype=np.float64) for name in CARTESIAN_FIELDS]
         )
-        if len(xyz) == 0:
-            continue
-        points.append(xyz)
-        origins.append(origin)
-        if with_intensity:
-            intensities.append(np.asarray(data["intensity"]))
-    if not points:
-        raise PointCloudError(
-            f"the E57 file holds no points: its {len(headers)} scan(s) are empty or every point "
-            "is flagged invalid"
-        )
-    station = np.concatenate(
-        [np.full(len(block), number, dtype=np.int32) for number, block in enumerate(points)]
-    )
-    attributes: dict[str, NDArray] = {"station_index": station}
-    if with_intensity:
-        attributes["intensity"] = np.concatenate(intensities)
-    origin_array = np.vstack(origins)
-    return RawCloud(
-        np.vstack(points), attributes, origin_array[0] if len(origins) == 1 else origin_array
-    )
+        if len(xyz):
+            yield xyz, data, origin
+
+
+def _kept(array: NDArray, n_rows: int) -> NDArray:
+    """The first ``n_rows`` of ``array``: the array itself when full, else a trimmed copy."""
+    return array if n_rows == len(array) else array[:n_rows].copy()
 
 
 def _scan_origin(header) -> NDArray[np.float64]:  # header: pye57.ScanHeader
