@@ -1,0 +1,165 @@
+"""The 3D view of jobs too large to load (:mod:`app.viewer.large_scene`), on generated files.
+
+Rules checked (with a lowered budget, on real files and a job's stored labels and distances):
+
+* the view opens at the point budget, changed points first, with the same layer totals and
+  per-layer counts as the whole-cloud builder; every drawn point is the file's point at its
+  row (the scan moved into the reference frame) with that row's label;
+* memory: the clouds are read a block at a time, never whole;
+* "clip to a box" draws every point inside the box at full density while the box fits the
+  budget; past it the budget holds, the box's changed points come first, and a warning says
+  how many points the box holds.
+"""
+
+from __future__ import annotations
+
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.core.registration import apply_transform
+from app.viewer import large_scene
+from app.viewer.large_scene import SceneContext, StoredSide, box_scene, budget_scene
+from app.viewer.scene import build_scene_data
+from app.viewer.stored_results import stored_distances, stored_labels
+from tests.helpers.files import las_bytes, ply_bytes
+
+N_POINTS = 20_000
+CHANGE_LOW = np.array([2.0, 2.0, 0.0])
+CHANGE_HIGH = np.array([2.6, 2.6, 1.0])
+
+
+def _turn(angle: float, shift: tuple[float, float, float]) -> np.ndarray:
+    matrix = np.eye(4)
+    matrix[:2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
+    matrix[:3, 3] = shift
+    return matrix
+
+
+def _side(points: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Labels (changed inside the change box, a few unobserved) and distances of a side."""
+    rng = np.random.default_rng(seed)
+    inside = ((points >= CHANGE_LOW) & (points <= CHANGE_HIGH)).all(axis=1)
+    labels = np.zeros(len(points), np.int8)
+    labels[rng.random(len(points)) < 0.05] = -1
+    labels[inside] = 1
+    distances = np.where(inside, 0.3, rng.random(len(points)) * 0.1).astype(np.float32)
+    distances[labels == -1] = np.nan
+    return labels, distances
+
+
+@pytest.fixture(scope="module")
+def job(tmp_path_factory):
+    """A reference (PLY) and a scan (LAS, in its own frame) with stored labels and distances."""
+    folder: Path = tmp_path_factory.mktemp("large-job")
+    rng = np.random.default_rng(7)
+    reference = rng.random((N_POINTS, 3)) * [8.0, 6.0, 3.0]
+    scan_in_reference = rng.random((N_POINTS, 3)) * [8.0, 6.0, 3.0]
+    transform = _turn(0.3, (1.5, -2.0, 0.25))  # scan file frame -> reference frame
+    scan_file = apply_transform(scan_in_reference, np.linalg.inv(transform))
+    (folder / "reference.ply").write_bytes(ply_bytes(reference, coordinate_type="f8"))
+    (folder / "scan.las").write_bytes(las_bytes(scan_file, scale=1e-4))
+    reference_labels, reference_distances = _side(reference, 1)
+    scan_labels, scan_distances = _side(scan_in_reference, 2)
+    np.savez_compressed(
+        folder / "labels.npz", reference_label=reference_labels, scan_label=scan_labels
+    )
+    np.savez(
+        folder / "details.npz", reference_distance=reference_distances, scan_distance=scan_distances
+    )
+    labels = stored_labels(folder / "labels.npz")
+    distances = stored_distances(folder / "details.npz", {k: len(v) for k, v in labels.items()})
+    paths = {"reference": folder / "reference.ply", "scan": folder / "scan.las"}
+    sides = {side: StoredSide(paths[side], labels[side], distances[side]) for side in paths}
+    files = {"reference": reference, "scan": apply_transform(scan_file, transform)}
+    return sides, SceneContext(transform), files
+
+
+def _check_drawn_points_are_the_files(data, sides, files) -> None:
+    for side, cloud in data.sides.items():
+        np.testing.assert_allclose(
+            cloud.points + data.origin, files[side][cloud.indices], atol=1e-3
+        )
+        np.testing.assert_array_equal(cloud.labels, sides[side].labels[cloud.indices])
+
+
+def test_opens_at_the_budget_changed_first(job):
+    sides, context, files = job
+    budget = 1500
+    data = budget_scene(sides, context, budget)
+    assert data.n_shown <= budget
+    for name, side in (("removed", "reference"), ("added", "scan")):
+        changed = int((sides[side].labels == 1).sum())
+        assert 0 < changed < budget / 2
+        assert data.layer(name).n_shown == data.layer(name).n_total == changed
+    whole = build_scene_data(
+        files["reference"],
+        apply_transform(files["scan"], np.linalg.inv(context.transform)),
+        reference_labels=sides["reference"].labels,
+        scan_labels=sides["scan"].labels,
+        transform=context.transform,
+        point_budget=budget,
+    )
+    for layer in whole.layers:
+        assert data.layer(layer.name).n_total == layer.n_total
+        assert abs(data.layer(layer.name).n_shown - layer.n_shown) <= 1  # rounding per side
+    _check_drawn_points_are_the_files(data, sides, files)
+    assert data.change_threshold == pytest.approx(0.3)
+    for side, pool in data.pools.items():
+        np.testing.assert_array_equal(pool.indices, np.flatnonzero(sides[side].labels == 1))
+
+
+def test_reads_the_clouds_a_block_at_a_time(job, monkeypatch):
+    sides, context, files = job
+    monkeypatch.setattr(large_scene, "READ_BLOCK_POINTS", N_POINTS // 20)
+    monkeypatch.setattr(large_scene, "CHUNK_ROWS", N_POINTS // 20)
+    tracemalloc.start()
+    try:
+        data = budget_scene(sides, context, 1000)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert data.n_shown <= 1000
+    assert peak < files["reference"].nbytes  # less than one whole cloud in float64
+
+
+def test_a_box_is_drawn_at_full_density(job):
+    sides, context, files = job
+    low, high = CHANGE_LOW - 0.5, CHANGE_HIGH + 0.5
+    inside = {
+        side: np.flatnonzero(((points >= low) & (points <= high)).all(axis=1))
+        for side, points in files.items()
+    }
+    n_inside = sum(len(rows) for rows in inside.values())
+    data = box_scene(sides, context, low, high, point_budget=n_inside)
+    assert data.n_shown == data.n_total == n_inside
+    for side, rows in inside.items():
+        np.testing.assert_array_equal(data.sides[side].indices, rows)
+    _check_drawn_points_are_the_files(data, sides, files)
+    assert not [w for w in data.warnings if w["code"] == "box_capped"]
+
+
+def test_a_box_over_the_budget_is_capped_changed_first_and_says_so(job):
+    sides, context, files = job
+    low, high = CHANGE_LOW - 1.0, CHANGE_HIGH + 1.0
+    n_inside = sum(
+        int(((points >= low) & (points <= high)).all(axis=1).sum()) for points in files.values()
+    )
+    n_changed = sum(int((side.labels == 1).sum()) for side in sides.values())
+    budget = n_inside // 3
+    assert n_changed < budget / 2
+    data = box_scene(sides, context, low, high, point_budget=budget)
+    assert data.n_total == n_inside
+    assert data.n_shown <= budget
+    assert data.layer("removed").n_shown + data.layer("added").n_shown == n_changed
+    _check_drawn_points_are_the_files(data, sides, files)
+    (capped,) = [w for w in data.warnings if w["code"] == "box_capped"]
+    assert f"{n_inside:,}" in capped["message"]
+
+
+def test_a_malformed_box_is_refused(job):
+    sides, context, _ = job
+    with pytest.raises(ValueError, match="above its high corner"):
+        box_scene(sides, context, [1, 1, 1], [0, 2, 2])
