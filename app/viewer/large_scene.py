@@ -222,19 +222,15 @@ def budget_scene(
     threshold = change_threshold_of(sides)
     gathered = {}
     for side, stored in sides.items():
-        shown_rows = np.unique(
-            np.concatenate(
-                [
-                    rows_with_label(
-                        stored.labels, label, strided_ranks(counts[(side, label)], total)
-                    )
-                    for (name, label), total in totals.items()
-                    if name == side
-                ]
+        shown_rows = sorted_union(
+            *(
+                rows_with_label(stored.labels, label, strided_ranks(counts[(side, label)], total))
+                for (name, label), total in totals.items()
+                if name == side
             )
         )
         candidates = pool_rows(stored, threshold)
-        rows = np.union1d(shown_rows, candidates)
+        rows = sorted_union(shown_rows, candidates)
         points = read_rows(stored.path, rows)
         if side == "scan":
             points = apply_transform(points, context.transform)
@@ -249,10 +245,12 @@ def box_scene(
     low: Sequence[float],
     high: Sequence[float],
     point_budget: int = DEFAULT_POINT_BUDGET,
+    origin: NDArray[np.float64] | None = None,
 ) -> SceneData:
     """Every point inside the box ``low``-``high`` (reference frame, file coordinates) at full
     density, up to ``point_budget``; past it strided per layer, changed first, and a
-    ``box_capped`` warning says how many points the box holds.
+    ``box_capped`` warning says how many points the box holds. ``origin``: the local origin of
+    the view the box replaces (default: the box's own).
 
     Raises
     ------
@@ -298,7 +296,7 @@ def box_scene(
     )
     sizes = {side: len(stored.labels) for side, stored in sides.items()}
     return assemble_scene(
-        gathered, _layer_totals(totals), threshold, scene_context, point_budget, sizes
+        gathered, _layer_totals(totals), threshold, scene_context, point_budget, sizes, origin
     )
 
 
@@ -381,6 +379,22 @@ def _select_in_box(
     return selected, counts
 
 
+def sorted_union(*arrays: NDArray[np.int64]) -> NDArray[np.int64]:
+    """The distinct values of ``arrays``, sorted (one sort: faster than ``numpy.union1d``)."""
+    values = np.sort(np.concatenate(arrays)) if arrays else np.zeros(0, np.int64)
+    distinct = np.ones(len(values), dtype=bool)
+    distinct[1:] = values[1:] != values[:-1]
+    return values[distinct].astype(np.int64, copy=False)
+
+
+def is_among(values: NDArray[np.int64], sorted_set: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """Whether each of ``values`` is in the sorted array ``sorted_set``, shape (len(values),)."""
+    if len(sorted_set) == 0:
+        return np.zeros(len(values), dtype=bool)
+    position = np.minimum(np.searchsorted(sorted_set, values), len(sorted_set) - 1)
+    return sorted_set[position] == values
+
+
 def _layer_totals(totals: Mapping[tuple[str, int], int]) -> dict[str, int]:
     """Points per layer from points per (side, label)."""
     per_layer = {style.name: 0 for style in LAYER_STYLES}
@@ -402,8 +416,8 @@ def _gathered(
         points=points,
         labels=stored.labels[rows],
         distances=stored.distances.at(rows, CHUNK_ROWS).astype(np.float32),
-        shown=np.isin(rows, shown_rows, assume_unique=True),
-        pool=np.isin(rows, pool, assume_unique=True),
+        shown=is_among(rows, shown_rows),
+        pool=is_among(rows, pool),
     )
 
 
@@ -414,9 +428,11 @@ def assemble_scene(
     context: SceneContext,
     point_budget: int,
     side_sizes: Mapping[str, int],
+    origin: NDArray[np.float64] | None = None,
 ) -> SceneData:
     """The :class:`SceneData` of the points read per side (reference frame, file coordinates).
 
+    ``origin``: the local origin (default: the drawn reference points' rounded centre).
     ``side_sizes`` are the rows of each side's file (the default minimum region size follows
     them). Non-finite rows (dropped by the readers, labelled unobserved) are left out. The candidate
     pools' spacing is measured among the points read (the pool at full density, the rest at
@@ -438,9 +454,9 @@ def assemble_scene(
                 ),
             }
     reference, scan = gathered["reference"], gathered["scan"]
-    origin = local_origin(
-        reference.points[reference.shown] if reference.shown.any() else scan.points
-    )
+    if origin is None:
+        drawn_reference = reference.points[reference.shown]
+        origin = local_origin(drawn_reference if len(drawn_reference) else scan.points)
     layers = []
     for style in LAYER_STYLES:
         parts = [

@@ -230,10 +230,11 @@ def load_job_box(
     high: Sequence[float],
     *,
     point_budget: int = DEFAULT_POINT_BUDGET,
+    origin: NDArray[np.float64] | None = None,
 ) -> SceneData:
     """The job's points inside a box (reference frame, file coordinates) at full density, up
     to ``point_budget`` (:func:`~app.viewer.large_scene.box_scene`; a warning says when the
-    box holds more).
+    box holds more); ``origin``: the local origin of the view it replaces.
 
     Raises
     ------
@@ -243,7 +244,7 @@ def load_job_box(
     job = stored_job(settings, job_id)
     sides = _stored_sides(job, stored_labels(job.labels_path))
     try:
-        return box_scene(sides, job.context, low, high, point_budget)
+        return box_scene(sides, job.context, low, high, point_budget, origin)
     except ValueError as exc:
         raise ViewUnavailableError(str(exc), status=422) from exc
 

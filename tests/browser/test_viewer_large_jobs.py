@@ -6,6 +6,9 @@ Rules checked (with a lowered budget, on real files and a job's stored labels an
   per-layer counts as the whole-cloud builder; every drawn point is the file's point at its
   row (the scan moved into the reference frame) with that row's label;
 * memory: the clouds are read a block at a time, never whole;
+* the same through a stored job (its database row and result files) once its clouds are over
+  ``viewer_stream_above_points``: the layers' totals of the whole-cloud view, the labels the
+  worker wrote;
 * "clip to a box" draws every point inside the box at full density while the box fits the
   budget; past it the budget holds, the box's changed points come first, and a warning says
   how many points the box holds.
@@ -19,12 +22,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from app.config import Settings
 from app.core.registration import apply_transform
+from app.db.migrate import upgrade_to_head
+from app.db.models import Scan
+from app.db.session import transaction
 from app.viewer import large_scene
 from app.viewer.large_scene import SceneContext, StoredSide, box_scene, budget_scene
-from app.viewer.scene import build_scene_data
+from app.viewer.loading import ViewUnavailableError, load_job_box, load_job_scene
+from app.viewer.scene import CHANGED_SHARE_OF_BUDGET, build_scene_data
 from app.viewer.stored_results import stored_distances, stored_labels
 from tests.helpers.files import las_bytes, ply_bytes
+from tests.helpers.jobs import create_job, finish_job, load_job
+from tests.helpers.server import ApiServer
 
 N_POINTS = 20_000
 CHANGE_LOW = np.array([2.0, 2.0, 0.0])
@@ -163,3 +173,52 @@ def test_a_malformed_box_is_refused(job):
     sides, context, _ = job
     with pytest.raises(ValueError, match="above its high corner"):
         box_scene(sides, context, [1, 1, 1], [0, 2, 2])
+
+
+@pytest.fixture(scope="module")
+def stored_job(tmp_path_factory):
+    """A succeeded job in a migrated data directory (the real result files and rows)."""
+    settings = Settings(data_dir=tmp_path_factory.mktemp("large-view") / "data")
+    settings.data_dir.mkdir()
+    upgrade_to_head(settings.sqlalchemy_url)
+    job_id = create_job(settings, n_points=3000)
+    job = load_job(settings, job_id)
+    with transaction(settings.sqlalchemy_url) as session:
+        sizes = [
+            session.get_one(Scan, scan_id).n_points
+            for scan_id in (job.reference_scan_id, job.scan_id)
+        ]
+    written = finish_job(ApiServer(settings=settings, base_url=""), job_id, *sizes)
+    return settings, job_id, written
+
+
+def test_a_job_over_the_setting_opens_from_its_files(stored_job):
+    settings, job_id, written = stored_job
+    budget = 900
+    whole, title = load_job_scene(settings, job_id, point_budget=budget)
+    streamed, streamed_title = load_job_scene(
+        settings, job_id, point_budget=budget, stream_above_points=0
+    )
+    assert streamed_title == title
+    assert streamed.n_shown <= budget
+    for layer in whole.layers:  # the same allocation of the budget, changed points first
+        assert streamed.layer(layer.name).n_total == layer.n_total
+        assert abs(streamed.layer(layer.name).n_shown - layer.n_shown) <= 1
+    changed = streamed.layer("removed").n_shown + streamed.layer("added").n_shown
+    assert changed >= budget * CHANGED_SHARE_OF_BUDGET - 2
+    for side, cloud in streamed.sides.items():
+        np.testing.assert_array_equal(cloud.labels, written[f"{side}_label"][cloud.indices])
+    np.testing.assert_allclose(streamed.origin, whole.origin)
+
+
+def test_a_box_of_a_stored_job(stored_job):
+    settings, job_id, _ = stored_job
+    whole, _ = load_job_scene(settings, job_id)
+    low, high = whole.bounds_min + whole.origin, whole.bounds_max + whole.origin
+    box = load_job_box(settings, job_id, low, high, point_budget=50, origin=whole.origin)
+    assert box.n_shown <= 50 < box.n_total
+    assert [w["code"] for w in box.warnings if w["code"] == "box_capped"] == ["box_capped"]
+    np.testing.assert_array_equal(box.origin, whole.origin)
+    with pytest.raises(ViewUnavailableError) as refused:
+        load_job_box(settings, job_id, high, low)
+    assert refused.value.status == 422

@@ -44,9 +44,10 @@ from app.core.formats.e57 import declared_point_count, scan_blocks
 from app.core.formats.las import declared_las_points, las_point_blocks
 from app.core.formats.npy import read_npy
 from app.core.formats.ply import read_ply
+from app.core.threads import available_threads
 
-BLOCK_POINTS = 1 << 20
-"""Rows per block by default (24 MB of float64 coordinates)."""
+BLOCK_POINTS = 1 << 18
+"""Rows per block by default (6 MB of float64 coordinates)."""
 
 DEFAULT_MAX_POINTS = 1_000_000_000
 """Largest file accepted by default (rows a header declares)."""
@@ -116,7 +117,9 @@ def _blocks_of(
         return _view_blocks(raw.points, source, block_points)
     if chosen in ("las", "laz"):
         n_rows = declared_las_points(source)
-        return PointBlocks(n_rows, las_point_blocks(source, max_points, block_points))
+        # lazrs's decoder threads do not hold the GIL (as read_point_cloud's default)
+        blocks = las_point_blocks(source, max_points, block_points, threads=available_threads())
+        return PointBlocks(n_rows, blocks)
     if chosen == "e57":
         return PointBlocks(declared_point_count(path), _e57_blocks(path, max_points))
     cloud = read_point_cloud(path, chosen, max_points=max_points)
