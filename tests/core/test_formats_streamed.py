@@ -8,8 +8,9 @@ Rules checked:
 * georeferenced coordinates keep that resolution (an offset is subtracted before narrowing;
   plain float32 would not);
 * memory: reading a ``.npy`` or binary PLY costs the float32 result plus a block (no float64
-  copy, no resident map); an E57 of several scans is read into one array, never holding every
-  scan's arrays besides it.
+  copy, no resident map); an E57 is read a chunk of a scan at a time into one array, never
+  holding a scan whole beside it, with the points, poses, stations and intensities of whole
+  scans.
 """
 
 from __future__ import annotations
@@ -18,8 +19,10 @@ import tracemalloc
 from pathlib import Path
 
 import numpy as np
+import pye57
 import pytest
 
+from app.core.formats import e57 as e57_module
 from app.core.formats import read_point_cloud
 from app.core.formats.streamed import open_point_blocks, read_points_float32
 from tests.helpers.files import e57_bytes, las_bytes, npy_bytes, ply_bytes, text_bytes
@@ -150,9 +153,10 @@ def test_reading_costs_the_float32_array_and_a_block(tmp_path, kind):
     assert peak < 2 * result_bytes
 
 
-def test_e57_scans_are_read_one_at_a_time(tmp_path):
+def test_e57_scans_are_read_a_chunk_at_a_time(tmp_path, monkeypatch):
     scans = [random_points(30_000, seed=seed) for seed in range(12)]
-    path = _write(tmp_path, "six.e57", e57_bytes(scans))
+    path = _write(tmp_path, "twelve.e57", e57_bytes(scans))
+    monkeypatch.setattr(e57_module, "SCAN_CHUNK_POINTS", 4096)
     cloud_bytes = sum(len(scan) for scan in scans) * 3 * 8
     tracemalloc.start()
     try:
@@ -161,5 +165,28 @@ def test_e57_scans_are_read_one_at_a_time(tmp_path):
     finally:
         tracemalloc.stop()
     assert len(cloud) == sum(len(scan) for scan in scans)
-    # the cloud plus one scan's decoding, never a second copy of every scan
-    assert peak < 2 * cloud_bytes
+    # the cloud, its station index and a chunk: no scan held whole, no second copy
+    assert peak < 1.5 * cloud_bytes
+
+
+def test_e57_chunks_give_the_scans_pye57_reads_whole(tmp_path, monkeypatch):
+    scans = [random_points(n, seed=n) for n in (300, 211)]
+    invalid = [np.arange(300) % 3 == 0, np.arange(211) % 4 == 1]
+    poses = [((0.6, 0.0, 0.0, 0.8), (5, 0, 1)), ((1, 0, 0, 0), (-3, 2, 0))]
+    path = _write(tmp_path, "poses.e57", e57_bytes(scans, poses, intensity=True, invalid=invalid))
+    with pye57.E57(str(path)) as reader:
+        whole = [reader.read_scan(index, intensity=True) for index in range(len(scans))]
+    monkeypatch.setattr(e57_module, "SCAN_CHUNK_POINTS", 17)
+    chunked = read_point_cloud(path)
+    expected = np.concatenate(
+        [np.column_stack([scan[f"cartesian{axis}"] for axis in "XYZ"]) for scan in whole]
+    )
+    np.testing.assert_array_equal(chunked.points, expected)
+    np.testing.assert_array_equal(
+        chunked.attributes["intensity"], np.concatenate([scan["intensity"] for scan in whole])
+    )
+    np.testing.assert_array_equal(
+        chunked.attributes["station_index"],
+        np.repeat(np.arange(len(scans)), [len(scan["intensity"]) for scan in whole]),
+    )
+    np.testing.assert_array_equal(chunked.sensor_origin, [pose[1] for pose in poses])

@@ -32,6 +32,9 @@ from app.core.formats._common import RawCloud, Source, check_point_count
 E57_SIGNATURE = b"ASTM-E57"
 """The first bytes of every E57 file (its physical header's file signature)."""
 
+SCAN_CHUNK_POINTS = 1 << 20
+"""Points of a scan decoded at a time (libE57Format reads a scan's records in pieces)."""
+
 CARTESIAN_FIELDS = ("cartesianX", "cartesianY", "cartesianZ")
 SPHERICAL_FIELDS = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
 
@@ -74,28 +77,28 @@ def read_e57(source: Source, max_points: int | None) -> RawCloud:
 def _read_scans(reader, max_points: int | None) -> RawCloud:  # reader: pye57.E57
     headers, counts, fields = _checked_headers(reader, max_points)
     with_intensity = all("intensity" in present for present in fields)
-    # One scan's arrays at a time: each is copied into its place in the output and dropped
-    # before the next scan is decoded (the scans are never all held as separate arrays).
+    # A chunk of one scan at a time, copied into its place in the output: no scan is ever held
+    # whole beside the output.
     points = np.empty((sum(counts), 3), dtype=np.float64)
     intensity: NDArray | None = None
     station = np.empty(sum(counts), dtype=np.int32)
     origins: list[NDArray[np.float64]] = []
     n_filled = 0
-    for xyz, data, origin in _scans(reader, headers, counts, with_intensity):
+    for xyz, values, origin, first in _scans(reader, headers, counts, with_intensity):
         if n_filled + len(xyz) > len(points):
             raise PointCloudError(
                 f"malformed E57 file: its scans hold more points than their headers declare "
                 f"({sum(counts):,})"
             )
+        if first:
+            origins.append(origin)
         rows = slice(n_filled, n_filled + len(xyz))
         points[rows] = xyz
-        station[rows] = len(origins)
-        if with_intensity:
-            values = np.asarray(data["intensity"])
+        station[rows] = len(origins) - 1
+        if values is not None:
             if intensity is None:
                 intensity = np.empty(len(points), dtype=values.dtype)
             intensity[rows] = values
-        origins.append(origin)
         n_filled += len(xyz)
     if not origins:
         raise PointCloudError(
@@ -136,13 +139,13 @@ def _checked_headers(reader, max_points: int | None) -> tuple[list, list[int], l
 def scan_blocks(
     path: str | Path, max_points: int | None
 ) -> Iterator[tuple[NDArray[np.float64], NDArray[np.float64]]]:
-    """The scans of an E57 file one at a time, in the file's frame (same checks as
-    :func:`read_e57`).
+    """The points of an E57 file scan by scan, :data:`SCAN_CHUNK_POINTS` at a time, in the
+    file's frame (same checks as :func:`read_e57`).
 
     Yields
     ------
     points : ndarray, shape (k, 3), float64
-        One scan's valid points in the file's frame (scans without points are skipped).
+        A chunk of one scan's valid points in the file's frame (scans in order).
     origin : ndarray, shape (3,)
         Where that scan's scanner stood (its pose's translation).
     """
@@ -161,7 +164,7 @@ def scan_blocks(
         raise PointCloudError(f"unreadable E57 file: {_reason(exc)}") from exc
     try:
         headers, counts, _ = _checked_headers(reader, max_points)
-        for xyz, _data, origin in _scans(reader, headers, counts, False):
+        for xyz, _intensity, origin, _first in _scans(reader, headers, counts, False):
             yield xyz, origin
     finally:
         reader.close()
@@ -184,23 +187,69 @@ def declared_point_count(path: str | Path) -> int:
 
 def _scans(
     reader, headers: list, counts: list[int], with_intensity: bool
-) -> Iterator[tuple[NDArray[np.float64], dict, NDArray[np.float64]]]:
-    """``(points (k, 3) float64, pye57's fields, origin (3,))`` of each scan with points."""
+) -> Iterator[tuple[NDArray[np.float64], NDArray | None, NDArray[np.float64], bool]]:
+    """The valid points of every scan, :data:`SCAN_CHUNK_POINTS` at a time, in the file's frame.
+
+    Yields
+    ------
+    points : ndarray, shape (k, 3), float64, k > 0
+    intensity : ndarray, shape (k,), or None
+        Without ``with_intensity``: None.
+    origin : ndarray, shape (3,)
+        The scan's origin.
+    first : bool
+        Whether this is the scan's first chunk with points (a scan whose every point is
+        invalid yields nothing).
+    """
     for index, header in enumerate(headers):
         if counts[index] == 0:
             continue
         try:
-            data = reader.read_scan(
-                index, intensity=with_intensity, transform=True, ignore_missing_fields=True
-            )
             origin = _scan_origin(header)
+            first = True
+            for xyz, intensity in _scan_chunks(reader, header, counts[index], with_intensity):
+                if len(xyz):
+                    yield xyz, intensity, origin, first
+                    first = False
+        except PointCloudError:
+            raise
         except Exception as exc:
             raise PointCloudError(f"cannot read E57 scan {index}: {_reason(exc)}") from exc
-        xyz = np.column_stack(
-            [np.asarray(data[name], dtype=np.float64) for name in CARTESIAN_FIELDS]
-        )
-        if len(xyz):
-            yield xyz, data, origin
+
+
+def _scan_chunks(
+    reader, header, n_points: int, with_intensity: bool
+) -> Iterator[tuple[NDArray[np.float64], NDArray | None]]:
+    """One scan's valid points (and intensity) a chunk at a time, as ``pye57.E57.read_scan``
+    gives them whole: invalid points dropped, spherical coordinates converted, the pose
+    applied."""
+    import pye57
+
+    systems = pye57.e57.COORDINATE_SYSTEMS
+    spherical = header.get_coordinate_system(systems) is systems.SPHERICAL
+    names = list(SPHERICAL_FIELDS if spherical else CARTESIAN_FIELDS)
+    invalid_name = "sphericalInvalidState" if spherical else "cartesianInvalidState"
+    present = set(header.point_fields)
+    fields = [*names, *(["intensity"] if with_intensity else [])]
+    fields += [invalid_name] if invalid_name in present else []
+    data, buffers = reader.make_buffers(fields, max(1, min(SCAN_CHUNK_POINTS, n_points)))
+    vector_reader = header.points.reader(buffers)
+    try:
+        while (count := int(vector_reader.read())) > 0:
+            valid = (
+                ~data[invalid_name][:count].astype(bool)
+                if invalid_name in data
+                else np.ones(count, dtype=bool)
+            )
+            xyz = np.column_stack([data[name][:count] for name in names])[valid]
+            if spherical:
+                xyz = pye57.e57.convert_spherical_to_cartesian(xyz)
+            if header.has_pose():
+                xyz = reader.to_global(xyz, header.rotation, header.translation)
+            intensity = data["intensity"][:count][valid] if with_intensity else None
+            yield np.asarray(xyz, dtype=np.float64), intensity
+    finally:
+        vector_reader.close()
 
 
 def _kept(array: NDArray, n_rows: int) -> NDArray:
