@@ -304,7 +304,8 @@ def _add_change_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> Non
             min_distance = float(threshold if untouched else distance.value)  # type: ignore[arg-type]
             record.state.min_distance = min_distance
             record.state.min_region_points = int(size.value)
-            record.relabelled = relabel(data, min_distance, int(size.value))
+            # the scene drawn now: the job's whole view, or a box of it at full density
+            record.relabelled = relabel(record.data, min_distance, int(size.value))
             record.request_redraw(points=True, regions=True)
 
     distance.on_update(apply)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,7 +31,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.formats.streamed import open_point_blocks
+from app.core.formats import BagOptions
+from app.core.formats.streamed import PointBlocks, open_point_blocks
 from app.core.localise.changes import MIN_REGION_POINTS_FLOOR, MIN_REGION_POINTS_PER_SQRT
 from app.core.registration import apply_transform
 from app.viewer.scene import (
@@ -82,6 +84,8 @@ class StoredSide:
     path: Path
     labels: NDArray[np.int8]
     distances: StoredColumn
+    bag_options: BagOptions | None = None
+    """How the job read the file when it is a ROS bag (kept beside it)."""
 
 
 @dataclass(frozen=True)
@@ -201,14 +205,21 @@ def _farthest(
     return rows[order], values[order]
 
 
-def read_rows(path: Path, rows: NDArray[np.int64]) -> NDArray[np.float64]:
+def read_rows(stored: StoredSide, rows: NDArray[np.int64]) -> NDArray[np.float64]:
     """The coordinates of sorted file ``rows``, shape (len(rows), 3), read a block at a time."""
     points = np.full((len(rows), 3), np.nan)
-    with open_point_blocks(path, block_points=READ_BLOCK_POINTS) as opened:
+    with _blocks(stored) as opened:
         for start, block in opened.blocks:
             low, high = np.searchsorted(rows, [start, start + len(block)])
             points[low:high] = block[rows[low:high] - start]
     return points
+
+
+def _blocks(stored: StoredSide) -> AbstractContextManager[PointBlocks]:
+    """The side's file opened to be read a block at a time."""
+    return open_point_blocks(
+        stored.path, block_points=READ_BLOCK_POINTS, bag_options=stored.bag_options
+    )
 
 
 def budget_scene(
@@ -231,7 +242,7 @@ def budget_scene(
         )
         candidates = pool_rows(stored, threshold)
         rows = sorted_union(shown_rows, candidates)
-        points = read_rows(stored.path, rows)
+        points = read_rows(stored, rows)
         if side == "scan":
             points = apply_transform(points, context.transform)
         gathered[side] = _gathered(stored, rows, points, shown_rows, candidates)
@@ -345,7 +356,7 @@ def _select_in_box(
     for side, stored in sides.items():
         seen = dict.fromkeys((LABEL_UNOBSERVED, LABEL_UNCHANGED, LABEL_CHANGED), 0)
         rows_parts, points_parts = [], []
-        with open_point_blocks(stored.path, block_points=READ_BLOCK_POINTS) as opened:
+        with _blocks(stored) as opened:
             for start, block in opened.blocks:
                 points, hit = inside[side](block)
                 rows = start + np.flatnonzero(hit)

@@ -255,7 +255,7 @@ def _stored_sides(job: StoredJob, labels: dict[str, NDArray[np.int8]]) -> dict[s
         job.details_path, {side: len(values) for side, values in labels.items()}
     )
     return {
-        side: StoredSide(path, labels[side], distances[side])
+        side: StoredSide(path, labels[side], distances[side], stored_bag_options(path))
         for side, path in zip(SIDES, job.paths, strict=True)
     }
 

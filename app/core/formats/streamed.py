@@ -10,7 +10,7 @@ comparison needs). A view of a 100M-point job needs neither float64 nor every po
     file with ``pread`` (:class:`~app.core.blocks.FileRows`), so the map's pages never all
     become resident;
   - LAS/LAZ (COPC included): laspy's chunk iterator (lazrs decodes one chunk at a time);
-  - E57: one scan at a time (pye57 decodes each scan separately);
+  - E57: scan by scan, a chunk of a scan at a time (libE57Format's reader in pieces);
   - an ascii PLY is decoded whole (its coordinates only); any other format (text, PCD, ROS
     bags, ``.npz``) is read whole by
     :func:`read_point_cloud` first, then handed out in blocks.
@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 from app.core.blocks import coordinate_blocks
 from app.core.cloud import choose_local_origin
 from app.core.errors import PointCloudError
-from app.core.formats import detect_format, read_point_cloud
+from app.core.formats import BagOptions, detect_format, read_point_cloud
 from app.core.formats._common import Source, file_rows_of, open_source
 from app.core.formats.e57 import declared_point_count, scan_blocks
 from app.core.formats.las import declared_las_points, las_point_blocks
@@ -78,6 +78,7 @@ def open_point_blocks(
     *,
     max_points: int | None = DEFAULT_MAX_POINTS,
     block_points: int = BLOCK_POINTS,
+    bag_options: BagOptions | None = None,
 ) -> Iterator[PointBlocks]:
     """Open a point-cloud file to read its coordinates a block at a time.
 
@@ -89,7 +90,10 @@ def open_point_blocks(
     max_points : int or None
         Refuse files whose header declares more rows.
     block_points : int
-        Rows per block (E57: one scan per block, whatever its size).
+        Rows per block (E57: a chunk of one scan, :data:`~app.core.formats.e57.SCAN_CHUNK_POINTS`
+        at most).
+    bag_options : BagOptions, optional
+        For a ROS bag, as for :func:`read_point_cloud`.
 
     Raises
     ------
@@ -100,14 +104,19 @@ def open_point_blocks(
     with open_source(path) as source:
         chosen = (format or "").lower().lstrip(".") or detect_format(path.name, source.head(4096))
         try:
-            blocks = _blocks_of(path, source, chosen, max_points, block_points)
+            blocks = _blocks_of(path, source, chosen, max_points, block_points, bag_options)
         except PointCloudError as exc:
             raise PointCloudError(f"{path.name}: {exc}") from exc
         yield blocks
 
 
 def _blocks_of(
-    path: Path, source: Source, chosen: str, max_points: int | None, block_points: int
+    path: Path,
+    source: Source,
+    chosen: str,
+    max_points: int | None,
+    block_points: int,
+    bag_options: BagOptions | None,
 ) -> PointBlocks:
     """The :class:`PointBlocks` of an opened file in format ``chosen``."""
     if chosen == "npy":
@@ -122,7 +131,7 @@ def _blocks_of(
         return PointBlocks(n_rows, blocks)
     if chosen == "e57":
         return PointBlocks(declared_point_count(path), _e57_blocks(path, max_points))
-    cloud = read_point_cloud(path, chosen, max_points=max_points)
+    cloud = read_point_cloud(path, chosen, max_points=max_points, bag_options=bag_options)
     rows = cloud.to_source_order(cloud.points, np.nan)
     return PointBlocks(len(rows), _array_blocks(rows, block_points))
 
