@@ -16,7 +16,7 @@ Printed: the seconds, the child's peak RSS (``VmHWM`` of ``/proc/self/status``; 
 would carry the generating parent's over ``exec``), its growth over
 the RSS after the imports, the points drawn, and the growth over the two files' size.
 
-Run: ``.venv/bin/python -m bench.viewer_large [--points 20000000] [--whole]``
+Run: ``.venv/bin/python -m bench.viewer_large [--points 20000000] [--whole] [--ways open,box]``
 """
 
 from __future__ import annotations
@@ -172,6 +172,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--points", type=int, default=20_000_000)
     parser.add_argument("--whole", action="store_true", help="also load the clouds whole")
+    parser.add_argument("--ways", default="open,box", help="of open, box (default both)")
     parser.add_argument("--child", nargs=2, metavar=("FOLDER", "WAY"), help=argparse.SUPPRESS)
     arguments = parser.parse_args()
     if arguments.child:
@@ -186,7 +187,8 @@ def main() -> None:
             f"generated in {time.perf_counter() - started:.0f} s"
         )
         print("way    seconds  peak RSS MB  growth MB  growth / files  shown / total")
-        for way in ("open", "box", *(("whole",) if arguments.whole else ())):
+        ways = [way for way in arguments.ways.split(",") if way in ("open", "box")]
+        for way in (*ways, *(("whole",) if arguments.whole else ())):
             result = measure(folder, way)
             capped = " (capped)" if result["capped"] else ""
             print(

@@ -114,12 +114,14 @@ class Gathered:
 
 
 def label_totals(sides: Mapping[str, StoredSide]) -> dict[tuple[str, int], int]:
-    """Points per (side, label)."""
+    """Points per (side, label), counted a chunk of labels at a time (no wider copy)."""
     totals = {}
     for side, stored in sides.items():
-        counts = np.bincount(stored.labels.astype(np.int64) + 1, minlength=3)
         for label in (LABEL_UNOBSERVED, LABEL_UNCHANGED, LABEL_CHANGED):
-            totals[(side, label)] = int(counts[label + 1])
+            totals[(side, label)] = sum(
+                int(np.count_nonzero(stored.labels[start : start + CHUNK_ROWS] == label))
+                for start in range(0, len(stored.labels), CHUNK_ROWS)
+            )
     return totals
 
 
