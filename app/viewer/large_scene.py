@@ -66,6 +66,10 @@ CHUNK_ROWS = 1 << 22
 READ_BLOCK_POINTS = 1 << 20
 """Coordinates read per block from a cloud file."""
 
+BOX_KEEP_BUDGETS = 4
+"""A box holding up to this many point budgets is read once (its points kept, then strided);
+a larger one is read twice (counted, then only the strided subset kept)."""
+
 LAYER_OF: dict[tuple[str, int], str] = {
     ("reference", LABEL_UNCHANGED): "reference",
     ("scan", LABEL_UNCHANGED): "scan",
@@ -272,13 +276,20 @@ def box_scene(
     """
     box_low, box_high = _checked_box(low, high)
     inside = {side: _box_filter(side, box_low, box_high, context) for side in sides}
-    selected, totals = _select_in_box(sides, inside, lambda side, label: None, point_budget)
+    keep_limit = BOX_KEEP_BUDGETS * point_budget
+    selected, totals = _select_in_box(sides, inside, lambda side, label: None, keep_limit)
     n_inside = sum(totals.values())
-    capped = selected is None
-    if selected is None:  # a second pass keeps a strided subset of each (side, label)
+    capped = n_inside > point_budget
+    if capped:  # a strided subset of each (side, label), changed first
         counts = layer_counts(totals, point_budget)
         ranks = {key: strided_ranks(counts[key], total) for key, total in totals.items()}
-        selected, _ = _select_in_box(sides, inside, lambda side, label: ranks[(side, label)])
+        if selected is None:  # too many to keep: a second pass keeps the subset only
+            selected, _ = _select_in_box(sides, inside, lambda side, label: ranks[(side, label)])
+        else:
+            selected = {
+                side: _strided_subset(sides[side].labels, rows, points, side, ranks)
+                for side, (rows, points) in selected.items()
+            }
     threshold = change_threshold_of(sides)
     floor = POOL_FLOOR_FRACTION * threshold if threshold is not None else math.inf
     gathered = {}
@@ -295,7 +306,7 @@ def box_scene(
             {
                 "code": "box_capped",
                 "message": f"the box holds {n_inside:,} points, more than the point budget of "
-                f"{point_budget:,}: an evenly spread {point_budget:,} of them are shown "
+                f"{point_budget:,}: an evenly spread {point_budget:,} at most are shown "
                 "(changed points first); clip to a smaller box for full density",
             }
         )
@@ -311,6 +322,21 @@ def box_scene(
     return assemble_scene(
         gathered, _layer_totals(totals), threshold, scene_context, point_budget, sizes, origin
     )
+
+
+def _strided_subset(
+    labels: NDArray[np.int8],
+    rows: NDArray[np.int64],
+    points: NDArray[np.float64],
+    side: str,
+    ranks: Mapping[tuple[str, int], NDArray[np.int64]],
+) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """The side's kept box points whose rank among those of their label is chosen."""
+    keep = np.zeros(len(rows), dtype=bool)
+    of_rows = labels[rows]
+    for label in (LABEL_UNOBSERVED, LABEL_UNCHANGED, LABEL_CHANGED):
+        keep[np.flatnonzero(of_rows == label)[ranks[(side, label)]]] = True
+    return rows[keep], points[keep]
 
 
 def _checked_box(

@@ -151,8 +151,10 @@ def test_a_box_is_drawn_at_full_density(job):
     assert not [w for w in data.warnings if w["code"] == "box_capped"]
 
 
-def test_a_box_over_the_budget_is_capped_changed_first_and_says_so(job):
+@pytest.mark.parametrize("keep_budgets", [4, 1])  # kept then strided / counted then read again
+def test_a_box_over_the_budget_is_capped_changed_first_and_says_so(job, keep_budgets, monkeypatch):
     sides, context, files = job
+    monkeypatch.setattr(large_scene, "BOX_KEEP_BUDGETS", keep_budgets)
     low, high = CHANGE_LOW - 1.0, CHANGE_HIGH + 1.0
     n_inside = sum(
         int(((points >= low) & (points <= high)).all(axis=1).sum()) for points in files.values()
@@ -167,6 +169,11 @@ def test_a_box_over_the_budget_is_capped_changed_first_and_says_so(job):
     _check_drawn_points_are_the_files(data, sides, files)
     (capped,) = [w for w in data.warnings if w["code"] == "box_capped"]
     assert f"{n_inside:,}" in capped["message"]
+    shown = {side: cloud.indices for side, cloud in data.sides.items()}
+    monkeypatch.setattr(large_scene, "BOX_KEEP_BUDGETS", 5 - keep_budgets)  # the other way
+    again = box_scene(sides, context, low, high, point_budget=budget)
+    for side, cloud in again.sides.items():
+        np.testing.assert_array_equal(cloud.indices, shown[side])
 
 
 def test_a_malformed_box_is_refused(job):
