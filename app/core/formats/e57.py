@@ -32,7 +32,7 @@ from app.core.formats._common import RawCloud, Source, check_point_count
 E57_SIGNATURE = b"ASTM-E57"
 """The first bytes of every E57 file (its physical header's file signature)."""
 
-SCAN_CHUNK_POINTS = 1 << 20
+SCAN_CHUNK_POINTS = 1 << 18
 """Points of a scan decoded at a time (libE57Format reads a scan's records in pieces)."""
 
 CARTESIAN_FIELDS = ("cartesianX", "cartesianY", "cartesianZ")
