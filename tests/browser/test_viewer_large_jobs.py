@@ -11,16 +11,21 @@ Rules checked (with a lowered budget, on real files and a job's stored labels an
   worker wrote;
 * "clip to a box" draws every point inside the box at full density while the box fits the
   budget; past it the budget holds, the box's changed points come first, and a warning says
-  how many points the box holds.
+  how many points the box holds; the view's "Full density in a box" panel (driven over
+  viser's websocket) draws that box and goes back to the whole view.
 """
 
 from __future__ import annotations
 
 import tracemalloc
+from functools import partial
 from pathlib import Path
 
+import msgspec.msgpack
 import numpy as np
 import pytest
+import websockets.sync.client
+from viser import _messages
 
 from app.config import Settings
 from app.core.registration import apply_transform
@@ -30,11 +35,15 @@ from app.db.session import transaction
 from app.viewer import large_scene
 from app.viewer.large_scene import SceneContext, StoredSide, box_scene, budget_scene
 from app.viewer.loading import ViewUnavailableError, load_job_box, load_job_scene
+from app.viewer.manager import ViewerManager
 from app.viewer.scene import CHANGED_SHARE_OF_BUDGET, build_scene_data
 from app.viewer.stored_results import stored_distances, stored_labels
+from app.viewer.viser_guard import VIEW_SECRET_HEADER
 from tests.helpers.files import las_bytes, ply_bytes
 from tests.helpers.jobs import create_job, finish_job, load_job
 from tests.helpers.server import ApiServer
+from tests.helpers.viser_wire import VISER_SUBPROTOCOL, camera_message, receive_messages
+from tests.helpers.waiting import wait_until
 
 N_POINTS = 20_000
 CHANGE_LOW = np.array([2.0, 2.0, 0.0])
@@ -229,3 +238,57 @@ def test_a_box_of_a_stored_job(stored_job):
     with pytest.raises(ViewUnavailableError) as refused:
         load_job_box(settings, job_id, high, low)
     assert refused.value.status == 422
+
+
+def _button_uuid(messages: list[dict], label: str) -> str | None:
+    """The uuid of the viser button labelled ``label`` among ``messages``."""
+    for message in messages:
+        if message["type"] == "GuiButtonMessage" and message["props"]["label"] == label:
+            return message["uuid"]
+    return None
+
+
+def _drawn(viewer) -> tuple[int, dict]:
+    """Points drawn over the layers for the one browser, and its record."""
+    (client,) = viewer.to_json_dict()["clients"]
+    return sum(layer["n_points"] for layer in client["layers"].values()), client
+
+
+def test_the_box_panel_draws_the_box_and_goes_back(stored_job):
+    settings, job_id, _ = stored_job
+    manager = ViewerManager(
+        partial(load_job_scene, settings),
+        box_loader=lambda job, low, high, origin: load_job_box(
+            settings, job, low, high, origin=origin
+        ),
+    )
+    try:
+        viewer = manager.get(job_id)
+        with websockets.sync.client.connect(
+            f"ws://127.0.0.1:{viewer.port}",
+            subprotocols=[VISER_SUBPROTOCOL],  # type: ignore[list-item]
+            additional_headers={VIEW_SECRET_HEADER: viewer.secret},
+            max_size=None,
+        ) as connection:
+            connection.send(camera_message())
+            messages = receive_messages(
+                connection, lambda got: _button_uuid(got, "Back to the whole view") is not None
+            )
+            whole_drawn = wait_until(lambda: _drawn(viewer)[0], 30, "nothing drawn")
+            _, client = _drawn(viewer)
+            low, high = client["controls"]["box_low"], client["controls"]["box_high"]
+            box = load_job_box(settings, job_id, low, high, origin=viewer.data.origin)
+            assert 0 < box.n_shown < whole_drawn
+
+            def click(label: str) -> None:
+                update = _messages.GuiUpdateMessage(_button_uuid(messages, label), {"value": True})
+                connection.send(msgspec.msgpack.encode(update.as_serializable_dict()))
+
+            click("Load the box at full density")
+            wait_until(lambda: _drawn(viewer)[0] == box.n_shown, 30, "the box was not drawn")
+            status = _drawn(viewer)[1]["controls"]["box_status"]
+            assert f"All **{box.n_total:,}** points in the box" in status
+            click("Back to the whole view")
+            wait_until(lambda: _drawn(viewer)[0] == whole_drawn, 30, "the whole view is not back")
+    finally:
+        manager.stop_all()
