@@ -365,7 +365,7 @@ def run_consumer(
 
     ``shutdown_grace_seconds`` None takes ``settings.shutdown_grace_seconds``.  With
     ``wait_for_database_seconds`` it first waits that long for a migrated database.
-    ``schedule_tick`` (the service layer's :func:`app.services.schedule_runs.tick`, passed by
+    ``schedule_tick`` (the service layer's :func:`app.services.schedules.runs.tick`, passed by
     the commands that start consumers) runs every ``schedule_tick_seconds`` in this process.
     """
     configure_process_logging(settings.log_level, settings.log_format)

@@ -2,7 +2,7 @@
 
 :func:`tick` is called by every job consumer every ``schedule_tick_seconds`` (and by tests with
 the ``now`` they choose).  For each enabled schedule it lists the periods that started since
-the last one handled (:class:`app.services.schedule_times.Rhythm`) and applies the schedule's
+the last one handled (:class:`app.services.schedules.times.Rhythm`) and applies the schedule's
 ``catch_up`` policy when there are several (the scheduler was down):
 
 * ``each``: every due period runs, oldest first;
@@ -43,10 +43,12 @@ from app.config import Settings
 from app.db.events import publish_event
 from app.db.models import Job, Scan, Schedule, ScheduleRun, ScheduleRunStatus, Site
 from app.db.session import session_factory
-from app.services import jobs, schedule_ingest, schedule_sources, sites, storage
+from app.services import jobs, sites, storage
 from app.services.auth import Principal
 from app.services.errors import AppError, ConflictError, NotFoundError
-from app.services.schedule_times import Rhythm
+from app.services.schedules import ingest as schedule_ingest
+from app.services.schedules import sources as schedule_sources
+from app.services.schedules.times import Rhythm
 from app.services.storage import ReceivedFile
 from app.services.transaction import commit, rollback
 
