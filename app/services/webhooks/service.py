@@ -23,7 +23,7 @@ from app.services.auth import Principal, require_role
 from app.services.errors import NotFoundError, ValidationFailedError
 from app.services.paging import newest_first_page
 from app.services.scoping import scoped
-from app.services.webhook_schemas import WebhookCreate
+from app.services.webhooks.schemas import WebhookCreate
 
 SECRET_PREFIX = "whsec_"
 MAX_WEBHOOKS_PER_ORGANISATION = 50
