@@ -12,7 +12,7 @@ from collections.abc import Callable
 
 import pytest
 
-from app.jobs.deliveries import ClaimedDelivery, send_attempt
+from app.jobs.alerts.deliveries import ClaimedDelivery, send_attempt
 from app.kit.net import REFUSED_ADDRESS_CLASSES
 from app.services.errors import ValidationFailedError
 from app.services.schedules import sources as schedule_sources

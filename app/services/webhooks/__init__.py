@@ -4,5 +4,5 @@
   test;
 * :mod:`~app.services.webhooks.schemas`: request and response bodies of ``/api/v1/webhooks``.
 
-Sending is the job layer's: :mod:`app.jobs.deliveries`.
+Sending is the job layer's: :mod:`app.jobs.alerts.deliveries`.
 """
