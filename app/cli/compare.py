@@ -346,7 +346,7 @@ def _geometry_cache(directory: Path | None, reference: Path, params: dict[str, A
         return None
     import hashlib
 
-    from app.core.geometry_cache import GeometryCache, cache_key
+    from app.core.cache.geometry import GeometryCache, cache_key
 
     digest = hashlib.sha256()
     with open(reference, "rb") as source:

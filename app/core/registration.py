@@ -44,9 +44,10 @@ that alignment failed): :class:`RegistrationError`.
 
 **What depends on the reference alone** (its point spacing, ``grid`` centroids, their coarse
 and quality-figure downsamplings) can be handed over by a
-:class:`~app.core.reference_memory.ReferenceMemory` (:mod:`app.core.reference_alignment` keeps
-them in the reference's geometry cache); each is recalled under the parameters it was computed
-with, so the result is the same with or without one.
+:class:`~app.core.cache.reference_memory.ReferenceMemory`
+(:mod:`app.core.cache.reference_alignment` keeps them in the reference's geometry cache); each is
+recalled under the parameters it was computed with, so the result is the same with or without
+one.
 """
 
 from __future__ import annotations
@@ -59,9 +60,9 @@ import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
+from app.core.cache.reference_memory import ReferenceMemory, recalled
 from app.core.cloud import PointCloud, column_extreme
 from app.core.errors import RegistrationError
-from app.core.reference_memory import ReferenceMemory, recalled
 
 FINE_POINT_BUDGET = 30_000
 """Most points per cloud in the fine stage (a uniform random sample beyond this)."""

@@ -9,21 +9,22 @@ import json
 import numpy as np
 import pytest
 
-from app.core import geometry_cache, pipeline, registration
-from app.core.cloud import PointCloud, choose_local_origin
-from app.core.geometry_cache import GeometryCache, cache_key, code_version
-from app.core.localise import neighbourhoods, surface
-from app.core.localise.neighbourhoods import nearest_neighbourhoods
-from app.core.localise.surface import with_surfaces
-from app.core.origins.resolve import ResolvedOrigin
-from app.core.pipeline import compare
-from app.core.reference_alignment import ALIGNMENT_FACT_PREFIX, ReferenceAlignmentCache
-from app.core.reference_origin import (
+from app.core import pipeline, registration
+from app.core.cache import geometry as geometry_cache
+from app.core.cache.geometry import GeometryCache, cache_key, code_version
+from app.core.cache.reference_alignment import ALIGNMENT_FACT_PREFIX, ReferenceAlignmentCache
+from app.core.cache.reference_origin import (
     ORIGIN_FACT,
     ReferenceOriginCache,
     origin_from_record,
     origin_record,
 )
+from app.core.cloud import PointCloud, choose_local_origin
+from app.core.localise import neighbourhoods, surface
+from app.core.localise.neighbourhoods import nearest_neighbourhoods
+from app.core.localise.surface import with_surfaces
+from app.core.origins.resolve import ResolvedOrigin
+from app.core.pipeline import compare
 from app.core.synthetic import raycast_scene
 
 N_NEIGHBORS = 10
