@@ -1,6 +1,6 @@
 """Several stations per cloud: localisation on merged multi-station lidar scans.
 
-Scenes: :func:`app.core.synthetic_lidar.lidar_pair` with 3-5 stations per epoch (rooms,
+Scenes: :func:`app.core.datasets.lidar.lidar_pair` with 3-5 stations per epoch (rooms,
 corridors, warehouses; 1 cm range noise; the scan misaligned by 0.3-0.4 degrees and 2-3 cm, then
 put back with the true transform so that only visibility is measured).  Modes:
 
@@ -39,14 +39,14 @@ from types import SimpleNamespace
 import numpy as np
 
 from app.core.cloud import PointCloud
+from app.core.datasets.lidar import lidar_pair
+from app.core.datasets.scenes import paper_corridor, raycast_scene
 from app.core.ground_truth import changed_iou
 from app.core.localise import localise_changes
 from app.core.origins.sampling import lidar_sampling
 from app.core.origins.stations import recover_stations
 from app.core.pipeline import compare
 from app.core.registration import apply_transform
-from app.core.synthetic import paper_corridor, raycast_scene
-from app.core.synthetic_lidar import lidar_pair
 
 RESULTS = Path(__file__).resolve().parent / "results"
 MODES = ("given", "origins", "recovered", "origin-free", "coverage", "fallback", "default")

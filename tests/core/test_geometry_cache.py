@@ -20,12 +20,12 @@ from app.core.cache.reference_origin import (
     origin_record,
 )
 from app.core.cloud import PointCloud, choose_local_origin
+from app.core.datasets.scenes import raycast_scene
 from app.core.localise import neighbourhoods, surface
 from app.core.localise.neighbourhoods import nearest_neighbourhoods
 from app.core.localise.surface import with_surfaces
 from app.core.origins.resolve import ResolvedOrigin
 from app.core.pipeline import compare
-from app.core.synthetic import raycast_scene
 
 N_NEIGHBORS = 10
 SMALL_AHEAD_MIN_POINTS = 10_000

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from app.core.datasets.lidar import lidar_pair
 from app.core.origins.own_frame import resolve_moved_cloud
 from app.core.registration import apply_transform
-from app.core.synthetic_lidar import lidar_pair
 
 
 def _tilting_transform(pitch_deg: float, yaw_deg: float, shift: tuple[float, float, float]):

@@ -15,6 +15,8 @@ import pytest
 
 from app.core.cloud import PointCloud
 from app.core.comparison_settings import parse_comparison_params
+from app.core.datasets.lidar import lidar_pair, steps_for_points
+from app.core.datasets.scenes import paper_corridor
 from app.core.errors import InputError
 from app.core.localise import localise_changes
 from app.core.origins import stations
@@ -22,8 +24,6 @@ from app.core.origins.resolve import ResolvedOrigin
 from app.core.origins.sampling import lidar_sampling
 from app.core.origins.stations import RecoveredStations, resolve_stations
 from app.core.pipeline import compare
-from app.core.synthetic import paper_corridor
-from app.core.synthetic_lidar import lidar_pair, steps_for_points
 
 STEP = 2.0  # degrees: ~10k points a station
 
