@@ -37,8 +37,8 @@ from app.core import pipeline
 from app.core.cloud import PointCloud
 from app.core.datasets.lidar import lidar_pair, steps_for_points
 from app.core.pipeline import compare
+from bench.merged_stations import nearest_station_error
 from bench.scenes import changed_points_iou
-from bench.stations import nearest_station_error
 
 KINDS = ("single", "merged")
 LAYOUTS = ("room", "corridor", "warehouse")

@@ -53,7 +53,7 @@ from app.core.localise import (
 from app.core.origins.known_stations import origins_in_local_frame
 from app.core.origins.own_frame import resolve_moved_cloud
 from app.core.origins.resolve import ResolvedOrigin
-from app.core.origins.stations import resolve_stations
+from app.core.origins.station_recovery import resolve_stations
 from app.core.origins.trajectory_origin import station_index, trajectory_origin, trajectory_rays
 from app.core.quality import quality_warnings
 from app.core.registration import (
@@ -295,7 +295,7 @@ def compare(
         origin from the points, :mod:`app.core.origins.resolve`) and ``"recover_stations"``
         (``"auto"``, default: a cloud left without an origin whose sampling is a lidar's,
         :func:`app.core.origins.sampling.lidar_sampling`, gets its stations recovered,
-        :func:`app.core.origins.stations.recover_stations`, a second or two per cloud; when
+        :func:`app.core.origins.station_recovery.recover_stations`, a second or two per cloud; when
         none are, it is a merged lidar cloud with unknown stations and the other cloud's
         candidates get the origin-free surface test; ``true``: recover whatever the sampling;
         ``false``: never).

@@ -211,7 +211,7 @@ def test_per_point_origins_and_station_index_as_las_extra_bytes():
     ids=["fraction", "negative", "partial-origin", "nan-origin", "too-many-origins"],
 )
 def test_bad_station_fields_are_refused_with_what_to_fix(extra, message, monkeypatch):
-    import app.core.formats.stations as station_fields
+    from app.core.formats import station_fields
 
     monkeypatch.setattr(station_fields, "MAX_STATIONS", 16)
     content = ply_bytes(random_points(30, seed=9), coordinate_type="f8", extra=extra)

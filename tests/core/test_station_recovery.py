@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 
 from app.core.datasets.lidar import LidarWorld, lidar_directions
-from app.core.origins import estimate, station_height, stations
-from app.core.origins.stations import recover_stations, resolve_stations
+from app.core.origins import estimate, station_height
+from app.core.origins import station_recovery as stations
+from app.core.origins.station_recovery import recover_stations, resolve_stations
 
 STEP = 1.2  # degrees: ~27k points a station in this room
 
@@ -223,7 +224,7 @@ def test_voting_every_second_cell_finds_the_centres_of_voting_every_cell(monkeyp
 
 def _ring_scores_by_histogram(rho, z, heights, bin_size):
     """Reference for station_height.ring_scores: one histogram and moving sum per height."""
-    from app.core.localise.stations import RING_CONTRAST, SMOOTHING_BINS
+    from app.core.localise.station_assignment import RING_CONTRAST, SMOOTHING_BINS
 
     n_bins = int(np.pi / bin_size) + 2
     scores = []

@@ -34,10 +34,10 @@ from app.core.localise.rays import (
     STATUS_SURFACE,
     STATUS_UNOBSERVED,
 )
-from app.core.localise.stations import RING_CONTRAST, assign_stations, ring_contrast
+from app.core.localise.station_assignment import RING_CONTRAST, assign_stations, ring_contrast
 from app.core.localise.surface import local_geometry
 from app.core.localise.visibility import combine_station_status
-from app.core.origins.stations import recover_stations
+from app.core.origins.station_recovery import recover_stations
 from app.core.pipeline import compare, parse_comparison_params
 from tests.helpers.scenes import changed_iou
 

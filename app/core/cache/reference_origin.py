@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from app.core.cache.geometry import GeometryCache
 from app.core.cloud import PointCloud
 from app.core.origins.resolve import ResolvedOrigin
-from app.core.origins.stations import STATION_INDEX_ATTRIBUTE
+from app.core.origins.station_recovery import STATION_INDEX_ATTRIBUTE
 
 __all__ = [
     "ORIGIN_FACT",
@@ -35,7 +35,7 @@ __all__ = [
     "reference_origin_key",
 ]
 
-_ORIGIN_CODE_PATTERNS = ("origins/*.py", "localise/stations.py", "localise/settings.py")
+_ORIGIN_CODE_PATTERNS = ("origins/*.py", "localise/station_assignment.py", "localise/settings.py")
 """Sources (under app/core) whose text is part of the key of a cached reference origin."""
 ORIGIN_FACT = "reference_origin"
 """Name of the reference's resolved sensor origin among a cache file's facts."""
@@ -151,8 +151,8 @@ class ReferenceOriginCache:
         recover: bool | str,
     ) -> ReferenceOriginCache | None:
         """The origin cache of ``reference`` (its origins ``given``, the ``estimate`` and
-        ``recover`` switches of :func:`~app.core.origins.stations.resolve_stations`), or None
-        (no geometry cache, or a cloud with per-point stations)."""
+        ``recover`` switches of :func:`~app.core.origins.station_recovery.resolve_stations`), or
+        None (no geometry cache, or a cloud with per-point stations)."""
         if cache is None or STATION_INDEX_ATTRIBUTE in reference.attributes:
             return None
         sensor_origin = reference.sensor_origin

@@ -117,7 +117,7 @@ def estimate_origin(
     apex : bool
         Search the rings' apex when the other signals leave the estimate unconfident (1-2.5 s
         at 1M points).  Off where a cloud that fails them is taken for a merged survey and its
-        stations are recovered first (:func:`~app.core.origins.stations.resolve_stations`).
+        stations are recovered first (:func:`~app.core.origins.station_recovery.resolve_stations`).
 
     Returns
     -------
