@@ -450,6 +450,54 @@ def build_scene_data(
     }
 
     origin = local_origin(reference_points if len(reference_points) else scan_in_reference)
+    layers, sides = _drawn_layers(clouds, labels, distances, origin, point_budget, random_state)
+    bounds_min, bounds_max, point_size = _view_bounds(layers)
+    change_threshold = _change_threshold(labels, distances)
+    if min_region_points is None:  # the localiser's default for clouds of these sizes
+        min_region_points = max(
+            MIN_REGION_POINTS_FLOOR,
+            round(
+                MIN_REGION_POINTS_PER_SQRT * math.sqrt(min(len(reference_points), len(scan_points)))
+            ),
+        )
+    pools = {
+        side: candidate_pool(
+            side, clouds[side], labels[side], distances[side], origin, change_threshold
+        )
+        for side in SIDES
+    }
+    return SceneData(
+        origin=origin,
+        layers=tuple(layers),
+        regions=region_boxes(regions, origin),
+        bounds_min=bounds_min,
+        bounds_max=bounds_max,
+        point_size=point_size,
+        point_budget=int(point_budget),
+        summary=dict(summary or {}),
+        sides=sides,
+        pools=pools,
+        sensors=sensor_markers(sensor_origins or {}, matrix, origin),
+        trajectories=trajectory_paths(sensor_origins or {}, matrix, origin),
+        warnings=tuple(
+            {"code": str(item.get("code", "")), "message": str(item.get("message", ""))}
+            for item in warnings
+            if isinstance(item, Mapping)
+        ),
+        change_threshold=change_threshold,
+        min_region_points=max(int(min_region_points), 1),
+    )
+
+
+def _drawn_layers(
+    clouds: Mapping[str, NDArray[np.float64]],
+    labels: Mapping[str, NDArray[np.int8]],
+    distances: Mapping[str, NDArray],
+    origin: NDArray[np.float64],
+    point_budget: int,
+    random_state: int,
+) -> tuple[list[Layer], dict[str, SideCloud]]:
+    """The layers drawn within ``point_budget`` points, and each side's drawn points."""
     selections: dict[str, list[tuple[str, NDArray[np.int64]]]] = {
         "reference": [("reference", np.flatnonzero(labels["reference"] == LABEL_UNCHANGED))],
         "scan": [("scan", np.flatnonzero(labels["scan"] == LABEL_UNCHANGED))],
@@ -489,6 +537,11 @@ def build_scene_data(
             distances=distances[side][rows].astype(np.float32),
             indices=rows,
         )
+    return layers, sides
+
+
+def _view_bounds(layers: Sequence[Layer]) -> tuple[NDArray, NDArray, float]:
+    """The 1st and 99th percentiles of the drawn points, shape (3,) each, and a point size."""
     drawn = [layer.points for layer in layers if layer.n_shown]
     if drawn:
         bounds_min, bounds_max = np.percentile(np.concatenate(drawn), [1.0, 99.0], axis=0)
@@ -496,46 +549,18 @@ def build_scene_data(
         bounds_min = bounds_max = np.zeros(3)
     extent = float(np.linalg.norm(bounds_max - bounds_min))
     point_size = estimate_point_size(np.concatenate(drawn), extent) if drawn else 0.05
+    return bounds_min, bounds_max, point_size
+
+
+def _change_threshold(
+    labels: Mapping[str, NDArray[np.int8]], distances: Mapping[str, NDArray]
+) -> float | None:
+    """The smallest finite distance of a changed point of either side (None when none)."""
     changed_distances = np.concatenate(
         [distances[side][labels[side] == LABEL_CHANGED] for side in SIDES]
     )
     changed_distances = changed_distances[np.isfinite(changed_distances)]
-    change_threshold = float(changed_distances.min()) if changed_distances.size else None
-    boxes = region_boxes(regions, origin)
-    if min_region_points is None:  # the localiser's default for clouds of these sizes
-        min_region_points = max(
-            MIN_REGION_POINTS_FLOOR,
-            round(
-                MIN_REGION_POINTS_PER_SQRT * math.sqrt(min(len(reference_points), len(scan_points)))
-            ),
-        )
-    pools = {
-        side: candidate_pool(
-            side, clouds[side], labels[side], distances[side], origin, change_threshold
-        )
-        for side in SIDES
-    }
-    return SceneData(
-        origin=origin,
-        layers=tuple(layers),
-        regions=boxes,
-        bounds_min=bounds_min,
-        bounds_max=bounds_max,
-        point_size=point_size,
-        point_budget=int(point_budget),
-        summary=dict(summary or {}),
-        sides=sides,
-        pools=pools,
-        sensors=sensor_markers(sensor_origins or {}, matrix, origin),
-        trajectories=trajectory_paths(sensor_origins or {}, matrix, origin),
-        warnings=tuple(
-            {"code": str(item.get("code", "")), "message": str(item.get("message", ""))}
-            for item in warnings
-            if isinstance(item, Mapping)
-        ),
-        change_threshold=change_threshold,
-        min_region_points=max(int(min_region_points), 1),
-    )
+    return float(changed_distances.min()) if changed_distances.size else None
 
 
 def _subsample_parts(
