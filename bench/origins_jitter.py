@@ -89,8 +89,8 @@ def describe(points: NDArray[np.float64], truth: NDArray[np.float64]) -> str:
     rings = fit_ring_height(walls, columns.centre, rng)
     from_truth = fit_ring_height(walls, truth[:2], np.random.default_rng(0))
     first = min(
-        estimate._ramp(columns.concurring_share, estimate.CONCURRING_RANGE),
-        estimate._ramp(rings.ring_share, estimate.RING_SHARE_RANGE),
+        estimate.confidence_ramp(columns.concurring_share, estimate.CONCURRING_RANGE),
+        estimate.confidence_ramp(rings.ring_share, estimate.RING_SHARE_RANGE),
     )
     started = time.process_time()
     found = estimate.estimate_origin(points)
