@@ -1,4 +1,4 @@
-"""What aligning a scan works out from the reference alone, kept in its geometry cache file.
+"""The reference's alignment arrays stored in its geometry cache file, between comparisons.
 
 :func:`~app.core.registration.register_scan` spends about half its time on the reference (1M
 points: its point spacing, a KD-tree build of 0.3 s; its voxel-grid centroids; their coarse and
@@ -9,8 +9,7 @@ facts* of the reference's :class:`~app.core.cache.geometry.GeometryCache` file (
 its size, and go with it), each under a key made of the file's key (reference, code,
 localisation parameters), the text of the registration code, small_gicp's version, what the
 array is and the parameters it was computed with.  An array for another key, or whose checksum
-does not match, is
-not used: it is computed again and written back.
+does not match, is not used: it is computed again and written back.
 """
 
 from __future__ import annotations
