@@ -21,6 +21,7 @@ chunk at a time. Rows (``SideCloud.indices``, ``CandidatePool.indices``) are fil
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager
@@ -51,7 +52,6 @@ from app.viewer.scene import (
 from app.viewer.scene_parts import (
     MAX_POOL_POINTS,
     POOL_FLOOR_FRACTION,
-    SIDES,
     CandidatePool,
     SideCloud,
     local_spacing,
@@ -98,6 +98,7 @@ class SceneContext:
 
     transform: NDArray[np.float64]
     regions: Sequence[Mapping[str, Any]] = ()
+    uncertain_regions: Sequence[Mapping[str, Any]] = ()
     summary: Mapping[str, Any] | None = None
     sensor_origins: Mapping[str, Any] | None = None
     warnings: Sequence[Mapping[str, Any]] = ()
@@ -310,14 +311,7 @@ def box_scene(
                 "(changed points first); clip to a smaller box for full density",
             }
         )
-    scene_context = SceneContext(
-        context.transform,
-        context.regions,
-        context.summary,
-        context.sensor_origins,
-        warnings,
-        context.min_region_points,
-    )
+    scene_context = dataclasses.replace(context, warnings=warnings)
     sizes = {side: len(stored.labels) for side, stored in sides.items()}
     return assemble_scene(
         gathered, _layer_totals(totals), threshold, scene_context, point_budget, sizes, origin
@@ -473,49 +467,16 @@ def assemble_scene(
 
     ``origin``: the local origin (default: the drawn reference points' rounded centre).
     ``side_sizes`` are the rows of each side's file (the default minimum region size follows
-    them). Non-finite rows (dropped by the readers, labelled unobserved) are left out. The candidate
-    pools' spacing is measured among the points read (the pool at full density, the rest at
-    the drawn density).
+    them). Non-finite rows (dropped by the readers, labelled unobserved) are left out. The
+    candidate pools' spacing is measured among the points read (the pool at full density, the
+    rest at the drawn density).
     """
-    for side in SIDES:
-        part = gathered[side]
-        finite = np.isfinite(part.points).all(axis=1)
-        if not finite.all():
-            gathered = {
-                **gathered,
-                side: Gathered(
-                    part.rows[finite],
-                    part.points[finite],
-                    part.labels[finite],
-                    part.distances[finite],
-                    part.shown[finite],
-                    part.pool[finite],
-                ),
-            }
+    gathered = {side: _finite_only(part) for side, part in gathered.items()}
     reference, scan = gathered["reference"], gathered["scan"]
     if origin is None:
         drawn_reference = reference.points[reference.shown]
         origin = local_origin(drawn_reference if len(drawn_reference) else scan.points)
-    layers = []
-    for style in LAYER_STYLES:
-        parts = [
-            part.points[part.shown & (part.labels == label)]
-            for (side, label), name in LAYER_OF.items()
-            if name == style.name
-            for part in (gathered[side],)
-        ]
-        points = np.concatenate(parts) if parts else np.zeros((0, 3))
-        layers.append(
-            Layer(
-                name=style.name,
-                title=style.title,
-                color=style.color,
-                visible=style.visible,
-                description=style.description,
-                points=np.ascontiguousarray(points - origin, dtype=np.float32),
-                n_total=int(layer_totals[style.name]),
-            )
-        )
+    layers = _layers(gathered, layer_totals, origin)
     sides = {
         side: SideCloud(
             side=side,
@@ -526,26 +487,7 @@ def assemble_scene(
         )
         for side, part in gathered.items()
     }
-    floor = POOL_FLOOR_FRACTION * change_threshold if change_threshold else 0.0
-    pools = {
-        side: CandidatePool(
-            side=side,
-            floor=float(floor),
-            points=part.points[part.pool] - origin,
-            distances=part.distances[part.pool],
-            indices=part.rows[part.pool],
-            changed=part.labels[part.pool] == LABEL_CHANGED,
-            spacing=local_spacing(part.points, np.flatnonzero(part.pool)),
-        )
-        for side, part in gathered.items()
-    }
-    drawn = [layer.points for layer in layers if layer.n_shown]
-    if drawn:
-        bounds_min, bounds_max = np.percentile(np.concatenate(drawn), [1.0, 99.0], axis=0)
-    else:
-        bounds_min = bounds_max = np.zeros(3)
-    extent = float(np.linalg.norm(bounds_max - bounds_min))
-    point_size = estimate_point_size(np.concatenate(drawn), extent) if drawn else 0.05
+    bounds_min, bounds_max, point_size = _bounds_and_point_size(layers)
     min_region_points = context.min_region_points
     if min_region_points is None:  # the localiser's default for clouds of these sizes
         smaller = min(side_sizes.values())
@@ -563,9 +505,10 @@ def assemble_scene(
         point_budget=int(point_budget),
         summary=dict(context.summary or {}),
         sides=sides,
-        pools=pools,
+        pools=_pools(gathered, change_threshold, origin),
         sensors=sensor_markers(sensor_origins, context.transform, origin),
         trajectories=trajectory_paths(sensor_origins, context.transform, origin),
+        uncertain=region_boxes(context.uncertain_regions, origin),
         warnings=tuple(
             {"code": str(item.get("code", "")), "message": str(item.get("message", ""))}
             for item in context.warnings
@@ -574,3 +517,75 @@ def assemble_scene(
         change_threshold=change_threshold,
         min_region_points=max(int(min_region_points), 1),
     )
+
+
+def _finite_only(part: Gathered) -> Gathered:
+    """``part`` without its non-finite rows (the file's NaN rows, labelled unobserved)."""
+    finite = np.isfinite(part.points).all(axis=1)
+    if finite.all():
+        return part
+    return Gathered(
+        part.rows[finite],
+        part.points[finite],
+        part.labels[finite],
+        part.distances[finite],
+        part.shown[finite],
+        part.pool[finite],
+    )
+
+
+def _layers(
+    gathered: Mapping[str, Gathered], layer_totals: Mapping[str, int], origin: NDArray[np.float64]
+) -> list[Layer]:
+    """The drawn layers (float32, local), with the layers' totals in the whole job or box."""
+    layers = []
+    for style in LAYER_STYLES:
+        parts = [
+            gathered[side].points[gathered[side].shown & (gathered[side].labels == label)]
+            for (side, label), name in LAYER_OF.items()
+            if name == style.name
+        ]
+        points = np.concatenate(parts) if parts else np.zeros((0, 3))
+        layers.append(
+            Layer(
+                name=style.name,
+                title=style.title,
+                color=style.color,
+                visible=style.visible,
+                description=style.description,
+                points=np.ascontiguousarray(points - origin, dtype=np.float32),
+                n_total=int(layer_totals[style.name]),
+            )
+        )
+    return layers
+
+
+def _pools(
+    gathered: Mapping[str, Gathered], change_threshold: float | None, origin: NDArray[np.float64]
+) -> dict[str, CandidatePool]:
+    """Per side, the candidates of live relabelling among the points read."""
+    floor = POOL_FLOOR_FRACTION * change_threshold if change_threshold else 0.0
+    return {
+        side: CandidatePool(
+            side=side,
+            floor=float(floor),
+            points=part.points[part.pool] - origin,
+            distances=part.distances[part.pool],
+            indices=part.rows[part.pool],
+            changed=part.labels[part.pool] == LABEL_CHANGED,
+            spacing=local_spacing(part.points, np.flatnonzero(part.pool)),
+        )
+        for side, part in gathered.items()
+    }
+
+
+def _bounds_and_point_size(layers: Sequence[Layer]) -> tuple[NDArray, NDArray, float]:
+    """The 1st and 99th percentiles of the drawn points (what the camera frames), shape (3,)
+    each, and a point size (as :func:`~app.viewer.scene.build_scene_data` gives them)."""
+    drawn = [layer.points for layer in layers if layer.n_shown]
+    if not drawn:
+        return np.zeros(3), np.zeros(3), 0.05
+    points = np.concatenate(drawn)
+    bounds_min, bounds_max = np.percentile(points, [1.0, 99.0], axis=0)
+    extent = float(np.linalg.norm(bounds_max - bounds_min))
+    return bounds_min, bounds_max, estimate_point_size(points, extent)

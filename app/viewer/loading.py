@@ -20,10 +20,12 @@ from numpy.typing import NDArray
 
 from app.config import Settings
 from app.core.formats import read_point_cloud
-from app.db.models import Job, JobStatus, Region, Scan, Site
+from app.db.models import Job, JobStatus, Scan, Site
 from app.db.session import session_factory
+from app.jobs.results import read_result_files
 from app.kit.data_layout import DETAILS_FILENAME
 from app.kit.scan_files import stored_bag_options
+from app.services.schemas import RegionRead
 from app.viewer.large_scene import SceneContext, StoredSide, box_scene, budget_scene
 from app.viewer.scene import DEFAULT_POINT_BUDGET, SceneData, build_scene_data
 from app.viewer.scene_parts import SIDES
@@ -41,6 +43,28 @@ def job_warnings(job: Any) -> list[dict[str, Any]]:
     """The job's quality warnings, a list of ``{code, message, ...}`` (none before 0008)."""
     value = job.warnings or []
     return [item for item in value if isinstance(item, dict)] if isinstance(value, list) else []
+
+
+def job_uncertain_regions(job: Any) -> list[dict[str, Any]]:
+    """The places the job's other epoch never covered, ``[{kind, n_points, bbox_min, ...}]``
+    (evidence ``no_coverage``; jobs stored before migration 0010 have none)."""
+    value = getattr(job, "uncertain_regions", None) or []
+    return [
+        {**item, "evidence": item.get("evidence") or "no_coverage"}
+        for item in (value if isinstance(value, list) else [])
+        if _is_region(item)
+    ]
+
+
+def _is_region(item: Any) -> bool:
+    """Whether ``item`` is a region the view can draw: a kind, a point count, a finite box."""
+    if not isinstance(item, dict) or not isinstance(item.get("n_points"), int):
+        return False
+    try:
+        corners = np.asarray([item["bbox_min"], item["bbox_max"]], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        return False
+    return corners.shape == (2, 3) and bool(np.isfinite(corners).all()) and "kind" in item
 
 
 def job_min_region_points(job: Any) -> int | None:
@@ -141,7 +165,8 @@ def stored_job(settings: Settings, job_id: str) -> StoredJob:
             labels_path=job_labels_path(settings, job),
             context=SceneContext(
                 transform=np.eye(4) if transform is None else np.asarray(transform, np.float64),
-                regions=[_region_dict(region) for region in job.regions],
+                regions=[RegionRead.from_model(region).model_dump() for region in job.regions],
+                uncertain_regions=job_uncertain_regions(job),
                 summary={
                     "score": job.score,
                     "threshold": job.threshold,
@@ -194,17 +219,15 @@ def load_job_scene(
         return budget_scene(_stored_sides(job, labels), job.context, point_budget), job.title
     reference_cloud = read_point_cloud(job.paths[0], bag_options=stored_bag_options(job.paths[0]))
     scan_cloud = read_point_cloud(job.paths[1], bag_options=stored_bag_options(job.paths[1]))
-    reference_labels = reference_cloud.from_source_order(labels["reference"])
-    scan_labels = scan_cloud.from_source_order(labels["scan"])
+    stored = read_result_files(job.labels_path)
+    reference_labels = reference_cloud.from_source_order(stored.reference_label)
+    scan_labels = scan_cloud.from_source_order(stored.scan_label)
     distances: dict[str, Any] = {}
-    if job.details_path.is_file():  # jobs from before details.npz have labels only
-        with np.load(job.details_path) as details:
-            distances = {
-                "reference_distances": reference_cloud.from_source_order(
-                    details["reference_distance"]
-                ),
-                "scan_distances": scan_cloud.from_source_order(details["scan_distance"]),
-            }
+    if stored.reference_distance is not None and stored.scan_distance is not None:
+        distances = {  # jobs from before details.npz have labels only
+            "reference_distances": reference_cloud.from_source_order(stored.reference_distance),
+            "scan_distances": scan_cloud.from_source_order(stored.scan_distance),
+        }
     context = job.context
     data = build_scene_data(
         reference_cloud.points,
@@ -213,6 +236,7 @@ def load_job_scene(
         scan_labels=scan_labels,
         transform=context.transform,
         regions=context.regions,
+        uncertain_regions=context.uncertain_regions,
         point_budget=point_budget,
         summary=context.summary,
         sensor_origins=context.sensor_origins,
@@ -257,20 +281,4 @@ def _stored_sides(job: StoredJob, labels: dict[str, NDArray[np.int8]]) -> dict[s
     return {
         side: StoredSide(path, labels[side], distances[side], stored_bag_options(path))
         for side, path in zip(SIDES, job.paths, strict=True)
-    }
-
-
-def _region_dict(region: Region) -> dict[str, Any]:
-    """A region row as the API shows it."""
-    return {
-        "id": region.id,
-        "kind": region.kind,
-        "n_points": region.n_points,
-        "centroid": region.centroid,
-        "bbox_min": region.bbox_min,
-        "bbox_max": region.bbox_max,
-        "mean_distance": region.mean_distance,
-        "max_distance": region.max_distance,
-        "evidence": region.evidence,
-        "confidence": region.confidence,
     }

@@ -5,14 +5,16 @@ An E57 file holds one or more scans (``data3D`` entries), each in its own frame 
 every scan's points in the file's frame, one cloud, with
 
 - ``station_index`` (int32): which scan took each point (see
-  :data:`app.core.localise.stations.STATION_INDEX_ATTRIBUTE`), and
+  :data:`app.core.localise.station_assignment.STATION_INDEX_ATTRIBUTE`), and
 - ``sensor_origin``: each scan's origin in the file's frame, the translation of its pose
   (shape (3,) for one scan, (k, 3) for k scans; a scan without a pose stands at 0, 0, 0).
 
 Cartesian and spherical coordinates are read; points flagged invalid are skipped; ``intensity``
-is kept when every scan has it. Scans without points are left out (and their origins with
-them). libE57Format reads from a file path: content given as bytes is written to a temporary
-file first.
+is kept when every scan has it, and so are per-point times (``timeStamp``, seconds, float64: a
+moving sensor's trajectory places each point by them, :mod:`app.core.trajectory_poses`) when
+every scan has them and none is flagged invalid (``isTimeStampInvalid``). Scans without points
+are left out (and their origins with them). libE57Format reads from a file path: content given
+as bytes is written to a temporary file first.
 """
 
 from __future__ import annotations
@@ -37,6 +39,10 @@ SCAN_CHUNK_POINTS = 1 << 18
 
 CARTESIAN_FIELDS = ("cartesianX", "cartesianY", "cartesianZ")
 SPHERICAL_FIELDS = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
+TIME_FIELD = "timeStamp"
+TIME_INVALID_FIELD = "isTimeStampInvalid"
+
+Coordinates = NDArray[np.float64]
 
 
 def read_e57(source: Source, max_points: int | None) -> RawCloud:
@@ -46,7 +52,8 @@ def read_e57(source: Source, max_points: int | None) -> RawCloud:
     -------
     RawCloud
         ``points`` (n, 3) float64 in the file's frame; ``attributes["station_index"]`` (n,)
-        int32; ``attributes["intensity"]`` (n,) when every scan has it; ``sensor_origin``
+        int32; ``attributes["intensity"]`` (n,) and ``attributes["timeStamp"]`` (n,) float64
+        when every scan has them; ``sensor_origin``
         (3,) for one scan or (k, 3) for k scans with points.
 
     Raises
@@ -77,14 +84,18 @@ def read_e57(source: Source, max_points: int | None) -> RawCloud:
 def _read_scans(reader, max_points: int | None) -> RawCloud:  # reader: pye57.E57
     headers, counts, fields = _checked_headers(reader, max_points)
     with_intensity = all("intensity" in present for present in fields)
+    with_times = all(TIME_FIELD in present for present in fields)
     # A chunk of one scan at a time, copied into its place in the output: no scan is ever held
     # whole beside the output.
     points = np.empty((sum(counts), 3), dtype=np.float64)
     intensity: NDArray | None = None
     station = np.empty(sum(counts), dtype=np.int32)
+    times = np.empty(sum(counts)) if with_times else None
     origins: list[NDArray[np.float64]] = []
     n_filled = 0
-    for xyz, values, origin, first in _scans(reader, headers, counts, with_intensity):
+    for xyz, values, scan_times, origin, first in _scans(
+        reader, headers, counts, with_intensity, with_times
+    ):
         if n_filled + len(xyz) > len(points):
             raise PointCloudError(
                 f"malformed E57 file: its scans hold more points than their headers declare "
@@ -99,6 +110,10 @@ def _read_scans(reader, max_points: int | None) -> RawCloud:  # reader: pye57.E5
             if intensity is None:
                 intensity = np.empty(len(points), dtype=values.dtype)
             intensity[rows] = values
+        if times is not None and scan_times is not None:
+            times[rows] = scan_times
+        else:  # a kept point's time is flagged invalid: no times at all
+            times = None
         n_filled += len(xyz)
     if not origins:
         raise PointCloudError(
@@ -108,6 +123,8 @@ def _read_scans(reader, max_points: int | None) -> RawCloud:  # reader: pye57.E5
     attributes: dict[str, NDArray] = {"station_index": _kept(station, n_filled)}
     if intensity is not None:
         attributes["intensity"] = _kept(intensity, n_filled)
+    if times is not None:
+        attributes[TIME_FIELD] = _kept(times, n_filled)
     origin_array = np.vstack(origins)
     return RawCloud(
         _kept(points, n_filled),
@@ -164,7 +181,9 @@ def scan_blocks(
         raise PointCloudError(f"unreadable E57 file: {_reason(exc)}") from exc
     try:
         headers, counts, _ = _checked_headers(reader, max_points)
-        for xyz, _intensity, origin, _first in _scans(reader, headers, counts, False):
+        for xyz, _intensity, _times, origin, _first in _scans(
+            reader, headers, counts, False, False
+        ):
             yield xyz, origin
     finally:
         reader.close()
@@ -186,8 +205,8 @@ def declared_point_count(path: str | Path) -> int:
 
 
 def _scans(
-    reader, headers: list, counts: list[int], with_intensity: bool
-) -> Iterator[tuple[NDArray[np.float64], NDArray | None, NDArray[np.float64], bool]]:
+    reader, headers: list, counts: list[int], with_intensity: bool, with_times: bool
+) -> Iterator[tuple[Coordinates, NDArray | None, Coordinates | None, Coordinates, bool]]:
     """The valid points of every scan, :data:`SCAN_CHUNK_POINTS` at a time, in the file's frame.
 
     Yields
@@ -195,6 +214,9 @@ def _scans(
     points : ndarray, shape (k, 3), float64, k > 0
     intensity : ndarray, shape (k,), or None
         Without ``with_intensity``: None.
+    times : ndarray, shape (k,), float64, or None
+        The points' ``timeStamp``; None without ``with_times`` or when one of them is flagged
+        invalid (``isTimeStampInvalid``).
     origin : ndarray, shape (3,)
         The scan's origin.
     first : bool
@@ -207,9 +229,10 @@ def _scans(
         try:
             origin = _scan_origin(header)
             first = True
-            for xyz, intensity in _scan_chunks(reader, header, counts[index], with_intensity):
+            chunks = _scan_chunks(reader, header, counts[index], with_intensity, with_times)
+            for xyz, intensity, times in chunks:
                 if len(xyz):
-                    yield xyz, intensity, origin, first
+                    yield xyz, intensity, times, origin, first
                     first = False
         except PointCloudError:
             raise
@@ -218,12 +241,15 @@ def _scans(
 
 
 def _scan_chunks(
-    reader, header, n_points: int, with_intensity: bool
-) -> Iterator[tuple[NDArray[np.float64], NDArray | None]]:
-    """One scan's valid points (and intensity) a chunk at a time, as ``pye57.E57.read_scan``
-    gives them whole: invalid points dropped, spherical coordinates converted, the pose
-    applied."""
+    reader, header, n_points: int, with_intensity: bool, with_times: bool
+) -> Iterator[tuple[NDArray[np.float64], NDArray | None, NDArray[np.float64] | None]]:
+    """One scan's valid points (with intensity and times) a chunk at a time, as
+    ``pye57.E57.read_scan`` gives them whole: invalid points dropped, spherical coordinates
+    converted, the pose applied. ``read_scan`` does not read ``timeStamp``: libE57Format's own
+    buffers read every field here, the times with them (None for a chunk where a kept point's
+    time is flagged invalid)."""
     import pye57
+    from pye57 import libe57
 
     systems = pye57.e57.COORDINATE_SYSTEMS
     spherical = header.get_coordinate_system(systems) is systems.SPHERICAL
@@ -231,8 +257,17 @@ def _scan_chunks(
     invalid_name = "sphericalInvalidState" if spherical else "cartesianInvalidState"
     present = set(header.point_fields)
     fields = [*names, *(["intensity"] if with_intensity else [])]
-    fields += [invalid_name] if invalid_name in present else []
-    data, buffers = reader.make_buffers(fields, max(1, min(SCAN_CHUNK_POINTS, n_points)))
+    fields += [name for name in (invalid_name,) if name in present]
+    if with_times:
+        fields += [name for name in (TIME_FIELD, TIME_INVALID_FIELD) if name in present]
+    capacity = max(1, min(SCAN_CHUNK_POINTS, n_points))
+    types = {**pye57.e57.SUPPORTED_POINT_FIELDS, TIME_FIELD: "d", TIME_INVALID_FIELD: "b"}
+    data = {name: np.empty(capacity, dtype=types[name]) for name in fields}
+    buffers = libe57.VectorSourceDestBuffer()
+    for name in fields:
+        buffers.append(
+            libe57.SourceDestBuffer(reader.image_file, name, data[name], capacity, True, True)
+        )
     vector_reader = header.points.reader(buffers)
     try:
         while (count := int(vector_reader.read())) > 0:
@@ -247,7 +282,14 @@ def _scan_chunks(
             if header.has_pose():
                 xyz = reader.to_global(xyz, header.rotation, header.translation)
             intensity = data["intensity"][:count][valid] if with_intensity else None
-            yield np.asarray(xyz, dtype=np.float64), intensity
+            times = None
+            if with_times:
+                flagged = (
+                    TIME_INVALID_FIELD in data
+                    and (data[TIME_INVALID_FIELD][:count][valid] != 0).any()
+                )
+                times = None if flagged else data[TIME_FIELD][:count][valid].copy()
+            yield np.asarray(xyz, dtype=np.float64), intensity, times
     finally:
         vector_reader.close()
 
