@@ -25,6 +25,7 @@ import pytest
 from app.core.formats import e57 as e57_module
 from app.core.formats import read_point_cloud
 from app.core.formats.streamed import open_point_blocks, read_points_float32
+from tests.helpers.e57_times import e57_with_times_bytes
 from tests.helpers.files import e57_bytes, las_bytes, npy_bytes, ply_bytes, text_bytes
 from tests.helpers.scenes import random_points
 
@@ -190,3 +191,15 @@ def test_e57_chunks_give_the_scans_pye57_reads_whole(tmp_path, monkeypatch):
         np.repeat(np.arange(len(scans)), [len(scan["intensity"]) for scan in whole]),
     )
     np.testing.assert_array_equal(chunked.sensor_origin, [pose[1] for pose in poses])
+
+
+def test_e57_times_come_through_the_chunks(tmp_path, monkeypatch):
+    points = random_points(500, seed=8)
+    times = np.linspace(100.0, 101.0, 500)
+    path = _write(tmp_path, "timed.e57", e57_with_times_bytes(points, times))
+    flagged = np.zeros(500, dtype=bool)
+    flagged[433] = True  # one chunk of 17 among 30: the whole cloud then has no times
+    flagged_path = _write(tmp_path, "flagged.e57", e57_with_times_bytes(points, times, flagged))
+    monkeypatch.setattr(e57_module, "SCAN_CHUNK_POINTS", 17)
+    np.testing.assert_array_equal(read_point_cloud(path).attributes["timeStamp"], times)
+    assert "timeStamp" not in read_point_cloud(flagged_path).attributes
