@@ -249,8 +249,12 @@ def _button_uuid(messages: list[dict], label: str) -> str | None:
 
 
 def _drawn(viewer) -> tuple[int, dict]:
-    """Points drawn over the layers for the one browser, and its record."""
-    (client,) = viewer.to_json_dict()["clients"]
+    """Points drawn over the layers for the one browser, and its record (0 and an empty
+    record until the viewer has recorded the browser, once its scene is built)."""
+    clients = viewer.to_json_dict()["clients"]
+    if not clients:
+        return 0, {}
+    (client,) = clients
     return sum(layer["n_points"] for layer in client["layers"].values()), client
 
 
