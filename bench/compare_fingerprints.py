@@ -37,13 +37,13 @@ from typing import Any
 
 import numpy as np
 
+from app.core.cache.geometry import GeometryCache, cache_key
 from app.core.cloud import PointCloud
+from app.core.datasets.lidar import lidar_pair
+from app.core.datasets.maps import map_pair
+from app.core.datasets.scenes import raycast_scene
 from app.core.formats import read_point_cloud, write_point_cloud
-from app.core.geometry_cache import GeometryCache, cache_key
 from app.core.pipeline import compare
-from app.core.synthetic import raycast_scene
-from app.core.synthetic_lidar import lidar_pair
-from app.core.synthetic_maps import map_pair
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 REAL_DATA = Path(os.environ.get("SCANDIFF_SHARED_DATA", PROJECT_ROOT.parent / "shared" / "data"))

@@ -30,6 +30,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
+from app.core.cache.geometry import GeometryCache
 from app.core.cloud import PointCloud
 from app.core.comparison.align import Alignment, align_scan
 from app.core.comparison.assemble import assemble_result
@@ -50,7 +51,6 @@ from app.core.comparison.origins import (
 )
 from app.core.comparison.result import ComparisonResult, RegionSummary
 from app.core.comparison_settings import parse_comparison_params
-from app.core.geometry_cache import GeometryCache
 from app.core.localise import Localisation
 
 __all__ = [
@@ -116,7 +116,7 @@ def compare(
         origin from the points, :mod:`app.core.origins.resolve`) and ``"recover_stations"``
         (``"auto"``, default: a cloud left without an origin whose sampling is a lidar's,
         :func:`app.core.origins.sampling.lidar_sampling`, gets its stations recovered,
-        :func:`app.core.origins.stations.recover_stations`, a second or two per cloud; when
+        :func:`app.core.origins.station_recovery.recover_stations`, a second or two per cloud; when
         none are, it is a merged lidar cloud with unknown stations and the other cloud's
         candidates get the origin-free surface test; ``true``: recover whatever the sampling;
         ``false``: never).
@@ -133,9 +133,9 @@ def compare(
         this method and variant.  Its provenance is in ``calibration["site"]`` either way.
     geometry_cache : GeometryCache, optional
         Where the reference's k-NN geometry, resolved origin and alignment arrays are kept
-        between comparisons (read when valid, written otherwise, :mod:`app.core.geometry_cache`,
-        :mod:`app.core.reference_origin`, :mod:`app.core.reference_alignment`).  Results do
-        not depend on it.
+        between comparisons (read when valid, written otherwise, :mod:`app.core.cache.geometry`,
+        :mod:`app.core.cache.reference_origin`, :mod:`app.core.cache.reference_alignment`).
+        Results do not depend on it.
 
     Returns
     -------

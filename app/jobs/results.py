@@ -27,9 +27,9 @@ from app.core.files import TEMP_MARKER, write_atomically
 from app.core.jsonable import json_safe
 from app.db.models import Job, JobStatus, Region
 from app.db.session import transaction
-from app.jobs.alerts import publish_job_finished
+from app.jobs.alerts.events import publish_job_finished
+from app.jobs.alerts.site_history import region_count_warning
 from app.jobs.leases import ClaimedJob, held_by
-from app.jobs.site_history import region_count_warning
 from app.kit.data_layout import DETAILS_FILENAME, LABELS_FILENAME
 
 if TYPE_CHECKING:  # not imported: the API process imports this package, not the pipeline

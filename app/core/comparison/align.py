@@ -8,9 +8,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from app.core.cache.reference_alignment import ReferenceAlignmentCache
 from app.core.comparison.load import LoadedPair
 from app.core.comparison.reports import RegistrationReport
-from app.core.reference_alignment import ReferenceAlignmentCache
 from app.core.registration import (
     Registration,
     apply_transform,

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 
-from app.core.geometry_cache import GeometryCache, reference_neighbourhoods
+from app.core.cache.geometry import GeometryCache, reference_neighbourhoods
 from app.core.localise import (
     EpochCloud,
     Localisation,

@@ -5,10 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from app.core.cache.geometry import GeometryCache
+from app.core.cache.reference_alignment import ReferenceAlignmentCache
+from app.core.cache.reference_origin import ReferenceOriginCache
 from app.core.comparison.load import LoadedPair
-from app.core.geometry_cache import GeometryCache
-from app.core.reference_alignment import ReferenceAlignmentCache
-from app.core.reference_origin import ReferenceOriginCache
 
 
 @dataclass(frozen=True)

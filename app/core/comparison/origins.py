@@ -19,7 +19,7 @@ from app.core.localise import EpochCloud, Neighbourhoods, NeighbourhoodSearch
 from app.core.origins.known_stations import origins_in_local_frame
 from app.core.origins.own_frame import resolve_moved_cloud
 from app.core.origins.resolve import ResolvedOrigin
-from app.core.origins.stations import resolve_stations
+from app.core.origins.station_recovery import resolve_stations
 from app.core.origins.trajectory_origin import station_index, trajectory_origin, trajectory_rays
 from app.core.registration import apply_transform
 

@@ -11,7 +11,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from app.core.localise.neighbourhoods import Neighbourhoods, NeighbourhoodSearch
 from app.core.localise.settings import as_station_index
-from app.core.localise.stations import assign_stations
+from app.core.localise.station_assignment import assign_stations
 
 
 @dataclass(frozen=True)
@@ -29,7 +29,7 @@ class EpochCloud:
     station : array_like, shape (n,), int, optional
         Index into ``origin`` of the station that took each point.  Without it a cloud with
         several origins has its points assigned to stations
-        (:func:`~app.core.localise.stations.assign_stations`).
+        (:func:`~app.core.localise.station_assignment.assign_stations`).
     stations_unknown : bool
         The cloud was sampled by lidars from several stations that are not known (nor
         recovered): the other cloud's candidates get the origin-free surface test
