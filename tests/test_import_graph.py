@@ -46,8 +46,6 @@ MAX_FUNCTION_LINES = 80
 
 LONG_FUNCTIONS_ALLOWED = frozenset(
     {
-        "app.core.pipeline.compare",
-        "app.core.localise.changes.localise_changes",
         "app.core.localise.map_evidence.map_test",
     }
 )

@@ -73,7 +73,7 @@ def test_importing_the_core_loads_no_web_or_database_module():
 
 LOCALISE_LAYERS = (
     "settings",
-    "stations",
+    "station_assignment",
     "neighbourhoods",
     "epoch",
     "surface",
