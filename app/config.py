@@ -85,6 +85,14 @@ class Settings(BaseSettings):
         "machine's memory and the number of workers where the consumer starts), bytes, or "
         "0 / 'none' for no cap.",
     )
+    tile_crop_points: int | None = Field(
+        default=None,
+        ge=1000,
+        description="Compare every job in tiles of at most this many points (both clouds, "
+        "margins included), fanned out on the queue, whatever the memory budget says; None = "
+        "tiles only for a pair that does not fit a worker's memory budget.  For tests and "
+        "for spreading mid-sized jobs over idle workers.",
+    )
     job_threads: int | None = Field(
         default=None,
         ge=1,

@@ -21,7 +21,7 @@ differences that bound memory:
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -57,7 +57,7 @@ from app.core.tiling.plan import (
     crop_point_limit,
     plan_tiles,
 )
-from app.core.tiling.tile import TileContext, TileSource, compute_tile
+from app.core.tiling.tile import TileContext, TileResult, TileSource, compute_tile
 
 __all__ = ["DETECTION_SAMPLE", "REGISTRATION_SAMPLE", "compare_tiled", "fits_budget"]
 
@@ -99,6 +99,7 @@ def compare_tiled(
     max_crop_points: int | None = None,
     margin: float = DEFAULT_MARGIN_METRES,
     ray_reach: float = DEFAULT_RAY_REACH_METRES,
+    run_tiles: TileRunner | None = None,
 ) -> ComparisonResult:
     """:func:`app.core.pipeline.compare` localised tile by tile within ``budget_bytes``.
 
@@ -117,6 +118,10 @@ def compare_tiled(
     ray_reach : float
         Metres beyond a crop that the other sensor's returns through it are kept
         (:class:`~app.core.tiling.tile.TileContext`).
+    run_tiles : callable, optional
+        ``run_tiles(plan, source, context, threads, report) -> list[TileResult]`` (in tile
+        order): who computes the tiles.  Default: each in turn in this process; a job
+        worker passes one that fans them out on the queue (:mod:`app.jobs.tiles`).
 
     Returns
     -------
@@ -250,7 +255,14 @@ def compare_tiled(
         budget_bytes=budget_bytes,
     )
     timings["plan"] = time.perf_counter() - started
-    localisation = _localise_tiles(plan, source, context, threads, report)
+    results = (run_tiles or compute_tiles_here)(plan, source, context, threads, report)
+    localisation = merge_tiles(
+        plan,
+        results,
+        len(source.reference_points),
+        len(source.scan_points),
+        context.min_region_points,
+    )
     timings["localise"] = time.perf_counter() - started
 
     report("detect", 0.85)
@@ -336,25 +348,23 @@ def _origins(resolved: ResolvedOrigin) -> NDArray[np.float64] | None:
     return None if resolved.origin is None else np.atleast_2d(resolved.origin).astype(np.float64)
 
 
-def _localise_tiles(
+TileRunner = Callable[[TilePlan, TileSource, TileContext, int, ProgressCallback], list[TileResult]]
+"""Who computes a plan's tiles: ``run_tiles(plan, source, context, threads, report)``."""
+
+
+def compute_tiles_here(
     plan: TilePlan,
     source: TileSource,
     context: TileContext,
     threads: int,
     report: ProgressCallback,
-) -> Localisation:
-    """Every tile in turn, then the merge."""
+) -> list[TileResult]:
+    """Every tile in turn in this process (the default :data:`TileRunner`)."""
     results = []
     for tile_index in range(plan.n_tiles):
         results.append(compute_tile(plan, tile_index, source, context, threads=threads))
         report("localise", 0.35 + 0.5 * (tile_index + 1) / plan.n_tiles)
-    return merge_tiles(
-        plan,
-        results,
-        len(source.reference_points),
-        len(source.scan_points),
-        context.min_region_points,
-    )
+    return results
 
 
 def _detect(
