@@ -108,11 +108,16 @@ def compute(
     load_seconds = time.perf_counter() - started
     keeper.report("comparing", PROGRESS_LOADED)
     cache = geometry_cache_of(job)
-    if job_hooks.compare is None and tiles_needed(settings, len(reference), len(scan)):
-        compare, cache = tiled_comparison(job, settings, keeper), None
+    options: dict[str, Any] = {}
+    if job_hooks.compare is None:  # the real comparison, within the worker's memory budget
+        if tiles_needed(settings, len(reference), len(scan)):
+            compare, cache = tiled_comparison(job, settings, keeper), None  # on every worker
+        else:
+            options["budget_bytes"] = settings.worker_memory_budget_bytes
     result = compare(
         reference,
         scan,
+        **options,
         method=job.method,
         variant=job.variant,
         params=job.params,  # replayable: holds align/random_state/stage parameters when given

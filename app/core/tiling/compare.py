@@ -59,7 +59,13 @@ from app.core.tiling.plan import (
 )
 from app.core.tiling.tile import TileContext, TileResult, TileSource, compute_tile
 
-__all__ = ["DETECTION_SAMPLE", "REGISTRATION_SAMPLE", "compare_tiled", "fits_budget"]
+__all__ = [
+    "DETECTION_SAMPLE",
+    "REGISTRATION_SAMPLE",
+    "compare_tiled",
+    "compare_within_budget",
+    "fits_budget",
+]
 
 REGISTRATION_SAMPLE = 2_000_000
 DETECTION_SAMPLE = 2_000_000
@@ -395,3 +401,38 @@ def _detect(
     if sampled:
         compared += f" (a random {DETECTION_SAMPLE:,} of each cloud at most)"
     return detection, compared
+
+
+def compare_within_budget(
+    reference: PointCloud,
+    scan: PointCloud,
+    *,
+    budget_bytes: int | None,
+    **options: Any,
+) -> ComparisonResult:
+    """:func:`app.core.pipeline.compare` when the pair fits ``budget_bytes`` (or no budget),
+    else :func:`compare_tiled` (the ``geometry_cache`` option applies to the former only).
+
+    Parameters
+    ----------
+    reference, scan : PointCloud
+    budget_bytes : int or None
+        Memory the comparison may use; None: no limit (always one process).
+    **options
+        Keyword arguments of :func:`app.core.pipeline.compare`.
+
+    Returns
+    -------
+    ComparisonResult
+
+    Raises
+    ------
+    TileBudgetError
+        Not even one tile fits.
+    """
+    from app.core.pipeline import compare
+
+    if budget_bytes is None or fits_budget(len(reference), len(scan), budget_bytes):
+        return compare(reference, scan, **options)
+    options.pop("geometry_cache", None)
+    return compare_tiled(reference, scan, budget_bytes=budget_bytes, **options)
