@@ -141,14 +141,23 @@ def run_service(work: Path, workers: int, crop_points: int, files: tuple[Path, P
 def main(argv: list[str] | None = None) -> int:
     """Print the markdown section of the figures."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--size", type=float, default=1.0, help="map_pair size (scene scale)")
+    parser.add_argument(
+        "--layout", default="warehouse", help="robot map layout (warehouse: widest)"
+    )
+    parser.add_argument("--size", type=float, default=1.0, help="map_pair size (rays cast)")
     parser.add_argument("--crop-share", type=float, default=0.2)
     parser.add_argument("--seed", type=int, default=0)
     arguments = parser.parse_args(argv)
 
     with tempfile.TemporaryDirectory(prefix="tiled-service-") as directory:
         work = Path(directory)
-        pair = map_pair("robot", change="removed", size=arguments.size, random_state=arguments.seed)
+        pair = map_pair(
+            "robot",
+            layout=arguments.layout,
+            change="removed",
+            size=arguments.size,
+            random_state=arguments.seed,
+        )
         files = (work / "reference.ply", work / "scan.ply")
         for path, cloud in zip(files, (pair.reference, pair.scan), strict=True):
             write_point_cloud(path, cloud.points.astype(np.float32))
@@ -164,7 +173,8 @@ def main(argv: list[str] | None = None) -> int:
 
     print(f"## Tiled job through the service ({time.strftime('%Y-%m-%d %H:%M')})\n")
     print(
-        f"Pair: robot map, size {arguments.size}, {total:,} points in both clouds; tiles of at "
+        f"Pair: robot map ({arguments.layout}), size {arguments.size}, {total:,} points in "
+        f"both clouds; tiles of at "
         f"most {crop_points:,} points ({expected.localisation['tiles']['count']} tiles); "
         f"in-process tiled comparison {in_process:.1f} s.\n"
     )
