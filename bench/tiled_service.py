@@ -32,6 +32,7 @@ import numpy as np
 
 from app.core.formats import read_point_cloud, write_point_cloud
 from app.core.synthetic_maps import map_pair
+from app.core.tiling import TileBudgetError
 from app.core.tiling.compare import compare_tiled
 
 TARGET_SPEEDUP = 1.7
@@ -163,11 +164,17 @@ def main(argv: list[str] | None = None) -> int:
             write_point_cloud(path, cloud.points.astype(np.float32))
         clouds = [read_point_cloud(path) for path in files]
         total = sum(len(cloud) for cloud in clouds)
-        crop_points = int(arguments.crop_share * total)
-        started = time.perf_counter()
-        expected = compare_tiled(
-            *clouds, budget_bytes=1 << 40, max_crop_points=crop_points, threads=1
-        )
+        share = arguments.crop_share
+        while True:  # the smallest share from --crop-share whose tiles hold their margins
+            crop_points = int(share * total)
+            started = time.perf_counter()
+            try:
+                expected = compare_tiled(
+                    *clouds, budget_bytes=1 << 40, max_crop_points=crop_points, threads=1
+                )
+                break
+            except TileBudgetError:
+                share += 0.05
         in_process = time.perf_counter() - started
         runs = {workers: run_service(work, workers, crop_points, files) for workers in (1, 2)}
 
