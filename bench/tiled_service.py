@@ -30,8 +30,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from app.core.datasets import map_pair
 from app.core.formats import read_point_cloud, write_point_cloud
-from app.core.synthetic_maps import map_pair
 from app.core.tiling import TileBudgetError
 from app.core.tiling.compare import compare_tiled
 

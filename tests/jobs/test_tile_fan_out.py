@@ -19,8 +19,8 @@ import pytest
 from sqlalchemy import delete, select, update
 
 from app.config import Settings
+from app.core.datasets import map_pair
 from app.core.formats import read_point_cloud
-from app.core.synthetic_maps import map_pair
 from app.core.tiling.compare import compare_tiled
 from app.db.models import Job, JobStatus, JobTile, TileStatus
 from app.db.session import transaction
