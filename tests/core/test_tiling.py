@@ -81,7 +81,7 @@ def test_merged_station_pair_tiled_equals_one_process() -> None:
 def test_moving_sensor_map_tiled_equals_one_process() -> None:
     pair = map_pair("robot", change="mixed", size=0.6, random_state=1)
     assert pair.reference.trajectory is not None
-    one, tiled = _both(pair.reference, pair.scan, 0.8)
+    one, tiled = _both(pair.reference, pair.scan, 0.55)
     _assert_same(one, tiled)
 
 
