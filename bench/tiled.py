@@ -122,8 +122,9 @@ def _floor_worker(spec: dict[str, Any]) -> None:
     scan = read_point_cloud(spec["scan"]).points
     margin = float(spec["margin"])
     seconds = []
-    for low, high in spec["boxes"]:
-        low, high = np.asarray(low) - margin, np.asarray(high) + margin
+    for low, high in spec["boxes"]:  # the outer tiles' infinite sides come as null
+        low = np.array([-np.inf if v is None else v for v in low], dtype=np.float64) - margin
+        high = np.array([np.inf if v is None else v for v in high], dtype=np.float64) + margin
         crops = [
             np.ascontiguousarray(
                 points[np.all((points[:, :2] >= low) & (points[:, :2] <= high), 1)]
@@ -230,6 +231,15 @@ def main() -> None:
     if tiles is None:
         print("the pair fit the budget: one process (give a smaller --memory-budget)")
         return
+    per_tile = tiles["per_tile"]
+    crop_points = sum(t["crop_reference_points"] + t["crop_scan_points"] for t in per_tile)
+    core_points = sum(t["core_reference_points"] + t["core_scan_points"] for t in per_tile)
+    largest = max(t["crop_reference_points"] + t["crop_scan_points"] for t in per_tile)
+    print(
+        f"crops hold {crop_points / core_points:.2f}x the pair's points (margins and rays); "
+        f"largest crop {largest:,}",
+        flush=True,
+    )
     floors = run_tile_floors(paths, tiles)
     print(json.dumps({"tile_floors": floors}), flush=True)
     ratio = tiled["seconds"] / floors["seconds"] if "seconds" in floors else float("nan")
