@@ -35,6 +35,28 @@ def job_warnings(job: Any) -> list[dict[str, Any]]:
     return [item for item in value if isinstance(item, dict)] if isinstance(value, list) else []
 
 
+def job_uncertain_regions(job: Any) -> list[dict[str, Any]]:
+    """The places the job's other epoch never covered, ``[{kind, n_points, bbox_min, ...}]``
+    (evidence ``no_coverage``; jobs stored before migration 0010 have none)."""
+    value = getattr(job, "uncertain_regions", None) or []
+    return [
+        {**item, "evidence": item.get("evidence") or "no_coverage"}
+        for item in (value if isinstance(value, list) else [])
+        if _is_region(item)
+    ]
+
+
+def _is_region(item: Any) -> bool:
+    """Whether ``item`` is a region the view can draw: a kind, a point count, a finite box."""
+    if not isinstance(item, dict) or not isinstance(item.get("n_points"), int):
+        return False
+    try:
+        corners = np.asarray([item["bbox_min"], item["bbox_max"]], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        return False
+    return corners.shape == (2, 3) and bool(np.isfinite(corners).all()) and "kind" in item
+
+
 def job_min_region_points(job: Any) -> int | None:
     """The minimum region size the job asked for, if it set one."""
     params = getattr(job, "effective_params", None) or {}
@@ -105,6 +127,7 @@ def load_job_scene(
         if reference is None or scan is None:
             raise ViewUnavailableError(f"the scans of job {job_id} were deleted", status=410)
         regions = [_region_dict(region) for region in job.regions]
+        uncertain_regions = job_uncertain_regions(job)
         paths = (
             settings.data_layout.resolve(reference.storage_path),
             settings.data_layout.resolve(scan.storage_path),
@@ -155,6 +178,7 @@ def load_job_scene(
         scan_labels=scan_labels,
         transform=transform,
         regions=regions,
+        uncertain_regions=uncertain_regions,
         point_budget=point_budget,
         summary=summary,
         sensor_origins=sensor_origins,

@@ -207,6 +207,8 @@ class SceneData:
     pools: Mapping[str, CandidatePool] = field(default_factory=dict)
     sensors: tuple[SensorMarker, ...] = ()
     trajectories: tuple[TrajectoryPath, ...] = ()
+    uncertain: tuple[RegionBox, ...] = ()
+    """Places the other epoch never covered (evidence ``no_coverage``): drawn, never counted."""
     warnings: tuple[Mapping[str, str], ...] = ()
     change_threshold: float | None = None
     """The smallest distance of a changed point (metres): the job's threshold, from above."""
@@ -279,6 +281,7 @@ class SceneData:
             "total": self.n_total,
             "layers": [layer.to_json_dict() for layer in self.layers],
             "regions": [region.to_json_dict() for region in self.regions],
+            "uncertain_regions": [box.to_json_dict() for box in self.uncertain],
             "summary": dict(self.summary),
             "change_threshold": self.change_threshold,
             "min_region_points": self.min_region_points,
@@ -401,6 +404,7 @@ def build_scene_data(
     scan_distances: NDArray | None = None,
     transform: NDArray | Sequence[Sequence[float]] | None = None,
     regions: Sequence[Mapping[str, Any]] = (),
+    uncertain_regions: Sequence[Mapping[str, Any]] = (),
     point_budget: int = DEFAULT_POINT_BUDGET,
     summary: Mapping[str, Any] | None = None,
     sensor_origins: Mapping[str, Any] | None = None,
@@ -423,6 +427,9 @@ def build_scene_data(
         Registration of the scan onto the reference (file frames); identity when None.
     regions : sequence of mappings
         The job's regions as the API returns them (``kind``, ``n_points``, ``bbox_min`` ...).
+    uncertain_regions : sequence of mappings
+        The job's ``uncertain_regions`` as :func:`app.viewer.loading.job_uncertain_regions`
+        gives them (well-formed, evidence ``no_coverage``): drawn apart, never counted.
     point_budget : int
         Most points drawn over all layers.
     sensor_origins : mapping, optional
@@ -502,6 +509,7 @@ def build_scene_data(
     changed_distances = changed_distances[np.isfinite(changed_distances)]
     change_threshold = float(changed_distances.min()) if changed_distances.size else None
     boxes = region_boxes(regions, origin)
+
     if min_region_points is None:  # the localiser's default for clouds of these sizes
         min_region_points = max(
             MIN_REGION_POINTS_FLOOR,
@@ -528,6 +536,7 @@ def build_scene_data(
         pools=pools,
         sensors=sensor_markers(sensor_origins or {}, matrix, origin),
         trajectories=trajectory_paths(sensor_origins or {}, matrix, origin),
+        uncertain=region_boxes(uncertain_regions, origin),
         warnings=tuple(
             {"code": str(item.get("code", "")), "message": str(item.get("message", ""))}
             for item in warnings

@@ -99,6 +99,19 @@ def test_origin_warnings_unknown_and_contradicted() -> None:
     assert origin_warnings(None) == []  # not reported: nothing to say
 
 
+def test_points_outside_a_trajectorys_time_span_are_warned() -> None:
+    covered = {"source": "trajectory", "poses": 40, "time_span": [10.0, 20.0], "points_outside": 0}
+    partly = {**covered, "points_outside": 1234}
+    assert origin_warnings({"reference": [covered], "scan": [covered, "junk"]}) == []
+
+    (warning,) = origin_warnings({"reference": [covered], "scan": [partly]})
+
+    assert warning["code"] == "trajectory_time_span" and warning["side"] == "scan"
+    assert warning["value"] == 1234 and warning["how_to_fix"]["action"] == "check_trajectory"
+    assert "1,234 of the scan's points have times outside" in warning["message"]
+    assert "10.000..20.000 s" in warning["message"]
+
+
 @pytest.fixture(scope="module")
 def box_pair():
     return raycast_scene(n_points=12_000, change="box", random_state=3)

@@ -118,16 +118,17 @@ def bag_options_from_strings(values: dict[str, str]) -> BagOptions:
             f"unknown bag parameter(s) {', '.join(unknown)}; known: {', '.join(known)}"
         )
     parsed: dict[str, Any] = {k: v for k, v in values.items() if k in known[:3]}
-    try:
-        if "voxel_size" in values:
-            parsed["voxel_size"] = float(values["voxel_size"])
-        if "max_sweeps" in values:
-            parsed["max_sweeps"] = int(values["max_sweeps"])
-    except ValueError as exc:
-        raise PointCloudError(
-            f"bag parameter value is not a number ({exc}): give voxel_size in metres "
-            "(e.g. 0.05) and max_sweeps as a whole number"
-        ) from exc
+    for key, number, what in (
+        ("voxel_size", float, "a number of metres (e.g. 0.05)"),
+        ("max_sweeps", int, "a whole number"),
+    ):
+        if key in values:
+            try:
+                parsed[key] = number(values[key])
+            except ValueError as exc:
+                raise PointCloudError(
+                    f"bag parameter {key} is {values[key]!r}, not a number: give {what}"
+                ) from exc
     return BagOptions(**parsed)
 
 
