@@ -37,6 +37,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("reference", type=Path, help="reference scan file")
     parser.add_argument("scan", type=Path, help="new scan file")
+    _add_detector_and_output_options(parser)
+    _add_sensor_options(parser)
+    _add_file_options(parser)
+    parser.set_defaults(handler=run)
+
+
+def _add_detector_and_output_options(parser: argparse.ArgumentParser) -> None:
+    """The detector, its parameters, and what the command writes."""
     parser.add_argument(
         "--method",
         default="gmm",
@@ -63,6 +71,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         metavar="KEY=JSON",
         help="detector parameter, e.g. --param n_components=8 (repeatable)",
     )
+
+
+def _add_sensor_options(parser: argparse.ArgumentParser) -> None:
+    """Where the sensor was: its frame, its origins (one per station), its trajectories."""
     parser.add_argument(
         "--sensor-frame",
         action="store_true",
@@ -107,6 +119,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
             metavar="HZ",
             help=f"constant rate of the KITTI poses of {flag} (poses a second)",
         )
+
+
+def _add_file_options(parser: argparse.ArgumentParser) -> None:
+    """How the files are read: the reference's geometry cache, a ROS bag's parameters."""
     parser.add_argument(
         "--memory-budget",
         type=_memory_size,
@@ -141,7 +157,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         metavar="KEY=VALUE",
         help="the same for SCAN only, overriding --bag-param (repeatable)",
     )
-    parser.set_defaults(handler=run)
 
 
 def _read_trajectory(args: argparse.Namespace, name: str) -> Trajectory | None:
@@ -397,7 +412,7 @@ def _geometry_cache(directory: Path | None, reference: Path, params: dict[str, A
         return None
     import hashlib
 
-    from app.core.geometry_cache import GeometryCache, cache_key
+    from app.core.cache.geometry import GeometryCache, cache_key
 
     digest = hashlib.sha256()
     with open(reference, "rb") as source:

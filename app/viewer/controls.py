@@ -243,8 +243,10 @@ def _add_clip_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
         clip.value = (low, high)
 
 
-def _add_change_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
-    """Distance threshold, minimum region size and moved-pair distance, relabelling live."""
+def _distance_slider_range(data: SceneData) -> tuple[float, float, float, float]:
+    """The distance slider's low, high, step and start: from the candidates' smallest distance
+    to the 99.5th percentile of their distances, in steps of a tenth of the job's threshold,
+    starting at the threshold (steps of 1 cm from 0 when the job has none)."""
     threshold = data.change_threshold
     floor = min((pool.floor for pool in data.pools.values()), default=0.0)
     far = max(
@@ -255,12 +257,19 @@ def _add_change_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> Non
         ),
         default=0.0,
     )
-    enabled = threshold is not None
     step = _nice(threshold / 10.0) if threshold else 0.01
-    low = float(np.floor(floor / step) * step) if enabled else 0.0
+    low = float(np.floor(floor / step) * step) if threshold is not None else 0.0
     high = max(float(np.ceil(far / step) * step), low + 10 * step)
+    start = float(np.clip(round((threshold or low) / step) * step, low, high))
+    return low, high, step, start
+
+
+def _add_change_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
+    """Distance threshold, minimum region size and moved-pair distance, relabelling live."""
+    threshold = data.change_threshold
+    enabled = threshold is not None
+    low, high, step, start_distance = _distance_slider_range(data)
     lock = threading.Lock()
-    start_distance = float(np.clip(round((threshold or low) / step) * step, low, high))
     with gui.add_folder("Change"):
         distance = gui.add_slider(
             "Min. distance (m)",

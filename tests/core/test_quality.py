@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from app.core.cloud import PointCloud
+from app.core.datasets.scenes import raycast_scene
 from app.core.detectors import METHOD_ALIASES, METHODS, canonical_method, make_detector
 from app.core.errors import InputError
 from app.core.pipeline import compare
@@ -21,7 +22,6 @@ from app.core.quality import (
     registration_warnings,
 )
 from app.core.registration import apply_transform
-from app.core.synthetic import raycast_scene
 
 
 def codes(warnings: list[dict]) -> list[str]:

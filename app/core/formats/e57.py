@@ -5,7 +5,7 @@ An E57 file holds one or more scans (``data3D`` entries), each in its own frame 
 every scan's points in the file's frame, one cloud, with
 
 - ``station_index`` (int32): which scan took each point (see
-  :data:`app.core.localise.stations.STATION_INDEX_ATTRIBUTE`), and
+  :data:`app.core.localise.station_assignment.STATION_INDEX_ATTRIBUTE`), and
 - ``sensor_origin``: each scan's origin in the file's frame, the translation of its pose
   (shape (3,) for one scan, (k, 3) for k scans; a scan without a pose stands at 0, 0, 0).
 
