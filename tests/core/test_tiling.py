@@ -81,7 +81,7 @@ def test_merged_station_pair_tiled_equals_one_process() -> None:
 def test_moving_sensor_map_tiled_equals_one_process() -> None:
     pair = map_pair("robot", change="mixed", size=0.6, random_state=1)
     assert pair.reference.trajectory is not None
-    one, tiled = _both(pair.reference, pair.scan, 0.8)
+    one, tiled = _both(pair.reference, pair.scan, 0.55)
     _assert_same(one, tiled)
 
 
@@ -156,3 +156,71 @@ def test_a_budget_too_small_for_one_tile_is_refused_with_the_budget_to_set() -> 
     assert crop_point_limit(budget, total) == total // 50
     with pytest.raises(TileBudgetError, match="raise the memory budget by at least"):
         compare_within_budget(reference, scan, budget_bytes=budget, threads=1)
+
+
+def _tile(index: int, core: range, members: list[int], in_core: list[bool]) -> TileResult:
+    """A tile whose scan core is ``core``; its core ``members`` are changed, one region."""
+    count = sum(in_core)
+    changed = [point for point, kept in zip(members, in_core, strict=True) if kept]
+    core_points = np.array([[float(point), 0.0, 1.0] for point in changed])
+    label = np.zeros(len(core), dtype=np.int8)
+    label[np.searchsorted(np.array(core), changed)] = LABEL_CHANGED
+    return TileResult(
+        tile_index=index,
+        reference_index=np.zeros(0, dtype=np.int64),
+        scan_index=np.array(core, dtype=np.int64),
+        reference_label=np.zeros(0, dtype=np.int8),
+        scan_label=label,
+        reference_distance=np.zeros(0, dtype=np.float32),
+        scan_distance=np.where(label == LABEL_CHANGED, 0.5, 0.0).astype(np.float32),
+        regions={
+            "cloud": np.array([1], dtype=np.int8),
+            "uncertain": np.array([False]),
+            "evidence": np.array([1], dtype=np.int8),
+            "confidence": np.array([1.0]),
+            "core_count": np.array([count]),
+            "core_sum": core_points.sum(axis=0, keepdims=True),
+            "core_min": core_points.min(axis=0, keepdims=True),
+            "core_max": core_points.max(axis=0, keepdims=True),
+            "distance_sum": np.array([0.5 * count]),
+            "distance_max": np.array([0.5]),
+            "member_bounds": np.array([0, len(members)]),
+            "members": np.array(members, dtype=np.int64),
+            "member_in_core": np.array(in_core),
+        },
+        figures={"localised": True, "alignment_residual": 0.0},
+    )
+
+
+def test_a_region_cut_by_a_border_is_joined_and_kept_whole() -> None:
+    plan = TilePlan(
+        lower=np.array([[-np.inf, -np.inf], [12.0, -np.inf]]),
+        upper=np.array([[12.0, np.inf], [np.inf, np.inf]]),
+        margin=1.0,
+        crop_points=np.array([10, 10]),
+        max_crop_points=10,
+    )
+    # scan points 10, 11 in tile 0 and 12, 13 in tile 1; each tile sees the other's
+    # neighbouring point in its margin as part of its region
+    results = [
+        _tile(0, range(12), [10, 11, 12], [True, True, False]),
+        _tile(1, range(12, 14), [11, 12, 13], [False, True, True]),
+    ]
+    merged = merge_tiles(plan, results, 0, 14, min_region_points=3)
+    assert len(merged.regions) == 1  # each part alone (2 points) is under the minimum
+    region = merged.regions[0]
+    assert region.point_indices.tolist() == [10, 11, 12, 13]
+    assert region.bbox_min[0] == 10.0 and region.bbox_max[0] == 13.0
+    assert merged.scan_region[10:14].tolist() == [0, 0, 0, 0]
+    alone = merge_tiles(
+        plan,
+        [
+            _tile(0, range(12), [10, 11], [True, True]),
+            _tile(1, range(12, 14), [12, 13], [True, True]),
+        ],
+        0,
+        14,
+        min_region_points=3,
+    )
+    assert alone.regions == []  # not joined: two clusters under the minimum, unchanged
+    assert (alone.scan_label[10:14] == LABEL_CHANGED).sum() == 0

@@ -55,24 +55,29 @@ Modules: :mod:`~app.core.tiling.plan` (tiles, margins, the memory model),
 (join tiles), :mod:`~app.core.tiling.compare` (the whole comparison).
 """
 
-from app.core.tiling.merge import MergedLocalisation, merge_tiles
-from app.core.tiling.plan import (
-    LOCALISATION_BYTES_PER_POINT,
-    TileBudgetError,
-    TilePlan,
-    plan_tiles,
-)
-from app.core.tiling.tile import TileContext, TileResult, TileSource, compute_tile
+from importlib import import_module
+from typing import Any
 
-__all__ = [
-    "LOCALISATION_BYTES_PER_POINT",
-    "MergedLocalisation",
-    "TileBudgetError",
-    "TileContext",
-    "TilePlan",
-    "TileResult",
-    "TileSource",
-    "compute_tile",
-    "merge_tiles",
-    "plan_tiles",
-]
+_HOMES = {
+    "LOCALISATION_BYTES_PER_POINT": "plan",
+    "TileBudgetError": "plan",
+    "TilePlan": "plan",
+    "plan_tiles": "plan",
+    "MergedLocalisation": "merge",
+    "merge_tiles": "merge",
+    "TileContext": "tile",
+    "TileResult": "tile",
+    "TileSource": "tile",
+    "compute_tile": "tile",
+}
+"""Where each public name lives: imported on first use, so that the API process can check a
+budget with :mod:`app.core.tiling.plan` (numpy only) without loading the localiser."""
+
+__all__ = sorted(_HOMES)
+
+
+def __getattr__(name: str) -> Any:
+    """The public name ``name`` from its module (see :data:`_HOMES`)."""
+    if name not in _HOMES:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(import_module(f"{__name__}.{_HOMES[name]}"), name)

@@ -314,6 +314,16 @@ def compare_tiled(
         "decision": settings.decision,
         "memory_budget_bytes": int(budget_bytes),
     }
+    for key, explicit in (
+        ("reference_origin", settings.reference_origin),
+        ("scan_origin", settings.scan_origin),
+    ):
+        if explicit is not None:  # as given, as pipeline.compare reports them
+            effective_params[key] = np.asarray(explicit, dtype=np.float64).tolist()
+    if settings.recover_stations != "auto":
+        effective_params["recover_stations"] = settings.recover_stations
+    if not settings.estimate_origins:
+        effective_params["estimate_origins"] = False
     report("done", 1.0)
     return ComparisonResult(
         method=method,
