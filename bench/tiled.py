@@ -58,7 +58,7 @@ def write_pair(scene_dir: Path, n_points: int) -> dict[str, Path]:
 
 
 def _write_pair_here(scene_dir: Path, n_points: int) -> None:
-    from app.core.synthetic_lidar import lidar_pair, steps_for_points
+    from app.core.datasets.lidar import lidar_pair, steps_for_points
     from bench.perf_workers import write_binary_ply
 
     pair = lidar_pair(

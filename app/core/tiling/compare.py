@@ -33,11 +33,11 @@ from app.core.comparison_settings import parse_comparison_params
 from app.core.detectors import canonical_method
 from app.core.localise import LABEL_UNOBSERVED, Localisation
 from app.core.localise.changes import _default_min_region_points
-from app.core.localise.stations import assign_stations
+from app.core.localise.station_assignment import assign_stations
 from app.core.origins.known_stations import origins_in_local_frame
 from app.core.origins.own_frame import resolve_moved_cloud
 from app.core.origins.resolve import ResolvedOrigin
-from app.core.origins.stations import resolve_stations
+from app.core.origins.station_recovery import resolve_stations
 from app.core.origins.trajectory_origin import station_index, trajectory_origin, trajectory_rays
 from app.core.pipeline import (
     ComparisonResult,
