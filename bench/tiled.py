@@ -1,7 +1,7 @@
 """Tiled comparison (issue 30): the whole ``scandiff compare`` of a merged-station pair against
 the sum of its tiles' cKDTree floors, and its peak RSS.
 
-The pair: a five-station warehouse survey per epoch (:func:`app.core.synthetic_lidar.lidar_pair`
+The pair: a five-station warehouse survey per epoch (:func:`app.core.datasets.lidar.lidar_pair`
 with ``n_stations=5``, an added box, the scan misaligned), float32 binary PLY without station
 information, as bench/perf_round2.py writes its pairs (written once into ``--work-dir``, in a
 child process, and reused).
@@ -58,7 +58,7 @@ def write_pair(scene_dir: Path, n_points: int) -> dict[str, Path]:
 
 
 def _write_pair_here(scene_dir: Path, n_points: int) -> None:
-    from app.core.synthetic_lidar import lidar_pair, steps_for_points
+    from app.core.datasets.lidar import lidar_pair, steps_for_points
     from bench.perf_workers import write_binary_ply
 
     pair = lidar_pair(

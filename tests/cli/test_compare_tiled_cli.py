@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.core.synthetic_lidar import lidar_pair
+from app.core.datasets.lidar import lidar_pair
 from app.core.tiling.plan import (
     BASELINE_BYTES,
     LOCALISATION_BYTES_PER_POINT,

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from app.core.cloud import PointCloud
+from app.core.datasets.lidar import lidar_pair
+from app.core.datasets.maps import map_pair
 from app.core.errors import InputError
 from app.core.localise import LABEL_CHANGED
 from app.core.pipeline import ComparisonResult, compare
-from app.core.synthetic_lidar import lidar_pair
-from app.core.synthetic_maps import map_pair
 from app.core.tiling import TileBudgetError, TilePlan, TileResult, compute_tile, merge_tiles
 from app.core.tiling.compare import compare_tiled, compare_within_budget
 from app.core.tiling.plan import (
