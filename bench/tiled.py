@@ -1,7 +1,7 @@
 """Tiled comparison (issue 30): the whole ``scandiff compare`` of a merged-station pair against
 the sum of its tiles' cKDTree floors, and its peak RSS.
 
-The pair: a five-station warehouse survey per epoch (:func:`app.core.synthetic_lidar.lidar_pair`
+The pair: a five-station warehouse survey per epoch (:func:`app.core.datasets.lidar.lidar_pair`
 with ``n_stations=5``, an added box, the scan misaligned), float32 binary PLY without station
 information, as bench/perf_round2.py writes its pairs (written once into ``--work-dir``, in a
 child process, and reused).

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -126,8 +127,9 @@ def compare_tiled(
         (:class:`~app.core.tiling.tile.TileContext`).
     run_tiles : callable, optional
         ``run_tiles(plan, source, context, threads, report) -> list[TileResult]`` (in tile
-        order): who computes the tiles.  Default: each in turn in this process; a job
-        worker passes one that fans them out on the queue (:mod:`app.jobs.tiles`).
+        order): who computes the tiles.  Default: each in turn in this process
+        (:func:`compute_tiles_here`); a job worker passes one that fans them out on the queue
+        (:mod:`app.jobs.tiles`).
 
     Returns
     -------
@@ -145,13 +147,76 @@ def compare_tiled(
     settings = parse_comparison_params(
         method, variant, params, random_state=random_state, align=align
     )
-    timings: dict[str, float] = {}
 
     def report(stage: str, fraction: float) -> None:
         if progress is not None:
             progress(stage, fraction)
 
     threads = available_threads() if threads is None else max(1, int(threads))
+    aligned = _align(reference, scan, settings, report)
+    report("localise", 0.35)
+    started = time.perf_counter()
+    context, source = _tile_inputs(reference, scan, aligned, settings, ray_reach)
+    limit = (
+        max_crop_points
+        if max_crop_points is not None
+        else crop_point_limit(budget_bytes, len(source.reference_points) + len(source.scan_points))
+    )
+    plan = plan_tiles(
+        source.reference_points[:, :2],
+        source.scan_points[:, :2],
+        max_crop_points=limit,
+        count_crop=lambda low, high: source.count_crop(low, high, margin, context),
+        margin=margin,
+        budget_bytes=budget_bytes,
+    )
+    aligned.timings["plan"] = time.perf_counter() - started
+    results = (run_tiles or compute_tiles_here)(plan, source, context, threads, report)
+    localisation = merge_tiles(
+        plan,
+        results,
+        len(source.reference_points),
+        len(source.scan_points),
+        context.min_region_points,
+    )
+    aligned.timings["localise"] = time.perf_counter() - started
+    report("detect", 0.85)
+    result = _assemble(
+        reference,
+        scan,
+        aligned,
+        localisation,
+        settings,
+        method=method,
+        variant=variant,
+        random_state=random_state,
+        site_calibration=site_calibration,
+        min_region_points=context.min_region_points,
+        budget_bytes=budget_bytes,
+    )
+    report("done", 1.0)
+    return result
+
+
+@dataclass
+class _Aligned:
+    """The pair in the local frame, the scan aligned, both clouds' origins resolved."""
+
+    local_origin: NDArray[np.float64]
+    reference_points: NDArray[np.float64]
+    aligned_scan: NDArray[np.float64]
+    transform: NDArray[np.float64]
+    registration_report: dict[str, Any]
+    resolved_reference: ResolvedOrigin
+    resolved_scan: ResolvedOrigin
+    timings: dict[str, float]
+
+
+def _align(
+    reference: PointCloud, scan: PointCloud, settings: Any, report: ProgressCallback
+) -> _Aligned:
+    """Origins of the reference, registration on a subsample, origins of the aligned scan."""
+    timings: dict[str, float] = {}
     local_origin = choose_local_origin(reference.points)
     reference_points = reference.points - local_origin if local_origin.any() else reference.points
     scan_points = scan.points - local_origin if local_origin.any() else scan.points
@@ -216,88 +281,94 @@ def compare_tiled(
     centre = scan_points.mean(axis=0)
     moved = apply_transform(centre[None], registration.transform)[0] - centre
     registration_report["translation_m"] = float(np.linalg.norm(moved))
-    del scan_points
+    return _Aligned(
+        local_origin=local_origin,
+        reference_points=reference_points,
+        aligned_scan=aligned_scan,
+        transform=registration.transform,
+        registration_report=registration_report,
+        resolved_reference=resolved_reference,
+        resolved_scan=resolved_scan,
+        timings=timings,
+    )
 
-    report("localise", 0.35)
-    started = time.perf_counter()
+
+def _tile_inputs(
+    reference: PointCloud, scan: PointCloud, aligned: _Aligned, settings: Any, ray_reach: float
+) -> tuple[TileContext, TileSource]:
+    """What every tile shares, and the points with each one's station."""
     localisation_params = dict(settings.localisation)
     min_region_points = localisation_params.get("min_region_points") or (
-        _default_min_region_points(len(reference_points), len(aligned_scan))
+        _default_min_region_points(len(aligned.reference_points), len(aligned.aligned_scan))
     )
     context = TileContext(
-        reference_origins=_origins(resolved_reference),
-        scan_origins=_origins(resolved_scan),
-        reference_stations_unknown=resolved_reference.stations_unknown,
-        scan_stations_unknown=resolved_scan.stations_unknown,
+        reference_origins=_origins(aligned.resolved_reference),
+        scan_origins=_origins(aligned.resolved_scan),
+        reference_stations_unknown=aligned.resolved_reference.stations_unknown,
+        scan_stations_unknown=aligned.resolved_scan.stations_unknown,
         min_region_points=int(min_region_points),
         localisation_params=localisation_params,
         ray_reach=ray_reach,
     )
     source = TileSource(
-        reference_points=reference_points,
-        scan_points=aligned_scan,
+        reference_points=aligned.reference_points,
+        scan_points=aligned.aligned_scan,
         reference_station=_stations(
-            reference_points,
+            aligned.reference_points,
             context.reference_origins,
-            station_index(reference, resolved_reference, "reference"),
+            station_index(reference, aligned.resolved_reference, "reference"),
         ),
         scan_station=_stations(
-            aligned_scan, context.scan_origins, station_index(scan, resolved_scan, "scan")
+            aligned.aligned_scan,
+            context.scan_origins,
+            station_index(scan, aligned.resolved_scan, "scan"),
         ),
-        reference_rays=trajectory_rays(resolved_reference),
-        scan_rays=trajectory_rays(resolved_scan),
+        reference_rays=trajectory_rays(aligned.resolved_reference),
+        scan_rays=trajectory_rays(aligned.resolved_scan),
     )
-    limit = (
-        max_crop_points
-        if max_crop_points is not None
-        else crop_point_limit(budget_bytes, len(reference_points) + len(aligned_scan))
-    )
-    plan = plan_tiles(
-        reference_points[:, :2],
-        aligned_scan[:, :2],
-        max_crop_points=limit,
-        count_crop=lambda low, high: source.count_crop(low, high, margin, context),
-        margin=margin,
-        budget_bytes=budget_bytes,
-    )
-    timings["plan"] = time.perf_counter() - started
-    results = (run_tiles or compute_tiles_here)(plan, source, context, threads, report)
-    localisation = merge_tiles(
-        plan,
-        results,
-        len(source.reference_points),
-        len(source.scan_points),
-        context.min_region_points,
-    )
-    timings["localise"] = time.perf_counter() - started
+    return context, source
 
-    report("detect", 0.85)
+
+def _assemble(
+    reference: PointCloud,
+    scan: PointCloud,
+    aligned: _Aligned,
+    localisation: Localisation,
+    settings: Any,
+    **facts: Any,
+) -> ComparisonResult:
+    """Detection on a subsample, the decision, and the result in the files' frame and order."""
     started = time.perf_counter()
     detection, compared = _detect(
-        settings.detector, reference_points, aligned_scan, localisation, random_state
+        settings.detector,
+        aligned.reference_points,
+        aligned.aligned_scan,
+        localisation,
+        facts["random_state"],
     )
-    timings["detect"] = time.perf_counter() - started
+    aligned.timings["detect"] = time.perf_counter() - started
     calibration = dict(detection.calibration)
     calibration["compared_points"] = compared
     changed, tests, calibration["site"] = decide(
         DecisionInputs(
             rule=settings.decision,
-            method=method,
-            variant=variant,
+            method=facts["method"],
+            variant=facts["variant"],
             score=float(detection.score),
             detector_threshold=float(detection.threshold),
             n_regions=len(localisation.regions),
             largest_region_extent_m=largest_extent(localisation.regions),
-            min_region_points=int(min_region_points),
+            min_region_points=int(facts["min_region_points"]),
         ),
-        site_calibration,
+        facts["site_calibration"],
     )
+    sides = (("reference", aligned.resolved_reference), ("scan", aligned.resolved_scan))
     visibility = {
         side: {
             **resolved.visibility_report(),
             "test": localisation.parameters.get(f"{side}_visibility"),
         }
-        for side, resolved in (("reference", resolved_reference), ("scan", resolved_scan))
+        for side, resolved in sides
     }
     calibration["visibility"] = visibility
     calibration["decision"] = {
@@ -306,34 +377,16 @@ def compare_tiled(
         "n_regions": len(localisation.regions),
         "tests": tests,
     }
-    effective_params: dict[str, Any] = {
-        **settings.detector.get_params(),
-        "align": settings.align,
-        "registration": settings.registration,
-        "localisation": localisation_params,
-        "decision": settings.decision,
-        "memory_budget_bytes": int(budget_bytes),
-    }
-    for key, explicit in (
-        ("reference_origin", settings.reference_origin),
-        ("scan_origin", settings.scan_origin),
-    ):
-        if explicit is not None:  # as given, as pipeline.compare reports them
-            effective_params[key] = np.asarray(explicit, dtype=np.float64).tolist()
-    if settings.recover_stations != "auto":
-        effective_params["recover_stations"] = settings.recover_stations
-    if not settings.estimate_origins:
-        effective_params["estimate_origins"] = False
-    report("done", 1.0)
+    local_origin, transform = aligned.local_origin, aligned.transform
     return ComparisonResult(
-        method=method,
-        variant=variant,
-        params=effective_params,
+        method=facts["method"],
+        variant=facts["variant"],
+        params=_effective_params(settings, facts["budget_bytes"]),
         score=float(detection.score),
         threshold=float(detection.threshold),
         changed=changed,
         calibration=calibration,
-        registration=registration_report,
+        registration=aligned.registration_report,
         regions=[_region_summary(region, local_origin) for region in localisation.regions],
         uncertain_regions=[
             _region_summary(region, local_origin) for region in localisation.uncertain_regions
@@ -347,16 +400,39 @@ def compare_tiled(
         reference_region=reference.to_source_order(localisation.reference_region, -1),
         scan_region=scan.to_source_order(localisation.scan_region, -1),
         localisation=dict(localisation.parameters),
-        timings=timings,
+        timings=aligned.timings,
         sensor_origins={
-            "reference": resolved_reference.report(lambda origin: origin + local_origin),
-            "scan": resolved_scan.report(
-                lambda origin: _to_scan_file(origin, registration.transform, local_origin)
+            "reference": aligned.resolved_reference.report(lambda origin: origin + local_origin),
+            "scan": aligned.resolved_scan.report(
+                lambda origin: _to_scan_file(origin, transform, local_origin)
             ),
         },
-        warnings=[*resolved_reference.warnings, *resolved_scan.warnings],
+        warnings=[*aligned.resolved_reference.warnings, *aligned.resolved_scan.warnings],
         visibility=visibility,
     )
+
+
+def _effective_params(settings: Any, budget_bytes: int) -> dict[str, Any]:
+    """The parameters the comparison ran with, as :func:`app.core.pipeline.compare` reports."""
+    effective: dict[str, Any] = {
+        **settings.detector.get_params(),
+        "align": settings.align,
+        "registration": settings.registration,
+        "localisation": dict(settings.localisation),
+        "decision": settings.decision,
+        "memory_budget_bytes": int(budget_bytes),
+    }
+    for key, explicit in (
+        ("reference_origin", settings.reference_origin),
+        ("scan_origin", settings.scan_origin),
+    ):
+        if explicit is not None:  # as given
+            effective[key] = np.asarray(explicit, dtype=np.float64).tolist()
+    if settings.recover_stations != "auto":
+        effective["recover_stations"] = settings.recover_stations
+    if not settings.estimate_origins:
+        effective["estimate_origins"] = False
+    return effective
 
 
 def _origins(resolved: ResolvedOrigin) -> NDArray[np.float64] | None:

@@ -38,6 +38,16 @@ MergedLocalisation = Localisation
 """The merged result has the shape of a one-process :class:`~app.core.localise.Localisation`
 (its ``parameters`` add ``tiles``: the plan and each tile's figures)."""
 
+NODE_FIELDS = (
+    "cloud",
+    "uncertain",
+    "evidence",
+    "confidence",
+    "core_count",
+    "distance_sum",
+    "distance_max",
+)
+"""The per-region scalars of a tile's region table that the merge joins."""
 PER_TILE_FIGURES = (
     "alignment_residual",
     "reference_noise",
@@ -123,15 +133,7 @@ def _joined_regions(
     n_nodes = int(sum(sizes))
     column = {
         name: np.concatenate([table[name] for table in tables]) if tables else np.zeros(0)
-        for name in (
-            "cloud",
-            "uncertain",
-            "evidence",
-            "confidence",
-            "core_count",
-            "distance_sum",
-            "distance_max",
-        )
+        for name in NODE_FIELDS
     }
     boxes = {
         name: np.concatenate([table[name] for table in tables]).reshape(-1, 3)
@@ -152,23 +154,7 @@ def _joined_regions(
     category = column["cloud"].astype(np.int64) * 2 + column["uncertain"].astype(np.int64)
     member_category = category[node] if n_nodes else np.zeros(0, dtype=np.int64)
 
-    # a margin member joins its region to the region whose core holds the same point
-    rows, columns = [np.arange(n_nodes)], [np.arange(n_nodes)]
-    for kind in range(4):
-        owned = core & (member_category == kind)
-        owner_points, owner_nodes = member[owned], node[owned]
-        order = np.argsort(owner_points, kind="stable")
-        owner_points, owner_nodes = owner_points[order], owner_nodes[order]
-        visiting = ~core & (member_category == kind)
-        if not len(owner_points) or not visiting.any():
-            continue
-        position = np.minimum(np.searchsorted(owner_points, member[visiting]), len(order) - 1)
-        same = owner_points[position] == member[visiting]
-        rows.append(node[visiting][same])
-        columns.append(owner_nodes[position[same]])
-    row, col = np.concatenate(rows), np.concatenate(columns)
-    graph = coo_matrix((np.ones(len(row), dtype=np.int8), (row, col)), (n_nodes, n_nodes))
-    _, component = connected_components(graph, directed=True, connection="weak")
+    component = _linked_components(n_nodes, member, core, node, member_category)
 
     region_of = [np.full(len(label), -1, dtype=np.int32) for label in labels]
     joined: list[tuple[ChangedRegion, bool]] = []
@@ -215,6 +201,48 @@ def _joined_regions(
     for number, region in enumerate(regions):
         region_of[1 if region.kind == "added" else 0][region.point_indices] = number
     return regions, uncertain_regions, region_of
+
+
+def _linked_components(
+    n_nodes: int,
+    member: NDArray[np.int64],
+    core: NDArray[np.bool_],
+    node: NDArray[np.int64],
+    member_category: NDArray[np.int64],
+) -> NDArray[np.int64]:
+    """The joined region of each tile region: a margin member joins its region to the region
+    (of the same cloud and kind) whose core holds the same point.
+
+    Parameters
+    ----------
+    n_nodes : int
+        Tile regions of all tiles.
+    member, core, node, member_category : ndarray, shape (p,)
+        Every region member: its point, whether in its tile's core, its tile region, and that
+        region's cloud and kind (``2 * cloud + uncertain``).
+
+    Returns
+    -------
+    ndarray, shape (n_nodes,)
+        Connected component of each tile region.
+    """
+    rows, columns = [np.arange(n_nodes)], [np.arange(n_nodes)]
+    for kind in range(4):
+        owned = core & (member_category == kind)
+        owner_points, owner_nodes = member[owned], node[owned]
+        order = np.argsort(owner_points, kind="stable")
+        owner_points, owner_nodes = owner_points[order], owner_nodes[order]
+        visiting = ~core & (member_category == kind)
+        if not len(owner_points) or not visiting.any():
+            continue
+        position = np.minimum(np.searchsorted(owner_points, member[visiting]), len(order) - 1)
+        same = owner_points[position] == member[visiting]
+        rows.append(node[visiting][same])
+        columns.append(owner_nodes[position[same]])
+    row, col = np.concatenate(rows), np.concatenate(columns)
+    graph = coo_matrix((np.ones(len(row), dtype=np.int8), (row, col)), (n_nodes, n_nodes))
+    _, component = connected_components(graph, directed=True, connection="weak")
+    return component
 
 
 def _merged_parameters(
