@@ -17,7 +17,9 @@ timed from start to exit, peak RSS from ``os.wait4`` (bench/perf_round2.py's ``r
 each keeps its fastest run.  ``--baseline DIR`` also runs the ``app`` package of another
 checkout in the same rounds, and the labels of both are compared (identical or not).
 
-Targets: <= 3x the floor of the same pair and <= 600 MB, for both pairs.
+Targets: <= 3x the floor of the same pair and <= 600 MB, for both pairs.  ``--pairs`` adds
+other ``LAYOUT/SEED/ORDER`` pairs (e.g. ``room/30/shuffled``: the same room shuffled, or
+``corridor/1/scanner``), to check that time and memory follow the size, not the kind of data.
 
 Peak RSS is the child's own only when the process that starts it is small: Linux carries the
 parent's resident size at ``fork`` into the child's ``ru_maxrss`` (``exec`` does not reset it).
@@ -25,7 +27,8 @@ Pairs are generated in a child process for that reason; ``--hold-mb N`` makes th
 N MB while it runs the commands, which shows the effect (a harness that generated its pairs in
 its own process reports its own size as every command's peak).
 
-Run: ``.venv/bin/python -m bench.perf_1m [--repeats 3] [--baseline DIR] [--work-dir DIR]``;
+Run: ``.venv/bin/python -m bench.perf_1m [--repeats 3] [--pairs ...] [--baseline DIR]
+[--work-dir DIR]``;
 writes ``bench/results/perf_1m.md`` and ``.json``.
 """
 
@@ -43,15 +46,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.synthetic_lidar import LidarPair, lidar_pair, steps_for_points
+from app.core.synthetic_lidar import LAYOUTS, LidarPair, lidar_pair, steps_for_points
 from bench.perf_round2 import best, run_command, run_floor, write_pair
 from bench.perf_workers import write_binary_ply
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).resolve().parent / "results"
 N_POINTS = 1_000_000
-HELD_OUT_LAYOUT = "room"
-HELD_OUT_SEED = 30
+HELD_OUT = "room/30/scanner"
+"""The held-out-class pair: a room, seed 30, points in scanner order."""
+ORDERS = ("scanner", "shuffled")
 RATIO_TARGET = 3.0
 RSS_TARGET_MB = 600.0
 
@@ -75,37 +79,42 @@ def _scan_in_world(pair: LidarPair) -> tuple[NDArray[np.float64], NDArray[np.flo
     return pair.scan @ rotation.T + translation, rotation @ pair.scan_origins[0] + translation
 
 
-def write_held_out_pair(scene_dir: Path) -> dict[str, Path]:
-    """Write the held-out-class pair (once: reused if present), generated in a child process
-    (so that this process's pages do not count in the commands' peak RSS)."""
+def write_lidar_pair(scene_dir: Path, spec: str) -> dict[str, Path]:
+    """Write the pair of ``spec`` (``LAYOUT/SEED/ORDER``, see :func:`parse_spec`) once (reused
+    if present), generated in a child process (so that this process's pages do not count in
+    the commands' peak RSS)."""
     scene_dir.mkdir(parents=True, exist_ok=True)
     reference_path, scan_path = scene_dir / "reference.ply", scene_dir / "scan.ply"
     if not (reference_path.exists() and scan_path.exists()):
-        command = [sys.executable, "-m", "bench.perf_1m", "--write-held-out", str(scene_dir)]
+        command = [sys.executable, "-m", "bench.perf_1m", "--write-pair", str(scene_dir), spec]
         subprocess.run(command, check=True, cwd=PROJECT_ROOT)
     return {"reference": reference_path, "scan": scan_path}
 
 
-def _write_held_out_here(scene_dir: Path) -> None:
-    """The child of :func:`write_held_out_pair`."""
+def parse_spec(spec: str) -> tuple[str, int, str]:
+    """``LAYOUT/SEED/ORDER`` -> (layout, seed, order): a ``lidar_pair`` layout (room, corridor,
+    warehouse), its seed, and ``scanner`` (column by column) or ``shuffled`` file order."""
+    layout, seed, order = spec.split("/")
+    if layout not in LAYOUTS or order not in ORDERS:
+        raise SystemExit(f"pair {spec!r}: want LAYOUT/SEED/ORDER, {LAYOUTS} and {ORDERS}")
+    return layout, int(seed), order
+
+
+def _write_pair_here(scene_dir: Path, spec: str) -> None:
+    """The child of :func:`write_lidar_pair`."""
+    layout, seed, order = parse_spec(spec)
     step = steps_for_points(N_POINTS)
     pair = lidar_pair(
-        layout=HELD_OUT_LAYOUT,
-        change="added",
-        angular_step_deg=step,
-        misaligned=True,
-        random_state=HELD_OUT_SEED,
+        layout=layout, change="added", angular_step_deg=step, misaligned=True, random_state=seed
     )
-    reference_order = scanner_order(pair.reference, pair.reference_origins[0], step)
-    scan_world, scan_station = _scan_in_world(pair)
-    scan_order = scanner_order(scan_world, scan_station, step)
+    reference_order = np.arange(pair.reference.shape[0])
+    scan_order = np.arange(pair.scan.shape[0])
+    if order == "scanner":
+        reference_order = scanner_order(pair.reference, pair.reference_origins[0], step)
+        scan_world, scan_station = _scan_in_world(pair)
+        scan_order = scanner_order(scan_world, scan_station, step)
     write_binary_ply(scene_dir / "reference.ply", pair.reference[reference_order])
     write_binary_ply(scene_dir / "scan.ply", pair.scan[scan_order])
-    np.savez(
-        scene_dir / "truth.npz",
-        reference_changed=pair.reference_changed[reference_order],
-        scan_changed=pair.scan_changed[scan_order],
-    )
 
 
 def _labels_equal(first: Path, second: Path) -> bool | None:
@@ -243,9 +252,9 @@ def main() -> None:
     )
     parser.add_argument(
         "--pairs",
-        default="bench,held-out",
-        help="comma-separated: bench (the warehouse of perf_round2), held-out (the room in "
-        "scanner order)",
+        default=f"bench,{HELD_OUT}",
+        help="comma-separated: bench (the warehouse of perf_round2) and LAYOUT/SEED/ORDER "
+        f"lidar pairs (ORDER: scanner or shuffled); default: bench,{HELD_OUT}",
     )
     parser.add_argument(
         "--hold-mb",
@@ -265,12 +274,13 @@ def main() -> None:
             scene_dir = work_dir / f"warehouse-{N_POINTS}"
             paths = write_pair(scene_dir, N_POINTS)
             measured.append(measure_pair("bench", scene_dir, paths, args.repeats, args.baseline))
-        if "held-out" in wanted:
-            scene_dir = work_dir / f"held-out-{HELD_OUT_LAYOUT}-{N_POINTS}"
-            paths = write_held_out_pair(scene_dir)
-            measured.append(
-                measure_pair("held-out class", scene_dir, paths, args.repeats, args.baseline)
-            )
+        for spec in wanted:
+            if spec == "bench":
+                continue
+            name = "held-out class" if spec == HELD_OUT else spec
+            scene_dir = work_dir / spec.replace("/", "-")
+            paths = write_lidar_pair(scene_dir, spec)
+            measured.append(measure_pair(name, scene_dir, paths, args.repeats, args.baseline))
     loads.append(os.getloadavg())
     del held
     rows = [row for pair in measured for row in summarise(pair)]
@@ -285,7 +295,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 3 and sys.argv[1] == "--write-held-out":
-        _write_held_out_here(Path(sys.argv[2]))
+    if len(sys.argv) == 4 and sys.argv[1] == "--write-pair":
+        _write_pair_here(Path(sys.argv[2]), sys.argv[3])
         sys.exit(0)
     main()
