@@ -15,10 +15,11 @@ import numpy as np
 
 from app.config import Settings
 from app.core.formats import read_point_cloud
-from app.db.models import Job, JobStatus, Region, Scan, Site
+from app.db.models import Job, JobStatus, Scan, Site
 from app.db.session import session_factory
-from app.kit.data_layout import DETAILS_FILENAME
+from app.jobs.results import read_result_files
 from app.kit.scan_files import stored_bag_options
+from app.services.schemas import RegionRead
 from app.viewer.scene import DEFAULT_POINT_BUDGET, SceneData, build_scene_data
 
 
@@ -33,6 +34,28 @@ def job_warnings(job: Any) -> list[dict[str, Any]]:
     """The job's quality warnings, a list of ``{code, message, ...}`` (none before 0008)."""
     value = job.warnings or []
     return [item for item in value if isinstance(item, dict)] if isinstance(value, list) else []
+
+
+def job_uncertain_regions(job: Any) -> list[dict[str, Any]]:
+    """The places the job's other epoch never covered, ``[{kind, n_points, bbox_min, ...}]``
+    (evidence ``no_coverage``; jobs stored before migration 0010 have none)."""
+    value = getattr(job, "uncertain_regions", None) or []
+    return [
+        {**item, "evidence": item.get("evidence") or "no_coverage"}
+        for item in (value if isinstance(value, list) else [])
+        if _is_region(item)
+    ]
+
+
+def _is_region(item: Any) -> bool:
+    """Whether ``item`` is a region the view can draw: a kind, a point count, a finite box."""
+    if not isinstance(item, dict) or not isinstance(item.get("n_points"), int):
+        return False
+    try:
+        corners = np.asarray([item["bbox_min"], item["bbox_max"]], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        return False
+    return corners.shape == (2, 3) and bool(np.isfinite(corners).all()) and "kind" in item
 
 
 def job_min_region_points(job: Any) -> int | None:
@@ -104,14 +127,14 @@ def load_job_scene(
         site = session.get(Site, job.site_id)
         if reference is None or scan is None:
             raise ViewUnavailableError(f"the scans of job {job_id} were deleted", status=410)
-        regions = [_region_dict(region) for region in job.regions]
+        regions = [RegionRead.from_model(region).model_dump() for region in job.regions]
+        uncertain_regions = job_uncertain_regions(job)
         paths = (
             settings.data_layout.resolve(reference.storage_path),
             settings.data_layout.resolve(scan.storage_path),
         )
         names = (reference.filename, scan.filename)
         labels_path = job_labels_path(settings, job)
-        details_path = labels_path.with_name(DETAILS_FILENAME)
         sensor_origins = job_sensor_origins(job)
         warnings = job_warnings(job)
         min_region_points = job_min_region_points(job)
@@ -136,18 +159,15 @@ def load_job_scene(
             )
     reference_cloud = read_point_cloud(paths[0], bag_options=stored_bag_options(paths[0]))
     scan_cloud = read_point_cloud(paths[1], bag_options=stored_bag_options(paths[1]))
-    with np.load(labels_path) as labels:
-        reference_labels = reference_cloud.from_source_order(labels["reference_label"])
-        scan_labels = scan_cloud.from_source_order(labels["scan_label"])
+    stored = read_result_files(labels_path)
+    reference_labels = reference_cloud.from_source_order(stored.reference_label)
+    scan_labels = scan_cloud.from_source_order(stored.scan_label)
     distances: dict[str, Any] = {}
-    if details_path.is_file():  # jobs from before details.npz have labels only
-        with np.load(details_path) as details:
-            distances = {
-                "reference_distances": reference_cloud.from_source_order(
-                    details["reference_distance"]
-                ),
-                "scan_distances": scan_cloud.from_source_order(details["scan_distance"]),
-            }
+    if stored.reference_distance is not None and stored.scan_distance is not None:
+        distances = {  # jobs from before details.npz have labels only
+            "reference_distances": reference_cloud.from_source_order(stored.reference_distance),
+            "scan_distances": scan_cloud.from_source_order(stored.scan_distance),
+        }
     data = build_scene_data(
         reference_cloud.points,
         scan_cloud.points,
@@ -155,6 +175,7 @@ def load_job_scene(
         scan_labels=scan_labels,
         transform=transform,
         regions=regions,
+        uncertain_regions=uncertain_regions,
         point_budget=point_budget,
         summary=summary,
         sensor_origins=sensor_origins,
@@ -165,19 +186,3 @@ def load_job_scene(
     site_name = summary["site"] or "site"
     title = f"{site_name}: {names[1]} vs {names[0]}"
     return data, title
-
-
-def _region_dict(region: Region) -> dict[str, Any]:
-    """A region row as the API shows it."""
-    return {
-        "id": region.id,
-        "kind": region.kind,
-        "n_points": region.n_points,
-        "centroid": region.centroid,
-        "bbox_min": region.bbox_min,
-        "bbox_max": region.bbox_max,
-        "mean_distance": region.mean_distance,
-        "max_distance": region.max_distance,
-        "evidence": region.evidence,
-        "confidence": region.confidence,
-    }

@@ -5,14 +5,16 @@ An E57 file holds one or more scans (``data3D`` entries), each in its own frame 
 every scan's points in the file's frame, one cloud, with
 
 - ``station_index`` (int32): which scan took each point (see
-  :data:`app.core.localise.stations.STATION_INDEX_ATTRIBUTE`), and
+  :data:`app.core.localise.station_assignment.STATION_INDEX_ATTRIBUTE`), and
 - ``sensor_origin``: each scan's origin in the file's frame, the translation of its pose
   (shape (3,) for one scan, (k, 3) for k scans; a scan without a pose stands at 0, 0, 0).
 
 Cartesian and spherical coordinates are read; points flagged invalid are skipped; ``intensity``
-is kept when every scan has it. Scans without points are left out (and their origins with
-them). libE57Format reads from a file path: content given as bytes is written to a temporary
-file first.
+is kept when every scan has it, and so are per-point times (``timeStamp``, seconds, float64: a
+moving sensor's trajectory places each point by them, :mod:`app.core.trajectory_poses`) when
+every scan has them and none is flagged invalid (``isTimeStampInvalid``). Scans without points
+are left out (and their origins with them). libE57Format reads from a file path: content given
+as bytes is written to a temporary file first.
 """
 
 from __future__ import annotations
@@ -34,6 +36,8 @@ E57_SIGNATURE = b"ASTM-E57"
 
 CARTESIAN_FIELDS = ("cartesianX", "cartesianY", "cartesianZ")
 SPHERICAL_FIELDS = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
+TIME_FIELD = "timeStamp"
+TIME_INVALID_FIELD = "isTimeStampInvalid"
 
 
 def read_e57(source: Source, max_points: int | None) -> RawCloud:
@@ -43,7 +47,8 @@ def read_e57(source: Source, max_points: int | None) -> RawCloud:
     -------
     RawCloud
         ``points`` (n, 3) float64 in the file's frame; ``attributes["station_index"]`` (n,)
-        int32; ``attributes["intensity"]`` (n,) when every scan has it; ``sensor_origin``
+        int32; ``attributes["intensity"]`` (n,) and ``attributes["timeStamp"]`` (n,) float64
+        when every scan has them; ``sensor_origin``
         (3,) for one scan or (k, 3) for k scans with points.
 
     Raises
@@ -88,8 +93,10 @@ def _read_scans(reader, max_points: int | None) -> RawCloud:  # reader: pye57.E5
                 f"Elevation fields (it has {sorted(present)}): no coordinates to read"
             )
     with_intensity = all("intensity" in present for present in fields)
+    with_times = all(TIME_FIELD in present for present in fields)
     points: list[NDArray[np.float64]] = []
     intensities: list[NDArray] = []
+    times: list[NDArray[np.float64] | None] = []
     origins: list[NDArray[np.float64]] = []
     for index, header in enumerate(headers):
         if counts[index] == 0:
@@ -99,6 +106,7 @@ def _read_scans(reader, max_points: int | None) -> RawCloud:  # reader: pye57.E5
                 index, intensity=with_intensity, transform=True, ignore_missing_fields=True
             )
             origin = _scan_origin(header)
+            scan_times = _scan_times(reader, header) if with_times else None
         except Exception as exc:
             raise PointCloudError(f"cannot read E57 scan {index}: {_reason(exc)}") from exc
         xyz = np.column_stack(
@@ -110,6 +118,7 @@ def _read_scans(reader, max_points: int | None) -> RawCloud:  # reader: pye57.E5
         origins.append(origin)
         if with_intensity:
             intensities.append(np.asarray(data["intensity"]))
+        times.append(scan_times)
     if not points:
         raise PointCloudError(
             f"the E57 file holds no points: its {len(headers)} scan(s) are empty or every point "
@@ -121,10 +130,50 @@ def _read_scans(reader, max_points: int | None) -> RawCloud:  # reader: pye57.E5
     attributes: dict[str, NDArray] = {"station_index": station}
     if with_intensity:
         attributes["intensity"] = np.concatenate(intensities)
+    if with_times and all(block is not None for block in times):
+        attributes[TIME_FIELD] = np.concatenate(times)  # type: ignore[arg-type]
     origin_array = np.vstack(origins)
     return RawCloud(
         np.vstack(points), attributes, origin_array[0] if len(origins) == 1 else origin_array
     )
+
+
+def _scan_times(reader, header) -> NDArray[np.float64] | None:  # pye57.E57, pye57.ScanHeader
+    """The scan's per-point ``timeStamp`` values (n,), float64, for the points ``read_scan``
+    keeps (those not flagged invalid), or None when a kept point's time is flagged invalid.
+
+    pye57's ``read_scan`` does not read ``timeStamp``: it is read here with libE57Format's own
+    buffers, together with the validity flags ``read_scan`` filters the points by.
+    """
+    from pye57 import libe57
+
+    present = set(header.point_fields)
+    count = int(header.point_count)
+    coordinates_valid = (
+        "cartesianInvalidState" if set(CARTESIAN_FIELDS) <= present else "sphericalInvalidState"
+    )
+    names = [TIME_FIELD] + [
+        name for name in (coordinates_valid, TIME_INVALID_FIELD) if name in present
+    ]
+    arrays = {
+        name: np.empty(count, dtype=np.float64 if name == TIME_FIELD else np.int8) for name in names
+    }
+    buffers = libe57.VectorSourceDestBuffer()
+    for name in names:
+        buffers.append(
+            libe57.SourceDestBuffer(reader.image_file, name, arrays[name], count, True, True)
+        )
+    scan_reader = header.points.reader(buffers)
+    try:
+        scan_reader.read()
+    finally:
+        scan_reader.close()
+    kept = np.ones(count, dtype=bool)
+    if coordinates_valid in arrays:
+        kept = arrays[coordinates_valid] == 0
+    if TIME_INVALID_FIELD in arrays and (arrays[TIME_INVALID_FIELD][kept] != 0).any():
+        return None
+    return arrays[TIME_FIELD][kept]
 
 
 def _scan_origin(header) -> NDArray[np.float64]:  # header: pye57.ScanHeader

@@ -15,7 +15,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.synthetic_furniture import (
+from app.core.datasets.furniture import (
     MOVABLE_KINDS,
     MapObject,
     Placement,
@@ -23,8 +23,8 @@ from app.core.synthetic_furniture import (
     make_object,
     place_object,
 )
-from app.core.synthetic_lidar import LidarWorld
-from app.core.synthetic_map_world import (
+from app.core.datasets.lidar import LidarWorld
+from app.core.datasets.map_world import (
     EpochSamples,
     MapPair,
     SensorModel,
@@ -164,7 +164,7 @@ def handheld_pair(
     ----------
     change : {"none", "removed", "added", "moved", "rotated", "mixed"}
         What happens to the chairs, boxes and boards between the epochs
-        (:func:`app.core.synthetic_furniture.apply_change`).
+        (:func:`app.core.datasets.furniture.apply_change`).
     misaligned : bool
         Give the scan turned by 0.3 degrees and shifted by 2-3 cm (``true_transform`` undoes
         it).
@@ -184,7 +184,7 @@ def handheld_pair(
     -------
     MapPair
         ``map_class`` ``"rgbd"``, ``layout`` ``"room"``; a changed pair has at least
-        :data:`~app.core.synthetic_map_world.MIN_VISIBLE_CHANGE` changed, scored points (the
+        :data:`~app.core.datasets.map_world.MIN_VISIBLE_CHANGE` changed, scored points (the
         layout is redrawn until it does, up to 10 times).
     """
     rng = np.random.default_rng(random_state)

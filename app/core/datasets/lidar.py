@@ -10,7 +10,7 @@ rigid transform.  Stations of one epoch are concatenated, then shuffled.
 Truth (as in the issue): a point is changed when its exact (noise-free) position lies more than
 :data:`CHANGE_DISTANCE` from every surface of the other epoch's world; it is observed when at
 least one station of the other epoch could see it (in range, in the field of view and not hidden
-behind the other world).  Ray casting reuses :func:`app.core.synthetic._cast_rays`.
+behind the other world).  Ray casting reuses :func:`app.core.datasets.scenes._cast_rays`.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.synthetic import _cast_rays, _random_rotation, _transform_points, _visible_from
+from app.core.datasets.scenes import _cast_rays, _random_rotation, _transform_points, _visible_from
 
 __all__ = [
     "CHANGE_DISTANCE",

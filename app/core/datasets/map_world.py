@@ -1,12 +1,12 @@
 """Shared parts of the synthetic moving-sensor maps: furniture, sensors, paths, truth, the pair.
 
 The scene classes of issue 29 (handheld RGB-D fused maps, robot / mobile laser scanning maps,
-terrestrial multi-station scans) are built in :mod:`app.core.synthetic_handheld` and
-:mod:`app.core.synthetic_robot` from the pieces here:
+terrestrial multi-station scans) are built in :mod:`app.core.datasets.handheld` and
+:mod:`app.core.datasets.robot` from the pieces here:
 
 - a world is a closed shell with named objects, each a few solid axis-aligned boxes (a chair is
   four legs, a seat and a back; a desk a top and four legs; a board a thin vertical panel; a box a
-  box), held as an :class:`app.core.synthetic_lidar.LidarWorld` for its exact surface distance;
+  box), held as an :class:`app.core.datasets.lidar.LidarWorld` for its exact surface distance;
 - a sensor model (:class:`SensorModel`: a camera frustum or an upright ring lidar) and a timed
   path of poses (:class:`SensorPath`);
 - rays are cast from many origins at once (:func:`cast_rays`), so a thousand frames cost one
@@ -28,8 +28,8 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from app.core.cloud import PointCloud
-from app.core.synthetic_furniture import MapChange, MapObject
-from app.core.synthetic_lidar import CHANGE_DISTANCE, LidarWorld
+from app.core.datasets.furniture import MapChange, MapObject
+from app.core.datasets.lidar import CHANGE_DISTANCE, LidarWorld
 from app.core.trajectory import Trajectory
 
 __all__ = [

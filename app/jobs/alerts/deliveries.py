@@ -39,7 +39,7 @@ from app.clock import as_utc, iso_utc, utc_now
 from app.config import Settings
 from app.db.models import DeliveryStatus, Event, Webhook, WebhookDelivery
 from app.db.session import transaction
-from app.jobs.email_alerts import send_email
+from app.jobs.alerts.mail import send_email
 from app.jobs.leases import lease_owner_is_dead_here, make_lease_owner
 from app.jobs.side_process import SideProcess
 from app.kit.net import (

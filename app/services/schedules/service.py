@@ -1,10 +1,10 @@
 """Schedules of a site: create, read, change, delete, run now, and the runs' history.
 
 A schedule fires on a cron expression in an IANA time zone or on a fixed interval
-(:mod:`app.services.schedule_times`); each period is run once by the tick of the job consumers
-(:mod:`app.services.schedule_runs`), which compares the newest scan that arrived since the last
+(:mod:`app.services.schedules.times`); each period is run once by the tick of the job consumers
+(:mod:`app.services.schedules.runs`), which compares the newest scan that arrived since the last
 run against the site's reference (and against the previous scan with ``compare_previous``).
-Where scans come from is the schedule's source (:mod:`app.services.schedule_sources`).
+Where scans come from is the schedule's source (:mod:`app.services.schedules.sources`).
 """
 
 from __future__ import annotations
@@ -18,18 +18,19 @@ from sqlalchemy.orm import Session
 from app.clock import as_utc, utc_now
 from app.config import Settings
 from app.db.models import Schedule, ScheduleRun, Site
-from app.services import schedule_runs, sites
+from app.services import sites
 from app.services.auth import Principal
 from app.services.errors import NotFoundError, ValidationFailedError
 from app.services.paging import newest_first_page
-from app.services.schedule_schemas import (
+from app.services.schedules import runs as schedule_runs
+from app.services.schedules.schemas import (
     ScheduleCreate,
     ScheduleRead,
     ScheduleRunRead,
     ScheduleUpdate,
 )
-from app.services.schedule_sources import normalise_source
-from app.services.schedule_times import check_cron, parse_timezone
+from app.services.schedules.sources import normalise_source
+from app.services.schedules.times import check_cron, parse_timezone
 from app.services.schemas import DetectorConfig
 from app.services.scoping import scoped
 from app.services.transaction import end_read_transaction

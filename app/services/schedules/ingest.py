@@ -17,13 +17,6 @@ from app.db.models import Scan
 from app.services import quotas, scans, storage
 from app.services.auth import Principal
 from app.services.storage import ReceivedFile
-from app.services.transaction import end_read_transaction
-
-
-def check_room(session: Session, settings: Settings, principal: Principal, size: int) -> None:
-    """The storage quota for ``size`` more bytes, before the file is parsed (a read)."""
-    quotas.check_stored_bytes(session, settings, principal, size)
-    end_read_transaction(session)
 
 
 def store_received_scan(
@@ -39,7 +32,7 @@ def store_received_scan(
     Call with no transaction open (parsing is slow); the temporary file is removed in all cases.
     """
     try:
-        check_room(session, settings, principal, received.size_bytes)
+        scans.check_stored_bytes_before_parsing(session, settings, principal, received.size_bytes)
         scan = scans.store_scan_file(
             session,
             settings,

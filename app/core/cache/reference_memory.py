@@ -1,7 +1,7 @@
-"""What aligning a scan works out from the reference alone, handed between its alignments.
+"""The interface a registration recalls its reference-only arrays through (a protocol).
 
 :func:`~app.core.registration.register_scan` takes a :class:`ReferenceMemory`;
-:mod:`app.core.reference_alignment` keeps one in the reference's geometry cache file.
+:mod:`app.core.cache.reference_alignment` keeps one in the reference's geometry cache file.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 Estimating a reference's origin takes about half a second a million points, and gives the same
 answer for every scan compared with it.  :class:`ReferenceOriginCache` keeps the
 :class:`~app.core.origins.resolve.ResolvedOrigin` as a fact of the reference's
-:class:`~app.core.geometry_cache.GeometryCache` file (its header), under a key made of the
+:class:`~app.core.cache.geometry.GeometryCache` file (its header), under a key made of the
 file's key (reference, code, localisation parameters), the text of the origin code and every
 input of the resolution; a fact for another key or with a wrong checksum is not used (the origin
 is resolved again and the fact rewritten).
@@ -22,10 +22,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from app.core.cache.geometry import GeometryCache
 from app.core.cloud import PointCloud
-from app.core.geometry_cache import GeometryCache
 from app.core.origins.resolve import ResolvedOrigin
-from app.core.origins.stations import STATION_INDEX_ATTRIBUTE
+from app.core.origins.station_recovery import STATION_INDEX_ATTRIBUTE
 
 __all__ = [
     "ORIGIN_FACT",
@@ -35,7 +35,7 @@ __all__ = [
     "reference_origin_key",
 ]
 
-_ORIGIN_CODE_PATTERNS = ("origins/*.py", "localise/stations.py", "localise/settings.py")
+_ORIGIN_CODE_PATTERNS = ("origins/*.py", "localise/station_assignment.py", "localise/settings.py")
 """Sources (under app/core) whose text is part of the key of a cached reference origin."""
 ORIGIN_FACT = "reference_origin"
 """Name of the reference's resolved sensor origin among a cache file's facts."""
@@ -58,7 +58,7 @@ def reference_origin_key(geometry_key: str, inputs: Mapping[str, Any]) -> str:
         64 hex digits; changes with any input and with the source of the origin code.
     """
     digest = hashlib.sha256(geometry_key.encode())
-    core_directory = Path(__file__).resolve().parent
+    core_directory = Path(__file__).resolve().parent.parent
     for pattern in _ORIGIN_CODE_PATTERNS:
         for path in sorted(core_directory.glob(pattern)):
             digest.update(path.name.encode() + b"\0" + path.read_bytes())
@@ -151,8 +151,8 @@ class ReferenceOriginCache:
         recover: bool | str,
     ) -> ReferenceOriginCache | None:
         """The origin cache of ``reference`` (its origins ``given``, the ``estimate`` and
-        ``recover`` switches of :func:`~app.core.origins.stations.resolve_stations`), or None
-        (no geometry cache, or a cloud with per-point stations)."""
+        ``recover`` switches of :func:`~app.core.origins.station_recovery.resolve_stations`), or
+        None (no geometry cache, or a cloud with per-point stations)."""
         if cache is None or STATION_INDEX_ATTRIBUTE in reference.attributes:
             return None
         sensor_origin = reference.sensor_origin

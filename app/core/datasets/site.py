@@ -1,7 +1,7 @@
 """A synthetic site's history: rescans of one room where a bin moves every time (a nuisance)
 and, now and then, a real change (a new crate) appears.
 
-Built on the ray-cast building of :func:`app.core.synthetic.raycast_scene` (room A, its
+Built on the ray-cast building of :func:`app.core.datasets.scenes.raycast_scene` (room A, its
 furniture, the spinning lidar): every visit casts a sweep from a sensor standing near the
 reference sensor (``sensor_shift`` metres away, a random free direction) in a world made of
 the static furniture, the bin at one of a few spots along the walls, and, on a real-change
@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.synthetic import (
+from app.core.datasets.scenes import (
     REFERENCE_SENSOR_XY,
     SENSOR_HEIGHT,
     STATIC_BOXES,

@@ -6,9 +6,9 @@ stores it once (neighbour index, k-th distance and spatial order: 4 (k + 1) + 16
 point) and hands it back to :func:`app.core.pipeline.compare`, which then builds only the
 KD-tree (a fraction of the query's cost).  Its header also keeps small *facts* about the
 reference that cost seconds to work out and do not depend on the scan (its resolved sensor
-origin, :mod:`app.core.reference_origin`), each under its own key and checksum, and
+origin, :mod:`app.core.cache.reference_origin`), each under its own key and checksum, and
 *array facts* after its arrays (the reference's alignment grids,
-:mod:`app.core.reference_alignment`), likewise keyed and checksummed.
+:mod:`app.core.cache.reference_alignment`), likewise keyed and checksummed.
 
 Nothing read back is trusted blindly: the file must carry the expected key (reference,
 code version and localisation parameters, :func:`cache_key`), the expected point count and k,
@@ -34,8 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
-from app.core.errors import InputError
-from app.core.geometry_cache_format import (
+from app.core.cache.geometry_format import (
     LAYOUT,
     array_fact_bytes,
     array_fact_entries,
@@ -46,6 +45,7 @@ from app.core.geometry_cache_format import (
     fact_digest,
     fact_entry,
 )
+from app.core.errors import InputError
 from app.core.localise import neighbourhoods as neighbourhoods_module
 from app.core.localise.neighbourhoods import (
     Neighbourhoods,
@@ -75,8 +75,8 @@ _CODE_FILES = (
     "localise/neighbourhoods.py",
     "localise/surface.py",
     "spatial_order.py",
-    "geometry_cache.py",
-    "geometry_cache_format.py",
+    "cache/geometry.py",
+    "cache/geometry_format.py",
 )
 """Sources (under app/core) whose text is part of the code version."""
 

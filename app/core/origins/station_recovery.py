@@ -16,15 +16,15 @@ concur at its (x, y), the rest (ring pairs, pairs across stations) scatter.  So:
    cones of fixed elevation (its rings); the height whose elevation histogram is sharpest,
    coarse then fine, is the station's.
 3. **Acceptance**: a station is kept when many points lie on its rings
-   (:func:`~app.core.localise.stations.ring_contrast`).
+   (:func:`~app.core.localise.station_assignment.ring_contrast`).
 4. **Again on the rest** (:func:`recover_stations`): the points on a kept station's rings are
    removed and the search is repeated on the others, until a pass finds nothing: stations
    standing close together interleave their returns, so that few neighbour pairs of one
    station's columns are left until the other stations' returns are gone.
 
 A cloud with two or more kept stations was not taken from one place; its points are then
-assigned to the stations (:func:`~app.core.localise.stations.assign_stations`).  Every random
-choice is seeded (``random_state``): the same cloud gives the same stations.
+assigned to the stations (:func:`~app.core.localise.station_assignment.assign_stations`).
+Every random choice is seeded (``random_state``): the same cloud gives the same stations.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 
 from app.core.cloud import PointCloud
 from app.core.errors import InputError
-from app.core.localise.stations import (
+from app.core.localise.station_assignment import (
     RING_CONTRAST,
     STATION_INDEX_ATTRIBUTE,
     ring_contrast,

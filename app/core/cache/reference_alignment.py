@@ -1,15 +1,15 @@
-"""What aligning a scan works out from the reference alone, kept in its geometry cache file.
+"""The reference's alignment arrays stored in its geometry cache file, between comparisons.
 
 :func:`~app.core.registration.register_scan` spends about half its time on the reference (1M
 points: its point spacing, a KD-tree build of 0.3 s; its voxel-grid centroids; their coarse and
 quality-figure downsamplings), and a site's reference is aligned with every new scan of the
 site.  :class:`ReferenceAlignmentCache` is the
-:class:`~app.core.reference_memory.ReferenceMemory` that keeps those arrays as *array facts* of the
-reference's :class:`~app.core.geometry_cache.GeometryCache` file (so they count in its size, and
-go with it), each under a key made of the file's key (reference, code, localisation
-parameters), the text of the registration code, small_gicp's version, what the array is and the
-parameters it was computed with.  An array for another key, or whose checksum does not match, is
-not used: it is computed again and written back.
+:class:`~app.core.cache.reference_memory.ReferenceMemory` that keeps those arrays as *array
+facts* of the reference's :class:`~app.core.cache.geometry.GeometryCache` file (so they count in
+its size, and go with it), each under a key made of the file's key (reference, code,
+localisation parameters), the text of the registration code, small_gicp's version, what the
+array is and the parameters it was computed with.  An array for another key, or whose checksum
+does not match, is not used: it is computed again and written back.
 """
 
 from __future__ import annotations
@@ -25,15 +25,15 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core import reference_memory as reference_memory_module
 from app.core import registration as registration_module
-from app.core.geometry_cache import GeometryCache
+from app.core.cache import reference_memory as reference_memory_module
+from app.core.cache.geometry import GeometryCache
 
 __all__ = ["ALIGNMENT_FACT_PREFIX", "ReferenceAlignmentCache", "reference_alignment_key"]
 
 ALIGNMENT_FACT_PREFIX = "alignment."
 """Array facts of a cache file named ``alignment.<name>`` hold
-:class:`~app.core.reference_memory.ReferenceMemory` arrays."""
+:class:`~app.core.cache.reference_memory.ReferenceMemory` arrays."""
 
 
 def reference_alignment_key(geometry_key: str) -> str:
@@ -42,7 +42,7 @@ def reference_alignment_key(geometry_key: str) -> str:
     Parameters
     ----------
     geometry_key : str
-        :func:`~app.core.geometry_cache.cache_key` of the file.
+        :func:`~app.core.cache.geometry.cache_key` of the file.
 
     Returns
     -------
@@ -61,7 +61,7 @@ def reference_alignment_key(geometry_key: str) -> str:
 
 @dataclass
 class ReferenceAlignmentCache:
-    """A :class:`~app.core.reference_memory.ReferenceMemory` in the reference's cache file.
+    """A :class:`~app.core.cache.reference_memory.ReferenceMemory` in the reference's cache file.
 
     Arrays recalled or computed are put into ``facts`` (written with the neighbourhoods when
     the file is written during the comparison); those computed and not in the file then are
@@ -123,7 +123,7 @@ class ReferenceAlignmentCache:
 
 
 def _plausible(name: str, array: NDArray) -> bool:
-    """Whether ``array`` has the form of a :class:`~app.core.reference_memory.ReferenceMemory`
+    """Whether ``array`` has the form of a :class:`~app.core.cache.reference_memory.ReferenceMemory`
     array called ``name``: finite float64, (1,) non-negative for the spacing, else (m, 3)."""
     if array.dtype != np.float64 or not np.isfinite(array).all():
         return False

@@ -13,7 +13,7 @@
   redirect it).
 
 A fetched file is received exactly as an upload body (:func:`app.services.storage.receive_stream`:
-the size cap, SHA-256 and temporary file) before :mod:`app.services.schedule_ingest` stores it.
+the size cap, SHA-256 and temporary file) before :mod:`app.services.schedules.ingest` stores it.
 """
 
 from __future__ import annotations

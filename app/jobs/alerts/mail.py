@@ -1,6 +1,6 @@
 """E-mail alerts: a webhook whose url is ``mailto:...`` gets its events by SMTP.
 
-The delivery machinery is the webhooks' (:mod:`app.jobs.deliveries`: claims, leases, retries
+The delivery machinery is the webhooks' (:mod:`app.jobs.alerts.deliveries`: claims, leases, retries
 with backoff, the deliveries route); only the sending differs.  The message has a subject that
 says what happened, a short text (site, decision, score against threshold, regions, the view
 link) and the delivery's JSON body as an attachment; it carries the same ``Scandiff-Event-Id``

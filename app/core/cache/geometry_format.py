@@ -1,6 +1,6 @@
-"""The byte layout of a :class:`~app.core.geometry_cache.GeometryCache` file, and its checksums.
+"""The byte layout of a :class:`~app.core.cache.geometry.GeometryCache` file, and its checksums.
 
-A file is :data:`~app.core.geometry_cache.MAGIC`, a one-line JSON header, the neighbourhood
+A file is :data:`~app.core.cache.geometry.MAGIC`, a one-line JSON header, the neighbourhood
 arrays (:data:`LAYOUT`, ``n`` values a point each), then the *array facts* named in the header's
 ``array_facts`` list, in its order (each its dtype, shape, key and SHA-256).
 """

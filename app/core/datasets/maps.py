@@ -2,13 +2,13 @@
 
 One entry point, :func:`map_pair`, for the three classes:
 
-- ``"rgbd"``: handheld RGB-D fused maps of furnished rooms (:mod:`app.core.synthetic_handheld`);
+- ``"rgbd"``: handheld RGB-D fused maps of furnished rooms (:mod:`app.core.datasets.handheld`);
 - ``"robot"``: robot / mobile laser scanning maps of corridors, offices and warehouses
-  (:func:`app.core.synthetic_robot.robot_pair`);
+  (:func:`app.core.datasets.robot.robot_pair`);
 - ``"tls"``: terrestrial multi-station scans, registered, merged and thinned
-  (:func:`app.core.synthetic_robot.terrestrial_pair`).
+  (:func:`app.core.datasets.robot.terrestrial_pair`).
 
-Every pair (:class:`~app.core.synthetic_map_world.MapPair`) holds both maps with their per-point
+Every pair (:class:`~app.core.datasets.map_world.MapPair`) holds both maps with their per-point
 ``"time"`` attribute and ``trajectory`` (``pair.clouds()`` gives them bare, as the files of the
 "nothing given" case), the truth (``*_changed``: more than 10 cm from every surface of the other
 epoch's world; ``*_scored``: seen by some tested pose of the other epoch), the changes (kind,
@@ -17,10 +17,10 @@ object, where) and the scan's true transform.  The same arguments give the same 
 
 from __future__ import annotations
 
-from app.core.synthetic_furniture import MAP_CHANGES, MapChange, MapObject
-from app.core.synthetic_handheld import handheld_pair
-from app.core.synthetic_map_world import CHANGE_DISTANCE, MapPair
-from app.core.synthetic_robot import ROBOT_LAYOUTS, robot_pair, terrestrial_pair
+from app.core.datasets.furniture import MAP_CHANGES, MapChange, MapObject
+from app.core.datasets.handheld import handheld_pair
+from app.core.datasets.map_world import CHANGE_DISTANCE, MapPair
+from app.core.datasets.robot import ROBOT_LAYOUTS, robot_pair, terrestrial_pair
 
 __all__ = [
     "CHANGE_DISTANCE",

@@ -4,7 +4,7 @@
 stored, or failed for good), so that the event exists exactly when the job's new state does.
 The payload names the site and the job, with score, threshold, decision and a summary of the
 regions; the signed view link is added per webhook when a delivery is sent
-(:mod:`app.jobs.deliveries`), since it names the token that created the webhook.
+(:mod:`app.jobs.alerts.deliveries`), since it names the token that created the webhook.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 :func:`tick` is called by every job consumer every ``schedule_tick_seconds`` (and by tests with
 the ``now`` they choose).  For each enabled schedule it lists the periods that started since
-the last one handled (:class:`app.services.schedule_times.Rhythm`) and applies the schedule's
+the last one handled (:class:`app.services.schedules.times.Rhythm`) and applies the schedule's
 ``catch_up`` policy when there are several (the scheduler was down):
 
 * ``each``: every due period runs, oldest first;
@@ -28,8 +28,6 @@ Both events, like the job events, name the site (``site: {id, name}``).
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any
@@ -42,13 +40,14 @@ from app.clock import as_utc, iso_utc, utc_now
 from app.config import Settings
 from app.db.events import publish_event
 from app.db.models import Job, Scan, Schedule, ScheduleRun, ScheduleRunStatus, Site
-from app.db.session import session_factory
-from app.services import jobs, schedule_ingest, schedule_sources, sites, storage
+from app.db.session import transaction
+from app.services import jobs, sites, storage
 from app.services.auth import Principal
 from app.services.errors import AppError, ConflictError, NotFoundError
-from app.services.schedule_times import Rhythm
+from app.services.schedules import ingest as schedule_ingest
+from app.services.schedules import sources as schedule_sources
+from app.services.schedules.times import Rhythm
 from app.services.storage import ReceivedFile
-from app.services.transaction import commit, rollback
 
 logger = logging.getLogger("scandiff.schedules")
 
@@ -70,20 +69,6 @@ class TickReport:
     def add(self, status: ScheduleRunStatus | str, run_id: str) -> None:
         """Count run ``run_id`` under ``status``."""
         self.runs.setdefault(str(status), []).append(run_id)
-
-
-@contextmanager
-def unit_of_work(settings: Settings) -> Iterator[Session]:
-    """A session committed on success (after-commit work runs), rolled back on error."""
-    session = session_factory(settings.sqlalchemy_url)()
-    try:
-        yield session
-        commit(session)
-    except BaseException:
-        rollback(session)
-        raise
-    finally:
-        session.close()
 
 
 def rhythm_of(schedule: Schedule) -> Rhythm:
@@ -112,7 +97,7 @@ def claim_period(
 ) -> str | None:
     """Insert and commit the run row of a period; None when another claimant has it."""
     try:
-        with unit_of_work(settings) as session:
+        with transaction(settings.sqlalchemy_url) as session:
             schedule = session.get(Schedule, schedule_id)
             if schedule is None:
                 return None
@@ -142,7 +127,7 @@ def record_skipped(settings: Settings, schedule_id: str, starts: list[datetime])
     if not starts:
         return []
     inserted: list[str] = []
-    with unit_of_work(settings) as session:
+    with transaction(settings.sqlalchemy_url) as session:
         schedule = session.get(Schedule, schedule_id)
         if schedule is None:
             return []
@@ -346,7 +331,7 @@ def _finish_missed(session: Session, schedule: Schedule, run: ScheduleRun, reaso
 
 
 def _record_failure(settings: Settings, run_id: str, error: str) -> None:
-    with unit_of_work(settings) as session:
+    with transaction(settings.sqlalchemy_url) as session:
         run = session.get(ScheduleRun, run_id)
         if run is not None:
             run.status = ScheduleRunStatus.FAILED
@@ -360,7 +345,7 @@ def _take_marker(settings: Settings, schedule_id: str, marker: Any) -> bool:
     Taken before the file is stored: a file that cannot be stored (malformed, over the quota)
     fails its run once and is not tried again; the next new file is.
     """
-    with unit_of_work(settings) as session:
+    with transaction(settings.sqlalchemy_url) as session:
         schedule = session.get(Schedule, schedule_id, with_for_update=True)
         if schedule is None or schedule.source_marker == marker:
             return False
@@ -370,7 +355,7 @@ def _take_marker(settings: Settings, schedule_id: str, marker: Any) -> bool:
 
 def complete_period(settings: Settings, run_id: str) -> ScheduleRun:
     """Run a claimed period: take its scan, compare, or record it missed (or failed, raising)."""
-    with unit_of_work(settings) as session:
+    with transaction(settings.sqlalchemy_url) as session:
         run = session.get(ScheduleRun, run_id)
         schedule = session.get(Schedule, run.schedule_id) if run is not None else None
         if run is None or schedule is None:
@@ -381,7 +366,7 @@ def complete_period(settings: Settings, run_id: str) -> ScheduleRun:
         if fetched is not None and not _take_marker(settings, schedule.id, fetched[2]):
             storage.remove_file(fetched[0].path)  # another run took this very file meanwhile
             fetched = None
-        with unit_of_work(settings) as session:
+        with transaction(settings.sqlalchemy_url) as session:
             scan: Scan | None = None
             if fetched is not None:
                 received, filename, _marker = fetched
@@ -462,7 +447,7 @@ def _tick_schedule(
 def check_stale(settings: Settings, schedule_id: str, now: datetime) -> bool:
     """Publish ``site.stale`` when the site has had no scan for ``stale_after_seconds`` (once
     per spell; a new scan ends the spell); whether it was published now."""
-    with unit_of_work(settings) as session:
+    with transaction(settings.sqlalchemy_url) as session:
         schedule = session.get(Schedule, schedule_id)
         if schedule is None or schedule.stale_after_seconds is None:
             return False
@@ -514,7 +499,7 @@ def fail_abandoned_runs(settings: Settings) -> list[str]:
     """
     now = utc_now()
     claimed_before = now - abandoned_after(settings)
-    with unit_of_work(settings) as session:
+    with transaction(settings.sqlalchemy_url) as session:
         abandoned = session.scalars(
             select(ScheduleRun.id).where(
                 ScheduleRun.status == ScheduleRunStatus.RUNNING,
@@ -543,7 +528,7 @@ def tick(settings: Settings, now: datetime | None = None) -> TickReport:
     report = TickReport()
     for run_id in fail_abandoned_runs(settings):
         report.add(ScheduleRunStatus.FAILED, run_id)
-    with unit_of_work(settings) as session:
+    with transaction(settings.sqlalchemy_url) as session:
         schedules = session.scalars(
             select(Schedule).where(Schedule.enabled.is_(True)).order_by(Schedule.created_at)
         ).all()

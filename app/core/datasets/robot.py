@@ -11,7 +11,7 @@ its walls; an office 8-14 x 6-10 m with desks, chairs, boxes and boards; a wareh
   world frame and voxel-filtered at 2-5 cm.  The second epoch's path is another one: offset,
   run the other way, over another extent.
 - **Terrestrial scans** (:func:`terrestrial_pair`): 2-4 stations a epoch of a dome lidar
-  (:func:`app.core.synthetic_lidar.lidar_directions`, -45 to 60 degrees), registered with 2 mm /
+  (:func:`app.core.datasets.lidar.lidar_directions`, -45 to 60 degrees), registered with 2 mm /
   0.01 degree errors, merged and thinned to 1-2 cm; the scan's stations are drawn anew.
 """
 
@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from app.core.synthetic_furniture import (
+from app.core.datasets.furniture import (
     MOVABLE_KINDS,
     MapObject,
     Placement,
@@ -31,8 +31,8 @@ from app.core.synthetic_furniture import (
     make_object,
     place_object,
 )
-from app.core.synthetic_lidar import ELEVATION_RANGE_DEG, LidarWorld, lidar_directions
-from app.core.synthetic_map_world import (
+from app.core.datasets.lidar import ELEVATION_RANGE_DEG, LidarWorld, lidar_directions
+from app.core.datasets.map_world import (
     EpochSamples,
     MapPair,
     SensorModel,
@@ -259,14 +259,14 @@ def robot_pair(
         Edge of the thinning voxels (metres); default drawn in 2-5 cm.
     visibility_stride : int, optional
         The truth's ``scored`` tests every this many sweeps of the other epoch; default: about
-        :data:`~app.core.synthetic_map_world.TESTED_POSES` sweeps spread along the path.
+        :data:`~app.core.datasets.map_world.TESTED_POSES` sweeps spread along the path.
     random_state : int
 
     Returns
     -------
     MapPair
         ``map_class`` ``"robot"``; a changed pair has at least
-        :data:`~app.core.synthetic_map_world.MIN_VISIBLE_CHANGE` changed, scored points.
+        :data:`~app.core.datasets.map_world.MIN_VISIBLE_CHANGE` changed, scored points.
     """
     rng = np.random.default_rng(random_state)
     for _ in range(10):

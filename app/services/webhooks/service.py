@@ -2,8 +2,8 @@
 
 Creating and deleting need an admin token; reading needs any token of the organisation.  The
 URL is checked (http or https, a public address unless the operator allows private ones) when
-the webhook is created and again at every attempt (:mod:`app.jobs.deliveries`).  A
-``mailto:`` url makes an e-mail alert (:mod:`app.jobs.email_alerts`) when SMTP is set up.
+the webhook is created and again at every attempt (:mod:`app.jobs.alerts.deliveries`).  A
+``mailto:`` url makes an e-mail alert (:mod:`app.jobs.alerts.mail`) when SMTP is set up.
 The secret is stored as is: an HMAC key cannot be hashed, and it is not encrypted at rest.
 """
 
@@ -23,7 +23,7 @@ from app.services.auth import Principal, require_role
 from app.services.errors import NotFoundError, ValidationFailedError
 from app.services.paging import newest_first_page
 from app.services.scoping import scoped
-from app.services.webhook_schemas import WebhookCreate
+from app.services.webhooks.schemas import WebhookCreate
 
 SECRET_PREFIX = "whsec_"
 MAX_WEBHOOKS_PER_ORGANISATION = 50

@@ -1,13 +1,13 @@
 """Several stations per cloud: localisation on merged multi-station lidar scans.
 
-Scenes: :func:`app.core.synthetic_lidar.lidar_pair` with 3-5 stations per epoch (rooms,
+Scenes: :func:`app.core.datasets.lidar.lidar_pair` with 3-5 stations per epoch (rooms,
 corridors, warehouses; 1 cm range noise; the scan misaligned by 0.3-0.4 degrees and 2-3 cm, then
 put back with the true transform so that only visibility is measured).  Modes:
 
 - ``given``: every station's origin and each point's station index;
 - ``origins``: the origins only (points assigned to stations from the ring structure);
 - ``recovered``: nothing given; stations recovered from the points
-  (:func:`app.core.origins.stations.recover_stations`), else the origin-free test;
+  (:func:`app.core.origins.station_recovery.recover_stations`), else the origin-free test;
 - ``origin-free``: nothing given; the sampling-gap and coverage tests
   (``origin_free_test="gaps"``);
 - ``coverage``: nothing given, the coverage test alone (before issue 15);
@@ -21,7 +21,7 @@ put back with the true transform so that only visibility is measured).  Modes:
 Per scene and mode: changed regions (the decision: changed when there is one), IoU of changed
 points over the points some station of the other epoch saw.
 
-Run: ``.venv/bin/python -m bench.stations [--seeds 2] [--step 1.0] [--modes given,recovered]
+Run: ``.venv/bin/python -m bench.merged_stations [--seeds 2] [--step 1.0] [--modes given,recovered]
 [--output FILE]``; prints a table and writes it as the section "Several stations per cloud" of
 ``bench/results/visibility.md`` (other sections are kept) or ``FILE``.
 ``--sampling`` instead prints :func:`app.core.origins.sampling.lidar_sampling`'s figures on
@@ -39,20 +39,20 @@ from types import SimpleNamespace
 import numpy as np
 
 from app.core.cloud import PointCloud
+from app.core.datasets.lidar import lidar_pair
+from app.core.datasets.scenes import paper_corridor, raycast_scene
 from app.core.ground_truth import changed_iou
 from app.core.localise import localise_changes
 from app.core.origins.sampling import lidar_sampling
-from app.core.origins.stations import recover_stations
+from app.core.origins.station_recovery import recover_stations
 from app.core.pipeline import compare
 from app.core.registration import apply_transform
-from app.core.synthetic import paper_corridor, raycast_scene
-from app.core.synthetic_lidar import lidar_pair
 
 RESULTS = Path(__file__).resolve().parent / "results"
 MODES = ("given", "origins", "recovered", "origin-free", "coverage", "fallback", "default")
 CHANGES = ("added", "removed", "mixed", "none")
 LAYOUTS = ("room", "corridor", "warehouse")
-SECTION = "Several stations per cloud (bench/stations.py)"
+SECTION = "Several stations per cloud (bench/merged_stations.py)"
 
 
 def localise(pair, scan, scan_origins, mode: str):
@@ -184,7 +184,7 @@ def main() -> None:
                     )
     lines = [
         f"Multi-station scenes: grid step {args.step} deg, {args.seeds} seeds, "
-        f"layouts {args.layouts}, changes {args.changes} (`bench/stations.py`).",
+        f"layouts {args.layouts}, changes {args.changes} (`bench/merged_stations.py`).",
         "",
         "| mode | decisions right | IoU min (changed) | IoU mean (changed) | "
         "changed regions on unchanged scenes |",
