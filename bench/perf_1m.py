@@ -1,7 +1,7 @@
 """The 1M single-station class (issue 30, item 7): the whole CLI against the floor, two pairs.
 
 Both pairs are one-station lidar rescans on a uniform angular grid
-(:func:`app.core.synthetic_lidar.lidar_pair`, about 1M + 1M points, an added box, the scan
+(:func:`app.core.datasets.lidar.lidar_pair`, about 1M + 1M points, an added box, the scan
 misaligned), float32 binary PLY:
 
 * ``bench``: the pair of ``bench/perf_round2.py`` (a warehouse, points shuffled);
@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.synthetic_lidar import LAYOUTS, LidarPair, lidar_pair, steps_for_points
+from app.core.datasets.lidar import LAYOUTS, LidarPair, lidar_pair, steps_for_points
 from bench.perf_round2 import best, run_command, run_floor, write_pair
 from bench.perf_workers import write_binary_ply
 
