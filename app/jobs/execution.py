@@ -106,9 +106,16 @@ def compute(
     load_seconds = time.perf_counter() - started
     keeper.report("comparing", PROGRESS_LOADED)
     cache = geometry_cache_of(job)
+    # the real comparison takes the worker's memory budget (in tiles when the pair exceeds it)
+    budget = (
+        {}
+        if job_hooks.compare is not None
+        else {"budget_bytes": settings.worker_memory_budget_bytes}
+    )
     result = compare(
         reference,
         scan,
+        **budget,
         method=job.method,
         variant=job.variant,
         params=job.params,  # replayable: holds align/random_state/stage parameters when given

@@ -3,9 +3,10 @@
 A job run asks :data:`job_hooks` for two things, and nothing else in ``app`` knows about tests:
 
 * :meth:`JobHooks.comparison`: the function that compares two clouds.  It is
-  :func:`app.core.pipeline.compare` unless a test set :attr:`JobHooks.compare` to a stand-in
-  (``tests/helpers/fake_pipeline.py`` installs a fast, deterministic one, in-process or in a
-  consumer it starts);
+  :func:`app.core.tiling.compare.compare_within_budget` (:func:`app.core.pipeline.compare`,
+  in tiles when the pair does not fit the worker's memory budget) unless a test set
+  :attr:`JobHooks.compare` to a stand-in (``tests/helpers/fake_pipeline.py`` installs a
+  fast, deterministic one, in-process or in a consumer it starts);
 * :meth:`JobHooks.inject_faults`: faults described by the JSON object in env
   ``SCANDIFF_TEST_JOB_HOOKS`` (an environment variable, so that it reaches the workers of a
   ``scandiff serve`` a test starts).  Honoured only when ``SCANDIFF_TESTING=1``, which the test
@@ -58,9 +59,9 @@ class JobHooks:
         # Imported on first use, not with this module: the API process imports the jobs package
         # to enqueue jobs and must stay small, without scipy, scikit-learn and POT (~4 s to
         # import).  The consumer calls this before forking, so its workers start with it loaded.
-        from app.core.pipeline import compare
+        from app.core.tiling.compare import compare_within_budget
 
-        return compare
+        return compare_within_budget
 
     def faults_for(self, job: ClaimedJob) -> dict[str, Any]:
         """The faults to inject into ``job`` (none unless ``SCANDIFF_TESTING=1``)."""

@@ -3,7 +3,8 @@
 
 Summary and quality warnings; the view (before/after, colour mode with its colour bar, the
 legend, depth cue, point size, top view); a height clip; the change settings that relabel live;
-layer checkboxes; the region list; the picked point and the sensors.  Every control is kept in
+layer checkboxes; the region list; a box at full density (:mod:`app.viewer.box_controls`); the
+picked point and the sensors.  Every control is kept in
 ``record.controls`` under a short name, so the scene endpoint reports its value.
 """
 
@@ -16,6 +17,7 @@ from typing import Any
 import numpy as np
 import viser
 
+from app.viewer.box_controls import add_box_controls
 from app.viewer.colours import colour_bar_html, legend_html
 from app.viewer.opening import ASSUMED_ASPECT, CAMERA_FOV, top_view_pose, whole_scene_view
 from app.viewer.regions_display import DEFAULT_MOVED_WITHIN, relabel
@@ -42,6 +44,8 @@ def add_controls(record: Any, title: str) -> None:
     _add_change_controls(record, gui, data)
     _add_layer_controls(record, gui, data)
     _add_region_list(record, gui, data)
+    if getattr(record, "box_loader", None) is not None:
+        add_box_controls(record, gui, data, record.box_loader)
     with gui.add_folder("Picked point"):
         record.controls["picked"] = gui.add_markdown(
             "Click a point in the scene to read its coordinates, label and distance."
@@ -314,7 +318,8 @@ def _add_change_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> Non
             min_distance = float(threshold if untouched else distance.value)  # type: ignore[arg-type]
             record.state.min_distance = min_distance
             record.state.min_region_points = int(size.value)
-            record.relabelled = relabel(data, min_distance, int(size.value))
+            # the scene drawn now: the job's whole view, or a box of it at full density
+            record.relabelled = relabel(record.data, min_distance, int(size.value))
             record.request_redraw(points=True, regions=True)
 
     distance.on_update(apply)

@@ -2,25 +2,34 @@
 
 Reads the job row (registration transform, decision), its regions, both scan files (with the
 core's readers) and the per-point labels the worker wrote to ``results_dir/<job_id>/labels.npz``;
-returns the :class:`~app.viewer.scene.SceneData` the 3D view draws.  Authorisation is the
-caller's business (the viewer's routes ask their authoriser first).
+returns the :class:`~app.viewer.scene.SceneData` the 3D view draws. Clouds larger than the
+``viewer_stream_above_points`` setting are not loaded whole: only the points drawn are read
+(:mod:`app.viewer.large_scene`), and :func:`load_job_box` reads a box at full density.
+Authorisation is the caller's business (the viewer's routes ask their authoriser first).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from app.config import Settings
 from app.core.formats import read_point_cloud
 from app.db.models import Job, JobStatus, Scan, Site
 from app.db.session import session_factory
 from app.jobs.results import read_result_files
+from app.kit.data_layout import DETAILS_FILENAME
 from app.kit.scan_files import stored_bag_options
 from app.services.schemas import RegionRead
+from app.viewer.large_scene import SceneContext, StoredSide, box_scene, budget_scene
 from app.viewer.scene import DEFAULT_POINT_BUDGET, SceneData, build_scene_data
+from app.viewer.scene_parts import SIDES
+from app.viewer.stored_results import stored_distances, stored_labels
 
 
 def job_sensor_origins(job: Any) -> dict[str, Any]:
@@ -102,10 +111,29 @@ def job_view_problem(settings: Settings, job_id: str) -> ViewUnavailableError | 
         return None
 
 
-def load_job_scene(
-    settings: Settings, job_id: str, *, point_budget: int = DEFAULT_POINT_BUDGET
-) -> tuple[SceneData, str]:
-    """The scene of a succeeded job and a title for it.
+@dataclass(frozen=True)
+class StoredJob:
+    """What the view of a succeeded job reads: its files and what the API says of it."""
+
+    paths: tuple[Path, Path]
+    names: tuple[str, str]
+    labels_path: Path
+    context: SceneContext
+
+    @property
+    def details_path(self) -> Path:
+        """The per-point distances beside the labels (jobs before details.npz have none)."""
+        return self.labels_path.with_name(DETAILS_FILENAME)
+
+    @property
+    def title(self) -> str:
+        """``site: scan vs reference``."""
+        site_name = (self.context.summary or {}).get("site") or "site"
+        return f"{site_name}: {self.names[1]} vs {self.names[0]}"
+
+
+def stored_job(settings: Settings, job_id: str) -> StoredJob:
+    """The files and facts of a succeeded job.
 
     Raises
     ------
@@ -127,39 +155,71 @@ def load_job_scene(
         site = session.get(Site, job.site_id)
         if reference is None or scan is None:
             raise ViewUnavailableError(f"the scans of job {job_id} were deleted", status=410)
-        regions = [RegionRead.from_model(region).model_dump() for region in job.regions]
-        uncertain_regions = job_uncertain_regions(job)
-        paths = (
-            settings.data_layout.resolve(reference.storage_path),
-            settings.data_layout.resolve(scan.storage_path),
-        )
-        names = (reference.filename, scan.filename)
-        labels_path = job_labels_path(settings, job)
-        sensor_origins = job_sensor_origins(job)
-        warnings = job_warnings(job)
-        min_region_points = job_min_region_points(job)
         transform = (job.registration or {}).get("transform")
-        summary = {
-            "score": job.score,
-            "threshold": job.threshold,
-            "changed": job.changed,
-            "n_regions": job.n_regions,
-            "site": site.name if site else None,
-            "method": job.method,
-            "variant": job.variant,
-        }
+        stored = StoredJob(
+            paths=(
+                settings.data_layout.resolve(reference.storage_path),
+                settings.data_layout.resolve(scan.storage_path),
+            ),
+            names=(reference.filename, scan.filename),
+            labels_path=job_labels_path(settings, job),
+            context=SceneContext(
+                transform=np.eye(4) if transform is None else np.asarray(transform, np.float64),
+                regions=[RegionRead.from_model(region).model_dump() for region in job.regions],
+                uncertain_regions=job_uncertain_regions(job),
+                summary={
+                    "score": job.score,
+                    "threshold": job.threshold,
+                    "changed": job.changed,
+                    "n_regions": job.n_regions,
+                    "site": site.name if site else None,
+                    "method": job.method,
+                    "variant": job.variant,
+                },
+                sensor_origins=job_sensor_origins(job),
+                warnings=job_warnings(job),
+                min_region_points=job_min_region_points(job),
+            ),
+        )
     finally:
         session.close()
-
-    for path in (*paths, labels_path):
+    for path in (*stored.paths, stored.labels_path):
         if not path.is_file():
             raise ViewUnavailableError(
                 f"a file of job {job_id} is missing from the data directory ({path.name})",
                 status=410,
             )
-    reference_cloud = read_point_cloud(paths[0], bag_options=stored_bag_options(paths[0]))
-    scan_cloud = read_point_cloud(paths[1], bag_options=stored_bag_options(paths[1]))
-    stored = read_result_files(labels_path)
+    return stored
+
+
+def load_job_scene(
+    settings: Settings,
+    job_id: str,
+    *,
+    point_budget: int = DEFAULT_POINT_BUDGET,
+    stream_above_points: int | None = None,
+) -> tuple[SceneData, str]:
+    """The scene of a succeeded job and a title for it.
+
+    Clouds of more than ``stream_above_points`` points (default: the
+    ``viewer_stream_above_points`` setting) are not loaded: the points drawn are read from
+    the files (:func:`~app.viewer.large_scene.budget_scene`).
+
+    Raises
+    ------
+    ViewUnavailableError
+        The job does not exist (404), has not succeeded (409) or its files are missing (410).
+    """
+    job = stored_job(settings, job_id)
+    labels = stored_labels(job.labels_path)
+    limit = stream_above_points
+    if limit is None:
+        limit = settings.viewer_stream_above_points
+    if max(len(values) for values in labels.values()) > limit:
+        return budget_scene(_stored_sides(job, labels), job.context, point_budget), job.title
+    reference_cloud = read_point_cloud(job.paths[0], bag_options=stored_bag_options(job.paths[0]))
+    scan_cloud = read_point_cloud(job.paths[1], bag_options=stored_bag_options(job.paths[1]))
+    stored = read_result_files(job.labels_path)
     reference_labels = reference_cloud.from_source_order(stored.reference_label)
     scan_labels = scan_cloud.from_source_order(stored.scan_label)
     distances: dict[str, Any] = {}
@@ -168,21 +228,57 @@ def load_job_scene(
             "reference_distances": reference_cloud.from_source_order(stored.reference_distance),
             "scan_distances": scan_cloud.from_source_order(stored.scan_distance),
         }
+    context = job.context
     data = build_scene_data(
         reference_cloud.points,
         scan_cloud.points,
         reference_labels=reference_labels,
         scan_labels=scan_labels,
-        transform=transform,
-        regions=regions,
-        uncertain_regions=uncertain_regions,
+        transform=context.transform,
+        regions=context.regions,
+        uncertain_regions=context.uncertain_regions,
         point_budget=point_budget,
-        summary=summary,
-        sensor_origins=sensor_origins,
-        warnings=warnings,
-        min_region_points=min_region_points,
+        summary=context.summary,
+        sensor_origins=context.sensor_origins,
+        warnings=context.warnings,
+        min_region_points=context.min_region_points,
         **distances,
     )
-    site_name = summary["site"] or "site"
-    title = f"{site_name}: {names[1]} vs {names[0]}"
-    return data, title
+    return data, job.title
+
+
+def load_job_box(
+    settings: Settings,
+    job_id: str,
+    low: Sequence[float],
+    high: Sequence[float],
+    *,
+    point_budget: int = DEFAULT_POINT_BUDGET,
+    origin: NDArray[np.float64] | None = None,
+) -> SceneData:
+    """The job's points inside a box (reference frame, file coordinates) at full density, up
+    to ``point_budget`` (:func:`~app.viewer.large_scene.box_scene`; a warning says when the
+    box holds more); ``origin``: the local origin of the view it replaces.
+
+    Raises
+    ------
+    ViewUnavailableError
+        As :func:`load_job_scene`; a malformed box (422).
+    """
+    job = stored_job(settings, job_id)
+    sides = _stored_sides(job, stored_labels(job.labels_path))
+    try:
+        return box_scene(sides, job.context, low, high, point_budget, origin)
+    except ValueError as exc:
+        raise ViewUnavailableError(str(exc), status=422) from exc
+
+
+def _stored_sides(job: StoredJob, labels: dict[str, NDArray[np.int8]]) -> dict[str, StoredSide]:
+    """Both scans of ``job`` as :class:`~app.viewer.large_scene.StoredSide`."""
+    distances = stored_distances(
+        job.details_path, {side: len(values) for side, values in labels.items()}
+    )
+    return {
+        side: StoredSide(path, labels[side], distances[side], stored_bag_options(path))
+        for side, path in zip(SIDES, job.paths, strict=True)
+    }

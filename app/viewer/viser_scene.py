@@ -26,6 +26,7 @@ import numpy as np
 import viser
 
 from app.viewer import controls
+from app.viewer.box_controls import BoxLoader
 from app.viewer.regions_display import (
     CameraView,
     MovedPair,
@@ -86,6 +87,8 @@ class ClientScene:
     boxes_visible: bool = True
     world_point_size: float = 0.05
     controls: dict[str, Any] = field(default_factory=dict)
+    box_loader: BoxLoader | None = None
+    """Reads a box of the job at full density (the "Full density in a box" panel)."""
     lock: threading.RLock = field(default_factory=threading.RLock)
     _layer_digest: dict[str, str] = field(default_factory=dict)
     _redraw_lock: threading.Lock = field(default_factory=threading.Lock)
@@ -549,9 +552,13 @@ def draw_sensor_markers(scene: Any, markers: Sequence[SensorMarker], radius: flo
     return handles
 
 
-def build_client_scene(client: viser.ClientHandle, data: SceneData, title: str) -> ClientScene:
+def build_client_scene(
+    client: viser.ClientHandle, data: SceneData, title: str, box_loader: BoxLoader | None = None
+) -> ClientScene:
     """Add layers, region outlines, sensors and the GUI for one browser."""
-    record = ClientScene(client_id=client.client_id, client=client, data=data)
+    record = ClientScene(
+        client_id=client.client_id, client=client, data=data, box_loader=box_loader
+    )
     record.world_point_size = data.point_size
 
     # First: a camera the browser reports while the scene is drawn must place the labels.
