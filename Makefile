@@ -65,6 +65,7 @@ bench: $(BENCH_STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/python -m bench.calibration --quick
 	$(BIN)/python -m bench.perf
 	$(BIN)/python -m bench.perf_round2
+	$(BIN)/python -m bench.perf_1m
 	$(BIN)/python -m bench.perf_scaling --json bench/results/scaling.json
 	$(MAKE) bench-origins
 

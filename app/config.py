@@ -55,6 +55,10 @@ DEPRECATED_PRIVATE_ADDRESS_SETTINGS = (
 URL sources), still accepted."""
 
 
+DEFAULT_MEMORY_BUDGET_BYTES = 2_684_354_560
+"""2.5 GiB: issue 30's peak RSS target per worker process."""
+
+
 class Settings(BaseSettings):
     """Service settings; ``SCANDIFF_DATA_DIR=/srv/scandiff`` etc. override the defaults."""
 
@@ -87,6 +91,23 @@ class Settings(BaseSettings):
         description="RLIMIT_AS for a worker process running a job: 'auto' (derived from the "
         "machine's memory and the number of workers where the consumer starts), bytes, or "
         "0 / 'none' for no cap.",
+    )
+    tile_crop_points: int | None = Field(
+        default=None,
+        ge=1000,
+        description="Compare every job in tiles of at most this many points (both clouds, "
+        "margins included), fanned out on the queue, whatever the memory budget says; None = "
+        "tiles only for a pair that does not fit a worker's memory budget.  For tests and "
+        "for spreading mid-sized jobs over idle workers.",
+    )
+    worker_memory_budget_bytes: int | None = Field(
+        default=DEFAULT_MEMORY_BUDGET_BYTES,
+        ge=1,
+        description="Memory one comparison may use in a worker process (and `scandiff "
+        "compare` by default: --memory-budget): a pair that does not fit is compared in "
+        "tiles whose size follows from it (app/core/tiling, memory model in "
+        "app/core/tiling/plan.py); a pair of which not even one tile fits fails with a "
+        "message saying the budget to set.  None: always one process.",
     )
     job_threads: int | None = Field(
         default=None,

@@ -22,6 +22,11 @@ if TYPE_CHECKING:  # the numeric stack is imported when the command runs, not to
     from app.core.trajectory import Trajectory
 
 
+BUDGET_NOT_GIVEN = object()
+"""``--memory-budget`` left out: the setting's value applies."""
+MEMORY_SUFFIXES = {"": 1, "K": 1024, "M": 1024**2, "G": 1024**3, "T": 1024**4}
+
+
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register the ``compare`` subcommand."""
     parser = subparsers.add_parser(
@@ -119,6 +124,15 @@ def _add_sensor_options(parser: argparse.ArgumentParser) -> None:
 def _add_file_options(parser: argparse.ArgumentParser) -> None:
     """How the files are read: the reference's geometry cache, a ROS bag's parameters."""
     parser.add_argument(
+        "--memory-budget",
+        type=_memory_size,
+        default=BUDGET_NOT_GIVEN,
+        metavar="BYTES",
+        help="memory the comparison may use (bytes, or with a K/M/G suffix, e.g. 2.5G; "
+        "default: SCANDIFF_WORKER_MEMORY_BUDGET_BYTES, else 2.5G; 0 or none: no limit): "
+        "a pair that does not fit is compared in tiles; exit 2 when not even one tile fits",
+    )
+    parser.add_argument(
         "--geometry-cache",
         type=Path,
         metavar="DIR",
@@ -200,6 +214,30 @@ def _parse_bag_params(pairs: list[str], flag: str) -> dict[str, str]:
             )
         values[key.strip()] = value.strip()
     return values
+
+
+def _memory_size(text: str) -> int | None:
+    """``--memory-budget``'s value in bytes (``0`` or ``none``: no limit, None)."""
+    value = text.strip().upper().removesuffix("B").removesuffix("I")
+    if value in ("NONE", "0"):
+        return None
+    number, suffix = (value[:-1], value[-1]) if value[-1:].isalpha() else (value, "")
+    try:
+        size = float(number) * MEMORY_SUFFIXES[suffix]
+    except (KeyError, ValueError):
+        raise argparse.ArgumentTypeError(
+            f"not a size in bytes: {text!r} (write e.g. 2684354560, 800M or 2.5G)"
+        ) from None
+    if not size > 0:
+        raise argparse.ArgumentTypeError(f"the memory budget must be positive, got {text!r}")
+    return int(size)
+
+
+def _default_memory_budget() -> int | None:
+    """The service's per-worker budget setting (its environment variable or default)."""
+    from app.config import Settings
+
+    return Settings().worker_memory_budget_bytes
 
 
 def _parse_params(pairs: list[str]) -> dict[str, Any]:
@@ -389,7 +427,7 @@ def run(args: argparse.Namespace) -> int:
     """Run one comparison; exit status 0, or 2 on bad input."""
     from app.core.formats import read_point_cloud
     from app.core.formats.rosbag import bag_options_from_strings
-    from app.core.pipeline import compare
+    from app.core.tiling.compare import compare_within_budget
     from app.kit.allocator import release_freed_memory_promptly
 
     release_freed_memory_promptly()
@@ -427,9 +465,15 @@ def run(args: argparse.Namespace) -> int:
         )
         scan = _with_trajectory(read_point_cloud(args.scan, bag_options=scan_bag), trajectories[1])
         load_seconds = time.perf_counter() - started
-        result = compare(
+        budget = (
+            _default_memory_budget()
+            if args.memory_budget is BUDGET_NOT_GIVEN
+            else args.memory_budget
+        )
+        result = compare_within_budget(
             reference,
             scan,
+            budget_bytes=budget,
             method=args.method,
             variant=args.variant,
             align=not args.no_align,

@@ -319,6 +319,10 @@ def _register_upload(
     site = sites.get_site(session, principal, options.site_id)
     if not options.reference and site.reference_scan_id is None:
         raise ConflictError(no_reference_message(site.id), code="no_reference")
+    if not options.reference:  # its comparison must fit the workers' memory budget
+        reference = session.get(Scan, site.reference_scan_id)
+        if reference is not None:
+            jobs.check_memory_budget(settings, reference.n_points + scan.n_points)
     session.add(scan)
     session.flush()
     if options.reference:

@@ -56,6 +56,12 @@ class RowRead(BaseModel):
         return cls.model_validate(row)
 
 
+def tile_progress_of(job: object) -> TileProgressRead | None:
+    """A job row's tiles done / total, or None when it is not tiled."""
+    total = getattr(job, "tiles_total", None) or 0
+    return TileProgressRead(done=getattr(job, "tiles_done", 0) or 0, total=total) if total else None
+
+
 DEFAULT_DETECTOR_VARIANT = "improved"
 """The variant a detector given by its method alone gets (``{"method": "pe"}``)."""
 
@@ -184,6 +190,13 @@ class VerdictRead(BaseModel):
     set_at: UtcDatetime
 
 
+class TileProgressRead(BaseModel):
+    """How far a job compared tile by tile on several workers has got."""
+
+    done: int = Field(description="Tiles localised and stored.")
+    total: int = Field(description="Tiles in the job's plan.")
+
+
 class JobRead(RowRead):
     """A comparison job: its inputs, state and results."""
 
@@ -194,6 +207,11 @@ class JobRead(RowRead):
     status: JobStatus
     progress: float
     stage: str | None
+    tiles: TileProgressRead | None = Field(
+        default=None,
+        description="A pair too large for one worker's memory budget is localised in tiles "
+        "that any worker takes from the queue: tiles done / total; null for a job in one piece.",
+    )
     attempts: int
     max_attempts: int
     method: str
@@ -271,12 +289,13 @@ class JobRead(RowRead):
 
     @classmethod
     def from_model(cls, row: object) -> Self:
-        """Build from a ``Job`` row, with the file names of its two scans."""
+        """Build from a ``Job`` row, with the file names of its two scans and its tiles."""
         read = cls.model_validate(row)
         reference_scan = getattr(row, "reference_scan", None)
         scan = getattr(row, "scan", None)
         read.reference_filename = reference_scan.filename if reference_scan else None
         read.scan_filename = scan.filename if scan else None
+        read.tiles = tile_progress_of(row)
         return read
 
 
