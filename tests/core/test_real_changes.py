@@ -45,11 +45,6 @@ def test_the_plain_changes_are_found_on_average(recalls):
     assert np.mean(list(recalls.values())) >= RECALL_MEAN, recalls
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="issue 29, open: the MLS pair's west construction fence is found at 64 % (its lower "
-    "third, beside rough ground strips, is judged with them)",
-)
 def test_every_plain_change_is_found(recalls):
     missed = {name: recall for name, recall in recalls.items() if recall < RECALL_EACH}
     assert not missed, missed
