@@ -39,6 +39,9 @@ without reading its row again (:class:`app.services.auth.TokenCache`)."""
 DEFAULT_VIEWER_POINT_BUDGET = 1_000_000
 """Default of ``viewer_point_budget``: the most points a job's 3D view sends to a browser."""
 
+DEFAULT_VIEWER_STREAM_ABOVE_POINTS = 5_000_000
+"""Default of ``viewer_stream_above_points``: larger clouds are not loaded whole by the view."""
+
 DEFAULT_VIEWER_IDLE_SECONDS = 300.0
 """Default of ``viewer_idle_seconds``: how long a job's 3D view server outlives its last
 browser connection."""
@@ -122,6 +125,13 @@ class Settings(BaseSettings):
         ge=1,
         description="The most points over all layers a job's 3D view sends to a browser "
         "(about 15 MB per million); larger clouds are subsampled, changed points first.",
+    )
+    viewer_stream_above_points: int = Field(
+        default=DEFAULT_VIEWER_STREAM_ABOVE_POINTS,
+        ge=0,
+        description="A job's 3D view reads only the points it draws from the files (a block "
+        "at a time, in bounded memory) when either cloud has more points than this; smaller "
+        "jobs are loaded whole.",
     )
     viewer_idle_seconds: float = Field(
         default=DEFAULT_VIEWER_IDLE_SECONDS,

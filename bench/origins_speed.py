@@ -1,7 +1,7 @@
 """What finding the sensor origins costs at 1M points a scan (issue 15: <= 15 % of a compare).
 
-Scenes from :func:`app.core.synthetic_lidar.lidar_pair` at about ``--points`` points per scan
-(denser rays: :func:`~app.core.synthetic_lidar.steps_for_points`): single-station pairs
+Scenes from :func:`app.core.datasets.lidar.lidar_pair` at about ``--points`` points per scan
+(denser rays: :func:`~app.core.datasets.lidar.steps_for_points`): single-station pairs
 (nothing given, the origins estimated) and merged surveys of 3-5 stations per epoch (nothing
 given: the stations are recovered by default).  Each pair goes through
 :func:`app.core.pipeline.compare` once; per pair the bench prints the compare's wall time, the
@@ -35,10 +35,10 @@ import numpy as np
 
 from app.core import pipeline
 from app.core.cloud import PointCloud
+from app.core.datasets.lidar import lidar_pair, steps_for_points
 from app.core.pipeline import compare
-from app.core.synthetic_lidar import lidar_pair, steps_for_points
+from bench.merged_stations import nearest_station_error
 from bench.scenes import changed_points_iou
-from bench.stations import nearest_station_error
 
 KINDS = ("single", "merged")
 LAYOUTS = ("room", "corridor", "warehouse")

@@ -31,13 +31,15 @@ import numpy as np
 from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 
+from app.core.cache.geometry import GeometryCache, reference_neighbourhoods
+from app.core.cache.reference_alignment import ReferenceAlignmentCache
+from app.core.cache.reference_origin import ReferenceOriginCache
 from app.core.cloud import MIN_POINTS, PointCloud, choose_local_origin
 from app.core.comparison_settings import (
     parse_comparison_params,
 )
 from app.core.detectors import canonical_method, warm_up
 from app.core.explanation import explain_comparison
-from app.core.geometry_cache import GeometryCache, reference_neighbourhoods
 from app.core.jsonable import json_safe
 from app.core.localise import (
     LABEL_CHANGED,
@@ -51,11 +53,9 @@ from app.core.localise import (
 from app.core.origins.known_stations import origins_in_local_frame
 from app.core.origins.own_frame import resolve_moved_cloud
 from app.core.origins.resolve import ResolvedOrigin
-from app.core.origins.stations import resolve_stations
+from app.core.origins.station_recovery import resolve_stations
 from app.core.origins.trajectory_origin import station_index, trajectory_origin, trajectory_rays
 from app.core.quality import quality_warnings
-from app.core.reference_alignment import ReferenceAlignmentCache
-from app.core.reference_origin import ReferenceOriginCache
 from app.core.registration import (
     apply_transform,
     identity_registration,
@@ -295,7 +295,7 @@ def compare(
         origin from the points, :mod:`app.core.origins.resolve`) and ``"recover_stations"``
         (``"auto"``, default: a cloud left without an origin whose sampling is a lidar's,
         :func:`app.core.origins.sampling.lidar_sampling`, gets its stations recovered,
-        :func:`app.core.origins.stations.recover_stations`, a second or two per cloud; when
+        :func:`app.core.origins.station_recovery.recover_stations`, a second or two per cloud; when
         none are, it is a merged lidar cloud with unknown stations and the other cloud's
         candidates get the origin-free surface test; ``true``: recover whatever the sampling;
         ``false``: never).
@@ -312,9 +312,9 @@ def compare(
         this method and variant.  Its provenance is in ``calibration["site"]`` either way.
     geometry_cache : GeometryCache, optional
         Where the reference's k-NN geometry, resolved origin and alignment arrays are kept
-        between comparisons (read when valid, written otherwise, :mod:`app.core.geometry_cache`,
-        :mod:`app.core.reference_origin`, :mod:`app.core.reference_alignment`).  Results do
-        not depend on it.
+        between comparisons (read when valid, written otherwise, :mod:`app.core.cache.geometry`,
+        :mod:`app.core.cache.reference_origin`, :mod:`app.core.cache.reference_alignment`).
+        Results do not depend on it.
 
     Returns
     -------

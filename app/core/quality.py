@@ -17,6 +17,10 @@ still "succeed" with many regions.  :func:`quality_warnings` says so, from the r
     occlusion cannot be told from removal.
 ``sensor_origin``
     an origin was given but the data contradict it (the origins' own warnings).
+``trajectory_time_span``
+    some of a cloud's points have times outside its trajectory's span (fewer than half: more
+    is refused as bad input): they take the trajectory's end poses, so their sensor positions
+    are guesses.
 
 The site's history (a region count far above the site's usual) needs the database; the
 service adds it.  Every warning is ``{"code", "message", "detail", "how_to_fix", ...}``:
@@ -61,6 +65,7 @@ FIX_ACTIONS = {
     "widen_coverage": "rescan so that both scans cover the same part of the place",
     "give_sensor_origin": "give the sensor position of the side named in the detail",
     "check_sensor_origin": "check the sensor position given",
+    "check_trajectory": "check that the trajectory covers the whole recording, on its clock",
 }
 """What each ``how_to_fix["action"]`` asks, without naming any interface's knob."""
 
@@ -227,6 +232,12 @@ def origin_warnings(
         for text in origin_messages
     ]
     for side in ("reference", "scan"):
+        for entry in (sensor_origins or {}).get(side) or ():
+            if not isinstance(entry, Mapping) or entry.get("source") != "trajectory":
+                continue
+            outside = entry.get("points_outside")
+            if isinstance(outside, int) and outside > 0:
+                warnings.append(_time_span_warning(side, outside, entry.get("time_span")))
         if sensor_origins is not None and side in sensor_origins and not sensor_origins[side]:
             warnings.append(
                 _warning(
@@ -240,6 +251,25 @@ def origin_warnings(
                 )
             )
     return warnings
+
+
+def _time_span_warning(side: str, outside: int, span: Any) -> dict[str, Any]:
+    """``trajectory_time_span``: ``outside`` points of ``side`` lie outside its trajectory's
+    time span ``[first, last]``."""
+    within = ""
+    if isinstance(span, Sequence) and len(span) == 2:
+        within = f" ({float(span[0]):.3f}..{float(span[1]):.3f} s)"
+    return _warning(
+        "trajectory_time_span",
+        f"{outside:,} of the {side}'s points have times outside its trajectory's time "
+        f"span{within}.",
+        "their sensor positions are the trajectory's end poses, not where the sensor was: "
+        "regions near them may be shadows",
+        "check_trajectory",
+        value=outside,
+        unit="points",
+        side=side,
+    )
 
 
 def quality_warnings(result: Any) -> list[dict[str, Any]]:

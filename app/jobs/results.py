@@ -29,9 +29,9 @@ from app.core.jsonable import json_safe
 from app.core.quality import quality_warnings
 from app.db.models import Job, JobStatus, Region
 from app.db.session import transaction
-from app.jobs.alerts import publish_job_finished
+from app.jobs.alerts.events import publish_job_finished
+from app.jobs.alerts.site_history import region_count_warning
 from app.jobs.leases import ClaimedJob, held_by
-from app.jobs.site_history import region_count_warning
 from app.kit.data_layout import DETAILS_FILENAME, LABELS_FILENAME
 
 

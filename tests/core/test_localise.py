@@ -22,6 +22,12 @@ from typing import Any
 import numpy as np
 import pytest
 
+from app.core.datasets.scenes import (
+    SyntheticPair,
+    paper_corridor,
+    raycast_scene,
+    raycast_scene_objects,
+)
 from app.core.errors import InputError, PointCloudError
 from app.core.localise import (
     DEFAULT_PARAMETERS,
@@ -32,12 +38,6 @@ from app.core.localise import (
     localise_changes,
     nearest_neighbourhoods,
     neighbourhood_size,
-)
-from app.core.synthetic import (
-    SyntheticPair,
-    paper_corridor,
-    raycast_scene,
-    raycast_scene_objects,
 )
 from tests.helpers.scenes import changed_iou
 

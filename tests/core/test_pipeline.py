@@ -9,12 +9,12 @@ import pytest
 
 from app.core import pipeline
 from app.core.cloud import PointCloud
+from app.core.datasets.scenes import raycast_scene
 from app.core.detectors import METHODS, VARIANTS
 from app.core.errors import InputError
 from app.core.localise import LABEL_CHANGED, neighbourhoods
 from app.core.pipeline import compare
 from app.core.registration import apply_transform
-from app.core.synthetic import raycast_scene
 
 SCENE_POINTS = 20_000
 SMALL_AHEAD_MIN_POINTS = 10_000

@@ -23,6 +23,8 @@ import pytest
 from pykdtree.kdtree import KDTree
 
 from app.core.cloud import PointCloud
+from app.core.datasets.lidar import LidarPair, lidar_pair
+from app.core.datasets.scenes import _transform_points, raycast_scene
 from app.core.errors import InputError
 from app.core.localise import LABEL_CHANGED, LABEL_UNOBSERVED, localise_changes
 from app.core.localise.gaps import in_sampling_gap
@@ -32,13 +34,11 @@ from app.core.localise.rays import (
     STATUS_SURFACE,
     STATUS_UNOBSERVED,
 )
-from app.core.localise.stations import RING_CONTRAST, assign_stations, ring_contrast
+from app.core.localise.station_assignment import RING_CONTRAST, assign_stations, ring_contrast
 from app.core.localise.surface import local_geometry
 from app.core.localise.visibility import combine_station_status
-from app.core.origins.stations import recover_stations
+from app.core.origins.station_recovery import recover_stations
 from app.core.pipeline import compare, parse_comparison_params
-from app.core.synthetic import _transform_points, raycast_scene
-from app.core.synthetic_lidar import LidarPair, lidar_pair
 from tests.helpers.scenes import changed_iou
 
 STEP = 1.2  # degrees: ~25k points a station

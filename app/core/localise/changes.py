@@ -56,7 +56,7 @@ from app.core.localise.settings import (
     as_station_index,
     resolve_parameters,
 )
-from app.core.localise.stations import assign_stations
+from app.core.localise.station_assignment import assign_stations
 from app.core.localise.surface import local_geometry
 from app.core.localise.visibility import (
     LABEL_CHANGED,
@@ -204,7 +204,7 @@ def localise_changes(
     reference_station, scan_station : array_like, shape (n,) / (m,), int, optional
         Index into the cloud's origins of the station that took each point.  Without it a
         cloud with several origins has its points assigned to stations
-        (:func:`~app.core.localise.stations.assign_stations`).
+        (:func:`~app.core.localise.station_assignment.assign_stations`).
     reference_stations_unknown, scan_stations_unknown : bool
         The cloud was sampled by lidars from several stations that are not known (nor
         recovered): the other cloud's candidates get the origin-free surface test
