@@ -77,6 +77,38 @@ def test_a_moved_object_is_a_surface_moved():
     assert (localisation.scan_label[new_place & (scan[:, 2] > 0.15)] == 1).mean() > 0.9
 
 
+def test_a_side_of_a_standing_object_that_only_one_epoch_faced_is_a_coverage_difference():
+    # the chair stands in both epochs; the scan's path never faced its +x side, so the
+    # scan's chair top and the floor in front of it end where that side is
+    rng = np.random.default_rng(4)
+    reference = fused_room(rng, box=CHAIR)
+    scan = fused_room(rng, box=CHAIR)
+    low, high = np.asarray(CHAIR[0]), np.asarray(CHAIR[1])
+
+    def side(points):
+        return (
+            (np.abs(points[:, 0] - high[0]) < 0.01)
+            & (points[:, 1] > low[1])
+            & (points[:, 1] < high[1])
+            & (points[:, 2] > 0.02)
+            & (points[:, 2] < high[2] - 0.01)
+        )
+
+    scan = scan[~side(scan)]
+    localisation = localise_changes(reference, scan)
+    assert localisation.regions == []
+    assert not np.any(localisation.reference_label[side(reference)] == LABEL_CHANGED)
+    # the side's middle, farther than the change threshold from the chair's other faces
+    middle = (
+        side(reference)
+        & (np.abs(reference[:, 1] - (low[1] + high[1]) / 2) < 0.1)
+        & (reference[:, 2] > 0.15)
+        & (reference[:, 2] < high[2] - 0.15)
+    )
+    assert np.mean(localisation.reference_label[middle] == LABEL_UNOBSERVED) >= 0.9
+    assert {region.evidence for region in localisation.uncertain_regions} == {"no_coverage"}
+
+
 @pytest.mark.parametrize("test", ["coverage", "maps"])
 def test_the_coverage_test_stays_available(test):
     rng = np.random.default_rng(4)

@@ -17,6 +17,18 @@ judged by the geometry the two epochs share, one cluster of candidates at a time
   lacks on the normal lines through the cluster (the floor under a removed chair, the wall
   behind a removed board, seen now that the object is gone), or its surface all around.
 
+- **An unseen side** (``no_coverage``): an upright part whose border meets the other epoch's
+  surfaces at an edge (the object's top, the floor in front of it), where those surfaces end
+  at the part instead of carrying on past it, and where the other epoch has no surface that
+  this one lacks: the side of an object standing in both epochs that only this epoch's path
+  faced.  Where the other epoch saw the place of a removed or added object, its floor, desk
+  top or wall carries on under it, or is surface this epoch lacks (the object hid it).
+
+Candidates are judged a surface part at a time (:func:`surface_parts`: connected candidates
+whose normals agree), so that a change joined to a coverage difference (a removed fence to the
+rough ground strips beside it, an unseen side to the floor strip in the other path's shadow) is
+split; whether a part is near the other epoch's coverage is judged on its whole cluster.
+
 A coverage-difference cluster that the other epoch nevertheless saw through (surface this epoch
 lacks behind it on a good share of its points: an opened door in a wall) is a change.  The
 dimensions that decide are relative to the clouds' own spacing and the change threshold, never
@@ -31,6 +43,9 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from pykdtree.kdtree import KDTree
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
@@ -38,6 +53,7 @@ from app.core.localise.interface import VisibilityContext, VisibilityOutcome
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS, UNMATCHED_FACTOR, behind_evidence
 from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED, Candidates
 from app.core.localise.regions import (
+    CLUSTER_NEIGHBOURS,
     EVIDENCE_NO_COVERAGE,
     EVIDENCE_SEEN_EMPTY,
     cluster_labels,
@@ -67,6 +83,24 @@ SECTORS = 8
 SECTOR_HALF_ANGLE_COSINE = math.cos(math.radians(35.0))
 PROBE_NEIGHBOURS = 4
 COPLANAR_SHARE = 0.75
+SURROUND_NEIGHBOURS = 32
+"""The other epoch's points looked at around a border point's foot on its adjoining surface."""
+SURROUND_REACH = 0.5
+"""Metres: farther points of the adjoining surface say nothing about the border point."""
+ADJOINING_FACTOR = 2.0
+"""The other epoch's surface adjoins a border point within this many change thresholds."""
+SURROUND_SECTORS = 6
+"""The adjoining surface carries on past a border point when it lies in this many of
+:data:`SECTORS` directions around the point's foot."""
+SURROUND_SHARE = 0.1
+"""An upright part is an unseen side when less than this share of its adjoining border points
+has the other epoch's surface carrying on past them (or surface this epoch lacks)."""
+EDGE_COSINE = math.cos(math.radians(60.0))
+"""A surface adjoins a border point at an edge when the normals' cosine is below this."""
+UPRIGHT_NORMAL_Z = 0.5
+"""A part is upright (a side) when its normals' mean vertical component is below this."""
+MIN_ADJOINING = 5
+"""Fewer adjoining border points than this say nothing about a part."""
 COPLANAR_SAMPLE = 256
 COPLANAR_REACHES = (0.25, 0.5, 1.0, 2.0)
 SEE_THROUGH_SHARE = 0.6
@@ -164,6 +198,134 @@ def _border_continuation(
         )
         continues[chunk] = (outside & coplanar & parallel & on_it).any(axis=1)
     return border, continues
+
+
+def surface_parts(
+    points: NDArray[np.float64], normal: NDArray[np.floating], radius: NDArray[np.float64]
+) -> NDArray[np.int64]:
+    """Connected parts of candidates that lie on one surface: neighbours within a candidate's
+    ``radius`` (its :data:`~app.core.localise.regions.CLUSTER_NEIGHBOURS` nearest) are linked
+    when their normals agree (:data:`~app.core.localise.gaps.NORMAL_AGREEMENT_COSINE`).
+
+    A cluster of candidates may join a change to a coverage difference: a removed fence to
+    the rough ground strips beside it, the side of a box only one path faced to the floor
+    strip in the other path's shadow.  Each surface of it is judged on its own.
+
+    Parameters
+    ----------
+    points : ndarray, shape (c, 3)
+    normal : ndarray, shape (c, 3)
+    radius : ndarray, shape (c,)
+
+    Returns
+    -------
+    ndarray, shape (c,), int64
+        Part label per candidate, ``0 .. parts - 1``.
+    """
+    count = points.shape[0]
+    if count <= 1:
+        return np.zeros(count, dtype=np.int64)
+    unit = normal.astype(np.float64)
+    unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-12)[:, None]
+    k = min(CLUSTER_NEIGHBOURS + 1, count)
+    distance, neighbour = KDTree(points).query(points, k=k, distance_upper_bound=radius.max())
+    neighbour = np.minimum(neighbour[:, 1:], count - 1)
+    linked = (distance[:, 1:] <= radius[:, None]) & (
+        np.abs(np.einsum("ckd,cd->ck", unit[neighbour], unit)) >= NORMAL_AGREEMENT_COSINE
+    )
+    rows = np.repeat(np.arange(count), k - 1)[linked.ravel()]
+    columns = neighbour[linked]
+    graph = coo_matrix((np.ones(rows.shape[0], dtype=np.int8), (rows, columns)), (count, count))
+    _, labels = connected_components(graph, directed=True, connection="weak")
+    return labels.astype(np.int64)
+
+
+def _surrounded(
+    points: NDArray[np.float64],
+    own_normal: NDArray[np.floating],
+    other: LocalGeometry,
+    other_unmatched: NDArray[np.bool_],
+    tolerance: float,
+    change_threshold: float,
+) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
+    """Whether the other epoch's surface adjoins each border point at an edge, and in how
+    many directions it carries on past the point.
+
+    The other epoch's nearest surface (within :data:`ADJOINING_FACTOR` change thresholds, at
+    an angle to the point's own: :data:`EDGE_COSINE`) is taken as the plane of its nearest
+    point; the point is projected onto it, and that plane's points around the projection (the
+    :data:`SURROUND_NEIGHBOURS` nearest within :data:`SURROUND_REACH`) are sorted into
+    :data:`SECTORS` directions.  Where the other epoch saw the place of a removed or added
+    object, its floor, desk top or wall carries on under it: the directions are all taken (and
+    where that surface is one this epoch lacks, the object hid it: all directions count).
+    Where the object stands in both epochs and only this epoch faced one of its sides, the
+    other epoch's surfaces next to that side (the object's top, the floor in front of it) end
+    at it: half the directions are empty.
+
+    Parameters
+    ----------
+    points : ndarray, shape (b, 3)
+    own_normal : ndarray, shape (b, 3)
+        The points' own surface normals.
+    other : LocalGeometry
+    other_unmatched : ndarray, shape (m,), bool
+        The other epoch's points that this epoch lacks.
+    tolerance, change_threshold : float
+        The plane tolerance and the change threshold (metres).
+
+    Returns
+    -------
+    adjoining : ndarray, shape (b,), bool
+        Whether the other epoch has a surface meeting the point's at an edge next to it.
+    sectors : ndarray, shape (b,), int64
+        In how many of :data:`SECTORS` directions that surface carries on past the point.
+    """
+    count = points.shape[0]
+    adjoining = np.zeros(count, dtype=bool)
+    surrounded = np.zeros(count, dtype=np.int64)
+    if count == 0:
+        return adjoining, surrounded
+    k = min(SURROUND_NEIGHBOURS, other.points.shape[0])
+    for start in range(0, count, GATHER_CHUNK):
+        chunk = slice(start, start + GATHER_CHUNK)
+        query = points[chunk]
+        distance, index = other.tree.query(query, k=k)
+        distance = np.asarray(distance).reshape(query.shape[0], k)
+        index = np.asarray(index).reshape(query.shape[0], k)
+        nearest = index[:, 0]
+        unit = other.normal[nearest].astype(np.float64)
+        height = np.einsum("cd,cd->c", query - other.points[nearest], unit)
+        # only a surface meeting the point's own at an edge adjoins it: one parallel to it
+        # is a gap in a surface both have, or a surface under or over it
+        across = (
+            np.abs(np.einsum("cd,cd->c", own_normal[chunk].astype(np.float64), unit)) < EDGE_COSINE
+        )
+        adjoining[chunk] = (np.abs(height) <= ADJOINING_FACTOR * change_threshold) & across
+        foot = query - height[:, None] * unit
+        offset = other.points[index] - foot[:, None, :]
+        along = np.linalg.norm(offset, axis=2)
+        on_plane = (
+            (distance <= SURROUND_REACH)
+            & (np.abs(np.einsum("ckd,cd->ck", offset, unit)) <= tolerance + PLANE_SLOPE * along)
+            & (
+                np.abs(np.einsum("ckd,cd->ck", other.normal[index].astype(np.float64), unit))
+                >= NORMAL_AGREEMENT_COSINE
+            )
+        )
+        _, directions = tangent_directions(unit, 4)
+        first, second = directions[:, 0, :], directions[:, 1, :]
+        angle = np.arctan2(
+            np.einsum("ckd,cd->ck", offset, second), np.einsum("ckd,cd->ck", offset, first)
+        )
+        sector = np.floor((angle + math.pi) / (2.0 * math.pi) * SECTORS).astype(np.int64)
+        sector = np.clip(sector, 0, SECTORS - 1)
+        taken = np.zeros((query.shape[0], SECTORS), dtype=bool)
+        rows = np.broadcast_to(np.arange(query.shape[0])[:, None], sector.shape)
+        taken[rows[on_plane], sector[on_plane]] = True
+        surrounded[chunk] = taken.sum(axis=1)
+        # a surface that this epoch lacks next to the point: the object hid it here
+        surrounded[chunk][other_unmatched[nearest]] = SECTORS
+    return adjoining, surrounded
 
 
 def _coplanar_sectors(
@@ -278,7 +440,9 @@ def map_test(
         return MapEvidence(status, evidence, confidence, counts)
     is_candidate = np.zeros(own.points.shape[0], dtype=bool)
     is_candidate[candidates.index] = True
-    labels = cluster_labels(candidates.points, cluster_factor * candidates.spacing)
+    labels = surface_parts(
+        candidates.points, candidates.normal, cluster_factor * candidates.spacing
+    )
     n_clusters = int(labels.max()) + 1
     border, continues = _border_continuation(
         candidates,
@@ -319,24 +483,61 @@ def map_test(
     behind_share = np.bincount(labels, weights=behind.astype(np.float64), minlength=n_clusters)
     behind_share /= np.maximum(sizes, 1.0)
 
+    # near the other epoch's coverage: judged on the whole connected cluster (a removed
+    # box's top is far from the floor, its sides are not)
+    clusters = cluster_labels(candidates.points, cluster_factor * candidates.spacing)
+    cluster_sizes = np.bincount(clusters).astype(np.float64)
     nearest = own.nearest_distance[candidates.index]
-    order = np.lexsort((nearest, labels))
-    starts = np.searchsorted(labels[order], np.arange(n_clusters))
-    near_rank = starts + np.floor(NEAR_QUANTILE * (sizes - 1)).astype(np.int64)
-    near_distance = nearest[order][near_rank]
+    order = np.lexsort((nearest, clusters))
+    starts = np.searchsorted(clusters[order], np.arange(cluster_sizes.shape[0]))
+    near_rank = starts + np.floor(NEAR_QUANTILE * (cluster_sizes - 1)).astype(np.int64)
     near_limit = max(NEAR_MIN, NEAR_FACTOR * change_threshold)
-    near = near_distance <= near_limit
+    cluster_near = nearest[order][near_rank] <= near_limit
+    near = np.zeros(n_clusters, dtype=bool)
+    near[labels] = cluster_near[clusters]
 
     coplanar_share = _coplanar_share(candidates, labels, n_clusters, other.geometry, threshold)
+    probe = np.flatnonzero(border)
+    adjoining_points, surrounded_points = _surrounded(
+        candidates.points[probe],
+        candidates.normal[probe],
+        other.geometry,
+        other_unmatched,
+        threshold,
+        change_threshold,
+    )
+    adjoining = np.bincount(
+        labels[probe], weights=adjoining_points.astype(np.float64), minlength=n_clusters
+    )
+    surround_share = np.bincount(
+        labels[probe],
+        weights=(adjoining_points & (surrounded_points >= SURROUND_SECTORS)).astype(np.float64),
+        minlength=n_clusters,
+    ) / np.maximum(adjoining, 1.0)
+    # the other epoch's surfaces next to the cluster end at it: a side of an object that stands
+    # in both epochs, faced by this epoch's path only
+    # a side: an upright face (a top, seen from any path above it, is left to the other rules)
+    upright = (
+        np.bincount(
+            labels, weights=np.abs(candidates.normal[:, 2]).astype(np.float64), minlength=n_clusters
+        )
+        / np.maximum(sizes, 1.0)
+        < UPRIGHT_NORMAL_Z
+    )
+    unseen_side = upright & (adjoining >= MIN_ADJOINING) & (surround_share < SURROUND_SHARE)
     continues_plainly = continuation_share >= PLAIN_CONTINUATION_SHARE
     continues_in_plane = (continuation_share >= CONTINUATION_SHARE) & (
         coplanar_share >= COPLANAR_SHARE
     )
     coverage = (continues_plainly | continues_in_plane) & (behind_share < SEE_THROUGH_SHARE)
-    coverage |= ~near
+    coverage |= ~near | (unseen_side & (behind_share < SEE_THROUGH_SHARE))
     cluster_confidence = np.where(
         coverage,
-        np.where(near, continuation_share, 1.0),
+        np.where(
+            near,
+            np.maximum(continuation_share, np.where(unseen_side, 1.0 - surround_share, 0.0)),
+            1.0,
+        ),
         np.clip(1.0 - continuation_share, 0.0, 1.0)
         * np.clip(0.5 + behind_share / (2 * SEE_THROUGH_SHARE), 0.0, 1.0),
     )
@@ -349,6 +550,7 @@ def map_test(
         map_far_clusters=int((~near).sum()),
         map_border_points=int(border.sum()),
         map_continuing_points=int(continues.sum()),
+        map_unseen_side_clusters=int((unseen_side & coverage).sum()),
         map_coplanar_share_median=float(np.median(coplanar_share)) if n_clusters else 0.0,
     )
     return MapEvidence(status, evidence, confidence, counts)

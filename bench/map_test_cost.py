@@ -1,0 +1,72 @@
+"""What the map test costs at ~1M points a map (issue 29: the new tests add <= 20 % to a compare).
+
+The swept warehouse aisle of :mod:`bench.trajectory_cost` (two epochs of a spinning lidar moved
+along different paths, merged, about ``--points`` points a map; one box removed, one added) is
+compared without trajectories, nothing given, two ways, alternately and ``--repeats`` times
+each, in one process: with the default origin-free test (``auto``: the map test of
+:mod:`app.core.localise.map_evidence`) and with the older coverage test
+(``origin_free_test="coverage"``, the default before issue 29).  Printed per way: the median
+CPU time of the compare (one thread: steady on a shared machine), the ratio to the older
+path, the localise stage's wall time, the test each side got, and the IoU of changed points
+against the truth.
+
+Run: ``OMP_NUM_THREADS=1 python -m bench.map_test_cost [--points 1000000] [--repeats 1]``.
+Writes nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import time
+
+import numpy as np
+
+from app.core.pipeline import compare
+from bench.trajectory_cost import pair, scores
+
+WAYS = {
+    "coverage (older path)": {"localisation": {"origin_free_test": "coverage"}},
+    "maps (default)": None,
+}
+
+
+def main() -> None:
+    """Print the figures."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--points", type=int, default=1_000_000)
+    parser.add_argument("--repeats", type=int, default=1)
+    args = parser.parse_args()
+    started = time.perf_counter()
+    scene = pair(args.points)
+    reference, scan = (
+        dataclasses.replace(scene[side], trajectory=None) for side in ("reference", "scan")
+    )
+    print(
+        f"pair: reference {len(reference):,} points, scan {len(scan):,} points (built in "
+        f"{time.perf_counter() - started:.1f} s); load {os.getloadavg()[0]:.1f}",
+        flush=True,
+    )
+    cpu: dict[str, list[float]] = {name: [] for name in WAYS}
+    last: dict[str, object] = {}
+    for _ in range(args.repeats):
+        for name, params in WAYS.items():
+            started = time.process_time()  # one thread: CPU time, steady on a shared machine
+            last[name] = compare(reference, scan, threads=1, params=params)
+            cpu[name].append(time.process_time() - started)
+    base = float(np.median(cpu["coverage (older path)"]))
+    for name, result in last.items():
+        seconds = float(np.median(cpu[name]))
+        tests = "/".join(str(result.visibility[side].get("test")) for side in ("reference", "scan"))
+        iou, missed, false = scores(result, scene)
+        print(
+            f"{name:<22} CPU {seconds:6.1f} s (x{seconds / base:.3f} of the older path)  "
+            f"localise wall {result.timings['localise']:5.1f} s  tests {tests:<13} "
+            f"IoU {iou:.3f} (missed {missed}, false {false})  regions {len(result.regions)}"
+        )
+    print(f"load {os.getloadavg()[0]:.1f}")
+
+
+if __name__ == "__main__":
+    main()
