@@ -19,15 +19,12 @@ import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
-from app.core.origins.voxels import voxel_hash
-
 __all__ = [
     "ColumnFit",
     "column_lines",
     "fit_column_centre",
     "horizontal_bounds",
     "normal_z",
-    "voxel_hash",
 ]
 
 NEIGHBOURS = 8
