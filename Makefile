@@ -65,6 +65,7 @@ bench: $(BENCH_STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/python -m bench.calibration --quick
 	$(BIN)/python -m bench.perf
 	$(BIN)/python -m bench.perf_round2
+	$(BIN)/python -m bench.perf_1m
 	$(BIN)/python -m bench.perf_scaling --json bench/results/scaling.json
 	$(MAKE) bench-origins
 
@@ -73,7 +74,7 @@ bench: $(BENCH_STAMP)
 # estimating the origins adds to a compare at 1M points a scan (CPU on one thread, and wall
 # time on two threads against the true origins given).
 bench-origins: $(BENCH_STAMP)
-	OMP_NUM_THREADS=1 $(BIN)/python -m bench.stations --seeds 1 --modes default,given --output bench/results/stations.md
+	OMP_NUM_THREADS=1 $(BIN)/python -m bench.merged_stations --seeds 1 --modes default,given --output bench/results/merged_stations.md
 	OMP_NUM_THREADS=1 $(BIN)/python -m bench.origins_speed --kinds single,merged --against-given 3
 
 # issue 29's moving-sensor maps (~5 min): handheld RGB-D, robot / MLS and terrestrial scenes with

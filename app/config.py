@@ -39,6 +39,9 @@ without reading its row again (:class:`app.services.auth.TokenCache`)."""
 DEFAULT_VIEWER_POINT_BUDGET = 1_000_000
 """Default of ``viewer_point_budget``: the most points a job's 3D view sends to a browser."""
 
+DEFAULT_VIEWER_STREAM_ABOVE_POINTS = 5_000_000
+"""Default of ``viewer_stream_above_points``: larger clouds are not loaded whole by the view."""
+
 DEFAULT_VIEWER_IDLE_SECONDS = 300.0
 """Default of ``viewer_idle_seconds``: how long a job's 3D view server outlives its last
 browser connection."""
@@ -50,6 +53,10 @@ DEPRECATED_PRIVATE_ADDRESS_SETTINGS = (
 )
 """Former environment names of ``allow_private_addresses`` (one for webhooks, one for schedule
 URL sources), still accepted."""
+
+
+DEFAULT_MEMORY_BUDGET_BYTES = 2_684_354_560
+"""2.5 GiB: issue 30's peak RSS target per worker process."""
 
 
 class Settings(BaseSettings):
@@ -84,6 +91,23 @@ class Settings(BaseSettings):
         description="RLIMIT_AS for a worker process running a job: 'auto' (derived from the "
         "machine's memory and the number of workers where the consumer starts), bytes, or "
         "0 / 'none' for no cap.",
+    )
+    tile_crop_points: int | None = Field(
+        default=None,
+        ge=1000,
+        description="Compare every job in tiles of at most this many points (both clouds, "
+        "margins included), fanned out on the queue, whatever the memory budget says; None = "
+        "tiles only for a pair that does not fit a worker's memory budget.  For tests and "
+        "for spreading mid-sized jobs over idle workers.",
+    )
+    worker_memory_budget_bytes: int | None = Field(
+        default=DEFAULT_MEMORY_BUDGET_BYTES,
+        ge=1,
+        description="Memory one comparison may use in a worker process (and `scandiff "
+        "compare` by default: --memory-budget): a pair that does not fit is compared in "
+        "tiles whose size follows from it (app/core/tiling, memory model in "
+        "app/core/tiling/plan.py); a pair of which not even one tile fits fails with a "
+        "message saying the budget to set.  None: always one process.",
     )
     job_threads: int | None = Field(
         default=None,
@@ -122,6 +146,13 @@ class Settings(BaseSettings):
         ge=1,
         description="The most points over all layers a job's 3D view sends to a browser "
         "(about 15 MB per million); larger clouds are subsampled, changed points first.",
+    )
+    viewer_stream_above_points: int = Field(
+        default=DEFAULT_VIEWER_STREAM_ABOVE_POINTS,
+        ge=0,
+        description="A job's 3D view reads only the points it draws from the files (a block "
+        "at a time, in bounded memory) when either cloud has more points than this; smaller "
+        "jobs are loaded whole.",
     )
     viewer_idle_seconds: float = Field(
         default=DEFAULT_VIEWER_IDLE_SECONDS,

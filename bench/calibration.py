@@ -1,7 +1,7 @@
 """Per-site calibration on a synthetic site's history (issue 16): false alarms before and after
 the site learns its threshold, and whether real changes still fire.
 
-Each layout (:func:`app.core.synthetic_site.site_history`: the bin's spots, the crate's spot,
+Each layout (:func:`app.core.datasets.site.site_history`: the bin's spots, the crate's spot,
 the sensor path) gives a reference and a history of rescans in which a bin moves on every
 visit (a nuisance a reviewer marks ``false_alarm``) and, on the test visits, sometimes a 1 m
 crate appears (a real change).  Per layout:
@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from app.core.cloud import PointCloud
+from app.core.datasets.site import SiteVisit, site_history
 from app.core.pipeline import compare
 from app.core.site_calibration import (
     DecisionInputs,
@@ -42,7 +43,6 @@ from app.core.site_calibration import (
     largest_extent,
     learn_site_calibration,
 )
-from app.core.synthetic_site import SiteVisit, site_history
 
 RESULTS = Path(__file__).resolve().parent / "results"
 METHOD, VARIANT = "pca", "improved"

@@ -1,8 +1,8 @@
 """What the review inbox costs: ``GET /jobs`` filtered to the jobs awaiting a verdict, and the
 per-site counts, on an organisation with many jobs (issue 31).
 
-    .venv/bin/python bench/job_list.py                       # 1k and 10k jobs, SQLite
-    .venv/bin/python bench/job_list.py --jobs 50000 --repeats 5
+    .venv/bin/python -m bench.job_list                       # 1k and 10k jobs, SQLite
+    .venv/bin/python -m bench.job_list --jobs 50000 --repeats 5
 
 For each size it fills a fresh, migrated SQLite file with one organisation of 20 sites and that
 many succeeded jobs (a third with a verdict, newest spread over 30 days), then reads them as the
@@ -18,7 +18,6 @@ import argparse
 import json
 import random
 import statistics
-import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -29,18 +28,15 @@ from typing import Any
 
 from sqlalchemy import insert
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``app`` importable
-    sys.path.insert(0, str(PROJECT_ROOT))
-
-from app.clock import utc_now  # noqa: E402
-from app.config import Settings  # noqa: E402
-from app.db.migrate import upgrade_to_head  # noqa: E402
-from app.db.models import Job, JobStatus, Organisation, Scan, Site, new_id  # noqa: E402
-from app.db.session import get_engine, transaction  # noqa: E402
-from app.services.auth import Principal  # noqa: E402
-from app.services.jobs import awaiting_review_counts, list_jobs  # noqa: E402
-from app.services.schemas import JobRead  # noqa: E402
+from app.clock import utc_now
+from app.config import Settings
+from app.db.migrate import upgrade_to_head
+from app.db.models import Job, JobStatus, new_id
+from app.db.session import get_engine, transaction
+from app.services.auth import Principal
+from app.services.jobs import awaiting_review_counts, list_jobs
+from app.services.schemas import JobRead
+from bench.placeholder_rows import placeholder_organisation
 
 N_SITES = 20
 VERDICTS = ("confirmed", "false_alarm", "new_reference")
@@ -49,32 +45,8 @@ VERDICTS = ("confirmed", "false_alarm", "new_reference")
 def fill(settings: Settings, count: int, seed: int = 0) -> tuple[Principal, list[str]]:
     """One organisation, ``N_SITES`` sites with two scans each, ``count`` succeeded jobs."""
     generator = random.Random(seed)
-    organisation = new_id()
-    sites = [new_id() for _ in range(N_SITES)]
-    scans: dict[str, list[str]] = {site: [new_id(), new_id()] for site in sites}
-    with transaction(settings.sqlalchemy_url) as session:
-        session.add(Organisation(id=organisation, name=f"bench-{organisation[:8]}"))
-        session.flush()
-        for index, site in enumerate(sites):
-            session.add(Site(id=site, organisation_id=organisation, name=f"site {index}"))
-        session.flush()
-        for site, (reference, scan) in scans.items():
-            for scan_id in (reference, scan):
-                session.add(
-                    Scan(
-                        id=scan_id,
-                        organisation_id=organisation,
-                        site_id=site,
-                        filename="scan.ply",
-                        format="ply",
-                        size_bytes=1000,
-                        sha256="0" * 64,
-                        storage_path=f"scans/{site}/{scan_id}.ply",
-                        n_points=1000,
-                        bbox_min=[0.0, 0.0, 0.0],
-                        bbox_max=[1.0, 1.0, 1.0],
-                    )
-                )
+    organisation, scans = placeholder_organisation(settings, n_sites=N_SITES)
+    sites = list(scans)
     now = utc_now()
     rows: list[dict[str, Any]] = []
     for _ in range(count):

@@ -6,8 +6,8 @@ Issue 18 asks that memory and float32 changes leave the labels as they were.  Th
 * the real pairs of ``../shared/data/real`` (KITTI frames 0-1, 1-2, 0-2; Lidar-SCU Velo1-2,
   Velo2-3, compared without alignment: those street scans do not overlap enough to align),
   when present;
-* a synthetic suite: :func:`app.core.synthetic_lidar.lidar_pair` (three layouts, two seeds
-  each, misaligned scans, 60k points) and :func:`app.core.synthetic.raycast_scene` (two
+* a synthetic suite: :func:`app.core.datasets.lidar.lidar_pair` (three layouts, two seeds
+  each, misaligned scans, 60k points) and :func:`app.core.datasets.scenes.raycast_scene` (two
   change kinds, 50k points);
 
 and prints one line per pair: the SHA-256 of both label arrays, the changed / unobserved
@@ -37,10 +37,10 @@ from pathlib import Path
 import numpy as np
 
 from app.core.cloud import PointCloud, choose_local_origin
+from app.core.datasets.lidar import lidar_pair, steps_for_points
+from app.core.datasets.scenes import raycast_scene
 from app.core.formats import read_point_cloud
 from app.core.pipeline import compare
-from app.core.synthetic import raycast_scene
-from app.core.synthetic_lidar import lidar_pair, steps_for_points
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 

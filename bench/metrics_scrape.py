@@ -28,9 +28,10 @@ from sqlalchemy import event, insert
 from app.clock import utc_now
 from app.config import Settings
 from app.db.migrate import downgrade_to_base, upgrade_to_head
-from app.db.models import Job, JobStatus, Organisation, Scan, Site, new_id
+from app.db.models import Job, JobStatus
 from app.db.session import get_engine, transaction
 from app.services.metrics import render_metrics
+from bench.placeholder_rows import placeholder_organisation
 
 INSERT_CHUNK = 5000
 
@@ -38,29 +39,10 @@ INSERT_CHUNK = 5000
 def fill(settings: Settings, count: int, seed: int = 0) -> None:
     """One organisation, site and two scans, and ``count`` jobs of every status."""
     generator = random.Random(seed)
-    organisation, site = new_id(), new_id()
-    scans = [new_id(), new_id()]
-    with transaction(settings.sqlalchemy_url) as session:
-        session.add(Organisation(id=organisation, name=f"bench-{organisation[:8]}"))
-        session.flush()  # no relationships between these models: insert parents first
-        session.add(Site(id=site, organisation_id=organisation, name="bench"))
-        session.flush()
-        for scan_id in scans:
-            session.add(
-                Scan(
-                    id=scan_id,
-                    organisation_id=organisation,
-                    site_id=site,
-                    filename="scan.ply",
-                    format="ply",
-                    size_bytes=generator.randrange(10**6, 10**8),
-                    sha256="0" * 64,
-                    storage_path=f"scans/{site}/{scan_id}.ply",
-                    n_points=1000,
-                    bbox_min=[0.0, 0.0, 0.0],
-                    bbox_max=[1.0, 1.0, 1.0],
-                )
-            )
+    organisation, scan_ids = placeholder_organisation(
+        settings, scan_size=lambda: generator.randrange(10**6, 10**8)
+    )
+    ((site, scans),) = scan_ids.items()
     now = utc_now()
     rows: list[dict[str, Any]] = []
     for _ in range(count):

@@ -1,6 +1,6 @@
 """Maps from moving sensors (issue 29): handheld RGB-D, robot / MLS and terrestrial scans.
 
-Scenes: :func:`app.core.synthetic_maps.map_pair` (rooms with chairs, boxes, boards and desks
+Scenes: :func:`app.core.datasets.maps.map_pair` (rooms with chairs, boxes, boards and desks
 filmed by a depth camera; corridors, offices and warehouses swept by a 16- or 32-ring lidar;
 terrestrial surveys of 2-4 stations), every second one misaligned by 0.3 degrees and 2-3 cm.
 Layouts, densities, paths and changes vary with the seed.  Modes:
@@ -34,9 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
+from app.core.datasets.maps import MAP_CLASSES, MapPair, class_layouts, map_pair
 from app.core.formats import read_point_cloud
 from app.core.pipeline import compare
-from app.core.synthetic_maps import MAP_CLASSES, MapPair, class_layouts, map_pair
 
 REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
 REAL_PAIRS = ("classroom_tls", "bike_parking_mls")

@@ -1,9 +1,9 @@
 """Origin estimates of single-station lidars with and without azimuth jitter (issue 18).
 
 The class: a spinning lidar (elevation -45 to 60 degrees, 1 cm range noise) 0.8-1.5 m above
-the floor of a room, corridor or warehouse (:mod:`app.core.synthetic_lidar`'s layouts), on a
+the floor of a room, corridor or warehouse (:mod:`app.core.datasets.lidar`'s layouts), on a
 regular grid or with a random azimuth phase per ring, a quarter-step azimuth jitter and 5 % of
-a ring step of elevation error (as :func:`app.core.synthetic.raycast_scene`'s lidar, whose 100k
+a ring step of elevation error (as :func:`app.core.datasets.raycast_scene`'s lidar, whose 100k
 pairs of seeds 100, 101 and 18 are included).  For each scan it prints what the column and ring
 signals alone give (confidence, centre and height error, ring share there and from the true
 centre) and what :func:`~app.core.origins.estimate.estimate_origin` returns (confidence, error,
@@ -21,17 +21,17 @@ import time
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.origins import estimate
-from app.core.origins.columns import column_lines, fit_column_centre, lattice_patches
-from app.core.origins.rings import fit_ring_height
-from app.core.synthetic import raycast_scene
-from app.core.synthetic_lidar import (
+from app.core.datasets.lidar import (
     ELEVATION_RANGE_DEG,
     LAYOUTS,
     RANGE_LIMITS,
     free_sensor_position,
     random_world,
 )
+from app.core.datasets.scenes import raycast_scene
+from app.core.origins import estimate
+from app.core.origins.columns import column_lines, fit_column_centre, lattice_patches
+from app.core.origins.rings import fit_ring_height
 
 RAYCAST_SEEDS = (100, 101, 18)
 """bench/perf_service.py's pair (100), a neighbour, bench/perf_round2.py's seed."""
@@ -89,8 +89,8 @@ def describe(points: NDArray[np.float64], truth: NDArray[np.float64]) -> str:
     rings = fit_ring_height(walls, columns.centre, rng)
     from_truth = fit_ring_height(walls, truth[:2], np.random.default_rng(0))
     first = min(
-        estimate._ramp(columns.concurring_share, estimate.CONCURRING_RANGE),
-        estimate._ramp(rings.ring_share, estimate.RING_SHARE_RANGE),
+        estimate.confidence_ramp(columns.concurring_share, estimate.CONCURRING_RANGE),
+        estimate.confidence_ramp(rings.ring_share, estimate.RING_SHARE_RANGE),
     )
     started = time.process_time()
     found = estimate.estimate_origin(points)

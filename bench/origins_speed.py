@@ -1,7 +1,7 @@
 """What finding the sensor origins costs at 1M points a scan (issue 15: <= 15 % of a compare).
 
-Scenes from :func:`app.core.synthetic_lidar.lidar_pair` at about ``--points`` points per scan
-(denser rays: :func:`~app.core.synthetic_lidar.steps_for_points`): single-station pairs
+Scenes from :func:`app.core.datasets.lidar.lidar_pair` at about ``--points`` points per scan
+(denser rays: :func:`~app.core.datasets.lidar.steps_for_points`): single-station pairs
 (nothing given, the origins estimated) and merged surveys of 3-5 stations per epoch (nothing
 given: the stations are recovered by default).  Each pair goes through
 :func:`app.core.pipeline.compare` once; per pair the bench prints the compare's wall time, the
@@ -33,12 +33,12 @@ import time
 
 import numpy as np
 
-from app.core import pipeline
 from app.core.cloud import PointCloud
+from app.core.comparison import origins as origins_stage
+from app.core.datasets.lidar import lidar_pair, steps_for_points
 from app.core.pipeline import compare
-from app.core.synthetic_lidar import lidar_pair, steps_for_points
+from bench.merged_stations import nearest_station_error
 from bench.scenes import changed_points_iou
-from bench.stations import nearest_station_error
 
 KINDS = ("single", "merged")
 LAYOUTS = ("room", "corridor", "warehouse")
@@ -113,9 +113,9 @@ def wall_against_given(pair, threads: int, repeats: int) -> dict:
 def run_pair(pair, merged: bool, profile: bool = False) -> dict:
     """One compare with nothing given (defaults); its timings, IoU and origin errors."""
     clock = _CpuClock()
-    originals = pipeline.resolve_stations, pipeline.resolve_moved_cloud
-    pipeline.resolve_stations = clock.wrap(originals[0])
-    pipeline.resolve_moved_cloud = clock.wrap(originals[1])
+    originals = origins_stage.resolve_stations, origins_stage.resolve_moved_cloud
+    origins_stage.resolve_stations = clock.wrap(originals[0])
+    origins_stage.resolve_moved_cloud = clock.wrap(originals[1])
     params: dict = {}  # merged surveys: stations recovered by default (recover_stations="auto")
     profiler = cProfile.Profile() if profile else None
     started = time.perf_counter()
@@ -128,7 +128,7 @@ def run_pair(pair, merged: bool, profile: bool = False) -> dict:
         params=params,
         threads=1,
     )
-    pipeline.resolve_stations, pipeline.resolve_moved_cloud = originals
+    origins_stage.resolve_stations, origins_stage.resolve_moved_cloud = originals
     if profiler is not None:
         profiler.disable()
         pstats.Stats(profiler).sort_stats("cumulative").print_stats(40)

@@ -44,10 +44,10 @@ for _variable in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import numpy as np  # noqa: E402
 
+from app.core.datasets.scenes import SyntheticPair, paper_corridor, raycast_scene  # noqa: E402
 from app.core.detectors import METHODS, VARIANTS, make_detector  # noqa: E402
 from app.core.errors import InputError  # noqa: E402
 from app.core.localise import LABEL_CHANGED, localise_changes  # noqa: E402
-from app.core.synthetic import SyntheticPair, paper_corridor, raycast_scene  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -484,7 +484,7 @@ def main(argv: list[str] | None = None) -> int:
     report: list[str] = [
         "# The paper's section IV, re-run" + (" (--quick)" if quick else ""),
         "",
-        f"Corridor of {N_POINTS} points (`app.core.synthetic.paper_corridor`), {n_datasets}"
+        f"Corridor of {N_POINTS} points (`app.core.datasets.scenes.paper_corridor`), {n_datasets}"
         " datasets per (variance, % change); every detector with `random_state=0`.",
         "",
         "## Fig. 6: standard deviation of the distance over datasets",
@@ -555,7 +555,7 @@ def main(argv: list[str] | None = None) -> int:
         report += [
             "## Moved sensor: ray-cast lidar rescans (sensor moved 1 m, true pose)",
             "",
-            "`app.core.synthetic.raycast_scene`: two furnished rooms, density falling with range,"
+            "`app.core.datasets.raycast_scene`: two furnished rooms, density falling with range,"
             " occlusions; the box adds ~2.5 % of the points. Mutually observed points only (as"
             " the pipeline passes them); nominal false-alarm rate 1 %.",
             "",

@@ -4,7 +4,7 @@ Every figure that a target is judged on is a ratio between two measurements take
 run, so a busy shared machine slows both sides alike:
 
 * **Pipeline** per method (gmm, pca, planes; improved variant) on ray-cast rescan pairs
-  (``app.core.synthetic.raycast_scene``, an added box, 3 cm / 0.4 degree pose error): wall time
+  (``app.core.datasets.raycast_scene``, an added box, 3 cm / 0.4 degree pose error): wall time
   of load (two binary PLY files from a temporary directory), align, localise and detect, peak
   RSS, the changed-points IoU and whether ``changed`` was decided.
 * **Floor**: one ``scipy.spatial.cKDTree`` build + nearest-neighbour query each way on the

@@ -37,8 +37,8 @@ import pypcd4
 from numpy.typing import NDArray
 
 from app.core.blocks import conversion_threads
+from app.core.datasets.scenes import raycast_scene
 from app.core.formats import read_point_cloud, summarise_point_cloud
-from app.core.synthetic import raycast_scene
 from app.core.threads import available_threads
 from bench.perf_workers import SCENE_SEED, write_binary_ply
 

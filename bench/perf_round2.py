@@ -10,7 +10,7 @@ query threads (compute only, in its own child process).  The command and the flo
 shared machine slows one run, not one side of a ratio; every run is listed, with the load
 average before and after, and the CPU seconds (user + system) of each command run.
 
-Pairs: :func:`app.core.synthetic_lidar.lidar_pair` warehouses (one station, an added box, the
+Pairs: :func:`app.core.datasets.lidar.lidar_pair` warehouses (one station, an added box, the
 scan misaligned by 0.3-0.4 degrees and 2-3 cm), float32 binary PLY as scanners write them.
 
 * ``compare``: the command as a new user runs it (origins estimated, gmm);
@@ -42,7 +42,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from app.core.synthetic_lidar import lidar_pair, steps_for_points
+from app.core.datasets.lidar import lidar_pair, steps_for_points
 from bench.perf import worker_environment
 from bench.perf_service import measure_service
 from bench.perf_workers import write_binary_ply

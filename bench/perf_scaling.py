@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from app.core.synthetic import raycast_scene
+from app.core.datasets.scenes import raycast_scene
 from bench.perf_service import (
     create_site_with_reference,
     processes_cpu_seconds,

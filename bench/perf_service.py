@@ -32,7 +32,7 @@ from typing import Any
 import httpx
 import numpy as np
 
-from app.core.synthetic import raycast_scene
+from app.core.datasets.scenes import raycast_scene
 from bench.perf_workers import SCENE_SEED, write_binary_ply
 from tests.helpers.service import ServiceProcess
 

@@ -18,10 +18,10 @@ from numpy.typing import NDArray
 from plyfile import PlyData, PlyElement
 from scipy.spatial import cKDTree
 
+from app.core.datasets.scenes import raycast_scene
 from app.core.formats import read_point_cloud
 from app.core.localise import LABEL_CHANGED
 from app.core.pipeline import compare
-from app.core.synthetic import raycast_scene
 from app.kit.allocator import release_freed_memory_promptly
 
 SCENE_SEED = 100
@@ -43,7 +43,7 @@ def write_binary_ply(path: Path, points: NDArray[np.float64]) -> None:
 
 def write_scene(scene_dir: Path, n_points: int, change: str = "box") -> None:
     """Ray-cast one rescan pair (by default an added box; any of
-    ``app.core.synthetic.CHANGE_KINDS``) and write it as binary PLY + ground truth."""
+    ``app.core.datasets.scenes.CHANGE_KINDS``) and write it as binary PLY + ground truth."""
     pair = raycast_scene(
         n_points=n_points, change=change, pose_error=(0.03, 0.4), random_state=SCENE_SEED
     )

@@ -27,40 +27,21 @@ from sqlalchemy import insert
 
 from app.config import Settings
 from app.db.migrate import upgrade_to_head
-from app.db.models import Job, JobStatus, Organisation, Region, Scan, Site, new_id
+from app.db.models import Job, JobStatus, Region, new_id
 from app.db.session import get_engine, transaction
 from app.services.auth import Principal
 from app.services.jobs import list_regions
 from app.services.schemas import RegionRead
+from bench.placeholder_rows import placeholder_organisation
 
 
 def fill(settings: Settings, count: int, seed: int = 0) -> tuple[Principal, str]:
     """One organisation, site, two scans and a succeeded job with ``count`` regions."""
     generator = random.Random(seed)
-    organisation, site, job = new_id(), new_id(), new_id()
-    scans = [new_id(), new_id()]
+    job = new_id()
+    organisation, scan_ids = placeholder_organisation(settings)
+    ((site, scans),) = scan_ids.items()
     with transaction(settings.sqlalchemy_url) as session:
-        session.add(Organisation(id=organisation, name=f"bench-{organisation[:8]}"))
-        session.flush()
-        session.add(Site(id=site, organisation_id=organisation, name="bench"))
-        session.flush()
-        for scan_id in scans:
-            session.add(
-                Scan(
-                    id=scan_id,
-                    organisation_id=organisation,
-                    site_id=site,
-                    filename="scan.ply",
-                    format="ply",
-                    size_bytes=1000,
-                    sha256="0" * 64,
-                    storage_path=f"scans/{site}/{scan_id}.ply",
-                    n_points=1000,
-                    bbox_min=[0.0, 0.0, 0.0],
-                    bbox_max=[1.0, 1.0, 1.0],
-                )
-            )
-        session.flush()
         session.add(
             Job(
                 id=job,

@@ -1,7 +1,7 @@
 """Reading a ROS bag as a scan: time and peak Python memory of ``read_point_cloud`` on a bag.
 
-    .venv/bin/python bench/rosbag_read.py                       # 60 sweeps of 5,760 points
-    .venv/bin/python bench/rosbag_read.py --sweeps 60 --azimuth-step 0.5 --storage mcap
+    .venv/bin/python -m bench.rosbag_read                       # 60 sweeps of 5,760 points
+    .venv/bin/python -m bench.rosbag_read --sweeps 60 --azimuth-step 0.5 --storage mcap
 
 Writes a bag (``tests/helpers/bags.py``: a 16-ring lidar on a robot driving through a box room,
 poses on ``/tf``) in a temporary directory, then reads it ``--repeat`` times and prints the bag
@@ -14,18 +14,13 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import tempfile
 import time
 import tracemalloc
 from pathlib import Path
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``tests`` importable
-    sys.path.insert(0, str(PROJECT_ROOT))
-
-from app.core.formats import BagOptions, read_point_cloud  # noqa: E402
-from tests.helpers.bags import write_lidar_bag  # noqa: E402
+from app.core.formats import BagOptions, read_point_cloud
+from tests.helpers.bags import write_lidar_bag
 
 
 def main() -> None:

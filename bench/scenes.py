@@ -19,17 +19,17 @@ from pathlib import Path
 import numpy as np
 
 from app.core.cloud import PointCloud
-from app.core.detectors import METHODS
-from app.core.localise import LABEL_CHANGED
-from app.core.pipeline import compare
-from app.core.synthetic import (
+from app.core.datasets.lidar import CHANGE_DISTANCE, LidarWorld
+from app.core.datasets.scenes import (
     ROOM_MAX,
     ROOM_MIN,
     STATIC_BOXES,
     raycast_scene,
     raycast_scene_objects,
 )
-from app.core.synthetic_lidar import CHANGE_DISTANCE, LidarWorld
+from app.core.detectors import METHODS
+from app.core.localise import LABEL_CHANGED
+from app.core.pipeline import compare
 
 RESULTS = Path(__file__).resolve().parent / "results"
 CHANGES = ("none", "box", "removed", "moved", "mixed")
@@ -55,7 +55,7 @@ def changed_points_iou(result, pair) -> float:
 
 def surface_truth_iou(result, pair, change: str) -> float:
     """IoU of changed points under issue 15's truth: a point is changed when it lies more than
-    :data:`~app.core.synthetic_lidar.CHANGE_DISTANCE` (10 cm) from every surface of the other
+    :data:`~app.core.datasets.lidar.CHANGE_DISTANCE` (10 cm) from every surface of the other
     epoch's world (so the lowest 10 cm of an added or removed box, beside the floor, are not).
 
     Measured on the noisy points (1 cm noise: only points 9-11 cm away can flip)."""

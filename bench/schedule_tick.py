@@ -22,7 +22,7 @@ from app.config import Settings
 from app.db.migrate import upgrade_to_head
 from app.db.models import Organisation, Schedule, Site
 from app.db.session import transaction
-from app.services.schedule_runs import tick
+from app.services.schedules.runs import tick
 
 
 def main() -> None:

@@ -26,8 +26,8 @@ import time
 import numpy as np
 
 from app.core.cloud import PointCloud
+from app.core.datasets.lidar import CHANGE_DISTANCE, LidarWorld, lidar_directions
 from app.core.pipeline import compare
-from app.core.synthetic_lidar import CHANGE_DISTANCE, LidarWorld, lidar_directions
 from app.core.trajectory import Trajectory
 
 SHELL_HIGH = np.array([40.0, 8.0, 4.0])

@@ -17,21 +17,15 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from tusclient.client import TusClient
+from tusclient.uploader import Uploader
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-if str(PROJECT_ROOT) not in sys.path:  # run as a script: make ``app`` and ``tests`` importable
-    sys.path.insert(0, str(PROJECT_ROOT))
-
-from tusclient.client import TusClient  # noqa: E402
-from tusclient.uploader import Uploader  # noqa: E402
-
-from tests.helpers.service import ServiceProcess  # noqa: E402
+from tests.helpers.service import ServiceProcess
 
 WRITE_POINTS = 1_000_000
 """Points generated and written at a time."""

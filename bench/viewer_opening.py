@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.core.synthetic_lidar import lidar_pair
+from app.core.datasets.lidar import lidar_pair
 from app.viewer.opening import (
     OccupancyGrid,
     blocked_shares,

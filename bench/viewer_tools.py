@@ -19,8 +19,8 @@ from collections.abc import Callable
 import numpy as np
 
 from app.core.cloud import PointCloud
+from app.core.datasets.scenes import raycast_scene
 from app.core.pipeline import compare
-from app.core.synthetic import raycast_scene
 from app.viewer.regions_display import relabel
 from app.viewer.rendering import ViewState, pick_point, render_layers
 from app.viewer.scene import build_scene_data

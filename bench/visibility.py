@@ -1,6 +1,6 @@
 """Change detection without being told where the sensor was (issue 15): the single-station class.
 
-Scenes from :func:`app.core.synthetic_lidar.lidar_pair` (random rooms, corridors, warehouses; a
+Scenes from :func:`app.core.datasets.lidar.lidar_pair` (random rooms, corridors, warehouses; a
 regular-grid spinning lidar; world-frame files; half of them misaligned 0.3-0.4 degrees and 2-3
 cm), each compared twice: with the true origins given and with none (the pipeline estimates
 them).  Per case: the decision, IoU of changed points over truth-observed points (changed
@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 
 from app.core.cloud import PointCloud
+from app.core.datasets.lidar import LAYOUTS, lidar_pair, steps_for_points
 from app.core.formats import read_point_cloud
 from app.core.origins import estimate_origin
 from app.core.pipeline import compare
-from app.core.synthetic_lidar import LAYOUTS, lidar_pair, steps_for_points
 from bench.scenes import changed_points_iou
 
 RESULTS = Path(__file__).resolve().parent / "results"

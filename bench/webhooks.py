@@ -6,7 +6,7 @@ On a fresh, migrated SQLite file in a temporary directory: one organisation with
 to a local receiver (:class:`tests.helpers.webhooks.WebhookReceiver`, which checks every
 signature with the snippet of docs/webhooks.md).  For each ``--senders`` count it publishes
 ``--events`` events (one transaction each, as a finishing job does) and times it, then times
-that many threads running :func:`app.jobs.deliveries.deliver_due` until every delivery is
+that many threads running :func:`app.jobs.alerts.deliveries.deliver_due` until every delivery is
 delivered.  Prints publish ms/event and deliveries/s; exit status 1 if any event was lost or
 delivered twice, or a signature did not check.
 """
@@ -25,7 +25,7 @@ from app.db.events import publish_event
 from app.db.migrate import upgrade_to_head
 from app.db.models import Organisation, Webhook
 from app.db.session import transaction
-from app.jobs.deliveries import deliver_due
+from app.jobs.alerts.deliveries import deliver_due
 from tests.helpers.webhooks import WEBHOOK_SETTINGS, WebhookReceiver
 
 

@@ -70,7 +70,9 @@ export function progressBar(fraction, label) {
 export function jobProgress(job) {
   if (job.status === "running" || job.status === "queued") {
     const stage = job.stage ? ` · ${job.stage}` : "";
-    return progressBar(job.progress, `${Math.round((job.progress || 0) * 100)}%${stage}`);
+    // a job localised tile by tile on several workers says how many tiles are done
+    const tiles = job.tiles ? ` · tiles ${job.tiles.done}/${job.tiles.total}` : "";
+    return progressBar(job.progress, `${Math.round((job.progress || 0) * 100)}%${stage}${tiles}`);
   }
   return null;
 }

@@ -17,7 +17,8 @@ function jobOutcome(job) {
     return `Comparison done: ${decision}.`;
   }
   const percent = Math.round((job.progress || 0) * 100);
-  return job.status === "running" ? `Comparison running${job.stage ? ` (${job.stage}, ${percent}%)` : ""}…` : "Comparison queued…";
+  const tiles = job.tiles ? `, tiles ${job.tiles.done}/${job.tiles.total}` : "";
+  return job.status === "running" ? `Comparison running${job.stage ? ` (${job.stage}, ${percent}%${tiles})` : ""}…` : "Comparison queued…";
 }
 
 /** Show `job` in `node` (a badge, where it is, a link to it) until it ends; then `onEnded()`. */

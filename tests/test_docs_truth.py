@@ -3,7 +3,7 @@ flag and API path named in ``docs/*.md`` and ``README.md`` is checked against th
 
 * code paths (``app/...py``, ``bench/...py``, ``tests/...py``, ``static/...js``...): the file
   exists in the repository;
-* module paths (``app.services.schedule_runs.tick``): the module imports and the rest are
+* module paths (``app.services.schedules.runs.tick``): the module imports and the rest are
   attributes of it;
 * settings (``SCANDIFF_*``): a field of :class:`app.config.Settings`, or a variable the code,
   tests or deployment files read (``SCANDIFF_TESTING``, ``SCANDIFF_REQUIRE_SERVICES``...);
@@ -263,8 +263,8 @@ def test_the_code_path_check_catches_a_missing_file(text: str, found: str) -> No
 
 
 def test_the_checks_catch_made_up_names() -> None:
-    assert not resolves("app.services.schedule_runs.no_such_function")
-    assert resolves("app.services.schedule_runs.tick")
+    assert not resolves("app.services.schedules.runs.no_such_function")
+    assert resolves("app.services.schedules.runs.tick")
     assert "--no-such-flag" not in command_flags()["compare"]
     assert "--sensor-origin" in command_flags()["compare"]
     assert not any(pattern.fullmatch("/api/v1/no-such-route") for pattern in route_patterns())

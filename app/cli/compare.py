@@ -19,6 +19,12 @@ from app.core.explanation import explain_comparison
 if TYPE_CHECKING:  # the numeric stack is imported when the command runs, not to build the parser
     from app.core.cloud import PointCloud
     from app.core.pipeline import ComparisonResult
+    from app.core.trajectory import Trajectory
+
+
+BUDGET_NOT_GIVEN = object()
+"""``--memory-budget`` left out: the setting's value applies."""
+MEMORY_SUFFIXES = {"": 1, "K": 1024, "M": 1024**2, "G": 1024**3, "T": 1024**4}
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -31,6 +37,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("reference", type=Path, help="reference scan file")
     parser.add_argument("scan", type=Path, help="new scan file")
+    _add_detector_and_output_options(parser)
+    _add_sensor_options(parser)
+    _add_file_options(parser)
+    parser.set_defaults(handler=run)
+
+
+def _add_detector_and_output_options(parser: argparse.ArgumentParser) -> None:
+    """The detector, its parameters, and what the command writes."""
     parser.add_argument(
         "--method",
         default="gmm",
@@ -57,6 +71,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         metavar="KEY=JSON",
         help="detector parameter, e.g. --param n_components=8 (repeatable)",
     )
+
+
+def _add_sensor_options(parser: argparse.ArgumentParser) -> None:
+    """Where the sensor was: its frame, its origins (one per station), its trajectories."""
     parser.add_argument(
         "--sensor-frame",
         action="store_true",
@@ -101,6 +119,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
             metavar="HZ",
             help=f"constant rate of the KITTI poses of {flag} (poses a second)",
         )
+
+
+def _add_file_options(parser: argparse.ArgumentParser) -> None:
+    """How the files are read: the reference's geometry cache, a ROS bag's parameters."""
+    parser.add_argument(
+        "--memory-budget",
+        type=_memory_size,
+        default=BUDGET_NOT_GIVEN,
+        metavar="BYTES",
+        help="memory the comparison may use (bytes, or with a K/M/G suffix, e.g. 2.5G; "
+        "default: SCANDIFF_WORKER_MEMORY_BUDGET_BYTES, else 2.5G; 0 or none: no limit): "
+        "a pair that does not fit is compared in tiles; exit 2 when not even one tile fits",
+    )
     parser.add_argument(
         "--geometry-cache",
         type=Path,
@@ -126,13 +157,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         metavar="KEY=VALUE",
         help="the same for SCAN only, overriding --bag-param (repeatable)",
     )
-    parser.set_defaults(handler=run)
 
 
-def _with_trajectory(cloud: PointCloud, args: argparse.Namespace, name: str) -> PointCloud:
-    """``cloud`` with the trajectory of ``--trajectory``/``--scan-trajectory``, if given."""
+def _read_trajectory(args: argparse.Namespace, name: str) -> Trajectory | None:
+    """The trajectory of ``--trajectory``/``--scan-trajectory``, if given (read before the
+    clouds: a bad trajectory file is refused at once)."""
     from app.core.formats.trajectory_files import read_trajectory
-    from app.core.trajectory_poses import with_trajectory
 
     path, times = getattr(args, name), getattr(args, f"{name}_times")
     rate = getattr(args, f"{name}_rate")
@@ -140,11 +170,18 @@ def _with_trajectory(cloud: PointCloud, args: argparse.Namespace, name: str) -> 
     if path is None:
         if times is not None or rate is not None:
             raise InputError(f"{flag}-times/{flag}-rate need {flag} FILE (the poses)")
-        return cloud
+        return None
     for given in (path, times):
         if given is not None and not given.is_file():
             raise InputError(f"no such file: {given}")
-    return with_trajectory(cloud, read_trajectory(path, times=times, rate=rate))
+    return read_trajectory(path, times=times, rate=rate)
+
+
+def _with_trajectory(cloud: PointCloud, trajectory: Trajectory | None) -> PointCloud:
+    """``cloud`` with ``trajectory`` checked against its per-point times, if one was given."""
+    from app.core.trajectory_poses import with_trajectory
+
+    return cloud if trajectory is None else with_trajectory(cloud, trajectory)
 
 
 def _parse_origins(values: list[str], flag: str) -> list[list[float]] | None:
@@ -177,6 +214,30 @@ def _parse_bag_params(pairs: list[str], flag: str) -> dict[str, str]:
             )
         values[key.strip()] = value.strip()
     return values
+
+
+def _memory_size(text: str) -> int | None:
+    """``--memory-budget``'s value in bytes (``0`` or ``none``: no limit, None)."""
+    value = text.strip().upper().removesuffix("B").removesuffix("I")
+    if value in ("NONE", "0"):
+        return None
+    number, suffix = (value[:-1], value[-1]) if value[-1:].isalpha() else (value, "")
+    try:
+        size = float(number) * MEMORY_SUFFIXES[suffix]
+    except (KeyError, ValueError):
+        raise argparse.ArgumentTypeError(
+            f"not a size in bytes: {text!r} (write e.g. 2684354560, 800M or 2.5G)"
+        ) from None
+    if not size > 0:
+        raise argparse.ArgumentTypeError(f"the memory budget must be positive, got {text!r}")
+    return int(size)
+
+
+def _default_memory_budget() -> int | None:
+    """The service's per-worker budget setting (its environment variable or default)."""
+    from app.config import Settings
+
+    return Settings().worker_memory_budget_bytes
 
 
 def _parse_params(pairs: list[str]) -> dict[str, Any]:
@@ -280,6 +341,11 @@ CLI_FIXES: dict[str, tuple[str, list[str]]] = {
         "check the sensor position given with --sensor-origin, --scan-origin or --sensor-frame",
         ["--sensor-origin", "--scan-origin", "--sensor-frame"],
     ),
+    "check_trajectory": (
+        "check that the file given with --trajectory or --scan-trajectory was recorded with "
+        "that cloud, on the same clock, and covers its whole recording",
+        ["--trajectory", "--scan-trajectory"],
+    ),
 }
 """For each ``how_to_fix["action"]`` of :mod:`app.core.quality`: the CLI's advice and flags."""
 
@@ -346,7 +412,7 @@ def _geometry_cache(directory: Path | None, reference: Path, params: dict[str, A
         return None
     import hashlib
 
-    from app.core.geometry_cache import GeometryCache, cache_key
+    from app.core.cache.geometry import GeometryCache, cache_key
 
     digest = hashlib.sha256()
     with open(reference, "rb") as source:
@@ -361,7 +427,7 @@ def run(args: argparse.Namespace) -> int:
     """Run one comparison; exit status 0, or 2 on bad input."""
     from app.core.formats import read_point_cloud
     from app.core.formats.rosbag import bag_options_from_strings
-    from app.core.pipeline import compare
+    from app.core.tiling.compare import compare_within_budget
     from app.kit.allocator import release_freed_memory_promptly
 
     release_freed_memory_promptly()
@@ -392,17 +458,22 @@ def run(args: argparse.Namespace) -> int:
         if args.sensor_frame:
             params.setdefault("reference_origin", [0.0, 0.0, 0.0])
             params.setdefault("scan_origin", [0.0, 0.0, 0.0])
+        trajectories = [_read_trajectory(args, name) for name in ("trajectory", "scan_trajectory")]
         started = time.perf_counter()
         reference = _with_trajectory(
-            read_point_cloud(args.reference, bag_options=reference_bag), args, "trajectory"
+            read_point_cloud(args.reference, bag_options=reference_bag), trajectories[0]
         )
-        scan = _with_trajectory(
-            read_point_cloud(args.scan, bag_options=scan_bag), args, "scan_trajectory"
-        )
+        scan = _with_trajectory(read_point_cloud(args.scan, bag_options=scan_bag), trajectories[1])
         load_seconds = time.perf_counter() - started
-        result = compare(
+        budget = (
+            _default_memory_budget()
+            if args.memory_budget is BUDGET_NOT_GIVEN
+            else args.memory_budget
+        )
+        result = compare_within_budget(
             reference,
             scan,
+            budget_bytes=budget,
             method=args.method,
             variant=args.variant,
             align=not args.no_align,

@@ -264,7 +264,7 @@ def run_child(role: str) -> int:
     """Run one child of ``serve`` (settings from ``SCANDIFF_*``), dying with its parent."""
     from app.jobs.consumer import run_consumer
     from app.jobs.lifecycle import die_with_supervisor
-    from app.services.schedule_runs import tick
+    from app.services.schedules.runs import tick
 
     die_with_supervisor()
     from app.config import Settings

@@ -97,7 +97,7 @@ def build_settings(args: argparse.Namespace) -> Settings:
 def handle_worker(args: argparse.Namespace) -> int:
     """Entry of ``scandiff worker``."""
     from app.jobs.consumer import DatabaseNotReadyError, run_consumer
-    from app.services.schedule_runs import tick
+    from app.services.schedules.runs import tick
 
     settings = build_settings(args)
     try:

@@ -15,7 +15,7 @@ from app.core.detectors import make_detector
 from app.core.detectors.base import ChangeDetector
 from app.core.errors import InputError
 from app.core.localise.settings import as_origins
-from app.core.origins.stations import as_recover_setting
+from app.core.origins.station_recovery import as_recover_setting
 from app.core.parameters import ParamSpec, validate_parameters
 from app.core.registration import register_scan
 

@@ -17,7 +17,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from app.core.comparison.protocol import Comparison
 
 RULE_DECIDES = {
     "regions": "the regions decide",
@@ -194,15 +197,15 @@ def _text(
     return f"{decision}: {regions_part}; {detector_part} ({RULE_DECIDES.get(rule, rule)})"
 
 
-def explain_comparison(result: Any) -> dict[str, Any]:
+def explain_comparison(result: Comparison) -> dict[str, Any]:
     """:func:`explain_decision` of a :class:`~app.core.pipeline.ComparisonResult`.
 
     Reads ``changed``, ``score``, ``threshold``, ``regions``, ``calibration["decision"]``
     and ``localisation`` (the rule defaults to ``"regions"`` when the result has none).
     """
-    calibration = getattr(result, "calibration", None) or {}
+    calibration = result.calibration or {}
     decision = calibration.get("decision") or {}
-    localisation = getattr(result, "localisation", None) or {}
+    localisation = result.localisation or {}
     min_points = localisation.get("min_region_points")
     dropped = localisation.get("n_dropped_clusters")
     return explain_decision(

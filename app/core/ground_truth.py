@@ -2,7 +2,7 @@
 
 :func:`changed_iou` scores the per-point labels of a comparison (or of
 :func:`app.core.localise.localise_changes`) against the changed and observed masks that the
-synthetic scene generators (:mod:`app.core.synthetic`, :mod:`app.core.synthetic_lidar`) return
+synthetic scene generators (:mod:`app.core.datasets.scenes`, :mod:`app.core.datasets.lidar`) return
 with their pairs.
 """
 

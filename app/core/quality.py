@@ -17,6 +17,10 @@ still "succeed" with many regions.  :func:`quality_warnings` says so, from the r
     occlusion cannot be told from removal.
 ``sensor_origin``
     an origin was given but the data contradict it (the origins' own warnings).
+``trajectory_time_span``
+    some of a cloud's points have times outside its trajectory's span (fewer than half: more
+    is refused as bad input): they take the trajectory's end poses, so their sensor positions
+    are guesses.
 
 The site's history (a region count far above the site's usual) needs the database; the
 service adds it.  Every warning is ``{"code", "message", "detail", "how_to_fix", ...}``:
@@ -32,10 +36,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from app.core.comparison.protocol import Comparison
 
 LOW_FITNESS = 0.6
 """Registration fitness below which the alignment (or the pairing of the scans) is suspect.
@@ -61,8 +69,58 @@ FIX_ACTIONS = {
     "widen_coverage": "rescan so that both scans cover the same part of the place",
     "give_sensor_origin": "give the sensor position of the side named in the detail",
     "check_sensor_origin": "check the sensor position given",
+    "check_trajectory": "check that the trajectory covers the whole recording, on its clock",
 }
 """What each ``how_to_fix["action"]`` asks, without naming any interface's knob."""
+
+
+@dataclass(frozen=True)
+class QualityWarning:
+    """One warning, in the shape the module docstring describes (:meth:`to_json_dict`).
+
+    Attributes
+    ----------
+    code : str
+    message : str
+        One sentence, with units.
+    explanation : str
+        What it means for the result.
+    action : str
+        One of :data:`FIX_ACTIONS`.
+    value, limit : float, optional
+        The measured value and the limit it crossed.
+    unit : str, optional
+    side : {"reference", "scan"}, optional
+    """
+
+    code: str
+    message: str
+    explanation: str
+    action: str
+    value: float | None = None
+    limit: float | None = None
+    unit: str | None = None
+    side: str | None = None
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """``{"code", "message", value..., "detail", "how_to_fix"}`` (measured fields only)."""
+        measured = {
+            key: value
+            for key, value in (
+                ("value", self.value),
+                ("limit", self.limit),
+                ("unit", self.unit),
+                ("side", self.side),
+            )
+            if value is not None
+        }
+        return {
+            "code": self.code,
+            "message": self.message,
+            **measured,
+            "detail": {**measured, "explanation": self.explanation},
+            "how_to_fix": {"action": self.action, "summary": FIX_ACTIONS[self.action]},
+        }
 
 
 def _warning(
@@ -72,15 +130,8 @@ def _warning(
     action: str,
     **measured: Any,
 ) -> dict[str, Any]:
-    """One warning in the shape the module docstring describes."""
-    detail = {key: value for key, value in measured.items() if value is not None}
-    return {
-        "code": code,
-        "message": message,
-        **detail,
-        "detail": {**detail, "explanation": explanation},
-        "how_to_fix": {"action": action, "summary": FIX_ACTIONS[action]},
-    }
+    """One warning as stored (:class:`QualityWarning`)."""
+    return QualityWarning(code, message, explanation, action, **measured).to_json_dict()
 
 
 def registration_warnings(
@@ -227,6 +278,12 @@ def origin_warnings(
         for text in origin_messages
     ]
     for side in ("reference", "scan"):
+        for entry in (sensor_origins or {}).get(side) or ():
+            if not isinstance(entry, Mapping) or entry.get("source") != "trajectory":
+                continue
+            outside = entry.get("points_outside")
+            if isinstance(outside, int) and outside > 0:
+                warnings.append(_time_span_warning(side, outside, entry.get("time_span")))
         if sensor_origins is not None and side in sensor_origins and not sensor_origins[side]:
             warnings.append(
                 _warning(
@@ -242,18 +299,31 @@ def origin_warnings(
     return warnings
 
 
-def quality_warnings(result: Any) -> list[dict[str, Any]]:
-    """Every warning :mod:`app.core.quality` can tell from a comparison result.
-
-    ``result`` is a :class:`~app.core.pipeline.ComparisonResult` (or an object with its
-    ``registration``, ``reference_label`` and ``scan_label``; ``sensor_origins`` and
-    ``warnings`` are read when present).
-    """
-    warnings = registration_warnings(getattr(result, "registration", None) or {})
-    warnings += overlap_warnings(np.asarray(result.reference_label), np.asarray(result.scan_label))
-    warnings += origin_warnings(
-        getattr(result, "sensor_origins", None), list(getattr(result, "warnings", None) or [])
+def _time_span_warning(side: str, outside: int, span: Any) -> dict[str, Any]:
+    """``trajectory_time_span``: ``outside`` points of ``side`` lie outside its trajectory's
+    time span ``[first, last]``."""
+    within = ""
+    if isinstance(span, Sequence) and len(span) == 2:
+        within = f" ({float(span[0]):.3f}..{float(span[1]):.3f} s)"
+    return _warning(
+        "trajectory_time_span",
+        f"{outside:,} of the {side}'s points have times outside its trajectory's time "
+        f"span{within}.",
+        "their sensor positions are the trajectory's end poses, not where the sensor was: "
+        "regions near them may be shadows",
+        "check_trajectory",
+        value=outside,
+        unit="points",
+        side=side,
     )
+
+
+def quality_warnings(result: Comparison) -> list[dict[str, Any]]:
+    """Every warning :mod:`app.core.quality` can tell from a comparison result (its
+    ``registration``, labels, ``sensor_origins`` and the origins' ``warnings``)."""
+    warnings = registration_warnings(result.registration or {})
+    warnings += overlap_warnings(np.asarray(result.reference_label), np.asarray(result.scan_label))
+    warnings += origin_warnings(result.sensor_origins, list(result.warnings or []))
     return warnings
 
 

@@ -38,15 +38,14 @@ a downsampled reference point within ``max_correspondence_distance`` after the t
 voxel grids, up to about half a voxel).  :func:`register_scan` and
 :func:`identity_registration` downsample the ``grid`` centroids they already have rather than
 every point again (faster, with the same quality figures to 1e-3; see docs/performance.md);
-the coarse stage starts from them too.  A fitness
-below ``min_fitness`` means the clouds do not overlap (different sites, or a scan so far off
-that alignment failed): :class:`RegistrationError`.
+the coarse stage starts from them too.  A fitness below ``min_fitness`` means the clouds do not
+overlap (different sites, or a scan so far off that alignment failed): :class:`RegistrationError`.
 
 **What depends on the reference alone** (its point spacing, ``grid`` centroids, their coarse
 and quality-figure downsamplings) can be handed over by a
-:class:`~app.core.reference_memory.ReferenceMemory` (:mod:`app.core.reference_alignment` keeps
-them in the reference's geometry cache); each is recalled under the parameters it was computed
-with, so the result is the same with or without one.
+:class:`~app.core.cache.reference_memory.ReferenceMemory` (kept in the reference's geometry cache
+by :mod:`app.core.cache.reference_alignment`); each is recalled under the parameters it was
+computed with, so the result is the same with or without one.
 """
 
 from __future__ import annotations
@@ -59,9 +58,9 @@ import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
+from app.core.cache.reference_memory import ReferenceMemory, recalled
 from app.core.cloud import PointCloud, column_extreme
 from app.core.errors import RegistrationError
-from app.core.reference_memory import ReferenceMemory, recalled
 
 FINE_POINT_BUDGET = 30_000
 """Most points per cloud in the fine stage (a uniform random sample beyond this)."""
@@ -285,6 +284,25 @@ def identity_registration(
     return Registration(identity, fitness, rmse, True, 0, "none", plan.distance, plan.voxel_size)
 
 
+def _coarse_target(
+    plan: _Plan, voxel: float, num_threads: int, memory: ReferenceMemory | None
+) -> tuple[Any, Any]:
+    """The reference's coarse-stage small_gicp cloud and tree (``plan.reference_grid``, (g, 3),
+    downsampled at ``voxel``), recalled from ``memory`` or made and handed to it."""
+    import small_gicp
+
+    key = (plan.grid, voxel, num_threads)
+    coarse_points = None if memory is None else memory.recall("coarse", key)
+    if coarse_points is not None:  # what preprocess_points gave: the same cloud and tree
+        return _gicp_cloud(coarse_points, num_threads)
+    target, tree = small_gicp.preprocess_points(
+        plan.reference_grid, voxel, num_neighbors=NUM_NEIGHBOURS, num_threads=num_threads
+    )
+    if memory is not None:
+        memory.remember("coarse", key, _xyz(target.points()))
+    return target, tree
+
+
 def register_scan(
     reference: CloudLike,
     scan: CloudLike,
@@ -341,22 +359,7 @@ def register_scan(
 
     coarse_voxel = COARSE_VOXEL_FACTOR * plan.voxel_size
     coarse_distance = CORRESPONDENCE_VOXEL_FACTOR * coarse_voxel
-    coarse_points = None
-    if reference_memory is not None:
-        coarse_points = reference_memory.recall("coarse", (plan.grid, coarse_voxel, num_threads))
-    if coarse_points is not None:  # what preprocess_points gave: the same cloud and tree
-        coarse_target, coarse_tree = _gicp_cloud(coarse_points, num_threads)
-    else:
-        coarse_target, coarse_tree = small_gicp.preprocess_points(
-            plan.reference_grid,
-            coarse_voxel,
-            num_neighbors=NUM_NEIGHBOURS,
-            num_threads=num_threads,
-        )
-        if reference_memory is not None:
-            reference_memory.remember(
-                "coarse", (plan.grid, coarse_voxel, num_threads), _xyz(coarse_target.points())
-            )
+    coarse_target, coarse_tree = _coarse_target(plan, coarse_voxel, num_threads, reference_memory)
     coarse_source, _ = small_gicp.preprocess_points(
         plan.scan_grid, coarse_voxel, num_neighbors=NUM_NEIGHBOURS, num_threads=num_threads
     )
@@ -386,10 +389,8 @@ def register_scan(
         converged = bool(result.converged)
         candidate = np.asarray(result.T_target_source, dtype=np.float64)
         if not np.isfinite(candidate).all():
-            raise RegistrationError(
-                "the alignment diverged (non-finite transform); check the inputs, or "
-                + NO_ALIGN_HINT
-            )
+            diverged = "the alignment diverged (non-finite transform); check the inputs, or "
+            raise RegistrationError(diverged + NO_ALIGN_HINT)
         local_transform = candidate
         stage_fitness = result.num_inliers / max(source.size(), 1)
         if not is_fine and stage_fitness < min_fitness:

@@ -7,7 +7,7 @@ types: ``job.changed``, ``job.unchanged``, ``job.failed``, ``site.stale``, ``sch
 
 It adds an :class:`~app.db.models.Event` row (its id is the event id receivers use to drop
 duplicates) and one ``pending`` :class:`~app.db.models.WebhookDelivery` per webhook of the
-organisation subscribed to the type; the workers deliver them (:mod:`app.jobs.deliveries`).
+organisation subscribed to the type; the workers deliver them (:mod:`app.jobs.alerts.deliveries`).
 """
 
 from __future__ import annotations

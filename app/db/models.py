@@ -25,8 +25,10 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    func,
+    select,
 )
-from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+from sqlalchemy.orm import DeclarativeBase, Mapped, column_property, mapped_column, relationship
 
 from app.clock import utc_now
 
@@ -469,3 +471,54 @@ class ResumableUpload(Base):
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
     expires_at: Mapped[datetime] = mapped_column(Timestamp, index=True)
     created_at: Mapped[datetime] = mapped_column(Timestamp, default=utc_now)
+
+
+class TileStatus(StrEnum):
+    """Where one tile of a fanned-out job is: ``queued -> running -> succeeded``, or ``cancelled``
+    when its job stopped needing it (a worker killed mid-tile leaves it ``running`` with a lease
+    that expires, and the next claimer takes it)."""
+
+    QUEUED = "queued"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    CANCELLED = "cancelled"
+
+
+class JobTile(Base):
+    """One tile of a job localised tile by tile on several workers (issue 30's fan-out).
+
+    The row is the truth for the tile as ``job`` is for the job: a worker claims it with one
+    conditional ``UPDATE`` and a lease; a succeeded tile's ``result_path`` (under the data
+    directory) holds its :class:`app.core.tiling.TileResult` and is never computed again.
+    """
+
+    __tablename__ = "job_tile"
+    __table_args__ = (Index("ix_job_tile_job_status", "job_id", "status"),)
+
+    job_id: Mapped[str] = mapped_column(ForeignKey("job.id", ondelete="CASCADE"), primary_key=True)
+    tile_index: Mapped[int] = mapped_column(Integer, primary_key=True)
+    status: Mapped[str] = mapped_column(String(16), default=TileStatus.QUEUED)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    lease_owner: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    lease_expires_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
+    result_path: Mapped[str | None] = mapped_column(String(500), nullable=True)
+    points: Mapped[int] = mapped_column(Integer, default=0)  # both clouds' points in its crop
+    seconds: Mapped[float | None] = mapped_column(Float, nullable=True)
+    started_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
+    finished_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
+
+
+# A fanned-out job's tiles, counted where the job is read (``JobRead.tiles``): no counter to keep
+# in step, the rows are the truth.
+Job.tiles_total = column_property(
+    select(func.count(JobTile.tile_index))
+    .where(JobTile.job_id == Job.id)
+    .correlate_except(JobTile)
+    .scalar_subquery()
+)
+Job.tiles_done = column_property(
+    select(func.count(JobTile.tile_index))
+    .where(JobTile.job_id == Job.id, JobTile.status == TileStatus.SUCCEEDED)
+    .correlate_except(JobTile)
+    .scalar_subquery()
+)

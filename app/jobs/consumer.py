@@ -9,7 +9,7 @@ for a migrated database)::
     │         recovery_interval_seconds, notes it is alive in the queue for /health)
     ├── Huey scheduler (process)
     ├── Huey worker 1..N (processes; each runs one job at a time)
-    ├── webhook deliveries (process: :mod:`app.jobs.deliveries`, replaced when it dies)
+    ├── webhook deliveries (process: :mod:`app.jobs.alerts.deliveries`, replaced when it dies)
     └── schedule ticker (process, when given a tick: every schedule_tick_seconds; replaced
                          when it dies, so a slow URL fetch never delays supervision)
 
@@ -42,7 +42,7 @@ from app.config import Settings, get_settings
 from app.db.migrate import current_revision, head_revision
 from app.db.session import get_engine
 from app.jobs import queue, runner
-from app.jobs.deliveries import delivery_process
+from app.jobs.alerts.deliveries import delivery_process
 from app.jobs.doorbell import Doorbell, doorbell_path, ring
 from app.jobs.hooks import job_hooks
 from app.jobs.lifecycle import die_with_supervisor, set_parent_death_signal
@@ -365,7 +365,7 @@ def run_consumer(
 
     ``shutdown_grace_seconds`` None takes ``settings.shutdown_grace_seconds``.  With
     ``wait_for_database_seconds`` it first waits that long for a migrated database.
-    ``schedule_tick`` (the service layer's :func:`app.services.schedule_runs.tick`, passed by
+    ``schedule_tick`` (the service layer's :func:`app.services.schedules.runs.tick`, passed by
     the commands that start consumers) runs every ``schedule_tick_seconds`` in this process.
     """
     configure_process_logging(settings.log_level, settings.log_format)

@@ -21,11 +21,12 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from app.config import Settings
+from app.config import DEFAULT_MEMORY_BUDGET_BYTES, Settings
 from app.core.errors import InputError
 from app.core.formats import read_point_cloud
 from app.jobs.geometry import geometry_cache_of, record_geometry_cache
@@ -45,8 +46,12 @@ from app.jobs.leases import (
 )
 from app.jobs.limits import job_memory_limit, job_threads, memory_limit
 from app.jobs.results import store_results, write_result_files
+from app.jobs.tiles import TileFanOut, cancel_tiles, remove_tile_inputs
 from app.kit.allocator import release_freed_memory_promptly
 from app.kit.scan_files import stored_bag_options, with_stored_trajectory
+
+if TYPE_CHECKING:  # not imported: the API process imports this package, not the pipeline
+    from app.core.comparison.protocol import Comparison
 
 logger = logging.getLogger("scandiff.jobs")
 
@@ -64,7 +69,7 @@ def api_error_message(exc: InputError) -> str:
 
 def compute(
     job: ClaimedJob, settings: Settings, keeper: LeaseKeeper
-) -> tuple[Any, dict[str, float]]:
+) -> tuple[Comparison, dict[str, float]]:
     """Read both scans and run ``compare``; the result and this job's own timings."""
     release_freed_memory_promptly()  # freed temporaries go back to the system: peak = live data
     job_hooks.inject_faults(job, keeper)
@@ -106,9 +111,16 @@ def compute(
     load_seconds = time.perf_counter() - started
     keeper.report("comparing", PROGRESS_LOADED)
     cache = geometry_cache_of(job)
+    options: dict[str, Any] = {}
+    if job_hooks.compare is None:  # the real comparison, within the worker's memory budget
+        if tiles_needed(settings, len(reference), len(scan)):
+            compare, cache = tiled_comparison(job, settings, keeper), None  # on every worker
+        else:
+            options["budget_bytes"] = settings.worker_memory_budget_bytes
     result = compare(
         reference,
         scan,
+        **options,
         method=job.method,
         variant=job.variant,
         params=job.params,  # replayable: holds align/random_state/stage parameters when given
@@ -120,6 +132,37 @@ def compute(
     if cache is not None:
         record_geometry_cache(job, settings, cache)
     return label_upload_origins(result, given_at_upload), {"load_inputs": load_seconds}
+
+
+def tiles_needed(settings: Settings, n_reference: int, n_scan: int) -> bool:
+    """Whether a pair is compared tile by tile: forced, or too large for the memory budget."""
+    from app.core.tiling.compare import fits_budget  # the worker's import, not the API's
+
+    budget = settings.worker_memory_budget_bytes
+    return bool(settings.tile_crop_points) or (
+        budget is not None and not fits_budget(n_reference, n_scan, budget)
+    )
+
+
+def tiled_comparison(
+    job: ClaimedJob, settings: Settings, keeper: LeaseKeeper
+) -> Callable[..., Any]:
+    """``compare`` for a pair compared in tiles that every worker takes from the queue."""
+    from app.core.tiling.compare import compare_tiled
+
+    fan_out = TileFanOut(job, settings, keeper)
+    budget = settings.worker_memory_budget_bytes or DEFAULT_MEMORY_BUDGET_BYTES
+
+    def compare(*clouds: Any, geometry_cache: Any = None, **options: Any) -> Any:
+        return compare_tiled(
+            *clouds,
+            budget_bytes=budget,
+            max_crop_points=settings.tile_crop_points,
+            run_tiles=fan_out,
+            **options,
+        )
+
+    return compare
 
 
 def given_at_upload_only(
@@ -136,7 +179,7 @@ def given_at_upload_only(
     )
 
 
-def label_upload_origins(result: Any, given_at_upload: dict[str, bool]) -> Any:
+def label_upload_origins(result: Comparison, given_at_upload: dict[str, bool]) -> Comparison:
     """``result`` with the origins given at upload reported as ``"given"``, not ``"file"``.
 
     The worker hands a scan's upload origin to ``compare`` in the file's slot (it overrides the
@@ -144,8 +187,7 @@ def label_upload_origins(result: Any, given_at_upload: dict[str, bool]) -> Any:
     ``visibility[side]["origins"]`` (also in ``calibration["visibility"]``) and the warnings.
     """
     sides = [side for side, given in given_at_upload.items() if given]
-    reported = ("sensor_origins", "visibility", "warnings", "calibration")
-    if not sides or not all(hasattr(result, name) for name in reported):
+    if not sides or result.sensor_origins is None:
         return result  # nothing to relabel (a test's stand-in comparison reports no origins)
     sensor_origins = {
         side: [
@@ -171,7 +213,7 @@ def label_upload_origins(result: Any, given_at_upload: dict[str, bool]) -> Any:
     calibration = dict(result.calibration)
     if "visibility" in calibration:
         calibration["visibility"] = visibility
-    return dataclasses.replace(
+    return dataclasses.replace(  # type: ignore[type-var]  # a dataclass: warnings recomputed
         result,
         sensor_origins=sensor_origins,
         visibility=visibility,
@@ -209,6 +251,7 @@ def execute_job(job_id: str, settings: Settings) -> JobOutcome:
         if not store_results(job, settings, result, labels_path, timings):
             job_log("job lease lost before storing; nothing stored", job.id, JobOutcome.LEASE_LOST)
             return JobOutcome.LEASE_LOST
+        remove_tile_inputs(settings, job.id)  # the merged labels are stored; tiles no longer read
         job_log(
             "job succeeded",
             job.id,
@@ -226,11 +269,10 @@ def execute_job(job_id: str, settings: Settings) -> JobOutcome:
         return JobOutcome.LEASE_LOST
     except InputError as exc:
         keeper.stop()
-        return (
-            JobOutcome.FAILED
-            if fail_job(job, settings, api_error_message(exc))
-            else JobOutcome.LEASE_LOST
-        )
+        if not fail_job(job, settings, api_error_message(exc)):
+            return JobOutcome.LEASE_LOST
+        cancel_tiles(settings, job.id)
+        return JobOutcome.FAILED
     except MemoryError:
         keeper.stop()
         message = (
@@ -239,7 +281,10 @@ def execute_job(job_id: str, settings: Settings) -> JobOutcome:
             if limit_bytes
             else "out of memory"
         )
-        return JobOutcome.FAILED if fail_job(job, settings, message) else JobOutcome.LEASE_LOST
+        if not fail_job(job, settings, message):
+            return JobOutcome.LEASE_LOST
+        cancel_tiles(settings, job.id)
+        return JobOutcome.FAILED
     except KeyboardInterrupt:
         keeper.stop()
         release_job(job, settings, "interrupted by a worker shutdown", count_attempt=False)

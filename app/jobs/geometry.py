@@ -1,9 +1,9 @@
 """A job's cache of its reference's k-NN geometry: where it lives, its key, its bytes in the quota.
 
 The cache of a reference scan ``scans/<site>/<scan>.<format>`` is ``scans/<site>/<scan>.geometry``
-(removed with the site's scans).  Its key (:func:`app.core.geometry_cache.cache_key`) is the scan's
+(removed with the site's scans).  Its key (:func:`app.core.cache.geometry.cache_key`) is the scan's
 id and SHA-256, the code version and the job's localisation parameters; a file for another key,
-or damaged, is rebuilt by the comparison (:class:`app.core.geometry_cache.GeometryCache`).  Its
+or damaged, is rebuilt by the comparison (:class:`app.core.cache.geometry.GeometryCache`).  Its
 size is stored on the scan (``scan.geometry_cache_bytes``), which the stored-bytes quota counts;
 a cache that would take the organisation over its cap is deleted instead (the comparison then
 runs the search again next time, as without a cache).
@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 
 from app.config import Settings
-from app.core.geometry_cache import GeometryCache, cache_key
+from app.core.cache.geometry import GeometryCache, cache_key
 from app.db import usage
 from app.db.models import Scan
 from app.db.session import transaction

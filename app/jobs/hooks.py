@@ -1,11 +1,12 @@
 """The one seam through which tests reach into a job run: :data:`job_hooks`.
 
-A job run asks :data:`job_hooks` for two things, and nothing else in ``app`` knows about tests:
+A job run asks :data:`job_hooks` for three things, and nothing else in ``app`` knows about tests:
 
 * :meth:`JobHooks.comparison`: the function that compares two clouds.  It is
-  :func:`app.core.pipeline.compare` unless a test set :attr:`JobHooks.compare` to a stand-in
-  (``tests/helpers/fake_pipeline.py`` installs a fast, deterministic one, in-process or in a
-  consumer it starts);
+  :func:`app.core.tiling.compare.compare_within_budget` (:func:`app.core.pipeline.compare`,
+  in tiles when the pair does not fit the worker's memory budget) unless a test set
+  :attr:`JobHooks.compare` to a stand-in (``tests/helpers/fake_pipeline.py`` installs a
+  fast, deterministic one, in-process or in a consumer it starts);
 * :meth:`JobHooks.inject_faults`: faults described by the JSON object in env
   ``SCANDIFF_TEST_JOB_HOOKS`` (an environment variable, so that it reaches the workers of a
   ``scandiff serve`` a test starts).  Honoured only when ``SCANDIFF_TESTING=1``, which the test
@@ -16,6 +17,10 @@ attempt numbers).  Actions, in this order: ``sleep_seconds`` (sleep while heart-
 ``testing-sleep``), ``allocate_bytes`` (allocate that much: hits the memory cap),
 ``kill_worker`` (SIGKILL this worker process: a crash), ``raise_error`` (raise ``RuntimeError``
 with that message: a transient failure).
+
+* :meth:`JobHooks.in_tile`: in a job compared tile by tile (:mod:`app.jobs.tiles`), once a
+  worker claimed a tile: ``tile_sleep_seconds`` (every worker, every tile) and ``kill_in_tile``
+  (N: the job's own worker SIGKILLs itself in the tile after storing N tiles).
 """
 
 from __future__ import annotations
@@ -58,9 +63,9 @@ class JobHooks:
         # Imported on first use, not with this module: the API process imports the jobs package
         # to enqueue jobs and must stay small, without scipy, scikit-learn and POT (~4 s to
         # import).  The consumer calls this before forking, so its workers start with it loaded.
-        from app.core.pipeline import compare
+        from app.core.tiling.compare import compare_within_budget
 
-        return compare
+        return compare_within_budget
 
     def faults_for(self, job: ClaimedJob) -> dict[str, Any]:
         """The faults to inject into ``job`` (none unless ``SCANDIFF_TESTING=1``)."""
@@ -101,6 +106,25 @@ class JobHooks:
             os.kill(os.getpid(), signal.SIGKILL)
         if faults.get("raise_error"):
             raise RuntimeError(str(faults["raise_error"]))
+
+    def in_tile(self, job: ClaimedJob | None, tiles_done_here: int) -> None:
+        """Act out the tile faults once a worker claimed a tile: ``tile_sleep_seconds`` (every
+        worker), and ``kill_in_tile: N`` (the job's own worker kills itself in its tile after
+        storing N tiles, so that a claimed tile is left running)."""
+        faults = self.faults_for(job) if job is not None else self.process_faults()
+        if not faults:
+            return
+        time.sleep(float(faults.get("tile_sleep_seconds", 0.0)))
+        kill_after = faults.get("kill_in_tile")
+        if job is not None and kill_after is not None and tiles_done_here >= int(kill_after):
+            job_log("test hook: killing this worker in a tile", job.id, "testing-kill")
+            logging.shutdown()
+            os.kill(os.getpid(), signal.SIGKILL)
+
+    def process_faults(self) -> dict[str, Any]:
+        """The faults of this process's environment that concern every job (tests only)."""
+        raw = os.environ.get(TEST_HOOKS_ENV)
+        return dict(json.loads(raw)) if raw and testing_enabled() else {}
 
 
 job_hooks = JobHooks()

@@ -31,7 +31,7 @@ from app.clock import utc_now
 from app.config import Settings
 from app.db.models import Job, JobStatus, Scan, Site
 from app.db.session import transaction
-from app.jobs.alerts import publish_job_finished
+from app.jobs.alerts.events import publish_job_finished
 from app.kit.data_layout import StoredPathError
 from app.log import job_request_id, remember_job_request_id
 

@@ -1,10 +1,10 @@
-"""The Huey instance for the configured backend, its one task, enqueueing and health.
+"""The Huey instance for the configured backend, its two tasks, enqueueing and health.
 
 The queue only carries job ids; the ``job`` table is the truth (see ``docs/jobs.md``).  By default
 the queue is a SQLite file in the data directory (``SqliteHuey``, no server); a ``redis://`` (or
 ``rediss://``, ``unix://``) ``SCANDIFF_QUEUE_URL`` selects ``RedisHuey`` so consumers can run on
-many hosts.  One Huey instance per backend per process, each with the ``run_job`` task registered
-(no Huey retries: attempts live in the job table).
+many hosts.  One Huey instance per backend per process, each with the ``run_job`` and ``run_tile``
+tasks registered (no Huey retries: attempts live in the job and job_tile tables).
 
 The queue knows nothing of what runs on it: the task calls the runner a worker process installs
 with :func:`install_job_runner` (:mod:`app.jobs.runner`); a process that only enqueues (the API)
@@ -34,6 +34,8 @@ logger = logging.getLogger("scandiff.jobs.queue")
 
 QUEUE_NAME = "scandiff"
 JOB_TASK_NAME = "run_job"
+TILE_TASK_NAME = "run_tile"
+"""The second task: one tile of a job localised tile by tile (:mod:`app.jobs.tiles`)."""
 SQLITE_QUEUE_TIMEOUT_SECONDS = 60.0
 """Busy timeout of the Huey SQLite queue file (Huey's default of 5 s is too short under load)."""
 REDIS_URL_SCHEMES = ("redis://", "rediss://", "unix://")
@@ -46,8 +48,10 @@ CONSUMER_HEARTBEAT_KEY = "consumer-heartbeat"
 
 _hueys: dict[tuple[str, str], Huey] = {}
 _job_tasks: dict[int, Callable[..., Any]] = {}
+_tile_tasks: dict[int, Callable[..., Any]] = {}
 _hueys_lock = threading.Lock()
 _job_runner: Callable[[str], object] | None = None
+_tile_runner: Callable[[str, int], object] | None = None
 
 
 def install_job_runner(runner: Callable[[str], object]) -> None:
@@ -63,6 +67,22 @@ def run_job(job_id: str) -> None:
             f"job {job_id}: no job runner in this process (start a worker: scandiff worker)"
         )
     _job_runner(job_id)
+
+
+def install_tile_runner(runner: Callable[[str, int], object]) -> None:
+    """Make this process's ``run_tile`` messages call ``runner(job_id, tile_index)``."""
+    global _tile_runner
+    _tile_runner = runner
+
+
+def run_tile(job_id: str, tile_index: int) -> None:
+    """The Huey task: hand tile ``tile_index`` of job ``job_id`` to this process's tile runner."""
+    if _tile_runner is None:
+        raise RuntimeError(
+            f"job {job_id} tile {tile_index}: no tile runner in this process "
+            "(start a worker: scandiff worker)"
+        )
+    _tile_runner(job_id, int(tile_index))
 
 
 def queue_backend(settings: Settings) -> str:
@@ -100,6 +120,7 @@ def create_huey(settings: Settings) -> Huey:
         )
         huey = RedisHuey(name=QUEUE_NAME, connection_pool=pool, results=False, utc=True)
     _job_tasks[id(huey)] = huey.task(name=JOB_TASK_NAME, retries=0)(run_job)
+    _tile_tasks[id(huey)] = huey.task(name=TILE_TASK_NAME, retries=0)(run_tile)
     return huey
 
 
@@ -128,6 +149,17 @@ def send_job_message(job_id: str, settings: Settings) -> None:
     worker of an SQLite queue (:mod:`app.jobs.doorbell`; a hint, the message is the record)."""
     job_task(get_huey(settings))(job_id)
     if queue_backend(settings) == "sqlite":
+        ring(doorbell_path(settings.data_dir))
+
+
+def send_tile_messages(job_id: str, tile_indices: list[int], settings: Settings) -> None:
+    """Put one ``run_tile(job_id, i)`` message on the queue per tile, then wake idle workers of
+    an SQLite queue.  A lost message costs nothing: the job's own worker takes every tile no
+    other worker took (:mod:`app.jobs.tiles`)."""
+    task = _tile_tasks[id(get_huey(settings))]
+    for tile_index in tile_indices:
+        task(job_id, int(tile_index))
+    if tile_indices and queue_backend(settings) == "sqlite":
         ring(doorbell_path(settings.data_dir))
 
 
@@ -182,7 +214,7 @@ def pending_job_ids(settings: Settings) -> set[str]:
     huey = get_huey(settings)
     job_ids: set[str] = set()
     for task in [*huey.pending(), *huey.scheduled()]:
-        if task.args:
+        if task.args and task.name.endswith(JOB_TASK_NAME):
             job_ids.add(str(task.args[0]))
     return job_ids
 

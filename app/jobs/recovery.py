@@ -31,7 +31,7 @@ from app.clock import as_utc, utc_now
 from app.config import Settings
 from app.db.models import Job, JobStatus
 from app.db.session import transaction
-from app.jobs.alerts import publish_job_finished
+from app.jobs.alerts.events import publish_job_finished
 from app.jobs.leases import job_log, lease_owner_is_dead_here
 from app.jobs.queue import mark_not_enqueued, pending_job_ids, send_job_message
 from app.jobs.results import remove_stale_temp_files

@@ -15,7 +15,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,16 +23,17 @@ from sqlalchemy import delete, select
 
 from app.clock import utc_now
 from app.config import Settings
-from app.core.explanation import explain_comparison
 from app.core.files import TEMP_MARKER, write_atomically
 from app.core.jsonable import json_safe
-from app.core.quality import quality_warnings
 from app.db.models import Job, JobStatus, Region
 from app.db.session import transaction
-from app.jobs.alerts import publish_job_finished
+from app.jobs.alerts.events import publish_job_finished
+from app.jobs.alerts.site_history import region_count_warning
 from app.jobs.leases import ClaimedJob, held_by
-from app.jobs.site_history import region_count_warning
 from app.kit.data_layout import DETAILS_FILENAME, LABELS_FILENAME
+
+if TYPE_CHECKING:  # not imported: the API process imports this package, not the pipeline
+    from app.core.comparison.protocol import Comparison
 
 
 @dataclass(frozen=True)
@@ -71,7 +72,7 @@ def read_result_files(labels_path: Path) -> StoredResults:
     )
 
 
-def write_result_files(job: ClaimedJob, settings: Settings, result: Any) -> str:
+def write_result_files(job: ClaimedJob, settings: Settings, result: Comparison) -> str:
     """Write ``labels.npz`` and ``details.npz`` atomically; the labels path relative to data_dir."""
     directory = settings.data_layout.job_results_dir(job.id)
     labels_path = directory / LABELS_FILENAME
@@ -90,7 +91,11 @@ def write_result_files(job: ClaimedJob, settings: Settings, result: Any) -> str:
 
 
 def store_results(
-    job: ClaimedJob, settings: Settings, result: Any, labels_path: str, timings: dict[str, float]
+    job: ClaimedJob,
+    settings: Settings,
+    result: Comparison,
+    labels_path: str,
+    timings: dict[str, float],
 ) -> bool:
     """One short transaction: results and Region rows, only if the lease is still ours.
 
@@ -115,8 +120,8 @@ def store_results(
                 bbox_max=json_safe(list(region.bbox_max)),
                 mean_distance=float(region.mean_distance),
                 max_distance=float(region.max_distance),
-                evidence=str(getattr(region, "evidence", "seen_empty")),
-                confidence=getattr(region, "confidence", None),
+                evidence=str(region.evidence),
+                confidence=region.confidence,
             )
             for ordinal, region in enumerate(result.regions)
         )
@@ -125,16 +130,16 @@ def store_results(
         row.threshold = float(result.threshold)
         row.changed = bool(result.changed)
         row.calibration = json_safe(result.calibration)
-        row.effective_params = json_safe(getattr(result, "params", None))
+        row.effective_params = json_safe(result.params)
         row.registration = json_safe(result.registration)
         row.n_regions = len(result.regions)
-        warnings = quality_warnings(result)
+        warnings = list(result.quality_warnings)  # the core's, computed once
         history_warning = region_count_warning(session, row, len(result.regions))
         row.warnings = json_safe(warnings + ([history_warning] if history_warning else []))
-        row.explanation = json_safe(explain_comparison(result))
-        row.sensor_origins = json_safe(getattr(result, "sensor_origins", None))
+        row.explanation = json_safe(result.explanation)
+        row.sensor_origins = json_safe(result.sensor_origins)
         row.uncertain_regions = json_safe(
-            [region.to_json_dict() for region in getattr(result, "uncertain_regions", [])]
+            [region.to_json_dict() for region in result.uncertain_regions]
         )
         row.timings = json_safe(timings)
         row.labels_path = labels_path

@@ -2,7 +2,8 @@
 
 The one module that knows both the queue and the execution (``queue`` and ``execution`` know
 nothing of each other); worker processes install :func:`run_job_from_queue` as the queue's job
-runner (:func:`app.jobs.queue.install_job_runner`).
+runner (:func:`app.jobs.queue.install_job_runner`) and :func:`run_tile_from_queue` as its tile
+runner (one tile of a job compared tile by tile, :mod:`app.jobs.tiles`).
 """
 
 from __future__ import annotations
@@ -10,7 +11,9 @@ from __future__ import annotations
 from app.config import Settings, get_settings
 from app.jobs.execution import execute_job
 from app.jobs.leases import JobOutcome
-from app.jobs.queue import install_job_runner, send_job_message
+from app.jobs.limits import job_memory_limit, job_threads, memory_limit
+from app.jobs.queue import install_job_runner, install_tile_runner, send_job_message
+from app.jobs.tiles import run_tile_message
 
 
 def run_job_once(job_id: str, settings: Settings) -> JobOutcome:
@@ -27,6 +30,15 @@ def run_job_from_queue(job_id: str) -> None:
     run_job_once(job_id, get_settings())
 
 
+def run_tile_from_queue(job_id: str, tile_index: int) -> None:
+    """The tile runner of worker processes: one tile of a job, under the job's memory cap."""
+    settings = get_settings()
+    with memory_limit(job_memory_limit(settings)):
+        run_tile_message(job_id, tile_index, settings, threads=job_threads(settings))
+
+
 def install() -> None:
-    """Make this process run the jobs whose messages it takes (a worker calls this at start)."""
+    """Make this process run the jobs and tiles whose messages it takes (a worker calls this
+    at start)."""
     install_job_runner(run_job_from_queue)
+    install_tile_runner(run_tile_from_queue)

@@ -1,5 +1,5 @@
 """A long-running helper process of a job consumer, started beside its job workers and replaced
-when it dies: the webhook deliveries (:mod:`app.jobs.deliveries`) and the schedule ticker.
+when it dies: the webhook deliveries (:mod:`app.jobs.alerts.deliveries`) and the schedule ticker.
 
 Each runs a loop until its stop event is set; SIGTERM sets it (the loop finishes the step in
 flight), SIGINT is ignored (the consumer decides when to stop).  Forked, so the loop may be any

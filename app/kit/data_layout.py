@@ -14,6 +14,9 @@ for the service's settings), so no other module joins ``data_dir`` with a name o
     scans/<site_id>/<scan_id>.geometry  a reference's cached k-NN geometry (app.jobs.geometry)
     results/<job_id>/labels.npz      per-point labels of a job (written by the job worker)
     results/<job_id>/details.npz     per-point distances of a job
+    results/<job_id>/tiles/          a job localised tile by tile on several workers: its
+                                     inputs (plan, context, the aligned points as .npy) and
+                                     one result file per tile (app.jobs.tiles)
 
 A path stored in the database (a scan's ``storage_path``, a job's ``labels_path``) is read back
 with :meth:`DataLayout.resolve`, which refuses one that leads outside the data directory
@@ -99,6 +102,10 @@ class DataLayout:
     def job_results_dir(self, job_id: str) -> Path:
         """The directory of job ``job_id``'s per-point files."""
         return self.results_dir / job_id
+
+    def job_tiles_dir(self, job_id: str) -> Path:
+        """The directory of job ``job_id``'s tile inputs and tile results (a fanned-out job)."""
+        return self.job_results_dir(job_id) / "tiles"
 
     def labels_file(self, job_id: str) -> Path:
         """Job ``job_id``'s per-point labels file."""

@@ -2,7 +2,7 @@
 
 :func:`sign` and :func:`verify` make and check ``body.mac`` values with an expiry (session
 cookies, view links: :mod:`app.api.session_auth`; view links in webhook payloads:
-:mod:`app.jobs.alerts`).  :func:`signing_key` is the configured key or the one generated once
+:mod:`app.jobs.alerts.events`).  :func:`signing_key` is the configured key or the one generated once
 into ``<data_dir>/secret-key`` (mode 0600) and shared by every process using that directory.
 :func:`webhook_signature` is the ``Scandiff-Signature`` header of a webhook delivery.
 """

@@ -98,6 +98,7 @@ def create_job(
             "the reference and the scan belong to different sites; compare scans of one site",
             code="scans_of_different_sites",
         )
+    check_memory_budget(settings, reference.n_points + scan.n_points)
     site = sites.get_site(session, principal, scan.site_id)
     method, variant, params = sites.resolve_detector(
         site, payload.method, payload.variant, payload.params
@@ -113,6 +114,24 @@ def create_job(
         method=method,
         variant=variant,
         params=params,
+    )
+
+
+def check_memory_budget(settings: Settings, n_points: int) -> None:
+    """422 when the workers' memory budget cannot hold a pair of ``n_points`` points and one
+    tile of it (a pair that fits only in tiles is compared in tiles by the worker)."""
+    from app.core.tiling.plan import BASELINE_BYTES, RESIDENT_BYTES_PER_POINT, crop_point_limit
+
+    budget = settings.worker_memory_budget_bytes
+    if budget is None or crop_point_limit(budget, n_points) > 0:
+        return
+    needed = BASELINE_BYTES + n_points * RESIDENT_BYTES_PER_POINT
+    raise ValidationFailedError(
+        f"the two scans' {n_points:,} points do not fit the workers' memory budget "
+        f"({budget / 1024**2:,.0f} MiB, SCANDIFF_WORKER_MEMORY_BUDGET_BYTES): holding them "
+        f"alone needs about {needed / 1024**2:,.0f} MiB before any tile is compared; ask the "
+        "operator to raise it, or compare smaller scans",
+        code="memory_budget_too_small",
     )
 
 

@@ -32,6 +32,12 @@ API_FIXES: dict[str, tuple[str, list[str]]] = {
         '"reference_origin"/"scan_origin" in the job\'s params',
         ["sensor_origin", "params.reference_origin", "params.scan_origin"],
     ),
+    "check_trajectory": (
+        "check that the trajectory sent with the scan (the multipart part trajectory, or PUT "
+        "/api/v1/scans/{scan_id}/trajectory) was recorded with it, on the same clock, and "
+        "covers the whole recording",
+        ["trajectory"],
+    ),
     "check_site_history": (
         "check the job's registration and that both scans are of this site before trusting "
         "its regions",
@@ -47,6 +53,7 @@ ACTION_OF_CODE = {
     "low_overlap": "widen_coverage",
     "sensor_origin_unknown": "give_sensor_origin",
     "sensor_origin": "check_sensor_origin",
+    "trajectory_time_span": "check_trajectory",
     "region_count_above_history": "check_site_history",
 }
 """The fix of each warning code (for warnings stored before they carried ``how_to_fix``)."""

@@ -2,11 +2,12 @@
 
 Extensions: ``creation``, ``expiration``, ``termination`` and ``checksum``. An upload is created
 with its ``Upload-Length`` and ``Upload-Metadata`` (``site`` and what the normal upload takes:
-``filename``, ``reference``, ``method``, ``variant``, ``sensor_origin``; optionally the whole
-file's ``checksum`` as ``sha256:<hex>``), then receives ``PATCH`` requests at its offset.  Its
-bytes live in ``uploads/<id>.part`` under the data directory; each PATCH appends, fsyncs, and
-only then commits the new offset in the ``resumable_upload`` row, so a killed server loses no
-accepted byte (bytes written after the last committed offset are cut off by the next PATCH).
+``filename``, ``reference``, ``method``, ``variant``, ``sensor_origin``, a ROS bag's parameters
+as ``bag.KEY`` keys; optionally the whole file's ``checksum`` as ``sha256:<hex>``), then
+receives ``PATCH`` requests at its offset.  Its bytes live in ``uploads/<id>.part`` under the
+data directory; each PATCH appends, fsyncs, and only then commits the new offset in the
+``resumable_upload`` row, so a killed server loses no accepted byte (bytes written after the
+last committed offset are cut off by the next PATCH).
 
 The organisation's storage quota counts the accepted bytes of its active uploads
 (:func:`app.services.quotas.stored_bytes`): a PATCH that would pass it is refused with 413,
@@ -59,6 +60,8 @@ from app.services.sensor_origins import parse_sensor_origin
 from app.services.transaction import end_read_transaction, rollback
 from app.services.tus_protocol import CHECKSUM_ALGORITHMS, PATCH_CONTENT_TYPE, parse_metadata
 
+BAG_PREFIX = "bag."
+"""Metadata keys ``bag.cloud_topic``, ``bag.voxel_size``...: how to read an uploaded ROS bag."""
 FILE_CHECKSUM = re.compile(r"^sha256:([0-9a-fA-F]{64})$")
 UPLOAD_SUFFIX = ".part"
 HASH_BLOCK_BYTES = 1 << 20
@@ -140,6 +143,7 @@ def _upload_options(metadata: dict[str, str]) -> dict[str, Any]:
         )
     return {
         "site_id": site_id,
+        "bag_parameters": _bag_parameters(metadata),
         "reference": reference in ("true", "1"),
         "filename": metadata.get("filename") or metadata.get("name"),
         "method": metadata.get("method"),
@@ -147,6 +151,22 @@ def _upload_options(metadata: dict[str, str]) -> dict[str, Any]:
         "sensor_origin": parse_sensor_origin(metadata.get("sensor_origin")),
         "checksum": None if checksum is None else checksum.strip().split(":", 1)[1].lower(),
     }
+
+
+def _bag_parameters(metadata: dict[str, str]) -> dict[str, str] | None:
+    """The ``bag.KEY`` metadata (how to read a ROS bag) as ``?bag=KEY=VALUE`` would give them,
+    checked the same way (422 naming the bad one); None without."""
+    values = [
+        f"{key[len(BAG_PREFIX) :]}={value}"
+        for key, value in metadata.items()
+        if key.startswith(BAG_PREFIX)
+    ]
+    if "bag" in metadata:
+        raise ValidationFailedError(
+            "metadata 'bag' is not a parameter: give each bag parameter as its own key "
+            "'bag.KEY' (e.g. bag.cloud_topic with the topic's name, base64)"
+        )
+    return scans.parse_bag_parameters(values)
 
 
 def _scan_options(upload: UploadView) -> scans.UploadOptions:
@@ -158,6 +178,7 @@ def _scan_options(upload: UploadView) -> scans.UploadOptions:
         method=options.get("method"),
         variant=options.get("variant"),
         sensor_origin=options.get("sensor_origin"),
+        bag_parameters=options.get("bag_parameters"),
     )
 
 

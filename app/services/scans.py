@@ -140,10 +140,11 @@ def check_upload_target(
     return remaining
 
 
-def _check_stored_bytes(
+def check_stored_bytes_before_parsing(
     session: Session, settings: Settings, principal: Principal, size: int
 ) -> None:
-    """The storage quota again, with the exact size, before the cloud is parsed (a read)."""
+    """The storage quota with the exact size, before the cloud is parsed (a read, then the
+    transaction ends: parsing is slow and holds no lock)."""
     quotas.check_stored_bytes(session, settings, principal, size)
     end_read_transaction(session)
 
@@ -318,6 +319,10 @@ def _register_upload(
     site = sites.get_site(session, principal, options.site_id)
     if not options.reference and site.reference_scan_id is None:
         raise ConflictError(no_reference_message(site.id), code="no_reference")
+    if not options.reference:  # its comparison must fit the workers' memory budget
+        reference = session.get(Scan, site.reference_scan_id)
+        if reference is not None:
+            jobs.check_memory_budget(settings, reference.n_points + scan.n_points)
     session.add(scan)
     session.flush()
     if options.reference:
@@ -411,7 +416,7 @@ async def store_received_scan(
         if stored is not None:
             return stored
     await anyio.to_thread.run_sync(
-        _check_stored_bytes, session, settings, principal, received.size_bytes
+        check_stored_bytes_before_parsing, session, settings, principal, received.size_bytes
     )
     scan = await anyio.to_thread.run_sync(
         functools.partial(

@@ -22,6 +22,13 @@ from pydantic import (
 from app.clock import as_utc
 from app.db.models import JobStatus, Site
 from app.services.messages import api_warnings
+from app.services.result_schemas import (
+    CalibrationRead,
+    ExplanationRead,
+    QualityWarningRead,
+    RegistrationRead,
+    SensorOriginRead,
+)
 
 UtcDatetime = Annotated[datetime, AfterValidator(as_utc)]
 Name = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=200)]
@@ -47,6 +54,12 @@ class RowRead(BaseModel):
     def from_model(cls, row: object) -> Self:
         """Build from a row (a ``Scan``, ``Job``, quota ``Usage``...) by attribute name."""
         return cls.model_validate(row)
+
+
+def tile_progress_of(job: object) -> TileProgressRead | None:
+    """A job row's tiles done / total, or None when it is not tiled."""
+    total = getattr(job, "tiles_total", None) or 0
+    return TileProgressRead(done=getattr(job, "tiles_done", 0) or 0, total=total) if total else None
 
 
 DEFAULT_DETECTOR_VARIANT = "improved"
@@ -177,6 +190,13 @@ class VerdictRead(BaseModel):
     set_at: UtcDatetime
 
 
+class TileProgressRead(BaseModel):
+    """How far a job compared tile by tile on several workers has got."""
+
+    done: int = Field(description="Tiles localised and stored.")
+    total: int = Field(description="Tiles in the job's plan.")
+
+
 class JobRead(RowRead):
     """A comparison job: its inputs, state and results."""
 
@@ -187,6 +207,11 @@ class JobRead(RowRead):
     status: JobStatus
     progress: float
     stage: str | None
+    tiles: TileProgressRead | None = Field(
+        default=None,
+        description="A pair too large for one worker's memory budget is localised in tiles "
+        "that any worker takes from the queue: tiles done / total; null for a job in one piece.",
+    )
     attempts: int
     max_attempts: int
     method: str
@@ -200,8 +225,11 @@ class JobRead(RowRead):
     score: float | None
     threshold: float | None
     changed: bool | None
-    calibration: dict[str, Any] | None
-    registration: dict[str, Any] | None
+    calibration: CalibrationRead | None = Field(
+        description="How the threshold was calibrated, the decision rule's tests and what was "
+        "found out about each cloud's sensors."
+    )
+    registration: RegistrationRead | None = Field(description="How the scan was aligned.")
     n_regions: int | None
     error: str | None
     timings: dict[str, Any] | None
@@ -216,20 +244,20 @@ class JobRead(RowRead):
     verdict: VerdictRead | None = Field(
         default=None, description="The current review verdict (POST /jobs/{id}/verdict)."
     )
-    sensor_origins: dict[str, list[dict[str, Any]]] | None = Field(
+    sensor_origins: dict[str, list[SensorOriginRead]] | None = Field(
         default=None,
         description="The sensor origins the comparison used, per side (reference, scan) a list "
         "of {origin: [x, y, z] in that file's frame, source: given | file | estimated | "
         "recovered, confidence}; an empty list: unknown.",
     )
-    warnings: Annotated[list[dict[str, Any]] | None, AfterValidator(api_warnings)] = Field(
+    warnings: Annotated[list[QualityWarningRead] | None, BeforeValidator(api_warnings)] = Field(
         default=None,
         description="Quality warnings on the result, each {code, message (one sentence), "
         "detail, how_to_fix: {action, text, parameters}, ...}: "
         "low_registration_fitness, large_rotation, large_translation, low_overlap, "
         "sensor_origin, sensor_origin_unknown, region_count_above_history.",
     )
-    explanation: dict[str, Any] | None = Field(
+    explanation: ExplanationRead | None = Field(
         default=None,
         description="Why the job decided what it did: the decision rule, the regions' and the "
         "detector's evidence, and a one-line text.",
@@ -261,12 +289,13 @@ class JobRead(RowRead):
 
     @classmethod
     def from_model(cls, row: object) -> Self:
-        """Build from a ``Job`` row, with the file names of its two scans."""
+        """Build from a ``Job`` row, with the file names of its two scans and its tiles."""
         read = cls.model_validate(row)
         reference_scan = getattr(row, "reference_scan", None)
         scan = getattr(row, "scan", None)
         read.reference_filename = reference_scan.filename if reference_scan else None
         read.scan_filename = scan.filename if scan else None
+        read.tiles = tile_progress_of(row)
         return read
 
 

@@ -3,7 +3,8 @@
 
 Summary and quality warnings; the view (before/after, colour mode with its colour bar, the
 legend, depth cue, point size, top view); a height clip; the change settings that relabel live;
-layer checkboxes; the region list; the picked point and the sensors.  Every control is kept in
+layer checkboxes; the region list; a box at full density (:mod:`app.viewer.box_controls`); the
+picked point and the sensors.  Every control is kept in
 ``record.controls`` under a short name, so the scene endpoint reports its value.
 """
 
@@ -16,11 +17,13 @@ from typing import Any
 import numpy as np
 import viser
 
+from app.viewer.box_controls import add_box_controls
 from app.viewer.colours import colour_bar_html, legend_html
 from app.viewer.opening import ASSUMED_ASPECT, CAMERA_FOV, top_view_pose, whole_scene_view
 from app.viewer.regions_display import DEFAULT_MOVED_WITHIN, relabel
 from app.viewer.rendering import COLOUR_MODES, SHOW_CHOICES, Picked, colour_limit
 from app.viewer.scene import MOVED_COLOR, Layer, RegionBox, SceneData
+from app.viewer.uncertain_display import UNCERTAIN_COLOUR, uncertain_label
 
 MAX_REGION_BUTTONS = 40
 """Region list length in the GUI; the largest regions are listed first beyond this."""
@@ -41,6 +44,8 @@ def add_controls(record: Any, title: str) -> None:
     _add_change_controls(record, gui, data)
     _add_layer_controls(record, gui, data)
     _add_region_list(record, gui, data)
+    if getattr(record, "box_loader", None) is not None:
+        add_box_controls(record, gui, data, record.box_loader)
     with gui.add_folder("Picked point"):
         record.controls["picked"] = gui.add_markdown(
             "Click a point in the scene to read its coordinates, label and distance."
@@ -184,6 +189,10 @@ def _legend_entries(data: SceneData) -> list[tuple[str, tuple[int, int, int], st
     """Layer colours, the moved colour and the sensors' markers."""
     entries = [(layer.title, layer.color, layer.description) for layer in data.layers]
     entries.append(("Moved", MOVED_COLOR, "a removed and an added region close by"))
+    if data.uncertain:
+        entries.append(
+            ("Uncertain", UNCERTAIN_COLOUR, "dashed: the other scan never covered it (not counted)")
+        )
     if data.sensors:
         entries.append(("Sensor", (255, 255, 255), "spheres in the scan's colour"))
     return entries
@@ -238,8 +247,10 @@ def _add_clip_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
         clip.value = (low, high)
 
 
-def _add_change_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
-    """Distance threshold, minimum region size and moved-pair distance, relabelling live."""
+def _distance_slider_range(data: SceneData) -> tuple[float, float, float, float]:
+    """The distance slider's low, high, step and start: from the candidates' smallest distance
+    to the 99.5th percentile of their distances, in steps of a tenth of the job's threshold,
+    starting at the threshold (steps of 1 cm from 0 when the job has none)."""
     threshold = data.change_threshold
     floor = min((pool.floor for pool in data.pools.values()), default=0.0)
     far = max(
@@ -250,12 +261,19 @@ def _add_change_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> Non
         ),
         default=0.0,
     )
-    enabled = threshold is not None
     step = _nice(threshold / 10.0) if threshold else 0.01
-    low = float(np.floor(floor / step) * step) if enabled else 0.0
+    low = float(np.floor(floor / step) * step) if threshold is not None else 0.0
     high = max(float(np.ceil(far / step) * step), low + 10 * step)
+    start = float(np.clip(round((threshold or low) / step) * step, low, high))
+    return low, high, step, start
+
+
+def _add_change_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
+    """Distance threshold, minimum region size and moved-pair distance, relabelling live."""
+    threshold = data.change_threshold
+    enabled = threshold is not None
+    low, high, step, start_distance = _distance_slider_range(data)
     lock = threading.Lock()
-    start_distance = float(np.clip(round((threshold or low) / step) * step, low, high))
     with gui.add_folder("Change"):
         distance = gui.add_slider(
             "Min. distance (m)",
@@ -300,7 +318,8 @@ def _add_change_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> Non
             min_distance = float(threshold if untouched else distance.value)  # type: ignore[arg-type]
             record.state.min_distance = min_distance
             record.state.min_region_points = int(size.value)
-            record.relabelled = relabel(data, min_distance, int(size.value))
+            # the scene drawn now: the job's whole view, or a box of it at full density
+            record.relabelled = relabel(record.data, min_distance, int(size.value))
             record.request_redraw(points=True, regions=True)
 
     distance.on_update(apply)
@@ -373,10 +392,22 @@ def _add_layer_controls(record: Any, gui: viser.GuiApi, data: SceneData) -> None
         boxes = gui.add_checkbox(
             f"Region boxes ({len(data.regions)})", initial_value=True, disabled=not data.regions
         )
+        uncertain = gui.add_checkbox(
+            f"Uncertain regions ({len(data.uncertain)})",
+            initial_value=bool(data.uncertain),
+            disabled=not data.uncertain,
+            hint="grey dashed boxes: places the other scan never covered, not counted as change",
+        )
+    record.controls["uncertain_regions"] = uncertain
 
     @boxes.on_update
     def _(event: viser.GuiEvent) -> None:
         record.boxes_visible = bool(event.target.value)
+        record.request_redraw(regions=True)
+
+    @uncertain.on_update
+    def _(event: viser.GuiEvent) -> None:
+        record.uncertain_visible = bool(event.target.value)
         record.request_redraw(regions=True)
 
 
@@ -398,8 +429,7 @@ def _add_region_list(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
     with gui.add_folder(f"Regions ({len(data.regions)})", expand_by_default=bool(regions)):
         if not data.regions:
             gui.add_markdown("No changed regions.")
-            return
-        if len(data.regions) > len(regions):
+        elif len(data.regions) > len(regions):
             gui.add_markdown(f"The {len(regions)} largest of {len(data.regions)} are listed.")
         for region in regions:
             button = gui.add_button(
@@ -408,6 +438,26 @@ def _add_region_list(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
                 hint=f"centroid {', '.join(f'{value:.2f}' for value in region.centroid)}",
             )
             button.on_click(_camera_mover(record.client, region))
+        _add_uncertain_list(record, gui, data)
+
+
+def _add_uncertain_list(record: Any, gui: viser.GuiApi, data: SceneData) -> None:
+    """The uncertain regions under the region buttons, grey, each with its evidence."""
+    if not data.uncertain:
+        return
+    listed = sorted(data.uncertain, key=lambda box: -box.n_points)[:MAX_REGION_BUTTONS]
+    record.controls["uncertain_list"] = gui.add_markdown(
+        f"**Uncertain ({len(data.uncertain)})**: the other scan never covered these places; "
+        "listed, not counted as change"
+        + (f" (the {len(listed)} largest)" if len(listed) < len(data.uncertain) else "")
+    )
+    for box in listed:
+        button = gui.add_button(
+            uncertain_label(box),
+            color="gray",
+            hint=f"centroid {', '.join(f'{value:.2f}' for value in box.centroid)}",
+        )
+        button.on_click(_camera_mover(record.client, box))
 
 
 def _camera_mover(client: viser.ClientHandle, region: RegionBox) -> Any:

@@ -22,9 +22,12 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
+import numpy as np
 import viser
+from numpy.typing import NDArray
 
 from app.config import DEFAULT_VIEWER_IDLE_SECONDS
 from app.viewer.scene import SceneData
@@ -35,6 +38,9 @@ logger = logging.getLogger("scandiff.viewer")
 
 SceneLoader = Callable[[str], tuple[SceneData, str]]
 """Loads a job's scene: ``loader(job_id) -> (scene data, title)``."""
+Corner = NDArray[np.float64]
+JobBoxLoader = Callable[[str, Corner, Corner, Corner], SceneData]
+"""``(job_id, low, high, origin) -> scene``: a box of the job at full density."""
 
 DEFAULT_IDLE_SECONDS = DEFAULT_VIEWER_IDLE_SECONDS
 """Seconds a viewer outlives its last connection; the default of ``viewer_idle_seconds``."""
@@ -82,8 +88,10 @@ class ViewerManager:
         *,
         idle_seconds: float = DEFAULT_IDLE_SECONDS,
         reap_interval: float | None = None,
+        box_loader: JobBoxLoader | None = None,
     ) -> None:
         self.loader = loader
+        self.box_loader = box_loader
         self.idle_seconds = idle_seconds
         self.reap_interval = reap_interval or max(min(idle_seconds / 4.0, 30.0), 0.5)
         self._viewers: dict[str, JobViewer] = {}
@@ -188,7 +196,8 @@ class ViewerManager:
         def _(client: viser.ClientHandle) -> None:
             if check.refused(client.client_id):
                 return  # closed for lacking the secret: build nothing for it
-            scene = build_client_scene(client, data, title)
+            box_loader = None if self.box_loader is None else partial(self.box_loader, job_id)
+            scene = build_client_scene(client, data, title, box_loader)
             with viewer.lock:
                 viewer.clients[client.client_id] = scene
 

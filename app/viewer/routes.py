@@ -37,7 +37,12 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from app.config import Settings
 from app.viewer.access import VIEW_COOKIE, ViewAuthoriser, ViewRefusal
-from app.viewer.loading import ViewUnavailableError, job_view_problem, load_job_scene
+from app.viewer.loading import (
+    ViewUnavailableError,
+    job_view_problem,
+    load_job_box,
+    load_job_scene,
+)
 from app.viewer.manager import ViewerManager
 from app.viewer.viser_guard import VIEW_SECRET_HEADER
 
@@ -53,7 +58,18 @@ NO_STORE = {"Cache-Control": "no-store"}
 def new_viewer_manager(settings: Settings) -> ViewerManager:
     """The per-job viser servers of one app, loading scenes as ``settings`` say."""
     loader = partial(load_job_scene, settings, point_budget=settings.viewer_point_budget)
-    return ViewerManager(loader, idle_seconds=settings.viewer_idle_seconds)
+    return ViewerManager(
+        loader,
+        idle_seconds=settings.viewer_idle_seconds,
+        box_loader=partial(_job_box, settings),
+    )
+
+
+def _job_box(settings: Settings, job_id: str, low: Any, high: Any, origin: Any) -> Any:
+    """A box of the job at full density, up to the point budget (the box panel's loader)."""
+    return load_job_box(
+        settings, job_id, low, high, point_budget=settings.viewer_point_budget, origin=origin
+    )
 
 
 def build_viewer_router(

@@ -37,7 +37,10 @@ from app.viewer.scene_parts import (
     SideCloud,
     candidate_pool,
     check_distances,
+    check_labels,
     sensor_markers,
+    smallest_changed_distance,
+    triple,
 )
 from app.viewer.trajectory_display import TrajectoryPath, trajectory_paths
 
@@ -207,6 +210,8 @@ class SceneData:
     pools: Mapping[str, CandidatePool] = field(default_factory=dict)
     sensors: tuple[SensorMarker, ...] = ()
     trajectories: tuple[TrajectoryPath, ...] = ()
+    uncertain: tuple[RegionBox, ...] = ()
+    """Places the other epoch never covered (evidence ``no_coverage``): drawn, never counted."""
     warnings: tuple[Mapping[str, str], ...] = ()
     change_threshold: float | None = None
     """The smallest distance of a changed point (metres): the job's threshold, from above."""
@@ -279,6 +284,7 @@ class SceneData:
             "total": self.n_total,
             "layers": [layer.to_json_dict() for layer in self.layers],
             "regions": [region.to_json_dict() for region in self.regions],
+            "uncertain_regions": [box.to_json_dict() for box in self.uncertain],
             "summary": dict(self.summary),
             "change_threshold": self.change_threshold,
             "min_region_points": self.min_region_points,
@@ -377,11 +383,11 @@ def region_boxes(
                 region_id=region.get("id"),
                 kind=str(region["kind"]),
                 n_points=int(region["n_points"]),
-                centroid=_triple(region.get("centroid", (low + high) / 2.0)),
-                bbox_min=_triple(low),
-                bbox_max=_triple(high),
-                center_local=_triple(center),
-                dimensions=_triple(dimensions),
+                centroid=triple(region.get("centroid", (low + high) / 2.0)),
+                bbox_min=triple(low),
+                bbox_max=triple(high),
+                center_local=triple(center),
+                dimensions=triple(dimensions),
                 mean_distance=_optional_float(region.get("mean_distance")),
                 max_distance=_optional_float(region.get("max_distance")),
                 evidence=str(region.get("evidence") or "seen_empty"),
@@ -401,6 +407,7 @@ def build_scene_data(
     scan_distances: NDArray | None = None,
     transform: NDArray | Sequence[Sequence[float]] | None = None,
     regions: Sequence[Mapping[str, Any]] = (),
+    uncertain_regions: Sequence[Mapping[str, Any]] = (),
     point_budget: int = DEFAULT_POINT_BUDGET,
     summary: Mapping[str, Any] | None = None,
     sensor_origins: Mapping[str, Any] | None = None,
@@ -423,6 +430,9 @@ def build_scene_data(
         Registration of the scan onto the reference (file frames); identity when None.
     regions : sequence of mappings
         The job's regions as the API returns them (``kind``, ``n_points``, ``bbox_min`` ...).
+    uncertain_regions : sequence of mappings
+        The job's ``uncertain_regions`` as :func:`app.viewer.loading.job_uncertain_regions`
+        gives them (well-formed, evidence ``no_coverage``): drawn apart, never counted.
     point_budget : int
         Most points drawn over all layers.
     sensor_origins : mapping, optional
@@ -441,8 +451,8 @@ def build_scene_data(
     scan_in_reference = apply_transform(scan_points, matrix)
     clouds = {"reference": reference_points, "scan": scan_in_reference}
     labels = {
-        "reference": _check_labels(reference_labels, len(reference_points), "reference"),
-        "scan": _check_labels(scan_labels, len(scan_points), "scan"),
+        "reference": check_labels(reference_labels, len(reference_points), "reference"),
+        "scan": check_labels(scan_labels, len(scan_points), "scan"),
     }
     distances = {
         "reference": check_distances(reference_distances, len(reference_points), "reference"),
@@ -450,6 +460,55 @@ def build_scene_data(
     }
 
     origin = local_origin(reference_points if len(reference_points) else scan_in_reference)
+    layers, sides = _drawn_layers(clouds, labels, distances, origin, point_budget, random_state)
+    bounds_min, bounds_max, point_size = _view_bounds(layers)
+    change_threshold = smallest_changed_distance(labels, distances)
+    if min_region_points is None:  # the localiser's default for clouds of these sizes
+        min_region_points = max(
+            MIN_REGION_POINTS_FLOOR,
+            round(
+                MIN_REGION_POINTS_PER_SQRT * math.sqrt(min(len(reference_points), len(scan_points)))
+            ),
+        )
+    pools = {
+        side: candidate_pool(
+            side, clouds[side], labels[side], distances[side], origin, change_threshold
+        )
+        for side in SIDES
+    }
+    return SceneData(
+        origin=origin,
+        layers=tuple(layers),
+        regions=region_boxes(regions, origin),
+        bounds_min=bounds_min,
+        bounds_max=bounds_max,
+        point_size=point_size,
+        point_budget=int(point_budget),
+        summary=dict(summary or {}),
+        sides=sides,
+        pools=pools,
+        sensors=sensor_markers(sensor_origins or {}, matrix, origin),
+        trajectories=trajectory_paths(sensor_origins or {}, matrix, origin),
+        uncertain=region_boxes(uncertain_regions, origin),
+        warnings=tuple(
+            {"code": str(item.get("code", "")), "message": str(item.get("message", ""))}
+            for item in warnings
+            if isinstance(item, Mapping)
+        ),
+        change_threshold=change_threshold,
+        min_region_points=max(int(min_region_points), 1),
+    )
+
+
+def _drawn_layers(
+    clouds: Mapping[str, NDArray[np.float64]],
+    labels: Mapping[str, NDArray[np.int8]],
+    distances: Mapping[str, NDArray],
+    origin: NDArray[np.float64],
+    point_budget: int,
+    random_state: int,
+) -> tuple[list[Layer], dict[str, SideCloud]]:
+    """The layers drawn within ``point_budget`` points, and each side's drawn points."""
     selections: dict[str, list[tuple[str, NDArray[np.int64]]]] = {
         "reference": [("reference", np.flatnonzero(labels["reference"] == LABEL_UNCHANGED))],
         "scan": [("scan", np.flatnonzero(labels["scan"] == LABEL_UNCHANGED))],
@@ -489,6 +548,11 @@ def build_scene_data(
             distances=distances[side][rows].astype(np.float32),
             indices=rows,
         )
+    return layers, sides
+
+
+def _view_bounds(layers: Sequence[Layer]) -> tuple[NDArray, NDArray, float]:
+    """The 1st and 99th percentiles of the drawn points, shape (3,) each, and a point size."""
     drawn = [layer.points for layer in layers if layer.n_shown]
     if drawn:
         bounds_min, bounds_max = np.percentile(np.concatenate(drawn), [1.0, 99.0], axis=0)
@@ -496,46 +560,7 @@ def build_scene_data(
         bounds_min = bounds_max = np.zeros(3)
     extent = float(np.linalg.norm(bounds_max - bounds_min))
     point_size = estimate_point_size(np.concatenate(drawn), extent) if drawn else 0.05
-    changed_distances = np.concatenate(
-        [distances[side][labels[side] == LABEL_CHANGED] for side in SIDES]
-    )
-    changed_distances = changed_distances[np.isfinite(changed_distances)]
-    change_threshold = float(changed_distances.min()) if changed_distances.size else None
-    boxes = region_boxes(regions, origin)
-    if min_region_points is None:  # the localiser's default for clouds of these sizes
-        min_region_points = max(
-            MIN_REGION_POINTS_FLOOR,
-            round(
-                MIN_REGION_POINTS_PER_SQRT * math.sqrt(min(len(reference_points), len(scan_points)))
-            ),
-        )
-    pools = {
-        side: candidate_pool(
-            side, clouds[side], labels[side], distances[side], origin, change_threshold
-        )
-        for side in SIDES
-    }
-    return SceneData(
-        origin=origin,
-        layers=tuple(layers),
-        regions=boxes,
-        bounds_min=bounds_min,
-        bounds_max=bounds_max,
-        point_size=point_size,
-        point_budget=int(point_budget),
-        summary=dict(summary or {}),
-        sides=sides,
-        pools=pools,
-        sensors=sensor_markers(sensor_origins or {}, matrix, origin),
-        trajectories=trajectory_paths(sensor_origins or {}, matrix, origin),
-        warnings=tuple(
-            {"code": str(item.get("code", "")), "message": str(item.get("message", ""))}
-            for item in warnings
-            if isinstance(item, Mapping)
-        ),
-        change_threshold=change_threshold,
-        min_region_points=max(int(min_region_points), 1),
-    )
+    return bounds_min, bounds_max, point_size
 
 
 def _subsample_parts(
@@ -552,22 +577,6 @@ def _subsample_parts(
         kept.append((side, rows[inside]))
         start += len(rows)
     return kept
-
-
-def _check_labels(labels: NDArray | None, n_points: int, which: str) -> NDArray[np.int8]:
-    """Labels as int8 with one per point (all unchanged when None)."""
-    if labels is None:
-        return np.zeros(n_points, dtype=np.int8)
-    array = np.asarray(labels).astype(np.int8, copy=False).reshape(-1)
-    if array.shape[0] != n_points:
-        raise ValueError(f"{which} labels: {array.shape[0]} values for {n_points} points")
-    return array
-
-
-def _triple(values: Any) -> tuple[float, float, float]:
-    """Three Python floats."""
-    array = np.asarray(values, dtype=np.float64).reshape(3)
-    return (float(array[0]), float(array[1]), float(array[2]))
 
 
 def _optional_float(value: Any) -> float | None:

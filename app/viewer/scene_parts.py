@@ -1,5 +1,6 @@
 """Parts of a job's scene beside its layers: the drawn points per scan, the candidate pools of
-live relabelling and the sensor markers (used by :mod:`app.viewer.scene`)."""
+live relabelling, the sensor markers, and the checks of labels and distances (used by
+:mod:`app.viewer.scene`)."""
 
 from __future__ import annotations
 
@@ -145,8 +146,8 @@ def sensor_markers(
             markers.append(
                 SensorMarker(
                     side=side,
-                    position_local=_triple(position - origin),
-                    position=_triple(position),
+                    position_local=triple(position - origin),
+                    position=triple(position),
                     source=str(entry.get("source") or "unknown"),
                     confidence=None if confidence is None else float(confidence),
                 )
@@ -164,7 +165,28 @@ def check_distances(distances: NDArray | None, n_points: int, which: str) -> NDA
     return array
 
 
-def _triple(values: Any) -> tuple[float, float, float]:
+def triple(values: Any) -> tuple[float, float, float]:
     """Three Python floats."""
     array = np.asarray(values, dtype=np.float64).reshape(3)
     return (float(array[0]), float(array[1]), float(array[2]))
+
+
+def check_labels(labels: NDArray | None, n_points: int, which: str) -> NDArray[np.int8]:
+    """Labels as int8 with one per point (all unchanged when None)."""
+    if labels is None:
+        return np.zeros(n_points, dtype=np.int8)
+    array = np.asarray(labels).astype(np.int8, copy=False).reshape(-1)
+    if array.shape[0] != n_points:
+        raise ValueError(f"{which} labels: {array.shape[0]} values for {n_points} points")
+    return array
+
+
+def smallest_changed_distance(
+    labels: Mapping[str, NDArray[np.int8]], distances: Mapping[str, NDArray]
+) -> float | None:
+    """The smallest finite distance of a changed point of either side (None when none)."""
+    changed_distances = np.concatenate(
+        [distances[side][labels[side] == LABEL_CHANGED] for side in SIDES]
+    )
+    changed_distances = changed_distances[np.isfinite(changed_distances)]
+    return float(changed_distances.min()) if changed_distances.size else None

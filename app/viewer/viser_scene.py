@@ -26,6 +26,7 @@ import numpy as np
 import viser
 
 from app.viewer import controls
+from app.viewer.box_controls import BoxLoader
 from app.viewer.regions_display import (
     CameraView,
     MovedPair,
@@ -46,6 +47,7 @@ from app.viewer.scene import (
     SensorMarker,
 )
 from app.viewer.trajectory_display import draw_trajectory_paths
+from app.viewer.uncertain_display import draw_uncertain_regions
 
 logger = logging.getLogger("scandiff.viewer")
 
@@ -76,12 +78,17 @@ class ClientScene:
     moved: tuple[MovedPair, ...] = ()
     moved_nodes: list[Any] = field(default_factory=list)
     sensor_nodes: list[Any] = field(default_factory=list)
+    uncertain_nodes: list[tuple[RegionBox, Any]] = field(default_factory=list)
+    """The uncertain regions' dashed outlines (not changes: never counted nor relabelled)."""
+    uncertain_visible: bool = True
     picked: Picked | None = None
     picked_node: Any = None
     relabelled: Relabelled | None = None
     boxes_visible: bool = True
     world_point_size: float = 0.05
     controls: dict[str, Any] = field(default_factory=dict)
+    box_loader: BoxLoader | None = None
+    """Reads a box of the job at full density (the "Full density in a box" panel)."""
     lock: threading.RLock = field(default_factory=threading.RLock)
     _layer_digest: dict[str, str] = field(default_factory=dict)
     _redraw_lock: threading.Lock = field(default_factory=threading.Lock)
@@ -174,9 +181,15 @@ class ClientScene:
         with self.lock, self.client.atomic():
             for node in [handle for _r, handle in self.boxes] + [h for _t, h in self.labels]:
                 node.remove()
-            for node in self.moved_nodes:
+            for node in self.moved_nodes + [handle for _box, handle in self.uncertain_nodes]:
                 node.remove()
             self.boxes, self.labels, self.moved_nodes = [], [], []
+            self.uncertain_nodes = draw_uncertain_regions(
+                scene,
+                self.data.uncertain,
+                visible=self.uncertain_visible,
+                inside_clip=self._inside_clip,
+            )
             self.label_owners = []
             regions = self.regions
             self.moved = pair_moved(regions, self.state.moved_within)
@@ -381,6 +394,9 @@ class ClientScene:
                     for name, handle in self.point_clouds.items()
                 },
                 "boxes": [_box_record(region, handle, origin) for region, handle in self.boxes],
+                "uncertain": [
+                    _box_record(box, handle, origin) for box, handle in self.uncertain_nodes
+                ],
                 "labels": [
                     {
                         "text": handle.text,
@@ -455,6 +471,7 @@ def _box_record(region: RegionBox, handle: Any, origin: np.ndarray) -> dict[str,
         "name": handle.name,
         "kind": region.kind,
         "n_points": region.n_points,
+        "evidence": region.evidence,
         "visible": bool(handle.visible),
         "colour": np.asarray(handle.colors).reshape(-1, 3)[0].tolist(),
         "center": ((low + high) / 2.0).tolist(),
@@ -535,9 +552,13 @@ def draw_sensor_markers(scene: Any, markers: Sequence[SensorMarker], radius: flo
     return handles
 
 
-def build_client_scene(client: viser.ClientHandle, data: SceneData, title: str) -> ClientScene:
+def build_client_scene(
+    client: viser.ClientHandle, data: SceneData, title: str, box_loader: BoxLoader | None = None
+) -> ClientScene:
     """Add layers, region outlines, sensors and the GUI for one browser."""
-    record = ClientScene(client_id=client.client_id, client=client, data=data)
+    record = ClientScene(
+        client_id=client.client_id, client=client, data=data, box_loader=box_loader
+    )
     record.world_point_size = data.point_size
 
     # First: a camera the browser reports while the scene is drawn must place the labels.

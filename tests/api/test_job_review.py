@@ -8,8 +8,8 @@ import pytest
 
 from app.core.pipeline import RegionSummary
 from app.core.quality import LOW_FITNESS
+from app.jobs.alerts.site_history import HISTORY_MIN_JOBS, REGION_COUNT_MIN_EXCESS
 from app.jobs.leases import claim_job, fail_job, make_lease_owner, release_job
-from app.jobs.site_history import HISTORY_MIN_JOBS, REGION_COUNT_MIN_EXCESS
 from tests.helpers.files import ply_bytes
 from tests.helpers.http import assert_error, create_site, site_with_reference, upload
 from tests.helpers.jobs import finish_job

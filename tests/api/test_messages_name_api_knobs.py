@@ -39,7 +39,17 @@ def test_job_warnings_are_one_sentence_with_the_fix_in_api_parameters(
             "max_correspondence_distance": 0.3,
             "enabled": True,
         },
-        sensor_origins={"reference": [], "scan": []},
+        sensor_origins={
+            "reference": [],
+            "scan": [
+                {
+                    "source": "trajectory",
+                    "poses": 30,
+                    "time_span": [0.0, 9.5],
+                    "points_outside": 150,
+                }
+            ],
+        },
     )
     warnings = writer.get(f"/api/v1/jobs/{job['id']}").json()["warnings"]
     by_code = {warning["code"]: warning for warning in warnings}
@@ -48,6 +58,7 @@ def test_job_warnings_are_one_sentence_with_the_fix_in_api_parameters(
         "large_rotation",
         "large_translation",
         "sensor_origin_unknown",
+        "trajectory_time_span",
     }
     for warning in warnings:
         message = warning["message"]
@@ -60,6 +71,8 @@ def test_job_warnings_are_one_sentence_with_the_fix_in_api_parameters(
     assert "sensor_origin" in by_code["sensor_origin_unknown"]["how_to_fix"]["parameters"]
     assert '"align": false' in by_code["large_rotation"]["how_to_fix"]["text"]
     assert by_code["large_rotation"]["detail"]["unit"] == "degrees"
+    assert by_code["trajectory_time_span"]["how_to_fix"]["parameters"] == ["trajectory"]
+    assert by_code["trajectory_time_span"]["side"] == "scan"
 
 
 @pytest.fixture(scope="module")

@@ -12,10 +12,10 @@ from collections.abc import Callable
 
 import pytest
 
-from app.jobs.deliveries import ClaimedDelivery, send_attempt
+from app.jobs.alerts.deliveries import ClaimedDelivery, send_attempt
 from app.kit.net import REFUSED_ADDRESS_CLASSES
-from app.services import schedule_sources
 from app.services.errors import ValidationFailedError
+from app.services.schedules import sources as schedule_sources
 from tests.helpers.addresses import PUBLIC_HOSTS, REFUSED_HOSTS
 from tests.helpers.http import assert_error, create_site
 from tests.helpers.server import ApiServer

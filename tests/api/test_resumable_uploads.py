@@ -326,9 +326,15 @@ def test_the_quota_counts_bytes_as_they_arrive_and_expiry_releases_them(
     assert offset_of(client, second) == 0
     assert_error(create_upload(client, QUOTA_BYTES - used - cut + 1, site=site["id"]), 507)
 
+    files_before = small_api.stored_files()
     time.sleep(EXPIRY_SECONDS + 0.5)
     detail = assert_error(patch(client, first, cut, content[cut:]), 410, "upload_gone")
     assert "expired" in detail and "RESUMABLE_UPLOAD_EXPIRY" in detail
+    assert client.head(first, headers=TUS).status_code == 410
+    # the expired upload stored nothing: no scan row, no file
+    scans = client.get(f"/api/v1/sites/{site['id']}/scans").json()["items"]
+    assert [scan["id"] for scan in scans] == [reference["id"]]
+    assert small_api.stored_files() == files_before
     assert client.get("/api/v1/organisation").json()["stored_bytes"] == used
     location = new_upload(client, len(content), site=site["id"])  # the space is free again
     assert not part_file(small_api, first).exists()

@@ -20,10 +20,10 @@ import httpx
 import numpy as np
 import pytest
 
+from app.core.datasets.scenes import raycast_scene
 from app.core.formats import read_point_cloud
 from app.core.jsonable import json_safe
 from app.core.pipeline import compare
-from app.core.synthetic import raycast_scene
 from app.db.models import JobStatus
 from tests.helpers.files import las_bytes, pcd_bytes, ply_bytes
 from tests.helpers.service import ServiceProcess

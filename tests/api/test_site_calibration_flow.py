@@ -11,7 +11,7 @@ from typing import Any
 import httpx
 import pytest
 
-from app.core.synthetic_site import SiteVisit, site_visit
+from app.core.datasets.site import SiteVisit, site_visit
 from app.db.models import JobStatus
 from tests.helpers.files import ply_bytes
 from tests.helpers.http import create_site, upload

@@ -6,6 +6,11 @@ Rules checked:
   beside the scan's file; a comparison job loads both scans' trajectories;
 * ``PUT /scans/{id}/trajectory`` adds one to a stored scan (raw body, or KITTI poses with a
   ``trajectory_times`` part), and answers its summary;
+* times on one side only are no error: a scan whose points have times but no trajectory is
+  stored as any scan (its times unused), and KITTI poses without times are kept for a scan
+  without per-point times (each point takes its nearest pose in line of sight);
+* an E57 scan's ``timeStamp`` values are its per-point times: a trajectory that does not cover
+  them is refused, one that does is kept;
 * bad input is a 422 that says what to fix and stores nothing: times that do not cover the
   points' times, non-finite or non-unit quaternions, an unknown format, pose times without a
   trajectory, KITTI poses without times for a scan with per-point times.
@@ -22,6 +27,7 @@ import pytest
 from app.jobs.execution import execute_job
 from app.jobs.hooks import job_hooks
 from tests.helpers import fake_pipeline
+from tests.helpers.e57_times import e57_with_times_bytes
 from tests.helpers.files import ply_bytes
 from tests.helpers.http import assert_error, create_site
 from tests.helpers.scenes import room_points
@@ -55,9 +61,10 @@ def send(
     site_id: str,
     scan: bytes,
     parts: dict[str, tuple[str, bytes]],
+    filename: str = "scan.ply",
     **params: Any,
 ) -> httpx.Response:
-    files = {"file": ("scan.ply", scan, "application/octet-stream")}
+    files = {"file": (filename, scan, "application/octet-stream")}
     files.update({name: (filename, data, "text/plain") for name, (filename, data) in parts.items()})
     return client.post(f"/api/v1/sites/{site_id}/scans", params=params, files=files)
 
@@ -115,6 +122,46 @@ def test_a_trajectory_is_added_to_a_stored_scan(writer: httpx.Client, site: dict
     assert kitti_with_times.json()["poses"] == 8
 
 
+def test_times_on_one_side_only_are_accepted(
+    api: ApiServer, writer: httpx.Client, site: dict
+) -> None:
+    timed_alone = send(writer, site["id"], timed_ply(), {}, reference="true")
+    untimed = ply_bytes(room_points(N_POINTS, 3))
+    poses_alone = send(writer, site["id"], untimed, {"trajectory": ("poses.txt", kitti(8))})
+
+    assert timed_alone.status_code == 201, timed_alone.text
+    assert poses_alone.status_code == 202, poses_alone.text
+    stored = {path.name for path in api.stored_files()}
+    assert f"{timed_alone.json()['scan']['id']}.ply.trajectory.npz" not in stored
+    assert f"{poses_alone.json()['scan']['id']}.ply.trajectory.npz" in stored
+    added = writer.put(
+        f"/api/v1/scans/{poses_alone.json()['scan']['id']}/trajectory", content=kitti(8)
+    )
+    assert added.status_code == 200, added.text
+    assert added.json()["time_span"] is None and added.json()["point_times"] is False
+
+
+def test_an_e57_scans_time_stamps_are_checked_against_its_trajectory(
+    api: ApiServer, writer: httpx.Client, site: dict
+) -> None:
+    e57 = e57_with_times_bytes(room_points(N_POINTS, 4), POINT_TIMES)
+    before = api.stored_files()
+
+    late = send(
+        writer, site["id"], e57, {"trajectory": ("t.tum", tum(np.linspace(500, 600, 10)))},
+        filename="scan.e57", reference="true",
+    )  # fmt: skip
+    assert "do not cover" in assert_error(late, 422, "invalid_input")
+    assert api.stored_files() == before
+    accepted = send(
+        writer, site["id"], e57, {"trajectory": ("t.tum", GOOD)}, filename="scan.e57",
+        reference="true",
+    )  # fmt: skip
+    assert accepted.status_code == 201, accepted.text
+    added = writer.put(f"/api/v1/scans/{accepted.json()['scan']['id']}/trajectory", content=GOOD)
+    assert added.json()["point_times"] is True and added.json()["points_outside"] == 0
+
+
 @pytest.mark.parametrize(
     ("parts", "params", "message"),
     [
@@ -130,6 +177,11 @@ def test_a_trajectory_is_added_to_a_stored_scan(writer: httpx.Client, site: dict
             "non-finite",
         ),
         ({"trajectory": ("t.bin", b"\x00\x01\x02 not a trajectory")}, {}, "expected TUM"),
+        (
+            {"trajectory": ("t.tum", GOOD)},
+            {"trajectory_format": "ply"},
+            "unknown trajectory format",
+        ),
         ({"trajectory_times": ("times.txt", b"1\n2\n")}, {}, "without a trajectory"),
         ({}, {"trajectory_rate": "10"}, "without a trajectory"),
         ({"trajectory": ("poses.txt", kitti(8))}, {}, "trajectory has none"),
@@ -139,6 +191,7 @@ def test_a_trajectory_is_added_to_a_stored_scan(writer: httpx.Client, site: dict
         "non-unit-quaternion",
         "nan-quaternion",
         "unknown-format",
+        "format-named-unknown",
         "times-without-trajectory",
         "rate-without-trajectory",
         "kitti-without-times",
@@ -167,13 +220,18 @@ def test_a_bad_trajectory_added_later_is_422_and_keeps_none(
     scan = send(writer, site["id"], timed_ply(), {}, reference="true").json()["scan"]
     before = api.stored_files()
 
-    late = writer.put(
-        f"/api/v1/scans/{scan['id']}/trajectory", content=tum(np.linspace(500, 600, 10))
-    )
-    empty = writer.put(f"/api/v1/scans/{scan['id']}/trajectory", content=b"")
+    path = f"/api/v1/scans/{scan['id']}/trajectory"
+    late = writer.put(path, content=tum(np.linspace(500, 600, 10)))
+    empty = writer.put(path, content=b"")
+    long = writer.put(path, content=tum(np.linspace(99, 111, 10), (0, 0, 0.5, 1.0)))
+    untimed = writer.put(path, content=kitti(8))
+    unknown = writer.put(path, content=GOOD, params={"trajectory_format": "ply"})
     missing = writer.put("/api/v1/scans/nope/trajectory", content=GOOD)
 
     assert "do not cover" in assert_error(late, 422, "invalid_input")
     assert "empty" in assert_error(empty, 422, "invalid_input")
+    assert "give unit quaternions" in assert_error(long, 422, "invalid_input")
+    assert "trajectory has none" in assert_error(untimed, 422, "invalid_input")
+    assert "unknown trajectory format" in assert_error(unknown, 422, "invalid_input")
     assert_error(missing, 404)
     assert api.stored_files() == before

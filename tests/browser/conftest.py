@@ -170,7 +170,7 @@ def chrome_factory(
 @pytest.fixture(scope="session")
 def scan_files(tmp_path_factory: pytest.TempPathFactory) -> ScanFiles:
     """A ray-cast rescan of two rooms with a box added and one removed (PCD with VIEWPOINT)."""
-    from app.core.synthetic import raycast_scene
+    from app.core.datasets.scenes import raycast_scene
 
     pair = raycast_scene(
         n_points=SCENE_POINTS, change="mixed", pose_error=(0.02, 0.3), random_state=7

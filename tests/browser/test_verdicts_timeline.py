@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 
-from app.core.synthetic_site import SiteVisit, site_visit
+from app.core.datasets.site import SiteVisit, site_visit
 from tests.helpers.browser import ReviewService, save_screenshot
 from tests.helpers.browser import by_css as visible
 from tests.helpers.browser import wait_for_page as wait_until

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.core.synthetic import raycast_scene
-from app.core.synthetic_lidar import lidar_pair
+from app.core.datasets.lidar import lidar_pair
+from app.core.datasets.scenes import raycast_scene
 from app.viewer.ceiling import ceiling_cut_height
 
 

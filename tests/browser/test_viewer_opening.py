@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from app.core.datasets.lidar import lidar_pair
 from app.core.formats import read_point_cloud
-from app.core.synthetic_lidar import lidar_pair
 from app.viewer.colours import ADDED_COLOUR, REMOVED_COLOUR
 from app.viewer.regions_display import CameraView, label_box
 from tests.helpers.browser import (

@@ -21,7 +21,7 @@ import viser
 import websockets.exceptions
 import websockets.sync.client
 
-from app.core.synthetic import raycast_scene
+from app.core.datasets.scenes import raycast_scene
 from app.viewer.manager import JobViewer, ViewerManager
 from app.viewer.scene import build_scene_data
 from app.viewer.viser_guard import (

@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from app.core.synthetic import raycast_scene
+from app.core.datasets.scenes import raycast_scene
 from app.viewer.manager import ViewerManager
 from app.viewer.scene import (
     LAYER_STYLES,

@@ -12,8 +12,8 @@ import pytest
 import viser
 
 from app.core.cloud import PointCloud
+from app.core.datasets.scenes import raycast_scene
 from app.core.pipeline import compare
-from app.core.synthetic import raycast_scene
 from app.viewer.colours import (
     NO_DISTANCE_COLOUR,
     colour_bar_html,

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from plyfile import PlyData
 
-from app.core.synthetic import raycast_scene
-from app.core.synthetic_lidar import lidar_pair
+from app.core.datasets.lidar import lidar_pair
+from app.core.datasets.scenes import raycast_scene
 from tests.helpers.cli import run_cli
 from tests.helpers.files import ply_bytes
 

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from app.core.datasets.scenes import raycast_scene
 from app.core.formats import read_point_cloud
-from app.core.synthetic import raycast_scene
 from tests.helpers.copc import COPC_SCALE, copc_bytes, with_point_count
 from tests.helpers.files import ply_bytes
 

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from app.core.datasets.scenes import raycast_scene
 from app.core.quality import LARGE_ROTATION_DEGREES
 from app.core.registration import apply_transform
-from app.core.synthetic import raycast_scene
 from tests.helpers.files import ply_bytes
 
 

@@ -13,9 +13,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from app.core.cache.geometry import cache_key
 from app.core.cloud import PointCloud
 from app.core.errors import InputError
-from app.core.geometry_cache import cache_key
 from app.core.localise import LABEL_CHANGED, localise_changes
 from app.core.localise.distance import nearest_in, surface_distance
 from app.core.localise.settings import DEFAULT_PARAMETERS

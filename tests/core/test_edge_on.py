@@ -18,9 +18,9 @@ import math
 import numpy as np
 from pykdtree.kdtree import KDTree
 
+from app.core.datasets.lidar import LidarWorld, lidar_directions
 from app.core.localise.rays import STATUS_SEEN_THROUGH, Candidates, RayTest, ray_visibility
 from app.core.localise.surface import local_geometry
-from app.core.synthetic_lidar import LidarWorld, lidar_directions
 
 BOX_LOW = np.array([4.0, 0.5, 0.0])
 BOX_HIGH = np.array([4.5, 1.0, 1.0])

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from app.core.cloud import PointCloud
+from app.core.datasets.scenes import raycast_scene
 from app.core.explanation import explain_comparison, explain_decision
 from app.core.pipeline import RegionSummary, compare
 from app.core.registration import apply_transform
-from app.core.synthetic import raycast_scene
 
 
 def region(kind: str, n_points: int, low: list[float], high: list[float]) -> RegionSummary:

@@ -21,11 +21,11 @@ import functools
 import numpy as np
 import pytest
 
+from app.core.datasets.lidar import LidarPair, lidar_pair
 from app.core.errors import InputError, PointCloudError
 from app.core.formats import detect_format, read_point_cloud, summarise_point_cloud
 from app.core.origins.known_stations import estimate_each_station
 from app.core.pipeline import compare
-from app.core.synthetic_lidar import LidarPair, lidar_pair
 from tests.helpers.clouds import assert_summary_of
 from tests.helpers.files import e57_bytes, las_bytes, ply_bytes
 from tests.helpers.scenes import changed_iou, random_points
@@ -211,7 +211,7 @@ def test_per_point_origins_and_station_index_as_las_extra_bytes():
     ids=["fraction", "negative", "partial-origin", "nan-origin", "too-many-origins"],
 )
 def test_bad_station_fields_are_refused_with_what_to_fix(extra, message, monkeypatch):
-    import app.core.formats.stations as station_fields
+    from app.core.formats import station_fields
 
     monkeypatch.setattr(station_fields, "MAX_STATIONS", 16)
     content = ply_bytes(random_points(30, seed=9), coordinate_type="f8", extra=extra)

@@ -5,26 +5,31 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from app.core import geometry_cache, pipeline, registration
-from app.core.cloud import PointCloud, choose_local_origin
-from app.core.geometry_cache import GeometryCache, cache_key, code_version
-from app.core.localise import neighbourhoods, surface
-from app.core.localise.neighbourhoods import nearest_neighbourhoods
-from app.core.localise.surface import with_surfaces
-from app.core.origins.resolve import ResolvedOrigin
-from app.core.pipeline import compare
-from app.core.reference_alignment import ALIGNMENT_FACT_PREFIX, ReferenceAlignmentCache
-from app.core.reference_origin import (
+from app.core import registration
+from app.core.cache import geometry as geometry_cache
+from app.core.cache import reference_origin
+from app.core.cache.geometry import GeometryCache, cache_key, code_version
+from app.core.cache.reference_alignment import ALIGNMENT_FACT_PREFIX, ReferenceAlignmentCache
+from app.core.cache.reference_origin import (
     ORIGIN_FACT,
     ReferenceOriginCache,
     origin_from_record,
     origin_record,
 )
-from app.core.synthetic import raycast_scene
+from app.core.cloud import PointCloud, choose_local_origin
+from app.core.comparison import localise as localise_stage
+from app.core.comparison import origins as origins_stage
+from app.core.datasets.scenes import raycast_scene
+from app.core.localise import neighbourhoods, surface
+from app.core.localise.neighbourhoods import nearest_neighbourhoods
+from app.core.localise.surface import with_surfaces
+from app.core.origins.resolve import ResolvedOrigin
+from app.core.pipeline import compare
 
 N_NEIGHBORS = 10
 SMALL_AHEAD_MIN_POINTS = 10_000
@@ -35,7 +40,7 @@ reference's search still runs ahead; what the cache holds does not depend on the
 @pytest.fixture(scope="module", autouse=True)
 def small_run_ahead_threshold():
     with pytest.MonkeyPatch.context() as patched:
-        patched.setattr(pipeline, "REFERENCE_AHEAD_MIN_POINTS", SMALL_AHEAD_MIN_POINTS)
+        patched.setattr(localise_stage, "REFERENCE_AHEAD_MIN_POINTS", SMALL_AHEAD_MIN_POINTS)
         yield
 
 
@@ -93,6 +98,16 @@ def test_key_changes_with_reference_code_and_parameters(monkeypatch):
     assert cache_key("a" * 64, {"n_neighbors": 12}) != base
     assert cache_key("a" * 64, {"threshold_factor": 4.0}) != base
     assert len(code_version()) == 16
+
+
+def test_the_code_digests_read_every_source_they_name():
+    # the keys hash the text of the code that made a cache; a module moved without its name
+    # changed here would silently drop out of the key (a stale cache trusted after a change)
+    core = Path(geometry_cache.__file__).resolve().parent.parent
+    assert [name for name in geometry_cache._CODE_FILES if not (core / name).is_file()] == []
+    assert [
+        pattern for pattern in reference_origin._ORIGIN_CODE_PATTERNS if not any(core.glob(pattern))
+    ] == []
 
 
 def test_store_then_load_gives_the_search_back(tmp_path, pair):
@@ -221,7 +236,7 @@ def test_a_cache_hit_does_only_the_scan_side_work(tmp_path, pair, uncached, monk
         (surface, "nearest_neighbourhoods"),
         (geometry_cache, "nearest_neighbourhoods"),
         (surface, "fit_surfaces"),
-        (pipeline, "resolve_stations"),
+        (origins_stage, "resolve_stations"),
     )
     compare(reference, scan, threads=threads, geometry_cache=cache)  # fills it
     filling = dict(calls)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from app.core.datasets.lidar import LidarWorld, lidar_directions
 from app.core.localise.rays import (
     STATUS_SEEN_THROUGH,
     STATUS_UNOBSERVED,
@@ -22,7 +23,6 @@ from app.core.localise.rays import (
     ray_visibility,
 )
 from app.core.localise.surface import local_geometry
-from app.core.synthetic_lidar import LidarWorld, lidar_directions
 
 SENSOR = np.array([0.0, 0.0, 0.85])
 FACE_X = 11.5

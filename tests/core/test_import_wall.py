@@ -73,8 +73,9 @@ def test_importing_the_core_loads_no_web_or_database_module():
 
 LOCALISE_LAYERS = (
     "settings",
-    "stations",
+    "station_assignment",
     "neighbourhoods",
+    "epoch",
     "surface",
     "distance",
     "regions",

@@ -22,22 +22,23 @@ from typing import Any
 import numpy as np
 import pytest
 
+from app.core.datasets.scenes import (
+    SyntheticPair,
+    paper_corridor,
+    raycast_scene,
+    raycast_scene_objects,
+)
 from app.core.errors import InputError, PointCloudError
 from app.core.localise import (
     DEFAULT_PARAMETERS,
     LABEL_CHANGED,
     LABEL_UNOBSERVED,
+    EpochCloud,
     Localisation,
     NeighbourhoodSearch,
     localise_changes,
     nearest_neighbourhoods,
     neighbourhood_size,
-)
-from app.core.synthetic import (
-    SyntheticPair,
-    paper_corridor,
-    raycast_scene,
-    raycast_scene_objects,
 )
 from tests.helpers.scenes import changed_iou
 
@@ -54,13 +55,15 @@ def localised_scene(
     return pair, localise_pair(pair)
 
 
-def localise_pair(pair: SyntheticPair, **options: Any) -> Localisation:
+def localise_pair(
+    pair: SyntheticPair, reference_neighbourhoods: Any = None, **options: Any
+) -> Localisation:
     """``localise_changes`` on a pair aligned with its true transform, with both origins."""
     return localise_changes(
-        pair.reference,
-        pair.aligned_scan(),
-        reference_origin=pair.reference_origin,
-        scan_origin=pair.aligned_scan_origin(),
+        EpochCloud(
+            pair.reference, origin=pair.reference_origin, neighbourhoods=reference_neighbourhoods
+        ),
+        EpochCloud(pair.aligned_scan(), origin=pair.aligned_scan_origin()),
         **options,
     )
 
@@ -265,16 +268,12 @@ def test_registration_rmse_widens_the_threshold():
 
 def test_min_region_points_drops_small_clusters():
     pair = raycast_scene(n_points=10_000, change="box", random_state=2)
-    arguments = {
-        "reference_origin": pair.reference_origin,
-        "scan_origin": pair.aligned_scan_origin(),
-    }
-    default = localise_changes(pair.reference, pair.aligned_scan(), **arguments)
+    reference = EpochCloud(pair.reference, origin=pair.reference_origin)
+    scan = EpochCloud(pair.aligned_scan(), origin=pair.aligned_scan_origin())
+    default = localise_changes(reference, scan)
     assert default.parameters["min_region_points"] == 8  # max(4, 0.08 sqrt(10k))
     assert default.regions
-    strict = localise_changes(
-        pair.reference, pair.aligned_scan(), min_region_points=100_000, **arguments
-    )
+    strict = localise_changes(reference, scan, min_region_points=100_000)
     assert strict.regions == []
     assert not np.any(strict.scan_label == LABEL_CHANGED)
     assert not np.any(strict.reference_label == LABEL_CHANGED)
@@ -335,7 +334,7 @@ def test_invalid_input_is_rejected_with_a_reason():
     with pytest.raises(InputError, match="n_neighbors"):
         localise_changes(points, points, n_neighbors=2)
     with pytest.raises(InputError, match="scan_origin"):
-        localise_changes(points, points, scan_origin=[0, 0])
+        localise_changes(points, EpochCloud(points, origin=[0, 0]))
     with pytest.raises(InputError, match="registration_rmse"):
         localise_changes(points, points, registration_rmse=-0.1)
 
@@ -343,10 +342,8 @@ def test_invalid_input_is_rejected_with_a_reason():
 def test_identical_clouds_have_no_change():
     pair = raycast_scene(n_points=5000, change="none", random_state=0)
     localisation = localise_changes(
-        pair.reference,
-        pair.reference,
-        reference_origin=pair.reference_origin,
-        scan_origin=pair.reference_origin,
+        EpochCloud(pair.reference, origin=pair.reference_origin),
+        EpochCloud(pair.reference, origin=pair.reference_origin),
     )
     assert not np.any(localisation.reference_label)
     assert not np.any(localisation.scan_label)
@@ -366,10 +363,8 @@ def test_full_size_rescans_accuracy():
         )
         started = time.process_time()
         localisation = localise_changes(
-            pair.reference,
-            pair.aligned_scan(),
-            reference_origin=pair.reference_origin,
-            scan_origin=pair.aligned_scan_origin(),
+            EpochCloud(pair.reference, origin=pair.reference_origin),
+            EpochCloud(pair.aligned_scan(), origin=pair.aligned_scan_origin()),
         )
         cpu_seconds = time.process_time() - started
         iou = changed_iou(pair, localisation)
@@ -412,10 +407,8 @@ def benchmark(n_points: int = SCENE_POINTS, n_seeds: int = 8) -> None:
             )
             started = time.process_time()
             localisation = localise_changes(
-                pair.reference,
-                pair.aligned_scan(),
-                reference_origin=pair.reference_origin,
-                scan_origin=pair.aligned_scan_origin(),
+                EpochCloud(pair.reference, origin=pair.reference_origin),
+                EpochCloud(pair.aligned_scan(), origin=pair.aligned_scan_origin()),
             )
             cpu.append(time.process_time() - started)
             if change != "none":
@@ -423,10 +416,8 @@ def benchmark(n_points: int = SCENE_POINTS, n_seeds: int = 8) -> None:
             falses.append(100 * false_changed_fraction(pair, localisation))
             truth = {"removed": pair.reference_changed, "added": pair.scan_changed}
             unfiltered = localise_changes(
-                pair.reference,
-                pair.aligned_scan(),
-                reference_origin=pair.reference_origin,
-                scan_origin=pair.aligned_scan_origin(),
+                EpochCloud(pair.reference, origin=pair.reference_origin),
+                EpochCloud(pair.aligned_scan(), origin=pair.aligned_scan_origin()),
                 min_region_points=1,
             )
             spurious.append(

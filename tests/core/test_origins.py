@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from app.core.cloud import PointCloud
+from app.core.datasets.lidar import LAYOUTS, lidar_pair
+from app.core.datasets.scenes import paper_corridor, raycast_scene
 from app.core.formats import read_point_cloud
 from app.core.origins import CONFIDENT, estimate_origin
 from app.core.origins.resolve import resolve_origin
 from app.core.pipeline import compare
-from app.core.synthetic import paper_corridor, raycast_scene
-from app.core.synthetic_lidar import LAYOUTS, lidar_pair
 
 STEP = 1.0  # ~38k points a station: quick
 

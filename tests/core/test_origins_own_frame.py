@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from app.core.datasets.lidar import lidar_pair
 from app.core.origins.own_frame import resolve_moved_cloud
 from app.core.registration import apply_transform
-from app.core.synthetic_lidar import lidar_pair
 
 
 def _tilting_transform(pitch_deg: float, yaw_deg: float, shift: tuple[float, float, float]):
@@ -56,12 +56,12 @@ def test_a_given_origin_is_moved_by_the_alignment_and_not_estimated() -> None:
 def test_auto_searches_no_stations_when_the_own_frame_gives_the_origin(monkeypatch) -> None:
     # a tilted single station fails the estimate once aligned: with recover_stations="auto"
     # its own frame is tried before any station search (seconds on a real frame)
-    from app.core.origins import stations
+    from app.core.origins import station_recovery
 
     def must_not_search(points, **kwargs):
         raise AssertionError("stations were searched before the own frame was tried")
 
-    monkeypatch.setattr(stations, "recover_stations", must_not_search)
+    monkeypatch.setattr(station_recovery, "recover_stations", must_not_search)
     pair = lidar_pair(layout="room", change="none", angular_step_deg=1.5, random_state=41)
     transform = _tilting_transform(3.0, 25.0, (3.0, -2.0, 0.5))
     resolved = resolve_moved_cloud(

@@ -7,14 +7,14 @@ import threading
 import numpy as np
 import pytest
 
-from app.core import pipeline
 from app.core.cloud import PointCloud
+from app.core.comparison import localise as localise_stage
+from app.core.datasets.scenes import raycast_scene
 from app.core.detectors import METHODS, VARIANTS
 from app.core.errors import InputError
 from app.core.localise import LABEL_CHANGED, neighbourhoods
 from app.core.pipeline import compare
 from app.core.registration import apply_transform
-from app.core.synthetic import raycast_scene
 
 SCENE_POINTS = 20_000
 SMALL_AHEAD_MIN_POINTS = 10_000
@@ -174,7 +174,7 @@ def test_the_reference_search_run_during_alignment_changes_nothing_and_ends_with
 
     monkeypatch.setattr(neighbourhoods, "NeighbourhoodSearch", CountedSearch)
     # the threshold lowered for a smaller scene (what runs ahead does not depend on the size)
-    monkeypatch.setattr(pipeline, "REFERENCE_AHEAD_MIN_POINTS", SMALL_AHEAD_MIN_POINTS)
+    monkeypatch.setattr(localise_stage, "REFERENCE_AHEAD_MIN_POINTS", SMALL_AHEAD_MIN_POINTS)
     pair = raycast_scene(
         n_points=SMALL_AHEAD_MIN_POINTS + 5_000,
         change="box",

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from app.core.cloud import PointCloud
+from app.core.datasets.lidar import lidar_pair
 from app.core.errors import InputError
 from app.core.localise import LABEL_CHANGED
 from app.core.pipeline import compare
-from app.core.synthetic_lidar import lidar_pair
 
 STEP = 0.8
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from app.core.cloud import PointCloud
+from app.core.datasets.scenes import raycast_scene
 from app.core.detectors import METHOD_ALIASES, METHODS, canonical_method, make_detector
 from app.core.errors import InputError
 from app.core.pipeline import compare
@@ -21,7 +22,6 @@ from app.core.quality import (
     registration_warnings,
 )
 from app.core.registration import apply_transform
-from app.core.synthetic import raycast_scene
 
 
 def codes(warnings: list[dict]) -> list[str]:
@@ -97,6 +97,19 @@ def test_origin_warnings_unknown_and_contradicted() -> None:
     assert warnings[1]["how_to_fix"]["action"] == "give_sensor_origin"
     assert "sensor_origin=" not in warnings[1]["message"] and "--" not in warnings[1]["message"]
     assert origin_warnings(None) == []  # not reported: nothing to say
+
+
+def test_points_outside_a_trajectorys_time_span_are_warned() -> None:
+    covered = {"source": "trajectory", "poses": 40, "time_span": [10.0, 20.0], "points_outside": 0}
+    partly = {**covered, "points_outside": 1234}
+    assert origin_warnings({"reference": [covered], "scan": [covered, "junk"]}) == []
+
+    (warning,) = origin_warnings({"reference": [covered], "scan": [partly]})
+
+    assert warning["code"] == "trajectory_time_span" and warning["side"] == "scan"
+    assert warning["value"] == 1234 and warning["how_to_fix"]["action"] == "check_trajectory"
+    assert "1,234 of the scan's points have times outside" in warning["message"]
+    assert "10.000..20.000 s" in warning["message"]
 
 
 @pytest.fixture(scope="module")

@@ -15,15 +15,15 @@ import pytest
 
 from app.core.cloud import PointCloud
 from app.core.comparison_settings import parse_comparison_params
+from app.core.datasets.lidar import lidar_pair, steps_for_points
+from app.core.datasets.scenes import paper_corridor
 from app.core.errors import InputError
-from app.core.localise import localise_changes
-from app.core.origins import stations
+from app.core.localise import EpochCloud, localise_changes
+from app.core.origins import station_recovery
 from app.core.origins.resolve import ResolvedOrigin
 from app.core.origins.sampling import lidar_sampling
-from app.core.origins.stations import RecoveredStations, resolve_stations
+from app.core.origins.station_recovery import RecoveredStations, resolve_stations
 from app.core.pipeline import compare
-from app.core.synthetic import paper_corridor
-from app.core.synthetic_lidar import lidar_pair, steps_for_points
 
 STEP = 2.0  # degrees: ~10k points a station
 
@@ -56,7 +56,7 @@ def unconfident(monkeypatch):
     def estimate(side, points, **kwargs):
         return ResolvedOrigin(None, None, None, evidence={"ring_share": 0.4})
 
-    monkeypatch.setattr(stations, "resolve_origin", estimate)
+    monkeypatch.setattr(station_recovery, "resolve_origin", estimate)
 
 
 def test_lidar_sampling_tells_lidar_clouds_from_uniform_random_and_gridded_ones():
@@ -118,7 +118,7 @@ def test_auto_recovers_the_stations_of_a_merged_lidar_cloud(monkeypatch, unconfi
         shares = np.full(len(pair.reference_origins), 1.0 / len(pair.reference_origins))
         return RecoveredStations(pair.reference_origins, shares, np.full(len(shares), 500), 9)
 
-    monkeypatch.setattr(stations, "recover_stations", true_stations)
+    monkeypatch.setattr(station_recovery, "recover_stations", true_stations)
     resolved = _resolve(pair.reference, "auto")
     assert searched == [len(pair.reference)]
     assert resolved.source == "recovered"
@@ -144,7 +144,7 @@ def test_a_merged_lidar_cloud_gets_its_stations_without_being_asked():
 
 
 def test_a_uniform_cloud_is_not_searched_for_stations(monkeypatch):
-    monkeypatch.setattr(stations, "recover_stations", _must_not_search)
+    monkeypatch.setattr(station_recovery, "recover_stations", _must_not_search)
     pair = paper_corridor(3000, change_fraction=0.1, random_state=0)
     result = compare(PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan))
     for side in ("reference", "scan"):
@@ -157,7 +157,7 @@ def test_a_uniform_cloud_is_not_searched_for_stations(monkeypatch):
 
 
 def test_unfound_stations_of_a_merged_lidar_cloud_route_to_the_map_test(monkeypatch, unconfident):
-    monkeypatch.setattr(stations, "recover_stations", _no_stations)
+    monkeypatch.setattr(station_recovery, "recover_stations", _no_stations)
     result = compare(*_clouds(merged()), align=False)
     assert result.sensor_origins == {"reference": [], "scan": []}
     for side in ("reference", "scan"):
@@ -169,7 +169,7 @@ def test_unfound_stations_of_a_merged_lidar_cloud_route_to_the_map_test(monkeypa
 
 
 def test_recovery_turned_off_searches_nothing(monkeypatch, unconfident):
-    monkeypatch.setattr(stations, "recover_stations", _must_not_search)
+    monkeypatch.setattr(station_recovery, "recover_stations", _must_not_search)
     resolved = _resolve(merged().reference, False)
     assert resolved.origin is None and not resolved.stations_unknown
     assert resolved.visibility_report() == {"origins": "none", "stations_unknown": False}
@@ -178,7 +178,7 @@ def test_recovery_turned_off_searches_nothing(monkeypatch, unconfident):
 
 
 def test_recovery_forced_searches_whatever_the_sampling(monkeypatch, unconfident):
-    monkeypatch.setattr(stations, "recover_stations", _no_stations)
+    monkeypatch.setattr(station_recovery, "recover_stations", _no_stations)
     uniform = paper_corridor(3000, random_state=0).reference
     assert _resolve(uniform, True).visibility_report()["stations_recovered"] == 0
     assert "stations_recovered" not in _resolve(uniform, "auto").visibility_report()
@@ -186,7 +186,7 @@ def test_recovery_forced_searches_whatever_the_sampling(monkeypatch, unconfident
 
 def test_no_estimate_no_search(monkeypatch):
     # estimate_origins=false: nothing says that no single origin explains the cloud
-    monkeypatch.setattr(stations, "recover_stations", _must_not_search)
+    monkeypatch.setattr(station_recovery, "recover_stations", _must_not_search)
     resolved = resolve_stations(
         "scan", merged().reference, given=None, from_file=None, estimate=False, recover="auto"
     )
@@ -198,7 +198,7 @@ def test_recovered_stations_that_explain_few_points_are_not_used(monkeypatch, un
         origins = np.array([[1.0, 1.0, 1.0], [3.0, 2.0, 1.0]])
         return RecoveredStations(origins, np.array([0.1, 0.1]), np.array([60, 60]), 100)
 
-    monkeypatch.setattr(stations, "recover_stations", artefacts)
+    monkeypatch.setattr(station_recovery, "recover_stations", artefacts)
     resolved = _resolve(merged().reference, "auto")
     assert resolved.origin is None and resolved.stations_unknown
     assert resolved.evidence["stations_explained_share"] == pytest.approx(0.2)
@@ -206,11 +206,11 @@ def test_recovered_stations_that_explain_few_points_are_not_used(monkeypatch, un
 
 def test_the_map_test_is_used_against_any_cloud_without_origins():
     pair = merged("added")
-    localisation = localise_changes(pair.reference, pair.scan, scan_stations_unknown=True)
+    localisation = localise_changes(pair.reference, EpochCloud(pair.scan, stations_unknown=True))
     assert localisation.parameters["reference_visibility"] == "maps"
     assert localisation.parameters["scan_visibility"] == "maps"
     explicit = localise_changes(
-        pair.reference, pair.scan, scan_stations_unknown=True, origin_free_test="surfaces"
+        pair.reference, EpochCloud(pair.scan, stations_unknown=True), origin_free_test="surfaces"
     )
     assert explicit.parameters["reference_visibility"] == "surfaces"
 
@@ -218,10 +218,8 @@ def test_the_map_test_is_used_against_any_cloud_without_origins():
 def test_a_test_chosen_by_the_user_wins_over_the_routing():
     pair = merged("added")
     localisation = localise_changes(
-        pair.reference,
-        pair.scan,
-        reference_stations_unknown=True,
-        scan_stations_unknown=True,
+        EpochCloud(pair.reference, stations_unknown=True),
+        EpochCloud(pair.scan, stations_unknown=True),
         origin_free_test="coverage",
     )
     assert localisation.parameters["reference_visibility"] == "coverage"
@@ -254,11 +252,11 @@ def _no_estimate(side, points, **kwargs):
 def test_stations_searched_first_skip_the_single_origin_estimate(monkeypatch):
     points = merged().reference
     options = {"given": None, "from_file": None, "estimate": True}
-    default = stations.recovered_before_apex("scan", points, options, 0)
-    monkeypatch.setattr(stations, "resolve_origin", _no_estimate)
-    first = stations.recovered_before_apex("scan", points, options, 0, stations_first=True)
+    default = station_recovery.recovered_before_apex("scan", points, options, 0)
+    monkeypatch.setattr(station_recovery, "resolve_origin", _no_estimate)
+    first = station_recovery.recovered_before_apex("scan", points, options, 0, stations_first=True)
     assert default[0].source == first[0].source == "recovered"
-    assert first[0].evidence[stations.STATIONS_FIRST] == 1.0
+    assert first[0].evidence[station_recovery.STATIONS_FIRST] == 1.0
     # the same stations (the same points and seed), without the estimate's evidence
     np.testing.assert_array_equal(first[0].origin, default[0].origin)
     assert "ring_share" in default[0].evidence and "ring_share" not in first[0].evidence
@@ -267,16 +265,18 @@ def test_stations_searched_first_skip_the_single_origin_estimate(monkeypatch):
 def test_a_single_station_searched_first_still_gets_its_estimate(monkeypatch):
     pair = lidar_pair(layout="room", change="none", n_stations=1, angular_step_deg=1.0)
     options = {"given": None, "from_file": None, "estimate": True}
-    default = stations.recovered_before_apex("scan", pair.scan, options, 0)
+    default = station_recovery.recovered_before_apex("scan", pair.scan, options, 0)
     searches = []
-    original = stations.recover_stations
+    original = station_recovery.recover_stations
 
     def counted(points, **kwargs):
         searches.append(1)
         return original(points, **kwargs)
 
-    monkeypatch.setattr(stations, "recover_stations", counted)
-    first = stations.recovered_before_apex("scan", pair.scan, options, 0, stations_first=True)
+    monkeypatch.setattr(station_recovery, "recover_stations", counted)
+    first = station_recovery.recovered_before_apex(
+        "scan", pair.scan, options, 0, stations_first=True
+    )
     assert searches == [1]  # searched first, found one station: the estimate decides
     assert first[0].source == default[0].source == "estimated"
     np.testing.assert_allclose(first[0].origin, default[0].origin)
@@ -284,16 +284,16 @@ def test_a_single_station_searched_first_still_gets_its_estimate(monkeypatch):
 
 
 def test_a_scan_against_a_merged_reference_searches_its_stations_first(monkeypatch):
-    from app.core import pipeline
+    from app.core.comparison import origins
 
     calls = {}
-    original = pipeline.resolve_moved_cloud
+    original = origins.resolve_moved_cloud
 
     def spy(*args, **kwargs):
         calls["stations_first"] = kwargs.get("stations_first")
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(pipeline, "resolve_moved_cloud", spy)
+    monkeypatch.setattr(origins, "resolve_moved_cloud", spy)
     result = compare(*_clouds(merged("added")), params={}, threads=1)
     assert calls["stations_first"] is True
     scan_entries = result.sensor_origins["scan"]

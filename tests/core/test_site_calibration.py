@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from app.core.cloud import PointCloud
+from app.core.datasets.site import site_visit
 from app.core.explanation import explain_comparison, explain_decision
 from app.core.pipeline import compare
 from app.core.site_calibration import (
@@ -20,7 +21,6 @@ from app.core.site_calibration import (
     learn_site_calibration,
     minimum_samples,
 )
-from app.core.synthetic_site import site_visit
 
 TRIALS = 20_000
 

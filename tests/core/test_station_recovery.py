@@ -3,7 +3,7 @@
 Three upright lidars within 1.5 m of each other in one small room: their returns interleave on
 every surface, so that neighbour pairs of one station's columns are rare (issue 15: recovery
 found fewer than two stations there and fell back).  Built from the ray caster of
-:mod:`app.core.synthetic_lidar`, 1.2 degree grid, 1 cm range noise, points shuffled.
+:mod:`app.core.datasets.lidar`, 1.2 degree grid, 1 cm range noise, points shuffled.
 """
 
 from __future__ import annotations
@@ -13,9 +13,10 @@ import functools
 import numpy as np
 import pytest
 
-from app.core.origins import estimate, station_height, stations
-from app.core.origins.stations import recover_stations, resolve_stations
-from app.core.synthetic_lidar import LidarWorld, lidar_directions
+from app.core.datasets.lidar import LidarWorld, lidar_directions
+from app.core.origins import estimate, station_height
+from app.core.origins import station_recovery as stations
+from app.core.origins.station_recovery import recover_stations, resolve_stations
 
 STEP = 1.2  # degrees: ~27k points a station in this room
 
@@ -223,7 +224,7 @@ def test_voting_every_second_cell_finds_the_centres_of_voting_every_cell(monkeyp
 
 def _ring_scores_by_histogram(rho, z, heights, bin_size):
     """Reference for station_height.ring_scores: one histogram and moving sum per height."""
-    from app.core.localise.stations import RING_CONTRAST, SMOOTHING_BINS
+    from app.core.localise.station_assignment import RING_CONTRAST, SMOOTHING_BINS
 
     n_bins = int(np.pi / bin_size) + 2
     scores = []
@@ -276,7 +277,7 @@ def _exhaustive_station_height(points, centre, rng):
     ],
 )
 def test_scouted_station_heights_are_those_of_scoring_the_whole_range(layout):
-    from app.core.synthetic_lidar import lidar_pair
+    from app.core.datasets.lidar import lidar_pair
 
     for seed in range(2):
         pair = lidar_pair(

@@ -23,8 +23,10 @@ import pytest
 from pykdtree.kdtree import KDTree
 
 from app.core.cloud import PointCloud
+from app.core.datasets.lidar import LidarPair, lidar_pair
+from app.core.datasets.scenes import _transform_points, raycast_scene
 from app.core.errors import InputError
-from app.core.localise import LABEL_CHANGED, LABEL_UNOBSERVED, localise_changes
+from app.core.localise import LABEL_CHANGED, LABEL_UNOBSERVED, EpochCloud, localise_changes
 from app.core.localise.gaps import in_sampling_gap
 from app.core.localise.rays import (
     STATUS_EDGE_ON,
@@ -32,13 +34,11 @@ from app.core.localise.rays import (
     STATUS_SURFACE,
     STATUS_UNOBSERVED,
 )
-from app.core.localise.stations import RING_CONTRAST, assign_stations, ring_contrast
+from app.core.localise.station_assignment import RING_CONTRAST, assign_stations, ring_contrast
 from app.core.localise.surface import local_geometry
 from app.core.localise.visibility import combine_station_status
-from app.core.origins.stations import recover_stations
+from app.core.origins.station_recovery import recover_stations
 from app.core.pipeline import compare, parse_comparison_params
-from app.core.synthetic import _transform_points, raycast_scene
-from app.core.synthetic_lidar import LidarPair, lidar_pair
 from tests.helpers.scenes import changed_iou
 
 STEP = 1.2  # degrees: ~25k points a station
@@ -64,12 +64,8 @@ def scan_origins(pair: LidarPair) -> np.ndarray:
 
 def with_stations(pair: LidarPair, scan: np.ndarray, **options):
     return localise_changes(
-        pair.reference,
-        scan,
-        reference_origin=pair.reference_origins,
-        scan_origin=scan_origins(pair),
-        reference_station=pair.reference_station,
-        scan_station=pair.scan_station,
+        EpochCloud(pair.reference, origin=pair.reference_origins, station=pair.reference_station),
+        EpochCloud(scan, origin=scan_origins(pair), station=pair.scan_station),
         **options,
     )
 
@@ -77,17 +73,16 @@ def with_stations(pair: LidarPair, scan: np.ndarray, **options):
 def test_one_origin_as_a_list_is_the_single_origin_comparison():
     pair = raycast_scene(n_points=20_000, change="mixed", pose_error=(0.03, 0.4), random_state=5)
     single = localise_changes(
-        pair.reference,
-        pair.aligned_scan(),
-        reference_origin=pair.reference_origin,
-        scan_origin=pair.aligned_scan_origin(),
+        EpochCloud(pair.reference, origin=pair.reference_origin),
+        EpochCloud(pair.aligned_scan(), origin=pair.aligned_scan_origin()),
     )
     listed = localise_changes(
-        pair.reference,
-        pair.aligned_scan(),
-        reference_origin=[pair.reference_origin.tolist()],
-        scan_origin=pair.aligned_scan_origin()[None, :],
-        scan_station=np.zeros(len(pair.scan), dtype=np.int64),
+        EpochCloud(pair.reference, origin=[pair.reference_origin.tolist()]),
+        EpochCloud(
+            pair.aligned_scan(),
+            origin=pair.aligned_scan_origin()[None, :],
+            station=np.zeros(len(pair.scan), dtype=np.int64),
+        ),
     )
     assert np.array_equal(single.reference_label, listed.reference_label)
     assert np.array_equal(single.scan_label, listed.scan_label)
@@ -116,11 +111,8 @@ def test_observed_means_observed_by_any_station():
     # the same survey as if the reference had been taken by its first station alone
     first_only = pair.reference_station == 0
     alone = localise_changes(
-        pair.reference[first_only],
-        scan,
-        reference_origin=pair.reference_origins[0],
-        scan_origin=scan_origins(pair),
-        scan_station=pair.scan_station,
+        EpochCloud(pair.reference[first_only], origin=pair.reference_origins[0]),
+        EpochCloud(scan, origin=scan_origins(pair), station=pair.scan_station),
     )
     assert np.count_nonzero(every.scan_label == LABEL_UNOBSERVED) < np.count_nonzero(
         alone.scan_label == LABEL_UNOBSERVED
@@ -153,10 +145,8 @@ def test_origins_without_station_index_are_assigned_from_the_rings():
     assigned = assign_stations(pair.reference, pair.reference_origins)
     assert np.mean(assigned == pair.reference_station) >= 0.95
     localisation = localise_changes(
-        pair.reference,
-        scan,
-        reference_origin=pair.reference_origins,
-        scan_origin=scan_origins(pair),
+        EpochCloud(pair.reference, origin=pair.reference_origins),
+        EpochCloud(scan, origin=scan_origins(pair)),
     )
     assert localisation.parameters["reference_station_assignment"] == "assigned"
     assert changed_iou(pair, localisation) >= 0.9
@@ -246,7 +236,7 @@ def test_compare_takes_station_lists_and_the_station_index_attribute():
 def test_bad_origins_are_refused_with_what_to_fix(origin, message):
     points = np.random.default_rng(0).normal(size=(50, 3))
     with pytest.raises(InputError, match=message):
-        localise_changes(points, points, reference_origin=origin)
+        localise_changes(EpochCloud(points, origin=origin), points)
     with pytest.raises(InputError, match=message):
         parse_comparison_params("gmm", "improved", {"scan_origin": origin})
 
@@ -265,13 +255,13 @@ def test_bad_station_indices_are_refused_with_what_to_fix(station, message):
     points = np.random.default_rng(0).normal(size=(50, 3))
     origins = [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]
     with pytest.raises(InputError, match=message):
-        localise_changes(points, points, scan_origin=origins, scan_station=station)
+        localise_changes(points, EpochCloud(points, origin=origins, station=station))
 
 
 def test_a_station_index_needs_the_stations_origins():
     points = np.random.default_rng(0).normal(size=(50, 3))
     with pytest.raises(InputError, match="needs the stations' origins"):
-        localise_changes(points, points, scan_station=np.zeros(50, dtype=np.int64))
+        localise_changes(points, EpochCloud(points, station=np.zeros(50, dtype=np.int64)))
     cloud = PointCloud.from_array(points, attributes={"station_index": np.full(50, 3)})
     with pytest.raises(InputError, match=r"station_index must lie in 0\.\.1"):
         compare(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.core.synthetic import (
+from app.core.datasets.scenes import (
     CORRIDOR_BOX_DEPTH,
     LIDAR_ELEVATION_DEG,
     ROOM_MAX,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.core.synthetic_lidar import (
+from app.core.datasets.lidar import (
     CHANGE_DISTANCE,
     ELEVATION_RANGE_DEG,
     LAYOUTS,

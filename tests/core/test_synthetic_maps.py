@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from app.core.synthetic_map_world import SensorModel, cast_rays, far_from_surfaces, voxel_thin
-from app.core.synthetic_maps import MAP_CLASSES, map_pair
+from app.core.datasets.map_world import SensorModel, cast_rays, far_from_surfaces, voxel_thin
+from app.core.datasets.maps import MAP_CLASSES, map_pair
 
 SMALL = {"rgbd": 0.03, "robot": 0.03, "tls": 0.12}
 """``size`` of the test pairs: a few thousand points an epoch (terrestrial: 15-20 thousand, so

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from scipy.spatial.transform import Rotation
 
-from app.core.synthetic_lidar import LidarWorld, lidar_directions
+from app.core.datasets.lidar import LidarWorld, lidar_directions
 
 SHELL_LOW = np.array([0.0, 0.0, 0.0])
 SHELL_HIGH = np.array([8.0, 6.0, 3.0])

@@ -11,7 +11,8 @@ installed (:func:`install`), so the consumer never imports the real pipeline.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.cloud import PointCloud
+from app.core.explanation import explain_comparison
+from app.core.quality import quality_warnings
 from app.jobs.hooks import job_hooks
 
 CONSUMER_BOOTSTRAP = (
@@ -38,11 +41,17 @@ class FakeRegion:
     bbox_max: list[float]
     mean_distance: float
     max_distance: float
+    evidence: str = "seen_empty"
+    confidence: float | None = None
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """Plain JSON types."""
+        return asdict(self)
 
 
 @dataclass(frozen=True)
 class FakeResult:
-    """The attributes of ``ComparisonResult`` the worker uses."""
+    """The :class:`app.core.comparison.protocol.Comparison` the worker reads (no origins)."""
 
     score: float
     threshold: float
@@ -58,6 +67,21 @@ class FakeResult:
     scan_region: NDArray[np.int32]
     timings: dict[str, float] = field(default_factory=dict)
     params: dict[str, Any] = field(default_factory=dict)
+    uncertain_regions: list[FakeRegion] = field(default_factory=list)
+    localisation: dict[str, Any] = field(default_factory=dict)
+    sensor_origins: dict[str, list[dict[str, Any]]] | None = None
+    visibility: dict[str, dict[str, Any]] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+    @cached_property
+    def quality_warnings(self) -> list[dict[str, Any]]:
+        """The core's warnings of this result."""
+        return quality_warnings(self)
+
+    @cached_property
+    def explanation(self) -> dict[str, Any]:
+        """The core's explanation of this result."""
+        return explain_comparison(self)
 
     def write_labels_npz(self, path: str | Path) -> None:
         """Same arrays as the real result."""

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.cloud import PointCloud
-from app.core.synthetic_lidar import LidarWorld, lidar_directions
+from app.core.datasets.lidar import LidarWorld, lidar_directions
 from app.core.trajectory import Trajectory
 
 OFFSET = np.array([100.0, 200.0, 10.0])

@@ -15,7 +15,7 @@ from app.config import Settings
 from app.db.events import publish_event
 from app.db.models import Job, Organisation, Webhook, WebhookDelivery
 from app.db.session import transaction
-from app.jobs.deliveries import (
+from app.jobs.alerts.deliveries import (
     ClaimedDelivery,
     backoff_seconds,
     claim_next_delivery,

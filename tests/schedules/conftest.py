@@ -10,7 +10,7 @@ from typing import Any
 import httpx
 import pytest
 
-from app.services import schedule_runs
+from app.services.schedules import runs as schedule_runs
 from tests.helpers.server import MAX_UPLOAD_BYTES, ApiServer, fresh_api
 
 

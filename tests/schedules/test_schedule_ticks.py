@@ -15,7 +15,7 @@ import httpx
 from app.clock import as_utc, utc_now
 from app.db.models import Job, ScheduleRun, ScheduleRunStatus
 from app.db.session import transaction
-from app.services.schedule_runs import TickReport, abandoned_after, claim_period, tick
+from app.services.schedules.runs import TickReport, abandoned_after, claim_period, tick
 from tests.helpers.database import count_rows
 from tests.helpers.environment import PROJECT_ROOT
 from tests.helpers.files import room_ply
@@ -194,7 +194,7 @@ TICKER_SCRIPT = """
 import sys
 from datetime import datetime
 from app.config import Settings
-from app.services.schedule_runs import tick
+from app.services.schedules.runs import tick
 settings = Settings(data_dir=sys.argv[1])
 report = tick(settings, datetime.fromisoformat(sys.argv[2]))
 print(sum(len(ids) for ids in report.runs.values()))

@@ -6,7 +6,7 @@ from datetime import UTC, datetime, timedelta
 from itertools import pairwise
 from zoneinfo import ZoneInfo
 
-from app.services.schedule_times import Rhythm
+from app.services.schedules.times import Rhythm
 
 LISBON = ZoneInfo("Europe/Lisbon")
 ANCHOR = datetime(2026, 1, 1, tzinfo=UTC)

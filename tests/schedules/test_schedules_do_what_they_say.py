@@ -10,7 +10,7 @@ from typing import Any
 import httpx
 
 from app.clock import as_utc
-from app.services.schedule_runs import tick
+from app.services.schedules.runs import tick
 from tests.helpers.files import room_ply
 from tests.helpers.http import site_with_reference, upload_accepted
 from tests.helpers.server import ApiServer

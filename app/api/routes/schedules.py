@@ -7,9 +7,9 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Response
 
 from app.api.deps import PrincipalDep, SessionDep, SettingsDep, WriterDep
-from app.services import schedules as schedules_service
 from app.services.paging import DEFAULT_LIMIT, MAX_LIMIT
-from app.services.schedule_schemas import (
+from app.services.schedules import service as schedules_service
+from app.services.schedules.schemas import (
     ScheduleCreate,
     ScheduleRead,
     ScheduleRunRead,

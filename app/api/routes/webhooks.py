@@ -7,10 +7,10 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Response
 
 from app.api.deps import PrincipalDep, SessionDep, SettingsDep
-from app.services import webhooks as webhooks_service
 from app.services.paging import DEFAULT_LIMIT, MAX_LIMIT
 from app.services.schemas import Page
-from app.services.webhook_schemas import (
+from app.services.webhooks import service as webhooks_service
+from app.services.webhooks.schemas import (
     DeliveryPage,
     DeliveryRead,
     WebhookCreate,

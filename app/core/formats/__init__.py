@@ -50,7 +50,7 @@ from app.core.formats.npy import read_npy, read_npz
 from app.core.formats.pcd import read_pcd
 from app.core.formats.ply import read_ply, write_ply
 from app.core.formats.rosbag import BAG_FORMATS, BagOptions, read_rosbag, sniff_bag
-from app.core.formats.stations import has_station_fields, with_station_fields
+from app.core.formats.station_fields import has_station_fields, with_station_fields
 from app.core.formats.trajectory_files import with_point_times
 from app.core.threads import available_threads
 
@@ -256,7 +256,7 @@ def read_point_cloud(
         ``sensor_origin`` comes from a PCD ``VIEWPOINT`` when it is not the default one, from
         an E57 file's scan poses ((k, 3) for k scans) or from per-point origin fields; a
         ``station_index`` attribute says which station took each point (E57 scans, per-point
-        fields: :mod:`app.core.formats.stations`); a ROS bag's map has a ``trajectory`` and a
+        fields: :mod:`app.core.formats.station_fields`); a ROS bag's map has a ``trajectory`` and a
         ``"time"`` attribute.
 
     Raises

@@ -182,6 +182,33 @@ def summarise_las(source: Source, max_points: int | None, *, threads: int = 1) -
         return bounds.summary(n_points)
 
 
+def las_point_blocks(
+    source: Source, max_points: int | None, chunk_points: int, *, threads: int = 1
+) -> Iterator[tuple[int, NDArray[np.float64]]]:
+    """The coordinates of a LAS/LAZ file ``chunk_points`` at a time (same checks as
+    :func:`read_las`): memory stays at one chunk whatever the file's size.
+
+    Yields
+    ------
+    start : int
+        File row of the chunk's first point.
+    points : ndarray, shape (k, 3), float64
+        A new array per chunk.
+    """
+    with _opened_points(source, max_points, threads) as (reader, n_points, what):
+        scales, offsets = _scales_and_offsets(reader)
+        for start, chunk in _chunks(reader, n_points, what, chunk_points):
+            xyz = np.empty((len(chunk), 3))
+            _scale(chunk, scales, offsets, xyz)
+            yield start, xyz
+
+
+def declared_las_points(source: Source) -> int:
+    """The point count a LAS/LAZ header declares (after the checks of :func:`read_las`)."""
+    with _opened_points(source, None, 1) as (_, n_points, _):
+        return n_points
+
+
 def extra_dimension_names(source: Source, max_points: int | None) -> tuple[str, ...]:
     """Names of the extra-bytes dimensions the LAS/LAZ header declares (after the checks of
     :func:`read_las`, same errors)."""

@@ -42,8 +42,11 @@ HEADER_PEEK_BYTES = 1 << 14
 VERTEX_ELEMENT_NAMES = ("vertex", "vertices", "point", "points")
 
 
-def read_ply(source: Source, max_points: int | None) -> RawCloud:
+def read_ply(source: Source, max_points: int | None, *, with_attributes: bool = True) -> RawCloud:
     """Decode a PLY file (any of the three encodings).
+
+    With ``with_attributes`` False only the coordinates are decoded (for a binary file, a view
+    of the memory-mapped body: nothing is copied).
 
     Raises
     ------
@@ -77,6 +80,8 @@ def read_ply(source: Source, max_points: int | None) -> RawCloud:
         prop.name for prop in vertex.properties if not isinstance(prop, plyfile.PlyListProperty)
     )
     points = xyz_points(data[x_name], data[y_name], data[z_name])
+    if not with_attributes:
+        return RawCloud(points)
     attributes = structured_attributes(
         data[list(scalar_fields)] if has_lists else data, skip=(x_name, y_name, z_name)
     )

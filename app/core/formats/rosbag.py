@@ -118,16 +118,17 @@ def bag_options_from_strings(values: dict[str, str]) -> BagOptions:
             f"unknown bag parameter(s) {', '.join(unknown)}; known: {', '.join(known)}"
         )
     parsed: dict[str, Any] = {k: v for k, v in values.items() if k in known[:3]}
-    try:
-        if "voxel_size" in values:
-            parsed["voxel_size"] = float(values["voxel_size"])
-        if "max_sweeps" in values:
-            parsed["max_sweeps"] = int(values["max_sweeps"])
-    except ValueError as exc:
-        raise PointCloudError(
-            f"bag parameter value is not a number ({exc}): give voxel_size in metres "
-            "(e.g. 0.05) and max_sweeps as a whole number"
-        ) from exc
+    for key, number, what in (
+        ("voxel_size", float, "a number of metres (e.g. 0.05)"),
+        ("max_sweeps", int, "a whole number"),
+    ):
+        if key in values:
+            try:
+                parsed[key] = number(values[key])
+            except ValueError as exc:
+                raise PointCloudError(
+                    f"bag parameter {key} is {values[key]!r}, not a number: give {what}"
+                ) from exc
     return BagOptions(**parsed)
 
 
@@ -347,23 +348,7 @@ def _pose_source(
                 "odometry with the clouds, or set pose_topic"
             )
         topic = pose_topics[0]
-    poses = TimedPoses()
-    child_frames: set[str] = set()
-    pose_frames: set[str] = set()
-    for connection, log_time, raw in reader.messages(
-        connections=[c for c in connections if c.topic == topic]
-    ):
-        message = reader.deserialize(raw, connection.msgtype)
-        pose = message.pose.pose if hasattr(message.pose, "pose") else message.pose
-        poses.add(
-            stamp_seconds(message.header.stamp) or log_time * 1e-9,
-            vector_of(pose.position),
-            quaternion_of(pose.orientation),
-        )
-        child_frames.add(frame_name(getattr(message, "child_frame_id", "")))
-        pose_frames.add(frame_name(message.header.frame_id))
-    if not len(poses):
-        raise PointCloudError(f"the pose topic {topic!r} has no messages")
+    poses, child_frames, pose_frames = _read_pose_topic(reader, connections, topic)
     if fixed is not None and pose_frames != {fixed}:
         raise PointCloudError(
             f"fixed_frame {fixed!r} is neither linked by TF to the cloud's frame {cloud_frame!r} "
@@ -386,6 +371,31 @@ def _pose_source(
         return body_pose, body_pose
 
     return locate
+
+
+def _read_pose_topic(
+    reader: Any, connections: list[Any], topic: str
+) -> tuple[TimedPoses, set[str], set[str]]:
+    """The poses of an odometry or pose topic, the frames they move (``child_frame_id``) and
+    the frames they are given in."""
+    poses = TimedPoses()
+    child_frames: set[str] = set()
+    pose_frames: set[str] = set()
+    for connection, log_time, raw in reader.messages(
+        connections=[c for c in connections if c.topic == topic]
+    ):
+        message = reader.deserialize(raw, connection.msgtype)
+        pose = message.pose.pose if hasattr(message.pose, "pose") else message.pose
+        poses.add(
+            stamp_seconds(message.header.stamp) or log_time * 1e-9,
+            vector_of(pose.position),
+            quaternion_of(pose.orientation),
+        )
+        child_frames.add(frame_name(getattr(message, "child_frame_id", "")))
+        pose_frames.add(frame_name(message.header.frame_id))
+    if not len(poses):
+        raise PointCloudError(f"the pose topic {topic!r} has no messages")
+    return poses, child_frames, pose_frames
 
 
 def _tf_source(tree: TransformTree, cloud_frame: str, fixed_frame: str | None) -> Any:

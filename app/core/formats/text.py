@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 from app.core.cloud_summary import CloudSummary, FiniteBounds
 from app.core.errors import PointCloudError
 from app.core.formats._common import RawCloud, Source, check_point_count, loadtxt_problem
-from app.core.formats.stations import has_station_fields
+from app.core.formats.station_fields import has_station_fields
 
 COMMENT_PREFIX = "#"
 LEADING_LINES = 1000

@@ -11,6 +11,8 @@ see, and groups changed points into regions.
 Modules, each depending only on those below it:
 
 - :mod:`~app.core.localise.changes`: :func:`localise_changes` and :class:`Localisation`;
+- :mod:`~app.core.localise.epoch`: :class:`EpochCloud`, one cloud and what is known of its
+  sensor, as :func:`localise_changes` takes it;
 - :mod:`~app.core.localise.visibility`: candidates become changed or unobserved;
 - :mod:`~app.core.localise.rays`: the ray test from the other sensor's origin;
 - :mod:`~app.core.localise.origin_free`: without any origin or station, the surface test
@@ -26,6 +28,7 @@ This module lists the package's public names.
 """
 
 from app.core.localise.changes import Localisation, localise_changes
+from app.core.localise.epoch import EpochCloud
 from app.core.localise.neighbourhoods import (
     Neighbourhoods,
     NeighbourhoodSearch,
@@ -43,6 +46,7 @@ __all__ = [
     "LABEL_UNCHANGED",
     "LABEL_UNOBSERVED",
     "ChangedRegion",
+    "EpochCloud",
     "Localisation",
     "NeighbourhoodSearch",
     "Neighbourhoods",

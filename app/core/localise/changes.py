@@ -48,16 +48,15 @@ from app.core.localise.distance import (
     support_factor,
     surface_distance,
 )
-from app.core.localise.neighbourhoods import Neighbourhoods, NeighbourhoodSearch
+from app.core.localise.epoch import EpochCloud, with_checked_stations
+from app.core.localise.rays import Candidates
 from app.core.localise.regions import ChangedRegion, find_regions, mark_moved_surfaces
 from app.core.localise.settings import (
     DEFAULT_PARAMETERS,
     as_origins,
-    as_station_index,
     resolve_parameters,
 )
-from app.core.localise.stations import assign_stations
-from app.core.localise.surface import local_geometry
+from app.core.localise.surface import LocalGeometry, local_geometry
 from app.core.localise.visibility import (
     LABEL_CHANGED,
     LABEL_UNCHANGED,
@@ -68,7 +67,7 @@ from app.core.localise.visibility import (
 )
 from app.core.threads import available_threads
 
-__all__ = ["Localisation", "localise_changes"]
+__all__ = ["EpochCloud", "Localisation", "localise_changes"]
 
 MIN_REGION_POINTS_FLOOR = 4
 """Smallest default minimum region size: 1-3 point clusters are noise."""
@@ -150,39 +149,22 @@ def _default_min_region_points(n_reference: int, n_scan: int) -> int:
 
 
 def localise_changes(
-    reference: NDArray,
-    scan: NDArray,
+    reference: EpochCloud | NDArray,
+    scan: EpochCloud | NDArray,
     *,
-    reference_origin: NDArray | None = None,
-    scan_origin: NDArray | None = None,
     registration_rmse: float = 0.0,
     min_region_points: int | None = None,
     threads: int | None = None,
-    reference_neighbourhoods: Neighbourhoods | NeighbourhoodSearch | None = None,
-    scan_neighbourhoods: Neighbourhoods | NeighbourhoodSearch | None = None,
-    reference_station: NDArray | None = None,
-    scan_station: NDArray | None = None,
-    reference_stations_unknown: bool = False,
-    scan_stations_unknown: bool = False,
-    reference_trajectory_rays: tuple[NDArray, NDArray] | None = None,
-    scan_trajectory_rays: tuple[NDArray, NDArray] | None = None,
     **params: Any,
 ) -> Localisation:
     """Label each point unchanged, changed or unobserved and group changes into regions.
 
     Parameters
     ----------
-    reference : array_like, shape (n, 3)
-        The reference scan.
-    scan : array_like, shape (m, 3)
-        The new scan, already aligned into the reference frame.
-    reference_origin : array_like, shape (3,) or (k, 3), optional
-        The reference sensor's position (reference frame), or one per station of a cloud
-        merged from k stations.  Enables the ray visibility test for scan points (observed =
-        observed by any station); without it they get the coverage test.
-    scan_origin : array_like, shape (3,) or (k, 3), optional
-        The scan sensor's position(s), already in the reference frame.  Enables the ray
-        visibility test for reference points.
+    reference : EpochCloud or array_like, shape (n, 3)
+        The reference scan, with what is known of its sensor (bare points: nothing).
+    scan : EpochCloud or array_like, shape (m, 3)
+        The new scan, already aligned into the reference frame (its origins too).
     registration_rmse : float
         Residual of the alignment (metres); widens the distance threshold.
     min_region_points : int, optional
@@ -192,29 +174,6 @@ def localise_changes(
         Threads to use (the reference and scan sides run concurrently from 2; the KD-tree
         queries use OpenMP's setting).  Default: :func:`available_threads`.  The result does
         not depend on it.
-    reference_neighbourhoods : Neighbourhoods or NeighbourhoodSearch, optional
-        :func:`~app.core.localise.neighbourhoods.nearest_neighbourhoods` of ``reference``
-        with :func:`~app.core.localise.neighbourhoods.neighbourhood_size` neighbours,
-        computed ahead (the pipeline starts one with
-        :func:`~app.core.localise.neighbourhoods.start_neighbourhood_search` while the scan
-        is aligned).  The result is the same as without it.
-    scan_neighbourhoods : Neighbourhoods or NeighbourhoodSearch, optional
-        The same for ``scan`` (the pipeline searches them while the scan's origin is
-        resolved).
-    reference_station, scan_station : array_like, shape (n,) / (m,), int, optional
-        Index into the cloud's origins of the station that took each point.  Without it a
-        cloud with several origins has its points assigned to stations
-        (:func:`~app.core.localise.stations.assign_stations`).
-    reference_stations_unknown, scan_stations_unknown : bool
-        The cloud was sampled by lidars from several stations that are not known (nor
-        recovered): the other cloud's candidates get the origin-free surface test
-        (``origin_free_test="auto"``, :func:`~app.core.localise.visibility.label_candidates`).
-    reference_trajectory_rays, scan_trajectory_rays : (ndarray, ndarray), optional
-        The cloud was taken along a trajectory: its origins are its pseudo-stations' sensor
-        positions, its station index each point's pseudo-station, and these ``(returns,
-        bounds)`` the points each pseudo-station's rays end on
-        (:class:`app.core.trajectory_poses.SensorGroups`); the other cloud's candidates get the
-        trajectory test (:mod:`~app.core.localise.trajectory_visibility`).
     **params
         See :data:`~app.core.localise.settings.DEFAULT_PARAMETERS`.
 
@@ -231,76 +190,162 @@ def localise_changes(
     """
     settings = resolve_parameters(params)
     threads = available_threads() if threads is None else max(1, int(threads))
-    reference_points = as_points(reference, "reference")
-    scan_points = as_points(scan, "scan")
-    reference_origins = as_origins(reference_origin, "reference_origin")
-    scan_origins = as_origins(scan_origin, "scan_origin")
-    reference_station, reference_assignment = _stations_of(
-        reference_points, reference_origins, reference_station, "reference_station"
+    reference, scan = EpochCloud.of(reference), EpochCloud.of(scan)
+    reference = dataclasses.replace(reference, points=as_points(reference.points, "reference"))
+    scan = dataclasses.replace(scan, points=as_points(scan.points, "scan"))
+    reference = dataclasses.replace(
+        reference, origin=as_origins(reference.origin, "reference_origin")
     )
-    scan_station, scan_assignment = _stations_of(
-        scan_points, scan_origins, scan_station, "scan_station"
-    )
+    scan = dataclasses.replace(scan, origin=as_origins(scan.origin, "scan_origin"))
+    reference, reference_assignment = with_checked_stations(reference, "reference_station")
+    scan, scan_assignment = with_checked_stations(scan, "scan_station")
     if not (math.isfinite(registration_rmse) and registration_rmse >= 0):
         raise InputError(f"registration_rmse must be >= 0, got {registration_rmse}")
+    n_reference, n_scan = len(reference.points), len(scan.points)  # type: ignore[arg-type]
     if min_region_points is None:
-        min_region_points = _default_min_region_points(len(reference_points), len(scan_points))
+        min_region_points = _default_min_region_points(n_reference, n_scan)
     elif min_region_points < 1:
         raise InputError(f"min_region_points must be >= 1, got {min_region_points}")
 
-    n_neighbors = settings["n_neighbors"]
+    reference_side, scan_side = _sides(reference, scan, settings["n_neighbors"], threads)
+    del reference, scan  # the sides hold what is needed (and not the neighbourhoods ahead)
+    limits = _thresholds(reference_side, scan_side, settings, registration_rmse)
+    reference_side, scan_side, candidates = _candidates(reference_side, scan_side, limits, threads)
+    reference_found, scan_found = _labelled(
+        (reference_side, scan_side), candidates, limits, settings, threads
+    )
+    regions, uncertain_regions, dropped = _regions(
+        reference_found, scan_found, settings, min_region_points, threads
+    )
+    reference_region, scan_region = _region_indices(regions, n_reference, n_scan)
+    # changed points outside any kept region were in clusters too small to be a change
+    for found, region in ((reference_found, reference_region), (scan_found, scan_region)):
+        found.labelled.label[(found.labelled.label == LABEL_CHANGED) & (region < 0)] = (
+            LABEL_UNCHANGED
+        )
+    parameters = _parameters(
+        (reference_found, scan_found),
+        limits,
+        settings,
+        registration_rmse=registration_rmse,
+        min_region_points=min_region_points,
+        assignments=(reference_assignment, scan_assignment),
+        dropped=dropped,
+        n_uncertain=len(uncertain_regions),
+    )
+    return Localisation(
+        reference_label=reference_found.labelled.label,
+        scan_label=scan_found.labelled.label,
+        reference_distance=reference_found.output_distance(),
+        scan_distance=scan_found.output_distance(),
+        reference_region=reference_region,
+        scan_region=scan_region,
+        regions=regions,
+        parameters=parameters,
+        uncertain_regions=uncertain_regions,
+    )
+
+
+@dataclass(frozen=True)
+class _Limits:
+    """The distance limits of one localisation, measured from both clouds."""
+
+    support: float
+    nn_distance_quartile: float
+    median_spacing: float
+    residual: float
+    threshold: float
+    change_threshold: float
+    registration_rmse: float
+
+    @property
+    def misalignment(self) -> float:
+        """What is left of the alignment's error (metres)."""
+        return math.hypot(self.registration_rmse, self.residual)
+
+
+@dataclass(frozen=True)
+class _Found:
+    """One cloud's side, distances to the other's surface and labels."""
+
+    side: Side
+    distance: NDArray[np.float64]
+    labelled: Labelled
+
+    def output_distance(self) -> NDArray[np.float32]:
+        """The distances as float32, NaN where unobserved, shape (n,)."""
+        distance = self.distance.astype(np.float32)
+        distance[self.labelled.label == LABEL_UNOBSERVED] = np.nan
+        return distance
+
+
+def _side(
+    name: str,
+    region_kind: str,
+    epoch: EpochCloud,
+    geometry: LocalGeometry,
+    nearest: tuple[NDArray, NDArray],
+) -> Side:
+    """One cloud as the localiser's steps see it."""
+    origins = None if epoch.origin is None else np.asarray(epoch.origin, dtype=np.float64)
+    station = None if epoch.station is None else np.asarray(epoch.station)
+    return Side(
+        name=name,
+        region_kind=region_kind,
+        points=np.asarray(epoch.points, dtype=np.float64),
+        origins=origins,
+        station=station,
+        stations_unknown=epoch.stations_unknown and origins is None,
+        trajectory_rays=epoch.trajectory_rays if station is not None else None,
+        geometry=geometry,
+        nearest_distance=nearest[0],
+        nearest_index=nearest[1],
+    )
+
+
+def _sides(
+    reference: EpochCloud, scan: EpochCloud, n_neighbors: int, threads: int
+) -> tuple[Side, Side]:
+    """Both clouds' local geometry and nearest points in the other (step 1)."""
+    reference_points = np.asarray(reference.points, dtype=np.float64)
+    scan_points = np.asarray(scan.points, dtype=np.float64)
     reference_geometry, scan_geometry = _in_parallel(
         threads,
         lambda: local_geometry(
-            reference_points, n_neighbors, neighbourhoods=reference_neighbourhoods
+            reference_points, n_neighbors, neighbourhoods=reference.neighbourhoods
         ),
-        lambda: local_geometry(scan_points, n_neighbors, neighbourhoods=scan_neighbourhoods),
+        lambda: local_geometry(scan_points, n_neighbors, neighbourhoods=scan.neighbourhoods),
     )
-    (reference_nn_distance, reference_nn_index), (scan_nn_distance, scan_nn_index) = _in_parallel(
+    reference_nearest, scan_nearest = _in_parallel(
         threads,
         partial(nearest_in, reference_points, scan_geometry, reference_geometry.order),
         partial(nearest_in, scan_points, reference_geometry, scan_geometry.order),
     )
-    reference_side = Side(
-        name="reference",
-        region_kind="removed",
-        points=reference_points,
-        origins=reference_origins,
-        station=reference_station,
-        stations_unknown=reference_stations_unknown and reference_origins is None,
-        trajectory_rays=reference_trajectory_rays if reference_station is not None else None,
-        geometry=reference_geometry,
-        nearest_distance=reference_nn_distance,
-        nearest_index=reference_nn_index,
+    return (
+        _side("reference", "removed", reference, reference_geometry, reference_nearest),
+        _side("scan", "added", scan, scan_geometry, scan_nearest),
     )
-    scan_side = Side(
-        name="scan",
-        region_kind="added",
-        points=scan_points,
-        origins=scan_origins,
-        station=scan_station,
-        stations_unknown=scan_stations_unknown and scan_origins is None,
-        trajectory_rays=scan_trajectory_rays if scan_station is not None else None,
-        geometry=scan_geometry,
-        nearest_distance=scan_nn_distance,
-        nearest_index=scan_nn_index,
-    )
-    del reference_geometry, scan_geometry  # the sides hold them (and release their indices)
 
+
+def _thresholds(
+    reference_side: Side, scan_side: Side, settings: dict[str, Any], registration_rmse: float
+) -> _Limits:
+    """The support factor and the distance thresholds (steps 2 and 3's limits)."""
+    n_reference = len(reference_side.points)
     # both clouds' values in one array, partitioned in place (no copy: 80 MB at 5M + 5M)
     both_spacings = np.concatenate([reference_side.geometry.spacing, scan_side.geometry.spacing])
     median_spacing = float(np.median(both_spacings, overwrite_input=True))
     del both_spacings
-    relative_nn_distance = np.empty(len(reference_points) + len(scan_points))
+    relative_nn_distance = np.empty(n_reference + len(scan_side.points))
     np.divide(
-        reference_nn_distance,
-        scan_side.geometry.spacing[reference_nn_index],
-        out=relative_nn_distance[: len(reference_points)],
+        reference_side.nearest_distance,
+        scan_side.geometry.spacing[reference_side.nearest_index],
+        out=relative_nn_distance[:n_reference],
     )
     np.divide(
-        scan_nn_distance,
-        reference_side.geometry.spacing[scan_nn_index],
-        out=relative_nn_distance[len(reference_points) :],
+        scan_side.nearest_distance,
+        reference_side.geometry.spacing[scan_side.nearest_index],
+        out=relative_nn_distance[n_reference:],
     )
     support = support_factor(relative_nn_distance, settings["support_factor"])
     nn_distance_quartile = float(
@@ -320,7 +365,22 @@ def localise_changes(
         settings["threshold_factor"] * math.hypot(*noises, registration_rmse, residual),
         resolution_floor,
     )
-    change_threshold = max(threshold, settings["min_change_distance"])
+    return _Limits(
+        support=support,
+        nn_distance_quartile=nn_distance_quartile,
+        median_spacing=median_spacing,
+        residual=residual,
+        threshold=threshold,
+        change_threshold=max(threshold, settings["min_change_distance"]),
+        registration_rmse=float(registration_rmse),
+    )
+
+
+def _candidates(
+    reference_side: Side, scan_side: Side, limits: _Limits, threads: int
+) -> tuple[Side, Side, tuple[tuple[NDArray, Candidates], tuple[NDArray, Candidates]]]:
+    """Distances to the other's surface and change candidates (step 3); the sides returned
+    without their neighbour index (4 (k + 1) bytes a point), needed only until here."""
 
     def distance_to(own: Side, other: Side) -> tuple[NDArray, NDArray]:
         distance, candidate, _ = surface_distance(
@@ -328,9 +388,9 @@ def localise_changes(
             own.nearest_distance,
             own.nearest_index,
             other=other.geometry,
-            threshold=threshold,
-            support_factor=support,
-            change_threshold=change_threshold,
+            threshold=limits.threshold,
+            support_factor=limits.support,
+            change_threshold=limits.change_threshold,
         )
         return distance, candidate
 
@@ -339,152 +399,153 @@ def localise_changes(
         lambda: distance_to(reference_side, scan_side),
         lambda: distance_to(scan_side, reference_side),
     )
-    # From here on the neighbour index (4 (k + 1) bytes a point) is needed only for the
-    # candidates' flattest neighbours: take those and release it before the visibility test.
+    # the candidates' flattest neighbours are taken before the neighbour index is released
     reference_candidates = find_candidates(
         reference_side, distance=reference_distance, candidate=reference_candidate
     )
     scan_candidates = find_candidates(scan_side, distance=scan_distance, candidate=scan_candidate)
-    del reference_candidate, scan_candidate
-    reference_side = _released(reference_side)
-    scan_side = _released(scan_side)
-    misalignment = math.hypot(registration_rmse, residual)
+    return (
+        _released(reference_side),
+        _released(scan_side),
+        ((reference_distance, reference_candidates), (scan_distance, scan_candidates)),
+    )
+
+
+def _labelled(
+    sides: tuple[Side, Side],
+    candidates: tuple[tuple[NDArray, Candidates], tuple[NDArray, Candidates]],
+    limits: _Limits,
+    settings: dict[str, Any],
+    threads: int,
+) -> tuple[_Found, _Found]:
+    """Each cloud's candidates labelled changed or unobserved by the visibility test (step 4)."""
+    reference_side, scan_side = sides
+
+    def label(own: Side, other: Side, found: Candidates) -> Labelled:
+        return label_candidates(
+            own,
+            other,
+            candidates=found,
+            misalignment=limits.misalignment,
+            threshold=limits.threshold,
+            settings=settings,
+            change_threshold=limits.change_threshold,
+        )
+
+    (reference_distance, reference_candidates), (scan_distance, scan_candidates) = candidates
     reference_labelled, scan_labelled = _in_parallel(
         threads,
-        lambda: label_candidates(
-            reference_side,
-            scan_side,
-            candidates=reference_candidates,
-            misalignment=misalignment,
-            threshold=threshold,
-            settings=settings,
-            change_threshold=change_threshold,
-        ),
-        lambda: label_candidates(
-            scan_side,
-            reference_side,
-            candidates=scan_candidates,
-            misalignment=misalignment,
-            threshold=threshold,
-            settings=settings,
-            change_threshold=change_threshold,
-        ),
+        lambda: label(reference_side, scan_side, reference_candidates),
+        lambda: label(scan_side, reference_side, scan_candidates),
     )
-    reference_label, reference_report = reference_labelled.label, reference_labelled.report
-    scan_label, scan_report = scan_labelled.label, scan_labelled.report
+    return (
+        _Found(reference_side, reference_distance, reference_labelled),
+        _Found(scan_side, scan_distance, scan_labelled),
+    )
 
-    def regions_of(side: Side, labelled: Labelled, distance: NDArray, wanted: int) -> Any:
+
+def _regions(
+    reference: _Found,
+    scan: _Found,
+    settings: dict[str, Any],
+    min_region_points: int,
+    threads: int,
+) -> tuple[list[ChangedRegion], list[ChangedRegion], int]:
+    """Regions of changed points, largest first, the uncertain ones (not covered by the other
+    epoch) and how many clusters were too small (step 5)."""
+
+    def regions_of(found: _Found, wanted: int) -> tuple[list[ChangedRegion], int]:
         return find_regions(
-            side.points,
-            kind=side.region_kind,
-            changed=labelled.label == wanted,
-            spacing=side.geometry.spacing,
-            distance=distance,
+            found.side.points,
+            kind=found.side.region_kind,
+            changed=found.labelled.label == wanted,
+            spacing=found.side.geometry.spacing,
+            distance=found.distance,
             cluster_factor=settings["cluster_factor"],
             min_region_points=min_region_points,
-            evidence=labelled.evidence,
-            confidence=labelled.confidence,
+            evidence=found.labelled.evidence,
+            confidence=found.labelled.confidence,
         )
 
     (removed, dropped_removed), (added, dropped_added) = _in_parallel(
         threads,
-        lambda: regions_of(reference_side, reference_labelled, reference_distance, LABEL_CHANGED),
-        lambda: regions_of(scan_side, scan_labelled, scan_distance, LABEL_CHANGED),
+        lambda: regions_of(reference, LABEL_CHANGED),
+        lambda: regions_of(scan, LABEL_CHANGED),
     )
     regions: list[ChangedRegion] = [*removed, *added]
     regions.sort(key=lambda region: (-region.n_points, region.kind, int(region.point_indices[0])))
     regions = mark_moved_surfaces(regions)
     uncertain_regions = [
         region
-        for side, labelled, distance in (
-            (reference_side, reference_labelled, reference_distance),
-            (scan_side, scan_labelled, scan_distance),
-        )
-        for region in regions_of(side, labelled, distance, LABEL_UNOBSERVED)[0]
+        for found in (reference, scan)
+        for region in regions_of(found, LABEL_UNOBSERVED)[0]
         if region.evidence == "no_coverage"
     ]
     uncertain_regions.sort(key=lambda region: (-region.n_points, region.kind))
+    return regions, uncertain_regions, int(dropped_removed + dropped_added)
 
-    reference_region = np.full(len(reference_points), -1, dtype=np.int32)
-    scan_region = np.full(len(scan_points), -1, dtype=np.int32)
+
+def _region_indices(
+    regions: list[ChangedRegion], n_reference: int, n_scan: int
+) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+    """Each point's index in ``regions`` (removed ones: reference points; the others: scan
+    points), -1 if none; shapes (n_reference,) and (n_scan,)."""
+    reference_region = np.full(n_reference, -1, dtype=np.int32)
+    scan_region = np.full(n_scan, -1, dtype=np.int32)
     for number, region in enumerate(regions):
         target = reference_region if region.kind == "removed" else scan_region
         target[region.point_indices] = number
-    # changed points outside any kept region were in clusters too small to be a change
-    reference_label[(reference_label == LABEL_CHANGED) & (reference_region < 0)] = LABEL_UNCHANGED
-    scan_label[(scan_label == LABEL_CHANGED) & (scan_region < 0)] = LABEL_UNCHANGED
+    return reference_region, scan_region
 
-    reference_distance_out = reference_distance.astype(np.float32)
-    reference_distance_out[reference_label == LABEL_UNOBSERVED] = np.nan
-    scan_distance_out = scan_distance.astype(np.float32)
-    scan_distance_out[scan_label == LABEL_UNOBSERVED] = np.nan
 
-    parameters: dict[str, Any] = {
+def _parameters(
+    found: tuple[_Found, _Found],
+    limits: _Limits,
+    settings: dict[str, Any],
+    *,
+    registration_rmse: float,
+    min_region_points: int,
+    assignments: tuple[str, str],
+    dropped: int,
+    n_uncertain: int,
+) -> dict[str, Any]:
+    """The effective parameters, estimates and counts (:attr:`Localisation.parameters`)."""
+    reference, scan = found
+    reference_label, scan_label = reference.labelled.label, scan.labelled.label
+    return {
         **{name: settings[name] for name in DEFAULT_PARAMETERS if name != "support_factor"},
-        "support_factor": support,
+        "support_factor": limits.support,
         "support_factor_calibrated": settings["support_factor"] is None,
         "min_region_points": int(min_region_points),
         "registration_rmse": float(registration_rmse),
-        "reference_noise": reference_side.geometry.noise,
-        "scan_noise": scan_side.geometry.noise,
-        "alignment_residual": residual,
-        "threshold": threshold,
-        "change_threshold": change_threshold,
-        "reference_spacing_median": float(np.median(reference_side.geometry.spacing)),
-        "scan_spacing_median": float(np.median(scan_side.geometry.spacing)),
-        "nn_distance_over_spacing_quartile": nn_distance_quartile,
-        "support_radius_median": max(support * median_spacing, threshold),
-        "cluster_radius_median": settings["cluster_factor"] * median_spacing,
-        "reference_stations": 0 if reference_origins is None else len(reference_origins),
-        "scan_stations": 0 if scan_origins is None else len(scan_origins),
-        "reference_station_assignment": reference_assignment,
-        "scan_station_assignment": scan_assignment,
-        **reference_report,
-        **scan_report,
+        "reference_noise": reference.side.geometry.noise,
+        "scan_noise": scan.side.geometry.noise,
+        "alignment_residual": limits.residual,
+        "threshold": limits.threshold,
+        "change_threshold": limits.change_threshold,
+        "reference_spacing_median": float(np.median(reference.side.geometry.spacing)),
+        "scan_spacing_median": float(np.median(scan.side.geometry.spacing)),
+        "nn_distance_over_spacing_quartile": limits.nn_distance_quartile,
+        "support_radius_median": max(limits.support * limits.median_spacing, limits.threshold),
+        "cluster_radius_median": settings["cluster_factor"] * limits.median_spacing,
+        "reference_stations": _n_stations(reference.side),
+        "scan_stations": _n_stations(scan.side),
+        "reference_station_assignment": assignments[0],
+        "scan_station_assignment": assignments[1],
+        **reference.labelled.report,
+        **scan.labelled.report,
         "n_reference_changed": int((reference_label == LABEL_CHANGED).sum()),
         "n_reference_unobserved": int((reference_label == LABEL_UNOBSERVED).sum()),
         "n_scan_changed": int((scan_label == LABEL_CHANGED).sum()),
         "n_scan_unobserved": int((scan_label == LABEL_UNOBSERVED).sum()),
-        "n_dropped_clusters": int(dropped_removed + dropped_added),
-        "n_uncertain_regions": len(uncertain_regions),
+        "n_dropped_clusters": dropped,
+        "n_uncertain_regions": n_uncertain,
     }
-    return Localisation(
-        reference_label=reference_label,
-        scan_label=scan_label,
-        reference_distance=reference_distance_out,
-        scan_distance=scan_distance_out,
-        reference_region=reference_region,
-        scan_region=scan_region,
-        regions=regions,
-        parameters=parameters,
-        uncertain_regions=uncertain_regions,
-    )
 
 
-def _stations_of(
-    points: NDArray[np.float64],
-    origins: NDArray[np.float64] | None,
-    station: NDArray | None,
-    name: str,
-) -> tuple[NDArray[np.int64] | None, str]:
-    """The checked per-point station index of one cloud, and where it came from.
-
-    Returns
-    -------
-    station : ndarray, shape (n,), int64, or None
-        None without origins or with one origin and no index (every point is its).
-    source : {"none", "single", "given", "assigned"}
-    """
-    checked = as_station_index(
-        station, points.shape[0], None if origins is None else len(origins), name
-    )
-    if checked is not None:
-        return checked, "given"
-    if origins is None:
-        return None, "none"
-    if len(origins) == 1:
-        return None, "single"
-    return assign_stations(points, origins), "assigned"
+def _n_stations(side: Side) -> int:
+    """How many origins a side has (0: none known)."""
+    return 0 if side.origins is None else len(side.origins)
 
 
 def _released(side: Side) -> Side:

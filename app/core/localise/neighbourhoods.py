@@ -150,10 +150,10 @@ class NeighbourhoodSearch:
         other work).
     on_found : callable, optional
         Called with the result on the search's thread before :meth:`take` can return it
-        (e.g. to write it to a :class:`~app.core.geometry_cache.GeometryCache`).
+        (e.g. to write it to a :class:`~app.core.cache.geometry.GeometryCache`).
     stored : callable, optional
         Tried first on the search's thread: its neighbourhoods, if not None, are the result
-        (e.g. a :class:`~app.core.geometry_cache.GeometryCache`'s load); ``on_found`` is not
+        (e.g. a :class:`~app.core.cache.geometry.GeometryCache`'s load); ``on_found`` is not
         called for them.
     finish : callable, optional
         Applied on the search's thread to the neighbourhoods found (before ``on_found``): what

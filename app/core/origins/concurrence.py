@@ -3,7 +3,7 @@
 An upright spinning lidar fires each column in a vertical half-plane through its axis, and
 range noise moves a return along its ray: two neighbouring returns of one column lie, in the
 top view, on a line through the station's (x, y) exactly.  Used by
-:mod:`app.core.origins.stations`.
+:mod:`app.core.origins.station_recovery`.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ usable pairs each, more than :data:`MAX_LINES` (40k found the same centres, with
 half again the cost of the neighbour queries and normals)."""
 FULL_SEARCH_POINTS = 100_000
 """Clouds of this many points or more are searched with all of :data:`MAX_LINES` and
-:data:`PAIR_QUERIES` (a first pass on a subset of :mod:`app.core.origins.stations`, 200k
+:data:`PAIR_QUERIES` (a first pass on a subset of :mod:`app.core.origins.station_recovery`, 200k
 points, is searched as before); fewer points get proportionally fewer: the residual of a later
 pass holds a few stations' returns, their pairs at least as dense as in the first pass.  (The
 first pass scaled too, at 0.9 of its lines, changed the stations enough to drop the IoU of a

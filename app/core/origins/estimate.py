@@ -34,7 +34,7 @@ from app.core.origins.columns import (
 from app.core.origins.rings import fit_ring_height
 from app.core.origins.sharpen import sharpen_origin
 
-__all__ = ["CONFIDENT", "MIN_POINTS", "OriginEstimate", "estimate_origin"]
+__all__ = ["CONFIDENT", "MIN_POINTS", "OriginEstimate", "confidence_ramp", "estimate_origin"]
 
 CONFIDENT = 0.5
 """An estimate at least this confident is used when no origin is given."""
@@ -94,7 +94,9 @@ class OriginEstimate:
         return self.confidence >= CONFIDENT
 
 
-def _ramp(value: float, bounds: tuple[float, float]) -> float:
+def confidence_ramp(value: float, bounds: tuple[float, float]) -> float:
+    """0 at or below ``bounds[0]``, 1 at or above ``bounds[1]``, linear between: how one signal
+    (a concurring share, a ring share, a spike) counts in an estimate's confidence."""
     low, high = bounds
     return float(np.clip((value - low) / (high - low), 0.0, 1.0))
 
@@ -117,7 +119,7 @@ def estimate_origin(
     apex : bool
         Search the rings' apex when the other signals leave the estimate unconfident (1-2.5 s
         at 1M points).  Off where a cloud that fails them is taken for a merged survey and its
-        stations are recovered first (:func:`~app.core.origins.stations.resolve_stations`).
+        stations are recovered first (:func:`~app.core.origins.station_recovery.resolve_stations`).
 
     Returns
     -------
@@ -140,8 +142,8 @@ def estimate_origin(
     columns = fit_column_centre(anchor, direction, low, high)
     rings = fit_ring_height(wall_points, columns.centre, rng)
     confidence = min(
-        _ramp(columns.concurring_share, CONCURRING_RANGE),
-        _ramp(rings.ring_share, RING_SHARE_RANGE),
+        confidence_ramp(columns.concurring_share, CONCURRING_RANGE),
+        confidence_ramp(rings.ring_share, RING_SHARE_RANGE),
     )
     evidence = {
         "concurring_share": columns.concurring_share,
@@ -160,7 +162,8 @@ def estimate_origin(
     ):
         sharpened = sharpen_origin(points, patch, origin, rng)
         sharpened_confidence = min(
-            _ramp(sharpened.ring_share, RING_SHARE_RANGE), _ramp(sharpened.spike, SPIKE_RANGE)
+            confidence_ramp(sharpened.ring_share, RING_SHARE_RANGE),
+            confidence_ramp(sharpened.spike, SPIKE_RANGE),
         )
         evidence["sharpened_spike"] = sharpened.spike
         evidence["sharpened_ring_share"] = sharpened.ring_share
@@ -169,7 +172,8 @@ def estimate_origin(
     if apex and confidence < CONFIDENT:
         found = search_apex(wall_points, points, columns.candidates, rng)
         apex_confidence = min(
-            _ramp(found.ring_share, APEX_RING_SHARE_RANGE), _ramp(found.spike, APEX_SPIKE_RANGE)
+            confidence_ramp(found.ring_share, APEX_RING_SHARE_RANGE),
+            confidence_ramp(found.spike, APEX_SPIKE_RANGE),
         )
         evidence["apex_spike"] = found.spike
         evidence["apex_ring_share"] = found.ring_share

@@ -3,7 +3,7 @@
 A merged survey's stations may come with it: origins given as parameters or from the file
 (E57 scans, per-point origin fields), and a ``station_index`` attribute saying which station
 took each point.  These helpers check and shape what is known;
-:func:`~app.core.origins.stations.resolve_stations` decides what is used.
+:func:`~app.core.origins.station_recovery.resolve_stations` decides what is used.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from app.core.cloud import PointCloud
 from app.core.localise.settings import as_origins, as_station_index
-from app.core.localise.stations import STATION_INDEX_ATTRIBUTE
+from app.core.localise.station_assignment import STATION_INDEX_ATTRIBUTE
 from app.core.origins.estimate import estimate_origin
 from app.core.origins.resolve import ResolvedOrigin
 

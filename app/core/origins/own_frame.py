@@ -18,10 +18,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.cloud import PointCloud
-from app.core.localise.stations import STATION_INDEX_ATTRIBUTE
+from app.core.localise.station_assignment import STATION_INDEX_ATTRIBUTE
 from app.core.origins.estimate import RING_SHARE_RANGE
 from app.core.origins.resolve import ResolvedOrigin
-from app.core.origins.stations import EarlySearch, recovered_before_apex, resolve_stations
+from app.core.origins.station_recovery import EarlySearch, recovered_before_apex, resolve_stations
 from app.core.registration import apply_transform
 
 __all__ = ["OWN_FRAME_RETRY_RING_SHARE", "resolve_moved_cloud"]
@@ -65,15 +65,16 @@ def resolve_moved_cloud(
         Origins in the cloud's own frame.
     estimate : bool
     recover : {True, False, "auto"}
-        As for :func:`~app.core.origins.stations.resolve_stations`; with ``"auto"`` the
+        As for :func:`~app.core.origins.station_recovery.resolve_stations`; with ``"auto"`` the
         stations are searched (in the aligned frame) only when the own frame gives no
         origin either.
     station_of : PointCloud, optional
         The cloud ``own_points`` come from (its per-point station index, if any).
     stations_first : bool
         The other epoch was a merged survey: with ``"auto"``, the stations are searched before
-        the single-origin estimate (:func:`~app.core.origins.stations.recovered_before_apex`),
-        and used without the own-frame retry when they qualify.
+        the single-origin estimate
+        (:func:`~app.core.origins.station_recovery.recovered_before_apex`), and used without the
+        own-frame retry when they qualify.
 
     Returns
     -------

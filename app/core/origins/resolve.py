@@ -32,7 +32,7 @@ BOUNDING_BOX_MARGIN = 0.5
 CHECK_POINTS = 60_000
 STATIONS_UNKNOWN = "stations_unknown"
 """Evidence entry (1.0) of a lidar cloud that no single origin explains and whose stations
-were not recovered (:func:`~app.core.origins.stations.resolve_stations`)."""
+were not recovered (:func:`~app.core.origins.station_recovery.resolve_stations`)."""
 
 
 @dataclass(frozen=True)
@@ -48,10 +48,10 @@ class ResolvedOrigin:
     warnings : list of str
     evidence : dict
         The estimate's evidence when one was made; the cloud's sampling and the stations
-        searched when they were (:func:`~app.core.origins.stations.resolve_stations`).
+        searched when they were (:func:`~app.core.origins.station_recovery.resolve_stations`).
     station_confidence : list of float, optional
         Per station of a merged cloud whose stations were recovered: the share of points on
-        its rings (:mod:`app.core.origins.stations`).
+        its rings (:mod:`app.core.origins.station_recovery`).
     """
 
     origin: NDArray[np.float64] | None

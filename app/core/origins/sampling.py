@@ -1,6 +1,6 @@
 """Whether a cloud was sampled by lidars: rings of returns at regular angular steps.
 
-Used by :func:`~app.core.origins.stations.resolve_stations` to decide, for a cloud that no
+Used by :func:`~app.core.origins.station_recovery.resolve_stations` to decide, for a cloud that no
 single origin explains, whether to search its stations (a survey merged from several lidar
 stations) or not (uniform, random or gridded points, which have none and must not pay the
 search, nor get the origin-free surface test meant for merged lidar clouds).

@@ -5,7 +5,7 @@ rings): histogrammed by elevation, they pile up in a few narrow bins.  Seen from
 little off, each ring's returns spread with their horizontal distance (by ``dz / rho``
 radians).  :func:`station_height` scores candidate heights by the share of points on ring
 bins (:func:`ring_scores`), coarse to fine.  Used by
-:func:`~app.core.origins.stations.recover_stations`.
+:func:`~app.core.origins.station_recovery.recover_stations`.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.localise.stations import RING_CONTRAST, SMOOTHING_BINS
+from app.core.localise.station_assignment import RING_CONTRAST, SMOOTHING_BINS
 
 __all__ = ["HEIGHT_REACH", "ring_scores", "station_height"]
 

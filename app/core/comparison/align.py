@@ -1,0 +1,96 @@
+"""Stage 3, **align**: the scan registered onto the reference (GICP via small_gicp), or the
+identity with its fit measured when alignment is off."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.core.cache.reference_alignment import ReferenceAlignmentCache
+from app.core.comparison.load import LoadedPair
+from app.core.comparison.reports import RegistrationReport
+from app.core.registration import (
+    Registration,
+    apply_transform,
+    identity_registration,
+    register_scan,
+)
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """The scan in the reference's local frame.
+
+    Attributes
+    ----------
+    registration : Registration
+        The transform (local frame) and its fit.
+    aligned_scan : ndarray, shape (m, 3)
+        The scan's local points moved by it.
+    report : RegistrationReport
+        Its fit, with the transform in the files' frame.
+    """
+
+    registration: Registration
+    aligned_scan: NDArray[np.float64]
+    report: RegistrationReport
+
+
+def align_scan(
+    loaded: LoadedPair, reference_memory: ReferenceAlignmentCache | None = None
+) -> Alignment:
+    """Register ``loaded``'s scan onto its reference (when ``settings.align``).
+
+    Parameters
+    ----------
+    loaded : LoadedPair
+        With its scan points (not released).
+    reference_memory : ReferenceAlignmentCache, optional
+        The reference's alignment arrays kept between comparisons.
+
+    Returns
+    -------
+    Alignment
+
+    Raises
+    ------
+    InputError
+        Clouds that cannot be aligned.
+    """
+    scan_points = loaded.scan_points
+    if scan_points is None:
+        raise ValueError("the scan's local points were released before its alignment")
+    if loaded.settings.align:
+        registration = register_scan(
+            loaded.reference_points,
+            scan_points,
+            reference_memory=reference_memory,
+            **loaded.settings.registration,
+        )
+    else:
+        registration = identity_registration(
+            loaded.reference_points, scan_points, reference_memory=reference_memory
+        )
+    aligned_scan = apply_transform(scan_points, registration.transform)
+    centre = scan_points.mean(axis=0)  # how far the alignment moved the scan (metres)
+    moved = apply_transform(centre[None], registration.transform)[0] - centre
+    report = RegistrationReport.of(
+        registration,
+        file_frame_transform(registration.transform, loaded.local_origin),
+        enabled=loaded.settings.align,
+        translation_m=float(np.linalg.norm(moved)),
+    )
+    return Alignment(registration, aligned_scan, report)
+
+
+def file_frame_transform(
+    local_transform: NDArray[np.float64], local_origin: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """A transform estimated in local coordinates, shape (4, 4), in the files' coordinates."""
+    shift = np.eye(4)
+    shift[:3, 3] = local_origin
+    unshift = np.eye(4)
+    unshift[:3, 3] = -local_origin
+    return shift @ local_transform @ unshift

@@ -1,0 +1,127 @@
+"""Stage 6, **assemble**: every stage's output as one :class:`ComparisonResult`, in the files'
+coordinates and the source files' row order."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.core.comparison.align import Alignment
+from app.core.comparison.decide import Decision, Detected
+from app.core.comparison.load import LoadedPair
+from app.core.comparison.origins import SensorOrigins
+from app.core.comparison.reports import SideVisibility
+from app.core.comparison.result import ComparisonResult, region_summary
+from app.core.localise import LABEL_UNOBSERVED, Localisation
+from app.core.registration import apply_transform
+
+
+def assemble_result(
+    loaded: LoadedPair,
+    origins: SensorOrigins,
+    alignment: Alignment,
+    localisation: Localisation,
+    detected: Detected,
+    decision: Decision,
+    timings: dict[str, float],
+) -> ComparisonResult:
+    """The result of one comparison from its stages' outputs.
+
+    Returns
+    -------
+    ComparisonResult
+        Regions and origins in file coordinates, per-point arrays in source order.
+    """
+    reference, scan, local_origin = loaded.reference, loaded.scan, loaded.local_origin
+    visibility = visibility_report(origins, localisation)
+    calibration = dict(detected.detection.calibration)
+    calibration["compared_points"] = detected.compared_points
+    calibration["site"] = decision.site
+    calibration["visibility"] = visibility  # stored with a job's result (the API shows it)
+    calibration["decision"] = decision.report()
+    transform = alignment.registration.transform
+    return ComparisonResult(
+        method=loaded.method,
+        variant=loaded.variant,
+        params=effective_params(loaded),
+        score=float(detected.detection.score),
+        threshold=float(detected.detection.threshold),
+        changed=decision.changed,
+        calibration=calibration,
+        registration=alignment.report.to_json_dict(),
+        regions=[region_summary(region, local_origin) for region in localisation.regions],
+        uncertain_regions=[
+            region_summary(region, local_origin) for region in localisation.uncertain_regions
+        ],
+        n_reference=len(reference),
+        n_scan=len(scan),
+        reference_label=reference.to_source_order(
+            localisation.reference_label.astype(np.int8), LABEL_UNOBSERVED
+        ),
+        scan_label=scan.to_source_order(localisation.scan_label.astype(np.int8), LABEL_UNOBSERVED),
+        reference_distance=reference.to_source_order(
+            localisation.reference_distance.astype(np.float32), np.nan
+        ),
+        scan_distance=scan.to_source_order(localisation.scan_distance.astype(np.float32), np.nan),
+        reference_region=reference.to_source_order(
+            localisation.reference_region.astype(np.int32), -1
+        ),
+        scan_region=scan.to_source_order(localisation.scan_region.astype(np.int32), -1),
+        localisation=dict(localisation.parameters),
+        timings=timings,
+        sensor_origins={
+            "reference": origins.reference.resolved.report(lambda origin: origin + local_origin),
+            "scan": origins.scan.resolved.report(
+                lambda origin: to_scan_file(origin, transform, local_origin)
+            ),
+        },
+        warnings=[*origins.reference.resolved.warnings, *origins.scan.resolved.warnings],
+        visibility=visibility,
+    )
+
+
+def visibility_report(
+    origins: SensorOrigins, localisation: Localisation
+) -> dict[str, dict[str, Any]]:
+    """What was found out about each cloud's sensors, and the visibility test it got
+    (:class:`SideVisibility` as stored)."""
+    return {
+        side: SideVisibility.of(
+            cloud.resolved.visibility_report(),
+            localisation.parameters.get(f"{side}_visibility"),
+        ).to_json_dict()
+        for side, cloud in (("reference", origins.reference), ("scan", origins.scan))
+    }
+
+
+def effective_params(loaded: LoadedPair) -> dict[str, Any]:
+    """Every parameter in effect: passing them back to ``compare`` replays the result."""
+    settings = loaded.settings
+    params: dict[str, Any] = {
+        **settings.detector.get_params(),
+        "align": settings.align,
+        "registration": settings.registration,
+        "localisation": settings.localisation,
+        "decision": settings.decision,
+    }
+    for key, explicit in (
+        ("reference_origin", settings.reference_origin),
+        ("scan_origin", settings.scan_origin),
+    ):
+        if explicit is not None:  # as given: one origin, or a list of them
+            params[key] = np.asarray(explicit, dtype=np.float64).tolist()
+    if settings.recover_stations != "auto":
+        params["recover_stations"] = settings.recover_stations
+    if not settings.estimate_origins:
+        params["estimate_origins"] = False
+    return params
+
+
+def to_scan_file(
+    origin: NDArray[np.float64], transform: NDArray[np.float64], local_origin: NDArray
+) -> NDArray[np.float64]:
+    """Positions in the aligned local frame, in the scan file's coordinates, shape (3,)/(k, 3)."""
+    moved = apply_transform(origin.reshape(-1, 3), np.linalg.inv(transform)) + local_origin
+    return moved.reshape(origin.shape)

@@ -1,0 +1,160 @@
+"""Stage 5, **decide**: the paper's global score between the parts of both clouds that both
+sensors observed, then the decision rule (:mod:`app.core.site_calibration`).
+
+Points the other scan could not see are not evidence of change, so the detector compares the
+mutually observed points (all of them when fewer than :data:`app.core.cloud.MIN_POINTS` are);
+its threshold is calibrated from the clouds' own resampling noise
+(:mod:`app.core.detectors`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from threadpoolctl import threadpool_limits
+
+from app.core.cloud import MIN_POINTS
+from app.core.detectors.base import ChangeDetector, Detection
+from app.core.localise import LABEL_UNOBSERVED, ChangedRegion, Localisation
+from app.core.site_calibration import DecisionInputs, decide, largest_extent
+
+
+@dataclass(frozen=True)
+class Detected:
+    """The detector's outcome and which points it compared.
+
+    Attributes
+    ----------
+    detection : Detection
+        Score, calibrated threshold, the detector's own verdict and its calibration.
+    compared_points : {"mutually observed", "all"}
+    """
+
+    detection: Detection
+    compared_points: str
+
+
+@dataclass(frozen=True)
+class Decision:
+    """The comparison's verdict and the tests that made it.
+
+    Attributes
+    ----------
+    changed : bool
+    rule : {"regions", "detector", "either"}
+    detector_changed : bool
+        The detector's own verdict (score above its threshold).
+    n_regions : int
+    tests : list of dict
+        The decisive tests (:func:`app.core.site_calibration.decide`).
+    site : dict
+        The site calibration's provenance (``applied``, and ``reason`` when not).
+    """
+
+    changed: bool
+    rule: str
+    detector_changed: bool
+    n_regions: int
+    tests: list[dict[str, Any]]
+    site: dict[str, Any]
+
+    def report(self) -> dict[str, Any]:
+        """``calibration["decision"]``: rule, the detector's verdict, regions and tests."""
+        return {
+            "rule": self.rule,
+            "detector_changed": self.detector_changed,
+            "n_regions": self.n_regions,
+            "tests": self.tests,
+        }
+
+
+def detect_change(
+    detector: ChangeDetector,
+    reference_points: NDArray[np.float64],
+    aligned_scan: NDArray[np.float64],
+    localisation: Localisation,
+) -> Detected:
+    """The detector's score on the mutually observed points (one BLAS thread).
+
+    Parameters
+    ----------
+    detector : ChangeDetector
+    reference_points : ndarray, shape (n, 3)
+    aligned_scan : ndarray, shape (m, 3)
+    localisation : Localisation
+        Of these points: its labels say which are observed.
+
+    Returns
+    -------
+    Detected
+    """
+    reference_observed = localisation.reference_label != LABEL_UNOBSERVED
+    scan_observed = localisation.scan_label != LABEL_UNOBSERVED
+    use_observed = (
+        np.count_nonzero(reference_observed) >= MIN_POINTS
+        and np.count_nonzero(scan_observed) >= MIN_POINTS
+    )
+    with threadpool_limits(limits=1, user_api="blas"):
+        if use_observed:
+            detection = detector.detect(
+                reference_points[reference_observed], aligned_scan[scan_observed]
+            )
+        else:
+            detection = detector.detect(reference_points, aligned_scan)
+    return Detected(detection, "mutually observed" if use_observed else "all")
+
+
+def decide_change(
+    detection: Detection,
+    regions: Sequence[ChangedRegion],
+    *,
+    min_region_points: int,
+    rule: str,
+    method: str,
+    variant: str,
+    site_calibration: Mapping[str, Any] | None = None,
+) -> Decision:
+    """Apply the decision ``rule`` to the detector's score and the regions found.
+
+    Parameters
+    ----------
+    detection : Detection
+    regions : sequence of ChangedRegion
+        The regions kept (local frame).
+    min_region_points : int
+        The size floor they passed.
+    rule : {"regions", "detector", "either"}
+    method, variant : str
+        The detector's, to check a site calibration was learned for it.
+    site_calibration : mapping, optional
+        :func:`app.core.site_calibration.learn_site_calibration`'s result.
+
+    Returns
+    -------
+    Decision
+    """
+    changed, tests, site = decide(
+        DecisionInputs(
+            rule=rule,
+            method=method,
+            variant=variant,
+            score=float(detection.score),
+            detector_threshold=float(detection.threshold),
+            n_regions=len(regions),
+            largest_region_extent_m=largest_extent(regions),
+            min_region_points=min_region_points,
+        ),
+        site_calibration,
+    )
+    return Decision(
+        changed=changed,
+        rule=rule,
+        detector_changed=bool(detection.changed),
+        n_regions=len(regions),
+        tests=tests,
+        site=site,
+    )

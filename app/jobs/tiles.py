@@ -1,0 +1,434 @@
+"""A large job's tiles fanned out on the queue: any worker takes a tile, none is done twice.
+
+A job whose pair does not fit one worker's memory budget is localised tile by tile
+(:func:`app.core.tiling.compare_tiled`).  Its worker (the *parent*) hands the tiles to the
+queue with :class:`TileFanOut`, the tile runner it passes to ``compare_tiled``:
+
+1. it writes the tiles' inputs under ``results/<job_id>/tiles/`` (the plan, the shared
+   context, the aligned points and station indices as ``.npy`` files that every worker
+   memory-maps) and records one ``job_tile`` row per tile;
+2. it sends one ``run_tile(job_id, tile_index)`` message per tile still to do, on the queue
+   the workers already consume (:func:`app.jobs.queue.send_tile_messages`);
+3. it takes tiles itself like any other worker until none is left, then waits for the tiles
+   others are running, and merges.
+
+Each tile is claimed with one conditional ``UPDATE`` (``queued``, or ``running`` with an expired
+lease) that takes a lease kept alive by a heartbeat thread.  So:
+
+* a worker killed mid-tile leaves a ``running`` row whose lease expires; the parent (or
+  any other worker's message) takes it again: **retried**;
+* a tile whose row is ``succeeded`` and whose result file exists is **never recomputed**,
+  even by a new parent after the first one was killed (the plan of the same inputs is the
+  same);
+* a tile of a job no longer running (failed, finished, deleted with its site) is
+  **cancelled**: messages for it are dropped, and a tile being computed is not stored (a
+  job waiting in the queue for its next attempt keeps its tiles: that attempt resumes them).
+
+No scheduler of its own: the queue carries the messages, the table is the truth, and the
+parent's wait is the only loop (it sleeps on the table while other workers finish).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from datetime import timedelta
+from pathlib import Path
+
+import numpy as np
+from sqlalchemy import ColumnElement, and_, func, or_, select, update
+
+from app.clock import utc_now
+from app.config import Settings
+from app.core.tiling import TileContext, TilePlan, TileResult, TileSource, compute_tile
+from app.db.models import Job, JobStatus, JobTile, TileStatus
+from app.db.session import transaction
+from app.jobs.hooks import job_hooks
+from app.jobs.leases import ClaimedJob, LeaseKeeper, make_lease_owner
+from app.jobs.queue import send_tile_messages
+
+logger = logging.getLogger("scandiff.jobs.tiles")
+
+PLAN_FILE = "plan.npz"
+CONTEXT_FILE = "context.npz"
+SOURCE_ARRAYS = (
+    "reference_points",
+    "scan_points",
+    "reference_station",
+    "scan_station",
+    "reference_rays_returns",
+    "reference_rays_bounds",
+    "scan_rays_returns",
+    "scan_rays_bounds",
+)
+"""The ``.npy`` files of a :class:`~app.core.tiling.TileSource` (absent ones are None)."""
+WAIT_SECONDS = 0.25
+"""How long the parent sleeps between looks at the table while other workers finish tiles."""
+
+ProgressCallback = Callable[[str, float], None]
+
+
+def save_tile_inputs(
+    directory: Path, plan: TilePlan, source: TileSource, context: TileContext
+) -> None:
+    """Write what every tile reads (atomically, file by file) into ``directory``."""
+    directory.mkdir(parents=True, exist_ok=True)
+    arrays = {
+        "reference_points": source.reference_points,
+        "scan_points": source.scan_points,
+        "reference_station": source.reference_station,
+        "scan_station": source.scan_station,
+    }
+    for side, rays in (("reference", source.reference_rays), ("scan", source.scan_rays)):
+        returns, bounds = rays if rays is not None else (None, None)
+        arrays[f"{side}_rays_returns"] = returns
+        arrays[f"{side}_rays_bounds"] = bounds
+    for name, array in arrays.items():
+        path = directory / f"{name}.npy"
+        if array is None:
+            path.unlink(missing_ok=True)
+            continue
+        _atomic_write(path, lambda handle, array=array: np.save(handle, np.asarray(array)))
+    _atomic_write(directory / PLAN_FILE, plan.save)
+    _atomic_write(directory / CONTEXT_FILE, context.save)
+
+
+def load_tile_inputs(directory: Path) -> tuple[TilePlan, TileSource, TileContext]:
+    """The plan, the points (memory-mapped, read-only) and the context a parent saved."""
+    arrays = {
+        name: np.load(directory / f"{name}.npy", mmap_mode="r")
+        if (directory / f"{name}.npy").exists()
+        else None
+        for name in SOURCE_ARRAYS
+    }
+
+    def rays(side: str) -> tuple[np.ndarray, np.ndarray] | None:
+        returns, bounds = arrays[f"{side}_rays_returns"], arrays[f"{side}_rays_bounds"]
+        return None if returns is None or bounds is None else (returns, bounds)
+
+    source = TileSource(
+        reference_points=arrays["reference_points"],
+        scan_points=arrays["scan_points"],
+        reference_station=arrays["reference_station"],
+        scan_station=arrays["scan_station"],
+        reference_rays=rays("reference"),
+        scan_rays=rays("scan"),
+    )
+    return TilePlan.load(directory / PLAN_FILE), source, TileContext.load(directory / CONTEXT_FILE)
+
+
+def _atomic_write(path: Path, write: Callable[..., None]) -> None:
+    """``write(handle)`` into a temporary file beside ``path``, then rename it over ``path``."""
+    temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.part")
+    try:
+        with open(temporary, "wb") as handle:
+            write(handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+
+
+def tile_result_path(directory: Path, tile_index: int) -> Path:
+    """Where tile ``tile_index``'s result file lives."""
+    return directory / f"tile-{tile_index:05d}.npz"
+
+
+def record_tiles(settings: Settings, job_id: str, plan: TilePlan) -> list[int]:
+    """Rows for the plan's tiles (kept when present); the tiles still to compute.
+
+    A ``succeeded`` row whose result file is gone goes back to ``queued``.
+    """
+    directory = settings.data_layout.job_tiles_dir(job_id)
+    with transaction(settings.sqlalchemy_url) as session:
+        existing = {
+            tile.tile_index: tile
+            for tile in session.scalars(select(JobTile).where(JobTile.job_id == job_id))
+        }
+        for tile_index in range(plan.n_tiles):
+            tile = existing.get(tile_index)
+            if tile is None:
+                session.add(JobTile(job_id=job_id, tile_index=tile_index, status=TileStatus.QUEUED))
+            elif tile.status == TileStatus.SUCCEEDED and not (
+                tile.result_path and settings.data_layout.resolve(tile.result_path).exists()
+            ):
+                tile.status, tile.result_path = TileStatus.QUEUED, None
+            elif tile.status == TileStatus.CANCELLED:
+                tile.status = TileStatus.QUEUED
+        for tile_index, tile in existing.items():
+            if tile_index >= plan.n_tiles:  # a different plan: should not happen, never kept
+                session.delete(tile)
+        session.flush()
+        todo = session.scalars(
+            select(JobTile.tile_index).where(
+                JobTile.job_id == job_id, JobTile.status != TileStatus.SUCCEEDED
+            )
+        ).all()
+    directory.mkdir(parents=True, exist_ok=True)
+    return sorted(todo)
+
+
+def tile_progress(settings: Settings, job_id: str) -> tuple[int, int]:
+    """``(tiles done, tiles in all)`` of a job (``(0, 0)`` when it is not tiled)."""
+    with transaction(settings.sqlalchemy_url) as session:
+        rows = session.execute(
+            select(JobTile.status, func.count())
+            .where(JobTile.job_id == job_id)
+            .group_by(JobTile.status)
+        ).all()
+    counts = {status: count for status, count in rows}
+    return counts.get(TileStatus.SUCCEEDED, 0), sum(counts.values())
+
+
+def claim_tile(
+    settings: Settings, job_id: str, owner: str, tile_index: int | None = None
+) -> int | None:
+    """Take one tile of a running job (that one, or the lowest free one); its index, or None.
+
+    Free: ``queued``, or ``running`` with an expired lease (its worker died).
+    """
+    now = utc_now()
+    free = or_(
+        JobTile.status == TileStatus.QUEUED,
+        and_(JobTile.status == TileStatus.RUNNING, JobTile.lease_expires_at < now),
+    )
+    with transaction(settings.sqlalchemy_url) as session:
+        job_running = session.scalar(
+            select(Job.id).where(Job.id == job_id, Job.status == JobStatus.RUNNING)
+        )
+        if job_running is None:
+            return None
+        candidates = select(JobTile.tile_index).where(JobTile.job_id == job_id, free)
+        if tile_index is not None:
+            candidates = candidates.where(JobTile.tile_index == tile_index)
+        for candidate in session.scalars(candidates.order_by(JobTile.tile_index).limit(4)):
+            taken = session.execute(
+                update(JobTile)
+                .where(JobTile.job_id == job_id, JobTile.tile_index == candidate, free)
+                .values(
+                    status=TileStatus.RUNNING,
+                    attempts=JobTile.attempts + 1,
+                    lease_owner=owner,
+                    lease_expires_at=now + timedelta(seconds=settings.job_lease_seconds),
+                    started_at=now,
+                )
+                .execution_options(synchronize_session=False)
+            ).rowcount
+            if taken:
+                return int(candidate)
+    return None
+
+
+def _held(job_id: str, tile_index: int, owner: str) -> ColumnElement[bool]:
+    """The tile, still running under ``owner``'s lease."""
+    return and_(
+        JobTile.job_id == job_id,
+        JobTile.tile_index == tile_index,
+        JobTile.status == TileStatus.RUNNING,
+        JobTile.lease_owner == owner,
+    )
+
+
+class TileLease:
+    """Heartbeat thread of one claimed tile: extends its lease until stopped."""
+
+    def __init__(self, settings: Settings, job_id: str, tile_index: int, owner: str) -> None:
+        self.settings, self.job_id, self.tile_index, self.owner = (
+            settings,
+            job_id,
+            tile_index,
+            owner,
+        )
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="tile-lease", daemon=True)
+
+    def __enter__(self) -> TileLease:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def _run(self) -> None:
+        interval = min(self.settings.job_heartbeat_seconds, self.settings.job_lease_seconds / 3)
+        while not self._stop.wait(interval):
+            try:
+                with transaction(self.settings.sqlalchemy_url) as session:
+                    session.execute(
+                        update(JobTile)
+                        .where(_held(self.job_id, self.tile_index, self.owner))
+                        .values(
+                            lease_expires_at=utc_now()
+                            + timedelta(seconds=self.settings.job_lease_seconds)
+                        )
+                        .execution_options(synchronize_session=False)
+                    )
+            except Exception:  # retried at the next beat; the lease covers several
+                logger.exception("tile heartbeat failed", extra={"job_id": self.job_id})
+
+
+def run_claimed_tile(
+    settings: Settings,
+    job_id: str,
+    tile_index: int,
+    owner: str,
+    threads: int | None = None,
+    *,
+    parent: ClaimedJob | None = None,
+    tiles_done_here: int = 0,
+) -> bool:
+    """Compute a tile this worker claimed and store it; whether it was stored."""
+    directory = settings.data_layout.job_tiles_dir(job_id)
+    started = time.perf_counter()
+    with TileLease(settings, job_id, tile_index, owner):
+        job_hooks.in_tile(parent, tiles_done_here)
+        plan, source, context = load_tile_inputs(directory)
+        result = compute_tile(plan, tile_index, source, context, threads=threads)
+        path = tile_result_path(directory, tile_index)
+        _atomic_write(path, result.save)
+    seconds = time.perf_counter() - started
+    crop_points = int(
+        result.figures.get("crop_reference_points", 0) + result.figures.get("crop_scan_points", 0)
+    )
+    with transaction(settings.sqlalchemy_url) as session:
+        stored = session.execute(
+            update(JobTile)
+            .where(_held(job_id, tile_index, owner))
+            .values(
+                status=TileStatus.SUCCEEDED,
+                result_path=settings.data_layout.stored_form(path),
+                points=crop_points,
+                seconds=seconds,
+                finished_at=utc_now(),
+                lease_expires_at=None,  # lease_owner stays: who computed it
+            )
+            .execution_options(synchronize_session=False)
+        ).rowcount
+    logger.info(
+        "tile %s",
+        "stored" if stored else "computed but not stored (lease lost or job stopped)",
+        extra={"job_id": job_id, "stage": f"tile-{tile_index}"},
+    )
+    return bool(stored)
+
+
+def cancel_tiles(settings: Settings, job_id: str) -> int:
+    """Mark a stopped job's unfinished tiles ``cancelled``; how many."""
+    with transaction(settings.sqlalchemy_url) as session:
+        return session.execute(
+            update(JobTile)
+            .where(
+                JobTile.job_id == job_id,
+                JobTile.status.in_([TileStatus.QUEUED, TileStatus.RUNNING]),
+            )
+            .values(status=TileStatus.CANCELLED, lease_owner=None, lease_expires_at=None)
+            .execution_options(synchronize_session=False)
+        ).rowcount
+
+
+def remove_tile_inputs(settings: Settings, job_id: str) -> None:
+    """Delete a finished job's tile files (its merged labels are stored; rows stay as a record)."""
+    directory = settings.data_layout.job_tiles_dir(job_id)
+    if directory.is_dir():
+        shutil.rmtree(directory, ignore_errors=True)
+
+
+def run_tile_message(
+    job_id: str, tile_index: int, settings: Settings, threads: int | None = None
+) -> str:
+    """What a worker does with one ``run_tile`` message; what happened (for logs and tests).
+
+    ``computed``; ``skipped`` (done, or taken by a live worker); ``cancelled`` (the job no
+    longer runs).
+    """
+    owner = make_lease_owner()
+    claimed = claim_tile(settings, job_id, owner, tile_index)
+    if claimed is None:
+        with transaction(settings.sqlalchemy_url) as session:
+            status = session.scalar(select(Job.status).where(Job.id == job_id))
+        if status in (JobStatus.RUNNING, JobStatus.QUEUED):
+            return "skipped"  # done or taken; or the job waits for its next worker, who resumes
+        cancel_tiles(settings, job_id)  # finished, failed or deleted: nothing will read it
+        return "cancelled"
+    stored = run_claimed_tile(settings, job_id, claimed, owner, threads)
+    return "computed" if stored else "cancelled"
+
+
+class TileFanOut:
+    """``compare_tiled``'s tile runner in a worker: tiles on the queue, this worker in the pool.
+
+    Parameters
+    ----------
+    job : ClaimedJob
+        The job this worker holds.
+    settings : Settings
+    keeper : LeaseKeeper
+        The job's heartbeat: checked between tiles (a lost lease abandons the job) and fed
+        the tiles' progress.
+    """
+
+    def __init__(self, job: ClaimedJob, settings: Settings, keeper: LeaseKeeper) -> None:
+        self.job, self.settings, self.keeper = job, settings, keeper
+        self.owner = make_lease_owner()
+        self.computed_here = 0
+
+    def __call__(
+        self,
+        plan: TilePlan,
+        source: TileSource,
+        context: TileContext,
+        threads: int,
+        report: ProgressCallback,
+    ) -> list[TileResult]:
+        """Every tile's result, in order, computed by whichever worker took it."""
+        directory = self.settings.data_layout.job_tiles_dir(self.job.id)
+        save_tile_inputs(directory, plan, source, context)
+        todo = record_tiles(self.settings, self.job.id, plan)
+        send_tile_messages(self.job.id, todo, self.settings)
+        while True:
+            self.keeper.check()
+            done, total = tile_progress(self.settings, self.job.id)
+            report("localise", 0.35 + 0.5 * done / max(1, total))
+            if done == total:
+                break
+            claimed = claim_tile(self.settings, self.job.id, self.owner)
+            if claimed is None:
+                time.sleep(WAIT_SECONDS)  # others are running the last tiles
+                continue
+            if run_claimed_tile(
+                self.settings,
+                self.job.id,
+                claimed,
+                self.owner,
+                threads,
+                parent=self.job,
+                tiles_done_here=self.computed_here,
+            ):
+                self.computed_here += 1
+        with transaction(self.settings.sqlalchemy_url) as session:
+            paths = session.scalars(
+                select(JobTile.result_path)
+                .where(JobTile.job_id == self.job.id)
+                .order_by(JobTile.tile_index)
+            ).all()
+        return [TileResult.load(self.settings.data_layout.resolve(str(path))) for path in paths]
+
+
+__all__ = [
+    "TileFanOut",
+    "cancel_tiles",
+    "claim_tile",
+    "load_tile_inputs",
+    "record_tiles",
+    "remove_tile_inputs",
+    "run_tile_message",
+    "save_tile_inputs",
+    "tile_progress",
+]

@@ -1,0 +1,264 @@
+"""Tiled comparison (issue 30): the whole ``scandiff compare`` of a merged-station pair against
+the sum of its tiles' cKDTree floors, and its peak RSS.
+
+The pair: a five-station warehouse survey per epoch (:func:`app.core.datasets.lidar.lidar_pair`
+with ``n_stations=5``, an added box, the scan misaligned), float32 binary PLY without station
+information, as bench/perf_round2.py writes its pairs (written once into ``--work-dir``, in a
+child process, and reused).
+
+Measured in one run:
+
+* ``compare``: ``scandiff compare REF SCAN --json --labels OUT.npz --memory-budget B`` as a child
+  process: wall seconds, CPU seconds and peak RSS from ``os.wait4`` (bench/perf_round2.py's
+  :func:`~bench.perf_round2.run_command`), the number of tiles, the stations recovered and the
+  regions found;
+* ``tile floors``: for each tile the command reported (its core box grown by the margin), one
+  ``cKDTree`` build and nearest-neighbour query each way between the two clouds' points in that
+  box, two query threads (compute seconds only, in a child process), summed;
+* optionally (``--one-process``) the same command with no budget, for the labels' IoU and the
+  regions against the tiled run (and its own RSS and wall).
+
+Targets (issue 30): peak RSS <= 2.5 GB; wall <= 3x the sum of the per-tile floors.
+
+Run: ``.venv/bin/python -m bench.tiled --work-dir /tmp/tiled --points 2000000
+[--memory-budget 1.2G] [--one-process]``.  ``--measure-model DIR`` prints the bytes a point of
+``localise_changes`` on crops of the pair in DIR (the figure behind
+:data:`app.core.tiling.plan.LOCALISATION_BYTES_PER_POINT`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench.perf_round2 import PROJECT_ROOT, SCANDIFF, _child
+
+SCENE_SEED = 18
+N_STATIONS = 5
+RSS_TARGET_MB = 2.5 * 1024
+RATIO_TARGET = 3.0
+
+
+def write_pair(scene_dir: Path, n_points: int) -> dict[str, Path]:
+    """Write the merged-station pair of about ``n_points`` points a scan once (a child process)."""
+    scene_dir.mkdir(parents=True, exist_ok=True)
+    paths = {"reference": scene_dir / "reference.ply", "scan": scene_dir / "scan.ply"}
+    if not all(path.exists() for path in paths.values()):
+        command = [sys.executable, "-m", "bench.tiled", "--write-pair", str(scene_dir)]
+        subprocess.run([*command, str(n_points)], check=True, cwd=PROJECT_ROOT)
+    return paths
+
+
+def _write_pair_here(scene_dir: Path, n_points: int) -> None:
+    from app.core.datasets.lidar import lidar_pair, steps_for_points
+    from bench.perf_workers import write_binary_ply
+
+    pair = lidar_pair(
+        layout="warehouse",
+        change="added",
+        n_stations=N_STATIONS,
+        angular_step_deg=steps_for_points(n_points, N_STATIONS),
+        misaligned=True,
+        random_state=SCENE_SEED,
+    )
+    write_binary_ply(scene_dir / "reference.ply", pair.reference)
+    write_binary_ply(scene_dir / "scan.ply", pair.scan)
+
+
+def run_compare(paths: dict[str, Path], labels: Path, budget: str | None) -> dict[str, Any]:
+    """The command as a child: wall, CPU, peak RSS and its JSON report."""
+    arguments = [str(SCANDIFF), "compare", str(paths["reference"]), str(paths["scan"])]
+    arguments += ["--json", "--labels", str(labels), "--memory-budget", budget or "none"]
+    child = _child(arguments, dict(os.environ), PROJECT_ROOT)
+    if child["code"] != 0:
+        return {"error": child["stderr"].strip().splitlines()[-1:], "code": child["code"]}
+    report = json.loads(child["stdout"].strip().splitlines()[-1])
+    tiles = report["localisation"].get("tiles")
+    return {
+        "seconds": round(child["wall"], 1),
+        "cpu_seconds": round(child["cpu_seconds"], 1),
+        "peak_rss_mb": round(child["peak_rss_mb"]),
+        "timings": {key: round(value, 1) for key, value in report["timings"].items()},
+        "changed": report["changed"],
+        "regions": [(r["kind"], r["n_points"]) for r in report["regions"]],
+        "stations_recovered": {
+            side: report["visibility"][side].get("stations_recovered")
+            for side in ("reference", "scan")
+        },
+        "tests": {side: report["visibility"][side].get("test") for side in ("reference", "scan")},
+        "tiles": tiles,
+    }
+
+
+def run_tile_floors(paths: dict[str, Path], tiles: dict[str, Any]) -> dict[str, Any]:
+    """The per-tile floors in a child process (its own RSS, not the bench's)."""
+    boxes = [[tile["core_min"], tile["core_max"]] for tile in tiles["per_tile"]]
+    spec = json.dumps(
+        {"boxes": boxes, "margin": tiles["margin_m"], **{k: str(v) for k, v in paths.items()}}
+    )
+    command = [sys.executable, "-m", "bench.tiled", "--floor-worker", spec]
+    environment = {**os.environ, "OMP_NUM_THREADS": "1"}
+    child = _child(command, environment, PROJECT_ROOT)
+    if child["code"] != 0:
+        return {"error": child["stderr"].strip().splitlines()[-1:]}
+    return json.loads(child["stdout"].strip().splitlines()[-1])
+
+
+def _floor_worker(spec: dict[str, Any]) -> None:
+    """Print the summed seconds of a cKDTree build + query each way per tile crop."""
+    from scipy.spatial import cKDTree
+
+    from app.core.formats import read_point_cloud
+
+    reference = read_point_cloud(spec["reference"]).points
+    scan = read_point_cloud(spec["scan"]).points
+    margin = float(spec["margin"])
+    seconds = []
+    for low, high in spec["boxes"]:  # the outer tiles' infinite sides come as null
+        low = np.array([-np.inf if v is None else v for v in low], dtype=np.float64) - margin
+        high = np.array([np.inf if v is None else v for v in high], dtype=np.float64) + margin
+        crops = [
+            np.ascontiguousarray(
+                points[np.all((points[:, :2] >= low) & (points[:, :2] <= high), 1)]
+            )
+            for points in (reference, scan)
+        ]
+        started = time.perf_counter()
+        for built, queried in ((crops[0], crops[1]), (crops[1], crops[0])):
+            if len(built) and len(queried):
+                cKDTree(built).query(queried, k=1, workers=2)
+        seconds.append(time.perf_counter() - started)
+    print(
+        json.dumps({"seconds": round(sum(seconds), 2), "per_tile": [round(s, 2) for s in seconds]})
+    )
+
+
+def labels_iou(first: Path, second: Path) -> dict[str, float]:
+    """IoU of the changed points of two labels files, per cloud."""
+    result = {}
+    with np.load(first) as one, np.load(second) as other:
+        for name in ("reference_changed", "scan_changed"):
+            union = np.count_nonzero(one[name] | other[name])
+            both = np.count_nonzero(one[name] & other[name])
+            result[name] = 1.0 if union == 0 else round(both / union, 4)
+    return result
+
+
+def measure_model(scene_dir: Path) -> None:
+    """Peak bytes a point of ``localise_changes`` on spatial crops of the pair (x quantiles)."""
+    for fraction in (0.25, 0.5, 1.0):
+        command = [sys.executable, "-m", "bench.tiled", "--model-worker", str(scene_dir)]
+        subprocess.run([*command, str(fraction)], check=True, cwd=PROJECT_ROOT)
+
+
+def _model_worker(scene_dir: Path, fraction: float) -> None:
+    from app.core.formats import read_point_cloud
+    from app.core.localise import localise_changes
+    from app.core.registration import apply_transform, register_scan
+
+    reference = read_point_cloud(scene_dir / "reference.ply").points
+    scan = read_point_cloud(scene_dir / "scan.ply").points
+    scan = apply_transform(scan, register_scan(reference[::4], scan[::4]).transform)
+    cut = np.quantile(reference[:, 0], fraction)
+    reference = np.ascontiguousarray(reference[reference[:, 0] <= cut])
+    scan = np.ascontiguousarray(scan[scan[:, 0] <= cut])
+    before = _rss_bytes("VmRSS")
+    Path("/proc/self/clear_refs").write_text("5")  # resets the peak (VmHWM) to now
+    started = time.perf_counter()
+    localise_changes(reference, scan, threads=2)
+    peak = _rss_bytes("VmHWM")
+    points = len(reference) + len(scan)
+    print(
+        json.dumps(
+            {
+                "points": points,
+                "bytes_per_point": round((peak - before) / points),
+                "seconds": round(time.perf_counter() - started, 1),
+            }
+        ),
+        flush=True,
+    )
+
+
+def _rss_bytes(field: str) -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) * 1024
+    raise RuntimeError(f"no {field} in /proc/self/status")
+
+
+def main() -> None:
+    """Parse the command line and run the bench (or one of its children)."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--work-dir", type=Path, default=Path("/tmp/scandiff-tiled"))
+    parser.add_argument("--points", type=int, default=2_000_000, help="points a scan")
+    parser.add_argument("--memory-budget", default="2.5G")
+    parser.add_argument("--one-process", action="store_true")
+    parser.add_argument("--write-pair", nargs=2, metavar=("DIR", "POINTS"))
+    parser.add_argument("--floor-worker", metavar="JSON")
+    parser.add_argument("--measure-model", type=Path, metavar="DIR")
+    parser.add_argument("--model-worker", nargs=2, metavar=("DIR", "FRACTION"))
+    args = parser.parse_args()
+    if args.write_pair:
+        _write_pair_here(Path(args.write_pair[0]), int(args.write_pair[1]))
+        return
+    if args.floor_worker:
+        _floor_worker(json.loads(args.floor_worker))
+        return
+    if args.model_worker:
+        _model_worker(Path(args.model_worker[0]), float(args.model_worker[1]))
+        return
+    if args.measure_model:
+        measure_model(args.measure_model)
+        return
+    scene_dir = args.work_dir / f"{args.points // 1_000_000}M"
+    started = time.perf_counter()
+    paths = write_pair(scene_dir, args.points)
+    print(f"pair ready in {time.perf_counter() - started:.0f} s: {scene_dir}", flush=True)
+    tiled = run_compare(paths, scene_dir / "labels_tiled.npz", args.memory_budget)
+    print(json.dumps({"compare": {k: v for k, v in tiled.items() if k != "tiles"}}), flush=True)
+    if "error" in tiled:
+        return
+    tiles = tiled["tiles"]
+    if tiles is None:
+        print("the pair fit the budget: one process (give a smaller --memory-budget)")
+        return
+    per_tile = tiles["per_tile"]
+    crop_points = sum(t["crop_reference_points"] + t["crop_scan_points"] for t in per_tile)
+    core_points = sum(t["core_reference_points"] + t["core_scan_points"] for t in per_tile)
+    largest = max(t["crop_reference_points"] + t["crop_scan_points"] for t in per_tile)
+    print(
+        f"crops hold {crop_points / core_points:.2f}x the pair's points (margins and rays); "
+        f"largest crop {largest:,}",
+        flush=True,
+    )
+    floors = run_tile_floors(paths, tiles)
+    print(json.dumps({"tile_floors": floors}), flush=True)
+    ratio = tiled["seconds"] / floors["seconds"] if "seconds" in floors else float("nan")
+    print(
+        f"tiles {tiles['count']}, peak RSS {tiled['peak_rss_mb']} MB (target <= "
+        f"{RSS_TARGET_MB:.0f}: {'met' if tiled['peak_rss_mb'] <= RSS_TARGET_MB else 'NOT met'}), "
+        f"wall {tiled['seconds']} s = {ratio:.2f}x the summed tile floors "
+        f"{floors.get('seconds')} s (target <= {RATIO_TARGET}x: "
+        f"{'met' if ratio <= RATIO_TARGET else 'NOT met'}); largest tile alignment residual "
+        f"{tiles.get('alignment_residual_max')}",
+        flush=True,
+    )
+    if args.one_process:
+        one = run_compare(paths, scene_dir / "labels_one.npz", None)
+        print(json.dumps({"one_process": one}), flush=True)
+        if "error" not in one:
+            iou = labels_iou(scene_dir / "labels_one.npz", scene_dir / "labels_tiled.npz")
+            print(json.dumps({"labels_iou": iou}), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,206 @@
+"""A tiled job through the real service: 1 worker against 2 on this machine (issue 30 item 3).
+
+One pair (a robot's fused map, nothing given, written as float32 binary PLY) is compared by
+``scandiff serve`` with ``--workers 1`` and then ``--workers 2``, tiles forced with
+``SCANDIFF_TILE_CROP_POINTS`` (a share of both clouds' points) so they are ``run_tile``
+messages on the queue.  Timed: from the POST of the scan to the job's ``succeeded`` (the
+reference already stored).  Checked: both runs' labels equal the in-process tiled comparison of
+the same files (:func:`app.core.tiling.compare.compare_tiled`, what ``scandiff compare`` runs
+for a pair over its budget), and which worker computed each tile.
+
+Run: ``.venv/bin/python -m bench.tiled_service [--size 1.0] [--crop-share 0.2] [--repeats 1]``.
+Target (issue 30): 2 workers >= 1.7x faster than 1 on 2 cores, the result identical.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import tempfile
+import time
+from collections import Counter
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+from app.core.datasets import map_pair
+from app.core.formats import read_point_cloud, write_point_cloud
+from app.core.tiling import TileBudgetError
+from app.core.tiling.compare import compare_tiled
+
+TARGET_SPEEDUP = 1.7
+JOB_TIMEOUT_SECONDS = 3600.0
+
+
+def _free_port() -> int:
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        return int(listener.getsockname()[1])
+
+
+class Service:
+    """``scandiff serve`` on loopback in a fresh data directory, killed on exit."""
+
+    def __init__(self, data_dir: Path, workers: int, env: dict[str, str]) -> None:
+        self.data_dir, self.port = data_dir, _free_port()
+        environment = {**os.environ, "OMP_NUM_THREADS": "1", **env}
+        environment.pop("SCANDIFF_DATA_DIR", None)
+        command = [sys.executable, "-m", "app", "serve", "--data-dir", str(data_dir)]
+        command += ["--port", str(self.port), "--workers", str(workers)]
+        self.log = open(data_dir.with_suffix(".log"), "wb")  # noqa: SIM115 - closed in __exit__
+        self.process = subprocess.Popen(
+            command,
+            env=environment,
+            stdout=self.log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,  # its own process group: the workers are killed with it
+        )
+        self.base_url = f"http://127.0.0.1:{self.port}"
+
+    def __enter__(self) -> httpx.Client:
+        deadline = time.monotonic() + 120
+        token_file = self.data_dir / "admin-token"
+        while time.monotonic() < deadline:
+            with contextlib.suppress(httpx.HTTPError):
+                health = httpx.get(f"{self.base_url}/api/v1/health").status_code
+                if health == 200 and token_file.exists():
+                    break
+            time.sleep(0.2)
+        else:
+            raise RuntimeError(f"scandiff serve did not start; see {self.log.name}")
+        token = token_file.read_text().strip()
+        self.client = httpx.Client(
+            base_url=self.base_url, headers={"Authorization": f"Bearer {token}"}, timeout=60
+        )
+        return self.client
+
+    def __exit__(self, *exc: object) -> None:
+        self.client.close()
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self.process.pid, signal.SIGKILL)
+        self.process.wait()
+        self.log.close()
+
+
+def run_service(work: Path, workers: int, crop_points: int, files: tuple[Path, Path]) -> dict:
+    """Seconds from the scan's POST to ``succeeded``, its labels and who computed the tiles."""
+    data_dir = work / f"service-{workers}-workers"
+    data_dir.mkdir()
+    env = {"SCANDIFF_TILE_CROP_POINTS": str(crop_points)}
+    with Service(data_dir, workers, env) as client:
+        site = client.post("/api/v1/sites", json={"name": "bench"}).json()
+        path = f"/api/v1/sites/{site['id']}/scans"
+        reference = client.post(
+            path,
+            params={"reference": "true", "filename": "reference.ply"},
+            content=files[0].read_bytes(),
+        )
+        reference.raise_for_status()
+        started = time.perf_counter()
+        response = client.post(path, params={"filename": "scan.ply"}, content=files[1].read_bytes())
+        response.raise_for_status()
+        job_id = response.json()["job"]["id"]
+        while True:
+            job = client.get(f"/api/v1/jobs/{job_id}", params={"wait": 10}).json()
+            if job["status"] in ("succeeded", "failed"):
+                break
+            if time.perf_counter() - started > JOB_TIMEOUT_SECONDS:
+                raise RuntimeError(f"job {job_id} did not finish")
+        seconds = time.perf_counter() - started
+        if job["status"] != "succeeded":
+            raise RuntimeError(f"job failed: {job['error']}")
+        labels = client.get(f"/api/v1/jobs/{job_id}/labels", params={"format": "npz"})
+        labels.raise_for_status()
+    labels_path = work / f"labels-{workers}.npz"
+    labels_path.write_bytes(labels.content)
+    with np.load(labels_path) as data:
+        arrays = {name: data[name] for name in ("reference_label", "scan_label")}
+    with sqlite3.connect(data_dir / "scandiff.sqlite3") as connection:
+        owners = [
+            row[0].rsplit(":", 2)[1]
+            for row in connection.execute(
+                "SELECT lease_owner FROM job_tile WHERE job_id = ?", (job_id,)
+            )
+        ]
+    return {
+        "seconds": seconds,
+        "labels": arrays,
+        "tiles": job["tiles"],
+        "tiles_per_worker": sorted(Counter(owners).values(), reverse=True),
+        "changed": job["changed"],
+        "n_regions": job["n_regions"],
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Print the markdown section of the figures."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--layout", default="warehouse", help="robot map layout (warehouse: widest)"
+    )
+    parser.add_argument("--size", type=float, default=1.0, help="map_pair size (rays cast)")
+    parser.add_argument("--crop-share", type=float, default=0.2)
+    parser.add_argument("--seed", type=int, default=0)
+    arguments = parser.parse_args(argv)
+
+    with tempfile.TemporaryDirectory(prefix="tiled-service-") as directory:
+        work = Path(directory)
+        pair = map_pair(
+            "robot",
+            layout=arguments.layout,
+            change="removed",
+            size=arguments.size,
+            random_state=arguments.seed,
+        )
+        files = (work / "reference.ply", work / "scan.ply")
+        for path, cloud in zip(files, (pair.reference, pair.scan), strict=True):
+            write_point_cloud(path, cloud.points.astype(np.float32))
+        clouds = [read_point_cloud(path) for path in files]
+        total = sum(len(cloud) for cloud in clouds)
+        share = arguments.crop_share
+        while True:  # the smallest share from --crop-share whose tiles hold their margins
+            crop_points = int(share * total)
+            started = time.perf_counter()
+            try:
+                expected = compare_tiled(
+                    *clouds, budget_bytes=1 << 40, max_crop_points=crop_points, threads=1
+                )
+                break
+            except TileBudgetError:
+                share += 0.05
+        in_process = time.perf_counter() - started
+        runs = {workers: run_service(work, workers, crop_points, files) for workers in (1, 2)}
+
+    print(f"## Tiled job through the service ({time.strftime('%Y-%m-%d %H:%M')})\n")
+    print(
+        f"Pair: robot map ({arguments.layout}), size {arguments.size}, {total:,} points in "
+        f"both clouds; tiles of at "
+        f"most {crop_points:,} points ({expected.localisation['tiles']['count']} tiles); "
+        f"in-process tiled comparison {in_process:.1f} s.\n"
+    )
+    print("| workers | upload to succeeded s | tiles | tiles per worker | labels = in-process |")
+    print("|---|---|---|---|---|")
+    for workers, run in runs.items():
+        same = all(
+            np.array_equal(run["labels"][name], getattr(expected, name))
+            for name in ("reference_label", "scan_label")
+        )
+        print(
+            f"| {workers} | {run['seconds']:.1f} | {run['tiles']['done']}/{run['tiles']['total']}"
+            f" | {run['tiles_per_worker']} | {'yes' if same else 'NO'} |"
+        )
+    speedup = runs[1]["seconds"] / runs[2]["seconds"]
+    verdict = "PASS" if speedup >= TARGET_SPEEDUP else "FAIL"
+    print(f"\n{verdict} 2 workers {speedup:.2f}x faster than 1 (target >= {TARGET_SPEEDUP}x)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

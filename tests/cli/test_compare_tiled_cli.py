@@ -1,0 +1,78 @@
+"""``scandiff compare --memory-budget``: a pair over the budget is compared in tiles; a budget
+too small for one tile, or not a size, is exit status 2 with a message saying what to set."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from app.core.datasets.lidar import lidar_pair
+from app.core.tiling.plan import (
+    BASELINE_BYTES,
+    LOCALISATION_BYTES_PER_POINT,
+    RESIDENT_BYTES_PER_POINT,
+)
+from tests.helpers.files import ply_bytes
+
+
+def run_compare(*arguments: str | Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "app", "compare", *map(str, arguments)],
+        capture_output=True,
+        text=True,
+        timeout=400,
+    )
+
+
+def _pair(tmp_path: Path) -> tuple[Path, Path, int]:
+    pair = lidar_pair(
+        layout="warehouse", change="added", n_stations=3, angular_step_deg=1.2, random_state=4
+    )
+    paths = []
+    for name, cloud in (("reference", pair.reference), ("scan", pair.scan)):
+        path = tmp_path / f"{name}.ply"
+        path.write_bytes(ply_bytes(cloud, coordinate_type="f8"))
+        paths.append(path)
+    return paths[0], paths[1], len(pair.reference) + len(pair.scan)
+
+
+def test_a_pair_over_the_budget_is_compared_in_tiles(tmp_path: Path) -> None:
+    reference, scan, total = _pair(tmp_path)
+    budget = BASELINE_BYTES + total * RESIDENT_BYTES_PER_POINT
+    budget += int(0.97 * total) * LOCALISATION_BYTES_PER_POINT  # the pair just over it
+    labels = tmp_path / "labels.npz"
+    done = run_compare(
+        reference, scan, "--json", "--labels", labels, "--memory-budget", str(budget)
+    )
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    assert report["localisation"]["tiles"]["count"] >= 2
+    assert report["params"]["memory_budget_bytes"] == budget
+    with np.load(labels) as written:
+        assert written["scan_label"].shape == (report["n_scan"],)
+        assert (
+            np.count_nonzero(written["scan_changed"]) == report["label_counts"]["scan"]["changed"]
+        )
+    one_process = run_compare(reference, scan, "--json", "--memory-budget", "none")
+    assert one_process.returncode == 0, one_process.stderr
+    assert "tiles" not in json.loads(one_process.stdout)["localisation"]
+
+
+def test_a_budget_too_small_for_one_tile_is_exit_2_naming_the_budget(tmp_path: Path) -> None:
+    reference, scan, _ = _pair(tmp_path)
+    done = run_compare(reference, scan, "--memory-budget", "401M")
+    assert done.returncode == 2
+    assert "does not fit the memory budget of 401 MiB" in done.stderr
+    assert "raise the memory budget by at least" in done.stderr
+    assert "Traceback" not in done.stderr
+
+
+def test_a_memory_budget_that_is_not_a_size_is_exit_2(tmp_path: Path) -> None:
+    reference, scan, _ = _pair(tmp_path)
+    done = run_compare(reference, scan, "--memory-budget", "lots")
+    assert done.returncode == 2
+    assert "not a size in bytes: 'lots'" in done.stderr

@@ -1,0 +1,166 @@
+"""A job compared tile by tile on several workers (issue 30's fan-out), through the real service.
+
+``SCANDIFF_TILE_CROP_POINTS`` forces small tiles so a small pair crosses many tile borders; the
+tiles are ``run_tile`` messages on the same queue the workers consume.  Checked: the fanned-out
+result equals the in-process tiled comparison of the same files (labels identical), more than
+one worker computed tiles, the job reports tiles done/total, a worker killed inside a tile
+leaves that tile to be retried while the tiles already stored are never computed again, and a
+job that stops cancels its tiles.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+from sqlalchemy import delete, select, update
+
+from app.config import Settings
+from app.core.datasets import map_pair
+from app.core.formats import read_point_cloud
+from app.core.tiling.compare import compare_tiled
+from app.db.models import Job, JobStatus, JobTile, TileStatus
+from app.db.session import transaction
+from app.jobs.leases import lease_owner_pid
+from app.jobs.tiles import run_tile_message
+from tests.helpers.files import ply_bytes
+from tests.helpers.jobs import create_job
+from tests.helpers.service import ServiceProcess
+
+CROP_SHARE = 0.5
+"""Share of both clouds' points a tile's crop may hold: the map below gets four tiles."""
+
+
+def _pair() -> tuple[np.ndarray, np.ndarray, int]:
+    """A robot's fused map with a box removed (points only: nothing given), and the crop size."""
+    pair = map_pair("robot", change="removed", size=0.25, random_state=0)
+    reference, scan = pair.reference.points, pair.scan.points
+    return reference, scan, int(CROP_SHARE * (len(reference) + len(scan)))
+
+
+def _tiles(data_dir: Path, job_id: str) -> list[dict]:
+    with sqlite3.connect(data_dir / "scandiff.sqlite3") as connection:
+        connection.row_factory = sqlite3.Row
+        rows = connection.execute(
+            "SELECT * FROM job_tile WHERE job_id = ? ORDER BY tile_index", (job_id,)
+        ).fetchall()
+    return [dict(row) for row in rows]
+
+
+def _run_job(service: ServiceProcess, reference: np.ndarray, scan: np.ndarray) -> dict:
+    with service.client() as client:
+        site = client.post("/api/v1/sites", json={"name": "hall"}).json()
+        path = f"/api/v1/sites/{site['id']}/scans"
+        response = client.post(
+            path,
+            params={"reference": "true", "filename": "monday.ply"},
+            content=ply_bytes(reference),
+        )
+        assert response.status_code == 201, response.text
+        response = client.post(path, params={"filename": "tuesday.ply"}, content=ply_bytes(scan))
+        assert response.status_code == 202, response.text
+        job = service.wait_for_job(client, response.json()["job"]["id"], timeout=300)
+        labels = client.get(f"/api/v1/jobs/{job['id']}/labels", params={"format": "npz"})
+        assert labels.status_code == 200, labels.text
+    return {**job, "labels_npz": labels.content}
+
+
+def _labels(npz: bytes, tmp_path: Path) -> dict[str, np.ndarray]:
+    path = tmp_path / "labels.npz"
+    path.write_bytes(npz)
+    with np.load(path) as data:
+        return {name: data[name] for name in data.files}
+
+
+def test_tiles_run_on_every_worker_and_equal_the_in_process_tiled_result(
+    service_factory: Callable[..., ServiceProcess], tmp_path: Path
+) -> None:
+    reference, scan, crop_points = _pair()
+    service = service_factory(
+        workers=2,
+        env={
+            "SCANDIFF_TILE_CROP_POINTS": str(crop_points),
+            "SCANDIFF_TEST_JOB_HOOKS": '{"tile_sleep_seconds": 0.3}',
+        },
+    )
+    job = _run_job(service, reference, scan)
+    assert job["status"] == JobStatus.SUCCEEDED, job
+    tiles = _tiles(service.data_dir, job["id"])
+    assert len(tiles) >= 3
+    assert job["tiles"] == {"done": len(tiles), "total": len(tiles)}
+    assert {tile["status"] for tile in tiles} == {"succeeded"}
+    assert all(tile["attempts"] == 1 for tile in tiles), "no tile computed twice"
+    workers = {lease_owner_pid(tile["lease_owner"]) for tile in tiles}
+    assert len(workers) == 2, f"tiles computed by {workers}: the second worker took none"
+    assert not (service.data_dir / "results" / job["id"] / "tiles").exists()
+
+    clouds = []
+    for name, points in (("reference.ply", reference), ("scan.ply", scan)):
+        (tmp_path / name).write_bytes(ply_bytes(points))  # the bytes the service stored
+        clouds.append(read_point_cloud(tmp_path / name))
+    expected = compare_tiled(
+        *clouds,
+        budget_bytes=1 << 40,
+        max_crop_points=crop_points,
+        threads=1,
+    )
+    assert job["changed"] == expected.changed
+    assert job["n_regions"] == len(expected.regions)
+    stored = _labels(job["labels_npz"], tmp_path)
+    np.testing.assert_array_equal(stored["reference_label"], expected.reference_label)
+    np.testing.assert_array_equal(stored["scan_label"], expected.scan_label)
+
+
+@pytest.mark.slow  # two attempts of a real job with a lease to expire: ~1 minute
+def test_a_worker_killed_in_a_tile_leaves_it_retried_and_stored_tiles_are_kept(
+    service_factory: Callable[..., ServiceProcess],
+) -> None:
+    reference, scan, crop_points = _pair()
+    service = service_factory(
+        workers=1,
+        env={
+            "SCANDIFF_TILE_CROP_POINTS": str(crop_points),
+            "SCANDIFF_JOB_LEASE_SECONDS": "3",
+            "SCANDIFF_JOB_HEARTBEAT_SECONDS": "0.5",
+            "SCANDIFF_TEST_JOB_HOOKS": '{"kill_in_tile": 2, "on_attempts": [1]}',
+        },
+    )
+    job = _run_job(service, reference, scan)
+    assert job["status"] == JobStatus.SUCCEEDED, job
+    assert job["attempts"] == 2, "the first worker died in a tile"
+    tiles = _tiles(service.data_dir, job["id"])
+    assert {tile["status"] for tile in tiles} == {"succeeded"}
+    attempts = sorted(tile["attempts"] for tile in tiles)
+    # the tile the worker died in ran twice; every tile stored before was not computed again
+    assert attempts == [1] * (len(tiles) - 1) + [2], attempts
+    assert job["tiles"] == {"done": len(tiles), "total": len(tiles)}
+
+
+@pytest.mark.parametrize("ending", ["failed", "deleted"])
+def test_tiles_of_a_job_that_stopped_are_cancelled(job_settings: Settings, ending: str) -> None:
+    job_id = create_job(job_settings)
+    with transaction(job_settings.sqlalchemy_url) as session:
+        session.execute(update(Job).where(Job.id == job_id).values(status=JobStatus.RUNNING))
+        session.add_all(JobTile(job_id=job_id, tile_index=index) for index in range(3))
+    # a job waiting in the queue for its next attempt keeps its tiles for that attempt
+    with transaction(job_settings.sqlalchemy_url) as session:
+        session.execute(update(Job).where(Job.id == job_id).values(status=JobStatus.QUEUED))
+    assert run_tile_message(job_id, 1, job_settings) == "skipped"
+    assert _statuses(job_settings, job_id) == {TileStatus.QUEUED}
+    with transaction(job_settings.sqlalchemy_url) as session:
+        if ending == "failed":
+            session.execute(update(Job).where(Job.id == job_id).values(status=JobStatus.FAILED))
+        else:
+            session.execute(delete(Job).where(Job.id == job_id))
+    assert run_tile_message(job_id, 1, job_settings) == "cancelled"
+    assert _statuses(job_settings, job_id) == (
+        {TileStatus.CANCELLED} if ending == "failed" else set()
+    )
+
+
+def _statuses(settings: Settings, job_id: str) -> set[str]:
+    with transaction(settings.sqlalchemy_url) as session:
+        return set(session.scalars(select(JobTile.status).where(JobTile.job_id == job_id)))
