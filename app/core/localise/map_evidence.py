@@ -453,10 +453,19 @@ def map_test(
         change_threshold=change_threshold,
         cluster_factor=cluster_factor,
     )
-    # a continuing border point counts when the other epoch's surface extends well beyond it
+    # a continuing border point counts when the other epoch's surface extends well beyond it,
+    # on the point's own plane or, where its own normal leans (a noisy far wall band of an RGB-D
+    # map, some 15 degrees off under the ceiling), on the plane of the other epoch's surface
     probe = np.flatnonzero(continues)
     continues[probe] = _extends(
         candidates.points[probe], candidates.normal[probe], other.geometry, threshold
+    )
+    probe = probe[~continues[probe]]
+    continues[probe] = _extends(
+        candidates.points[probe],
+        other.geometry.normal[own.nearest_index[candidates.index[probe]]],
+        other.geometry,
+        threshold,
     )
     border_count = np.bincount(labels, weights=border.astype(np.float64), minlength=n_clusters)
     continuing = np.bincount(labels, weights=continues.astype(np.float64), minlength=n_clusters)
