@@ -30,7 +30,9 @@ rough ground strips beside it, an unseen side to the floor strip in the other pa
 split; whether a part is near the other epoch's coverage is judged on its whole cluster.
 
 A coverage-difference cluster that the other epoch nevertheless saw through (surface this epoch
-lacks behind it on a good share of its points: an opened door in a wall) is a change.  The
+lacks behind it on a good share of its points: an opened door in a wall) is a change; surface
+in a narrow gap of this epoch's own does not count (the far face of a rack, each path having
+seen its own aisle's face).  The
 dimensions that decide are relative to the clouds' own spacing and the change threshold, never
 to a sensor's ring pattern, which voxel filters and SLAM fusion erase.
 """
