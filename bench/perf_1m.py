@@ -47,7 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.datasets.lidar import LAYOUTS, LidarPair, lidar_pair, steps_for_points
-from bench.perf_round2 import best, run_command, run_floor, write_pair
+from bench.perf_round2 import best, format_met, format_number, run_command, run_floor, write_pair
 from bench.perf_workers import write_binary_ply
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
@@ -189,14 +189,6 @@ def summarise(measured: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
-def _number(value: float | None, digits: int = 2) -> str:
-    return "-" if value is None else f"{value:.{digits}f}"
-
-
-def _met(value: bool | None) -> str:
-    return "-" if value is None else ("met" if value else "NOT met")
-
-
 def render(rows: list[dict[str, Any]], measured: list[dict[str, Any]], loads: list) -> str:
     """The markdown report."""
     lines = [
@@ -219,11 +211,11 @@ def render(rows: list[dict[str, Any]], measured: list[dict[str, Any]], loads: li
             lines.append(f"| {row['pair']} | {row['configuration']} | error: {row['error']} |")
             continue
         lines.append(
-            f"| {row['pair']} | {row['configuration']} | {_number(row['seconds'])} | "
-            f"{_number(row['floor_seconds'])} | {_number(row['ratio'])}x "
-            f"{_met(row['ratio_met'])} | {_number(row['peak_rss_mb'], 0)} "
-            f"{_met(row['rss_met'])} | {_number(row['cpu_seconds'])} | "
-            f"{_number(row['cpu_ratio'])}x | "
+            f"| {row['pair']} | {row['configuration']} | {format_number(row['seconds'])} | "
+            f"{format_number(row['floor_seconds'])} | {format_number(row['ratio'])}x "
+            f"{format_met(row['ratio_met'])} | {format_number(row['peak_rss_mb'], 0)} "
+            f"{format_met(row['rss_met'])} | {format_number(row['cpu_seconds'])} | "
+            f"{format_number(row['cpu_ratio'])}x | "
             f"{' / '.join(str(s) for s in row['all_seconds'] or [])} | "
             f"{' / '.join(str(s) for s in row['floor_all_seconds'] or [])} |"
         )

@@ -239,11 +239,11 @@ def summarise(size: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
-def _number(value: float | None, digits: int = 2) -> str:
+def format_number(value: float | None, digits: int = 2) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
-def _met(value: bool | None) -> str:
+def format_met(value: bool | None) -> str:
     return "-" if value is None else ("met" if value else "NOT met")
 
 
@@ -281,13 +281,16 @@ def render(rows: list[dict[str, Any]], service: dict[str, Any], loads: list[tupl
             continue
         target = row["ratio_target"]
         rss_target = row["rss_target_mb"]
-        ratio_target = "-" if target is None else f"<= {target}x {_met(row['ratio_met'])}"
-        rss = "-" if rss_target is None else f"<= {rss_target:.0f} {_met(row['rss_met'])}"
+        ratio_target = "-" if target is None else f"<= {target}x {format_met(row['ratio_met'])}"
+        rss = "-" if rss_target is None else f"<= {rss_target:.0f} {format_met(row['rss_met'])}"
         lines.append(
-            f"| {row['points']:,} | {row['configuration']} | {_number(row['seconds'])} | "
-            f"{_number(row['floor_seconds'])} | {_number(row['ratio'])}x | {ratio_target} | "
-            f"{_number(row['peak_rss_mb'], 0)} | {rss} | {_number(row['cpu_seconds'])} | "
-            f"{_number(row['floor_cpu_seconds'])} | {_cpu_ratio(row)} | "
+            f"| {row['points']:,} | {row['configuration']} | "
+            f"{format_number(row['seconds'])} | "
+            f"{format_number(row['floor_seconds'])} | {format_number(row['ratio'])}x | "
+            f"{ratio_target} | "
+            f"{format_number(row['peak_rss_mb'], 0)} | {rss} | "
+            f"{format_number(row['cpu_seconds'])} | "
+            f"{format_number(row['floor_cpu_seconds'])} | {_cpu_ratio(row)} | "
             f"{' / '.join(str(s) for s in row['all_seconds'] or [])} | "
             f"{' / '.join(str(s) for s in row['floor_all_seconds'] or [])} |"
         )
@@ -306,7 +309,8 @@ def render(rows: list[dict[str, Any]], service: dict[str, Any], loads: list[tupl
                 f"Service (100k-point scan, HTTP upload to `succeeded`, median of "
                 f"{len(service['latency_all_seconds'])}): {latency:.2f} s "
                 f"(runs {' / '.join(f'{v:.2f}' for v in service['latency_all_seconds'])}); "
-                f"target <= {SERVICE_TARGET_SECONDS} s {_met(latency <= SERVICE_TARGET_SECONDS)}."
+                f"target <= {SERVICE_TARGET_SECONDS} s "
+                f"{format_met(latency <= SERVICE_TARGET_SECONDS)}."
             )
     return "\n".join(lines) + "\n"
 
@@ -344,7 +348,7 @@ def run_service_only(repeats: int, idle_seconds: float = 0.0, poll_seconds: floa
     print(
         f"service (100k-point scan, upload to succeeded): median {service['latency_seconds']:.2f} s"
         f" (runs {all_seconds}); target <= {SERVICE_TARGET_SECONDS} s "
-        f"{_met(service['latency_seconds'] <= SERVICE_TARGET_SECONDS)}; load average "
+        f"{format_met(service['latency_seconds'] <= SERVICE_TARGET_SECONDS)}; load average "
         f"{_loads(load_before)} -> {_loads(load_after)}"
     )
     print(render_service_breakdown(service))

@@ -22,14 +22,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from bench.child_memory import measure_child
 
 WRITE_POINTS = 1_000_000
 """Points generated and written at a time (the bench's own memory stays small)."""
@@ -121,19 +120,7 @@ def child(path: str, way: str) -> None:
 
 def measure(path: Path, way: str) -> dict:
     """Run :func:`child` in a fresh interpreter; its output plus its peak RSS."""
-    process = subprocess.Popen(
-        [sys.executable, "-m", "bench.read_memory", "--child", str(path), way],
-        stdout=subprocess.PIPE,
-        env={**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS") or "1"},
-    )
-    assert process.stdout is not None
-    output = process.stdout.read()
-    if process.wait() != 0:
-        raise RuntimeError(f"the child reading {path.name} {way} failed")
-    result = json.loads(output)
-    result["peak_rss_mb"] = result["peak_rss_kb"] / 1024.0
-    result["growth_mb"] = (result["peak_rss_kb"] - result["rss_after_imports_kb"]) / 1024.0
-    return result
+    return measure_child("bench.read_memory", str(path), way)
 
 
 def main() -> None:

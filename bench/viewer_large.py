@@ -23,15 +23,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from bench.child_memory import measure_child
 from bench.read_memory import WRITE_POINTS, status_kb
 
 HALL = np.array([80.0, 50.0, 10.0])
@@ -152,19 +150,7 @@ def child(folder: str, way: str) -> None:
 
 def measure(folder: str, way: str) -> dict:
     """Run :func:`child` in a fresh interpreter; its output plus its peak RSS."""
-    process = subprocess.Popen(
-        [sys.executable, "-m", "bench.viewer_large", "--child", folder, way],
-        stdout=subprocess.PIPE,
-        env={**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS") or "1"},
-    )
-    assert process.stdout is not None
-    output = process.stdout.read()
-    if process.wait() != 0:
-        raise RuntimeError(f"the {way} child failed")
-    result = json.loads(output)
-    result["peak_rss_mb"] = result["peak_rss_kb"] / 1024.0
-    result["growth_mb"] = (result["peak_rss_kb"] - result["rss_after_imports_kb"]) / 1024.0
-    return result
+    return measure_child("bench.viewer_large", folder, way)
 
 
 def main() -> None:

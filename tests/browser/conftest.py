@@ -67,16 +67,17 @@ def reset_session(session: Any) -> None:
 
 @dataclass
 class ChromePool:
-    """A module's plain Chromium sessions by their extra flags, and the profiles they use."""
+    """The browser tests' plain Chromium sessions by their extra flags, and their profiles."""
 
     sessions: dict[tuple[str, ...], list[Any]] = field(default_factory=dict)
     profiles: list[str] = field(default_factory=list)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="package")
 def chrome_pool(chromium: tuple[str, str]) -> Iterator[ChromePool]:
-    """The module's Chromium sessions, reused from test to test (starting one costs seconds);
-    all quit after the module."""
+    """Chromium sessions reused from test to test and module to module of tests/browser
+    (starting one costs seconds; each is reset to a fresh one's state after a test, and the
+    dashboard keeps nothing but cookies); all quit after the package."""
     pool = ChromePool()
     yield pool
     for sessions in pool.sessions.values():
@@ -93,7 +94,7 @@ def chrome_factory(
 ) -> Iterator[Callable[[], Any]]:
     """Headless Chromium sessions, as fresh ones: cookies cleared, one blank tab.
 
-    The n-th session a test asks for with the same flags is the module's n-th such session,
+    The n-th session a test asks for with the same flags is the package's n-th such session,
     reset after each test (a test's sessions are distinct); sessions with the performance log
     are started for the test alone and quit after it.
     """

@@ -208,6 +208,8 @@ def street_with_a_parked_car() -> tuple[np.ndarray, np.ndarray]:
     return street, np.vstack([street, car])
 
 
+@pytest.mark.slow  # a comparison of a 120k-point real frame, then its software-WebGL render;
+# make test keeps the indoor opening above (the change behind a wall, a synthetic warehouse)
 def test_an_outdoor_street_change_is_seen_at_once(
     review_service: ReviewService, chrome_factory
 ) -> None:

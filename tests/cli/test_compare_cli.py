@@ -129,6 +129,8 @@ def test_missing_file_exits_2(tmp_path, scene_files):
     assert "no such file" in completed.stderr
 
 
+@pytest.mark.slow  # a comparison of two 120k-point frames in a subprocess; make test keeps the
+# CLI's synthetic comparisons here and the KITTI frames' origins in core/test_origins.py
 def test_real_kitti_frames(real_data_dir, tmp_path):
     frames = real_data_dir / "kitti_2011_09_26_drive_0002_pointcloudset"
     completed = run_cli(frames / "frame0.ply", frames / "frame1.ply", "--json", "--sensor-frame")

@@ -187,6 +187,8 @@ def test_real_velodyne_frame_moved_rigidly_origin_within_20_cm(
     assert found.confident
 
 
+@pytest.mark.slow  # two comparisons of 120k-point KITTI frames; make test keeps the synthetic
+# test_pipeline_origins.py::test_estimated_origins_localise_as_well_as_given_ones
 def test_real_velodyne_pair_without_origins_is_compared_like_with_them(
     real_data_dir: Path,
 ) -> None:

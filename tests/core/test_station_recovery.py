@@ -266,7 +266,16 @@ def _exhaustive_station_height(points, centre, rng):
     return float(heights[np.argmax(scores)])
 
 
-@pytest.mark.parametrize("layout", ["room", "corridor", "warehouse"])
+@pytest.mark.parametrize(
+    "layout",
+    [
+        # make test keeps the corridor (the quickest); the room and the warehouse (two to three
+        # times its time: more stations, longer walls) run in make test-slow
+        pytest.param("room", marks=pytest.mark.slow),
+        "corridor",
+        pytest.param("warehouse", marks=pytest.mark.slow),
+    ],
+)
 def test_scouted_station_heights_are_those_of_scoring_the_whole_range(layout):
     from app.core.datasets.lidar import lidar_pair
 

@@ -21,11 +21,11 @@ import pytest
 import uvicorn
 
 from app.config import Settings
-from app.db.migrate import upgrade_to_head
 from app.db.session import transaction
 from app.main import create_app
 from app.services.auth import create_token
 from tests.helpers.http import unique_name
+from tests.helpers.migrated_database import install_migrated_database
 from tests.helpers.network import free_port
 
 MAX_UPLOAD_BYTES = 400_000
@@ -73,8 +73,9 @@ class ApiServer:
 
 
 def start_server(settings: Settings) -> tuple[uvicorn.Server, threading.Thread, str]:
-    """Migrate, then run uvicorn with ``create_app(settings)`` in a thread; wait until it serves."""
-    upgrade_to_head(settings.sqlalchemy_url)
+    """Migrate (a copy of the session's migrated file for a new SQLite database), then run
+    uvicorn with ``create_app(settings)`` in a thread; wait until it serves."""
+    install_migrated_database(settings.sqlalchemy_url)
     port = free_port()
     config = uvicorn.Config(
         create_app(settings), host="127.0.0.1", port=port, log_level="warning", lifespan="off"

@@ -11,11 +11,11 @@ from typing import Any
 import pytest
 
 from app.config import Settings
-from app.db.migrate import upgrade_to_head
 from app.db.session import get_engine
 from app.jobs.consumer import JOB_THREADS_ENV, MEMORY_LIMIT_ENV
 from tests.helpers.environment import require
 from tests.helpers.jobs import FAST_LEASES
+from tests.helpers.migrated_database import install_migrated_database
 from tests.helpers.redis import REDIS_SERVER_ENV, RedisServer, redis_server_binary
 from tests.helpers.service import ConsumerProcess
 from tests.helpers.worker import WorkerProcess
@@ -23,10 +23,11 @@ from tests.helpers.worker import WorkerProcess
 
 @pytest.fixture
 def job_settings(tmp_path: Path) -> Settings:
-    """Settings on a fresh data dir whose database was migrated with Alembic; fast leases."""
+    """Settings on a fresh data dir whose database was migrated with Alembic (a copy of the
+    session's migrated file); fast leases."""
     settings = Settings(data_dir=tmp_path / "data", **FAST_LEASES)
     settings.data_dir.mkdir(parents=True)
-    upgrade_to_head(settings.sqlalchemy_url)
+    install_migrated_database(settings.sqlalchemy_url)
     yield settings
     get_engine(settings.sqlalchemy_url).dispose()
 

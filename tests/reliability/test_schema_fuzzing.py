@@ -1,7 +1,7 @@
 """Issue 5 (7): schemathesis against ``/openapi.json``: 0 server errors, 0 schema violations.
 
 Every operation gets up to ``SCANDIFF_SCHEMATHESIS_EXAMPLES`` generated requests per generation
-mode (positive and negative; default 12 in ``make test``, 100 in ``make test-slow``) with a
+mode (positive and negative; default 6 in ``make test``, 100 in ``make test-slow``) with a
 writer's token; every other request of an operation with path ids is aimed at real objects of
 the writer's organisation (site, scan, a succeeded job) so that 2xx answers are checked against
 the schema too, not only 404s.  Checks: no 5xx, responses conform to the documented schema and
@@ -35,7 +35,7 @@ from tests.helpers.jobs import finish_job
 from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
 
-EXAMPLES_PER_OPERATION = int(os.environ.get("SCANDIFF_SCHEMATHESIS_EXAMPLES", "12"))
+EXAMPLES_PER_OPERATION = int(os.environ.get("SCANDIFF_SCHEMATHESIS_EXAMPLES", "6"))
 SLOW_EXAMPLES_PER_OPERATION = 100
 CHECKS = [not_a_server_error, response_schema_conformance, content_type_conformance]
 NEVER_AIMED_AT_REAL_OBJECTS = {
