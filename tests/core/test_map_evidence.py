@@ -116,3 +116,47 @@ def test_the_coverage_test_stays_available(test):
     scan = fused_room(rng)
     localisation = localise_changes(reference, scan, origin_free_test=test)
     assert localisation.parameters["reference_visibility"] == test
+
+
+def test_a_band_under_the_ceiling_one_path_never_looked_up_at_is_a_coverage_difference():
+    # the reference's camera never looked up at the top 1 m of the y = 0 wall: the scan's band
+    # there, under the ceiling, continues the wall the reference has below it.  Its normals
+    # lean towards the ceiling it meets, so the wall is looked for on the plane of the
+    # reference's wall, not on the band's own leaning plane
+    rng = np.random.default_rng(5)
+    reference = fused_room(rng)
+    scan = fused_room(rng)
+    band = (np.abs(reference[:, 1]) < 0.01) & (reference[:, 0] < 4.0) & (reference[:, 2] > 1.5)
+    reference = reference[~band]
+    # the scan saw the band from afar: its depth noise (1.5 cm across the wall) tilts the
+    # band's own normals by some 15 degrees
+    far = (np.abs(scan[:, 1]) < 0.01) & (scan[:, 0] < 4.0) & (scan[:, 2] > 1.3)
+    scan[far, 1] += rng.normal(0.0, 0.015, np.count_nonzero(far))
+    localisation = localise_changes(reference, scan)
+    assert localisation.regions == []
+    assert not np.any(localisation.scan_label == LABEL_CHANGED)
+
+
+def test_a_strip_of_a_rack_face_whose_far_face_only_the_other_path_saw_is_not_seen_through():
+    # a rack 0.9 m deep stands in both epochs; the reference's path saw a 40 cm strip of its
+    # y = 2.0 face that the scan's missed, the scan's path (in the other aisle) a strip of its
+    # y = 2.9 face behind it that the reference's missed: each epoch saw its own aisle's face,
+    # neither saw through the rack
+    rng = np.random.default_rng(6)
+    rack = ([1.0, 2.0, 0.0], [4.0, 2.9, 1.8])
+    reference = fused_room(rng, box=rack)
+    scan = fused_room(rng, box=rack)
+
+    def strip(points, y):
+        return (
+            (np.abs(points[:, 1] - y) < 0.01)
+            & (np.abs(points[:, 0] - 2.5) < 0.2)
+            & (points[:, 2] > 0.05)
+            & (points[:, 2] < 1.75)
+        )
+
+    reference = reference[~strip(reference, 2.9)]
+    scan = scan[~strip(scan, 2.0)]
+    localisation = localise_changes(reference, scan)
+    assert localisation.regions == []
+    assert not np.any(localisation.reference_label[strip(reference, 2.0)] == LABEL_CHANGED)

@@ -30,7 +30,9 @@ rough ground strips beside it, an unseen side to the floor strip in the other pa
 split; whether a part is near the other epoch's coverage is judged on its whole cluster.
 
 A coverage-difference cluster that the other epoch nevertheless saw through (surface this epoch
-lacks behind it on a good share of its points: an opened door in a wall) is a change.  The
+lacks behind it on a good share of its points: an opened door in a wall) is a change; surface
+in a narrow gap of this epoch's own does not count (the far face of a rack, each path having
+seen its own aisle's face).  The
 dimensions that decide are relative to the clouds' own spacing and the change threshold, never
 to a sensor's ring pattern, which voxel filters and SLAM fusion erase.
 """
@@ -50,7 +52,13 @@ from scipy.sparse.csgraph import connected_components
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
 from app.core.localise.interface import VisibilityContext, VisibilityOutcome
-from app.core.localise.origin_free import BEHIND_MIN_RADIUS, UNMATCHED_FACTOR, behind_evidence
+from app.core.localise.map_planes import SECTORS, coplanar_sectors, extends, share_on_planes
+from app.core.localise.origin_free import (
+    BEHIND_MAX_RADIUS,
+    BEHIND_MIN_RADIUS,
+    UNMATCHED_FACTOR,
+    behind_evidence,
+)
 from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED, Candidates
 from app.core.localise.regions import (
     CLUSTER_NEIGHBOURS,
@@ -74,14 +82,6 @@ CONTINUATION_SHARE = 0.3
 """A patch of a wall or ceiling also meets the room's corners, so half its border may not
 continue: from this share on, it is a coverage difference when most of its points also lie on
 planes the other epoch has nearby (:data:`COPLANAR_SHARE`)."""
-SURFACE_REACH = 0.8
-"""The other epoch's surface must extend this far (metres) from a continuing border point, in
-at least :data:`SURFACE_SECTORS` directions of its plane: a floor, a wall, a ceiling, not the
-edge of a slid chair's seat."""
-SURFACE_SECTORS = 2
-SECTORS = 8
-SECTOR_HALF_ANGLE_COSINE = math.cos(math.radians(35.0))
-PROBE_NEIGHBOURS = 4
 COPLANAR_SHARE = 0.75
 SURROUND_NEIGHBOURS = 32
 """The other epoch's points looked at around a border point's foot on its adjoining surface."""
@@ -101,8 +101,6 @@ UPRIGHT_NORMAL_Z = 0.5
 """A part is upright (a side) when its normals' mean vertical component is below this."""
 MIN_ADJOINING = 5
 """Fewer adjoining border points than this say nothing about a part."""
-COPLANAR_SAMPLE = 256
-COPLANAR_REACHES = (0.25, 0.5, 1.0, 2.0)
 SEE_THROUGH_SHARE = 0.6
 """A coverage-difference cluster is still a change when this share of its points has the
 other epoch's surface, missing from this epoch, on its normal line within
@@ -114,6 +112,11 @@ stood in front of or behind the cluster."""
 SPARSE_PROBE_FACTOR = 1.5
 """The see-through probes' balls are at least this many of the other cloud's median spacings
 wide (a sparse cloud's surface is found between its samples)."""
+GAP_REACH = 0.25
+GAP_SECTORS = 6
+"""The other epoch's point lies in a narrow gap of this epoch's surface when this epoch has
+that surface on its plane about :data:`GAP_REACH` away in this many of :data:`SECTORS`
+directions."""
 NEAR_FACTOR = 3.0
 NEAR_MIN = 0.5
 """A cluster is near the other epoch's coverage when its closest tenth of points lies within
@@ -328,79 +331,60 @@ def _surrounded(
     return adjoining, surrounded
 
 
-def _coplanar_sectors(
-    points: NDArray[np.float64],
-    normal: NDArray[np.floating],
-    cloud: LocalGeometry,
-    tolerance: float,
-    reach: float,
-) -> NDArray[np.int64]:
-    """In how many of :data:`SECTORS` directions of each point's plane ``cloud`` has surface
-    on that plane about ``reach`` away (between half and twice it; shapes (p, 3) -> (p,))."""
-    count = points.shape[0]
-    if count == 0:
-        return np.zeros(0, dtype=np.int64)
-    unit, directions = tangent_directions(normal, SECTORS)
-    k = min(PROBE_NEIGHBOURS, cloud.points.shape[0])
-    hits = np.zeros((count, SECTORS), dtype=bool)
-    for sector in range(SECTORS):
-        direction = directions[:, sector, :]
-        _, index = cloud.tree.query(points + reach * direction, k=k)
-        index = np.asarray(index).reshape(count, k)
-        offset = cloud.points[index] - points[:, None, :]
-        distance = np.linalg.norm(offset, axis=2)
-        across = np.abs(np.einsum("pkd,pd->pk", offset, unit))
-        along = np.einsum("pkd,pd->pk", offset, direction)
-        agrees = np.abs(np.einsum("pkd,pd->pk", cloud.normal[index], unit))
-        hits[:, sector] = (
-            (distance <= 2.0 * reach)
-            & (along >= SECTOR_HALF_ANGLE_COSINE * distance)
-            & (along >= 0.5 * reach)
-            & (across <= tolerance + PLANE_SLOPE * distance)
-            & (agrees >= NORMAL_AGREEMENT_COSINE)
-        ).any(axis=1)
-    return hits.sum(axis=1)
-
-
-def _extends(
-    points: NDArray[np.float64],
-    normal: NDArray[np.floating],
-    cloud: LocalGeometry,
-    tolerance: float,
-) -> NDArray[np.bool_]:
-    """Whether ``cloud`` has surface on each point's plane :data:`SURFACE_REACH` away in at
-    least :data:`SURFACE_SECTORS` directions (shapes (p, 3) -> (p,))."""
-    return _coplanar_sectors(points, normal, cloud, tolerance, SURFACE_REACH) >= SURFACE_SECTORS
-
-
-def _coplanar_share(
+def _past_narrow_gaps(
     candidates: Candidates,
+    recheck: NDArray[np.int64],
     labels: NDArray[np.int64],
-    n_clusters: int,
-    other: LocalGeometry,
+    behind_share: NDArray[np.float64],
+    *,
+    own: Side,
+    other: Side,
+    other_unmatched: NDArray[np.bool_],
     tolerance: float,
 ) -> NDArray[np.float64]:
-    """Per cluster, the share of (up to :data:`COPLANAR_SAMPLE`) sampled candidates whose own
-    plane the other epoch has within :data:`COPLANAR_REACHES` of them, in some direction.
+    """Per part, the share of candidates the other epoch saw through, counting only surface
+    that is not a narrow gap of this epoch's (recomputed on the ``recheck`` candidates' parts).
 
-    A patch of a continuing wall, floor or ceiling lies on the other epoch's plane almost
-    everywhere; a removed object's faces do not, even where one of them is in line with a
-    surface that stays (a cabinet's front above a cupboard that stays).
+    Behind a narrow gap of a surface this epoch has all around it (:data:`GAP_REACH`,
+    :data:`GAP_SECTORS`: the far face of a rack, each epoch's path seeing its own aisle's
+    face), the other epoch saw nothing through the candidate's place: it saw the far side.
     """
-    rng = np.random.default_rng(0)
-    order = rng.permutation(labels.shape[0])
-    rank = np.empty_like(order)
-    ranked = order[np.argsort(labels[order], kind="stable")]
-    starts = np.searchsorted(labels[ranked], np.arange(n_clusters))
-    rank[ranked] = np.arange(ranked.shape[0]) - starts[labels[ranked]]
-    sample = np.flatnonzero(rank < COPLANAR_SAMPLE)
-    points, normal = candidates.points[sample], candidates.normal[sample]
-    found = np.zeros(sample.shape[0], dtype=bool)
-    for reach in COPLANAR_REACHES:
-        todo = np.flatnonzero(~found)
-        found[todo] = _coplanar_sectors(points[todo], normal[todo], other, tolerance, reach) >= 1
-    hits = np.bincount(labels[sample], weights=found.astype(np.float64), minlength=n_clusters)
-    return hits / np.maximum(np.bincount(labels[sample], minlength=n_clusters), 1)
+    share = behind_share.copy()
+    if recheck.shape[0] == 0:
+        return share
+    unmatched = np.flatnonzero(other_unmatched)
+    reach = SEE_THROUGH_REACH + BEHIND_MAX_RADIUS
+    distance, _ = KDTree(candidates.points[recheck]).query(
+        other.points[unmatched], k=1, distance_upper_bound=reach
+    )
+    unmatched = unmatched[np.asarray(distance).ravel() <= reach]
+    gap = np.zeros(other_unmatched.shape[0], dtype=bool)
+    gap[unmatched] = (
+        coplanar_sectors(
+            other.points[unmatched],
+            other.geometry.normal[unmatched],
+            own.geometry,
+            tolerance,
+            GAP_REACH,
+        )
+        >= GAP_SECTORS
+    )
+    behind = behind_evidence(
+        candidates.points[recheck],
+        candidates.normal[recheck],
+        other_points=other.points,
+        other_normal=other.geometry.normal,
+        other_unmatched=other_unmatched & ~gap,
+        max_reach=SEE_THROUGH_REACH,
+        min_radius=max(
+            BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))
+        ),
+    )
+    parts = np.unique(labels[recheck])
+    hits = np.bincount(labels[recheck], weights=behind.astype(np.float64), minlength=share.shape[0])
+    sizes = np.bincount(labels[recheck], minlength=share.shape[0])
+    share[parts] = hits[parts] / np.maximum(sizes[parts], 1)
+    return share
 
 
 def map_test(
@@ -453,10 +437,19 @@ def map_test(
         change_threshold=change_threshold,
         cluster_factor=cluster_factor,
     )
-    # a continuing border point counts when the other epoch's surface extends well beyond it
+    # a continuing border point counts when the other epoch's surface extends well beyond it,
+    # on the point's own plane or, where its own normal leans (a noisy far wall band of an RGB-D
+    # map, some 15 degrees off under the ceiling), on the plane of the other epoch's surface
     probe = np.flatnonzero(continues)
-    continues[probe] = _extends(
+    continues[probe] = extends(
         candidates.points[probe], candidates.normal[probe], other.geometry, threshold
+    )
+    probe = probe[~continues[probe]]
+    continues[probe] = extends(
+        candidates.points[probe],
+        other.geometry.normal[own.nearest_index[candidates.index[probe]]],
+        other.geometry,
+        threshold,
     )
     border_count = np.bincount(labels, weights=border.astype(np.float64), minlength=n_clusters)
     continuing = np.bincount(labels, weights=continues.astype(np.float64), minlength=n_clusters)
@@ -496,7 +489,7 @@ def map_test(
     near = np.zeros(n_clusters, dtype=bool)
     near[labels] = cluster_near[clusters]
 
-    coplanar_share = _coplanar_share(candidates, labels, n_clusters, other.geometry, threshold)
+    coplanar_share = share_on_planes(candidates, labels, n_clusters, other.geometry, threshold)
     probe = np.flatnonzero(border)
     adjoining_points, surrounded_points = _surrounded(
         candidates.points[probe],
@@ -529,7 +522,19 @@ def map_test(
     continues_in_plane = (continuation_share >= CONTINUATION_SHARE) & (
         coplanar_share >= COPLANAR_SHARE
     )
-    coverage = (continues_plainly | continues_in_plane) & (behind_share < SEE_THROUGH_SHARE)
+    see_through_share = _past_narrow_gaps(
+        candidates,
+        np.flatnonzero(
+            ((continues_plainly | continues_in_plane) & (behind_share >= SEE_THROUGH_SHARE))[labels]
+        ),
+        labels,
+        behind_share,
+        own=own,
+        other=other,
+        other_unmatched=other_unmatched,
+        tolerance=threshold,
+    )
+    coverage = (continues_plainly | continues_in_plane) & (see_through_share < SEE_THROUGH_SHARE)
     coverage |= ~near | (unseen_side & (behind_share < SEE_THROUGH_SHARE))
     cluster_confidence = np.where(
         coverage,

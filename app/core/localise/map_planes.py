@@ -1,0 +1,114 @@
+"""Plane probes of the map test: does a cloud have surface on a point's plane, and where.
+
+A point of a fused map is judged by whether the other epoch's surface carries on along the
+point's own plane (a floor, a wall, a ceiling that continues through a coverage gap), probed in
+:data:`SECTORS` directions of the plane at a given reach.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
+from app.core.localise.rays import Candidates
+from app.core.localise.surface import LocalGeometry
+
+__all__ = [
+    "COPLANAR_REACHES",
+    "COPLANAR_SAMPLE",
+    "SECTORS",
+    "SURFACE_REACH",
+    "SURFACE_SECTORS",
+    "coplanar_sectors",
+    "extends",
+    "share_on_planes",
+]
+
+SURFACE_REACH = 0.8
+"""The other epoch's surface must extend this far (metres) from a continuing border point, in
+at least :data:`SURFACE_SECTORS` directions of its plane: a floor, a wall, a ceiling, not the
+edge of a slid chair's seat."""
+SURFACE_SECTORS = 2
+SECTORS = 8
+SECTOR_HALF_ANGLE_COSINE = math.cos(math.radians(35.0))
+PROBE_NEIGHBOURS = 4
+COPLANAR_SAMPLE = 256
+COPLANAR_REACHES = (0.25, 0.5, 1.0, 2.0)
+
+
+def coplanar_sectors(
+    points: NDArray[np.float64],
+    normal: NDArray[np.floating],
+    cloud: LocalGeometry,
+    tolerance: float,
+    reach: float,
+) -> NDArray[np.int64]:
+    """In how many of :data:`SECTORS` directions of each point's plane ``cloud`` has surface
+    on that plane about ``reach`` away (between half and twice it; shapes (p, 3) -> (p,))."""
+    count = points.shape[0]
+    if count == 0:
+        return np.zeros(0, dtype=np.int64)
+    unit, directions = tangent_directions(normal, SECTORS)
+    k = min(PROBE_NEIGHBOURS, cloud.points.shape[0])
+    hits = np.zeros((count, SECTORS), dtype=bool)
+    for sector in range(SECTORS):
+        direction = directions[:, sector, :]
+        _, index = cloud.tree.query(points + reach * direction, k=k)
+        index = np.asarray(index).reshape(count, k)
+        offset = cloud.points[index] - points[:, None, :]
+        distance = np.linalg.norm(offset, axis=2)
+        across = np.abs(np.einsum("pkd,pd->pk", offset, unit))
+        along = np.einsum("pkd,pd->pk", offset, direction)
+        agrees = np.abs(np.einsum("pkd,pd->pk", cloud.normal[index], unit))
+        hits[:, sector] = (
+            (distance <= 2.0 * reach)
+            & (along >= SECTOR_HALF_ANGLE_COSINE * distance)
+            & (along >= 0.5 * reach)
+            & (across <= tolerance + PLANE_SLOPE * distance)
+            & (agrees >= NORMAL_AGREEMENT_COSINE)
+        ).any(axis=1)
+    return hits.sum(axis=1)
+
+
+def extends(
+    points: NDArray[np.float64],
+    normal: NDArray[np.floating],
+    cloud: LocalGeometry,
+    tolerance: float,
+) -> NDArray[np.bool_]:
+    """Whether ``cloud`` has surface on each point's plane :data:`SURFACE_REACH` away in at
+    least :data:`SURFACE_SECTORS` directions (shapes (p, 3) -> (p,))."""
+    return coplanar_sectors(points, normal, cloud, tolerance, SURFACE_REACH) >= SURFACE_SECTORS
+
+
+def share_on_planes(
+    candidates: Candidates,
+    labels: NDArray[np.int64],
+    n_clusters: int,
+    other: LocalGeometry,
+    tolerance: float,
+) -> NDArray[np.float64]:
+    """Per cluster, the share of (up to :data:`COPLANAR_SAMPLE`) sampled candidates whose own
+    plane the other epoch has within :data:`COPLANAR_REACHES` of them, in some direction.
+
+    A patch of a continuing wall, floor or ceiling lies on the other epoch's plane almost
+    everywhere; a removed object's faces do not, even where one of them is in line with a
+    surface that stays (a cabinet's front above a cupboard that stays).
+    """
+    rng = np.random.default_rng(0)
+    order = rng.permutation(labels.shape[0])
+    rank = np.empty_like(order)
+    ranked = order[np.argsort(labels[order], kind="stable")]
+    starts = np.searchsorted(labels[ranked], np.arange(n_clusters))
+    rank[ranked] = np.arange(ranked.shape[0]) - starts[labels[ranked]]
+    sample = np.flatnonzero(rank < COPLANAR_SAMPLE)
+    points, normal = candidates.points[sample], candidates.normal[sample]
+    found = np.zeros(sample.shape[0], dtype=bool)
+    for reach in COPLANAR_REACHES:
+        todo = np.flatnonzero(~found)
+        found[todo] = coplanar_sectors(points[todo], normal[todo], other, tolerance, reach) >= 1
+    hits = np.bincount(labels[sample], weights=found.astype(np.float64), minlength=n_clusters)
+    return hits / np.maximum(np.bincount(labels[sample], minlength=n_clusters), 1)
