@@ -85,6 +85,7 @@ LOCALISE_LAYERS = (
     "station_rays",
     "trajectory_visibility",
     "origin_free",
+    "map_planes",
     "map_evidence",
     "coverage",
     "visibility",
