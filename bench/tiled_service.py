@@ -89,11 +89,19 @@ class Service:
         self.log.close()
 
 
-def run_service(work: Path, workers: int, crop_points: int, files: tuple[Path, Path]) -> dict:
+def run_service(
+    work: Path,
+    workers: int,
+    crop_points: int,
+    files: tuple[Path, Path],
+    job_threads: int | None = None,
+) -> dict:
     """Seconds from the scan's POST to ``succeeded``, its labels and who computed the tiles."""
     data_dir = work / f"service-{workers}-workers"
     data_dir.mkdir()
     env = {"SCANDIFF_TILE_CROP_POINTS": str(crop_points)}
+    if job_threads:  # default: the CPUs shared by the workers (1 worker: both cores)
+        env["SCANDIFF_JOB_THREADS"] = str(job_threads)
     with Service(data_dir, workers, env) as client:
         site = client.post("/api/v1/sites", json={"name": "bench"}).json()
         path = f"/api/v1/sites/{site['id']}/scans"
@@ -148,6 +156,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", type=float, default=1.0, help="map_pair size (rays cast)")
     parser.add_argument("--crop-share", type=float, default=0.2)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--job-threads",
+        type=int,
+        default=None,
+        help="threads a job may use in both runs (default: CPUs / workers, so one worker "
+        "already uses both cores)",
+    )
     arguments = parser.parse_args(argv)
 
     with tempfile.TemporaryDirectory(prefix="tiled-service-") as directory:
@@ -176,14 +191,18 @@ def main(argv: list[str] | None = None) -> int:
             except TileBudgetError:
                 share += 0.05
         in_process = time.perf_counter() - started
-        runs = {workers: run_service(work, workers, crop_points, files) for workers in (1, 2)}
+        runs = {
+            workers: run_service(work, workers, crop_points, files, arguments.job_threads)
+            for workers in (1, 2)
+        }
 
     print(f"## Tiled job through the service ({time.strftime('%Y-%m-%d %H:%M')})\n")
     print(
         f"Pair: robot map ({arguments.layout}), size {arguments.size}, {total:,} points in "
         f"both clouds; tiles of at "
         f"most {crop_points:,} points ({expected.localisation['tiles']['count']} tiles); "
-        f"in-process tiled comparison {in_process:.1f} s.\n"
+        f"in-process tiled comparison {in_process:.1f} s; job threads "
+        f"{arguments.job_threads or 'CPUs / workers'}.\n"
     )
     print("| workers | upload to succeeded s | tiles | tiles per worker | labels = in-process |")
     print("|---|---|---|---|---|")
