@@ -21,10 +21,7 @@ import dataclasses
 import os
 import time
 
-import numpy as np
-
-from app.core.pipeline import compare
-from bench.trajectory_cost import pair, scores
+from bench.trajectory_cost import cpu_per_way, pair, scores
 
 WAYS = {
     "coverage (older path)": {"localisation": {"origin_free_test": "coverage"}},
@@ -48,16 +45,14 @@ def main() -> None:
         f"{time.perf_counter() - started:.1f} s); load {os.getloadavg()[0]:.1f}",
         flush=True,
     )
-    cpu: dict[str, list[float]] = {name: [] for name in WAYS}
-    last: dict[str, object] = {}
-    for _ in range(args.repeats):
-        for name, params in WAYS.items():
-            started = time.process_time()  # one thread: CPU time, steady on a shared machine
-            last[name] = compare(reference, scan, threads=1, params=params)
-            cpu[name].append(time.process_time() - started)
-    base = float(np.median(cpu["coverage (older path)"]))
+    given = {
+        name: {"reference": reference, "scan": scan, "params": params}
+        for name, params in WAYS.items()
+    }
+    cpu, last = cpu_per_way(given, args.repeats)
+    base = cpu["coverage (older path)"]
     for name, result in last.items():
-        seconds = float(np.median(cpu[name]))
+        seconds = cpu[name]
         tests = "/".join(str(result.visibility[side].get("test")) for side in ("reference", "scan"))
         iou, missed, false = scores(result, scene)
         print(

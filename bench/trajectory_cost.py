@@ -110,6 +110,20 @@ def scores(result, truth: dict) -> tuple[float, int, int]:
     return (np.count_nonzero(found & true) / union if union else 1.0), missed, false
 
 
+def cpu_per_way(given: dict[str, dict], repeats: int) -> tuple[dict[str, float], dict[str, object]]:
+    """``compare(**given[name], threads=1)`` ``repeats`` times per way, taking turns; the median
+    CPU seconds (one thread: CPU time is steady on a shared machine) and the last result of each.
+    """
+    cpu: dict[str, list[float]] = {name: [] for name in given}
+    last: dict[str, object] = {}
+    for _ in range(repeats):
+        for name, arguments in given.items():
+            started = time.process_time()
+            last[name] = compare(**arguments, threads=1)
+            cpu[name].append(time.process_time() - started)
+    return {name: float(np.median(seconds)) for name, seconds in cpu.items()}, last
+
+
 def ways(scene: dict) -> dict[str, tuple[PointCloud, PointCloud]]:
     """The three ways the pair is given."""
     untimed = {
@@ -140,17 +154,14 @@ def main() -> None:
         f"points, {len(scene['reference'].trajectory)} poses each (built in "
         f"{time.perf_counter() - started:.1f} s); load {os.getloadavg()[0]:.1f}"
     )
-    given = ways(scene)
-    cpu: dict[str, list[float]] = {name: [] for name in given}
-    last: dict[str, object] = {}
-    for _ in range(args.repeats):
-        for name, (reference, scan) in given.items():
-            started = time.process_time()  # one thread: CPU time, steady on a shared machine
-            last[name] = compare(reference, scan, threads=1)
-            cpu[name].append(time.process_time() - started)
-    base = float(np.median(cpu["default"]))
+    given = {
+        name: {"reference": reference, "scan": scan}
+        for name, (reference, scan) in ways(scene).items()
+    }
+    cpu, last = cpu_per_way(given, args.repeats)
+    base = cpu["default"]
     for name, result in last.items():
-        seconds = float(np.median(cpu[name]))
+        seconds = cpu[name]
         tests = "/".join(str(result.visibility[side].get("test")) for side in ("reference", "scan"))
         iou, missed, false = scores(result, scene)
         print(
