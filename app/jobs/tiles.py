@@ -31,11 +31,9 @@ parent's wait is the only loop (it sleeps on the table while other workers finis
 from __future__ import annotations
 
 import logging
-import os
 import shutil
 import threading
 import time
-import uuid
 from collections.abc import Callable
 from datetime import timedelta
 from pathlib import Path
@@ -45,6 +43,7 @@ from sqlalchemy import ColumnElement, and_, func, or_, select, update
 
 from app.clock import utc_now
 from app.config import Settings
+from app.core.files import write_atomically
 from app.core.tiling import TileContext, TilePlan, TileResult, TileSource, compute_tile
 from app.db.models import Job, JobStatus, JobTile, TileStatus
 from app.db.session import transaction
@@ -93,9 +92,9 @@ def save_tile_inputs(
         if array is None:
             path.unlink(missing_ok=True)
             continue
-        _atomic_write(path, lambda handle, array=array: np.save(handle, np.asarray(array)))
-    _atomic_write(directory / PLAN_FILE, plan.save)
-    _atomic_write(directory / CONTEXT_FILE, context.save)
+        write_atomically(path, lambda temporary, array=array: np.save(temporary, np.asarray(array)))
+    write_atomically(directory / PLAN_FILE, plan.save)
+    write_atomically(directory / CONTEXT_FILE, context.save)
 
 
 def load_tile_inputs(directory: Path) -> tuple[TilePlan, TileSource, TileContext]:
@@ -120,19 +119,6 @@ def load_tile_inputs(directory: Path) -> tuple[TilePlan, TileSource, TileContext
         scan_rays=rays("scan"),
     )
     return TilePlan.load(directory / PLAN_FILE), source, TileContext.load(directory / CONTEXT_FILE)
-
-
-def _atomic_write(path: Path, write: Callable[..., None]) -> None:
-    """``write(handle)`` into a temporary file beside ``path``, then rename it over ``path``."""
-    temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.part")
-    try:
-        with open(temporary, "wb") as handle:
-            write(handle)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
 
 
 def tile_result_path(directory: Path, tile_index: int) -> Path:
@@ -292,7 +278,7 @@ def run_claimed_tile(
         plan, source, context = load_tile_inputs(directory)
         result = compute_tile(plan, tile_index, source, context, threads=threads)
         path = tile_result_path(directory, tile_index)
-        _atomic_write(path, result.save)
+        write_atomically(path, result.save)
     seconds = time.perf_counter() - started
     crop_points = int(
         result.figures.get("crop_reference_points", 0) + result.figures.get("crop_scan_points", 0)
