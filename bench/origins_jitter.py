@@ -30,8 +30,9 @@ from app.core.datasets.lidar import (
 )
 from app.core.datasets.scenes import raycast_scene
 from app.core.origins import estimate
-from app.core.origins.columns import column_lines, fit_column_centre, lattice_patches
+from app.core.origins.columns import column_lines, fit_column_centre
 from app.core.origins.rings import fit_ring_height
+from app.core.origins.voxels import whole_voxels
 
 RAYCAST_SEEDS = (100, 101, 18)
 """bench/perf_service.py's pair (100), a neighbour, bench/perf_round2.py's seed."""
@@ -82,7 +83,7 @@ def single_scan(
 def describe(points: NDArray[np.float64], truth: NDArray[np.float64]) -> str:
     """One line: the column and ring signals alone, then the whole estimate."""
     rng = np.random.default_rng(0)
-    patch = lattice_patches(points, estimate.PATCH_POINTS, rng)
+    patch = whole_voxels(points, estimate.PATCH_POINTS, rng)
     anchor, direction, walls = column_lines(patch, estimate.QUERY_POINTS, rng)
     low, high = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
     columns = fit_column_centre(anchor, direction, low, high)

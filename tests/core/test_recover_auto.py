@@ -226,25 +226,6 @@ def test_a_test_chosen_by_the_user_wins_over_the_routing():
     assert localisation.parameters["scan_visibility"] == "coverage"
 
 
-def test_whole_voxels_keep_the_voxels_a_floor_modulo_of_their_hash_picks():
-    from app.core.origins.sampling import PATCH, _whole_voxels
-
-    points = np.random.default_rng(3).uniform(-40.0, 40.0, size=(300_000, 3))
-    kept = _whole_voxels(points, 50_000, np.random.default_rng(9))
-    salt = np.int64(np.random.default_rng(9).integers(1, 2**31))
-    cell = np.floor(points / PATCH).astype(np.int64)
-    with np.errstate(over="ignore"):
-        mixed = (
-            cell[:, 0] * np.int64(73856093)
-            ^ cell[:, 1] * np.int64(19349663)
-            ^ cell[:, 2] * np.int64(83492791)
-            ^ salt
-        )
-    expected = points[(mixed % 65536) < 65536 * 50_000 / points.shape[0]]
-    assert np.array_equal(kept, expected)
-    assert 35_000 < kept.shape[0] < 65_000
-
-
 def _no_estimate(side, points, **kwargs):
     raise AssertionError("a single-origin estimate was made")
 

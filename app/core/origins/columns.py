@@ -24,9 +24,7 @@ __all__ = [
     "column_lines",
     "fit_column_centre",
     "horizontal_bounds",
-    "lattice_patches",
     "normal_z",
-    "voxel_hash",
 ]
 
 NEIGHBOURS = 8
@@ -88,52 +86,6 @@ def horizontal_bounds(
     low = np.array([column.min() for column in columns])
     high = np.array([column.max() for column in columns])
     return low, high
-
-
-VOXEL_HASH_FACTORS = (73856093, 19349663, 83492791)
-"""Primes of the voxel hash (x, y, z)."""
-
-
-def voxel_hash(points: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
-    """A hash of each point's ``cell``-metre voxel, shape (n,), int64.
-
-    The xor of the voxel's integer coordinates times :data:`VOXEL_HASH_FACTORS` (wrapping
-    round in 64 bits), formed column by column into reused (n,) buffers: forming the (n, 3)
-    voxel coordinates in floats then integers took twice as long.
-
-    Parameters
-    ----------
-    points : ndarray, shape (n, 3)
-    cell : float
-        Voxel edge (metres).
-    """
-    hashed = np.empty(points.shape[0], dtype=np.int64)
-    term = np.empty(points.shape[0], dtype=np.int64)
-    coordinate = np.empty(points.shape[0], dtype=np.float64)
-    for axis, factor in enumerate(VOXEL_HASH_FACTORS):
-        np.floor(points[:, axis] if cell == 1.0 else points[:, axis] / cell, out=coordinate)
-        target = hashed if axis == 0 else term
-        target[...] = coordinate  # truncation of whole floats: their value
-        target *= np.int64(factor)
-        if axis:
-            hashed ^= term
-    return hashed
-
-
-def lattice_patches(
-    points: NDArray[np.float64], max_points: int, rng: np.random.Generator, cell: float = 1.0
-) -> NDArray[np.float64]:
-    """All points of randomly chosen ``cell``-metre voxels, about ``max_points`` of them.
-
-    Whole voxels keep the scan's own density, so neighbours inside them are lattice neighbours.
-    """
-    if len(points) <= max_points:
-        return points
-    hashed = voxel_hash(points, cell)
-    salt = int(rng.integers(1, 2**31 - 1))
-    bucket = ((hashed ^ salt) * 2654435761) % 1000
-    keep = bucket < max(1, int(1000 * max_points / len(points)))
-    return points[keep]
 
 
 def normal_z(neighbourhood: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -29,10 +29,10 @@ from app.core.origins.columns import (
     column_lines,
     fit_column_centre,
     horizontal_bounds,
-    lattice_patches,
 )
 from app.core.origins.rings import fit_ring_height
 from app.core.origins.sharpen import sharpen_origin
+from app.core.origins.voxels import whole_voxels
 
 __all__ = ["CONFIDENT", "MIN_POINTS", "OriginEstimate", "confidence_ramp", "estimate_origin"]
 
@@ -136,7 +136,7 @@ def estimate_origin(
         centre = points.mean(axis=0) if len(points) else np.zeros(3)
         return OriginEstimate(centre, 0.0, {"n_points": float(len(points)), "seconds": 0.0})
     rng = np.random.default_rng(random_state)
-    patch = lattice_patches(points, PATCH_POINTS, rng)
+    patch = whole_voxels(points, PATCH_POINTS, rng)
     anchor, direction, wall_points = column_lines(patch, QUERY_POINTS, rng)
     low, high = horizontal_bounds(points)
     columns = fit_column_centre(anchor, direction, low, high)

@@ -15,14 +15,13 @@ import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
-from app.core.origins.columns import voxel_hash
+from app.core.origins.voxels import whole_voxels
 
 __all__ = ["LidarSampling", "lidar_sampling"]
 
-PATCH = 1.0
-"""Edge (metres) of the voxels a large cloud's measured subset is made of."""
 SAMPLING_MAX_POINTS = 100_000
-"""Points whose sampling is measured (a seeded random subset of whole voxels beyond this)."""
+"""Points whose sampling is measured (beyond this, whole voxels of them:
+:func:`~app.core.origins.voxels.whole_voxels`)."""
 SAMPLING_QUERIES = 5_000
 """Points whose nearest neighbours are examined."""
 SAMPLING_NEIGHBOURS = 6
@@ -79,24 +78,6 @@ class LidarSampling:
         }
 
 
-def _whole_voxels(
-    points: NDArray[np.float64], max_points: int, rng: np.random.Generator
-) -> NDArray[np.float64]:
-    """About ``max_points`` of ``points`` (n, 3) as whole :data:`PATCH`-metre voxels.
-
-    A voxel is kept when a seeded hash of its integer coordinates falls in the first
-    ``max_points / n`` of 2**16 buckets (:func:`~app.core.origins.columns.voxel_hash` xor a
-    seeded draw), so that neighbours within it are kept together.
-    """
-    if points.shape[0] <= max_points:
-        return points
-    mixed = voxel_hash(points, PATCH)
-    mixed ^= np.int64(rng.integers(1, 2**31))
-    buckets = 1 << 16  # a power of two: the floor modulo is a bit mask (4x quicker)
-    mixed &= np.int64(buckets - 1)
-    return points[mixed < buckets * max_points / points.shape[0]]
-
-
 def lidar_sampling(
     points: NDArray[np.float64], *, random_state: int | np.random.Generator | None = 0
 ) -> LidarSampling:
@@ -122,7 +103,7 @@ def lidar_sampling(
     points = np.asarray(points, dtype=np.float64)
     if not np.isfinite(points).all():  # one test of all values; no copy of a finite cloud
         points = points[np.isfinite(points).all(axis=1)]
-    points = _whole_voxels(points, SAMPLING_MAX_POINTS, rng)
+    points = whole_voxels(points, SAMPLING_MAX_POINTS, rng)
     if points.shape[0] < SAMPLING_NEIGHBOURS + 2:
         return LidarSampling(0.0, 0.0, int(points.shape[0]))
     queries = points

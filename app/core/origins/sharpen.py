@@ -119,7 +119,7 @@ def sharpen_origin(
     points : ndarray, shape (n, 3)
         The cloud (z along the lidar's axis).
     patch : ndarray, shape (m, 3)
-        Whole voxels of it (:func:`~app.core.origins.columns.lattice_patches`): their
+        Whole voxels of it (:func:`~app.core.origins.voxels.whole_voxels`): their
         neighbours tell level surfaces from walls.
     start : ndarray, shape (3,)
     rng : Generator

@@ -48,6 +48,7 @@ from app.core.origins.known_stations import estimate_each_station
 from app.core.origins.resolve import STATIONS_UNKNOWN, ResolvedOrigin, resolve_origin
 from app.core.origins.sampling import LidarSampling, lidar_sampling
 from app.core.origins.station_height import station_height
+from app.core.origins.voxels import whole_voxels
 
 __all__ = [
     "RECOVER_CHOICES",
@@ -64,8 +65,6 @@ MAX_POINTS = 200_000
 """Points used (a seeded random subset of whole voxels beyond this): lines need lattice
 neighbours.  The lines, Hough and tests after it cost the same whatever the cloud's size; at
 1M points a scan 200k whole voxels find every station as 300k did, 10-30 % sooner."""
-PATCH = 1.0
-"""Edge (metres) of the voxels the subset is made of."""
 MAX_PASSES = 4
 """Searches: each after removing the points that the stations found so far explain."""
 MIN_RING_SHARE = 0.05
@@ -106,33 +105,6 @@ class RecoveredStations:
         return self.origins.shape[0] >= 2
 
 
-def _subset(points: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np.float64]:
-    """At most about MAX_POINTS points, as whole PATCH-metre voxels (lattice kept).
-
-    Each voxel is kept or not by a seeded hash of its integer coordinates: no sort of the
-    cloud (``np.unique`` over 1M voxel keys cost more than the whole search).
-    """
-    if points.shape[0] <= MAX_POINTS:
-        return points
-    cell = np.floor(points if PATCH == 1.0 else points / PATCH).astype(np.int64)
-    salt = np.uint64(rng.integers(1, 2**62))
-    with np.errstate(over="ignore"):
-        mixed = (
-            cell[:, 0].astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
-            ^ cell[:, 1].astype(np.uint64) * np.uint64(0xC2B2AE3D27D4EB4F)
-            ^ cell[:, 2].astype(np.uint64) * np.uint64(0x165667B19E3779F9)
-            ^ salt
-        )
-        # splitmix64 finaliser: every bit of the key moves the top bits
-        mixed ^= mixed >> np.uint64(30)
-        mixed *= np.uint64(0xBF58476D1CE4E5B9)
-        mixed ^= mixed >> np.uint64(27)
-        mixed *= np.uint64(0x94D049BB133111EB)
-        mixed ^= mixed >> np.uint64(31)
-    uniform = (mixed >> np.uint64(11)).astype(np.float64) / float(2**53)
-    return points[uniform < MAX_POINTS / points.shape[0]]
-
-
 def recover_stations(
     points: NDArray[np.float64], *, random_state: int | np.random.Generator | None = 0
 ) -> RecoveredStations:
@@ -156,7 +128,7 @@ def recover_stations(
         Possibly none (no lidar structure) or one (a single-station cloud).
     """
     rng = np.random.default_rng(random_state)
-    subset = _subset(np.asarray(points, dtype=np.float64), rng)
+    subset = whole_voxels(np.asarray(points, dtype=np.float64), MAX_POINTS, rng)
     unexplained = np.ones(subset.shape[0], dtype=bool)
     origins: list[NDArray[np.float64]] = []
     shares: list[float] = []

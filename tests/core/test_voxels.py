@@ -1,0 +1,51 @@
+"""The one whole-voxel subset of the origin searches (issue 28), its coverage at any density
+(issue 30)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from app.core.origins.voxels import VOXEL_EDGE, VOXEL_POINTS, whole_voxels
+
+
+def floor_points(n_points: int, side: float, seed: int) -> np.ndarray:
+    """``n_points`` random points on a ``side``-metre level floor (1 cm of height noise)."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0.0, side, size=(n_points, 2))
+    return np.column_stack([xy, rng.normal(0.5, 0.01, n_points)])
+
+
+def touched_cells(points: np.ndarray) -> int:
+    """Distinct one-metre voxels holding some of ``points``."""
+    return len(np.unique(np.floor(points).astype(np.int64), axis=0))
+
+
+def test_the_subset_is_seeded_whole_voxels_of_about_the_size_asked():
+    points = np.random.default_rng(3).uniform(-30.0, 30.0, size=(120_000, 3))
+    first = whole_voxels(points, 20_000, np.random.default_rng(9))
+    again = whole_voxels(points.copy(), 20_000, np.random.default_rng(9))
+    other = whole_voxels(points, 20_000, np.random.default_rng(10))
+    np.testing.assert_array_equal(first, again)
+    assert not np.array_equal(first, other)
+    assert 0.7 * 20_000 <= len(first) <= 1.3 * 20_000
+    # sparse (under VOXEL_POINTS a voxel): VOXEL_EDGE voxels, each kept whole or not at all
+    kept = {tuple(key) for key in np.floor(first / VOXEL_EDGE).astype(int).tolist()}
+    in_kept = [tuple(key) in kept for key in np.floor(points / VOXEL_EDGE).astype(int).tolist()]
+    assert int(np.count_nonzero(in_kept)) == len(first)
+
+
+def test_a_small_cloud_is_kept_whole():
+    points = floor_points(1_000, 10.0, 0)
+    assert whole_voxels(points, 1_000, np.random.default_rng(0)) is points
+
+
+def test_a_denser_cloud_is_covered_as_widely():
+    """Eight times the density, the same subset size: the kept voxels spread over as much of
+    the floor (one-metre voxels would be an eighth as many places)."""
+    sparse = floor_points(VOXEL_POINTS // 2 * 400, 20.0, 1)
+    dense = floor_points(VOXEL_POINTS * 4 * 400, 20.0, 2)
+    max_points = len(sparse) // 10
+    sparse_kept = whole_voxels(sparse, max_points, np.random.default_rng(4))
+    dense_kept = whole_voxels(dense, max_points, np.random.default_rng(4))
+    assert 0.7 * max_points <= len(dense_kept) <= 1.3 * max_points
+    assert touched_cells(dense_kept) >= 0.6 * touched_cells(sparse_kept)
