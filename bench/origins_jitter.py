@@ -83,7 +83,7 @@ def single_scan(
 def describe(points: NDArray[np.float64], truth: NDArray[np.float64]) -> str:
     """One line: the column and ring signals alone, then the whole estimate."""
     rng = np.random.default_rng(0)
-    patch = whole_voxels(points, estimate.PATCH_POINTS, rng)
+    patch = whole_voxels(points, estimate.PATCH_POINTS, rng, thin_crowded=True)
     anchor, direction, walls = column_lines(patch, estimate.QUERY_POINTS, rng)
     low, high = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
     columns = fit_column_centre(anchor, direction, low, high)

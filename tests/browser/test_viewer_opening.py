@@ -7,14 +7,12 @@ camera looks at the change.
 from __future__ import annotations
 
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
 from app.core.datasets.lidar import lidar_pair
-from app.core.formats import read_point_cloud
 from app.viewer.colours import ADDED_COLOUR, REMOVED_COLOUR
 from app.viewer.regions_display import CameraView, label_box
 from tests.helpers.browser import (
@@ -25,15 +23,14 @@ from tests.helpers.browser import (
     view_scene,
 )
 from tests.helpers.browser import wait_for_page as wait_until
-from tests.helpers.environment import require, shared_data_dir
 from tests.helpers.files import pcd_bytes
 from tests.helpers.http import create_site, unique_name, upload
+from tests.helpers.street import street_with_a_parked_car
 
 pytestmark = pytest.mark.timeout(600)
 
 MIN_CHANGE_PIXELS = 200
 WINDOW = (1280, 800)
-KITTI_FRAME = Path("real/kitti_2011_09_26_drive_0002_pointcloudset/frame0.ply")
 
 
 def compared_job(service: ReviewService, name: str, reference: bytes, scan: bytes) -> str:
@@ -181,31 +178,6 @@ def test_an_indoor_change_behind_a_wall_is_seen_at_once(
     assert pixels >= MIN_CHANGE_PIXELS, f"{pixels} change pixels in the first frame"
     assert_looks_at_the_change(record)
     assert_labels_apart(record)
-
-
-def street_with_a_parked_car() -> tuple[np.ndarray, np.ndarray]:
-    """A real KITTI street frame, and the same frame with a car-sized box of points added on
-    the road 12 m ahead (its sides sampled at most every 5 cm)."""
-    path = shared_data_dir() / KITTI_FRAME
-    require(path.exists(), f"the real KITTI frame is missing: {path} (see ../shared/data)")
-    street = read_point_cloud(path).points
-    ahead = street[(np.abs(street[:, 0] - 12.0) < 2.0) & (np.abs(street[:, 1] - 3.0) < 2.0)]
-    ground = float(np.percentile(ahead[:, 2], 10)) if len(ahead) else -1.73
-    low = np.array([10.0, 2.1, ground])
-    high = np.array([14.0, 3.9, ground + 1.5])
-    grid = np.arange(0.0, 1.0 + 1e-9, 0.0125)
-    faces = []
-    for axis in range(3):
-        others = [other for other in range(3) if other != axis]
-        first, second = np.meshgrid(grid, grid, indexing="ij")
-        for side in (0.0, 1.0):
-            unit = np.zeros((first.size, 3))
-            unit[:, others[0]] = first.ravel()
-            unit[:, others[1]] = second.ravel()
-            unit[:, axis] = side
-            faces.append(low + unit * (high - low))
-    car = np.unique(np.round(np.vstack(faces), 3), axis=0)
-    return street, np.vstack([street, car])
 
 
 @pytest.mark.slow  # a comparison of a 120k-point real frame, then its software-WebGL render;

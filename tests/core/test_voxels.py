@@ -49,3 +49,28 @@ def test_a_denser_cloud_is_covered_as_widely():
     dense_kept = whole_voxels(dense, max_points, np.random.default_rng(4))
     assert 0.7 * max_points <= len(dense_kept) <= 1.3 * max_points
     assert touched_cells(dense_kept) >= 0.6 * touched_cells(sparse_kept)
+
+
+def block_share(subsets: list[np.ndarray]) -> float:
+    """Share of all the points of ``subsets`` in the dense block of
+    :func:`test_a_crowded_voxel_weighs_about_voxel_points`."""
+    pooled = np.vstack(subsets)
+    return float(np.mean(np.all((pooled[:, :2] >= 9.0) & (pooled[:, :2] <= 11.0), axis=1)))
+
+
+def test_a_crowded_voxel_weighs_about_voxel_points():
+    """A 2 x 2 m block a hundred times denser than the floor round it holds half the points:
+    drawn whole, a large share of the subsets' points; thinned, about VOXEL_POINTS points a
+    voxel of it (a few % of the subsets), and the floor's voxels are kept whole as before."""
+    floor = floor_points(40_000, 20.0, 5)
+    block = floor_points(40_000, 2.0, 6) + np.array([9.0, 9.0, 0.0])
+    points = np.vstack([floor, block])
+    seeds = [np.random.default_rng(seed) for seed in range(40)]
+    plain = [whole_voxels(points, 8_000, np.random.default_rng(seed)) for seed in range(40)]
+    thinned = [whole_voxels(points, 8_000, rng, thin_crowded=True) for rng in seeds]
+    assert block_share(plain) > 0.15  # whole: the draw's luck, 0.2 of these 40
+    assert block_share(thinned) < 0.05
+    for whole, thin in zip(plain, thinned, strict=True):
+        outside = whole[~np.all((whole[:, :2] >= 8.0) & (whole[:, :2] <= 12.0), axis=1)]
+        kept = {tuple(row) for row in thin.tolist()}
+        assert all(tuple(row) in kept for row in outside.tolist())

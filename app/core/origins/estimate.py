@@ -41,7 +41,8 @@ CONFIDENT = 0.5
 MIN_POINTS = 2000
 """Smaller clouds get no estimate (confidence 0)."""
 PATCH_POINTS = 40_000
-"""Points (whole voxels) whose neighbour pairs are examined."""
+"""Points (whole voxels, the crowded ones thinned: :func:`~app.core.origins.voxels.whole_voxels`)
+whose neighbour pairs are examined."""
 QUERY_POINTS = 15_000
 RING_SHARE_RANGE = (0.6, 0.85)
 """Ring share mapped onto confidence 0..1 (single stations: 0.95-1; four merged: 0.1-0.6)."""
@@ -136,7 +137,7 @@ def estimate_origin(
         centre = points.mean(axis=0) if len(points) else np.zeros(3)
         return OriginEstimate(centre, 0.0, {"n_points": float(len(points)), "seconds": 0.0})
     rng = np.random.default_rng(random_state)
-    patch = whole_voxels(points, PATCH_POINTS, rng)
+    patch = whole_voxels(points, PATCH_POINTS, rng, thin_crowded=True)
     anchor, direction, wall_points = column_lines(patch, QUERY_POINTS, rng)
     low, high = horizontal_bounds(points)
     columns = fit_column_centre(anchor, direction, low, high)

@@ -1,0 +1,39 @@
+"""A real KITTI street frame with a car-sized box of points added: a change on a real scan,
+shared by the viewer's opening test and the origin estimate's tests."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from app.core.formats import read_point_cloud
+from tests.helpers.environment import require, shared_data_dir
+
+KITTI_FRAME = "real/kitti_2011_09_26_drive_0002_pointcloudset/frame0.ply"
+"""The street frame, under ../shared/data."""
+
+
+def street_with_a_parked_car() -> tuple[np.ndarray, np.ndarray]:
+    """A real KITTI street frame, and the same frame with a car-sized box of points added on
+    the road 12 m ahead (its six sides sampled on an 81 x 81 grid each: 39k points, a quarter
+    of the frame, 1,500-3,400 points a one-metre voxel where the lidar's own hold at most ~980).
+    """
+    path = shared_data_dir() / KITTI_FRAME
+    require(path.exists(), f"the real KITTI frame is missing: {path} (see ../shared/data)")
+    street = read_point_cloud(path).points
+    ahead = street[(np.abs(street[:, 0] - 12.0) < 2.0) & (np.abs(street[:, 1] - 3.0) < 2.0)]
+    ground = float(np.percentile(ahead[:, 2], 10)) if len(ahead) else -1.73
+    low = np.array([10.0, 2.1, ground])
+    high = np.array([14.0, 3.9, ground + 1.5])
+    grid = np.arange(0.0, 1.0 + 1e-9, 0.0125)
+    faces = []
+    for axis in range(3):
+        others = [other for other in range(3) if other != axis]
+        first, second = np.meshgrid(grid, grid, indexing="ij")
+        for side in (0.0, 1.0):
+            unit = np.zeros((first.size, 3))
+            unit[:, others[0]] = first.ravel()
+            unit[:, others[1]] = second.ravel()
+            unit[:, axis] = side
+            faces.append(low + unit * (high - low))
+    car = np.unique(np.round(np.vstack(faces), 3), axis=0)
+    return street, np.vstack([street, car])
