@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from app.core.datasets.added_objects import box_on_the_ground
 from app.core.formats import read_point_cloud
 from tests.helpers.environment import require, shared_data_dir
 
@@ -20,20 +21,5 @@ def street_with_a_parked_car() -> tuple[np.ndarray, np.ndarray]:
     path = shared_data_dir() / KITTI_FRAME
     require(path.exists(), f"the real KITTI frame is missing: {path} (see ../shared/data)")
     street = read_point_cloud(path).points
-    ahead = street[(np.abs(street[:, 0] - 12.0) < 2.0) & (np.abs(street[:, 1] - 3.0) < 2.0)]
-    ground = float(np.percentile(ahead[:, 2], 10)) if len(ahead) else -1.73
-    low = np.array([10.0, 2.1, ground])
-    high = np.array([14.0, 3.9, ground + 1.5])
-    grid = np.arange(0.0, 1.0 + 1e-9, 0.0125)
-    faces = []
-    for axis in range(3):
-        others = [other for other in range(3) if other != axis]
-        first, second = np.meshgrid(grid, grid, indexing="ij")
-        for side in (0.0, 1.0):
-            unit = np.zeros((first.size, 3))
-            unit[:, others[0]] = first.ravel()
-            unit[:, others[1]] = second.ravel()
-            unit[:, axis] = side
-            faces.append(low + unit * (high - low))
-    car = np.unique(np.round(np.vstack(faces), 3), axis=0)
+    car = box_on_the_ground(street, (10.0, 2.1), (14.0, 3.9), 1.5)
     return street, np.vstack([street, car])
