@@ -22,7 +22,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["VOXEL_EDGE", "VOXEL_POINTS", "voxel_hash", "whole_voxels"]
+__all__ = ["CROWDED_POINTS", "VOXEL_EDGE", "VOXEL_POINTS", "voxel_hash", "whole_voxels"]
 
 VOXEL_EDGE = 1.0
 """Largest edge (metres) of the voxels a subset is made of (clouds up to :data:`VOXEL_POINTS`
@@ -33,6 +33,13 @@ denser clouds.  Merged 5-station warehouse surveys: 600-720 points a one-metre v
 points a scan, about 13,000 at 20M.  Every station of them was recovered at 1M, 4M, 10M and
 20M points with 250 (one or two duplicates 8-13 cm off a station at 10M and 20M with 500 and
 1,000, and one station missed at 20M with 1,000)."""
+CROWDED_POINTS = 1_200
+"""A kept voxel holding more points than this is thinned to :data:`VOXEL_POINTS` when asked
+(:func:`whole_voxels` with ``thin_crowded``).  The real KITTI HDL-64 frames hold at most 982-1,167
+points a one-metre voxel (their near ground; a Budapest frame 2,218), a car-sized box of grid
+points added to one 1,480-3,400.  Bounds of 250 and 1,000 thinned the KITTI frames' own near
+voxels too, and the new draw put the ring share of frame1, tilted by the alignment, under the
+own-frame retry's bound: its origin was lost (KITTI pair 0-1: 266 -> 1,093 changed points)."""
 VOXEL_HASH_FACTORS = (73856093, 19349663, 83492791)
 """Primes of the voxel hash (x, y, z)."""
 _GOLDEN = np.int64(-7046029254386353131)  # 0x9E3779B97F4A7C15 as a signed 64-bit integer
@@ -90,14 +97,14 @@ def _thinned(
     """Mask (m,) of the drawn ``points`` (m, 3) kept once the crowded voxels are thinned.
 
     A voxel (draws ``mixed`` (m,) of :func:`_voxel_draws`, ``edge`` metres) holding ``count`` >
-    :data:`VOXEL_POINTS` points is cut into sub-voxels of the edge shrunk by the square root
+    :data:`CROWDED_POINTS` points is cut into sub-voxels of the edge shrunk by the square root
     of ``count / VOXEL_POINTS`` (surfaces: about :data:`VOXEL_POINTS` points each), and each is
     kept with probability ``VOXEL_POINTS / count``: the voxel weighs :data:`VOXEL_POINTS`
     points on average, and its kept part is still whole sub-voxels of lattice neighbours.
     """
     _, inverse, counts = np.unique(mixed, return_inverse=True, return_counts=True)
     count = counts[inverse]
-    keep = count <= VOXEL_POINTS
+    keep = count <= CROWDED_POINTS
     crowded = np.flatnonzero(~keep)
     if crowded.size:
         crowd = count[crowded]
@@ -126,7 +133,7 @@ def whole_voxels(
     is shrunk by the square root of the excess (surfaces: points a voxel grow with its area),
     so that the subset holds as many voxels whatever the density.  One draw from ``rng``.
 
-    With ``thin_crowded``, a kept voxel far denser than that (more than :data:`VOXEL_POINTS`
+    With ``thin_crowded``, a kept voxel far denser than that (more than :data:`CROWDED_POINTS`
     points) is thinned to whole sub-voxels of it weighing :data:`VOXEL_POINTS` points on
     average (:func:`_thinned`), so the subset follows space rather than point counts where they
     part: for the single-origin estimate, whose column lines and ring share count points, and
@@ -142,7 +149,7 @@ def whole_voxels(
         About how many points to keep (all of them when ``n`` is not larger).
     rng : Generator
     thin_crowded : bool
-        Thin the voxels holding more than :data:`VOXEL_POINTS` points.
+        Thin the voxels holding more than :data:`CROWDED_POINTS` points.
 
     Returns
     -------
