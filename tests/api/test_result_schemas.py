@@ -8,10 +8,10 @@ import json
 
 import httpx
 
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
 from tests.helpers.http import site_with_reference, upload_accepted
 from tests.helpers.jobs import finish_job, load_job
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
 
 DESCRIBED = {

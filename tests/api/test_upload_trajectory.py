@@ -26,11 +26,11 @@ import pytest
 
 from app.jobs.execution import execute_job
 from app.jobs.hooks import job_hooks
-from tests.helpers import fake_pipeline
-from tests.helpers.e57_times import e57_with_times_bytes
-from tests.helpers.files import ply_bytes
+from app.testing import fake_pipeline
+from app.testing.e57_times import e57_with_times_bytes
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
 from tests.helpers.http import assert_error, create_site
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
 
 N_POINTS = 3000

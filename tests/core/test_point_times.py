@@ -18,8 +18,8 @@ import pytest
 from app.core.formats import read_point_cloud
 from app.core.trajectory import Trajectory
 from app.core.trajectory_poses import interpolate_positions, sensor_groups, with_trajectory
-from tests.helpers.e57_times import e57_with_times_bytes
-from tests.helpers.files import pcd_bytes, ply_bytes
+from app.testing.e57_times import e57_with_times_bytes
+from app.testing.files import pcd_bytes, ply_bytes
 
 START = 100.0
 """The clock's value when the sensor passes x = 0."""

@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 from app.core.formats import read_point_cloud
 from app.core.formats.trajectory_files import detect_trajectory_format, read_trajectory
 from app.core.trajectory import TrajectoryError
-from tests.helpers.files import pcd_bytes, ply_bytes
+from app.testing.files import pcd_bytes, ply_bytes
 
 RNG = np.random.default_rng(3)
 TIMES = 1_700_000_000.0 + np.cumsum(RNG.uniform(0.05, 0.2, 6))

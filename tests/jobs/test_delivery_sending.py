@@ -23,8 +23,8 @@ from app.jobs.alerts.deliveries import (
     send_attempt,
 )
 from app.jobs.recovery import recovery_sweep
+from app.testing.webhooks import WEBHOOK_SETTINGS, WebhookReceiver
 from tests.helpers.jobs import create_job
-from tests.helpers.webhooks import WEBHOOK_SETTINGS, WebhookReceiver
 
 
 def delivery_to(url: str, secret: str = "whsec_test") -> ClaimedDelivery:

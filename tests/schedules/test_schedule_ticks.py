@@ -16,9 +16,9 @@ from app.clock import as_utc, utc_now
 from app.db.models import Job, ScheduleRun, ScheduleRunStatus
 from app.db.session import transaction
 from app.services.schedules.runs import TickReport, abandoned_after, claim_period, tick
+from app.testing.files import room_ply
+from app.testing.paths import PROJECT_ROOT
 from tests.helpers.database import count_rows
-from tests.helpers.environment import PROJECT_ROOT
-from tests.helpers.files import room_ply
 from tests.helpers.http import site_with_reference, upload_accepted
 from tests.helpers.server import ApiServer
 

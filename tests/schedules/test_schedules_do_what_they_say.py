@@ -11,7 +11,7 @@ import httpx
 
 from app.clock import as_utc
 from app.services.schedules.runs import tick
-from tests.helpers.files import room_ply
+from app.testing.files import room_ply
 from tests.helpers.http import site_with_reference, upload_accepted
 from tests.helpers.server import ApiServer
 

@@ -5,8 +5,6 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.ground_truth import changed_iou as changed_iou  # the tests' name for it
-
 
 def random_points(n: int = 64, seed: int = 0) -> NDArray[np.float64]:
     """(n, 3) coordinates exactly representable in float32 (on a 1/64 grid: LZF-compressible)."""

@@ -25,7 +25,7 @@ from app.core.quality import quality_warnings
 from app.jobs.hooks import job_hooks
 
 CONSUMER_BOOTSTRAP = (
-    "import sys, tests.helpers.fake_pipeline as fake; fake.install(); "
+    "import sys, app.testing.fake_pipeline as fake; fake.install(); "
     "from app.jobs.consumer import main; sys.exit(main())"
 )
 
