@@ -143,11 +143,13 @@ def las_bytes(
     version: str = "1.2",
     scale: float = 0.001,
     extra: dict[str, NDArray] | None = None,
+    gps_time: NDArray[np.float64] | None = None,
 ) -> bytes:
     """A LAS (LAZ when ``compress``) file of (n, 3) ``points`` at ``scale`` resolution.
 
     Intensity counts up, classification is 2 (ground) and, in formats with colour, red counts
-    up; ``extra`` adds extra-bytes dimensions.
+    up; ``extra`` adds extra-bytes dimensions; ``gps_time`` (n,) fills the per-point GPS time of
+    the formats that have one (1, 3, 5-10).
     """
     header = laspy.LasHeader(point_format=point_format, version=version)
     header.scales = np.full(3, scale)
@@ -162,6 +164,8 @@ def las_bytes(
         las.red = np.arange(len(points), dtype=np.uint16) * 100
     for name, values in (extra or {}).items():
         las[name] = values
+    if gps_time is not None:
+        las.gps_time = gps_time
     stream = io.BytesIO()
     las.write(stream, do_compress=compress)
     return stream.getvalue()
