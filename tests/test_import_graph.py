@@ -128,9 +128,7 @@ def forbidden_imports(root: Path, package: str, forbidden: tuple[str, ...]) -> l
             else:
                 continue
             found.extend(
-                f"{name} -> {module}"
-                for module in imported
-                if module.split(".")[0] in forbidden
+                f"{name} -> {module}" for module in imported if module.split(".")[0] in forbidden
             )
     return sorted(found)
 

@@ -29,6 +29,8 @@ Modules
     files with per-point times, ROS 1/2 lidar bags.
 ``scenes``
     Small synthetic clouds (random grid points, a room, a corridor).
+``viewer_scenes``
+    A synthetic pair compared with its sensor origins given, and the 3D view's scene of it.
 ``network``, ``waiting``, ``paths``
     A free TCP port, polling until a condition holds, where the checkout and shared data are.
 """

@@ -18,6 +18,9 @@ from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
+from sqlalchemy.orm import Session
+
+from app.db.models import Organisation, Webhook
 from app.testing.paths import PROJECT_ROOT
 from app.testing.waiting import wait_until
 
@@ -153,3 +156,15 @@ class WebhookReceiver:
         self.release()
         self.server.shutdown()
         self.server.server_close()
+
+
+def organisation_with_webhook(
+    session: Session, name: str, url: str, secret: str, events: list[str]
+) -> str:
+    """A new organisation ``name`` with one webhook to ``url`` for ``events``; its id."""
+    organisation = Organisation(name=name)
+    session.add(organisation)
+    session.flush()
+    session.add(Webhook(organisation_id=organisation.id, url=url, events=events, secret=secret))
+    session.flush()
+    return organisation.id
