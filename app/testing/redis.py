@@ -1,4 +1,4 @@
-"""A private ``redis-server`` for tests: own port, no persistence, stopped and restarted at will.
+"""A private ``redis-server``: own port, no persistence, stopped and restarted at will.
 
 Never the shared server on 6379: tests stop their own server to play a Redis outage.
 :class:`RedisServer` runs ``redis-server --port P --save '' --appendonly no`` in its own process

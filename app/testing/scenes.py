@@ -1,4 +1,4 @@
-"""Synthetic point clouds for tests: random grid points, a room, a corridor."""
+"""Small synthetic point clouds: random grid points, a room, a corridor."""
 
 from __future__ import annotations
 

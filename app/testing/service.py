@@ -1,4 +1,4 @@
-"""Run the real service (``python -m app serve``), or a job consumer, as subprocesses for tests.
+"""The real service (``python -m app serve``) or a job consumer as subprocesses.
 
 :class:`ServiceProcess` starts ``scandiff serve`` in its own process group on a free port, waits
 for ``GET /api/v1/health`` to answer 200, and offers the handles tests need: ``base_url``,

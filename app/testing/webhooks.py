@@ -1,4 +1,4 @@
-"""A real local webhook receiver for tests, and the docs' signature check.
+"""A real local webhook receiver (tests, benchmarks), and the docs' signature check.
 
 :class:`WebhookReceiver` is an HTTP server on 127.0.0.1 (a thread) that records every request
 with its headers and raw body, and checks its ``Scandiff-Signature`` with the very function
