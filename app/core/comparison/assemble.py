@@ -3,6 +3,7 @@ coordinates and the source files' row order."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -26,8 +27,12 @@ def assemble_result(
     detected: Detected,
     decision: Decision,
     timings: dict[str, float],
+    extra_params: Mapping[str, Any] | None = None,
 ) -> ComparisonResult:
     """The result of one comparison from its stages' outputs.
+
+    ``extra_params`` are reported among the parameters in effect, after the decision rule (a
+    tiled comparison's memory budget).
 
     Returns
     -------
@@ -45,7 +50,7 @@ def assemble_result(
     return ComparisonResult(
         method=loaded.method,
         variant=loaded.variant,
-        params=effective_params(loaded),
+        params=effective_params(loaded, extra_params),
         score=float(detected.detection.score),
         threshold=float(detected.detection.threshold),
         changed=decision.changed,
@@ -58,17 +63,21 @@ def assemble_result(
         n_reference=len(reference),
         n_scan=len(scan),
         reference_label=reference.to_source_order(
-            localisation.reference_label.astype(np.int8), LABEL_UNOBSERVED
+            localisation.reference_label.astype(np.int8, copy=False), LABEL_UNOBSERVED
         ),
-        scan_label=scan.to_source_order(localisation.scan_label.astype(np.int8), LABEL_UNOBSERVED),
+        scan_label=scan.to_source_order(
+            localisation.scan_label.astype(np.int8, copy=False), LABEL_UNOBSERVED
+        ),
         reference_distance=reference.to_source_order(
-            localisation.reference_distance.astype(np.float32), np.nan
+            localisation.reference_distance.astype(np.float32, copy=False), np.nan
         ),
-        scan_distance=scan.to_source_order(localisation.scan_distance.astype(np.float32), np.nan),
+        scan_distance=scan.to_source_order(
+            localisation.scan_distance.astype(np.float32, copy=False), np.nan
+        ),
         reference_region=reference.to_source_order(
-            localisation.reference_region.astype(np.int32), -1
+            localisation.reference_region.astype(np.int32, copy=False), -1
         ),
-        scan_region=scan.to_source_order(localisation.scan_region.astype(np.int32), -1),
+        scan_region=scan.to_source_order(localisation.scan_region.astype(np.int32, copy=False), -1),
         localisation=dict(localisation.parameters),
         timings=timings,
         sensor_origins={
@@ -96,7 +105,9 @@ def visibility_report(
     }
 
 
-def effective_params(loaded: LoadedPair) -> dict[str, Any]:
+def effective_params(
+    loaded: LoadedPair, extra_params: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
     """Every parameter in effect: passing them back to ``compare`` replays the result."""
     settings = loaded.settings
     params: dict[str, Any] = {
@@ -105,6 +116,7 @@ def effective_params(loaded: LoadedPair) -> dict[str, Any]:
         "registration": settings.registration,
         "localisation": settings.localisation,
         "decision": settings.decision,
+        **(extra_params or {}),
     }
     for key, explicit in (
         ("reference_origin", settings.reference_origin),

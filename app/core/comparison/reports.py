@@ -42,6 +42,8 @@ class RegistrationReport:
         False: compared without aligning (the fit is measured all the same).
     translation_m : float
         How far the alignment moved the scan's centre (metres).
+    sample_points : int or None
+        The points of each cloud it was estimated on, when a sample (a tiled comparison).
     """
 
     transform: list[list[float]]
@@ -55,6 +57,7 @@ class RegistrationReport:
     rotation_degrees: float
     enabled: bool
     translation_m: float
+    sample_points: int | None = None
 
     @classmethod
     def of(
@@ -64,11 +67,14 @@ class RegistrationReport:
         *,
         enabled: bool,
         translation_m: float,
+        sample_points: int | None = None,
     ) -> RegistrationReport:
         """The report of ``registration`` with its transform in file coordinates (4, 4)."""
         summary = registration.to_json_dict()
         summary["transform"] = file_transform.tolist()
-        return cls(**summary, enabled=enabled, translation_m=translation_m)
+        return cls(
+            **summary, enabled=enabled, translation_m=translation_m, sample_points=sample_points
+        )
 
     def to_json_dict(self) -> dict[str, Any]:
         """The stored object (a job's ``registration``)."""
@@ -83,6 +89,7 @@ class RegistrationReport:
             "voxel_size": self.voxel_size,
             "rotation_degrees": self.rotation_degrees,
             "enabled": self.enabled,
+            **({} if self.sample_points is None else {"sample_points": self.sample_points}),
             "translation_m": self.translation_m,
         }
 
