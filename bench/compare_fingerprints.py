@@ -67,8 +67,11 @@ SITE_CALIBRATION = {
 }
 """A learned site threshold (:func:`app.core.site_calibration.decide`) for the gmm cases."""
 
-TILED_CROP_FRACTION = 0.4
+TILED_CROP_FRACTION = 0.9
 """``--tiled``: a tile's crop holds at most this share of both clouds' points."""
+TILED_MARGIN_METRES = 0.5
+TILED_RAY_REACH_METRES = 1.0
+"""``--tiled``: small enough margins for the cases' rooms (a few metres) to cross tile borders."""
 
 Case = tuple[str, Callable[[int], Any]]
 Compare = Callable[..., ComparisonResult]
@@ -80,7 +83,13 @@ def compare_in_tiles(
     """:func:`compare_tiled` with small tiles (no geometry cache: the tiled path has none)."""
     crop = int(TILED_CROP_FRACTION * (len(reference) + len(scan)))
     return compare_tiled(
-        reference, scan, budget_bytes=1 << 40, max_crop_points=crop, margin=1.0, **options
+        reference,
+        scan,
+        budget_bytes=1 << 40,
+        max_crop_points=crop,
+        margin=TILED_MARGIN_METRES,
+        ray_reach=TILED_RAY_REACH_METRES,
+        **options,
     )
 
 
