@@ -183,26 +183,26 @@ def label_upload_origins(result: Comparison, given_at_upload: dict[str, bool]) -
     """``result`` with the origins given at upload reported as ``"given"``, not ``"file"``.
 
     The worker hands a scan's upload origin to ``compare`` in the file's slot (it overrides the
-    file's own); the report names where it came from: ``sensor_origins[side][i]["source"]``,
-    ``visibility[side]["origins"]`` (also in ``calibration["visibility"]``) and the warnings.
+    file's own); the report names where it came from: ``sensor_origins[side][i].source``,
+    ``visibility[side].origins`` (also in ``calibration.visibility``) and the warnings.
     """
     sides = [side for side, given in given_at_upload.items() if given]
-    if not sides or result.sensor_origins is None:
-        return result  # nothing to relabel (a test's stand-in comparison reports no origins)
+    if not sides:
+        return result
     sensor_origins = {
         side: [
-            {**entry, "source": "given"}
-            if side in sides and entry.get("source") == "file"
+            dataclasses.replace(entry, source="given")
+            if side in sides and entry.source == "file"
             else entry
             for entry in entries
         ]
         for side, entries in result.sensor_origins.items()
     }
     visibility = {
-        side: {**report, "origins": "given"}
-        if side in sides and report.get("origins") == "file"
-        else report
-        for side, report in result.visibility.items()
+        side: dataclasses.replace(seen, origins="given")
+        if side in sides and seen.origins == "file"
+        else seen
+        for side, seen in result.visibility.items()
     }
     warnings = list(result.warnings)
     for side in sides:
@@ -210,15 +210,12 @@ def label_upload_origins(result: Comparison, given_at_upload: dict[str, bool]) -
             warning.replace(f"the {side}'s file sensor origin", f"the {side}'s given sensor origin")
             for warning in warnings
         ]
-    calibration = dict(result.calibration)
-    if "visibility" in calibration:
-        calibration["visibility"] = visibility
     return dataclasses.replace(  # type: ignore[type-var]  # a dataclass: warnings recomputed
         result,
         sensor_origins=sensor_origins,
         visibility=visibility,
         warnings=warnings,
-        calibration=calibration,
+        calibration=dataclasses.replace(result.calibration, visibility=visibility),
     )
 
 

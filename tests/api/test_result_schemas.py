@@ -11,6 +11,7 @@ import httpx
 from tests.helpers.files import ply_bytes
 from tests.helpers.http import site_with_reference, upload_accepted
 from tests.helpers.jobs import finish_job, load_job
+from tests.helpers.results import calibration_report, registration_report, sensor_origin_entries
 from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
 
@@ -88,8 +89,8 @@ def test_a_job_answers_exactly_the_json_it_stored(api: ApiServer, writer: httpx.
     site, reference = site_with_reference(writer)
     accepted = upload_accepted(writer, site["id"], "scan.ply", ply_bytes(room_points(500, seed=4)))
     job_id = accepted["job"]["id"]
-    registration = {"rmse": 0.01, "transform": [[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]}
-    calibration = {"detector_figure": 3, "decision": {"tests": [], "rule": "regions"}}
+    registration = registration_report(transform=[[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]])
+    calibration = calibration_report({"detector_figure": 3})
     finish_job(
         api,
         job_id,
@@ -97,7 +98,9 @@ def test_a_job_answers_exactly_the_json_it_stored(api: ApiServer, writer: httpx.
         accepted["scan"]["n_points"],
         registration=registration,
         calibration=calibration,
-        sensor_origins={"scan": [{"source": "file", "origin": [1, 2, 3], "extra": True}]},
+        sensor_origins=sensor_origin_entries(
+            {"scan": [{"source": "file", "origin": [1, 2, 3], "confidence": 1}]}
+        ),
         params={"voxel_size": "auto", "registration": {"min_fitness": 0}, "detector_own": 2},
     )
 
@@ -107,7 +110,7 @@ def test_a_job_answers_exactly_the_json_it_stored(api: ApiServer, writer: httpx.
     fields = ("registration", "calibration", "sensor_origins", "explanation", "effective_params")
     for field in fields:
         assert json.dumps(answer[field]) == json.dumps(getattr(stored, field)), field
-    assert answer["registration"] == registration  # integers stay integers, nothing added
+    assert answer["registration"] == registration.to_json_dict()  # integers stay, nothing added
     assert json.dumps(answer["timings"]) == json.dumps(stored.timings)
     assert json.dumps(answer["params"]) == json.dumps(stored.params)
     assert [warning["code"] for warning in answer["warnings"]] == [

@@ -10,10 +10,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.comparison.align import Alignment
-from app.core.comparison.decide import Decision, Detected
+from app.core.comparison.decide import Detected
 from app.core.comparison.load import LoadedPair
 from app.core.comparison.origins import SensorOrigins
-from app.core.comparison.reports import SideVisibility
+from app.core.comparison.reports import (
+    CalibrationReport,
+    Decision,
+    SensorOriginEntry,
+    SideVisibility,
+)
 from app.core.comparison.result import ComparisonResult, region_summary
 from app.core.localise import LABEL_UNOBSERVED, Localisation
 from app.core.registration import apply_transform
@@ -41,11 +46,13 @@ def assemble_result(
     """
     reference, scan, local_origin = loaded.reference, loaded.scan, loaded.local_origin
     visibility = visibility_report(origins, localisation)
-    calibration = dict(detected.detection.calibration)
-    calibration["compared_points"] = detected.compared_points
-    calibration["site"] = decision.site
-    calibration["visibility"] = visibility  # stored with a job's result (the API shows it)
-    calibration["decision"] = decision.report()
+    calibration = CalibrationReport(
+        detector=dict(detected.detection.calibration),
+        compared_points=detected.compared_points,
+        site=decision.site,
+        visibility=visibility,  # stored with a job's result (the API shows it)
+        decision=decision,
+    )
     transform = alignment.registration.transform
     return ComparisonResult(
         method=loaded.method,
@@ -55,7 +62,7 @@ def assemble_result(
         threshold=float(detected.detection.threshold),
         changed=decision.changed,
         calibration=calibration,
-        registration=alignment.report.to_json_dict(),
+        registration=alignment.report,
         regions=[region_summary(region, local_origin) for region in localisation.regions],
         uncertain_regions=[
             region_summary(region, local_origin) for region in localisation.uncertain_regions
@@ -81,9 +88,13 @@ def assemble_result(
         localisation=dict(localisation.parameters),
         timings=timings,
         sensor_origins={
-            "reference": origins.reference.resolved.report(lambda origin: origin + local_origin),
-            "scan": origins.scan.resolved.report(
-                lambda origin: to_scan_file(origin, transform, local_origin)
+            "reference": _entries(
+                origins.reference.resolved.report(lambda origin: origin + local_origin)
+            ),
+            "scan": _entries(
+                origins.scan.resolved.report(
+                    lambda origin: to_scan_file(origin, transform, local_origin)
+                )
             ),
         },
         warnings=[*origins.reference.resolved.warnings, *origins.scan.resolved.warnings],
@@ -93,16 +104,20 @@ def assemble_result(
 
 def visibility_report(
     origins: SensorOrigins, localisation: Localisation
-) -> dict[str, dict[str, Any]]:
-    """What was found out about each cloud's sensors, and the visibility test it got
-    (:class:`SideVisibility` as stored)."""
+) -> dict[str, SideVisibility]:
+    """What was found out about each cloud's sensors, and the visibility test it got."""
     return {
         side: SideVisibility.of(
             cloud.resolved.visibility_report(),
             localisation.parameters.get(f"{side}_visibility"),
-        ).to_json_dict()
+        )
         for side, cloud in (("reference", origins.reference), ("scan", origins.scan))
     }
+
+
+def _entries(report: list[dict[str, Any]]) -> list[SensorOriginEntry]:
+    """:meth:`~app.core.origins.resolve.ResolvedOrigin.report`'s entries, typed."""
+    return [SensorOriginEntry.of(entry) for entry in report]
 
 
 def effective_params(

@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 
 from app.core.cloud import MIN_POINTS
+from app.core.comparison.reports import Decision, DecisionTest, SiteProvenance
 from app.core.detectors.base import ChangeDetector, Detection
 from app.core.localise import LABEL_UNOBSERVED, ChangedRegion, Localisation
 from app.core.site_calibration import DecisionInputs, decide, largest_extent
@@ -36,40 +37,6 @@ class Detected:
 
     detection: Detection
     compared_points: str
-
-
-@dataclass(frozen=True)
-class Decision:
-    """The comparison's verdict and the tests that made it.
-
-    Attributes
-    ----------
-    changed : bool
-    rule : {"regions", "detector", "either"}
-    detector_changed : bool
-        The detector's own verdict (score above its threshold).
-    n_regions : int
-    tests : list of dict
-        The decisive tests (:func:`app.core.site_calibration.decide`).
-    site : dict
-        The site calibration's provenance (``applied``, and ``reason`` when not).
-    """
-
-    changed: bool
-    rule: str
-    detector_changed: bool
-    n_regions: int
-    tests: list[dict[str, Any]]
-    site: dict[str, Any]
-
-    def report(self) -> dict[str, Any]:
-        """``calibration["decision"]``: rule, the detector's verdict, regions and tests."""
-        return {
-            "rule": self.rule,
-            "detector_changed": self.detector_changed,
-            "n_regions": self.n_regions,
-            "tests": self.tests,
-        }
 
 
 def detect_change(
@@ -195,11 +162,16 @@ def decide_change(
         ),
         site_calibration,
     )
+    applied = bool(site["applied"])
     return Decision(
         changed=changed,
         rule=rule,
         detector_changed=bool(detection.changed),
         n_regions=len(regions),
-        tests=tests,
-        site=site,
+        tests=tuple(DecisionTest.of(test) for test in tests),
+        site=SiteProvenance(
+            applied=applied,
+            reason=None if applied else site["reason"],
+            calibration=dict(site_calibration or {}),
+        ),
     )
