@@ -133,7 +133,7 @@ def compare(
     site_calibration : mapping, optional
         A site's thresholds learned from its reviewed jobs
         (:func:`app.core.site_calibration.learn_site_calibration`); applied when learned for
-        this method and variant.  Its provenance is in ``calibration["site"]`` either way.
+        this method and variant.  Its provenance is in ``calibration.site`` either way.
     geometry_cache : GeometryCache, optional
         Where the reference's k-NN geometry, resolved origin and alignment arrays are kept
         between comparisons (read when valid, written otherwise, :mod:`app.core.cache.geometry`,
