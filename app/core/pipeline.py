@@ -28,14 +28,14 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol, TypeVar, Unpack
 
 from app.core.cache.geometry import GeometryCache
 from app.core.cloud import PointCloud
 from app.core.comparison.align import Alignment, align_scan
 from app.core.comparison.assemble import assemble_result
 from app.core.comparison.decide import decide_change, detect_change
-from app.core.comparison.load import LoadedPair, load_pair
+from app.core.comparison.load import LoadedPair, PairOptions, load_pair
 from app.core.comparison.localise import (
     REFERENCE_AHEAD_MIN_POINTS,
     localise_pair,
@@ -84,17 +84,15 @@ def compare(
     reference: PointCloud,
     scan: PointCloud,
     *,
-    method: str = "gmm",
-    variant: str = "improved",
-    align: bool = True,
-    random_state: int = 0,
-    params: Mapping[str, Any] | None = None,
     progress: ProgressCallback | None = None,
-    threads: int | None = None,
     site_calibration: Mapping[str, Any] | None = None,
     geometry_cache: GeometryCache | None = None,
+    **options: Unpack[PairOptions],
 ) -> ComparisonResult:
     """Compare ``scan`` against ``reference``; see the module docstring.
+
+    ``method``, ``variant``, ``align``, ``random_state``, ``params`` and ``threads`` are the
+    keyword arguments of :func:`~app.core.comparison.load.load_pair` (:class:`PairOptions`).
 
     Parameters
     ----------
@@ -149,16 +147,7 @@ def compare(
     InputError
         Unknown method, variant or parameter; clouds that cannot be aligned.
     """
-    loaded = load_pair(
-        reference,
-        scan,
-        method=method,
-        variant=variant,
-        align=align,
-        random_state=random_state,
-        params=params,
-        threads=threads,
-    )
+    loaded = load_pair(reference, scan, **options)
     return run_stages(
         loaded,
         progress=progress,

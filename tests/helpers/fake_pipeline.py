@@ -11,7 +11,7 @@ installed (:func:`install`), so the consumer never imports the real pipeline.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any, Unpack
 
 import numpy as np
 
@@ -19,6 +19,9 @@ from app.core.cloud import PointCloud
 from app.core.comparison.result import ComparisonResult, RegionSummary
 from app.jobs.hooks import job_hooks
 from tests.helpers.results import calibration_report, registration_report
+
+if TYPE_CHECKING:  # not imported: loading the detectors would cost every fake consumer seconds
+    from app.core.comparison.load import PairOptions
 
 CONSUMER_BOOTSTRAP = (
     "import sys, tests.helpers.fake_pipeline as fake; fake.install(); "
@@ -30,17 +33,14 @@ def fake_compare(
     reference: PointCloud,
     scan: PointCloud,
     *,
-    method: str = "gmm",
-    variant: str = "improved",
-    align: bool = True,
-    random_state: int = 0,
-    params: Mapping[str, Any] | None = None,
     progress: Callable[[str, float], None] | None = None,
-    threads: int | None = None,
     site_calibration: Mapping[str, Any] | None = None,
     geometry_cache: object | None = None,
+    **options: Unpack[PairOptions],
 ) -> ComparisonResult:
     """A deterministic result: the scan's points beyond x > 1 are an "added" region."""
+    method, variant = options.get("method", "gmm"), options.get("variant", "improved")
+    params = options.get("params")
     for stage, fraction in (("align", 0.05), ("localise", 0.35), ("detect", 0.65)):
         if progress is not None:
             progress(stage, fraction)
@@ -65,7 +65,11 @@ def fake_compare(
     return ComparisonResult(
         method=method,
         variant=variant,
-        params={"variant": variant, "random_state": random_state, **dict(params or {})},
+        params={
+            "variant": variant,
+            "random_state": options.get("random_state", 0),
+            **dict(params or {}),
+        },
         score=float(added.mean()),
         threshold=0.01,
         changed=changed,

@@ -24,14 +24,14 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Unpack
 
 import numpy as np
 from numpy.typing import NDArray
 
 from app.core.cloud import PointCloud
 from app.core.comparison.align import Alignment
-from app.core.comparison.load import LoadedPair, load_pair
+from app.core.comparison.load import LoadedPair, PairOptions, load_pair
 from app.core.comparison.origins import CloudOrigins, SensorOrigins
 from app.core.localise import Localisation
 from app.core.localise.changes import _default_min_region_points
@@ -78,18 +78,13 @@ def compare_tiled(
     scan: PointCloud,
     *,
     budget_bytes: int,
-    method: str = "gmm",
-    variant: str = "improved",
-    align: bool = True,
-    random_state: int = 0,
-    params: Mapping[str, Any] | None = None,
     progress: ProgressCallback | None = None,
-    threads: int | None = None,
     site_calibration: Mapping[str, Any] | None = None,
     max_crop_points: int | None = None,
     margin: float = DEFAULT_MARGIN_METRES,
     ray_reach: float = DEFAULT_RAY_REACH_METRES,
     run_tiles: TileRunner | None = None,
+    **options: Unpack[PairOptions],
 ) -> ComparisonResult:
     """:func:`app.core.pipeline.compare` localised tile by tile within ``budget_bytes``.
 
@@ -126,23 +121,14 @@ def compare_tiled(
     InputError
         As :func:`app.core.pipeline.compare`.
     """
-    loaded = load_pair(
-        reference,
-        scan,
-        method=method,
-        variant=variant,
-        align=align,
-        random_state=random_state,
-        params=params,
-        threads=threads,
-    )
+    loaded = load_pair(reference, scan, **options)
     tiles = TiledLocalisation(
         budget_bytes=budget_bytes,
         max_crop_points=max_crop_points,
         margin=margin,
         ray_reach=ray_reach,
         run_tiles=run_tiles or compute_tiles_here,
-        detection_seed=random_state,
+        detection_seed=options.get("random_state", 0),
     )
     return run_stages(
         loaded, progress=progress, site_calibration=site_calibration, localise_step=tiles
