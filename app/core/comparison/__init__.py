@@ -33,6 +33,7 @@ _HOMES = {
     "detect_change": "decide",
     "LoadedPair": "load",
     "load_pair": "load",
+    "PairOptions": "load",
     "localise_pair": "localise",
     "ReferenceMemory": "memory",
     "CloudOrigins": "origins",
