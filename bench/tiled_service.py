@@ -311,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
             except TileBudgetError:
                 share += 0.05
                 clock.restart()
-            in_process = time.perf_counter() - started
+        in_process = time.perf_counter() - started
         del clouds
         print_phases(clock, total)
         if arguments.phases_only:
