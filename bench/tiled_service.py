@@ -222,11 +222,14 @@ def amdahl(serial: float, tiles: list[float], workers: int) -> float:
     return (serial + sum(tiles)) / (serial + max(loads))
 
 
-def print_phases(clock: PhaseClock, total_points: int) -> None:
+def print_phases(clock: PhaseClock, total_points: int, crop_points: int) -> None:
     """The phases' CPU seconds, the serial share and the 2-worker bound."""
     serial = sum(seconds for phase, seconds in clock.cpu.items() if phase != "tiles")
     whole = serial + sum(clock.tiles)
-    print(f"In-process tiled comparison, one thread, {total_points:,} points (CPU s):\n")
+    print(
+        f"In-process tiled comparison, one thread, {total_points:,} points, crops of at most "
+        f"{crop_points:,} points (CPU s):\n"
+    )
     print("| phase | CPU s | share |\n|---|---|---|")
     for phase, seconds in clock.cpu.items():
         print(f"| {phase} | {seconds:.1f} | {seconds / whole:.0%} |")
@@ -335,7 +338,7 @@ def main(argv: list[str] | None = None) -> int:
                     share += 0.05
                     clock.restart()
             in_process = time.perf_counter() - started
-            print_phases(clock, total)
+            print_phases(clock, total, crop_points)
         del clouds
         if arguments.phases_only:
             return 0
