@@ -143,7 +143,7 @@ def figures_per_way(
     """The figures of each way of :func:`cpu_per_way` against ``truth`` (see :func:`scores`)."""
     figures = {}
     for name, result in last.items():
-        tests = "/".join(str(result.visibility[side].get("test")) for side in ("reference", "scan"))
+        tests = "/".join(str(result.visibility[side].test) for side in ("reference", "scan"))
         figures[name] = WayFigures(cpu[name], result, tests, *scores(result, truth))
     return figures
 

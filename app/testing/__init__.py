@@ -21,6 +21,9 @@ Modules
     :class:`~app.testing.redis.RedisServer`, a private ``redis-server`` on a free port.
 ``fake_pipeline``
     A fast deterministic stand-in for the comparison, installed through ``app.jobs.hooks``.
+``results``
+    The typed reports of a comparison result (registration, calibration, sensor origins) built
+    by hand with plausible defaults, for stand-ins and finished test jobs.
 ``webhooks``
     :class:`~app.testing.webhooks.WebhookReceiver`, a local HTTP receiver that checks every
     signature with the snippet of ``docs/webhooks.md``.
