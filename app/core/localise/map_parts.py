@@ -21,8 +21,13 @@ from scipy.sparse.csgraph import connected_components
 
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
-from app.core.localise.map_planes import SECTORS, extends, share_on_planes
-from app.core.localise.origin_free import BEHIND_MIN_RADIUS, UNMATCHED_FACTOR, behind_evidence
+from app.core.localise.map_planes import SECTORS, coplanar_sectors, extends, share_on_planes
+from app.core.localise.origin_free import (
+    BEHIND_MAX_RADIUS,
+    BEHIND_MIN_RADIUS,
+    UNMATCHED_FACTOR,
+    behind_evidence,
+)
 from app.core.localise.rays import Candidates
 from app.core.localise.regions import CLUSTER_NEIGHBOURS, cluster_labels
 from app.core.localise.settings import GATHER_CHUNK
@@ -64,6 +69,10 @@ NEAR_MIN = 0.5
 """A cluster is near the other epoch's coverage when its closest tenth of points lies within
 ``max(NEAR_MIN, NEAR_FACTOR * change_threshold)`` metres of the other cloud."""
 NEAR_QUANTILE = 0.1
+HIDDEN_REACHES = (0.5, 1.0)
+"""Metres: the other epoch's surface behind a candidate was hidden from this epoch when this
+epoch has it on its plane about this far away in some direction (the floor around a removed
+chair's footprint, the wall around a removed board)."""
 
 
 def _border_continuation(
@@ -259,6 +268,8 @@ class PartFigures:
     ----------
     sizes : ndarray, shape (parts,), float64
         Candidates per part.
+    cluster : ndarray, shape (parts,), int64
+        The connected cluster each part belongs to (parts split clusters where normals turn).
     near : ndarray, shape (parts,), bool
         The part's cluster is near the other epoch's coverage.
     continuation_share : ndarray, shape (parts,), float64
@@ -267,6 +278,9 @@ class PartFigures:
         Share of its points on planes the other epoch has nearby.
     behind_share : ndarray, shape (parts,), float64
         Share of its points with surface this epoch lacks on their normal lines.
+    hidden_share : ndarray, shape (parts,), float64
+        The same, counting only such surface that this epoch has around it, on its plane
+        (:func:`hidden_surface`).
     adjoining : ndarray, shape (parts,), float64
         Its border points that the other epoch's surface adjoins at an edge.
     surround_share : ndarray, shape (parts,), float64
@@ -278,10 +292,12 @@ class PartFigures:
     """
 
     sizes: NDArray[np.float64]
+    cluster: NDArray[np.int64]
     near: NDArray[np.bool_]
     continuation_share: NDArray[np.float64]
     coplanar_share: NDArray[np.float64]
     behind_share: NDArray[np.float64]
+    hidden_share: NDArray[np.float64]
     adjoining: NDArray[np.float64]
     surround_share: NDArray[np.float64]
     upright: NDArray[np.bool_]
@@ -340,9 +356,10 @@ def _near_coverage(
     own: Side,
     change_threshold: float,
     cluster_factor: float,
-) -> NDArray[np.bool_]:
-    """Per part, whether its whole connected cluster is near the other epoch's coverage (a
-    removed box's top is far from the floor, its sides are not)."""
+) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    """Per part, its connected cluster (the candidates linked as for regions, whatever their
+    normals: one object's faces) and whether that whole cluster is near the other epoch's
+    coverage (a removed box's top is far from the floor, its sides are not)."""
     clusters = cluster_labels(candidates.points, cluster_factor * candidates.spacing)
     cluster_sizes = np.bincount(clusters).astype(np.float64)
     nearest = own.nearest_distance[candidates.index]
@@ -351,9 +368,9 @@ def _near_coverage(
     near_rank = starts + np.floor(NEAR_QUANTILE * (cluster_sizes - 1)).astype(np.int64)
     near_limit = max(NEAR_MIN, NEAR_FACTOR * change_threshold)
     cluster_near = nearest[order][near_rank] <= near_limit
-    near = np.zeros(n_parts, dtype=bool)
-    near[labels] = cluster_near[clusters]
-    return near
+    part_cluster = np.zeros(n_parts, dtype=np.int64)
+    part_cluster[labels] = clusters
+    return part_cluster, cluster_near[part_cluster]
 
 
 def _adjoining_surfaces(
@@ -399,6 +416,49 @@ def unmatched_points(
     )
 
 
+def hidden_surface(
+    candidates: Candidates,
+    *,
+    own: Side,
+    other: Side,
+    other_unmatched: NDArray[np.bool_],
+    tolerance: float,
+) -> NDArray[np.bool_]:
+    """The other cloud's unmatched points near the candidates whose surface this cloud has
+    around them, on their plane: surface this epoch could not see there because something stood
+    in front of it (shape (m,), bool).
+
+    The floor under a removed chair, the wall behind a removed board carry on, in this epoch,
+    around the place the object hid.  The far face of an object that stands in both epochs,
+    seen by the other epoch's path only, ends at the object's edges: this epoch has nothing on
+    its plane around it.
+    """
+    hidden = np.zeros(other_unmatched.shape[0], dtype=bool)
+    unmatched = np.flatnonzero(other_unmatched)
+    if unmatched.shape[0] == 0 or candidates.points.shape[0] == 0:
+        return hidden
+    reach = SEE_THROUGH_REACH + BEHIND_MAX_RADIUS
+    distance, _ = KDTree(candidates.points).query(
+        other.points[unmatched], k=1, distance_upper_bound=reach
+    )
+    unmatched = unmatched[np.asarray(distance).ravel() <= reach]
+    found = np.zeros(unmatched.shape[0], dtype=bool)
+    for around in HIDDEN_REACHES:
+        todo = np.flatnonzero(~found)
+        found[todo] = (
+            coplanar_sectors(
+                other.points[unmatched[todo]],
+                other.geometry.normal[unmatched[todo]],
+                own.geometry,
+                tolerance,
+                around,
+            )
+            >= 1
+        )
+    hidden[unmatched] = found
+    return hidden
+
+
 def part_figures(
     candidates: Candidates,
     labels: NDArray[np.int64],
@@ -424,16 +484,28 @@ def part_figures(
         change_threshold=change_threshold,
         cluster_factor=cluster_factor,
     )
-    behind = behind_evidence(
-        candidates.points,
-        candidates.normal,
-        other_points=other.points,
-        other_normal=other.geometry.normal,
-        other_unmatched=other_unmatched,
-        max_reach=SEE_THROUGH_REACH,
-        min_radius=max(
-            BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))
-        ),
+    behind, hidden = (
+        behind_evidence(
+            candidates.points,
+            candidates.normal,
+            other_points=other.points,
+            other_normal=other.geometry.normal,
+            other_unmatched=mask,
+            max_reach=SEE_THROUGH_REACH,
+            min_radius=max(
+                BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))
+            ),
+        )
+        for mask in (
+            other_unmatched,
+            hidden_surface(
+                candidates,
+                own=own,
+                other=other,
+                other_unmatched=other_unmatched,
+                tolerance=threshold,
+            ),
+        )
     )
     adjoining, surround_share = _adjoining_surfaces(
         candidates,
@@ -446,19 +518,23 @@ def part_figures(
         change_threshold=change_threshold,
     )
     vertical = np.abs(candidates.normal[:, 2]).astype(np.float64)
+    cluster, near = _near_coverage(
+        candidates,
+        labels,
+        n_parts,
+        own=own,
+        change_threshold=change_threshold,
+        cluster_factor=cluster_factor,
+    )
     return PartFigures(
         sizes=sizes,
-        near=_near_coverage(
-            candidates,
-            labels,
-            n_parts,
-            own=own,
-            change_threshold=change_threshold,
-            cluster_factor=cluster_factor,
-        ),
+        cluster=cluster,
+        near=near,
         continuation_share=continuation_share,
         coplanar_share=share_on_planes(candidates, labels, n_parts, other.geometry, threshold),
         behind_share=np.bincount(labels, weights=behind.astype(np.float64), minlength=n_parts)
+        / np.maximum(sizes, 1.0),
+        hidden_share=np.bincount(labels, weights=hidden.astype(np.float64), minlength=n_parts)
         / np.maximum(sizes, 1.0),
         adjoining=adjoining,
         surround_share=surround_share,
