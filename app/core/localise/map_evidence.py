@@ -82,10 +82,6 @@ SURROUND_SHARE = 0.1
 has the other epoch's surface carrying on past them (or surface this epoch lacks)."""
 MIN_ADJOINING = 5
 """Fewer adjoining border points than this say nothing about a part."""
-SURROUND_EVIDENCE_SHARE = 0.5
-"""A part shows that the other epoch saw its place when the other epoch's adjoining surface
-carries on past at least this share of its adjoining border points (a floor under a removed
-chair, a desk top under a removed box)."""
 SEE_THROUGH_SHARE = 0.6
 """A coverage-difference cluster is still a change when this share of its points has the
 other epoch's surface, missing from this epoch, on its normal line within
@@ -265,18 +261,8 @@ def _verdict(
         continuing & (part.behind_share >= SEE_THROUGH_SHARE), part.behind_share
     )
     coverage = continuing & (see_through_share < SEE_THROUGH_SHARE)
-    coverage |= ~part.near | (unseen_side & (part.behind_share < SEE_THROUGH_SHARE))
-    # evidence that the other epoch saw the place: its floor, desk or wall carries on past the
-    # border, or the surface the object hid from this epoch lies behind it; an object none of
-    # whose parts has any was seen by this epoch only (its far faces, an unseen corner)
-    seen = (part.hidden_share >= SEE_THROUGH_SHARE) | (
-        (part.adjoining >= MIN_ADJOINING) & (part.surround_share >= SURROUND_EVIDENCE_SHARE)
-    )
-    unseen = np.bincount(part.cluster, weights=seen.astype(np.float64))[part.cluster] == 0
-    coverage |= unseen
-    side_confidence = np.where(
-        unseen_side | unseen, 1.0 - np.maximum(part.surround_share, part.hidden_share), 0.0
-    )
+    coverage |= ~part.near | (unseen_side & (part.hidden_share < SEE_THROUGH_SHARE))
+    side_confidence = np.where(unseen_side, 1.0 - part.surround_share, 0.0)
     confidence = np.where(
         coverage,
         np.where(part.near, np.maximum(part.continuation_share, side_confidence), 1.0),
@@ -289,7 +275,6 @@ def _verdict(
         "map_far_clusters": int((~part.near).sum()),
         **part.counts,
         "map_unseen_side_clusters": int((unseen_side & coverage).sum()),
-        "map_unseen_clusters": int(np.unique(part.cluster[unseen]).shape[0]),
         "map_coplanar_share_median": float(np.median(part.coplanar_share)),
     }
     return coverage, confidence, counts
