@@ -85,7 +85,8 @@ MIN_ADJOINING = 5
 SEE_THROUGH_SHARE = 0.6
 """A coverage-difference cluster is still a change when this share of its points has the
 other epoch's surface, missing from this epoch, on its normal line within
-:data:`SEE_THROUGH_REACH`."""
+:data:`SEE_THROUGH_REACH`; an unseen side is one when this share has such surface that
+was hidden from this epoch (:func:`~app.core.localise.map_parts.hidden_surface`)."""
 GAP_REACH = 0.25
 GAP_SECTORS = 6
 """The other epoch's point lies in a narrow gap of this epoch's surface when this epoch has

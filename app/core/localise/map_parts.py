@@ -268,8 +268,6 @@ class PartFigures:
     ----------
     sizes : ndarray, shape (parts,), float64
         Candidates per part.
-    cluster : ndarray, shape (parts,), int64
-        The connected cluster each part belongs to (parts split clusters where normals turn).
     near : ndarray, shape (parts,), bool
         The part's cluster is near the other epoch's coverage.
     continuation_share : ndarray, shape (parts,), float64
@@ -292,7 +290,6 @@ class PartFigures:
     """
 
     sizes: NDArray[np.float64]
-    cluster: NDArray[np.int64]
     near: NDArray[np.bool_]
     continuation_share: NDArray[np.float64]
     coplanar_share: NDArray[np.float64]
@@ -356,10 +353,9 @@ def _near_coverage(
     own: Side,
     change_threshold: float,
     cluster_factor: float,
-) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
-    """Per part, its connected cluster (the candidates linked as for regions, whatever their
-    normals: one object's faces) and whether that whole cluster is near the other epoch's
-    coverage (a removed box's top is far from the floor, its sides are not)."""
+) -> NDArray[np.bool_]:
+    """Per part, whether its whole connected cluster is near the other epoch's coverage (a
+    removed box's top is far from the floor, its sides are not)."""
     clusters = cluster_labels(candidates.points, cluster_factor * candidates.spacing)
     cluster_sizes = np.bincount(clusters).astype(np.float64)
     nearest = own.nearest_distance[candidates.index]
@@ -368,9 +364,9 @@ def _near_coverage(
     near_rank = starts + np.floor(NEAR_QUANTILE * (cluster_sizes - 1)).astype(np.int64)
     near_limit = max(NEAR_MIN, NEAR_FACTOR * change_threshold)
     cluster_near = nearest[order][near_rank] <= near_limit
-    part_cluster = np.zeros(n_parts, dtype=np.int64)
-    part_cluster[labels] = clusters
-    return part_cluster, cluster_near[part_cluster]
+    near = np.zeros(n_parts, dtype=bool)
+    near[labels] = cluster_near[clusters]
+    return near
 
 
 def _adjoining_surfaces(
@@ -518,7 +514,7 @@ def part_figures(
         change_threshold=change_threshold,
     )
     vertical = np.abs(candidates.normal[:, 2]).astype(np.float64)
-    cluster, near = _near_coverage(
+    near = _near_coverage(
         candidates,
         labels,
         n_parts,
@@ -528,7 +524,6 @@ def part_figures(
     )
     return PartFigures(
         sizes=sizes,
-        cluster=cluster,
         near=near,
         continuation_share=continuation_share,
         coplanar_share=share_on_planes(candidates, labels, n_parts, other.geometry, threshold),
