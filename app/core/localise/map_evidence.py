@@ -44,7 +44,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
 from app.core.localise.interface import VisibilityContext, VisibilityOutcome
@@ -52,13 +51,14 @@ from app.core.localise.map_parts import (
     SEE_THROUGH_REACH,
     SPARSE_PROBE_FACTOR,
     PartFigures,
+    hidden_surface,
+    near_candidates,
     part_figures,
     surface_parts,
     unmatched_points,
 )
 from app.core.localise.map_planes import coplanar_sectors
 from app.core.localise.origin_free import (
-    BEHIND_MAX_RADIUS,
     BEHIND_MIN_RADIUS,
     behind_evidence,
 )
@@ -116,50 +116,27 @@ class MapEvidence:
     counts: dict[str, Any]
 
 
-def _past_narrow_gaps(
+def _rechecked_share(
     candidates: Candidates,
     recheck: NDArray[np.int64],
     labels: NDArray[np.int64],
     behind_share: NDArray[np.float64],
     *,
-    own: Side,
     other: Side,
-    other_unmatched: NDArray[np.bool_],
-    tolerance: float,
+    counted: NDArray[np.bool_],
 ) -> NDArray[np.float64]:
-    """Per part, the share of candidates the other epoch saw through, counting only surface
-    that is not a narrow gap of this epoch's (recomputed on the ``recheck`` candidates' parts).
-
-    Behind a narrow gap of a surface this epoch has all around it (:data:`GAP_REACH`,
-    :data:`GAP_SECTORS`: the far face of a rack, each epoch's path seeing its own aisle's
-    face), the other epoch saw nothing through the candidate's place: it saw the far side.
-    """
+    """Per part, the share of candidates with the other epoch's surface on their normal line,
+    recomputed on the ``recheck`` candidates' parts counting only the ``counted`` points of
+    the other cloud (``behind_share`` elsewhere)."""
     share = behind_share.copy()
     if recheck.shape[0] == 0:
         return share
-    unmatched = np.flatnonzero(other_unmatched)
-    reach = SEE_THROUGH_REACH + BEHIND_MAX_RADIUS
-    distance, _ = KDTree(candidates.points[recheck]).query(
-        other.points[unmatched], k=1, distance_upper_bound=reach
-    )
-    unmatched = unmatched[np.asarray(distance).ravel() <= reach]
-    gap = np.zeros(other_unmatched.shape[0], dtype=bool)
-    gap[unmatched] = (
-        coplanar_sectors(
-            other.points[unmatched],
-            other.geometry.normal[unmatched],
-            own.geometry,
-            tolerance,
-            GAP_REACH,
-        )
-        >= GAP_SECTORS
-    )
     behind = behind_evidence(
         candidates.points[recheck],
         candidates.normal[recheck],
         other_points=other.points,
         other_normal=other.geometry.normal,
-        other_unmatched=other_unmatched & ~gap,
+        other_unmatched=counted,
         max_reach=SEE_THROUGH_REACH,
         min_radius=max(
             BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))
@@ -170,6 +147,37 @@ def _past_narrow_gaps(
     sizes = np.bincount(labels[recheck], minlength=share.shape[0])
     share[parts] = hits[parts] / np.maximum(sizes[parts], 1)
     return share
+
+
+def _narrow_gaps(
+    candidates: Candidates,
+    recheck: NDArray[np.int64],
+    *,
+    own: Side,
+    other: Side,
+    other_unmatched: NDArray[np.bool_],
+    tolerance: float,
+) -> NDArray[np.bool_]:
+    """The other cloud's unmatched points near the ``recheck`` candidates that lie in a narrow
+    gap of this epoch's surface (shape (m,), bool).
+
+    Behind a narrow gap of a surface this epoch has all around it (:data:`GAP_REACH`,
+    :data:`GAP_SECTORS`: the far face of a rack, each epoch's path seeing its own aisle's
+    face), the other epoch saw nothing through the candidate's place: it saw the far side.
+    """
+    gap = np.zeros(other_unmatched.shape[0], dtype=bool)
+    unmatched = near_candidates(candidates.points[recheck], other, other_unmatched)
+    gap[unmatched] = (
+        coplanar_sectors(
+            other.points[unmatched],
+            other.geometry.normal[unmatched],
+            own.geometry,
+            tolerance,
+            GAP_REACH,
+        )
+        >= GAP_SECTORS
+    )
+    return gap
 
 
 def map_test(
@@ -220,32 +228,51 @@ def map_test(
         change_threshold=change_threshold,
         cluster_factor=cluster_factor,
     )
-    coverage, confidence, counts = _verdict(
-        figures,
-        lambda recheck, behind_share: _past_narrow_gaps(
+
+    def see_through(recheck: NDArray[np.bool_], share: NDArray[np.float64]) -> NDArray[np.float64]:
+        chosen = np.flatnonzero(recheck[labels])
+        if chosen.shape[0] == 0:
+            return share
+        gap = _narrow_gaps(
             candidates,
-            np.flatnonzero(recheck[labels]),
-            labels,
-            behind_share,
+            chosen,
             own=own,
             other=other,
             other_unmatched=other_unmatched,
             tolerance=threshold,
-        ),
-    )
+        )
+        counted = other_unmatched & ~gap
+        return _rechecked_share(candidates, chosen, labels, share, other=other, counted=counted)
+
+    def hidden(recheck: NDArray[np.bool_], share: NDArray[np.float64]) -> NDArray[np.float64]:
+        chosen = np.flatnonzero(recheck[labels])
+        if chosen.shape[0] == 0:
+            return share
+        counted = hidden_surface(
+            candidates.points[chosen],
+            own=own,
+            other=other,
+            other_unmatched=other_unmatched,
+            tolerance=threshold,
+        )
+        return _rechecked_share(candidates, chosen, labels, share, other=other, counted=counted)
+
+    coverage, confidence, counts = _verdict(figures, see_through, hidden)
     status[coverage[labels]] = STATUS_UNOBSERVED
     evidence[coverage[labels]] = EVIDENCE_NO_COVERAGE
     return MapEvidence(status, evidence, confidence[labels].astype(np.float32), counts)
 
 
 def _verdict(
-    figures: PartFigures, see_through: Any
+    figures: PartFigures, see_through: Any, hidden: Any
 ) -> tuple[NDArray[np.bool_], NDArray[np.float64], dict[str, Any]]:
     """Per part, whether it is a coverage difference and the confidence in its verdict.
 
     ``see_through(recheck, behind_share)`` recomputes the see-through share of the parts
     marked in ``recheck`` without the other epoch's surface in narrow gaps of this one's
-    (:func:`_past_narrow_gaps`).
+    (:func:`_narrow_gaps`); ``hidden(recheck, behind_share)`` counting only surface hidden
+    from this epoch (:func:`~app.core.localise.map_parts.hidden_surface`).  Both only lower a
+    share, so only parts at or over :data:`SEE_THROUGH_SHARE` are rechecked.
     """
     part = figures
     # the other epoch's surfaces next to the part end at it: a side of an object that stands
@@ -262,7 +289,10 @@ def _verdict(
         continuing & (part.behind_share >= SEE_THROUGH_SHARE), part.behind_share
     )
     coverage = continuing & (see_through_share < SEE_THROUGH_SHARE)
-    coverage |= ~part.near | (unseen_side & (part.hidden_share < SEE_THROUGH_SHARE))
+    # an unseen side is overridden only by surface hidden from this epoch behind it, not by
+    # the far face of the object (seen by the other epoch's path only)
+    hidden_share = hidden(unseen_side & (part.behind_share >= SEE_THROUGH_SHARE), part.behind_share)
+    coverage |= ~part.near | (unseen_side & (hidden_share < SEE_THROUGH_SHARE))
     side_confidence = np.where(unseen_side, 1.0 - part.surround_share, 0.0)
     confidence = np.where(
         coverage,

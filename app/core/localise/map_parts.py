@@ -37,6 +37,8 @@ __all__ = [
     "SEE_THROUGH_REACH",
     "SPARSE_PROBE_FACTOR",
     "PartFigures",
+    "hidden_surface",
+    "near_candidates",
     "part_figures",
     "surface_parts",
     "unmatched_points",
@@ -276,9 +278,6 @@ class PartFigures:
         Share of its points on planes the other epoch has nearby.
     behind_share : ndarray, shape (parts,), float64
         Share of its points with surface this epoch lacks on their normal lines.
-    hidden_share : ndarray, shape (parts,), float64
-        The same, counting only such surface that this epoch has around it, on its plane
-        (:func:`hidden_surface`).
     adjoining : ndarray, shape (parts,), float64
         Its border points that the other epoch's surface adjoins at an edge.
     surround_share : ndarray, shape (parts,), float64
@@ -294,7 +293,6 @@ class PartFigures:
     continuation_share: NDArray[np.float64]
     coplanar_share: NDArray[np.float64]
     behind_share: NDArray[np.float64]
-    hidden_share: NDArray[np.float64]
     adjoining: NDArray[np.float64]
     surround_share: NDArray[np.float64]
     upright: NDArray[np.bool_]
@@ -412,17 +410,30 @@ def unmatched_points(
     )
 
 
+def near_candidates(
+    points: NDArray[np.float64], other: Side, other_unmatched: NDArray[np.bool_]
+) -> NDArray[np.int64]:
+    """Indices of the other cloud's unmatched points that the see-through probes from
+    ``points`` (shape (c, 3)) can reach (within :data:`SEE_THROUGH_REACH` plus a probe)."""
+    unmatched = np.flatnonzero(other_unmatched)
+    if unmatched.shape[0] == 0 or points.shape[0] == 0:
+        return unmatched[:0]
+    reach = SEE_THROUGH_REACH + BEHIND_MAX_RADIUS
+    distance, _ = KDTree(points).query(other.points[unmatched], k=1, distance_upper_bound=reach)
+    return unmatched[np.asarray(distance).ravel() <= reach]
+
+
 def hidden_surface(
-    candidates: Candidates,
+    points: NDArray[np.float64],
     *,
     own: Side,
     other: Side,
     other_unmatched: NDArray[np.bool_],
     tolerance: float,
 ) -> NDArray[np.bool_]:
-    """The other cloud's unmatched points near the candidates whose surface this cloud has
-    around them, on their plane: surface this epoch could not see there because something stood
-    in front of it (shape (m,), bool).
+    """The other cloud's unmatched points near ``points`` (candidates, shape (c, 3)) whose
+    surface this cloud has around them, on their plane: surface this epoch could not see there
+    because something stood in front of it (shape (m,), bool).
 
     The floor under a removed chair, the wall behind a removed board carry on, in this epoch,
     around the place the object hid.  The far face of an object that stands in both epochs,
@@ -430,14 +441,7 @@ def hidden_surface(
     its plane around it.
     """
     hidden = np.zeros(other_unmatched.shape[0], dtype=bool)
-    unmatched = np.flatnonzero(other_unmatched)
-    if unmatched.shape[0] == 0 or candidates.points.shape[0] == 0:
-        return hidden
-    reach = SEE_THROUGH_REACH + BEHIND_MAX_RADIUS
-    distance, _ = KDTree(candidates.points).query(
-        other.points[unmatched], k=1, distance_upper_bound=reach
-    )
-    unmatched = unmatched[np.asarray(distance).ravel() <= reach]
+    unmatched = near_candidates(points, other, other_unmatched)
     found = np.zeros(unmatched.shape[0], dtype=bool)
     for around in HIDDEN_REACHES:
         todo = np.flatnonzero(~found)
@@ -480,28 +484,16 @@ def part_figures(
         change_threshold=change_threshold,
         cluster_factor=cluster_factor,
     )
-    behind, hidden = (
-        behind_evidence(
-            candidates.points,
-            candidates.normal,
-            other_points=other.points,
-            other_normal=other.geometry.normal,
-            other_unmatched=mask,
-            max_reach=SEE_THROUGH_REACH,
-            min_radius=max(
-                BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))
-            ),
-        )
-        for mask in (
-            other_unmatched,
-            hidden_surface(
-                candidates,
-                own=own,
-                other=other,
-                other_unmatched=other_unmatched,
-                tolerance=threshold,
-            ),
-        )
+    behind = behind_evidence(
+        candidates.points,
+        candidates.normal,
+        other_points=other.points,
+        other_normal=other.geometry.normal,
+        other_unmatched=other_unmatched,
+        max_reach=SEE_THROUGH_REACH,
+        min_radius=max(
+            BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))
+        ),
     )
     adjoining, surround_share = _adjoining_surfaces(
         candidates,
@@ -528,8 +520,6 @@ def part_figures(
         continuation_share=continuation_share,
         coplanar_share=share_on_planes(candidates, labels, n_parts, other.geometry, threshold),
         behind_share=np.bincount(labels, weights=behind.astype(np.float64), minlength=n_parts)
-        / np.maximum(sizes, 1.0),
-        hidden_share=np.bincount(labels, weights=hidden.astype(np.float64), minlength=n_parts)
         / np.maximum(sizes, 1.0),
         adjoining=adjoining,
         surround_share=surround_share,
