@@ -19,6 +19,12 @@ from app.services.schemas import ScanRead
 
 router = APIRouter(tags=["scans"])
 
+TrajectoryName = Annotated[str | None, Query(max_length=1000, description="Its name.")]
+TrajectoryRate = Annotated[float | None, Query(gt=0, description="KITTI poses a second.")]
+TrajectoryFormat = Annotated[
+    str | None, Query(max_length=16, description="tum, kitti or csv (default: detected).")
+]
+
 
 @router.get("/scans/{scan_id}", response_model=ScanRead)
 def get_scan(scan_id: str, session: SessionDep, principal: PrincipalDep) -> ScanRead:
@@ -42,11 +48,9 @@ async def put_scan_trajectory(
     session: SessionDep,
     settings: SettingsDep,
     principal: WriterDep,
-    filename: Annotated[str | None, Query(max_length=1000, description="Its name.")] = None,
-    rate: Annotated[float | None, Query(gt=0, description="KITTI poses a second.")] = None,
-    trajectory_format: Annotated[
-        str | None, Query(max_length=16, description="tum, kitti or csv (default: detected).")
-    ] = None,
+    filename: TrajectoryName = None,
+    rate: TrajectoryRate = None,
+    trajectory_format: TrajectoryFormat = None,
 ) -> dict[str, Any]:
     """Add or replace a scan's trajectory: raw body, or parts trajectory/trajectory_times."""
     parts, sent_name = await trajectory_parts(request, filename)
@@ -68,11 +72,9 @@ async def put_upload_trajectory(
     request: Request,
     session: SessionDep,
     principal: WriterDep,
-    filename: Annotated[str | None, Query(max_length=1000, description="Its name.")] = None,
-    rate: Annotated[float | None, Query(gt=0, description="KITTI poses a second.")] = None,
-    trajectory_format: Annotated[
-        str | None, Query(max_length=16, description="tum, kitti or csv (default: detected).")
-    ] = None,
+    filename: TrajectoryName = None,
+    rate: TrajectoryRate = None,
+    trajectory_format: TrajectoryFormat = None,
 ) -> dict[str, Any]:
     """Hold a trajectory with an unfinished resumable upload; its scan is stored with it."""
     parts, sent_name = await trajectory_parts(request, filename)

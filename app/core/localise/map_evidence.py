@@ -48,20 +48,15 @@ from numpy.typing import NDArray
 from app.core.localise.distance import Side
 from app.core.localise.interface import VisibilityContext, VisibilityOutcome
 from app.core.localise.map_parts import (
-    SEE_THROUGH_REACH,
-    SPARSE_PROBE_FACTOR,
     PartFigures,
     hidden_surface,
     near_candidates,
     part_figures,
+    surface_behind,
     surface_parts,
     unmatched_points,
 )
 from app.core.localise.map_planes import coplanar_sectors
-from app.core.localise.origin_free import (
-    BEHIND_MIN_RADIUS,
-    behind_evidence,
-)
 from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED, Candidates
 from app.core.localise.regions import EVIDENCE_NO_COVERAGE, EVIDENCE_SEEN_EMPTY
 
@@ -131,17 +126,7 @@ def _rechecked_share(
     share = behind_share.copy()
     if recheck.shape[0] == 0:
         return share
-    behind = behind_evidence(
-        candidates.points[recheck],
-        candidates.normal[recheck],
-        other_points=other.points,
-        other_normal=other.geometry.normal,
-        other_unmatched=counted,
-        max_reach=SEE_THROUGH_REACH,
-        min_radius=max(
-            BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))
-        ),
-    )
+    behind = surface_behind(candidates.points[recheck], candidates.normal[recheck], other, counted)
     parts = np.unique(labels[recheck])
     hits = np.bincount(labels[recheck], weights=behind.astype(np.float64), minlength=share.shape[0])
     sizes = np.bincount(labels[recheck], minlength=share.shape[0])

@@ -40,6 +40,7 @@ __all__ = [
     "hidden_surface",
     "near_candidates",
     "part_figures",
+    "surface_behind",
     "surface_parts",
     "unmatched_points",
 ]
@@ -410,6 +411,28 @@ def unmatched_points(
     )
 
 
+def surface_behind(
+    points: NDArray[np.float64],
+    normal: NDArray[np.floating],
+    other: Side,
+    counted: NDArray[np.bool_],
+) -> NDArray[np.bool_]:
+    """Whether the other cloud's ``counted`` points lie on each point's normal line within
+    :data:`SEE_THROUGH_REACH` (:func:`~app.core.localise.origin_free.behind_evidence`, with
+    probes at least :data:`SPARSE_PROBE_FACTOR` of its spacings wide); shapes (c, 3) -> (c,)."""
+    return behind_evidence(
+        points,
+        normal,
+        other_points=other.points,
+        other_normal=other.geometry.normal,
+        other_unmatched=counted,
+        max_reach=SEE_THROUGH_REACH,
+        min_radius=max(
+            BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))
+        ),
+    )
+
+
 def near_candidates(
     points: NDArray[np.float64], other: Side, other_unmatched: NDArray[np.bool_]
 ) -> NDArray[np.int64]:
@@ -484,17 +507,7 @@ def part_figures(
         change_threshold=change_threshold,
         cluster_factor=cluster_factor,
     )
-    behind = behind_evidence(
-        candidates.points,
-        candidates.normal,
-        other_points=other.points,
-        other_normal=other.geometry.normal,
-        other_unmatched=other_unmatched,
-        max_reach=SEE_THROUGH_REACH,
-        min_radius=max(
-            BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))
-        ),
-    )
+    behind = surface_behind(candidates.points, candidates.normal, other, other_unmatched)
     adjoining, surround_share = _adjoining_surfaces(
         candidates,
         labels,
