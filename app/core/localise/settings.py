@@ -117,9 +117,9 @@ a (chunk, k + 1) float64 gather of the k = 11 neighbours is 0.75 MiB."""
 QUERY_CHUNK = 8_192
 """Points per k-nearest-neighbour query (and per check of a search's cancellation): the
 (chunk, k + 1) distances of k = 11 are 0.75 MiB."""
-GATHER_CHUNK = 4_096
-"""Points per step of (chunk, neighbours, 3) gathers: 0.75 MiB per float64 temporary of 8
-neighbours."""
+GATHER_CHUNK = 2_048
+"""Points per step of (chunk, neighbours, 3) gathers: 0.52 MiB per float64 temporary of the
+k + 1 = 11 neighbours."""
 
 
 def resolve_parameters(params: dict[str, Any]) -> dict[str, Any]:
