@@ -53,7 +53,7 @@ def main() -> None:
     base = cpu["coverage (older path)"]
     for name, result in last.items():
         seconds = cpu[name]
-        tests = "/".join(str(result.visibility[side].get("test")) for side in ("reference", "scan"))
+        tests = "/".join(str(result.visibility[side].test) for side in ("reference", "scan"))
         iou, missed, false = scores(result, scene)
         print(
             f"{name:<22} CPU {seconds:6.1f} s (x{seconds / base:.3f} of the older path)  "

@@ -162,7 +162,7 @@ def main() -> None:
     base = cpu["default"]
     for name, result in last.items():
         seconds = cpu[name]
-        tests = "/".join(str(result.visibility[side].get("test")) for side in ("reference", "scan"))
+        tests = "/".join(str(result.visibility[side].test) for side in ("reference", "scan"))
         iou, missed, false = scores(result, scene)
         print(
             f"{name:<21} CPU {seconds:6.1f} s (adds {100 * (seconds / base - 1):+5.1f} %)  "

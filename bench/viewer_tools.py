@@ -55,7 +55,7 @@ def main() -> None:
         scan_labels=result.scan_label,
         reference_distances=result.reference_distance,
         scan_distances=result.scan_distance,
-        transform=result.registration["transform"],
+        transform=result.registration.transform,
         regions=result.to_json_dict()["regions"],
         min_region_points=result.localisation["min_region_points"],
     )

@@ -48,7 +48,7 @@ def job():
         scan_labels=result.scan_label,
         reference_distances=result.reference_distance,
         scan_distances=result.scan_distance,
-        transform=result.registration["transform"],
+        transform=result.registration.transform,
         regions=result.to_json_dict()["regions"],
         min_region_points=result.localisation["min_region_points"],
     )
@@ -261,7 +261,7 @@ def test_a_job_without_stored_distances_keeps_its_labels_and_turns_the_sliders_o
         pair.scan,
         reference_labels=result.reference_label,
         scan_labels=result.scan_label,
-        transform=result.registration["transform"],
+        transform=result.registration.transform,
         regions=result.to_json_dict()["regions"],
     )
     assert not data.has_distances and data.change_threshold is None
