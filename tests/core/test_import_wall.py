@@ -86,6 +86,7 @@ LOCALISE_LAYERS = (
     "trajectory_visibility",
     "origin_free",
     "map_planes",
+    "map_parts",
     "map_evidence",
     "coverage",
     "visibility",
