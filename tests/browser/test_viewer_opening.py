@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from app.core.datasets.lidar import lidar_pair
+from app.testing.files import pcd_bytes
 from app.viewer.colours import ADDED_COLOUR, REMOVED_COLOUR
 from app.viewer.regions_display import CameraView, label_box
 from tests.helpers.browser import (
@@ -23,7 +24,6 @@ from tests.helpers.browser import (
     view_scene,
 )
 from tests.helpers.browser import wait_for_page as wait_until
-from tests.helpers.files import pcd_bytes
 from tests.helpers.http import create_site, unique_name, upload
 from tests.helpers.street import street_with_a_parked_car
 

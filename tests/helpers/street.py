@@ -7,7 +7,8 @@ import numpy as np
 
 from app.core.datasets.added_objects import box_on_the_ground
 from app.core.formats import read_point_cloud
-from tests.helpers.environment import require, shared_data_dir
+from app.testing.paths import shared_data_dir
+from tests.helpers.environment import require
 
 KITTI_FRAME = "real/kitti_2011_09_26_drive_0002_pointcloudset/frame0.ply"
 """The street frame, under ../shared/data."""
