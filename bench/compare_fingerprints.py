@@ -17,6 +17,12 @@ trajectory; no alignment; the three decision rules and a site calibration; a geo
 (ply, las, laz, xyz, csv, npy, npz, pcd) and the real pairs of ``../shared/data/real`` when
 present.  Every case runs with ``threads=1`` and ``threads=2``; the two must also agree.
 
+``--tiled`` runs every case through :func:`app.core.tiling.compare_tiled` instead, with tiles
+of at most :data:`TILED_CROP_FRACTION` of the pair's points (so a case crosses tile borders):
+the tiled comparison shares the stages around localisation, so a change to them shows there too.
+Each row also has ``order``, the digest of the JSON in its stored key order (what the API
+answers), beside ``json`` (keys sorted).
+
 ``--save FILE`` writes the rows (with the full JSON, to diff); ``--against FILE`` compares
 with a saved run (exit status 1 on any difference, naming the keys that differ).
 
@@ -43,7 +49,8 @@ from app.core.datasets.lidar import lidar_pair
 from app.core.datasets.maps import map_pair
 from app.core.datasets.scenes import raycast_scene
 from app.core.formats import read_point_cloud, write_point_cloud
-from app.core.pipeline import compare
+from app.core.pipeline import ComparisonResult, compare
+from app.core.tiling.compare import compare_tiled
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 REAL_DATA = Path(os.environ.get("SCANDIFF_SHARED_DATA", PROJECT_ROOT.parent / "shared" / "data"))
@@ -60,7 +67,30 @@ SITE_CALIBRATION = {
 }
 """A learned site threshold (:func:`app.core.site_calibration.decide`) for the gmm cases."""
 
+TILED_CROP_FRACTION = 0.9
+"""``--tiled``: a tile's crop holds at most this share of both clouds' points."""
+TILED_MARGIN_METRES = 0.5
+TILED_RAY_REACH_METRES = 1.0
+"""``--tiled``: small enough margins for the cases' rooms (a few metres) to cross tile borders."""
+
 Case = tuple[str, Callable[[int], Any]]
+Compare = Callable[..., ComparisonResult]
+
+
+def compare_in_tiles(
+    reference: PointCloud, scan: PointCloud, *, geometry_cache: Any = None, **options: Any
+) -> ComparisonResult:
+    """:func:`compare_tiled` with small tiles (no geometry cache: the tiled path has none)."""
+    crop = int(TILED_CROP_FRACTION * (len(reference) + len(scan)))
+    return compare_tiled(
+        reference,
+        scan,
+        budget_bytes=1 << 40,
+        max_crop_points=crop,
+        margin=TILED_MARGIN_METRES,
+        ray_reach=TILED_RAY_REACH_METRES,
+        **options,
+    )
 
 
 def _scene(change: str = "mixed") -> Any:
@@ -103,8 +133,8 @@ def _write(path: Path, points: np.ndarray) -> None:
         raise ValueError(suffix)
 
 
-def cases(directory: Path) -> Iterator[Case]:
-    """(name, run(threads) -> ComparisonResult) of every case."""
+def cases(directory: Path, compare: Compare = compare) -> Iterator[Case]:
+    """(name, run(threads) -> ComparisonResult) of every case, each run by ``compare``."""
     scene = _scene()
     plain = _clouds(scene)
     with_file_origins = _clouds(scene, with_origins=True)
@@ -151,9 +181,12 @@ def cases(directory: Path) -> Iterator[Case]:
         "site calibration",
         lambda threads: compare(*plain, site_calibration=SITE_CALIBRATION, threads=threads),
     )
-    yield "geometry cache", lambda threads: _cached(directory, plain, threads)
+    yield "geometry cache", lambda threads: _cached(directory, plain, threads, compare)
     for suffix in ("ply", "las", "laz", "xyz", "csv", "npy", "npz", "pcd"):
-        yield f"format {suffix}", lambda threads, s=suffix: _through_files(directory, s, threads)
+        yield (
+            f"format {suffix}",
+            lambda threads, s=suffix: _through_files(directory, s, threads, compare),
+        )
     for folder, first, second, align in REAL_PAIRS:
         if (REAL_DATA / "real" / folder / second).is_file():
             yield (
@@ -167,7 +200,9 @@ def cases(directory: Path) -> Iterator[Case]:
             )
 
 
-def _cached(directory: Path, clouds: tuple[PointCloud, PointCloud], threads: int) -> Any:
+def _cached(
+    directory: Path, clouds: tuple[PointCloud, PointCloud], threads: int, compare: Compare
+) -> Any:
     """Compare twice through one geometry cache (written, then read); the second result."""
     path = directory / f"reference-{threads}.geometry"
     path.unlink(missing_ok=True)
@@ -179,7 +214,7 @@ def _cached(directory: Path, clouds: tuple[PointCloud, PointCloud], threads: int
     return second
 
 
-def _through_files(directory: Path, suffix: str, threads: int) -> Any:
+def _through_files(directory: Path, suffix: str, threads: int, compare: Compare) -> Any:
     """The scene written as ``suffix`` files, read back and compared."""
     scene = _scene("box")
     paths = []
@@ -214,6 +249,7 @@ def fingerprint(result: Any) -> dict[str, Any]:
     return {
         "arrays": _digest(arrays),
         "json": _digest(text.encode()),
+        "order": _digest(json.dumps(document).encode()),
         "changed": bool(result.changed),
         "n_regions": len(result.regions),
         "document": document,
@@ -234,10 +270,11 @@ def main() -> int:
     parser.add_argument("--save", type=Path)
     parser.add_argument("--against", type=Path)
     parser.add_argument("--only", help="run only the cases whose name contains this")
+    parser.add_argument("--tiled", action="store_true", help="run the cases in tiles")
     args = parser.parse_args()
     rows: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="fingerprints-") as temporary:
-        for name, run in cases(Path(temporary)):
+        for name, run in cases(Path(temporary), compare_in_tiles if args.tiled else compare):
             if args.only and args.only not in name:
                 continue
             by_threads = {threads: _attempt(run, threads) for threads in (1, 2)}
@@ -262,7 +299,9 @@ def _report_against(rows: list[dict[str, Any]], saved: list[dict[str, Any]], pat
     different = []
     for row in rows:
         old = before.get(row["name"])
-        if old is None or any(old.get(key) != row.get(key) for key in ("arrays", "json")):
+        if old is None or any(
+            old.get(key) != row.get(key) for key in ("arrays", "json", "order") if key in old
+        ):
             different.append(row["name"])
             keys = sorted(
                 key

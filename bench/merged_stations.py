@@ -78,7 +78,7 @@ def localise(pair, scan, scan_origins, mode: str):
     elif mode == "default":
         result = compare(PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan))
         recovered = tuple(
-            SimpleNamespace(origins=np.array([entry["origin"] for entry in entries]).reshape(-1, 3))
+            SimpleNamespace(origins=np.array([entry.origin for entry in entries]).reshape(-1, 3))
             for entries in (result.sensor_origins["reference"], result.sensor_origins["scan"])
         )
         return result, recovered, result.timings.get("origins", 0.0)

@@ -112,7 +112,7 @@ def run_scene(pair: MapPair, mode: str) -> dict:
         regions=len(result.regions),
         seconds=seconds,
         points=len(reference) + len(scan),
-        test="/".join(str(side.get("test", "?")) for side in result.visibility.values()),
+        test="/".join(str(side.test) for side in result.visibility.values()),
     )
     return row
 

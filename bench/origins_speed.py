@@ -34,6 +34,7 @@ import time
 import numpy as np
 
 from app.core.cloud import PointCloud
+from app.core.comparison import SensorOriginEntry
 from app.core.comparison import origins as origins_stage
 from app.core.datasets.lidar import lidar_pair, steps_for_points
 from app.core.pipeline import compare
@@ -44,9 +45,9 @@ KINDS = ("single", "merged")
 LAYOUTS = ("room", "corridor", "warehouse")
 
 
-def station_error(entries: list[dict], truth: np.ndarray) -> float:
+def station_error(entries: list[SensorOriginEntry], truth: np.ndarray) -> float:
     """Largest distance (m) from a true station to the nearest reported one (inf: wrong count)."""
-    found = np.array([entry["origin"] for entry in entries]).reshape(-1, 3)
+    found = np.array([entry.origin for entry in entries]).reshape(-1, 3)
     return nearest_station_error(found, truth)
 
 
@@ -156,7 +157,7 @@ def run_pair(pair, merged: bool, profile: bool = False) -> dict:
         "decided": result.changed,
         "origin_error": max(errors),
         "sources": "/".join(
-            ",".join(sorted({entry["source"] for entry in result.sensor_origins[side]}) or "-")
+            ",".join(sorted({entry.source for entry in result.sensor_origins[side]}) or "-")
             for side in ("reference", "scan")
         ),
     }

@@ -116,7 +116,7 @@ def main() -> None:
                 )
                 total = time.perf_counter() - started
                 decided.append(result.changed)
-                detector_decided.append(result.calibration["decision"]["detector_changed"])
+                detector_decided.append(result.calibration.decision.detector_changed)
                 stage_times.append({**result.timings, "total": total})
                 if change == "none":
                     n_changed = np.count_nonzero(result.reference_label == LABEL_CHANGED)

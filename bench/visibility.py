@@ -46,8 +46,8 @@ def _run(pair, given: bool) -> dict:
     errors = []
     for side, truth in (("reference", pair.reference_origin), ("scan", pair.scan_origin)):
         entries = result.sensor_origins[side]
-        if entries and entries[0]["source"] == "estimated":
-            errors.append(float(np.linalg.norm(np.array(entries[0]["origin"]) - truth)))
+        if entries and entries[0].source == "estimated":
+            errors.append(float(np.linalg.norm(np.array(entries[0].origin) - truth)))
         elif not given:
             errors.append(float("inf"))  # no confident estimate
     return {

@@ -191,3 +191,28 @@ def get_upload_body(request: Request, settings: SettingsDep) -> UploadBody:
 
 
 UploadBodyDep = Annotated[UploadBody, Depends(get_upload_body)]
+
+
+async def trajectory_parts(
+    request: Request, filename: str | None
+) -> tuple[dict[str, bytes], str | None]:
+    """A trajectory sent on its own: the multipart parts :data:`EXTRA_FIELDS`, or the raw body
+    as the ``trajectory`` part; and the trajectory file's name (the part's, else
+    ``filename``).  A part or body over :data:`MAX_EXTRA_BYTES` is a 413."""
+    if request.headers.get("content-type", "").startswith("multipart/form-data"):
+        async with request.form(max_part_size=MAX_EXTRA_BYTES) as form:
+            parts = {
+                name: await value.read() if hasattr(value, "read") else str(value).encode()
+                for name, value in form.items()
+                if name in EXTRA_FIELDS
+            }
+            names = {
+                name: value.filename
+                for name, value in form.items()
+                if hasattr(value, "filename") and value.filename
+            }
+        return parts, names.get("trajectory") or filename
+    body = await request.body()
+    if len(body) > MAX_EXTRA_BYTES:
+        raise PayloadTooLargeError(f"the trajectory is larger than {MAX_EXTRA_BYTES} bytes")
+    return {"trajectory": body}, filename

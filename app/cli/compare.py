@@ -279,8 +279,8 @@ def _print_summary(result: ComparisonResult, reference: Path, scan: Path) -> Non
         f"threshold {result.threshold:.4g}"
     )
     print(
-        f"  registration: fitness {registration.get('fitness', float('nan')):.3f}, "
-        f"rmse {registration.get('rmse', float('nan')):.4f}"
+        f"  registration: fitness {registration.fitness:.3f}, "
+        f"rmse {float('nan') if registration.rmse is None else registration.rmse:.4f}"
     )
     print(
         f"  points: reference {result.n_reference} ({counts['reference']['changed']} removed, "
@@ -289,15 +289,16 @@ def _print_summary(result: ComparisonResult, reference: Path, scan: Path) -> Non
     )
     for side in ("reference", "scan"):
         for entry in result.sensor_origins.get(side, []):
-            if entry.get("source") == "trajectory":
+            if entry.trajectory is not None:
+                trajectory = entry.trajectory
                 print(
-                    f"  {side} trajectory: {entry['poses']} poses, {entry['groups']} "
-                    f"pseudo-stations ({entry['assignment']}), {entry['points_outside']} points "
-                    "outside its times"
+                    f"  {side} trajectory: {trajectory['poses']} poses, {trajectory['groups']} "
+                    f"pseudo-stations ({trajectory['assignment']}), "
+                    f"{trajectory['points_outside']} points outside its times"
                 )
                 continue
-            where = ", ".join(f"{value:.2f}" for value in entry["origin"])
-            print(f"  {side} sensor origin: ({where}), {entry['source']}")
+            where = ", ".join(f"{value:.2f}" for value in entry.origin or [])
+            print(f"  {side} sensor origin: ({where}), {entry.source}")
     from app.core.quality import quality_warnings
 
     warnings = quality_warnings(result)
@@ -385,7 +386,7 @@ def _export(path: Path, reference: PointCloud, scan: PointCloud, result: Compari
     from app.core.pair_export import both_clouds
     from app.core.registration import apply_transform
 
-    transform = np.asarray(result.registration["transform"], dtype=np.float64)
+    transform = np.asarray(result.registration.transform, dtype=np.float64)
     points, fields = both_clouds(
         reference.points,
         apply_transform(scan.points, transform),

@@ -200,24 +200,23 @@ def _text(
 def explain_comparison(result: Comparison) -> dict[str, Any]:
     """:func:`explain_decision` of a :class:`~app.core.pipeline.ComparisonResult`.
 
-    Reads ``changed``, ``score``, ``threshold``, ``regions``, ``calibration["decision"]``
-    and ``localisation`` (the rule defaults to ``"regions"`` when the result has none).
+    Reads ``changed``, ``score``, ``threshold``, ``regions``, ``calibration.decision`` and
+    ``localisation``.
     """
-    calibration = result.calibration or {}
-    decision = calibration.get("decision") or {}
+    decision = result.calibration.decision
     localisation = result.localisation or {}
     min_points = localisation.get("min_region_points")
     dropped = localisation.get("n_dropped_clusters")
     return explain_decision(
         changed=bool(result.changed),
-        rule=str(decision.get("rule", "regions")),
+        rule=str(decision.rule),
         score=None if result.score is None else float(result.score),
         threshold=None if result.threshold is None else float(result.threshold),
-        detector_changed=decision.get("detector_changed"),
+        detector_changed=decision.detector_changed,
         regions=list(result.regions),
         min_region_points=None if min_points is None else int(min_points),
         dropped_clusters=None if dropped is None else int(dropped),
         site_test=next(
-            (test for test in decision.get("tests") or [] if test.get("source") == "site"), None
+            (test.to_json_dict() for test in decision.tests if test.source == "site"), None
         ),
     )

@@ -28,14 +28,14 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar, Unpack
 
 from app.core.cache.geometry import GeometryCache
 from app.core.cloud import PointCloud
 from app.core.comparison.align import Alignment, align_scan
 from app.core.comparison.assemble import assemble_result
 from app.core.comparison.decide import decide_change, detect_change
-from app.core.comparison.load import LoadedPair, load_pair
+from app.core.comparison.load import LoadedPair, PairOptions, load_pair
 from app.core.comparison.localise import (
     REFERENCE_AHEAD_MIN_POINTS,
     localise_pair,
@@ -56,10 +56,12 @@ from app.core.localise import Localisation
 __all__ = [
     "REFERENCE_AHEAD_MIN_POINTS",
     "ComparisonResult",
+    "LocaliseStep",
     "ProgressCallback",
     "RegionSummary",
     "compare",
     "parse_comparison_params",
+    "run_stages",
 ]
 
 ProgressCallback = Callable[[str, float], None]
@@ -70,28 +72,27 @@ Value = TypeVar("Value")
 
 @dataclass(frozen=True)
 class Matched:
-    """The stages up to localisation: origins, alignment and labels."""
+    """The stages up to localisation: origins, alignment, labels and the region size floor."""
 
     origins: SensorOrigins
     alignment: Alignment
     localisation: Localisation
+    min_region_points: int
 
 
 def compare(
     reference: PointCloud,
     scan: PointCloud,
     *,
-    method: str = "gmm",
-    variant: str = "improved",
-    align: bool = True,
-    random_state: int = 0,
-    params: Mapping[str, Any] | None = None,
     progress: ProgressCallback | None = None,
-    threads: int | None = None,
     site_calibration: Mapping[str, Any] | None = None,
     geometry_cache: GeometryCache | None = None,
+    **options: Unpack[PairOptions],
 ) -> ComparisonResult:
     """Compare ``scan`` against ``reference``; see the module docstring.
+
+    ``method``, ``variant``, ``align``, ``random_state``, ``params`` and ``threads`` are the
+    keyword arguments of :func:`~app.core.comparison.load.load_pair` (:class:`PairOptions`).
 
     Parameters
     ----------
@@ -130,7 +131,7 @@ def compare(
     site_calibration : mapping, optional
         A site's thresholds learned from its reviewed jobs
         (:func:`app.core.site_calibration.learn_site_calibration`); applied when learned for
-        this method and variant.  Its provenance is in ``calibration["site"]`` either way.
+        this method and variant.  Its provenance is in ``calibration.site`` either way.
     geometry_cache : GeometryCache, optional
         Where the reference's k-NN geometry, resolved origin and alignment arrays are kept
         between comparisons (read when valid, written otherwise, :mod:`app.core.cache.geometry`,
@@ -146,16 +147,70 @@ def compare(
     InputError
         Unknown method, variant or parameter; clouds that cannot be aligned.
     """
-    loaded = load_pair(
-        reference,
-        scan,
-        method=method,
-        variant=variant,
-        align=align,
-        random_state=random_state,
-        params=params,
-        threads=threads,
+    loaded = load_pair(reference, scan, **options)
+    return run_stages(
+        loaded,
+        progress=progress,
+        site_calibration=site_calibration,
+        geometry_cache=geometry_cache,
     )
+
+
+class LocaliseStep(Protocol):
+    """Stage 4 done another way, with the samples that bound the stages around it: the tiled
+    comparison's (:mod:`app.core.tiling.compare`, tile by tile within a memory budget)."""
+
+    @property
+    def registration_sample(self) -> int | None:
+        """Align on at most about this many points of each cloud (None: all)."""
+
+    @property
+    def detection_sample(self) -> int | None:
+        """Score at most this many points of each cloud (None: all)."""
+
+    @property
+    def detection_seed(self) -> int:
+        """Seeds the choice of those points."""
+
+    @property
+    def params(self) -> Mapping[str, Any]:
+        """Parameters reported in effect besides the comparison's own."""
+
+    @property
+    def detect_fraction(self) -> float:
+        """The progress reported when detection starts."""
+
+    def localise(
+        self,
+        loaded: LoadedPair,
+        origins: SensorOrigins,
+        alignment: Alignment,
+        report: ProgressCallback,
+        timings: dict[str, float],
+    ) -> tuple[Localisation, int]:
+        """Labels and regions of both clouds, and the region size floor they used."""
+
+
+def run_stages(
+    loaded: LoadedPair,
+    *,
+    progress: ProgressCallback | None = None,
+    site_calibration: Mapping[str, Any] | None = None,
+    geometry_cache: GeometryCache | None = None,
+    localise_step: LocaliseStep | None = None,
+) -> ComparisonResult:
+    """Stages 2-6 of a loaded pair (see :func:`compare` for the parameters).
+
+    Parameters
+    ----------
+    localise_step : LocaliseStep, optional
+        Stage 4 done another way (no neighbour searches ahead, no geometry cache); None:
+        :func:`~app.core.comparison.localise.localise_pair` on the whole clouds.
+
+    Returns
+    -------
+    ComparisonResult
+    """
 
     def report(stage: str, fraction: float) -> None:
         if progress is not None:
@@ -163,21 +218,23 @@ def compare(
 
     timings: dict[str, float] = {}
     memory = ReferenceMemory.of(geometry_cache, loaded)
-    matched = _match(loaded, memory, report, timings)
+    matched = _match(loaded, memory, report, timings, localise_step)
     memory.keep()
-    report("detect", 0.65)
+    report("detect", 0.65 if localise_step is None else localise_step.detect_fraction)
     started = time.perf_counter()
     detected = detect_change(
         loaded.settings.detector,
         loaded.reference_points,
         matched.alignment.aligned_scan,
         matched.localisation,
+        sample_points=None if localise_step is None else localise_step.detection_sample,
+        random_state=0 if localise_step is None else localise_step.detection_seed,
     )
     timings["detect"] = time.perf_counter() - started
     decision = decide_change(
         detected.detection,
         matched.localisation.regions,
-        min_region_points=int(matched.localisation.parameters.get("min_region_points", 1)),
+        min_region_points=matched.min_region_points,
         rule=loaded.settings.decision,
         method=loaded.method,
         variant=loaded.variant,
@@ -192,6 +249,7 @@ def compare(
         detected,
         decision,
         timings,
+        None if localise_step is None else localise_step.params,
     )
 
 
@@ -208,16 +266,21 @@ def _match(
     memory: ReferenceMemory,
     report: ProgressCallback,
     timings: dict[str, float],
+    localise_step: LocaliseStep | None = None,
 ) -> Matched:
     """Stages 2-4: origins, alignment and localisation, with the neighbour searches ahead.
 
     With a second thread the reference's neighbour search starts first and runs while the
     reference's origin is resolved and the scan aligned (none of which needs it); on one
     thread the origin comes first, so that a cache written by the search holds it.  The
-    scan's own search runs while its origin is resolved.
+    scan's own search runs while its origin is resolved.  A ``localise_step`` of its own
+    (tiles) has no searches ahead.
     """
     settings = loaded.settings
-    ahead = searches_ahead(settings.align, loaded.threads, len(loaded.reference_points))
+    ahead = localise_step is None and searches_ahead(
+        settings.align, loaded.threads, len(loaded.reference_points)
+    )
+    sample = None if localise_step is None else localise_step.registration_sample
     reference_origins = None
     if not ahead:
         reference_origins = _timed(
@@ -231,7 +294,11 @@ def _match(
             reference_origins = _timed(
                 timings, "origins", lambda: resolve_reference_origins(loaded, memory)
             )
-        alignment = _timed(timings, "align", lambda: align_scan(loaded, memory.alignment))
+        alignment = _timed(
+            timings,
+            "align",
+            lambda: align_scan(loaded, memory.alignment, sample_points=sample),
+        )
         with scan_neighbourhoods_ahead(
             alignment.aligned_scan, settings.localisation, ahead, loaded.threads
         ) as scan_neighbourhoods:
@@ -240,14 +307,21 @@ def _match(
                 "origins",
                 lambda: resolve_scan_origins(loaded, alignment, reference_origins),
             )
+            origins = SensorOrigins(reference_origins, scan_origins)
             loaded.release_scan_points()  # a shifted copy when the files are georeferenced
             report("localise", 0.35)
             started = time.perf_counter()
-            localisation = localise_pair(
-                reference_origins.epoch(loaded.reference_points, reference_neighbourhoods),
-                scan_origins.epoch(alignment.aligned_scan, scan_neighbourhoods),
-                threads=loaded.threads,
-                localisation_params=settings.localisation,
-            )
+            if localise_step is not None:
+                localisation, min_region_points = localise_step.localise(
+                    loaded, origins, alignment, report, timings
+                )
+            else:
+                localisation = localise_pair(
+                    reference_origins.epoch(loaded.reference_points, reference_neighbourhoods),
+                    scan_origins.epoch(alignment.aligned_scan, scan_neighbourhoods),
+                    threads=loaded.threads,
+                    localisation_params=settings.localisation,
+                )
+                min_region_points = int(localisation.parameters.get("min_region_points", 1))
     timings["localise"] = time.perf_counter() - started
-    return Matched(SensorOrigins(reference_origins, scan_origins), alignment, localisation)
+    return Matched(origins, alignment, localisation, min_region_points)

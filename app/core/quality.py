@@ -321,9 +321,9 @@ def _time_span_warning(side: str, outside: int, span: Any) -> dict[str, Any]:
 def quality_warnings(result: Comparison) -> list[dict[str, Any]]:
     """Every warning :mod:`app.core.quality` can tell from a comparison result (its
     ``registration``, labels, ``sensor_origins`` and the origins' ``warnings``)."""
-    warnings = registration_warnings(result.registration or {})
+    warnings = registration_warnings(result.registration.to_json_dict())
     warnings += overlap_warnings(np.asarray(result.reference_label), np.asarray(result.scan_label))
-    warnings += origin_warnings(result.sensor_origins, list(result.warnings or []))
+    warnings += origin_warnings(result.sensor_origins_json(), list(result.warnings or []))
     return warnings
 
 

@@ -79,7 +79,7 @@ def compute(
     if job.reference_path is None or job.scan_path is None:
         raise InputError("the job's reference scan or scan no longer exists")
     keeper.report("loading", 0.0)
-    started = time.perf_counter()
+    started, started_cpu = time.perf_counter(), time.process_time()
     threads = job_threads(settings)  # the result does not depend on it
     reference = read_point_cloud(
         job.reference_path,
@@ -108,13 +108,18 @@ def compute(
         scan = dataclasses.replace(
             scan, sensor_origin=np.asarray(job.scan_sensor_origin, dtype=np.float64)
         )
-    load_seconds = time.perf_counter() - started
+    job_timings = {
+        "load_inputs": time.perf_counter() - started,
+        "load_inputs_cpu": time.process_time() - started_cpu,
+    }
     keeper.report("comparing", PROGRESS_LOADED)
     cache = geometry_cache_of(job)
     options: dict[str, Any] = {}
+    fan_out: TileFanOut | None = None
     if job_hooks.compare is None:  # the real comparison, within the worker's memory budget
         if tiles_needed(settings, len(reference), len(scan)):
-            compare, cache = tiled_comparison(job, settings, keeper), None  # on every worker
+            fan_out = TileFanOut(job, settings, keeper)  # tiles on every worker
+            compare, cache = tiled_comparison(fan_out, settings), None
         else:
             options["budget_bytes"] = settings.worker_memory_budget_bytes
     result = compare(
@@ -131,7 +136,10 @@ def compute(
     )
     if cache is not None:
         record_geometry_cache(job, settings, cache)
-    return label_upload_origins(result, given_at_upload), {"load_inputs": load_seconds}
+    job_timings["compute_cpu"] = time.process_time() - started_cpu  # this process only
+    if fan_out is not None:
+        job_timings.update(fan_out.timings.seconds)
+    return label_upload_origins(result, given_at_upload), job_timings
 
 
 def tiles_needed(settings: Settings, n_reference: int, n_scan: int) -> bool:
@@ -144,13 +152,10 @@ def tiles_needed(settings: Settings, n_reference: int, n_scan: int) -> bool:
     )
 
 
-def tiled_comparison(
-    job: ClaimedJob, settings: Settings, keeper: LeaseKeeper
-) -> Callable[..., Any]:
+def tiled_comparison(fan_out: TileFanOut, settings: Settings) -> Callable[..., Any]:
     """``compare`` for a pair compared in tiles that every worker takes from the queue."""
     from app.core.tiling.compare import compare_tiled
 
-    fan_out = TileFanOut(job, settings, keeper)
     budget = settings.worker_memory_budget_bytes or DEFAULT_MEMORY_BUDGET_BYTES
 
     def compare(*clouds: Any, geometry_cache: Any = None, **options: Any) -> Any:
@@ -183,26 +188,26 @@ def label_upload_origins(result: Comparison, given_at_upload: dict[str, bool]) -
     """``result`` with the origins given at upload reported as ``"given"``, not ``"file"``.
 
     The worker hands a scan's upload origin to ``compare`` in the file's slot (it overrides the
-    file's own); the report names where it came from: ``sensor_origins[side][i]["source"]``,
-    ``visibility[side]["origins"]`` (also in ``calibration["visibility"]``) and the warnings.
+    file's own); the report names where it came from: ``sensor_origins[side][i].source``,
+    ``visibility[side].origins`` (also in ``calibration.visibility``) and the warnings.
     """
     sides = [side for side, given in given_at_upload.items() if given]
-    if not sides or result.sensor_origins is None:
-        return result  # nothing to relabel (a test's stand-in comparison reports no origins)
+    if not sides:
+        return result
     sensor_origins = {
         side: [
-            {**entry, "source": "given"}
-            if side in sides and entry.get("source") == "file"
+            dataclasses.replace(entry, source="given")
+            if side in sides and entry.source == "file"
             else entry
             for entry in entries
         ]
         for side, entries in result.sensor_origins.items()
     }
     visibility = {
-        side: {**report, "origins": "given"}
-        if side in sides and report.get("origins") == "file"
-        else report
-        for side, report in result.visibility.items()
+        side: dataclasses.replace(seen, origins="given")
+        if side in sides and seen.origins == "file"
+        else seen
+        for side, seen in result.visibility.items()
     }
     warnings = list(result.warnings)
     for side in sides:
@@ -210,15 +215,12 @@ def label_upload_origins(result: Comparison, given_at_upload: dict[str, bool]) -
             warning.replace(f"the {side}'s file sensor origin", f"the {side}'s given sensor origin")
             for warning in warnings
         ]
-    calibration = dict(result.calibration)
-    if "visibility" in calibration:
-        calibration["visibility"] = visibility
     return dataclasses.replace(  # type: ignore[type-var]  # a dataclass: warnings recomputed
         result,
         sensor_origins=sensor_origins,
         visibility=visibility,
         warnings=warnings,
-        calibration=calibration,
+        calibration=dataclasses.replace(result.calibration, visibility=visibility),
     )
 
 

@@ -34,7 +34,8 @@ import logging
 import shutil
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from datetime import timedelta
 from pathlib import Path
 
@@ -347,6 +348,39 @@ def run_tile_message(
     return "computed" if stored else "cancelled"
 
 
+def largest_first(plan: TilePlan, tile_indices: list[int]) -> list[int]:
+    """``tile_indices`` with the largest planned crops first (ties by index).
+
+    The longest tiles start first, so the last tile to finish is a short one and the workers
+    finish together (the result does not depend on the order).
+    """
+    return sorted(tile_indices, key=lambda index: (-int(plan.crop_points[index]), index))
+
+
+class PhaseTimings:
+    """Wall and CPU seconds of a job's named phases, summed over their runs.
+
+    ``seconds[name]`` (wall) and ``seconds[name + "_cpu"]`` (this process's CPU, all its
+    threads), for the job's ``timings``.
+    """
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def phase(self, name: str) -> Iterator[None]:
+        """Add the wall and CPU seconds of the ``with`` block to phase ``name``."""
+        wall, cpu = time.perf_counter(), time.process_time()
+        try:
+            yield
+        finally:
+            for key, spent in (
+                (name, time.perf_counter() - wall),
+                (f"{name}_cpu", time.process_time() - cpu),
+            ):
+                self.seconds[key] = self.seconds.get(key, 0.0) + spent
+
+
 class TileFanOut:
     """``compare_tiled``'s tile runner in a worker: tiles on the queue, this worker in the pool.
 
@@ -364,6 +398,7 @@ class TileFanOut:
         self.job, self.settings, self.keeper = job, settings, keeper
         self.owner = make_lease_owner()
         self.computed_here = 0
+        self.timings = PhaseTimings()
 
     def __call__(
         self,
@@ -375,42 +410,66 @@ class TileFanOut:
     ) -> list[TileResult]:
         """Every tile's result, in order, computed by whichever worker took it."""
         directory = self.settings.data_layout.job_tiles_dir(self.job.id)
-        save_tile_inputs(directory, plan, source, context)
-        todo = record_tiles(self.settings, self.job.id, plan)
-        send_tile_messages(self.job.id, todo, self.settings)
+        with self.timings.phase("tile_inputs_write"):
+            save_tile_inputs(directory, plan, source, context)
+            todo = largest_first(plan, record_tiles(self.settings, self.job.id, plan))
+            send_tile_messages(self.job.id, todo, self.settings)
+        with self.timings.phase("tiles_parent"):
+            self._take_tiles(todo, threads, report)
+        with self.timings.phase("tile_results_read"):
+            with transaction(self.settings.sqlalchemy_url) as session:
+                rows = session.execute(
+                    select(JobTile.result_path, JobTile.lease_owner, JobTile.seconds)
+                    .where(JobTile.job_id == self.job.id)
+                    .order_by(JobTile.tile_index)
+                ).all()
+            results = [
+                TileResult.load(self.settings.data_layout.resolve(str(row.result_path)))
+                for row in rows
+            ]
+        elsewhere = [row.seconds or 0.0 for row in rows if row.lease_owner != self.owner]
+        self.timings.seconds["tiles_other_workers"] = float(sum(elsewhere))
+        self.timings.seconds["tiles_computed_here"] = float(self.computed_here)
+        self.timings.seconds["tiles_computed_elsewhere"] = float(len(elsewhere))
+        return results
+
+    def _take_tiles(self, order: list[int], threads: int, report: ProgressCallback) -> None:
+        """Compute tiles here (in ``order`` first) until every tile is done by someone."""
+        preferred = list(order)
         while True:
             self.keeper.check()
             done, total = tile_progress(self.settings, self.job.id)
             report("localise", 0.35 + 0.5 * done / max(1, total))
             if done == total:
-                break
-            claimed = claim_tile(self.settings, self.job.id, self.owner)
+                return
+            claimed = None
+            while claimed is None and preferred:
+                claimed = claim_tile(self.settings, self.job.id, self.owner, preferred.pop(0))
+            if claimed is None:  # the rest are taken: any whose worker died, else wait
+                claimed = claim_tile(self.settings, self.job.id, self.owner)
             if claimed is None:
-                time.sleep(WAIT_SECONDS)  # others are running the last tiles
+                with self.timings.phase("tiles_parent_waiting"):
+                    time.sleep(WAIT_SECONDS)  # others are running the last tiles
                 continue
-            if run_claimed_tile(
-                self.settings,
-                self.job.id,
-                claimed,
-                self.owner,
-                threads,
-                parent=self.job,
-                tiles_done_here=self.computed_here,
-            ):
-                self.computed_here += 1
-        with transaction(self.settings.sqlalchemy_url) as session:
-            paths = session.scalars(
-                select(JobTile.result_path)
-                .where(JobTile.job_id == self.job.id)
-                .order_by(JobTile.tile_index)
-            ).all()
-        return [TileResult.load(self.settings.data_layout.resolve(str(path))) for path in paths]
+            with self.timings.phase("tiles_parent_computing"):
+                stored = run_claimed_tile(
+                    self.settings,
+                    self.job.id,
+                    claimed,
+                    self.owner,
+                    threads,
+                    parent=self.job,
+                    tiles_done_here=self.computed_here,
+                )
+            self.computed_here += int(stored)
 
 
 __all__ = [
+    "PhaseTimings",
     "TileFanOut",
     "cancel_tiles",
     "claim_tile",
+    "largest_first",
     "load_tile_inputs",
     "record_tiles",
     "remove_tile_inputs",

@@ -74,6 +74,11 @@ class RegistrationRead(StoredJson):
     voxel_size: Number | None = Field(default=None, description="Downsampling voxel (metres).")
     rotation_degrees: Number | None = Field(default=None, description="The turn applied.")
     enabled: bool | None = Field(default=None, description="False: compared without aligning.")
+    sample_points: int | None = Field(
+        default=None,
+        description="The points of each cloud it was estimated on, when a sample (a pair "
+        "compared in tiles).",
+    )
     translation_m: Number | None = Field(
         default=None, description="How far the scan's centre moved (metres)."
     )
@@ -103,6 +108,26 @@ class DecisionRead(StoredJson):
     tests: list[DecisionTestRead] | None = None
 
 
+class TrajectorySummaryRead(StoredJson):
+    """A cloud's trajectory as the comparison used it (``app.core.origins.trajectory_origin``)."""
+
+    source: str | None = Field(default=None, description="trajectory.")
+    poses: int | None = None
+    time_span: list[Number] | None = Field(
+        default=None, description="[first, last] pose time (seconds)."
+    )
+    path_length_m: Number | None = None
+    assignment: str | None = Field(
+        default=None, description="How points were given their pose: times, or nearest."
+    )
+    points_outside: int | None = Field(
+        default=None, description="Points whose times lie outside the poses' span."
+    )
+    groups: int | None = Field(default=None, description="Pseudo-stations along the path.")
+    group_length_m: Number | None = None
+    rays: int | None = None
+
+
 class SideVisibilityRead(StoredJson):
     """What was found out about one cloud's sensors, and the visibility test it got."""
 
@@ -119,7 +144,7 @@ class SideVisibilityRead(StoredJson):
     stations_unknown: bool | None = Field(
         default=None, description="A merged lidar cloud whose stations are not known."
     )
-    trajectory: dict[str, Any] | None = Field(
+    trajectory: TrajectorySummaryRead | None = Field(
         default=None, description="A trajectory's summary (poses, groups, assignment...)."
     )
     test: str | None = Field(
@@ -152,14 +177,17 @@ class CalibrationRead(StoredJson):
     decision: DecisionRead | None = None
 
 
-class SensorOriginRead(StoredJson):
-    """One sensor origin used (a trajectory's entry holds its summary instead)."""
+class SensorOriginRead(TrajectorySummaryRead):
+    """One sensor origin used (a trajectory's entry holds its summary and path instead)."""
 
     origin: list[Number] | None = Field(default=None, description="[x, y, z] in that file's frame.")
     source: str | None = Field(
         default=None, description="given, file, estimated, recovered or trajectory."
     )
     confidence: Number | None = None
+    path: list[list[Number]] | None = Field(
+        default=None, description="A trajectory's poses, [x, y, z] each, in that file's frame."
+    )
 
 
 class WarningDetailRead(StoredJson):
@@ -222,3 +250,81 @@ class ExplanationRead(StoredJson):
     )
     site_test: DecisionTestRead | None = None
     text: str | None = Field(default=None, description="The explanation in one line.")
+
+
+Setting = Number | str | bool
+"""A parameter's value as given (a number, ``"auto"``, a flag): the stage checks it."""
+
+
+class RegistrationParamsRead(StoredJson):
+    """The registration stage's keyword parameters (``app.core.registration.register_scan``)."""
+
+    voxel_size: Setting | None = Field(default=None, description="Metres.")
+    max_correspondence_distance: Setting | None = Field(default=None, description="Metres.")
+    initial_transform: list[list[Number]] | None = Field(
+        default=None, description="4 x 4 starting guess."
+    )
+    min_fitness: Setting | None = None
+    num_threads: Setting | None = None
+
+
+class LocalisationParamsRead(StoredJson):
+    """The localisation stage's keyword parameters (``app.core.localise.DEFAULT_PARAMETERS``)."""
+
+    n_neighbors: Setting | None = None
+    threshold_factor: Setting | None = None
+    support_factor: Setting | None = None
+    cluster_factor: Setting | None = None
+    coverage_factor: Setting | None = None
+    visibility_margin_factor: Setting | None = None
+    visibility_angle_factor: Setting | None = None
+    visibility_beyond_fraction: Setting | None = None
+    visibility_miss_factor: Setting | None = None
+    origin_free_test: Setting | None = None
+    min_change_distance: Setting | None = Field(default=None, description="Metres.")
+    min_region_points: Setting | None = None
+
+
+Origins = list[Number] | list[list[Number]]
+"""One origin [x, y, z], or one per station."""
+
+
+class ComparisonParamsRead(StoredJson):
+    """A comparison's parameters: the detector's (those named here and its own), and the
+    reserved keys of ``app.core.pipeline.compare``."""
+
+    variant: str | None = None
+    random_state: int | None = None
+    false_alarm_rate: Setting | None = None
+    n_resamples: Setting | None = None
+    calibration: Setting | None = Field(default=None, description="auto, permutation or paired.")
+    max_points: Setting | None = None
+    voxel_size: Setting | None = Field(default=None, description="Metres, or auto.")
+    align: bool | None = None
+    registration: RegistrationParamsRead | None = None
+    localisation: LocalisationParamsRead | None = None
+    decision: str | None = Field(default=None, description="regions, detector or either.")
+    memory_budget_bytes: int | None = Field(
+        default=None, description="The memory budget of a pair compared in tiles."
+    )
+    reference_origin: Origins | None = Field(
+        default=None, description="Sensor position(s) in the reference file's frame."
+    )
+    scan_origin: Origins | None = Field(
+        default=None, description="Sensor position(s) in the scan file's frame."
+    )
+    estimate_origins: bool | None = None
+    recover_stations: bool | str | None = Field(default=None, description="auto, true or false.")
+
+
+class TimingsRead(StoredJson):
+    """Seconds per stage of the comparison and of the job around it."""
+
+    load_inputs: Number | None = None
+    origins: Number | None = None
+    align: Number | None = None
+    plan: Number | None = Field(default=None, description="Tile planning (a pair in tiles).")
+    localise: Number | None = None
+    detect: Number | None = None
+    write_outputs: Number | None = None
+    job_total: Number | None = None

@@ -44,7 +44,7 @@ from app.config import Settings
 from app.core.errors import InputError
 from app.db.models import ResumableUpload
 from app.db.session import transaction
-from app.services import quotas, scans, storage
+from app.services import quotas, scans, storage, trajectories
 from app.services.auth import Principal
 from app.services.errors import (
     AppError,
@@ -205,7 +205,7 @@ def _is_expired(upload: ResumableUpload, now: datetime) -> bool:
     return upload.state == "expired" or expired
 
 
-def _owned_upload(session: Session, principal: Principal, upload_id: str) -> ResumableUpload:
+def owned_upload(session: Session, principal: Principal, upload_id: str) -> ResumableUpload:
     """The principal's upload; 404 if unknown or another's, 410 if its bytes are gone."""
     upload = get_owned(session, principal, ResumableUpload, upload_id)
     if _is_expired(upload, utc_now()):
@@ -266,7 +266,7 @@ def create_upload(
 
 def upload_progress(session: Session, principal: Principal, upload_id: str) -> UploadProgress:
     """The upload's offset, length and expiry (404 unknown, 410 gone)."""
-    return _progress(_owned_upload(session, principal, upload_id))
+    return _progress(owned_upload(session, principal, upload_id))
 
 
 def get_upload(session: Session, principal: Principal, upload_id: str) -> ResumableUpload:
@@ -278,7 +278,7 @@ def terminate_upload(
     session: Session, settings: Settings, principal: Principal, upload_id: str
 ) -> None:
     """Drop an unfinished upload and its bytes (releases its quota); 409 once completed."""
-    upload = _owned_upload(session, principal, upload_id)
+    upload = owned_upload(session, principal, upload_id)
     if upload.state in ("completing", "completed"):
         raise ConflictError(
             f"upload {upload_id} is complete: it is a scan now (GET /api/v1/uploads/{upload_id})"
@@ -320,7 +320,7 @@ def _begin_append(
     declared_length: int | None,
 ) -> tuple[UploadView, int | None]:
     """The checks before a PATCH's body is read; the upload and the bytes the quota leaves."""
-    upload = UploadView.of(_owned_upload(session, principal, upload_id))
+    upload = UploadView.of(owned_upload(session, principal, upload_id))
     if declared_length is not None and declared_length != upload.length:
         raise ConflictError(
             f"Upload-Length is {declared_length} but upload {upload_id} was created for "
@@ -521,7 +521,12 @@ async def _complete(
             path=path, size_bytes=upload.length, sha256=sha256, head=head
         )
         response = await scans.store_received_scan(
-            session, settings, principal, _scan_options(upload), received
+            session,
+            settings,
+            principal,
+            _scan_options(upload),
+            received,
+            trajectory=trajectories.from_held(upload.options.get("trajectory")),
         )
     except (AppError, InputError) as exc:
         await anyio.to_thread.run_sync(rollback, session)

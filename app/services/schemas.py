@@ -24,17 +24,17 @@ from app.db.models import JobStatus, Site
 from app.services.messages import api_warnings
 from app.services.result_schemas import (
     CalibrationRead,
+    ComparisonParamsRead,
     ExplanationRead,
     QualityWarningRead,
     RegistrationRead,
     SensorOriginRead,
+    TimingsRead,
 )
 
 UtcDatetime = Annotated[datetime, AfterValidator(as_utc)]
 Name = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=200)]
 Identifier = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=64)]
-JsonObject = Annotated[dict[str, Any], BeforeValidator(lambda value: value or {})]
-"""A JSON object column that reads as ``{}`` when it is empty or null."""
 
 ItemT = TypeVar("ItemT")
 
@@ -216,8 +216,8 @@ class JobRead(RowRead):
     max_attempts: int
     method: str
     variant: str
-    params: JsonObject
-    effective_params: dict[str, Any] | None = Field(
+    params: Annotated[ComparisonParamsRead, BeforeValidator(lambda value: value or {})]
+    effective_params: ComparisonParamsRead | None = Field(
         default=None,
         description="Every parameter in effect once the job ran; POST /jobs with these params "
         "replays the result exactly.",
@@ -232,7 +232,7 @@ class JobRead(RowRead):
     registration: RegistrationRead | None = Field(description="How the scan was aligned.")
     n_regions: int | None
     error: str | None
-    timings: dict[str, Any] | None
+    timings: TimingsRead | None
     created_at: UtcDatetime
     started_at: UtcDatetime | None
     finished_at: UtcDatetime | None

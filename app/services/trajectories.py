@@ -8,6 +8,7 @@ times before anything is stored; it is kept beside the scan's file as ``<scan fi
 
 from __future__ import annotations
 
+import base64
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -166,4 +167,33 @@ def upload_of(
         times=None if times is None else bytes(times),
         rate=rate,
         trajectory_format=trajectory_format,
+    )
+
+
+def held(upload: TrajectoryUpload) -> dict[str, Any]:
+    """A trajectory upload as JSON (the files base64), to hold with an unfinished upload."""
+
+    def encoded(data: bytes | None) -> str | None:
+        return None if data is None else base64.b64encode(data).decode("ascii")
+
+    return {
+        "data": encoded(upload.data),
+        "times": encoded(upload.times),
+        "filename": upload.filename,
+        "rate": upload.rate,
+        "trajectory_format": upload.trajectory_format,
+    }
+
+
+def from_held(stored: dict[str, Any] | None) -> TrajectoryUpload | None:
+    """The trajectory upload :func:`held` gave, or None."""
+    if not stored:
+        return None
+    times = stored.get("times")
+    return TrajectoryUpload(
+        data=base64.b64decode(stored["data"]),
+        filename=stored.get("filename"),
+        times=None if times is None else base64.b64decode(times),
+        rate=stored.get("rate"),
+        trajectory_format=stored.get("trajectory_format"),
     )

@@ -10,10 +10,11 @@ from app.core.pipeline import RegionSummary
 from app.core.quality import LOW_FITNESS
 from app.jobs.alerts.site_history import HISTORY_MIN_JOBS, REGION_COUNT_MIN_EXCESS
 from app.jobs.leases import claim_job, fail_job, make_lease_owner, release_job
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
+from app.testing.results import calibration_report, registration_report, sensor_origin_entries
+from app.testing.scenes import room_points
 from tests.helpers.http import assert_error, create_site, site_with_reference, upload
 from tests.helpers.jobs import finish_job
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
 
 N_POINTS = 2000
@@ -54,17 +55,15 @@ def test_a_succeeded_job_explains_itself_and_carries_warnings_and_origins(
         regions=regions(2),
         score=0.03698,
         threshold=0.04244,
-        calibration={"decision": {"rule": "regions", "detector_changed": False}},
+        calibration=calibration_report(rule="regions", detector_changed=False),
         localisation={"min_region_points": 200},
-        registration={
-            "transform": [[float(i == j) for j in range(4)] for i in range(4)],
-            "fitness": LOW_FITNESS / 2,
-            "rotation_degrees": 4.1,
-            "translation_m": 0.1,
-            "max_correspondence_distance": 0.3,
-            "enabled": True,
-        },
-        sensor_origins=origins,
+        registration=registration_report(
+            fitness=LOW_FITNESS / 2,
+            rotation_degrees=4.1,
+            translation_m=0.1,
+            max_correspondence_distance=0.3,
+        ),
+        sensor_origins=sensor_origin_entries(origins),
         warnings=["the scan's file sensor origin [0.0, 0.0, 0.0] is 3.1 m from ..."],
     )
     read = writer.get(f"/api/v1/jobs/{job['id']}").json()

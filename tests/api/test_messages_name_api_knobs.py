@@ -10,10 +10,11 @@ import httpx
 import pytest
 
 from app.core.quality import LOW_FITNESS
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
+from app.testing.results import registration_report, sensor_origin_entries
+from app.testing.scenes import room_points
 from tests.helpers.http import site_with_reference, upload
 from tests.helpers.jobs import finish_job
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer, fresh_api
 
 N_POINTS = 2000
@@ -31,25 +32,25 @@ def test_job_warnings_are_one_sentence_with_the_fix_in_api_parameters(
         job["id"],
         reference["n_points"],
         N_POINTS,
-        registration={
-            "transform": [[float(i == j) for j in range(4)] for i in range(4)],
-            "fitness": LOW_FITNESS / 2,
-            "rotation_degrees": 4.1,
-            "translation_m": 0.9,
-            "max_correspondence_distance": 0.3,
-            "enabled": True,
-        },
-        sensor_origins={
-            "reference": [],
-            "scan": [
-                {
-                    "source": "trajectory",
-                    "poses": 30,
-                    "time_span": [0.0, 9.5],
-                    "points_outside": 150,
-                }
-            ],
-        },
+        registration=registration_report(
+            fitness=LOW_FITNESS / 2,
+            rotation_degrees=4.1,
+            translation_m=0.9,
+            max_correspondence_distance=0.3,
+        ),
+        sensor_origins=sensor_origin_entries(
+            {
+                "reference": [],
+                "scan": [
+                    {
+                        "source": "trajectory",
+                        "poses": 30,
+                        "time_span": [0.0, 9.5],
+                        "points_outside": 150,
+                    }
+                ],
+            }
+        ),
     )
     warnings = writer.get(f"/api/v1/jobs/{job['id']}").json()["warnings"]
     by_code = {warning["code"]: warning for warning in warnings}

@@ -131,11 +131,11 @@ def test_a_real_comparison_explains_its_own_numbers(box_pair) -> None:
     explanation = explain_comparison(result)
     assert explanation == result.to_json_dict()["explanation"]
     assert explanation["decision"] == ("changed" if result.changed else "unchanged")
-    assert explanation["rule"] == result.calibration["decision"]["rule"]
+    assert explanation["rule"] == result.calibration.decision.rule
     assert explanation["n_regions"] == len(result.regions)
     assert explanation["n_region_points"] == sum(r.n_points for r in result.regions)
     assert explanation["min_region_points"] == result.localisation["min_region_points"]
-    assert explanation["detector_changed"] == result.calibration["decision"]["detector_changed"]
+    assert explanation["detector_changed"] == result.calibration.decision.detector_changed
     assert f"{len(result.regions)} region" in explanation["text"]
     assert f"{result.score:.3g}" in explanation["text"]
 

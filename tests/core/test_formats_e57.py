@@ -24,11 +24,12 @@ import pytest
 from app.core.datasets.lidar import LidarPair, lidar_pair
 from app.core.errors import InputError, PointCloudError
 from app.core.formats import detect_format, read_point_cloud, summarise_point_cloud
+from app.core.ground_truth import changed_iou
 from app.core.origins.known_stations import estimate_each_station
 from app.core.pipeline import compare
+from app.testing.files import e57_bytes, las_bytes, ply_bytes
+from app.testing.scenes import random_points
 from tests.helpers.clouds import assert_summary_of
-from tests.helpers.files import e57_bytes, las_bytes, ply_bytes
-from tests.helpers.scenes import changed_iou, random_points
 
 
 def yaw_tilt_quaternion(yaw: float, tilt: float) -> np.ndarray:
@@ -256,10 +257,10 @@ def test_compare_uses_the_stations_of_e57_files(three_station_room: LidarPair):
 
     result = compare(reference, scan, method="gmm", variant="improved", align=False)
 
-    assert [entry["source"] for entry in result.sensor_origins["reference"]] == ["file"] * 3
+    assert [entry.source for entry in result.sensor_origins["reference"]] == ["file"] * 3
     assert result.localisation["reference_station_assignment"] == "given"
     assert result.localisation["scan_stations"] == 3
-    reported = np.array([entry["origin"] for entry in result.sensor_origins["scan"]])
+    reported = np.array([entry.origin for entry in result.sensor_origins["scan"]])
     np.testing.assert_allclose(reported, pair.scan_origins, atol=1e-6)
     assert result.changed
     assert changed_iou(pair, result) >= 0.9
@@ -301,8 +302,8 @@ def test_a_station_index_alone_gets_each_station_origin_estimated(three_station_
 
     for side, truth in (("reference", pair.reference_origins), ("scan", pair.scan_origins)):
         entries = result.sensor_origins[side]
-        assert [entry["source"] for entry in entries] == ["estimated"] * 3
-        found = np.array([entry["origin"] for entry in entries])
+        assert [entry.source for entry in entries] == ["estimated"] * 3
+        found = np.array([entry.origin for entry in entries])
         assert np.linalg.norm(found - truth, axis=1).max() < 0.05
     assert result.localisation["scan_station_assignment"] == "given"
     assert result.changed

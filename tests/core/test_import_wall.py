@@ -29,6 +29,7 @@ FORBIDDEN_APP = {
     "app.cli",
     "app.main",
     "app.kit",
+    "app.testing",
 }
 
 
@@ -86,6 +87,7 @@ LOCALISE_LAYERS = (
     "trajectory_visibility",
     "origin_free",
     "map_planes",
+    "map_parts",
     "map_evidence",
     "coverage",
     "visibility",

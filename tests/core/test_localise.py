@@ -29,6 +29,7 @@ from app.core.datasets.scenes import (
     raycast_scene_objects,
 )
 from app.core.errors import InputError, PointCloudError
+from app.core.ground_truth import changed_iou
 from app.core.localise import (
     DEFAULT_PARAMETERS,
     LABEL_CHANGED,
@@ -40,7 +41,6 @@ from app.core.localise import (
     nearest_neighbourhoods,
     neighbourhood_size,
 )
-from tests.helpers.scenes import changed_iou
 
 SCENE_POINTS = 50_000
 POSE_ERROR = (0.03, 0.4)  # metres, degrees

@@ -160,3 +160,31 @@ def test_a_strip_of_a_rack_face_whose_far_face_only_the_other_path_saw_is_not_se
     localisation = localise_changes(reference, scan)
     assert localisation.regions == []
     assert not np.any(localisation.reference_label[strip(reference, 2.0)] == LABEL_CHANGED)
+
+
+def test_an_object_each_epoch_saw_from_its_own_side_only_is_not_changed():
+    # a 40 cm deep cabinet stands in both epochs; the reference's path saw only its -y face,
+    # the scan's only its +y face.  Each face has the other epoch's far face 40 cm behind it,
+    # surface this epoch lacks, but no surface this epoch has around it on that plane: the
+    # cabinet's far face, not a wall or floor the cabinet hid.  Nothing around either face
+    # (floor, top) carries on past it either: no evidence that its place was seen empty
+    rng = np.random.default_rng(7)
+    cabinet = ([3.0, 1.6, 0.0], [4.2, 2.0, 1.0])
+    low, high = np.asarray(cabinet[0]), np.asarray(cabinet[1])
+
+    def face(points, y):
+        return (
+            (np.abs(points[:, 1] - y) < 0.01)
+            & (points[:, 0] > low[0])
+            & (points[:, 0] < high[0])
+            & (points[:, 2] > 0.0)
+        )
+
+    reference = fused_room(rng, box=cabinet)
+    reference = reference[~face(reference, high[1])]
+    scan = fused_room(rng, box=cabinet)
+    scan = scan[~face(scan, low[1])]
+    localisation = localise_changes(reference, scan)
+    assert localisation.regions == []
+    assert not np.any(localisation.reference_label[face(reference, low[1])] == LABEL_CHANGED)
+    assert not np.any(localisation.scan_label[face(scan, high[1])] == LABEL_CHANGED)

@@ -205,8 +205,8 @@ def test_real_velodyne_pair_without_origins_is_compared_like_with_them(
     )
     for side in ("reference", "scan"):
         (entry,) = estimated.sensor_origins[side]
-        assert entry["source"] == "estimated"
-        assert np.linalg.norm(entry["origin"]) < 0.2
+        assert entry.source == "estimated"
+        assert np.linalg.norm(entry.origin) < 0.2
     for side in ("reference", "scan"):
         with_origins = getattr(given, f"{side}_label") == 1
         without = getattr(estimated, f"{side}_label") == 1

@@ -59,7 +59,7 @@ def test_rigidly_moved_copy_is_unchanged_after_alignment(method, variant, added_
     moved = apply_transform(added_box_pair.reference, rigid_transform(2.0, (0.2, -0.1, 0.05)))
     result = compare(reference, PointCloud.from_array(moved), method=method, variant=variant)
     assert not result.changed, result.calibration
-    assert result.registration["fitness"] > 0.9
+    assert result.registration.fitness > 0.9
     assert result.regions == []
 
 
@@ -144,12 +144,12 @@ def test_decision_rules(added_box_pair):
     scan = PointCloud.from_array(pair.scan)
     either = compare(reference, scan, method="pca", params={"decision": "either"})
     default = compare(reference, scan, method="pca")
-    assert default.calibration["decision"]["rule"] == "regions"
+    assert default.calibration.decision.rule == "regions"
     assert default.changed == (len(default.regions) > 0)
     detector_only = compare(reference, scan, method="pca", params={"decision": "detector"})
-    decision = either.calibration["decision"]
-    assert decision["rule"] == "either"
-    assert either.changed == (decision["detector_changed"] or decision["n_regions"] > 0)
+    decision = either.calibration.decision
+    assert decision.rule == "either"
+    assert either.changed == (decision.detector_changed or decision.n_regions > 0)
     assert detector_only.changed == (detector_only.score > detector_only.threshold)
     with pytest.raises(InputError, match="decision"):
         compare(reference, scan, params={"decision": "vote"})

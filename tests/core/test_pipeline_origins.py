@@ -62,7 +62,7 @@ def test_estimated_origins_localise_as_well_as_given_ones(misaligned_pair, witho
             "scan_origin": pair.scan_origin.tolist(),
         },
     )
-    assert [entry["source"] for entry in given.sensor_origins["reference"]] == ["given"]
+    assert [entry.source for entry in given.sensor_origins["reference"]] == ["given"]
     assert given.changed and without_origins.changed
     assert _iou(without_origins, pair) >= _iou(given, pair) - 0.05
     assert _iou(without_origins, pair) >= 0.8
@@ -86,7 +86,7 @@ def test_a_contradicted_file_origin_warns_and_the_estimate_takes_over(misaligned
 def test_unchanged_pair_without_origins_has_no_changed_region() -> None:
     pair = lidar_pair(layout="corridor", change="none", angular_step_deg=STEP, random_state=32)
     result = compare(PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan))
-    assert result.sensor_origins["reference"][0]["source"] == "estimated"
+    assert result.sensor_origins["reference"][0].source == "estimated"
     assert not result.changed and result.regions == []
 
 

@@ -131,7 +131,7 @@ def test_a_result_without_origins_and_turned_far_is_warned(box_pair) -> None:
     found = codes(quality_warnings(result))
     assert "large_rotation" in found and "large_translation" in found
     assert found.count("sensor_origin_unknown") == 2
-    assert result.registration["rotation_degrees"] > LARGE_ROTATION_DEGREES
+    assert result.registration.rotation_degrees > LARGE_ROTATION_DEGREES
     assert result.to_json_dict()["quality_warnings"] == quality_warnings(result)
 
 

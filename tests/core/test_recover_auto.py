@@ -133,12 +133,12 @@ def test_a_merged_lidar_cloud_gets_its_stations_without_being_asked():
     result = compare(*_clouds(pair), align=False)
     for side, truth in (("reference", pair.reference_origins), ("scan", pair.scan_origins)):
         entries = result.sensor_origins[side]
-        assert {entry["source"] for entry in entries} == {"recovered"}
-        found = np.array([entry["origin"] for entry in entries])
+        assert {entry.source for entry in entries} == {"recovered"}
+        found = np.array([entry.origin for entry in entries])
         assert found.shape == truth.shape
         assert np.linalg.norm(truth[:, None] - found[None], axis=2).min(axis=1).max() < 0.02
-        assert result.visibility[side]["lidar_like"] is True
-        assert result.visibility[side]["test"] == "ray"
+        assert result.visibility[side].sampling.lidar_like is True
+        assert result.visibility[side].test == "ray"
     assert not result.changed and result.regions == []
     assert "recover_stations" not in result.params  # the default is not recorded
 
@@ -149,10 +149,10 @@ def test_a_uniform_cloud_is_not_searched_for_stations(monkeypatch):
     result = compare(PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan))
     for side in ("reference", "scan"):
         report = result.visibility[side]
-        assert report["origins"] == "none"
-        assert report["lidar_like"] is False
-        assert "stations_recovered" not in report
-        assert report["test"] == "maps"
+        assert report.origins == "none"
+        assert report.sampling.lidar_like is False
+        assert report.stations_recovered is None
+        assert report.test == "maps"
     assert result.changed
 
 
@@ -161,11 +161,11 @@ def test_unfound_stations_of_a_merged_lidar_cloud_route_to_the_map_test(monkeypa
     result = compare(*_clouds(merged()), align=False)
     assert result.sensor_origins == {"reference": [], "scan": []}
     for side in ("reference", "scan"):
-        assert result.visibility[side]["stations_unknown"] is True
-        assert result.visibility[side]["stations_recovered"] == 0
-        assert result.visibility[side]["test"] == "maps"
+        assert result.visibility[side].stations_unknown is True
+        assert result.visibility[side].stations_recovered == 0
+        assert result.visibility[side].test == "maps"
     assert sum("could not be recovered" in warning for warning in result.warnings) == 2
-    assert result.calibration["visibility"] == result.to_json_dict()["visibility"]
+    assert result.to_json_dict()["calibration"]["visibility"] == result.to_json_dict()["visibility"]
 
 
 def test_recovery_turned_off_searches_nothing(monkeypatch, unconfident):
@@ -297,4 +297,4 @@ def test_a_scan_against_a_merged_reference_searches_its_stations_first(monkeypat
     result = compare(*_clouds(merged("added")), params={}, threads=1)
     assert calls["stations_first"] is True
     scan_entries = result.sensor_origins["scan"]
-    assert len(scan_entries) == 3 and {entry["source"] for entry in scan_entries} == {"recovered"}
+    assert len(scan_entries) == 3 and {entry.source for entry in scan_entries} == {"recovered"}

@@ -192,14 +192,14 @@ def test_compare_applies_a_site_calibration_and_reports_it() -> None:
         for one in (reference, visit)
     ]
     plain = compare(*clouds, method="pca")
-    tests = plain.calibration["decision"]["tests"]
-    assert plain.calibration["site"]["applied"] is False
+    tests = plain.calibration.decision.tests
+    assert plain.calibration.site.applied is False
     largest = largest_extent(plain.regions)
     assert plain.changed and largest > 0, "the moved bin should leave a region"
-    assert tests[0]["value"] == pytest.approx(largest)
+    assert tests[0].value == pytest.approx(largest)
     above = site(largest, 1e9, method="pca", variant="improved")
     calibrated = compare(*clouds, method="pca", site_calibration=above)
-    assert calibrated.calibration["site"]["applied"] is True
+    assert calibrated.calibration.site.applied is True
     assert not calibrated.changed  # equal to the learned bound: not above it
     assert len(calibrated.regions) == len(plain.regions)  # the regions are still reported
     assert "learned threshold" not in explain_comparison(plain)["text"]

@@ -58,16 +58,17 @@ def test_the_result_reports_the_trajectory_test_and_each_trajectory(compared) ->
     reference, scan, result, with_times = compared
 
     for side, cloud in (("reference", reference), ("scan", scan)):
-        assert result.visibility[side]["origins"] == "trajectory"
-        (entry,) = result.sensor_origins[side]
-        assert entry["source"] == "trajectory"
+        assert result.visibility[side].origins == "trajectory"
+        (origin,) = result.sensor_origins[side]
+        assert origin.source == "trajectory"
+        entry = origin.trajectory
         assert entry["poses"] == len(cloud.trajectory)
         assert entry["time_span"] == [cloud.trajectory.times[0], cloud.trajectory.times[-1]]
         assert entry["points_outside"] == 0
         assert entry["assignment"] == ("times" if with_times else "line_of_sight")
         np.testing.assert_allclose(entry["path"][0], cloud.trajectory.positions[0])
-    assert result.visibility["scan"]["test"] == "trajectory"  # the scan's candidates
-    assert result.visibility["reference"]["test"] == "trajectory"
+    assert result.visibility["scan"].test == "trajectory"  # the scan's candidates
+    assert result.visibility["reference"].test == "trajectory"
 
 
 def test_points_outside_the_trajectory_times_are_counted() -> None:
@@ -86,4 +87,4 @@ def test_points_outside_the_trajectory_times_are_counted() -> None:
     )
 
     assert beyond > 0
-    assert result.sensor_origins["scan"][0]["points_outside"] == beyond
+    assert result.sensor_origins["scan"][0].trajectory["points_outside"] == beyond

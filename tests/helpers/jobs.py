@@ -17,8 +17,9 @@ from app.db.models import Job, Organisation, Region, Scan, Site
 from app.db.session import transaction
 from app.jobs.leases import claim_job, make_lease_owner
 from app.jobs.results import store_results, write_result_files
+from app.testing.results import calibration_report, registration_report
+from app.testing.scenes import corridor_points
 from tests.helpers.job_rows import new_job
-from tests.helpers.scenes import corridor_points
 from tests.helpers.server import ApiServer
 
 FAST_LEASES = {
@@ -153,8 +154,8 @@ def finish_job(
         score=0.5,
         threshold=0.1,
         changed=changed,
-        calibration={},
-        registration={"transform": transform or np.eye(4).tolist(), "rmse": 0.01},
+        calibration=calibration_report(changed=changed),
+        registration=registration_report(transform=transform or np.eye(4).tolist()),
         regions=[
             RegionSummary("added", 12, [1.0, 2.0, 0.5], [0.5, 1.5, 0.0], [1.5, 2.5, 1.0], 0.4, 0.9)
         ],

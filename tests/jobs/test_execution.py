@@ -26,7 +26,7 @@ from app.jobs.leases import (
 from app.jobs.queue import pending_job_ids
 from app.jobs.results import store_results
 from app.jobs.runner import run_job_once
-from tests.helpers import fake_pipeline
+from app.testing import fake_pipeline
 from tests.helpers.jobs import count_regions, create_job, load_job
 
 
@@ -56,7 +56,10 @@ def test_job_succeeds_with_results_regions_and_files(job_settings: Settings) -> 
     assert job.changed is True and job.n_regions == 1 and count_regions(job_settings, job_id) == 1
     assert job.labels_path == f"results/{job_id}/labels.npz"
     assert job.registration["rmse"] is None  # non-finite numbers stored as null (portable JSON)
-    assert job.calibration == {"noise": 0.001, "samples": [0, 1, 2]}
+    assert {name: job.calibration[name] for name in ("noise", "samples")} == {
+        "noise": 0.001,  # numpy values stored as JSON numbers
+        "samples": [0, 1, 2],
+    }
     assert job.effective_params == {"variant": "improved", "random_state": 0}
     assert {"align", "load_inputs", "write_outputs", "job_total"} <= set(job.timings)
     results = job_settings.results_dir / job_id

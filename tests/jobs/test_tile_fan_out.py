@@ -26,9 +26,9 @@ from app.db.models import Job, JobStatus, JobTile, TileStatus
 from app.db.session import transaction
 from app.jobs.leases import lease_owner_pid
 from app.jobs.tiles import run_tile_message
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
+from app.testing.service import ServiceProcess
 from tests.helpers.jobs import create_job
-from tests.helpers.service import ServiceProcess
 
 CROP_SHARE = 0.5
 """Share of both clouds' points a tile's crop may hold: the map below gets four tiles."""
@@ -96,6 +96,18 @@ def test_tiles_run_on_every_worker_and_equal_the_in_process_tiled_result(
     workers = {lease_owner_pid(tile["lease_owner"]) for tile in tiles}
     assert len(workers) == 2, f"tiles computed by {workers}: the second worker took none"
     assert not (service.data_dir / "results" / job["id"] / "tiles").exists()
+    timings = job["timings"]  # the parent's phases, for operators
+    assert timings["tiles_computed_here"] + timings["tiles_computed_elsewhere"] == len(tiles)
+    seconds_by_owner: dict[str, list[float]] = {}
+    for tile in tiles:
+        seconds_by_owner.setdefault(tile["lease_owner"], []).append(tile["seconds"])
+    everything = sum(tile["seconds"] for tile in tiles)
+    assert any(  # the parent's own tiles (one lease owner) and the others' seconds add up
+        len(seconds) == timings["tiles_computed_here"]
+        and sum(seconds) + timings["tiles_other_workers"] == pytest.approx(everything)
+        for seconds in seconds_by_owner.values()
+    ), (timings, seconds_by_owner)
+    assert timings["tile_inputs_write"] > 0 and timings["tile_results_read"] > 0
 
     clouds = []
     for name, points in (("reference.ply", reference), ("scan.ply", scan)):

@@ -1,20 +1,29 @@
-"""Scans: metadata and the original file."""
+"""Scans: metadata, the original file and trajectories (of a stored scan, or held with an
+unfinished resumable upload)."""
 
 from __future__ import annotations
 
+import functools
 from typing import Annotated, Any
 
+import anyio
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import FileResponse
 
 from app.api.deps import PrincipalDep, SessionDep, SettingsDep, WriterDep
-from app.api.uploads import MAX_EXTRA_BYTES
+from app.api.uploads import trajectory_parts
 from app.services import scans as scans_service
 from app.services import trajectories as trajectories_service
-from app.services.errors import PayloadTooLargeError
+from app.services import upload_trajectories
 from app.services.schemas import ScanRead
 
 router = APIRouter(tags=["scans"])
+
+TrajectoryName = Annotated[str | None, Query(max_length=1000, description="Its name.")]
+TrajectoryRate = Annotated[float | None, Query(gt=0, description="KITTI poses a second.")]
+TrajectoryFormat = Annotated[
+    str | None, Query(max_length=16, description="tum, kitti or csv (default: detected).")
+]
 
 
 @router.get("/scans/{scan_id}", response_model=ScanRead)
@@ -39,37 +48,45 @@ async def put_scan_trajectory(
     session: SessionDep,
     settings: SettingsDep,
     principal: WriterDep,
-    filename: Annotated[str | None, Query(max_length=1000, description="Its name.")] = None,
-    rate: Annotated[float | None, Query(gt=0, description="KITTI poses a second.")] = None,
-    trajectory_format: Annotated[
-        str | None, Query(max_length=16, description="tum, kitti or csv (default: detected).")
-    ] = None,
+    filename: TrajectoryName = None,
+    rate: TrajectoryRate = None,
+    trajectory_format: TrajectoryFormat = None,
 ) -> dict[str, Any]:
     """Add or replace a scan's trajectory: raw body, or parts trajectory/trajectory_times."""
-    if request.headers.get("content-type", "").startswith("multipart/form-data"):
-        async with request.form(max_part_size=MAX_EXTRA_BYTES) as form:
-            parts = {
-                name: await value.read() if hasattr(value, "read") else str(value).encode()
-                for name, value in form.items()
-                if name in ("trajectory", "trajectory_times")
-            }
-            names = {
-                name: value.filename
-                for name, value in form.items()
-                if hasattr(value, "filename") and value.filename
-            }
-    else:
-        body = await request.body()
-        if len(body) > MAX_EXTRA_BYTES:
-            raise PayloadTooLargeError(f"the trajectory is larger than {MAX_EXTRA_BYTES} bytes")
-        parts, names = {"trajectory": body}, {"trajectory": filename} if filename else {}
+    parts, sent_name = await trajectory_parts(request, filename)
     return await trajectories_service.attach_trajectory(
         session,
         settings,
         principal,
         scan_id,
         parts=parts,
-        filename=names.get("trajectory") or filename,
+        filename=sent_name,
         rate=rate,
         trajectory_format=trajectory_format,
+    )
+
+
+@router.put("/uploads/{upload_id}/trajectory")
+async def put_upload_trajectory(
+    upload_id: str,
+    request: Request,
+    session: SessionDep,
+    principal: WriterDep,
+    filename: TrajectoryName = None,
+    rate: TrajectoryRate = None,
+    trajectory_format: TrajectoryFormat = None,
+) -> dict[str, Any]:
+    """Hold a trajectory with an unfinished resumable upload; its scan is stored with it."""
+    parts, sent_name = await trajectory_parts(request, filename)
+    return await anyio.to_thread.run_sync(
+        functools.partial(
+            upload_trajectories.hold_trajectory,
+            session,
+            principal,
+            upload_id,
+            parts=parts,
+            filename=sent_name,
+            rate=rate,
+            trajectory_format=trajectory_format,
+        )
     )

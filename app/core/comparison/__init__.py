@@ -18,44 +18,49 @@ align a subsample, localise a crop of both clouds, or decide on scores computed 
 :mod:`~app.core.comparison.reports` the typed reports (:class:`RegistrationReport`,
 :class:`SideVisibility`) with the JSON each is stored as; :mod:`~app.core.comparison.protocol`
 the :class:`Comparison` protocol that the service and the reports read a result through.
-This module lists the package's public names.
+This module lists the package's public names (imported on first use).
 """
 
-from app.core.comparison.align import Alignment, align_scan
-from app.core.comparison.assemble import assemble_result
-from app.core.comparison.decide import Decision, Detected, decide_change, detect_change
-from app.core.comparison.load import LoadedPair, load_pair
-from app.core.comparison.localise import localise_pair
-from app.core.comparison.memory import ReferenceMemory
-from app.core.comparison.origins import (
-    CloudOrigins,
-    SensorOrigins,
-    resolve_reference_origins,
-    resolve_scan_origins,
-)
-from app.core.comparison.protocol import Comparison
-from app.core.comparison.reports import RegistrationReport, SideVisibility
-from app.core.comparison.result import ComparisonResult, RegionSummary
+from importlib import import_module
+from typing import Any
 
-__all__ = [
-    "Alignment",
-    "CloudOrigins",
-    "Comparison",
-    "ComparisonResult",
-    "Decision",
-    "Detected",
-    "LoadedPair",
-    "ReferenceMemory",
-    "RegionSummary",
-    "RegistrationReport",
-    "SensorOrigins",
-    "SideVisibility",
-    "align_scan",
-    "assemble_result",
-    "decide_change",
-    "detect_change",
-    "load_pair",
-    "localise_pair",
-    "resolve_reference_origins",
-    "resolve_scan_origins",
-]
+_HOMES = {
+    "Alignment": "align",
+    "align_scan": "align",
+    "assemble_result": "assemble",
+    "Detected": "decide",
+    "decide_change": "decide",
+    "detect_change": "decide",
+    "LoadedPair": "load",
+    "load_pair": "load",
+    "PairOptions": "load",
+    "localise_pair": "localise",
+    "ReferenceMemory": "memory",
+    "CloudOrigins": "origins",
+    "SensorOrigins": "origins",
+    "resolve_reference_origins": "origins",
+    "resolve_scan_origins": "origins",
+    "Comparison": "protocol",
+    "CalibrationReport": "reports",
+    "Decision": "reports",
+    "DecisionTest": "reports",
+    "LidarSampling": "reports",
+    "RegistrationReport": "reports",
+    "SensorOriginEntry": "reports",
+    "SideVisibility": "reports",
+    "SiteProvenance": "reports",
+    "ComparisonResult": "result",
+    "RegionSummary": "result",
+}
+"""Where each public name lives: imported on first use, so that reading a result's types
+(:mod:`~app.core.comparison.result`, :mod:`~app.core.comparison.reports`) does not load the
+stages' libraries (registration, the localiser)."""
+
+__all__ = sorted(_HOMES)
+
+
+def __getattr__(name: str) -> Any:
+    """The public name ``name`` from its module (see :data:`_HOMES`)."""
+    if name not in _HOMES:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(import_module(f"{__name__}.{_HOMES[name]}"), name)

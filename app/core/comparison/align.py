@@ -39,7 +39,10 @@ class Alignment:
 
 
 def align_scan(
-    loaded: LoadedPair, reference_memory: ReferenceAlignmentCache | None = None
+    loaded: LoadedPair,
+    reference_memory: ReferenceAlignmentCache | None = None,
+    *,
+    sample_points: int | None = None,
 ) -> Alignment:
     """Register ``loaded``'s scan onto its reference (when ``settings.align``).
 
@@ -49,6 +52,9 @@ def align_scan(
         With its scan points (not released).
     reference_memory : ReferenceAlignmentCache, optional
         The reference's alignment arrays kept between comparisons.
+    sample_points : int, optional
+        Register on at most about this many points of each cloud, evenly strided (GICP thins
+        both clouds on a voxel grid anyway), and report it; None: on every point.
 
     Returns
     -------
@@ -62,17 +68,20 @@ def align_scan(
     scan_points = loaded.scan_points
     if scan_points is None:
         raise ValueError("the scan's local points were released before its alignment")
+    reference_sample = strided(loaded.reference_points, sample_points)
+    scan_sample = strided(scan_points, sample_points)
     if loaded.settings.align:
         registration = register_scan(
-            loaded.reference_points,
-            scan_points,
+            reference_sample,
+            scan_sample,
             reference_memory=reference_memory,
             **loaded.settings.registration,
         )
     else:
         registration = identity_registration(
-            loaded.reference_points, scan_points, reference_memory=reference_memory
+            reference_sample, scan_sample, reference_memory=reference_memory
         )
+    del reference_sample, scan_sample
     aligned_scan = apply_transform(scan_points, registration.transform)
     centre = scan_points.mean(axis=0)  # how far the alignment moved the scan (metres)
     moved = apply_transform(centre[None], registration.transform)[0] - centre
@@ -81,8 +90,16 @@ def align_scan(
         file_frame_transform(registration.transform, loaded.local_origin),
         enabled=loaded.settings.align,
         translation_m=float(np.linalg.norm(moved)),
+        sample_points=None
+        if sample_points is None
+        else min(len(loaded.reference_points), sample_points),
     )
     return Alignment(registration, aligned_scan, report)
+
+
+def strided(points: NDArray[np.float64], most: int | None) -> NDArray[np.float64]:
+    """Every k-th row of ``points``, shape (n, 3), so that about ``most`` remain (None: all)."""
+    return points if most is None else points[:: max(1, len(points) // most)]
 
 
 def file_frame_transform(

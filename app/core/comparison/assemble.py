@@ -3,16 +3,22 @@ coordinates and the source files' row order."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from app.core.comparison.align import Alignment
-from app.core.comparison.decide import Decision, Detected
+from app.core.comparison.decide import Detected
 from app.core.comparison.load import LoadedPair
 from app.core.comparison.origins import SensorOrigins
-from app.core.comparison.reports import SideVisibility
+from app.core.comparison.reports import (
+    CalibrationReport,
+    Decision,
+    SensorOriginEntry,
+    SideVisibility,
+)
 from app.core.comparison.result import ComparisonResult, region_summary
 from app.core.localise import LABEL_UNOBSERVED, Localisation
 from app.core.registration import apply_transform
@@ -26,8 +32,12 @@ def assemble_result(
     detected: Detected,
     decision: Decision,
     timings: dict[str, float],
+    extra_params: Mapping[str, Any] | None = None,
 ) -> ComparisonResult:
     """The result of one comparison from its stages' outputs.
+
+    ``extra_params`` are reported among the parameters in effect, after the decision rule (a
+    tiled comparison's memory budget).
 
     Returns
     -------
@@ -36,21 +46,23 @@ def assemble_result(
     """
     reference, scan, local_origin = loaded.reference, loaded.scan, loaded.local_origin
     visibility = visibility_report(origins, localisation)
-    calibration = dict(detected.detection.calibration)
-    calibration["compared_points"] = detected.compared_points
-    calibration["site"] = decision.site
-    calibration["visibility"] = visibility  # stored with a job's result (the API shows it)
-    calibration["decision"] = decision.report()
+    calibration = CalibrationReport(
+        detector=dict(detected.detection.calibration),
+        compared_points=detected.compared_points,
+        site=decision.site,
+        visibility=visibility,  # stored with a job's result (the API shows it)
+        decision=decision,
+    )
     transform = alignment.registration.transform
     return ComparisonResult(
         method=loaded.method,
         variant=loaded.variant,
-        params=effective_params(loaded),
+        params=effective_params(loaded, extra_params),
         score=float(detected.detection.score),
         threshold=float(detected.detection.threshold),
         changed=decision.changed,
         calibration=calibration,
-        registration=alignment.report.to_json_dict(),
+        registration=alignment.report,
         regions=[region_summary(region, local_origin) for region in localisation.regions],
         uncertain_regions=[
             region_summary(region, local_origin) for region in localisation.uncertain_regions
@@ -58,23 +70,31 @@ def assemble_result(
         n_reference=len(reference),
         n_scan=len(scan),
         reference_label=reference.to_source_order(
-            localisation.reference_label.astype(np.int8), LABEL_UNOBSERVED
+            localisation.reference_label.astype(np.int8, copy=False), LABEL_UNOBSERVED
         ),
-        scan_label=scan.to_source_order(localisation.scan_label.astype(np.int8), LABEL_UNOBSERVED),
+        scan_label=scan.to_source_order(
+            localisation.scan_label.astype(np.int8, copy=False), LABEL_UNOBSERVED
+        ),
         reference_distance=reference.to_source_order(
-            localisation.reference_distance.astype(np.float32), np.nan
+            localisation.reference_distance.astype(np.float32, copy=False), np.nan
         ),
-        scan_distance=scan.to_source_order(localisation.scan_distance.astype(np.float32), np.nan),
+        scan_distance=scan.to_source_order(
+            localisation.scan_distance.astype(np.float32, copy=False), np.nan
+        ),
         reference_region=reference.to_source_order(
-            localisation.reference_region.astype(np.int32), -1
+            localisation.reference_region.astype(np.int32, copy=False), -1
         ),
-        scan_region=scan.to_source_order(localisation.scan_region.astype(np.int32), -1),
+        scan_region=scan.to_source_order(localisation.scan_region.astype(np.int32, copy=False), -1),
         localisation=dict(localisation.parameters),
         timings=timings,
         sensor_origins={
-            "reference": origins.reference.resolved.report(lambda origin: origin + local_origin),
-            "scan": origins.scan.resolved.report(
-                lambda origin: to_scan_file(origin, transform, local_origin)
+            "reference": _entries(
+                origins.reference.resolved.report(lambda origin: origin + local_origin)
+            ),
+            "scan": _entries(
+                origins.scan.resolved.report(
+                    lambda origin: to_scan_file(origin, transform, local_origin)
+                )
             ),
         },
         warnings=[*origins.reference.resolved.warnings, *origins.scan.resolved.warnings],
@@ -84,19 +104,25 @@ def assemble_result(
 
 def visibility_report(
     origins: SensorOrigins, localisation: Localisation
-) -> dict[str, dict[str, Any]]:
-    """What was found out about each cloud's sensors, and the visibility test it got
-    (:class:`SideVisibility` as stored)."""
+) -> dict[str, SideVisibility]:
+    """What was found out about each cloud's sensors, and the visibility test it got."""
     return {
         side: SideVisibility.of(
             cloud.resolved.visibility_report(),
             localisation.parameters.get(f"{side}_visibility"),
-        ).to_json_dict()
+        )
         for side, cloud in (("reference", origins.reference), ("scan", origins.scan))
     }
 
 
-def effective_params(loaded: LoadedPair) -> dict[str, Any]:
+def _entries(report: list[dict[str, Any]]) -> list[SensorOriginEntry]:
+    """:meth:`~app.core.origins.resolve.ResolvedOrigin.report`'s entries, typed."""
+    return [SensorOriginEntry.of(entry) for entry in report]
+
+
+def effective_params(
+    loaded: LoadedPair, extra_params: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
     """Every parameter in effect: passing them back to ``compare`` replays the result."""
     settings = loaded.settings
     params: dict[str, Any] = {
@@ -105,6 +131,7 @@ def effective_params(loaded: LoadedPair) -> dict[str, Any]:
         "registration": settings.registration,
         "localisation": settings.localisation,
         "decision": settings.decision,
+        **(extra_params or {}),
     }
     for key, explicit in (
         ("reference_origin", settings.reference_origin),

@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 
 from app.core.cloud import MIN_POINTS
+from app.core.comparison.reports import Decision, DecisionTest, SiteProvenance
 from app.core.detectors.base import ChangeDetector, Detection
 from app.core.localise import LABEL_UNOBSERVED, ChangedRegion, Localisation
 from app.core.site_calibration import DecisionInputs, decide, largest_extent
@@ -38,45 +39,14 @@ class Detected:
     compared_points: str
 
 
-@dataclass(frozen=True)
-class Decision:
-    """The comparison's verdict and the tests that made it.
-
-    Attributes
-    ----------
-    changed : bool
-    rule : {"regions", "detector", "either"}
-    detector_changed : bool
-        The detector's own verdict (score above its threshold).
-    n_regions : int
-    tests : list of dict
-        The decisive tests (:func:`app.core.site_calibration.decide`).
-    site : dict
-        The site calibration's provenance (``applied``, and ``reason`` when not).
-    """
-
-    changed: bool
-    rule: str
-    detector_changed: bool
-    n_regions: int
-    tests: list[dict[str, Any]]
-    site: dict[str, Any]
-
-    def report(self) -> dict[str, Any]:
-        """``calibration["decision"]``: rule, the detector's verdict, regions and tests."""
-        return {
-            "rule": self.rule,
-            "detector_changed": self.detector_changed,
-            "n_regions": self.n_regions,
-            "tests": self.tests,
-        }
-
-
 def detect_change(
     detector: ChangeDetector,
     reference_points: NDArray[np.float64],
     aligned_scan: NDArray[np.float64],
     localisation: Localisation,
+    *,
+    sample_points: int | None = None,
+    random_state: int = 0,
 ) -> Detected:
     """The detector's score on the mutually observed points (one BLAS thread).
 
@@ -87,6 +57,12 @@ def detect_change(
     aligned_scan : ndarray, shape (m, 3)
     localisation : Localisation
         Of these points: its labels say which are observed.
+    sample_points : int, optional
+        Score at most this many points of each cloud, a uniform random subsample (seeded by
+        ``random_state``) of those it would score (a tiled comparison's bound on memory); the
+        detectors thin their input on a voxel grid to a few thousand working points anyway.
+        None: every one.
+    random_state : int
 
     Returns
     -------
@@ -98,6 +74,16 @@ def detect_change(
         np.count_nonzero(reference_observed) >= MIN_POINTS
         and np.count_nonzero(scan_observed) >= MIN_POINTS
     )
+    compared = "mutually observed" if use_observed else "all"
+    if sample_points is not None:
+        return _detect_sample(
+            detector,
+            (reference_points, reference_observed if use_observed else None),
+            (aligned_scan, scan_observed if use_observed else None),
+            sample_points,
+            random_state,
+            compared,
+        )
     with threadpool_limits(limits=1, user_api="blas"):
         if use_observed:
             detection = detector.detect(
@@ -105,7 +91,33 @@ def detect_change(
             )
         else:
             detection = detector.detect(reference_points, aligned_scan)
-    return Detected(detection, "mutually observed" if use_observed else "all")
+    return Detected(detection, compared)
+
+
+def _detect_sample(
+    detector: ChangeDetector,
+    reference: tuple[NDArray[np.float64], NDArray[np.bool_] | None],
+    scan: tuple[NDArray[np.float64], NDArray[np.bool_] | None],
+    sample_points: int,
+    random_state: int,
+    compared: str,
+) -> Detected:
+    """:func:`detect_change` on at most ``sample_points`` of each cloud's chosen points (each
+    cloud: its points, shape (n, 3), and which to score, None: all)."""
+    rng = np.random.default_rng(random_state)
+    sampled = False
+    chosen = []
+    for points, scored in (reference, scan):
+        rows = np.arange(len(points)) if scored is None else np.flatnonzero(scored)
+        if len(rows) > sample_points:
+            rows = np.sort(rng.choice(rows, sample_points, replace=False))
+            sampled = True
+        chosen.append(points[rows])
+    with threadpool_limits(limits=1, user_api="blas"):
+        detection = detector.detect(chosen[0], chosen[1])
+    if sampled:
+        compared += f" (a random {sample_points:,} of each cloud at most)"
+    return Detected(detection, compared)
 
 
 def decide_change(
@@ -150,11 +162,16 @@ def decide_change(
         ),
         site_calibration,
     )
+    applied = bool(site["applied"])
     return Decision(
         changed=changed,
         rule=rule,
         detector_changed=bool(detection.changed),
         n_regions=len(regions),
-        tests=tests,
-        site=site,
+        tests=tuple(DecisionTest.of(test) for test in tests),
+        site=SiteProvenance(
+            applied=applied,
+            reason=None if applied else site["reason"],
+            calibration=dict(site_calibration or {}),
+        ),
     )

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 from numpy.typing import NDArray
@@ -59,6 +59,18 @@ class LoadedPair:
     def release_scan_points(self) -> None:
         """Drop the scan's local copy (the aligned scan replaces it)."""
         self.scan_points = None
+
+
+class PairOptions(TypedDict, total=False):
+    """The keyword arguments of :func:`load_pair`, which :func:`app.core.pipeline.compare` and
+    :func:`app.core.tiling.compare.compare_tiled` pass on (documented there)."""
+
+    method: str
+    variant: str
+    align: bool
+    random_state: int
+    params: Mapping[str, Any] | None
+    threads: int | None
 
 
 def load_pair(

@@ -15,6 +15,13 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from app.core.comparison.reports import (
+    CalibrationReport,
+    RegistrationReport,
+    SensorOriginEntry,
+    SideVisibility,
+)
+
 
 class Region(Protocol):
     """A changed (or uncertain) region in file coordinates."""
@@ -79,11 +86,11 @@ class Comparison(Protocol):
         """Every parameter in effect."""
 
     @property
-    def calibration(self) -> Mapping[str, Any]:
+    def calibration(self) -> CalibrationReport:
         """The threshold's calibration, the decision's tests and the visibility report."""
 
     @property
-    def registration(self) -> Mapping[str, Any]:
+    def registration(self) -> RegistrationReport:
         """The alignment's report (transform in file coordinates, fitness, ...)."""
 
     @property
@@ -99,11 +106,11 @@ class Comparison(Protocol):
         """The localiser's parameters and estimates."""
 
     @property
-    def sensor_origins(self) -> Mapping[str, list[dict[str, Any]]] | None:
-        """Per side, the origins used (None: not reported)."""
+    def sensor_origins(self) -> Mapping[str, list[SensorOriginEntry]]:
+        """Per side, the origins used."""
 
     @property
-    def visibility(self) -> Mapping[str, dict[str, Any]]:
+    def visibility(self) -> Mapping[str, SideVisibility]:
         """Per side, where its origins came from and the visibility test it got."""
 
     @property
@@ -145,6 +152,12 @@ class Comparison(Protocol):
     @property
     def explanation(self) -> dict[str, Any]:
         """:func:`app.core.explanation.explain_comparison` of this result, computed once."""
+
+    def sensor_origins_json(self) -> dict[str, list[dict[str, Any]]]:
+        """``sensor_origins`` as stored."""
+
+    def visibility_json(self) -> dict[str, dict[str, Any]]:
+        """``visibility`` as stored."""
 
     def write_labels_npz(self, path: str | Path) -> None:
         """Write the labels file."""

@@ -1,16 +1,19 @@
-"""The comparison's reports as frozen dataclasses, each with the JSON object it is stored as.
+"""The comparison's reports as frozen dataclasses, each with the JSON object it is stored as
+(``to_json_dict()``).
 
-:class:`RegistrationReport` (the align stage's), :class:`SideVisibility` (what was found out
-about one cloud's sensors and the visibility test it got); the decision is
-:class:`~app.core.comparison.decide.Decision` and a quality warning
-:class:`~app.core.quality.QualityWarning`.  The API mirrors them field by field
-(``app.services.result_schemas``).
+:class:`RegistrationReport` (the align stage's); :class:`Decision` with its
+:class:`DecisionTest` list and :class:`SiteProvenance` (the decide stage's);
+:class:`SideVisibility` with its :class:`LidarSampling` (what was found out about one cloud's
+sensors and the visibility test it got); :class:`SensorOriginEntry` (one origin used);
+:class:`CalibrationReport` (the threshold's calibration with the decision and visibility); a
+quality warning is :class:`~app.core.quality.QualityWarning`.  The API mirrors them field by
+field (``app.services.result_schemas``).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -42,6 +45,8 @@ class RegistrationReport:
         False: compared without aligning (the fit is measured all the same).
     translation_m : float
         How far the alignment moved the scan's centre (metres).
+    sample_points : int or None
+        The points of each cloud it was estimated on, when a sample (a tiled comparison).
     """
 
     transform: list[list[float]]
@@ -55,6 +60,7 @@ class RegistrationReport:
     rotation_degrees: float
     enabled: bool
     translation_m: float
+    sample_points: int | None = None
 
     @classmethod
     def of(
@@ -64,11 +70,14 @@ class RegistrationReport:
         *,
         enabled: bool,
         translation_m: float,
+        sample_points: int | None = None,
     ) -> RegistrationReport:
         """The report of ``registration`` with its transform in file coordinates (4, 4)."""
         summary = registration.to_json_dict()
         summary["transform"] = file_transform.tolist()
-        return cls(**summary, enabled=enabled, translation_m=translation_m)
+        return cls(
+            **summary, enabled=enabled, translation_m=translation_m, sample_points=sample_points
+        )
 
     def to_json_dict(self) -> dict[str, Any]:
         """The stored object (a job's ``registration``)."""
@@ -83,7 +92,35 @@ class RegistrationReport:
             "voxel_size": self.voxel_size,
             "rotation_degrees": self.rotation_degrees,
             "enabled": self.enabled,
+            **({} if self.sample_points is None else {"sample_points": self.sample_points}),
             "translation_m": self.translation_m,
+        }
+
+
+@dataclass(frozen=True)
+class LidarSampling:
+    """Whether a cloud's sampling was measured to be a lidar's, with its figures
+    (:func:`app.core.origins.sampling.lidar_sampling`).
+
+    Attributes
+    ----------
+    lidar_like : bool
+    lidar_twin_share : float or None
+        Share of points with a twin at the lidar's angular step.
+    lidar_spacing_spread : float or None
+        Spread of the spacing along the rings.
+    """
+
+    lidar_like: bool
+    lidar_twin_share: float | None
+    lidar_spacing_spread: float | None
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """The three figures, as stored in ``visibility[side]``."""
+        return {
+            "lidar_like": self.lidar_like,
+            "lidar_twin_share": self.lidar_twin_share,
+            "lidar_spacing_spread": self.lidar_spacing_spread,
         }
 
 
@@ -100,31 +137,34 @@ class SideVisibility:
     test : str or None
         The visibility test of the *other* cloud's view of its candidates (ray, trajectory,
         maps, surfaces, coverage, gaps).
-    sampling : dict or None
-        When the sampling was measured: ``lidar_like``, ``lidar_twin_share``,
-        ``lidar_spacing_spread``.
+    sampling : LidarSampling or None
+        When the sampling was measured.
     stations_recovered : int or None
         Stations found when they were searched.
-    trajectory : dict or None
-        A trajectory's summary (poses, groups, assignment...).
+    trajectory : mapping or None
+        A trajectory's summary (poses, groups, assignment...: the trajectory's own report,
+        ``app.core.origins.trajectory_origin``).
     """
 
     origins: str
     stations_unknown: bool
     test: str | None
-    sampling: dict[str, Any] | None = None
+    sampling: LidarSampling | None = None
     stations_recovered: int | None = None
-    trajectory: dict[str, Any] | None = None
+    trajectory: Mapping[str, Any] | None = None
 
     @classmethod
     def of(cls, report: Mapping[str, Any], test: str | None) -> SideVisibility:
         """From an origin's ``visibility_report()`` and the test the localiser chose."""
-        sampling_keys = ("lidar_like", "lidar_twin_share", "lidar_spacing_spread")
         return cls(
             origins=report["origins"],
             stations_unknown=report["stations_unknown"],
             test=test,
-            sampling={key: report[key] for key in sampling_keys if key in report}
+            sampling=LidarSampling(
+                report["lidar_like"],
+                report.get("lidar_twin_share"),
+                report.get("lidar_spacing_spread"),
+            )
             if "lidar_like" in report
             else None,
             stations_recovered=report.get("stations_recovered"),
@@ -133,11 +173,201 @@ class SideVisibility:
 
     def to_json_dict(self) -> dict[str, Any]:
         """The stored object (``visibility[side]``, also in ``calibration["visibility"]``)."""
-        report: dict[str, Any] = {"origins": self.origins, **(self.sampling or {})}
+        report: dict[str, Any] = {"origins": self.origins}
+        if self.sampling is not None:
+            report.update(self.sampling.to_json_dict())
         if self.stations_recovered is not None:
             report["stations_recovered"] = self.stations_recovered
         report["stations_unknown"] = self.stations_unknown
         if self.trajectory is not None:
-            report["trajectory"] = self.trajectory
+            report["trajectory"] = dict(self.trajectory)
         report["test"] = self.test
+        return report
+
+
+@dataclass(frozen=True)
+class SensorOriginEntry:
+    """One sensor origin a comparison used, in that cloud's file frame.
+
+    Attributes
+    ----------
+    source : str
+        given, file, estimated, recovered or trajectory.
+    origin : list of float or None
+        [x, y, z] (None for a trajectory).
+    confidence : float or None
+        0-1 (None for a trajectory).
+    trajectory : mapping or None
+        A trajectory's report instead (``source``, poses, time span, groups, path...).
+    """
+
+    source: str
+    origin: list[float] | None = None
+    confidence: float | None = None
+    trajectory: Mapping[str, Any] | None = None
+
+    @classmethod
+    def of(cls, entry: Mapping[str, Any]) -> SensorOriginEntry:
+        """From one entry of :meth:`app.core.origins.resolve.ResolvedOrigin.report`."""
+        if "origin" not in entry:  # a trajectory's report
+            return cls(source=str(entry["source"]), trajectory=dict(entry))
+        return cls(source=entry["source"], origin=entry["origin"], confidence=entry["confidence"])
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """The stored object (one entry of ``sensor_origins[side]``)."""
+        if self.trajectory is not None:
+            return {**self.trajectory, "source": self.source}
+        return {"origin": self.origin, "source": self.source, "confidence": self.confidence}
+
+
+@dataclass(frozen=True)
+class DecisionTest:
+    """One test of the decision rule (:func:`app.core.site_calibration.decide`).
+
+    Attributes
+    ----------
+    statistic : {"largest_region_extent_m", "score"}
+    value, threshold : float
+    comparison : str
+        ``">"``: the test fires when the value is above the threshold.
+    source : {"default", "site"}
+        Where the threshold came from (site: learned from the site's reviewed jobs).
+    fires : bool
+    n_regions, min_region_points : int or None
+        The region test's counts (None for the score test).
+    """
+
+    statistic: str
+    value: float
+    comparison: str
+    threshold: float
+    source: str
+    fires: bool
+    n_regions: int | None = None
+    min_region_points: int | None = None
+
+    @classmethod
+    def of(cls, test: Mapping[str, Any]) -> DecisionTest:
+        """From one test as :func:`app.core.site_calibration.decide` returns it."""
+        return cls(
+            statistic=test["statistic"],
+            value=test["value"],
+            comparison=test["comparison"],
+            threshold=test["threshold"],
+            source=test["source"],
+            fires=test["fires"],
+            n_regions=test.get("n_regions"),
+            min_region_points=test.get("min_region_points"),
+        )
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """The stored object (one of ``calibration["decision"]["tests"]``)."""
+        test: dict[str, Any] = {
+            "statistic": self.statistic,
+            "value": self.value,
+            "comparison": self.comparison,
+            "threshold": self.threshold,
+            "source": self.source,
+        }
+        if self.n_regions is not None:
+            test["n_regions"] = self.n_regions
+        if self.min_region_points is not None:
+            test["min_region_points"] = self.min_region_points
+        test["fires"] = self.fires
+        return test
+
+
+@dataclass(frozen=True)
+class SiteProvenance:
+    """Whether a site's learned thresholds applied to a comparison.
+
+    Attributes
+    ----------
+    applied : bool
+    reason : str or None
+        Why not, when not applied.
+    calibration : mapping
+        The site's calibration as given (:func:`app.core.site_calibration.learn_site_calibration`:
+        status, method, variant, thresholds...; empty without one).
+    """
+
+    applied: bool
+    reason: str | None = None
+    calibration: Mapping[str, Any] = field(default_factory=dict)
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """The stored object (``calibration["site"]``): the site's calibration with
+        ``applied`` (and ``reason``) set."""
+        provenance = dict(self.calibration)
+        provenance["applied"] = self.applied
+        if self.reason is not None:
+            provenance["reason"] = self.reason
+        return provenance
+
+
+@dataclass(frozen=True)
+class Decision:
+    """The comparison's verdict and the tests that made it.
+
+    Attributes
+    ----------
+    changed : bool
+    rule : {"regions", "detector", "either"}
+    detector_changed : bool
+        The detector's own verdict (score above its threshold).
+    n_regions : int
+    tests : tuple of DecisionTest
+        The decisive tests (:func:`app.core.site_calibration.decide`).
+    site : SiteProvenance
+    """
+
+    changed: bool
+    rule: str
+    detector_changed: bool
+    n_regions: int
+    tests: tuple[DecisionTest, ...]
+    site: SiteProvenance
+
+    def report(self) -> dict[str, Any]:
+        """``calibration["decision"]``: rule, the detector's verdict, regions and tests."""
+        return {
+            "rule": self.rule,
+            "detector_changed": self.detector_changed,
+            "n_regions": self.n_regions,
+            "tests": [test.to_json_dict() for test in self.tests],
+        }
+
+
+@dataclass(frozen=True)
+class CalibrationReport:
+    """How the threshold was calibrated, the decision and what was found out about each
+    cloud's sensors (a result's ``calibration``).
+
+    Attributes
+    ----------
+    detector : mapping
+        The detector's own calibration figures (:attr:`app.core.detectors.base.Detection.
+        calibration`: resamples, false alarm rate, working points...; they vary by detector).
+    compared_points : str
+        ``"mutually observed"`` or ``"all"`` (with the sample size when a sample).
+    site : SiteProvenance
+    visibility : mapping of str to SideVisibility
+        Per side (reference, scan).
+    decision : Decision
+    """
+
+    detector: Mapping[str, Any]
+    compared_points: str
+    site: SiteProvenance
+    visibility: Mapping[str, SideVisibility]
+    decision: Decision
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """The stored object: the detector's figures, then ``compared_points``, ``site``,
+        ``visibility`` and ``decision``."""
+        report = dict(self.detector)
+        report["compared_points"] = self.compared_points
+        report["site"] = self.site.to_json_dict()
+        report["visibility"] = {side: seen.to_json_dict() for side, seen in self.visibility.items()}
+        report["decision"] = self.decision.report()
         return report

@@ -11,6 +11,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from app.core.comparison.reports import (
+    CalibrationReport,
+    RegistrationReport,
+    SensorOriginEntry,
+    SideVisibility,
+)
 from app.core.explanation import explain_comparison
 from app.core.jsonable import json_safe
 from app.core.localise import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
@@ -85,8 +91,8 @@ class ComparisonResult:
     score: float
     threshold: float
     changed: bool
-    calibration: dict[str, Any]
-    registration: dict[str, Any]
+    calibration: CalibrationReport
+    registration: RegistrationReport
     regions: list[RegionSummary]
     n_reference: int
     n_scan: int
@@ -98,9 +104,9 @@ class ComparisonResult:
     scan_region: NDArray[np.int32]
     localisation: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
-    sensor_origins: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+    sensor_origins: dict[str, list[SensorOriginEntry]] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
-    visibility: dict[str, dict[str, Any]] = field(default_factory=dict)
+    visibility: dict[str, SideVisibility] = field(default_factory=dict)
     uncertain_regions: list[RegionSummary] = field(default_factory=list)
 
     def label_counts(self) -> dict[str, dict[str, int]]:
@@ -125,8 +131,8 @@ class ComparisonResult:
                 "score": self.score,
                 "threshold": self.threshold,
                 "changed": self.changed,
-                "calibration": self.calibration,
-                "registration": self.registration,
+                "calibration": self.calibration.to_json_dict(),
+                "registration": self.registration.to_json_dict(),
                 "regions": [region.to_json_dict() for region in self.regions],
                 "n_regions": len(self.regions),
                 "uncertain_regions": [region.to_json_dict() for region in self.uncertain_regions],
@@ -135,13 +141,24 @@ class ComparisonResult:
                 "label_counts": self.label_counts(),
                 "localisation": self.localisation,
                 "timings": self.timings,
-                "sensor_origins": self.sensor_origins,
+                "sensor_origins": self.sensor_origins_json(),
                 "warnings": self.warnings,
-                "visibility": self.visibility,
+                "visibility": self.visibility_json(),
                 "quality_warnings": self.quality_warnings,  # structured, with the above
                 "explanation": self.explanation,
             }
         )
+
+    def sensor_origins_json(self) -> dict[str, list[dict[str, Any]]]:
+        """``sensor_origins`` as stored: per side, its entries' JSON objects."""
+        return {
+            side: [entry.to_json_dict() for entry in entries]
+            for side, entries in self.sensor_origins.items()
+        }
+
+    def visibility_json(self) -> dict[str, dict[str, Any]]:
+        """``visibility`` as stored: per side, its JSON object."""
+        return {side: seen.to_json_dict() for side, seen in self.visibility.items()}
 
     @cached_property
     def quality_warnings(self) -> list[dict[str, Any]]:

@@ -39,41 +39,30 @@ to a sensor's ring pattern, which voxel filters and SLAM fusion erase.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pykdtree.kdtree import KDTree
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from app.core.localise.distance import Side
-from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
 from app.core.localise.interface import VisibilityContext, VisibilityOutcome
-from app.core.localise.map_planes import SECTORS, coplanar_sectors, extends, share_on_planes
-from app.core.localise.origin_free import (
-    BEHIND_MAX_RADIUS,
-    BEHIND_MIN_RADIUS,
-    UNMATCHED_FACTOR,
-    behind_evidence,
+from app.core.localise.map_parts import (
+    PartFigures,
+    hidden_surface,
+    near_candidates,
+    part_figures,
+    surface_behind,
+    surface_parts,
+    unmatched_points,
 )
+from app.core.localise.map_planes import coplanar_sectors
 from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED, Candidates
-from app.core.localise.regions import (
-    CLUSTER_NEIGHBOURS,
-    EVIDENCE_NO_COVERAGE,
-    EVIDENCE_SEEN_EMPTY,
-    cluster_labels,
-)
-from app.core.localise.settings import GATHER_CHUNK
-from app.core.localise.surface import LocalGeometry
+from app.core.localise.regions import EVIDENCE_NO_COVERAGE, EVIDENCE_SEEN_EMPTY
 
 __all__ = ["MapEvidence", "MapTest", "map_test"]
 
 
-BORDER_NEIGHBOURS = 16
-"""Own neighbours of a candidate looked at for its cluster's border."""
 PLAIN_CONTINUATION_SHARE = 0.6
 """A cluster is a coverage difference when this share of its border points continues into a
 surface the other epoch has (and no see-through evidence overrides it).  A removed object's
@@ -83,45 +72,21 @@ CONTINUATION_SHARE = 0.3
 continue: from this share on, it is a coverage difference when most of its points also lie on
 planes the other epoch has nearby (:data:`COPLANAR_SHARE`)."""
 COPLANAR_SHARE = 0.75
-SURROUND_NEIGHBOURS = 32
-"""The other epoch's points looked at around a border point's foot on its adjoining surface."""
-SURROUND_REACH = 0.5
-"""Metres: farther points of the adjoining surface say nothing about the border point."""
-ADJOINING_FACTOR = 2.0
-"""The other epoch's surface adjoins a border point within this many change thresholds."""
-SURROUND_SECTORS = 6
-"""The adjoining surface carries on past a border point when it lies in this many of
-:data:`SECTORS` directions around the point's foot."""
 SURROUND_SHARE = 0.1
 """An upright part is an unseen side when less than this share of its adjoining border points
 has the other epoch's surface carrying on past them (or surface this epoch lacks)."""
-EDGE_COSINE = math.cos(math.radians(60.0))
-"""A surface adjoins a border point at an edge when the normals' cosine is below this."""
-UPRIGHT_NORMAL_Z = 0.5
-"""A part is upright (a side) when its normals' mean vertical component is below this."""
 MIN_ADJOINING = 5
 """Fewer adjoining border points than this say nothing about a part."""
 SEE_THROUGH_SHARE = 0.6
 """A coverage-difference cluster is still a change when this share of its points has the
 other epoch's surface, missing from this epoch, on its normal line within
-:data:`SEE_THROUGH_REACH`."""
-SEE_THROUGH_REACH = 1.2
-"""Farther along the normal line, the other epoch's unmatched surface is as likely another
-coverage difference (the ceiling a path saw above a floor patch the other path saw) as what
-stood in front of or behind the cluster."""
-SPARSE_PROBE_FACTOR = 1.5
-"""The see-through probes' balls are at least this many of the other cloud's median spacings
-wide (a sparse cloud's surface is found between its samples)."""
+:data:`SEE_THROUGH_REACH`; an unseen side is one when this share has such surface that
+was hidden from this epoch (:func:`~app.core.localise.map_parts.hidden_surface`)."""
 GAP_REACH = 0.25
 GAP_SECTORS = 6
 """The other epoch's point lies in a narrow gap of this epoch's surface when this epoch has
 that surface on its plane about :data:`GAP_REACH` away in this many of :data:`SECTORS`
 directions."""
-NEAR_FACTOR = 3.0
-NEAR_MIN = 0.5
-"""A cluster is near the other epoch's coverage when its closest tenth of points lies within
-``max(NEAR_MIN, NEAR_FACTOR * change_threshold)`` metres of the other cloud."""
-NEAR_QUANTILE = 0.1
 
 
 @dataclass(frozen=True)
@@ -146,219 +111,47 @@ class MapEvidence:
     counts: dict[str, Any]
 
 
-def _border_continuation(
-    candidates: Candidates,
-    *,
-    own: Side,
-    other: Side,
-    is_candidate: NDArray[np.bool_],
-    tolerance: float,
-    change_threshold: float,
-    cluster_factor: float,
-) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-    """Which candidates lie on their cluster's border, and which of those continue into a
-    surface the other epoch has, parallel, next to them.
-
-    Returns
-    -------
-    border, continues : ndarray, shape (c,), bool
-    """
-    count = candidates.index.shape[0]
-    border = np.zeros(count, dtype=bool)
-    continues = np.zeros(count, dtype=bool)
-    k = min(BORDER_NEIGHBOURS + 1, own.points.shape[0])
-    other_normal = other.geometry.normal
-    for start in range(0, count, GATHER_CHUNK):
-        chunk = slice(start, start + GATHER_CHUNK)
-        query = candidates.points[chunk]
-        unit = candidates.normal[chunk].astype(np.float64)
-        unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-12)[:, None]
-        radius = cluster_factor * candidates.spacing[chunk]
-        distance, neighbour = own.geometry.tree.query(
-            query, k=k, distance_upper_bound=float(radius.max())
-        )
-        distance = np.asarray(distance).reshape(query.shape[0], k)
-        neighbour = np.minimum(
-            np.asarray(neighbour).reshape(query.shape[0], k), own.points.shape[0] - 1
-        )
-        outside = (distance <= radius[:, None]) & ~is_candidate[neighbour]
-        border[chunk] = outside.any(axis=1)
-        offset = own.points[neighbour] - query[:, None, :]
-        across = np.abs(np.einsum("ckd,cd->ck", offset, unit))
-        coplanar = (across <= tolerance + PLANE_SLOPE * distance) & (
-            np.abs(np.einsum("ckd,cd->ck", own.geometry.normal[neighbour], unit))
-            >= NORMAL_AGREEMENT_COSINE
-        )
-        # where the own surface carries on, the other epoch's nearest surface is parallel and
-        # on it: the same surface, seen by both epochs
-        match = own.nearest_index[neighbour]
-        parallel = (
-            np.abs(np.einsum("ckd,cd->ck", other_normal[match], unit)) >= NORMAL_AGREEMENT_COSINE
-        )
-        on_it = (
-            np.abs(np.einsum("ckd,cd->ck", other.points[match] - own.points[neighbour], unit))
-            <= change_threshold
-        )
-        continues[chunk] = (outside & coplanar & parallel & on_it).any(axis=1)
-    return border, continues
-
-
-def surface_parts(
-    points: NDArray[np.float64], normal: NDArray[np.floating], radius: NDArray[np.float64]
-) -> NDArray[np.int64]:
-    """Connected parts of candidates that lie on one surface: neighbours within a candidate's
-    ``radius`` (its :data:`~app.core.localise.regions.CLUSTER_NEIGHBOURS` nearest) are linked
-    when their normals agree (:data:`~app.core.localise.gaps.NORMAL_AGREEMENT_COSINE`).
-
-    A cluster of candidates may join a change to a coverage difference: a removed fence to
-    the rough ground strips beside it, the side of a box only one path faced to the floor
-    strip in the other path's shadow.  Each surface of it is judged on its own.
-
-    Parameters
-    ----------
-    points : ndarray, shape (c, 3)
-    normal : ndarray, shape (c, 3)
-    radius : ndarray, shape (c,)
-
-    Returns
-    -------
-    ndarray, shape (c,), int64
-        Part label per candidate, ``0 .. parts - 1``.
-    """
-    count = points.shape[0]
-    if count <= 1:
-        return np.zeros(count, dtype=np.int64)
-    unit = normal.astype(np.float64)
-    unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-12)[:, None]
-    k = min(CLUSTER_NEIGHBOURS + 1, count)
-    distance, neighbour = KDTree(points).query(points, k=k, distance_upper_bound=radius.max())
-    neighbour = np.minimum(neighbour[:, 1:], count - 1)
-    linked = (distance[:, 1:] <= radius[:, None]) & (
-        np.abs(np.einsum("ckd,cd->ck", unit[neighbour], unit)) >= NORMAL_AGREEMENT_COSINE
-    )
-    rows = np.repeat(np.arange(count), k - 1)[linked.ravel()]
-    columns = neighbour[linked]
-    graph = coo_matrix((np.ones(rows.shape[0], dtype=np.int8), (rows, columns)), (count, count))
-    _, labels = connected_components(graph, directed=True, connection="weak")
-    return labels.astype(np.int64)
-
-
-def _surrounded(
-    points: NDArray[np.float64],
-    own_normal: NDArray[np.floating],
-    other: LocalGeometry,
-    other_unmatched: NDArray[np.bool_],
-    tolerance: float,
-    change_threshold: float,
-) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
-    """Whether the other epoch's surface adjoins each border point at an edge, and in how
-    many directions it carries on past the point.
-
-    The other epoch's nearest surface (within :data:`ADJOINING_FACTOR` change thresholds, at
-    an angle to the point's own: :data:`EDGE_COSINE`) is taken as the plane of its nearest
-    point; the point is projected onto it, and that plane's points around the projection (the
-    :data:`SURROUND_NEIGHBOURS` nearest within :data:`SURROUND_REACH`) are sorted into
-    :data:`SECTORS` directions.  Where the other epoch saw the place of a removed or added
-    object, its floor, desk top or wall carries on under it: the directions are all taken (and
-    where that surface is one this epoch lacks, the object hid it: all directions count).
-    Where the object stands in both epochs and only this epoch faced one of its sides, the
-    other epoch's surfaces next to that side (the object's top, the floor in front of it) end
-    at it: half the directions are empty.
-
-    Parameters
-    ----------
-    points : ndarray, shape (b, 3)
-    own_normal : ndarray, shape (b, 3)
-        The points' own surface normals.
-    other : LocalGeometry
-    other_unmatched : ndarray, shape (m,), bool
-        The other epoch's points that this epoch lacks.
-    tolerance, change_threshold : float
-        The plane tolerance and the change threshold (metres).
-
-    Returns
-    -------
-    adjoining : ndarray, shape (b,), bool
-        Whether the other epoch has a surface meeting the point's at an edge next to it.
-    sectors : ndarray, shape (b,), int64
-        In how many of :data:`SECTORS` directions that surface carries on past the point.
-    """
-    count = points.shape[0]
-    adjoining = np.zeros(count, dtype=bool)
-    surrounded = np.zeros(count, dtype=np.int64)
-    if count == 0:
-        return adjoining, surrounded
-    k = min(SURROUND_NEIGHBOURS, other.points.shape[0])
-    for start in range(0, count, GATHER_CHUNK):
-        chunk = slice(start, start + GATHER_CHUNK)
-        query = points[chunk]
-        distance, index = other.tree.query(query, k=k)
-        distance = np.asarray(distance).reshape(query.shape[0], k)
-        index = np.asarray(index).reshape(query.shape[0], k)
-        nearest = index[:, 0]
-        unit = other.normal[nearest].astype(np.float64)
-        height = np.einsum("cd,cd->c", query - other.points[nearest], unit)
-        # only a surface meeting the point's own at an edge adjoins it: one parallel to it
-        # is a gap in a surface both have, or a surface under or over it
-        across = (
-            np.abs(np.einsum("cd,cd->c", own_normal[chunk].astype(np.float64), unit)) < EDGE_COSINE
-        )
-        adjoining[chunk] = (np.abs(height) <= ADJOINING_FACTOR * change_threshold) & across
-        foot = query - height[:, None] * unit
-        offset = other.points[index] - foot[:, None, :]
-        along = np.linalg.norm(offset, axis=2)
-        on_plane = (
-            (distance <= SURROUND_REACH)
-            & (np.abs(np.einsum("ckd,cd->ck", offset, unit)) <= tolerance + PLANE_SLOPE * along)
-            & (
-                np.abs(np.einsum("ckd,cd->ck", other.normal[index].astype(np.float64), unit))
-                >= NORMAL_AGREEMENT_COSINE
-            )
-        )
-        _, directions = tangent_directions(unit, 4)
-        first, second = directions[:, 0, :], directions[:, 1, :]
-        angle = np.arctan2(
-            np.einsum("ckd,cd->ck", offset, second), np.einsum("ckd,cd->ck", offset, first)
-        )
-        sector = np.floor((angle + math.pi) / (2.0 * math.pi) * SECTORS).astype(np.int64)
-        sector = np.clip(sector, 0, SECTORS - 1)
-        taken = np.zeros((query.shape[0], SECTORS), dtype=bool)
-        rows = np.broadcast_to(np.arange(query.shape[0])[:, None], sector.shape)
-        taken[rows[on_plane], sector[on_plane]] = True
-        surrounded[chunk] = taken.sum(axis=1)
-        # a surface that this epoch lacks next to the point: the object hid it here
-        surrounded[chunk][other_unmatched[nearest]] = SECTORS
-    return adjoining, surrounded
-
-
-def _past_narrow_gaps(
+def _rechecked_share(
     candidates: Candidates,
     recheck: NDArray[np.int64],
     labels: NDArray[np.int64],
     behind_share: NDArray[np.float64],
     *,
+    other: Side,
+    counted: NDArray[np.bool_],
+) -> NDArray[np.float64]:
+    """Per part, the share of candidates with the other epoch's surface on their normal line,
+    recomputed on the ``recheck`` candidates' parts counting only the ``counted`` points of
+    the other cloud (``behind_share`` elsewhere)."""
+    share = behind_share.copy()
+    if recheck.shape[0] == 0:
+        return share
+    behind = surface_behind(candidates.points[recheck], candidates.normal[recheck], other, counted)
+    parts = np.unique(labels[recheck])
+    hits = np.bincount(labels[recheck], weights=behind.astype(np.float64), minlength=share.shape[0])
+    sizes = np.bincount(labels[recheck], minlength=share.shape[0])
+    share[parts] = hits[parts] / np.maximum(sizes[parts], 1)
+    return share
+
+
+def _narrow_gaps(
+    candidates: Candidates,
+    recheck: NDArray[np.int64],
+    *,
     own: Side,
     other: Side,
     other_unmatched: NDArray[np.bool_],
     tolerance: float,
-) -> NDArray[np.float64]:
-    """Per part, the share of candidates the other epoch saw through, counting only surface
-    that is not a narrow gap of this epoch's (recomputed on the ``recheck`` candidates' parts).
+) -> NDArray[np.bool_]:
+    """The other cloud's unmatched points near the ``recheck`` candidates that lie in a narrow
+    gap of this epoch's surface (shape (m,), bool).
 
     Behind a narrow gap of a surface this epoch has all around it (:data:`GAP_REACH`,
     :data:`GAP_SECTORS`: the far face of a rack, each epoch's path seeing its own aisle's
     face), the other epoch saw nothing through the candidate's place: it saw the far side.
     """
-    share = behind_share.copy()
-    if recheck.shape[0] == 0:
-        return share
-    unmatched = np.flatnonzero(other_unmatched)
-    reach = SEE_THROUGH_REACH + BEHIND_MAX_RADIUS
-    distance, _ = KDTree(candidates.points[recheck]).query(
-        other.points[unmatched], k=1, distance_upper_bound=reach
-    )
-    unmatched = unmatched[np.asarray(distance).ravel() <= reach]
     gap = np.zeros(other_unmatched.shape[0], dtype=bool)
+    unmatched = near_candidates(candidates.points[recheck], other, other_unmatched)
     gap[unmatched] = (
         coplanar_sectors(
             other.points[unmatched],
@@ -369,22 +162,7 @@ def _past_narrow_gaps(
         )
         >= GAP_SECTORS
     )
-    behind = behind_evidence(
-        candidates.points[recheck],
-        candidates.normal[recheck],
-        other_points=other.points,
-        other_normal=other.geometry.normal,
-        other_unmatched=other_unmatched & ~gap,
-        max_reach=SEE_THROUGH_REACH,
-        min_radius=max(
-            BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))
-        ),
-    )
-    parts = np.unique(labels[recheck])
-    hits = np.bincount(labels[recheck], weights=behind.astype(np.float64), minlength=share.shape[0])
-    sizes = np.bincount(labels[recheck], minlength=share.shape[0])
-    share[parts] = hits[parts] / np.maximum(sizes[parts], 1)
-    return share
+    return gap
 
 
 def map_test(
@@ -418,147 +196,104 @@ def map_test(
     count = candidates.index.shape[0]
     status = np.full(count, STATUS_SEEN_THROUGH, dtype=np.int8)
     evidence = np.full(count, EVIDENCE_SEEN_EMPTY, dtype=np.int8)
-    confidence = np.ones(count, dtype=np.float32)
-    counts: dict[str, Any] = {"map_clusters": 0, "map_coverage_clusters": 0}
     if count == 0:
-        return MapEvidence(status, evidence, confidence, counts)
-    is_candidate = np.zeros(own.points.shape[0], dtype=bool)
-    is_candidate[candidates.index] = True
+        counts = {"map_clusters": 0, "map_coverage_clusters": 0}
+        return MapEvidence(status, evidence, np.ones(count, dtype=np.float32), counts)
     labels = surface_parts(
         candidates.points, candidates.normal, cluster_factor * candidates.spacing
     )
-    n_clusters = int(labels.max()) + 1
-    border, continues = _border_continuation(
+    other_unmatched = unmatched_points(own, other, threshold, change_threshold)
+    figures = part_figures(
         candidates,
+        labels,
         own=own,
         other=other,
-        is_candidate=is_candidate,
-        tolerance=threshold,
+        other_unmatched=other_unmatched,
+        threshold=threshold,
         change_threshold=change_threshold,
         cluster_factor=cluster_factor,
     )
-    # a continuing border point counts when the other epoch's surface extends well beyond it,
-    # on the point's own plane or, where its own normal leans (a noisy far wall band of an RGB-D
-    # map, some 15 degrees off under the ceiling), on the plane of the other epoch's surface
-    probe = np.flatnonzero(continues)
-    continues[probe] = extends(
-        candidates.points[probe], candidates.normal[probe], other.geometry, threshold
-    )
-    probe = probe[~continues[probe]]
-    continues[probe] = extends(
-        candidates.points[probe],
-        other.geometry.normal[own.nearest_index[candidates.index[probe]]],
-        other.geometry,
-        threshold,
-    )
-    border_count = np.bincount(labels, weights=border.astype(np.float64), minlength=n_clusters)
-    continuing = np.bincount(labels, weights=continues.astype(np.float64), minlength=n_clusters)
-    continuation_share = continuing / np.maximum(border_count, 1.0)
 
-    # the other cloud's points that this one lacks: no own point within a couple of spacings
-    # (dense maps), or within the change threshold (sparse clouds)
-    other_unmatched = other.nearest_distance > np.minimum(
-        UNMATCHED_FACTOR * np.maximum(own.geometry.spacing[other.nearest_index], threshold),
-        change_threshold,
-    )
-    behind = behind_evidence(
-        candidates.points,
-        candidates.normal,
-        other_points=other.points,
-        other_normal=other.geometry.normal,
-        other_unmatched=other_unmatched,
-        max_reach=SEE_THROUGH_REACH,
-        min_radius=max(
-            BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))
-        ),
-    )
-    sizes = np.bincount(labels, minlength=n_clusters).astype(np.float64)
-    behind_share = np.bincount(labels, weights=behind.astype(np.float64), minlength=n_clusters)
-    behind_share /= np.maximum(sizes, 1.0)
-
-    # near the other epoch's coverage: judged on the whole connected cluster (a removed
-    # box's top is far from the floor, its sides are not)
-    clusters = cluster_labels(candidates.points, cluster_factor * candidates.spacing)
-    cluster_sizes = np.bincount(clusters).astype(np.float64)
-    nearest = own.nearest_distance[candidates.index]
-    order = np.lexsort((nearest, clusters))
-    starts = np.searchsorted(clusters[order], np.arange(cluster_sizes.shape[0]))
-    near_rank = starts + np.floor(NEAR_QUANTILE * (cluster_sizes - 1)).astype(np.int64)
-    near_limit = max(NEAR_MIN, NEAR_FACTOR * change_threshold)
-    cluster_near = nearest[order][near_rank] <= near_limit
-    near = np.zeros(n_clusters, dtype=bool)
-    near[labels] = cluster_near[clusters]
-
-    coplanar_share = share_on_planes(candidates, labels, n_clusters, other.geometry, threshold)
-    probe = np.flatnonzero(border)
-    adjoining_points, surrounded_points = _surrounded(
-        candidates.points[probe],
-        candidates.normal[probe],
-        other.geometry,
-        other_unmatched,
-        threshold,
-        change_threshold,
-    )
-    adjoining = np.bincount(
-        labels[probe], weights=adjoining_points.astype(np.float64), minlength=n_clusters
-    )
-    surround_share = np.bincount(
-        labels[probe],
-        weights=(adjoining_points & (surrounded_points >= SURROUND_SECTORS)).astype(np.float64),
-        minlength=n_clusters,
-    ) / np.maximum(adjoining, 1.0)
-    # the other epoch's surfaces next to the cluster end at it: a side of an object that stands
-    # in both epochs, faced by this epoch's path only
-    # a side: an upright face (a top, seen from any path above it, is left to the other rules)
-    upright = (
-        np.bincount(
-            labels, weights=np.abs(candidates.normal[:, 2]).astype(np.float64), minlength=n_clusters
+    def see_through(recheck: NDArray[np.bool_], share: NDArray[np.float64]) -> NDArray[np.float64]:
+        chosen = np.flatnonzero(recheck[labels])
+        if chosen.shape[0] == 0:
+            return share
+        gap = _narrow_gaps(
+            candidates,
+            chosen,
+            own=own,
+            other=other,
+            other_unmatched=other_unmatched,
+            tolerance=threshold,
         )
-        / np.maximum(sizes, 1.0)
-        < UPRIGHT_NORMAL_Z
-    )
-    unseen_side = upright & (adjoining >= MIN_ADJOINING) & (surround_share < SURROUND_SHARE)
-    continues_plainly = continuation_share >= PLAIN_CONTINUATION_SHARE
-    continues_in_plane = (continuation_share >= CONTINUATION_SHARE) & (
-        coplanar_share >= COPLANAR_SHARE
-    )
-    see_through_share = _past_narrow_gaps(
-        candidates,
-        np.flatnonzero(
-            ((continues_plainly | continues_in_plane) & (behind_share >= SEE_THROUGH_SHARE))[labels]
-        ),
-        labels,
-        behind_share,
-        own=own,
-        other=other,
-        other_unmatched=other_unmatched,
-        tolerance=threshold,
-    )
-    coverage = (continues_plainly | continues_in_plane) & (see_through_share < SEE_THROUGH_SHARE)
-    coverage |= ~near | (unseen_side & (behind_share < SEE_THROUGH_SHARE))
-    cluster_confidence = np.where(
-        coverage,
-        np.where(
-            near,
-            np.maximum(continuation_share, np.where(unseen_side, 1.0 - surround_share, 0.0)),
-            1.0,
-        ),
-        np.clip(1.0 - continuation_share, 0.0, 1.0)
-        * np.clip(0.5 + behind_share / (2 * SEE_THROUGH_SHARE), 0.0, 1.0),
-    )
+        counted = other_unmatched & ~gap
+        return _rechecked_share(candidates, chosen, labels, share, other=other, counted=counted)
+
+    def hidden(recheck: NDArray[np.bool_], share: NDArray[np.float64]) -> NDArray[np.float64]:
+        chosen = np.flatnonzero(recheck[labels])
+        if chosen.shape[0] == 0:
+            return share
+        counted = hidden_surface(
+            candidates.points[chosen],
+            own=own,
+            other=other,
+            other_unmatched=other_unmatched,
+            tolerance=threshold,
+        )
+        return _rechecked_share(candidates, chosen, labels, share, other=other, counted=counted)
+
+    coverage, confidence, counts = _verdict(figures, see_through, hidden)
     status[coverage[labels]] = STATUS_UNOBSERVED
     evidence[coverage[labels]] = EVIDENCE_NO_COVERAGE
-    confidence[:] = cluster_confidence[labels]
-    counts.update(
-        map_clusters=n_clusters,
-        map_coverage_clusters=int(coverage.sum()),
-        map_far_clusters=int((~near).sum()),
-        map_border_points=int(border.sum()),
-        map_continuing_points=int(continues.sum()),
-        map_unseen_side_clusters=int((unseen_side & coverage).sum()),
-        map_coplanar_share_median=float(np.median(coplanar_share)) if n_clusters else 0.0,
+    return MapEvidence(status, evidence, confidence[labels].astype(np.float32), counts)
+
+
+def _verdict(
+    figures: PartFigures, see_through: Any, hidden: Any
+) -> tuple[NDArray[np.bool_], NDArray[np.float64], dict[str, Any]]:
+    """Per part, whether it is a coverage difference and the confidence in its verdict.
+
+    ``see_through(recheck, behind_share)`` recomputes the see-through share of the parts
+    marked in ``recheck`` without the other epoch's surface in narrow gaps of this one's
+    (:func:`_narrow_gaps`); ``hidden(recheck, behind_share)`` counting only surface hidden
+    from this epoch (:func:`~app.core.localise.map_parts.hidden_surface`).  Both only lower a
+    share, so only parts at or over :data:`SEE_THROUGH_SHARE` are rechecked.
+    """
+    part = figures
+    # the other epoch's surfaces next to the part end at it: a side of an object that stands
+    # in both epochs, faced by this epoch's path only
+    unseen_side = (
+        part.upright & (part.adjoining >= MIN_ADJOINING) & (part.surround_share < SURROUND_SHARE)
     )
-    return MapEvidence(status, evidence, confidence, counts)
+    continues_plainly = part.continuation_share >= PLAIN_CONTINUATION_SHARE
+    continues_in_plane = (part.continuation_share >= CONTINUATION_SHARE) & (
+        part.coplanar_share >= COPLANAR_SHARE
+    )
+    continuing = continues_plainly | continues_in_plane
+    see_through_share = see_through(
+        continuing & (part.behind_share >= SEE_THROUGH_SHARE), part.behind_share
+    )
+    coverage = continuing & (see_through_share < SEE_THROUGH_SHARE)
+    # an unseen side is overridden only by surface hidden from this epoch behind it, not by
+    # the far face of the object (seen by the other epoch's path only)
+    hidden_share = hidden(unseen_side & (part.behind_share >= SEE_THROUGH_SHARE), part.behind_share)
+    coverage |= ~part.near | (unseen_side & (hidden_share < SEE_THROUGH_SHARE))
+    side_confidence = np.where(unseen_side, 1.0 - part.surround_share, 0.0)
+    confidence = np.where(
+        coverage,
+        np.where(part.near, np.maximum(part.continuation_share, side_confidence), 1.0),
+        np.clip(1.0 - part.continuation_share, 0.0, 1.0)
+        * np.clip(0.5 + part.behind_share / (2 * SEE_THROUGH_SHARE), 0.0, 1.0),
+    )
+    counts = {
+        "map_clusters": int(part.sizes.shape[0]),
+        "map_coverage_clusters": int(coverage.sum()),
+        "map_far_clusters": int((~part.near).sum()),
+        **part.counts,
+        "map_unseen_side_clusters": int((unseen_side & coverage).sum()),
+        "map_coplanar_share_median": float(np.median(part.coplanar_share)),
+    }
+    return coverage, confidence, counts
 
 
 class MapTest:

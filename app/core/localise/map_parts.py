@@ -1,0 +1,543 @@
+"""The figures the map test decides on, per surface part of one map's change candidates.
+
+Candidates (points farther than the change threshold from the other epoch's surface) are split
+into surface parts (:func:`surface_parts`); per part, :func:`part_figures` measures how its
+border continues into the other epoch's surfaces, whether those surfaces carry on past it,
+whether the other epoch saw through its place, and whether it is near the other epoch's
+coverage at all.  :mod:`app.core.localise.map_evidence` decides on these figures.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from pykdtree.kdtree import KDTree
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from app.core.localise.distance import Side
+from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
+from app.core.localise.map_planes import SECTORS, coplanar_sectors, extends, share_on_planes
+from app.core.localise.origin_free import (
+    BEHIND_MAX_RADIUS,
+    BEHIND_MIN_RADIUS,
+    UNMATCHED_FACTOR,
+    behind_evidence,
+)
+from app.core.localise.rays import Candidates
+from app.core.localise.regions import CLUSTER_NEIGHBOURS, cluster_labels
+from app.core.localise.settings import GATHER_CHUNK
+from app.core.localise.surface import LocalGeometry
+
+__all__ = [
+    "SEE_THROUGH_REACH",
+    "SPARSE_PROBE_FACTOR",
+    "PartFigures",
+    "hidden_surface",
+    "near_candidates",
+    "part_figures",
+    "surface_behind",
+    "surface_parts",
+    "unmatched_points",
+]
+
+BORDER_NEIGHBOURS = 16
+"""Own neighbours of a candidate looked at for its cluster's border."""
+SURROUND_NEIGHBOURS = 32
+"""The other epoch's points looked at around a border point's foot on its adjoining surface."""
+SURROUND_REACH = 0.5
+"""Metres: farther points of the adjoining surface say nothing about the border point."""
+ADJOINING_FACTOR = 2.0
+"""The other epoch's surface adjoins a border point within this many change thresholds."""
+SURROUND_SECTORS = 6
+"""The adjoining surface carries on past a border point when it lies in this many of
+:data:`SECTORS` directions around the point's foot."""
+EDGE_COSINE = math.cos(math.radians(60.0))
+"""A surface adjoins a border point at an edge when the normals' cosine is below this."""
+UPRIGHT_NORMAL_Z = 0.5
+"""A part is upright (a side) when its normals' mean vertical component is below this."""
+SEE_THROUGH_REACH = 1.2
+"""Farther along the normal line, the other epoch's unmatched surface is as likely another
+coverage difference (the ceiling a path saw above a floor patch the other path saw) as what
+stood in front of or behind the cluster."""
+SPARSE_PROBE_FACTOR = 1.5
+"""The see-through probes' balls are at least this many of the other cloud's median spacings
+wide (a sparse cloud's surface is found between its samples)."""
+NEAR_FACTOR = 3.0
+NEAR_MIN = 0.5
+"""A cluster is near the other epoch's coverage when its closest tenth of points lies within
+``max(NEAR_MIN, NEAR_FACTOR * change_threshold)`` metres of the other cloud."""
+NEAR_QUANTILE = 0.1
+HIDDEN_REACHES = (0.5, 1.0)
+"""Metres: the other epoch's surface behind a candidate was hidden from this epoch when this
+epoch has it on its plane about this far away in some direction (the floor around a removed
+chair's footprint, the wall around a removed board)."""
+
+
+def _border_continuation(
+    candidates: Candidates,
+    *,
+    own: Side,
+    other: Side,
+    is_candidate: NDArray[np.bool_],
+    tolerance: float,
+    change_threshold: float,
+    cluster_factor: float,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Which candidates lie on their cluster's border, and which of those continue into a
+    surface the other epoch has, parallel, next to them.
+
+    Returns
+    -------
+    border, continues : ndarray, shape (c,), bool
+    """
+    count = candidates.index.shape[0]
+    border = np.zeros(count, dtype=bool)
+    continues = np.zeros(count, dtype=bool)
+    k = min(BORDER_NEIGHBOURS + 1, own.points.shape[0])
+    other_normal = other.geometry.normal
+    for start in range(0, count, GATHER_CHUNK):
+        chunk = slice(start, start + GATHER_CHUNK)
+        query = candidates.points[chunk]
+        unit = candidates.normal[chunk].astype(np.float64)
+        unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-12)[:, None]
+        radius = cluster_factor * candidates.spacing[chunk]
+        distance, neighbour = own.geometry.tree.query(
+            query, k=k, distance_upper_bound=float(radius.max())
+        )
+        distance = np.asarray(distance).reshape(query.shape[0], k)
+        neighbour = np.minimum(
+            np.asarray(neighbour).reshape(query.shape[0], k), own.points.shape[0] - 1
+        )
+        outside = (distance <= radius[:, None]) & ~is_candidate[neighbour]
+        border[chunk] = outside.any(axis=1)
+        offset = own.points[neighbour] - query[:, None, :]
+        across = np.abs(np.einsum("ckd,cd->ck", offset, unit))
+        coplanar = (across <= tolerance + PLANE_SLOPE * distance) & (
+            np.abs(np.einsum("ckd,cd->ck", own.geometry.normal[neighbour], unit))
+            >= NORMAL_AGREEMENT_COSINE
+        )
+        # where the own surface carries on, the other epoch's nearest surface is parallel and
+        # on it: the same surface, seen by both epochs
+        match = own.nearest_index[neighbour]
+        parallel = (
+            np.abs(np.einsum("ckd,cd->ck", other_normal[match], unit)) >= NORMAL_AGREEMENT_COSINE
+        )
+        on_it = (
+            np.abs(np.einsum("ckd,cd->ck", other.points[match] - own.points[neighbour], unit))
+            <= change_threshold
+        )
+        continues[chunk] = (outside & coplanar & parallel & on_it).any(axis=1)
+    return border, continues
+
+
+def surface_parts(
+    points: NDArray[np.float64], normal: NDArray[np.floating], radius: NDArray[np.float64]
+) -> NDArray[np.int64]:
+    """Connected parts of candidates that lie on one surface: neighbours within a candidate's
+    ``radius`` (its :data:`~app.core.localise.regions.CLUSTER_NEIGHBOURS` nearest) are linked
+    when their normals agree (:data:`~app.core.localise.gaps.NORMAL_AGREEMENT_COSINE`).
+
+    A cluster of candidates may join a change to a coverage difference: a removed fence to
+    the rough ground strips beside it, the side of a box only one path faced to the floor
+    strip in the other path's shadow.  Each surface of it is judged on its own.
+
+    Parameters
+    ----------
+    points : ndarray, shape (c, 3)
+    normal : ndarray, shape (c, 3)
+    radius : ndarray, shape (c,)
+
+    Returns
+    -------
+    ndarray, shape (c,), int64
+        Part label per candidate, ``0 .. parts - 1``.
+    """
+    count = points.shape[0]
+    if count <= 1:
+        return np.zeros(count, dtype=np.int64)
+    unit = normal.astype(np.float64)
+    unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-12)[:, None]
+    k = min(CLUSTER_NEIGHBOURS + 1, count)
+    distance, neighbour = KDTree(points).query(points, k=k, distance_upper_bound=radius.max())
+    neighbour = np.minimum(neighbour[:, 1:], count - 1)
+    linked = (distance[:, 1:] <= radius[:, None]) & (
+        np.abs(np.einsum("ckd,cd->ck", unit[neighbour], unit)) >= NORMAL_AGREEMENT_COSINE
+    )
+    rows = np.repeat(np.arange(count), k - 1)[linked.ravel()]
+    columns = neighbour[linked]
+    graph = coo_matrix((np.ones(rows.shape[0], dtype=np.int8), (rows, columns)), (count, count))
+    _, labels = connected_components(graph, directed=True, connection="weak")
+    return labels.astype(np.int64)
+
+
+def _surrounded(
+    points: NDArray[np.float64],
+    own_normal: NDArray[np.floating],
+    other: LocalGeometry,
+    other_unmatched: NDArray[np.bool_],
+    tolerance: float,
+    change_threshold: float,
+) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
+    """Whether the other epoch's surface adjoins each border point at an edge, and in how
+    many directions it carries on past the point.
+
+    The other epoch's nearest surface (within :data:`ADJOINING_FACTOR` change thresholds, at
+    an angle to the point's own: :data:`EDGE_COSINE`) is taken as the plane of its nearest
+    point; the point is projected onto it, and that plane's points around the projection (the
+    :data:`SURROUND_NEIGHBOURS` nearest within :data:`SURROUND_REACH`) are sorted into
+    :data:`SECTORS` directions.  Where the other epoch saw the place of a removed or added
+    object, its floor, desk top or wall carries on under it: the directions are all taken (and
+    where that surface is one this epoch lacks, the object hid it: all directions count).
+    Where the object stands in both epochs and only this epoch faced one of its sides, the
+    other epoch's surfaces next to that side (the object's top, the floor in front of it) end
+    at it: half the directions are empty.
+
+    Parameters
+    ----------
+    points : ndarray, shape (b, 3)
+    own_normal : ndarray, shape (b, 3)
+        The points' own surface normals.
+    other : LocalGeometry
+    other_unmatched : ndarray, shape (m,), bool
+        The other epoch's points that this epoch lacks.
+    tolerance, change_threshold : float
+        The plane tolerance and the change threshold (metres).
+
+    Returns
+    -------
+    adjoining : ndarray, shape (b,), bool
+        Whether the other epoch has a surface meeting the point's at an edge next to it.
+    sectors : ndarray, shape (b,), int64
+        In how many of :data:`SECTORS` directions that surface carries on past the point.
+    """
+    count = points.shape[0]
+    adjoining = np.zeros(count, dtype=bool)
+    surrounded = np.zeros(count, dtype=np.int64)
+    if count == 0:
+        return adjoining, surrounded
+    k = min(SURROUND_NEIGHBOURS, other.points.shape[0])
+    for start in range(0, count, GATHER_CHUNK):
+        chunk = slice(start, start + GATHER_CHUNK)
+        query = points[chunk]
+        distance, index = other.tree.query(query, k=k)
+        distance = np.asarray(distance).reshape(query.shape[0], k)
+        index = np.asarray(index).reshape(query.shape[0], k)
+        nearest = index[:, 0]
+        unit = other.normal[nearest].astype(np.float64)
+        height = np.einsum("cd,cd->c", query - other.points[nearest], unit)
+        # only a surface meeting the point's own at an edge adjoins it: one parallel to it
+        # is a gap in a surface both have, or a surface under or over it
+        across = (
+            np.abs(np.einsum("cd,cd->c", own_normal[chunk].astype(np.float64), unit)) < EDGE_COSINE
+        )
+        adjoining[chunk] = (np.abs(height) <= ADJOINING_FACTOR * change_threshold) & across
+        foot = query - height[:, None] * unit
+        offset = other.points[index] - foot[:, None, :]
+        along = np.linalg.norm(offset, axis=2)
+        on_plane = (
+            (distance <= SURROUND_REACH)
+            & (np.abs(np.einsum("ckd,cd->ck", offset, unit)) <= tolerance + PLANE_SLOPE * along)
+            & (
+                np.abs(np.einsum("ckd,cd->ck", other.normal[index].astype(np.float64), unit))
+                >= NORMAL_AGREEMENT_COSINE
+            )
+        )
+        _, directions = tangent_directions(unit, 4)
+        first, second = directions[:, 0, :], directions[:, 1, :]
+        angle = np.arctan2(
+            np.einsum("ckd,cd->ck", offset, second), np.einsum("ckd,cd->ck", offset, first)
+        )
+        sector = np.floor((angle + math.pi) / (2.0 * math.pi) * SECTORS).astype(np.int64)
+        sector = np.clip(sector, 0, SECTORS - 1)
+        taken = np.zeros((query.shape[0], SECTORS), dtype=bool)
+        rows = np.broadcast_to(np.arange(query.shape[0])[:, None], sector.shape)
+        taken[rows[on_plane], sector[on_plane]] = True
+        surrounded[chunk] = taken.sum(axis=1)
+        # a surface that this epoch lacks next to the point: the object hid it here
+        surrounded[chunk][other_unmatched[nearest]] = SECTORS
+    return adjoining, surrounded
+
+
+@dataclass(frozen=True)
+class PartFigures:
+    """The figures the map test decides on, one per surface part of the candidates.
+
+    Attributes
+    ----------
+    sizes : ndarray, shape (parts,), float64
+        Candidates per part.
+    near : ndarray, shape (parts,), bool
+        The part's cluster is near the other epoch's coverage.
+    continuation_share : ndarray, shape (parts,), float64
+        Share of the part's border points whose surface continues into the other epoch's.
+    coplanar_share : ndarray, shape (parts,), float64
+        Share of its points on planes the other epoch has nearby.
+    behind_share : ndarray, shape (parts,), float64
+        Share of its points with surface this epoch lacks on their normal lines.
+    adjoining : ndarray, shape (parts,), float64
+        Its border points that the other epoch's surface adjoins at an edge.
+    surround_share : ndarray, shape (parts,), float64
+        Share of those where that surface carries on past the point.
+    upright : ndarray, shape (parts,), bool
+        The part is an upright face.
+    counts : dict
+        Point counts for the report.
+    """
+
+    sizes: NDArray[np.float64]
+    near: NDArray[np.bool_]
+    continuation_share: NDArray[np.float64]
+    coplanar_share: NDArray[np.float64]
+    behind_share: NDArray[np.float64]
+    adjoining: NDArray[np.float64]
+    surround_share: NDArray[np.float64]
+    upright: NDArray[np.bool_]
+    counts: dict[str, Any]
+
+
+def _continuation_share(
+    candidates: Candidates,
+    labels: NDArray[np.int64],
+    n_parts: int,
+    *,
+    own: Side,
+    other: Side,
+    threshold: float,
+    change_threshold: float,
+    cluster_factor: float,
+) -> tuple[NDArray[np.bool_], NDArray[np.float64], dict[str, int]]:
+    """The candidates on their part's border, and per part the share of its border points that
+    continue into a surface the other epoch has and that extends well beyond them."""
+    is_candidate = np.zeros(own.points.shape[0], dtype=bool)
+    is_candidate[candidates.index] = True
+    border, continues = _border_continuation(
+        candidates,
+        own=own,
+        other=other,
+        is_candidate=is_candidate,
+        tolerance=threshold,
+        change_threshold=change_threshold,
+        cluster_factor=cluster_factor,
+    )
+    # a continuing border point counts when the other epoch's surface extends well beyond it,
+    # on the point's own plane or, where its own normal leans (a noisy far wall band of an RGB-D
+    # map, some 15 degrees off under the ceiling), on the plane of the other epoch's surface
+    probe = np.flatnonzero(continues)
+    continues[probe] = extends(
+        candidates.points[probe], candidates.normal[probe], other.geometry, threshold
+    )
+    probe = probe[~continues[probe]]
+    continues[probe] = extends(
+        candidates.points[probe],
+        other.geometry.normal[own.nearest_index[candidates.index[probe]]],
+        other.geometry,
+        threshold,
+    )
+    border_count = np.bincount(labels, weights=border.astype(np.float64), minlength=n_parts)
+    continuing = np.bincount(labels, weights=continues.astype(np.float64), minlength=n_parts)
+    counts = {"map_border_points": int(border.sum()), "map_continuing_points": int(continues.sum())}
+    return border, continuing / np.maximum(border_count, 1.0), counts
+
+
+def _near_coverage(
+    candidates: Candidates,
+    labels: NDArray[np.int64],
+    n_parts: int,
+    *,
+    own: Side,
+    change_threshold: float,
+    cluster_factor: float,
+) -> NDArray[np.bool_]:
+    """Per part, whether its whole connected cluster is near the other epoch's coverage (a
+    removed box's top is far from the floor, its sides are not)."""
+    clusters = cluster_labels(candidates.points, cluster_factor * candidates.spacing)
+    cluster_sizes = np.bincount(clusters).astype(np.float64)
+    nearest = own.nearest_distance[candidates.index]
+    order = np.lexsort((nearest, clusters))
+    starts = np.searchsorted(clusters[order], np.arange(cluster_sizes.shape[0]))
+    near_rank = starts + np.floor(NEAR_QUANTILE * (cluster_sizes - 1)).astype(np.int64)
+    near_limit = max(NEAR_MIN, NEAR_FACTOR * change_threshold)
+    cluster_near = nearest[order][near_rank] <= near_limit
+    near = np.zeros(n_parts, dtype=bool)
+    near[labels] = cluster_near[clusters]
+    return near
+
+
+def _adjoining_surfaces(
+    candidates: Candidates,
+    labels: NDArray[np.int64],
+    n_parts: int,
+    border: NDArray[np.bool_],
+    *,
+    other: Side,
+    other_unmatched: NDArray[np.bool_],
+    threshold: float,
+    change_threshold: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per part, how many border points the other epoch's surface adjoins at an edge, and the
+    share of those where it carries on past the point (:func:`_surrounded`)."""
+    probe = np.flatnonzero(border)
+    adjoining_points, surrounded_points = _surrounded(
+        candidates.points[probe],
+        candidates.normal[probe],
+        other.geometry,
+        other_unmatched,
+        threshold,
+        change_threshold,
+    )
+    adjoining = np.bincount(
+        labels[probe], weights=adjoining_points.astype(np.float64), minlength=n_parts
+    )
+    carried_on = adjoining_points & (surrounded_points >= SURROUND_SECTORS)
+    surround_share = np.bincount(
+        labels[probe], weights=carried_on.astype(np.float64), minlength=n_parts
+    ) / np.maximum(adjoining, 1.0)
+    return adjoining, surround_share
+
+
+def unmatched_points(
+    own: Side, other: Side, threshold: float, change_threshold: float
+) -> NDArray[np.bool_]:
+    """The other cloud's points that this one lacks: no own point within a couple of spacings
+    (dense maps), or within the change threshold (sparse clouds); shape (m,), bool."""
+    return other.nearest_distance > np.minimum(
+        UNMATCHED_FACTOR * np.maximum(own.geometry.spacing[other.nearest_index], threshold),
+        change_threshold,
+    )
+
+
+def surface_behind(
+    points: NDArray[np.float64],
+    normal: NDArray[np.floating],
+    other: Side,
+    counted: NDArray[np.bool_],
+) -> NDArray[np.bool_]:
+    """Whether the other cloud's ``counted`` points lie on each point's normal line within
+    :data:`SEE_THROUGH_REACH` (:func:`~app.core.localise.origin_free.behind_evidence`, with
+    probes at least :data:`SPARSE_PROBE_FACTOR` of its spacings wide); shapes (c, 3) -> (c,)."""
+    return behind_evidence(
+        points,
+        normal,
+        other_points=other.points,
+        other_normal=other.geometry.normal,
+        other_unmatched=counted,
+        max_reach=SEE_THROUGH_REACH,
+        min_radius=max(
+            BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))
+        ),
+    )
+
+
+def near_candidates(
+    points: NDArray[np.float64], other: Side, other_unmatched: NDArray[np.bool_]
+) -> NDArray[np.int64]:
+    """Indices of the other cloud's unmatched points that the see-through probes from
+    ``points`` (shape (c, 3)) can reach (within :data:`SEE_THROUGH_REACH` plus a probe)."""
+    unmatched = np.flatnonzero(other_unmatched)
+    if unmatched.shape[0] == 0 or points.shape[0] == 0:
+        return unmatched[:0]
+    reach = SEE_THROUGH_REACH + BEHIND_MAX_RADIUS
+    distance, _ = KDTree(points).query(other.points[unmatched], k=1, distance_upper_bound=reach)
+    return unmatched[np.asarray(distance).ravel() <= reach]
+
+
+def hidden_surface(
+    points: NDArray[np.float64],
+    *,
+    own: Side,
+    other: Side,
+    other_unmatched: NDArray[np.bool_],
+    tolerance: float,
+) -> NDArray[np.bool_]:
+    """The other cloud's unmatched points near ``points`` (candidates, shape (c, 3)) whose
+    surface this cloud has around them, on their plane: surface this epoch could not see there
+    because something stood in front of it (shape (m,), bool).
+
+    The floor under a removed chair, the wall behind a removed board carry on, in this epoch,
+    around the place the object hid.  The far face of an object that stands in both epochs,
+    seen by the other epoch's path only, ends at the object's edges: this epoch has nothing on
+    its plane around it.
+    """
+    hidden = np.zeros(other_unmatched.shape[0], dtype=bool)
+    unmatched = near_candidates(points, other, other_unmatched)
+    found = np.zeros(unmatched.shape[0], dtype=bool)
+    for around in HIDDEN_REACHES:
+        todo = np.flatnonzero(~found)
+        found[todo] = (
+            coplanar_sectors(
+                other.points[unmatched[todo]],
+                other.geometry.normal[unmatched[todo]],
+                own.geometry,
+                tolerance,
+                around,
+            )
+            >= 1
+        )
+    hidden[unmatched] = found
+    return hidden
+
+
+def part_figures(
+    candidates: Candidates,
+    labels: NDArray[np.int64],
+    *,
+    own: Side,
+    other: Side,
+    other_unmatched: NDArray[np.bool_],
+    threshold: float,
+    change_threshold: float,
+    cluster_factor: float,
+) -> PartFigures:
+    """The figures of each surface part (``labels``: :func:`surface_parts`) of ``own``'s
+    candidates against the other epoch (parameters as :func:`map_test`'s)."""
+    n_parts = int(labels.max()) + 1
+    sizes = np.bincount(labels, minlength=n_parts).astype(np.float64)
+    border, continuation_share, counts = _continuation_share(
+        candidates,
+        labels,
+        n_parts,
+        own=own,
+        other=other,
+        threshold=threshold,
+        change_threshold=change_threshold,
+        cluster_factor=cluster_factor,
+    )
+    behind = surface_behind(candidates.points, candidates.normal, other, other_unmatched)
+    adjoining, surround_share = _adjoining_surfaces(
+        candidates,
+        labels,
+        n_parts,
+        border,
+        other=other,
+        other_unmatched=other_unmatched,
+        threshold=threshold,
+        change_threshold=change_threshold,
+    )
+    vertical = np.abs(candidates.normal[:, 2]).astype(np.float64)
+    near = _near_coverage(
+        candidates,
+        labels,
+        n_parts,
+        own=own,
+        change_threshold=change_threshold,
+        cluster_factor=cluster_factor,
+    )
+    return PartFigures(
+        sizes=sizes,
+        near=near,
+        continuation_share=continuation_share,
+        coplanar_share=share_on_planes(candidates, labels, n_parts, other.geometry, threshold),
+        behind_share=np.bincount(labels, weights=behind.astype(np.float64), minlength=n_parts)
+        / np.maximum(sizes, 1.0),
+        adjoining=adjoining,
+        surround_share=surround_share,
+        # a side: an upright face (a top, seen from any path above it, is left to other rules)
+        upright=np.bincount(labels, weights=vertical, minlength=n_parts) / np.maximum(sizes, 1.0)
+        < UPRIGHT_NORMAL_Z,
+        counts=counts,
+    )
