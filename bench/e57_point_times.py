@@ -3,7 +3,7 @@
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.e57_point_times --points 1000000
 
 Writes one scan of ``--points`` points twice, without times (pye57) and with ``timeStamp``
-(libE57Format, ``tests.helpers.e57_times``), then reads each with ``read_point_cloud`` in turn,
+(libE57Format, ``app.testing.e57_times``), then reads each with ``read_point_cloud`` in turn,
 ``--repeat`` times, and prints the best CPU seconds of each and their difference (the second
 pass that reads the times and the validity flags).
 """
@@ -16,8 +16,8 @@ import time
 import numpy as np
 
 from app.core.formats import read_point_cloud
-from tests.helpers.e57_times import e57_with_times_bytes
-from tests.helpers.files import e57_bytes
+from app.testing.e57_times import e57_with_times_bytes
+from app.testing.files import e57_bytes
 
 
 def main() -> None:

@@ -288,7 +288,7 @@ def main(argv: list[str] | None = None) -> int:
     scratch = None
     try:
         if arguments.url is None:
-            from tests.helpers.service import ServiceProcess
+            from app.testing.service import ServiceProcess
 
             scratch = tempfile.TemporaryDirectory(prefix="scandiff-load-")
             service = ServiceProcess(

@@ -21,7 +21,7 @@ import dataclasses
 import os
 import time
 
-from bench.trajectory_cost import cpu_per_way, pair, scores
+from bench.trajectory_cost import cpu_per_way, figures_per_way, pair
 
 WAYS = {
     "coverage (older path)": {"localisation": {"origin_free_test": "coverage"}},
@@ -51,14 +51,12 @@ def main() -> None:
     }
     cpu, last = cpu_per_way(given, args.repeats)
     base = cpu["coverage (older path)"]
-    for name, result in last.items():
-        seconds = cpu[name]
-        tests = "/".join(str(result.visibility[side].test) for side in ("reference", "scan"))
-        iou, missed, false = scores(result, scene)
+    for name, way in figures_per_way(cpu, last, scene).items():
         print(
-            f"{name:<22} CPU {seconds:6.1f} s (x{seconds / base:.3f} of the older path)  "
-            f"localise wall {result.timings['localise']:5.1f} s  tests {tests:<13} "
-            f"IoU {iou:.3f} (missed {missed}, false {false})  regions {len(result.regions)}"
+            f"{name:<22} CPU {way.seconds:6.1f} s (x{way.seconds / base:.3f} of the older path)  "
+            f"localise wall {way.result.timings['localise']:5.1f} s  tests {way.tests:<13} "
+            f"IoU {way.iou:.3f} (missed {way.missed}, false {way.false})  "
+            f"regions {len(way.result.regions)}"
         )
     print(f"load {os.getloadavg()[0]:.1f}")
 

@@ -16,7 +16,7 @@ run, so a busy shared machine slows both sides alike:
 * **Ingest**: a 1M-point binary PLY, binary PCD and LAZ through
   ``app.core.formats.read_point_cloud`` against ``numpy.fromfile`` of the same bytes.
 * **Service**: upload-to-``succeeded`` latency of a 100k-point scan through the real service
-  (``tests.helpers.service.ServiceProcess``), and ``GET /api/v1/jobs/{id}`` against
+  (``app.testing.service.ServiceProcess``), and ``GET /api/v1/jobs/{id}`` against
   ``GET /api/v1/health`` with 32 concurrent clients (requests per second, p99).
 
 Each pipeline, floor and M3C2 configuration runs in a fresh subprocess of this script

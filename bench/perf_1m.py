@@ -47,7 +47,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.datasets.lidar import LAYOUTS, LidarPair, lidar_pair, steps_for_points
-from bench.perf_round2 import best, format_met, format_number, run_command, run_floor, write_pair
+from bench.perf_round2 import (
+    best,
+    format_met,
+    format_number,
+    run_command,
+    run_floor,
+    runs_cells,
+    stage_lines,
+    write_pair,
+)
 from bench.perf_workers import write_binary_ply
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
@@ -215,15 +224,9 @@ def render(rows: list[dict[str, Any]], measured: list[dict[str, Any]], loads: li
             f"{format_number(row['floor_seconds'])} | {format_number(row['ratio'])}x "
             f"{format_met(row['ratio_met'])} | {format_number(row['peak_rss_mb'], 0)} "
             f"{format_met(row['rss_met'])} | {format_number(row['cpu_seconds'])} | "
-            f"{format_number(row['cpu_ratio'])}x | "
-            f"{' / '.join(str(s) for s in row['all_seconds'] or [])} | "
-            f"{' / '.join(str(s) for s in row['floor_all_seconds'] or [])} |"
+            f"{format_number(row['cpu_ratio'])}x | {runs_cells(row)}"
         )
-    lines += ["", "Stage seconds of the fastest run (the command's own `timings`):", ""]
-    for row in rows:
-        if row.get("timings"):
-            stages = ", ".join(f"{k} {v:.2f}" for k, v in row["timings"].items())
-            lines.append(f"- {row['pair']}, {row['configuration']}: {stages}")
+    lines += stage_lines(rows, lambda row: row["pair"])
     for size in measured:
         same = size["labels_identical_to_baseline"]
         if same is not None:

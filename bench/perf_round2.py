@@ -39,6 +39,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -243,6 +244,23 @@ def format_number(value: float | None, digits: int = 2) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
+def runs_cells(row: dict) -> str:
+    """The last two cells of a table row: every run's seconds, every floor run's seconds."""
+    runs = " / ".join(str(seconds) for seconds in row["all_seconds"] or [])
+    floor_runs = " / ".join(str(seconds) for seconds in row["floor_all_seconds"] or [])
+    return f"{runs} | {floor_runs} |"
+
+
+def stage_lines(rows: list[dict], label: Callable[[dict], str]) -> list[str]:
+    """The paragraph of stage seconds of each row's fastest run, its rows named by ``label``."""
+    lines = ["", "Stage seconds of the fastest run (the command's own `timings`):", ""]
+    for row in rows:
+        if row.get("timings"):
+            stages = ", ".join(f"{k} {v:.2f}" for k, v in row["timings"].items())
+            lines.append(f"- {label(row)}, {row['configuration']}: {stages}")
+    return lines
+
+
 def format_met(value: bool | None) -> str:
     return "-" if value is None else ("met" if value else "NOT met")
 
@@ -290,15 +308,9 @@ def render(rows: list[dict[str, Any]], service: dict[str, Any], loads: list[tupl
             f"{ratio_target} | "
             f"{format_number(row['peak_rss_mb'], 0)} | {rss} | "
             f"{format_number(row['cpu_seconds'])} | "
-            f"{format_number(row['floor_cpu_seconds'])} | {_cpu_ratio(row)} | "
-            f"{' / '.join(str(s) for s in row['all_seconds'] or [])} | "
-            f"{' / '.join(str(s) for s in row['floor_all_seconds'] or [])} |"
+            f"{format_number(row['floor_cpu_seconds'])} | {_cpu_ratio(row)} | {runs_cells(row)}"
         )
-    lines += ["", "Stage seconds of the fastest run (the command's own `timings`):", ""]
-    for row in rows:
-        if row.get("timings"):
-            stages = ", ".join(f"{k} {v:.2f}" for k, v in row["timings"].items())
-            lines.append(f"- {row['points']:,}, {row['configuration']}: {stages}")
+    lines += stage_lines(rows, lambda row: f"{row['points']:,}")
     lines.append("")
     if service:
         if "error" in service:

@@ -1,6 +1,6 @@
 """Throughput that scales with pinned workers (issue 17, item 3): jobs per minute and latency.
 
-Runs the scaled-out shape of ``tests/helpers/topology.py`` (PostgreSQL, a private Redis, one
+Runs the scaled-out shape of ``app/testing/topology.py`` (PostgreSQL, a private Redis, one
 API process, N ``python -m app.jobs.consumer --workers 1`` processes on one data directory) three
 times, each on 100k-point pairs (a ray-cast room with an added box, the default GMM detector):
 
@@ -20,7 +20,7 @@ the start of the upload to ``finished_at`` (queue wait included), p50/p95/p99 ov
 Printed: one line per configuration, then the ratios against the 1- and 2-worker runs of the
 same invocation with the targets (2 pinned workers >= 1.7x one; 4 workers lose <= 10 % against
 2).  ``--json`` writes everything.  Needs PostgreSQL on 127.0.0.1:5432 and ``redis-server``
-(see ``tests/helpers/topology.py``), and 2 cores::
+(see ``app/testing/topology.py``), and 2 cores::
 
     .venv/bin/python -m bench.perf_scaling --duration 180
 """
@@ -40,19 +40,19 @@ from typing import Any
 import numpy as np
 
 from app.core.datasets.scenes import raycast_scene
-from bench.perf_service import (
-    create_site_with_reference,
-    processes_cpu_seconds,
-    upload_scan,
-)
-from bench.perf_workers import SCENE_SEED, write_binary_ply
-from tests.helpers.topology import (
+from app.testing.topology import (
     POSTGRES_ADMIN_URL,
     REDIS_SERVER,
     Topology,
     postgres_reachable,
     scaled_out,
 )
+from bench.perf_service import (
+    create_site_with_reference,
+    processes_cpu_seconds,
+    upload_scan,
+)
+from bench.perf_workers import SCENE_SEED, write_binary_ply
 
 POINTS = 100_000
 POLL_SECONDS = 0.2

@@ -33,8 +33,8 @@ import httpx
 import numpy as np
 
 from app.core.datasets.scenes import raycast_scene
+from app.testing.service import ServiceProcess
 from bench.perf_workers import SCENE_SEED, write_binary_ply
-from tests.helpers.service import ServiceProcess
 
 SERVICE_POINTS = 100_000
 CONCURRENT_CLIENTS = 32

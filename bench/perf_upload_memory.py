@@ -1,6 +1,6 @@
 """Memory of the API process while it receives and checks a large text or ``.npy`` upload.
 
-Starts the real ``scandiff serve`` (tests/helpers/service.py), creates a site and uploads, as
+Starts the real ``scandiff serve`` (app/testing/service.py), creates a site and uploads, as
 its reference, a large XYZ text file and a large ``.npy`` file streamed from disk.  For each,
 the API child's (``python -m app.cli.serve --child api``) peak resident memory is read from
 ``/proc/<pid>/status`` (``VmHWM``, the kernel's high-water mark, reset before each upload:
@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from tests.helpers.service import ServiceProcess, process_group_members
+from app.testing.service import ServiceProcess, process_group_members
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 

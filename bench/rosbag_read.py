@@ -3,7 +3,7 @@
     .venv/bin/python -m bench.rosbag_read                       # 60 sweeps of 5,760 points
     .venv/bin/python -m bench.rosbag_read --sweeps 60 --azimuth-step 0.5 --storage mcap
 
-Writes a bag (``tests/helpers/bags.py``: a 16-ring lidar on a robot driving through a box room,
+Writes a bag (``app/testing/bags.py``: a 16-ring lidar on a robot driving through a box room,
 poses on ``/tf``) in a temporary directory, then reads it ``--repeat`` times and prints the bag
 size, raw points, map points, the median wall time, raw points per second and the peak memory
 tracemalloc saw during one read (numpy buffers included). The map is voxel-thinned a chunk of
@@ -20,7 +20,7 @@ import tracemalloc
 from pathlib import Path
 
 from app.core.formats import BagOptions, read_point_cloud
-from tests.helpers.bags import write_lidar_bag
+from app.testing.bags import write_lidar_bag
 
 
 def main() -> None:

@@ -22,6 +22,7 @@ import argparse
 import dataclasses
 import os
 import time
+from typing import Any
 
 import numpy as np
 
@@ -124,6 +125,29 @@ def cpu_per_way(given: dict[str, dict], repeats: int) -> tuple[dict[str, float],
     return {name: float(np.median(seconds)) for name, seconds in cpu.items()}, last
 
 
+@dataclasses.dataclass(frozen=True)
+class WayFigures:
+    """One way's figures: median CPU seconds, last result, visibility tests run, scores."""
+
+    seconds: float
+    result: Any
+    tests: str
+    iou: float
+    missed: int
+    false: int
+
+
+def figures_per_way(
+    cpu: dict[str, float], last: dict[str, Any], truth: dict
+) -> dict[str, WayFigures]:
+    """The figures of each way of :func:`cpu_per_way` against ``truth`` (see :func:`scores`)."""
+    figures = {}
+    for name, result in last.items():
+        tests = "/".join(str(result.visibility[side].test) for side in ("reference", "scan"))
+        figures[name] = WayFigures(cpu[name], result, tests, *scores(result, truth))
+    return figures
+
+
 def ways(scene: dict) -> dict[str, tuple[PointCloud, PointCloud]]:
     """The three ways the pair is given."""
     untimed = {
@@ -160,15 +184,13 @@ def main() -> None:
     }
     cpu, last = cpu_per_way(given, args.repeats)
     base = cpu["default"]
-    for name, result in last.items():
-        seconds = cpu[name]
-        tests = "/".join(str(result.visibility[side].test) for side in ("reference", "scan"))
-        iou, missed, false = scores(result, scene)
+    for name, way in figures_per_way(cpu, last, scene).items():
+        timings = way.result.timings
         print(
-            f"{name:<21} CPU {seconds:6.1f} s (adds {100 * (seconds / base - 1):+5.1f} %)  "
-            f"wall: origins {result.timings.get('origins', 0):5.1f} s, localise "
-            f"{result.timings['localise']:5.1f} s  tests {tests:<21} IoU {iou:.3f} (missed "
-            f"{missed}, false {false})  regions {len(result.regions)}"
+            f"{name:<21} CPU {way.seconds:6.1f} s (adds {100 * (way.seconds / base - 1):+5.1f} %)  "
+            f"wall: origins {timings.get('origins', 0):5.1f} s, localise "
+            f"{timings['localise']:5.1f} s  tests {way.tests:<21} IoU {way.iou:.3f} (missed "
+            f"{way.missed}, false {way.false})  regions {len(way.result.regions)}"
         )
     print(f"load {os.getloadavg()[0]:.1f}")
 

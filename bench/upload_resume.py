@@ -1,6 +1,6 @@
 """A resumable (tus) upload of a large scan, cut at 80 % and resumed by a new client.
 
-Starts the real ``scandiff serve`` (tests/helpers/service.py) on a fresh data directory, writes
+Starts the real ``scandiff serve`` (app/testing/service.py) on a fresh data directory, writes
 a binary PLY of about ``--megabytes`` MB (float32 x, y, z), and uploads it as a site's reference
 through ``/api/v1/uploads`` with the maintained ``tuspy`` client in ``--chunk-megabytes``
 chunks, each with its SHA-256 ``Upload-Checksum`` and the whole file's SHA-256 in the metadata.
@@ -25,7 +25,7 @@ import numpy as np
 from tusclient.client import TusClient
 from tusclient.uploader import Uploader
 
-from tests.helpers.service import ServiceProcess
+from app.testing.service import ServiceProcess
 
 WRITE_POINTS = 1_000_000
 """Points generated and written at a time."""

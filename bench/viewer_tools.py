@@ -18,12 +18,10 @@ from collections.abc import Callable
 
 import numpy as np
 
-from app.core.cloud import PointCloud
 from app.core.datasets.scenes import raycast_scene
-from app.core.pipeline import compare
+from app.testing.viewer_scenes import compare_with_origins, scene_of
 from app.viewer.regions_display import relabel
 from app.viewer.rendering import ViewState, pick_point, render_layers
-from app.viewer.scene import build_scene_data
 
 
 def best_of(repeat: int, action: Callable[[], object]) -> float:
@@ -43,22 +41,9 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3)
     arguments = parser.parse_args()
     pair = raycast_scene(n_points=arguments.points, change="mixed", random_state=1)
-    result = compare(
-        PointCloud.from_array(pair.reference, sensor_origin=pair.reference_origin),
-        PointCloud.from_array(pair.scan, sensor_origin=pair.scan_origin),
-    )
+    result = compare_with_origins(pair)
     start = time.perf_counter()
-    data = build_scene_data(
-        pair.reference,
-        pair.scan,
-        reference_labels=result.reference_label,
-        scan_labels=result.scan_label,
-        reference_distances=result.reference_distance,
-        scan_distances=result.scan_distance,
-        transform=result.registration.transform,
-        regions=result.to_json_dict()["regions"],
-        min_region_points=result.localisation["min_region_points"],
-    )
+    data = scene_of(pair, result)
     build = (time.perf_counter() - start) * 1000.0
     pool = sum(len(p.indices) for p in data.pools.values())
     print(f"scene: {data.n_total:,} points, {len(data.regions)} regions, pool {pool:,} points")

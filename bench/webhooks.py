@@ -3,7 +3,7 @@
     .venv/bin/python -m bench.webhooks --events 300 --senders 1 2 4
 
 On a fresh, migrated SQLite file in a temporary directory: one organisation with one webhook
-to a local receiver (:class:`tests.helpers.webhooks.WebhookReceiver`, which checks every
+to a local receiver (:class:`app.testing.webhooks.WebhookReceiver`, which checks every
 signature with the snippet of docs/webhooks.md).  For each ``--senders`` count it publishes
 ``--events`` events (one transaction each, as a finishing job does) and times it, then times
 that many threads running :func:`app.jobs.alerts.deliveries.deliver_due` until every delivery is
@@ -23,10 +23,9 @@ from pathlib import Path
 from app.config import Settings
 from app.db.events import publish_event
 from app.db.migrate import upgrade_to_head
-from app.db.models import Organisation, Webhook
 from app.db.session import transaction
 from app.jobs.alerts.deliveries import deliver_due
-from tests.helpers.webhooks import WEBHOOK_SETTINGS, WebhookReceiver
+from app.testing.webhooks import WEBHOOK_SETTINGS, WebhookReceiver, organisation_with_webhook
 
 
 def run(events: int, senders: int) -> tuple[float, float, bool]:
@@ -37,18 +36,9 @@ def run(events: int, senders: int) -> tuple[float, float, bool]:
         with WebhookReceiver() as receiver:
             receiver.secret = "whsec_bench"
             with transaction(settings.sqlalchemy_url) as session:
-                organisation = Organisation(name="bench")
-                session.add(organisation)
-                session.flush()
-                session.add(
-                    Webhook(
-                        organisation_id=organisation.id,
-                        url=receiver.url,
-                        events=["schedule.missed"],
-                        secret=receiver.secret,
-                    )
+                organisation_id = organisation_with_webhook(
+                    session, "bench", receiver.url, receiver.secret, ["schedule.missed"]
                 )
-                organisation_id = organisation.id
             started = time.perf_counter()
             for number in range(events):
                 with transaction(settings.sqlalchemy_url) as session:

@@ -18,8 +18,8 @@ import yaml
 
 from app.config import Settings
 from app.db.migrate import upgrade_to_head
-from tests.helpers.environment import PROJECT_ROOT
-from tests.helpers.network import free_port
+from app.testing.network import free_port
+from app.testing.paths import PROJECT_ROOT
 from tests.helpers.server import running_api
 
 DOCKERFILE = PROJECT_ROOT / "Dockerfile"

@@ -29,7 +29,7 @@ import pytest
 from app.cli import build_parser
 from app.config import Settings
 from app.main import create_app
-from tests.helpers.environment import PROJECT_ROOT
+from app.testing.paths import PROJECT_ROOT
 
 DOCUMENTS = [*sorted((PROJECT_ROOT / "docs").glob("*.md")), PROJECT_ROOT / "README.md"]
 CODE_PATH = re.compile(

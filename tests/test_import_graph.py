@@ -6,7 +6,8 @@ Every ``import`` in ``app/`` counts, at module level, inside functions and under
 
 ``app.core`` < ``app.clock``, ``app.config``, ``app.log``, ``app.kit`` < ``app.db`` <
 ``app.jobs`` < ``app.services`` < ``app.viewer`` < ``app.api`` < ``app.main`` < ``app.cli``,
-``app.__main__``.
+``app.__main__`` < ``app.testing`` (the test and benchmark harness: nothing else in ``app``
+imports it).
 
 No function body in ``app/`` is longer than :data:`MAX_FUNCTION_LINES` lines (its docstring
 excluded), but those of :data:`LONG_FUNCTIONS_ALLOWED`, which are being split.
@@ -14,7 +15,8 @@ excluded), but those of :data:`LONG_FUNCTIONS_ALLOWED`, which are being split.
 The core is numeric code only: besides the layers, it imports none of the standard library's
 network, mail, TLS or signing modules (:data:`FORBIDDEN_IN_CORE`; they belong in ``app.kit``).
 The core's own, stricter wall (no web or database library at all) is
-``tests/core/test_import_wall.py``.
+``tests/core/test_import_wall.py``.  The harness ``app.testing`` imports neither a test framework
+nor the test suite (:data:`FORBIDDEN_IN_HARNESS`): benchmarks run it without pytest.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("app.api",),
     ("app.main",),
     ("app.cli", "app.__main__"),
+    ("app.testing",),
 )
 """Lowest first; a module may import from its own layer and the layers before it."""
 
@@ -51,6 +54,9 @@ longer long fails the test, so the set cannot go stale."""
 
 FORBIDDEN_IN_CORE = ("socket", "http", "smtplib", "urllib", "email", "ssl", "hmac")
 """Standard-library packages ``app.core`` must not import (sockets, HTTP, mail, TLS, signing)."""
+
+FORBIDDEN_IN_HARNESS = ("pytest", "_pytest", "tests")
+"""Packages ``app.testing`` must not import: the test framework and the test suite."""
 
 
 def module_name(path: Path, root: Path) -> str:
@@ -104,10 +110,10 @@ def import_graph(root: Path) -> dict[str, set[str]]:
     return {name: imported_app_modules(name, path, known) for name, path in modules.items()}
 
 
-def forbidden_core_imports(root: Path) -> list[str]:
-    """Every import of :data:`FORBIDDEN_IN_CORE` under ``root/core``, as ``'module -> name'``."""
+def forbidden_imports(root: Path, package: str, forbidden: tuple[str, ...]) -> list[str]:
+    """Every import of a ``forbidden`` package under ``root/package``, as ``'module -> name'``."""
     found = []
-    for path in sorted((root / "core").rglob("*.py")):
+    for path in sorted((root / package).rglob("*.py")):
         name = module_name(path, root)
         for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
             if isinstance(node, ast.Import):
@@ -117,11 +123,14 @@ def forbidden_core_imports(root: Path) -> list[str]:
             else:
                 continue
             found.extend(
-                f"{name} -> {module}"
-                for module in imported
-                if module.split(".")[0] in FORBIDDEN_IN_CORE
+                f"{name} -> {module}" for module in imported if module.split(".")[0] in forbidden
             )
     return sorted(found)
+
+
+def forbidden_core_imports(root: Path) -> list[str]:
+    """Every import of :data:`FORBIDDEN_IN_CORE` under ``root/core``, as ``'module -> name'``."""
+    return forbidden_imports(root, "core", FORBIDDEN_IN_CORE)
 
 
 def body_length(function: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
@@ -229,6 +238,10 @@ def test_the_core_imports_no_network_mail_or_signing_module():
     assert forbidden_core_imports(APP) == []
 
 
+def test_the_harness_imports_no_test_framework_and_no_test_module():
+    assert forbidden_imports(APP, "testing", FORBIDDEN_IN_HARNESS) == []
+
+
 def test_no_module_of_app_is_longer_than_the_limit():
     too_long = {
         str(path.relative_to(APP.parent)): lines
@@ -254,7 +267,7 @@ def test_no_function_body_of_app_is_longer_than_the_limit():
 @pytest.fixture
 def broken_tree(tmp_path: Path) -> Path:
     root = tmp_path / "app"
-    for package in ("", "core", "kit", "db", "api"):
+    for package in ("", "core", "kit", "db", "api", "testing"):
         (root / package).mkdir(parents=True, exist_ok=True)
         (root / package / "__init__.py").write_text("")
     (root / "core" / "numbers.py").write_text("def f():\n    from app.db import models\n")
@@ -265,6 +278,9 @@ def broken_tree(tmp_path: Path) -> Path:
         "import hmac\nimport http.client\n\n\ndef send():\n    import smtplib, socket\n"
         "    from urllib.parse import urlsplit\n    from email.message import EmailMessage\n"
         "    from ssl import create_default_context\n    from app.kit import net\n"
+    )
+    (root / "testing" / "service.py").write_text(
+        "import pytest\n\n\ndef start():\n    from tests.helpers.environment import require\n"
     )
     (root / "kit" / "net.py").write_text(
         "from app.core import numbers\nfrom app.db import models\n"
@@ -303,6 +319,13 @@ def test_the_core_wall_finds_network_mail_and_signing_imports(broken_tree: Path)
         "app.core.alerts -> socket",
         "app.core.alerts -> ssl",
         "app.core.alerts -> urllib.parse",
+    ]
+
+
+def test_the_harness_check_finds_test_framework_and_test_suite_imports(broken_tree: Path):
+    assert forbidden_imports(broken_tree, "testing", FORBIDDEN_IN_HARNESS) == [
+        "app.testing.service -> pytest",
+        "app.testing.service -> tests.helpers.environment",
     ]
 
 

@@ -48,7 +48,7 @@ def offending_imports(source: str) -> list[str]:
 @pytest.mark.parametrize(
     ("source", "offends"),
     [
-        ("from tests.helpers.files import ply_bytes", False),
+        ("from tests.helpers.http import unique_name", False),
         ("from tests.helpers import fake_pipeline", False),
         ("import numpy as np", False),
         ("from tests.api.conftest import upload", True),

@@ -7,14 +7,20 @@ the benchmarks per configuration); without it, every CPU the process may run on.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
+from typing import TypeVar
 
 __all__ = [
     "OPENMP_WAIT_POLICY",
     "available_threads",
     "configured_threads",
+    "for_each_chunk",
     "prefer_passive_openmp_waits",
     "usable_cpus",
 ]
+
+Rows = TypeVar("Rows")
 
 OPENMP_WAIT_POLICY = "PASSIVE"
 """What ``OMP_WAIT_POLICY`` defaults to in a process that imports the core (see below)."""
@@ -53,3 +59,23 @@ def available_threads() -> int:
     """Threads a stage may keep busy: ``OMP_NUM_THREADS`` if set, else :func:`usable_cpus`."""
     configured = configured_threads()
     return configured if configured is not None else usable_cpus()
+
+
+def for_each_chunk(work: Callable[[Rows], object], chunks: Iterable[Rows], threads: int) -> None:
+    """Call ``work(rows)`` for every chunk of one pass, on up to ``threads`` threads.
+
+    numpy releases the GIL in its array loops (gathers, ufuncs, ``einsum``), so the chunks of a
+    pass over a cloud overlap on two cores; each ``work`` call must write only its own rows, so
+    the result is the same on any number of threads.  The first exception of a chunk is raised
+    here once the chunks running with it have finished (the others are not started).
+    """
+    if threads < 2:
+        for rows in chunks:
+            work(rows)
+        return
+    pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="chunks")
+    try:
+        for done in [pool.submit(work, rows) for rows in chunks]:
+            done.result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)

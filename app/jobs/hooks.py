@@ -5,7 +5,7 @@ A job run asks :data:`job_hooks` for three things, and nothing else in ``app`` k
 * :meth:`JobHooks.comparison`: the function that compares two clouds.  It is
   :func:`app.core.tiling.compare.compare_within_budget` (:func:`app.core.pipeline.compare`,
   in tiles when the pair does not fit the worker's memory budget) unless a test set
-  :attr:`JobHooks.compare` to a stand-in (``tests/helpers/fake_pipeline.py`` installs a
+  :attr:`JobHooks.compare` to a stand-in (``app/testing/fake_pipeline.py`` installs a
   fast, deterministic one, in-process or in a consumer it starts);
 * :meth:`JobHooks.inject_faults`: faults described by the JSON object in env
   ``SCANDIFF_TEST_JOB_HOOKS`` (an environment variable, so that it reaches the workers of a

@@ -111,6 +111,21 @@ def claim(
     return record, None
 
 
+def claim_request(
+    session: Session,
+    principal: Principal,
+    idempotency_key: str | None,
+    path: str,
+    parameters: dict[str, Any],
+) -> tuple[IdempotencyRecord | None, StoredResponse | None]:
+    """Check and claim the key of ``POST path`` with these ``parameters``: ``(None, None)``
+    without a key, else :func:`claim`'s ``(record, None)`` or ``(None, stored)``."""
+    key = validate_key(idempotency_key)
+    if key is None:
+        return None, None
+    return claim(session, principal, key, request_fingerprint("POST", path, parameters))
+
+
 def remember(record: IdempotencyRecord | None, response: StoredResponse) -> StoredResponse:
     """Store ``response`` on a claimed record (no-op without a key); returns ``response``."""
     if record is not None:

@@ -82,15 +82,11 @@ def create_job(
     idempotency_key: str | None,
 ) -> StoredResponse:
     """Create a comparison of two scans of one site (202), replaying on a known key."""
-    key = idempotency.validate_key(idempotency_key)
-    record = None
-    if key is not None:
-        fingerprint = idempotency.request_fingerprint(
-            "POST", "/api/v1/jobs", payload.model_dump(mode="json")
-        )
-        record, stored = idempotency.claim(session, principal, key, fingerprint)
-        if stored is not None:
-            return stored
+    record, stored = idempotency.claim_request(
+        session, principal, idempotency_key, "/api/v1/jobs", payload.model_dump(mode="json")
+    )
+    if stored is not None:
+        return stored
     reference = get_owned(session, principal, Scan, payload.reference_scan_id)
     scan = get_owned(session, principal, Scan, payload.scan_id)
     if reference.site_id != scan.site_id:
@@ -144,15 +140,15 @@ def rerun_job(
     idempotency_key: str | None,
 ) -> StoredResponse:
     """Queue a new job on a job's reference and scan, with another detector or parameters."""
-    key = idempotency.validate_key(idempotency_key)
-    record = None
-    if key is not None:
-        fingerprint = idempotency.request_fingerprint(
-            "POST", f"/api/v1/jobs/{job_id}/rerun", payload.model_dump(mode="json")
-        )
-        record, stored = idempotency.claim(session, principal, key, fingerprint)
-        if stored is not None:
-            return stored
+    record, stored = idempotency.claim_request(
+        session,
+        principal,
+        idempotency_key,
+        f"/api/v1/jobs/{job_id}/rerun",
+        payload.model_dump(mode="json"),
+    )
+    if stored is not None:
+        return stored
     original = get_job(session, principal, job_id)
     method = payload.method or original.method
     variant = payload.variant or original.variant

@@ -10,10 +10,10 @@ import pytest
 
 from app.api.logs import JsonFormatter
 from app.config import Settings
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points as make_points
 from tests.helpers.http import assert_error, create_site, site_with_reference, unique_name, upload
 from tests.helpers.jobs import finish_job
-from tests.helpers.scenes import room_points as make_points
 from tests.helpers.server import ApiServer
 
 

@@ -8,11 +8,11 @@ import hashlib
 import numpy as np
 import pytest
 
+from app.testing.files import las_bytes
+from app.testing.scenes import room_points
 from tests.helpers.copc import copc_bytes, with_point_count
-from tests.helpers.files import las_bytes
 from tests.helpers.http import assert_error, create_site, upload
 from tests.helpers.resumable import new_upload, patch
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
 
 

@@ -13,11 +13,11 @@ from app.clock import utc_now
 from app.core.formats import SUPPORTED_FORMATS
 from app.db.models import Job, JobStatus, ReferenceHistory
 from app.db.session import transaction
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
 from tests.helpers.database import count_rows, counted_selects
-from tests.helpers.files import ply_bytes
 from tests.helpers.http import assert_error, create_site, site_with_reference, upload
 from tests.helpers.jobs import finish_job, random_regions
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
 
 

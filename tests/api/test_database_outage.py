@@ -25,13 +25,13 @@ from sqlalchemy.exc import OperationalError
 
 from app.config import Settings
 from app.db.session import DatabaseUnavailableError, get_engine
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
+from app.testing.waiting import wait_until
 from tests.helpers.environment import require
-from tests.helpers.files import ply_bytes
 from tests.helpers.http import assert_error, site_with_reference, upload
 from tests.helpers.proxy import TcpProxy
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer, running_api
-from tests.helpers.waiting import wait_until
 
 POSTGRES_URL_ENV = "SCANDIFF_TEST_POSTGRES_URL"
 DEFAULT_SERVER = "postgresql://postgres@127.0.0.1:5432/postgres"

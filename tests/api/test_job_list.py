@@ -11,10 +11,10 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
 from tests.helpers.http import assert_error, site_with_reference, upload
 from tests.helpers.jobs import finish_job
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
 
 N_SCAN = 1500

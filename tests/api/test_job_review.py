@@ -10,11 +10,11 @@ from app.core.pipeline import RegionSummary
 from app.core.quality import LOW_FITNESS
 from app.jobs.alerts.site_history import HISTORY_MIN_JOBS, REGION_COUNT_MIN_EXCESS
 from app.jobs.leases import claim_job, fail_job, make_lease_owner, release_job
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
+from app.testing.results import calibration_report, registration_report, sensor_origin_entries
+from app.testing.scenes import room_points
 from tests.helpers.http import assert_error, create_site, site_with_reference, upload
 from tests.helpers.jobs import finish_job
-from tests.helpers.results import calibration_report, registration_report, sensor_origin_entries
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
 
 N_POINTS = 2000

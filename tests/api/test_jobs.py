@@ -15,11 +15,11 @@ from plyfile import PlyData
 
 from app.clock import utc_now
 from app.db.models import IdempotencyRecord, Job, JobStatus, Scan
+from app.testing.files import las_bytes, pcd_bytes, ply_bytes
+from app.testing.scenes import room_points as make_points
 from tests.helpers.database import count_rows as count
-from tests.helpers.files import las_bytes, pcd_bytes, ply_bytes
 from tests.helpers.http import assert_error, site_with_reference, unique_name, upload
 from tests.helpers.jobs import finish_job
-from tests.helpers.scenes import room_points as make_points
 from tests.helpers.server import ApiServer
 
 

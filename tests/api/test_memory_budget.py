@@ -9,10 +9,10 @@ import pytest
 
 from app.core.tiling.plan import BASELINE_BYTES, RESIDENT_BYTES_PER_POINT
 from app.db.models import Job, Scan
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
 from tests.helpers.database import count_rows as count
-from tests.helpers.files import ply_bytes
 from tests.helpers.http import assert_error, site_with_reference, upload
-from tests.helpers.scenes import room_points
 from tests.helpers.server import MAX_UPLOAD_BYTES, ApiServer, fresh_api
 
 SCAN_POINTS = 2000

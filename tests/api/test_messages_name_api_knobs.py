@@ -10,11 +10,11 @@ import httpx
 import pytest
 
 from app.core.quality import LOW_FITNESS
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
+from app.testing.results import registration_report, sensor_origin_entries
+from app.testing.scenes import room_points
 from tests.helpers.http import site_with_reference, upload
 from tests.helpers.jobs import finish_job
-from tests.helpers.results import registration_report, sensor_origin_entries
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer, fresh_api
 
 N_POINTS = 2000

@@ -26,8 +26,11 @@ from app.config import Settings
 from app.db.models import Job, JobStatus, Organisation
 from app.db.session import transaction
 from app.services.metrics import DURATION_BUCKETS_SECONDS, QUERIES_PER_SCRAPE
+from app.testing.files import ply_bytes
+from app.testing.network import free_port
+from app.testing.scenes import room_points
+from app.testing.service import api_process
 from tests.helpers.database import counted_selects
-from tests.helpers.files import ply_bytes
 from tests.helpers.http import (
     assert_error,
     create_site,
@@ -35,10 +38,7 @@ from tests.helpers.http import (
     unique_name,
     upload,
 )
-from tests.helpers.network import free_port
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer, running_api
-from tests.helpers.service import api_process
 
 Samples = dict[tuple[str, frozenset[tuple[str, str]]], float]
 

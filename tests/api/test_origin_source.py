@@ -13,9 +13,9 @@ import httpx
 import numpy as np
 
 from app.jobs.execution import execute_job, given_at_upload_only
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
 from tests.helpers.http import site_with_reference, upload_accepted
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
 
 

@@ -18,10 +18,10 @@ from sqlalchemy import select, update
 from app.db.models import Job, JobStatus, Scan
 from app.db.session import transaction
 from app.services.quotas import RETRY_AFTER_SECONDS
+from app.testing.files import chunked, ply_bytes, ply_of_size
+from app.testing.scenes import room_points as make_points
 from tests.helpers.database import count_rows
-from tests.helpers.files import chunked, ply_bytes, ply_of_size
 from tests.helpers.http import assert_error, create_site, unique_name, upload
-from tests.helpers.scenes import room_points as make_points
 from tests.helpers.server import MAX_UPLOAD_BYTES, ApiServer, fresh_api, running_api
 
 MAX_QUEUED_JOBS = 3

@@ -8,9 +8,9 @@ from collections.abc import Callable
 import numpy as np
 
 from app.db.models import JobStatus
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
+from app.testing.service import ServiceProcess
 from tests.helpers.fused_rooms import CHAIR, fused_room
-from tests.helpers.service import ServiceProcess
 
 
 def test_regions_carry_evidence_and_uncovered_places_are_listed_apart(

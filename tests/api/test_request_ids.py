@@ -23,11 +23,11 @@ from app.db.migrate import upgrade_to_head
 from app.db.session import transaction
 from app.log import bind_request_id, make_handler, remember_job_request_id
 from app.services.auth import create_token
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
+from app.testing.service import ConsumerProcess, api_process
 from tests.helpers.http import create_site, site_with_reference, unique_name, upload
 from tests.helpers.jobs import FAST_LEASES, load_job, wait_for_status
-from tests.helpers.scenes import room_points
-from tests.helpers.service import ConsumerProcess, api_process
 
 
 def json_lines(log: str) -> list[dict[str, Any]]:

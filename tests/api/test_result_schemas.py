@@ -8,11 +8,11 @@ import json
 
 import httpx
 
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
+from app.testing.results import calibration_report, registration_report, sensor_origin_entries
+from app.testing.scenes import room_points
 from tests.helpers.http import site_with_reference, upload_accepted
 from tests.helpers.jobs import finish_job, load_job
-from tests.helpers.results import calibration_report, registration_report, sensor_origin_entries
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
 
 DESCRIBED = {

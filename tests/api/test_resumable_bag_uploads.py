@@ -17,7 +17,7 @@ import pytest
 
 from app.core.formats import BagOptions, read_point_cloud
 from app.kit.scan_files import bag_options_path
-from tests.helpers.bags import write_lidar_bag
+from app.testing.bags import write_lidar_bag
 from tests.helpers.http import assert_error, create_site
 from tests.helpers.resumable import TUS, create_upload, new_upload, patch
 from tests.helpers.server import ApiServer

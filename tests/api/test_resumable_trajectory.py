@@ -23,11 +23,11 @@ import pytest
 
 from app.jobs.execution import execute_job
 from app.jobs.hooks import job_hooks
-from tests.api.test_upload_trajectory import GOOD, timed_ply, tum
-from tests.helpers import fake_pipeline
+from app.testing import fake_pipeline
 from tests.helpers.http import assert_error, create_site
 from tests.helpers.resumable import new_upload, patch
 from tests.helpers.server import ApiServer
+from tests.helpers.trajectory_uploads import GOOD, timed_ply, tum
 
 
 def upload_by_tus(

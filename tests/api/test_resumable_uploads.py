@@ -26,7 +26,7 @@ from tusclient.client import TusClient
 from tusclient.exceptions import TusCommunicationError, TusUploadFailed
 from tusclient.uploader import Uploader
 
-from tests.helpers.files import room_ply
+from app.testing.files import room_ply
 from tests.helpers.http import assert_error, create_site, site_with_reference
 from tests.helpers.resumable import (
     TUS,

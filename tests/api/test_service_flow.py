@@ -25,8 +25,8 @@ from app.core.formats import read_point_cloud
 from app.core.jsonable import json_safe
 from app.core.pipeline import compare
 from app.db.models import JobStatus
-from tests.helpers.files import las_bytes, pcd_bytes, ply_bytes
-from tests.helpers.service import ServiceProcess
+from app.testing.files import las_bytes, pcd_bytes, ply_bytes
+from app.testing.service import ServiceProcess
 
 ServiceFactory = Callable[..., ServiceProcess]
 

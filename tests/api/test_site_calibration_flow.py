@@ -13,9 +13,9 @@ import pytest
 
 from app.core.datasets.site import SiteVisit, site_visit
 from app.db.models import JobStatus
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
+from app.testing.service import ServiceProcess
 from tests.helpers.http import create_site, upload
-from tests.helpers.service import ServiceProcess
 
 ServiceFactory = Callable[..., ServiceProcess]
 N_POINTS = 20_000

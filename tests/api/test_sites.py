@@ -7,11 +7,11 @@ from pathlib import Path
 import httpx
 
 from app.db.models import Job, ReferenceHistory, Region, Scan, Site
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points as make_points
 from tests.helpers.database import count_rows
-from tests.helpers.files import ply_bytes
 from tests.helpers.http import assert_error, create_site, site_with_reference, unique_name, upload
 from tests.helpers.jobs import finish_job
-from tests.helpers.scenes import room_points as make_points
 from tests.helpers.server import ApiServer
 
 

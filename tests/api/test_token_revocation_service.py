@@ -21,9 +21,9 @@ from app.config import Settings
 from app.db.models import ApiToken
 from app.db.session import transaction
 from app.services.auth import TOKEN_CACHE_SECONDS, create_token, hash_token
-from tests.helpers.environment import PROJECT_ROOT
+from app.testing.paths import PROJECT_ROOT
+from app.testing.service import ServiceProcess
 from tests.helpers.http import unique_name
-from tests.helpers.service import ServiceProcess
 
 ServiceFactory = Callable[..., ServiceProcess]
 EXPIRY_DEADLINE_SECONDS = 60.0

@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from app.core.formats import BagOptions, read_point_cloud
-from tests.helpers.bags import BOX_HIGH, BOX_LOW, write_lidar_bag
+from app.testing.bags import BOX_HIGH, BOX_LOW, write_lidar_bag
+from app.testing.service import ServiceProcess
 from tests.helpers.http import assert_error, create_site, upload
-from tests.helpers.service import ServiceProcess
 
 
 def stored_files(service: ServiceProcess) -> list[Path]:

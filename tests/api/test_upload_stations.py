@@ -19,9 +19,9 @@ import httpx
 import numpy as np
 import pytest
 
-from tests.helpers.files import e57_bytes, las_bytes, ply_bytes
+from app.testing.files import e57_bytes, las_bytes, ply_bytes
+from app.testing.scenes import room_points
 from tests.helpers.http import assert_error, site_with_reference, upload
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
 
 ORIGINS = [[1.0, 2.0, 1.5], [6.0, 2.5, 1.2], [3.0, 7.0, 1.4]]

@@ -26,34 +26,17 @@ import pytest
 
 from app.jobs.execution import execute_job
 from app.jobs.hooks import job_hooks
-from tests.helpers import fake_pipeline
-from tests.helpers.e57_times import e57_with_times_bytes
-from tests.helpers.files import ply_bytes
+from app.testing import fake_pipeline
+from app.testing.e57_times import e57_with_times_bytes
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
 from tests.helpers.http import assert_error, create_site
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
-
-N_POINTS = 3000
-POINT_TIMES = np.linspace(100.0, 110.0, N_POINTS)
-
-
-def timed_ply(seed: int = 1) -> bytes:
-    return ply_bytes(room_points(N_POINTS, seed), extra={"time": POINT_TIMES})
-
-
-def tum(times: np.ndarray, quaternion: tuple[float, ...] = (0.0, 0.0, 0.0, 1.0)) -> bytes:
-    rows = [
-        f"{time!r} {1.0 + 0.1 * number} 2.0 1.2 " + " ".join(map(repr, quaternion))
-        for number, time in enumerate(map(float, times))
-    ]
-    return ("# timestamp tx ty tz qx qy qz qw\n" + "\n".join(rows)).encode()
+from tests.helpers.trajectory_uploads import GOOD, N_POINTS, POINT_TIMES, timed_ply, tum
 
 
 def kitti(count: int) -> bytes:
     return "\n".join(f"1 0 0 {0.1 * i} 0 1 0 2 0 0 1 1.2" for i in range(count)).encode()
-
-
-GOOD = tum(np.linspace(99.0, 111.0, 25))
 
 
 def send(

@@ -10,9 +10,9 @@ import httpx
 import pytest
 
 from app.db.models import JobStatus
-from tests.helpers.files import las_bytes, pcd_bytes, ply_bytes
+from app.testing.files import las_bytes, pcd_bytes, ply_bytes
+from app.testing.scenes import room_points as make_points
 from tests.helpers.http import assert_error, create_site, site_with_reference, upload
-from tests.helpers.scenes import room_points as make_points
 from tests.helpers.server import MAX_UPLOAD_BYTES, ApiServer
 
 

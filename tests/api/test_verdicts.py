@@ -9,11 +9,11 @@ import pytest
 
 from app.core.pipeline import RegionSummary
 from app.db.models import JobStatus, JobVerdict, ReferenceHistory
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
 from tests.helpers.database import count_rows
-from tests.helpers.files import ply_bytes
 from tests.helpers.http import assert_error, site_with_reference, upload
 from tests.helpers.jobs import finish_job
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
 
 N_SCAN = 2000

@@ -11,11 +11,11 @@ import httpx
 import pytest
 
 from app.db.models import Event, WebhookDelivery
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
 from tests.helpers.database import count_rows
-from tests.helpers.files import ply_bytes
 from tests.helpers.http import assert_error, site_with_reference, unique_name, upload_accepted
 from tests.helpers.jobs import finish_job
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
 
 PUBLIC_URL = "https://93.184.215.14/hooks/scandiff"

@@ -14,8 +14,8 @@ from pydantic import ValidationError
 
 from app.config import Settings
 from app.main import create_app
+from app.testing.paths import PROJECT_ROOT
 from app.viewer.routes import new_viewer_manager
-from tests.helpers.environment import PROJECT_ROOT
 
 
 @pytest.fixture

@@ -21,13 +21,13 @@ from sqlalchemy import update
 from app.clock import utc_now
 from app.db.models import Job, JobStatus, ReferenceHistory
 from app.db.session import transaction
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
 from tests.helpers.browser import by_css, retry, save_screenshot, text_of
 from tests.helpers.browser import wait_for_page as wait_until
 from tests.helpers.database import count_rows
-from tests.helpers.files import ply_bytes
 from tests.helpers.http import create_site, unique_name, upload
 from tests.helpers.jobs import finish_job, random_regions
-from tests.helpers.scenes import room_points
 from tests.helpers.server import MAX_UPLOAD_BYTES, ApiServer, fresh_api
 
 pytestmark = pytest.mark.timeout(240)

@@ -20,12 +20,12 @@ import pytest
 from app.clock import utc_now
 from app.db.models import DeliveryStatus, Event, Webhook, WebhookDelivery
 from app.db.session import transaction
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
 from tests.helpers.browser import by_css, save_screenshot, text_of
 from tests.helpers.browser import wait_for_page as wait_until
-from tests.helpers.files import ply_bytes
 from tests.helpers.http import create_site, unique_name, upload
 from tests.helpers.jobs import finish_job, random_regions
-from tests.helpers.scenes import room_points
 from tests.helpers.server import MAX_UPLOAD_BYTES, ApiServer, fresh_api
 
 pytestmark = pytest.mark.timeout(240)

@@ -11,10 +11,10 @@ from sqlalchemy import update
 
 from app.db.models import Job, JobStatus, JobTile, TileStatus
 from app.db.session import transaction
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
 from tests.helpers.browser import by_css, wait_for_page
-from tests.helpers.files import ply_bytes
 from tests.helpers.http import create_site, unique_name, upload
-from tests.helpers.scenes import room_points
 from tests.helpers.server import MAX_UPLOAD_BYTES, ApiServer, fresh_api
 
 pytestmark = pytest.mark.timeout(240)

@@ -15,10 +15,10 @@ from typing import Any
 import pytest
 
 from app.core.datasets.site import SiteVisit, site_visit
+from app.testing.files import ply_bytes
 from tests.helpers.browser import ReviewService, save_screenshot
 from tests.helpers.browser import by_css as visible
 from tests.helpers.browser import wait_for_page as wait_until
-from tests.helpers.files import ply_bytes
 from tests.helpers.http import upload
 
 pytestmark = pytest.mark.timeout(300)

@@ -26,17 +26,17 @@ from app.config import Settings
 from app.db.migrate import upgrade_to_head
 from app.db.models import Scan
 from app.db.session import transaction
+from app.testing.service import ApiProcess
+from app.testing.waiting import wait_until
 from app.viewer.access import VIEW_COOKIE
 from tests.helpers.jobs import create_job, finish_job, load_job
 from tests.helpers.server import ApiServer
-from tests.helpers.service import ApiProcess
 from tests.helpers.viser_wire import (
     VISER_SUBPROTOCOL,
     camera_message,
     point_clouds,
     receive_messages,
 )
-from tests.helpers.waiting import wait_until
 
 pytestmark = pytest.mark.timeout(240)
 

@@ -32,6 +32,8 @@ from app.core.registration import apply_transform
 from app.db.migrate import upgrade_to_head
 from app.db.models import Scan
 from app.db.session import transaction
+from app.testing.files import las_bytes, ply_bytes
+from app.testing.waiting import wait_until
 from app.viewer import large_scene
 from app.viewer.large_scene import SceneContext, StoredSide, box_scene, budget_scene
 from app.viewer.loading import ViewUnavailableError, load_job_box, load_job_scene
@@ -39,11 +41,9 @@ from app.viewer.manager import ViewerManager
 from app.viewer.scene import CHANGED_SHARE_OF_BUDGET, build_scene_data
 from app.viewer.stored_results import stored_distances, stored_labels
 from app.viewer.viser_guard import VIEW_SECRET_HEADER
-from tests.helpers.files import las_bytes, ply_bytes
 from tests.helpers.jobs import create_job, finish_job, load_job
 from tests.helpers.server import ApiServer
 from tests.helpers.viser_wire import VISER_SUBPROTOCOL, camera_message, receive_messages
-from tests.helpers.waiting import wait_until
 
 N_POINTS = 20_000
 CHANGE_LOW = np.array([2.0, 2.0, 0.0])

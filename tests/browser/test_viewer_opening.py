@@ -15,6 +15,8 @@ import pytest
 
 from app.core.datasets.lidar import lidar_pair
 from app.core.formats import read_point_cloud
+from app.testing.files import pcd_bytes
+from app.testing.paths import shared_data_dir
 from app.viewer.colours import ADDED_COLOUR, REMOVED_COLOUR
 from app.viewer.regions_display import CameraView, label_box
 from tests.helpers.browser import (
@@ -25,8 +27,7 @@ from tests.helpers.browser import (
     view_scene,
 )
 from tests.helpers.browser import wait_for_page as wait_until
-from tests.helpers.environment import require, shared_data_dir
-from tests.helpers.files import pcd_bytes
+from tests.helpers.environment import require
 from tests.helpers.http import create_site, unique_name, upload
 
 pytestmark = pytest.mark.timeout(600)

@@ -11,9 +11,8 @@ import numpy as np
 import pytest
 import viser
 
-from app.core.cloud import PointCloud
 from app.core.datasets.scenes import raycast_scene
-from app.core.pipeline import compare
+from app.testing.viewer_scenes import compare_with_origins, scene_of
 from app.viewer.colours import (
     NO_DISTANCE_COLOUR,
     colour_bar_html,
@@ -37,21 +36,8 @@ from app.viewer.viser_scene import draw_sensor_markers, screen_constant_size
 def job():
     """A ray-cast rescan with an added, a removed and a moved box, compared like the worker."""
     pair = raycast_scene(n_points=8000, change="mixed", pose_error=(0.02, 0.3), random_state=7)
-    result = compare(
-        PointCloud.from_array(pair.reference, sensor_origin=pair.reference_origin),
-        PointCloud.from_array(pair.scan, sensor_origin=pair.scan_origin),
-    )
-    data = build_scene_data(
-        pair.reference,
-        pair.scan,
-        reference_labels=result.reference_label,
-        scan_labels=result.scan_label,
-        reference_distances=result.reference_distance,
-        scan_distances=result.scan_distance,
-        transform=result.registration.transform,
-        regions=result.to_json_dict()["regions"],
-        min_region_points=result.localisation["min_region_points"],
-    )
+    result = compare_with_origins(pair)
+    data = scene_of(pair, result)
     return SimpleNamespace(pair=pair, result=result, data=data)
 
 

@@ -11,10 +11,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+from app.testing.service import ServiceProcess
+from app.testing.webhooks import WebhookReceiver
 from tests.helpers.browser import by_css as visible
 from tests.helpers.browser import save_screenshot, wait_for_page
-from tests.helpers.service import ServiceProcess
-from tests.helpers.webhooks import WebhookReceiver
 
 WEBHOOK_ENV = {
     "SCANDIFF_WEBHOOK_ALLOW_PRIVATE_ADDRESSES": "true",

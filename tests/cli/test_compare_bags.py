@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.helpers.bags import BOX_HIGH, BOX_LOW, MAP_TO_ODOM, write_lidar_bag
+from app.testing.bags import BOX_HIGH, BOX_LOW, MAP_TO_ODOM, write_lidar_bag
 from tests.helpers.cli import run_cli
 
 

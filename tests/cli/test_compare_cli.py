@@ -10,8 +10,8 @@ from plyfile import PlyData
 
 from app.core.datasets.lidar import lidar_pair
 from app.core.datasets.scenes import raycast_scene
+from app.testing.files import ply_bytes
 from tests.helpers.cli import run_cli
-from tests.helpers.files import ply_bytes
 
 REQUIRED_KEYS = {
     "method",

@@ -12,8 +12,8 @@ import numpy as np
 
 from app.core.datasets.scenes import raycast_scene
 from app.core.formats import read_point_cloud
+from app.testing.files import ply_bytes
 from tests.helpers.copc import COPC_SCALE, copc_bytes, with_point_count
-from tests.helpers.files import ply_bytes
 
 
 def run_compare(*arguments: str | Path) -> subprocess.CompletedProcess[str]:

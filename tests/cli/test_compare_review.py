@@ -14,7 +14,7 @@ import pytest
 from app.core.datasets.scenes import raycast_scene
 from app.core.quality import LARGE_ROTATION_DEGREES
 from app.core.registration import apply_transform
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
 
 
 def run_cli(*arguments: str | Path) -> subprocess.CompletedProcess[str]:

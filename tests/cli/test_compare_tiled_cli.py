@@ -16,7 +16,7 @@ from app.core.tiling.plan import (
     LOCALISATION_BYTES_PER_POINT,
     RESIDENT_BYTES_PER_POINT,
 )
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
 
 
 def run_compare(*arguments: str | Path) -> subprocess.CompletedProcess[str]:

@@ -20,7 +20,7 @@ import pytest
 from app.cli.compare import cli_warnings
 from app.core.quality import origin_warnings
 from app.core.trajectory import Trajectory
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
 from tests.helpers.trajectory_scenes import SEEN_BOX, corridor_pair, in_box
 
 

@@ -14,9 +14,9 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.helpers.environment import PROJECT_ROOT
-from tests.helpers.network import free_port
-from tests.helpers.waiting import wait_until
+from app.testing.network import free_port
+from app.testing.paths import PROJECT_ROOT
+from app.testing.waiting import wait_until
 
 BUILD_INPUTS = ("pyproject.toml", "README.md", "app", "static", "migrations")
 """What the Dockerfile copies into its build stage before ``pip wheel``."""

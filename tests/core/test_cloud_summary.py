@@ -19,10 +19,10 @@ from app.core.cloud import MIN_POINTS, PointCloud
 from app.core.cloud_summary import summarise_array
 from app.core.errors import PointCloudError
 from app.core.formats import las, read_point_cloud, summarise_point_cloud
+from app.testing.files import las_bytes, pcd_bytes, ply_bytes
+from app.testing.scenes import random_points
 from tests.helpers.clouds import assert_summary_of
 from tests.helpers.corpus import FUZZ_SEEDS, MALFORMED, mutate_bytes
-from tests.helpers.files import las_bytes, pcd_bytes, ply_bytes
-from tests.helpers.scenes import random_points
 
 
 def peak_traced_bytes(action) -> int:

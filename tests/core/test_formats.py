@@ -23,16 +23,9 @@ from app.core.formats import (
     read_point_cloud,
     write_point_cloud,
 )
+from app.testing.files import las_bytes, npy_bytes, npz_bytes, pcd_bytes, ply_bytes, text_bytes
+from app.testing.scenes import random_points
 from tests.helpers.corpus import FUZZ_SEEDS, MALFORMED, N_POINTS, mutate_bytes
-from tests.helpers.files import (
-    las_bytes,
-    npy_bytes,
-    npz_bytes,
-    pcd_bytes,
-    ply_bytes,
-    text_bytes,
-)
-from tests.helpers.scenes import random_points
 
 # ----------------------------------------------------------------------------------------------
 # round trips

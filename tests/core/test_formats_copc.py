@@ -9,8 +9,8 @@ import pytest
 from app.core.errors import PointCloudError
 from app.core.formats import detect_format, read_point_cloud, summarise_point_cloud
 from app.core.formats.copc import is_copc, read_copc_bounds
+from app.testing.files import las_bytes
 from tests.helpers.copc import COPC_SCALE, copc_bytes, with_point_count
-from tests.helpers.files import las_bytes
 
 
 @pytest.fixture(scope="module")

@@ -24,11 +24,12 @@ import pytest
 from app.core.datasets.lidar import LidarPair, lidar_pair
 from app.core.errors import InputError, PointCloudError
 from app.core.formats import detect_format, read_point_cloud, summarise_point_cloud
+from app.core.ground_truth import changed_iou
 from app.core.origins.known_stations import estimate_each_station
 from app.core.pipeline import compare
+from app.testing.files import e57_bytes, las_bytes, ply_bytes
+from app.testing.scenes import random_points
 from tests.helpers.clouds import assert_summary_of
-from tests.helpers.files import e57_bytes, las_bytes, ply_bytes
-from tests.helpers.scenes import changed_iou, random_points
 
 
 def yaw_tilt_quaternion(yaw: float, tilt: float) -> np.ndarray:

@@ -10,7 +10,7 @@ import pytest
 
 from app.core.formats import las as las_module
 from app.core.formats import read_point_cloud
-from tests.helpers.files import las_bytes
+from app.testing.files import las_bytes
 
 N_POINTS = 400_000
 CHUNK_POINTS = 20_000

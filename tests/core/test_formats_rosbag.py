@@ -33,7 +33,7 @@ from app.core.formats import (
 )
 from app.core.formats.ros_messages import decode_point_cloud2
 from app.core.formats.rosbag import bag_options_from_strings
-from tests.helpers.bags import MAP_TO_ODOM, MOUNT_TRANSLATION, NOISE, WrittenBag, write_lidar_bag
+from app.testing.bags import MAP_TO_ODOM, MOUNT_TRANSLATION, NOISE, WrittenBag, write_lidar_bag
 from tests.helpers.clouds import assert_summary_of
 
 STORAGES = ("bag", "db3", "mcap")

@@ -25,9 +25,9 @@ import pytest
 from app.core.formats import e57 as e57_module
 from app.core.formats import read_point_cloud
 from app.core.formats.streamed import open_point_blocks, read_points_float32
-from tests.helpers.e57_times import e57_with_times_bytes
-from tests.helpers.files import e57_bytes, las_bytes, npy_bytes, ply_bytes, text_bytes
-from tests.helpers.scenes import random_points
+from app.testing.e57_times import e57_with_times_bytes
+from app.testing.files import e57_bytes, las_bytes, npy_bytes, ply_bytes, text_bytes
+from app.testing.scenes import random_points
 
 SMALL_BLOCK = 37
 """Rows per block in the comparisons: many blocks, none aligned with anything."""

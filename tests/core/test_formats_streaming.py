@@ -19,9 +19,9 @@ import pytest
 from app.core.errors import PointCloudError
 from app.core.formats import read_point_cloud, summarise_point_cloud
 from app.core.formats import text as text_module
+from app.testing.files import npy_bytes, text_bytes
+from app.testing.scenes import random_points
 from tests.helpers.clouds import assert_summary_of
-from tests.helpers.files import npy_bytes, text_bytes
-from tests.helpers.scenes import random_points
 
 N_NPY_POINTS = 1_000_000
 """Points of the ``.npy`` files whose summary's memory is measured (12-40 MB arrays)."""

@@ -29,6 +29,7 @@ FORBIDDEN_APP = {
     "app.cli",
     "app.main",
     "app.kit",
+    "app.testing",
 }
 
 

@@ -27,8 +27,8 @@ from app.core.errors import PointCloudError
 from app.core.formats import pcd, ply, read_point_cloud, summarise_point_cloud
 from app.core.formats._common import file_rows_of, open_source, xyz_from_columns, xyz_view
 from app.core.threads import available_threads
+from app.testing.files import pcd_bytes, ply_bytes
 from tests.helpers.clouds import assert_summary_of
-from tests.helpers.files import pcd_bytes, ply_bytes
 
 N_POINTS = 257  # not a multiple of the (patched) block size: the last block is partial
 VIEWPOINT = (1, 2, 3, 1, 0, 0, 0)  # the sensor at (1, 2, 3)

@@ -29,6 +29,7 @@ from app.core.datasets.scenes import (
     raycast_scene_objects,
 )
 from app.core.errors import InputError, PointCloudError
+from app.core.ground_truth import changed_iou
 from app.core.localise import (
     DEFAULT_PARAMETERS,
     LABEL_CHANGED,
@@ -40,7 +41,8 @@ from app.core.localise import (
     nearest_neighbourhoods,
     neighbourhood_size,
 )
-from tests.helpers.scenes import changed_iou
+from app.core.localise import rays as rays_module
+from app.core.localise import surface as surface_module
 
 SCENE_POINTS = 50_000
 POSE_ERROR = (0.03, 0.4)  # metres, degrees
@@ -193,6 +195,18 @@ def test_the_result_does_not_depend_on_the_thread_count(threads):
     np.testing.assert_array_equal(other.reference_distance, localisation.reference_distance)
     assert other.parameters == localisation.parameters
     assert len(other.regions) == len(localisation.regions) > 0
+
+
+def test_chunks_worked_on_two_threads_give_the_same_result(monkeypatch):
+    # chunks far smaller than the scene, so that the plane fits, spacings and ray tests run
+    # many chunks on both threads at once
+    pair, localisation = localised_scene("removed")
+    monkeypatch.setattr(surface_module, "CHUNK", 97)
+    monkeypatch.setattr(rays_module, "GATHER_CHUNK", 13)
+    one, two = (localise_pair(pair, threads=threads) for threads in (1, 2))
+    assert_same_localisation(two, one)
+    assert_same_localisation(one, localisation)
+    assert one.parameters["scan_candidates"] > 13 * 4
 
 
 def assert_same_localisation(first: Localisation, second: Localisation) -> None:

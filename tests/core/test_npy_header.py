@@ -13,7 +13,7 @@ from numpy.lib import format as npy_format
 
 from app.core.errors import PointCloudError
 from app.core.formats import read_point_cloud
-from tests.helpers.scenes import random_points
+from app.testing.scenes import random_points
 
 
 def npy_with_version(version: tuple[int, int]) -> tuple[bytes, int]:

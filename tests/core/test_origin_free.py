@@ -21,6 +21,7 @@ from pykdtree.kdtree import KDTree
 
 from app.core.datasets.lidar import lidar_pair
 from app.core.datasets.scenes import _transform_points
+from app.core.ground_truth import changed_iou
 from app.core.localise import LABEL_CHANGED, localise_changes
 from app.core.localise.origin_free import (
     behind_evidence,
@@ -30,7 +31,6 @@ from app.core.localise.origin_free import (
 )
 from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_SURFACE, STATUS_UNOBSERVED
 from app.core.localise.surface import local_geometry
-from tests.helpers.scenes import changed_iou
 
 SPACING = 0.05
 

@@ -9,17 +9,14 @@ of sight); an E57 scan whose times are flagged invalid has no times (line of sig
 
 from __future__ import annotations
 
-import io
-
-import laspy
 import numpy as np
 import pytest
 
 from app.core.formats import read_point_cloud
 from app.core.trajectory import Trajectory
 from app.core.trajectory_poses import interpolate_positions, sensor_groups, with_trajectory
-from tests.helpers.e57_times import e57_with_times_bytes
-from tests.helpers.files import pcd_bytes, ply_bytes
+from app.testing.e57_times import e57_with_times_bytes
+from app.testing.files import las_bytes, pcd_bytes, ply_bytes
 
 START = 100.0
 """The clock's value when the sensor passes x = 0."""
@@ -46,24 +43,12 @@ def drive() -> Trajectory:
     return Trajectory(times, positions)
 
 
-def las_with_gps_time(points: np.ndarray, times: np.ndarray) -> bytes:
-    header = laspy.LasHeader(point_format=1, version="1.2")
-    header.scales = np.full(3, 0.0001)
-    header.offsets = np.floor(points.min(axis=0))
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
-    las.gps_time = times
-    stream = io.BytesIO()
-    las.write(stream)
-    return stream.getvalue()
-
-
 def written(kind: str, points: np.ndarray) -> tuple[bytes, str]:
     times = time_at(points[:, 0])
     if kind == "e57 timeStamp":
         return e57_with_times_bytes(points, times), "scan.e57"
     if kind == "las gps_time":
-        return las_with_gps_time(points, times), "scan.las"
+        return las_bytes(points, point_format=1, scale=0.0001, gps_time=times), "scan.las"
     if kind == "pcd time":
         return pcd_bytes(points, extra={"time": times}), "scan.pcd"
     field = kind.split()[1]

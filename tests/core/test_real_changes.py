@@ -11,8 +11,9 @@ import pytest
 
 from app.core.formats import read_point_cloud
 from app.core.pipeline import compare
+from app.testing.paths import shared_data_dir
 from bench.real_changes import load_changes, score_changes
-from tests.helpers.environment import require, shared_data_dir
+from tests.helpers.environment import require
 
 pytestmark = [pytest.mark.real_data, pytest.mark.slow]
 

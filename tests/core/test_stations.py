@@ -26,6 +26,7 @@ from app.core.cloud import PointCloud
 from app.core.datasets.lidar import LidarPair, lidar_pair
 from app.core.datasets.scenes import _transform_points, raycast_scene
 from app.core.errors import InputError
+from app.core.ground_truth import changed_iou
 from app.core.localise import LABEL_CHANGED, LABEL_UNOBSERVED, EpochCloud, localise_changes
 from app.core.localise.gaps import in_sampling_gap
 from app.core.localise.rays import (
@@ -39,7 +40,6 @@ from app.core.localise.surface import local_geometry
 from app.core.localise.visibility import combine_station_status
 from app.core.origins.station_recovery import recover_stations
 from app.core.pipeline import compare, parse_comparison_params
-from tests.helpers.scenes import changed_iou
 
 STEP = 1.2  # degrees: ~25k points a station
 

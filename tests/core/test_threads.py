@@ -6,7 +6,10 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
+
+from app.core.threads import for_each_chunk
 
 PROGRAM = "import os, app.core.localise; print(os.environ['OMP_WAIT_POLICY'])"
 
@@ -28,3 +31,27 @@ def test_importing_the_core_makes_openmp_waits_passive_unless_the_caller_chose(g
     if given is not None:
         environment["OMP_WAIT_POLICY"] = given
     assert wait_policy_after_import(environment) == expected
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_each_chunk_is_worked_on_once_whatever_the_threads(threads):
+    squares = np.zeros(1000)
+    visits = np.zeros(1000, dtype=int)
+
+    def square(rows: slice) -> None:
+        squares[rows] = np.arange(1000)[rows] ** 2
+        visits[rows] += 1
+
+    for_each_chunk(square, (slice(start, start + 7) for start in range(0, 1000, 7)), threads)
+    np.testing.assert_array_equal(squares, np.arange(1000) ** 2)
+    np.testing.assert_array_equal(visits, 1)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_an_error_in_a_chunk_reaches_the_caller(threads):
+    def fail_on_five(chunk: int) -> None:
+        if chunk == 5:
+            raise ValueError("chunk five")
+
+    with pytest.raises(ValueError, match="chunk five"):
+        for_each_chunk(fail_on_five, range(10), threads)

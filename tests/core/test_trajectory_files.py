@@ -9,9 +9,6 @@ the line at fault; per-point time fields of PLY/LAS files end up in the ``"time"
 
 from __future__ import annotations
 
-import io
-
-import laspy
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -19,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from app.core.formats import read_point_cloud
 from app.core.formats.trajectory_files import detect_trajectory_format, read_trajectory
 from app.core.trajectory import TrajectoryError
-from tests.helpers.files import pcd_bytes, ply_bytes
+from app.testing.files import las_bytes, pcd_bytes, ply_bytes
 
 RNG = np.random.default_rng(3)
 TIMES = 1_700_000_000.0 + np.cumsum(RNG.uniform(0.05, 0.2, 6))
@@ -159,22 +156,12 @@ def test_per_point_times_of_ply_and_las_files_become_the_time_attribute() -> Non
     ply = read_point_cloud(ply_bytes(points, extra={"timestamp": times}), filename="a.ply")
     ply_t = read_point_cloud(ply_bytes(points, extra={"t": times.astype("f4")}), filename="b.ply")
     pcd = read_point_cloud(pcd_bytes(points, extra={"time": times}), filename="e.pcd")
-    las = read_point_cloud(las_with_gps_time(points, times), filename="c.las")
+    las = read_point_cloud(
+        las_bytes(points, point_format=1, scale=0.001, gps_time=times), filename="c.las"
+    )
     without = read_point_cloud(ply_bytes(points), filename="d.ply")
 
     for cloud in (ply, ply_t, pcd, las):
         assert cloud.attributes["time"].dtype == np.float64
         np.testing.assert_allclose(cloud.attributes["time"], times, rtol=1e-6)
     assert "time" not in without.attributes
-
-
-def las_with_gps_time(points: np.ndarray, times: np.ndarray) -> bytes:
-    header = laspy.LasHeader(point_format=1, version="1.2")
-    header.scales = np.full(3, 0.001)
-    header.offsets = np.floor(points.min(axis=0))
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
-    las.gps_time = times
-    stream = io.BytesIO()
-    las.write(stream)
-    return stream.getvalue()

@@ -5,14 +5,14 @@ from __future__ import annotations
 import threading
 
 from app.db.migrate import current_revision, head_revision, upgrade_to_head
-from tests.helpers.environment import require
-from tests.helpers.topology import (
+from app.testing.topology import (
     POSTGRES_ADMIN_URL,
     admin_url_for,
     create_database,
     drop_database,
     postgres_reachable,
 )
+from tests.helpers.environment import require
 
 REPLICAS = 4
 

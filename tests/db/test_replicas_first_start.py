@@ -19,9 +19,8 @@ import httpx
 import pytest
 
 from app.kit.data_layout import DataLayout
-from tests.helpers.environment import require
-from tests.helpers.network import free_port
-from tests.helpers.topology import (
+from app.testing.network import free_port
+from app.testing.topology import (
     API_COMMAND,
     POSTGRES_ADMIN_URL,
     TOPOLOGY_ENV,
@@ -34,6 +33,7 @@ from tests.helpers.topology import (
     drop_database,
     postgres_reachable,
 )
+from tests.helpers.environment import require
 
 API_REPLICAS = 4
 WORKERS = 3

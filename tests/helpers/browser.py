@@ -16,10 +16,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
-from tests.helpers.environment import PROJECT_ROOT
+from app.testing.paths import PROJECT_ROOT
+from app.testing.service import ServiceProcess, process_group_members
+from app.testing.waiting import wait_until
 from tests.helpers.http import unique_name, upload
-from tests.helpers.service import ServiceProcess, process_group_members
-from tests.helpers.waiting import wait_until
 
 Value = TypeVar("Value")
 

@@ -15,8 +15,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from tests.helpers.files import las_bytes, npy_bytes, npz_bytes, pcd_bytes, ply_bytes, text_bytes
-from tests.helpers.scenes import random_points
+from app.testing.files import las_bytes, npy_bytes, npz_bytes, pcd_bytes, ply_bytes, text_bytes
+from app.testing.scenes import random_points
 
 N_POINTS = 64
 """Points of each corpus file (what :func:`random_points` gives by default)."""

@@ -1,4 +1,4 @@
-"""Where the project and its shared data are, and the skip policy for missing dependencies.
+"""The skip policy for missing dependencies (where the project and its data are: app.testing.paths).
 
 Tests that need something outside the project (the real data in ../shared/data, a browser,
 PostgreSQL, Redis) call :func:`require` instead of ``pytest.skip``: locally it skips with the
@@ -8,11 +8,10 @@ reason; in CI (``SCANDIFF_REQUIRE_SERVICES=1``) a missing dependency fails the t
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import pytest
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent.parent
+from app.testing.paths import shared_data_dir as shared_data_dir  # the conftest files' import
 
 
 def require(condition: bool, reason: str) -> None:
@@ -22,11 +21,3 @@ def require(condition: bool, reason: str) -> None:
     if os.environ.get("SCANDIFF_REQUIRE_SERVICES") == "1":
         pytest.fail(f"required in CI but missing: {reason}")
     pytest.skip(reason)
-
-
-def shared_data_dir() -> Path:
-    """Where ../shared/data lives (override with SCANDIFF_SHARED_DATA)."""
-    configured = os.environ.get("SCANDIFF_SHARED_DATA")
-    if configured:
-        return Path(configured)
-    return PROJECT_ROOT.parent / "shared" / "data"

@@ -12,7 +12,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from tests.helpers.environment import PROJECT_ROOT
+from app.testing.paths import PROJECT_ROOT
 
 
 def figures_directory() -> Path:

@@ -7,8 +7,8 @@ from typing import Any
 
 import httpx
 
-from tests.helpers.files import ply_bytes
-from tests.helpers.scenes import room_points
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
 
 
 def unique_name(prefix: str) -> str:

@@ -17,9 +17,9 @@ from app.db.models import Job, Organisation, Region, Scan, Site
 from app.db.session import transaction
 from app.jobs.leases import claim_job, make_lease_owner
 from app.jobs.results import store_results, write_result_files
+from app.testing.results import calibration_report, registration_report
+from app.testing.scenes import corridor_points
 from tests.helpers.job_rows import new_job
-from tests.helpers.results import calibration_report, registration_report
-from tests.helpers.scenes import corridor_points
 from tests.helpers.server import ApiServer
 
 FAST_LEASES = {

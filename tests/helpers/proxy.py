@@ -12,7 +12,7 @@ import contextlib
 import socket
 import threading
 
-from tests.helpers.network import free_port
+from app.testing.network import free_port
 
 CHUNK_BYTES = 65536
 

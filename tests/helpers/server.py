@@ -24,9 +24,9 @@ from app.config import Settings
 from app.db.session import transaction
 from app.main import create_app
 from app.services.auth import create_token
+from app.testing.network import free_port
 from tests.helpers.http import unique_name
 from tests.helpers.migrated_database import install_migrated_database
-from tests.helpers.network import free_port
 
 MAX_UPLOAD_BYTES = 400_000
 """Upload cap of the API test server (a 5k-point binary PLY is ~60 kB; 413 tests send more)."""

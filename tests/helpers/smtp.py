@@ -13,8 +13,8 @@ from typing import Any
 
 from aiosmtpd.controller import Controller
 
-from tests.helpers.network import free_port
-from tests.helpers.waiting import wait_until
+from app.testing.network import free_port
+from app.testing.waiting import wait_until
 
 
 class SmtpServer:

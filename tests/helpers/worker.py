@@ -1,9 +1,9 @@
 """``scandiff worker`` and ``scandiff serve --workers 0`` as subprocesses for tests.
 
 :class:`WorkerProcess` runs ``python -m app worker`` (by default with the fake pipeline of
-:mod:`tests.helpers.fake_pipeline` installed first) in its own process group on the settings of
+:mod:`app.testing.fake_pipeline` installed first) in its own process group on the settings of
 a job test, plus ``env`` (say ``SCANDIFF_QUEUE_URL``).  Its worker pids come from the pid files
-the workers write, as for :class:`tests.helpers.service.ConsumerProcess`, whose handles it has.
+the workers write, as for :class:`app.testing.service.ConsumerProcess`, whose handles it has.
 """
 
 from __future__ import annotations
@@ -17,11 +17,11 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from app.config import Settings
-from tests.helpers.environment import PROJECT_ROOT
-from tests.helpers.service import ConsumerProcess, settings_environment
+from app.testing.paths import PROJECT_ROOT
+from app.testing.service import ConsumerProcess, settings_environment
 
 FAKE_PIPELINE_WORKER = (
-    "import sys, tests.helpers.fake_pipeline as fake; fake.install(); "
+    "import sys, app.testing.fake_pipeline as fake; fake.install(); "
     "from app.cli import main; sys.exit(main(['worker', *sys.argv[1:]]))"
 )
 """``python -c`` code running ``scandiff worker`` with the fast pipeline stand-in."""

@@ -17,8 +17,8 @@ from pathlib import Path
 from app.config import Settings
 from app.jobs.leases import lease_owner_pid
 from app.jobs.queue import enqueue_job, get_huey, send_job_message
+from app.testing.service import ConsumerProcess
 from tests.helpers.jobs import count_regions, create_job, load_job, wait_for_status
-from tests.helpers.service import ConsumerProcess
 
 
 def hooks_env(**hooks: object) -> dict[str, str]:

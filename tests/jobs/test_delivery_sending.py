@@ -13,7 +13,7 @@ from sqlalchemy import select
 
 from app.config import Settings
 from app.db.events import publish_event
-from app.db.models import Job, Organisation, Webhook, WebhookDelivery
+from app.db.models import Job, Webhook, WebhookDelivery
 from app.db.session import transaction
 from app.jobs.alerts.deliveries import (
     ClaimedDelivery,
@@ -23,8 +23,8 @@ from app.jobs.alerts.deliveries import (
     send_attempt,
 )
 from app.jobs.recovery import recovery_sweep
+from app.testing.webhooks import WEBHOOK_SETTINGS, WebhookReceiver, organisation_with_webhook
 from tests.helpers.jobs import create_job
-from tests.helpers.webhooks import WEBHOOK_SETTINGS, WebhookReceiver
 
 
 def delivery_to(url: str, secret: str = "whsec_test") -> ClaimedDelivery:
@@ -94,22 +94,13 @@ def test_racing_senders_deliver_each_event_exactly_once(job_settings: Settings) 
     with WebhookReceiver() as receiver:
         receiver.secret = "whsec_race"
         with transaction(settings.sqlalchemy_url) as session:
-            organisation = Organisation(name="race")
-            session.add(organisation)
-            session.flush()
-            session.add(
-                Webhook(
-                    organisation_id=organisation.id,
-                    url=receiver.url,
-                    events=["schedule.missed"],
-                    secret=receiver.secret,
-                )
+            organisation_id = organisation_with_webhook(
+                session, "race", receiver.url, receiver.secret, ["schedule.missed"]
             )
-            session.flush()
             for number in range(events):
                 publish_event(
                     session,
-                    organisation_id=organisation.id,
+                    organisation_id=organisation_id,
                     event_type="schedule.missed",
                     payload={"period": number},
                 )

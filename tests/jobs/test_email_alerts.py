@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 
 from app.config import Settings
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
+from app.testing.waiting import wait_until
+from app.testing.webhooks import WEBHOOK_SETTINGS, docs_verifier
 from tests.helpers.http import assert_error, site_with_reference, upload_accepted
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer, running_api
 from tests.helpers.smtp import SmtpServer
-from tests.helpers.waiting import wait_until
-from tests.helpers.webhooks import WEBHOOK_SETTINGS, docs_verifier, start_delivery_worker
+from tests.helpers.webhooks import start_delivery_worker
 from tests.helpers.worker import WorkerProcess
 
 

@@ -10,10 +10,11 @@ from sqlalchemy import func, select
 from app.clock import utc_now
 from app.config import Settings
 from app.db.events import publish_event
-from app.db.models import DeliveryStatus, Event, Organisation, Webhook, WebhookDelivery
+from app.db.models import DeliveryStatus, Event, Organisation, WebhookDelivery
 from app.db.session import transaction
 from app.jobs.recovery import recovery_sweep
 from app.jobs.retention import prune_events
+from app.testing.webhooks import organisation_with_webhook
 
 
 def test_old_events_with_final_deliveries_are_pruned(job_settings: Settings) -> None:
@@ -25,24 +26,15 @@ def test_old_events_with_final_deliveries_are_pruned(job_settings: Settings) -> 
         DeliveryStatus.DELIVERING,
     ]
     with transaction(settings.sqlalchemy_url) as session:
-        organisation = Organisation(name="retention")
-        session.add(organisation)
-        session.flush()
-        session.add(
-            Webhook(
-                organisation_id=organisation.id,
-                url="https://93.184.215.14/hook",
-                events=["schedule.missed"],
-                secret="whsec_test",
-            )
+        organisation_id = organisation_with_webhook(
+            session, "retention", "https://93.184.215.14/hook", "whsec_test", ["schedule.missed"]
         )
-        session.flush()
         events = {}
         for age_days in (30, 3):
             for status in statuses:
                 event = publish_event(
                     session,
-                    organisation_id=organisation.id,
+                    organisation_id=organisation_id,
                     event_type="schedule.missed",
                     payload={"age_days": age_days, "status": str(status)},
                 )

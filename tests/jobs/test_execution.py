@@ -26,7 +26,7 @@ from app.jobs.leases import (
 from app.jobs.queue import pending_job_ids
 from app.jobs.results import store_results
 from app.jobs.runner import run_job_once
-from tests.helpers import fake_pipeline
+from app.testing import fake_pipeline
 from tests.helpers.jobs import count_regions, create_job, load_job
 
 

@@ -19,13 +19,13 @@ from app.config import Settings
 from app.jobs.leases import lease_owner_pid
 from app.jobs.queue import QUEUE_NAME, enqueue_job, get_huey, queue_backend, queue_health
 from app.jobs.recovery import recovery_sweep
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
+from app.testing.redis import RedisServer
+from app.testing.scenes import room_points
+from app.testing.waiting import wait_until
 from tests.helpers.http import site_with_reference, upload, upload_accepted
 from tests.helpers.jobs import create_job, load_job, wait_for_status
-from tests.helpers.redis import RedisServer
-from tests.helpers.scenes import room_points
 from tests.helpers.server import running_api
-from tests.helpers.waiting import wait_until
 from tests.helpers.worker import WorkerProcess
 
 

@@ -1,6 +1,6 @@
 """``scandiff serve`` as a whole: first start, orphan-proof children, restart, graceful stop.
 
-These start the real command (``python -m app serve``) through :mod:`tests.helpers.service`: a
+These start the real command (``python -m app serve``) through :mod:`app.testing.service`: a
 migrated SQLite file, uvicorn and the job consumer as child processes.  Jobs are created over
 HTTP, so results come from the real pipeline.
 """
@@ -16,9 +16,9 @@ from collections.abc import Callable
 import httpx
 import numpy as np
 
-from tests.helpers.files import room_ply
+from app.testing.files import room_ply
+from app.testing.service import ServiceProcess
 from tests.helpers.http import upload_accepted as upload
-from tests.helpers.service import ServiceProcess
 
 FAST_LEASES = {
     "SCANDIFF_JOB_LEASE_SECONDS": "2",

@@ -11,7 +11,7 @@ from pathlib import Path
 from app.config import Settings
 from app.jobs.consumer import schedule_loop
 from app.jobs.side_process import SideProcess
-from tests.helpers.waiting import wait_until
+from app.testing.waiting import wait_until
 
 
 def test_a_side_process_that_dies_is_replaced_and_stops_on_sigterm(

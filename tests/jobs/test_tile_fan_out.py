@@ -26,9 +26,9 @@ from app.db.models import Job, JobStatus, JobTile, TileStatus
 from app.db.session import transaction
 from app.jobs.leases import lease_owner_pid
 from app.jobs.tiles import run_tile_message
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
+from app.testing.service import ServiceProcess
 from tests.helpers.jobs import create_job
-from tests.helpers.service import ServiceProcess
 
 CROP_SHARE = 0.5
 """Share of both clouds' points a tile's crop may hold: the map below gets four tiles."""

@@ -16,12 +16,12 @@ from pathlib import Path
 from app.config import Settings
 from app.db.migrate import upgrade_to_head
 from app.jobs.queue import enqueue_job
-from tests.helpers.files import ply_bytes
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
+from app.testing.service import ServiceProcess
+from app.testing.waiting import wait_until
 from tests.helpers.http import site_with_reference, upload_accepted
 from tests.helpers.jobs import FAST_LEASES, create_job, load_job, wait_for_status
-from tests.helpers.scenes import room_points
-from tests.helpers.service import ServiceProcess
-from tests.helpers.waiting import wait_until
 from tests.helpers.worker import WorkerProcess
 
 

@@ -39,13 +39,13 @@ from app.db.models import ApiToken, Job, ResumableUpload, Scan
 from app.db.session import transaction
 from app.services.auth import hash_token
 from app.services.resumable_uploads import upload_path
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
 from app.viewer.access import VIEW_COOKIE
 from tests.helpers.figures import record_figure
-from tests.helpers.files import ply_bytes
 from tests.helpers.http import create_site, unique_name, upload
 from tests.helpers.jobs import finish_job
 from tests.helpers.resumable import OCTETS, TUS, metadata_header, new_upload, patch
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
 
 TUM_PATH = b"0.0 0.5 0.5 1.2 0 0 0 1\n1.0 1.5 0.5 1.2 0 0 0 1\n2.0 2.5 0.5 1.2 0 0 0 1\n"

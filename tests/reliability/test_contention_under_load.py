@@ -24,12 +24,12 @@ from collections.abc import Callable
 import httpx
 import pytest
 
+from app.testing.files import room_ply
+from app.testing.service import ServiceProcess
+from app.testing.waiting import wait_until
 from tests.helpers.database import database_rows, job_status_counts
 from tests.helpers.figures import percentile, record_figure
-from tests.helpers.files import room_ply
 from tests.helpers.http import upload_accepted
-from tests.helpers.service import ServiceProcess
-from tests.helpers.waiting import wait_until
 
 N_WORKERS = 3
 N_POLLERS = 16

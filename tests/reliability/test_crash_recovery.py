@@ -45,13 +45,13 @@ from app.core.files import write_atomically
 from app.db.migrate import upgrade_to_head
 from app.db.session import get_engine
 from app.services.storage import ensure_directories, sweep_temporary_files
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
+from app.testing.service import ServiceProcess
+from app.testing.waiting import wait_until
 from tests.helpers.database import database_rows, job_status_counts
 from tests.helpers.figures import record_figure
-from tests.helpers.files import ply_bytes
 from tests.helpers.jobs import create_job
-from tests.helpers.scenes import room_points
-from tests.helpers.service import ServiceProcess
-from tests.helpers.waiting import wait_until
 
 N_UPLOADS = 50
 N_KILLS = 3

@@ -14,7 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from tests.helpers.environment import PROJECT_ROOT
+from app.testing.paths import PROJECT_ROOT
 from tests.helpers.figures import record_figure
 
 CLIENTS = 4

@@ -30,6 +30,9 @@ import numpy as np
 import pytest
 
 from app.db.models import Job, Scan
+from app.testing.files import las_bytes, npy_bytes, npz_bytes, pcd_bytes, ply_bytes, text_bytes
+from app.testing.paths import PROJECT_ROOT
+from app.testing.scenes import random_points, room_points
 from tests.helpers.corpus import (
     FUZZ_SEEDS,
     MALFORMED,
@@ -38,11 +41,8 @@ from tests.helpers.corpus import (
     npy_header,
 )
 from tests.helpers.database import count_rows
-from tests.helpers.environment import PROJECT_ROOT
 from tests.helpers.figures import record_figure
-from tests.helpers.files import las_bytes, npy_bytes, npz_bytes, pcd_bytes, ply_bytes, text_bytes
 from tests.helpers.http import create_site, upload
-from tests.helpers.scenes import random_points, room_points
 from tests.helpers.server import ApiServer
 
 ACCEPTABLE_REJECTIONS = frozenset({400, 413, 415, 422})

@@ -1,6 +1,6 @@
 """The reliability suite against the scaled-out shape: kill -9 of an API, a worker and Redis.
 
-The deployment of issue 17 as real processes (``tests/helpers/topology.py``): a fresh
+The deployment of issue 17 as real processes (``app/testing/topology.py``): a fresh
 PostgreSQL database, a private Redis, 2 API processes and 3 job consumers (one worker each,
 real pipeline, PCA detector on 20,000-point rooms: about half a second a job) on one data
 directory, lease 2 s, recovery sweep every 0.5 s.
@@ -47,11 +47,12 @@ import httpx
 import pytest
 
 from app.jobs.leases import lease_owner_pid
+from app.testing.files import room_ply
+from app.testing.topology import ManagedProcess, Topology, WorkerProcess, scaled_out
+from app.testing.waiting import wait_until
 from tests.helpers.figures import record_figure
-from tests.helpers.files import room_ply
 from tests.helpers.http import upload as send_upload
-from tests.helpers.topology import ManagedProcess, Topology, WorkerProcess, scaled_out
-from tests.helpers.waiting import wait_until
+from tests.helpers.topology import require_topology
 
 N_UPLOADS = 50
 N_APIS = 2
@@ -249,6 +250,7 @@ def success_lines(log: str) -> Counter[str]:
 @pytest.mark.slow
 @pytest.mark.timeout(900)  # start-up, three faults and settling on a loaded machine
 def test_scaled_out_kills_of_api_worker_and_redis_lose_nothing(tmp_path: Path) -> None:
+    require_topology()
     seed = random.randrange(2**32)
     rng = random.Random(seed)
     print(f"\nscaled-out seed {seed}")

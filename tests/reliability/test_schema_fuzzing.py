@@ -28,11 +28,11 @@ from schemathesis.checks import (
     response_schema_conformance,
 )
 
+from app.testing.files import ply_bytes
+from app.testing.scenes import room_points
 from tests.helpers.figures import record_figure
-from tests.helpers.files import ply_bytes
 from tests.helpers.http import create_site, upload
 from tests.helpers.jobs import finish_job
-from tests.helpers.scenes import room_points
 from tests.helpers.server import ApiServer
 
 EXAMPLES_PER_OPERATION = int(os.environ.get("SCANDIFF_SCHEMATHESIS_EXAMPLES", "6"))

@@ -17,10 +17,10 @@ import httpx
 import numpy as np
 import pytest
 
+from app.testing.files import chunked, ply_bytes, ply_of_size
+from app.testing.scenes import room_points
 from tests.helpers.figures import record_figure
-from tests.helpers.files import chunked, ply_bytes, ply_of_size
 from tests.helpers.http import create_site, upload
-from tests.helpers.scenes import room_points
 from tests.helpers.server import RELIABILITY_MAX_UPLOAD_BYTES, ApiServer
 
 CAP = RELIABILITY_MAX_UPLOAD_BYTES

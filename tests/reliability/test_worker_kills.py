@@ -37,11 +37,11 @@ from typing import Any
 import pytest
 
 from app.jobs.leases import lease_owner_pid
+from app.testing.files import room_ply
+from app.testing.service import ServiceProcess
 from tests.helpers.database import database_rows
 from tests.helpers.figures import record_figure
-from tests.helpers.files import room_ply
 from tests.helpers.http import upload_accepted
-from tests.helpers.service import ServiceProcess
 
 N_JOBS = 20
 N_WORKERS = 2

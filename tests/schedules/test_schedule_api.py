@@ -7,8 +7,8 @@ from pathlib import Path
 import httpx
 
 from app.db.models import Schedule, ScheduleRun
+from app.testing.files import room_ply
 from tests.helpers.database import count_rows
-from tests.helpers.files import room_ply
 from tests.helpers.http import assert_error, create_site, site_with_reference, upload_accepted
 from tests.helpers.server import ApiServer
 

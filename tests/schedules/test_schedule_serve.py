@@ -5,10 +5,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from tests.helpers.files import room_ply
+from app.testing.files import room_ply
+from app.testing.service import ServiceProcess
+from app.testing.waiting import wait_until
 from tests.helpers.http import site_with_reference, upload_accepted
-from tests.helpers.service import ServiceProcess
-from tests.helpers.waiting import wait_until
 
 FAST_SCHEDULES = {
     "SCANDIFF_SCHEDULE_TICK_SECONDS": "0.5",

@@ -11,9 +11,9 @@ import httpx
 import pytest
 
 from app.db.models import Scan, ScheduleRun
+from app.testing.files import room_ply
 from tests.helpers.database import count_rows
 from tests.helpers.file_server import serving_files
-from tests.helpers.files import room_ply
 from tests.helpers.http import assert_error, site_with_reference, upload_accepted
 from tests.helpers.server import MAX_UPLOAD_BYTES, ApiServer, fresh_api
 

@@ -12,38 +12,16 @@ from typing import Any
 
 import httpx
 
-from app.clock import as_utc, utc_now
+from app.clock import utc_now
 from app.db.models import Job, ScheduleRun, ScheduleRunStatus
 from app.db.session import transaction
 from app.services.schedules.runs import TickReport, abandoned_after, claim_period, tick
+from app.testing.files import room_ply
+from app.testing.paths import PROJECT_ROOT
 from tests.helpers.database import count_rows
-from tests.helpers.environment import PROJECT_ROOT
-from tests.helpers.files import room_ply
 from tests.helpers.http import site_with_reference, upload_accepted
+from tests.helpers.schedules import created, new_schedule, runs_of
 from tests.helpers.server import ApiServer
-
-
-def interval_schedule(
-    client: httpx.Client, site_id: str, interval: int, **body: Any
-) -> dict[str, Any]:
-    """A new interval schedule of ``site_id`` (asserting 201)."""
-    response = client.post(
-        f"/api/v1/sites/{site_id}/schedules", json={"interval_seconds": interval, **body}
-    )
-    assert response.status_code == 201, response.text
-    return response.json()
-
-
-def created(schedule: dict[str, Any]) -> datetime:
-    """The schedule's creation time, the anchor of its periods."""
-    return as_utc(datetime.fromisoformat(schedule["created_at"].replace("Z", "+00:00")))
-
-
-def runs_of(client: httpx.Client, schedule_id: str) -> list[dict[str, Any]]:
-    """Every run of a schedule, oldest period first."""
-    response = client.get(f"/api/v1/schedules/{schedule_id}/runs", params={"limit": 200})
-    assert response.status_code == 200, response.text
-    return sorted(response.json()["items"], key=lambda run: run["period_start"])
 
 
 def test_catch_up_each_runs_every_missed_period(
@@ -51,8 +29,8 @@ def test_catch_up_each_runs_every_missed_period(
 ) -> None:
     site, _reference = site_with_reference(writer)
     # the detector of the upload's own job (PCA): the run reuses that job
-    schedule = interval_schedule(
-        writer, site["id"], 600, catch_up="each", detector={"method": "pca"}
+    schedule = new_schedule(
+        writer, site["id"], interval_seconds=600, catch_up="each", detector={"method": "pca"}
     )
     scan = upload_accepted(writer, site["id"], "night.ply", room_ply(5, with_box=True))
     start = created(schedule)
@@ -76,7 +54,7 @@ def test_catch_up_latest_runs_only_the_newest_period(
     api: ApiServer, writer: httpx.Client, events: list[dict[str, Any]]
 ) -> None:
     site, _reference = site_with_reference(writer)
-    schedule = interval_schedule(writer, site["id"], 600, catch_up="latest")
+    schedule = new_schedule(writer, site["id"], interval_seconds=600, catch_up="latest")
     scan = upload_accepted(writer, site["id"], "night.ply", room_ply(5, with_box=True))
     report = tick(api.settings, created(schedule) + timedelta(seconds=3 * 600 + 5))
     runs = runs_of(writer, schedule["id"])
@@ -90,7 +68,7 @@ def test_catch_up_none_skips_late_periods_and_runs_one_on_time(
     api: ApiServer, writer: httpx.Client
 ) -> None:
     site, _reference = site_with_reference(writer)
-    schedule = interval_schedule(writer, site["id"], 600, catch_up="none")
+    schedule = new_schedule(writer, site["id"], interval_seconds=600, catch_up="none")
     upload_accepted(writer, site["id"], "night.ply", room_ply(5, with_box=True))
     start = created(schedule)
     tick(api.settings, start + timedelta(seconds=3 * 600 + 400))  # all three are late
@@ -102,8 +80,8 @@ def test_catch_up_none_skips_late_periods_and_runs_one_on_time(
 
 def test_compare_previous_adds_a_trend_job(api: ApiServer, writer: httpx.Client) -> None:
     site, reference = site_with_reference(writer)
-    schedule = interval_schedule(
-        writer, site["id"], 600, compare_previous=True, detector={"method": "pca"}
+    schedule = new_schedule(
+        writer, site["id"], interval_seconds=600, compare_previous=True, detector={"method": "pca"}
     )
     first = upload_accepted(writer, site["id"], "first.ply", room_ply(5))
     second = upload_accepted(writer, site["id"], "second.ply", room_ply(6, with_box=True))
@@ -124,7 +102,7 @@ def test_a_site_without_new_scans_goes_stale_once_per_spell(
     api: ApiServer, writer: httpx.Client, events: list[dict[str, Any]]
 ) -> None:
     site, _reference = site_with_reference(writer)
-    schedule = interval_schedule(writer, site["id"], 3600, stale_after_seconds=7200)
+    schedule = new_schedule(writer, site["id"], interval_seconds=3600, stale_after_seconds=7200)
     start = created(schedule)
 
     def stale_events() -> list[dict[str, Any]]:
@@ -148,10 +126,10 @@ def test_a_site_without_new_scans_goes_stale_once_per_spell(
 def test_two_tickers_racing_run_each_period_once(api: ApiServer, writer: httpx.Client) -> None:
     site, _reference = site_with_reference(writer)
     schedules = [
-        interval_schedule(
+        new_schedule(
             writer,
             site["id"],
-            60,
+            interval_seconds=60,
             catch_up="each",
             compare_previous=True,
             detector={"method": "pca"},  # the upload's detector: its job is reused
@@ -203,7 +181,7 @@ print(sum(len(ids) for ids in report.runs.values()))
 
 def test_two_ticker_processes_run_each_period_once(api: ApiServer, writer: httpx.Client) -> None:
     site, _reference = site_with_reference(writer)
-    schedule = interval_schedule(writer, site["id"], 60, catch_up="each")
+    schedule = new_schedule(writer, site["id"], interval_seconds=60, catch_up="each")
     upload_accepted(writer, site["id"], "night.ply", room_ply(5, with_box=True))
     now = created(schedule) + timedelta(seconds=30 * 60 + 5)
     tickers = [
@@ -226,7 +204,7 @@ def test_a_paused_schedule_does_not_catch_up_when_enabled_again(
     api: ApiServer, writer: httpx.Client
 ) -> None:
     site, _reference = site_with_reference(writer)
-    schedule = interval_schedule(writer, site["id"], 60, catch_up="each", enabled=False)
+    schedule = new_schedule(writer, site["id"], interval_seconds=60, catch_up="each", enabled=False)
     assert writer.get(f"/api/v1/schedules/{schedule['id']}").json()["next_run_at"] is None
     assert tick(api.settings, created(schedule) + timedelta(minutes=10)).runs == {}
     enabled = writer.patch(f"/api/v1/schedules/{schedule['id']}", json={"enabled": True}).json()
@@ -241,8 +219,8 @@ def test_a_period_claimed_by_a_process_that_died_is_not_run_again(
     api: ApiServer, writer: httpx.Client
 ) -> None:
     site, _reference = site_with_reference(writer)
-    schedule = interval_schedule(
-        writer, site["id"], 600, catch_up="each", detector={"method": "pca"}
+    schedule = new_schedule(
+        writer, site["id"], interval_seconds=600, catch_up="each", detector={"method": "pca"}
     )
     upload_accepted(writer, site["id"], "night.ply", room_ply(5, with_box=True))
     first_period = created(schedule) + timedelta(seconds=600)

@@ -312,9 +312,11 @@ def _sides(
     reference_geometry, scan_geometry = _in_parallel(
         threads,
         lambda: local_geometry(
-            reference_points, n_neighbors, neighbourhoods=reference.neighbourhoods
+            reference_points, n_neighbors, neighbourhoods=reference.neighbourhoods, threads=threads
         ),
-        lambda: local_geometry(scan_points, n_neighbors, neighbourhoods=scan.neighbourhoods),
+        lambda: local_geometry(
+            scan_points, n_neighbors, neighbourhoods=scan.neighbourhoods, threads=threads
+        ),
     )
     reference_nearest, scan_nearest = _in_parallel(
         threads,
@@ -430,6 +432,7 @@ def _labelled(
             threshold=limits.threshold,
             settings=settings,
             change_threshold=limits.change_threshold,
+            threads=threads,
         )
 
     (reference_distance, reference_candidates), (scan_distance, scan_candidates) = candidates

@@ -45,12 +45,15 @@ class VisibilityContext:
         ``c``: a surface within it is the same surface (metres).
     settings : mapping
         The resolved localisation parameters.
+    threads : int
+        Threads a test may keep busy (the same result on any number).
     """
 
     misalignment: float
     threshold: float
     change_threshold: float
     settings: Mapping[str, Any]
+    threads: int = 1
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,7 @@ from pykdtree.kdtree import KDTree
 
 from app.core.localise.settings import CHUNK, GATHER_CHUNK
 from app.core.localise.surface import LocalGeometry
+from app.core.threads import for_each_chunk
 
 __all__ = ["Candidates", "RayTest", "ray_visibility"]
 
@@ -122,6 +123,7 @@ def ray_visibility(
     test: RayTest,
     other_normals: NDArray[np.float32] | None = None,
     other_linear: NDArray[np.bool_] | None = None,
+    threads: int = 1,
 ) -> tuple[NDArray[np.int8], float]:
     """What the other sensor saw in the direction of each candidate.
 
@@ -153,6 +155,9 @@ def ray_visibility(
     other_linear : ndarray, shape (m,), bool, optional
         Returns without a fitted plane (their normals are not used: they hide what lies
         beyond them).
+    threads : int
+        Chunks of candidates tested at once (:func:`~app.core.threads.for_each_chunk`; the
+        same statuses).
 
     Returns
     -------
@@ -182,8 +187,8 @@ def ray_visibility(
         other_origin, other_range, other_direction, direction_tree, other_normals, other_linear
     )
     status = np.empty(candidates.points.shape[0], dtype=np.int8)
-    for start in range(0, candidates.points.shape[0], GATHER_CHUNK):
-        chunk = slice(start, start + GATHER_CHUNK)
+
+    def test_rays(chunk: slice) -> None:
         status[chunk] = _ray_status(
             candidates.rows(chunk),
             own=own,
@@ -192,6 +197,10 @@ def ray_visibility(
             max_angle=test.angle_factor * angular_step,
             angular_step=angular_step,
         )
+
+    count = candidates.points.shape[0]
+    chunks = (slice(start, start + GATHER_CHUNK) for start in range(0, count, GATHER_CHUNK))
+    for_each_chunk(test_rays, chunks, threads)
     return status, angular_step
 
 

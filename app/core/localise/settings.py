@@ -107,12 +107,19 @@ PARAMETER_SPECS: dict[str, ParamSpec] = {
 }
 """How each of :data:`DEFAULT_PARAMETERS` is validated (same names, same order)."""
 
-CHUNK = 32_768
-"""Points per step of per-point array work (plane fits, spacing, distances, ray directions)."""
-QUERY_CHUNK = 65_536
-"""Points per k-nearest-neighbour query (and per check of a search's cancellation)."""
-GATHER_CHUNK = 16_384
-"""Points per step of (chunk, neighbours, 3) gathers: a few MB per temporary array."""
+# The chunk sizes keep each step's temporaries under 1 MiB, the mmap threshold that
+# app.kit.allocator fixes for the CLI and the workers: a larger block is a fresh mapping whose
+# pages fault (and are zeroed) on first touch, every chunk again, while a smaller one reuses
+# the heap's pages and stays in cache.  Each point's result is the same whatever the chunk.
+CHUNK = 8_192
+"""Points per step of per-point array work (plane fits, spacing, distances, ray directions):
+a (chunk, k + 1) float64 gather of the k = 11 neighbours is 0.75 MiB."""
+QUERY_CHUNK = 8_192
+"""Points per k-nearest-neighbour query (and per check of a search's cancellation): the
+(chunk, k + 1) distances of k = 11 are 0.75 MiB."""
+GATHER_CHUNK = 2_048
+"""Points per step of (chunk, neighbours, 3) gathers: 0.52 MiB per float64 temporary of the
+k + 1 = 11 neighbours."""
 
 
 def resolve_parameters(params: dict[str, Any]) -> dict[str, Any]:

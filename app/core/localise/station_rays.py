@@ -66,7 +66,11 @@ class StationRayTest:
     ) -> VisibilityOutcome:
         """Statuses from the other cloud's stations, edge-on faces settled."""
         status, steps = any_station_status(
-            candidates, own=own, other=other, test=ray_test_for(own, other, context)
+            candidates,
+            own=own,
+            other=other,
+            test=ray_test_for(own, other, context),
+            threads=context.threads,
         )
         report: dict[str, Any] = {
             "other_stations": len(steps),
@@ -110,13 +114,13 @@ def settle_ray_status(
 
 
 def any_station_status(
-    candidates: Candidates, *, own: Side, other: Side, test: RayTest
+    candidates: Candidates, *, own: Side, other: Side, test: RayTest, threads: int = 1
 ) -> tuple[NDArray[np.int8], list[float]]:
     """Ray status of each candidate as seen by any station of the other cloud.
 
     Each station's rays are its own returns (``other.station``; all of them with one
     station), with their surfaces' normals; the statuses are combined by
-    :func:`combine_station_status`.
+    :func:`combine_station_status`.  ``threads``: chunks of candidates tested at once.
 
     Returns
     -------
@@ -144,6 +148,7 @@ def any_station_status(
             test=test,
             other_normals=normal,
             other_linear=linear,
+            threads=threads,
         )
         statuses.append(status)
         angular_steps.append(angular_step)

@@ -26,6 +26,7 @@ from app.core.localise.neighbourhoods import (
 )
 from app.core.localise.settings import CHUNK
 from app.core.spatial_order import ordered_chunks
+from app.core.threads import for_each_chunk
 
 __all__ = [
     "LocalGeometry",
@@ -165,6 +166,7 @@ def neighbourhood_planes(
     points: NDArray[np.float64],
     neighbor_index: NDArray[np.integer],
     order: NDArray[np.intp] | None = None,
+    threads: int = 1,
 ) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
     """Plane (normal and constant) and eigenvalues of each neighbourhood.
 
@@ -180,6 +182,8 @@ def neighbourhood_planes(
     order : ndarray, shape (p,), intp, optional
         A permutation of the rows (:func:`~app.core.spatial_order.spatial_order`): chunks of
         nearby points gather from nearby memory.  Each row's result is the same in any order.
+    threads : int
+        Chunks fitted at once (:func:`~app.core.threads.for_each_chunk`); the same result.
 
     Returns
     -------
@@ -201,7 +205,8 @@ def neighbourhood_planes(
     residual_variance = np.empty(count)
     middle_over_largest = np.empty(count)
     variation = np.empty(count)
-    for chunk in ordered_chunks(order, count, CHUNK):
+
+    def fit(chunk: NDArray[np.intp] | slice) -> None:
         index = neighbor_index[chunk]
         centroid = np.empty((index.shape[0], 3))
         deviation = []
@@ -223,6 +228,8 @@ def neighbourhood_planes(
         middle_over_largest[chunk] = middle / np.maximum(largest, 1e-300)
         variation[chunk] = smallest / np.maximum(trace, 1e-300)
         residual_variance[chunk] = smallest
+
+    for_each_chunk(fit, ordered_chunks(order, count, CHUNK), threads)
     return normal, plane_constant, residual_variance, middle_over_largest, variation
 
 
@@ -232,6 +239,7 @@ def fit_surfaces(
     neighbor_index: NDArray[np.uint32],
     kth_distance: NDArray[np.float64],
     order: NDArray[np.intp] | None = None,
+    threads: int = 1,
 ) -> Surfaces:
     """Fit a plane to every point's neighbourhood; estimate spacing and noise.
 
@@ -248,6 +256,8 @@ def fit_surfaces(
     kth_distance : ndarray, shape (n,)
     order : ndarray, shape (n,), intp, optional
         The cloud's spatial order (:class:`Neighbourhoods`).
+    threads : int
+        Chunks of the per-point passes worked on at once (the same result).
 
     Returns
     -------
@@ -256,7 +266,7 @@ def fit_surfaces(
     n = points.shape[0]
     k = neighbor_index.shape[1] - 1
     normal, plane_constant, residual_variance, middle_over_largest, variation = (
-        neighbourhood_planes(points, neighbor_index, order)
+        neighbourhood_planes(points, neighbor_index, order, threads)
     )
     is_linear = middle_over_largest < LINEAR_EIGENVALUE_RATIO
     del middle_over_largest
@@ -280,13 +290,27 @@ def fit_surfaces(
         is_linear[linear] = wide_middle_over_largest < LINEAR_EIGENVALUE_RATIO
         residual_variance[linear] = wide_residual * (k_wide + 1) / (k_wide + 1 - 3)
         raw_spacing[linear] = wide_distance[:, k_wide] * math.sqrt(math.pi / k_wide)
-    spacing = np.empty(n)
-    for chunk in ordered_chunks(order, n, CHUNK):
-        spacing[chunk] = raw_spacing[neighbor_index[chunk]].mean(axis=1)
+    spacing = _neighbourhood_means(raw_spacing, neighbor_index, order, threads)
     del raw_spacing
     np.maximum(spacing, 1e-12, out=spacing)
     noise = float(np.sqrt(np.median(residual_variance)))
     return Surfaces(normal, plane_constant, spacing, noise, is_linear, variation)
+
+
+def _neighbourhood_means(
+    values: NDArray[np.float64],
+    neighbor_index: NDArray[np.uint32],
+    order: NDArray[np.intp] | None,
+    threads: int,
+) -> NDArray[np.float64]:
+    """The mean of ``values`` (n,) over each point's neighbourhood (n, k + 1), shape (n,)."""
+    means = np.empty(neighbor_index.shape[0])
+
+    def mean(chunk: NDArray[np.intp] | slice) -> None:
+        means[chunk] = values[neighbor_index[chunk]].mean(axis=1)
+
+    for_each_chunk(mean, ordered_chunks(order, neighbor_index.shape[0], CHUNK), threads)
+    return means
 
 
 def with_surfaces(points: NDArray[np.float64], neighbourhoods: Neighbourhoods) -> Neighbourhoods:
@@ -308,6 +332,7 @@ def local_geometry(
     n_neighbors: int,
     *,
     neighbourhoods: Neighbourhoods | NeighbourhoodSearch | None = None,
+    threads: int = 1,
 ) -> LocalGeometry:
     """Each point's neighbourhood and local surface (:func:`fit_surfaces`).
 
@@ -318,6 +343,8 @@ def local_geometry(
         Neighbours besides the point itself (reduced to n - 1 for tiny clouds).
     neighbourhoods : Neighbourhoods or NeighbourhoodSearch, optional
         Of ``points``, computed ahead (with their surfaces, or not); found here otherwise.
+    threads : int
+        Threads of the surface fits (:func:`fit_surfaces`; the same result).
 
     Returns
     -------
@@ -348,7 +375,7 @@ def local_geometry(
     if surfaces is None:
         kth_distance = neighbourhoods.kth_distance
         del neighbourhoods  # its k-th distances go once the spacing is made from them
-        surfaces = fit_surfaces(points, tree, neighbor_index, kth_distance, order)
+        surfaces = fit_surfaces(points, tree, neighbor_index, kth_distance, order, threads)
     return LocalGeometry(
         points=points,
         tree=tree,

@@ -140,6 +140,7 @@ def label_candidates(
     threshold: float,
     settings: dict[str, Any],
     change_threshold: float | None = None,
+    threads: int = 1,
 ) -> Labelled:
     """Label one cloud's points: candidates become changed or unobserved, the rest unchanged.
 
@@ -159,6 +160,8 @@ def label_candidates(
         Resolved keyword parameters.
     change_threshold : float, optional
         ``c``: a surface within it is the same surface; default ``threshold``.
+    threads : int
+        Threads the test may keep busy (the same labels on any number).
 
     Returns
     -------
@@ -170,6 +173,7 @@ def label_candidates(
         threshold=threshold,
         change_threshold=threshold if change_threshold is None else change_threshold,
         settings=settings,
+        threads=threads,
     )
     outcome = test(candidates, own=own, other=other, context=context)
     status = outcome.status

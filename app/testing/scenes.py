@@ -1,11 +1,9 @@
-"""Synthetic point clouds for tests: random grid points, a room, a corridor."""
+"""Small synthetic point clouds: random grid points, a room, a corridor."""
 
 from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-
-from app.core.ground_truth import changed_iou as changed_iou  # the tests' name for it
 
 
 def random_points(n: int = 64, seed: int = 0) -> NDArray[np.float64]:

@@ -18,13 +18,13 @@ import numpy as np
 from app.core.cloud import PointCloud
 from app.core.comparison.result import ComparisonResult, RegionSummary
 from app.jobs.hooks import job_hooks
-from tests.helpers.results import calibration_report, registration_report
+from app.testing.results import calibration_report, registration_report
 
 if TYPE_CHECKING:  # not imported: loading the detectors would cost every fake consumer seconds
     from app.core.comparison.load import PairOptions
 
 CONSUMER_BOOTSTRAP = (
-    "import sys, tests.helpers.fake_pipeline as fake; fake.install(); "
+    "import sys, app.testing.fake_pipeline as fake; fake.install(); "
     "from app.jobs.consumer import main; sys.exit(main())"
 )
 
