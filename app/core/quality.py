@@ -42,6 +42,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from app.core.labels import LABEL_UNOBSERVED
+
 if TYPE_CHECKING:
     from app.core.comparison.protocol import Comparison
 
@@ -60,8 +62,6 @@ LARGE_TRANSLATION_METRES = 0.5
 LOW_OVERLAP_FRACTION = 0.5
 """A cloud of which less than this fraction was observed by the other scan: most of it is
 ``unobserved``, so the decision rests on a small part of the place."""
-
-LABEL_UNOBSERVED = -1
 
 FIX_ACTIONS = {
     "check_pairing": "check that both scans are of the same place, or skip the alignment",

@@ -19,7 +19,7 @@ from app.core.comparison.reports import (
 )
 from app.core.explanation import explain_comparison
 from app.core.jsonable import json_safe
-from app.core.localise import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
+from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
 from app.core.quality import quality_warnings
 
 LABELS_COMPRESS_LEVEL = 1
