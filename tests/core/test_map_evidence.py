@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from app.core.labels import LABEL_CHANGED, LABEL_UNOBSERVED
 from app.core.localise import localise_changes
-from app.core.localise.visibility import LABEL_CHANGED, LABEL_UNOBSERVED
 from tests.helpers.fused_rooms import CHAIR, fused_room
 
 
