@@ -33,8 +33,13 @@ install: $(STAMP)
 run: install
 	$(BIN)/scandiff serve
 
+# TEST_PROCESSES: pytest-xdist processes of make test (the suite is CPU-bound: one per core of
+# the 2-core target; each test file stays in one process, so module fixtures are made once;
+# make test TEST_PROCESSES=0 runs it in this process alone).
+TEST_PROCESSES ?= 2
+
 test: install
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_PROCESSES) --dist loadfile
 
 test-slow: install
 	$(BIN)/python -m pytest -q -m slow; status=$$?; [ $$status -eq 0 ] || [ $$status -eq 5 ]

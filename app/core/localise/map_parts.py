@@ -21,7 +21,7 @@ from scipy.sparse.csgraph import connected_components
 
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
-from app.core.localise.map_planes import SECTORS, coplanar_sectors, extends, share_on_planes
+from app.core.localise.map_planes import SECTORS, extends, share_on_planes
 from app.core.localise.origin_free import (
     BEHIND_MAX_RADIUS,
     BEHIND_MIN_RADIUS,
@@ -37,7 +37,6 @@ __all__ = [
     "SEE_THROUGH_REACH",
     "SPARSE_PROBE_FACTOR",
     "PartFigures",
-    "hidden_surface",
     "near_candidates",
     "part_figures",
     "surface_behind",
@@ -68,14 +67,12 @@ SPARSE_PROBE_FACTOR = 1.5
 """The see-through probes' balls are at least this many of the other cloud's median spacings
 wide (a sparse cloud's surface is found between its samples)."""
 NEAR_FACTOR = 3.0
-NEAR_MIN = 0.5
+NEAR_MIN = 1.0
 """A cluster is near the other epoch's coverage when its closest tenth of points lies within
-``max(NEAR_MIN, NEAR_FACTOR * change_threshold)`` metres of the other cloud."""
+``max(NEAR_MIN, NEAR_FACTOR * change_threshold)`` metres of the other cloud.  A removed
+chair's backrest top, seen without its lower part, is 0.7-0.9 m over the floor the other
+epoch saw under it: that epoch's path came near."""
 NEAR_QUANTILE = 0.1
-HIDDEN_REACHES = (0.5, 1.0)
-"""Metres: the other epoch's surface behind a candidate was hidden from this epoch when this
-epoch has it on its plane about this far away in some direction (the floor around a removed
-chair's footprint, the wall around a removed board)."""
 
 
 def _border_continuation(
@@ -444,42 +441,6 @@ def near_candidates(
     reach = SEE_THROUGH_REACH + BEHIND_MAX_RADIUS
     distance, _ = KDTree(points).query(other.points[unmatched], k=1, distance_upper_bound=reach)
     return unmatched[np.asarray(distance).ravel() <= reach]
-
-
-def hidden_surface(
-    points: NDArray[np.float64],
-    *,
-    own: Side,
-    other: Side,
-    other_unmatched: NDArray[np.bool_],
-    tolerance: float,
-) -> NDArray[np.bool_]:
-    """The other cloud's unmatched points near ``points`` (candidates, shape (c, 3)) whose
-    surface this cloud has around them, on their plane: surface this epoch could not see there
-    because something stood in front of it (shape (m,), bool).
-
-    The floor under a removed chair, the wall behind a removed board carry on, in this epoch,
-    around the place the object hid.  The far face of an object that stands in both epochs,
-    seen by the other epoch's path only, ends at the object's edges: this epoch has nothing on
-    its plane around it.
-    """
-    hidden = np.zeros(other_unmatched.shape[0], dtype=bool)
-    unmatched = near_candidates(points, other, other_unmatched)
-    found = np.zeros(unmatched.shape[0], dtype=bool)
-    for around in HIDDEN_REACHES:
-        todo = np.flatnonzero(~found)
-        found[todo] = (
-            coplanar_sectors(
-                other.points[unmatched[todo]],
-                other.geometry.normal[unmatched[todo]],
-                own.geometry,
-                tolerance,
-                around,
-            )
-            >= 1
-        )
-    hidden[unmatched] = found
-    return hidden
 
 
 def part_figures(
