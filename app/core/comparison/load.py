@@ -39,7 +39,7 @@ class LoadedPair:
     local_origin : ndarray, shape (3,)
         Subtracted from both clouds' file coordinates.
     reference_points : ndarray, shape (n, 3)
-        The reference in the local frame.
+        The reference in the local frame (float64; float32 for a pair read lean).
     scan_points : ndarray, shape (m, 3), or None
         The scan in the local frame (None once released).
     threads : int
