@@ -37,6 +37,7 @@ import numpy as np
 
 from app.core.datasets.maps import MAP_CLASSES, MapPair, class_layouts, map_pair
 from app.core.formats import read_point_cloud
+from app.core.labels import LABEL_CHANGED
 from app.core.pipeline import compare
 from bench.real_changes import load_changes, score_changes
 
@@ -45,8 +46,6 @@ REAL_PAIRS = ("classroom_tls", "bike_parking_mls")
 MODES = ("default", "trajectory")
 RGBD_CHANGES = ("removed", "added", "moved", "rotated", "none")
 CHANGES = ("removed", "added", "moved", "rotated", "mixed")
-LABEL_CHANGED = 1
-"""The label :func:`app.core.pipeline.compare` gives a changed point."""
 RECALL_EACH, RECALL_MEAN, QUIET_POINTS = 0.70, 0.85, 2000
 ROBOT_IOU, ROBOT_TRAJECTORY_IOU = 0.80, 0.90
 

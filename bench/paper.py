@@ -47,7 +47,8 @@ import numpy as np  # noqa: E402
 from app.core.datasets.scenes import SyntheticPair, paper_corridor, raycast_scene  # noqa: E402
 from app.core.detectors import METHODS, VARIANTS, make_detector  # noqa: E402
 from app.core.errors import InputError  # noqa: E402
-from app.core.localise import LABEL_CHANGED, localise_changes  # noqa: E402
+from app.core.labels import LABEL_CHANGED  # noqa: E402
+from app.core.localise import localise_changes  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 

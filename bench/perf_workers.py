@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 
 from app.core.datasets.scenes import raycast_scene
 from app.core.formats import read_point_cloud
-from app.core.localise import LABEL_CHANGED
+from app.core.labels import LABEL_CHANGED
 from app.core.pipeline import compare
 from app.kit.allocator import release_freed_memory_promptly
 

@@ -19,12 +19,12 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from app.core.labels import LABEL_CHANGED
+
 ANNOTATIONS = Path(__file__).resolve().parent / "real_changes.json"
 CHANGE_DISTANCE = 0.10
 """Metres: a point farther than this from every point of the other epoch is changed."""
-LABEL_CHANGED = 1
 PLANE_NEIGHBOURS = 10
-"""The label :func:`app.core.pipeline.compare` gives a changed point."""
 
 
 @dataclass(frozen=True)

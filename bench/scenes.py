@@ -28,7 +28,7 @@ from app.core.datasets.scenes import (
     raycast_scene_objects,
 )
 from app.core.detectors import METHODS
-from app.core.localise import LABEL_CHANGED
+from app.core.labels import LABEL_CHANGED
 from app.core.pipeline import compare
 
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -11,8 +11,8 @@ from typing import Any
 
 import pytest
 
+from app.testing.service import ServiceProcess
 from tests.helpers.environment import require, shared_data_dir
-from tests.helpers.service import ServiceProcess
 
 
 @pytest.fixture

@@ -9,16 +9,17 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from app.cli.exit_status import EXIT_BAD_INPUT
 from app.core.errors import InputError
-from app.core.explanation import explain_comparison
 
 if TYPE_CHECKING:  # the numeric stack is imported when the command runs, not to build the parser
     from app.core.cloud import PointCloud
     from app.core.pipeline import ComparisonResult
+    from app.core.quality import QualityWarning
     from app.core.trajectory import Trajectory
 
 
@@ -273,7 +274,7 @@ def _print_summary(result: ComparisonResult, reference: Path, scan: Path) -> Non
     registration = result.registration
     counts = result.label_counts()
     print(f"{scan.name} vs {reference.name}: {verdict}")
-    print(f"  why: {explain_comparison(result)['text']}")
+    print(f"  why: {result.explanation.text}")
     print(
         f"  {result.method}-EMD ({result.variant}): score {result.score:.4g}, "
         f"threshold {result.threshold:.4g}"
@@ -299,11 +300,8 @@ def _print_summary(result: ComparisonResult, reference: Path, scan: Path) -> Non
                 continue
             where = ", ".join(f"{value:.2f}" for value in entry.origin or [])
             print(f"  {side} sensor origin: ({where}), {entry.source}")
-    from app.core.quality import quality_warnings
-
-    warnings = quality_warnings(result)
-    if warnings:
-        print(f"  warnings: {len(warnings)} (on stderr)")
+    if result.quality_warnings:
+        print(f"  warnings: {len(result.quality_warnings)} (on stderr)")
     print(f"  regions: {len(result.regions)}")
     for region in result.regions[:10]:
         centroid = ", ".join(f"{value:.2f}" for value in region.centroid)
@@ -355,27 +353,27 @@ CLI_FIXES_OF_ERRORS = {"skip_alignment": " (--no-align)"}
 """The CLI's flag for each ``how_to_fix`` a core error names."""
 
 
-def cli_warnings(warnings: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Quality warnings with ``how_to_fix`` in the CLI's flags."""
+def cli_warnings(warnings: Sequence[QualityWarning]) -> list[dict[str, Any]]:
+    """Quality warnings as JSON, with ``how_to_fix`` in the CLI's flags."""
+    from app.core.jsonable import json_safe
+
     rendered = []
     for warning in warnings:
-        fix = dict(warning.get("how_to_fix") or {})
-        if fix.get("action") in CLI_FIXES:
-            text, flags = CLI_FIXES[fix["action"]]
-            fix.update(text=text, flags=flags)
-        rendered.append({**warning, "how_to_fix": fix})
+        document = json_safe(warning.to_json_dict())
+        if warning.action in CLI_FIXES:
+            text, flags = CLI_FIXES[warning.action]
+            document["how_to_fix"] = {**document["how_to_fix"], "text": text, "flags": flags}
+        rendered.append(document)
     return rendered
 
 
 def _print_warnings(result: ComparisonResult) -> None:
     """Every quality warning on stderr, one line each (the sentence, then how to fix it in
     the CLI's flags), whatever the output format."""
-    from app.core.quality import quality_warnings
-
-    for warning in cli_warnings(quality_warnings(result)):
-        fix = warning["how_to_fix"].get("text")
-        advice = f" To fix: {fix}." if fix else ""
-        print(f"scandiff: warning: {warning['message']}{advice}", file=sys.stderr)
+    for warning in result.quality_warnings:
+        fix = CLI_FIXES.get(warning.action)
+        advice = f" To fix: {fix[0]}." if fix else ""
+        print(f"scandiff: warning: {warning.message}{advice}", file=sys.stderr)
 
 
 def _export(
@@ -525,8 +523,7 @@ def run(args: argparse.Namespace) -> int:
     _print_warnings(result)
     if args.json:
         document = result.to_json_dict()
-        if isinstance(document.get("quality_warnings"), list):
-            document["quality_warnings"] = cli_warnings(document["quality_warnings"])
+        document["quality_warnings"] = cli_warnings(result.quality_warnings)
         json.dump(document, sys.stdout)
         sys.stdout.write("\n")
     else:

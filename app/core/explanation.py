@@ -10,7 +10,9 @@ explanation says which evidence decided and what the other evidence said::
     detector's score 0.037 is below its threshold 0.0424 (the regions decide)
 
 :func:`explain_decision` works from plain values (a stored job's columns, or a result);
-:func:`explain_comparison` from a :class:`~app.core.pipeline.ComparisonResult`.
+:func:`explain_comparison` from a :class:`~app.core.pipeline.ComparisonResult`.  Both give an
+:class:`Explanation`, stored as its :meth:`Explanation.to_json_dict`; a result computes its own
+once (``result.explanation``).
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
+
+from app.core.comparison.reports import Explanation, LargestRegion
 
 if TYPE_CHECKING:
     from app.core.comparison.protocol import Comparison
@@ -37,11 +41,13 @@ def _number(value: float | None) -> str:
     return f"{value:.3g}"
 
 
-def _region_size(region: Any) -> list[float]:
+def _region_size(region: Any) -> tuple[float, ...]:
     """Bounding-box extents of a region (metres), shape (3,)."""
     low = _field(region, "bbox_min")
     high = _field(region, "bbox_max")
-    return [round(float(top) - float(bottom), 3) for bottom, top in zip(low, high, strict=True)]
+    return tuple(
+        round(float(top) - float(bottom), 3) for bottom, top in zip(low, high, strict=True)
+    )
 
 
 def _field(item: Any, name: str) -> Any:
@@ -60,7 +66,7 @@ def explain_decision(
     min_region_points: int | None = None,
     dropped_clusters: int | None = None,
     site_test: Mapping[str, Any] | None = None,
-) -> dict[str, Any]:
+) -> Explanation:
     """The structured explanation of one decision and its one-line ``text``.
 
     Parameters
@@ -86,7 +92,7 @@ def explain_decision(
 
     Returns
     -------
-    dict
+    Explanation
         ``decision`` ("changed"/"unchanged"), ``rule``, ``decided_by``, ``n_regions``,
         ``n_region_points``, ``min_region_points``, ``dropped_clusters``, ``largest_region``
         (``index``, ``kind``, ``n_points``, ``size_m``: 3 extents in metres; None without
@@ -100,12 +106,12 @@ def explain_decision(
     largest = None
     if regions:
         index = max(range(n_regions), key=lambda number: int(_field(regions[number], "n_points")))
-        largest = {
-            "index": index,
-            "kind": str(_field(regions[index], "kind")),
-            "n_points": int(_field(regions[index], "n_points")),
-            "size_m": _region_size(regions[index]),
-        }
+        largest = LargestRegion(
+            index=index,
+            kind=str(_field(regions[index], "kind")),
+            n_points=int(_field(regions[index], "n_points")),
+            size_m=_region_size(regions[index]),
+        )
     decided_by = {"regions": "regions", "detector": "detector"}.get(rule)
     if rule == "either":
         decided_by = (
@@ -116,25 +122,25 @@ def explain_decision(
             )
             or "regions and detector"
         )
-    return {
-        "decision": "changed" if changed else "unchanged",
-        "rule": rule,
-        "decided_by": decided_by or rule,
-        "n_regions": n_regions,
-        "n_region_points": n_region_points,
-        "min_region_points": min_region_points,
-        "dropped_clusters": dropped_clusters,
-        "largest_region": largest,
-        "score": score,
-        "threshold": threshold,
-        "detector_changed": detector_changed,
-        "agrees": detector_changed is None or bool(detector_changed) == (n_regions > 0),
-        "site_test": dict(site_test) if site_test else None,
-        "text": _text(
+    return Explanation(
+        decision="changed" if changed else "unchanged",
+        rule=rule,
+        decided_by=decided_by or rule,
+        n_regions=n_regions,
+        n_region_points=n_region_points,
+        min_region_points=min_region_points,
+        dropped_clusters=dropped_clusters,
+        largest_region=largest,
+        score=score,
+        threshold=threshold,
+        detector_changed=detector_changed,
+        agrees=detector_changed is None or bool(detector_changed) == (n_regions > 0),
+        site_test=dict(site_test) if site_test else None,
+        text=_text(
             changed, rule, score, threshold, detector_changed, n_regions, n_region_points,
             min_region_points, dropped_clusters, largest,
         ) + _site_text(site_test),
-    }  # fmt: skip
+    )  # fmt: skip
 
 
 STATISTIC_NAMES = {
@@ -167,7 +173,7 @@ def _text(
     n_region_points: int,
     min_region_points: int | None,
     dropped_clusters: int | None,
-    largest: dict[str, Any] | None,
+    largest: LargestRegion | None,
 ) -> str:
     """The one line: the decision, the regions' evidence, the detector's, the rule."""
     floor = f" (>= {min_region_points:,} each)" if min_region_points else ""
@@ -175,7 +181,7 @@ def _text(
         noun = "region" if n_regions == 1 else "regions"
         regions_part = f"{n_regions:,} {noun} of {n_region_points:,} points{floor}"
         if largest is not None:
-            size = " x ".join(f"{extent:.2f}" for extent in largest["size_m"])
+            size = " x ".join(f"{extent:.2f}" for extent in largest.size_m)
             regions_part += f", largest {size} m" if n_regions > 1 else f", {size} m"
     else:
         regions_part = f"no region of changed points{floor}"
@@ -197,7 +203,7 @@ def _text(
     return f"{decision}: {regions_part}; {detector_part} ({RULE_DECIDES.get(rule, rule)})"
 
 
-def explain_comparison(result: Comparison) -> dict[str, Any]:
+def explain_comparison(result: Comparison) -> Explanation:
     """:func:`explain_decision` of a :class:`~app.core.pipeline.ComparisonResult`.
 
     Reads ``changed``, ``score``, ``threshold``, ``regions``, ``calibration.decision`` and

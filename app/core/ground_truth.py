@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from app.core.localise import LABEL_CHANGED
+from app.core.labels import LABEL_CHANGED
 
 __all__ = ["changed_iou"]
 

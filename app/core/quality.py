@@ -23,7 +23,8 @@ still "succeed" with many regions.  :func:`quality_warnings` says so, from the r
     are guesses.
 
 The site's history (a region count far above the site's usual) needs the database; the
-service adds it.  Every warning is ``{"code", "message", "detail", "how_to_fix", ...}``:
+service adds it.  Every warning is a :class:`QualityWarning`, stored as
+``{"code", "message", "detail", "how_to_fix", ...}`` (:meth:`QualityWarning.to_json_dict`):
 ``message`` is one sentence with units; ``detail`` holds the measured ``value``, the ``limit``
 it crossed, ``unit``, ``side`` where there is one and an ``explanation`` (what it means for the
 result); ``how_to_fix`` is ``{"action"}``, one of :data:`FIX_ACTIONS`.  The core names no
@@ -36,11 +37,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+from app.core.comparison.reports import FIX_ACTIONS as FIX_ACTIONS
+from app.core.comparison.reports import QualityWarning
+from app.core.labels import LABEL_UNOBSERVED
 
 if TYPE_CHECKING:
     from app.core.comparison.protocol import Comparison
@@ -61,78 +65,6 @@ LOW_OVERLAP_FRACTION = 0.5
 """A cloud of which less than this fraction was observed by the other scan: most of it is
 ``unobserved``, so the decision rests on a small part of the place."""
 
-LABEL_UNOBSERVED = -1
-
-FIX_ACTIONS = {
-    "check_pairing": "check that both scans are of the same place, or skip the alignment",
-    "check_alignment": "check that the alignment found the right match, or skip the alignment",
-    "widen_coverage": "rescan so that both scans cover the same part of the place",
-    "give_sensor_origin": "give the sensor position of the side named in the detail",
-    "check_sensor_origin": "check the sensor position given",
-    "check_trajectory": "check that the trajectory covers the whole recording, on its clock",
-}
-"""What each ``how_to_fix["action"]`` asks, without naming any interface's knob."""
-
-
-@dataclass(frozen=True)
-class QualityWarning:
-    """One warning, in the shape the module docstring describes (:meth:`to_json_dict`).
-
-    Attributes
-    ----------
-    code : str
-    message : str
-        One sentence, with units.
-    explanation : str
-        What it means for the result.
-    action : str
-        One of :data:`FIX_ACTIONS`.
-    value, limit : float, optional
-        The measured value and the limit it crossed.
-    unit : str, optional
-    side : {"reference", "scan"}, optional
-    """
-
-    code: str
-    message: str
-    explanation: str
-    action: str
-    value: float | None = None
-    limit: float | None = None
-    unit: str | None = None
-    side: str | None = None
-
-    def to_json_dict(self) -> dict[str, Any]:
-        """``{"code", "message", value..., "detail", "how_to_fix"}`` (measured fields only)."""
-        measured = {
-            key: value
-            for key, value in (
-                ("value", self.value),
-                ("limit", self.limit),
-                ("unit", self.unit),
-                ("side", self.side),
-            )
-            if value is not None
-        }
-        return {
-            "code": self.code,
-            "message": self.message,
-            **measured,
-            "detail": {**measured, "explanation": self.explanation},
-            "how_to_fix": {"action": self.action, "summary": FIX_ACTIONS[self.action]},
-        }
-
-
-def _warning(
-    code: str,
-    message: str,
-    explanation: str,
-    action: str,
-    **measured: Any,
-) -> dict[str, Any]:
-    """One warning as stored (:class:`QualityWarning`)."""
-    return QualityWarning(code, message, explanation, action, **measured).to_json_dict()
-
 
 def registration_warnings(
     registration: Mapping[str, Any],
@@ -140,7 +72,7 @@ def registration_warnings(
     low_fitness: float = LOW_FITNESS,
     large_rotation_degrees: float = LARGE_ROTATION_DEGREES,
     large_translation_metres: float = LARGE_TRANSLATION_METRES,
-) -> list[dict[str, Any]]:
+) -> list[QualityWarning]:
     """Warnings about the alignment, from a result's ``registration`` report.
 
     Parameters
@@ -154,9 +86,9 @@ def registration_warnings(
 
     Returns
     -------
-    list of dict
+    list of QualityWarning
     """
-    warnings: list[dict[str, Any]] = []
+    warnings: list[QualityWarning] = []
     aligned = registration.get("enabled", True) is not False
     fitness = _finite(registration.get("fitness"))
     if fitness is not None and fitness < low_fitness:
@@ -164,7 +96,7 @@ def registration_warnings(
         within = f" within {distance:.3g} m of the reference" if distance is not None else ""
         after = " after alignment" if aligned else " (not aligned)"
         warnings.append(
-            _warning(
+            QualityWarning(
                 "low_registration_fitness",
                 f"Only {fitness:.0%} of the scan's points lie{within}{after} "
                 f"(registration fitness {fitness:.2f}, below {low_fitness:g}).",
@@ -179,7 +111,7 @@ def registration_warnings(
     rotation = _finite(registration.get("rotation_degrees"))
     if rotation is not None and rotation > large_rotation_degrees:
         warnings.append(
-            _warning(
+            QualityWarning(
                 "large_rotation",
                 f"The alignment rotated the scan by {rotation:.1f} degrees (more than "
                 f"{large_rotation_degrees:g} degrees).",
@@ -194,7 +126,7 @@ def registration_warnings(
     translation = _finite(registration.get("translation_m"))
     if translation is not None and translation > large_translation_metres:
         warnings.append(
-            _warning(
+            QualityWarning(
                 "large_translation",
                 f"The alignment moved the scan's centre by {translation:.2f} m (more than "
                 f"{large_translation_metres:g} m).",
@@ -214,7 +146,7 @@ def overlap_warnings(
     scan_label: NDArray[np.integer],
     *,
     low_overlap: float = LOW_OVERLAP_FRACTION,
-) -> list[dict[str, Any]]:
+) -> list[QualityWarning]:
     """A warning when too little of either cloud was observed by the other scan.
 
     Parameters
@@ -226,7 +158,7 @@ def overlap_warnings(
 
     Returns
     -------
-    list of dict
+    list of QualityWarning
         At most one warning, about the less observed cloud.
     """
     observed = {
@@ -242,7 +174,7 @@ def overlap_warnings(
         return []
     other = "scan" if side == "reference" else "reference"
     return [
-        _warning(
+        QualityWarning(
             "low_overlap",
             f"Only {fraction:.0%} of the {side}'s points were observed by the {other} (less "
             f"than {low_overlap:.0%}).",
@@ -258,7 +190,7 @@ def overlap_warnings(
 def origin_warnings(
     sensor_origins: Mapping[str, Sequence[Mapping[str, Any]]] | None,
     origin_messages: Sequence[str] = (),
-) -> list[dict[str, Any]]:
+) -> list[QualityWarning]:
     """Warnings about the sensor origins: unknown ones, and those the data contradicted.
 
     Parameters
@@ -271,10 +203,10 @@ def origin_warnings(
 
     Returns
     -------
-    list of dict
+    list of QualityWarning
     """
     warnings = [
-        _warning("sensor_origin", _sentence(str(text)), str(text), "check_sensor_origin")
+        QualityWarning("sensor_origin", _sentence(str(text)), str(text), "check_sensor_origin")
         for text in origin_messages
     ]
     for side in ("reference", "scan"):
@@ -286,7 +218,7 @@ def origin_warnings(
                 warnings.append(_time_span_warning(side, outside, entry.get("time_span")))
         if sensor_origins is not None and side in sensor_origins and not sensor_origins[side]:
             warnings.append(
-                _warning(
+                QualityWarning(
                     "sensor_origin_unknown",
                     f"The {side}'s sensor origin is unknown (none given, none in the file, "
                     "none estimated with confidence).",
@@ -299,13 +231,13 @@ def origin_warnings(
     return warnings
 
 
-def _time_span_warning(side: str, outside: int, span: Any) -> dict[str, Any]:
+def _time_span_warning(side: str, outside: int, span: Any) -> QualityWarning:
     """``trajectory_time_span``: ``outside`` points of ``side`` lie outside its trajectory's
     time span ``[first, last]``."""
     within = ""
     if isinstance(span, Sequence) and len(span) == 2:
         within = f" ({float(span[0]):.3f}..{float(span[1]):.3f} s)"
-    return _warning(
+    return QualityWarning(
         "trajectory_time_span",
         f"{outside:,} of the {side}'s points have times outside its trajectory's time "
         f"span{within}.",
@@ -318,9 +250,13 @@ def _time_span_warning(side: str, outside: int, span: Any) -> dict[str, Any]:
     )
 
 
-def quality_warnings(result: Comparison) -> list[dict[str, Any]]:
+def quality_warnings(result: Comparison) -> list[QualityWarning]:
     """Every warning :mod:`app.core.quality` can tell from a comparison result (its
-    ``registration``, labels, ``sensor_origins`` and the origins' ``warnings``)."""
+    ``registration``, labels, ``sensor_origins`` and the origins' ``warnings``).
+
+    A result computes them once (``result.quality_warnings``); each is stored as its
+    :meth:`QualityWarning.to_json_dict`.
+    """
     warnings = registration_warnings(result.registration.to_json_dict())
     warnings += overlap_warnings(np.asarray(result.reference_label), np.asarray(result.scan_label))
     warnings += origin_warnings(result.sensor_origins_json(), list(result.warnings or []))

@@ -133,10 +133,10 @@ def store_results(
         row.effective_params = json_safe(result.params)
         row.registration = json_safe(result.registration.to_json_dict())
         row.n_regions = len(result.regions)
-        warnings = list(result.quality_warnings)  # the core's, computed once
+        warnings = [warning.to_json_dict() for warning in result.quality_warnings]
         history_warning = region_count_warning(session, row, len(result.regions))
         row.warnings = json_safe(warnings + ([history_warning] if history_warning else []))
-        row.explanation = json_safe(result.explanation)
+        row.explanation = json_safe(result.explanation.to_json_dict())
         row.sensor_origins = json_safe(result.sensor_origins_json())
         row.uncertain_regions = json_safe(
             [region.to_json_dict() for region in result.uncertain_regions]

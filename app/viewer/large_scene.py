@@ -34,13 +34,11 @@ from numpy.typing import NDArray
 
 from app.core.formats import BagOptions
 from app.core.formats.streamed import PointBlocks, open_point_blocks
+from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
 from app.core.localise.changes import MIN_REGION_POINTS_FLOOR, MIN_REGION_POINTS_PER_SQRT
 from app.core.registration import apply_transform
 from app.viewer.scene import (
     DEFAULT_POINT_BUDGET,
-    LABEL_CHANGED,
-    LABEL_UNCHANGED,
-    LABEL_UNOBSERVED,
     LAYER_STYLES,
     Layer,
     SceneData,

@@ -24,11 +24,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED
 from app.core.localise.regions import cluster_labels
 from app.core.localise.settings import DEFAULT_PARAMETERS
 from app.viewer.scene import (
-    LABEL_CHANGED,
-    LABEL_UNCHANGED,
     SIDES,
     RegionBox,
     SceneData,

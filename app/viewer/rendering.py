@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
 from app.viewer.colours import (
     distance_limit,
     shade_by_height,
@@ -23,9 +24,6 @@ from app.viewer.colours import (
 )
 from app.viewer.scene import (
     CHANGED_LAYERS,
-    LABEL_CHANGED,
-    LABEL_UNCHANGED,
-    LABEL_UNOBSERVED,
     SIDE_LAYERS,
     SIDES,
     STYLE_BY_NAME,

@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from app.config import DEFAULT_VIEWER_POINT_BUDGET
+from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
 from app.core.localise.changes import MIN_REGION_POINTS_FLOOR, MIN_REGION_POINTS_PER_SQRT
 from app.core.registration import apply_transform
 from app.viewer.ceiling import opening_clip_height
@@ -43,10 +44,6 @@ from app.viewer.scene_parts import (
     triple,
 )
 from app.viewer.trajectory_display import TrajectoryPath, trajectory_paths
-
-LABEL_UNOBSERVED = -1
-LABEL_UNCHANGED = 0
-LABEL_CHANGED = 1
 
 DEFAULT_POINT_BUDGET = DEFAULT_VIEWER_POINT_BUDGET
 """Most points sent to a browser for one job (about 15 MB over the websocket); the default of

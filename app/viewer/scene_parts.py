@@ -13,10 +13,9 @@ import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
+from app.core.labels import LABEL_CHANGED, LABEL_UNOBSERVED
 from app.core.registration import apply_transform
 
-LABEL_UNOBSERVED = -1
-LABEL_CHANGED = 1
 SIDES = ("reference", "scan")
 
 

@@ -19,6 +19,8 @@ from typing import Any
 
 import pytest
 
+from app.testing.files import pcd_bytes
+from app.testing.service import ServiceProcess
 from tests.helpers.browser import (
     FAILING_SCAN_NAME,
     FAILING_SCAN_REASON,
@@ -28,8 +30,6 @@ from tests.helpers.browser import (
     find_chromium,
 )
 from tests.helpers.environment import require
-from tests.helpers.files import pcd_bytes
-from tests.helpers.service import ServiceProcess
 
 
 @pytest.fixture(scope="session")

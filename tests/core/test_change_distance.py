@@ -16,7 +16,8 @@ import pytest
 from app.core.cache.geometry import cache_key
 from app.core.cloud import PointCloud
 from app.core.errors import InputError
-from app.core.localise import LABEL_CHANGED, localise_changes
+from app.core.labels import LABEL_CHANGED
+from app.core.localise import localise_changes
 from app.core.localise.distance import nearest_in, surface_distance
 from app.core.localise.settings import DEFAULT_PARAMETERS
 from app.core.localise.surface import local_geometry

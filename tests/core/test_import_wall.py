@@ -72,6 +72,19 @@ def test_importing_the_core_loads_no_web_or_database_module():
     assert result.stdout.strip() == ""
 
 
+def test_reading_a_result_and_its_labels_loads_no_localiser():
+    """The labels have one home (``app.core.labels``): a reader of results (the viewer, the
+    harness's stand-in pipeline) needs no import of ``app.core.localise``."""
+    code = (
+        "import sys, app.core.labels, app.core.comparison.result\n"
+        "print(','.join(sorted(m for m in sys.modules if m.startswith('app.core.localise'))))\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    )
+    assert result.stdout.strip() == ""
+
+
 LOCALISE_LAYERS = (
     "settings",
     "station_assignment",

@@ -22,7 +22,8 @@ from pykdtree.kdtree import KDTree
 from app.core.datasets.lidar import lidar_pair
 from app.core.datasets.scenes import _transform_points
 from app.core.ground_truth import changed_iou
-from app.core.localise import LABEL_CHANGED, localise_changes
+from app.core.labels import LABEL_CHANGED
+from app.core.localise import localise_changes
 from app.core.localise.origin_free import (
     behind_evidence,
     keep_evidenced_clusters,

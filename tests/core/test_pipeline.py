@@ -12,7 +12,8 @@ from app.core.comparison import localise as localise_stage
 from app.core.datasets.scenes import raycast_scene
 from app.core.detectors import METHODS, VARIANTS
 from app.core.errors import InputError
-from app.core.localise import LABEL_CHANGED, neighbourhoods
+from app.core.labels import LABEL_CHANGED
+from app.core.localise import neighbourhoods
 from app.core.pipeline import compare
 from app.core.registration import apply_transform
 

@@ -8,7 +8,7 @@ import pytest
 from app.core.cloud import PointCloud
 from app.core.datasets.lidar import lidar_pair
 from app.core.errors import InputError
-from app.core.localise import LABEL_CHANGED
+from app.core.labels import LABEL_CHANGED
 from app.core.pipeline import compare
 
 STEP = 0.8

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from app.core.cloud import PointCloud
+from app.core.comparison.reports import QualityWarning
 from app.core.datasets.scenes import raycast_scene
 from app.core.detectors import METHOD_ALIASES, METHODS, canonical_method, make_detector
 from app.core.errors import InputError
@@ -24,8 +25,8 @@ from app.core.quality import (
 from app.core.registration import apply_transform
 
 
-def codes(warnings: list[dict]) -> list[str]:
-    return [warning["code"] for warning in warnings]
+def codes(warnings: list[QualityWarning]) -> list[str]:
+    return [warning.code for warning in warnings]
 
 
 def test_a_good_alignment_has_no_warning() -> None:
@@ -44,20 +45,20 @@ def test_low_fitness_and_a_large_correction_are_warned_with_units() -> None:
     warnings = registration_warnings(report)
     assert codes(warnings) == ["low_registration_fitness", "large_rotation", "large_translation"]
     fitness, rotation, translation = warnings
-    assert fitness["value"] == report["fitness"] and fitness["limit"] == LOW_FITNESS
-    assert "within 0.4 m of the reference" in fitness["message"]
-    assert f"{report['rotation_degrees']:.1f} degrees" in rotation["message"]
-    assert rotation["unit"] == "degrees"
-    assert f"{report['translation_m']:.2f} m" in translation["message"]
+    assert fitness.value == report["fitness"] and fitness.limit == LOW_FITNESS
+    assert "within 0.4 m of the reference" in fitness.message
+    assert f"{report['rotation_degrees']:.1f} degrees" in rotation.message
+    assert rotation.unit == "degrees"
+    assert f"{report['translation_m']:.2f} m" in translation.message
     for warning in warnings:  # one sentence, no interface's knob; the fix as an action
-        message = warning["message"]
+        message = warning.message
         assert message.endswith(".") and message.count(". ") == 0 and "; " not in message
         assert "--" not in message and '"align"' not in message
-        assert warning["how_to_fix"]["action"] in FIX_ACTIONS
-        assert warning["detail"]["value"] == warning["value"]
-        assert warning["detail"]["explanation"]
+        assert warning.action in FIX_ACTIONS
+        assert warning.to_json_dict()["detail"]["value"] == warning.value
+        assert warning.explanation
     for warning in (rotation, translation):  # no stale "moving sensor's frame" advice
-        assert warning["how_to_fix"]["action"] == "check_alignment"
+        assert warning.action == "check_alignment"
         assert "moving sensor" not in str(warning)
 
 
@@ -70,8 +71,8 @@ def test_limits_are_parameters() -> None:
 def test_without_alignment_only_the_fit_is_checked() -> None:
     report = {"fitness": 0.2, "rotation_degrees": 0.0, "translation_m": 0.0, "enabled": False}
     (warning,) = registration_warnings(report)
-    assert warning["code"] == "low_registration_fitness"
-    assert "(not aligned)" in warning["message"]
+    assert warning.code == "low_registration_fitness"
+    assert "(not aligned)" in warning.message
 
 
 def test_low_overlap_names_the_less_observed_cloud() -> None:
@@ -81,10 +82,10 @@ def test_low_overlap_names_the_less_observed_cloud() -> None:
     unobserved = int(200 * (1 - LOW_OVERLAP_FRACTION)) + 20
     scan[:unobserved] = -1
     (warning,) = overlap_warnings(reference, scan)
-    assert warning["code"] == "low_overlap"
-    assert warning["side"] == "scan"
-    assert warning["value"] == pytest.approx(1 - unobserved / 200)
-    assert "of the scan's points were observed by the reference" in warning["message"]
+    assert warning.code == "low_overlap"
+    assert warning.side == "scan"
+    assert warning.value == pytest.approx(1 - unobserved / 200)
+    assert "of the scan's points were observed by the reference" in warning.message
 
 
 def test_origin_warnings_unknown_and_contradicted() -> None:
@@ -92,10 +93,10 @@ def test_origin_warnings_unknown_and_contradicted() -> None:
     assert origin_warnings({"reference": known, "scan": known}) == []
     warnings = origin_warnings({"reference": known, "scan": []}, ["the scan's file origin ..."])
     assert codes(warnings) == ["sensor_origin", "sensor_origin_unknown"]
-    assert warnings[0]["detail"]["explanation"] == "the scan's file origin ..."
-    assert warnings[1]["side"] == "scan"
-    assert warnings[1]["how_to_fix"]["action"] == "give_sensor_origin"
-    assert "sensor_origin=" not in warnings[1]["message"] and "--" not in warnings[1]["message"]
+    assert warnings[0].explanation == "the scan's file origin ..."
+    assert warnings[1].side == "scan"
+    assert warnings[1].action == "give_sensor_origin"
+    assert "sensor_origin=" not in warnings[1].message and "--" not in warnings[1].message
     assert origin_warnings(None) == []  # not reported: nothing to say
 
 
@@ -106,10 +107,10 @@ def test_points_outside_a_trajectorys_time_span_are_warned() -> None:
 
     (warning,) = origin_warnings({"reference": [covered], "scan": [partly]})
 
-    assert warning["code"] == "trajectory_time_span" and warning["side"] == "scan"
-    assert warning["value"] == 1234 and warning["how_to_fix"]["action"] == "check_trajectory"
-    assert "1,234 of the scan's points have times outside" in warning["message"]
-    assert "10.000..20.000 s" in warning["message"]
+    assert warning.code == "trajectory_time_span" and warning.side == "scan"
+    assert warning.value == 1234 and warning.action == "check_trajectory"
+    assert "1,234 of the scan's points have times outside" in warning.message
+    assert "10.000..20.000 s" in warning.message
 
 
 @pytest.fixture(scope="module")
@@ -132,7 +133,10 @@ def test_a_result_without_origins_and_turned_far_is_warned(box_pair) -> None:
     assert "large_rotation" in found and "large_translation" in found
     assert found.count("sensor_origin_unknown") == 2
     assert result.registration.rotation_degrees > LARGE_ROTATION_DEGREES
-    assert result.to_json_dict()["quality_warnings"] == quality_warnings(result)
+    assert result.to_json_dict()["quality_warnings"] == [
+        warning.to_json_dict() for warning in quality_warnings(result)
+    ]
+    assert result.quality_warnings == quality_warnings(result)  # computed once, the same
 
 
 def test_a_clean_rescan_with_origins_is_not_warned(box_pair) -> None:

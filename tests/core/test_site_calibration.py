@@ -202,8 +202,8 @@ def test_compare_applies_a_site_calibration_and_reports_it() -> None:
     assert calibrated.calibration.site.applied is True
     assert not calibrated.changed  # equal to the learned bound: not above it
     assert len(calibrated.regions) == len(plain.regions)  # the regions are still reported
-    assert "learned threshold" not in explain_comparison(plain)["text"]
-    text = explain_comparison(calibrated)["text"]
+    assert "learned threshold" not in explain_comparison(plain).text
+    text = explain_comparison(calibrated).text
     assert text.startswith("no change: ") and "not above the site's learned threshold" in text
 
 
@@ -238,6 +238,6 @@ def test_largest_extent_is_the_diagonal_of_the_region_with_the_most_points() -> 
         detector_changed=None,
         regions=regions,
     )
-    assert explanation["largest_region"]["index"] == 0
+    assert explanation.largest_region.index == 0
     assert largest_extent(regions[1:]) == pytest.approx(10.0)
     assert largest_extent([]) == 0.0

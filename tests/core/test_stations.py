@@ -27,7 +27,8 @@ from app.core.datasets.lidar import LidarPair, lidar_pair
 from app.core.datasets.scenes import _transform_points, raycast_scene
 from app.core.errors import InputError
 from app.core.ground_truth import changed_iou
-from app.core.localise import LABEL_CHANGED, LABEL_UNOBSERVED, EpochCloud, localise_changes
+from app.core.labels import LABEL_CHANGED, LABEL_UNOBSERVED
+from app.core.localise import EpochCloud, localise_changes
 from app.core.localise.gaps import in_sampling_gap
 from app.core.localise.rays import (
     STATUS_EDGE_ON,

@@ -9,7 +9,7 @@ from app.core.cloud import PointCloud
 from app.core.datasets.lidar import lidar_pair
 from app.core.datasets.maps import map_pair
 from app.core.errors import InputError
-from app.core.localise import LABEL_CHANGED
+from app.core.labels import LABEL_CHANGED
 from app.core.pipeline import ComparisonResult, compare
 from app.core.tiling import TileBudgetError, TilePlan, TileResult, compute_tile, merge_tiles
 from app.core.tiling.compare import compare_tiled, compare_within_budget

@@ -15,7 +15,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from app.core.localise import LABEL_CHANGED, LABEL_UNOBSERVED
+from app.core.labels import LABEL_CHANGED, LABEL_UNOBSERVED
 from app.core.pipeline import compare
 from tests.helpers.trajectory_scenes import HIDDEN_BOX, SEEN_BOX, corridor_pair, in_box
 

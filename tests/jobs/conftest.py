@@ -13,11 +13,11 @@ import pytest
 from app.config import Settings
 from app.db.session import get_engine
 from app.jobs.consumer import JOB_THREADS_ENV, MEMORY_LIMIT_ENV
+from app.testing.redis import REDIS_SERVER_ENV, RedisServer, redis_server_binary
+from app.testing.service import ConsumerProcess
 from tests.helpers.environment import require
 from tests.helpers.jobs import FAST_LEASES
 from tests.helpers.migrated_database import install_migrated_database
-from tests.helpers.redis import REDIS_SERVER_ENV, RedisServer, redis_server_binary
-from tests.helpers.service import ConsumerProcess
 from tests.helpers.worker import WorkerProcess
 
 

@@ -237,6 +237,14 @@ OPERATIONS = [
     Operation("HEAD", "/api/v1/uploads/{upload_id}", "reader", 200, headers=lambda ids: TUS),
     Operation("GET", "/api/v1/uploads/{upload_id}", "reader", 200),
     Operation(
+        "PUT",
+        "/api/v1/uploads/{upload_id}/trajectory",
+        "writer",
+        200,
+        params={"filename": "path.tum"},
+        content=lambda ids: TUM_PATH,
+    ),
+    Operation(
         "PATCH",
         "/api/v1/uploads/{upload_id}",
         "writer",

@@ -21,7 +21,8 @@ from app.core.comparison.reports import (
     SideVisibility,
 )
 from app.core.comparison.result import ComparisonResult, region_summary
-from app.core.localise import LABEL_UNOBSERVED, Localisation
+from app.core.labels import LABEL_UNOBSERVED
+from app.core.localise import Localisation
 from app.core.registration import apply_transform
 
 

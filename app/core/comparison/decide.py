@@ -20,7 +20,8 @@ from threadpoolctl import threadpool_limits
 from app.core.cloud import MIN_POINTS
 from app.core.comparison.reports import Decision, DecisionTest, SiteProvenance
 from app.core.detectors.base import ChangeDetector, Detection
-from app.core.localise import LABEL_UNOBSERVED, ChangedRegion, Localisation
+from app.core.labels import LABEL_UNOBSERVED
+from app.core.localise import ChangedRegion, Localisation
 from app.core.site_calibration import DecisionInputs, decide, largest_extent
 
 

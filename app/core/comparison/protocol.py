@@ -17,6 +17,8 @@ from numpy.typing import NDArray
 
 from app.core.comparison.reports import (
     CalibrationReport,
+    Explanation,
+    QualityWarning,
     RegistrationReport,
     SensorOriginEntry,
     SideVisibility,
@@ -146,11 +148,11 @@ class Comparison(Protocol):
         """Per scan point, shape (m,)."""
 
     @property
-    def quality_warnings(self) -> list[dict[str, Any]]:
+    def quality_warnings(self) -> list[QualityWarning]:
         """:func:`app.core.quality.quality_warnings` of this result, computed once."""
 
     @property
-    def explanation(self) -> dict[str, Any]:
+    def explanation(self) -> Explanation:
         """:func:`app.core.explanation.explain_comparison` of this result, computed once."""
 
     def sensor_origins_json(self) -> dict[str, list[dict[str, Any]]]:

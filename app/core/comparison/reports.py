@@ -5,9 +5,11 @@
 :class:`DecisionTest` list and :class:`SiteProvenance` (the decide stage's);
 :class:`SideVisibility` with its :class:`LidarSampling` (what was found out about one cloud's
 sensors and the visibility test it got); :class:`SensorOriginEntry` (one origin used);
-:class:`CalibrationReport` (the threshold's calibration with the decision and visibility); a
-quality warning is :class:`~app.core.quality.QualityWarning`.  The API mirrors them field by
-field (``app.services.result_schemas``).
+:class:`CalibrationReport` (the threshold's calibration with the decision and visibility);
+:class:`QualityWarning` (one of :func:`app.core.quality.quality_warnings`) and
+:class:`Explanation` with its :class:`LargestRegion`
+(:func:`app.core.explanation.explain_decision`).  The API mirrors them field by field
+(``app.services.result_schemas``).
 """
 
 from __future__ import annotations
@@ -371,3 +373,153 @@ class CalibrationReport:
         report["visibility"] = {side: seen.to_json_dict() for side, seen in self.visibility.items()}
         report["decision"] = self.decision.report()
         return report
+
+
+FIX_ACTIONS = {
+    "check_pairing": "check that both scans are of the same place, or skip the alignment",
+    "check_alignment": "check that the alignment found the right match, or skip the alignment",
+    "widen_coverage": "rescan so that both scans cover the same part of the place",
+    "give_sensor_origin": "give the sensor position of the side named in the detail",
+    "check_sensor_origin": "check the sensor position given",
+    "check_trajectory": "check that the trajectory covers the whole recording, on its clock",
+}
+"""What each ``how_to_fix["action"]`` asks, without naming any interface's knob."""
+
+
+@dataclass(frozen=True)
+class QualityWarning:
+    """One quality warning (:mod:`app.core.quality` says which there are), stored as
+    :meth:`to_json_dict`.
+
+    Attributes
+    ----------
+    code : str
+    message : str
+        One sentence, with units.
+    explanation : str
+        What it means for the result.
+    action : str
+        One of :data:`FIX_ACTIONS`.
+    value, limit : float, optional
+        The measured value and the limit it crossed.
+    unit : str, optional
+    side : {"reference", "scan"}, optional
+    """
+
+    code: str
+    message: str
+    explanation: str
+    action: str
+    value: float | None = None
+    limit: float | None = None
+    unit: str | None = None
+    side: str | None = None
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """``{"code", "message", value..., "detail", "how_to_fix"}`` (measured fields only)."""
+        measured = {
+            key: value
+            for key, value in (
+                ("value", self.value),
+                ("limit", self.limit),
+                ("unit", self.unit),
+                ("side", self.side),
+            )
+            if value is not None
+        }
+        return {
+            "code": self.code,
+            "message": self.message,
+            **measured,
+            "detail": {**measured, "explanation": self.explanation},
+            "how_to_fix": {"action": self.action, "summary": FIX_ACTIONS[self.action]},
+        }
+
+
+@dataclass(frozen=True)
+class LargestRegion:
+    """The region with the most points, as the explanation names it.
+
+    Attributes
+    ----------
+    index : int
+        Its index in the result's regions.
+    kind : {"added", "removed"}
+    n_points : int
+    size_m : tuple of float, shape (3,)
+        Its bounding box's extents, metres (rounded to millimetres).
+    """
+
+    index: int
+    kind: str
+    n_points: int
+    size_m: tuple[float, ...]
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """``{"index", "kind", "n_points", "size_m"}`` (``size_m`` a list of 3 numbers)."""
+        return {
+            "index": self.index,
+            "kind": self.kind,
+            "n_points": self.n_points,
+            "size_m": list(self.size_m),
+        }
+
+
+@dataclass(frozen=True)
+class Explanation:
+    """Why a comparison decided what it did (:func:`explain_decision` says how each field is
+    found), and its one line of ``text``.
+
+    Attributes
+    ----------
+    decision : {"changed", "unchanged"}
+    rule : {"regions", "detector", "either"}
+    decided_by : str
+        "regions", "detector" or, under ``"either"``, which of them said changed.
+    n_regions, n_region_points : int
+    min_region_points, dropped_clusters : int or None
+    largest_region : LargestRegion or None
+        None without regions.
+    score, threshold : float or None
+    detector_changed : bool or None
+    agrees : bool
+        Whether the regions and the detector say the same.
+    site_test : dict or None
+        The decision test that used the site's learned threshold, when one did.
+    text : str
+    """
+
+    decision: str
+    rule: str
+    decided_by: str
+    n_regions: int
+    n_region_points: int
+    min_region_points: int | None
+    dropped_clusters: int | None
+    largest_region: LargestRegion | None
+    score: float | None
+    threshold: float | None
+    detector_changed: bool | None
+    agrees: bool
+    site_test: dict[str, Any] | None
+    text: str
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """The explanation as stored and shown by the API, in this key order."""
+        largest = self.largest_region
+        return {
+            "decision": self.decision,
+            "rule": self.rule,
+            "decided_by": self.decided_by,
+            "n_regions": self.n_regions,
+            "n_region_points": self.n_region_points,
+            "min_region_points": self.min_region_points,
+            "dropped_clusters": self.dropped_clusters,
+            "largest_region": None if largest is None else largest.to_json_dict(),
+            "score": self.score,
+            "threshold": self.threshold,
+            "detector_changed": self.detector_changed,
+            "agrees": self.agrees,
+            "site_test": None if self.site_test is None else dict(self.site_test),
+            "text": self.text,
+        }

@@ -17,10 +17,10 @@ from app.core.comparison.reports import (
     SensorOriginEntry,
     SideVisibility,
 )
-from app.core.explanation import explain_comparison
+from app.core.explanation import Explanation, explain_comparison
 from app.core.jsonable import json_safe
-from app.core.localise import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
-from app.core.quality import quality_warnings
+from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
+from app.core.quality import QualityWarning, quality_warnings
 
 LABELS_COMPRESS_LEVEL = 1
 """zlib level of the labels file (:meth:`ComparisonResult.write_labels_npz`)."""
@@ -144,8 +144,8 @@ class ComparisonResult:
                 "sensor_origins": self.sensor_origins_json(),
                 "warnings": self.warnings,
                 "visibility": self.visibility_json(),
-                "quality_warnings": self.quality_warnings,  # structured, with the above
-                "explanation": self.explanation,
+                "quality_warnings": [warning.to_json_dict() for warning in self.quality_warnings],
+                "explanation": self.explanation.to_json_dict(),
             }
         )
 
@@ -161,13 +161,13 @@ class ComparisonResult:
         return {side: seen.to_json_dict() for side, seen in self.visibility.items()}
 
     @cached_property
-    def quality_warnings(self) -> list[dict[str, Any]]:
+    def quality_warnings(self) -> list[QualityWarning]:
         """Every warning :func:`app.core.quality.quality_warnings` tells from this result
         (computed once; a result made with :func:`dataclasses.replace` computes its own)."""
         return quality_warnings(self)
 
     @cached_property
-    def explanation(self) -> dict[str, Any]:
+    def explanation(self) -> Explanation:
         """Why it decided what it did (:func:`app.core.explanation.explain_comparison`),
         computed once."""
         return explain_comparison(self)

@@ -27,6 +27,7 @@ Modules, each depending only on those below it:
 This module lists the package's public names.
 """
 
+from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
 from app.core.localise.changes import Localisation, localise_changes
 from app.core.localise.epoch import EpochCloud
 from app.core.localise.neighbourhoods import (
@@ -38,7 +39,6 @@ from app.core.localise.neighbourhoods import (
 )
 from app.core.localise.regions import ChangedRegion
 from app.core.localise.settings import DEFAULT_PARAMETERS
-from app.core.localise.visibility import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
 
 __all__ = [
     "DEFAULT_PARAMETERS",

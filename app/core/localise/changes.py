@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 
 from app.core.cloud import as_points
 from app.core.errors import InputError
+from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
 from app.core.localise.distance import (
     SUPPORT_FACTOR_QUANTILE,
     Side,
@@ -58,9 +59,6 @@ from app.core.localise.settings import (
 )
 from app.core.localise.surface import LocalGeometry, local_geometry
 from app.core.localise.visibility import (
-    LABEL_CHANGED,
-    LABEL_UNCHANGED,
-    LABEL_UNOBSERVED,
     Labelled,
     find_candidates,
     label_candidates,

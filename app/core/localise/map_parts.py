@@ -67,9 +67,11 @@ SPARSE_PROBE_FACTOR = 1.5
 """The see-through probes' balls are at least this many of the other cloud's median spacings
 wide (a sparse cloud's surface is found between its samples)."""
 NEAR_FACTOR = 3.0
-NEAR_MIN = 0.5
+NEAR_MIN = 1.0
 """A cluster is near the other epoch's coverage when its closest tenth of points lies within
-``max(NEAR_MIN, NEAR_FACTOR * change_threshold)`` metres of the other cloud."""
+``max(NEAR_MIN, NEAR_FACTOR * change_threshold)`` metres of the other cloud.  A removed
+chair's backrest top, seen without its lower part, is 0.7-0.9 m over the floor the other
+epoch saw under it: that epoch's path came near."""
 NEAR_QUANTILE = 0.1
 
 

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
 from app.core.localise.coverage import CoverageTest
 from app.core.localise.distance import Side
 from app.core.localise.interface import VisibilityContext, VisibilityTest
@@ -46,9 +47,6 @@ from app.core.localise.station_rays import (
 from app.core.localise.trajectory_visibility import TrajectoryTest
 
 __all__ = [
-    "LABEL_CHANGED",
-    "LABEL_UNCHANGED",
-    "LABEL_UNOBSERVED",
     "Labelled",
     "choose_test",
     "combine_station_status",
@@ -56,10 +54,6 @@ __all__ = [
     "label_candidates",
     "resolve_edge_on",
 ]
-
-LABEL_UNCHANGED = 0
-LABEL_CHANGED = 1
-LABEL_UNOBSERVED = -1
 
 
 @dataclass(frozen=True)
