@@ -61,6 +61,7 @@ def _write_pair_here(scene_dir: Path, n_points: int) -> None:
     from app.core.datasets.lidar import lidar_pair, steps_for_points
     from bench.perf_workers import write_binary_ply
 
+    scene_dir.mkdir(parents=True, exist_ok=True)
     pair = lidar_pair(
         layout="warehouse",
         change="added",
@@ -188,6 +189,54 @@ def _model_worker(scene_dir: Path, fraction: float) -> None:
     )
 
 
+def stage_memory(scene_dir: Path, budget: str) -> None:
+    """Print the peak RSS of each stage of the command's comparison (a child process)."""
+    command = [sys.executable, "-m", "bench.tiled", "--stage-worker", str(scene_dir), budget]
+    subprocess.run(command, check=True, cwd=PROJECT_ROOT)
+
+
+def _stage_worker(scene_dir: Path, budget: str) -> None:
+    """The command's read and comparison in this process, with the peak RSS (``VmHWM``, reset
+    at each stage) of the stretch before each progress report: where the memory goes."""
+    from app.core.formats import read_point_cloud
+    from app.core.tiling.compare import compare_within_budget
+    from app.core.tiling.lean import read_pair
+    from app.kit.allocator import release_freed_memory_promptly
+
+    release_freed_memory_promptly()  # as the command does
+    stretches: list[dict[str, Any]] = []
+    last = {"started": time.perf_counter()}
+
+    def stretch(stage: str, _fraction: float = 0.0) -> None:
+        stretches.append(
+            {
+                "before": f"{stage} {_fraction:.2f}",
+                "peak_mb": round(_rss_bytes("VmHWM") / 1024**2),
+                "rss_mb": round(_rss_bytes("VmRSS") / 1024**2),
+                "seconds": round(time.perf_counter() - float(last["started"]), 1),
+            }
+        )
+        print(json.dumps(stretches[-1]), flush=True)  # a long run shows how far it got
+        last["started"] = time.perf_counter()
+        Path("/proc/self/clear_refs").write_text("5")
+
+    budget_bytes = round(float(budget.rstrip("GMK")) * 1024 ** "KMG".index(budget[-1]) * 1024)
+    stretch("read")
+    reference, scan, offset = read_pair(
+        scene_dir / "reference.ply",
+        scene_dir / "scan.ply",
+        lambda side: read_point_cloud(scene_dir / f"{side}.ply"),
+        budget_bytes,
+    )
+    stretch("compare")
+    result = compare_within_budget(
+        reference, scan, budget_bytes=budget_bytes, frame_offset=offset, progress=stretch
+    )
+    result.write_labels_npz(scene_dir / "labels_stages.npz")
+    stretch("labels written")
+    print(json.dumps({"lean": offset is not None, "stretches": stretches}))
+
+
 def _rss_bytes(field: str) -> int:
     for line in Path("/proc/self/status").read_text().splitlines():
         if line.startswith(field + ":"):
@@ -206,7 +255,20 @@ def main() -> None:
     parser.add_argument("--floor-worker", metavar="JSON")
     parser.add_argument("--measure-model", type=Path, metavar="DIR")
     parser.add_argument("--model-worker", nargs=2, metavar=("DIR", "FRACTION"))
+    parser.add_argument(
+        "--stage-memory",
+        type=Path,
+        metavar="DIR",
+        help="print the peak RSS of each stage of the comparison of the pair in DIR",
+    )
+    parser.add_argument("--stage-worker", nargs=2, metavar=("DIR", "BUDGET"))
     args = parser.parse_args()
+    if args.stage_worker:
+        _stage_worker(Path(args.stage_worker[0]), args.stage_worker[1])
+        return
+    if args.stage_memory:
+        stage_memory(args.stage_memory, args.memory_budget)
+        return
     if args.write_pair:
         _write_pair_here(Path(args.write_pair[0]), int(args.write_pair[1]))
         return

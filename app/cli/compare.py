@@ -376,8 +376,15 @@ def _print_warnings(result: ComparisonResult) -> None:
         print(f"scandiff: warning: {warning.message}{advice}", file=sys.stderr)
 
 
-def _export(path: Path, reference: PointCloud, scan: PointCloud, result: ComparisonResult) -> None:
-    """Write both clouds (scan aligned into the reference frame) with per-point fields."""
+def _export(
+    path: Path,
+    reference: PointCloud,
+    scan: PointCloud,
+    result: ComparisonResult,
+    frame_offset: Any = None,
+) -> None:
+    """Write both clouds (scan aligned into the reference frame) with per-point fields
+    (clouds read lean are ``frame_offset`` from the files' frame)."""
     import numpy as np
 
     from app.core.formats import write_point_cloud
@@ -385,9 +392,10 @@ def _export(path: Path, reference: PointCloud, scan: PointCloud, result: Compari
     from app.core.registration import apply_transform
 
     transform = np.asarray(result.registration.transform, dtype=np.float64)
+    offset = np.zeros(3) if frame_offset is None else frame_offset
     points, fields = both_clouds(
-        reference.points,
-        apply_transform(scan.points, transform),
+        reference.points + offset,
+        apply_transform(scan.points + offset, transform),
         labels=(
             reference.from_source_order(result.reference_label),
             scan.from_source_order(result.scan_label),
@@ -422,10 +430,37 @@ def _geometry_cache(directory: Path | None, reference: Path, params: dict[str, A
     return GeometryCache(directory / f"{key[:32]}.geometry", key)
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run one comparison; exit status 0, or 2 on bad input."""
+def _read_clouds(
+    args: argparse.Namespace, budget: int | None
+) -> tuple[PointCloud, PointCloud, Any]:
+    """Both clouds with their trajectories, read lean when the pair will be tiled
+    (:func:`app.core.tiling.lean.read_pair`), and the lean clouds' offset (or None)."""
     from app.core.formats import read_point_cloud
     from app.core.formats.rosbag import bag_options_from_strings
+    from app.core.tiling.lean import read_pair
+
+    bag_values = _parse_bag_params(args.bag_param, "--bag-param")
+    bags = {
+        "reference": bag_options_from_strings(bag_values),
+        "scan": bag_options_from_strings(
+            {**bag_values, **_parse_bag_params(args.scan_bag_param, "--scan-bag-param")}
+        ),
+    }
+    trajectories = [_read_trajectory(args, name) for name in ("trajectory", "scan_trajectory")]
+    paths = {"reference": args.reference, "scan": args.scan}
+    reference, scan, frame_offset = read_pair(
+        args.reference,
+        args.scan,
+        lambda side: read_point_cloud(paths[side], bag_options=bags[side]),
+        budget,
+        allowed=trajectories == [None, None],
+    )
+    reference = _with_trajectory(reference, trajectories[0])
+    return reference, _with_trajectory(scan, trajectories[1]), frame_offset
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run one comparison; exit status 0, or 2 on bad input."""
     from app.core.tiling.compare import compare_within_budget
     from app.kit.allocator import release_freed_memory_promptly
 
@@ -438,11 +473,6 @@ def run(args: argparse.Namespace) -> int:
             if path is not None and path.suffix.lower() not in allowed:
                 raise InputError(f"{path} must end in one of {', '.join(sorted(allowed))}")
         params = _parse_params(args.param)
-        bag_values = _parse_bag_params(args.bag_param, "--bag-param")
-        reference_bag = bag_options_from_strings(bag_values)
-        scan_bag = bag_options_from_strings(
-            {**bag_values, **_parse_bag_params(args.scan_bag_param, "--scan-bag-param")}
-        )
         for flag, values, key in (
             ("--sensor-origin", args.sensor_origin, "reference_origin"),
             ("--scan-origin", args.scan_origin, "scan_origin"),
@@ -457,22 +487,19 @@ def run(args: argparse.Namespace) -> int:
         if args.sensor_frame:
             params.setdefault("reference_origin", [0.0, 0.0, 0.0])
             params.setdefault("scan_origin", [0.0, 0.0, 0.0])
-        trajectories = [_read_trajectory(args, name) for name in ("trajectory", "scan_trajectory")]
-        started = time.perf_counter()
-        reference = _with_trajectory(
-            read_point_cloud(args.reference, bag_options=reference_bag), trajectories[0]
-        )
-        scan = _with_trajectory(read_point_cloud(args.scan, bag_options=scan_bag), trajectories[1])
-        load_seconds = time.perf_counter() - started
         budget = (
             _default_memory_budget()
             if args.memory_budget is BUDGET_NOT_GIVEN
             else args.memory_budget
         )
+        started = time.perf_counter()
+        reference, scan, frame_offset = _read_clouds(args, budget)
+        load_seconds = time.perf_counter() - started
         result = compare_within_budget(
             reference,
             scan,
             budget_bytes=budget,
+            frame_offset=frame_offset,
             method=args.method,
             variant=args.variant,
             align=not args.no_align,
@@ -485,7 +512,7 @@ def run(args: argparse.Namespace) -> int:
         if args.labels is not None:
             result.write_labels_npz(args.labels)
         if args.export is not None:
-            _export(args.export, reference, scan, result)
+            _export(args.export, reference, scan, result, frame_offset)
     except InputError as exc:
         flag = CLI_FIXES_OF_ERRORS.get(getattr(exc, "how_to_fix", None) or "", "")
         print(f"scandiff: error: {exc}{flag}", file=sys.stderr)

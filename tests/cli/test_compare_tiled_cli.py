@@ -13,8 +13,8 @@ import numpy as np
 from app.core.datasets.lidar import lidar_pair
 from app.core.tiling.plan import (
     BASELINE_BYTES,
+    LEAN_RESIDENT_BYTES_PER_POINT,
     LOCALISATION_BYTES_PER_POINT,
-    RESIDENT_BYTES_PER_POINT,
 )
 from app.testing.files import ply_bytes
 
@@ -42,8 +42,9 @@ def _pair(tmp_path: Path) -> tuple[Path, Path, int]:
 
 def test_a_pair_over_the_budget_is_compared_in_tiles(tmp_path: Path) -> None:
     reference, scan, total = _pair(tmp_path)
-    budget = BASELINE_BYTES + total * RESIDENT_BYTES_PER_POINT
-    budget += int(0.97 * total) * LOCALISATION_BYTES_PER_POINT  # the pair just over it
+    # the pair just over it, read lean (float32 whole clouds: app.core.tiling.lean)
+    budget = BASELINE_BYTES + total * LEAN_RESIDENT_BYTES_PER_POINT
+    budget += int(0.97 * total) * LOCALISATION_BYTES_PER_POINT
     labels = tmp_path / "labels.npz"
     done = run_compare(
         reference, scan, "--json", "--labels", labels, "--memory-budget", str(budget)

@@ -273,3 +273,17 @@ def test_a_station_index_needs_the_stations_origins():
             align=False,
             params={"reference_origin": [[0, 0, 0], [1, 1, 1]]},
         )
+
+
+def test_station_assignment_does_not_depend_on_its_chunks_and_takes_float32(monkeypatch) -> None:
+    pair, _ = survey("added")
+    whole = assign_stations(pair.reference, pair.reference_origins)
+    monkeypatch.setattr("app.core.localise.station_assignment.ASSIGN_CHUNK", 997)
+    chunked = assign_stations(pair.reference, pair.reference_origins, np.int8)
+    assert chunked.dtype == np.int8
+    assert np.array_equal(chunked, whole)
+    right = np.mean(whole == pair.reference_station)
+    assert right > 0.9  # the test can tell stations apart
+    # float32 moves points by micrometres: a few move across a 0.01 degree elevation bin
+    lean = assign_stations(pair.reference.astype(np.float32), pair.reference_origins)
+    assert np.mean(lean == pair.reference_station) > right - 0.01

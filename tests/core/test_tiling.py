@@ -13,6 +13,7 @@ from app.core.labels import LABEL_CHANGED
 from app.core.pipeline import ComparisonResult, compare
 from app.core.tiling import TileBudgetError, TilePlan, TileResult, compute_tile, merge_tiles
 from app.core.tiling.compare import compare_tiled, compare_within_budget
+from app.core.tiling.lean import read_pair
 from app.core.tiling.plan import (
     BASELINE_BYTES,
     LOCALISATION_BYTES_PER_POINT,
@@ -224,3 +225,39 @@ def test_a_region_cut_by_a_border_is_joined_and_kept_whole() -> None:
     )
     assert alone.regions == []  # not joined: two clusters under the minimum, unchanged
     assert (alone.scan_label[10:14] == LABEL_CHANGED).sum() == 0
+
+
+def test_a_georeferenced_pair_read_lean_compares_as_the_one_process(tmp_path) -> None:
+    """Read as float32 near an offset (the CLI's read_pair when the headers say the pair will be
+    tiled): the same labels, regions in the files' frame and decision as float64 whole."""
+    pair = lidar_pair(
+        layout="warehouse", change="mixed", n_stations=3, angular_step_deg=0.8, random_state=3
+    )
+    georeference = np.array([512_345.0, 4_203_210.0, 87.0])  # UTM-like: float32 alone fails
+    paths = {"reference": tmp_path / "reference.npy", "scan": tmp_path / "scan.npy"}
+    np.save(paths["reference"], pair.reference + georeference)
+    np.save(paths["scan"], pair.scan + georeference)
+    total = len(pair.reference) + len(pair.scan)
+    budget = BASELINE_BYTES + total * LOCALISATION_BYTES_PER_POINT // 2  # half a crop: tiled
+
+    def read(side: str) -> PointCloud:
+        return PointCloud.from_array(np.load(paths[side]))
+
+    reference, scan, offset = read_pair(paths["reference"], paths["scan"], read, budget)
+    assert offset is not None and np.linalg.norm(offset - georeference) < 100.0
+    assert reference.points.dtype == scan.points.dtype == np.float32
+    lean = compare_within_budget(
+        reference,
+        scan,
+        budget_bytes=budget,
+        frame_offset=offset,
+        max_crop_points=int(0.6 * total),
+        margin=1.0,
+        ray_reach=4.0,
+        threads=1,
+    )
+    one = compare(read("reference"), read("scan"), threads=1)
+    _assert_same(one, lean)
+    assert lean.reference_label.shape == (len(pair.reference),)
+    unfit = read_pair(paths["reference"], paths["scan"], read, budget * 100)
+    assert unfit[2] is None and unfit[0].points.dtype == np.float64

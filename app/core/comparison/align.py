@@ -18,6 +18,9 @@ from app.core.registration import (
     register_scan,
 )
 
+TRANSFORM_CHUNK = 1 << 20
+"""Points per step of :func:`transformed` on float32 points (bounds its float64 temporaries)."""
+
 
 @dataclass(frozen=True)
 class Alignment:
@@ -82,8 +85,10 @@ def align_scan(
             reference_sample, scan_sample, reference_memory=reference_memory
         )
     del reference_sample, scan_sample
-    aligned_scan = apply_transform(scan_points, registration.transform)
-    centre = scan_points.mean(axis=0)  # how far the alignment moved the scan (metres)
+    aligned_scan = transformed(scan_points, registration.transform)
+    centre = scan_points.mean(
+        axis=0, dtype=np.float64
+    )  # how far the alignment moved the scan (metres)
     moved = apply_transform(centre[None], registration.transform)[0] - centre
     report = RegistrationReport.of(
         registration,
@@ -95,6 +100,20 @@ def align_scan(
         else min(len(loaded.reference_points), sample_points),
     )
     return Alignment(registration, aligned_scan, report)
+
+
+def transformed(points: NDArray[np.floating], transform: NDArray[np.float64]) -> NDArray:
+    """``points`` (n, 3) moved by ``transform`` (4, 4), keeping their dtype: float64 as
+    :func:`~app.core.registration.apply_transform`; float32 (a pair read lean) a chunk of
+    :data:`TRANSFORM_CHUNK` at a time, without a float64 copy of the whole cloud."""
+    if points.dtype == np.float64:
+        return apply_transform(points, transform)
+    moved = np.empty(points.shape, dtype=points.dtype)
+    for start in range(0, len(points), TRANSFORM_CHUNK):
+        moved[start : start + TRANSFORM_CHUNK] = apply_transform(
+            points[start : start + TRANSFORM_CHUNK], transform
+        )
+    return moved
 
 
 def strided(points: NDArray[np.float64], most: int | None) -> NDArray[np.float64]:

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from app.core.cloud import PointCloud
 from app.core.comparison.align import Alignment
 from app.core.comparison.decide import Detected
 from app.core.comparison.load import LoadedPair
@@ -70,22 +71,22 @@ def assemble_result(
         ],
         n_reference=len(reference),
         n_scan=len(scan),
-        reference_label=reference.to_source_order(
-            localisation.reference_label.astype(np.int8, copy=False), LABEL_UNOBSERVED
+        reference_label=_in_file_order(
+            reference, localisation.reference_label.astype(np.int8, copy=False), LABEL_UNOBSERVED
         ),
-        scan_label=scan.to_source_order(
-            localisation.scan_label.astype(np.int8, copy=False), LABEL_UNOBSERVED
+        scan_label=_in_file_order(
+            scan, localisation.scan_label.astype(np.int8, copy=False), LABEL_UNOBSERVED
         ),
-        reference_distance=reference.to_source_order(
-            localisation.reference_distance.astype(np.float32, copy=False), np.nan
+        reference_distance=_in_file_order(
+            reference, localisation.reference_distance.astype(np.float32, copy=False), np.nan
         ),
-        scan_distance=scan.to_source_order(
-            localisation.scan_distance.astype(np.float32, copy=False), np.nan
+        scan_distance=_in_file_order(
+            scan, localisation.scan_distance.astype(np.float32, copy=False), np.nan
         ),
-        reference_region=reference.to_source_order(
-            localisation.reference_region.astype(np.int32, copy=False), -1
+        reference_region=_in_file_order(
+            reference, localisation.reference_region.astype(np.int32, copy=False), -1
         ),
-        scan_region=scan.to_source_order(localisation.scan_region.astype(np.int32, copy=False), -1),
+        scan_region=_in_file_order(scan, localisation.scan_region.astype(np.int32, copy=False), -1),
         localisation=dict(localisation.parameters),
         timings=timings,
         sensor_origins={
@@ -101,6 +102,13 @@ def assemble_result(
         warnings=[*origins.reference.resolved.warnings, *origins.scan.resolved.warnings],
         visibility=visibility,
     )
+
+
+def _in_file_order(cloud: PointCloud, values: NDArray, fill: object) -> NDArray:
+    """Per-point ``values`` in file order: themselves when no row was dropped (the stages'
+    arrays are this comparison's own: no copy of a large pair's labels and distances), else
+    :meth:`~app.core.cloud.PointCloud.to_source_order`."""
+    return values if cloud.n_source == len(cloud) else cloud.to_source_order(values, fill)
 
 
 def visibility_report(

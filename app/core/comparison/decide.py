@@ -113,7 +113,7 @@ def _detect_sample(
         if len(rows) > sample_points:
             rows = np.sort(rng.choice(rows, sample_points, replace=False))
             sampled = True
-        chosen.append(points[rows])
+        chosen.append(np.asarray(points[rows], dtype=np.float64))  # float32 when read lean
     with threadpool_limits(limits=1, user_api="blas"):
         detection = detector.detect(chosen[0], chosen[1])
     if sampled:

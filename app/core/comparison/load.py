@@ -39,7 +39,7 @@ class LoadedPair:
     local_origin : ndarray, shape (3,)
         Subtracted from both clouds' file coordinates.
     reference_points : ndarray, shape (n, 3)
-        The reference in the local frame.
+        The reference in the local frame (float64; float32 for a pair read lean).
     scan_points : ndarray, shape (m, 3), or None
         The scan in the local frame (None once released).
     threads : int
@@ -71,6 +71,7 @@ class PairOptions(TypedDict, total=False):
     random_state: int
     params: Mapping[str, Any] | None
     threads: int | None
+    frame_offset: NDArray[np.float64] | None
 
 
 def load_pair(
@@ -83,12 +84,17 @@ def load_pair(
     random_state: int = 0,
     params: Mapping[str, Any] | None = None,
     threads: int | None = None,
+    frame_offset: NDArray[np.float64] | None = None,
 ) -> LoadedPair:
     """Validate the parameters and bring both clouds into one local frame.
 
     Parameters are those of :func:`app.core.pipeline.compare`.  The detector's libraries
     start loading on a thread (:func:`app.core.detectors.warm_up`) while the clouds are
     aligned.
+
+    ``frame_offset`` (shape (3,)): the clouds are already in a local frame, their file
+    coordinates minus this offset (a pair read lean, :mod:`app.core.tiling.lean`, float32):
+    it is the local origin, and the points are used as they are.
 
     Returns
     -------
@@ -104,10 +110,14 @@ def load_pair(
         method, variant, params, random_state=random_state, align=align
     )
     warm_up()
-    local_origin = choose_local_origin(reference.points)
-    # no copy when the data is already local (1M points: 24 MB a cloud); nothing below
-    # modifies these arrays in place
-    shifted = bool(local_origin.any())
+    if frame_offset is not None:  # already local (read lean): no choice, no shift
+        local_origin = np.asarray(frame_offset, dtype=np.float64).reshape(3)
+        shifted = False
+    else:
+        local_origin = choose_local_origin(reference.points)
+        # no copy when the data is already local (1M points: 24 MB a cloud); nothing below
+        # modifies these arrays in place
+        shifted = bool(local_origin.any())
     return LoadedPair(
         reference=reference,
         scan=scan,

@@ -15,6 +15,7 @@ behind the other world).  Ray casting reuses :func:`app.core.datasets.scenes._ca
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,6 +52,10 @@ MIN_VISIBLE_CHANGE = 100
 """A changed pair on a 0.6 degree grid has at least this many changed, observed points."""
 CLEARANCE = 0.5
 """Sensors stay at least this far (metres) from every wall and box."""
+CAST_CHUNK = 1 << 19
+"""Rays or points per step of :class:`LidarWorld`'s ray casts and distances: the results do not
+depend on it; it bounds their temporaries (a 20M-point epoch otherwise holds several (p, 3)
+float64 arrays per box at once) and keeps them in cache."""
 
 
 @dataclass(frozen=True)
@@ -72,6 +77,9 @@ class LidarWorld:
 
     def surface_distance(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
         """Distance from each point to the nearest surface (shell face or box face), shape (p,)."""
+        return _chunked(self._surface_distance, points)
+
+    def _surface_distance(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
         inside_shell = np.minimum(points - self.shell_low, self.shell_high - points)
         distance = np.abs(inside_shell).min(axis=1)
         for low, high in zip(self.box_low, self.box_high, strict=True):
@@ -85,19 +93,30 @@ class LidarWorld:
         self, origin: NDArray[np.float64], directions: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         """First hit along unit ``directions`` (r, 3) from ``origin``: (distance, box or -1)."""
-        return _cast_rays(
-            origin,
-            directions,
-            self.box_low,
-            self.box_high,
-            shell_low=self.shell_low,
-            shell_high=self.shell_high,
+        parts = [
+            _cast_rays(
+                origin,
+                directions[start : start + CAST_CHUNK],
+                self.box_low,
+                self.box_high,
+                shell_low=self.shell_low,
+                shell_high=self.shell_high,
+            )
+            for start in range(0, max(1, len(directions)), CAST_CHUNK)
+        ]
+        return np.concatenate([part[0] for part in parts]), np.concatenate(
+            [part[1] for part in parts]
         )
 
     def visible_from(
         self, origin: NDArray[np.float64], points: NDArray[np.float64]
     ) -> NDArray[np.bool_]:
         """Whether an upright lidar at ``origin`` sees the exact surface ``points`` (p, 3)."""
+        return _chunked(lambda chunk: self._visible_from(origin, chunk), points)
+
+    def _visible_from(
+        self, origin: NDArray[np.float64], points: NDArray[np.float64]
+    ) -> NDArray[np.bool_]:
         return _visible_from(
             origin,
             points,
@@ -108,6 +127,18 @@ class LidarWorld:
             shell_low=self.shell_low,
             shell_high=self.shell_high,
         )
+
+
+def _chunked(function: Callable[[NDArray], NDArray], points: NDArray) -> NDArray:
+    """``function`` of ``points`` (p, 3), a row-wise map, :data:`CAST_CHUNK` rows at a time."""
+    if len(points) <= CAST_CHUNK:
+        return function(points)
+    return np.concatenate(
+        [
+            function(points[start : start + CAST_CHUNK])
+            for start in range(0, len(points), CAST_CHUNK)
+        ]
+    )
 
 
 @dataclass(frozen=True)

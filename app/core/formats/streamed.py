@@ -110,6 +110,40 @@ def open_point_blocks(
         yield blocks
 
 
+HEADER_COUNTED_FORMATS = ("npy", "ply", "las", "laz", "e57")
+"""Formats whose header declares the point count (:func:`declared_rows`)."""
+
+
+def declared_rows(path: str | Path, format: str | None = None) -> int | None:
+    """Rows a file's header declares, read without decoding its points; None for a format
+    read whole to count them (text, PCD, ROS bags, ``.npz``) or an unreadable file (the
+    reader then says what is wrong).
+
+    Parameters
+    ----------
+    path : str or Path
+    format : str, optional
+        As for :func:`read_point_cloud`; default: detected from the name and content.
+    """
+    path = Path(path)
+    try:
+        with open_source(path) as source:
+            chosen = (format or "").lower().lstrip(".") or detect_format(
+                path.name, source.head(4096)
+            )
+            if chosen not in HEADER_COUNTED_FORMATS:
+                return None
+            if chosen == "npy":
+                return len(read_npy(source, None).points)
+            if chosen == "ply":
+                return len(read_ply(source, None, with_attributes=False).points)
+            if chosen in ("las", "laz"):
+                return declared_las_points(source)
+            return declared_point_count(path)
+    except (OSError, ValueError):  # PointCloudError and UnsupportedFormatError included
+        return None
+
+
 def _blocks_of(
     path: Path,
     source: Source,

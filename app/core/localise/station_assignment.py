@@ -27,17 +27,30 @@ SMOOTHING_BINS = 51
 """Width (bins) of the moving average that stands for the rings-free background."""
 RING_CONTRAST = 3.0
 """A bin at least this many times its smoothed count is a ring bin."""
+ASSIGN_CHUNK = 1 << 20
+"""Points per step of :func:`assign_stations` (the result does not depend on it)."""
 
 
-def _elevation_bins(points: NDArray[np.float64], origin: NDArray[np.float64]) -> NDArray:
+def _elevation_bins(points: NDArray[np.floating], origin: NDArray[np.float64]) -> NDArray:
     """Each point's elevation from ``origin`` as a bin number, shape (n,), int64."""
     bins = np.empty(points.shape[0], dtype=np.int64)
     for start in range(0, points.shape[0], CHUNK):
-        offset = points[start : start + CHUNK] - origin
+        offset = np.asarray(points[start : start + CHUNK], dtype=np.float64) - origin
         horizontal = np.hypot(offset[:, 0], offset[:, 1])
         elevation = np.degrees(np.arctan2(offset[:, 2], horizontal))
         bins[start : start + CHUNK] = np.floor((elevation + 90.0) / ELEVATION_BIN_DEG)
     return bins
+
+
+N_BINS = round(180.0 / ELEVATION_BIN_DEG) + 1
+"""Elevation bins from -90 to 90 degrees."""
+
+
+def _contrast_of_bins(counts: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Each elevation bin's count over the moving average of the counts around it."""
+    kernel = np.ones(SMOOTHING_BINS) / SMOOTHING_BINS
+    background = np.convolve(counts, kernel, mode="same")
+    return counts / np.maximum(background, 1e-12)
 
 
 def ring_contrast(points: NDArray[np.float64], origin: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -54,36 +67,64 @@ def ring_contrast(points: NDArray[np.float64], origin: NDArray[np.float64]) -> N
         Count of the point's elevation bin over the moving average of the counts around it:
         well above 1 for points on one of the rings of a lidar at ``origin``.
     """
-    bins = _elevation_bins(points, origin)
-    n_bins = round(180.0 / ELEVATION_BIN_DEG) + 1
-    counts = np.bincount(np.clip(bins, 0, n_bins - 1), minlength=n_bins).astype(np.float64)
-    kernel = np.ones(SMOOTHING_BINS) / SMOOTHING_BINS
-    background = np.convolve(counts, kernel, mode="same")
-    contrast = counts / np.maximum(background, 1e-12)
-    return contrast[np.clip(bins, 0, n_bins - 1)]
+    bins = np.clip(_elevation_bins(points, origin), 0, N_BINS - 1)
+    counts = np.bincount(bins, minlength=N_BINS).astype(np.float64)
+    return _contrast_of_bins(counts)[bins]
 
 
-def assign_stations(points: NDArray[np.float64], origins: NDArray[np.float64]) -> NDArray:
+def assign_stations(
+    points: NDArray[np.floating], origins: NDArray[np.float64], dtype: type = np.int64
+) -> NDArray:
     """The station that most likely took each point of a merged cloud.
+
+    Two passes over the points, :data:`ASSIGN_CHUNK` at a time: the elevation histograms of
+    every station, then each point's best station, so that memory beyond the result stays at
+    one chunk whatever the cloud's size.
 
     Parameters
     ----------
     points : ndarray, shape (n, 3)
+        float64 or float32.
     origins : ndarray, shape (k, 3)
         The stations' origins, in the points' frame.
+    dtype : numpy integer type
+        Of the result (a narrow one keeps a large cloud's index small: int8 for k <= 127).
 
     Returns
     -------
-    ndarray, shape (n,), int64
+    ndarray, shape (n,), ``dtype``
         Index into ``origins``: the station on whose rings the point lies most clearly
         (contrast >= :data:`RING_CONTRAST`), else the nearest station.
     """
+    origins = np.asarray(origins, dtype=np.float64)
+    counts = np.zeros((origins.shape[0], N_BINS))
+    for start in range(0, points.shape[0], ASSIGN_CHUNK):
+        chunk = points[start : start + ASSIGN_CHUNK]
+        for number, origin in enumerate(origins):
+            bins = np.clip(_elevation_bins(chunk, origin), 0, N_BINS - 1)
+            counts[number] += np.bincount(bins, minlength=N_BINS)
+    contrast_of_bins = [_contrast_of_bins(row) for row in counts]
+    best = np.empty(points.shape[0], dtype=dtype)
+    for start in range(0, points.shape[0], ASSIGN_CHUNK):
+        best[start : start + ASSIGN_CHUNK] = _best_stations(
+            np.asarray(points[start : start + ASSIGN_CHUNK], dtype=np.float64),
+            origins,
+            contrast_of_bins,
+        )
+    return best
+
+
+def _best_stations(
+    points: NDArray[np.float64], origins: NDArray[np.float64], contrast_of_bins: list[NDArray]
+) -> NDArray[np.int64]:
+    """:func:`assign_stations` of one chunk, given each station's contrast per bin."""
     # the best station so far and its contrast, station by station (as an argmax over the
     # stacked contrasts, the first of equal ones, without the (k, n) stack)
     best = np.zeros(points.shape[0], dtype=np.int64)
-    best_contrast = ring_contrast(points, origins[0])
+    best_contrast = contrast_of_bins[0][np.clip(_elevation_bins(points, origins[0]), 0, N_BINS - 1)]
     for number in range(1, origins.shape[0]):
-        contrast = ring_contrast(points, origins[number])
+        bins = np.clip(_elevation_bins(points, origins[number]), 0, N_BINS - 1)
+        contrast = contrast_of_bins[number][bins]
         better = contrast > best_contrast
         best[better] = number
         np.maximum(best_contrast, contrast, out=best_contrast)

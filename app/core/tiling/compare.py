@@ -41,6 +41,8 @@ from app.core.tiling.merge import merge_tiles
 from app.core.tiling.plan import (
     DEFAULT_MARGIN_METRES,
     DEFAULT_RAY_REACH_METRES,
+    LEAN_RESIDENT_BYTES_PER_POINT,
+    RESIDENT_BYTES_PER_POINT,
     TilePlan,
     crop_point_limit,
     plan_tiles,
@@ -65,12 +67,13 @@ def fits_budget(n_reference: int, n_scan: int, budget_bytes: int) -> bool:
 
 
 def _stations(
-    points: NDArray[np.float64], origins: NDArray | None, station: NDArray | None
+    points: NDArray[np.floating], origins: NDArray | None, station: NDArray | None
 ) -> NDArray | None:
     """Each point's station: given, or assigned once for the whole cloud (several origins)."""
     if station is not None or origins is None or len(np.atleast_2d(origins)) < 2:
         return station
-    return assign_stations(points, np.atleast_2d(origins))
+    origins = np.atleast_2d(origins)
+    return assign_stations(points, origins, np.int8 if len(origins) <= 127 else np.int32)
 
 
 def compare_tiled(
@@ -108,6 +111,11 @@ def compare_tiled(
         order): who computes the tiles.  Default: each in turn in this process
         (:func:`compute_tiles_here`); a job worker passes one that fans them out on the queue
         (:mod:`app.jobs.tiles`).
+    frame_offset : ndarray, shape (3,), optional
+        The clouds were read lean (:func:`app.core.tiling.lean.read_pair`): their points are
+        float32 minus this offset, the local frame's origin; the whole clouds stay float32
+        throughout (the aligned scan too, each point's station int8) and the plan counts
+        :data:`~app.core.tiling.plan.LEAN_RESIDENT_BYTES_PER_POINT` for them.
 
     Returns
     -------
@@ -129,6 +137,11 @@ def compare_tiled(
         ray_reach=ray_reach,
         run_tiles=run_tiles or compute_tiles_here,
         detection_seed=options.get("random_state", 0),
+        resident_bytes_per_point=(
+            RESIDENT_BYTES_PER_POINT
+            if options.get("frame_offset") is None
+            else LEAN_RESIDENT_BYTES_PER_POINT
+        ),
     )
     return run_stages(
         loaded, progress=progress, site_calibration=site_calibration, localise_step=tiles
@@ -157,6 +170,9 @@ class TiledLocalisation:
         Who computes the tiles.
     detection_seed : int
         Seeds the detection's subsample.
+    resident_bytes_per_point : int
+        What the process holds a point of the whole clouds besides the crops
+        (:mod:`app.core.tiling.plan`; less for a pair read lean).
     """
 
     budget_bytes: int
@@ -165,6 +181,7 @@ class TiledLocalisation:
     ray_reach: float
     run_tiles: TileRunner
     detection_seed: int
+    resident_bytes_per_point: int = RESIDENT_BYTES_PER_POINT
     registration_sample: int = REGISTRATION_SAMPLE
     detection_sample: int = DETECTION_SAMPLE
     detect_fraction: float = 0.85
@@ -189,7 +206,9 @@ class TiledLocalisation:
             self.max_crop_points
             if self.max_crop_points is not None
             else crop_point_limit(
-                self.budget_bytes, len(source.reference_points) + len(source.scan_points)
+                self.budget_bytes,
+                len(source.reference_points) + len(source.scan_points),
+                self.resident_bytes_per_point,
             )
         )
         plan = plan_tiles(
@@ -201,6 +220,7 @@ class TiledLocalisation:
             budget_bytes=self.budget_bytes,
         )
         timings["plan"] = time.perf_counter() - started
+        # the tiles' results are dropped when this returns: only the merged arrays stay
         results = self.run_tiles(plan, source, context, loaded.threads, report)
         localisation = merge_tiles(
             plan,
@@ -267,6 +287,7 @@ def compare_within_budget(
     scan: PointCloud,
     *,
     budget_bytes: int | None,
+    frame_offset: NDArray[np.float64] | None = None,
     **options: Any,
 ) -> ComparisonResult:
     """:func:`app.core.pipeline.compare` when the pair fits ``budget_bytes`` (or no budget),
@@ -277,6 +298,9 @@ def compare_within_budget(
     reference, scan : PointCloud
     budget_bytes : int or None
         Memory the comparison may use; None: no limit (always one process).
+    frame_offset : ndarray, shape (3,), optional
+        The clouds were read lean (:func:`app.core.tiling.lean.read_pair`, which decided they
+        will be tiled): always :func:`compare_tiled`.
     **options
         Keyword arguments of :func:`app.core.pipeline.compare`.
 
@@ -291,6 +315,11 @@ def compare_within_budget(
     """
     from app.core.pipeline import compare
 
+    if frame_offset is not None:  # read lean for tiles (app.core.tiling.lean.read_pair)
+        options.pop("geometry_cache", None)
+        return compare_tiled(
+            reference, scan, budget_bytes=budget_bytes or 0, frame_offset=frame_offset, **options
+        )
     if budget_bytes is None or fits_budget(len(reference), len(scan), budget_bytes):
         return compare(reference, scan, **options)
     options.pop("geometry_cache", None)

@@ -37,6 +37,7 @@ __all__ = [
     "BASELINE_BYTES",
     "DEFAULT_MARGIN_METRES",
     "DEFAULT_RAY_REACH_METRES",
+    "LEAN_RESIDENT_BYTES_PER_POINT",
     "LOCALISATION_BYTES_PER_POINT",
     "RESIDENT_BYTES_PER_POINT",
     "TileBudgetError",
@@ -55,6 +56,11 @@ RESIDENT_BYTES_PER_POINT = 72
 besides the crops: the float64 points as read (24), the aligned scan (12 averaged), the
 station index (8), the labels, distances and region numbers and their copies in file order
 (18), and spare for the merge."""
+LEAN_RESIDENT_BYTES_PER_POINT = 32
+""":data:`RESIDENT_BYTES_PER_POINT` of a pair read lean (:mod:`app.core.tiling.lean`): float32
+points (6 averaged), the scan's and the aligned scan's float32 points (12 averaged), the
+station index (int8: 1), the tiles' results kept until the merge (core index, label, distance:
+13) and none of the file-order copies (the merge's arrays are the result)."""
 BASELINE_BYTES = 400 * 1024**2
 """Interpreter, numpy, scipy, the detectors' libraries and small buffers."""
 DEFAULT_MARGIN_METRES = 1.0
@@ -140,7 +146,11 @@ class TilePlan:
             )
 
 
-def crop_point_limit(budget_bytes: int, resident_points: int) -> int:
+def crop_point_limit(
+    budget_bytes: int,
+    resident_points: int,
+    resident_bytes_per_point: int = RESIDENT_BYTES_PER_POINT,
+) -> int:
     """Most points of both clouds one crop may have under ``budget_bytes`` (see the model).
 
     Parameters
@@ -149,13 +159,16 @@ def crop_point_limit(budget_bytes: int, resident_points: int) -> int:
         The process's memory budget.
     resident_points : int
         Points of both clouds the process holds whole (0 for a worker reading its crop only).
+    resident_bytes_per_point : int
+        What it holds a point of them (:data:`LEAN_RESIDENT_BYTES_PER_POINT` for a pair read
+        lean).
 
     Returns
     -------
     int
         May be <= 0: nothing fits.
     """
-    free = budget_bytes - BASELINE_BYTES - resident_points * RESIDENT_BYTES_PER_POINT
+    free = budget_bytes - BASELINE_BYTES - resident_points * resident_bytes_per_point
     return int(free // LOCALISATION_BYTES_PER_POINT)
 
 
