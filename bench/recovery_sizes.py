@@ -22,11 +22,7 @@ import numpy as np
 
 from app.core.datasets.lidar import lidar_pair, steps_for_points
 from app.core.origins import station_recovery
-
-try:
-    from app.core.origins.voxels import whole_voxels
-except ImportError:  # the code before issue 28's one whole-voxel subset: its own copy
-    whole_voxels = None
+from app.core.origins.voxels import whole_voxels
 
 SCENE_SEED = 18
 N_STATIONS = 5
@@ -96,10 +92,7 @@ def main() -> None:
             for side in ("reference", "scan"):
                 points = pair[side].astype(np.float64)
                 rng = np.random.default_rng(0)
-                if whole_voxels is None:
-                    subset = station_recovery._subset(points, rng)
-                else:
-                    subset = whole_voxels(points, station_recovery.MAX_POINTS, rng)
+                subset = whole_voxels(points, station_recovery.MAX_POINTS, rng)
                 started = time.perf_counter()
                 found = station_recovery.recover_stations(points)
                 seconds = time.perf_counter() - started
