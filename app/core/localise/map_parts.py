@@ -172,6 +172,22 @@ def surface_parts(
     return labels.astype(np.int64)
 
 
+def _supports(unit: NDArray[np.float64], height: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Whether the other epoch's adjoining surface is a level one under the point (a floor, a
+    seat, a desk top the part stands on); shapes (b, 3), (b,) -> (b,).
+
+    A supporting surface that ends at an upright part says nothing of whether the part stood
+    in the other epoch: the floor in front of a box ends at its side because the box hides
+    the floor under it, and a chair's seat ends where its backrest rises, whichever way the
+    chair was turned.  Such border points do not count as adjoined (:func:`_surrounded`); a
+    support that carries on past the part (the floor under an added box's place) still does.
+    The surfaces that end at a part's upper and side edges (the object's top, its other
+    faces) are the evidence: the other epoch saw the object's other surfaces meet this one.
+    """
+    level = np.abs(unit[:, 2]) >= NORMAL_AGREEMENT_COSINE
+    return level & (height * np.sign(unit[:, 2]) > 0.0)
+
+
 def _surrounded(
     points: NDArray[np.float64],
     own_normal: NDArray[np.floating],
@@ -208,7 +224,8 @@ def _surrounded(
     Returns
     -------
     adjoining : ndarray, shape (b,), bool
-        Whether the other epoch has a surface meeting the point's at an edge next to it.
+        Whether the other epoch has a surface meeting the point's at an edge next to it (not
+        one the point stands on that ends there: :func:`_supports`).
     sectors : ndarray, shape (b,), int64
         In how many of :data:`SECTORS` directions that surface carries on past the point.
     """
@@ -233,6 +250,7 @@ def _surrounded(
             np.abs(np.einsum("cd,cd->c", own_normal[chunk].astype(np.float64), unit)) < EDGE_COSINE
         )
         adjoining[chunk] = (np.abs(height) <= ADJOINING_FACTOR * change_threshold) & across
+        support = _supports(unit, height)
         foot = query - height[:, None] * unit
         offset = other.points[index] - foot[:, None, :]
         along = np.linalg.norm(offset, axis=2)
@@ -257,6 +275,7 @@ def _surrounded(
         surrounded[chunk] = taken.sum(axis=1)
         # a surface that this epoch lacks next to the point: the object hid it here
         surrounded[chunk][other_unmatched[nearest]] = SECTORS
+        adjoining[chunk] &= ~(support & (surrounded[chunk] < SURROUND_SECTORS))
     return adjoining, surrounded
 
 
