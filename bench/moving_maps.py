@@ -12,9 +12,9 @@ Scene ``k`` of a class for seed ``s`` (its ``k``-th scene: :func:`scenes`) is dr
 ``random_state = 100 * s + k`` (the table's seed column): a scene is named by its class and
 that number, whichever other classes run with it (``--classes robot,rgbd`` draws the same RGB-D
 rooms as ``--classes rgbd``).  Per scene and mode: the decision, IoU of changed points over the
-scored points (both clouds pooled), each change's recall (the share of its object's truly changed, scored points
-called changed), regions and changed points on unchanged scenes, seconds of the compare.  Then
-the issue's targets, PASS or FAIL:
+scored points (both clouds pooled), each change's recall (the share of its object's truly
+changed, scored points called changed), regions and changed points on unchanged scenes, seconds
+of the compare.  Then the issue's targets, PASS or FAIL:
 
 - every map class: each change >= 70 % recall, mean >= 85 %, <= 2,000 changed points over the
   unchanged pairs;
