@@ -12,7 +12,7 @@ def test_a_scene_depends_on_its_class_and_seed_only():
         together = scenes(seed, ["robot", "rgbd", "tls"])
         for name, mine in alone.items():
             assert [scene for scene in together if scene[0] == name] == mine
-        for name, mine in alone.items():
+        for mine in alone.values():
             seeds = [scene[-1] for scene in mine]
             assert len(set(seeds)) == len(seeds)
             assert all(100 * seed <= value < 100 * (seed + 1) for value in seeds)
