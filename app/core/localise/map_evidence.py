@@ -17,12 +17,13 @@ judged by the geometry the two epochs share, one cluster of candidates at a time
   lacks on the normal lines through the cluster (the floor under a removed chair, the wall
   behind a removed board, seen now that the object is gone), or its surface all around.
 
-- **An unseen side** (``no_coverage``): an upright part whose border meets the other epoch's
-  surfaces at an edge (the object's top, the floor in front of it), where those surfaces end
-  at the part instead of carrying on past it, and where the other epoch has no surface that
-  this one lacks: the side of an object standing in both epochs that only this epoch's path
-  faced.  Where the other epoch saw the place of a removed or added object, its floor, desk
-  top or wall carries on under it, or is surface this epoch lacks (the object hid it).
+- **An unseen face** (``no_coverage``, :func:`unseen_faces`): a part whose border meets the
+  other epoch's surfaces at an edge (the object's top or other sides), where those surfaces
+  end at the part instead of carrying on past it, and where the other epoch has no surface
+  that this one lacks: the side of an object standing in both epochs that only this epoch's
+  path faced, or its top that only this epoch's path looked down on.  Where the other epoch
+  saw the place of a removed or added object, its floor, desk top or wall carries on under
+  it, or is surface this epoch lacks (the object hid it).
 
 Candidates are judged a surface part at a time (:func:`surface_parts`: connected candidates
 whose normals agree), so that a change joined to a coverage difference (a removed fence to the
