@@ -228,7 +228,15 @@ def map_test(
         counted = other_unmatched & ~gap
         return _rechecked_share(candidates, chosen, labels, share, other=other, counted=counted)
 
-    coverage, confidence, counts = _verdict(figures, see_through)
+    def open_beneath(recheck: NDArray[np.bool_]) -> NDArray[np.float64]:
+        chosen = np.flatnonzero(recheck[labels])
+        share = np.zeros(recheck.shape[0])
+        if chosen.shape[0] == 0:
+            return share
+        everything = np.ones(other.points.shape[0], dtype=bool)
+        return _rechecked_share(candidates, chosen, labels, share, other=other, counted=everything)
+
+    coverage, confidence, counts = _verdict(figures, see_through, open_beneath)
     status[coverage[labels]] = STATUS_UNOBSERVED
     evidence[coverage[labels]] = EVIDENCE_NO_COVERAGE
     return MapEvidence(status, evidence, confidence[labels].astype(np.float32), counts)
@@ -248,22 +256,30 @@ def unseen_faces(figures: PartFigures) -> NDArray[np.bool_]:
     at a part is no evidence either way (:func:`~app.core.localise.map_parts._supports`).
     Tops were left out before (s10): on six seeds of RGB-D rooms, horizontal parts meeting
     this rule carry 1,800 false changed points on unseen tops and desk strips and 71 true ones.
+    A top is one only when the other epoch has no surface under most of it within
+    :data:`~app.core.localise.map_parts.SEE_THROUGH_REACH` (:func:`_verdict`): a solid
+    object's body hides everything under its top, while under a removed table the other epoch
+    saw the floor (the real classroom's table, whose rim a lower desk and a chair meet).
     """
     return (figures.adjoining >= MIN_ADJOINING) & (figures.surround_share < SURROUND_SHARE)
 
 
 def _verdict(
-    figures: PartFigures, see_through: Any
+    figures: PartFigures, see_through: Any, open_beneath: Any
 ) -> tuple[NDArray[np.bool_], NDArray[np.float64], dict[str, Any]]:
     """Per part, whether it is a coverage difference and the confidence in its verdict.
 
     ``see_through(recheck, behind_share)`` recomputes the see-through share of the parts
     marked in ``recheck`` without the other epoch's surface in narrow gaps of this one's
     (:func:`_narrow_gaps`).  It only lowers a share, so only parts at or over
-    :data:`SEE_THROUGH_SHARE` are rechecked.
+    :data:`SEE_THROUGH_SHARE` are rechecked.  ``open_beneath(recheck)`` gives the share of
+    the marked parts' points with any of the other epoch's surface on their normal lines
+    (:func:`unseen_faces`: an unseen top has its object's body under it).
     """
     part = figures
     unseen_side = unseen_faces(part)
+    beneath = open_beneath(unseen_side & ~part.upright)
+    unseen_side &= part.upright | (beneath < SEE_THROUGH_SHARE)
     continues_plainly = part.continuation_share >= PLAIN_CONTINUATION_SHARE
     continues_in_plane = (part.continuation_share >= CONTINUATION_SHARE) & (
         part.coplanar_share >= COPLANAR_SHARE
