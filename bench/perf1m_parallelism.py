@@ -69,6 +69,7 @@ def _thread_states(pid: int) -> tuple[int, int] | None:
 def sampled_run(command: list[str], environment: dict[str, str]) -> dict[str, Any]:
     """Run ``command``, sampling its threads' states; the samples, its output, CPU and wall."""
     with tempfile.TemporaryFile() as output, tempfile.TemporaryFile() as errors:
+        children_cpu = _children_cpu_seconds()
         started = time.perf_counter()
         child = subprocess.Popen(
             command, stdout=output, stderr=errors, cwd=PROJECT_ROOT, env=environment
@@ -86,19 +87,14 @@ def sampled_run(command: list[str], environment: dict[str, str]) -> dict[str, An
         stderr = errors.read().decode(errors="replace")
     if child.returncode != 0:
         raise RuntimeError(f"{command[:3]} failed: {stderr.strip().splitlines()[-1:]}")
-    usage = _child_cpu_seconds()
-    return {"samples": samples, "stdout": stdout, "wall": wall, "cpu_seconds": usage}
+    cpu_seconds = _children_cpu_seconds() - children_cpu
+    return {"samples": samples, "stdout": stdout, "wall": wall, "cpu_seconds": cpu_seconds}
 
 
-_LAST_CHILDREN_CPU = [0.0]
-
-
-def _child_cpu_seconds() -> float:
-    """CPU seconds (user + system) of the child reaped last (the running total's increment)."""
+def _children_cpu_seconds() -> float:
+    """CPU seconds (user + system) of this process's reaped children so far."""
     times = os.times()
-    total = times.children_user + times.children_system
-    increment, _LAST_CHILDREN_CPU[0] = total - _LAST_CHILDREN_CPU[0], total
-    return increment
+    return times.children_user + times.children_system
 
 
 def quiet_estimate(
