@@ -24,6 +24,7 @@ the tile's ray reach (the only ones :func:`crop_mask` can keep).
 from __future__ import annotations
 
 import json
+from collections.abc import Callable, Iterator
 from contextlib import ExitStack
 from pathlib import Path
 from typing import IO, Any
@@ -37,8 +38,11 @@ from app.core.tiling.tile import TileContext, TileCrop, TileSource, _cropped_ray
 __all__ = [
     "CROP_CHUNK",
     "MAX_OPEN_TILES",
+    "Chunks",
     "TileCropFiles",
     "crop_file",
+    "record_dtype",
+    "write_crops_from_chunks",
     "write_tile_crops",
 ]
 
@@ -59,8 +63,9 @@ def _rays_file(directory: Path, tile_index: int, side: str) -> Path:
     return Path(directory) / f"crop-{tile_index:05d}-{side}-rays.npz"
 
 
-def _record_dtype(points: NDArray[np.floating], station: NDArray | None) -> np.dtype:
-    """One point of a crop file: its coordinates as stored, its index, its station."""
+def record_dtype(points: NDArray[np.floating], station: NDArray | None) -> np.dtype:
+    """One point of a crop file: its coordinates as stored (``points``' dtype), its index,
+    its station (when ``station`` is not None)."""
     fields: list[tuple[Any, ...]] = [
         ("point", np.asarray(points[:0]).dtype, (3,)),
         ("index", np.int64),
@@ -68,6 +73,10 @@ def _record_dtype(points: NDArray[np.floating], station: NDArray | None) -> np.d
     if station is not None:
         fields.append(("station", np.int32))
     return np.dtype(fields)
+
+
+Chunks = Callable[[], Iterator[tuple[int, NDArray[np.floating], NDArray | None]]]
+"""A fresh pass over one cloud: ``(first index, points (c, 3), stations (c,) or None)``."""
 
 
 def write_tile_crops(
@@ -98,22 +107,65 @@ def write_tile_crops(
     list of int
         Points of both clouds in each tile's crop.
     """
+
+    def chunks_of(points: NDArray, station: NDArray | None) -> Chunks:
+        def chunks() -> Iterator[tuple[int, NDArray, NDArray | None]]:
+            for start in range(0, len(points), chunk_points):
+                stop = start + chunk_points
+                yield (
+                    start,
+                    np.asarray(points[start:stop]),
+                    None if station is None else np.asarray(station[start:stop]),
+                )
+
+        return chunks
+
+    sides = {
+        side: (chunks_of(points, station), origins, record_dtype(points, station), rays)
+        for side, (points, station, origins), rays in zip(
+            SIDES,
+            source._sides(context),
+            (source.reference_rays, source.scan_rays),
+            strict=True,
+        )
+    }
+    return write_crops_from_chunks(directory, plan, context, sides)
+
+
+def write_crops_from_chunks(
+    directory: Path,
+    plan: TilePlan,
+    context: TileContext,
+    sides: dict[str, tuple[Chunks, NDArray[np.float64] | None, np.dtype, Any]],
+) -> list[int]:
+    """:func:`write_tile_crops` of clouds handed out in chunks (a streamed parent's).
+
+    Parameters
+    ----------
+    directory : Path
+    plan : TilePlan
+    context : TileContext
+    sides : dict
+        For ``reference`` and ``scan``: ``(chunks, origins, record dtype, rays)``: a
+        :data:`Chunks` pass (called once per :data:`MAX_OPEN_TILES` tiles), the origins in
+        the context, :func:`record_dtype` of the points and stations, the trajectory's
+        ``(returns, bounds)`` or None.
+
+    Returns
+    -------
+    list of int
+        Points of both clouds in each tile's crop.
+    """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     crop_sizes = np.zeros(plan.n_tiles, dtype=np.int64)
     layout: dict[str, Any] = {}
-    for side, (points, station, origins), rays in zip(
-        SIDES,
-        source._sides(context),
-        (source.reference_rays, source.scan_rays),
-        strict=True,
-    ):
-        dtype = _record_dtype(points, station)
+    for side, (chunks, origins, dtype, rays) in sides.items():
         layout[side] = {"dtype": dtype.descr, "rays": rays is not None}
         for first in range(0, plan.n_tiles, MAX_OPEN_TILES):
             tiles = range(first, min(plan.n_tiles, first + MAX_OPEN_TILES))
             crop_sizes[list(tiles)] += _write_side(
-                directory, plan, tiles, side, points, station, origins, context, dtype, chunk_points
+                directory, plan, tiles, side, chunks, origins, context, dtype
             )
         if rays is not None:
             for tile_index in range(plan.n_tiles):
@@ -129,12 +181,10 @@ def _write_side(
     plan: TilePlan,
     tiles: range,
     side: str,
-    points: NDArray[np.floating],
-    station: NDArray | None,
+    chunks: Chunks,
     origins: NDArray[np.float64] | None,
     context: TileContext,
     dtype: np.dtype,
-    chunk_points: int,
 ) -> NDArray[np.int64]:
     """One pass over one cloud writing the crops of ``tiles``; their point counts."""
     counts = np.zeros(len(tiles), dtype=np.int64)
@@ -145,11 +195,7 @@ def _write_side(
             stack.enter_context(open(crop_file(directory, tile_index, side), "wb"))
             for tile_index in tiles
         ]
-        for start in range(0, len(points), chunk_points):
-            chunk = np.asarray(points[start : start + chunk_points])
-            chunk_station = (
-                None if station is None else np.asarray(station[start : start + len(chunk)])
-            )
+        for start, chunk, chunk_station in chunks():
             xy = chunk[:, :2].astype(np.float64)
             for number, (low, high) in enumerate(boxes):
                 near = np.flatnonzero(np.all((xy >= low - reach) & (xy <= high + reach), axis=1))
