@@ -108,7 +108,7 @@ def test_a_streamed_comparison_on_subsamples_finds_the_same_changes(tmp_path) ->
 
 
 def test_non_finite_rows_keep_their_place_unobserved(tmp_path) -> None:
-    paths = _write_pair(tmp_path, 1, 7)
+    paths = _write_pair(tmp_path, 3, 3)
     reference = read_point_cloud(paths[0]).points.copy()
     holes = np.arange(5, len(reference), 997)
     reference[holes] = np.nan
@@ -125,7 +125,7 @@ def test_non_finite_rows_keep_their_place_unobserved(tmp_path) -> None:
 
 
 def test_the_stages_see_only_the_subsample(tmp_path) -> None:
-    paths = _write_pair(tmp_path, 1, 5)
+    paths = _write_pair(tmp_path, 3, 3)
     seen: list[int] = []
 
     def progress(stage: str, fraction: float) -> None:
@@ -145,7 +145,7 @@ def test_the_stages_see_only_the_subsample(tmp_path) -> None:
         compare_streamed(
             *paths,
             work_dir=tmp_path / "work",
-            max_crop_points=n_points,
+            max_crop_points=int(1.2 * n_points),
             subsample_points=n_points // 10,
             progress=progress,
             **OPTIONS,
