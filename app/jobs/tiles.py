@@ -35,7 +35,7 @@ import logging
 import shutil
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from datetime import timedelta
 from pathlib import Path
@@ -47,6 +47,7 @@ from app.config import Settings
 from app.core.files import write_atomically
 from app.core.tiling import TileContext, TilePlan, TileResult, TileSource, compute_tile
 from app.core.tiling.crops import TileCropFiles, write_tile_crops
+from app.core.tiling.streamed import StoredTileResults
 from app.db.models import Job, JobStatus, JobTile, TileStatus
 from app.db.session import transaction
 from app.jobs.hooks import job_hooks
@@ -66,11 +67,17 @@ ProgressCallback = Callable[[str, float], None]
 
 
 def save_tile_inputs(
-    directory: Path, plan: TilePlan, source: TileSource, context: TileContext
+    directory: Path, plan: TilePlan, source: TileSource | TileCropFiles, context: TileContext
 ) -> None:
     """Write what the tiles read into ``directory``: each tile's own crop files, the plan and
     the context (the plan last: a tile reads nothing before the parent recorded the tiles)."""
     directory.mkdir(parents=True, exist_ok=True)
+    if isinstance(source, TileCropFiles):  # a streamed parent wrote them from the files
+        if source.directory != directory / CROPS_DIR:
+            raise ValueError(f"the tiles' crops must be in {directory / CROPS_DIR}")
+        write_atomically(directory / PLAN_FILE, plan.save)
+        write_atomically(directory / CONTEXT_FILE, context.save)
+        return
     partial = directory / f"{CROPS_DIR}.partial"  # swapped in whole: a tile of an earlier
     shutil.rmtree(partial, ignore_errors=True)  # attempt never reads a half-written crop
     write_tile_crops(partial, plan, source, context)
@@ -370,12 +377,13 @@ class TileFanOut:
     def __call__(
         self,
         plan: TilePlan,
-        source: TileSource,
+        source: TileSource | TileCropFiles,
         context: TileContext,
         threads: int,
         report: ProgressCallback,
-    ) -> list[TileResult]:
-        """Every tile's result, in order, computed by whichever worker took it."""
+    ) -> Sequence[TileResult]:
+        """Every tile's result, in order, computed by whichever worker took it (read from its
+        file when the merge asks for it)."""
         directory = self.settings.data_layout.job_tiles_dir(self.job.id)
         with self.timings.phase("tile_inputs_write"):
             save_tile_inputs(directory, plan, source, context)
@@ -390,10 +398,9 @@ class TileFanOut:
                     .where(JobTile.job_id == self.job.id)
                     .order_by(JobTile.tile_index)
                 ).all()
-            results = [
-                TileResult.load(self.settings.data_layout.resolve(str(row.result_path)))
-                for row in rows
-            ]
+            results = StoredTileResults(  # read when merged, one at a time
+                [self.settings.data_layout.resolve(str(row.result_path)) for row in rows]
+            )
         elsewhere = [row.seconds or 0.0 for row in rows if row.lease_owner != self.owner]
         self.timings.seconds["tiles_other_workers"] = float(sum(elsewhere))
         self.timings.seconds["tiles_computed_here"] = float(self.computed_here)

@@ -23,12 +23,15 @@ The result is a :class:`~app.core.pipeline.ComparisonResult` whose per-point arr
 files, memory-mapped read-only.  When a cloud has at most :data:`SUBSAMPLE_POINTS` points the
 subsample is the whole cloud and the result is the lean tiled comparison's, point for point.
 The files must carry coordinates only (no sensor origin, stations or trajectory: those need the
-whole cloud read); :func:`streamable` says whether a pair can go this way.
+whole cloud read); :func:`coordinates_only` says whether a file can go this way, and
+:func:`write_labels_npz` / :func:`write_details_npz` write a job's result files from the
+outputs without loading them.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import shutil
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +44,7 @@ from app.core.cloud import PointCloud, choose_local_origin
 from app.core.comparison.align import Alignment, transformed
 from app.core.comparison.load import LoadedPair, PairOptions, load_pair
 from app.core.comparison.origins import SensorOrigins
+from app.core.formats.station_fields import has_station_fields
 from app.core.formats.streamed import open_point_blocks
 from app.core.localise import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED, Localisation
 from app.core.localise.changes import _default_min_region_points
@@ -68,6 +72,10 @@ __all__ = [
     "StreamedCloud",
     "compare_streamed",
     "compute_tiles_to_files",
+    "coordinates_only",
+    "streamed_outputs",
+    "write_details_npz",
+    "write_labels_npz",
 ]
 
 CHUNK = 1 << 20
@@ -184,9 +192,110 @@ def survey(path: Path, format: str | None, most: int) -> tuple[StreamedCloud, ND
     return cloud, np.concatenate(kept) if kept else np.zeros((0, 3))
 
 
-def streamable(cloud: PointCloud) -> bool:
-    """Whether a file read as ``cloud`` (its first rows suffice) carries only coordinates."""
-    return cloud.sensor_origin is None and cloud.trajectory is None and not cloud.attributes
+def coordinates_only(path: str | Path, format: str | None = None) -> bool:
+    """Whether a file can be compared streamed: a binary PLY whose vertices have no station
+    fields, or an ``.npy`` of plain (n, 3) coordinates (what the rest of a file could carry,
+    per-point stations and origins, needs the whole cloud read).
+
+    Parameters
+    ----------
+    path : str or Path
+    format : str, optional
+        The file's format (None: from its name).
+    """
+    path = Path(path)
+    chosen = (format or path.suffix).lower().lstrip(".")
+    try:
+        if chosen == "npy":
+            array = np.load(path, mmap_mode="r")
+            return array.dtype.names is None and array.ndim == 2 and array.shape[1] == 3
+        if chosen != "ply":
+            return False
+        with open(path, "rb") as file:
+            header = file.read(PLY_HEADER_BYTES).split(b"end_header", 1)[0].decode("latin-1")
+    except (OSError, ValueError):
+        return False
+    lines = [line.split() for line in header.splitlines()]
+    if ["format", "ascii", "1.0"] in lines:
+        return False
+    names, in_vertex = [], False
+    for words in lines:
+        if words[:1] == ["element"]:
+            in_vertex = words[1:2] == ["vertex"]
+        elif in_vertex and words[:1] == ["property"]:
+            names.append(words[-1])
+    return {"x", "y", "z"} <= set(names) and not has_station_fields(names)
+
+
+PLY_HEADER_BYTES = 1 << 16
+"""Most bytes of a PLY header :func:`coordinates_only` reads."""
+
+
+def streamed_outputs(result: ComparisonResult) -> dict[str, Path] | None:
+    """The output files of a result of :func:`compare_streamed` (its per-point arrays are
+    ``.npy`` memory maps), by ``<side>_<name>``; None for any other result."""
+    outputs = {}
+    for side in ("reference", "scan"):
+        for name in OUTPUT_FILES:
+            array = getattr(result, f"{side}_{name}")
+            if not isinstance(array, np.memmap) or not array.filename:
+                return None
+            outputs[f"{side}_{name}"] = Path(array.filename)
+    return outputs
+
+
+def write_labels_npz(path: Path, outputs: Mapping[str, Path], chunk_points: int = CHUNK) -> None:
+    """A streamed result's ``labels.npz``, as
+    :meth:`~app.core.pipeline.ComparisonResult.write_labels_npz` writes it, copied from its
+    output files (:func:`streamed_outputs`) a chunk at a time: no per-point array of the whole
+    clouds is held or mapped."""
+    import zipfile
+
+    from app.core.comparison.result import LABELS_COMPRESS_LEVEL
+
+    with zipfile.ZipFile(
+        path, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=LABELS_COMPRESS_LEVEL
+    ) as archive:
+        for name, source, changed in (
+            ("reference_changed", outputs["reference_label"], True),
+            ("scan_changed", outputs["scan_label"], True),
+            ("reference_label", outputs["reference_label"], False),
+            ("scan_label", outputs["scan_label"], False),
+        ):
+            with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+                _copy_npy(source, member, chunk_points, changed)
+
+
+def write_details_npz(path: Path, outputs: Mapping[str, Path], chunk_points: int = CHUNK) -> None:
+    """A streamed result's distances and region numbers as one ``.npz`` (a job's
+    ``details.npz``), copied from its output files a chunk at a time."""
+    import zipfile
+
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as archive:
+        for name in ("reference_distance", "scan_distance", "reference_region", "scan_region"):
+            with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+                _copy_npy(outputs[name], member, chunk_points, False)
+
+
+def _copy_npy(source: Path, member: Any, chunk_points: int, changed: bool) -> None:
+    """Copy an ``.npy`` file into ``member`` by reads (``changed``: its values ==
+    :data:`LABEL_CHANGED` as a bool array instead)."""
+    with open(source, "rb") as file:
+        version = np.lib.format.read_magic(file)
+        read_header = (
+            np.lib.format.read_array_header_1_0
+            if version == (1, 0)
+            else np.lib.format.read_array_header_2_0
+        )
+        shape, _, dtype = read_header(file)
+        header = {"descr": np.lib.format.dtype_to_descr(np.dtype(bool) if changed else dtype)}
+        header.update(fortran_order=False, shape=shape)
+        np.lib.format.write_array_header_1_0(member, header)
+        while True:
+            values = np.fromfile(file, dtype=dtype, count=chunk_points)
+            if not len(values):
+                return
+            member.write((values == LABEL_CHANGED if changed else values).tobytes())
 
 
 class StoredTileResults(Sequence[TileResult]):
@@ -330,9 +439,10 @@ class StreamedLocalisation:
             margin=self.margin,
             budget_bytes=self.budget_bytes,
         )
-        crops = self.work_dir / "crops"
-        write_crops_from_chunks(
-            crops,
+        crops, partial = self.work_dir / "crops", self.work_dir / "crops.partial"
+        shutil.rmtree(partial, ignore_errors=True)  # swapped in whole: a tile of an earlier
+        write_crops_from_chunks(  # attempt never reads a half-written crop
+            partial,
             plan,
             context,
             {
@@ -342,6 +452,8 @@ class StreamedLocalisation:
                 )
             },
         )
+        shutil.rmtree(crops, ignore_errors=True)
+        partial.rename(crops)
         results = self.run_tiles(plan, TileCropFiles(crops), context, loaded.threads, report)  # type: ignore[arg-type]
         return self._merge(plan, results, context.min_region_points), context.min_region_points
 
