@@ -21,7 +21,8 @@ each stretch between progress reports (``VmHWM`` reset at each), the tiles, and 
 labels (equal digests: identical labels).
 
 Run: ``python -m bench.big100 --pair-dir /tmp/bigdata/4M --memory-budget 2.5G
-[--parent-only] [--variants streamed,lean]``.
+[--parent-only] [--variants streamed,lean] [--crop-points N]`` (the work files go to the
+system's temporary directory, ``TMPDIR``).
 """
 
 from __future__ import annotations
@@ -94,7 +95,9 @@ def unchanged_tiles(plan: Any, source: Any, context: Any, threads: int, report: 
     return results
 
 
-def _child(variant: str, pair_dir: Path, budget: str, parent_only: bool) -> None:
+def _child(
+    variant: str, pair_dir: Path, budget: str, parent_only: bool, crop_points: int | None
+) -> None:
     """One variant in this process; prints one JSON line."""
     from app.core.formats import read_point_cloud
     from app.core.tiling.compare import compare_tiled
@@ -119,10 +122,14 @@ def _child(variant: str, pair_dir: Path, budget: str, parent_only: bool) -> None
 
     budget_bytes = _budget_bytes(budget)
     paths = [pair_dir / "reference.ply", pair_dir / "scan.ply"]
-    options: dict[str, Any] = {"budget_bytes": budget_bytes, "progress": stretch}
+    options: dict[str, Any] = {
+        "budget_bytes": budget_bytes,
+        "progress": stretch,
+        "max_crop_points": crop_points,
+    }
     if parent_only:
         options["run_tiles"] = unchanged_tiles
-    with tempfile.TemporaryDirectory(dir=pair_dir) as work_dir:
+    with tempfile.TemporaryDirectory(prefix="big100-") as work_dir:
         stretch("start")
         if variant == "streamed":
             result = compare_streamed(*paths, work_dir=work_dir, **options)
@@ -138,6 +145,11 @@ def _child(variant: str, pair_dir: Path, budget: str, parent_only: bool) -> None
         digest = hashlib.sha256()
         for name in ("reference_label", "scan_label"):
             digest.update(np.ascontiguousarray(getattr(result, name)).tobytes())
+        np.savez(
+            _labels_file(variant),
+            reference=np.asarray(result.reference_label),
+            scan=np.asarray(result.scan_label),
+        )
         stretch("end")
         print(
             json.dumps(
@@ -154,11 +166,32 @@ def _child(variant: str, pair_dir: Path, budget: str, parent_only: bool) -> None
         )
 
 
-def run_variant(variant: str, pair_dir: Path, budget: str, parent_only: bool) -> dict[str, Any]:
+def _labels_file(variant: str) -> Path:
+    """Where a variant's child leaves its labels for the comparison of the variants."""
+    return Path(tempfile.gettempdir()) / f"big100-{variant}-labels.npz"
+
+
+def changed_iou(first: str, second: str) -> dict[str, float]:
+    """IoU of the changed points of two variants' labels, and their share of equal labels."""
+    figures = {}
+    with np.load(_labels_file(first)) as one, np.load(_labels_file(second)) as other:
+        for side in ("reference", "scan"):
+            ours, theirs = one[side] == 1, other[side] == 1
+            union = np.count_nonzero(ours | theirs)
+            both = np.count_nonzero(ours & theirs)
+            figures[f"{side}_iou"] = 1.0 if union == 0 else round(both / union, 4)
+            figures[f"{side}_equal"] = round(float(np.mean(one[side] == other[side])), 5)
+    return figures
+
+
+def run_variant(
+    variant: str, pair_dir: Path, budget: str, parent_only: bool, crop_points: int | None
+) -> dict[str, Any]:
     """A variant in a child process: its JSON line, CPU seconds and peak RSS (``os.wait4``)."""
     command = [sys.executable, "-m", "bench.big100", "--child", variant]
     command += ["--pair-dir", str(pair_dir), "--memory-budget", budget]
     command += ["--parent-only"] if parent_only else []
+    command += ["--crop-points", str(crop_points)] if crop_points else []
     started = time.perf_counter()
     with subprocess.Popen(command, stdout=subprocess.PIPE, text=True, cwd=PROJECT_ROOT) as child:
         output = child.stdout.read() if child.stdout else ""
@@ -184,13 +217,14 @@ def main() -> None:
     parser.add_argument("--memory-budget", default="2.5G")
     parser.add_argument("--parent-only", action="store_true")
     parser.add_argument("--variants", default="streamed,lean")
+    parser.add_argument("--crop-points", type=int, help="points a crop may hold (not the budget's)")
     parser.add_argument("--child", choices=["streamed", "lean"])
     args = parser.parse_args()
     if args.child:
-        _child(args.child, args.pair_dir, args.memory_budget, args.parent_only)
+        _child(args.child, args.pair_dir, args.memory_budget, args.parent_only, args.crop_points)
         return
     reports = [
-        run_variant(variant, args.pair_dir, args.memory_budget, args.parent_only)
+        run_variant(variant, args.pair_dir, args.memory_budget, args.parent_only, args.crop_points)
         for variant in args.variants.split(",")
     ]
     for report in reports:
@@ -210,6 +244,7 @@ def main() -> None:
             f"peak RSS {first['peak_rss_mb'] / second['peak_rss_mb']:.2f}x, labels "
             f"{'identical' if first['labels_sha256'] == second['labels_sha256'] else 'differ'}"
         )
+        print("changed points:", changed_iou(first["variant"], second["variant"]))
 
 
 if __name__ == "__main__":
