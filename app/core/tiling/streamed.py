@@ -439,6 +439,7 @@ class StreamedLocalisation:
             margin=self.margin,
             budget_bytes=self.budget_bytes,
         )
+        report("localise", 0.36)  # planned
         crops, partial = self.work_dir / "crops", self.work_dir / "crops.partial"
         shutil.rmtree(partial, ignore_errors=True)  # swapped in whole: a tile of an earlier
         write_crops_from_chunks(  # attempt never reads a half-written crop
@@ -454,6 +455,7 @@ class StreamedLocalisation:
         )
         shutil.rmtree(crops, ignore_errors=True)
         partial.rename(crops)
+        report("localise", 0.37)  # the tiles' inputs written
         results = self.run_tiles(plan, TileCropFiles(crops), context, loaded.threads, report)  # type: ignore[arg-type]
         return self._merge(plan, results, context.min_region_points), context.min_region_points
 
