@@ -552,8 +552,8 @@ def _streamed(args: argparse.Namespace, budget: int | None) -> bool:
     tiled under ``budget``, both files carry coordinates only, and nothing needs the clouds
     whole (no trajectory, bag parameters or export)."""
     from app.core.formats.streamed import declared_rows
+    from app.core.tiling.pair_files import coordinates_only
     from app.core.tiling.plan import LEAN_RESIDENT_BYTES_PER_POINT, crop_point_limit
-    from app.core.tiling.streamed import coordinates_only
 
     if budget is None or args.export is not None or args.bag_param or args.scan_bag_param:
         return False
@@ -573,7 +573,8 @@ def _compare_streamed(
 ) -> ComparisonResult:
     """:func:`~app.core.tiling.streamed.compare_streamed` of the command's files; the labels
     written from its output files."""
-    from app.core.tiling.streamed import compare_streamed, streamed_outputs, write_labels_npz
+    from app.core.tiling.pair_files import streamed_outputs, write_labels_npz
+    from app.core.tiling.streamed import compare_streamed
 
     started = time.perf_counter()
     result = compare_streamed(

@@ -149,7 +149,7 @@ def streamed_tiles(job: ClaimedJob, settings: Settings) -> bool:
     files carry coordinates only (no origin given at upload, no trajectory or bag beside them).
     """
     from app.core.formats.streamed import declared_rows  # the worker's imports, not the API's
-    from app.core.tiling.streamed import coordinates_only
+    from app.core.tiling.pair_files import coordinates_only
     from app.kit.scan_files import bag_options_path, trajectory_path
 
     paths = [job.reference_path, job.scan_path]

@@ -77,7 +77,7 @@ def write_result_files(job: ClaimedJob, settings: Settings, result: Comparison) 
     directory = settings.data_layout.job_results_dir(job.id)
     labels_path = directory / LABELS_FILENAME
     if isinstance(result.reference_label, np.memmap):  # a streamed comparison's, on disk
-        from app.core.tiling.streamed import (
+        from app.core.tiling.pair_files import (
             streamed_outputs,
             write_details_npz,
             write_labels_npz,

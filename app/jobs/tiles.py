@@ -47,7 +47,7 @@ from app.config import Settings
 from app.core.files import write_atomically
 from app.core.tiling import TileContext, TilePlan, TileResult, TileSource, compute_tile
 from app.core.tiling.crops import TileCropFiles, write_tile_crops
-from app.core.tiling.streamed import StoredTileResults
+from app.core.tiling.pair_files import StoredTileResults
 from app.db.models import Job, JobStatus, JobTile, TileStatus
 from app.db.session import transaction
 from app.jobs.hooks import job_hooks
