@@ -35,6 +35,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -54,12 +55,17 @@ def _budget_bytes(budget: str) -> int:
     return round(float(budget.rstrip("GMK")) * 1024 ** ("KMG".index(budget[-1]) + 1))
 
 
-def unchanged_tiles(plan: Any, source: Any, context: Any, threads: int, report: Any) -> list:
-    """A stand-in tile runner: each tile's crop read, its core points labelled unchanged."""
+def unchanged_tiles(
+    plan: Any, source: Any, context: Any, threads: int, report: Any, *, directory: Path
+) -> list:
+    """A stand-in tile runner: each tile's crop read, its core points labelled unchanged, the
+    result saved to a file and read back when merged (as the job's runner does)."""
     from app.core.tiling import TileResult
+    from app.core.tiling.pair_files import StoredTileResults
     from app.core.tiling.tile import REGION_FIELDS
 
     del threads
+    directory.mkdir(parents=True, exist_ok=True)
     results = []
     for tile_index in range(plan.n_tiles):
         crop = source.crop(plan, tile_index, context)
@@ -78,21 +84,20 @@ def unchanged_tiles(plan: Any, source: Any, context: Any, threads: int, report: 
             core_min=np.zeros((0, 3)),
             core_max=np.zeros((0, 3)),
         )
-        results.append(
-            TileResult(
-                tile_index=tile_index,
-                reference_index=crop.reference_index[cores[0]],
-                scan_index=crop.scan_index[cores[1]],
-                reference_label=np.zeros(int(cores[0].sum()), np.int8),
-                scan_label=np.zeros(int(cores[1].sum()), np.int8),
-                reference_distance=np.zeros(int(cores[0].sum()), np.float32),
-                scan_distance=np.zeros(int(cores[1].sum()), np.float32),
-                regions=regions,
-                figures={"localised": True, "crop_points": len(crop.reference_index)},
-            )
-        )
+        results.append(directory / f"tile-{tile_index:05d}.npz")
+        TileResult(
+            tile_index=tile_index,
+            reference_index=crop.reference_index[cores[0]],
+            scan_index=crop.scan_index[cores[1]],
+            reference_label=np.zeros(int(cores[0].sum()), np.int8),
+            scan_label=np.zeros(int(cores[1].sum()), np.int8),
+            reference_distance=np.zeros(int(cores[0].sum()), np.float32),
+            scan_distance=np.zeros(int(cores[1].sum()), np.float32),
+            regions=regions,
+            figures={"localised": True, "crop_points": len(crop.reference_index)},
+        ).save(results[-1])
         report("localise", 0.35 + 0.5 * (tile_index + 1) / plan.n_tiles)
-    return results
+    return StoredTileResults(results)  # type: ignore[return-value]
 
 
 def _child(
@@ -127,9 +132,9 @@ def _child(
         "progress": stretch,
         "max_crop_points": crop_points,
     }
-    if parent_only:
-        options["run_tiles"] = unchanged_tiles
     with tempfile.TemporaryDirectory(prefix="big100-") as work_dir:
+        if parent_only:
+            options["run_tiles"] = partial(unchanged_tiles, directory=Path(work_dir) / "stand-in")
         stretch("start")
         if variant == "streamed":
             result = compare_streamed(*paths, work_dir=work_dir, **options)
