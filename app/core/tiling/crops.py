@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
 from pathlib import Path
 from typing import IO, Any
@@ -137,6 +138,8 @@ def write_crops_from_chunks(
     plan: TilePlan,
     context: TileContext,
     sides: dict[str, tuple[Chunks, NDArray[np.float64] | None, np.dtype, Any]],
+    *,
+    threads: int = 1,
 ) -> list[int]:
     """:func:`write_tile_crops` of clouds handed out in chunks (a streamed parent's).
 
@@ -150,6 +153,9 @@ def write_crops_from_chunks(
         :data:`Chunks` pass (called once per :data:`MAX_OPEN_TILES` tiles), the origins in
         the context, :func:`record_dtype` of the points and stations, the trajectory's
         ``(returns, bounds)`` or None.
+    threads : int
+        With two or more, the clouds are written concurrently (numpy releases the GIL: a
+        parent alone on the machine uses both cores while no tile runs yet).
 
     Returns
     -------
@@ -158,13 +164,13 @@ def write_crops_from_chunks(
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    crop_sizes = np.zeros(plan.n_tiles, dtype=np.int64)
-    layout: dict[str, Any] = {}
-    for side, (chunks, origins, dtype, rays) in sides.items():
-        layout[side] = {"dtype": dtype.descr, "rays": rays is not None}
+
+    def write(side: str) -> NDArray[np.int64]:
+        chunks, origins, dtype, rays = sides[side]
+        sizes = np.zeros(plan.n_tiles, dtype=np.int64)
         for first in range(0, plan.n_tiles, MAX_OPEN_TILES):
             tiles = range(first, min(plan.n_tiles, first + MAX_OPEN_TILES))
-            crop_sizes[list(tiles)] += _write_side(
+            sizes[first : tiles.stop] = _write_side(
                 directory, plan, tiles, side, chunks, origins, context, dtype
             )
         if rays is not None:
@@ -172,6 +178,15 @@ def write_crops_from_chunks(
                 index = np.fromfile(crop_file(directory, tile_index, side), dtype=dtype)["index"]
                 returns, bounds = _cropped_rays(rays, index)
                 np.savez(_rays_file(directory, tile_index, side), returns=returns, bounds=bounds)
+        return sizes
+
+    # the clouds' passes are independent (their own files): one thread each when given two
+    with ThreadPoolExecutor(max_workers=max(1, min(threads, len(sides)))) as pool:
+        crop_sizes = sum(pool.map(write, list(sides)), np.zeros(plan.n_tiles, dtype=np.int64))
+    layout = {
+        side: {"dtype": dtype.descr, "rays": rays is not None}
+        for side, (_, _, dtype, rays) in sides.items()
+    }
     (directory / META_FILE).write_text(json.dumps(layout))
     return [int(size) for size in crop_sizes]
 

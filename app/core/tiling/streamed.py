@@ -35,6 +35,7 @@ from __future__ import annotations
 import dataclasses
 import shutil
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Unpack
@@ -50,6 +51,7 @@ from app.core.localise import Localisation
 from app.core.localise.changes import _default_min_region_points
 from app.core.localise.station_assignment import best_stations, station_contrasts
 from app.core.pipeline import ComparisonResult, ProgressCallback, run_stages
+from app.core.threads import available_threads
 from app.core.tiling.compare import REGISTRATION_SAMPLE, TileRunner, _origins
 from app.core.tiling.crops import TileCropFiles, record_dtype, write_crops_from_chunks
 from app.core.tiling.merge import join_regions, merged_parameters
@@ -204,6 +206,7 @@ class StreamedLocalisation:
                     ("reference", "scan"), sides, all_origins, strict=True
                 )
             },
+            threads=loaded.threads,
         )
         shutil.rmtree(crops, ignore_errors=True)
         partial.rename(crops)
@@ -376,8 +379,14 @@ def compare_streamed(
     """
     work_dir = Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
-    reference, reference_sub = survey(Path(reference_path), formats[0], subsample_points)
-    scan, scan_sub = survey(Path(scan_path), formats[1], subsample_points)
+    threads = options.get("threads") or available_threads()
+    with ThreadPoolExecutor(max_workers=2 if threads >= 2 else 1) as pool:  # one file each
+        (reference, reference_sub), (scan, scan_sub) = pool.map(
+            lambda number: survey(
+                Path((reference_path, scan_path)[number]), formats[number], subsample_points
+            ),
+            (0, 1),
+        )
     offset = choose_local_origin(np.stack([reference.low, reference.high]))
     clouds = [
         PointCloud((sub - offset).astype(np.float32), None, len(sub))  # type: ignore[call-arg]
