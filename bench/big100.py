@@ -172,8 +172,10 @@ def _child(
 
 
 def _labels_file(variant: str) -> Path:
-    """Where a variant's child leaves its labels for the comparison of the variants."""
-    return Path(tempfile.gettempdir()) / f"big100-{variant}-labels.npz"
+    """Where a variant's child leaves its labels for the comparison of the variants (one
+    file per run of the bench: ``BIG100_RUN``, the main process's id, set for its children)."""
+    run = os.environ.get("BIG100_RUN", str(os.getpid()))
+    return Path(tempfile.gettempdir()) / f"big100-{run}-{variant}-labels.npz"
 
 
 def changed_iou(first: str, second: str) -> dict[str, float]:
@@ -198,7 +200,10 @@ def run_variant(
     command += ["--parent-only"] if parent_only else []
     command += ["--crop-points", str(crop_points)] if crop_points else []
     started = time.perf_counter()
-    with subprocess.Popen(command, stdout=subprocess.PIPE, text=True, cwd=PROJECT_ROOT) as child:
+    environment = {**os.environ, "BIG100_RUN": str(os.getpid())}
+    with subprocess.Popen(
+        command, stdout=subprocess.PIPE, text=True, cwd=PROJECT_ROOT, env=environment
+    ) as child:
         output = child.stdout.read() if child.stdout else ""
         _, status, usage = os.wait4(child.pid, 0)
         child.returncode = os.waitstatus_to_exitcode(status)
@@ -250,6 +255,8 @@ def main() -> None:
             f"{'identical' if first['labels_sha256'] == second['labels_sha256'] else 'differ'}"
         )
         print("changed points:", changed_iou(first["variant"], second["variant"]))
+    for report in reports:
+        _labels_file(report["variant"]).unlink(missing_ok=True)
 
 
 if __name__ == "__main__":
