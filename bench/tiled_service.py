@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import hashlib
 import importlib
 import os
 import signal
@@ -442,9 +443,12 @@ def main(argv: list[str] | None = None) -> int:
     for workers, run in runs.items():
         shown = {key: round(value, 1) for key, value in run["timings"].items() if key in PHASES}
         print(f"- {workers} worker(s): {shown}")
-    print("\nPeak RSS (VmHWM, MB) of the service's processes:\n")
+    print("\nPeak RSS (VmHWM, MB) of the service's processes, and the labels' digest:\n")
     for workers, run in runs.items():
-        print(f"- {workers} worker(s): {run['peak_rss_mb']}")
+        digest = hashlib.sha256()
+        for name in ("reference_label", "scan_label"):  # as bench.big100 digests them
+            digest.update(np.ascontiguousarray(run["labels"][name]).tobytes())
+        print(f"- {workers} worker(s): {run['peak_rss_mb']}, labels {digest.hexdigest()[:16]}")
     if not {1, 2} <= set(runs):
         return 0
     if arguments.job_threads == 1:
