@@ -20,6 +20,7 @@ from app.core.labels import LABEL_CHANGED
 from app.core.pipeline import ComparisonResult
 from app.core.tiling.compare import compare_tiled
 from app.core.tiling.lean import float32_cloud
+from app.core.tiling.pair_files import streamed_outputs, write_details_npz, write_labels_npz
 from app.core.tiling.streamed import compare_streamed
 from app.testing.files import ply_bytes
 
@@ -83,6 +84,19 @@ def test_a_streamed_comparison_equals_the_lean_tiled_one(
     )
     _assert_identical(streamed, tiled)
     assert isinstance(streamed.reference_label, np.memmap), "the labels stay on disk"
+    outputs = streamed_outputs(streamed)
+    assert outputs is not None and streamed_outputs(tiled) is None
+    write_labels_npz(tmp_path / "streamed.npz", outputs, chunk_points=4093)
+    write_details_npz(tmp_path / "details.npz", outputs, chunk_points=4093)
+    tiled.write_labels_npz(tmp_path / "tiled.npz")
+    with np.load(tmp_path / "streamed.npz") as ours, np.load(tmp_path / "tiled.npz") as theirs:
+        assert sorted(ours.files) == sorted(theirs.files)
+        for name in theirs.files:
+            assert ours[name].dtype == theirs[name].dtype, name
+            assert np.array_equal(ours[name], theirs[name]), name
+    with np.load(tmp_path / "details.npz") as details:
+        for name in ("reference_distance", "scan_distance", "reference_region", "scan_region"):
+            assert np.array_equal(details[name], getattr(tiled, name), equal_nan=True), name
 
 
 def test_a_streamed_comparison_on_subsamples_finds_the_same_changes(tmp_path) -> None:
