@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -17,6 +18,10 @@ from typing import TYPE_CHECKING, Any
 
 from app.cli.exit_status import EXIT_BAD_INPUT
 from app.core.errors import InputError
+
+SETTINGS_PREFIX = "SCANDIFF_"
+"""What the service settings' environment variables start with (``app.config.Settings``:
+matched whatever their case)."""
 
 if TYPE_CHECKING:  # the numeric stack is imported when the command runs, not to build the parser
     from app.core.cloud import PointCloud
@@ -238,6 +243,12 @@ def _memory_size(text: str) -> int | None:
 
 def _default_memory_budget() -> int | None:
     """The service's per-worker budget setting (its environment variable or default)."""
+    if not any(name.upper().startswith(SETTINGS_PREFIX) for name in os.environ):
+        # no setting given: the default, without pydantic's 0.15 s import (Settings() reads
+        # nothing else, and would reject none of its defaults)
+        from app.kit.memory_budget import DEFAULT_MEMORY_BUDGET_BYTES
+
+        return DEFAULT_MEMORY_BUDGET_BYTES
     from app.config import Settings
 
     return Settings().worker_memory_budget_bytes
