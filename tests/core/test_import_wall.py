@@ -85,6 +85,30 @@ def test_reading_a_result_and_its_labels_loads_no_localiser():
     assert result.stdout.strip() == ""
 
 
+LABEL_NAMES = {"LABEL_CHANGED", "LABEL_UNCHANGED", "LABEL_UNOBSERVED"}
+REPOSITORY = CORE.parents[1]
+
+
+def test_the_labels_are_defined_and_imported_in_one_place():
+    """Every module takes the labels from ``app.core.labels``: none defines them again and no
+    package re-exports them (``app.core.localise`` did, for the tiler alone)."""
+    offenders = []
+    for folder in ("app", "tests", "bench"):
+        for path in sorted((REPOSITORY / folder).rglob("*.py")):
+            tree = ast.parse(path.read_text(), filename=str(path))
+            where = path.relative_to(REPOSITORY)
+            for node in ast.walk(tree):
+                if isinstance(node, ast.ImportFrom) and node.module != "app.core.labels":
+                    taken = sorted(LABEL_NAMES & {alias.name for alias in node.names})
+                    if taken:
+                        offenders.append(f"{where} imports {taken} from {node.module}")
+                elif isinstance(node, ast.Assign) and where != Path("app/core/labels.py"):
+                    for target in node.targets:
+                        if isinstance(target, ast.Name) and target.id in LABEL_NAMES:
+                            offenders.append(f"{where} defines {target.id}")
+    assert offenders == []
+
+
 LOCALISE_LAYERS = (
     "settings",
     "station_assignment",
