@@ -135,7 +135,9 @@ def store_results(
         row.n_regions = len(result.regions)
         warnings = [warning.to_json_dict() for warning in result.quality_warnings]
         history_warning = region_count_warning(session, row, len(result.regions))
-        row.warnings = json_safe(warnings + ([history_warning] if history_warning else []))
+        if history_warning is not None:
+            warnings.append(history_warning.to_json_dict())
+        row.warnings = json_safe(warnings)
         row.explanation = json_safe(result.explanation.to_json_dict())
         row.sensor_origins = json_safe(result.sensor_origins_json())
         row.uncertain_regions = json_safe(
