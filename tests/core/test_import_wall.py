@@ -146,3 +146,12 @@ def test_the_localisation_package_imports_one_way():
                 if imported not in LOCALISE_LAYERS[:layer]:
                     offenders.append(f"{name} imports {module}")
     assert offenders == []
+
+
+def test_the_docs_list_the_localisation_modules_in_their_import_order():
+    """``docs/localisation.md``'s module table says each module imports only those listed
+    after it: it lists every module of the package, highest first."""
+    text = (REPOSITORY / "docs" / "localisation.md").read_text()
+    table = text.split("| module | what it holds |", 1)[1].split("\n\n", 1)[0]
+    listed = [line.split("`")[1] for line in table.splitlines() if line.startswith("| `")]
+    assert listed == list(reversed(LOCALISE_LAYERS))
