@@ -88,7 +88,7 @@ def test_a_memory_budget_that_is_not_a_size_is_exit_2(pair_files: tuple[Path, Pa
 
 
 def test_a_pair_over_the_budget_is_streamed_and_equals_the_lean_tiled_comparison(
-    tmp_path: Path,
+    tmp_path: Path, pair_files: tuple[Path, Path, int]
 ) -> None:
     """Coordinates-only files over the budget: the command reads them in chunks
     (app.core.tiling.streamed); within the subsample its labels are the lean tiled ones."""
@@ -96,7 +96,7 @@ def test_a_pair_over_the_budget_is_streamed_and_equals_the_lean_tiled_comparison
     from app.core.tiling.compare import compare_tiled
     from app.core.tiling.lean import read_pair
 
-    reference, scan, total = _pair(tmp_path)
+    reference, scan, total = pair_files
     budget = BASELINE_BYTES + total * LEAN_RESIDENT_BYTES_PER_POINT
     budget += int(0.97 * total) * LOCALISATION_BYTES_PER_POINT
     labels = tmp_path / "labels.npz"
