@@ -180,12 +180,6 @@ def test_a_strip_of_a_rack_face_whose_far_face_only_the_other_path_saw_is_not_se
     assert not np.any(localisation.reference_label[strip(reference, 2.0)] == LABEL_CHANGED)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known limit (issue 29): the hidden-surface rule that fixed this lost the paper's "
-    "corridor box (tests/core/test_localise.py) and was withdrawn; locally both are one face "
-    "with the other epoch's surface 0.4-0.5 m behind it",
-)
 def test_an_object_each_epoch_saw_from_its_own_side_only_is_not_changed():
     # a 40 cm deep cabinet stands in both epochs; the reference's path saw only its -y face,
     # the scan's only its +y face.  Each face has the other epoch's far face 40 cm behind it,

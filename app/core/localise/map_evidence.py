@@ -47,6 +47,7 @@ from numpy.typing import NDArray
 
 from app.core.localise.distance import Side
 from app.core.localise.interface import VisibilityContext, VisibilityOutcome
+from app.core.localise.map_faces import far_faces
 from app.core.localise.map_parts import (
     PartFigures,
     near_candidates,
@@ -227,14 +228,28 @@ def map_test(
         counted = other_unmatched & ~gap
         return _rechecked_share(candidates, chosen, labels, share, other=other, counted=counted)
 
-    coverage, confidence, counts = _verdict(figures, see_through)
+    def far_face(check: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        far, _ = far_faces(
+            candidates,
+            labels,
+            check,
+            own=own,
+            other=other,
+            counted=other_unmatched,
+            threshold=threshold,
+            change_threshold=change_threshold,
+            cluster_factor=cluster_factor,
+        )
+        return far
+
+    coverage, confidence, counts = _verdict(figures, see_through, far_face)
     status[coverage[labels]] = STATUS_UNOBSERVED
     evidence[coverage[labels]] = EVIDENCE_NO_COVERAGE
     return MapEvidence(status, evidence, confidence[labels].astype(np.float32), counts)
 
 
 def _verdict(
-    figures: PartFigures, see_through: Any
+    figures: PartFigures, see_through: Any, far_face: Any
 ) -> tuple[NDArray[np.bool_], NDArray[np.float64], dict[str, Any]]:
     """Per part, whether it is a coverage difference and the confidence in its verdict.
 
@@ -258,10 +273,12 @@ def _verdict(
         continuing & (part.behind_share >= SEE_THROUGH_SHARE), part.behind_share
     )
     coverage = continuing & (see_through_share < SEE_THROUGH_SHARE)
-    # an unseen side is overridden by the other epoch's surface behind it (a wall it hid);
-    # requiring that surface to continue around it in this epoch (s10/maps) lost the paper's
-    # corridor, whose whole wall moved (tests/core/test_localise.py), and was withdrawn
-    coverage |= ~part.near | (unseen_side & (part.behind_share < SEE_THROUGH_SHARE))
+    # an unseen side is overridden by the other epoch's surface behind it (a wall it hid),
+    # unless that surface is the far face of the same object, seen from its far side only
+    # (map_faces: the object's top and sides join the two faces in the other epoch)
+    behind = unseen_side & (part.behind_share >= SEE_THROUGH_SHARE)
+    far = far_face(behind)
+    coverage |= ~part.near | (unseen_side & (~behind | far))
     side_confidence = np.where(unseen_side, 1.0 - part.surround_share, 0.0)
     confidence = np.where(
         coverage,
@@ -275,6 +292,7 @@ def _verdict(
         "map_far_clusters": int((~part.near).sum()),
         **part.counts,
         "map_unseen_side_clusters": int((unseen_side & coverage).sum()),
+        "map_far_face_parts": int(far.sum()),
         "map_coplanar_share_median": float(np.median(part.coplanar_share)),
     }
     return coverage, confidence, counts
