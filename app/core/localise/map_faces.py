@@ -241,9 +241,7 @@ def _joins(
     halfway = _on_plane(
         foot + 0.5 * depth[:, None] * along, plane_normal, np.maximum(radius, 0.25 * depth), other
     )
-    past_far_face = _on_plane(
-        foot + (depth + margin)[:, None] * along, plane_normal, radius, other
-    )
+    past_far_face = _on_plane(foot + (depth + margin)[:, None] * along, plane_normal, radius, other)
     behind_edge = _on_plane(foot - margin[:, None] * along, plane_normal, radius, other)
     return meets, meets & halfway & ~past_far_face & ~behind_edge
 
