@@ -22,7 +22,11 @@ judged by the geometry the two epochs share, one cluster of candidates at a time
   at the part instead of carrying on past it, and where the other epoch has no surface that
   this one lacks: the side of an object standing in both epochs that only this epoch's path
   faced.  Where the other epoch saw the place of a removed or added object, its floor, desk
-  top or wall carries on under it, or is surface this epoch lacks (the object hid it).
+  top or wall carries on under it, or is surface this epoch lacks (the object hid it).  The
+  other epoch's surface behind such a side overrides it (a wall a removed board hid), unless it
+  is the far face of the same object, seen from the far side only
+  (:func:`~app.core.localise.map_faces.far_faces`: the object's top and sides join the two
+  faces and end at both).
 
 Candidates are judged a surface part at a time (:func:`surface_parts`: connected candidates
 whose normals agree), so that a change joined to a coverage difference (a removed fence to the
@@ -77,6 +81,11 @@ SURROUND_SHARE = 0.1
 has the other epoch's surface carrying on past them (or surface this epoch lacks)."""
 MIN_ADJOINING = 5
 """Fewer adjoining border points than this say nothing about a part."""
+NARROW_SURROUND_SHARE = 0.35
+"""An upright part whose adjoining border points have the other epoch's surface carrying on
+past them in less than this share is a side of an object when the surface behind it is that
+object's far face (:func:`~app.core.localise.map_faces.far_faces`): a narrow object's far face
+lies within the surround probes, and the floor beyond it carries on past part of its border."""
 SEE_THROUGH_SHARE = 0.6
 """A coverage-difference cluster is still a change when this share of its points has the
 other epoch's surface, missing from this epoch, on its normal line within
@@ -275,10 +284,16 @@ def _verdict(
     coverage = continuing & (see_through_share < SEE_THROUGH_SHARE)
     # an unseen side is overridden by the other epoch's surface behind it (a wall it hid),
     # unless that surface is the far face of the same object, seen from its far side only
-    # (map_faces: the object's top and sides join the two faces in the other epoch)
-    behind = unseen_side & (part.behind_share >= SEE_THROUGH_SHARE)
-    far = far_face(behind)
-    coverage |= ~part.near | (unseen_side & (~behind | far))
+    # (map_faces: the object's top and sides join the two faces in the other epoch).  With a
+    # far face, a narrow object's side is one too: the other epoch's floor beyond its far face
+    # lies within the surround probes, carrying on past part of its border
+    narrow_side = (
+        part.upright
+        & (part.adjoining >= MIN_ADJOINING)
+        & (part.surround_share < NARROW_SURROUND_SHARE)
+    )
+    far = far_face(narrow_side & (part.behind_share >= SEE_THROUGH_SHARE))
+    coverage |= ~part.near | (unseen_side & (part.behind_share < SEE_THROUGH_SHARE)) | far
     side_confidence = np.where(unseen_side, 1.0 - part.surround_share, 0.0)
     confidence = np.where(
         coverage,
