@@ -237,8 +237,8 @@ def map_test(
         counted = other_unmatched & ~gap
         return _rechecked_share(candidates, chosen, labels, share, other=other, counted=counted)
 
-    def far_face(check: NDArray[np.bool_]) -> NDArray[np.bool_]:
-        far, _ = far_faces(
+    def far_face(check: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+        return far_faces(
             candidates,
             labels,
             check,
@@ -249,7 +249,6 @@ def map_test(
             change_threshold=change_threshold,
             cluster_factor=cluster_factor,
         )
-        return far
 
     coverage, confidence, counts = _verdict(figures, see_through, far_face)
     status[coverage[labels]] = STATUS_UNOBSERVED
@@ -265,7 +264,9 @@ def _verdict(
     ``see_through(recheck, behind_share)`` recomputes the see-through share of the parts
     marked in ``recheck`` without the other epoch's surface in narrow gaps of this one's
     (:func:`_narrow_gaps`).  It only lowers a share, so only parts at or over
-    :data:`SEE_THROUGH_SHARE` are rechecked.
+    :data:`SEE_THROUGH_SHARE` are rechecked.  ``far_face(check)`` gives, per part, whether the
+    surface behind it is its object's far face and the joined share
+    (:func:`~app.core.localise.map_faces.far_faces`), for the parts marked in ``check``.
     """
     part = figures
     # the other epoch's surfaces next to the part end at it: a side of an object that stands
@@ -292,9 +293,10 @@ def _verdict(
         & (part.adjoining >= MIN_ADJOINING)
         & (part.surround_share < NARROW_SURROUND_SHARE)
     )
-    far = far_face(narrow_side & (part.behind_share >= SEE_THROUGH_SHARE))
+    far, joined_share = far_face(narrow_side & (part.behind_share >= SEE_THROUGH_SHARE))
     coverage |= ~part.near | (unseen_side & (part.behind_share < SEE_THROUGH_SHARE)) | far
     side_confidence = np.where(unseen_side, 1.0 - part.surround_share, 0.0)
+    side_confidence = np.where(far, np.maximum(side_confidence, joined_share), side_confidence)
     confidence = np.where(
         coverage,
         np.where(part.near, np.maximum(part.continuation_share, side_confidence), 1.0),
