@@ -128,6 +128,7 @@ LOCALISE_LAYERS = (
     "origin_free",
     "map_planes",
     "map_parts",
+    "map_faces",
     "map_evidence",
     "coverage",
     "visibility",
