@@ -188,30 +188,6 @@ def _supports(unit: NDArray[np.float64], height: NDArray[np.float64]) -> NDArray
     return level & (height * np.sign(unit[:, 2]) > 0.0)
 
 
-def _meets(
-    points: NDArray[np.float64],
-    own_normal: NDArray[np.floating],
-    neighbours: NDArray[np.float64],
-    on_plane: NDArray[np.bool_],
-    tolerance: float,
-) -> NDArray[np.bool_]:
-    """Whether the adjoining surface reaches each border point's own plane (shapes (b, 3),
-    (b, 3), (b, k, 3), (b, k) -> (b,)): some of its points (``on_plane``) lie on that plane,
-    within ``tolerance`` (growing by :data:`~app.core.localise.gaps.PLANE_SLOPE` a metre).
-
-    The sides of an object meet its top, and its top meets its sides: a face of one object
-    that the other epoch saw ends on this part's plane.  A surface that stops short of it (the
-    front panel of a lower desk beside a removed table, 7 cm under the table's top in the real
-    classroom) belongs to another object and says nothing about this part.
-    """
-    unit = own_normal.astype(np.float64)
-    unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-12)[:, None]
-    offset = neighbours - points[:, None, :]
-    distance = np.linalg.norm(offset, axis=2)
-    across = np.abs(np.einsum("ckd,cd->ck", offset, unit))
-    return (on_plane & (across <= tolerance + PLANE_SLOPE * distance)).any(axis=1)
-
-
 def _surrounded(
     points: NDArray[np.float64],
     own_normal: NDArray[np.floating],
@@ -300,9 +276,6 @@ def _surrounded(
         # a surface that this epoch lacks next to the point: the object hid it here
         surrounded[chunk][other_unmatched[nearest]] = SECTORS
         adjoining[chunk] &= ~(support & (surrounded[chunk] < SURROUND_SECTORS))
-        adjoining[chunk] &= _meets(
-            query, own_normal[chunk], other.points[index], on_plane, tolerance
-        )
     return adjoining, surrounded
 
 
