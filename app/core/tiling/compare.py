@@ -35,6 +35,7 @@ from app.core.comparison.load import LoadedPair, PairOptions, load_pair
 from app.core.comparison.origins import CloudOrigins, SensorOrigins
 from app.core.localise import Localisation
 from app.core.localise.changes import _default_min_region_points
+from app.core.localise.settings import DEFAULT_PARAMETERS
 from app.core.localise.station_assignment import assign_stations
 from app.core.pipeline import ComparisonResult, ProgressCallback, run_stages
 from app.core.tiling.merge import merge_tiles
@@ -47,6 +48,7 @@ from app.core.tiling.plan import (
     crop_point_limit,
     plan_tiles,
 )
+from app.core.tiling.rays import ray_cell_sizes
 from app.core.tiling.tile import TileContext, TileResult, TileSource, compute_tile
 
 __all__ = [
@@ -240,24 +242,41 @@ def _tile_inputs(
     min_region_points = localisation_params.get("min_region_points") or (
         _default_min_region_points(len(loaded.reference_points), len(alignment.aligned_scan))
     )
+    reference_origins, scan_origins = _origins(origins.reference), _origins(origins.scan)
+    source = TileSource(
+        reference_points=loaded.reference_points,
+        scan_points=alignment.aligned_scan,
+        reference_station=_stations(
+            loaded.reference_points, reference_origins, origins.reference.station
+        ),
+        scan_station=_stations(alignment.aligned_scan, scan_origins, origins.scan.station),
+        reference_rays=origins.reference.trajectory_rays,
+        scan_rays=origins.scan.trajectory_rays,
+    )
+    angle_factor = float(
+        localisation_params.get(
+            "visibility_angle_factor", DEFAULT_PARAMETERS["visibility_angle_factor"]
+        )
+    )
     context = TileContext(
-        reference_origins=_origins(origins.reference),
-        scan_origins=_origins(origins.scan),
+        reference_origins=reference_origins,
+        scan_origins=scan_origins,
         reference_stations_unknown=origins.reference.stations_unknown,
         scan_stations_unknown=origins.scan.stations_unknown,
         min_region_points=int(min_region_points),
         localisation_params=localisation_params,
         ray_reach=ray_reach,
-    )
-    source = TileSource(
-        reference_points=loaded.reference_points,
-        scan_points=alignment.aligned_scan,
-        reference_station=_stations(
-            loaded.reference_points, context.reference_origins, origins.reference.station
+        # a trajectory's pseudo-stations group their rays otherwise: the top view only
+        reference_ray_cells=None
+        if source.reference_rays is not None
+        else ray_cell_sizes(
+            source.reference_station, len(source.reference_points), reference_origins, angle_factor
         ),
-        scan_station=_stations(alignment.aligned_scan, context.scan_origins, origins.scan.station),
-        reference_rays=origins.reference.trajectory_rays,
-        scan_rays=origins.scan.trajectory_rays,
+        scan_ray_cells=None
+        if source.scan_rays is not None
+        else ray_cell_sizes(
+            source.scan_station, len(source.scan_points), scan_origins, angle_factor
+        ),
     )
     return context, source
 
