@@ -160,8 +160,12 @@ def test_a_crop_round_a_station_keeps_the_returns_the_ray_test_reads_not_the_who
     clouds = [pair.reference, pair.scan]
     low, high = origins[1][0, :2] - 1.0, origins[1][0, :2] + 1.0  # round the scan's station
     reach, angle_factor = 8.0, 2.5
-    cells = [ray_cell_sizes(None, len(c), o, angle_factor) for c, o in zip(clouds, origins)]
-    masks = crop_masks(list(zip(clouds, [None, None], origins)), cells, low, high, reach)
+    cells = [
+        ray_cell_sizes(None, len(c), o, angle_factor) for c, o in zip(clouds, origins, strict=True)
+    ]
+    masks = crop_masks(
+        list(zip(clouds, [None, None], origins, strict=True)), cells, low, high, reach
+    )
     top_view = crop_mask(pair.scan, None, origins[1], low, high, reach)
     # the ray test's view of each reference point in the box: the scan's returns within
     # angle_factor angular steps (the median distance to the second neighbour) of its direction
