@@ -15,6 +15,7 @@ from pydantic import AliasChoices, Field, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from app.kit.data_layout import DataLayout
+from app.kit.memory_budget import DEFAULT_MEMORY_BUDGET_BYTES
 
 GIB = 1024**3
 DISABLED_WORDS = frozenset({"none", "null", "off", "unlimited"})
@@ -53,10 +54,6 @@ DEPRECATED_PRIVATE_ADDRESS_SETTINGS = (
 )
 """Former environment names of ``allow_private_addresses`` (one for webhooks, one for schedule
 URL sources), still accepted."""
-
-
-DEFAULT_MEMORY_BUDGET_BYTES = 2_684_354_560
-"""2.5 GiB: issue 30's peak RSS target per worker process."""
 
 
 class Settings(BaseSettings):

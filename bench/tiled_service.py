@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import hashlib
 import importlib
 import os
 import signal
@@ -34,6 +35,7 @@ import numpy as np
 
 from app.core.datasets import map_pair
 from app.core.formats import read_point_cloud, write_point_cloud
+from app.core.formats.streamed import declared_rows
 from app.core.tiling import TileBudgetError, compute_tile
 from app.core.tiling.compare import compare_tiled
 from app.jobs.consumer import first_use_libraries
@@ -56,6 +58,7 @@ PHASES = (
     "write_outputs",
     "job_total",
     "compute_cpu",
+    "streamed_seconds",
 )
 """The job's timings printed for each run (app/jobs/execution.py, app/jobs/tiles.py)."""
 
@@ -116,14 +119,20 @@ def run_service(
     crop_points: int,
     files: tuple[Path, Path],
     job_threads: int | None = None,
+    memory_budget: int | None = None,
 ) -> dict:
-    """Seconds from the scan's POST to ``succeeded``, its labels and who computed the tiles."""
+    """Seconds from the scan's POST to ``succeeded``, its labels, who computed the tiles and
+    the peak RSS of every process of the service (``crop_points`` 0: not forced, the tiles
+    follow ``memory_budget``)."""
     data_dir = work / f"service-{workers}-workers"
     data_dir.mkdir()
-    env = {"SCANDIFF_TILE_CROP_POINTS": str(crop_points)}
+    env = {"SCANDIFF_TILE_CROP_POINTS": str(crop_points)} if crop_points else {}
+    if memory_budget:
+        env["SCANDIFF_WORKER_MEMORY_BUDGET_BYTES"] = str(memory_budget)
     if job_threads:  # default: the CPUs shared by the workers (1 worker: both cores)
         env["SCANDIFF_JOB_THREADS"] = str(job_threads)
-    with Service(data_dir, workers, env) as client:
+    service = Service(data_dir, workers, env)
+    with service as client:
         site = client.post("/api/v1/sites", json={"name": "bench"}).json()
         path = f"/api/v1/sites/{site['id']}/scans"
         reference = client.post(
@@ -147,6 +156,7 @@ def run_service(
             raise RuntimeError(f"job failed: {job['error']}")
         labels = client.get(f"/api/v1/jobs/{job_id}/labels", params={"format": "npz"})
         labels.raise_for_status()
+        peaks = group_peak_rss(service.process.pid)
     labels_path = work / f"labels-{workers}.npz"
     labels_path.write_bytes(labels.content)
     with np.load(labels_path) as data:
@@ -166,7 +176,36 @@ def run_service(
         "changed": job["changed"],
         "n_regions": job["n_regions"],
         "timings": job["timings"],
+        "peak_rss_mb": peaks,
     }
+
+
+def group_peak_rss(group: int) -> dict[str, int]:
+    """Peak RSS (``VmHWM``, MB) of each live process of process group ``group``, by
+    ``pid: command`` (the service's API process and its workers)."""
+    peaks = {}
+    for status in Path("/proc").glob("[0-9]*/status"):
+        with contextlib.suppress(OSError, IndexError, ValueError):
+            stat = (status.parent / "stat").read_text()
+            if int(stat.rsplit(")", 1)[1].split()[2]) != group:
+                continue
+            fields = dict(
+                line.split(":", 1) for line in status.read_text().splitlines() if ":" in line
+            )
+            command = (status.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+            name = f"{status.parent.name}: {' '.join(command.split()[2:5])}"
+            peaks[name] = round(int(fields["VmHWM"].split()[0]) / 1024)
+    return peaks
+
+
+def cli_labels(files: tuple[Path, Path], work: Path, memory_budget: int) -> dict:
+    """``scandiff compare --labels`` of the pair under ``memory_budget``: its labels."""
+    labels = work / "labels-cli.npz"
+    command = [sys.executable, "-m", "app", "compare", str(files[0]), str(files[1])]
+    command += ["--labels", str(labels), "--memory-budget", str(memory_budget), "--json"]
+    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
+    with np.load(labels) as data:
+        return {name: data[name] for name in ("reference_label", "scan_label")}
 
 
 class PhaseClock:
@@ -305,6 +344,19 @@ def main(argv: list[str] | None = None) -> int:
         help="skip the in-process comparison (its phases and the labels check): the share "
         "is used as given and the 2 workers' labels are checked against the 1 worker's",
     )
+    parser.add_argument(
+        "--memory-budget",
+        type=int,
+        default=None,
+        help="SCANDIFF_WORKER_MEMORY_BUDGET_BYTES of the service (bytes); with --crop-share 0 "
+        "the tiles follow it, and --check-cli compares the labels with the command's",
+    )
+    parser.add_argument("--workers", default="1,2", help="the runs' worker counts")
+    parser.add_argument(
+        "--check-cli",
+        action="store_true",
+        help="compare the runs' labels with `scandiff compare --memory-budget` of the files",
+    )
     arguments = parser.parse_args(argv)
 
     with tempfile.TemporaryDirectory(prefix="tiled-service-") as directory:
@@ -313,9 +365,13 @@ def main(argv: list[str] | None = None) -> int:
         for library in first_use_libraries():  # loaded before the jobs, as a worker does
             importlib.import_module(library)
         clock = PhaseClock()
-        clouds = [read_point_cloud(path) for path in files]
+        if arguments.no_check:  # counted from the headers: a 100M pair is never read here
+            clouds = []
+            total = sum(declared_rows(path) or 0 for path in files)
+        else:
+            clouds = [read_point_cloud(path) for path in files]
+            total = sum(len(cloud) for cloud in clouds)
         clock.lap("read both files")
-        total = sum(len(cloud) for cloud in clouds)
         share = arguments.crop_share
         expected, in_process = None, float("nan")
         if arguments.no_check:  # the share as given; the runs' labels checked against each other
@@ -343,10 +399,19 @@ def main(argv: list[str] | None = None) -> int:
         if arguments.phases_only:
             return 0
         runs = {
-            workers: run_service(work, workers, crop_points, files, arguments.job_threads)
-            for workers in (1, 2)
+            workers: run_service(
+                work, workers, crop_points, files, arguments.job_threads, arguments.memory_budget
+            )
+            for workers in map(int, arguments.workers.split(","))
         }
+        if arguments.check_cli:
+            cli = cli_labels(files, work, arguments.memory_budget)
+            for workers, run in runs.items():
+                same = all(np.array_equal(run["labels"][name], cli[name]) for name in cli)
+                verdict = "identical to" if same else "DIFFER from"
+                print(f"{workers} worker(s): labels {verdict} the CLI's")
 
+    first = next(iter(runs.values()))
     pair_name = (
         f"{arguments.pair_dir}"
         if arguments.pair_dir is not None
@@ -355,7 +420,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"## Tiled job through the service ({time.strftime('%Y-%m-%d %H:%M')})\n")
     print(
         f"Pair: {pair_name}, {total:,} points in both clouds; tiles of at "
-        f"most {crop_points:,} points ({runs[1]['tiles']['total']} tiles); "
+        f"most {crop_points:,} points ({first['tiles']['total']} tiles); "
         f"in-process tiled comparison {in_process:.1f} s; job threads "
         f"{arguments.job_threads or 'CPUs / workers'}.\n"
     )
@@ -366,7 +431,7 @@ def main(argv: list[str] | None = None) -> int:
         same = all(
             np.array_equal(
                 run["labels"][name],
-                runs[1]["labels"][name] if expected is None else getattr(expected, name),
+                first["labels"][name] if expected is None else getattr(expected, name),
             )
             for name in ("reference_label", "scan_label")
         )
@@ -378,6 +443,14 @@ def main(argv: list[str] | None = None) -> int:
     for workers, run in runs.items():
         shown = {key: round(value, 1) for key, value in run["timings"].items() if key in PHASES}
         print(f"- {workers} worker(s): {shown}")
+    print("\nPeak RSS (VmHWM, MB) of the service's processes, and the labels' digest:\n")
+    for workers, run in runs.items():
+        digest = hashlib.sha256()
+        for name in ("reference_label", "scan_label"):  # as bench.big100 digests them
+            digest.update(np.ascontiguousarray(run["labels"][name]).tobytes())
+        print(f"- {workers} worker(s): {run['peak_rss_mb']}, labels {digest.hexdigest()[:16]}")
+    if not {1, 2} <= set(runs):
+        return 0
     if arguments.job_threads == 1:
         figure = cpu_speedup(runs[1]["timings"], runs[2]["timings"])
         print(f"\nFrom CPU seconds (bench.tiled_service.cpu_speedup): {figure:.2f}x")

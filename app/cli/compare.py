@@ -7,14 +7,21 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
+import tempfile
 import time
 from collections.abc import Sequence
+from contextlib import ExitStack
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from app.cli.exit_status import EXIT_BAD_INPUT
 from app.core.errors import InputError
+
+SETTINGS_PREFIX = "SCANDIFF_"
+"""What the service settings' environment variables start with (``app.config.Settings``:
+matched whatever their case)."""
 
 if TYPE_CHECKING:  # the numeric stack is imported when the command runs, not to build the parser
     from app.core.cloud import PointCloud
@@ -236,6 +243,12 @@ def _memory_size(text: str) -> int | None:
 
 def _default_memory_budget() -> int | None:
     """The service's per-worker budget setting (its environment variable or default)."""
+    if not any(name.upper().startswith(SETTINGS_PREFIX) for name in os.environ):
+        # no setting given: the default, without pydantic's 0.15 s import (Settings() reads
+        # nothing else, and would reject none of its defaults)
+        from app.kit.memory_budget import DEFAULT_MEMORY_BUDGET_BYTES
+
+        return DEFAULT_MEMORY_BUDGET_BYTES
     from app.config import Settings
 
     return Settings().worker_memory_budget_bytes
@@ -465,6 +478,7 @@ def run(args: argparse.Namespace) -> int:
     from app.kit.allocator import release_freed_memory_promptly
 
     release_freed_memory_promptly()
+    cleanup = ExitStack()  # a streamed comparison's work files, removed when it is reported
     try:
         for path in (args.reference, args.scan):
             if not path.is_file():
@@ -493,6 +507,12 @@ def run(args: argparse.Namespace) -> int:
             else args.memory_budget
         )
         started = time.perf_counter()
+        if _streamed(args, budget):  # the files read in chunks: the pair is never held whole
+            work_dir = Path(cleanup.enter_context(tempfile.TemporaryDirectory(prefix="scandiff-")))
+            result = _compare_streamed(args, budget, params, work_dir)  # type: ignore[arg-type]
+            _print_warnings(result)
+            _report(args, result)
+            return 0
         reference, scan, frame_offset = _read_clouds(args, budget)
         load_seconds = time.perf_counter() - started
         result = compare_within_budget(
@@ -520,7 +540,15 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         print(f"scandiff: error: {exc.strerror or exc}: {exc.filename or ''}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    finally:
+        cleanup.close()
     _print_warnings(result)
+    _report(args, result)
+    return 0
+
+
+def _report(args: argparse.Namespace, result: ComparisonResult) -> None:
+    """The result on stdout: JSON or the summary."""
     if args.json:
         document = result.to_json_dict()
         document["quality_warnings"] = cli_warnings(result.quality_warnings)
@@ -528,4 +556,52 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.write("\n")
     else:
         _print_summary(result, args.reference, args.scan)
-    return 0
+
+
+def _streamed(args: argparse.Namespace, budget: int | None) -> bool:
+    """Whether the pair is compared streamed (:mod:`app.core.tiling.streamed`): it will be
+    tiled under ``budget``, both files carry coordinates only, and nothing needs the clouds
+    whole (no trajectory, bag parameters or export)."""
+    from app.core.formats.streamed import declared_rows
+    from app.core.tiling.pair_files import coordinates_only
+    from app.core.tiling.plan import LEAN_RESIDENT_BYTES_PER_POINT, crop_point_limit
+
+    if budget is None or args.export is not None or args.bag_param or args.scan_bag_param:
+        return False
+    if args.trajectory is not None or args.scan_trajectory is not None:
+        return False
+    if not all(coordinates_only(path) for path in (args.reference, args.scan)):
+        return False
+    rows = [declared_rows(path) for path in (args.reference, args.scan)]
+    if None in rows:
+        return False
+    total = sum(rows)  # type: ignore[arg-type]
+    return crop_point_limit(budget, total, LEAN_RESIDENT_BYTES_PER_POINT) < total
+
+
+def _compare_streamed(
+    args: argparse.Namespace, budget: int, params: dict[str, Any], work_dir: Path
+) -> ComparisonResult:
+    """:func:`~app.core.tiling.streamed.compare_streamed` of the command's files; the labels
+    written from its output files."""
+    from app.core.tiling.pair_files import streamed_outputs, write_labels_npz
+    from app.core.tiling.streamed import compare_streamed
+
+    started = time.perf_counter()
+    result = compare_streamed(
+        args.reference,
+        args.scan,
+        budget_bytes=budget,
+        work_dir=work_dir,
+        method=args.method,
+        variant=args.variant,
+        align=not args.no_align,
+        random_state=args.seed,
+        params=params,
+        progress=_StageProgress(),
+    )
+    result.timings["streamed"] = time.perf_counter() - started
+    outputs = streamed_outputs(result)
+    if args.labels is not None and outputs is not None:
+        write_labels_npz(args.labels, outputs)
+    return result

@@ -81,6 +81,8 @@ def compute(
     keeper.report("loading", 0.0)
     started, started_cpu = time.perf_counter(), time.process_time()
     threads = job_threads(settings)  # the result does not depend on it
+    if job_hooks.compare is None and streamed_tiles(job, settings):
+        return streamed_compute(job, settings, keeper, threads)
     reference = read_point_cloud(
         job.reference_path,
         format=job.reference_format,
@@ -140,6 +142,65 @@ def compute(
     if fan_out is not None:
         job_timings.update(fan_out.timings.seconds)
     return label_upload_origins(result, given_at_upload), job_timings
+
+
+def streamed_tiles(job: ClaimedJob, settings: Settings) -> bool:
+    """Whether a job is compared streamed (:mod:`app.core.tiling.streamed`): tiled, and both
+    files carry coordinates only (no origin given at upload, no trajectory or bag beside them).
+    """
+    from app.core.formats.streamed import declared_rows  # the worker's imports, not the API's
+    from app.core.tiling.pair_files import coordinates_only
+    from app.kit.scan_files import bag_options_path, trajectory_path
+
+    paths = [job.reference_path, job.scan_path]
+    if None in paths or job.storage_problem is not None:
+        return False
+    if job.reference_sensor_origin is not None or job.scan_sensor_origin is not None:
+        return False
+    formats = [job.reference_format, job.scan_format]
+    for path, format in zip(paths, formats, strict=True):
+        if trajectory_path(path).exists() or bag_options_path(path).exists():
+            return False
+        if not coordinates_only(path, format):
+            return False
+    rows = [declared_rows(path, format) for path, format in zip(paths, formats, strict=True)]
+    return None not in rows and tiles_needed(settings, *rows)  # type: ignore[arg-type]
+
+
+def streamed_compute(
+    job: ClaimedJob, settings: Settings, keeper: LeaseKeeper, threads: int
+) -> tuple[Comparison, dict[str, float]]:
+    """:func:`compute` of a job whose files are read in chunks: the tiles' inputs written
+    from them, the tiles on the queue, the labels merged into files (this worker never holds
+    the whole pair)."""
+    from app.core.tiling.streamed import compare_streamed
+
+    started, started_cpu = time.perf_counter(), time.process_time()
+    fan_out = TileFanOut(job, settings, keeper)
+    keeper.report("comparing", PROGRESS_LOADED)
+    result = compare_streamed(
+        job.reference_path,  # type: ignore[arg-type]  # checked by streamed_tiles
+        job.scan_path,  # type: ignore[arg-type]
+        budget_bytes=settings.worker_memory_budget_bytes or DEFAULT_MEMORY_BUDGET_BYTES,
+        work_dir=settings.data_layout.job_tiles_dir(job.id),
+        formats=(job.reference_format, job.scan_format),
+        max_crop_points=settings.tile_crop_points,
+        run_tiles=fan_out,
+        method=job.method,
+        variant=job.variant,
+        params=job.params,
+        progress=keeper.compare_progress,
+        threads=threads,
+        site_calibration=job.site_calibration,
+    )
+    job_timings = {
+        "load_inputs": 0.0,
+        "load_inputs_cpu": 0.0,
+        "compute_cpu": time.process_time() - started_cpu,
+        "streamed_seconds": time.perf_counter() - started,
+        **fan_out.timings.seconds,
+    }
+    return result, job_timings
 
 
 def tiles_needed(settings: Settings, n_reference: int, n_scan: int) -> bool:

@@ -76,6 +76,20 @@ def write_result_files(job: ClaimedJob, settings: Settings, result: Comparison) 
     """Write ``labels.npz`` and ``details.npz`` atomically; the labels path relative to data_dir."""
     directory = settings.data_layout.job_results_dir(job.id)
     labels_path = directory / LABELS_FILENAME
+    if isinstance(result.reference_label, np.memmap):  # a streamed comparison's, on disk
+        from app.core.tiling.pair_files import (
+            streamed_outputs,
+            write_details_npz,
+            write_labels_npz,
+        )
+
+        outputs = streamed_outputs(result)  # type: ignore[arg-type]
+        if outputs is not None:  # copied from its files: never the whole clouds in memory
+            write_atomically(labels_path, lambda path: write_labels_npz(path, outputs))
+            write_atomically(
+                directory / DETAILS_FILENAME, lambda path: write_details_npz(path, outputs)
+            )
+            return settings.data_layout.stored_form(labels_path)
     write_atomically(labels_path, result.write_labels_npz)
     write_atomically(
         directory / DETAILS_FILENAME,

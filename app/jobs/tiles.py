@@ -5,8 +5,9 @@ A job whose pair does not fit one worker's memory budget is localised tile by ti
 queue with :class:`TileFanOut`, the tile runner it passes to ``compare_tiled``:
 
 1. it writes the tiles' inputs under ``results/<job_id>/tiles/`` (the plan, the shared
-   context, the aligned points and station indices as ``.npy`` files that every worker
-   memory-maps) and records one ``job_tile`` row per tile;
+   context, and each tile's own crop of both clouds, cut in one pass over the points:
+   :mod:`app.core.tiling.crops`, so a tile reads its crop and nothing else) and records one
+   ``job_tile`` row per tile;
 2. it sends one ``run_tile(job_id, tile_index)`` message per tile still to do, on the queue
    the workers already consume (:func:`app.jobs.queue.send_tile_messages`);
 3. it takes tiles itself like any other worker until none is left, then waits for the tiles
@@ -34,18 +35,19 @@ import logging
 import shutil
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from datetime import timedelta
 from pathlib import Path
 
-import numpy as np
 from sqlalchemy import ColumnElement, and_, func, or_, select, update
 
 from app.clock import utc_now
 from app.config import Settings
 from app.core.files import write_atomically
 from app.core.tiling import TileContext, TilePlan, TileResult, TileSource, compute_tile
+from app.core.tiling.crops import TileCropFiles, write_tile_crops
+from app.core.tiling.pair_files import StoredTileResults
 from app.db.models import Job, JobStatus, JobTile, TileStatus
 from app.db.session import transaction
 from app.jobs.hooks import job_hooks
@@ -56,17 +58,8 @@ logger = logging.getLogger("scandiff.jobs.tiles")
 
 PLAN_FILE = "plan.npz"
 CONTEXT_FILE = "context.npz"
-SOURCE_ARRAYS = (
-    "reference_points",
-    "scan_points",
-    "reference_station",
-    "scan_station",
-    "reference_rays_returns",
-    "reference_rays_bounds",
-    "scan_rays_returns",
-    "scan_rays_bounds",
-)
-"""The ``.npy`` files of a :class:`~app.core.tiling.TileSource` (absent ones are None)."""
+CROPS_DIR = "crops"
+"""Under a job's tiles directory: each tile's crop of each cloud (:mod:`app.core.tiling.crops`)."""
 WAIT_SECONDS = 0.25
 """How long the parent sleeps between looks at the table while other workers finish tiles."""
 
@@ -74,52 +67,33 @@ ProgressCallback = Callable[[str, float], None]
 
 
 def save_tile_inputs(
-    directory: Path, plan: TilePlan, source: TileSource, context: TileContext
+    directory: Path, plan: TilePlan, source: TileSource | TileCropFiles, context: TileContext
 ) -> None:
-    """Write what every tile reads (atomically, file by file) into ``directory``."""
+    """Write what the tiles read into ``directory``: each tile's own crop files, the plan and
+    the context (the plan last: a tile reads nothing before the parent recorded the tiles)."""
     directory.mkdir(parents=True, exist_ok=True)
-    arrays = {
-        "reference_points": source.reference_points,
-        "scan_points": source.scan_points,
-        "reference_station": source.reference_station,
-        "scan_station": source.scan_station,
-    }
-    for side, rays in (("reference", source.reference_rays), ("scan", source.scan_rays)):
-        returns, bounds = rays if rays is not None else (None, None)
-        arrays[f"{side}_rays_returns"] = returns
-        arrays[f"{side}_rays_bounds"] = bounds
-    for name, array in arrays.items():
-        path = directory / f"{name}.npy"
-        if array is None:
-            path.unlink(missing_ok=True)
-            continue
-        write_atomically(path, lambda temporary, array=array: np.save(temporary, np.asarray(array)))
+    if isinstance(source, TileCropFiles):  # a streamed parent wrote them from the files
+        if source.directory != directory / CROPS_DIR:
+            raise ValueError(f"the tiles' crops must be in {directory / CROPS_DIR}")
+        write_atomically(directory / PLAN_FILE, plan.save)
+        write_atomically(directory / CONTEXT_FILE, context.save)
+        return
+    partial = directory / f"{CROPS_DIR}.partial"  # swapped in whole: a tile of an earlier
+    shutil.rmtree(partial, ignore_errors=True)  # attempt never reads a half-written crop
+    write_tile_crops(partial, plan, source, context)
+    shutil.rmtree(directory / CROPS_DIR, ignore_errors=True)
+    partial.rename(directory / CROPS_DIR)
     write_atomically(directory / PLAN_FILE, plan.save)
     write_atomically(directory / CONTEXT_FILE, context.save)
 
 
-def load_tile_inputs(directory: Path) -> tuple[TilePlan, TileSource, TileContext]:
-    """The plan, the points (memory-mapped, read-only) and the context a parent saved."""
-    arrays = {
-        name: np.load(directory / f"{name}.npy", mmap_mode="r")
-        if (directory / f"{name}.npy").exists()
-        else None
-        for name in SOURCE_ARRAYS
-    }
-
-    def rays(side: str) -> tuple[np.ndarray, np.ndarray] | None:
-        returns, bounds = arrays[f"{side}_rays_returns"], arrays[f"{side}_rays_bounds"]
-        return None if returns is None or bounds is None else (returns, bounds)
-
-    source = TileSource(
-        reference_points=arrays["reference_points"],
-        scan_points=arrays["scan_points"],
-        reference_station=arrays["reference_station"],
-        scan_station=arrays["scan_station"],
-        reference_rays=rays("reference"),
-        scan_rays=rays("scan"),
+def load_tile_inputs(directory: Path) -> tuple[TilePlan, TileCropFiles, TileContext]:
+    """The plan, the tiles' crop files and the context a parent saved."""
+    return (
+        TilePlan.load(directory / PLAN_FILE),
+        TileCropFiles(directory / CROPS_DIR),
+        TileContext.load(directory / CONTEXT_FILE),
     )
-    return TilePlan.load(directory / PLAN_FILE), source, TileContext.load(directory / CONTEXT_FILE)
 
 
 def tile_result_path(directory: Path, tile_index: int) -> Path:
@@ -403,12 +377,13 @@ class TileFanOut:
     def __call__(
         self,
         plan: TilePlan,
-        source: TileSource,
+        source: TileSource | TileCropFiles,
         context: TileContext,
         threads: int,
         report: ProgressCallback,
-    ) -> list[TileResult]:
-        """Every tile's result, in order, computed by whichever worker took it."""
+    ) -> Sequence[TileResult]:
+        """Every tile's result, in order, computed by whichever worker took it (read from its
+        file when the merge asks for it)."""
         directory = self.settings.data_layout.job_tiles_dir(self.job.id)
         with self.timings.phase("tile_inputs_write"):
             save_tile_inputs(directory, plan, source, context)
@@ -423,10 +398,9 @@ class TileFanOut:
                     .where(JobTile.job_id == self.job.id)
                     .order_by(JobTile.tile_index)
                 ).all()
-            results = [
-                TileResult.load(self.settings.data_layout.resolve(str(row.result_path)))
-                for row in rows
-            ]
+            results = StoredTileResults(  # read when merged, one at a time
+                [self.settings.data_layout.resolve(str(row.result_path)) for row in rows]
+            )
         elsewhere = [row.seconds or 0.0 for row in rows if row.lease_owner != self.owner]
         self.timings.seconds["tiles_other_workers"] = float(sum(elsewhere))
         self.timings.seconds["tiles_computed_here"] = float(self.computed_here)

@@ -77,3 +77,36 @@ def test_a_memory_budget_that_is_not_a_size_is_exit_2(tmp_path: Path) -> None:
     done = run_compare(reference, scan, "--memory-budget", "lots")
     assert done.returncode == 2
     assert "not a size in bytes: 'lots'" in done.stderr
+
+
+def test_a_pair_over_the_budget_is_streamed_and_equals_the_lean_tiled_comparison(
+    tmp_path: Path,
+) -> None:
+    """Coordinates-only files over the budget: the command reads them in chunks
+    (app.core.tiling.streamed); within the subsample its labels are the lean tiled ones."""
+    from app.core.formats import read_point_cloud
+    from app.core.tiling.compare import compare_tiled
+    from app.core.tiling.lean import read_pair
+
+    reference, scan, total = _pair(tmp_path)
+    budget = BASELINE_BYTES + total * LEAN_RESIDENT_BYTES_PER_POINT
+    budget += int(0.97 * total) * LOCALISATION_BYTES_PER_POINT
+    labels = tmp_path / "labels.npz"
+    done = run_compare(
+        reference, scan, "--json", "--labels", labels, "--memory-budget", str(budget)
+    )
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    assert "streamed" in report["timings"], "the streamed path ran"
+    paths = {"reference": reference, "scan": scan}
+    clouds = read_pair(reference, scan, lambda side: read_point_cloud(paths[side]), budget)
+    expected = compare_tiled(clouds[0], clouds[1], budget_bytes=budget, frame_offset=clouds[2])
+    tiles = report["localisation"]["tiles"]
+    assert tiles["count"] == expected.localisation["tiles"]["count"] >= 2
+    assert tiles["max_crop_points"] == expected.localisation["tiles"]["max_crop_points"]
+    with np.load(labels) as written:
+        np.testing.assert_array_equal(written["reference_label"], expected.reference_label)
+        np.testing.assert_array_equal(written["scan_label"], expected.scan_label)
+        np.testing.assert_array_equal(written["scan_changed"], expected.scan_label == 1)
+    assert report["changed"] == expected.changed
+    assert report["score"] == expected.score

@@ -403,3 +403,19 @@ def test_the_alignment_memory_recalls_only_its_own_plausible_arrays(tmp_path, pa
     name, key = fresh._fact("grid", (0.2,))
     assert cache.store_facts({name: (key, np.zeros((4, 2)))})
     assert fresh.recall("grid", (0.2,)) is None
+
+
+def test_without_a_cache_the_search_ahead_fits_the_reference_surfaces_too(pair):
+    """They are fitted on the search's thread, beside the alignment, as with a cache: the same
+    surfaces as fitted later by the localiser."""
+    points = np.ascontiguousarray(pair.reference)
+    search = geometry_cache.reference_neighbourhoods(points, {}, cache=None, ahead=True)
+    assert isinstance(search, neighbourhoods.NeighbourhoodSearch)
+    found = search.take()
+    assert found.surfaces is not None
+    expected = with_surfaces(points, nearest_neighbourhoods(points, N_NEIGHBORS)).surfaces
+    for field in dataclasses.fields(expected):
+        np.testing.assert_array_equal(
+            getattr(found.surfaces, field.name), getattr(expected, field.name)
+        )
+    assert geometry_cache.reference_neighbourhoods(points, {}, cache=None, ahead=False) is None

@@ -108,6 +108,7 @@ def test_tiles_run_on_every_worker_and_equal_the_in_process_tiled_result(
         for seconds in seconds_by_owner.values()
     ), (timings, seconds_by_owner)
     assert timings["tile_inputs_write"] > 0 and timings["tile_results_read"] > 0
+    assert "streamed_seconds" in timings, "coordinates-only files: the parent streams them"
 
     clouds = []
     for name, points in (("reference.ply", reference), ("scan.ply", scan)):

@@ -526,7 +526,11 @@ def reference_neighbourhoods(
     if cache is None:
         if not ahead:
             return None
-        return start_neighbourhood_search(reference_points, **localisation_params)
+        # the surfaces too: their fits (~0.6 CPU s a 1M-point cloud) fill the second core
+        # beside the alignment, which holds the GIL in small_gicp's calls
+        return start_neighbourhood_search(
+            reference_points, finish=partial(with_surfaces, reference_points), **localisation_params
+        )
     try:
         n_neighbors = neighbourhood_size(len(reference_points), **localisation_params)
     except InputError:

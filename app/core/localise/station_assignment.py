@@ -15,7 +15,13 @@ from numpy.typing import NDArray
 
 from app.core.localise.settings import CHUNK
 
-__all__ = ["STATION_INDEX_ATTRIBUTE", "assign_stations", "ring_contrast"]
+__all__ = [
+    "STATION_INDEX_ATTRIBUTE",
+    "assign_stations",
+    "best_stations",
+    "ring_contrast",
+    "station_contrasts",
+]
 
 STATION_INDEX_ATTRIBUTE = "station_index"
 """Name of the per-point attribute (int, index into the cloud's origins) of the station that
@@ -97,21 +103,49 @@ def assign_stations(
         (contrast >= :data:`RING_CONTRAST`), else the nearest station.
     """
     origins = np.asarray(origins, dtype=np.float64)
+    contrast_of_bins = station_contrasts(points, origins)
+    best = np.empty(points.shape[0], dtype=dtype)
+    for start in range(0, points.shape[0], ASSIGN_CHUNK):
+        best[start : start + ASSIGN_CHUNK] = best_stations(
+            points[start : start + ASSIGN_CHUNK], origins, contrast_of_bins
+        )
+    return best
+
+
+def station_contrasts(
+    points: NDArray[np.floating], origins: NDArray[np.float64]
+) -> list[NDArray[np.float64]]:
+    """The first pass of :func:`assign_stations`: each station's ring contrast per elevation
+    bin, from ``points`` (shape (n, 3); a cloud streamed in chunks passes an even subsample).
+
+    Returns
+    -------
+    list of ndarray, shape (N_BINS,)
+        One per row of ``origins`` (shape (k, 3)).
+    """
+    origins = np.asarray(origins, dtype=np.float64)
     counts = np.zeros((origins.shape[0], N_BINS))
     for start in range(0, points.shape[0], ASSIGN_CHUNK):
         chunk = points[start : start + ASSIGN_CHUNK]
         for number, origin in enumerate(origins):
             bins = np.clip(_elevation_bins(chunk, origin), 0, N_BINS - 1)
             counts[number] += np.bincount(bins, minlength=N_BINS)
-    contrast_of_bins = [_contrast_of_bins(row) for row in counts]
-    best = np.empty(points.shape[0], dtype=dtype)
-    for start in range(0, points.shape[0], ASSIGN_CHUNK):
-        best[start : start + ASSIGN_CHUNK] = _best_stations(
-            np.asarray(points[start : start + ASSIGN_CHUNK], dtype=np.float64),
-            origins,
-            contrast_of_bins,
-        )
-    return best
+    return [_contrast_of_bins(row) for row in counts]
+
+
+def best_stations(
+    points: NDArray[np.floating],
+    origins: NDArray[np.float64],
+    contrast_of_bins: list[NDArray[np.float64]],
+) -> NDArray[np.int64]:
+    """The second pass of :func:`assign_stations` on one chunk ``points`` (shape (c, 3)),
+    given :func:`station_contrasts`; shape (c,), int64 (a point's station does not depend on
+    the chunk it is in)."""
+    return _best_stations(
+        np.asarray(points, dtype=np.float64),
+        np.asarray(origins, dtype=np.float64),
+        contrast_of_bins,
+    )
 
 
 def _best_stations(

@@ -47,12 +47,18 @@ merged result.
    regions joined across borders and filtered by the whole pair's minimum region size,
    moved surfaces marked on the joined regions, and per-tile figures.
 
-:func:`~app.core.tiling.compare.compare_tiled` runs all of it in one process (the CLI and the
-job runner call it when a pair does not fit the budget); a fan-out runs step 2 as tasks.
+:func:`~app.core.tiling.compare.compare_tiled` runs all of it in one process on clouds in
+memory; a fan-out runs step 2 as tasks, each tile reading only its own crop's files
+(:mod:`~app.core.tiling.crops`).  :func:`~app.core.tiling.streamed.compare_streamed` is the
+same comparison of two files whose parent never holds either whole (chunks, subsamples, crops
+written from the chunks, labels merged into files): what the CLI and the job runner use for
+coordinates-only files over the budget.
 
 Modules: :mod:`~app.core.tiling.plan` (tiles, margins, the memory model),
-:mod:`~app.core.tiling.tile` (crop and localise one tile), :mod:`~app.core.tiling.merge`
-(join tiles), :mod:`~app.core.tiling.compare` (the whole comparison).
+:mod:`~app.core.tiling.tile` (crop and localise one tile), :mod:`~app.core.tiling.crops`
+(each tile's crop in files of its own), :mod:`~app.core.tiling.merge` (join tiles),
+:mod:`~app.core.tiling.compare` (the whole comparison in memory),
+:mod:`~app.core.tiling.streamed` (the whole comparison streamed from the files).
 """
 
 from importlib import import_module

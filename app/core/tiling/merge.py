@@ -12,7 +12,7 @@ regions.  Uncertain regions (no coverage) are joined the same way.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -32,7 +32,13 @@ from app.core.localise.regions import EVIDENCE_NAMES, mark_moved_surfaces
 from app.core.tiling.plan import TilePlan
 from app.core.tiling.tile import TileResult
 
-__all__ = ["MergedLocalisation", "merge_tiles"]
+__all__ = [
+    "MergedLocalisation",
+    "join_regions",
+    "label_counts",
+    "merge_tiles",
+    "merged_parameters",
+]
 
 MergedLocalisation = Localisation
 """The merged result has the shape of a one-process :class:`~app.core.localise.Localisation`
@@ -128,7 +134,42 @@ def _joined_regions(
     results: Sequence[TileResult], labels: list[NDArray[np.int8]], min_region_points: int
 ) -> tuple[list[ChangedRegion], list[ChangedRegion], list[NDArray[np.int32]]]:
     """Regions joined across borders; changed points of dropped ones relabelled unchanged."""
-    tables = [result.regions for result in results]
+
+    def unchange(cloud: int, points: NDArray[np.int64]) -> None:
+        label = labels[cloud]
+        label[points[label[points] == LABEL_CHANGED]] = LABEL_UNCHANGED
+
+    regions, uncertain_regions = join_regions(
+        [result.regions for result in results], min_region_points, unchange
+    )
+    region_of = [np.full(len(label), -1, dtype=np.int32) for label in labels]
+    for number, region in enumerate(regions):
+        region_of[1 if region.kind == "added" else 0][region.point_indices] = number
+    return regions, uncertain_regions, region_of
+
+
+def join_regions(
+    tables: Sequence[dict[str, NDArray]],
+    min_region_points: int,
+    unchange: Callable[[int, NDArray[np.int64]], None],
+) -> tuple[list[ChangedRegion], list[ChangedRegion]]:
+    """The tiles' region tables joined across borders (see the module).
+
+    Parameters
+    ----------
+    tables : sequence of dict
+        Each tile's :attr:`~app.core.tiling.tile.TileResult.regions`.
+    min_region_points : int
+        Joined changed regions smaller than this are dropped.
+    unchange : callable
+        ``unchange(cloud, points)``: called with each dropped changed region's points (0
+        reference, 1 scan; sorted indices): their changed labels become unchanged.
+
+    Returns
+    -------
+    regions, uncertain_regions : list of ChangedRegion
+        In the one-process order (largest first), moved surfaces marked.
+    """
     sizes = [len(table["cloud"]) for table in tables]
     n_nodes = int(sum(sizes))
     column = {
@@ -156,7 +197,6 @@ def _joined_regions(
 
     component = _linked_components(n_nodes, member, core, node, member_category)
 
-    region_of = [np.full(len(label), -1, dtype=np.int32) for label in labels]
     joined: list[tuple[ChangedRegion, bool]] = []
     core_member, core_node = member[core], node[core]
     order = np.argsort(component[core_node], kind="stable")
@@ -169,8 +209,7 @@ def _joined_regions(
         points = np.sort(core_member[starts[number] : starts[number + 1]])
         if count < min_region_points:
             if not uncertain:
-                label = labels[cloud]
-                label[points[label[points] == LABEL_CHANGED]] = LABEL_UNCHANGED
+                unchange(cloud, points)
             continue
         weights = column["core_count"][parts].astype(np.float64)
         votes = np.bincount(
@@ -198,9 +237,7 @@ def _joined_regions(
     regions = mark_moved_surfaces(regions)
     uncertain_regions = [region for region, uncertain in joined if uncertain]
     uncertain_regions.sort(key=lambda region: (-region.n_points, region.kind))
-    for number, region in enumerate(regions):
-        region_of[1 if region.kind == "added" else 0][region.point_indices] = number
-    return regions, uncertain_regions, region_of
+    return regions, uncertain_regions
 
 
 def _linked_components(
@@ -252,23 +289,64 @@ def _merged_parameters(
     n_uncertain: int,
 ) -> dict[str, Any]:
     """The largest localised tile's parameters, the whole pair's counts, and ``tiles``."""
-    localised = [result for result in results if result.figures.get("localised")]
-    base = dict(
-        max(
-            localised or results,
-            key=lambda result: len(result.reference_index) + len(result.scan_index),
-        ).figures
+    return merged_parameters(
+        plan,
+        [
+            (
+                result.tile_index,
+                len(result.reference_index) + len(result.scan_index),
+                result.figures,
+            )
+            for result in results
+        ],
+        label_counts(labels[0], labels[1]),
+        n_uncertain,
     )
+
+
+def label_counts(reference_label: NDArray[np.int8], scan_label: NDArray[np.int8]) -> dict[str, int]:
+    """The changed and unobserved points of each cloud (:func:`merged_parameters`'s counts)."""
+    return {
+        "n_reference_changed": int(np.count_nonzero(reference_label == LABEL_CHANGED)),
+        "n_reference_unobserved": int(np.count_nonzero(reference_label == LABEL_UNOBSERVED)),
+        "n_scan_changed": int(np.count_nonzero(scan_label == LABEL_CHANGED)),
+        "n_scan_unobserved": int(np.count_nonzero(scan_label == LABEL_UNOBSERVED)),
+    }
+
+
+def merged_parameters(
+    plan: TilePlan,
+    tiles: Sequence[tuple[int, int, dict[str, Any]]],
+    counts: dict[str, int],
+    n_uncertain: int,
+) -> dict[str, Any]:
+    """The merged localisation's parameters.
+
+    Parameters
+    ----------
+    plan : TilePlan
+    tiles : sequence of (int, int, dict)
+        Each tile's index, core points and :attr:`~app.core.tiling.tile.TileResult.figures`.
+    counts : dict
+        The whole pair's :func:`label_counts`.
+    n_uncertain : int
+        Joined uncertain regions.
+
+    Returns
+    -------
+    dict
+        The largest localised tile's parameters, ``counts``, and ``tiles``: the plan and
+        each tile's figures.
+    """
+    localised = [tile for tile in tiles if tile[2].get("localised")]
+    base = dict(max(localised or tiles, key=lambda tile: tile[1])[2])
     for name in (*PER_TILE_FIGURES, "localised"):
         base.pop(name, None)
-    ordered = sorted(results, key=lambda result: result.tile_index)
-    residuals = [float(result.figures.get("alignment_residual", np.nan)) for result in ordered]
+    ordered = sorted(tiles, key=lambda tile: tile[0])
+    residuals = [float(figures.get("alignment_residual", np.nan)) for _, _, figures in ordered]
     base.update(
         {
-            "n_reference_changed": int(np.count_nonzero(labels[0] == LABEL_CHANGED)),
-            "n_reference_unobserved": int(np.count_nonzero(labels[0] == LABEL_UNOBSERVED)),
-            "n_scan_changed": int(np.count_nonzero(labels[1] == LABEL_CHANGED)),
-            "n_scan_unobserved": int(np.count_nonzero(labels[1] == LABEL_UNOBSERVED)),
+            **counts,
             "n_uncertain_regions": n_uncertain,
             "tiles": {
                 "count": plan.n_tiles,
@@ -279,16 +357,12 @@ def _merged_parameters(
                 else None,
                 "per_tile": [
                     {
-                        "tile": result.tile_index,
-                        "core_min": plan.lower[result.tile_index].tolist(),
-                        "core_max": plan.upper[result.tile_index].tolist(),
-                        **{
-                            name: result.figures[name]
-                            for name in PER_TILE_FIGURES
-                            if name in result.figures
-                        },
+                        "tile": tile_index,
+                        "core_min": plan.lower[tile_index].tolist(),
+                        "core_max": plan.upper[tile_index].tolist(),
+                        **{name: figures[name] for name in PER_TILE_FIGURES if name in figures},
                     }
-                    for result in ordered
+                    for tile_index, _, figures in ordered
                 ],
             },
         }

@@ -1,0 +1,296 @@
+"""Each tile's input in files of its own, written in one pass over the points (issue 30).
+
+A fanned-out tile used to read the whole pair (``.npy`` memory maps of both clouds on shared
+storage) and cut its crop from it: every worker's crop masks ran over every point, so each
+worker's memory held the pages of the whole pair by the end of its tile, and the whole pair was
+written to disk once more by the parent.  Here the parent cuts all the crops at once:
+
+- :func:`write_tile_crops` walks each cloud a chunk at a time (:data:`CROP_CHUNK` points) and
+  appends, for every tile whose crop holds some of the chunk's points, those points' records
+  (coordinates as stored, global index, station) to that tile's file of that cloud, plus the
+  tile's share of a trajectory's rays;
+- :class:`TileCropFiles` is what a tile reads instead of a
+  :class:`~app.core.tiling.tile.TileSource`: its :meth:`~TileCropFiles.crop` returns the same
+  :class:`~app.core.tiling.tile.TileCrop` as :meth:`TileSource.crop
+  <app.core.tiling.tile.TileSource.crop>` of the whole pair (the same points in the same
+  order, the same float64 coordinates and stations), read from the tile's files only, so
+  :func:`~app.core.tiling.tile.compute_tile` gives the same result.
+
+The crop test is per point (:func:`~app.core.tiling.tile.crop_mask`), so a point's membership
+does not depend on the chunk it is tested in; a chunk is first narrowed to the points within
+the tile's ray reach (the only ones :func:`crop_mask` can keep).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import ExitStack
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.core.tiling.plan import TilePlan
+from app.core.tiling.tile import TileContext, TileCrop, TileSource, _cropped_rays, crop_mask
+
+__all__ = [
+    "CROP_CHUNK",
+    "MAX_OPEN_TILES",
+    "Chunks",
+    "TileCropFiles",
+    "crop_file",
+    "record_dtype",
+    "write_crops_from_chunks",
+    "write_tile_crops",
+]
+
+CROP_CHUNK = 1 << 20
+"""Points of a cloud handled at a time while the crops are written."""
+MAX_OPEN_TILES = 128
+"""Tiles whose files are open at once (more tiles: one more pass over the points)."""
+META_FILE = "crops.json"
+SIDES = ("reference", "scan")
+
+
+def crop_file(directory: Path, tile_index: int, side: str) -> Path:
+    """The file of tile ``tile_index``'s crop of cloud ``side`` (``reference`` or ``scan``)."""
+    return Path(directory) / f"crop-{tile_index:05d}-{side}.bin"
+
+
+def _rays_file(directory: Path, tile_index: int, side: str) -> Path:
+    return Path(directory) / f"crop-{tile_index:05d}-{side}-rays.npz"
+
+
+def record_dtype(points: NDArray[np.floating], station: NDArray | None) -> np.dtype:
+    """One point of a crop file: its coordinates as stored (``points``' dtype), its index,
+    its station (when ``station`` is not None)."""
+    fields: list[tuple[Any, ...]] = [
+        ("point", np.asarray(points[:0]).dtype, (3,)),
+        ("index", np.int64),
+    ]
+    if station is not None:
+        fields.append(("station", np.int32))
+    return np.dtype(fields)
+
+
+Chunks = Callable[[], Iterator[tuple[int, NDArray[np.floating], NDArray | None]]]
+"""A fresh pass over one cloud: ``(first index, points (c, 3), stations (c,) or None)``."""
+
+
+def write_tile_crops(
+    directory: Path,
+    plan: TilePlan,
+    source: TileSource,
+    context: TileContext,
+    *,
+    chunk_points: int = CROP_CHUNK,
+) -> list[int]:
+    """Write every tile's crop of both clouds into ``directory`` (see the module).
+
+    Parameters
+    ----------
+    directory : Path
+        Created if needed; one ``crop-<tile>-<side>.bin`` per tile and cloud, plus
+        ``crops.json`` (the record layout) and a tile's rays when the cloud has a trajectory.
+    plan : TilePlan
+    source : TileSource
+        The whole pair (arrays or memory maps), as :func:`~app.core.tiling.tile.compute_tile`
+        would read it.
+    context : TileContext
+    chunk_points : int
+        Points of a cloud tested at a time.
+
+    Returns
+    -------
+    list of int
+        Points of both clouds in each tile's crop.
+    """
+
+    def chunks_of(points: NDArray, station: NDArray | None) -> Chunks:
+        def chunks() -> Iterator[tuple[int, NDArray, NDArray | None]]:
+            for start in range(0, len(points), chunk_points):
+                stop = start + chunk_points
+                yield (
+                    start,
+                    np.asarray(points[start:stop]),
+                    None if station is None else np.asarray(station[start:stop]),
+                )
+
+        return chunks
+
+    sides = {
+        side: (chunks_of(points, station), origins, record_dtype(points, station), rays)
+        for side, (points, station, origins), rays in zip(
+            SIDES,
+            source._sides(context),
+            (source.reference_rays, source.scan_rays),
+            strict=True,
+        )
+    }
+    return write_crops_from_chunks(directory, plan, context, sides)
+
+
+def write_crops_from_chunks(
+    directory: Path,
+    plan: TilePlan,
+    context: TileContext,
+    sides: dict[str, tuple[Chunks, NDArray[np.float64] | None, np.dtype, Any]],
+    *,
+    threads: int = 1,
+) -> list[int]:
+    """:func:`write_tile_crops` of clouds handed out in chunks (a streamed parent's).
+
+    Parameters
+    ----------
+    directory : Path
+    plan : TilePlan
+    context : TileContext
+    sides : dict
+        For ``reference`` and ``scan``: ``(chunks, origins, record dtype, rays)``: a
+        :data:`Chunks` pass (called once per :data:`MAX_OPEN_TILES` tiles), the origins in
+        the context, :func:`record_dtype` of the points and stations, the trajectory's
+        ``(returns, bounds)`` or None.
+    threads : int
+        With two or more, the clouds are written concurrently (numpy releases the GIL: a
+        parent alone on the machine uses both cores while no tile runs yet).
+
+    Returns
+    -------
+    list of int
+        Points of both clouds in each tile's crop.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+
+    def write(side: str) -> NDArray[np.int64]:
+        chunks, origins, dtype, rays = sides[side]
+        sizes = np.zeros(plan.n_tiles, dtype=np.int64)
+        for first in range(0, plan.n_tiles, MAX_OPEN_TILES):
+            tiles = range(first, min(plan.n_tiles, first + MAX_OPEN_TILES))
+            sizes[first : tiles.stop] = _write_side(
+                directory, plan, tiles, side, chunks, origins, context, dtype
+            )
+        if rays is not None:
+            for tile_index in range(plan.n_tiles):
+                index = np.fromfile(crop_file(directory, tile_index, side), dtype=dtype)["index"]
+                returns, bounds = _cropped_rays(rays, index)
+                np.savez(_rays_file(directory, tile_index, side), returns=returns, bounds=bounds)
+        return sizes
+
+    # the clouds' passes are independent (their own files): one thread each when given two
+    with ThreadPoolExecutor(max_workers=max(1, min(threads, len(sides)))) as pool:
+        crop_sizes = sum(pool.map(write, list(sides)), np.zeros(plan.n_tiles, dtype=np.int64))
+    layout = {
+        side: {"dtype": dtype.descr, "rays": rays is not None}
+        for side, (_, _, dtype, rays) in sides.items()
+    }
+    (directory / META_FILE).write_text(json.dumps(layout))
+    return [int(size) for size in crop_sizes]
+
+
+def _write_side(
+    directory: Path,
+    plan: TilePlan,
+    tiles: range,
+    side: str,
+    chunks: Chunks,
+    origins: NDArray[np.float64] | None,
+    context: TileContext,
+    dtype: np.dtype,
+) -> NDArray[np.int64]:
+    """One pass over one cloud writing the crops of ``tiles``; their point counts."""
+    counts = np.zeros(len(tiles), dtype=np.int64)
+    boxes = [plan.crop_box(tile_index) for tile_index in tiles]
+    reach = context.ray_reach if origins is not None and len(origins) else 0.0
+    with ExitStack() as stack:
+        files: list[IO[bytes]] = [
+            stack.enter_context(open(crop_file(directory, tile_index, side), "wb"))
+            for tile_index in tiles
+        ]
+        for start, chunk, chunk_station in chunks():
+            xy = chunk[:, :2].astype(np.float64)
+            for number, (low, high) in enumerate(boxes):
+                near = np.flatnonzero(np.all((xy >= low - reach) & (xy <= high + reach), axis=1))
+                if not len(near):
+                    continue
+                kept = near[
+                    crop_mask(
+                        chunk[near],
+                        None if chunk_station is None else chunk_station[near],
+                        origins,
+                        low,
+                        high,
+                        context.ray_reach,
+                    )
+                ]
+                if not len(kept):
+                    continue
+                records = np.empty(len(kept), dtype=dtype)
+                records["point"] = chunk[kept]
+                records["index"] = start + kept
+                if chunk_station is not None:
+                    records["station"] = chunk_station[kept]
+                files[number].write(records.tobytes())
+                counts[number] += len(kept)
+    return counts
+
+
+class TileCropFiles:
+    """The tiles' crops written by :func:`write_tile_crops`, read one tile at a time.
+
+    Parameters
+    ----------
+    directory : Path
+        Where :func:`write_tile_crops` wrote them.
+    """
+
+    def __init__(self, directory: Path) -> None:
+        self.directory = Path(directory)
+        layout = json.loads((self.directory / META_FILE).read_text())
+        self._dtypes = {
+            side: np.dtype([tuple(field) for field in layout[side]["dtype"]]) for side in SIDES
+        }
+        self._rays = {side: bool(layout[side]["rays"]) for side in SIDES}
+
+    def _side(
+        self, tile_index: int, side: str
+    ) -> tuple[
+        NDArray[np.int64],
+        NDArray[np.float64],
+        NDArray[np.int64] | None,
+        tuple[NDArray[np.int64], NDArray[np.int64]] | None,
+    ]:
+        """One cloud's crop of a tile: indices, float64 points, stations, rays."""
+        dtype = self._dtypes[side]
+        records = np.fromfile(crop_file(self.directory, tile_index, side), dtype=dtype)
+        station = (
+            np.asarray(records["station"], dtype=np.int64) if "station" in dtype.names else None
+        )
+        rays = None
+        if self._rays[side]:
+            with np.load(_rays_file(self.directory, tile_index, side)) as data:
+                rays = (data["returns"], data["bounds"])
+        return (
+            np.ascontiguousarray(records["index"]),
+            np.asarray(records["point"], dtype=np.float64),
+            station,
+            rays,
+        )
+
+    def crop(self, plan: TilePlan, tile_index: int, context: TileContext) -> TileCrop:
+        """Tile ``tile_index``'s crop, as :meth:`TileSource.crop` of the whole pair gives it."""
+        reference = self._side(tile_index, "reference")
+        scan = self._side(tile_index, "scan")
+        return TileCrop(
+            reference_index=reference[0],
+            scan_index=scan[0],
+            reference_points=reference[1],
+            scan_points=scan[1],
+            reference_station=reference[2],
+            scan_station=scan[2],
+            reference_rays=reference[3],
+            scan_rays=scan[3],
+        )

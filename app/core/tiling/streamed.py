@@ -1,0 +1,417 @@
+"""A tiled comparison whose parent never holds the whole pair: the files streamed (issue 30).
+
+:func:`~app.core.tiling.compare.compare_tiled` holds both clouds whole in the process that
+plans, cuts and merges the tiles (32 bytes a point read lean: 6.4 GB for 100M + 100M points).
+:func:`compare_streamed` reads each file a chunk at a time
+(:data:`~app.core.tiling.pair_files.CHUNK` points,
+:func:`~app.core.formats.streamed.open_point_blocks`: memory-mapped PLY/NPY read with
+``pread``, laspy's chunk iterator) and keeps only:
+
+- an even subsample of each cloud (every k-th finite point, at most about
+  :data:`SUBSAMPLE_POINTS`), float32 in the local frame: the stages of
+  :func:`app.core.pipeline.run_stages` run on it (the reference's and the scan's origins,
+  the registration, whose own sample is then the same points as the whole pair's, the
+  detectors' sample) and the planner counts crops on it, scaled to the whole clouds;
+- each tile's input, written in one pass over each file's chunks into files of its own
+  (:mod:`app.core.tiling.crops`): the chunk moved into the local frame, the scan's aligned,
+  each point's station assigned (:func:`~app.core.localise.station_assignment.best_stations`
+  with the contrasts of the subsample);
+- the merge, range by range of :data:`~app.core.tiling.pair_files.OUTPUT_RANGE` points: each
+  tile's result is read from its file for the range, and the labels, distances and region
+  numbers are written into ``.npy`` files in the files' row order
+  (:data:`~app.core.tiling.pair_files.OUTPUT_FILES`).
+
+The result is a :class:`~app.core.pipeline.ComparisonResult` whose per-point arrays are those
+files, memory-mapped read-only.  When a cloud has at most :data:`SUBSAMPLE_POINTS` points the
+subsample is the whole cloud and the result is the lean tiled comparison's, point for point.
+The files must carry coordinates only (no sensor origin, stations or trajectory: those need the
+whole cloud read); :func:`~app.core.tiling.pair_files.coordinates_only` says whether a file
+can go this way, and :mod:`~app.core.tiling.pair_files` writes a job's result files from the
+outputs without loading them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Unpack
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.core.cloud import PointCloud, choose_local_origin
+from app.core.comparison.align import Alignment, transformed
+from app.core.comparison.load import LoadedPair, PairOptions, load_pair
+from app.core.comparison.origins import SensorOrigins
+from app.core.localise import Localisation
+from app.core.localise.changes import _default_min_region_points
+from app.core.localise.station_assignment import best_stations, station_contrasts
+from app.core.pipeline import ComparisonResult, ProgressCallback, run_stages
+from app.core.threads import available_threads
+from app.core.tiling.compare import REGISTRATION_SAMPLE, TileRunner, _origins
+from app.core.tiling.crops import TileCropFiles, record_dtype, write_crops_from_chunks
+from app.core.tiling.merge import join_regions, merged_parameters
+from app.core.tiling.pair_files import (
+    StoredTileResults,
+    StreamedCloud,
+    survey,
+    write_outputs,
+)
+from app.core.tiling.plan import (
+    DEFAULT_MARGIN_METRES,
+    DEFAULT_RAY_REACH_METRES,
+    LEAN_RESIDENT_BYTES_PER_POINT,
+    TilePlan,
+    crop_point_limit,
+    plan_tiles,
+)
+from app.core.tiling.tile import TileContext, TileResult, compute_tile, crop_mask
+
+__all__ = [
+    "COUNT_SAMPLE",
+    "SUBSAMPLE_POINTS",
+    "StreamedLocalisation",
+    "compare_streamed",
+    "compute_tiles_to_files",
+]
+
+SUBSAMPLE_POINTS = REGISTRATION_SAMPLE
+"""Points of each cloud kept for the stages (the registration's sample size)."""
+COUNT_SAMPLE = 400_000
+"""Points of each cloud the planner counts crops on (as :meth:`TileSource.count_crop`)."""
+
+
+def compute_tiles_to_files(directory: Path) -> TileRunner:
+    """A :data:`TileRunner` computing each tile here in turn, each result saved into
+    ``directory`` as it is done and handed back as :class:`StoredTileResults`."""
+
+    def run(
+        plan: TilePlan, source: Any, context: TileContext, threads: int, report: ProgressCallback
+    ) -> list[TileResult]:
+        directory.mkdir(parents=True, exist_ok=True)
+        paths = []
+        for tile_index in range(plan.n_tiles):
+            path = directory / f"tile-{tile_index:05d}.npz"
+            compute_tile(plan, tile_index, source, context, threads=threads).save(path)
+            paths.append(path)
+            report("localise", 0.35 + 0.5 * (tile_index + 1) / plan.n_tiles)
+        return StoredTileResults(paths)  # type: ignore[return-value]
+
+    return run
+
+
+@dataclass(frozen=True)
+class StreamedLocalisation:
+    """The localise step of a streamed comparison (:class:`app.core.pipeline.LocaliseStep`):
+    ``loaded`` holds the subsamples; the tiles' inputs and the merged per-point outputs are
+    files under ``work_dir`` (see the module).
+
+    Attributes
+    ----------
+    budget_bytes, max_crop_points, margin, ray_reach, run_tiles, detection_seed
+        As :class:`~app.core.tiling.compare.TiledLocalisation`.
+    reference, scan : StreamedCloud
+    offset : ndarray, shape (3,)
+        The local frame's origin.
+    work_dir : Path
+        ``crops/`` (the tiles' inputs) and the outputs
+        (:data:`~app.core.tiling.pair_files.OUTPUT_FILES`).
+    outputs : dict
+        Filled by :meth:`localise`: the output files' paths by ``<side>_<name>``.
+    """
+
+    budget_bytes: int
+    max_crop_points: int | None
+    margin: float
+    ray_reach: float
+    run_tiles: TileRunner
+    detection_seed: int
+    reference: StreamedCloud
+    scan: StreamedCloud
+    offset: NDArray[np.float64]
+    work_dir: Path
+    outputs: dict[str, Path] = field(default_factory=dict)
+    registration_sample: int = REGISTRATION_SAMPLE
+    detection_sample: int = REGISTRATION_SAMPLE
+    detect_fraction: float = 0.85
+
+    @property
+    def params(self) -> Mapping[str, Any]:
+        """The budget, reported among the parameters in effect."""
+        return {"memory_budget_bytes": int(self.budget_bytes)}
+
+    def localise(
+        self,
+        loaded: LoadedPair,
+        origins: SensorOrigins,
+        alignment: Alignment,
+        report: ProgressCallback,
+        timings: dict[str, float],
+    ) -> tuple[Localisation, int]:
+        """Plan on the subsamples, write the crops from the files, run the tiles, merge."""
+        for cloud in (origins.reference, origins.scan):
+            if cloud.station is not None or cloud.trajectory_rays is not None:
+                raise ValueError("a streamed comparison takes files with coordinates only")
+        context = self._context(loaded, origins)
+        sides = self._sides(loaded, alignment, context)
+        sub = [loaded.reference_points, alignment.aligned_scan]
+        sub_stations = [side[1] for side in sides]
+        limit = self.max_crop_points
+        if limit is None:
+            limit = crop_point_limit(
+                self.budget_bytes, len(sub[0]) + len(sub[1]), LEAN_RESIDENT_BYTES_PER_POINT
+            )
+        full = [self.reference.n_points, self.scan.n_points]
+        all_origins = [context.reference_origins, context.scan_origins]
+
+        def count_crop(low: NDArray[np.float64], high: NDArray[np.float64]) -> int:
+            total = 0.0
+            for points, station, side_origins, n in zip(
+                sub, sub_stations, all_origins, full, strict=True
+            ):
+                step = max(1, len(points) // COUNT_SAMPLE)
+                mask = crop_mask(
+                    points[::step],
+                    None if station is None else station[::step],
+                    side_origins,
+                    low - self.margin,
+                    high + self.margin,
+                    context.ray_reach,
+                )
+                total += np.count_nonzero(mask) * n / max(1, len(points[::step]))
+            return int(np.ceil(total))
+
+        plan = plan_tiles(
+            sub[0][:, :2],
+            sub[1][:, :2],
+            max_crop_points=limit,
+            count_crop=count_crop,
+            margin=self.margin,
+            budget_bytes=self.budget_bytes,
+        )
+        report("localise", 0.36)  # planned
+        crops, partial = self.work_dir / "crops", self.work_dir / "crops.partial"
+        shutil.rmtree(partial, ignore_errors=True)  # swapped in whole: a tile of an earlier
+        write_crops_from_chunks(  # attempt never reads a half-written crop
+            partial,
+            plan,
+            context,
+            {
+                name: (chunks, side_origins, dtype, None)
+                for name, (chunks, _, dtype), side_origins in zip(
+                    ("reference", "scan"), sides, all_origins, strict=True
+                )
+            },
+            threads=loaded.threads,
+        )
+        shutil.rmtree(crops, ignore_errors=True)
+        partial.rename(crops)
+        report("localise", 0.37)  # the tiles' inputs written
+        results = self.run_tiles(plan, TileCropFiles(crops), context, loaded.threads, report)  # type: ignore[arg-type]
+        return self._merge(plan, results, context.min_region_points), context.min_region_points
+
+    def _context(self, loaded: LoadedPair, origins: SensorOrigins) -> TileContext:
+        """What every tile shares; the region size floor of the whole clouds."""
+        params = dict(loaded.settings.localisation)
+        min_region_points = params.get("min_region_points") or _default_min_region_points(
+            self.reference.n_points, self.scan.n_points
+        )
+        return TileContext(
+            reference_origins=_origins(origins.reference),
+            scan_origins=_origins(origins.scan),
+            reference_stations_unknown=origins.reference.stations_unknown,
+            scan_stations_unknown=origins.scan.stations_unknown,
+            min_region_points=int(min_region_points),
+            localisation_params=params,
+            ray_reach=self.ray_reach,
+        )
+
+    def _sides(
+        self, loaded: LoadedPair, alignment: Alignment, context: TileContext
+    ) -> list[tuple[Callable[[], Iterator], NDArray | None, np.dtype]]:
+        """Each cloud's pass over its file (local frame, the scan aligned, stations), the
+        subsample's stations, and its crop records' dtype."""
+        transform = alignment.registration.transform
+        sides = []
+        for cloud, sub, origins, move in (
+            (self.reference, loaded.reference_points, context.reference_origins, None),
+            (self.scan, alignment.aligned_scan, context.scan_origins, transform),
+        ):
+            several = origins is not None and len(origins) >= 2
+            contrasts = station_contrasts(sub, origins) if several else None
+            stations = (
+                best_stations(sub, origins, contrasts).astype(
+                    np.int8 if len(origins) <= 127 else np.int32
+                )
+                if several
+                else None
+            )
+            sides.append(
+                (
+                    self._pass(cloud, move, origins if several else None, contrasts),
+                    stations,
+                    record_dtype(sub, stations),
+                )
+            )
+        return sides
+
+    def _pass(
+        self,
+        cloud: StreamedCloud,
+        transform: NDArray[np.float64] | None,
+        origins: NDArray[np.float64] | None,
+        contrasts: list[NDArray[np.float64]] | None,
+    ) -> Callable[[], Iterator[tuple[int, NDArray[np.float32], NDArray | None]]]:
+        """A fresh pass over ``cloud``'s file: float32 local (aligned) points and stations."""
+
+        def chunks() -> Iterator[tuple[int, NDArray[np.float32], NDArray | None]]:
+            for first, points in cloud.chunks():
+                local = (points - self.offset).astype(np.float32)
+                if transform is not None:
+                    local = transformed(local, transform)
+                station = (
+                    None
+                    if origins is None or contrasts is None
+                    else best_stations(local, origins, contrasts)
+                )
+                yield first, local, station
+
+        return chunks
+
+    def _merge(
+        self, plan: TilePlan, results: Sequence[TileResult], min_region_points: int
+    ) -> Localisation:
+        """The tiles joined; per-point outputs written to files; the subsample's localisation."""
+        tables, tiles = [], []
+        for result in results:
+            tables.append(result.regions)
+            core = len(result.reference_index) + len(result.scan_index)
+            tiles.append((result.tile_index, core, result.figures))
+        if sorted(tile[0] for tile in tiles) != list(range(plan.n_tiles)):
+            raise ValueError("the tiles' results do not match the plan")
+        unchanged: list[list[NDArray[np.int64]]] = [[], []]
+        regions, uncertain = join_regions(
+            tables, min_region_points, lambda cloud, points: unchanged[cloud].append(points)
+        )
+        del tables
+        counts: dict[str, int] = {}
+        sub: dict[str, NDArray] = {}
+        for cloud_number, (side, cloud) in enumerate(
+            (("reference", self.reference), ("scan", self.scan))
+        ):
+            kind = "added" if cloud_number else "removed"
+            numbered = [
+                (number, region.point_indices)
+                for number, region in enumerate(regions)
+                if region.kind == kind
+            ]
+            dropped = (
+                np.sort(np.concatenate(unchanged[cloud_number]))
+                if unchanged[cloud_number]
+                else np.zeros(0, np.int64)
+            )
+            written = write_outputs(self.work_dir, side, cloud, results, numbered, dropped)
+            self.outputs.update(written.paths)
+            counts[f"n_{side}_changed"] = written.changed
+            counts[f"n_{side}_unobserved"] = written.unobserved
+            sub.update({f"{side}_{name}": values for name, values in written.sub.items()})
+        parameters = merged_parameters(plan, tiles, counts, len(uncertain))
+        return Localisation(
+            reference_label=sub["reference_label"],
+            scan_label=sub["scan_label"],
+            reference_distance=sub["reference_distance"],
+            scan_distance=sub["scan_distance"],
+            reference_region=sub["reference_region"],
+            scan_region=sub["scan_region"],
+            regions=regions,
+            parameters=parameters,
+            uncertain_regions=uncertain,
+        )
+
+
+def compare_streamed(
+    reference_path: str | Path,
+    scan_path: str | Path,
+    *,
+    budget_bytes: int,
+    work_dir: str | Path,
+    formats: tuple[str | None, str | None] = (None, None),
+    progress: ProgressCallback | None = None,
+    site_calibration: Mapping[str, Any] | None = None,
+    max_crop_points: int | None = None,
+    margin: float = DEFAULT_MARGIN_METRES,
+    ray_reach: float = DEFAULT_RAY_REACH_METRES,
+    run_tiles: TileRunner | None = None,
+    subsample_points: int = SUBSAMPLE_POINTS,
+    **options: Unpack[PairOptions],
+) -> ComparisonResult:
+    """:func:`~app.core.tiling.compare.compare_tiled` of two files, never holding either whole.
+
+    Parameters
+    ----------
+    reference_path, scan_path : str or Path
+        Point-cloud files with coordinates only (:func:`streamable`).
+    budget_bytes, progress, site_calibration, max_crop_points, margin, ray_reach
+        As :func:`~app.core.tiling.compare.compare_tiled`.
+    work_dir : str or Path
+        The tiles' inputs (``crops/``), results (``tiles/``, by the default runner) and the
+        per-point outputs (:data:`~app.core.tiling.pair_files.OUTPUT_FILES`) go here; the
+        outputs stay (the result's per-point arrays are them, memory-mapped).
+    formats : (str or None, str or None)
+        Each file's format (None: detected).
+    run_tiles : TileRunner, optional
+        Who computes the tiles (gets :class:`~app.core.tiling.crops.TileCropFiles` as its
+        source); default :func:`compute_tiles_to_files` under ``work_dir/tiles``.
+    subsample_points : int
+        Most points of each cloud the stages see.
+    **options
+        As :func:`app.core.pipeline.compare` (``method``, ``variant``, ``align``,
+        ``random_state``, ``params``, ``threads``).
+
+    Returns
+    -------
+    ComparisonResult
+        Per-point arrays in the files' row order, read-only memory maps of the output files.
+    """
+    work_dir = Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    threads = options.get("threads") or available_threads()
+    with ThreadPoolExecutor(max_workers=2 if threads >= 2 else 1) as pool:  # one file each
+        (reference, reference_sub), (scan, scan_sub) = pool.map(
+            lambda number: survey(
+                Path((reference_path, scan_path)[number]), formats[number], subsample_points
+            ),
+            (0, 1),
+        )
+    offset = choose_local_origin(np.stack([reference.low, reference.high]))
+    clouds = [
+        PointCloud((sub - offset).astype(np.float32), None, len(sub))  # type: ignore[call-arg]
+        for sub in (reference_sub, scan_sub)
+    ]
+    del reference_sub, scan_sub
+    loaded = load_pair(clouds[0], clouds[1], frame_offset=offset, **options)
+    step = StreamedLocalisation(
+        budget_bytes=budget_bytes,
+        max_crop_points=max_crop_points,
+        margin=margin,
+        ray_reach=ray_reach,
+        run_tiles=run_tiles or compute_tiles_to_files(work_dir / "tiles"),
+        detection_seed=options.get("random_state", 0),
+        reference=reference,
+        scan=scan,
+        offset=offset,
+        work_dir=work_dir,
+    )
+    result = run_stages(
+        loaded, progress=progress, site_calibration=site_calibration, localise_step=step
+    )
+    return dataclasses.replace(
+        result,
+        n_reference=reference.n_points,
+        n_scan=scan.n_points,
+        **{name: np.load(path, mmap_mode="r") for name, path in step.outputs.items()},
+    )
