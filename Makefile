@@ -52,14 +52,14 @@ format: install
 	$(BIN)/ruff format app tests bench migrations
 	$(BIN)/ruff check --fix app tests bench migrations
 
-bench-paper: install
-	$(BIN)/python -m bench.paper
-
 BENCH_STAMP := $(VENV)/.installed-bench
 
 $(BENCH_STAMP): pyproject.toml | $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[dev,bench]'
 	touch $(BENCH_STAMP)
+
+bench-paper: $(BENCH_STAMP)
+	$(BIN)/python -m bench.paper
 
 # paper + scenes + visibility + per-site calibration (quick), then bench/perf.py: pipeline vs py4dgeo M3C2 and the cKDTree floor,
 # ingest, service (~3 min; --large adds 5M points); M3C2 is skipped if py4dgeo is missing.

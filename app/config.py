@@ -378,7 +378,7 @@ class Settings(BaseSettings):
     @property
     def uploads_dir(self) -> Path:
         """Where resumable (tus) uploads keep their bytes between requests (kept on restart)."""
-        return self.data_dir / "uploads"
+        return self.data_layout.uploads_dir
 
 
 @lru_cache

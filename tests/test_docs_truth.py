@@ -106,6 +106,28 @@ def test_every_code_path_named_in_the_docs_exists() -> None:
     assert not missing, "\n".join(missing)
 
 
+PACKAGE_PATH = re.compile(r"`((?:[a-z_]+/)+[a-z_0-9]+\.py)`")
+"""A path given within a package the text is about (```localise/gaps.py```)."""
+
+
+def test_every_path_within_a_package_named_in_the_docs_exists() -> None:
+    """A path such as ``localise/gaps.py`` (not from the repository's root) ends some file."""
+    files = {
+        path.relative_to(PROJECT_ROOT).as_posix()
+        for root in ("app", "bench", "tests")
+        for path in (PROJECT_ROOT / root).rglob("*.py")
+    }
+    missing = [
+        f"{where(path, number)}: {found}"
+        for path, number, line in document_lines()
+        for found in PACKAGE_PATH.findall(line)
+        if not CODE_PATH.fullmatch(found)
+        and found not in files
+        and not any(file.endswith("/" + found) for file in files)
+    ]
+    assert not missing, "\n".join(missing)
+
+
 def resolves(dotted: str) -> bool:
     """Whether ``dotted`` is a module, or attributes of the longest importable module in it."""
     parts = dotted.split(".")
@@ -260,6 +282,14 @@ def test_every_api_path_named_in_the_docs_is_a_route() -> None:
 def test_the_code_path_check_catches_a_missing_file(text: str, found: str) -> None:
     assert CODE_PATH.findall(text) == [found]
     assert not (PROJECT_ROOT / found).exists()
+
+
+def test_the_package_path_check_catches_a_renamed_module() -> None:
+    assert PACKAGE_PATH.findall("see `localise/stations.py` and `origins/apex.py`") == [
+        "localise/stations.py",
+        "origins/apex.py",
+    ]
+    assert not list((PROJECT_ROOT / "app").rglob("localise/stations.py"))
 
 
 def test_the_checks_catch_made_up_names() -> None:

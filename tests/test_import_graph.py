@@ -10,7 +10,7 @@ Every ``import`` in ``app/`` counts, at module level, inside functions and under
 imports it).
 
 No function body in ``app/`` is longer than :data:`MAX_FUNCTION_LINES` lines (its docstring
-excluded), but those of :data:`LONG_FUNCTIONS_ALLOWED`, which are being split.
+excluded); :data:`LONG_FUNCTIONS_ALLOWED`, the ones once tolerated while being split, is empty.
 
 The core is numeric code only: besides the layers, it imports none of the standard library's
 network, mail, TLS or signing modules (:data:`FORBIDDEN_IN_CORE`; they belong in ``app.kit``).

@@ -60,7 +60,6 @@ WORKER_HEALTH_CHECK_SECONDS = 1.0
 QUEUE_POLL_MAX_DELAY_SECONDS = 1.0
 """Longest pause between two polls of an empty SQLite queue by an idle worker."""
 CONSUMER_HEARTBEAT_SECONDS = 5.0
-WORKER_PID_PREFIX = "worker-"
 MEMORY_LIMIT_ENV = "SCANDIFF_JOB_MEMORY_LIMIT_BYTES"
 JOB_THREADS_ENV = "SCANDIFF_JOB_THREADS"
 
@@ -127,7 +126,7 @@ def install_worker_hooks(huey: Huey, settings: Settings) -> None:
     @huey.on_startup(name="scandiff_worker_started")
     def worker_started() -> None:
         pid_dir.mkdir(parents=True, exist_ok=True)
-        (pid_dir / f"{WORKER_PID_PREFIX}{os.getpid()}").touch()
+        settings.data_layout.worker_pid_file(os.getpid()).touch()
         logger.info("job worker started", extra={"stage": "worker-started"})
 
     @huey.pre_execute(name="scandiff_bind_job")
@@ -140,16 +139,12 @@ def install_worker_hooks(huey: Huey, settings: Settings) -> None:
 
     @huey.on_shutdown(name="scandiff_worker_stopped")
     def worker_stopped() -> None:
-        (pid_dir / f"{WORKER_PID_PREFIX}{os.getpid()}").unlink(missing_ok=True)
+        settings.data_layout.worker_pid_file(os.getpid()).unlink(missing_ok=True)
 
 
 def remove_stale_worker_pid_files(settings: Settings) -> None:
     """Delete pid files of workers that are no longer running."""
-    pid_dir = worker_pid_dir(settings)
-    if not pid_dir.is_dir():
-        return
-    for path in pid_dir.glob(f"{WORKER_PID_PREFIX}*"):
-        pid_text = path.name.removeprefix(WORKER_PID_PREFIX)
+    for pid_text, path in settings.data_layout.worker_pid_files().items():
         if not pid_text.isdigit() or not Path(f"/proc/{pid_text}").exists():
             path.unlink(missing_ok=True)
 

@@ -52,11 +52,18 @@ class StoredResults:
     scan_region: NDArray[np.int32] | None
 
 
+def read_labels(labels_path: Path) -> tuple[NDArray[np.int8], NDArray[np.int8]]:
+    """The reference's and the scan's labels stored at ``labels_path`` (int8, one per file row)."""
+    with np.load(labels_path) as labels:
+        return (
+            np.asarray(labels["reference_label"], dtype=np.int8),
+            np.asarray(labels["scan_label"], dtype=np.int8),
+        )
+
+
 def read_result_files(labels_path: Path) -> StoredResults:
     """The labels at ``labels_path`` and the distances and regions beside them, if any."""
-    with np.load(labels_path) as labels:
-        reference_label = np.asarray(labels["reference_label"])
-        scan_label = np.asarray(labels["scan_label"])
+    reference_label, scan_label = read_labels(labels_path)
     details: dict[str, NDArray] = {}
     details_path = labels_path.with_name(DETAILS_FILENAME)
     if details_path.is_file():
@@ -149,7 +156,9 @@ def store_results(
         row.n_regions = len(result.regions)
         warnings = [warning.to_json_dict() for warning in result.quality_warnings]
         history_warning = region_count_warning(session, row, len(result.regions))
-        row.warnings = json_safe(warnings + ([history_warning] if history_warning else []))
+        if history_warning is not None:
+            warnings.append(history_warning.to_json_dict())
+        row.warnings = json_safe(warnings)
         row.explanation = json_safe(result.explanation.to_json_dict())
         row.sensor_origins = json_safe(result.sensor_origins_json())
         row.uncertain_regions = json_safe(

@@ -9,7 +9,9 @@ for the service's settings), so no other module joins ``data_dir`` with a name o
     admin-token                      the first admin token ``scandiff serve`` printed
     token-revocations                counter that tells API processes to drop cached tokens
     run/                             doorbell and worker pid files of the running consumers
+    run/worker-<pid>                 one a live job worker (app.jobs.consumer)
     tmp/<pid>-<random>.part          uploads being received
+    uploads/                         resumable (tus) uploads' bytes between requests
     scans/<site_id>/<scan_id>.<fmt>  original bytes of every scan (path stored relative)
     scans/<site_id>/<scan_id>.geometry  a reference's cached k-NN geometry (app.jobs.geometry)
     results/<job_id>/labels.npz      per-point labels of a job (written by the job worker)
@@ -28,12 +30,20 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["DETAILS_FILENAME", "LABELS_FILENAME", "DataLayout", "StoredPathError"]
+__all__ = [
+    "DETAILS_FILENAME",
+    "LABELS_FILENAME",
+    "WORKER_PID_PREFIX",
+    "DataLayout",
+    "StoredPathError",
+]
 
 LABELS_FILENAME = "labels.npz"
 """A job's per-point labels (the arrays of ``scandiff compare --labels``)."""
 DETAILS_FILENAME = "details.npz"
 """A job's per-point distances (``reference_distance``, ``scan_distance``), next to its labels."""
+WORKER_PID_PREFIX = "worker-"
+"""A live job worker's file in :attr:`DataLayout.run_dir`: this prefix, then its pid."""
 
 
 class StoredPathError(ValueError):
@@ -76,10 +86,28 @@ class DataLayout:
         """Files of the running consumers (doorbell, worker pids)."""
         return self.root / "run"
 
+    def worker_pid_file(self, pid: int) -> Path:
+        """The file job worker ``pid`` keeps while alive."""
+        return self.run_dir / f"{WORKER_PID_PREFIX}{pid}"
+
+    def worker_pid_files(self) -> dict[str, Path]:
+        """The workers' pid files there are, by the text after the prefix (a pid, if sound)."""
+        if not self.run_dir.is_dir():
+            return {}
+        return {
+            path.name.removeprefix(WORKER_PID_PREFIX): path
+            for path in self.run_dir.glob(f"{WORKER_PID_PREFIX}*")
+        }
+
     @property
     def tmp_dir(self) -> Path:
         """Where uploads are streamed before the atomic rename (same filesystem as scans)."""
         return self.root / "tmp"
+
+    @property
+    def uploads_dir(self) -> Path:
+        """Where resumable (tus) uploads keep their bytes between requests (kept on restart)."""
+        return self.root / "uploads"
 
     @property
     def scans_dir(self) -> Path:

@@ -197,6 +197,12 @@ class WarningDetailRead(StoredJson):
     limit: Number | None = None
     unit: str | None = None
     side: str | None = None
+    median: Number | None = Field(
+        default=None, description="The site's usual region count (region_count_above_history)."
+    )
+    history_jobs: int | None = Field(
+        default=None, description="How many of the site's previous jobs make that usual."
+    )
     explanation: str | None = None
 
 
@@ -218,6 +224,12 @@ class QualityWarningRead(StoredJson):
     limit: Number | None = None
     unit: str | None = None
     side: str | None = None
+    median: Number | None = Field(
+        default=None, description="The site's usual region count (region_count_above_history)."
+    )
+    history_jobs: int | None = Field(
+        default=None, description="How many of the site's previous jobs make that usual."
+    )
     detail: WarningDetailRead | None = None
     how_to_fix: HowToFixRead | None = None
 

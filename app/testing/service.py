@@ -39,14 +39,12 @@ from typing import Any
 import httpx
 
 from app.config import Settings
+from app.kit.data_layout import DataLayout
 from app.testing.fake_pipeline import CONSUMER_BOOTSTRAP
 from app.testing.network import free_port
 from app.testing.paths import PROJECT_ROOT
 
 HEALTH_PATH = "/api/v1/health"
-ADMIN_TOKEN_FILE = "admin-token"
-WORKER_PID_DIR = "run"
-WORKER_PID_PREFIX = "worker-"
 
 
 def process_group_members(pgid: int) -> list[int]:
@@ -92,16 +90,12 @@ def pid_is_alive(pid: int) -> bool:
 
 def live_worker_pids(data_dir: Path, process_group: int) -> list[int]:
     """Live job workers of ``process_group`` (each writes ``<data_dir>/run/worker-<pid>``)."""
-    run_dir = data_dir / WORKER_PID_DIR
-    if not run_dir.is_dir():
-        return []
     members = set(process_group_members(process_group))
     pids = []
-    for path in run_dir.glob(WORKER_PID_PREFIX + "*"):
-        try:
-            pid = int(path.name.removeprefix(WORKER_PID_PREFIX))
-        except ValueError:
+    for pid_text in DataLayout(data_dir).worker_pid_files():
+        if not pid_text.isdigit():
             continue
+        pid = int(pid_text)
         if pid in members and pid_is_alive(pid):
             pids.append(pid)
     return sorted(pids)
@@ -293,7 +287,7 @@ class ServiceProcess:
         shares one) gets no such token: then an admin of a new organisation, from ``scandiff
         token create``, kept in the same file.
         """
-        path = self.data_dir / ADMIN_TOKEN_FILE
+        path = DataLayout(self.data_dir).admin_token_file
         if not path.exists():
             organisation = f"service-{uuid.uuid4().hex[:12]}"
             command = [sys.executable, "-m", "app", "token", "create", "--role", "admin"]

@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from app.jobs.results import read_labels
+
 ZIP_LOCAL_HEADER_BYTES = 30
 """A zip member's local file header before its name and extra field."""
 
@@ -90,12 +92,10 @@ def npz_column(path: Path, name: str) -> StoredColumn:
 
 
 def stored_labels(labels_path: Path) -> dict[str, NDArray[np.int8]]:
-    """``{"reference": labels, "scan": labels}``, int8, one per file row."""
-    with np.load(labels_path) as labels:
-        return {
-            "reference": np.asarray(labels["reference_label"], dtype=np.int8),
-            "scan": np.asarray(labels["scan_label"], dtype=np.int8),
-        }
+    """``{"reference": labels, "scan": labels}``, int8, one per file row
+    (:func:`app.jobs.results.read_labels`)."""
+    reference, scan = read_labels(labels_path)
+    return {"reference": reference, "scan": scan}
 
 
 def stored_distances(details_path: Path, n_rows: dict[str, int]) -> dict[str, StoredColumn]:

@@ -3,18 +3,25 @@ sensor origins, whether a failed job will retry, and the paper's detector names 
 
 from __future__ import annotations
 
+import json
+
 import httpx
 import pytest
 
 from app.core.pipeline import RegionSummary
 from app.core.quality import LOW_FITNESS
-from app.jobs.alerts.site_history import HISTORY_MIN_JOBS, REGION_COUNT_MIN_EXCESS
+from app.jobs.alerts.site_history import (
+    HISTORY_MIN_JOBS,
+    REGION_COUNT_MIN_EXCESS,
+    RegionCountWarning,
+)
 from app.jobs.leases import claim_job, fail_job, make_lease_owner, release_job
+from app.services.messages import API_FIXES
 from app.testing.files import ply_bytes
 from app.testing.results import calibration_report, registration_report, sensor_origin_entries
 from app.testing.scenes import room_points
 from tests.helpers.http import assert_error, create_site, site_with_reference, upload
-from tests.helpers.jobs import finish_job
+from tests.helpers.jobs import finish_job, load_job
 from tests.helpers.server import ApiServer
 
 N_POINTS = 2000
@@ -106,6 +113,14 @@ def test_a_region_count_far_above_the_sites_history_is_warned(
     assert warning["value"] == many and warning["median"] == usual
     assert warning["history_jobs"] == HISTORY_MIN_JOBS
     assert f"{many} regions, far above this site's usual {usual}" in warning["message"]
+    # stored as its typed form's JSON; the API adds only its own words for the fix
+    (stored,) = load_job(api.settings, job["id"]).warnings
+    limit = float(usual + REGION_COUNT_MIN_EXCESS)
+    expected = RegionCountWarning(many, limit, float(usual), HISTORY_MIN_JOBS).to_json_dict()
+    assert json.dumps(stored) == json.dumps(expected)
+    text, parameters = API_FIXES["check_site_history"]
+    expected["how_to_fix"].update(text=text, parameters=parameters)
+    assert json.dumps(warning) == json.dumps(expected)
     # another site's history is its own: the same count there is not warned
     other, other_reference = site_with_reference(writer)
     job = queued_scan_job(writer, other["id"], seed=21)

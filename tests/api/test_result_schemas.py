@@ -8,6 +8,8 @@ import json
 
 import httpx
 
+from app.core.comparison.reports import QualityWarning
+from app.jobs.alerts.site_history import RegionCountWarning
 from app.testing.files import ply_bytes
 from app.testing.results import calibration_report, registration_report, sensor_origin_entries
 from app.testing.scenes import room_points
@@ -44,6 +46,18 @@ def test_openapi_names_every_field_of_a_jobs_results(writer: httpx.Client) -> No
     assert {"rule", "detector_changed", "tests"} <= set(decision["properties"])
     warning = _resolve(job["properties"]["warnings"], components)
     assert {"code", "message", "detail", "how_to_fix"} <= set(warning["properties"])
+    # every key either kind of warning stores (the core's and the site history's) is named
+    stored = [
+        QualityWarning("low_overlap", "m", "e", "widen_coverage", 0.2, 0.5, "", "scan"),
+        RegionCountWarning(n_regions=12, limit=7.0, median=2.0, history_jobs=3),
+    ]
+    detail = _resolve(warning["properties"]["detail"], components)
+    how_to_fix = _resolve(warning["properties"]["how_to_fix"], components)
+    for one in stored:
+        stored_json = one.to_json_dict()
+        assert set(stored_json) <= set(warning["properties"]), one.code
+        assert set(stored_json["detail"]) <= set(detail["properties"]), one.code
+        assert set(stored_json["how_to_fix"]) <= set(how_to_fix["properties"]), one.code
     origins = job["properties"]["sensor_origins"]["anyOf"][0]["additionalProperties"]
     origin = _resolve(origins, components)
     assert {"origin", "source", "confidence"} <= set(origin["properties"])

@@ -139,6 +139,9 @@ def test_tuspy_upload_cut_at_80_percent_is_resumed_by_a_new_client(api: ApiServe
     assert not part_file(api, location).exists()
 
 
+@pytest.mark.slow  # a service process killed and restarted between a cut and its resume; make
+# test keeps the cut and resume on the module's server here and a kill and restart of the whole
+# service in tests/api/test_service_flow.py
 def test_the_server_killed_between_the_cut_and_the_resume_loses_nothing(
     service_factory: Any,
 ) -> None:

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from app.core.datasets.lidar import lidar_pair
 from app.core.tiling.plan import (
@@ -28,7 +29,10 @@ def run_compare(*arguments: str | Path) -> subprocess.CompletedProcess[str]:
     )
 
 
-def _pair(tmp_path: Path) -> tuple[Path, Path, int]:
+@pytest.fixture(scope="module")
+def pair_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, int]:
+    """A three-station warehouse pair as PLY files, and its points (written once, read only)."""
+    tmp_path = tmp_path_factory.mktemp("tiled-pair")
     pair = lidar_pair(
         layout="warehouse", change="added", n_stations=3, angular_step_deg=1.2, random_state=4
     )
@@ -40,8 +44,10 @@ def _pair(tmp_path: Path) -> tuple[Path, Path, int]:
     return paths[0], paths[1], len(pair.reference) + len(pair.scan)
 
 
-def test_a_pair_over_the_budget_is_compared_in_tiles(tmp_path: Path) -> None:
-    reference, scan, total = _pair(tmp_path)
+def test_a_pair_over_the_budget_is_compared_in_tiles(
+    tmp_path: Path, pair_files: tuple[Path, Path, int]
+) -> None:
+    reference, scan, total = pair_files
     # the pair just over it, read lean (float32 whole clouds: app.core.tiling.lean)
     budget = BASELINE_BYTES + total * LEAN_RESIDENT_BYTES_PER_POINT
     budget += int(0.97 * total) * LOCALISATION_BYTES_PER_POINT
@@ -63,8 +69,10 @@ def test_a_pair_over_the_budget_is_compared_in_tiles(tmp_path: Path) -> None:
     assert "tiles" not in json.loads(one_process.stdout)["localisation"]
 
 
-def test_a_budget_too_small_for_one_tile_is_exit_2_naming_the_budget(tmp_path: Path) -> None:
-    reference, scan, _ = _pair(tmp_path)
+def test_a_budget_too_small_for_one_tile_is_exit_2_naming_the_budget(
+    pair_files: tuple[Path, Path, int],
+) -> None:
+    reference, scan, _ = pair_files
     done = run_compare(reference, scan, "--memory-budget", "401M")
     assert done.returncode == 2
     assert "does not fit the memory budget of 401 MiB" in done.stderr
@@ -72,15 +80,15 @@ def test_a_budget_too_small_for_one_tile_is_exit_2_naming_the_budget(tmp_path: P
     assert "Traceback" not in done.stderr
 
 
-def test_a_memory_budget_that_is_not_a_size_is_exit_2(tmp_path: Path) -> None:
-    reference, scan, _ = _pair(tmp_path)
+def test_a_memory_budget_that_is_not_a_size_is_exit_2(pair_files: tuple[Path, Path, int]) -> None:
+    reference, scan, _ = pair_files
     done = run_compare(reference, scan, "--memory-budget", "lots")
     assert done.returncode == 2
     assert "not a size in bytes: 'lots'" in done.stderr
 
 
 def test_a_pair_over_the_budget_is_streamed_and_equals_the_lean_tiled_comparison(
-    tmp_path: Path,
+    tmp_path: Path, pair_files: tuple[Path, Path, int]
 ) -> None:
     """Coordinates-only files over the budget: the command reads them in chunks
     (app.core.tiling.streamed); within the subsample its labels are the lean tiled ones."""
@@ -88,7 +96,7 @@ def test_a_pair_over_the_budget_is_streamed_and_equals_the_lean_tiled_comparison
     from app.core.tiling.compare import compare_tiled
     from app.core.tiling.lean import read_pair
 
-    reference, scan, total = _pair(tmp_path)
+    reference, scan, total = pair_files
     budget = BASELINE_BYTES + total * LEAN_RESIDENT_BYTES_PER_POINT
     budget += int(0.97 * total) * LOCALISATION_BYTES_PER_POINT
     labels = tmp_path / "labels.npz"

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.cli.compare import cli_warnings
+from app.cli.compare_report import cli_warnings
 from app.core.quality import origin_warnings
 from app.core.trajectory import Trajectory
 from app.testing.files import ply_bytes

@@ -85,6 +85,33 @@ def test_reading_a_result_and_its_labels_loads_no_localiser():
     assert result.stdout.strip() == ""
 
 
+LABEL_NAMES = {"LABEL_CHANGED", "LABEL_UNCHANGED", "LABEL_UNOBSERVED"}
+REPOSITORY = CORE.parents[1]
+
+
+def test_the_labels_are_defined_and_imported_in_one_place():
+    """Every module takes the labels from ``app.core.labels``: none defines them again and no
+    package re-exports them (``app.core.localise`` did, for the tiler alone)."""
+    offenders = []
+    for folder in ("app", "tests", "bench"):
+        for path in sorted((REPOSITORY / folder).rglob("*.py")):
+            text = path.read_text()
+            if not any(name in text for name in LABEL_NAMES):
+                continue  # parse only the files that name a label
+            tree = ast.parse(text, filename=str(path))
+            where = path.relative_to(REPOSITORY)
+            for node in ast.walk(tree):
+                if isinstance(node, ast.ImportFrom) and node.module != "app.core.labels":
+                    taken = sorted(LABEL_NAMES & {alias.name for alias in node.names})
+                    if taken:
+                        offenders.append(f"{where} imports {taken} from {node.module}")
+                elif isinstance(node, ast.Assign) and where != Path("app/core/labels.py"):
+                    for target in node.targets:
+                        if isinstance(target, ast.Name) and target.id in LABEL_NAMES:
+                            offenders.append(f"{where} defines {target.id}")
+    assert offenders == []
+
+
 LOCALISE_LAYERS = (
     "settings",
     "station_assignment",
@@ -101,6 +128,7 @@ LOCALISE_LAYERS = (
     "origin_free",
     "map_planes",
     "map_parts",
+    "map_faces",
     "map_evidence",
     "coverage",
     "visibility",
@@ -122,3 +150,12 @@ def test_the_localisation_package_imports_one_way():
                 if imported not in LOCALISE_LAYERS[:layer]:
                     offenders.append(f"{name} imports {module}")
     assert offenders == []
+
+
+def test_the_docs_list_the_localisation_modules_in_their_import_order():
+    """``docs/localisation.md``'s module table says each module imports only those listed
+    after it: it lists every module of the package, highest first."""
+    text = (REPOSITORY / "docs" / "localisation.md").read_text()
+    table = text.split("| module | what it holds |", 1)[1].split("\n\n", 1)[0]
+    listed = [line.split("`")[1] for line in table.splitlines() if line.startswith("| `")]
+    assert listed == list(reversed(LOCALISE_LAYERS))

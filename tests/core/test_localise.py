@@ -30,10 +30,9 @@ from app.core.datasets.scenes import (
 )
 from app.core.errors import InputError, PointCloudError
 from app.core.ground_truth import changed_iou
+from app.core.labels import LABEL_CHANGED, LABEL_UNOBSERVED
 from app.core.localise import (
     DEFAULT_PARAMETERS,
-    LABEL_CHANGED,
-    LABEL_UNOBSERVED,
     EpochCloud,
     Localisation,
     NeighbourhoodSearch,

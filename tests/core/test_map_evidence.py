@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from app.core.datasets.scenes import paper_corridor
 from app.core.labels import LABEL_CHANGED, LABEL_UNOBSERVED
 from app.core.localise import localise_changes
 from tests.helpers.fused_rooms import CHAIR, fused_room
@@ -180,35 +181,55 @@ def test_a_strip_of_a_rack_face_whose_far_face_only_the_other_path_saw_is_not_se
     assert not np.any(localisation.reference_label[strip(reference, 2.0)] == LABEL_CHANGED)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known limit (issue 29): the hidden-surface rule that fixed this lost the paper's "
-    "corridor box (tests/core/test_localise.py) and was withdrawn; locally both are one face "
-    "with the other epoch's surface 0.4-0.5 m behind it",
+@pytest.mark.parametrize(
+    ("cabinet", "axis", "seed"),
+    [
+        (([3.0, 1.6, 0.0], [4.2, 2.0, 1.0]), 1, 7),  # 40 cm deep, faces along y
+        (([2.0, 1.0, 0.0], [2.6, 2.4, 1.5]), 0, 9),  # 60 cm deep, 1.5 m tall, faces along x
+    ],
 )
-def test_an_object_each_epoch_saw_from_its_own_side_only_is_not_changed():
-    # a 40 cm deep cabinet stands in both epochs; the reference's path saw only its -y face,
-    # the scan's only its +y face.  Each face has the other epoch's far face 40 cm behind it,
-    # surface this epoch lacks, but no surface this epoch has around it on that plane: the
-    # cabinet's far face, not a wall or floor the cabinet hid.  Nothing around either face
-    # (floor, top) carries on past it either: no evidence that its place was seen empty
-    rng = np.random.default_rng(7)
-    cabinet = ([3.0, 1.6, 0.0], [4.2, 2.0, 1.0])
+def test_an_object_each_epoch_saw_from_its_own_side_only_is_not_changed(cabinet, axis, seed):
+    # a cabinet stands in both epochs; the reference's path saw only its low face along
+    # ``axis``, the scan's only its high face.  Each face has the other epoch's far face behind
+    # it, surface this epoch lacks, seen from the far side: the cabinet's top and sides join
+    # the two faces and end at both (map_faces), so it is not a wall or floor the cabinet hid.
+    # Nothing around either face (floor, top) carries on past it either: no evidence that its
+    # place was seen empty
+    rng = np.random.default_rng(seed)
     low, high = np.asarray(cabinet[0]), np.asarray(cabinet[1])
+    across = 1 - axis
 
-    def face(points, y):
+    def face(points, value):
         return (
-            (np.abs(points[:, 1] - y) < 0.01)
-            & (points[:, 0] > low[0])
-            & (points[:, 0] < high[0])
+            (np.abs(points[:, axis] - value) < 0.01)
+            & (points[:, across] > low[across])
+            & (points[:, across] < high[across])
             & (points[:, 2] > 0.0)
         )
 
     reference = fused_room(rng, box=cabinet)
-    reference = reference[~face(reference, high[1])]
+    reference = reference[~face(reference, high[axis])]
     scan = fused_room(rng, box=cabinet)
-    scan = scan[~face(scan, low[1])]
+    scan = scan[~face(scan, low[axis])]
     localisation = localise_changes(reference, scan)
     assert localisation.regions == []
-    assert not np.any(localisation.reference_label[face(reference, low[1])] == LABEL_CHANGED)
-    assert not np.any(localisation.scan_label[face(scan, high[1])] == LABEL_CHANGED)
+    assert not np.any(localisation.reference_label[face(reference, low[axis])] == LABEL_CHANGED)
+    assert not np.any(localisation.scan_label[face(scan, high[axis])] == LABEL_CHANGED)
+    # each face is a coverage difference because the other epoch's surface behind it is the
+    # cabinet's far face (before map_faces both were surface_moved regions)
+    assert localisation.parameters["reference_map_far_face_parts"] >= 1
+    assert localisation.parameters["scan_map_far_face_parts"] >= 1
+    assert {region.evidence for region in localisation.uncertain_regions} == {"no_coverage"}
+
+
+def test_the_paper_corridor_wall_moved_out_is_not_a_far_face():
+    # the paper's corridor with a third of its points moved: the whole wall x = -1 stands
+    # 0.5 m out at x = -0.5 in the scan.  Each epoch's wall has the other's 0.5 m behind or in
+    # front of it and the ceiling meets both at an edge, but the ceiling runs past both walls:
+    # nothing closes the space between them into an object, so both stay changed
+    for seed in range(3):
+        pair = paper_corridor(noise_variance=1e-4, change_fraction=0.33, random_state=seed)
+        localisation = localise_changes(pair.reference, pair.scan)
+        assert localisation.parameters["reference_map_far_face_parts"] == 0
+        assert localisation.parameters["scan_map_far_face_parts"] == 0
+        assert {region.kind for region in localisation.regions} == {"removed", "added"}

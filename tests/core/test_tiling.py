@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from app.core.cloud import PointCloud
-from app.core.datasets.lidar import lidar_pair
+from app.core.datasets.lidar import LidarPair, lidar_pair
 from app.core.datasets.maps import map_pair
 from app.core.errors import InputError
 from app.core.labels import LABEL_CHANGED
@@ -33,23 +33,40 @@ def _iou(first: np.ndarray, second: np.ndarray) -> float:
     return 1.0 if union == 0 else both / union
 
 
-def _assert_same(one: ComparisonResult, tiled: ComparisonResult) -> None:
-    """Labels IoU >= 0.99, the same regions (kinds, near-identical boxes), the same decision."""
+def _assert_same(
+    one: ComparisonResult, tiled: ComparisonResult, frame_offset: np.ndarray | None = None
+) -> None:
+    """Labels IoU >= 0.99, the same regions (kinds, near-identical boxes), the same decision.
+
+    ``frame_offset``: what the tiled comparison's files add to ``one``'s coordinates."""
+    shift = np.zeros(3) if frame_offset is None else frame_offset
     assert tiled.localisation["tiles"]["count"] >= 3, "the scene must cross tile borders"
     for name in ("reference_label", "scan_label"):
         assert _iou(getattr(one, name), getattr(tiled, name)) >= MIN_IOU, name
     assert [region.kind for region in tiled.regions] == [region.kind for region in one.regions]
     for expected, got in zip(one.regions, tiled.regions, strict=True):
-        assert np.allclose(got.bbox_min, expected.bbox_min, atol=BOX_TOLERANCE_M)
-        assert np.allclose(got.bbox_max, expected.bbox_max, atol=BOX_TOLERANCE_M)
+        assert np.allclose(got.bbox_min, expected.bbox_min + shift, atol=BOX_TOLERANCE_M)
+        assert np.allclose(got.bbox_max, expected.bbox_max + shift, atol=BOX_TOLERANCE_M)
     assert tiled.changed == one.changed
 
 
-def _both(
+@pytest.fixture(scope="module")
+def merged_station_pair() -> tuple[LidarPair, ComparisonResult]:
+    """A three-station warehouse pair and its one-process comparison (made once: the tiled and
+    the lean comparisons are both checked against it)."""
+    pair = lidar_pair(
+        layout="warehouse", change="mixed", n_stations=3, angular_step_deg=0.8, random_state=3
+    )
+    one = compare(
+        PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan), threads=1
+    )
+    return pair, one
+
+
+def _tiled(
     reference: PointCloud, scan: PointCloud, crop_fraction: float, ray_reach: float = 4.0
-) -> tuple[ComparisonResult, ComparisonResult]:
-    one = compare(reference, scan, threads=1)
-    tiled = compare_tiled(
+) -> ComparisonResult:
+    return compare_tiled(
         reference,
         scan,
         budget_bytes=1 << 40,
@@ -58,7 +75,13 @@ def _both(
         ray_reach=ray_reach,
         threads=1,
     )
-    return one, tiled
+
+
+def _both(
+    reference: PointCloud, scan: PointCloud, crop_fraction: float, ray_reach: float = 4.0
+) -> tuple[ComparisonResult, ComparisonResult]:
+    one = compare(reference, scan, threads=1)
+    return one, _tiled(reference, scan, crop_fraction, ray_reach)
 
 
 def test_single_station_pair_tiled_equals_one_process() -> None:
@@ -68,15 +91,11 @@ def test_single_station_pair_tiled_equals_one_process() -> None:
     _assert_same(one, tiled)
 
 
-def test_merged_station_pair_tiled_equals_one_process() -> None:
-    pair = lidar_pair(
-        layout="warehouse",
-        change="mixed",
-        n_stations=3,
-        angular_step_deg=0.8,
-        random_state=3,
-    )
-    one, tiled = _both(PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan), 0.6)
+def test_merged_station_pair_tiled_equals_one_process(
+    merged_station_pair: tuple[LidarPair, ComparisonResult],
+) -> None:
+    pair, one = merged_station_pair
+    tiled = _tiled(PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan), 0.6)
     _assert_same(one, tiled)
 
 
@@ -269,12 +288,13 @@ def test_a_region_cut_by_a_border_is_joined_and_kept_whole() -> None:
     assert (alone.scan_label[10:14] == LABEL_CHANGED).sum() == 0
 
 
-def test_a_georeferenced_pair_read_lean_compares_as_the_one_process(tmp_path) -> None:
+def test_a_georeferenced_pair_read_lean_compares_as_the_one_process(
+    tmp_path, merged_station_pair: tuple[LidarPair, ComparisonResult]
+) -> None:
     """Read as float32 near an offset (the CLI's read_pair when the headers say the pair will be
-    tiled): the same labels, regions in the files' frame and decision as float64 whole."""
-    pair = lidar_pair(
-        layout="warehouse", change="mixed", n_stations=3, angular_step_deg=0.8, random_state=3
-    )
+    tiled): the same labels, decision and regions (in the files' frame) as the one-process
+    comparison of the pair, float64 and whole."""
+    pair, one = merged_station_pair
     georeference = np.array([512_345.0, 4_203_210.0, 87.0])  # UTM-like: float32 alone fails
     paths = {"reference": tmp_path / "reference.npy", "scan": tmp_path / "scan.npy"}
     np.save(paths["reference"], pair.reference + georeference)
@@ -298,8 +318,7 @@ def test_a_georeferenced_pair_read_lean_compares_as_the_one_process(tmp_path) ->
         ray_reach=4.0,
         threads=1,
     )
-    one = compare(read("reference"), read("scan"), threads=1)
-    _assert_same(one, lean)
+    _assert_same(one, lean, frame_offset=georeference)
     assert lean.reference_label.shape == (len(pair.reference),)
     unfit = read_pair(paths["reference"], paths["scan"], read, budget * 100)
     assert unfit[2] is None and unfit[0].points.dtype == np.float64

@@ -15,6 +15,7 @@ from collections.abc import Callable
 
 import httpx
 import numpy as np
+import pytest
 
 from app.testing.files import room_ply
 from app.testing.service import ServiceProcess
@@ -76,6 +77,9 @@ def test_first_start_prints_a_private_token_and_children_die_with_serve(
     print(f"\nchildren gone {time.monotonic() - killed_at:.2f}s after SIGKILL of serve")
 
 
+@pytest.mark.slow  # serve SIGKILLed with a job running and one queued, restarted, both waited
+# for (lease expiry included); make test keeps a kill and restart of the whole service in
+# tests/api/test_service_flow.py and a worker killed mid-job in test_consumer_processes.py
 def test_killed_service_restarted_finishes_running_and_queued_jobs(
     service_factory: Callable[..., ServiceProcess],
 ) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 from pathlib import Path
 
 import pytest
@@ -47,3 +48,38 @@ def test_a_symbolic_link_out_of_the_data_directory_is_refused(tmp_path: Path) ->
         layout.resolve("scans/link.ply")
     with pytest.raises(StoredPathError):
         layout.stored_form(tmp_path / "data" / "scans" / "link.ply")
+
+
+def test_the_uploads_and_the_workers_pid_files_are_the_layouts(tmp_path: Path) -> None:
+    layout = DataLayout(tmp_path)
+    assert Settings(data_dir=tmp_path).uploads_dir == tmp_path / "uploads"
+    assert layout.worker_pid_file(42) == tmp_path / "run" / "worker-42"
+    assert layout.worker_pid_files() == {}  # no run directory yet
+    layout.run_dir.mkdir()
+    layout.worker_pid_file(42).touch()
+    (layout.run_dir / "doorbell").touch()
+    assert layout.worker_pid_files() == {"42": layout.worker_pid_file(42)}
+
+
+APP = Path(__file__).resolve().parents[2] / "app"
+
+
+def _joins_the_data_directory(node: ast.AST) -> bool:
+    """``<...>data_dir / <anything>``: a place under the data directory named outside the layout."""
+    if not (isinstance(node, ast.BinOp) and isinstance(node.op, ast.Div)):
+        return False
+    left = node.left
+    return (left.attr if isinstance(left, ast.Attribute) else getattr(left, "id", "")) == "data_dir"
+
+
+def test_no_module_but_the_layout_joins_the_data_directory_with_a_name() -> None:
+    """Every place under ``data_dir`` is named in :class:`DataLayout` alone (the harness and the
+    settings named ``run/``, ``admin-token`` and ``uploads/`` again)."""
+    offenders = [
+        f"{path.relative_to(APP.parent)}:{node.lineno}"
+        for path in sorted(APP.rglob("*.py"))
+        if path != APP / "kit" / "data_layout.py"
+        for node in ast.walk(ast.parse(path.read_text()))
+        if _joins_the_data_directory(node)
+    ]
+    assert offenders == []

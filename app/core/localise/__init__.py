@@ -27,7 +27,6 @@ Modules, each depending only on those below it:
 This module lists the package's public names.
 """
 
-from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
 from app.core.localise.changes import Localisation, localise_changes
 from app.core.localise.epoch import EpochCloud
 from app.core.localise.neighbourhoods import (
@@ -42,9 +41,6 @@ from app.core.localise.settings import DEFAULT_PARAMETERS
 
 __all__ = [
     "DEFAULT_PARAMETERS",
-    "LABEL_CHANGED",
-    "LABEL_UNCHANGED",
-    "LABEL_UNOBSERVED",
     "ChangedRegion",
     "EpochCloud",
     "Localisation",

@@ -22,7 +22,11 @@ judged by the geometry the two epochs share, one cluster of candidates at a time
   at the part instead of carrying on past it, and where the other epoch has no surface that
   this one lacks: the side of an object standing in both epochs that only this epoch's path
   faced.  Where the other epoch saw the place of a removed or added object, its floor, desk
-  top or wall carries on under it, or is surface this epoch lacks (the object hid it).
+  top or wall carries on under it, or is surface this epoch lacks (the object hid it).  The
+  other epoch's surface behind such a side overrides it (a wall a removed board hid), unless it
+  is the far face of the same object, seen from the far side only
+  (:func:`~app.core.localise.map_faces.far_faces`: the object's top and sides join the two
+  faces and end at both).
 
 Candidates are judged a surface part at a time (:func:`surface_parts`: connected candidates
 whose normals agree), so that a change joined to a coverage difference (a removed fence to the
@@ -47,6 +51,7 @@ from numpy.typing import NDArray
 
 from app.core.localise.distance import Side
 from app.core.localise.interface import VisibilityContext, VisibilityOutcome
+from app.core.localise.map_faces import far_faces
 from app.core.localise.map_parts import (
     PartFigures,
     near_candidates,
@@ -76,6 +81,11 @@ SURROUND_SHARE = 0.1
 has the other epoch's surface carrying on past them (or surface this epoch lacks)."""
 MIN_ADJOINING = 5
 """Fewer adjoining border points than this say nothing about a part."""
+NARROW_SURROUND_SHARE = 0.35
+"""An upright part whose adjoining border points have the other epoch's surface carrying on
+past them in less than this share is a side of an object when the surface behind it is that
+object's far face (:func:`~app.core.localise.map_faces.far_faces`): a narrow object's far face
+lies within the surround probes, and the floor beyond it carries on past part of its border."""
 SEE_THROUGH_SHARE = 0.6
 """A coverage-difference cluster is still a change when this share of its points has the
 other epoch's surface, missing from this epoch, on its normal line within
@@ -227,21 +237,36 @@ def map_test(
         counted = other_unmatched & ~gap
         return _rechecked_share(candidates, chosen, labels, share, other=other, counted=counted)
 
-    coverage, confidence, counts = _verdict(figures, see_through)
+    def far_face(check: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+        return far_faces(
+            candidates,
+            labels,
+            check,
+            own=own,
+            other=other,
+            counted=other_unmatched,
+            threshold=threshold,
+            change_threshold=change_threshold,
+            cluster_factor=cluster_factor,
+        )
+
+    coverage, confidence, counts = _verdict(figures, see_through, far_face)
     status[coverage[labels]] = STATUS_UNOBSERVED
     evidence[coverage[labels]] = EVIDENCE_NO_COVERAGE
     return MapEvidence(status, evidence, confidence[labels].astype(np.float32), counts)
 
 
 def _verdict(
-    figures: PartFigures, see_through: Any
+    figures: PartFigures, see_through: Any, far_face: Any
 ) -> tuple[NDArray[np.bool_], NDArray[np.float64], dict[str, Any]]:
     """Per part, whether it is a coverage difference and the confidence in its verdict.
 
     ``see_through(recheck, behind_share)`` recomputes the see-through share of the parts
     marked in ``recheck`` without the other epoch's surface in narrow gaps of this one's
     (:func:`_narrow_gaps`).  It only lowers a share, so only parts at or over
-    :data:`SEE_THROUGH_SHARE` are rechecked.
+    :data:`SEE_THROUGH_SHARE` are rechecked.  ``far_face(check)`` gives, per part, whether the
+    surface behind it is its object's far face and the joined share
+    (:func:`~app.core.localise.map_faces.far_faces`), for the parts marked in ``check``.
     """
     part = figures
     # the other epoch's surfaces next to the part end at it: a side of an object that stands
@@ -258,11 +283,20 @@ def _verdict(
         continuing & (part.behind_share >= SEE_THROUGH_SHARE), part.behind_share
     )
     coverage = continuing & (see_through_share < SEE_THROUGH_SHARE)
-    # an unseen side is overridden by the other epoch's surface behind it (a wall it hid);
-    # requiring that surface to continue around it in this epoch (s10/maps) lost the paper's
-    # corridor, whose whole wall moved (tests/core/test_localise.py), and was withdrawn
-    coverage |= ~part.near | (unseen_side & (part.behind_share < SEE_THROUGH_SHARE))
+    # an unseen side is overridden by the other epoch's surface behind it (a wall it hid),
+    # unless that surface is the far face of the same object, seen from its far side only
+    # (map_faces: the object's top and sides join the two faces in the other epoch).  With a
+    # far face, a narrow object's side is one too: the other epoch's floor beyond its far face
+    # lies within the surround probes, carrying on past part of its border
+    narrow_side = (
+        part.upright
+        & (part.adjoining >= MIN_ADJOINING)
+        & (part.surround_share < NARROW_SURROUND_SHARE)
+    )
+    far, joined_share = far_face(narrow_side & (part.behind_share >= SEE_THROUGH_SHARE))
+    coverage |= ~part.near | (unseen_side & (part.behind_share < SEE_THROUGH_SHARE)) | far
     side_confidence = np.where(unseen_side, 1.0 - part.surround_share, 0.0)
+    side_confidence = np.where(far, np.maximum(side_confidence, joined_share), side_confidence)
     confidence = np.where(
         coverage,
         np.where(part.near, np.maximum(part.continuation_share, side_confidence), 1.0),
@@ -275,6 +309,7 @@ def _verdict(
         "map_far_clusters": int((~part.near).sum()),
         **part.counts,
         "map_unseen_side_clusters": int((unseen_side & coverage).sum()),
+        "map_far_face_parts": int(far.sum()),
         "map_coplanar_share_median": float(np.median(part.coplanar_share)),
     }
     return coverage, confidence, counts

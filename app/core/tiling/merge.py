@@ -21,13 +21,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from app.core.errors import InputError
-from app.core.localise import (
-    LABEL_CHANGED,
-    LABEL_UNCHANGED,
-    LABEL_UNOBSERVED,
-    ChangedRegion,
-    Localisation,
-)
+from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
+from app.core.localise import ChangedRegion, Localisation
 from app.core.localise.regions import EVIDENCE_NAMES, mark_moved_surfaces
 from app.core.tiling.plan import TilePlan
 from app.core.tiling.tile import TileResult

@@ -18,7 +18,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.jsonable import json_safe
-from app.core.localise import LABEL_UNOBSERVED, EpochCloud, Localisation, localise_changes
+from app.core.labels import LABEL_UNOBSERVED
+from app.core.localise import EpochCloud, Localisation, localise_changes
 from app.core.localise.regions import EVIDENCE_NAMES
 from app.core.tiling.plan import TilePlan
 from app.core.tiling.rays import crop_mask, crop_masks
