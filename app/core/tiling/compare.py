@@ -89,6 +89,7 @@ def compare_tiled(
     margin: float = DEFAULT_MARGIN_METRES,
     ray_reach: float = DEFAULT_RAY_REACH_METRES,
     run_tiles: TileRunner | None = None,
+    ray_directions: bool = False,
     **options: Unpack[PairOptions],
 ) -> ComparisonResult:
     """:func:`app.core.pipeline.compare` localised tile by tile within ``budget_bytes``.
@@ -108,6 +109,10 @@ def compare_tiled(
     ray_reach : float
         Metres beyond a crop that the other sensor's returns through it are kept
         (:class:`~app.core.tiling.tile.TileContext`).
+    ray_directions : bool
+        Crops keep the other sensor's returns by direction too (:mod:`app.core.tiling.rays`):
+        far smaller crops round stations.  Off by default until the streamed parent
+        (:mod:`app.core.tiling.streamed`, which crops with the top view alone) does the same.
     run_tiles : callable, optional
         ``run_tiles(plan, source, context, threads, report) -> list[TileResult]`` (in tile
         order): who computes the tiles.  Default: each in turn in this process
@@ -138,6 +143,7 @@ def compare_tiled(
         margin=margin,
         ray_reach=ray_reach,
         run_tiles=run_tiles or compute_tiles_here,
+        ray_directions=ray_directions,
         detection_seed=options.get("random_state", 0),
         resident_bytes_per_point=(
             RESIDENT_BYTES_PER_POINT
@@ -187,6 +193,7 @@ class TiledLocalisation:
     registration_sample: int = REGISTRATION_SAMPLE
     detection_sample: int = DETECTION_SAMPLE
     detect_fraction: float = 0.85
+    ray_directions: bool = False
 
     @property
     def params(self) -> Mapping[str, Any]:
@@ -203,7 +210,9 @@ class TiledLocalisation:
     ) -> tuple[Localisation, int]:
         """Plan the tiles, have them computed and merge them; with the region size floor."""
         started = time.perf_counter()
-        context, source = _tile_inputs(loaded, origins, alignment, self.ray_reach)
+        context, source = _tile_inputs(
+            loaded, origins, alignment, self.ray_reach, self.ray_directions
+        )
         limit = (
             self.max_crop_points
             if self.max_crop_points is not None
@@ -235,7 +244,11 @@ class TiledLocalisation:
 
 
 def _tile_inputs(
-    loaded: LoadedPair, origins: SensorOrigins, alignment: Alignment, ray_reach: float
+    loaded: LoadedPair,
+    origins: SensorOrigins,
+    alignment: Alignment,
+    ray_reach: float,
+    ray_directions: bool = False,
 ) -> tuple[TileContext, TileSource]:
     """What every tile shares, and the points with each one's station."""
     localisation_params = dict(loaded.settings.localisation)
@@ -268,12 +281,12 @@ def _tile_inputs(
         ray_reach=ray_reach,
         # a trajectory's pseudo-stations group their rays otherwise: the top view only
         reference_ray_cells=None
-        if source.reference_rays is not None
+        if source.reference_rays is not None or not ray_directions
         else ray_cell_sizes(
             source.reference_station, len(source.reference_points), reference_origins, angle_factor
         ),
         scan_ray_cells=None
-        if source.scan_rays is not None
+        if source.scan_rays is not None or not ray_directions
         else ray_cell_sizes(
             source.scan_station, len(source.scan_points), scan_origins, angle_factor
         ),
