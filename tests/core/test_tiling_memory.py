@@ -74,6 +74,7 @@ try:
         max_crop_points=int(0.5 * (len(reference) + len(scan))),
         run_tiles=run_tiles,
         threads=2,
+        ray_directions=True,  # crops keep the returns by direction, as at 20M
     )
 except Measured:
     pass
