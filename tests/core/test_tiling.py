@@ -20,6 +20,7 @@ from app.core.tiling.plan import (
     RESIDENT_BYTES_PER_POINT,
     crop_point_limit,
 )
+from app.core.tiling.rays import crop_masks, ray_cell_sizes
 from app.core.tiling.tile import TileContext, TileSource, crop_mask
 
 MIN_IOU = 0.99
@@ -164,6 +165,47 @@ def test_a_crop_holds_the_rays_through_its_box_within_reach() -> None:
     assert crop_mask(points, None, None, low, high).tolist() == [False] * 4
     reached = crop_mask(points, None, origins, low, high, ray_reach=8.0)
     assert reached.tolist() == [True, True, False, False]
+
+
+def test_a_crop_round_a_station_keeps_the_returns_the_ray_test_reads_not_the_whole_station() -> (
+    None
+):
+    """Every ray of a station crosses its own box in the top view; by direction, the crop keeps
+    the returns within the ray test's angular reach of the other cloud's points in the box."""
+    from scipy.spatial import cKDTree
+
+    pair = lidar_pair(layout="warehouse", change="added", angular_step_deg=0.5, random_state=4)
+    origins = [pair.reference_origin.reshape(1, 3), pair.scan_origin.reshape(1, 3)]
+    clouds = [pair.reference, pair.scan]
+    low, high = origins[1][0, :2] - 1.0, origins[1][0, :2] + 1.0  # round the scan's station
+    reach, angle_factor = 8.0, 2.5
+    cells = [
+        ray_cell_sizes(None, len(c), o, angle_factor) for c, o in zip(clouds, origins, strict=True)
+    ]
+    masks = crop_masks(
+        list(zip(clouds, [None, None], origins, strict=True)), cells, low, high, reach
+    )
+    top_view = crop_mask(pair.scan, None, origins[1], low, high, reach)
+    # the ray test's view of each reference point in the box: the scan's returns within
+    # angle_factor angular steps (the median distance to the second neighbour) of its direction
+    offset = pair.scan - origins[1][0]
+    directions = offset / np.linalg.norm(offset, axis=1, keepdims=True)
+    tree = cKDTree(directions)
+    step = float(np.median(tree.query(directions[::50], k=3)[0][:, 2]))
+    in_box = np.all((pair.reference[:, :2] >= low) & (pair.reference[:, :2] <= high), axis=1)
+    seen = pair.reference[in_box] - origins[1][0]
+    needed = np.zeros(len(pair.scan), dtype=bool)
+    for found in tree.query_ball_point(
+        seen / np.linalg.norm(seen, axis=1, keepdims=True), angle_factor * step
+    ):
+        needed[found] = True
+    near = np.all((pair.scan[:, :2] >= low - reach) & (pair.scan[:, :2] <= high + reach), axis=1)
+    assert np.count_nonzero(needed & near) > 1000
+    assert masks[1][needed & near].all(), "a return the ray test reads was dropped"
+    assert top_view[masks[1]].all()  # a subset of the top view's crop
+    beyond = ~np.all((pair.scan[:, :2] >= low) & (pair.scan[:, :2] <= high), axis=1)
+    kept, crossing = np.count_nonzero(masks[1] & beyond), np.count_nonzero(top_view & beyond)
+    assert kept < 0.25 * crossing, f"the crop keeps {kept} of the station's {crossing} rays"
 
 
 def test_a_budget_too_small_for_one_tile_is_refused_with_the_budget_to_set() -> None:

@@ -35,6 +35,7 @@ from app.core.comparison.load import LoadedPair, PairOptions, load_pair
 from app.core.comparison.origins import CloudOrigins, SensorOrigins
 from app.core.localise import Localisation
 from app.core.localise.changes import _default_min_region_points
+from app.core.localise.settings import DEFAULT_PARAMETERS
 from app.core.localise.station_assignment import assign_stations
 from app.core.pipeline import ComparisonResult, ProgressCallback, run_stages
 from app.core.tiling.merge import merge_tiles
@@ -47,6 +48,7 @@ from app.core.tiling.plan import (
     crop_point_limit,
     plan_tiles,
 )
+from app.core.tiling.rays import ray_cell_sizes
 from app.core.tiling.tile import TileContext, TileResult, TileSource, compute_tile
 
 __all__ = [
@@ -87,6 +89,7 @@ def compare_tiled(
     margin: float = DEFAULT_MARGIN_METRES,
     ray_reach: float = DEFAULT_RAY_REACH_METRES,
     run_tiles: TileRunner | None = None,
+    ray_directions: bool = False,
     **options: Unpack[PairOptions],
 ) -> ComparisonResult:
     """:func:`app.core.pipeline.compare` localised tile by tile within ``budget_bytes``.
@@ -106,6 +109,10 @@ def compare_tiled(
     ray_reach : float
         Metres beyond a crop that the other sensor's returns through it are kept
         (:class:`~app.core.tiling.tile.TileContext`).
+    ray_directions : bool
+        Crops keep the other sensor's returns by direction too (:mod:`app.core.tiling.rays`):
+        far smaller crops round stations.  Off by default until the streamed parent
+        (:mod:`app.core.tiling.streamed`, which crops with the top view alone) does the same.
     run_tiles : callable, optional
         ``run_tiles(plan, source, context, threads, report) -> list[TileResult]`` (in tile
         order): who computes the tiles.  Default: each in turn in this process
@@ -136,6 +143,7 @@ def compare_tiled(
         margin=margin,
         ray_reach=ray_reach,
         run_tiles=run_tiles or compute_tiles_here,
+        ray_directions=ray_directions,
         detection_seed=options.get("random_state", 0),
         resident_bytes_per_point=(
             RESIDENT_BYTES_PER_POINT
@@ -185,6 +193,7 @@ class TiledLocalisation:
     registration_sample: int = REGISTRATION_SAMPLE
     detection_sample: int = DETECTION_SAMPLE
     detect_fraction: float = 0.85
+    ray_directions: bool = False
 
     @property
     def params(self) -> Mapping[str, Any]:
@@ -201,7 +210,9 @@ class TiledLocalisation:
     ) -> tuple[Localisation, int]:
         """Plan the tiles, have them computed and merge them; with the region size floor."""
         started = time.perf_counter()
-        context, source = _tile_inputs(loaded, origins, alignment, self.ray_reach)
+        context, source = _tile_inputs(
+            loaded, origins, alignment, self.ray_reach, self.ray_directions
+        )
         limit = (
             self.max_crop_points
             if self.max_crop_points is not None
@@ -233,31 +244,52 @@ class TiledLocalisation:
 
 
 def _tile_inputs(
-    loaded: LoadedPair, origins: SensorOrigins, alignment: Alignment, ray_reach: float
+    loaded: LoadedPair,
+    origins: SensorOrigins,
+    alignment: Alignment,
+    ray_reach: float,
+    ray_directions: bool = False,
 ) -> tuple[TileContext, TileSource]:
     """What every tile shares, and the points with each one's station."""
     localisation_params = dict(loaded.settings.localisation)
     min_region_points = localisation_params.get("min_region_points") or (
         _default_min_region_points(len(loaded.reference_points), len(alignment.aligned_scan))
     )
+    reference_origins, scan_origins = _origins(origins.reference), _origins(origins.scan)
+    source = TileSource(
+        reference_points=loaded.reference_points,
+        scan_points=alignment.aligned_scan,
+        reference_station=_stations(
+            loaded.reference_points, reference_origins, origins.reference.station
+        ),
+        scan_station=_stations(alignment.aligned_scan, scan_origins, origins.scan.station),
+        reference_rays=origins.reference.trajectory_rays,
+        scan_rays=origins.scan.trajectory_rays,
+    )
+    angle_factor = float(
+        localisation_params.get(
+            "visibility_angle_factor", DEFAULT_PARAMETERS["visibility_angle_factor"]
+        )
+    )
     context = TileContext(
-        reference_origins=_origins(origins.reference),
-        scan_origins=_origins(origins.scan),
+        reference_origins=reference_origins,
+        scan_origins=scan_origins,
         reference_stations_unknown=origins.reference.stations_unknown,
         scan_stations_unknown=origins.scan.stations_unknown,
         min_region_points=int(min_region_points),
         localisation_params=localisation_params,
         ray_reach=ray_reach,
-    )
-    source = TileSource(
-        reference_points=loaded.reference_points,
-        scan_points=alignment.aligned_scan,
-        reference_station=_stations(
-            loaded.reference_points, context.reference_origins, origins.reference.station
+        # a trajectory's pseudo-stations group their rays otherwise: the top view only
+        reference_ray_cells=None
+        if source.reference_rays is not None or not ray_directions
+        else ray_cell_sizes(
+            source.reference_station, len(source.reference_points), reference_origins, angle_factor
         ),
-        scan_station=_stations(alignment.aligned_scan, context.scan_origins, origins.scan.station),
-        reference_rays=origins.reference.trajectory_rays,
-        scan_rays=origins.scan.trajectory_rays,
+        scan_ray_cells=None
+        if source.scan_rays is not None or not ray_directions
+        else ray_cell_sizes(
+            source.scan_station, len(source.scan_points), scan_origins, angle_factor
+        ),
     )
     return context, source
 

@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.tiling.plan import TilePlan
+from app.core.tiling.rays import box_mask
 from app.core.tiling.tile import TileContext, TileCrop, TileSource, _cropped_rays, crop_mask
 
 __all__ = [
@@ -211,9 +212,9 @@ def _write_side(
             for tile_index in tiles
         ]
         for start, chunk, chunk_station in chunks():
-            xy = chunk[:, :2].astype(np.float64)
             for number, (low, high) in enumerate(boxes):
-                near = np.flatnonzero(np.all((xy >= low - reach) & (xy <= high + reach), axis=1))
+                # the box test of crop_mask itself (float32 bounds rounded outward), widened
+                near = np.flatnonzero(box_mask(chunk, low - reach, high + reach))
                 if not len(near):
                     continue
                 kept = near[

@@ -226,7 +226,7 @@ def plan_tiles(
         extent = inside.max(axis=0) - inside.min(axis=0) if len(inside) else np.zeros(2)
         axis = int(np.argmax(extent))
         cut = float(np.median(inside[:, axis])) if len(inside) else 0.0
-        if extent[axis] < 4 * margin or depth >= MAX_DEPTH:
+        if extent[axis] < 2 * margin or depth >= MAX_DEPTH:
             needed = count * LOCALISATION_BYTES_PER_POINT
             hint = (
                 f"; raise the memory budget by at least "
