@@ -101,7 +101,10 @@ def _assert_identical(first: ComparisonResult, second: ComparisonResult) -> None
     assert (first.score, first.changed) == (second.score, second.changed)
 
 
-@pytest.mark.parametrize("kind", ["stations", "trajectory"])
+@pytest.mark.parametrize(
+    "kind",
+    ["stations", pytest.param("trajectory", marks=pytest.mark.slow)],  # make test keeps one
+)
 def test_a_tiled_comparison_from_crop_files_equals_the_whole_pairs(kind, tmp_path) -> None:
     if kind == "stations":
         pair = lidar_pair(

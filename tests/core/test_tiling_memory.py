@@ -17,6 +17,8 @@ import pytest
 
 from app.core.tiling.plan import LOCALISATION_BYTES_PER_POINT
 
+pytestmark = pytest.mark.slow  # a whole tiled pair measured tile by tile in a child (~30 s)
+
 FIRST_TILE_ONE_OFF = 16 * 1024**2
 CHILD = r"""
 import json
