@@ -57,6 +57,7 @@ __all__ = [
     "compare_tiled",
     "compare_within_budget",
     "fits_budget",
+    "origin_array",
 ]
 
 REGISTRATION_SAMPLE = 2_000_000
@@ -255,7 +256,7 @@ def _tile_inputs(
     min_region_points = localisation_params.get("min_region_points") or (
         _default_min_region_points(len(loaded.reference_points), len(alignment.aligned_scan))
     )
-    reference_origins, scan_origins = _origins(origins.reference), _origins(origins.scan)
+    reference_origins, scan_origins = origin_array(origins.reference), origin_array(origins.scan)
     source = TileSource(
         reference_points=loaded.reference_points,
         scan_points=alignment.aligned_scan,
@@ -294,7 +295,7 @@ def _tile_inputs(
     return context, source
 
 
-def _origins(cloud: CloudOrigins) -> NDArray[np.float64] | None:
+def origin_array(cloud: CloudOrigins) -> NDArray[np.float64] | None:
     """A cloud's origins as a (k, 3) array, or None."""
     return None if cloud.origin is None else np.atleast_2d(cloud.origin).astype(np.float64)
 

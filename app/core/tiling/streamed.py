@@ -52,7 +52,7 @@ from app.core.localise.changes import _default_min_region_points
 from app.core.localise.station_assignment import best_stations, station_contrasts
 from app.core.pipeline import ComparisonResult, ProgressCallback, run_stages
 from app.core.threads import available_threads
-from app.core.tiling.compare import REGISTRATION_SAMPLE, TileRunner, _origins
+from app.core.tiling.compare import REGISTRATION_SAMPLE, TileRunner, origin_array
 from app.core.tiling.crops import TileCropFiles, record_dtype, write_crops_from_chunks
 from app.core.tiling.merge import join_regions, merged_parameters
 from app.core.tiling.pair_files import (
@@ -221,8 +221,8 @@ class StreamedLocalisation:
             self.reference.n_points, self.scan.n_points
         )
         return TileContext(
-            reference_origins=_origins(origins.reference),
-            scan_origins=_origins(origins.scan),
+            reference_origins=origin_array(origins.reference),
+            scan_origins=origin_array(origins.scan),
             reference_stations_unknown=origins.reference.stations_unknown,
             scan_stations_unknown=origins.scan.stations_unknown,
             min_region_points=int(min_region_points),
