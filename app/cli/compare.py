@@ -285,6 +285,18 @@ CLI_FIXES_OF_ERRORS = {"skip_alignment": " (--no-align)"}
 """The CLI's flag for each ``how_to_fix`` a core error names."""
 
 
+def _pipeline_options(args: argparse.Namespace, params: dict[str, Any]) -> dict[str, Any]:
+    """The comparison's options from the command line, the same for every path it takes."""
+    return {
+        "method": args.method,
+        "variant": args.variant,
+        "align": not args.no_align,
+        "random_state": args.seed,
+        "params": params,
+        "progress": _StageProgress(),
+    }
+
+
 def _export(
     path: Path,
     reference: PointCloud,
@@ -416,12 +428,7 @@ def run(args: argparse.Namespace) -> int:
             scan,
             budget_bytes=budget,
             frame_offset=frame_offset,
-            method=args.method,
-            variant=args.variant,
-            align=not args.no_align,
-            random_state=args.seed,
-            params=params,
-            progress=_StageProgress(),
+            **_pipeline_options(args, params),
             geometry_cache=_geometry_cache(args.geometry_cache, args.reference, params),
         )
         result.timings["load"] = load_seconds
@@ -478,12 +485,7 @@ def _compare_streamed(
         args.scan,
         budget_bytes=budget,
         work_dir=work_dir,
-        method=args.method,
-        variant=args.variant,
-        align=not args.no_align,
-        random_state=args.seed,
-        params=params,
-        progress=_StageProgress(),
+        **_pipeline_options(args, params),
     )
     result.timings["streamed"] = time.perf_counter() - started
     outputs = streamed_outputs(result)

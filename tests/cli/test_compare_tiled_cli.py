@@ -44,13 +44,20 @@ def pair_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, in
     return paths[0], paths[1], len(pair.reference) + len(pair.scan)
 
 
+def _budget_just_over(total: int) -> int:
+    """A budget the pair is just over, read lean (float32 whole clouds: app.core.tiling.lean)."""
+    return (
+        BASELINE_BYTES
+        + total * LEAN_RESIDENT_BYTES_PER_POINT
+        + int(0.97 * total) * LOCALISATION_BYTES_PER_POINT
+    )
+
+
 def test_a_pair_over_the_budget_is_compared_in_tiles(
     tmp_path: Path, pair_files: tuple[Path, Path, int]
 ) -> None:
     reference, scan, total = pair_files
-    # the pair just over it, read lean (float32 whole clouds: app.core.tiling.lean)
-    budget = BASELINE_BYTES + total * LEAN_RESIDENT_BYTES_PER_POINT
-    budget += int(0.97 * total) * LOCALISATION_BYTES_PER_POINT
+    budget = _budget_just_over(total)
     labels = tmp_path / "labels.npz"
     done = run_compare(
         reference, scan, "--json", "--labels", labels, "--memory-budget", str(budget)
@@ -97,8 +104,7 @@ def test_a_pair_over_the_budget_is_streamed_and_equals_the_lean_tiled_comparison
     from app.core.tiling.lean import read_pair
 
     reference, scan, total = pair_files
-    budget = BASELINE_BYTES + total * LEAN_RESIDENT_BYTES_PER_POINT
-    budget += int(0.97 * total) * LOCALISATION_BYTES_PER_POINT
+    budget = _budget_just_over(total)
     labels = tmp_path / "labels.npz"
     done = run_compare(
         reference, scan, "--json", "--labels", labels, "--memory-budget", str(budget)
