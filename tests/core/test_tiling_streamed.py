@@ -43,12 +43,14 @@ def _write_pair(tmp_path: Path, n_stations: int, random_state: int, shift: float
     return paths
 
 
-def _lean_tiled(paths: list[Path], crop_points: int) -> ComparisonResult:
+def _lean_tiled(paths: list[Path], crop_points: int, **options) -> ComparisonResult:
     """What the CLI runs on a pair over its budget: both read lean, then compare_tiled."""
     reference = read_point_cloud(paths[0])
     offset = choose_local_origin(reference.points)
     clouds = [float32_cloud(reference, offset), float32_cloud(read_point_cloud(paths[1]), offset)]
-    return compare_tiled(*clouds, max_crop_points=crop_points, frame_offset=offset, **OPTIONS)
+    return compare_tiled(
+        *clouds, max_crop_points=crop_points, frame_offset=offset, **OPTIONS, **options
+    )
 
 
 def _assert_identical(streamed: ComparisonResult, tiled: ComparisonResult) -> None:
@@ -69,20 +71,39 @@ def _assert_identical(streamed: ComparisonResult, tiled: ComparisonResult) -> No
     assert streamed.localisation["tiles"] == tiled.localisation["tiles"]
 
 
-@pytest.mark.parametrize(("n_stations", "random_state", "shift"), [(3, 3, 0.0), (1, 5, 452_000.0)])
+def _crop_sizes(result: ComparisonResult) -> list[int]:
+    """Points of both clouds in each tile's crop."""
+    return [
+        tile["crop_reference_points"] + tile["crop_scan_points"]
+        for tile in result.localisation["tiles"]["per_tile"]
+    ]
+
+
+@pytest.mark.parametrize(
+    ("n_stations", "random_state", "shift", "ray_directions"),
+    [(3, 3, 0.0, True), (3, 3, 0.0, False), (1, 5, 452_000.0, True)],
+)
 def test_a_streamed_comparison_equals_the_lean_tiled_one(
-    tmp_path, n_stations, random_state, shift
+    tmp_path, n_stations, random_state, shift, ray_directions
 ) -> None:
     paths = _write_pair(tmp_path, n_stations, random_state, shift)
     n_points = sum(len(read_point_cloud(path)) for path in paths)
     crop_points = int(0.6 * n_points)
-    tiled = _lean_tiled(paths, crop_points)
+    tiled = _lean_tiled(paths, crop_points, ray_directions=ray_directions)
     assert tiled.localisation["tiles"]["count"] >= 3, "the scene crosses tile borders"
     assert tiled.regions, "the scene has changes"
+    crop_sizes = _crop_sizes(tiled)
     streamed = compare_streamed(
-        *paths, work_dir=tmp_path / "work", max_crop_points=crop_points, **OPTIONS
+        *paths,
+        work_dir=tmp_path / "work",
+        max_crop_points=crop_points,
+        ray_directions=ray_directions,
+        **OPTIONS,
     )
-    _assert_identical(streamed, tiled)
+    _assert_identical(streamed, tiled)  # the same plan, crops and labels, directions or not
+    if n_stations > 1 and ray_directions:  # the filter keeps fewer of the other's returns
+        top_view = _lean_tiled(paths, crop_points, ray_directions=False)
+        assert sum(crop_sizes) < sum(_crop_sizes(top_view))
     assert isinstance(streamed.reference_label, np.memmap), "the labels stay on disk"
     outputs = streamed_outputs(streamed)
     assert outputs is not None and streamed_outputs(tiled) is None
