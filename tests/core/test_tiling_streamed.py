@@ -14,13 +14,20 @@ import numpy as np
 import pytest
 
 from app.core.cloud import PointCloud, choose_local_origin
-from app.core.datasets.lidar import lidar_pair
+from app.core.datasets.lidar import lidar_pair, steps_for_points
 from app.core.formats import read_point_cloud
 from app.core.labels import LABEL_CHANGED
+from app.core.origins.sampling import lidar_sampling
+from app.core.origins.station_recovery import measured_sampling
 from app.core.pipeline import ComparisonResult
 from app.core.tiling.compare import compare_tiled
 from app.core.tiling.lean import float32_cloud
-from app.core.tiling.pair_files import streamed_outputs, write_details_npz, write_labels_npz
+from app.core.tiling.pair_files import (
+    streamed_outputs,
+    survey,
+    write_details_npz,
+    write_labels_npz,
+)
 from app.core.tiling.streamed import compare_streamed
 from app.testing.files import ply_bytes
 
@@ -188,3 +195,25 @@ def test_the_stages_see_only_the_subsample(tmp_path) -> None:
     finally:
         module.load_pair = original  # type: ignore[assignment]
     assert seen[0] <= n_points // 10 + 1
+
+
+def test_a_subsampled_file_is_lidar_tested_on_whole_voxels_at_full_density(tmp_path) -> None:
+    # an even subsample of a shuffled file thins every ring at random: its twins are gone
+    # (the 20M pair's 2M-point subsample was judged not lidar-like, issue 30)
+    survey_pair = lidar_pair(
+        layout="room",
+        change="none",
+        n_stations=3,
+        angular_step_deg=steps_for_points(120_000, 3),
+        range_noise=0.08,
+        random_state=3,
+    )
+    path = tmp_path / "reference.ply"
+    path.write_bytes(ply_bytes(survey_pair.reference))
+    cloud, subsample, voxels = survey(path, None, len(survey_pair.reference) // 4)
+    assert cloud.step == 4 and voxels is not None
+    assert not lidar_sampling(subsample).lidar_like
+    assert lidar_sampling(survey_pair.reference).lidar_like
+    whole = PointCloud(subsample, None, len(subsample), sampling_points=voxels)  # type: ignore[arg-type]
+    assert measured_sampling(subsample, whole, 0).lidar_like
+    assert survey(path, None, len(survey_pair.reference))[2] is None  # no subsample, no voxels

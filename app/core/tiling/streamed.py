@@ -476,7 +476,7 @@ def compare_streamed(
     work_dir.mkdir(parents=True, exist_ok=True)
     threads = options.get("threads") or available_threads()
     with ThreadPoolExecutor(max_workers=2 if threads >= 2 else 1) as pool:  # one file each
-        (reference, reference_sub), (scan, scan_sub) = pool.map(
+        (reference, reference_sub, reference_voxels), (scan, scan_sub, scan_voxels) = pool.map(
             lambda number: survey(
                 Path((reference_path, scan_path)[number]), formats[number], subsample_points
             ),
@@ -484,8 +484,13 @@ def compare_streamed(
         )
     offset = choose_local_origin(np.stack([reference.low, reference.high]))
     clouds = [
-        PointCloud((sub - offset).astype(np.float32), None, len(sub))  # type: ignore[call-arg]
-        for sub in (reference_sub, scan_sub)
+        PointCloud(
+            (sub - offset).astype(np.float32),
+            None,  # type: ignore[arg-type]
+            len(sub),
+            sampling_points=None if voxels is None else voxels - offset,
+        )
+        for sub, voxels in ((reference_sub, reference_voxels), (scan_sub, scan_voxels))
     ]
     del reference_sub, scan_sub
     loaded = load_pair(clouds[0], clouds[1], frame_offset=offset, **options)
