@@ -74,6 +74,34 @@ def _write_pair_here(scene_dir: Path, n_points: int) -> None:
     write_binary_ply(scene_dir / "scan.ply", pair.scan)
 
 
+def _write_pair_streamed(scene_dir: Path, n_points: int) -> None:
+    """The same pair as :func:`_write_pair_here` (same points, in station order), written station
+    by station in bounded memory (:func:`app.core.datasets.lidar_files.write_lidar_pair`), with
+    ``truth.npz`` (the changed rows, stations, boxes) beside it; prints its sizes and peak RSS."""
+    from app.core.datasets.lidar import steps_for_points
+    from app.core.datasets.lidar_files import write_lidar_pair
+
+    written = write_lidar_pair(
+        scene_dir,
+        layout="warehouse",
+        change="added",
+        n_stations=N_STATIONS,
+        angular_step_deg=steps_for_points(n_points, N_STATIONS),
+        misaligned=True,
+        random_state=SCENE_SEED,
+    )
+    print(
+        json.dumps(
+            {
+                "points": [written.n_reference, written.n_scan],
+                "bytes": [written.reference_path.stat().st_size, written.scan_path.stat().st_size],
+                "peak_rss_mb": round(_rss_bytes("VmHWM") / 1024**2),
+            }
+        ),
+        flush=True,
+    )
+
+
 def run_compare(paths: dict[str, Path], labels: Path, budget: str | None) -> dict[str, Any]:
     """The command as a child: wall, CPU, peak RSS and its JSON report."""
     arguments = [str(SCANDIFF), "compare", str(paths["reference"]), str(paths["scan"])]
@@ -252,6 +280,12 @@ def main() -> None:
     parser.add_argument("--memory-budget", default="2.5G")
     parser.add_argument("--one-process", action="store_true")
     parser.add_argument("--write-pair", nargs=2, metavar=("DIR", "POINTS"))
+    parser.add_argument(
+        "--write-pair-streamed",
+        nargs=2,
+        metavar=("DIR", "POINTS"),
+        help="the same pair in station order, written in bounded memory (any size)",
+    )
     parser.add_argument("--floor-worker", metavar="JSON")
     parser.add_argument("--measure-model", type=Path, metavar="DIR")
     parser.add_argument("--model-worker", nargs=2, metavar=("DIR", "FRACTION"))
@@ -268,6 +302,9 @@ def main() -> None:
         return
     if args.stage_memory:
         stage_memory(args.stage_memory, args.memory_budget)
+        return
+    if args.write_pair_streamed:
+        _write_pair_streamed(Path(args.write_pair_streamed[0]), int(args.write_pair_streamed[1]))
         return
     if args.write_pair:
         _write_pair_here(Path(args.write_pair[0]), int(args.write_pair[1]))
