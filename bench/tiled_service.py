@@ -184,6 +184,7 @@ def run_service(
     job_threads: int | None = None,
     memory_budget: int | None = None,
     timeout: float = JOB_TIMEOUT_SECONDS,
+    job_params: dict[str, Any] | None = None,
 ) -> dict:
     """Seconds from the scan's POST to ``succeeded``, its labels, who computed the tiles and
     the peak RSS of every process of the service (``crop_points`` 0: not forced, the tiles
@@ -199,7 +200,10 @@ def run_service(
     service = Service(data_dir, workers, env)
     labels_path = work / f"labels-{workers}.npz"
     with service as client:
-        site = client.post("/api/v1/sites", json={"name": "bench"}).json()
+        detector = {"detector": {"method": "gmm", "params": job_params}} if job_params else {}
+        created = client.post("/api/v1/sites", json={"name": "bench", **detector})
+        created.raise_for_status()
+        site = created.json()
         path = f"/api/v1/sites/{site['id']}/scans"
         upload(client, path, files[0], {"reference": "true", "filename": "reference.ply"})
         print(f"reference stored ({time.strftime('%H:%M:%S')})", flush=True)
@@ -466,6 +470,11 @@ def main(argv: list[str] | None = None) -> int:
         help="seconds a job may take before the run gives up (a 100M pair: hours)",
     )
     parser.add_argument(
+        "--job-params",
+        default=None,
+        help="the site's detector params (JSON), e.g. '{\"recover_stations\": false}'",
+    )
+    parser.add_argument(
         "--work-dir",
         type=Path,
         default=None,
@@ -531,6 +540,7 @@ def main(argv: list[str] | None = None) -> int:
                 arguments.job_threads,
                 arguments.memory_budget,
                 arguments.job_timeout,
+                json.loads(arguments.job_params) if arguments.job_params else None,
             )
             for workers in map(int, arguments.workers.split(","))
         }
