@@ -120,6 +120,16 @@ class JobOutcome(StrEnum):
     """Another worker took the job over; nothing was written."""
 
 
+class TileOutcome(StrEnum):
+    """What one ``run_tile`` message did (:func:`app.jobs.tiles.run_tile_message`)."""
+
+    COMPUTED = "computed"
+    SKIPPED = "skipped"
+    """Done, or taken by a live worker; or the job waits for its next worker, who resumes it."""
+    CANCELLED = "cancelled"
+    """The job no longer runs (finished, failed or deleted): its open tiles are cancelled."""
+
+
 @dataclass(frozen=True)
 class ClaimedJob:
     """What a worker needs to run a job it has claimed."""
