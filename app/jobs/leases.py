@@ -186,9 +186,10 @@ def claim_job(
     job_id: str, settings: Settings, owner: str, now: datetime | None = None
 ) -> ClaimedJob | None:
     """Atomically take job ``job_id`` for ``owner``; None if it needs no run (or is used up)."""
-    now = now or utc_now()
-    lease_until = now + timedelta(seconds=settings.job_lease_seconds)
     with transaction(settings.sqlalchemy_url) as session:
+        session.connection()  # SQLite: BEGIN IMMEDIATE waits for the write lock here, so ...
+        now = now or utc_now()  # ... a lease is never born expired by that wait
+        lease_until = now + timedelta(seconds=settings.job_lease_seconds)
         claimed = session.execute(
             update(Job)
             .where(Job.id == job_id, Job.attempts < Job.max_attempts, claimable(now))

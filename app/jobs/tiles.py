@@ -154,12 +154,13 @@ def claim_tile(
 
     Free: ``queued``, or ``running`` with an expired lease (its worker died).
     """
-    now = utc_now()
-    free = or_(
-        JobTile.status == TileStatus.QUEUED,
-        and_(JobTile.status == TileStatus.RUNNING, JobTile.lease_expires_at < now),
-    )
     with transaction(settings.sqlalchemy_url) as session:
+        session.connection()  # SQLite: BEGIN IMMEDIATE waits for the write lock here, so ...
+        now = utc_now()  # ... a lease is never born expired by that wait
+        free = or_(
+            JobTile.status == TileStatus.QUEUED,
+            and_(JobTile.status == TileStatus.RUNNING, JobTile.lease_expires_at < now),
+        )
         job_running = session.scalar(
             select(Job.id).where(Job.id == job_id, Job.status == JobStatus.RUNNING)
         )
