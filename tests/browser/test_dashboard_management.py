@@ -228,7 +228,10 @@ def test_jobs_name_files_regions_table_and_rerun(api: ApiServer, chrome_factory)
         assert all(CENTIMETRES.match(value) for value in cells[5:7]), cells
         assert all(CENTIMETRES.match(value) for value in cells[3].split(", ")), cells
         assert all(CENTIMETRES.match(value) for value in cells[4].split(" × ")), cells
-    by_css(driver, "#regions-next").click()
+    by_css(driver, "#regions-next").click()  # each page once the one before has come
+    wait_until(
+        lambda: "26–50 of 60" in by_css(driver, "#regions-summary").text, 10, "no second page"
+    )
     by_css(driver, "#regions-next").click()
     wait_until(lambda: len(rows(driver, "#regions-table tbody tr")) == 10, 10, "no last page")
     assert by_css(driver, "#regions-next").get_attribute("disabled") is not None
