@@ -54,6 +54,8 @@ from app.core.localise.distance import Side
 from app.core.localise.interface import VisibilityContext, VisibilityOutcome
 from app.core.localise.map_faces import far_faces
 from app.core.localise.map_parts import (
+    SEE_THROUGH_REACH,
+    SPARSE_PROBE_FACTOR,
     PartFigures,
     near_candidates,
     part_figures,
@@ -61,7 +63,8 @@ from app.core.localise.map_parts import (
     surface_parts,
     unmatched_points,
 )
-from app.core.localise.map_planes import coplanar_sectors
+from app.core.localise.map_planes import coplanar_sectors, level_surface_below
+from app.core.localise.origin_free import BEHIND_MIN_RADIUS
 from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED, Candidates
 from app.core.localise.regions import EVIDENCE_NO_COVERAGE, EVIDENCE_SEEN_EMPTY
 
@@ -243,8 +246,19 @@ def map_test(
         share = np.zeros(recheck.shape[0])
         if chosen.shape[0] == 0:
             return share
-        everything = np.ones(other.points.shape[0], dtype=bool)
-        return _rechecked_share(candidates, chosen, labels, share, other=other, counted=everything)
+        below = level_surface_below(
+            candidates.points[chosen],
+            other.geometry,
+            SEE_THROUGH_REACH,
+            max(BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))),
+        )
+        parts = np.unique(labels[chosen])
+        hits = np.bincount(
+            labels[chosen], weights=below.astype(np.float64), minlength=share.shape[0]
+        )
+        sizes = np.bincount(labels[chosen], minlength=share.shape[0])
+        share[parts] = hits[parts] / np.maximum(sizes[parts], 1)
+        return share
 
     def far_face(check: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
         return far_faces(

@@ -55,6 +55,10 @@ ADJOINING_FACTOR = 2.0
 SURROUND_SECTORS = 6
 """The adjoining surface carries on past a border point when it lies in this many of
 :data:`SECTORS` directions around the point's foot."""
+MIN_SURFACE_SECTORS = 3
+"""The other epoch's surface adjoins a border point only where it lies in this many of
+:data:`SECTORS` directions around the point's foot (a surface ending at the point's edge fills
+four)."""
 EDGE_COSINE = math.cos(math.radians(60.0))
 """A surface adjoins a border point at an edge when the normals' cosine is below this."""
 UPRIGHT_NORMAL_Z = 0.5
@@ -188,6 +192,26 @@ def _supports(unit: NDArray[np.float64], height: NDArray[np.float64]) -> NDArray
     return level & (height * np.sign(unit[:, 2]) > 0.0)
 
 
+def _clear_of_edge(
+    offset: NDArray[np.float64],
+    own_normal: NDArray[np.floating],
+    unit: NDArray[np.float64],
+    margin: float,
+) -> NDArray[np.bool_]:
+    """Which offsets on the adjoining plane lie farther than ``margin`` from the line where
+    the point's own surface meets that plane (shapes (b, k, 3), (b, 3), (b, 3) -> (b, k)).
+
+    A surface that ends at the point's edge (a box's side under the rim of its top) has its
+    last rows of samples along that line, spread a little to both sides by noise: counted,
+    they fill the directions next to the line on the far side as well, and the surface seems
+    to carry on past the point (6 of 8 directions where a half-plane fills 4).  Only samples
+    clear of the line tell on which sides of it the surface lies."""
+    edge = np.cross(own_normal.astype(np.float64), unit)
+    edge /= np.maximum(np.linalg.norm(edge, axis=1), 1e-12)[:, None]
+    across = np.cross(unit, edge)
+    return np.abs(np.einsum("bkd,bd->bk", offset, across)) > margin
+
+
 def _surrounded(
     points: NDArray[np.float64],
     own_normal: NDArray[np.floating],
@@ -261,6 +285,7 @@ def _surrounded(
                 np.abs(np.einsum("ckd,cd->ck", other.normal[index].astype(np.float64), unit))
                 >= NORMAL_AGREEMENT_COSINE
             )
+            & _clear_of_edge(offset, own_normal[chunk], unit, tolerance)
         )
         _, directions = tangent_directions(unit, 4)
         first, second = directions[:, 0, :], directions[:, 1, :]
@@ -273,6 +298,9 @@ def _surrounded(
         rows = np.broadcast_to(np.arange(query.shape[0])[:, None], sector.shape)
         taken[rows[on_plane], sector[on_plane]] = True
         surrounded[chunk] = taken.sum(axis=1)
+        # a surface spans its plane: a few points along a line (a sparse scan line, an edge
+        # with tilted normals) take at most two opposite directions
+        adjoining[chunk] &= surrounded[chunk] >= MIN_SURFACE_SECTORS
         # a surface that this epoch lacks next to the point: the object hid it here
         surrounded[chunk][other_unmatched[nearest]] = SECTORS
         adjoining[chunk] &= ~(support & (surrounded[chunk] < SURROUND_SECTORS))
