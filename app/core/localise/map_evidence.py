@@ -293,10 +293,12 @@ def unseen_faces(figures: PartFigures) -> NDArray[np.bool_]:
     at a part is no evidence either way (:func:`~app.core.localise.map_parts._supports`).
     Tops were left out before (s10): on six seeds of RGB-D rooms, horizontal parts meeting
     this rule carry 1,800 false changed points on unseen tops and desk strips and 71 true ones.
-    A top is one only when the other epoch has no surface under most of it within
-    :data:`~app.core.localise.map_parts.SEE_THROUGH_REACH` (:func:`_verdict`): a solid
-    object's body hides everything under its top, while under a removed table the other epoch
-    saw the floor (the real classroom's table, whose rim a lower desk and a chair meet).
+    A top is one only when the other epoch has no level surface straight under most of it
+    within :data:`~app.core.localise.map_parts.SEE_THROUGH_REACH` (:func:`_verdict`,
+    :func:`~app.core.localise.map_planes.level_surface_below`): a solid object's body hides
+    everything under its top, while under a removed table the other epoch saw the floor (the
+    real classroom's table).  Until s12 that probe looked up as well and reached 1.42 m: it
+    found the ceiling over a box's top as often as what lay under it.
     """
     return (figures.adjoining >= MIN_ADJOINING) & (figures.surround_share < SURROUND_SHARE)
 
@@ -310,7 +312,7 @@ def _verdict(
     marked in ``recheck`` without the other epoch's surface in narrow gaps of this one's
     (:func:`_narrow_gaps`).  It only lowers a share, so only parts at or over
     :data:`SEE_THROUGH_SHARE` are rechecked.  ``open_beneath(recheck)`` gives the share of
-    the marked parts' points with any of the other epoch's surface on their normal lines
+    the marked parts' points with a level surface of the other epoch straight under them
     (:func:`unseen_faces`: an unseen top has its object's body under it).
     ``far_face(check)`` gives, per part, whether the surface behind it is its object's far
     face and the joined share (:func:`~app.core.localise.map_faces.far_faces`), for the parts
