@@ -120,6 +120,16 @@ class JobOutcome(StrEnum):
     """Another worker took the job over; nothing was written."""
 
 
+class TileOutcome(StrEnum):
+    """What one ``run_tile`` message did (:func:`app.jobs.tiles.run_tile_message`)."""
+
+    COMPUTED = "computed"
+    SKIPPED = "skipped"
+    """Done, or taken by a live worker; or the job waits for its next worker, who resumes it."""
+    CANCELLED = "cancelled"
+    """The job no longer runs (finished, failed or deleted): its open tiles are cancelled."""
+
+
 @dataclass(frozen=True)
 class ClaimedJob:
     """What a worker needs to run a job it has claimed."""
@@ -176,9 +186,10 @@ def claim_job(
     job_id: str, settings: Settings, owner: str, now: datetime | None = None
 ) -> ClaimedJob | None:
     """Atomically take job ``job_id`` for ``owner``; None if it needs no run (or is used up)."""
-    now = now or utc_now()
-    lease_until = now + timedelta(seconds=settings.job_lease_seconds)
     with transaction(settings.sqlalchemy_url) as session:
+        session.connection()  # SQLite: BEGIN IMMEDIATE waits for the write lock here, so ...
+        now = now or utc_now()  # ... a lease is never born expired by that wait
+        lease_until = now + timedelta(seconds=settings.job_lease_seconds)
         claimed = session.execute(
             update(Job)
             .where(Job.id == job_id, Job.attempts < Job.max_attempts, claimable(now))

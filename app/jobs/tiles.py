@@ -51,7 +51,7 @@ from app.core.tiling.pair_files import StoredTileResults
 from app.db.models import Job, JobStatus, JobTile, TileStatus
 from app.db.session import transaction
 from app.jobs.hooks import job_hooks
-from app.jobs.leases import ClaimedJob, LeaseKeeper, make_lease_owner
+from app.jobs.leases import ClaimedJob, LeaseKeeper, TileOutcome, make_lease_owner
 from app.jobs.queue import send_tile_messages
 
 logger = logging.getLogger("scandiff.jobs.tiles")
@@ -154,12 +154,13 @@ def claim_tile(
 
     Free: ``queued``, or ``running`` with an expired lease (its worker died).
     """
-    now = utc_now()
-    free = or_(
-        JobTile.status == TileStatus.QUEUED,
-        and_(JobTile.status == TileStatus.RUNNING, JobTile.lease_expires_at < now),
-    )
     with transaction(settings.sqlalchemy_url) as session:
+        session.connection()  # SQLite: BEGIN IMMEDIATE waits for the write lock here, so ...
+        now = utc_now()  # ... a lease is never born expired by that wait
+        free = or_(
+            JobTile.status == TileStatus.QUEUED,
+            and_(JobTile.status == TileStatus.RUNNING, JobTile.lease_expires_at < now),
+        )
         job_running = session.scalar(
             select(Job.id).where(Job.id == job_id, Job.status == JobStatus.RUNNING)
         )
@@ -303,23 +304,19 @@ def remove_tile_inputs(settings: Settings, job_id: str) -> None:
 
 def run_tile_message(
     job_id: str, tile_index: int, settings: Settings, threads: int | None = None
-) -> str:
-    """What a worker does with one ``run_tile`` message; what happened (for logs and tests).
-
-    ``computed``; ``skipped`` (done, or taken by a live worker); ``cancelled`` (the job no
-    longer runs).
-    """
+) -> TileOutcome:
+    """What a worker does with one ``run_tile`` message; what happened (for logs and tests)."""
     owner = make_lease_owner()
     claimed = claim_tile(settings, job_id, owner, tile_index)
     if claimed is None:
         with transaction(settings.sqlalchemy_url) as session:
             status = session.scalar(select(Job.status).where(Job.id == job_id))
         if status in (JobStatus.RUNNING, JobStatus.QUEUED):
-            return "skipped"  # done or taken; or the job waits for its next worker, who resumes
+            return TileOutcome.SKIPPED
         cancel_tiles(settings, job_id)  # finished, failed or deleted: nothing will read it
-        return "cancelled"
+        return TileOutcome.CANCELLED
     stored = run_claimed_tile(settings, job_id, claimed, owner, threads)
-    return "computed" if stored else "cancelled"
+    return TileOutcome.COMPUTED if stored else TileOutcome.CANCELLED
 
 
 def largest_first(plan: TilePlan, tile_indices: list[int]) -> list[int]:

@@ -22,6 +22,7 @@ from app.core.tiling.plan import (
 )
 from app.core.tiling.rays import crop_masks, ray_cell_sizes
 from app.core.tiling.tile import TileContext, TileSource, crop_mask
+from tests.helpers.tiling import CropChecker, assert_identical_results
 
 MIN_IOU = 0.99
 BOX_TOLERANCE_M = 0.15
@@ -63,6 +64,15 @@ def merged_station_pair() -> tuple[LidarPair, ComparisonResult]:
     return pair, one
 
 
+@pytest.fixture(scope="module")
+def merged_station_tiled(
+    merged_station_pair: tuple[LidarPair, ComparisonResult],
+) -> ComparisonResult:
+    """The same pair compared in tiles in this process (the crop-file test checks against it)."""
+    pair, _ = merged_station_pair
+    return _tiled(PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan), 0.6)
+
+
 def _tiled(
     reference: PointCloud, scan: PointCloud, crop_fraction: float, ray_reach: float = 4.0
 ) -> ComparisonResult:
@@ -85,18 +95,42 @@ def _both(
 
 
 def test_single_station_pair_tiled_equals_one_process() -> None:
-    pair = lidar_pair(layout="warehouse", change="mixed", angular_step_deg=0.6, random_state=3)
+    pair = lidar_pair(layout="warehouse", change="mixed", angular_step_deg=0.8, random_state=3)
     one, tiled = _both(PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan), 0.9)
     assert one.regions, "the scene has changes"
     _assert_same(one, tiled)
 
 
 def test_merged_station_pair_tiled_equals_one_process(
-    merged_station_pair: tuple[LidarPair, ComparisonResult],
+    merged_station_pair: tuple[LidarPair, ComparisonResult], merged_station_tiled: ComparisonResult
 ) -> None:
-    pair, one = merged_station_pair
-    tiled = _tiled(PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan), 0.6)
-    _assert_same(one, tiled)
+    _assert_same(merged_station_pair[1], merged_station_tiled)
+
+
+def test_tiles_computed_from_their_crop_files_equal_the_tiles_of_the_whole_pair(
+    tmp_path,
+    merged_station_pair: tuple[LidarPair, ComparisonResult],
+    merged_station_tiled: ComparisonResult,
+) -> None:
+    """Each tile's crop written to files of its own in one pass (app.core.tiling.crops), small
+    chunks cutting the clouds anywhere: the same points, order and stations as the whole pair's
+    crop, so the merged comparison is identical (a moving-sensor map: make test-slow)."""
+    pair, _ = merged_station_pair
+    reference, scan = PointCloud.from_array(pair.reference), PointCloud.from_array(pair.scan)
+    checker = CropChecker(tmp_path / "crops")
+    from_files = compare_tiled(
+        reference,
+        scan,
+        budget_bytes=1 << 40,
+        max_crop_points=int(0.6 * (len(reference) + len(scan))),
+        margin=1.0,
+        ray_reach=4.0,
+        threads=1,
+        run_tiles=checker,
+    )
+    assert len(checker.crop_sizes) >= 2 and checker.stations_seen
+    assert max(checker.crop_sizes) < 0.9 * (len(reference) + len(scan)), "no tile holds all"
+    assert_identical_results(from_files, merged_station_tiled)
 
 
 def test_moving_sensor_map_tiled_equals_one_process() -> None:
@@ -174,7 +208,7 @@ def test_a_crop_round_a_station_keeps_the_returns_the_ray_test_reads_not_the_who
     the returns within the ray test's angular reach of the other cloud's points in the box."""
     from scipy.spatial import cKDTree
 
-    pair = lidar_pair(layout="warehouse", change="added", angular_step_deg=0.5, random_state=4)
+    pair = lidar_pair(layout="warehouse", change="added", angular_step_deg=0.7, random_state=4)
     origins = [pair.reference_origin.reshape(1, 3), pair.scan_origin.reshape(1, 3)]
     clouds = [pair.reference, pair.scan]
     low, high = origins[1][0, :2] - 1.0, origins[1][0, :2] + 1.0  # round the scan's station

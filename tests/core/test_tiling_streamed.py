@@ -23,6 +23,7 @@ from app.core.tiling.lean import float32_cloud
 from app.core.tiling.pair_files import streamed_outputs, write_details_npz, write_labels_npz
 from app.core.tiling.streamed import compare_streamed
 from app.testing.files import ply_bytes
+from tests.helpers.tiling import assert_identical_results
 
 OPTIONS = {"budget_bytes": 1 << 40, "margin": 1.0, "ray_reach": 4.0, "threads": 1}
 
@@ -51,67 +52,89 @@ def _lean_tiled(paths: list[Path], crop_points: int) -> ComparisonResult:
     return compare_tiled(*clouds, max_crop_points=crop_points, frame_offset=offset, **OPTIONS)
 
 
-def _assert_identical(streamed: ComparisonResult, tiled: ComparisonResult) -> None:
-    for name in ("label", "region", "distance"):
-        for side in ("reference", "scan"):
-            key = f"{side}_{name}"
-            assert np.array_equal(
-                np.asarray(getattr(streamed, key)), getattr(tiled, key), equal_nan=True
-            ), key
-    assert streamed.regions == tiled.regions
-    assert streamed.uncertain_regions == tiled.uncertain_regions
-    assert (streamed.score, streamed.threshold, streamed.changed) == (
-        tiled.score,
-        tiled.threshold,
-        tiled.changed,
-    )
-    assert (streamed.n_reference, streamed.n_scan) == (tiled.n_reference, tiled.n_scan)
-    assert streamed.localisation["tiles"] == tiled.localisation["tiles"]
-
-
-@pytest.mark.parametrize(("n_stations", "random_state", "shift"), [(3, 3, 0.0), (1, 5, 452_000.0)])
-def test_a_streamed_comparison_equals_the_lean_tiled_one(
-    tmp_path, n_stations, random_state, shift
-) -> None:
-    paths = _write_pair(tmp_path, n_stations, random_state, shift)
+@pytest.fixture(scope="module")
+def three_station_pair(tmp_path_factory) -> tuple[list[Path], int, ComparisonResult]:
+    """The three-station warehouse pair's files, its size and its lean tiled comparison (made
+    once: three tests compare the streamed path against it)."""
+    paths = _write_pair(tmp_path_factory.mktemp("three-stations"), 3, 3)
     n_points = sum(len(read_point_cloud(path)) for path in paths)
+    return paths, n_points, _lean_tiled(paths, int(0.6 * n_points))
+
+
+def _assert_streamed_equals_lean(
+    paths: list[Path], work_dir: Path, n_points: int, tiled: ComparisonResult
+) -> ComparisonResult:
+    """Stream the pair with the lean run's tiles and check the result and its files equal it."""
     crop_points = int(0.6 * n_points)
-    tiled = _lean_tiled(paths, crop_points)
     assert tiled.localisation["tiles"]["count"] >= 3, "the scene crosses tile borders"
     assert tiled.regions, "the scene has changes"
     streamed = compare_streamed(
-        *paths, work_dir=tmp_path / "work", max_crop_points=crop_points, **OPTIONS
+        *paths, work_dir=work_dir / "work", max_crop_points=crop_points, **OPTIONS
     )
-    _assert_identical(streamed, tiled)
+    assert_identical_results(streamed, tiled)
     assert isinstance(streamed.reference_label, np.memmap), "the labels stay on disk"
     outputs = streamed_outputs(streamed)
     assert outputs is not None and streamed_outputs(tiled) is None
-    write_labels_npz(tmp_path / "streamed.npz", outputs, chunk_points=4093)
-    write_details_npz(tmp_path / "details.npz", outputs, chunk_points=4093)
-    tiled.write_labels_npz(tmp_path / "tiled.npz")
-    with np.load(tmp_path / "streamed.npz") as ours, np.load(tmp_path / "tiled.npz") as theirs:
+    write_labels_npz(work_dir / "streamed.npz", outputs, chunk_points=4093)
+    write_details_npz(work_dir / "details.npz", outputs, chunk_points=4093)
+    tiled.write_labels_npz(work_dir / "tiled.npz")
+    with np.load(work_dir / "streamed.npz") as ours, np.load(work_dir / "tiled.npz") as theirs:
         assert sorted(ours.files) == sorted(theirs.files)
         for name in theirs.files:
             assert ours[name].dtype == theirs[name].dtype, name
             assert np.array_equal(ours[name], theirs[name]), name
-    with np.load(tmp_path / "details.npz") as details:
+    with np.load(work_dir / "details.npz") as details:
         for name in ("reference_distance", "scan_distance", "reference_region", "scan_region"):
             assert np.array_equal(details[name], getattr(tiled, name), equal_nan=True), name
+    return streamed
 
 
-def test_a_streamed_comparison_on_subsamples_finds_the_same_changes(tmp_path) -> None:
-    """Clouds larger than the subsample: the stages see a third of each, the tiles all of it."""
-    paths = _write_pair(tmp_path, 3, 3)
-    n_points = sum(len(read_point_cloud(path)) for path in paths)
-    crop_points = int(0.6 * n_points)
-    tiled = _lean_tiled(paths, crop_points)
+def test_a_streamed_comparison_equals_the_lean_tiled_one(tmp_path, three_station_pair) -> None:
+    paths, n_points, tiled = three_station_pair
+    _assert_streamed_equals_lean(paths, tmp_path, n_points, tiled)
+
+
+def test_a_georeferenced_pair_with_non_finite_rows_streams_like_the_lean_one(tmp_path) -> None:
+    """One station, survey-sized coordinates; NaN rows in the reference keep their place and
+    come out unobserved, everything else as the lean comparison has it."""
+    paths = _write_pair(tmp_path, 1, 5, shift=452_000.0)
+    reference = read_point_cloud(paths[0]).points.copy()
+    holes = np.arange(5, len(reference), 997)
+    reference[holes] = np.nan
+    paths[0].write_bytes(ply_bytes(reference))
+    n_points = len(reference) - len(holes) + len(read_point_cloud(paths[1]))
+    tiled = _lean_tiled(paths, int(0.6 * n_points))
+    streamed = _assert_streamed_equals_lean(paths, tmp_path, n_points, tiled)
+    assert len(streamed.reference_label) == len(reference)
+    assert np.all(np.asarray(streamed.reference_label)[holes] == -1)
+
+
+def test_a_streamed_comparison_on_subsamples_finds_the_same_changes(
+    tmp_path, three_station_pair, monkeypatch
+) -> None:
+    """Clouds larger than the subsample: the stages see a sixth of the pair, the tiles all of
+    it, and the changes found are the lean comparison's."""
+    from app.core.tiling import streamed as module
+
+    paths, n_points, tiled = three_station_pair
+    seen: list[int] = []
+    original = module.load_pair
+
+    def spy(reference: PointCloud, scan: PointCloud, **options):
+        seen.extend([len(reference), len(scan)])
+        return original(reference, scan, **options)
+
+    monkeypatch.setattr(module, "load_pair", spy)
     streamed = compare_streamed(
         *paths,
         work_dir=tmp_path / "work",
-        max_crop_points=crop_points,
+        max_crop_points=int(0.6 * n_points),
         subsample_points=n_points // 6,
+        progress=lambda stage, fraction: None,
         **OPTIONS,
     )
+    assert seen and seen[0] <= n_points // 6 + 1, "the stages saw more than the subsample"
+    assert len(streamed.reference_label) == len(read_point_cloud(paths[0]))
     for side in ("reference", "scan"):
         ours = np.asarray(getattr(streamed, f"{side}_label")) == LABEL_CHANGED
         theirs = getattr(tiled, f"{side}_label") == LABEL_CHANGED
@@ -119,51 +142,3 @@ def test_a_streamed_comparison_on_subsamples_finds_the_same_changes(tmp_path) ->
         assert union == 0 or np.count_nonzero(ours & theirs) / union >= 0.95, side
     assert [region.kind for region in streamed.regions] == [region.kind for region in tiled.regions]
     assert streamed.changed == tiled.changed
-
-
-def test_non_finite_rows_keep_their_place_unobserved(tmp_path) -> None:
-    paths = _write_pair(tmp_path, 3, 3)
-    reference = read_point_cloud(paths[0]).points.copy()
-    holes = np.arange(5, len(reference), 997)
-    reference[holes] = np.nan
-    paths[0].write_bytes(ply_bytes(reference))
-    n_points = len(reference) - len(holes) + len(read_point_cloud(paths[1]))
-    crop_points = int(0.6 * n_points)
-    tiled = _lean_tiled(paths, crop_points)
-    streamed = compare_streamed(
-        *paths, work_dir=tmp_path / "work", max_crop_points=crop_points, **OPTIONS
-    )
-    assert len(streamed.reference_label) == len(reference)
-    assert np.all(np.asarray(streamed.reference_label)[holes] == -1)
-    _assert_identical(streamed, tiled)
-
-
-def test_the_stages_see_only_the_subsample(tmp_path) -> None:
-    paths = _write_pair(tmp_path, 3, 3)
-    seen: list[int] = []
-
-    def progress(stage: str, fraction: float) -> None:
-        del stage, fraction
-
-    from app.core.tiling import streamed as module
-
-    original = module.load_pair
-
-    def spy(reference: PointCloud, scan: PointCloud, **options):
-        seen.extend([len(reference), len(scan)])
-        return original(reference, scan, **options)
-
-    module.load_pair = spy  # type: ignore[assignment]
-    try:
-        n_points = len(read_point_cloud(paths[0]))
-        compare_streamed(
-            *paths,
-            work_dir=tmp_path / "work",
-            max_crop_points=int(1.2 * n_points),
-            subsample_points=n_points // 10,
-            progress=progress,
-            **OPTIONS,
-        )
-    finally:
-        module.load_pair = original  # type: ignore[assignment]
-    assert seen[0] <= n_points // 10 + 1

@@ -96,6 +96,35 @@ def test_claim_is_exclusive_while_the_lease_is_live(job_settings: Settings) -> N
     assert lease_owner_pid(job.lease_owner) is not None
 
 
+def test_a_claim_that_waited_for_the_write_lock_gets_a_whole_lease(job_settings: Settings) -> None:
+    """The lease runs from when the claim holds the database, not from when it asked: a worker
+    that waited behind another writer for longer than a lease must not get an expired one (the
+    recovery sweep would requeue the job at once and a second worker run it)."""
+    import sqlite3
+    import threading
+
+    settings = job_settings.model_copy(update={"job_lease_seconds": 1.0})
+    job_id = create_job(settings)
+    blocker = sqlite3.connect(settings.data_layout.database_file, timeout=5)
+    blocker.execute("BEGIN IMMEDIATE")  # another writer holds the lock for 1.5 leases
+    claims: list[object] = []
+    claimer = threading.Thread(
+        target=lambda: claims.append(claim_job(job_id, settings, make_lease_owner()))
+    )
+    claimer.start()
+    time.sleep(1.5)
+    released_at = utc_now()
+    blocker.rollback()
+    blocker.close()
+    claimer.join(30)
+    assert claims and claims[0] is not None
+    job = load_job(settings, job_id)
+    lease_expires_at = job.lease_expires_at.replace(tzinfo=released_at.tzinfo)  # stored in UTC
+    assert lease_expires_at >= released_at + timedelta(seconds=0.9), (
+        "the lease was dated from before the claim held the database"
+    )
+
+
 def test_expired_lease_is_taken_over_and_the_old_owner_cannot_store(
     job_settings: Settings,
 ) -> None:

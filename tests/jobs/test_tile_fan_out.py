@@ -24,7 +24,7 @@ from app.core.formats import read_point_cloud
 from app.core.tiling.compare import compare_tiled
 from app.db.models import Job, JobStatus, JobTile, TileStatus
 from app.db.session import transaction
-from app.jobs.leases import lease_owner_pid
+from app.jobs.leases import TileOutcome, lease_owner_pid
 from app.jobs.tiles import run_tile_message
 from app.testing.files import ply_bytes
 from app.testing.service import ServiceProcess
@@ -161,14 +161,14 @@ def test_tiles_of_a_job_that_stopped_are_cancelled(job_settings: Settings, endin
     # a job waiting in the queue for its next attempt keeps its tiles for that attempt
     with transaction(job_settings.sqlalchemy_url) as session:
         session.execute(update(Job).where(Job.id == job_id).values(status=JobStatus.QUEUED))
-    assert run_tile_message(job_id, 1, job_settings) == "skipped"
+    assert run_tile_message(job_id, 1, job_settings) is TileOutcome.SKIPPED
     assert _statuses(job_settings, job_id) == {TileStatus.QUEUED}
     with transaction(job_settings.sqlalchemy_url) as session:
         if ending == "failed":
             session.execute(update(Job).where(Job.id == job_id).values(status=JobStatus.FAILED))
         else:
             session.execute(delete(Job).where(Job.id == job_id))
-    assert run_tile_message(job_id, 1, job_settings) == "cancelled"
+    assert run_tile_message(job_id, 1, job_settings) is TileOutcome.CANCELLED
     assert _statuses(job_settings, job_id) == (
         {TileStatus.CANCELLED} if ending == "failed" else set()
     )
