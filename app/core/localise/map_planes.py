@@ -33,11 +33,6 @@ SURFACE_REACH = 0.8
 at least :data:`SURFACE_SECTORS` directions of its plane: a floor, a wall, a ceiling, not the
 edge of a slid chair's seat."""
 SURFACE_SECTORS = 2
-SURFACE_STEPS = (SURFACE_REACH / 4, SURFACE_REACH / 2, SURFACE_REACH)
-"""The surface must be found at each of these reaches in the same direction: one surface
-running out from the point, not pieces of several that happen to share its plane (a desk's
-front face and a chair's front legs, in line with a backrest turned between them: RGB-D room
-503).  Each probe looks between half and twice its reach, so together they cover 0.1-1.6 m."""
 SECTORS = 8
 SECTOR_HALF_ANGLE_COSINE = math.cos(math.radians(35.0))
 PROBE_NEIGHBOURS = 4
@@ -60,21 +55,9 @@ def coplanar_sectors(
 ) -> NDArray[np.int64]:
     """In how many of :data:`SECTORS` directions of each point's plane ``cloud`` has surface
     on that plane about ``reach`` away (between half and twice it; shapes (p, 3) -> (p,))."""
-    return _sector_hits(points, normal, cloud, tolerance, reach).sum(axis=1)
-
-
-def _sector_hits(
-    points: NDArray[np.float64],
-    normal: NDArray[np.floating],
-    cloud: LocalGeometry,
-    tolerance: float,
-    reach: float,
-) -> NDArray[np.bool_]:
-    """Per point and direction of :data:`SECTORS`, whether ``cloud`` has surface on the
-    point's plane about ``reach`` away in that direction (shape (p, SECTORS), bool)."""
     count = points.shape[0]
     if count == 0:
-        return np.zeros((0, SECTORS), dtype=bool)
+        return np.zeros(0, dtype=np.int64)
     unit, directions = tangent_directions(normal, SECTORS)
     k = min(PROBE_NEIGHBOURS, cloud.points.shape[0])
     hits = np.zeros((count, SECTORS), dtype=bool)
@@ -94,7 +77,7 @@ def _sector_hits(
             & (across <= tolerance + PLANE_SLOPE * distance)
             & (agrees >= NORMAL_AGREEMENT_COSINE)
         ).any(axis=1)
-    return hits
+    return hits.sum(axis=1)
 
 
 def extends(
@@ -103,13 +86,9 @@ def extends(
     cloud: LocalGeometry,
     tolerance: float,
 ) -> NDArray[np.bool_]:
-    """Whether ``cloud`` has surface on each point's plane out to :data:`SURFACE_REACH` in at
-    least :data:`SURFACE_SECTORS` directions, found at every one of :data:`SURFACE_STEPS` in
-    each (shapes (p, 3) -> (p,))."""
-    hits = np.ones((points.shape[0], SECTORS), dtype=bool)
-    for reach in SURFACE_STEPS:
-        hits &= _sector_hits(points, normal, cloud, tolerance, reach)
-    return hits.sum(axis=1) >= SURFACE_SECTORS
+    """Whether ``cloud`` has surface on each point's plane :data:`SURFACE_REACH` away in at
+    least :data:`SURFACE_SECTORS` directions (shapes (p, 3) -> (p,))."""
+    return coplanar_sectors(points, normal, cloud, tolerance, SURFACE_REACH) >= SURFACE_SECTORS
 
 
 def share_on_planes(
