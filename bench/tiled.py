@@ -74,6 +74,72 @@ def _write_pair_here(scene_dir: Path, n_points: int) -> None:
     write_binary_ply(scene_dir / "scan.ply", pair.scan)
 
 
+def _write_pair_streamed(scene_dir: Path, n_points: int) -> None:
+    """The same pair as :func:`_write_pair_here` (same points, in station order), written station
+    by station in bounded memory (:func:`app.core.datasets.lidar_files.write_lidar_pair`), with
+    ``truth.npz`` (the changed rows, stations, boxes) beside it; prints its sizes and peak RSS."""
+    from app.core.datasets.lidar import steps_for_points
+    from app.core.datasets.lidar_files import write_lidar_pair
+
+    written = write_lidar_pair(
+        scene_dir,
+        layout="warehouse",
+        change="added",
+        n_stations=N_STATIONS,
+        angular_step_deg=steps_for_points(n_points, N_STATIONS),
+        misaligned=True,
+        random_state=SCENE_SEED,
+    )
+    print(
+        json.dumps(
+            {
+                "points": [written.n_reference, written.n_scan],
+                "bytes": [written.reference_path.stat().st_size, written.scan_path.stat().st_size],
+                "peak_rss_mb": round(_rss_bytes("VmHWM") / 1024**2),
+            }
+        ),
+        flush=True,
+    )
+
+
+def densest_crop(scene_dir: Path, core: tuple[float, float] = (1.5, 1.3)) -> None:
+    """Print the most points of both clouds one crop of a ``core`` box (metres, plus the
+    planner's margin each side) can hold, from each file's 2M-point subsample (as the
+    streamed parent's), and how far each epoch's stations (``truth.npz``) are from it: the
+    floor the planner meets near a station, whatever the budget."""
+    from scipy.ndimage import uniform_filter
+
+    from app.core.tiling.pair_files import survey
+    from app.core.tiling.plan import DEFAULT_MARGIN_METRES
+
+    cell = 0.1
+    size = [round((side + 2 * DEFAULT_MARGIN_METRES) / cell) for side in core]
+    clouds = [survey(scene_dir / f"{side}.ply", "ply", 2_000_000) for side in ("reference", "scan")]
+    low = np.min([sample[:, :2].min(axis=0) for _, sample in clouds], axis=0)
+    high = np.max([sample[:, :2].max(axis=0) for _, sample in clouds], axis=0)
+    edges = [np.arange(low[axis], high[axis] + cell, cell) for axis in (0, 1)]
+    windows = []
+    for cloud, sample in clouds:
+        counts, _, _ = np.histogram2d(sample[:, 0], sample[:, 1], bins=edges)
+        scale = cloud.n_rows / len(sample)
+        windows.append(uniform_filter(counts * scale, size=size, mode="constant") * np.prod(size))
+    both = windows[0] + windows[1]
+    row, column = np.unravel_index(int(np.argmax(both)), both.shape)
+    centre = np.array([edges[0][row], edges[1][column]])
+    report: dict[str, Any] = {
+        "crop_m": [round(side * cell, 1) for side in size],
+        "points": round(float(both[row, column])),
+        "per_side": [round(float(window[row, column])) for window in windows],
+        "centre": centre.round(2).tolist(),
+    }
+    if (scene_dir / "truth.npz").exists():
+        with np.load(scene_dir / "truth.npz") as truth:
+            for side in ("reference", "scan"):
+                offsets = truth[f"{side}_origins"][:, :2] - centre
+                report[f"{side}_stations_m"] = np.linalg.norm(offsets, axis=1).round(2).tolist()
+    print(json.dumps(report), flush=True)
+
+
 def run_compare(paths: dict[str, Path], labels: Path, budget: str | None) -> dict[str, Any]:
     """The command as a child: wall, CPU, peak RSS and its JSON report."""
     arguments = [str(SCANDIFF), "compare", str(paths["reference"]), str(paths["scan"])]
@@ -252,6 +318,12 @@ def main() -> None:
     parser.add_argument("--memory-budget", default="2.5G")
     parser.add_argument("--one-process", action="store_true")
     parser.add_argument("--write-pair", nargs=2, metavar=("DIR", "POINTS"))
+    parser.add_argument(
+        "--write-pair-streamed",
+        nargs=2,
+        metavar=("DIR", "POINTS"),
+        help="the same pair in station order, written in bounded memory (any size)",
+    )
     parser.add_argument("--floor-worker", metavar="JSON")
     parser.add_argument("--measure-model", type=Path, metavar="DIR")
     parser.add_argument("--model-worker", nargs=2, metavar=("DIR", "FRACTION"))
@@ -262,12 +334,24 @@ def main() -> None:
         help="print the peak RSS of each stage of the comparison of the pair in DIR",
     )
     parser.add_argument("--stage-worker", nargs=2, metavar=("DIR", "BUDGET"))
+    parser.add_argument(
+        "--densest-crop",
+        type=Path,
+        metavar="DIR",
+        help="the most points a 1.5 x 1.3 m tile's crop of the pair in DIR can hold",
+    )
     args = parser.parse_args()
+    if args.densest_crop:
+        densest_crop(args.densest_crop)
+        return
     if args.stage_worker:
         _stage_worker(Path(args.stage_worker[0]), args.stage_worker[1])
         return
     if args.stage_memory:
         stage_memory(args.stage_memory, args.memory_budget)
+        return
+    if args.write_pair_streamed:
+        _write_pair_streamed(Path(args.write_pair_streamed[0]), int(args.write_pair_streamed[1]))
         return
     if args.write_pair:
         _write_pair_here(Path(args.write_pair[0]), int(args.write_pair[1]))

@@ -18,6 +18,7 @@ import argparse
 import contextlib
 import hashlib
 import importlib
+import json
 import os
 import signal
 import socket
@@ -113,6 +114,68 @@ class Service:
         self.log.close()
 
 
+def _file_body(path: Path) -> Any:
+    """The file as an upload body, streamed in 16 MiB pieces (a 1.2 GB scan is never held)."""
+    with path.open("rb") as source:
+        while piece := source.read(1 << 24):
+            yield piece
+
+
+def upload(client: httpx.Client, path: str, file: Path, params: dict[str, str]) -> dict:
+    """POST ``file`` as the raw body of ``path``, streamed; the response's JSON."""
+    response = client.post(
+        path,
+        params=params,
+        content=_file_body(file),
+        headers={"Content-Length": str(file.stat().st_size)},
+        timeout=None,
+    )
+    response.raise_for_status()
+    return response.json()
+
+
+def size_settings(files: tuple[Path, Path]) -> dict[str, str]:
+    """Upload size and point limits raised above their defaults when the pair needs it."""
+    env = {}
+    largest = max(path.stat().st_size for path in files)
+    if largest > 512 * 1024**2:
+        env["SCANDIFF_MAX_UPLOAD_BYTES"] = str(2 * largest)
+    most = max(declared_rows(path) or 0 for path in files)
+    if most > 50_000_000:
+        env["SCANDIFF_MAX_POINTS"] = str(2 * most)
+    return env
+
+
+def wait_for_job(
+    client: httpx.Client, job_id: str, group: int, timeout: float, every: float = 60.0
+) -> dict:
+    """Poll the job until it ends, printing every ``every`` s its tiles done/total and each
+    service process's peak RSS and CPU so far (a long run shows how far it got)."""
+    started = last = time.perf_counter()
+    while True:
+        job = client.get(f"/api/v1/jobs/{job_id}", params={"wait": 10}).json()
+        if job["status"] in ("succeeded", "failed"):
+            return job
+        now = time.perf_counter()
+        if now - last >= every:
+            last = now
+            status = {"status": job["status"], "progress": job.get("progress")}
+            print(
+                json.dumps(
+                    {
+                        "at": time.strftime("%H:%M:%S"),
+                        "elapsed_s": round(now - started),
+                        "job": status,
+                        "tiles": job.get("tiles"),
+                        "processes": group_peak_rss(group, with_cpu=True),
+                    }
+                ),
+                flush=True,
+            )
+        if now - started > timeout:
+            raise RuntimeError(f"job {job_id} did not finish in {timeout:.0f} s")
+
+
 def run_service(
     work: Path,
     workers: int,
@@ -120,6 +183,8 @@ def run_service(
     files: tuple[Path, Path],
     job_threads: int | None = None,
     memory_budget: int | None = None,
+    timeout: float = JOB_TIMEOUT_SECONDS,
+    job_params: dict[str, Any] | None = None,
 ) -> dict:
     """Seconds from the scan's POST to ``succeeded``, its labels, who computed the tiles and
     the peak RSS of every process of the service (``crop_points`` 0: not forced, the tiles
@@ -127,38 +192,40 @@ def run_service(
     data_dir = work / f"service-{workers}-workers"
     data_dir.mkdir()
     env = {"SCANDIFF_TILE_CROP_POINTS": str(crop_points)} if crop_points else {}
+    env.update(size_settings(files))
     if memory_budget:
         env["SCANDIFF_WORKER_MEMORY_BUDGET_BYTES"] = str(memory_budget)
     if job_threads:  # default: the CPUs shared by the workers (1 worker: both cores)
         env["SCANDIFF_JOB_THREADS"] = str(job_threads)
     service = Service(data_dir, workers, env)
-    with service as client:
-        site = client.post("/api/v1/sites", json={"name": "bench"}).json()
-        path = f"/api/v1/sites/{site['id']}/scans"
-        reference = client.post(
-            path,
-            params={"reference": "true", "filename": "reference.ply"},
-            content=files[0].read_bytes(),
-        )
-        reference.raise_for_status()
-        started = time.perf_counter()
-        response = client.post(path, params={"filename": "scan.ply"}, content=files[1].read_bytes())
-        response.raise_for_status()
-        job_id = response.json()["job"]["id"]
-        while True:
-            job = client.get(f"/api/v1/jobs/{job_id}", params={"wait": 10}).json()
-            if job["status"] in ("succeeded", "failed"):
-                break
-            if time.perf_counter() - started > JOB_TIMEOUT_SECONDS:
-                raise RuntimeError(f"job {job_id} did not finish")
-        seconds = time.perf_counter() - started
-        if job["status"] != "succeeded":
-            raise RuntimeError(f"job failed: {job['error']}")
-        labels = client.get(f"/api/v1/jobs/{job_id}/labels", params={"format": "npz"})
-        labels.raise_for_status()
-        peaks = group_peak_rss(service.process.pid)
     labels_path = work / f"labels-{workers}.npz"
-    labels_path.write_bytes(labels.content)
+    with service as client:
+        detector = {"detector": {"method": "gmm", "params": job_params}} if job_params else {}
+        created = client.post("/api/v1/sites", json={"name": "bench", **detector})
+        created.raise_for_status()
+        site = created.json()
+        path = f"/api/v1/sites/{site['id']}/scans"
+        upload(client, path, files[0], {"reference": "true", "filename": "reference.ply"})
+        print(f"reference stored ({time.strftime('%H:%M:%S')})", flush=True)
+        started = time.perf_counter()
+        job_id = upload(client, path, files[1], {"filename": "scan.ply"})["job"]["id"]
+        print(f"scan stored, job {job_id} ({time.strftime('%H:%M:%S')})", flush=True)
+        job = wait_for_job(client, job_id, service.process.pid, timeout)
+        seconds = time.perf_counter() - started
+        peaks = group_peak_rss(service.process.pid, with_cpu=True)
+        if job["status"] != "succeeded":
+            print(json.dumps({"failed": job.get("error"), "processes": peaks}), flush=True)
+            raise RuntimeError(f"job failed: {job['error']}")
+        with (
+            client.stream(
+                "GET", f"/api/v1/jobs/{job_id}/labels", params={"format": "npz"}, timeout=None
+            ) as labels,
+            labels_path.open("wb") as output,
+        ):
+            labels.raise_for_status()
+            for piece in labels.iter_bytes(1 << 24):
+                output.write(piece)
+        regions = client.get(f"/api/v1/jobs/{job_id}/regions", params={"limit": 100}).json()
     with np.load(labels_path) as data:
         arrays = {name: data[name] for name in ("reference_label", "scan_label")}
     with sqlite3.connect(data_dir / "scandiff.sqlite3") as connection:
@@ -177,13 +244,19 @@ def run_service(
         "n_regions": job["n_regions"],
         "timings": job["timings"],
         "peak_rss_mb": peaks,
+        "regions": regions["items"],
+        "visibility": (job.get("calibration") or {}).get("visibility"),
+        "warnings": job.get("warnings"),
+        "labels_path": labels_path,
     }
 
 
-def group_peak_rss(group: int) -> dict[str, int]:
+def group_peak_rss(group: int, with_cpu: bool = False) -> dict[str, Any]:
     """Peak RSS (``VmHWM``, MB) of each live process of process group ``group``, by
-    ``pid: command`` (the service's API process and its workers)."""
-    peaks = {}
+    ``pid: command`` (the service's API process and its workers); ``with_cpu``: each as
+    ``[peak MB, CPU s so far]``."""
+    ticks = os.sysconf("SC_CLK_TCK")
+    peaks: dict[str, Any] = {}
     for status in Path("/proc").glob("[0-9]*/status"):
         with contextlib.suppress(OSError, IndexError, ValueError):
             stat = (status.parent / "stat").read_text()
@@ -195,7 +268,45 @@ def group_peak_rss(group: int) -> dict[str, int]:
             command = (status.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode()
             name = f"{status.parent.name}: {' '.join(command.split()[2:5])}"
             peaks[name] = round(int(fields["VmHWM"].split()[0]) / 1024)
+            if with_cpu:
+                cpu = sum(int(value) for value in stat.rsplit(")", 1)[1].split()[11:13])
+                peaks[name] = [peaks[name], round(cpu / ticks, 1)]
     return peaks
+
+
+def truth_check(pair_dir: Path | None, run: dict) -> dict[str, Any] | None:
+    """Against ``truth.npz`` of a pair written by ``bench.tiled --write-pair-streamed``: the
+    share of the added box's scan points labelled changed (and unobserved), the changed
+    points elsewhere, and which regions lie on the added box (centroid within 0.5 m of it)."""
+    if pair_dir is None or not (pair_dir / "truth.npz").exists():
+        return None
+    with np.load(pair_dir / "truth.npz") as truth, np.load(run["labels_path"]) as labels:
+        rows = truth["scan_changed_rows"]
+        scan_label = labels["scan_label"]
+        reference_changed = int(np.count_nonzero(labels["reference_label"] == 1))
+        known = {tuple(low) for low in truth["reference_box_low"]}
+        added = [
+            (low, high)
+            for low, high in zip(truth["scan_box_low"], truth["scan_box_high"], strict=True)
+            if tuple(low) not in known
+        ]
+        hits = int(np.count_nonzero(scan_label[rows] == 1))
+        figures = {
+            "added_box_points": len(rows),
+            "added_box_seen_by_reference": int(truth["scan_changed_observed"].sum()),
+            "labelled_changed": hits,
+            "labelled_unobserved": int(np.count_nonzero(scan_label[rows] == -1)),
+            "scan_changed_elsewhere": int(np.count_nonzero(scan_label == 1)) - hits,
+            "reference_changed": reference_changed,
+            "truth_reference_changed": len(truth["reference_changed_rows"]),
+        }
+    on_box = []
+    for region in run["regions"]:
+        centre = np.asarray(region["centroid"])
+        if any(np.all((centre > low - 0.5) & (centre < high + 0.5)) for low, high in added):
+            on_box.append((region["kind"], region["n_points"]))
+    figures["regions_on_added_box"] = on_box
+    return figures
 
 
 def cli_labels(files: tuple[Path, Path], work: Path, memory_budget: int) -> dict:
@@ -353,14 +464,36 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--workers", default="1,2", help="the runs' worker counts")
     parser.add_argument(
+        "--job-timeout",
+        type=float,
+        default=JOB_TIMEOUT_SECONDS,
+        help="seconds a job may take before the run gives up (a 100M pair: hours)",
+    )
+    parser.add_argument(
+        "--job-params",
+        default=None,
+        help="the site's detector params (JSON), e.g. '{\"recover_stations\": false}'",
+    )
+    parser.add_argument(
+        "--work-dir",
+        type=Path,
+        default=None,
+        help="keep the services' data directories, logs and labels here (default: a "
+        "temporary directory, removed)",
+    )
+    parser.add_argument(
         "--check-cli",
         action="store_true",
         help="compare the runs' labels with `scandiff compare --memory-budget` of the files",
     )
     arguments = parser.parse_args(argv)
 
-    with tempfile.TemporaryDirectory(prefix="tiled-service-") as directory:
-        work = Path(directory)
+    with contextlib.ExitStack() as stack:
+        if arguments.work_dir is None:
+            work = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="tiled-service-")))
+        else:
+            work = arguments.work_dir
+            work.mkdir(parents=True, exist_ok=True)
         files = pair_files(work, arguments)
         for library in first_use_libraries():  # loaded before the jobs, as a worker does
             importlib.import_module(library)
@@ -400,10 +533,19 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         runs = {
             workers: run_service(
-                work, workers, crop_points, files, arguments.job_threads, arguments.memory_budget
+                work,
+                workers,
+                crop_points,
+                files,
+                arguments.job_threads,
+                arguments.memory_budget,
+                arguments.job_timeout,
+                json.loads(arguments.job_params) if arguments.job_params else None,
             )
             for workers in map(int, arguments.workers.split(","))
         }
+        for run in runs.values():  # while the labels files are still there
+            run["truth"] = truth_check(arguments.pair_dir, run)
         if arguments.check_cli:
             cli = cli_labels(files, work, arguments.memory_budget)
             for workers, run in runs.items():
@@ -449,6 +591,13 @@ def main(argv: list[str] | None = None) -> int:
         for name in ("reference_label", "scan_label"):  # as bench.big100 digests them
             digest.update(np.ascontiguousarray(run["labels"][name]).tobytes())
         print(f"- {workers} worker(s): {run['peak_rss_mb']}, labels {digest.hexdigest()[:16]}")
+    print("\nRegions, stations and the truth (`truth.npz` of the pair, when there is one):\n")
+    for workers, run in runs.items():
+        regions = [(region["kind"], region["n_points"]) for region in run["regions"]]
+        print(f"- {workers} worker(s): changed {run['changed']}, regions {regions}")
+        print(f"  visibility {json.dumps(run['visibility'])}")
+        print(f"  warnings {json.dumps(run['warnings'])}")
+        print(f"  truth {run['truth']}")
     if not {1, 2} <= set(runs):
         return 0
     if arguments.job_threads == 1:

@@ -30,6 +30,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar, Unpack
 
+from threadpoolctl import threadpool_limits
+
 from app.core.cache.geometry import GeometryCache
 from app.core.cloud import PointCloud
 from app.core.comparison.align import Alignment, align_scan
@@ -218,7 +220,11 @@ def run_stages(
 
     timings: dict[str, float] = {}
     memory = ReferenceMemory.of(geometry_cache, loaded)
-    matched = _match(loaded, memory, report, timings, localise_step)
+    # BLAS on one thread: the stages' products are (n, 3) x (3, 3) and memory-bound, and
+    # OpenBLAS's second thread spins after each of them (~0.15 CPU s at 1M + 1M, the same
+    # result); the detector limits its own BLAS calls likewise
+    with threadpool_limits(limits=1, user_api="blas"):
+        matched = _match(loaded, memory, report, timings, localise_step)
     memory.keep()
     report("detect", 0.65 if localise_step is None else localise_step.detect_fraction)
     started = time.perf_counter()

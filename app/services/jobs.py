@@ -94,7 +94,7 @@ def create_job(
             "the reference and the scan belong to different sites; compare scans of one site",
             code="scans_of_different_sites",
         )
-    check_memory_budget(settings, reference.n_points + scan.n_points)
+    check_memory_budget(settings, reference, scan)
     site = sites.get_site(session, principal, scan.site_id)
     method, variant, params = sites.resolve_detector(
         site, payload.method, payload.variant, payload.params
@@ -113,15 +113,29 @@ def create_job(
     )
 
 
-def check_memory_budget(settings: Settings, n_points: int) -> None:
-    """422 when the workers' memory budget cannot hold a pair of ``n_points`` points and one
-    tile of it (a pair that fits only in tiles is compared in tiles by the worker)."""
-    from app.core.tiling.plan import BASELINE_BYTES, RESIDENT_BYTES_PER_POINT, crop_point_limit
+def check_memory_budget(settings: Settings, reference: Scan, scan: Scan) -> None:
+    """422 when the workers' memory budget cannot hold what comparing ``reference`` and
+    ``scan`` keeps whole and one tile of it: both clouds, or for a pair a worker reads in
+    chunks (:func:`app.jobs.execution.streamed_tiles`) each cloud's subsample only."""
+    from app.core.tiling.plan import (
+        BASELINE_BYTES,
+        LEAN_RESIDENT_BYTES_PER_POINT,
+        RESIDENT_BYTES_PER_POINT,
+        crop_point_limit,
+    )
 
     budget = settings.worker_memory_budget_bytes
+    n_points = reference.n_points + scan.n_points
     if budget is None or crop_point_limit(budget, n_points) > 0:
         return
     needed = BASELINE_BYTES + n_points * RESIDENT_BYTES_PER_POINT
+    if all(_read_in_chunks(settings, row) for row in (reference, scan)):
+        from app.core.tiling.streamed import SUBSAMPLE_POINTS  # big pairs only: a heavy import
+
+        kept = sum(min(row.n_points, SUBSAMPLE_POINTS) for row in (reference, scan))
+        if crop_point_limit(budget, kept, LEAN_RESIDENT_BYTES_PER_POINT) > 0:
+            return
+        needed = BASELINE_BYTES + kept * LEAN_RESIDENT_BYTES_PER_POINT
     raise ValidationFailedError(
         f"the two scans' {n_points:,} points do not fit the workers' memory budget "
         f"({budget / 1024**2:,.0f} MiB, SCANDIFF_WORKER_MEMORY_BUDGET_BYTES): holding them "
@@ -129,6 +143,24 @@ def check_memory_budget(settings: Settings, n_points: int) -> None:
         "operator to raise it, or compare smaller scans",
         code="memory_budget_too_small",
     )
+
+
+def _read_in_chunks(settings: Settings, row: Scan) -> bool:
+    """Whether a worker reads this stored scan in chunks when its pair is tiled: a binary PLY
+    or ``.npy`` of coordinates only, no origin stored, no trajectory or bag options beside it
+    (the per-file half of :func:`app.jobs.execution.streamed_tiles`)."""
+    from app.core.tiling.pair_files import coordinates_only
+    from app.kit.data_layout import StoredPathError
+    from app.kit.scan_files import bag_options_path, trajectory_path
+
+    if row.sensor_origin is not None:
+        return False
+    try:
+        path = settings.data_layout.resolve(row.storage_path)
+    except StoredPathError:
+        return False
+    beside = trajectory_path(path).exists() or bag_options_path(path).exists()
+    return not beside and coordinates_only(path, row.format)
 
 
 def rerun_job(

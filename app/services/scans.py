@@ -322,7 +322,7 @@ def _register_upload(
     if not options.reference:  # its comparison must fit the workers' memory budget
         reference = session.get(Scan, site.reference_scan_id)
         if reference is not None:
-            jobs.check_memory_budget(settings, reference.n_points + scan.n_points)
+            jobs.check_memory_budget(settings, reference, scan)
     session.add(scan)
     session.flush()
     if options.reference:

@@ -1,5 +1,7 @@
 """The workers' memory budget (SCANDIFF_WORKER_MEMORY_BUDGET_BYTES): a comparison whose two
-scans cannot even be held within it is refused with a 422 naming the setting, nothing queued."""
+scans cannot even be held within it is refused with a 422 naming the setting, nothing queued;
+a pair a worker reads in chunks (coordinates-only binary PLY, no origin) needs room for its
+subsamples only."""
 
 from __future__ import annotations
 
@@ -7,7 +9,11 @@ from collections.abc import Iterator
 
 import pytest
 
-from app.core.tiling.plan import BASELINE_BYTES, RESIDENT_BYTES_PER_POINT
+from app.core.tiling.plan import (
+    BASELINE_BYTES,
+    LEAN_RESIDENT_BYTES_PER_POINT,
+    RESIDENT_BYTES_PER_POINT,
+)
 from app.db.models import Job, Scan
 from app.testing.files import ply_bytes
 from app.testing.scenes import room_points
@@ -17,8 +23,14 @@ from tests.helpers.server import MAX_UPLOAD_BYTES, ApiServer, fresh_api
 
 SCAN_POINTS = 2000
 REFERENCE_POINTS = 3000  # site_with_reference's
-BUDGET_BYTES = BASELINE_BYTES + (REFERENCE_POINTS + SCAN_POINTS) * RESIDENT_BYTES_PER_POINT // 2
-"""Room for half of the pair's points: not even one tile fits."""
+PAIR_POINTS = REFERENCE_POINTS + SCAN_POINTS
+BUDGET_BYTES = BASELINE_BYTES + PAIR_POINTS * LEAN_RESIDENT_BYTES_PER_POINT // 2
+"""Room for half of the pair's points, even read lean in chunks: not even one tile fits."""
+STREAMED_BUDGET_BYTES = (
+    BASELINE_BYTES + PAIR_POINTS * (LEAN_RESIDENT_BYTES_PER_POINT + RESIDENT_BYTES_PER_POINT) // 2
+)
+"""Too small to hold the pair whole, enough for a worker reading it in chunks (whose
+subsamples, at most 2M points a cloud, are here the whole clouds)."""
 
 
 @pytest.fixture(scope="module")
@@ -61,3 +73,36 @@ def test_a_pair_over_the_workers_budget_is_refused_with_the_setting_to_raise(
     )
     assert "5,000 points" in detail
     assert count(api, Job) == jobs_before
+
+
+@pytest.fixture(scope="module")
+def streamed_api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ApiServer]:
+    """The app with a budget that holds the test's pair only when it is read in chunks."""
+    yield from fresh_api(
+        tmp_path_factory,
+        "streamed-budget-data",
+        max_upload_bytes=MAX_UPLOAD_BYTES,
+        worker_memory_budget_bytes=STREAMED_BUDGET_BYTES,
+    )
+
+
+def test_a_pair_read_in_chunks_needs_room_for_its_subsamples_only(
+    streamed_api: ApiServer,
+) -> None:
+    writer = streamed_api.client(streamed_api.token("writer"))
+    site, _ = site_with_reference(writer)
+    scan = ply_bytes(room_points(SCAN_POINTS, seed=3))
+    assert upload(writer, site["id"], scan).status_code == 202  # coordinates only: queued
+    # an origin given at upload: the worker reads the scan whole, so the pair must fit whole
+    jobs_before = count(streamed_api, Job)
+    detail = assert_error(
+        upload(writer, site["id"], scan, sensor_origin="0,0,1"), 422, "memory_budget_too_small"
+    )
+    assert "5,000 points" in detail
+    # ascii PLY is not read in chunks either
+    detail = assert_error(
+        upload(writer, site["id"], ply_bytes(room_points(SCAN_POINTS, seed=3), "ascii")),
+        422,
+        "memory_budget_too_small",
+    )
+    assert count(streamed_api, Job) == jobs_before

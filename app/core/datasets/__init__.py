@@ -25,7 +25,8 @@ Generators
 
 Modules
 -------
-:mod:`~app.core.datasets.scenes` (corridor and two rooms), :mod:`~app.core.datasets.lidar`,
+:mod:`~app.core.datasets.scenes` (corridor and two rooms), :mod:`~app.core.datasets.lidar`
+(written to files in bounded memory by :mod:`~app.core.datasets.lidar_files`),
 :mod:`~app.core.datasets.maps` (with :mod:`~app.core.datasets.handheld`,
 :mod:`~app.core.datasets.robot`, :mod:`~app.core.datasets.map_world` and
 :mod:`~app.core.datasets.furniture`), :mod:`~app.core.datasets.site`.

@@ -476,10 +476,16 @@ def _regions(
     regions: list[ChangedRegion] = [*removed, *added]
     regions.sort(key=lambda region: (-region.n_points, region.kind, int(region.point_indices[0])))
     regions = mark_moved_surfaces(regions)
+    # the unobserved points of both clouds clustered concurrently too (the reference's first,
+    # as the stable sort below expects): a serial stretch of ~0.3 CPU s at 1M + 1M otherwise
+    (reference_unobserved, _), (scan_unobserved, _) = _in_parallel(
+        threads,
+        lambda: regions_of(reference, LABEL_UNOBSERVED),
+        lambda: regions_of(scan, LABEL_UNOBSERVED),
+    )
     uncertain_regions = [
         region
-        for found in (reference, scan)
-        for region in regions_of(found, LABEL_UNOBSERVED)[0]
+        for region in (*reference_unobserved, *scan_unobserved)
         if region.evidence == "no_coverage"
     ]
     uncertain_regions.sort(key=lambda region: (-region.n_points, region.kind))
