@@ -55,10 +55,6 @@ ADJOINING_FACTOR = 2.0
 SURROUND_SECTORS = 6
 """The adjoining surface carries on past a border point when it lies in this many of
 :data:`SECTORS` directions around the point's foot."""
-MIN_SURFACE_SECTORS = 3
-"""The other epoch's surface adjoins a border point only where it lies in this many of
-:data:`SECTORS` directions around the point's foot (a surface ending at the point's edge fills
-four)."""
 EDGE_COSINE = math.cos(math.radians(60.0))
 """A surface adjoins a border point at an edge when the normals' cosine is below this."""
 UPRIGHT_NORMAL_Z = 0.5
@@ -300,9 +296,6 @@ def _surrounded(
         rows = np.broadcast_to(np.arange(query.shape[0])[:, None], sector.shape)
         taken[rows[on_plane], sector[on_plane]] = True
         surrounded[chunk] = taken.sum(axis=1)
-        # a surface spans its plane: a few points along a line (a sparse scan line, an edge
-        # with tilted normals) take at most two opposite directions
-        adjoining[chunk] &= surrounded[chunk] >= MIN_SURFACE_SECTORS
         # a surface that this epoch lacks next to the point: the object hid it here
         surrounded[chunk][other_unmatched[nearest]] = SECTORS
         adjoining[chunk] &= ~(support & (surrounded[chunk] < SURROUND_SECTORS))
