@@ -54,6 +54,8 @@ from app.core.localise.distance import Side
 from app.core.localise.interface import VisibilityContext, VisibilityOutcome
 from app.core.localise.map_faces import far_faces
 from app.core.localise.map_parts import (
+    SEE_THROUGH_REACH,
+    SPARSE_PROBE_FACTOR,
     PartFigures,
     near_candidates,
     part_figures,
@@ -61,7 +63,8 @@ from app.core.localise.map_parts import (
     surface_parts,
     unmatched_points,
 )
-from app.core.localise.map_planes import coplanar_sectors
+from app.core.localise.map_planes import coplanar_sectors, level_surface_below
+from app.core.localise.origin_free import BEHIND_MIN_RADIUS
 from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED, Candidates
 from app.core.localise.regions import EVIDENCE_NO_COVERAGE, EVIDENCE_SEEN_EMPTY
 
@@ -243,8 +246,19 @@ def map_test(
         share = np.zeros(recheck.shape[0])
         if chosen.shape[0] == 0:
             return share
-        everything = np.ones(other.points.shape[0], dtype=bool)
-        return _rechecked_share(candidates, chosen, labels, share, other=other, counted=everything)
+        below = level_surface_below(
+            candidates.points[chosen],
+            other.geometry,
+            SEE_THROUGH_REACH,
+            max(BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))),
+        )
+        parts = np.unique(labels[chosen])
+        hits = np.bincount(
+            labels[chosen], weights=below.astype(np.float64), minlength=share.shape[0]
+        )
+        sizes = np.bincount(labels[chosen], minlength=share.shape[0])
+        share[parts] = hits[parts] / np.maximum(sizes[parts], 1)
+        return share
 
     def far_face(check: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
         return far_faces(
@@ -279,10 +293,12 @@ def unseen_faces(figures: PartFigures) -> NDArray[np.bool_]:
     at a part is no evidence either way (:func:`~app.core.localise.map_parts._supports`).
     Tops were left out before (s10): on six seeds of RGB-D rooms, horizontal parts meeting
     this rule carry 1,800 false changed points on unseen tops and desk strips and 71 true ones.
-    A top is one only when the other epoch has no surface under most of it within
-    :data:`~app.core.localise.map_parts.SEE_THROUGH_REACH` (:func:`_verdict`): a solid
-    object's body hides everything under its top, while under a removed table the other epoch
-    saw the floor (the real classroom's table, whose rim a lower desk and a chair meet).
+    A top is one only when the other epoch has no level surface straight under most of it
+    within :data:`~app.core.localise.map_parts.SEE_THROUGH_REACH` (:func:`_verdict`,
+    :func:`~app.core.localise.map_planes.level_surface_below`): a solid object's body hides
+    everything under its top, while under a removed table the other epoch saw the floor (the
+    real classroom's table).  Until s12 that probe looked up as well and reached 1.42 m: it
+    found the ceiling over a box's top as often as what lay under it.
     """
     return (figures.adjoining >= MIN_ADJOINING) & (figures.surround_share < SURROUND_SHARE)
 
@@ -296,7 +312,7 @@ def _verdict(
     marked in ``recheck`` without the other epoch's surface in narrow gaps of this one's
     (:func:`_narrow_gaps`).  It only lowers a share, so only parts at or over
     :data:`SEE_THROUGH_SHARE` are rechecked.  ``open_beneath(recheck)`` gives the share of
-    the marked parts' points with any of the other epoch's surface on their normal lines
+    the marked parts' points with a level surface of the other epoch straight under them
     (:func:`unseen_faces`: an unseen top has its object's body under it).
     ``far_face(check)`` gives, per part, whether the surface behind it is its object's far
     face and the joined share (:func:`~app.core.localise.map_faces.far_faces`), for the parts

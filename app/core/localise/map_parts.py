@@ -188,6 +188,28 @@ def _supports(unit: NDArray[np.float64], height: NDArray[np.float64]) -> NDArray
     return level & (height * np.sign(unit[:, 2]) > 0.0)
 
 
+def _clear_of_edge(
+    offset: NDArray[np.float64],
+    own_normal: NDArray[np.floating],
+    unit: NDArray[np.float64],
+    margin: float,
+) -> NDArray[np.bool_]:
+    """Which offsets on the adjoining plane lie farther than ``margin`` from the line where
+    the point's own surface meets that plane (shapes (b, k, 3), (b, 3), (b, 3) -> (b, k)).
+
+    A surface that ends at the point's edge (a box's side under the rim of its top) has its
+    last rows of samples along that line, spread a little to both sides by noise: counted,
+    they fill the directions next to the line on the far side as well, and the surface seems
+    to carry on past the point (6 of 8 directions where a half-plane fills 4).  Only samples
+    clear of the line tell on which sides of it the surface lies.  Not for a support
+    (:func:`_supports`): under a thin part (a backrest turned on its seat) the seat carries
+    on past its foot by the part's thickness only, a few centimetres."""
+    edge = np.cross(own_normal.astype(np.float64), unit)
+    edge /= np.maximum(np.linalg.norm(edge, axis=1), 1e-12)[:, None]
+    across = np.cross(unit, edge)
+    return np.abs(np.einsum("bkd,bd->bk", offset, across)) > margin
+
+
 def _surrounded(
     points: NDArray[np.float64],
     own_normal: NDArray[np.floating],
@@ -261,6 +283,7 @@ def _surrounded(
                 np.abs(np.einsum("ckd,cd->ck", other.normal[index].astype(np.float64), unit))
                 >= NORMAL_AGREEMENT_COSINE
             )
+            & (_clear_of_edge(offset, own_normal[chunk], unit, tolerance) | support[:, None])
         )
         _, directions = tangent_directions(unit, 4)
         first, second = directions[:, 0, :], directions[:, 1, :]

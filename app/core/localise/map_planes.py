@@ -24,6 +24,7 @@ __all__ = [
     "SURFACE_SECTORS",
     "coplanar_sectors",
     "extends",
+    "level_surface_below",
     "share_on_planes",
 ]
 
@@ -37,6 +38,12 @@ SECTOR_HALF_ANGLE_COSINE = math.cos(math.radians(35.0))
 PROBE_NEIGHBOURS = 4
 COPLANAR_SAMPLE = 256
 COPLANAR_REACHES = (0.25, 0.5, 1.0, 2.0)
+BELOW_FIRST = 0.05
+BELOW_STEP_RATIO = 1.25
+BELOW_RADIUS_FRACTION = 0.12
+"""The probes under a point: every :data:`BELOW_STEP_RATIO` times farther from
+:data:`BELOW_FIRST` down to the reach, each a ball this fraction of its depth wide (as the
+see-through probes of :func:`~app.core.localise.origin_free.behind_evidence`)."""
 
 
 def coplanar_sectors(
@@ -112,3 +119,35 @@ def share_on_planes(
         found[todo] = coplanar_sectors(points[todo], normal[todo], other, tolerance, reach) >= 1
     hits = np.bincount(labels[sample], weights=found.astype(np.float64), minlength=n_clusters)
     return hits / np.maximum(np.bincount(labels[sample], minlength=n_clusters), 1)
+
+
+def level_surface_below(
+    points: NDArray[np.float64], cloud: LocalGeometry, reach: float, min_radius: float
+) -> NDArray[np.bool_]:
+    """Whether ``cloud`` has a level surface under each point within ``reach`` metres
+    (straight down, z up; shapes (p, 3) -> (p,)).
+
+    The probes' balls are :data:`BELOW_RADIUS_FRACTION` of their depth wide, at least
+    ``min_radius``; the deepest probe is at ``reach`` or less.  Only downwards: above a top
+    lies open air up to a ceiling at any height, which says nothing of what stood under it.
+    """
+    count = points.shape[0]
+    found = np.zeros(count, dtype=bool)
+    if count == 0 or cloud.points.shape[0] == 0:
+        return found
+    k = min(PROBE_NEIGHBOURS, cloud.points.shape[0])
+    steps = BELOW_FIRST * BELOW_STEP_RATIO ** np.arange(
+        math.floor(math.log(reach / BELOW_FIRST, BELOW_STEP_RATIO) + 1e-9) + 1
+    )
+    for step in steps:
+        todo = np.flatnonzero(~found)
+        if todo.shape[0] == 0:
+            break
+        radius = max(min_radius, BELOW_RADIUS_FRACTION * step)
+        probes = points[todo] - np.array([0.0, 0.0, step])
+        distance, index = cloud.tree.query(probes, k=k, distance_upper_bound=radius)
+        distance = np.asarray(distance).reshape(todo.shape[0], k)
+        index = np.minimum(np.asarray(index).reshape(todo.shape[0], k), cloud.points.shape[0] - 1)
+        level = np.abs(cloud.normal[index][:, :, 2]) >= NORMAL_AGREEMENT_COSINE
+        found[todo] = ((distance <= radius) & level).any(axis=1)
+    return found
