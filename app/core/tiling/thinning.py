@@ -30,8 +30,14 @@ could use and a finer cell only costs sorting.
 
 from __future__ import annotations
 
+import dataclasses
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:  # the planner imports this module: numpy only, not the localiser
+    from app.core.localise import Localisation
 
 __all__ = [
     "HELD_CROP_BYTES_PER_POINT",
@@ -39,6 +45,7 @@ __all__ = [
     "MIN_THINNING_CELL_METRES",
     "SURFACE_AREA_FACTOR",
     "THINNING_CELL_STEP",
+    "carried_back",
     "representatives",
     "thinning_cell",
 ]
@@ -109,3 +116,46 @@ def representatives(
     rank = np.empty(len(first), dtype=np.int64)
     rank[order] = np.arange(len(first), dtype=np.int64)
     return kept, rank[inverse.reshape(-1)]
+
+
+def carried_back(
+    localisation: Localisation,
+    reference_representative: NDArray[np.int64],
+    scan_representative: NDArray[np.int64],
+) -> Localisation:
+    """A thinned crop's localisation for every point of the whole crop: each point takes its
+    representative's label, distance and region, and a region holds every point whose
+    representative it holds (see :func:`~app.core.tiling.tile.thin_crop`)."""
+    members = {
+        "removed": _members_by_representative(reference_representative),
+        "added": _members_by_representative(scan_representative),
+    }
+
+    def widened(region: Any) -> Any:
+        order, bounds = members[region.kind]
+        local = region.point_indices
+        lengths = bounds[local + 1] - bounds[local]
+        starts = np.repeat(bounds[local] - np.cumsum(lengths) + lengths, lengths)
+        rows = order[starts + np.arange(int(lengths.sum()))]
+        return dataclasses.replace(region, point_indices=np.sort(rows).astype(np.int64))
+
+    return dataclasses.replace(
+        localisation,
+        reference_label=localisation.reference_label[reference_representative],
+        scan_label=localisation.scan_label[scan_representative],
+        reference_distance=localisation.reference_distance[reference_representative],
+        scan_distance=localisation.scan_distance[scan_representative],
+        reference_region=localisation.reference_region[reference_representative],
+        scan_region=localisation.scan_region[scan_representative],
+        regions=[widened(region) for region in localisation.regions],
+        uncertain_regions=[widened(region) for region in localisation.uncertain_regions],
+    )
+
+
+def _members_by_representative(
+    representative: NDArray[np.int64],
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """The crop's rows grouped by representative: ``order[bounds[r]:bounds[r + 1]]``."""
+    order = np.argsort(representative, kind="stable")
+    counts = np.bincount(representative, minlength=int(representative.max(initial=-1)) + 1)
+    return order, np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)

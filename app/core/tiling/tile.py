@@ -5,7 +5,8 @@
 :class:`TileResult` is saved and loaded as ``.npz`` so tiles can run as separate tasks.
 Localisation is called in one place, :func:`localise_crop`.  A tile the plan thins
 (:mod:`app.core.tiling.thinning`) is localised on its thinned crop and every crop point takes
-its representative's label, distance and region (:func:`thin_crop`, :func:`carried_back`).
+its representative's label, distance and region (:func:`thin_crop`,
+:func:`~app.core.tiling.thinning.carried_back`).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from app.core.tiling.thinning import (
     HELD_CROP_BYTES_PER_POINT,
     MAX_THINNING_CELL_METRES,
     THINNING_CELL_STEP,
+    carried_back,
     representatives,
 )
 
@@ -45,7 +47,6 @@ __all__ = [
     "TileCrop",
     "TileResult",
     "TileSource",
-    "carried_back",
     "compute_tile",
     "crop_mask",
     "localise_crop",
@@ -500,49 +501,6 @@ def thin_crop(
         scan_rays=_cropped_rays(crop.scan_rays, scan_kept),
     )
     return thinned, reference_representative, scan_representative, float(cell)
-
-
-def carried_back(
-    localisation: Localisation,
-    reference_representative: NDArray[np.int64],
-    scan_representative: NDArray[np.int64],
-) -> Localisation:
-    """A thinned crop's localisation for every point of the whole crop: each point takes its
-    representative's label, distance and region, and a region holds every point whose
-    representative it holds (see :func:`thin_crop`)."""
-    members = {
-        "removed": _members_by_representative(reference_representative),
-        "added": _members_by_representative(scan_representative),
-    }
-
-    def widened(region: Any) -> Any:
-        order, bounds = members[region.kind]
-        local = region.point_indices
-        lengths = bounds[local + 1] - bounds[local]
-        starts = np.repeat(bounds[local] - np.cumsum(lengths) + lengths, lengths)
-        rows = order[starts + np.arange(int(lengths.sum()))]
-        return dataclasses.replace(region, point_indices=np.sort(rows).astype(np.int64))
-
-    return dataclasses.replace(
-        localisation,
-        reference_label=localisation.reference_label[reference_representative],
-        scan_label=localisation.scan_label[scan_representative],
-        reference_distance=localisation.reference_distance[reference_representative],
-        scan_distance=localisation.scan_distance[scan_representative],
-        reference_region=localisation.reference_region[reference_representative],
-        scan_region=localisation.scan_region[scan_representative],
-        regions=[widened(region) for region in localisation.regions],
-        uncertain_regions=[widened(region) for region in localisation.uncertain_regions],
-    )
-
-
-def _members_by_representative(
-    representative: NDArray[np.int64],
-) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """The crop's rows grouped by representative: ``order[bounds[r]:bounds[r + 1]]``."""
-    order = np.argsort(representative, kind="stable")
-    counts = np.bincount(representative, minlength=int(representative.max(initial=-1)) + 1)
-    return order, np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
 
 
 def _region_table(
