@@ -104,7 +104,7 @@ def _write_pair_streamed(scene_dir: Path, n_points: int) -> None:
     )
 
 
-def densest_crop(scene_dir: Path, core: tuple[float, float] = (1.5, 1.3)) -> None:
+def densest_crop(scene_dir: Path, core: tuple[float, float] = (1.5, 1.3)) -> dict[str, Any]:
     """Print the most points of both clouds one crop of a ``core`` box (metres, plus the
     planner's margin each side) can hold, from each file's 2M-point subsample (as the
     streamed parent's), and how far each epoch's stations (``truth.npz``) are from it: the
@@ -140,6 +140,7 @@ def densest_crop(scene_dir: Path, core: tuple[float, float] = (1.5, 1.3)) -> Non
                 offsets = truth[f"{side}_origins"][:, :2] - centre
                 report[f"{side}_stations_m"] = np.linalg.norm(offsets, axis=1).round(2).tolist()
     print(json.dumps(report), flush=True)
+    return report
 
 
 class _StopAfterPlanError(Exception):
