@@ -39,7 +39,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from app.core.cloud import PointCloud
-from app.core.datasets.lidar import lidar_pair
+from app.core.datasets.lidar import lidar_pair, steps_for_points
 from app.core.datasets.scenes import paper_corridor, raycast_scene
 from app.core.ground_truth import changed_iou
 from app.core.localise import EpochCloud, localise_changes
@@ -239,6 +239,22 @@ def sampling_clouds(seeds: int, first_seed: int):
         grid = np.stack(np.meshgrid(*[np.arange(0.0, 10.0, 0.05)] * 2, indexing="ij"), -1)
         flat = np.column_stack([grid.reshape(-1, 2), np.zeros(grid[..., 0].size)])
         yield "regular grid", f"5 cm seed {seed}", flat + rng.normal(0.0, 0.003, flat.shape)
+        for noise in (0.02, 0.05):  # lattice-free and as noisy as a dense survey
+            yield (
+                "uniform planes",
+                f"{noise * 100:.0f} cm noise seed {seed}",
+                (_box_faces(rng, 100_000) + rng.normal(0.0, noise, (100_000, 3))),
+            )
+        for noise in (0.01, 0.04, 0.0894):  # bench/tiled.py's survey at 250k points: the noise
+            survey = lidar_pair(  # against the spacing of 250k, 4M and 20M points
+                layout="warehouse",
+                change="added",
+                n_stations=5,
+                angular_step_deg=steps_for_points(250_000, 5),
+                range_noise=noise,
+                random_state=18,
+            )
+            yield "merged lidar, noisy", f"warehouse 18, {noise * 100:.1f} cm", survey.reference
     real = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
     from app.core.formats import read_point_cloud
 
@@ -247,17 +263,32 @@ def sampling_clouds(seeds: int, first_seed: int):
         yield "real Velodyne frame", f"{path.parent.name[:12]}/{path.name}", points
 
 
+def _box_faces(rng: np.random.Generator, n_points: int) -> np.ndarray:
+    """``n_points`` uniform points on the faces of a 20 x 10 x 5 m box."""
+    size = np.array([20.0, 10.0, 5.0])
+    points = rng.uniform(0.0, 1.0, (n_points, 3)) * size
+    face = rng.integers(0, 6, n_points)
+    for axis in range(3):
+        points[face == axis, axis] = 0.0
+        points[face == axis + 3, axis] = size[axis]
+    return points
+
+
 def print_sampling(seeds: int, first_seed: int) -> None:
     """Print :func:`lidar_sampling`'s figures for each cloud of :func:`sampling_clouds`."""
-    print("| class | cloud | points | twin share | spacing spread | lidar-like | ms |")
-    print("|---|---|---|---|---|---|---|")
+    print(
+        "| class | cloud | points | twin share | spacing spread | noise ratio | share needed "
+        "| lidar-like | ms |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
     for kind, name, points in sampling_clouds(seeds, first_seed):
         started = time.perf_counter()
         found = lidar_sampling(points)
         milliseconds = 1000 * (time.perf_counter() - started)
         print(
             f"| {kind} | {name} | {len(points)} | {found.twin_share:.3f} | "
-            f"{found.spacing_spread:.1f} | {found.lidar_like} | {milliseconds:.0f} |",
+            f"{found.spacing_spread:.1f} | {found.noise_ratio:.2f} | "
+            f"{found.twin_share_needed:.3f} | {found.lidar_like} | {milliseconds:.0f} |",
             flush=True,
         )
 

@@ -257,6 +257,11 @@ class PointCloud:
     trajectory : Trajectory or None
         The moving sensor's path, when the cloud was taken from one (a trajectory file, a ROS
         bag); per-point times, when known, are the ``"time"`` attribute.
+    sampling_points : ndarray, shape (m, 3), or None
+        When ``points`` is a subsample of a larger cloud (a streamed comparison's): whole
+        voxels of that cloud at full density, any frame, for the lidar sampling test
+        (:func:`app.core.origins.sampling.lidar_sampling`), which a subsample's thinned
+        lattice would fail.
     """
 
     points: NDArray[np.float64]
@@ -265,6 +270,7 @@ class PointCloud:
     attributes: Mapping[str, NDArray] = field(default_factory=dict)
     sensor_origin: NDArray[np.float64] | None = None
     trajectory: Trajectory | None = None
+    sampling_points: NDArray[np.float64] | None = None
 
     @classmethod
     def from_array(

@@ -140,6 +140,9 @@ class SideVisibilityRead(StoredJson):
     )
     lidar_twin_share: Number | None = None
     lidar_spacing_spread: Number | None = None
+    lidar_noise_ratio: Number | None = Field(
+        default=None, description="The points' noise against their spacing."
+    )
     stations_recovered: int | None = None
     stations_unknown: bool | None = Field(
         default=None, description="A merged lidar cloud whose stations are not known."

@@ -14,13 +14,20 @@ import numpy as np
 import pytest
 
 from app.core.cloud import PointCloud, choose_local_origin
-from app.core.datasets.lidar import lidar_pair
+from app.core.datasets.lidar import lidar_pair, steps_for_points
 from app.core.formats import read_point_cloud
 from app.core.labels import LABEL_CHANGED
+from app.core.origins.sampling import lidar_sampling
+from app.core.origins.station_recovery import measured_sampling
 from app.core.pipeline import ComparisonResult
 from app.core.tiling.compare import compare_tiled
 from app.core.tiling.lean import float32_cloud
-from app.core.tiling.pair_files import streamed_outputs, write_details_npz, write_labels_npz
+from app.core.tiling.pair_files import (
+    streamed_outputs,
+    survey,
+    write_details_npz,
+    write_labels_npz,
+)
 from app.core.tiling.streamed import compare_streamed
 from app.testing.files import ply_bytes
 from tests.helpers.tiling import assert_identical_results
@@ -44,12 +51,22 @@ def _write_pair(tmp_path: Path, n_stations: int, random_state: int, shift: float
     return paths
 
 
-def _lean_tiled(paths: list[Path], crop_points: int) -> ComparisonResult:
+def _lean_tiled(paths: list[Path], crop_points: int, **options) -> ComparisonResult:
     """What the CLI runs on a pair over its budget: both read lean, then compare_tiled."""
     reference = read_point_cloud(paths[0])
     offset = choose_local_origin(reference.points)
     clouds = [float32_cloud(reference, offset), float32_cloud(read_point_cloud(paths[1]), offset)]
-    return compare_tiled(*clouds, max_crop_points=crop_points, frame_offset=offset, **OPTIONS)
+    return compare_tiled(
+        *clouds, max_crop_points=crop_points, frame_offset=offset, **OPTIONS, **options
+    )
+
+
+def _crop_sizes(result: ComparisonResult) -> list[int]:
+    """Points of both clouds in each tile's crop."""
+    return [
+        tile["crop_reference_points"] + tile["crop_scan_points"]
+        for tile in result.localisation["tiles"]["per_tile"]
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -62,14 +79,15 @@ def three_station_pair(tmp_path_factory) -> tuple[list[Path], int, ComparisonRes
 
 
 def _assert_streamed_equals_lean(
-    paths: list[Path], work_dir: Path, n_points: int, tiled: ComparisonResult
+    paths: list[Path], work_dir: Path, n_points: int, tiled: ComparisonResult, **options
 ) -> ComparisonResult:
-    """Stream the pair with the lean run's tiles and check the result and its files equal it."""
+    """Stream the pair with the lean run's tiles and check the result and its files equal it
+    (the crops by direction too unless ``ray_directions=False``, as the lean run's)."""
     crop_points = int(0.6 * n_points)
     assert tiled.localisation["tiles"]["count"] >= 3, "the scene crosses tile borders"
     assert tiled.regions, "the scene has changes"
     streamed = compare_streamed(
-        *paths, work_dir=work_dir / "work", max_crop_points=crop_points, **OPTIONS
+        *paths, work_dir=work_dir / "work", max_crop_points=crop_points, **OPTIONS, **options
     )
     assert_identical_results(streamed, tiled)
     assert isinstance(streamed.reference_label, np.memmap), "the labels stay on disk"
@@ -90,8 +108,19 @@ def _assert_streamed_equals_lean(
 
 
 def test_a_streamed_comparison_equals_the_lean_tiled_one(tmp_path, three_station_pair) -> None:
+    # by default the crops keep the other sensor's returns by direction too, both paths
     paths, n_points, tiled = three_station_pair
     _assert_streamed_equals_lean(paths, tmp_path, n_points, tiled)
+
+
+def test_without_the_direction_filter_too_and_its_crops_are_larger(
+    tmp_path, three_station_pair
+) -> None:
+    paths, n_points, by_direction = three_station_pair
+    top_view = _lean_tiled(paths, int(0.6 * n_points), ray_directions=False)
+    _assert_streamed_equals_lean(paths, tmp_path, n_points, top_view, ray_directions=False)
+    # the filter keeps fewer of the other sensor's returns
+    assert sum(_crop_sizes(by_direction)) < sum(_crop_sizes(top_view))
 
 
 def test_a_georeferenced_pair_with_non_finite_rows_streams_like_the_lean_one(tmp_path) -> None:
@@ -142,3 +171,25 @@ def test_a_streamed_comparison_on_subsamples_finds_the_same_changes(
         assert union == 0 or np.count_nonzero(ours & theirs) / union >= 0.95, side
     assert [region.kind for region in streamed.regions] == [region.kind for region in tiled.regions]
     assert streamed.changed == tiled.changed
+
+
+def test_a_subsampled_file_is_lidar_tested_on_whole_voxels_at_full_density(tmp_path) -> None:
+    # an even subsample of a shuffled file thins every ring at random: its twins are gone
+    # (the 20M pair's 2M-point subsample was judged not lidar-like, issue 30)
+    survey_pair = lidar_pair(
+        layout="room",
+        change="none",
+        n_stations=3,
+        angular_step_deg=steps_for_points(120_000, 3),
+        range_noise=0.08,
+        random_state=3,
+    )
+    path = tmp_path / "reference.ply"
+    path.write_bytes(ply_bytes(survey_pair.reference))
+    cloud, subsample, voxels = survey(path, None, len(survey_pair.reference) // 4)
+    assert cloud.step == 4 and voxels is not None
+    assert not lidar_sampling(subsample).lidar_like
+    assert lidar_sampling(survey_pair.reference).lidar_like
+    whole = PointCloud(subsample, None, len(subsample), sampling_points=voxels)  # type: ignore[arg-type]
+    assert measured_sampling(subsample, whole, 0).lidar_like
+    assert survey(path, None, len(survey_pair.reference))[2] is None  # no subsample, no voxels

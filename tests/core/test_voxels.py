@@ -5,7 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from app.core.origins.voxels import VOXEL_EDGE, VOXEL_POINTS, whole_voxels
+from app.core.origins.voxels import (
+    SAMPLE_EDGES,
+    VOXEL_EDGE,
+    VOXEL_POINTS,
+    WholeVoxelSample,
+    whole_voxels,
+)
 
 
 def floor_points(n_points: int, side: float, seed: int) -> np.ndarray:
@@ -74,3 +80,21 @@ def test_a_crowded_voxel_weighs_about_voxel_points():
         outside = whole[~np.all((whole[:, :2] >= 8.0) & (whole[:, :2] <= 12.0), axis=1)]
         kept = {tuple(row) for row in thin.tolist()}
         assert all(tuple(row) in kept for row in outside.tolist())
+
+
+def test_a_sample_drawn_chunk_by_chunk_is_whole_voxels_at_the_density_s_edge():
+    # a streamed file's sample (WholeVoxelSample): whole voxels, their edge shrunk with the
+    # density as whole_voxels shrinks it, whatever the chunks
+    for n_points in (20_000, 400_000):
+        points = floor_points(n_points, 20.0, 4)
+        sample = WholeVoxelSample(n_points, 10_000, random_state=2)
+        for start in range(0, n_points, 7_919):
+            sample.add(points[start : start + 7_919])
+        kept = sample.points()
+        assert 0.5 * 10_000 <= len(kept) <= 1.5 * 10_000
+        edges = [edge for edge in SAMPLE_EDGES if edge**2 * n_points / 400.0 <= VOXEL_POINTS]
+        edge = edges[0]  # the largest edge whose voxels hold at most VOXEL_POINTS points
+        keys = {tuple(key) for key in np.floor(kept / edge).astype(int).tolist()}
+        whole = [tuple(key) in keys for key in np.floor(points / edge).astype(int).tolist()]
+        assert int(np.count_nonzero(whole)) == len(kept)  # every point of a kept voxel
+        assert len(keys) >= 0.5 * 10_000 / VOXEL_POINTS  # as many places at either density

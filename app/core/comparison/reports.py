@@ -111,19 +111,25 @@ class LidarSampling:
         Share of points with a twin at the lidar's angular step.
     lidar_spacing_spread : float or None
         Spread of the spacing along the rings.
+    lidar_noise_ratio : float or None
+        The points' noise against their spacing (the twin share needed falls as it grows).
     """
 
     lidar_like: bool
     lidar_twin_share: float | None
     lidar_spacing_spread: float | None
+    lidar_noise_ratio: float | None = None
 
     def to_json_dict(self) -> dict[str, Any]:
-        """The three figures, as stored in ``visibility[side]``."""
-        return {
+        """The figures, as stored in ``visibility[side]`` (the noise ratio when measured)."""
+        report: dict[str, Any] = {
             "lidar_like": self.lidar_like,
             "lidar_twin_share": self.lidar_twin_share,
             "lidar_spacing_spread": self.lidar_spacing_spread,
         }
+        if self.lidar_noise_ratio is not None:
+            report["lidar_noise_ratio"] = self.lidar_noise_ratio
+        return report
 
 
 @dataclass(frozen=True)
@@ -166,6 +172,7 @@ class SideVisibility:
                 report["lidar_like"],
                 report.get("lidar_twin_share"),
                 report.get("lidar_spacing_spread"),
+                report.get("lidar_noise_ratio"),
             )
             if "lidar_like" in report
             else None,

@@ -125,6 +125,7 @@ def resolve_moved_cloud(
             {"given": None, "from_file": None, "estimate": estimate},
             0,
             stations_first=stations_first,
+            station_of=station_of,
         )
         if early is not None and early[0].origin is not None:
             ring_share = early[0].evidence.get("ring_share", 1.0)

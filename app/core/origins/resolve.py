@@ -78,6 +78,8 @@ class ResolvedOrigin:
             report["lidar_like"] = bool(self.evidence["lidar_like"])
             report["lidar_twin_share"] = self.evidence.get("lidar_twin_share")
             report["lidar_spacing_spread"] = self.evidence.get("lidar_spacing_spread")
+            if "lidar_noise_ratio" in self.evidence:
+                report["lidar_noise_ratio"] = self.evidence["lidar_noise_ratio"]
         if "stations_recovered" in self.evidence:
             report["stations_recovered"] = int(self.evidence["stations_recovered"])
         report["stations_unknown"] = self.stations_unknown

@@ -289,7 +289,7 @@ def resolve_stations(
         and given is None
         and (from_file is None and estimate)
     ):
-        early = recovered_before_apex(side, points, options, random_state)
+        early = recovered_before_apex(side, points, options, random_state, station_of=station_of)
         if early is not None and early[0].origin is not None:
             return early[0]
     if resolved is None:
@@ -304,7 +304,7 @@ def resolve_stations(
     if early is not None and early[1] is not None:
         sampling = early[1]
     else:
-        sampling = lidar_sampling(points, random_state=random_state)
+        sampling = measured_sampling(points, station_of, random_state)
     evidence = {**resolved.evidence, **sampling.evidence()}
     if recover == "auto" and not sampling.lidar_like:
         return dataclasses.replace(resolved, evidence=evidence)
@@ -333,6 +333,18 @@ def resolve_stations(
             "origins (origin-free surface test): give each station's origin for the ray test"
         )
     return dataclasses.replace(resolved, warnings=warnings, evidence=evidence)
+
+
+def measured_sampling(
+    points: NDArray[np.float64], cloud: PointCloud | None, random_state: int
+) -> LidarSampling:
+    """:func:`~app.core.origins.sampling.lidar_sampling` of the cloud ``points`` come from:
+    its full-density ``sampling_points`` when ``points`` is a subsample of it (a streamed
+    comparison's: a subsample thins a lidar's rings, and its twins with them), else
+    ``points``."""
+    if cloud is not None and cloud.sampling_points is not None:
+        return lidar_sampling(cloud.sampling_points, random_state=random_state)
+    return lidar_sampling(points, random_state=random_state)
 
 
 EARLY_MAX_STATION_SHARE = 0.7
@@ -390,6 +402,7 @@ def recovered_before_apex(
     random_state: int,
     *,
     stations_first: bool = False,
+    station_of: PointCloud | None = None,
 ) -> EarlySearch | None:
     """With ``recover="auto"``: the stations of a merged survey, before the apex search.
 
@@ -415,7 +428,7 @@ def recovered_before_apex(
     """
     sampling = found = None
     if stations_first:
-        sampling = lidar_sampling(points, random_state=random_state)
+        sampling = measured_sampling(points, station_of, random_state)
         if sampling.lidar_like:
             found = recover_stations(points, random_state=random_state)
             if _early_enough(found):
@@ -427,7 +440,7 @@ def recovered_before_apex(
     if "ring_share" not in quick.evidence:
         return None
     if sampling is None:
-        sampling = lidar_sampling(points, random_state=random_state)
+        sampling = measured_sampling(points, station_of, random_state)
     undecided = ResolvedOrigin(None, None, None)
     if not sampling.lidar_like:
         return undecided, sampling, None

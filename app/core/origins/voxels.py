@@ -22,7 +22,14 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["CROWDED_POINTS", "VOXEL_EDGE", "VOXEL_POINTS", "voxel_hash", "whole_voxels"]
+__all__ = [
+    "CROWDED_POINTS",
+    "VOXEL_EDGE",
+    "VOXEL_POINTS",
+    "WholeVoxelSample",
+    "voxel_hash",
+    "whole_voxels",
+]
 
 VOXEL_EDGE = 1.0
 """Largest edge (metres) of the voxels a subset is made of (clouds up to :data:`VOXEL_POINTS`
@@ -175,3 +182,56 @@ def whole_voxels(
         return points[drawn]
     kept = np.flatnonzero(drawn)
     return points[kept[_thinned(points[kept], mixed[kept], edge)]]
+
+
+SAMPLE_EDGES = tuple(VOXEL_EDGE / 2.0**power for power in range(8))
+"""Voxel edges a streamed sample is drawn at, all at once (1 m down to 7.8 mm: up to about
+16,000 times :data:`VOXEL_POINTS` points a one-metre voxel, 100M-point surveys included)."""
+
+
+class WholeVoxelSample:
+    """:func:`whole_voxels` of a cloud read a chunk at a time: about ``max_points`` of its
+    points, all those of randomly chosen voxels, never holding the cloud.
+
+    Each chunk's points are drawn at every edge of :data:`SAMPLE_EDGES` (a seeded hash of their
+    voxel, as :func:`whole_voxels` draws them); :meth:`points` keeps the draw at the largest
+    edge whose voxels hold at most :data:`VOXEL_POINTS` points on average (whole voxels of
+    lattice neighbours at any density: what the lidar sampling test needs of a cloud that the
+    comparison only sees subsampled, :mod:`app.core.tiling.streamed`).
+
+    Parameters
+    ----------
+    n_points : int
+        Points of the whole cloud (its rows: an upper bound is fine).
+    max_points : int
+    random_state : int
+    """
+
+    def __init__(self, n_points: int, max_points: int, random_state: int = 0) -> None:
+        self.share = min(1.0, max_points / max(1, n_points))
+        self.salt = np.int64(np.random.default_rng(random_state).integers(1, 2**62))
+        self._points: list[list[NDArray[np.float64]]] = [[] for _ in SAMPLE_EDGES]
+        self._draws: list[list[NDArray[np.int64]]] = [[] for _ in SAMPLE_EDGES]
+
+    def add(self, points: NDArray[np.floating]) -> None:
+        """Draw the voxels of a chunk of the cloud, shape (c, 3) (any frame, the same for all
+        chunks)."""
+        points = np.asarray(points, dtype=np.float64)
+        for number, edge in enumerate(SAMPLE_EDGES):
+            mixed = _voxel_draws(points, edge, self.salt)
+            drawn = _drawn(mixed, self.share)
+            self._points[number].append(points[drawn])
+            self._draws[number].append(mixed[drawn])
+
+    def points(self) -> NDArray[np.float64]:
+        """The sample, shape (m, 3): the draw at the largest edge not crowded."""
+        chosen = len(SAMPLE_EDGES) - 1
+        for number in range(len(SAMPLE_EDGES)):
+            draws = np.concatenate(self._draws[number]) if self._draws[number] else None
+            if draws is None or not len(draws):
+                continue
+            if len(draws) / np.unique(draws).size <= VOXEL_POINTS:
+                chosen = number
+                break
+        parts = self._points[chosen]
+        return np.concatenate(parts) if parts else np.zeros((0, 3))

@@ -90,7 +90,7 @@ def compare_tiled(
     margin: float = DEFAULT_MARGIN_METRES,
     ray_reach: float = DEFAULT_RAY_REACH_METRES,
     run_tiles: TileRunner | None = None,
-    ray_directions: bool = False,
+    ray_directions: bool = True,
     **options: Unpack[PairOptions],
 ) -> ComparisonResult:
     """:func:`app.core.pipeline.compare` localised tile by tile within ``budget_bytes``.
@@ -112,8 +112,8 @@ def compare_tiled(
         (:class:`~app.core.tiling.tile.TileContext`).
     ray_directions : bool
         Crops keep the other sensor's returns by direction too (:mod:`app.core.tiling.rays`):
-        far smaller crops round stations.  Off by default until the streamed parent
-        (:mod:`app.core.tiling.streamed`, which crops with the top view alone) does the same.
+        far smaller crops round stations (the streamed parent, :mod:`app.core.tiling.streamed`,
+        crops the same way).  False: the top view only.
     run_tiles : callable, optional
         ``run_tiles(plan, source, context, threads, report) -> list[TileResult]`` (in tile
         order): who computes the tiles.  Default: each in turn in this process
@@ -194,7 +194,7 @@ class TiledLocalisation:
     registration_sample: int = REGISTRATION_SAMPLE
     detection_sample: int = DETECTION_SAMPLE
     detect_fraction: float = 0.85
-    ray_directions: bool = False
+    ray_directions: bool = True
 
     @property
     def params(self) -> Mapping[str, Any]:

@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.tiling.plan import TilePlan
-from app.core.tiling.rays import box_mask
+from app.core.tiling.rays import box_mask, direction_cells, expanded_marks
 from app.core.tiling.tile import TileContext, TileCrop, TileSource, _cropped_rays, crop_mask
 
 __all__ = [
@@ -44,6 +44,7 @@ __all__ = [
     "TileCropFiles",
     "crop_file",
     "record_dtype",
+    "tile_direction_marks",
     "write_crops_from_chunks",
     "write_tile_crops",
 ]
@@ -79,6 +80,45 @@ def record_dtype(points: NDArray[np.floating], station: NDArray | None) -> np.dt
 
 Chunks = Callable[[], Iterator[tuple[int, NDArray[np.floating], NDArray | None]]]
 """A fresh pass over one cloud: ``(first index, points (c, 3), stations (c,) or None)``."""
+TileMarks = list[list[NDArray[np.int64]]]
+"""Per tile, per origin of a cloud: the direction cells marked by the other cloud's points in
+the tile's crop box (:func:`tile_direction_marks`)."""
+
+
+def tile_direction_marks(
+    plan: TilePlan, other: Chunks, origins: NDArray[np.float64], cells: NDArray[np.float64]
+) -> TileMarks:
+    """Every tile's direction marks of a cloud's origins, in one pass over the other cloud.
+
+    What :func:`~app.core.tiling.rays.crop_masks` computes for one tile from the whole other
+    cloud (:func:`~app.core.tiling.rays.direction_marks` of its points in the crop box), for
+    all tiles from the other cloud's chunks: the same cells, whatever the chunks.
+
+    Parameters
+    ----------
+    plan : TilePlan
+    other : Chunks
+        A pass over the other cloud (its stations are not read).
+    origins : ndarray, shape (k, 3)
+        The cloud's origins.
+    cells : ndarray, shape (k,)
+        Their direction cells (:func:`~app.core.tiling.rays.ray_cell_sizes`).
+
+    Returns
+    -------
+    TileMarks
+    """
+    boxes = [plan.crop_box(tile_index) for tile_index in range(plan.n_tiles)]
+    found: list[list[list[NDArray[np.int64]]]] = [[[] for _ in origins] for _ in boxes]
+    for _, chunk, _ in other():
+        for tile_index, (low, high) in enumerate(boxes):
+            inside = box_mask(chunk, low, high)
+            if not inside.any():
+                continue
+            seen = direction_cells(chunk[inside], origins, cells)
+            for number, cells_seen in enumerate(seen):
+                found[tile_index][number].append(cells_seen)
+    return [expanded_marks(parts, cells) for parts in found]
 
 
 def write_tile_crops(
@@ -131,7 +171,12 @@ def write_tile_crops(
             strict=True,
         )
     }
-    return write_crops_from_chunks(directory, plan, context, sides)
+    marks = {}  # by direction too, as TileSource.crop does when the context has cells
+    for side, other in zip(SIDES, reversed(SIDES), strict=True):
+        cells, origins = getattr(context, f"{side}_ray_cells"), sides[side][1]
+        if cells is not None and origins is not None:
+            marks[side] = tile_direction_marks(plan, sides[other][0], origins, cells)
+    return write_crops_from_chunks(directory, plan, context, sides, marks=marks)
 
 
 def write_crops_from_chunks(
@@ -141,6 +186,7 @@ def write_crops_from_chunks(
     sides: dict[str, tuple[Chunks, NDArray[np.float64] | None, np.dtype, Any]],
     *,
     threads: int = 1,
+    marks: dict[str, TileMarks] | None = None,
 ) -> list[int]:
     """:func:`write_tile_crops` of clouds handed out in chunks (a streamed parent's).
 
@@ -157,6 +203,10 @@ def write_crops_from_chunks(
     threads : int
         With two or more, the clouds are written concurrently (numpy releases the GIL: a
         parent alone on the machine uses both cores while no tile runs yet).
+    marks : dict, optional
+        For a cloud whose context has direction cells (``<side>_ray_cells``): its
+        :func:`tile_direction_marks`, so that its crops keep the other sensor's returns by
+        direction too (:func:`~app.core.tiling.rays.crop_masks`); else the top view only.
 
     Returns
     -------
@@ -168,11 +218,14 @@ def write_crops_from_chunks(
 
     def write(side: str) -> NDArray[np.int64]:
         chunks, origins, dtype, rays = sides[side]
+        cells = getattr(context, f"{side}_ray_cells")
+        side_marks = None if marks is None or cells is None else marks.get(side)
+        directions = None if side_marks is None else (cells, side_marks)
         sizes = np.zeros(plan.n_tiles, dtype=np.int64)
         for first in range(0, plan.n_tiles, MAX_OPEN_TILES):
             tiles = range(first, min(plan.n_tiles, first + MAX_OPEN_TILES))
             sizes[first : tiles.stop] = _write_side(
-                directory, plan, tiles, side, chunks, origins, context, dtype
+                directory, plan, tiles, side, chunks, origins, context, dtype, directions
             )
         if rays is not None:
             for tile_index in range(plan.n_tiles):
@@ -201,8 +254,10 @@ def _write_side(
     origins: NDArray[np.float64] | None,
     context: TileContext,
     dtype: np.dtype,
+    directions: tuple[NDArray[np.float64], TileMarks] | None = None,
 ) -> NDArray[np.int64]:
-    """One pass over one cloud writing the crops of ``tiles``; their point counts."""
+    """One pass over one cloud writing the crops of ``tiles``; their point counts (with
+    ``directions``, the cloud's cells and :func:`tile_direction_marks`: by direction too)."""
     counts = np.zeros(len(tiles), dtype=np.int64)
     boxes = [plan.crop_box(tile_index) for tile_index in tiles]
     reach = context.ray_reach if origins is not None and len(origins) else 0.0
@@ -225,6 +280,8 @@ def _write_side(
                         low,
                         high,
                         context.ray_reach,
+                        cells=None if directions is None else directions[0],
+                        marks=None if directions is None else directions[1][tiles[number]],
                     )
                 ]
                 if not len(kept):

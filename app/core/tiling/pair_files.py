@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from app.core.formats.station_fields import has_station_fields
 from app.core.formats.streamed import open_point_blocks
 from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
+from app.core.origins.voxels import WholeVoxelSample
 
 if TYPE_CHECKING:
     from app.core.pipeline import ComparisonResult
@@ -44,6 +45,9 @@ __all__ = [
     "write_outputs",
 ]
 
+SAMPLING_VOXEL_POINTS = 90_000
+"""Points of a subsampled file kept as whole voxels at full density (the lidar sampling test
+examines up to 100,000: :data:`app.core.origins.sampling.SAMPLING_MAX_POINTS`)."""
 CHUNK = 1 << 20
 """Finite points of a file per step (the lean conversion's and the transform's own step, so
 the float32 points and the aligned scan are those of the lean tiled comparison bit for bit)."""
@@ -120,14 +124,19 @@ def _finite_chunks(path: Path, format: str | None) -> Iterator[tuple[int, NDArra
         yield first, np.concatenate(pending)
 
 
-def survey(path: Path, format: str | None, most: int) -> tuple[StreamedCloud, NDArray[np.float64]]:
-    """A file's first pass: its :class:`StreamedCloud` and its subsample (float64, file
-    frame, every ``step``-th finite point with ``step = max(1, rows // most)``)."""
+def survey(
+    path: Path, format: str | None, most: int
+) -> tuple[StreamedCloud, NDArray[np.float64], NDArray[np.float64] | None]:
+    """A file's first pass: its :class:`StreamedCloud`, its subsample (float64, file frame,
+    every ``step``-th finite point with ``step = max(1, rows // most)``) and, when that is
+    not the whole cloud, whole voxels of it at full density for the lidar sampling test
+    (:class:`~app.core.origins.voxels.WholeVoxelSample`, file frame; else None)."""
     dropped, kept = [], []
     low, high = np.full(3, np.inf), np.full(3, -np.inf)
     n_rows, step = 0, 1
     with open_point_blocks(path, format, block_points=CHUNK) as blocks:
         step = max(1, blocks.n_rows // most)
+        voxels = WholeVoxelSample(blocks.n_rows, SAMPLING_VOXEL_POINTS) if step > 1 else None
         finite_before = 0
         for first_row, block in blocks.blocks:
             finite = np.isfinite(block).all(axis=1)
@@ -138,6 +147,8 @@ def survey(path: Path, format: str | None, most: int) -> tuple[StreamedCloud, ND
                     np.minimum(low, points.min(axis=0)),
                     np.maximum(high, points.max(axis=0)),
                 )
+                if voxels is not None:
+                    voxels.add(points)
             index = finite_before + np.arange(len(points))
             kept.append(points[index % step == 0])
             finite_before += len(points)
@@ -151,7 +162,8 @@ def survey(path: Path, format: str | None, most: int) -> tuple[StreamedCloud, ND
         low,
         high,
     )
-    return cloud, np.concatenate(kept) if kept else np.zeros((0, 3))
+    subsample = np.concatenate(kept) if kept else np.zeros((0, 3))
+    return cloud, subsample, None if voxels is None else voxels.points()
 
 
 def coordinates_only(path: str | Path, format: str | None = None) -> bool:

@@ -34,9 +34,12 @@ from numpy.typing import NDArray
 __all__ = [
     "MAX_DIRECTION_STATIONS",
     "RAY_CELL_FACTOR",
+    "cells_of_counts",
     "crop_mask",
     "crop_masks",
+    "direction_cells",
     "direction_marks",
+    "expanded_marks",
     "ray_cell_sizes",
 ]
 
@@ -87,8 +90,18 @@ def ray_cell_sizes(
         for start in range(0, len(station), MASK_CHUNK):
             chunk = np.asarray(station[start : start + MASK_CHUNK], dtype=np.int64)
             counts += np.bincount(chunk, minlength=len(origins))[: len(origins)]
+    return cells_of_counts(counts.astype(np.float64), angle_factor)
+
+
+def cells_of_counts(counts: NDArray[np.float64], angle_factor: float) -> NDArray[np.float64]:
+    """The direction cell (chord) of origins with ``counts`` returns each, shape (k,).
+
+    ``RAY_CELL_FACTOR * angle_factor * sqrt(4 pi / count)`` (an origin with no return gets the
+    coarsest cell, 2); the counts may be estimates (a subsample's, scaled up: a streamed
+    parent's, :mod:`app.core.tiling.streamed`).
+    """
     with np.errstate(divide="ignore"):
-        step = np.sqrt(4.0 * math.pi / counts.astype(np.float64))
+        step = np.sqrt(4.0 * math.pi / np.asarray(counts, dtype=np.float64))
     cells = np.minimum(RAY_CELL_FACTOR * angle_factor * step, 2.0)
     return np.maximum(cells, MIN_CELL_CHORD)
 
@@ -138,13 +151,33 @@ def direction_marks(
         Per origin, the sorted numbers of the marked cells and their 26 neighbours.
     """
     box_index = np.flatnonzero(in_box)
+    found: list[list[NDArray[np.int64]]] = [[] for _ in origins]
+    for start in range(0, len(box_index), MASK_CHUNK):
+        chunk = points[box_index[start : start + MASK_CHUNK]]
+        for number, cells_seen in enumerate(direction_cells(chunk, origins, cells)):
+            found[number].append(cells_seen)
+    return expanded_marks(found, cells)
+
+
+def direction_cells(
+    points: NDArray[np.floating], origins: NDArray[np.float64], cells: NDArray[np.float64]
+) -> list[NDArray[np.int64]]:
+    """For each origin, the sorted direction cells of ``points`` (shape (p, 3)) seen from it:
+    the cells of a box's points, a chunk at a time (:func:`expanded_marks` joins them)."""
+    return [
+        np.unique(_cell_numbers(_unit_directions(points, origin), float(cell)))
+        for origin, cell in zip(origins, cells, strict=True)
+    ]
+
+
+def expanded_marks(
+    found: Sequence[Sequence[NDArray[np.int64]]], cells: NDArray[np.float64]
+) -> list[NDArray[np.int64]]:
+    """Per origin, the union of the cells ``found`` (:func:`direction_cells` of the chunks of a
+    box's points) and their 26 neighbours, sorted: :func:`direction_marks`' answer."""
     marks = []
-    for origin, cell in zip(origins, cells, strict=True):
-        found: list[NDArray[np.int64]] = []
-        for start in range(0, len(box_index), MASK_CHUNK):
-            chunk = points[box_index[start : start + MASK_CHUNK]]
-            found.append(np.unique(_cell_numbers(_unit_directions(chunk, origin), float(cell))))
-        own = np.unique(np.concatenate(found)) if found else np.zeros(0, dtype=np.int64)
+    for parts, cell in zip(found, cells, strict=True):
+        own = np.unique(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
         marks.append(np.unique((own[:, None] + _neighbour_offsets(float(cell))).ravel()))
     return marks
 

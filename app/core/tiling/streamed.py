@@ -15,7 +15,10 @@ plans, cuts and merges the tiles (32 bytes a point read lean: 6.4 GB for 100M + 
 - each tile's input, written in one pass over each file's chunks into files of its own
   (:mod:`app.core.tiling.crops`): the chunk moved into the local frame, the scan's aligned,
   each point's station assigned (:func:`~app.core.localise.station_assignment.best_stations`
-  with the contrasts of the subsample);
+  with the contrasts of the subsample); with stations, the other sensor's returns are kept
+  by direction too (:mod:`app.core.tiling.rays`), the directions each tile needs marked in
+  one more pass over the other file (:func:`~app.core.tiling.crops.tile_direction_marks`),
+  the direction cells from the subsample's station counts scaled up;
 - the merge, range by range of :data:`~app.core.tiling.pair_files.OUTPUT_RANGE` points: each
   tile's result is read from its file for the range, and the labels, distances and region
   numbers are written into ``.npy`` files in the files' row order
@@ -49,11 +52,17 @@ from app.core.comparison.load import LoadedPair, PairOptions, load_pair
 from app.core.comparison.origins import SensorOrigins
 from app.core.localise import Localisation
 from app.core.localise.changes import _default_min_region_points
+from app.core.localise.settings import DEFAULT_PARAMETERS
 from app.core.localise.station_assignment import best_stations, station_contrasts
 from app.core.pipeline import ComparisonResult, ProgressCallback, run_stages
 from app.core.threads import available_threads
 from app.core.tiling.compare import REGISTRATION_SAMPLE, TileRunner, origin_array
-from app.core.tiling.crops import TileCropFiles, record_dtype, write_crops_from_chunks
+from app.core.tiling.crops import (
+    TileCropFiles,
+    record_dtype,
+    tile_direction_marks,
+    write_crops_from_chunks,
+)
 from app.core.tiling.merge import join_regions, merged_parameters
 from app.core.tiling.pair_files import (
     StoredTileResults,
@@ -69,7 +78,8 @@ from app.core.tiling.plan import (
     crop_point_limit,
     plan_tiles,
 )
-from app.core.tiling.tile import TileContext, TileResult, compute_tile, crop_mask
+from app.core.tiling.rays import MAX_DIRECTION_STATIONS, cells_of_counts, crop_masks
+from app.core.tiling.tile import COUNT_CELL_SCALE, TileContext, TileResult, compute_tile
 
 __all__ = [
     "COUNT_SAMPLE",
@@ -126,6 +136,8 @@ class StreamedLocalisation:
         (:data:`~app.core.tiling.pair_files.OUTPUT_FILES`).
     outputs : dict
         Filled by :meth:`localise`: the output files' paths by ``<side>_<name>``.
+    ray_directions : bool
+        Crops keep the other sensor's returns by direction too (:mod:`app.core.tiling.rays`).
     """
 
     budget_bytes: int
@@ -142,6 +154,7 @@ class StreamedLocalisation:
     registration_sample: int = REGISTRATION_SAMPLE
     detection_sample: int = REGISTRATION_SAMPLE
     detect_fraction: float = 0.85
+    ray_directions: bool = True
 
     @property
     def params(self) -> Mapping[str, Any]:
@@ -160,10 +173,10 @@ class StreamedLocalisation:
         for cloud in (origins.reference, origins.scan):
             if cloud.station is not None or cloud.trajectory_rays is not None:
                 raise ValueError("a streamed comparison takes files with coordinates only")
-        context = self._context(loaded, origins)
-        sides = self._sides(loaded, alignment, context)
+        sides = self._sides(loaded, alignment, origins)
         sub = [loaded.reference_points, alignment.aligned_scan]
         sub_stations = [side[1] for side in sides]
+        context = self._context(loaded, origins, sub_stations, [len(points) for points in sub])
         limit = self.max_crop_points
         if limit is None:
             limit = crop_point_limit(
@@ -171,21 +184,28 @@ class StreamedLocalisation:
             )
         full = [self.reference.n_points, self.scan.n_points]
         all_origins = [context.reference_origins, context.scan_origins]
+        all_cells = [context.reference_ray_cells, context.scan_ray_cells]
 
         def count_crop(low: NDArray[np.float64], high: NDArray[np.float64]) -> int:
+            # as TileSource.count_crop: at most COUNT_SAMPLE points a cloud, coarser cells then
+            steps = [max(1, len(points) // COUNT_SAMPLE) for points in sub]
+            masks = crop_masks(
+                [
+                    (points[::step], None if station is None else station[::step], side_origins)
+                    for points, station, side_origins, step in zip(
+                        sub, sub_stations, all_origins, steps, strict=True
+                    )
+                ],
+                [
+                    None if cells is None else cells * (COUNT_CELL_SCALE if step > 1 else 1.0)
+                    for cells, step in zip(all_cells, steps, strict=True)
+                ],
+                low - self.margin,
+                high + self.margin,
+                context.ray_reach,
+            )
             total = 0.0
-            for points, station, side_origins, n in zip(
-                sub, sub_stations, all_origins, full, strict=True
-            ):
-                step = max(1, len(points) // COUNT_SAMPLE)
-                mask = crop_mask(
-                    points[::step],
-                    None if station is None else station[::step],
-                    side_origins,
-                    low - self.margin,
-                    high + self.margin,
-                    context.ray_reach,
-                )
+            for mask, points, n, step in zip(masks, sub, full, steps, strict=True):
                 total += np.count_nonzero(mask) * n / max(1, len(points[::step]))
             return int(np.ceil(total))
 
@@ -199,6 +219,7 @@ class StreamedLocalisation:
         )
         plan.save(self.work_dir / PLAN_FILE)  # how the pair was cut, before any crop
         report("localise", 0.36)  # planned
+        marks = self._marks(plan, sides, context, loaded.threads)
         crops, partial = self.work_dir / "crops", self.work_dir / "crops.partial"
         shutil.rmtree(partial, ignore_errors=True)  # swapped in whole: a tile of an earlier
         write_crops_from_chunks(  # attempt never reads a half-written crop
@@ -207,11 +228,12 @@ class StreamedLocalisation:
             context,
             {
                 name: (chunks, side_origins, dtype, None)
-                for name, (chunks, _, dtype), side_origins in zip(
+                for name, (chunks, _, dtype, _), side_origins in zip(
                     ("reference", "scan"), sides, all_origins, strict=True
                 )
             },
             threads=loaded.threads,
+            marks=marks,
         )
         shutil.rmtree(crops, ignore_errors=True)
         partial.rename(crops)
@@ -219,12 +241,32 @@ class StreamedLocalisation:
         results = self.run_tiles(plan, TileCropFiles(crops), context, loaded.threads, report)  # type: ignore[arg-type]
         return self._merge(plan, results, context.min_region_points), context.min_region_points
 
-    def _context(self, loaded: LoadedPair, origins: SensorOrigins) -> TileContext:
-        """What every tile shares; the region size floor of the whole clouds."""
+    def _context(
+        self,
+        loaded: LoadedPair,
+        origins: SensorOrigins,
+        sub_stations: Sequence[NDArray | None],
+        sub_sizes: Sequence[int],
+    ) -> TileContext:
+        """What every tile shares; the region size floor of the whole clouds; with
+        :attr:`ray_directions`, each cloud's direction cells from its subsample's stations."""
         params = dict(loaded.settings.localisation)
         min_region_points = params.get("min_region_points") or _default_min_region_points(
             self.reference.n_points, self.scan.n_points
         )
+        angle_factor = float(
+            params.get("visibility_angle_factor", DEFAULT_PARAMETERS["visibility_angle_factor"])
+        )
+        cells = [
+            self._cells(side_origins, station, n_sub, cloud.n_points, angle_factor)
+            for side_origins, station, n_sub, cloud in zip(
+                (origin_array(origins.reference), origin_array(origins.scan)),
+                sub_stations,
+                sub_sizes,
+                (self.reference, self.scan),
+                strict=True,
+            )
+        ]
         return TileContext(
             reference_origins=origin_array(origins.reference),
             scan_origins=origin_array(origins.scan),
@@ -233,18 +275,65 @@ class StreamedLocalisation:
             min_region_points=int(min_region_points),
             localisation_params=params,
             ray_reach=self.ray_reach,
+            reference_ray_cells=cells[0],
+            scan_ray_cells=cells[1],
         )
 
+    def _cells(
+        self,
+        origins: NDArray[np.float64] | None,
+        station: NDArray | None,
+        n_sub: int,
+        n_points: int,
+        angle_factor: float,
+    ) -> NDArray[np.float64] | None:
+        """A cloud's direction cells (:func:`~app.core.tiling.rays.ray_cell_sizes`), its
+        stations' returns counted on the subsample and scaled up (the whole cloud's counts
+        when the subsample is the whole cloud)."""
+        if not self.ray_directions or origins is None:
+            return None
+        if not 0 < len(origins) <= MAX_DIRECTION_STATIONS:
+            return None
+        if station is None:
+            counts = np.zeros(len(origins), dtype=np.float64)
+            counts[0] = n_points
+        else:
+            counts = np.bincount(np.asarray(station, dtype=np.int64), minlength=len(origins))
+            counts = counts[: len(origins)].astype(np.float64)
+            if n_sub != n_points:
+                counts = counts * (n_points / max(1, n_sub))
+        return cells_of_counts(counts, angle_factor)
+
+    def _marks(
+        self, plan: TilePlan, sides: Sequence[tuple], context: TileContext, threads: int
+    ) -> dict[str, Any] | None:
+        """Each cloud's direction marks for every tile (:func:`tile_direction_marks`), from a
+        pass over the other file (both clouds at once with two threads)."""
+        work = []
+        for number, (side, cells, origins) in enumerate(
+            (
+                ("reference", context.reference_ray_cells, context.reference_origins),
+                ("scan", context.scan_ray_cells, context.scan_origins),
+            )
+        ):
+            if cells is not None and origins is not None:
+                work.append((side, sides[1 - number][3], origins, cells))
+        if not work:
+            return None
+        with ThreadPoolExecutor(max_workers=max(1, min(threads, len(work)))) as pool:
+            found = pool.map(lambda item: tile_direction_marks(plan, *item[1:]), work)
+            return {item[0]: marks for item, marks in zip(work, found, strict=True)}
+
     def _sides(
-        self, loaded: LoadedPair, alignment: Alignment, context: TileContext
-    ) -> list[tuple[Callable[[], Iterator], NDArray | None, np.dtype]]:
+        self, loaded: LoadedPair, alignment: Alignment, sensor_origins: SensorOrigins
+    ) -> list[tuple[Callable[[], Iterator], NDArray | None, np.dtype, Callable[[], Iterator]]]:
         """Each cloud's pass over its file (local frame, the scan aligned, stations), the
-        subsample's stations, and its crop records' dtype."""
+        subsample's stations, its crop records' dtype, and a pass without the stations."""
         transform = alignment.registration.transform
         sides = []
         for cloud, sub, origins, move in (
-            (self.reference, loaded.reference_points, context.reference_origins, None),
-            (self.scan, alignment.aligned_scan, context.scan_origins, transform),
+            (self.reference, loaded.reference_points, origin_array(sensor_origins.reference), None),
+            (self.scan, alignment.aligned_scan, origin_array(sensor_origins.scan), transform),
         ):
             several = origins is not None and len(origins) >= 2
             contrasts = station_contrasts(sub, origins) if several else None
@@ -260,6 +349,7 @@ class StreamedLocalisation:
                     self._pass(cloud, move, origins if several else None, contrasts),
                     stations,
                     record_dtype(sub, stations),
+                    self._pass(cloud, move, None, None),
                 )
             )
         return sides
@@ -352,6 +442,7 @@ def compare_streamed(
     ray_reach: float = DEFAULT_RAY_REACH_METRES,
     run_tiles: TileRunner | None = None,
     subsample_points: int = SUBSAMPLE_POINTS,
+    ray_directions: bool = True,
     **options: Unpack[PairOptions],
 ) -> ComparisonResult:
     """:func:`~app.core.tiling.compare.compare_tiled` of two files, never holding either whole.
@@ -373,6 +464,10 @@ def compare_streamed(
         source); default :func:`compute_tiles_to_files` under ``work_dir/tiles``.
     subsample_points : int
         Most points of each cloud the stages see.
+    ray_directions : bool
+        Crops keep the other sensor's returns by direction too (as
+        :func:`~app.core.tiling.compare.compare_tiled`'s): one more pass over each file marks
+        the directions every tile needs (:func:`~app.core.tiling.crops.tile_direction_marks`).
     **options
         As :func:`app.core.pipeline.compare` (``method``, ``variant``, ``align``,
         ``random_state``, ``params``, ``threads``).
@@ -386,7 +481,7 @@ def compare_streamed(
     work_dir.mkdir(parents=True, exist_ok=True)
     threads = options.get("threads") or available_threads()
     with ThreadPoolExecutor(max_workers=2 if threads >= 2 else 1) as pool:  # one file each
-        (reference, reference_sub), (scan, scan_sub) = pool.map(
+        (reference, reference_sub, reference_voxels), (scan, scan_sub, scan_voxels) = pool.map(
             lambda number: survey(
                 Path((reference_path, scan_path)[number]), formats[number], subsample_points
             ),
@@ -394,8 +489,13 @@ def compare_streamed(
         )
     offset = choose_local_origin(np.stack([reference.low, reference.high]))
     clouds = [
-        PointCloud((sub - offset).astype(np.float32), None, len(sub))  # type: ignore[call-arg]
-        for sub in (reference_sub, scan_sub)
+        PointCloud(
+            (sub - offset).astype(np.float32),
+            None,  # type: ignore[arg-type]
+            len(sub),
+            sampling_points=None if voxels is None else voxels - offset,
+        )
+        for sub, voxels in ((reference_sub, reference_voxels), (scan_sub, scan_voxels))
     ]
     del reference_sub, scan_sub
     loaded = load_pair(clouds[0], clouds[1], frame_offset=offset, **options)
@@ -410,6 +510,7 @@ def compare_streamed(
         scan=scan,
         offset=offset,
         work_dir=work_dir,
+        ray_directions=ray_directions,
     )
     result = run_stages(
         loaded, progress=progress, site_calibration=site_calibration, localise_step=step
