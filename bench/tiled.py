@@ -116,7 +116,9 @@ def densest_crop(scene_dir: Path, core: tuple[float, float] = (1.5, 1.3)) -> dic
 
     cell = 0.1
     size = [round((side + 2 * DEFAULT_MARGIN_METRES) / cell) for side in core]
-    clouds = [survey(scene_dir / f"{side}.ply", "ply", 2_000_000) for side in ("reference", "scan")]
+    clouds = [
+        survey(scene_dir / f"{side}.ply", "ply", 2_000_000)[:2] for side in ("reference", "scan")
+    ]
     low = np.min([sample[:, :2].min(axis=0) for _, sample in clouds], axis=0)
     high = np.max([sample[:, :2].max(axis=0) for _, sample in clouds], axis=0)
     edges = [np.arange(low[axis], high[axis] + cell, cell) for axis in (0, 1)]
