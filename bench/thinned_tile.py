@@ -14,9 +14,9 @@ Run: ``python -m bench.thinned_tile --points 2000000 [--crop-share 0.6] [--work-
 
 ``--densest DIR``: the densest crop of the pair in DIR (``bench.tiled --densest-crop``: a
 1.5 x 1.3 m core plus 1 m margins, each file in its own frame), read at full density, and the
-points :func:`~app.core.tiling.thinning.representatives` keeps of it at each cell of the
-tile's ladder (2 mm times powers of sqrt(2), up to 2 cm), with the CPU seconds and peak RSS
-of this process.
+points :func:`~app.core.tiling.thinning.representatives` keeps of it at 2 mm times powers
+of sqrt(2), up to 2 cm (the cells a tile may use), with the CPU seconds and peak RSS of this
+process.
 """
 
 from __future__ import annotations
@@ -89,7 +89,7 @@ def worker(directory: Path, tile_index: int) -> None:
 
 
 def densest(scene_dir: Path) -> None:
-    """Thin the densest crop of the pair in ``scene_dir`` at every cell of the ladder."""
+    """Thin the densest crop of the pair in ``scene_dir`` at each cell from 2 mm to 2 cm."""
     import resource
 
     from app.core.formats.streamed import open_point_blocks
@@ -112,7 +112,7 @@ def densest(scene_dir: Path) -> None:
                 inside = np.all((block[:, :2] >= low) & (block[:, :2] < high), axis=1)
                 parts.append(np.asarray(block[inside], dtype=np.float64))
         kept[side] = np.concatenate(parts)
-    cells = [MIN_THINNING_CELL_METRES]  # the tile's ladder (thin_crop): the ceiling last
+    cells = [MIN_THINNING_CELL_METRES]  # up to the ceiling, the ceiling last
     while cells[-1] < MAX_THINNING_CELL_METRES:
         cells.append(min(MAX_THINNING_CELL_METRES, cells[-1] * THINNING_CELL_STEP))
     counts = {

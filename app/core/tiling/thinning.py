@@ -13,8 +13,8 @@ cannot cut a tile narrower than two margins.  Such a tile is localised on a *thi
   (:func:`~app.core.tiling.plan.thinned_point_limit`) spread over
   :data:`SURFACE_AREA_FACTOR` times the crop's area, clamped to
   ``[MIN_THINNING_CELL_METRES, MAX_THINNING_CELL_METRES]``; the tile counts its thinned
-  crop and coarsens the cell (:data:`THINNING_CELL_STEP`) up to the ceiling while it is
-  over that limit;
+  crop and, while it is over that limit, coarsens the cell by the square root of the excess
+  (at least :data:`THINNING_CELL_STEP`) up to the ceiling;
 - a budget that cannot hold the whole crop beside a thinned copy is refused by the planner,
   one whose thinned crop is still over the limit at the ceiling cell by the tile
   (:class:`~app.core.tiling.plan.TileBudgetError`, naming the budget to set);
@@ -58,10 +58,13 @@ about two cells stay within 4-5 cm."""
 SURFACE_AREA_FACTOR = 1.0
 """Surface a crop holds per square metre of its xy box where it is dense (the floor round a
 station): a surface thinned at cell ``c`` keeps about ``area / c**2`` points.  A model for
-the first cell only: the tile counts its thinned crop and coarsens the cell while it is over
-its limit."""
+the first cell only, on the fine side: the tile counts its thinned crop and coarsens the cell
+while it is over its limit.  The densest 3.5 x 3.3 m crop of the 100M + 100M survey keeps
+19-25 times its area over ``c**2`` at 4-16 mm (racks, walls and the noise's thickness;
+``python -m bench.thinned_tile --densest DIR``, bench/results/tiled_100m.md)."""
 THINNING_CELL_STEP = 2**0.5
-"""Factor by which a tile coarsens the cell when its thinned crop is still over its limit."""
+"""Least factor by which a tile coarsens the cell when its thinned crop is still over its
+limit."""
 HELD_CROP_BYTES_PER_POINT = 80
 """Bytes a point of a thinned tile's whole crop costs while its thinned copy is localised:
 its index (8), float64 coordinates (24) and station (8) as the crop hands them over, and the

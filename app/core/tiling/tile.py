@@ -455,9 +455,10 @@ def thin_crop(
     crop: TileCrop, cell: float, limit: int
 ) -> tuple[TileCrop, NDArray[np.int64], NDArray[np.int64], float]:
     """``crop`` thinned at ``cell`` (:func:`~app.core.tiling.thinning.representatives`, each
-    cloud on its own), the cell coarsened by
-    :data:`~app.core.tiling.thinning.THINNING_CELL_STEP` while the thinned crop has more than
-    ``limit`` points, up to :data:`~app.core.tiling.thinning.MAX_THINNING_CELL_METRES`.
+    cloud on its own), the cell coarsened while the thinned crop has more than ``limit``
+    points (by ``sqrt(points / limit)``, at least
+    :data:`~app.core.tiling.thinning.THINNING_CELL_STEP`), up to
+    :data:`~app.core.tiling.thinning.MAX_THINNING_CELL_METRES`.
 
     Returns
     -------
@@ -479,7 +480,9 @@ def thin_crop(
         total = len(reference_kept) + len(scan_kept)
         if total <= limit or cell >= MAX_THINNING_CELL_METRES:
             break
-        cell = min(MAX_THINNING_CELL_METRES, cell * THINNING_CELL_STEP)
+        # a surface keeps about area / cell**2 points: aim at the limit, at least one step
+        aimed = cell * np.sqrt(total / max(1, limit))
+        cell = min(MAX_THINNING_CELL_METRES, max(cell * THINNING_CELL_STEP, float(aimed)))
     if total > limit:
         crop_points = len(crop.reference_index) + len(crop.scan_index)
         missing = (total - limit) * LOCALISATION_BYTES_PER_POINT
