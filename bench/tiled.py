@@ -23,7 +23,9 @@ Targets (issue 30): peak RSS <= 2.5 GB; wall <= 3x the sum of the per-tile floor
 Run: ``.venv/bin/python -m bench.tiled --work-dir /tmp/tiled --points 2000000
 [--memory-budget 1.2G] [--one-process]``.  ``--measure-model DIR`` prints the bytes a point of
 ``localise_changes`` on crops of the pair in DIR (the figure behind
-:data:`app.core.tiling.plan.LOCALISATION_BYTES_PER_POINT`).
+:data:`app.core.tiling.plan.LOCALISATION_BYTES_PER_POINT`); ``--plan-only DIR
+--memory-budget B`` plans the streamed comparison of the pair in DIR and stops before the
+crops (tiles, thinned tiles, the largest crops, CPU seconds and peak RSS).
 """
 
 from __future__ import annotations
@@ -102,7 +104,7 @@ def _write_pair_streamed(scene_dir: Path, n_points: int) -> None:
     )
 
 
-def densest_crop(scene_dir: Path, core: tuple[float, float] = (1.5, 1.3)) -> None:
+def densest_crop(scene_dir: Path, core: tuple[float, float] = (1.5, 1.3)) -> dict[str, Any]:
     """Print the most points of both clouds one crop of a ``core`` box (metres, plus the
     planner's margin each side) can hold, from each file's 2M-point subsample (as the
     streamed parent's), and how far each epoch's stations (``truth.npz``) are from it: the
@@ -114,7 +116,9 @@ def densest_crop(scene_dir: Path, core: tuple[float, float] = (1.5, 1.3)) -> Non
 
     cell = 0.1
     size = [round((side + 2 * DEFAULT_MARGIN_METRES) / cell) for side in core]
-    clouds = [survey(scene_dir / f"{side}.ply", "ply", 2_000_000) for side in ("reference", "scan")]
+    clouds = [
+        survey(scene_dir / f"{side}.ply", "ply", 2_000_000)[:2] for side in ("reference", "scan")
+    ]
     low = np.min([sample[:, :2].min(axis=0) for _, sample in clouds], axis=0)
     high = np.max([sample[:, :2].max(axis=0) for _, sample in clouds], axis=0)
     edges = [np.arange(low[axis], high[axis] + cell, cell) for axis in (0, 1)]
@@ -137,6 +141,74 @@ def densest_crop(scene_dir: Path, core: tuple[float, float] = (1.5, 1.3)) -> Non
             for side in ("reference", "scan"):
                 offsets = truth[f"{side}_origins"][:, :2] - centre
                 report[f"{side}_stations_m"] = np.linalg.norm(offsets, axis=1).round(2).tolist()
+    print(json.dumps(report), flush=True)
+    return report
+
+
+class _StopAfterPlanError(Exception):
+    """Raised by :func:`plan_only`'s progress callback once the plan is written."""
+
+
+def _budget_bytes(budget: str) -> int:
+    """``2.5G``, ``2560M``, or a byte count."""
+    if budget[-1] in "KMG":
+        return round(float(budget[:-1]) * 1024 ** ("KMG".index(budget[-1]) + 1))
+    return int(budget)
+
+
+def plan_only(scene_dir: Path, budget: str) -> None:
+    """Plan the streamed comparison of the pair in ``scene_dir`` (``reference.ply``,
+    ``scan.ply``) under ``budget`` and stop before any crop is written (the progress callback
+    stops the run once :data:`~app.core.tiling.streamed.PLAN_FILE` exists): the tiles, the
+    thinned tiles, the largest crops before and (as the budget bounds it) after thinning,
+    with this process's CPU seconds and peak RSS (``VmHWM``)."""
+    import resource
+    import shutil
+    import tempfile
+
+    from app.core.tiling.plan import TilePlan, thinned_point_limit
+    from app.core.tiling.streamed import PLAN_FILE, compare_streamed
+
+    budget_bytes = _budget_bytes(budget)
+    work_dir = Path(tempfile.mkdtemp(prefix="scandiff-plan-only-"))
+
+    def stop(stage: str, fraction: float) -> None:
+        if (work_dir / PLAN_FILE).exists():
+            raise _StopAfterPlanError
+
+    try:
+        compare_streamed(
+            scene_dir / "reference.ply",
+            scene_dir / "scan.ply",
+            budget_bytes=budget_bytes,
+            work_dir=work_dir,
+            formats=("ply", "ply"),
+            progress=stop,
+        )
+        raise RuntimeError("the comparison ran past its plan")
+    except _StopAfterPlanError:
+        plan = TilePlan.load(work_dir / PLAN_FILE)
+    finally:
+        shutil.rmtree(work_dir, ignore_errors=True)
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    thinned = plan.thinned_tiles
+    whole = [int(plan.crop_points[tile]) for tile in range(plan.n_tiles) if tile not in thinned]
+    bounds = [thinned_point_limit(plan.max_crop_points, int(plan.crop_points[t])) for t in thinned]
+    cells = [plan.thinning_cell(tile) for tile in thinned]
+    report = {
+        "budget_bytes": budget_bytes,
+        "max_crop_points": plan.max_crop_points,
+        "tiles": plan.n_tiles,
+        "thinned_tiles": len(thinned),
+        "largest_whole_crop": max(whole, default=0),
+        "largest_crop_before_thinning": max((int(plan.crop_points[t]) for t in thinned), default=0),
+        "largest_thinned_crop_allowed": max(bounds, default=0),
+        "smallest_thinned_crop_allowed": min(bounds, default=0),
+        "thinning_cells_m": [round(min(cells), 4), round(max(cells), 4)] if cells else [],
+        "crop_points_sum": int(plan.crop_points.sum()),
+        "cpu_s": round(usage.ru_utime + usage.ru_stime, 1),
+        "peak_rss_mb": round(_rss_bytes("VmHWM") / 1024**2),
+    }
     print(json.dumps(report), flush=True)
 
 
@@ -340,7 +412,16 @@ def main() -> None:
         metavar="DIR",
         help="the most points a 1.5 x 1.3 m tile's crop of the pair in DIR can hold",
     )
+    parser.add_argument(
+        "--plan-only",
+        type=Path,
+        metavar="DIR",
+        help="plan the streamed comparison of the pair in DIR at --memory-budget and stop",
+    )
     args = parser.parse_args()
+    if args.plan_only:
+        plan_only(args.plan_only, args.memory_budget)
+        return
     if args.densest_crop:
         densest_crop(args.densest_crop)
         return

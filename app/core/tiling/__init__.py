@@ -55,7 +55,9 @@ written from the chunks, labels merged into files): what the CLI and the job run
 coordinates-only files over the budget.
 
 Modules: :mod:`~app.core.tiling.plan` (tiles, margins, the memory model),
-:mod:`~app.core.tiling.tile` (crop and localise one tile), :mod:`~app.core.tiling.crops`
+:mod:`~app.core.tiling.tile` (crop and localise one tile), :mod:`~app.core.tiling.thinning`
+(a tile too dense for the budget even at the smallest size, localised on a thinned crop and
+its labels carried back to every point), :mod:`~app.core.tiling.crops`
 (each tile's crop in files of its own), :mod:`~app.core.tiling.merge` (join tiles),
 :mod:`~app.core.tiling.compare` (the whole comparison in memory),
 :mod:`~app.core.tiling.streamed` (the whole comparison streamed from the files).

@@ -59,6 +59,9 @@ PER_TILE_FIGURES = (
     "crop_scan_points",
     "core_reference_points",
     "core_scan_points",
+    "thinning_cell_m",
+    "thinned_reference_points",
+    "thinned_scan_points",
 )
 
 
@@ -347,6 +350,7 @@ def merged_parameters(
                 "count": plan.n_tiles,
                 "margin_m": plan.margin,
                 "max_crop_points": plan.max_crop_points,
+                "thinned_tiles": plan.thinned_tiles,
                 "alignment_residual_max": float(np.nanmax(residuals))
                 if np.isfinite(residuals).any()
                 else None,

@@ -17,8 +17,13 @@ sets ``resident_points=0``.
 A crop is its tile's core box grown by the margin, plus the other cloud's returns whose ray
 from their station crosses that box (the ray visibility test needs what the other sensor saw
 behind and in front of a candidate).  A tile whose crop is over the limit is split at the
-median of its longer side; a tile that cannot be split further (narrower than twice the
-margin) and still does not fit means the budget is too small: :class:`TileBudgetError`.
+median of its longer side.  A tile that cannot be split further (narrower than twice the
+margin) and still does not fit is *thinned* (:mod:`app.core.tiling.thinning`): its crop is
+localised on one point a cube of the plan's thinning cell, which follows from the budget and
+the crop's extent, and every point takes its representative's label.  Only when even that
+cannot fit (the whole crop cannot be held beside its thinned copy, or the cell would exceed
+:data:`~app.core.tiling.thinning.MAX_THINNING_CELL_METRES`) is the budget too small:
+:class:`TileBudgetError`, naming the budget to set.
 """
 
 from __future__ import annotations
@@ -32,6 +37,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.errors import InputError
+from app.core.tiling.thinning import (
+    HELD_CROP_BYTES_PER_POINT,
+    MAX_THINNING_CELL_METRES,
+    SURFACE_AREA_FACTOR,
+    thinning_cell,
+)
 
 __all__ = [
     "BASELINE_BYTES",
@@ -44,6 +55,7 @@ __all__ = [
     "TilePlan",
     "crop_point_limit",
     "plan_tiles",
+    "thinned_point_limit",
 ]
 
 LOCALISATION_BYTES_PER_POINT = 200
@@ -73,6 +85,9 @@ DEFAULT_RAY_REACH_METRES = 8.0
 """How far beyond a crop the returns whose rays crossed it are kept: the ray test's evidence
 that a candidate's place was seen empty is the surface behind it (a floor, a rack, a wall).
 Beyond it a tile holding a station would need that station's whole cloud."""
+MIN_THINNED_POINTS = 1000
+"""Fewest points a thinned crop must be allowed (:func:`thinned_point_limit`): with fewer
+the budget cannot hold the crop beside a thinned copy worth localising."""
 COUNT_SAMPLE = 400_000
 """Points of each cloud the planner counts crops on (scaled up to the whole cloud)."""
 MAX_DEPTH = 24
@@ -98,6 +113,9 @@ class TilePlan:
         Estimated points of both clouds in each crop.
     max_crop_points : int
         The limit the plan was made for.
+    thinning_cells : ndarray, shape (t,), float64, or None
+        Each tile's thinning cell in metres (:mod:`app.core.tiling.thinning`), 0 for a tile
+        localised whole; None: no tile is thinned.
     """
 
     lower: NDArray[np.float64]
@@ -105,6 +123,16 @@ class TilePlan:
     margin: float
     crop_points: NDArray[np.int64]
     max_crop_points: int
+    thinning_cells: NDArray[np.float64] | None = None
+
+    def thinning_cell(self, tile_index: int) -> float:
+        """Tile ``tile_index``'s thinning cell in metres; 0: localised whole."""
+        return 0.0 if self.thinning_cells is None else float(self.thinning_cells[tile_index])
+
+    @property
+    def thinned_tiles(self) -> list[int]:
+        """The tiles localised on a thinned crop."""
+        return [] if self.thinning_cells is None else np.flatnonzero(self.thinning_cells).tolist()
 
     @property
     def n_tiles(self) -> int:
@@ -127,6 +155,7 @@ class TilePlan:
             lower=self.lower,
             upper=self.upper,
             crop_points=self.crop_points,
+            **({} if self.thinning_cells is None else {"thinning_cells": self.thinning_cells}),
             meta=np.array(
                 json.dumps({"margin": self.margin, "max_crop_points": self.max_crop_points})
             ),
@@ -143,6 +172,7 @@ class TilePlan:
                 margin=float(meta["margin"]),
                 crop_points=data["crop_points"],
                 max_crop_points=int(meta["max_crop_points"]),
+                thinning_cells=data.get("thinning_cells", None),
             )
 
 
@@ -170,6 +200,14 @@ def crop_point_limit(
     """
     free = budget_bytes - BASELINE_BYTES - resident_points * resident_bytes_per_point
     return int(free // LOCALISATION_BYTES_PER_POINT)
+
+
+def thinned_point_limit(max_crop_points: int, crop_points: int) -> int:
+    """Points of a thinned crop a budget of ``max_crop_points`` unthinned ones leaves once the
+    whole crop of ``crop_points`` points is held
+    (:data:`~app.core.tiling.thinning.HELD_CROP_BYTES_PER_POINT`); may be <= 0."""
+    free = max(0, max_crop_points) * LOCALISATION_BYTES_PER_POINT
+    return int((free - crop_points * HELD_CROP_BYTES_PER_POINT) // LOCALISATION_BYTES_PER_POINT)
 
 
 def _mib(count: int) -> str:
@@ -204,43 +242,37 @@ def plan_tiles(
     Returns
     -------
     TilePlan
-        One tile when the whole pair fits.
+        One tile when the whole pair fits; a tile that cannot be split further and is over
+        the limit gets a thinning cell (:attr:`TilePlan.thinning_cells`).
 
     Raises
     ------
     TileBudgetError
-        A tile that cannot be split further still has too many points.
+        A tile that cannot be split further does not fit even thinned.
     """
     if margin <= 0:
         raise InputError(f"the tile margin must be > 0 metres, got {margin}")
     sample = np.concatenate([_thinned(reference_xy), _thinned(scan_xy)])
     infinite = np.array([np.inf, np.inf])
-    leaves: list[tuple[NDArray, NDArray, int]] = []
+    leaves: list[tuple[NDArray, NDArray, int, float]] = []
     pending = [(-infinite, infinite, sample, 0)]
     while pending:
         low, high, inside, depth = pending.pop()
         count = count_crop(low, high)
         if count <= max_crop_points:
-            leaves.append((low, high, count))
+            leaves.append((low, high, count, 0.0))
             continue
         extent = inside.max(axis=0) - inside.min(axis=0) if len(inside) else np.zeros(2)
         axis = int(np.argmax(extent))
         cut = float(np.median(inside[:, axis])) if len(inside) else 0.0
         if extent[axis] < 2 * margin or depth >= MAX_DEPTH:
-            needed = count * LOCALISATION_BYTES_PER_POINT
-            hint = (
-                f"; raise the memory budget by at least "
-                f"{_mib(needed - max(0, max_crop_points) * LOCALISATION_BYTES_PER_POINT)}"
-                if budget_bytes is not None
-                else ""
-            )
-            budget = f" of {_mib(budget_bytes)}" if budget_bytes is not None else ""
-            raise TileBudgetError(
-                f"the pair does not fit the memory budget{budget}: a tile of "
-                f"{extent[0]:.1f} x {extent[1]:.1f} m still has {count:,} points to localise "
-                f"(its crop and the rays crossing it), more than the {max(0, max_crop_points):,} "
-                f"the budget allows{hint}"
-            )
+            area = float(np.prod(extent + 2 * margin))
+            localised = thinned_point_limit(max_crop_points, count)
+            if localised < MIN_THINNED_POINTS:
+                raise TileBudgetError(_refusal(count, extent, area, max_crop_points, budget_bytes))
+            cell = thinning_cell(area, localised)
+            leaves.append((low, high, count, cell))
+            continue
         left_high, right_low = high.copy(), low.copy()
         left_high[axis] = right_low[axis] = cut
         below = inside[:, axis] < cut
@@ -253,6 +285,39 @@ def plan_tiles(
         margin=float(margin),
         crop_points=np.array([leaf[2] for leaf in leaves], dtype=np.int64),
         max_crop_points=int(max_crop_points),
+        thinning_cells=(
+            np.array([leaf[3] for leaf in leaves], dtype=np.float64)
+            if any(leaf[3] for leaf in leaves)
+            else None
+        ),
+    )
+
+
+def _refusal(
+    count: int,
+    extent: NDArray[np.float64],
+    area: float,
+    max_crop_points: int,
+    budget_bytes: int | None,
+) -> str:
+    """Why a tile that cannot be split does not fit even thinned, and the budget to set."""
+    thinned = int(np.ceil(SURFACE_AREA_FACTOR * area / MAX_THINNING_CELL_METRES**2))
+    needed = count * HELD_CROP_BYTES_PER_POINT + thinned * LOCALISATION_BYTES_PER_POINT
+    missing = max(1024**2, needed - max(0, max_crop_points) * LOCALISATION_BYTES_PER_POINT)
+    hint = (
+        f"; raise the memory budget by at least {_mib(missing)} "
+        f"(set it to at least {_mib(budget_bytes + missing)})"
+        if budget_bytes is not None
+        else ""
+    )
+    budget = f" of {_mib(budget_bytes)}" if budget_bytes is not None else ""
+    return (
+        f"the pair does not fit the memory budget{budget}: a tile of "
+        f"{extent[0]:.1f} x {extent[1]:.1f} m still has {count:,} points to localise "
+        f"(its crop and the rays crossing it), more than the {max(0, max_crop_points):,} "
+        f"the budget allows, and it cannot be thinned within the budget: holding the crop "
+        f"beside its copy thinned at {MAX_THINNING_CELL_METRES * 100:g} cm needs about "
+        f"{_mib(needed)}{hint}"
     )
 
 

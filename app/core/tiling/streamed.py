@@ -83,6 +83,7 @@ from app.core.tiling.tile import COUNT_CELL_SCALE, TileContext, TileResult, comp
 
 __all__ = [
     "COUNT_SAMPLE",
+    "PLAN_FILE",
     "SUBSAMPLE_POINTS",
     "StreamedLocalisation",
     "compare_streamed",
@@ -93,6 +94,9 @@ SUBSAMPLE_POINTS = REGISTRATION_SAMPLE
 """Points of each cloud kept for the stages (the registration's sample size)."""
 COUNT_SAMPLE = 400_000
 """Points of each cloud the planner counts crops on (as :meth:`TileSource.count_crop`)."""
+PLAN_FILE = "plan.npz"
+"""The plan (:meth:`~app.core.tiling.plan.TilePlan.save`), written into ``work_dir`` once it
+is made, before the crops."""
 
 
 def compute_tiles_to_files(directory: Path) -> TileRunner:
@@ -213,6 +217,7 @@ class StreamedLocalisation:
             margin=self.margin,
             budget_bytes=self.budget_bytes,
         )
+        plan.save(self.work_dir / PLAN_FILE)  # how the pair was cut, before any crop
         report("localise", 0.36)  # planned
         marks = self._marks(plan, sides, context, loaded.threads)
         crops, partial = self.work_dir / "crops", self.work_dir / "crops.partial"

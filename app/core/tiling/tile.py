@@ -3,11 +3,15 @@
 :func:`compute_tile` is a pure function of the plan, the tile's number, the points
 (:class:`TileSource`) and what every tile shares (:class:`TileContext`); its
 :class:`TileResult` is saved and loaded as ``.npz`` so tiles can run as separate tasks.
-Localisation is called in one place, :func:`localise_crop`.
+Localisation is called in one place, :func:`localise_crop`.  A tile the plan thins
+(:mod:`app.core.tiling.thinning`) is localised on its thinned crop and every crop point takes
+its representative's label, distance and region (:func:`thin_crop`,
+:func:`~app.core.tiling.thinning.carried_back`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -21,8 +25,20 @@ from app.core.jsonable import json_safe
 from app.core.labels import LABEL_UNOBSERVED
 from app.core.localise import EpochCloud, Localisation, localise_changes
 from app.core.localise.regions import EVIDENCE_NAMES
-from app.core.tiling.plan import TilePlan
+from app.core.tiling.plan import (
+    LOCALISATION_BYTES_PER_POINT,
+    TileBudgetError,
+    TilePlan,
+    thinned_point_limit,
+)
 from app.core.tiling.rays import crop_mask, crop_masks
+from app.core.tiling.thinning import (
+    HELD_CROP_BYTES_PER_POINT,
+    MAX_THINNING_CELL_METRES,
+    THINNING_CELL_STEP,
+    carried_back,
+    representatives,
+)
 
 __all__ = [
     "EVIDENCE_CODES",
@@ -34,6 +50,7 @@ __all__ = [
     "compute_tile",
     "crop_mask",
     "localise_crop",
+    "thin_crop",
 ]
 
 EVIDENCE_CODES = {name: code for code, name in EVIDENCE_NAMES.items()}
@@ -380,7 +397,23 @@ def compute_tile(
         "core_reference_points": int(np.count_nonzero(reference_core)),
         "core_scan_points": int(np.count_nonzero(scan_core)),
     }
-    if min(len(crop.reference_index), len(crop.scan_index)) < MIN_CROP_POINTS:
+    localised, thinned = crop, None
+    if plan.thinning_cell(tile_index) > 0:
+        limit = thinned_point_limit(
+            plan.max_crop_points, len(crop.reference_index) + len(crop.scan_index)
+        )
+        localised, *thinned = thin_crop(crop, plan.thinning_cell(tile_index), limit)
+        figures.update(
+            thinning_cell_m=thinned[2],
+            thinned_reference_points=len(localised.reference_index),
+            thinned_scan_points=len(localised.scan_index),
+        )
+        share = len(localised.reference_index) + len(localised.scan_index)
+        share /= max(1, len(crop.reference_index) + len(crop.scan_index))
+        context = dataclasses.replace(  # the whole pair's floor is applied by the merge
+            context, min_region_points=max(1, int(np.ceil(context.min_region_points * share)))
+        )
+    if min(len(localised.reference_index), len(localised.scan_index)) < MIN_CROP_POINTS:
         labels = [
             np.full(np.count_nonzero(core), LABEL_UNOBSERVED, dtype=np.int8)
             for core in (reference_core, scan_core)
@@ -389,7 +422,9 @@ def compute_tile(
         regions = _region_table([], crop, reference_core, scan_core, None)
         figures["localised"] = False
     else:
-        localisation = localise_crop(crop, context, threads)
+        localisation = localise_crop(localised, context, threads)
+        if thinned:
+            localisation = carried_back(localisation, thinned[0], thinned[1])
         labels = [
             localisation.reference_label[reference_core].astype(np.int8),
             localisation.scan_label[scan_core].astype(np.int8),
@@ -414,6 +449,61 @@ def compute_tile(
         regions=regions,
         figures=figures,
     )
+
+
+def thin_crop(
+    crop: TileCrop, cell: float, limit: int
+) -> tuple[TileCrop, NDArray[np.int64], NDArray[np.int64], float]:
+    """``crop`` thinned at ``cell`` (:func:`~app.core.tiling.thinning.representatives`, each
+    cloud on its own), the cell coarsened while the thinned crop has more than ``limit``
+    points (by ``sqrt(points / limit)``, at least
+    :data:`~app.core.tiling.thinning.THINNING_CELL_STEP`), up to
+    :data:`~app.core.tiling.thinning.MAX_THINNING_CELL_METRES`.
+
+    Returns
+    -------
+    thinned : TileCrop
+        The representatives, in crop order (their indices, points, stations and rays).
+    reference_representative, scan_representative : ndarray, shape (a,) / (b,), int64
+        Each crop point's row in ``thinned``.
+    cell : float
+        The cell used.
+
+    Raises
+    ------
+    TileBudgetError
+        Over ``limit`` even at the coarsest cell.
+    """
+    while True:
+        reference_kept, reference_representative = representatives(crop.reference_points, cell)
+        scan_kept, scan_representative = representatives(crop.scan_points, cell)
+        total = len(reference_kept) + len(scan_kept)
+        if total <= limit or cell >= MAX_THINNING_CELL_METRES:
+            break
+        # a surface keeps about area / cell**2 points: aim at the limit, at least one step
+        aimed = cell * np.sqrt(total / max(1, limit))
+        cell = min(MAX_THINNING_CELL_METRES, max(cell * THINNING_CELL_STEP, float(aimed)))
+    if total > limit:
+        crop_points = len(crop.reference_index) + len(crop.scan_index)
+        missing = (total - limit) * LOCALISATION_BYTES_PER_POINT
+        raise TileBudgetError(
+            f"the pair does not fit the memory budget: a tile's crop of {crop_points:,} points "
+            f"thinned at {cell * 100:g} cm still has {total:,} points to localise, more than "
+            f"the {max(0, limit):,} the budget leaves beside the whole crop "
+            f"({HELD_CROP_BYTES_PER_POINT} B a point); raise the memory budget by at least "
+            f"{missing / 1024**2:,.0f} MiB"
+        )
+    thinned = TileCrop(
+        reference_index=crop.reference_index[reference_kept],
+        scan_index=crop.scan_index[scan_kept],
+        reference_points=crop.reference_points[reference_kept],
+        scan_points=crop.scan_points[scan_kept],
+        reference_station=_taken(crop.reference_station, reference_kept),
+        scan_station=_taken(crop.scan_station, scan_kept),
+        reference_rays=_cropped_rays(crop.reference_rays, reference_kept),
+        scan_rays=_cropped_rays(crop.scan_rays, scan_kept),
+    )
+    return thinned, reference_representative, scan_representative, float(cell)
 
 
 def _region_table(
