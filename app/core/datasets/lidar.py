@@ -27,8 +27,11 @@ __all__ = [
     "CHANGE_DISTANCE",
     "LAYOUTS",
     "LIDAR_CHANGES",
+    "DrawnScene",
     "LidarPair",
     "LidarWorld",
+    "draw_scene",
+    "file_frame",
     "lidar_directions",
     "lidar_pair",
     "steps_for_points",
@@ -447,6 +450,73 @@ def lidar_pair(
     raise ValueError(f"no visible {change!r} change in 20 layouts; try another seed")
 
 
+@dataclass(frozen=True)
+class DrawnScene:
+    """The building, the two epochs' worlds and stations of one draw (before any ray is cast).
+
+    Attributes
+    ----------
+    shell_low, shell_high : ndarray, shape (3,)
+        The building's shell.
+    reference_world, scan_world : LidarWorld
+        Each epoch's boxes in the shell.
+    reference_stations, scan_stations : ndarray, shape (s, 3)
+        Each epoch's stations (a scan station near its reference station).
+    """
+
+    shell_low: NDArray[np.float64]
+    shell_high: NDArray[np.float64]
+    reference_world: LidarWorld
+    scan_world: LidarWorld
+    reference_stations: NDArray[np.float64]
+    scan_stations: NDArray[np.float64]
+
+
+def draw_scene(layout: str, change: str, n_stations: int, rng: np.random.Generator) -> DrawnScene:
+    """The first draws of :func:`lidar_pair`: layout, changed boxes, worlds and stations (the
+    bounded-memory writer, :mod:`app.core.datasets.lidar_files`, makes the same draws)."""
+    shell_low, shell_high, lows, highs, n_racks = _layout(layout, rng)
+    reference_lows, reference_highs, scan_lows, scan_highs = _changed_boxes(
+        change, rng, lows, highs, n_racks, (shell_low, shell_high)
+    )
+    both = _world(shell_low, shell_high, reference_lows + scan_lows, reference_highs + scan_highs)
+    reference_stations = np.array([_free_position(rng, both, None, ()) for _ in range(n_stations)])
+    scan_stations = np.array(
+        [_free_position(rng, both, station, SENSOR_SHIFT_RANGE) for station in reference_stations]
+    )
+    return DrawnScene(
+        shell_low=shell_low,
+        shell_high=shell_high,
+        reference_world=_world(shell_low, shell_high, reference_lows, reference_highs),
+        scan_world=_world(shell_low, shell_high, scan_lows, scan_highs),
+        reference_stations=reference_stations,
+        scan_stations=scan_stations,
+    )
+
+
+def file_frame(
+    rng: np.random.Generator,
+    shell_low: NDArray[np.float64],
+    shell_high: NDArray[np.float64],
+    misaligned: bool,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The last draws of :func:`lidar_pair` before its shuffle: the file frame's offset, shape
+    (3,) (the building away from the file's origin), and the scan file's pose, shape (4, 4)
+    (scan file = pose @ world)."""
+    offset = np.array([*rng.uniform(-60.0, 60.0, 2), rng.uniform(-3.0, 3.0)])
+    offset[:2] += np.sign(offset[:2]) * 5.0
+    pose = np.eye(4)
+    if misaligned:
+        (t_low, t_high), (r_low, r_high) = MISALIGNMENT
+        rotation = _random_rotation(rng.uniform(r_low, r_high), rng)
+        direction = rng.normal(size=3)
+        translation = rng.uniform(t_low, t_high) * direction / np.linalg.norm(direction)
+        centre = (shell_low + shell_high) / 2.0 + offset
+        pose[:3, :3] = rotation
+        pose[:3, 3] = centre - rotation @ centre + translation
+    return offset, pose
+
+
 def _draw_pair(
     layout: str,
     change: str,
@@ -457,17 +527,10 @@ def _draw_pair(
     rng: np.random.Generator,
 ) -> LidarPair:
     """One draw of :func:`lidar_pair` (which redraws when the change was not seen)."""
-    shell_low, shell_high, lows, highs, n_racks = _layout(layout, rng)
-    reference_lows, reference_highs, scan_lows, scan_highs = _changed_boxes(
-        change, rng, lows, highs, n_racks, (shell_low, shell_high)
-    )
-    reference_world = _world(shell_low, shell_high, reference_lows, reference_highs)
-    scan_world = _world(shell_low, shell_high, scan_lows, scan_highs)
-    both = _world(shell_low, shell_high, reference_lows + scan_lows, reference_highs + scan_highs)
-    reference_stations = np.array([_free_position(rng, both, None, ()) for _ in range(n_stations)])
-    scan_stations = np.array(
-        [_free_position(rng, both, station, SENSOR_SHIFT_RANGE) for station in reference_stations]
-    )
+    scene = draw_scene(layout, change, n_stations, rng)
+    shell_low, shell_high = scene.shell_low, scene.shell_high
+    reference_world, scan_world = scene.reference_world, scene.scan_world
+    reference_stations, scan_stations = scene.reference_stations, scene.scan_stations
     step_pair = (float(steps[0]), float(steps[1]))
     reference, reference_exact, reference_station = _scan_epoch(
         reference_world, reference_stations, step_pair, range_noise, rng
@@ -480,18 +543,7 @@ def _draw_pair(
     reference_observed = _observed_by(scan_world, scan_stations, reference_exact)
     scan_observed = _observed_by(reference_world, reference_stations, scan_exact)
 
-    # the file frame: the building somewhere away from the file's origin
-    offset = np.array([*rng.uniform(-60.0, 60.0, 2), rng.uniform(-3.0, 3.0)])
-    offset[:2] += np.sign(offset[:2]) * 5.0
-    pose = np.eye(4)  # scan file = pose @ world
-    if misaligned:
-        (t_low, t_high), (r_low, r_high) = MISALIGNMENT
-        rotation = _random_rotation(rng.uniform(r_low, r_high), rng)
-        direction = rng.normal(size=3)
-        translation = rng.uniform(t_low, t_high) * direction / np.linalg.norm(direction)
-        centre = (shell_low + shell_high) / 2.0 + offset
-        pose[:3, :3] = rotation
-        pose[:3, 3] = centre - rotation @ centre + translation
+    offset, pose = file_frame(rng, shell_low, shell_high, misaligned)
     reference_order = rng.permutation(len(reference))
     scan_order = rng.permutation(len(scan))
     return LidarPair(

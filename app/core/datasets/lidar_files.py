@@ -28,17 +28,13 @@ from app.core.datasets.lidar import (
     CHANGE_DISTANCE,
     ELEVATION_RANGE_DEG,
     MIN_VISIBLE_CHANGE,
-    MISALIGNMENT,
     RANGE_LIMITS,
-    SENSOR_SHIFT_RANGE,
     LidarWorld,
-    _changed_boxes,
-    _free_position,
-    _layout,
     _observed_by,
-    _world,
+    draw_scene,
+    file_frame,
 )
-from app.core.datasets.scenes import _random_rotation, _transform_points
+from app.core.datasets.scenes import _transform_points
 
 __all__ = ["WRITE_CHUNK_RAYS", "WrittenLidarPair", "write_lidar_pair"]
 
@@ -219,17 +215,10 @@ def write_lidar_pair(
     directory.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(random_state)
     needed = max(10.0, MIN_VISIBLE_CHANGE * 0.36 / float(steps[0] * steps[1]))
-    shell_low, shell_high, lows, highs, n_racks = _layout(layout, rng)
-    reference_lows, reference_highs, scan_lows, scan_highs = _changed_boxes(
-        change, rng, lows, highs, n_racks, (shell_low, shell_high)
-    )
-    reference_world = _world(shell_low, shell_high, reference_lows, reference_highs)
-    scan_world = _world(shell_low, shell_high, scan_lows, scan_highs)
-    both = _world(shell_low, shell_high, reference_lows + scan_lows, reference_highs + scan_highs)
-    reference_stations = np.array([_free_position(rng, both, None, ()) for _ in range(n_stations)])
-    scan_stations = np.array(
-        [_free_position(rng, both, station, SENSOR_SHIFT_RANGE) for station in reference_stations]
-    )
+    scene = draw_scene(layout, change, n_stations, rng)
+    shell_low, shell_high = scene.shell_low, scene.shell_high
+    reference_world, scan_world = scene.reference_world, scene.scan_world
+    reference_stations, scan_stations = scene.reference_stations, scene.scan_stations
     step_pair = (float(steps[0]), float(steps[1]))
     epochs = [
         _cast_epoch(
@@ -258,7 +247,7 @@ def write_lidar_pair(
             f"lidar_pair would redraw this layout (too few visible {change!r} points); "
             "the writer does not redraw: try another random_state"
         )
-    offset, pose = _file_frame(rng, shell_low, shell_high, misaligned)
+    offset, pose = file_frame(rng, shell_low, shell_high, misaligned)
     paths = (directory / "reference.ply", directory / "scan.ply")
     _write_ply(paths[0], epochs[0], offset, None, chunk_rays)
     _write_ply(paths[1], epochs[1], offset, pose, chunk_rays)
@@ -280,22 +269,3 @@ def write_lidar_pair(
         shell_high=shell_high + offset,
     )
     return WrittenLidarPair(paths[0], paths[1], truth_path, epochs[0].count, epochs[1].count)
-
-
-def _file_frame(
-    rng: np.random.Generator, shell_low: NDArray, shell_high: NDArray, misaligned: bool
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """``lidar_pair``'s last draws before its shuffle: the file frame's offset and the scan
-    file's pose (scan file = pose @ world), as ``_draw_pair`` draws them."""
-    offset = np.array([*rng.uniform(-60.0, 60.0, 2), rng.uniform(-3.0, 3.0)])
-    offset[:2] += np.sign(offset[:2]) * 5.0
-    pose = np.eye(4)
-    if misaligned:
-        (t_low, t_high), (r_low, r_high) = MISALIGNMENT
-        rotation = _random_rotation(rng.uniform(r_low, r_high), rng)
-        direction = rng.normal(size=3)
-        translation = rng.uniform(t_low, t_high) * direction / np.linalg.norm(direction)
-        centre = (shell_low + shell_high) / 2.0 + offset
-        pose[:3, :3] = rotation
-        pose[:3, 3] = centre - rotation @ centre + translation
-    return offset, pose
