@@ -363,7 +363,7 @@ def test_voxel_ids_by_blocks_equal_the_whole_array_formula(monkeypatch):
             cells -= cells.min(axis=0)
             extent = cells.max(axis=0) + 1
             expected = (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
-            voxels, n_cells = base._voxel_ids(points, size, origin)
+            voxels, n_cells = base.voxel_ids(points, size, origin)
             np.testing.assert_array_equal(voxels, expected)
             assert n_cells == int(np.prod(extent))
 

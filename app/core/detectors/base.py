@@ -157,7 +157,7 @@ def voxel_representatives(
     ndarray, shape (k,), int64
         Sorted indices into ``points``.
     """
-    voxels, n_cells = _voxel_ids(points, voxel_size, origin)
+    voxels, n_cells = voxel_ids(points, voxel_size, origin)
     if n_cells <= _dense_cell_limit(points.shape[0]):
         # per voxel the smallest key, by one unbuffered minimum into a dense array of cells
         # (~10x faster than sorting a million voxel ids); same choice as the sort below
@@ -183,10 +183,10 @@ def voxel_representatives(
 
 
 VOXEL_BLOCK_ROWS = 1 << 16
-"""Rows whose voxel ids :func:`_voxel_ids` computes at once (1.5 MB of float64 coordinates)."""
+"""Rows whose voxel ids :func:`voxel_ids` computes at once (1.5 MB of float64 coordinates)."""
 
 
-def _voxel_ids(
+def voxel_ids(
     points: NDArray[np.float64], voxel_size: float, origin: NDArray[np.float64]
 ) -> tuple[NDArray[np.int64], int]:
     """Row-major id of each point's voxel (grid anchored at ``origin``) in the grid that
@@ -237,7 +237,7 @@ def median_spacing(points: NDArray[np.float64], rng: np.random.Generator) -> flo
 
 
 def _occupied_voxels(points: NDArray[np.float64], voxel_size: float) -> int:
-    voxels, n_cells = _voxel_ids(points, voxel_size, column_extreme(points, np.minimum))
+    voxels, n_cells = voxel_ids(points, voxel_size, column_extreme(points, np.minimum))
     if n_cells <= _dense_cell_limit(points.shape[0]):
         occupied = np.zeros(n_cells, dtype=np.bool_)
         occupied[voxels] = True  # ~10x faster than np.unique's sort at 1M points

@@ -36,6 +36,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from app.core.cloud import column_extreme
+from app.core.detectors.base import voxel_ids
+
 if TYPE_CHECKING:  # the planner imports this module: numpy only, not the localiser
     from app.core.localise import Localisation
 
@@ -102,16 +105,10 @@ def representatives(
     """
     if len(points) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    low = np.min(points, axis=0).astype(np.float64)
-    key = np.zeros(len(points), dtype=np.int64)
-    for axis in range(3):
-        column = np.floor((points[:, axis] - low[axis]) / cell).astype(np.int64)
-        span = int(column.max()) + 1
-        if span > 1 << 20:  # 2**60 keys at most: a crop 2 km across at 2 mm
-            raise ValueError(f"a crop too wide to thin at {cell} m")
-        key *= span
-        key += column
-        del column
+    low = column_extreme(points, np.minimum).astype(np.float64)  # the grid starts at the crop
+    key, n_cells = voxel_ids(points, cell, low)
+    if n_cells >= 1 << 62:  # ids in int64: a crop 2 km across at 2 mm is 2**60 cells
+        raise ValueError(f"a crop too wide to thin at {cell} m")
     _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
     del key
     order = np.argsort(first, kind="stable")
