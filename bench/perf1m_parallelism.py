@@ -38,8 +38,8 @@ from pathlib import Path
 from typing import Any
 
 from bench.perf import worker_environment
-from bench.perf_1m import HELD_OUT, N_POINTS, write_lidar_pair
-from bench.perf_round2 import SCANDIFF, write_pair
+from bench.perf_1m import HELD_OUT, write_named_pair
+from bench.perf_round2 import SCANDIFF
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 SAMPLE_SECONDS = 0.005
@@ -187,12 +187,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="scandiff-parallelism-") as temporary:
         work_dir = args.work_dir or Path(temporary)
         for spec in args.pairs.split(","):
-            if spec == "bench":
-                scene_dir = work_dir / f"warehouse-{N_POINTS}"
-                scene = write_pair(scene_dir, N_POINTS)
-            else:
-                scene_dir = work_dir / spec.replace("/", "-")
-                scene = write_lidar_pair(scene_dir, spec)
+            scene_dir, scene = write_named_pair(work_dir, spec)
             for round_index in range(args.repeats):
                 measured = {"floor": measure_floor(scene_dir), "compare": measure(scene, None)}
                 if args.baseline is not None:

@@ -35,8 +35,7 @@ import textwrap
 from pathlib import Path
 from typing import Any
 
-from bench.perf_1m import HELD_OUT, N_POINTS, write_lidar_pair
-from bench.perf_round2 import write_pair
+from bench.perf_1m import HELD_OUT, write_named_pair
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 
@@ -179,12 +178,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="scandiff-perf1m-stages-") as temporary:
         work_dir = args.work_dir or Path(temporary)
         for spec in args.pairs.split(","):
-            if spec == "bench":
-                scene_dir = work_dir / f"warehouse-{N_POINTS}"
-                paths = write_pair(scene_dir, N_POINTS)
-            else:
-                scene_dir = work_dir / spec.replace("/", "-")
-                paths = write_lidar_pair(scene_dir, spec)
+            scene_dir, paths = write_named_pair(work_dir, spec)
             name = "held-out class" if spec == HELD_OUT else spec
             rounds: dict[str, list[dict[str, Any]]] = {key: [] for key in roots}
             for round_index in range(args.repeats):

@@ -109,6 +109,17 @@ def parse_spec(spec: str) -> tuple[str, int, str]:
     return layout, int(seed), order
 
 
+def write_named_pair(work_dir: Path, spec: str) -> tuple[Path, dict[str, Path]]:
+    """The directory and files of the pair named ``spec``: ``bench`` (the bench's own 1M
+    warehouse) or a ``LAYOUT/SEED/ORDER`` lidar pair (:func:`write_lidar_pair`), written once
+    under ``work_dir``."""
+    if spec == "bench":
+        scene_dir = work_dir / f"warehouse-{N_POINTS}"
+        return scene_dir, write_pair(scene_dir, N_POINTS)
+    scene_dir = work_dir / spec.replace("/", "-")
+    return scene_dir, write_lidar_pair(scene_dir, spec)
+
+
 def _write_pair_here(scene_dir: Path, spec: str) -> None:
     """The child of :func:`write_lidar_pair`."""
     layout, seed, order = parse_spec(spec)
@@ -265,16 +276,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="scandiff-perf-1m-") as temporary:
         work_dir = args.work_dir or Path(temporary)
         measured = []
-        if "bench" in wanted:
-            scene_dir = work_dir / f"warehouse-{N_POINTS}"
-            paths = write_pair(scene_dir, N_POINTS)
-            measured.append(measure_pair("bench", scene_dir, paths, args.repeats, args.baseline))
-        for spec in wanted:
-            if spec == "bench":
-                continue
+        for spec in sorted(wanted, key=lambda spec: spec != "bench"):  # the bench's pair first
             name = "held-out class" if spec == HELD_OUT else spec
-            scene_dir = work_dir / spec.replace("/", "-")
-            paths = write_lidar_pair(scene_dir, spec)
+            scene_dir, paths = write_named_pair(work_dir, spec)
             measured.append(measure_pair(name, scene_dir, paths, args.repeats, args.baseline))
     loads.append(os.getloadavg())
     del held

@@ -59,19 +59,26 @@ def write_pair(scene_dir: Path, n_points: int) -> dict[str, Path]:
     return paths
 
 
+def _scene_options(n_points: int) -> dict[str, Any]:
+    """The five-station warehouse pair of about ``n_points`` a scan, as both writers draw it."""
+    from app.core.datasets.lidar import steps_for_points
+
+    return {
+        "layout": "warehouse",
+        "change": "added",
+        "n_stations": N_STATIONS,
+        "angular_step_deg": steps_for_points(n_points, N_STATIONS),
+        "misaligned": True,
+        "random_state": SCENE_SEED,
+    }
+
+
 def _write_pair_here(scene_dir: Path, n_points: int) -> None:
-    from app.core.datasets.lidar import lidar_pair, steps_for_points
+    from app.core.datasets.lidar import lidar_pair
     from bench.perf_workers import write_binary_ply
 
     scene_dir.mkdir(parents=True, exist_ok=True)
-    pair = lidar_pair(
-        layout="warehouse",
-        change="added",
-        n_stations=N_STATIONS,
-        angular_step_deg=steps_for_points(n_points, N_STATIONS),
-        misaligned=True,
-        random_state=SCENE_SEED,
-    )
+    pair = lidar_pair(**_scene_options(n_points))
     write_binary_ply(scene_dir / "reference.ply", pair.reference)
     write_binary_ply(scene_dir / "scan.ply", pair.scan)
 
@@ -80,18 +87,9 @@ def _write_pair_streamed(scene_dir: Path, n_points: int) -> None:
     """The same pair as :func:`_write_pair_here` (same points, in station order), written station
     by station in bounded memory (:func:`app.core.datasets.lidar_files.write_lidar_pair`), with
     ``truth.npz`` (the changed rows, stations, boxes) beside it; prints its sizes and peak RSS."""
-    from app.core.datasets.lidar import steps_for_points
     from app.core.datasets.lidar_files import write_lidar_pair
 
-    written = write_lidar_pair(
-        scene_dir,
-        layout="warehouse",
-        change="added",
-        n_stations=N_STATIONS,
-        angular_step_deg=steps_for_points(n_points, N_STATIONS),
-        misaligned=True,
-        random_state=SCENE_SEED,
-    )
+    written = write_lidar_pair(scene_dir, **_scene_options(n_points))
     print(
         json.dumps(
             {
