@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import sqlite3
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -24,6 +25,30 @@ from tests.helpers.jobs import count_regions, create_job, load_job, wait_for_sta
 def hooks_env(**hooks: object) -> dict[str, str]:
     """Environment enabling the job test hooks ``hooks``."""
     return {"SCANDIFF_TESTING": "1", "SCANDIFF_TEST_JOB_HOOKS": json.dumps(hooks)}
+
+
+def freeze_outside_a_write(pid: int, settings: Settings, attempts: int = 50) -> None:
+    """SIGSTOP ``pid`` at a moment it holds no SQLite write lock.
+
+    A process stopped inside a write transaction keeps SQLite's file lock, and every writer waits
+    for it (SQLite cannot break a live process's lock: a limit of the embedded default, see
+    docs/jobs.md, "Failures").  This test is about the lease, so it freezes the worker between
+    its heartbeat writes: stop, probe the write lock, and on a miss let it run and try again.
+    """
+    database = settings.data_layout.database_file
+    for _ in range(attempts):
+        os.kill(pid, signal.SIGSTOP)
+        probe = sqlite3.connect(database, timeout=0.2)
+        try:
+            probe.execute("BEGIN IMMEDIATE")
+            probe.rollback()
+            return
+        except sqlite3.OperationalError:
+            os.kill(pid, signal.SIGCONT)
+            time.sleep(0.01)
+        finally:
+            probe.close()
+    raise AssertionError(f"worker {pid} held the write lock at every one of {attempts} tries")
 
 
 def test_consumer_runs_an_enqueued_job(
@@ -89,7 +114,7 @@ def test_frozen_worker_loses_its_lease_and_cannot_store_after_waking(
     running = wait_for_status(job_settings, job_id, ("running",))
     frozen_pid = lease_owner_pid(running.lease_owner)
 
-    os.kill(frozen_pid, signal.SIGSTOP)  # alive but silent: only the lease can tell
+    freeze_outside_a_write(frozen_pid, job_settings)  # alive but silent: only the lease can tell
     frozen_at = time.monotonic()
     try:
         second = wait_for_status(job_settings, job_id, ("succeeded", "failed"), timeout=30)
