@@ -41,7 +41,7 @@ import httpx
 from app.config import Settings
 from app.kit.data_layout import DataLayout
 from app.testing.fake_pipeline import CONSUMER_BOOTSTRAP
-from app.testing.network import free_port
+from app.testing.network import free_port, local_tls_context
 from app.testing.paths import PROJECT_ROOT
 
 HEALTH_PATH = "/api/v1/health"
@@ -309,6 +309,7 @@ class ServiceProcess:
         headers = dict(kwargs.pop("headers", {}))
         headers.setdefault("Authorization", f"Bearer {token or self.admin_token}")
         kwargs.setdefault("timeout", 30.0)
+        kwargs.setdefault("verify", local_tls_context())
         return httpx.Client(base_url=self.base_url, headers=headers, **kwargs)
 
     def group_pids(self) -> list[int]:

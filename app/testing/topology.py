@@ -47,7 +47,7 @@ from app.db.migrate import upgrade_to_head
 from app.db.session import get_engine, transaction
 from app.services.auth import create_token
 from app.testing.fake_pipeline import CONSUMER_BOOTSTRAP
-from app.testing.network import free_port
+from app.testing.network import free_port, local_tls_context
 from app.testing.paths import PROJECT_ROOT
 from app.testing.redis import redis_ping, redis_server_binary
 from app.testing.service import kill_process_group, live_worker_pids, process_group_members
@@ -294,6 +294,7 @@ class Topology:
         """An admin ``httpx.Client`` on API process ``index``."""
         headers = {"Authorization": f"Bearer {self.admin_token}", **kwargs.pop("headers", {})}
         kwargs.setdefault("timeout", 60.0)
+        kwargs.setdefault("verify", local_tls_context())
         return httpx.Client(base_url=self.apis[index].base_url, headers=headers, **kwargs)
 
     def worker_logs(self) -> str:
