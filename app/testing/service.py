@@ -206,7 +206,9 @@ class ServiceProcess:
                     f"{self.log_text()[-4000:]}"
                 )
             try:
-                response = httpx.get(self.base_url + HEALTH_PATH, timeout=2.0)
+                response = httpx.get(
+                    self.base_url + HEALTH_PATH, timeout=2.0, verify=local_tls_context()
+                )
                 if response.status_code == 200:
                     return
                 last_error = f"{response.status_code} {response.text[:200]}"

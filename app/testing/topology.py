@@ -232,7 +232,8 @@ class ApiProcess(ManagedProcess):
     def healthy(self) -> bool:
         """Whether ``GET /api/v1/health`` answers 200."""
         try:
-            return httpx.get(self.base_url + HEALTH_PATH, timeout=2.0).status_code == 200
+            answer = httpx.get(self.base_url + HEALTH_PATH, timeout=2.0, verify=local_tls_context())
+            return answer.status_code == 200
         except httpx.HTTPError:
             return False
 
