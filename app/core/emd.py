@@ -19,7 +19,9 @@ them on random problems), without POT's import, which loads scikit-learn (~0.8 C
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,6 +60,28 @@ def _as_weights(weights: NDArray, name: str) -> NDArray[np.float64]:
     return array
 
 
+DENSE_CELLS = 1024
+"""Plans of at most this many cells get a dense constraint matrix (faster to hand to HiGHS: the
+detectors' 8 x 8 and 3 x 3 problems); larger ones a sparse one ((m + n) x m n would not fit)."""
+
+
+@functools.lru_cache(maxsize=16)
+def _margin_matrix(m: int, n: int) -> Any:
+    """The row-sum and column-sum constraints of an (m, n) plan, shape (m + n, m n), read-only."""
+    cells = np.arange(m * n)
+    if m * n <= DENSE_CELLS:
+        margins = np.zeros((m + n, m * n))
+        margins[cells // n, cells] = 1.0
+        margins[m + cells % n, cells] = 1.0
+        margins.flags.writeable = False
+        return margins
+    from scipy.sparse import coo_array, vstack
+
+    rows = coo_array((np.ones(m * n), (cells // n, cells)), shape=(m, m * n))
+    columns = coo_array((np.ones(m * n), (cells % n, cells)), shape=(n, m * n))
+    return vstack([rows, columns]).tocsr()
+
+
 def transport_plan(
     supply: NDArray[np.float64],
     demand: NDArray[np.float64],
@@ -91,13 +115,9 @@ def transport_plan(
         The solver found no optimum (infeasible masses).
     """
     from scipy.optimize import linprog  # ~0.06 s, on first use
-    from scipy.sparse import coo_array, vstack
 
+    margins = _margin_matrix(*cost.shape)
     m, n = cost.shape
-    cells = np.arange(m * n)
-    rows = coo_array((np.ones(m * n), (cells // n, cells)), shape=(m, m * n))
-    columns = coo_array((np.ones(m * n), (cells % n, cells)), shape=(n, m * n))
-    margins = vstack([rows, columns]).tocsr()
     bounds = np.concatenate([supply, demand])
     if mass is None:
         result = linprog(cost.ravel(), A_eq=margins, b_eq=bounds, method="highs-ds")
