@@ -41,7 +41,7 @@ import httpx
 from app.config import Settings
 from app.kit.data_layout import DataLayout
 from app.testing.fake_pipeline import CONSUMER_BOOTSTRAP
-from app.testing.network import free_port
+from app.testing.network import free_port, local_tls_context
 from app.testing.paths import PROJECT_ROOT
 
 HEALTH_PATH = "/api/v1/health"
@@ -206,7 +206,9 @@ class ServiceProcess:
                     f"{self.log_text()[-4000:]}"
                 )
             try:
-                response = httpx.get(self.base_url + HEALTH_PATH, timeout=2.0)
+                response = httpx.get(
+                    self.base_url + HEALTH_PATH, timeout=2.0, verify=local_tls_context()
+                )
                 if response.status_code == 200:
                     return
                 last_error = f"{response.status_code} {response.text[:200]}"
@@ -309,6 +311,7 @@ class ServiceProcess:
         headers = dict(kwargs.pop("headers", {}))
         headers.setdefault("Authorization", f"Bearer {token or self.admin_token}")
         kwargs.setdefault("timeout", 30.0)
+        kwargs.setdefault("verify", local_tls_context())
         return httpx.Client(base_url=self.base_url, headers=headers, **kwargs)
 
     def group_pids(self) -> list[int]:

@@ -47,7 +47,7 @@ from app.db.migrate import upgrade_to_head
 from app.db.session import get_engine, transaction
 from app.services.auth import create_token
 from app.testing.fake_pipeline import CONSUMER_BOOTSTRAP
-from app.testing.network import free_port
+from app.testing.network import free_port, local_tls_context
 from app.testing.paths import PROJECT_ROOT
 from app.testing.redis import redis_ping, redis_server_binary
 from app.testing.service import kill_process_group, live_worker_pids, process_group_members
@@ -232,7 +232,8 @@ class ApiProcess(ManagedProcess):
     def healthy(self) -> bool:
         """Whether ``GET /api/v1/health`` answers 200."""
         try:
-            return httpx.get(self.base_url + HEALTH_PATH, timeout=2.0).status_code == 200
+            answer = httpx.get(self.base_url + HEALTH_PATH, timeout=2.0, verify=local_tls_context())
+            return answer.status_code == 200
         except httpx.HTTPError:
             return False
 
@@ -294,6 +295,7 @@ class Topology:
         """An admin ``httpx.Client`` on API process ``index``."""
         headers = {"Authorization": f"Bearer {self.admin_token}", **kwargs.pop("headers", {})}
         kwargs.setdefault("timeout", 60.0)
+        kwargs.setdefault("verify", local_tls_context())
         return httpx.Client(base_url=self.apis[index].base_url, headers=headers, **kwargs)
 
     def worker_logs(self) -> str:

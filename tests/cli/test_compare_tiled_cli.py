@@ -44,6 +44,21 @@ def pair_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, in
     return paths[0], paths[1], len(pair.reference) + len(pair.scan)
 
 
+@pytest.fixture(scope="module")
+def over_budget_run(
+    tmp_path_factory: pytest.TempPathFactory, pair_files: tuple[Path, Path, int]
+) -> tuple[subprocess.CompletedProcess[str], int, Path]:
+    """One ``compare --json --labels --memory-budget`` of the pair just over its budget: its
+    answer, the budget and the labels file (run once: two tests read it)."""
+    reference, scan, total = pair_files
+    budget = _budget_just_over(total)
+    labels = tmp_path_factory.mktemp("over-budget") / "labels.npz"
+    done = run_compare(
+        reference, scan, "--json", "--labels", labels, "--memory-budget", str(budget)
+    )
+    return done, budget, labels
+
+
 def _budget_just_over(total: int) -> int:
     """A budget the pair is just over, read lean (float32 whole clouds: app.core.tiling.lean)."""
     return (
@@ -54,14 +69,11 @@ def _budget_just_over(total: int) -> int:
 
 
 def test_a_pair_over_the_budget_is_compared_in_tiles(
-    tmp_path: Path, pair_files: tuple[Path, Path, int]
+    pair_files: tuple[Path, Path, int],
+    over_budget_run: tuple[subprocess.CompletedProcess[str], int, Path],
 ) -> None:
-    reference, scan, total = pair_files
-    budget = _budget_just_over(total)
-    labels = tmp_path / "labels.npz"
-    done = run_compare(
-        reference, scan, "--json", "--labels", labels, "--memory-budget", str(budget)
-    )
+    reference, scan, _ = pair_files
+    done, budget, labels = over_budget_run
     assert done.returncode == 0, done.stderr
     report = json.loads(done.stdout)
     assert report["localisation"]["tiles"]["count"] >= 2
@@ -95,7 +107,8 @@ def test_a_memory_budget_that_is_not_a_size_is_exit_2(pair_files: tuple[Path, Pa
 
 
 def test_a_pair_over_the_budget_is_streamed_and_equals_the_lean_tiled_comparison(
-    tmp_path: Path, pair_files: tuple[Path, Path, int]
+    pair_files: tuple[Path, Path, int],
+    over_budget_run: tuple[subprocess.CompletedProcess[str], int, Path],
 ) -> None:
     """Coordinates-only files over the budget: the command reads them in chunks
     (app.core.tiling.streamed); within the subsample its labels are the lean tiled ones."""
@@ -103,12 +116,8 @@ def test_a_pair_over_the_budget_is_streamed_and_equals_the_lean_tiled_comparison
     from app.core.tiling.compare import compare_tiled
     from app.core.tiling.lean import read_pair
 
-    reference, scan, total = pair_files
-    budget = _budget_just_over(total)
-    labels = tmp_path / "labels.npz"
-    done = run_compare(
-        reference, scan, "--json", "--labels", labels, "--memory-budget", str(budget)
-    )
+    reference, scan, _ = pair_files
+    done, budget, labels = over_budget_run
     assert done.returncode == 0, done.stderr
     report = json.loads(done.stdout)
     assert "streamed" in report["timings"], "the streamed path ran"

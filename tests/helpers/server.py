@@ -24,7 +24,7 @@ from app.config import Settings
 from app.db.session import transaction
 from app.main import create_app
 from app.services.auth import create_token
-from app.testing.network import free_port
+from app.testing.network import free_port, local_tls_context
 from tests.helpers.http import unique_name
 from tests.helpers.migrated_database import install_migrated_database
 
@@ -58,6 +58,7 @@ class ApiServer:
         headers = dict(kwargs.pop("headers", {}))
         if token:
             headers["Authorization"] = f"Bearer {token}"
+        kwargs.setdefault("verify", local_tls_context())  # one context, not one per client
         client = httpx.Client(base_url=self.base_url, headers=headers, timeout=30.0, **kwargs)
         self.clients.append(client)
         return client

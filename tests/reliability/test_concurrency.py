@@ -16,6 +16,7 @@ import httpx
 from sqlalchemy import text
 
 from app.db.session import session_factory
+from app.testing.network import local_tls_context
 from tests.helpers.http import create_site
 from tests.helpers.server import ApiServer
 
@@ -90,7 +91,8 @@ def test_a_storm_of_mixed_reads_and_writes_all_succeed(service: ApiServer) -> No
     latencies: list[float] = []
 
     def one(index: int) -> None:
-        with httpx.Client(headers={"Authorization": f"Bearer {token}"}, timeout=60) as client:
+        headers = {"Authorization": f"Bearer {token}"}
+        with httpx.Client(headers=headers, timeout=60, verify=local_tls_context()) as client:
             begun = time.monotonic()
             try:
                 if index % 2:

@@ -7,13 +7,16 @@ The message-level half of :mod:`app.core.formats.rosbag`: it works on deserialis
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from functools import cache
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation, Slerp
 
 from app.core.errors import PointCloudError
+
+if TYPE_CHECKING:  # scipy (0.3 CPU s) is imported when a bag is read, not with the formats
+    from scipy.spatial.transform import Rotation
 
 TIME_FIELDS = ("t", "time", "timestamp")
 """PointCloud2 field names read as per-point times (offsets from the stamp, or absolute)."""
@@ -51,7 +54,12 @@ class Transform:
         return Transform(inverse_rotation, -inverse_rotation.apply(self.translation))
 
 
-IDENTITY = Transform(Rotation.identity(), np.zeros(3))
+@cache
+def identity() -> Transform:
+    """The transform that moves nothing (made once, on first use)."""
+    from scipy.spatial.transform import Rotation
+
+    return Transform(Rotation.identity(), np.zeros(3))
 
 
 class TimedPoses:
@@ -70,6 +78,8 @@ class TimedPoses:
     def freeze(self) -> None:
         """Sort the samples into ``times`` (m,), ``translations`` (m, 3) and ``rotations``;
         call once, after the last :meth:`add` and before :meth:`at`."""
+        from scipy.spatial.transform import Rotation, Slerp
+
         times = np.array(sorted(self._samples), dtype=np.float64)
         self.times = times
         self.translations = np.array([self._samples[t][0] for t in times], dtype=np.float64)
@@ -112,6 +122,8 @@ class TransformTree:
     def add(self, message: Any, is_static: bool) -> None:
         """Record the transforms of a ``tf2_msgs/TFMessage`` (from ``/tf_static`` when
         ``is_static``); leading slashes of frame names are dropped."""
+        from scipy.spatial.transform import Rotation
+
         for stamped in message.transforms:
             child = frame_name(stamped.child_frame_id)
             parent = frame_name(stamped.header.frame_id)
@@ -161,7 +173,7 @@ class TransformTree:
     def to_root(self, frame: str, time: float) -> Transform | None:
         """Transform from ``frame`` to the root of its tree at ``time``; None when a timed link
         has no pose near ``time``."""
-        transform = IDENTITY
+        transform = identity()
         while frame in self.parent:
             if frame in self.static:
                 link = self.static[frame]

@@ -34,13 +34,13 @@ import numpy as np
 from app.core.errors import PointCloudError
 from app.core.formats._common import RawCloud, Source
 from app.core.formats.ros_messages import (
-    IDENTITY,
     TimedPoses,
     Transform,
     TransformTree,
     VoxelMap,
     decode_point_cloud2,
     frame_name,
+    identity,
     point_times,
     quaternion_of,
     stamp_seconds,
@@ -333,7 +333,7 @@ def _pose_source(
         and cloud_frame in tree.frames
         and fixed in (None, cloud_frame)
     ):
-        return lambda frame, stamp: (IDENTITY, None) if frame == cloud_frame else None
+        return lambda frame, stamp: (identity(), None) if frame == cloud_frame else None
     if topic is None:
         if len(pose_topics) > 1:
             raise PointCloudError(
@@ -364,7 +364,7 @@ def _pose_source(
         if body_pose is None:
             return None
         if frame == pose_frame:  # registered sweeps (e.g. a SLAM's output): in place already
-            return IDENTITY, body_pose
+            return identity(), body_pose
         if child and frame != child and tree.root_of(frame) == tree.root_of(child):
             mount = tree.lookup(child, frame, stamp)
             return None if mount is None else (body_pose * mount, body_pose * mount)

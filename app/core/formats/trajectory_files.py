@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from app.core.trajectory import Trajectory, TrajectoryError
 
@@ -330,6 +329,8 @@ def _read_kitti(text: str, times: Source | NDArray | None, rate: float | None) -
             f"(orthonormality error {error[first]:.3g}, determinant {determinant[first]:.3g}): "
             "give rigid poses [R | t]"
         )
+    from scipy.spatial.transform import Rotation  # here: reading a point file needs no scipy
+
     orientations = Rotation.from_matrix(rotations).as_quat()  # (qx, qy, qz, qw)
     positions = matrices[:, :, 3]
     count = positions.shape[0]

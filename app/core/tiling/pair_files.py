@@ -24,7 +24,6 @@ from numpy.typing import NDArray
 from app.core.formats.station_fields import has_station_fields
 from app.core.formats.streamed import open_point_blocks
 from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
-from app.core.origins.voxels import WholeVoxelSample
 
 if TYPE_CHECKING:
     from app.core.pipeline import ComparisonResult
@@ -131,6 +130,8 @@ def survey(
     every ``step``-th finite point with ``step = max(1, rows // most)``) and, when that is
     not the whole cloud, whole voxels of it at full density for the lidar sampling test
     (:class:`~app.core.origins.voxels.WholeVoxelSample`, file frame; else None)."""
+    from app.core.origins.voxels import WholeVoxelSample  # here: the CLI's checks need no scipy
+
     dropped, kept = [], []
     low, high = np.full(3, np.inf), np.full(3, -np.inf)
     n_rows, step = 0, 1

@@ -37,7 +37,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.cloud import column_extreme
-from app.core.detectors.base import voxel_ids
 
 if TYPE_CHECKING:  # the planner imports this module: numpy only, not the localiser
     from app.core.localise import Localisation
@@ -105,6 +104,8 @@ def representatives(
     """
     if len(points) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    from app.core.detectors.base import voxel_ids  # here: the planner imports numpy only
+
     low = column_extreme(points, np.minimum).astype(np.float64)  # the grid starts at the crop
     key, n_cells = voxel_ids(points, cell, low)
     if n_cells >= 1 << 62:  # ids in int64: a crop 2 km across at 2 mm is 2**60 cells

@@ -1,0 +1,47 @@
+"""``scandiff compare`` start-up: bad input is refused before the comparison's stack loads.
+
+Reading point files, planning tiles and checking the command's input need numpy alone; scipy
+and scikit-learn (about 0.5 CPU s of imports) load once the input is known good."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from app.testing.paths import PROJECT_ROOT
+
+HEAVY = ("scipy", "sklearn")
+
+
+def _heavy_modules_after(code: str) -> list[str]:
+    """The scipy/scikit-learn modules a fresh interpreter holds after running ``code``."""
+    probe = (
+        f"import json, sys\n{code}\n"
+        f"print(json.dumps(sorted(m for m in sys.modules if m.split('.')[0] in {HEAVY!r})))"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", probe], cwd=PROJECT_ROOT, capture_output=True, text=True, check=True
+    )
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def test_reading_files_and_planning_tiles_import_no_scipy() -> None:
+    code = (
+        "import app.core.formats, app.core.formats.streamed, app.core.tiling.lean\n"
+        "import app.core.tiling.plan, app.core.tiling.pair_files"
+    )
+    assert _heavy_modules_after(code) == []
+
+
+def test_a_file_that_is_not_a_point_cloud_is_refused_before_the_comparison_loads(
+    tmp_path: Path,
+) -> None:
+    garbage = tmp_path / "garbage.ply"
+    garbage.write_bytes(b"\x00\x01garbage")
+    code = (
+        "from app.cli import main\n"
+        f"assert main(['compare', {str(garbage)!r}, {str(garbage)!r}]) == 2"
+    )
+    assert _heavy_modules_after(code) == []
