@@ -55,9 +55,6 @@ ADJOINING_FACTOR = 2.0
 SURROUND_SECTORS = 6
 """The adjoining surface carries on past a border point when it lies in this many of
 :data:`SECTORS` directions around the point's foot."""
-LACKING_SHARE = 0.8
-"""The adjoining surface is one this epoch lacks when this share of its samples around the
-point's foot are (:func:`_surrounded`)."""
 EDGE_COSINE = math.cos(math.radians(60.0))
 """A surface adjoins a border point at an edge when the normals' cosine is below this."""
 UPRIGHT_NORMAL_Z = 0.5
@@ -299,12 +296,8 @@ def _surrounded(
         rows = np.broadcast_to(np.arange(query.shape[0])[:, None], sector.shape)
         taken[rows[on_plane], sector[on_plane]] = True
         surrounded[chunk] = taken.sum(axis=1)
-        # a surface that this epoch lacks next to the point: the object hid it here, or it is
-        # the object itself, moved (a chair turned in place: its new backrest crosses the old
-        # one, matched only along the crossing, lacking in this epoch clear of it)
-        lacking = (on_plane & other_unmatched[index]).sum(axis=1)
-        hidden = other_unmatched[nearest] | (lacking >= LACKING_SHARE * on_plane.sum(axis=1))
-        surrounded[chunk][hidden & (lacking > 0) | other_unmatched[nearest]] = SECTORS
+        # a surface that this epoch lacks next to the point: the object hid it here
+        surrounded[chunk][other_unmatched[nearest]] = SECTORS
         adjoining[chunk] &= ~(support & (surrounded[chunk] < SURROUND_SECTORS))
     return adjoining, surrounded
 
