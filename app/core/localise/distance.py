@@ -7,7 +7,10 @@ distance when it projects into none (the other cloud has no surface there).  A m
 (its nearest point lies within that point's support radius and ``p`` within the change
 threshold of that point's plane: never a candidate) gets that one plane's offset.  The
 support factor ``f`` is calibrated on the data (:func:`support_factor`), and the misalignment
-left after registration is measured on matched points (:func:`alignment_residual`).
+left after registration is measured on matched points (:func:`alignment_residual`).  A point
+just under the change threshold is judged by its surface's level against the other cloud's
+(:func:`surface_offset_candidates`): noisy samples of a surface a little over the threshold
+straddle it.
 """
 
 from __future__ import annotations
