@@ -44,6 +44,7 @@ SUPPORT_FACTOR_RANGE = (0.5, 2.0)
 ALIGNMENT_SAMPLE = 20_000
 LEVEL_NEIGHBOURS = 96
 LEVEL_RADIUS_FACTOR = 4.0
+MIN_AXIS_POINTS = 12
 """A surface's level near a point: the median of :data:`LEVEL_NEIGHBOURS` points within this
 many local spacings of the point's normal line (:func:`surface_offset_candidates`)."""
 PARALLEL_COSINE = math.cos(math.radians(30.0))
@@ -350,22 +351,34 @@ def surface_offset_candidates(
     found = candidate.copy()
     geometry = own.geometry
     k = min(LEVEL_NEIGHBOURS, geometry.points.shape[0])
+    reach = 0.5 * change_threshold
     for start in range(0, len(rows), GATHER_CHUNK):
         row = rows[start : start + GATHER_CHUNK]
         point = geometry.points[row]
-        # the surface's axis from a wider neighbourhood than its fitted normal's: at 1 cm
-        # spacing with 1 cm of noise, 10 neighbours' normals point anywhere
-        _, index = geometry.tree.query(point, k=k)
-        around = geometry.points[np.asarray(index).reshape(len(row), k)]
-        centred = around - around.mean(axis=1, keepdims=True)
-        _, vectors = np.linalg.eigh(np.einsum("ckd,cke->cde", centred, centred))
+        # the surface's axis from a wider neighbourhood than its fitted normal's (at 1 cm
+        # spacing with 1 cm of noise, 10 neighbours' normals point anywhere), within half the
+        # change threshold (a sparse map's 96 nearest points reach round its corners)
+        found_distance, index = geometry.tree.query(point, k=k, distance_upper_bound=reach)
+        near = np.asarray(found_distance).reshape(len(row), k) <= reach
+        index = np.minimum(np.asarray(index).reshape(len(row), k), geometry.points.shape[0] - 1)
+        weight = near / np.maximum(near.sum(axis=1), 1)[:, None]
+        centred = (
+            geometry.points[index]
+            - np.einsum("ck,ckd->cd", weight, geometry.points[index])[:, None, :]
+        )
+        _, vectors = np.linalg.eigh(np.einsum("ck,ckd,cke->cde", weight, centred, centred))
         unit = vectors[:, :, 0]
         toward = np.sign(np.einsum("cd,cd->c", other.points[own.nearest_index[row]] - point, unit))
-        own_level = _level(point, point, unit, geometry, change_threshold)
-        other_level = _level(
+        own_level, own_found = _level(point, point, unit, geometry, change_threshold)
+        other_level, other_found = _level(
             point + (toward * distance[row])[:, None] * unit, point, unit, other, change_threshold
         )
-        found[row] = np.abs(other_level - own_level) > change_threshold
+        found[row] = (
+            (near.sum(axis=1) >= MIN_AXIS_POINTS)
+            & own_found
+            & other_found
+            & (np.abs(other_level - own_level) > change_threshold)
+        )
     return found
 
 
@@ -375,15 +388,17 @@ def _level(
     unit: NDArray[np.float64],
     cloud: LocalGeometry,
     change_threshold: float,
-) -> NDArray[np.float64]:
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """Median offset along ``unit`` from ``point`` of ``cloud``'s points in a cylinder around
-    the normal line, gathered around ``centre`` (shapes (c, 3) -> (c,); NaN when none).
+    the normal line, gathered around ``centre``, and whether there were any (shapes (c, 3) ->
+    (c,), (c,)).
 
     The :data:`LEVEL_NEIGHBOURS` nearest points of ``centre`` within half the change threshold,
     those within :data:`LEVEL_RADIUS_FACTOR` spacings of the line; re-centred once on their
     median, so that the ball, which truncates a noisy surface's spread, is centred on it."""
     k = min(LEVEL_NEIGHBOURS, cloud.points.shape[0])
     level = np.einsum("cd,cd->c", centre - point, unit)
+    count = np.zeros(len(point), dtype=np.int64)
     for _ in range(2):
         probe = point + level[:, None] * unit
         found, index = cloud.tree.query(probe, k=k, distance_upper_bound=0.5 * change_threshold)
@@ -403,4 +418,4 @@ def _level(
             + ranked[rows, np.minimum(count // 2, k - 1)]
         )
         level = np.where(count > 0, median, level)
-    return level
+    return level, count > 0
