@@ -307,14 +307,14 @@ REGISTRATION_LIBRARIES = ("small_gicp",)
 def first_use_libraries() -> tuple[str, ...]:
     """The libraries the comparison imports on its first run, not with its modules.
 
-    The detectors' (scikit-learn, scipy.stats, POT: :data:`app.core.detectors.LIBRARIES`,
-    about 0.6 CPU seconds) and the registration's.  The command line keeps them lazy, loading
+    The detectors' (scipy.optimize: :data:`app.core.detectors.LIBRARIES`) and the
+    registration's.  The command line keeps them lazy, loading
     them on a thread while it aligns; a worker loaded them in its first job, on the cores the
     job needs.
     """
     from app.core.detectors import LIBRARIES  # loaded with the pipeline already
 
-    return (*LIBRARIES, "sklearn.mixture", *REGISTRATION_LIBRARIES)
+    return (*LIBRARIES, *REGISTRATION_LIBRARIES)
 
 
 def preload_pipeline() -> None:

@@ -92,3 +92,33 @@ def test_zero_for_identical_sets():
 def test_invalid_inputs_raise_value_error(weights_a, weights_b, ground, message):
     with pytest.raises(ValueError, match=message):
         earth_movers_distance(weights_a, weights_b, ground)
+
+
+@pytest.mark.parametrize("partial", [False, True])
+def test_the_optimal_cost_equals_pots_network_simplex(partial: bool) -> None:
+    ot = pytest.importorskip("ot")
+    rng = np.random.default_rng(7 + partial)
+    worst = 0.0
+    for trial in range(300):
+        m, n = (8, 8) if trial % 3 == 0 else rng.integers(1, 25, 2)
+        weights_a, weights_b = rng.uniform(0.0, 1.0, m), rng.uniform(0.0, 1.0, n)
+        weights_a[0] += 0.1  # a zero total is refused
+        weights_b[0] += 0.1
+        ground = rng.uniform(0.0, 5.0, (m, n))
+        if trial % 2:
+            ground = np.round(ground)  # ties: degenerate transport problems
+        if partial:
+            weights_b *= rng.uniform(0.3, 3.0) * weights_a.sum() / weights_b.sum()
+            mass = min(weights_a.sum(), weights_b.sum())
+            flow = ot.partial.partial_wasserstein(weights_a, weights_b, ground, m=mass)
+        else:
+            weights_b *= weights_a.sum() / weights_b.sum()
+            mass = weights_a.sum()
+            flow = ot.emd(weights_a, weights_b, ground)
+        expected = float(np.sum(flow * ground) / mass)
+        result = earth_movers_distance(weights_a, weights_b, ground)
+        worst = max(worst, abs(result.distance - expected) / max(expected, 1e-300))
+        assert result.flow.sum() == pytest.approx(mass, rel=1e-12)
+        assert (result.flow.sum(axis=1) <= weights_a * (1 + 1e-12) + 1e-15).all()
+        assert (result.flow.sum(axis=0) <= weights_b * (1 + 1e-12) + 1e-15).all()
+    assert worst <= 1e-9

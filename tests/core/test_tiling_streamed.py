@@ -113,6 +113,7 @@ def test_a_streamed_comparison_equals_the_lean_tiled_one(tmp_path, three_station
     _assert_streamed_equals_lean(paths, tmp_path, n_points, tiled)
 
 
+@pytest.mark.slow  # a second streamed run of the module pair (~10 CPU s): make test-slow
 def test_without_the_direction_filter_too_and_its_crops_are_larger(
     tmp_path, three_station_pair
 ) -> None:

@@ -484,9 +484,9 @@ class ChangeDetector(ABC):
         Notes
         -----
         BLAS and OpenMP run on one thread inside (small matrices, where more threads only
-        contend; scikit-learn's k-means took up to 0.4 s instead of 3 ms with two OpenMP
-        threads on a busy machine), which also makes the k-means start independent of the
-        caller's thread settings.
+        contend; scikit-learn's k-means, which the detectors used before
+        :mod:`app.core.detectors.kmeans`, took up to 0.4 s instead of 3 ms with two OpenMP
+        threads on a busy machine).
         """
         with self._numerics():
             return self._detect(reference, scan)

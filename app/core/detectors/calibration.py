@@ -64,6 +64,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import special
 
 from app.core.cloud import column_extreme
 
@@ -271,9 +272,8 @@ def threshold_from_null(null: NDArray[np.float64], false_alarm_rate: float) -> N
     logs = np.log(positive)
     log_mean = float(logs.mean())
     log_std = float(logs.std(ddof=1))
-    from scipy import stats  # imported on first use (detectors.warm_up): ~0.3 s
-
-    t_quantile = float(stats.t.ppf(level, df=positive.size - 1))
+    # Student's t quantile: scipy.stats.t.ppf's own function, without scipy.stats' ~0.3 s import
+    t_quantile = float(special.stdtrit(positive.size - 1, level))
     inflation = math.sqrt(1.0 + 1.0 / positive.size)
     threshold = math.exp(log_mean + t_quantile * log_std * inflation)
     return NullDecision(

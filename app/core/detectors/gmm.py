@@ -4,7 +4,8 @@
     A ``K``-component full-covariance mixture is fitted to each cloud independently with
     scikit-learn's EM (k-means initialisation, one initialisation, at most 100 iterations,
     tolerance 1e-3 on the lower bound, ``reg_covar`` 1e-6: scikit-learn's defaults, with the
-    detector's ``random_state``; :func:`fit_mixture` runs scikit-learn's k-means and then the
+    detector's ``random_state``; :func:`fit_mixture` runs scikit-learn's k-means (its numpy
+    twin, :mod:`app.core.detectors.kmeans`, with the same labels) and then the
     same EM arithmetic as ``GaussianMixture.fit``, with the same bits, at a third of the cost
     per iteration). Each component is the point
     ``theta = (mu, vec Sigma)`` in R^12 weighted by its mixing probability, with Euclidean
@@ -48,6 +49,7 @@ from numpy.typing import NDArray
 from scipy import linalg
 
 from app.core.detectors.base import ChangeDetector
+from app.core.detectors.kmeans import kmeans_labels
 from app.core.emd import earth_movers_distance, euclidean_ground_distances
 from app.core.errors import InputError
 from app.core.parameters import ParamSpec
@@ -285,7 +287,8 @@ def fit_mixture(
 ) -> Mixture:
     """EM fit from a k-means start: scikit-learn's ``GaussianMixture(...).fit`` to the bit.
 
-    The same k-means (scikit-learn's, one initialisation, seeded with ``seed``), then the same
+    The same k-means (scikit-learn's, one initialisation, seeded with ``seed``: the same labels
+    from :func:`app.core.detectors.kmeans.kmeans_labels`, without scikit-learn), then the same
     operations in the same order as ``GaussianMixture(n_components, covariance_type="full",
     reg_covar=reg_covar, max_iter=max_iter, tol=tol, random_state=seed).fit(points)``, without
     its validation, per-call overhead and final E-step, which cost more than an EM iteration
@@ -306,14 +309,8 @@ def fit_mixture(
     -------
     Mixture
     """
-    from sklearn.cluster import KMeans
-
     points = np.asarray(points, dtype=np.float64)
-    labels = (
-        KMeans(n_clusters=n_components, n_init=1, random_state=np.random.RandomState(seed))
-        .fit(points)
-        .labels_
-    )
+    labels = kmeans_labels(points, n_components, np.random.RandomState(seed))
     responsibilities = np.zeros((points.shape[0], n_components))
     responsibilities[np.arange(points.shape[0]), labels] = 1
     counts, means, covariances = _m_step(points, responsibilities, reg_covar)
@@ -398,18 +395,6 @@ class GmmDetector(ChangeDetector):
     """
 
     method: ClassVar[str] = "gmm"
-
-    @property
-    def _ignored_warnings(self) -> tuple[type[Warning], ...]:  # type: ignore[override]
-        """EM stopping at max_iter is intended: the anchored refinements, bounded cost.
-
-        Read before each call's thread limit is set (``_numerics``): it imports scikit-learn's
-        k-means too, so that its OpenMP pool exists and is limited like the others.
-        """
-        import sklearn.cluster  # noqa: F401
-        from sklearn.exceptions import ConvergenceWarning
-
-        return (ConvergenceWarning,)
 
     _specs: ClassVar[dict[str, ParamSpec]] = {
         "n_components": ParamSpec("int", 1, 256),
