@@ -42,15 +42,15 @@ spacings (~1.3 for independent lidar samplings; the quartile ignores up to 75 % 
 being changed or unobserved)."""
 SUPPORT_FACTOR_RANGE = (0.5, 2.0)
 ALIGNMENT_SAMPLE = 20_000
+"""Points of each cloud whose plane offsets measure the alignment residual."""
 LEVEL_NEIGHBOURS = 96
+"""At most this many points within half the change threshold give a surface's axis and,
+within :data:`LEVEL_RADIUS_FACTOR` local spacings of its normal line, its level
+(:func:`surface_offset_candidates`)."""
 LEVEL_RADIUS_FACTOR = 4.0
 MIN_AXIS_POINTS = 12
-"""A surface's level near a point: the median of :data:`LEVEL_NEIGHBOURS` points within this
-many local spacings of the point's normal line (:func:`surface_offset_candidates`)."""
-PARALLEL_COSINE = math.cos(math.radians(30.0))
-"""A point's surface and the other cloud's nearest one are parallel within 30 degrees (as
-:data:`~app.core.localise.gaps.NORMAL_AGREEMENT_COSINE`)."""
-"""Points of each cloud whose plane offsets measure the alignment residual."""
+"""Fewer points within half the change threshold give no axis (the point keeps its own
+distance)."""
 
 
 @dataclass(frozen=True)
@@ -318,17 +318,17 @@ def surface_offset_candidates(
 ) -> NDArray[np.bool_]:
     """Candidates, with the points just under the change threshold judged by their surface.
 
-    A surface standing a little more than the change threshold from a parallel surface of the
-    other cloud (a backrest 10.9 cm in front of a wall, with 1.3 cm of depth noise) has its
-    points' distances straddle the threshold, and each point's nearest point in the other
-    cloud, the closest of many noisy samples, lies nearer still: about half of it, or none,
-    becomes a candidate.  A point within ``tau`` under the change threshold whose nearest
-    point's plane is parallel to its own is a candidate when its own neighbourhood (the
-    neighbours on its own surface) lies, on average, farther than the change threshold from
-    that plane: the mean of ``k`` offsets has a ``sqrt(k)`` times smaller noise, and the
-    plane is fitted through the other cloud's neighbourhood.  Only where the change
-    threshold is above ``tau`` (``min_change_distance`` set it): the band is
-    ``min(tau, c - tau)``, empty when noise sets the threshold.
+    A surface standing a little more than the change threshold from a surface of the other
+    cloud (a backrest 10.9 cm in front of a wall, with 1.2 cm of depth noise) has its points'
+    distances straddle the threshold, and each point's nearest point in the other cloud, the
+    closest of many noisy samples, lies nearer still: about half of it, or none, becomes a
+    candidate.  A point within ``min(tau, c - tau)`` under the change threshold ``c`` (none
+    when noise sets the threshold) is judged by its surface: the axis of its points within
+    ``c / 2`` (:data:`MIN_AXIS_POINTS` to :data:`LEVEL_NEIGHBOURS`; their fitted normals,
+    from 10 neighbours, point anywhere at 1 cm noise) and, along it, the median level of
+    each cloud's points in a cylinder round its normal line (:func:`_level`).  It is a
+    candidate when both clouds have points there and the two levels lie more than ``c``
+    apart: a median of tens of samples, where the point had one.
 
     Parameters
     ----------
