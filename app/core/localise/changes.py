@@ -48,6 +48,7 @@ from app.core.localise.distance import (
     nearest_in,
     support_factor,
     surface_distance,
+    surface_offset_candidates,
 )
 from app.core.localise.epoch import EpochCloud, with_checked_stations
 from app.core.localise.rays import Candidates
@@ -390,6 +391,14 @@ def _candidates(
             other=other.geometry,
             threshold=limits.threshold,
             support_factor=limits.support,
+            change_threshold=limits.change_threshold,
+        )
+        candidate = surface_offset_candidates(
+            candidate,
+            distance,
+            own,
+            other.geometry,
+            threshold=limits.threshold,
             change_threshold=limits.change_threshold,
         )
         return distance, candidate

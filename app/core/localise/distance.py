@@ -7,7 +7,10 @@ distance when it projects into none (the other cloud has no surface there).  A m
 (its nearest point lies within that point's support radius and ``p`` within the change
 threshold of that point's plane: never a candidate) gets that one plane's offset.  The
 support factor ``f`` is calibrated on the data (:func:`support_factor`), and the misalignment
-left after registration is measured on matched points (:func:`alignment_residual`).
+left after registration is measured on matched points (:func:`alignment_residual`).  A point
+just under the change threshold is judged by its surface's level against the other cloud's
+(:func:`surface_offset_candidates`): noisy samples of a surface a little over the threshold
+straddle it.
 """
 
 from __future__ import annotations
@@ -23,7 +26,14 @@ from app.core.localise.settings import CHUNK, GATHER_CHUNK, QUERY_CHUNK
 from app.core.localise.surface import LocalGeometry
 from app.core.spatial_order import ordered_chunks
 
-__all__ = ["Side", "alignment_residual", "nearest_in", "support_factor", "surface_distance"]
+__all__ = [
+    "Side",
+    "alignment_residual",
+    "nearest_in",
+    "support_factor",
+    "surface_distance",
+    "surface_offset_candidates",
+]
 
 SUPPORT_FACTOR_QUANTILE = 0.25
 SUPPORT_FACTOR_PER_QUANTILE = 3.5
@@ -33,6 +43,14 @@ being changed or unobserved)."""
 SUPPORT_FACTOR_RANGE = (0.5, 2.0)
 ALIGNMENT_SAMPLE = 20_000
 """Points of each cloud whose plane offsets measure the alignment residual."""
+LEVEL_NEIGHBOURS = 96
+"""At most this many points within half the change threshold give a surface's axis and,
+within :data:`LEVEL_RADIUS_FACTOR` local spacings of its normal line, its level
+(:func:`surface_offset_candidates`)."""
+LEVEL_RADIUS_FACTOR = 4.0
+MIN_AXIS_POINTS = 12
+"""Fewer points within half the change threshold give no axis (the point keeps its own
+distance)."""
 
 
 @dataclass(frozen=True)
@@ -287,3 +305,117 @@ def alignment_residual(
         noise_variance = own.geometry.noise**2 + other.geometry.noise**2 / other_k
         excess_variances.append(max(0.0, spread**2 - noise_variance))
     return math.sqrt(float(np.mean(excess_variances))) if excess_variances else 0.0
+
+
+def surface_offset_candidates(
+    candidate: NDArray[np.bool_],
+    distance: NDArray[np.float64],
+    own: Side,
+    other: LocalGeometry,
+    *,
+    threshold: float,
+    change_threshold: float,
+) -> NDArray[np.bool_]:
+    """Candidates, with the points just under the change threshold judged by their surface.
+
+    A surface standing a little more than the change threshold from a surface of the other
+    cloud (a backrest 10.9 cm in front of a wall, with 1.2 cm of depth noise) has its points'
+    distances straddle the threshold, and each point's nearest point in the other cloud, the
+    closest of many noisy samples, lies nearer still: about half of it, or none, becomes a
+    candidate.  A point within ``min(tau, c - tau)`` under the change threshold ``c`` (none
+    when noise sets the threshold) is judged by its surface: the axis of its points within
+    ``c / 2`` (:data:`MIN_AXIS_POINTS` to :data:`LEVEL_NEIGHBOURS`; their fitted normals,
+    from 10 neighbours, point anywhere at 1 cm noise) and, along it, the median level of
+    each cloud's points in a cylinder round its normal line (:func:`_level`).  It is a
+    candidate when both clouds have points there and the two levels lie more than ``c``
+    apart: a median of tens of samples, where the point had one.
+
+    Parameters
+    ----------
+    candidate : ndarray, shape (n,), bool
+    distance : ndarray, shape (n,)
+        :func:`surface_distance`'s.
+    own : Side
+        The points' cloud (its neighbour index not yet released).
+    other : LocalGeometry
+    threshold, change_threshold : float
+        ``tau`` and ``c`` (metres).
+
+    Returns
+    -------
+    ndarray, shape (n,), bool
+        ``candidate`` with the points found so added.
+    """
+    band = min(threshold, change_threshold - threshold)
+    rows = np.flatnonzero(~candidate & (distance > change_threshold - band)) if band > 0 else []
+    found = candidate.copy()
+    geometry = own.geometry
+    k = min(LEVEL_NEIGHBOURS, geometry.points.shape[0])
+    reach = 0.5 * change_threshold
+    for start in range(0, len(rows), GATHER_CHUNK):
+        row = rows[start : start + GATHER_CHUNK]
+        point = geometry.points[row]
+        # the surface's axis from a wider neighbourhood than its fitted normal's (at 1 cm
+        # spacing with 1 cm of noise, 10 neighbours' normals point anywhere), within half the
+        # change threshold (a sparse map's 96 nearest points reach round its corners)
+        found_distance, index = geometry.tree.query(point, k=k, distance_upper_bound=reach)
+        near = np.asarray(found_distance).reshape(len(row), k) <= reach
+        index = np.minimum(np.asarray(index).reshape(len(row), k), geometry.points.shape[0] - 1)
+        weight = near / np.maximum(near.sum(axis=1), 1)[:, None]
+        centred = (
+            geometry.points[index]
+            - np.einsum("ck,ckd->cd", weight, geometry.points[index])[:, None, :]
+        )
+        _, vectors = np.linalg.eigh(np.einsum("ck,ckd,cke->cde", weight, centred, centred))
+        unit = vectors[:, :, 0]
+        toward = np.sign(np.einsum("cd,cd->c", other.points[own.nearest_index[row]] - point, unit))
+        own_level, own_found = _level(point, point, unit, geometry, change_threshold)
+        other_level, other_found = _level(
+            point + (toward * distance[row])[:, None] * unit, point, unit, other, change_threshold
+        )
+        found[row] = (
+            (near.sum(axis=1) >= MIN_AXIS_POINTS)
+            & own_found
+            & other_found
+            & (np.abs(other_level - own_level) > change_threshold)
+        )
+    return found
+
+
+def _level(
+    centre: NDArray[np.float64],
+    point: NDArray[np.float64],
+    unit: NDArray[np.float64],
+    cloud: LocalGeometry,
+    change_threshold: float,
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Median offset along ``unit`` from ``point`` of ``cloud``'s points in a cylinder around
+    the normal line, gathered around ``centre``, and whether there were any (shapes (c, 3) ->
+    (c,), (c,)).
+
+    The :data:`LEVEL_NEIGHBOURS` nearest points of ``centre`` within half the change threshold,
+    those within :data:`LEVEL_RADIUS_FACTOR` spacings of the line; re-centred once on their
+    median, so that the ball, which truncates a noisy surface's spread, is centred on it."""
+    k = min(LEVEL_NEIGHBOURS, cloud.points.shape[0])
+    level = np.einsum("cd,cd->c", centre - point, unit)
+    count = np.zeros(len(point), dtype=np.int64)
+    for _ in range(2):
+        probe = point + level[:, None] * unit
+        found, index = cloud.tree.query(probe, k=k, distance_upper_bound=0.5 * change_threshold)
+        index = np.minimum(np.asarray(index).reshape(len(probe), k), cloud.points.shape[0] - 1)
+        offset = cloud.points[index] - point[:, None, :]
+        along = np.einsum("ckd,cd->ck", offset, unit)
+        lateral_squared = np.einsum("ckd,ckd->ck", offset, offset) - along**2
+        radius = LEVEL_RADIUS_FACTOR * cloud.spacing[index[:, 0]]
+        inside = (np.asarray(found).reshape(len(probe), k) <= 0.5 * change_threshold) & (
+            lateral_squared <= (radius**2)[:, None]
+        )
+        count = inside.sum(axis=1)
+        ranked = np.sort(np.where(inside, along, np.inf), axis=1)
+        rows = np.arange(len(probe))
+        median = 0.5 * (
+            ranked[rows, np.maximum(count - 1, 0) // 2]
+            + ranked[rows, np.minimum(count // 2, k - 1)]
+        )
+        level = np.where(count > 0, median, level)
+    return level, count > 0
