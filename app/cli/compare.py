@@ -422,7 +422,7 @@ def run(args: argparse.Namespace) -> int:
             return 0
         reference, scan, frame_offset = _read_clouds(args, budget)
         load_seconds = time.perf_counter() - started
-        # the comparison's stack (scipy, scikit-learn: 0.5 CPU s) once the input is known good
+        # the comparison's stack (scipy, small_gicp: ~0.5 CPU s) once the input is known good
         from app.core.tiling.compare import compare_within_budget
 
         result = compare_within_budget(

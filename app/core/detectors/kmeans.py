@@ -13,10 +13,10 @@ set, so this module runs the same algorithm with the same operations:
   points farthest from their centres, stop when no label changes or the squared centre shift
   is within the tolerance, then one last labelling if the labels had not settled.
 
-The labels equal scikit-learn's (``tests/core/test_kmeans.py`` compares them on many sets, the
-detectors' working sets among them); only the last bits of intermediate sums may differ where
-scikit-learn's compiled loop orders them otherwise (several OpenMP threads, its BLAS), which
-would change a label only at an exact tie.
+The labels equal scikit-learn's (``tests/core/test_detector_libraries.py`` compares them on
+many sets, the detectors' working sets among them); only the last bits of intermediate sums
+may differ where scikit-learn's compiled loop orders them otherwise (several OpenMP threads, its
+BLAS), which would change a label only at an exact tie.
 """
 
 from __future__ import annotations
