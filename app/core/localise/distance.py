@@ -364,7 +364,10 @@ def surface_offset_candidates(
         weight = near / np.maximum(near.sum(axis=1), 1)[:, None]
         ball = geometry.points[index]
         centred = ball - np.einsum("ck,ckd->cd", weight, ball)[:, None, :]
-        _, vectors = np.linalg.eigh(np.einsum("ck,ckd,cke->cde", weight, centred, centred))
+        # the weighted scatter as a batched matrix product (a three-operand einsum takes
+        # numpy's generic loop: 4-5x slower)
+        scatter = np.matmul((weight[:, :, None] * centred).transpose(0, 2, 1), centred)
+        _, vectors = np.linalg.eigh(scatter)
         unit = vectors[:, :, 0]
         toward = np.sign(np.einsum("cd,cd->c", other.points[own.nearest_index[row]] - point, unit))
         # the own level's first ball is the axis's (same centre and radius): not queried again
