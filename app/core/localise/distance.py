@@ -127,27 +127,26 @@ def nearest_in(
     return distance, index
 
 
-def support_factor(nn_distance_over_spacing: NDArray[np.float64], requested: float | None) -> float:
+def support_factor(nn_distance_quartile: float, requested: float | None) -> float:
     """The support factor ``f``: ``requested``, or calibrated from the clouds when None.
 
     Parameters
     ----------
-    nn_distance_over_spacing : ndarray, shape (p,)
-        Each point's nearest-neighbour distance in the other cloud, in that cloud's local
-        spacings (both clouds' points).
+    nn_distance_quartile : float
+        The :data:`SUPPORT_FACTOR_QUANTILE` quantile of each point's nearest-neighbour distance
+        in the other cloud, in that cloud's local spacings (both clouds' points).
     requested : float or None
 
     Returns
     -------
     float
-        :data:`SUPPORT_FACTOR_PER_QUANTILE` x the lower quartile of
-        ``nn_distance_over_spacing``, clipped to :data:`SUPPORT_FACTOR_RANGE`.
+        :data:`SUPPORT_FACTOR_PER_QUANTILE` x ``nn_distance_quartile``, clipped to
+        :data:`SUPPORT_FACTOR_RANGE`.
     """
     if requested is not None:
         return float(requested)
-    quartile = float(np.quantile(nn_distance_over_spacing, SUPPORT_FACTOR_QUANTILE))
     low, high = SUPPORT_FACTOR_RANGE
-    return float(np.clip(SUPPORT_FACTOR_PER_QUANTILE * quartile, low, high))
+    return float(np.clip(SUPPORT_FACTOR_PER_QUANTILE * nn_distance_quartile, low, high))
 
 
 def surface_distance(
