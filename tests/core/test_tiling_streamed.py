@@ -18,15 +18,15 @@ from app.core.datasets.lidar import lidar_pair, steps_for_points
 from app.core.datasets.lidar_files import write_lidar_pair
 from app.core.formats import read_point_cloud
 from app.core.labels import LABEL_CHANGED
-from app.core.origins.sampling import lidar_sampling
 from app.core.origins.own_frame import resolve_moved_cloud
+from app.core.origins.sampling import lidar_sampling
 from app.core.origins.station_recovery import (
     measured_sampling,
     recover_stations,
     resolve_stations,
 )
-from app.core.registration import apply_transform
 from app.core.pipeline import ComparisonResult
+from app.core.registration import apply_transform
 from app.core.tiling.compare import compare_tiled
 from app.core.tiling.lean import float32_cloud
 from app.core.tiling.pair_files import (
@@ -254,7 +254,8 @@ def test_a_sparse_subsample_searches_its_stations_on_whole_voxels(tmp_path, rand
     transform[:2, :2] = [[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]]
     transform[:3, 3] = [2.0, -1.0, 0.0]
     moved = resolve_moved_cloud("scan", subsample, transform, station_of=whole, **options)
-    for origins, expected in ((found.origin, true), (moved.origin, apply_transform(true, transform))):
+    expected_moved = apply_transform(true, transform)
+    for origins, expected in ((found.origin, true), (moved.origin, expected_moved)):
         origins = np.asarray(origins).reshape(-1, 3)
         assert origins.shape[0] == 3
         offsets = origins[:, None, :2] - expected[None, :, :2]
