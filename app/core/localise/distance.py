@@ -361,8 +361,8 @@ def surface_offset_candidates(
         near = np.asarray(found_distance).reshape(len(row), k) <= reach
         index = np.minimum(np.asarray(index).reshape(len(row), k), geometry.points.shape[0] - 1)
         weight = near / np.maximum(near.sum(axis=1), 1)[:, None]
-        ball = geometry.points[index]
-        centred = ball - np.einsum("ck,ckd->cd", weight, ball)[:, None, :]
+        centred = geometry.points[index]  # the ball's points, centred in place
+        centred -= np.einsum("ck,ckd->cd", weight, centred)[:, None, :]
         # the weighted scatter as a batched matrix product (a three-operand einsum takes
         # numpy's generic loop: 4-5x slower)
         scatter = np.matmul((weight[:, :, None] * centred).transpose(0, 2, 1), centred)
