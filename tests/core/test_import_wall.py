@@ -163,12 +163,14 @@ def test_the_docs_list_the_localisation_modules_in_their_import_order():
     assert listed == list(reversed(LOCALISE_LAYERS))
 
 
-def test_the_geometry_cache_loads_no_scipy():
-    """``app.core.localise`` imports its public names on first use (PEP 562): the geometry
-    cache, which the service's storage and job modules import in every ``scandiff serve``,
-    takes ``neighbourhoods`` and ``surface`` alone, and no scipy (~0.3 CPU s a process)."""
+def test_the_api_and_the_service_supervisor_load_no_scipy():
+    """scipy is imported where it is used (~0.3 CPU s a process): the API process (the FastAPI
+    app, with the viewer's routes) and ``scandiff serve``'s supervisor (migrations, recovery,
+    storage, which reach the geometry cache and the localiser's settings) never load it; the
+    job consumer loads it with the pipeline it preloads."""
     code = (
-        "import sys, app.core.cache.geometry, app.core.localise\n"
+        "import sys, app.main, app.cli.serve, app.db.migrate, app.jobs.recovery\n"
+        "import app.services.storage, app.services.schedules.runs, app.core.cache.geometry\n"
         "print(','.join(sorted(m for m in sys.modules if m.split('.')[0] == 'scipy'))[:200])\n"
     )
     result = subprocess.run(
