@@ -53,8 +53,10 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
+from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE
 from app.core.localise.interface import VisibilityContext, VisibilityOutcome
 from app.core.localise.map_faces import far_faces
 from app.core.localise.map_parts import (
@@ -282,12 +284,17 @@ def map_test(
         share = np.zeros(recheck.shape[0])
         if chosen.shape[0] == 0:
             return share
+        # this epoch's own upright surface under the part, not a candidate (the wall under a
+        # patch of it), stands on that level surface instead of the part
+        upright = np.abs(own.geometry.normal[:, 2]) < NORMAL_AGREEMENT_COSINE
+        upright[candidates.index] = False
         on_lacking = level_surface_below(
             candidates.points[chosen],
             other.geometry,
             SEE_THROUGH_REACH,
             max(BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))),
             marked=other_unmatched,
+            blocking=KDTree(own.points[upright]) if upright.any() else None,
         )
         hits = np.bincount(labels[chosen], weights=on_lacking, minlength=share.shape[0])
         sizes = np.bincount(labels[chosen], minlength=share.shape[0])

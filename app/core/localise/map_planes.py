@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 from numpy.typing import NDArray
+from pykdtree.kdtree import KDTree
 
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
 from app.core.localise.rays import Candidates
@@ -127,6 +128,7 @@ def level_surface_below(
     reach: float,
     min_radius: float,
     marked: NDArray[np.bool_] | None = None,
+    blocking: KDTree | None = None,
 ) -> NDArray[np.bool_]:
     """Whether ``cloud`` has a level surface under each point within ``reach`` metres
     (straight down, z up; shapes (p, 3) -> (p,)).
@@ -137,7 +139,9 @@ def level_surface_below(
 
     With ``marked`` (shape (m,), bool, over ``cloud``'s points): whether the first level
     surface found under each point has a marked point in the probe that found it (a marked
-    surface farther down, under an unmarked one, does not count).
+    surface farther down, under an unmarked one, does not count); with ``blocking`` too (a
+    tree over other points), a probe that holds one of those before it holds a level surface
+    stops the search: False.
     """
     count = points.shape[0]
     found = np.zeros(count, dtype=bool)
@@ -163,5 +167,8 @@ def level_surface_below(
         hit = level.any(axis=1)
         if marked is not None:
             first_marked[todo[hit]] = (level & marked[index]).any(axis=1)[hit]
+        if blocking is not None:
+            block_distance, _ = blocking.query(probes, k=1, distance_upper_bound=radius)
+            hit |= np.asarray(block_distance).ravel() <= radius
         found[todo] = hit
     return found if marked is None else first_marked
