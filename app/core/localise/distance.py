@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from app.core.cloud import MIN_POINTS
 from app.core.localise.settings import CHUNK, GATHER_CHUNK, QUERY_CHUNK
-from app.core.localise.surface import LocalGeometry
+from app.core.localise.surface import LocalGeometry, weighted_plane
 from app.core.spatial_order import ordered_chunks
 
 __all__ = [
@@ -361,12 +361,7 @@ def surface_offset_candidates(
         found_distance, index = geometry.tree.query(point, k=k, distance_upper_bound=reach)
         near = np.asarray(found_distance).reshape(len(row), k) <= reach
         index = np.minimum(np.asarray(index).reshape(len(row), k), geometry.points.shape[0] - 1)
-        weight = near / np.maximum(near.sum(axis=1), 1)[:, None]
-        centred = (
-            geometry.points[index]
-            - np.einsum("ck,ckd->cd", weight, geometry.points[index])[:, None, :]
-        )
-        _, vectors = np.linalg.eigh(np.einsum("ck,ckd,cke->cde", weight, centred, centred))
+        _, _, vectors = weighted_plane(geometry.points[index], near.astype(np.float64))
         unit = vectors[:, :, 0]
         toward = np.sign(np.einsum("cd,cd->c", other.points[own.nearest_index[row]] - point, unit))
         own_level, own_found = _level(point, point, unit, geometry, change_threshold)
