@@ -183,6 +183,39 @@ def _narrow_gaps(
     return gap
 
 
+def _on_lacking_share(
+    candidates: Candidates,
+    labels: NDArray[np.int64],
+    recheck: NDArray[np.bool_],
+    *,
+    own: Side,
+    other: Side,
+    other_unmatched: NDArray[np.bool_],
+) -> NDArray[np.float64]:
+    """Per part marked in ``recheck`` (0 elsewhere), the share of its candidates whose first
+    level surface of the other epoch straight under them, within
+    :data:`~app.core.localise.map_parts.SEE_THROUGH_REACH`, has a point this epoch lacks
+    (:func:`~app.core.localise.map_planes.level_surface_below`).  This epoch's own upright
+    points that are no candidates stop the probe (a wall under a patch of it)."""
+    chosen = np.flatnonzero(recheck[labels])
+    share = np.zeros(recheck.shape[0])
+    if chosen.shape[0] == 0:
+        return share
+    upright = np.abs(own.geometry.normal[:, 2]) < NORMAL_AGREEMENT_COSINE
+    upright[candidates.index] = False
+    on_lacking = level_surface_below(
+        candidates.points[chosen],
+        other.geometry,
+        SEE_THROUGH_REACH,
+        max(BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))),
+        marked=other_unmatched,
+        blocking=KDTree(own.points[upright]) if upright.any() else None,
+    )
+    hits = np.bincount(labels[chosen], weights=on_lacking, minlength=share.shape[0])
+    sizes = np.bincount(labels[chosen], minlength=share.shape[0])
+    return hits / np.maximum(sizes, 1)
+
+
 def map_test(
     candidates: Candidates,
     *,
@@ -280,25 +313,9 @@ def map_test(
         )
 
     def stands_on_lacking(recheck: NDArray[np.bool_]) -> NDArray[np.float64]:
-        chosen = np.flatnonzero(recheck[labels])
-        share = np.zeros(recheck.shape[0])
-        if chosen.shape[0] == 0:
-            return share
-        # this epoch's own upright surface under the part, not a candidate (the wall under a
-        # patch of it), stands on that level surface instead of the part
-        upright = np.abs(own.geometry.normal[:, 2]) < NORMAL_AGREEMENT_COSINE
-        upright[candidates.index] = False
-        on_lacking = level_surface_below(
-            candidates.points[chosen],
-            other.geometry,
-            SEE_THROUGH_REACH,
-            max(BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))),
-            marked=other_unmatched,
-            blocking=KDTree(own.points[upright]) if upright.any() else None,
+        return _on_lacking_share(
+            candidates, labels, recheck, own=own, other=other, other_unmatched=other_unmatched
         )
-        hits = np.bincount(labels[chosen], weights=on_lacking, minlength=share.shape[0])
-        sizes = np.bincount(labels[chosen], minlength=share.shape[0])
-        return hits / np.maximum(sizes, 1)
 
     coverage, confidence, counts = _verdict(
         figures, see_through, open_beneath, far_face, stands_on_lacking
