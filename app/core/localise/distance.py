@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from app.core.cloud import MIN_POINTS
 from app.core.localise.settings import CHUNK, GATHER_CHUNK, QUERY_CHUNK
-from app.core.localise.surface import LocalGeometry
+from app.core.localise.surface import LocalGeometry, weighted_plane
 from app.core.spatial_order import ordered_chunks
 
 __all__ = [
@@ -360,13 +360,7 @@ def surface_offset_candidates(
         found_distance, index = geometry.tree.query(point, k=k, distance_upper_bound=reach)
         near = np.asarray(found_distance).reshape(len(row), k) <= reach
         index = np.minimum(np.asarray(index).reshape(len(row), k), geometry.points.shape[0] - 1)
-        weight = near / np.maximum(near.sum(axis=1), 1)[:, None]
-        centred = geometry.points[index]  # the ball's points, centred in place
-        centred -= np.einsum("ck,ckd->cd", weight, centred)[:, None, :]
-        # the weighted scatter as a batched matrix product (a three-operand einsum takes
-        # numpy's generic loop: 4-5x slower)
-        scatter = np.matmul((weight[:, :, None] * centred).transpose(0, 2, 1), centred)
-        _, vectors = np.linalg.eigh(scatter)
+        _, _, vectors = weighted_plane(geometry.points[index], near.astype(np.float64))
         unit = vectors[:, :, 0]
         toward = np.sign(np.einsum("cd,cd->c", other.points[own.nearest_index[row]] - point, unit))
         # the own level's first ball is the axis's (same centre and radius): not queried again
