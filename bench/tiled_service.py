@@ -57,6 +57,15 @@ PHASES = (
     "localise",
     "detect",
     "write_outputs",
+    "write_outputs_cpu",
+    "stream_survey_cpu",
+    "stream_stations_cpu",
+    "stream_plan_cpu",
+    "stream_marks_cpu",
+    "stream_crops_cpu",
+    "stream_tiles_cpu",
+    "stream_merge_cpu",
+    "stream_other_stages_cpu",
     "job_total",
     "compute_cpu",
     "streamed_seconds",
@@ -391,6 +400,20 @@ def print_phases(clock: PhaseClock, total_points: int, crop_points: int) -> None
     )
 
 
+def parent_cpu_split(timings: dict[str, float]) -> dict[str, float]:
+    """The parent's CPU seconds: ``serial`` (the job's CPU and its result files' writing, less
+    the tiles it computed), ``tiles_here`` and, of the serial part, each streamed phase
+    (``stream_*_cpu`` in the job's timings)."""
+    tiles_here = timings.get("tiles_parent_computing_cpu", 0.0)
+    serial = timings.get("compute_cpu", 0.0) + timings.get("write_outputs_cpu", 0.0) - tiles_here
+    split = {"serial": serial, "tiles_here": tiles_here}
+    for name, seconds in timings.items():
+        if name.startswith("stream_") and name.endswith("_cpu") and name != "stream_tiles_cpu":
+            split[name.removeprefix("stream_").removesuffix("_cpu")] = seconds
+    split["write_outputs"] = timings.get("write_outputs_cpu", 0.0)
+    return {name: round(seconds, 1) for name, seconds in split.items()}
+
+
 def cpu_speedup(one: dict[str, float], two: dict[str, float]) -> float:
     """2 workers against 1 on an idle 2-core machine, from CPU seconds (one thread a job).
 
@@ -585,6 +608,9 @@ def main(argv: list[str] | None = None) -> int:
     for workers, run in runs.items():
         shown = {key: round(value, 1) for key, value in run["timings"].items() if key in PHASES}
         print(f"- {workers} worker(s): {shown}")
+    print("\nThe parent's CPU s: serial (all but the tiles it computed) and its tiles:\n")
+    for workers, run in runs.items():
+        print(f"- {workers} worker(s): {parent_cpu_split(run['timings'])}")
     print("\nPeak RSS (VmHWM, MB) of the service's processes, and the labels' digest:\n")
     for workers, run in runs.items():
         digest = hashlib.sha256()

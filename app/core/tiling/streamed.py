@@ -37,8 +37,10 @@ from __future__ import annotations
 
 import dataclasses
 import shutil
+import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Unpack
@@ -97,6 +99,18 @@ COUNT_SAMPLE = 400_000
 PLAN_FILE = "plan.npz"
 """The plan (:meth:`~app.core.tiling.plan.TilePlan.save`), written into ``work_dir`` once it
 is made, before the crops."""
+
+
+@contextmanager
+def timed_phase(timings: dict[str, float], name: str) -> Iterator[None]:
+    """Add the ``with`` block's wall seconds to ``timings[name]`` and this process's CPU
+    seconds (all its threads) to ``timings[name + "_cpu"]``."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    try:
+        yield
+    finally:
+        timings[name] = timings.get(name, 0.0) + time.perf_counter() - wall
+        timings[f"{name}_cpu"] = timings.get(f"{name}_cpu", 0.0) + time.process_time() - cpu
 
 
 def compute_tiles_to_files(directory: Path) -> TileRunner:
@@ -169,14 +183,61 @@ class StreamedLocalisation:
         report: ProgressCallback,
         timings: dict[str, float],
     ) -> tuple[Localisation, int]:
-        """Plan on the subsamples, write the crops from the files, run the tiles, merge."""
+        """Plan on the subsamples, write the crops from the files, run the tiles, merge.
+
+        Adds each phase's wall and CPU seconds to ``timings`` (:func:`timed_phase`):
+        ``stream_stations`` (the subsamples' stations), ``stream_plan``, ``stream_marks`` (the
+        direction marks' pass), ``stream_crops``, ``stream_tiles`` and ``stream_merge``.
+        """
         for cloud in (origins.reference, origins.scan):
             if cloud.station is not None or cloud.trajectory_rays is not None:
                 raise ValueError("a streamed comparison takes files with coordinates only")
-        sides = self._sides(loaded, alignment, origins)
+        with timed_phase(timings, "stream_stations"):
+            sides = self._sides(loaded, alignment, origins)
         sub = [loaded.reference_points, alignment.aligned_scan]
         sub_stations = [side[1] for side in sides]
         context = self._context(loaded, origins, sub_stations, [len(points) for points in sub])
+        with timed_phase(timings, "stream_plan"):
+            plan = self._plan(sub, sub_stations, context)
+        plan.save(self.work_dir / PLAN_FILE)  # how the pair was cut, before any crop
+        report("localise", 0.36)  # planned
+        with timed_phase(timings, "stream_marks"):
+            marks = self._marks(plan, sides, context, loaded.threads)
+        all_origins = [context.reference_origins, context.scan_origins]
+        crops, partial = self.work_dir / "crops", self.work_dir / "crops.partial"
+        with timed_phase(timings, "stream_crops"):
+            shutil.rmtree(partial, ignore_errors=True)  # swapped in whole: a tile of an
+            write_crops_from_chunks(  # earlier attempt never reads a half-written crop
+                partial,
+                plan,
+                context,
+                {
+                    name: (chunks, side_origins, dtype, None)
+                    for name, (chunks, _, dtype, _), side_origins in zip(
+                        ("reference", "scan"), sides, all_origins, strict=True
+                    )
+                },
+                threads=loaded.threads,
+                marks=marks,
+            )
+            shutil.rmtree(crops, ignore_errors=True)
+            partial.rename(crops)
+        report("localise", 0.37)  # the tiles' inputs written
+        with timed_phase(timings, "stream_tiles"):
+            results = self.run_tiles(plan, TileCropFiles(crops), context, loaded.threads, report)  # type: ignore[arg-type]
+        with timed_phase(timings, "stream_merge"):
+            localisation = self._merge(plan, results, context.min_region_points)
+        return localisation, context.min_region_points
+
+    def _plan(
+        self,
+        sub: Sequence[NDArray[np.float32]],
+        sub_stations: Sequence[NDArray | None],
+        context: TileContext,
+    ) -> TilePlan:
+        """The tiles, planned on the subsamples (``sub``: the reference's and the aligned
+        scan's, (m, 3)); each candidate crop counted on at most :data:`COUNT_SAMPLE` points a
+        cloud and scaled to the whole clouds."""
         limit = self.max_crop_points
         if limit is None:
             limit = crop_point_limit(
@@ -209,7 +270,7 @@ class StreamedLocalisation:
                 total += np.count_nonzero(mask) * n / max(1, len(points[::step]))
             return int(np.ceil(total))
 
-        plan = plan_tiles(
+        return plan_tiles(
             sub[0][:, :2],
             sub[1][:, :2],
             max_crop_points=limit,
@@ -217,29 +278,6 @@ class StreamedLocalisation:
             margin=self.margin,
             budget_bytes=self.budget_bytes,
         )
-        plan.save(self.work_dir / PLAN_FILE)  # how the pair was cut, before any crop
-        report("localise", 0.36)  # planned
-        marks = self._marks(plan, sides, context, loaded.threads)
-        crops, partial = self.work_dir / "crops", self.work_dir / "crops.partial"
-        shutil.rmtree(partial, ignore_errors=True)  # swapped in whole: a tile of an earlier
-        write_crops_from_chunks(  # attempt never reads a half-written crop
-            partial,
-            plan,
-            context,
-            {
-                name: (chunks, side_origins, dtype, None)
-                for name, (chunks, _, dtype, _), side_origins in zip(
-                    ("reference", "scan"), sides, all_origins, strict=True
-                )
-            },
-            threads=loaded.threads,
-            marks=marks,
-        )
-        shutil.rmtree(crops, ignore_errors=True)
-        partial.rename(crops)
-        report("localise", 0.37)  # the tiles' inputs written
-        results = self.run_tiles(plan, TileCropFiles(crops), context, loaded.threads, report)  # type: ignore[arg-type]
-        return self._merge(plan, results, context.min_region_points), context.min_region_points
 
     def _context(
         self,
@@ -480,7 +518,11 @@ def compare_streamed(
     work_dir = Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
     threads = options.get("threads") or available_threads()
-    with ThreadPoolExecutor(max_workers=2 if threads >= 2 else 1) as pool:  # one file each
+    timings: dict[str, float] = {}
+    with (
+        timed_phase(timings, "stream_survey"),
+        ThreadPoolExecutor(max_workers=2 if threads >= 2 else 1) as pool,  # one file each
+    ):
         (reference, reference_sub, reference_voxels), (scan, scan_sub, scan_voxels) = pool.map(
             lambda number: survey(
                 Path((reference_path, scan_path)[number]), formats[number], subsample_points
@@ -512,11 +554,17 @@ def compare_streamed(
         work_dir=work_dir,
         ray_directions=ray_directions,
     )
+    started_cpu = time.process_time()
     result = run_stages(
         loaded, progress=progress, site_calibration=site_calibration, localise_step=step
     )
+    stages_cpu = time.process_time() - started_cpu
+    localise_cpu = sum(value for name, value in result.timings.items() if name.endswith("_cpu"))
+    timings.update(result.timings)
+    timings["stream_other_stages_cpu"] = stages_cpu - localise_cpu  # origins, align, detect
     return dataclasses.replace(
         result,
+        timings=timings,
         n_reference=reference.n_points,
         n_scan=scan.n_points,
         **{name: np.load(path, mmap_mode="r") for name, path in step.outputs.items()},
