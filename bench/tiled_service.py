@@ -238,17 +238,22 @@ def run_service(
     with np.load(labels_path) as data:
         arrays = {name: data[name] for name in ("reference_label", "scan_label")}
     with sqlite3.connect(data_dir / "scandiff.sqlite3") as connection:
-        owners = [
-            row[0].rsplit(":", 2)[1]
-            for row in connection.execute(
-                "SELECT lease_owner FROM job_tile WHERE job_id = ?", (job_id,)
-            )
-        ]
+        tile_rows = connection.execute(
+            "SELECT tile_index, lease_owner, points, seconds, started_at, finished_at"
+            " FROM job_tile WHERE job_id = ? ORDER BY started_at",
+            (job_id,),
+        ).fetchall()
+    owners = [row[1].rsplit(":", 2)[1] for row in tile_rows]
+    tile_log = [  # (tile, worker pid, crop points, wall s, started, finished), as started
+        (row[0], row[1].rsplit(":", 2)[1], row[2], round(row[3] or 0.0, 1), row[4], row[5])
+        for row in tile_rows
+    ]
     return {
         "seconds": seconds,
         "labels": arrays,
         "tiles": job["tiles"],
         "tiles_per_worker": sorted(Counter(owners).values(), reverse=True),
+        "tile_log": tile_log,
         "changed": job["changed"],
         "n_regions": job["n_regions"],
         "timings": job["timings"],
@@ -611,6 +616,9 @@ def main(argv: list[str] | None = None) -> int:
     print("\nThe parent's CPU s: serial (all but the tiles it computed) and its tiles:\n")
     for workers, run in runs.items():
         print(f"- {workers} worker(s): {parent_cpu_split(run['timings'])}")
+    print("\nTiles as they started (index, worker pid, crop points, wall s, started, finished):\n")
+    for workers, run in runs.items():
+        print(f"- {workers} worker(s): {run['tile_log']}")
     print("\nPeak RSS (VmHWM, MB) of the service's processes, and the labels' digest:\n")
     for workers, run in runs.items():
         digest = hashlib.sha256()

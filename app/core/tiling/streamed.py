@@ -16,9 +16,11 @@ plans, cuts and merges the tiles (32 bytes a point read lean: 6.4 GB for 100M + 
   (:mod:`app.core.tiling.crops`): the chunk moved into the local frame, the scan's aligned,
   each point's station assigned (:func:`~app.core.localise.station_assignment.best_stations`
   with the contrasts of the subsample); with stations, the other sensor's returns are kept
-  by direction too (:mod:`app.core.tiling.rays`), the directions each tile needs marked in
-  one more pass over the other file (:func:`~app.core.tiling.crops.tile_direction_marks`),
-  the direction cells from the subsample's station counts scaled up;
+  by direction too (:mod:`app.core.tiling.rays`): written in the top view, each tile marks
+  its directions from the other cloud's points in its box as it reads its crop
+  (:class:`~app.core.tiling.crops.TileCropFiles`, ``directions_in_tiles``), so that this
+  work runs on whichever worker takes the tile; the direction cells from the subsample's
+  station counts scaled up;
 - the merge, range by range of :data:`~app.core.tiling.pair_files.OUTPUT_RANGE` points: each
   tile's result is read from its file for the range, and the labels, distances and region
   numbers are written into ``.npy`` files in the files' row order
@@ -62,7 +64,6 @@ from app.core.tiling.compare import REGISTRATION_SAMPLE, TileRunner, origin_arra
 from app.core.tiling.crops import (
     TileCropFiles,
     record_dtype,
-    tile_direction_marks,
     write_crops_from_chunks,
 )
 from app.core.tiling.merge import join_regions, merged_parameters
@@ -186,8 +187,8 @@ class StreamedLocalisation:
         """Plan on the subsamples, write the crops from the files, run the tiles, merge.
 
         Adds each phase's wall and CPU seconds to ``timings`` (:func:`timed_phase`):
-        ``stream_stations`` (the subsamples' stations), ``stream_plan``, ``stream_marks`` (the
-        direction marks' pass), ``stream_crops``, ``stream_tiles`` and ``stream_merge``.
+        ``stream_stations`` (the subsamples' stations), ``stream_plan``, ``stream_crops``,
+        ``stream_tiles`` and ``stream_merge``.
         """
         for cloud in (origins.reference, origins.scan):
             if cloud.station is not None or cloud.trajectory_rays is not None:
@@ -201,8 +202,6 @@ class StreamedLocalisation:
             plan = self._plan(sub, sub_stations, context)
         plan.save(self.work_dir / PLAN_FILE)  # how the pair was cut, before any crop
         report("localise", 0.36)  # planned
-        with timed_phase(timings, "stream_marks"):
-            marks = self._marks(plan, sides, context, loaded.threads)
         all_origins = [context.reference_origins, context.scan_origins]
         crops, partial = self.work_dir / "crops", self.work_dir / "crops.partial"
         with timed_phase(timings, "stream_crops"):
@@ -213,12 +212,12 @@ class StreamedLocalisation:
                 context,
                 {
                     name: (chunks, side_origins, dtype, None)
-                    for name, (chunks, _, dtype, _), side_origins in zip(
+                    for name, (chunks, _, dtype), side_origins in zip(
                         ("reference", "scan"), sides, all_origins, strict=True
                     )
                 },
                 threads=loaded.threads,
-                marks=marks,
+                directions_in_tiles=True,  # each tile marks its directions as it reads
             )
             shutil.rmtree(crops, ignore_errors=True)
             partial.rename(crops)
@@ -342,31 +341,11 @@ class StreamedLocalisation:
                 counts = counts * (n_points / max(1, n_sub))
         return cells_of_counts(counts, angle_factor)
 
-    def _marks(
-        self, plan: TilePlan, sides: Sequence[tuple], context: TileContext, threads: int
-    ) -> dict[str, Any] | None:
-        """Each cloud's direction marks for every tile (:func:`tile_direction_marks`), from a
-        pass over the other file (both clouds at once with two threads)."""
-        work = []
-        for number, (side, cells, origins) in enumerate(
-            (
-                ("reference", context.reference_ray_cells, context.reference_origins),
-                ("scan", context.scan_ray_cells, context.scan_origins),
-            )
-        ):
-            if cells is not None and origins is not None:
-                work.append((side, sides[1 - number][3], origins, cells))
-        if not work:
-            return None
-        with ThreadPoolExecutor(max_workers=max(1, min(threads, len(work)))) as pool:
-            found = pool.map(lambda item: tile_direction_marks(plan, *item[1:]), work)
-            return {item[0]: marks for item, marks in zip(work, found, strict=True)}
-
     def _sides(
         self, loaded: LoadedPair, alignment: Alignment, sensor_origins: SensorOrigins
-    ) -> list[tuple[Callable[[], Iterator], NDArray | None, np.dtype, Callable[[], Iterator]]]:
+    ) -> list[tuple[Callable[[], Iterator], NDArray | None, np.dtype]]:
         """Each cloud's pass over its file (local frame, the scan aligned, stations), the
-        subsample's stations, its crop records' dtype, and a pass without the stations."""
+        subsample's stations and its crop records' dtype."""
         transform = alignment.registration.transform
         sides = []
         for cloud, sub, origins, move in (
@@ -387,7 +366,6 @@ class StreamedLocalisation:
                     self._pass(cloud, move, origins if several else None, contrasts),
                     stations,
                     record_dtype(sub, stations),
-                    self._pass(cloud, move, None, None),
                 )
             )
         return sides
@@ -504,8 +482,8 @@ def compare_streamed(
         Most points of each cloud the stages see.
     ray_directions : bool
         Crops keep the other sensor's returns by direction too (as
-        :func:`~app.core.tiling.compare.compare_tiled`'s): one more pass over each file marks
-        the directions every tile needs (:func:`~app.core.tiling.crops.tile_direction_marks`).
+        :func:`~app.core.tiling.compare.compare_tiled`'s): each tile marks the directions it
+        needs from the other cloud's points in its box as it reads its crop.
     **options
         As :func:`app.core.pipeline.compare` (``method``, ``variant``, ``align``,
         ``random_state``, ``params``, ``threads``).
