@@ -259,9 +259,10 @@ class PointCloud:
         bag); per-point times, when known, are the ``"time"`` attribute.
     sampling_points : ndarray, shape (m, 3), or None
         When ``points`` is a subsample of a larger cloud (a streamed comparison's): whole
-        voxels of that cloud at full density, any frame, for the lidar sampling test
-        (:func:`app.core.origins.sampling.lidar_sampling`), which a subsample's thinned
-        lattice would fail.
+        voxels of that cloud at full density, in the frame of ``points``, for the lidar
+        sampling test (:func:`app.core.origins.sampling.lidar_sampling`) and the stations'
+        search (:func:`app.core.origins.station_recovery.search_points`), which a subsample's
+        thinned lattice would fail.
     """
 
     points: NDArray[np.float64]

@@ -92,6 +92,12 @@ def resolve_moved_cloud(
 
     # "auto": the stations are searched only once the own frame gave no origin either
     deferred = recover == "auto" and given is None and from_file is None
+    own_station_of = station_of
+    if station_of is not None and station_of.sampling_points is not None:
+        # a subsample's whole voxels at full density, moved with it (the stations' search)
+        station_of = dataclasses.replace(
+            station_of, sampling_points=aligned(station_of.sampling_points)
+        )
     options = {
         "estimate": estimate,
         "recover": False if deferred else recover,
@@ -148,7 +154,9 @@ def resolve_moved_cloud(
         ring_share < OWN_FRAME_RETRY_RING_SHARE and tilt <= OWN_FRAME_RETRY_TILT_DEG
     ):
         return unresolved(resolved)  # level, not a single lidar's rings: no retry
-    own_frame = resolve_stations(side, own_points, given=None, from_file=None, **options)
+    own_frame = resolve_stations(
+        side, own_points, given=None, from_file=None, **{**options, "station_of": own_station_of}
+    )
     if own_frame.origin is None:
         return unresolved(resolved)
     origin = np.asarray(own_frame.origin, dtype=np.float64)

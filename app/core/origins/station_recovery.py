@@ -311,7 +311,7 @@ def resolve_stations(
     if early is not None and early[2] is not None:
         found = early[2]
     else:
-        found = recover_stations(points, random_state=random_state)
+        found = recover_stations(search_points(points, station_of), random_state=random_state)
     evidence["stations_recovered"] = float(found.origins.shape[0])
     explained = float(found.ring_share.sum())
     evidence["stations_explained_share"] = round(explained, 3)
@@ -345,6 +345,16 @@ def measured_sampling(
     if cloud is not None and cloud.sampling_points is not None:
         return lidar_sampling(cloud.sampling_points, random_state=random_state)
     return lidar_sampling(points, random_state=random_state)
+
+
+def search_points(points: NDArray[np.float64], cloud: PointCloud | None) -> NDArray[np.float64]:
+    """What the stations are searched on: the cloud's full-density ``sampling_points`` when
+    ``points`` is a subsample of it (a streamed comparison's, in the frame of ``points``: at
+    100M points a 2 % subsample keeps too few pairs of one column to find any station), else
+    ``points``."""
+    if cloud is not None and cloud.sampling_points is not None:
+        return np.asarray(cloud.sampling_points, dtype=np.float64)
+    return points
 
 
 EARLY_MAX_STATION_SHARE = 0.7
@@ -430,7 +440,7 @@ def recovered_before_apex(
     if stations_first:
         sampling = measured_sampling(points, station_of, random_state)
         if sampling.lidar_like:
-            found = recover_stations(points, random_state=random_state)
+            found = recover_stations(search_points(points, station_of), random_state=random_state)
             if _early_enough(found):
                 evidence = {**_recovered_evidence(found, sampling), STATIONS_FIRST: 1.0}
                 return _recovered(found, [], evidence), sampling, found
@@ -445,7 +455,7 @@ def recovered_before_apex(
     if not sampling.lidar_like:
         return undecided, sampling, None
     if found is None:
-        found = recover_stations(points, random_state=random_state)
+        found = recover_stations(search_points(points, station_of), random_state=random_state)
     if not _early_enough(found):
         return undecided, sampling, found
     evidence = {**quick.evidence, **_recovered_evidence(found, sampling)}

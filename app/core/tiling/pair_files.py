@@ -38,6 +38,7 @@ __all__ = [
     "coordinates_only",
     "side_arrays",
     "streamed_outputs",
+    "subsample_offsets",
     "survey",
     "write_details_npz",
     "write_labels_npz",
@@ -74,7 +75,7 @@ class StreamedCloud:
     dropped : ndarray, shape (d,), int64
         Rows with a non-finite coordinate (no point of the comparison), sorted.
     step : int
-        The subsample is every ``step``-th finite point.
+        The subsample keeps about one finite point in ``step`` (:func:`subsample_offsets`).
     low, high : ndarray, shape (3,)
         The finite points' extremes (file frame).
     """
@@ -123,13 +124,38 @@ def _finite_chunks(path: Path, format: str | None) -> Iterator[tuple[int, NDArra
         yield first, np.concatenate(pending)
 
 
+SUBSAMPLE_SALT = np.uint64(0x9E3779B97F4A7C15)
+"""Mixed into each point's index before the hash of :func:`subsample_offsets` (any odd
+constant: the golden-ratio increment of splitmix64)."""
+
+
+def subsample_offsets(first: int, count: int, step: int) -> NDArray[np.int64]:
+    """Which of the finite points ``first .. first + count - 1`` are in a streamed subsample:
+    their offsets from ``first``, shape (m,), each point kept when a hash of its index
+    (splitmix64's finaliser) is a multiple of ``step``, about one in ``step``.
+
+    Not every ``step``-th point: a file in scan order (a terrestrial station's rings or
+    columns, one after the other) would be sampled in step with its own lattice, so that no
+    two points of one column were kept (a 100M-point survey's stations were not recovered
+    from such a subsample, issue 30).  The hash keeps points independently of the file's
+    order, as a random draw would, and the same points whoever asks (the first pass and the
+    outputs' writer)."""
+    if step <= 1:
+        return np.arange(count, dtype=np.int64)
+    mixed = np.arange(first, first + count, dtype=np.uint64) + SUBSAMPLE_SALT
+    mixed = (mixed ^ (mixed >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    mixed = (mixed ^ (mixed >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    mixed ^= mixed >> np.uint64(31)
+    return np.flatnonzero(mixed % np.uint64(step) == 0)
+
+
 def survey(
     path: Path, format: str | None, most: int
 ) -> tuple[StreamedCloud, NDArray[np.float64], NDArray[np.float64] | None]:
     """A file's first pass: its :class:`StreamedCloud`, its subsample (float64, file frame,
-    every ``step``-th finite point with ``step = max(1, rows // most)``) and, when that is
-    not the whole cloud, whole voxels of it at full density for the lidar sampling test
-    (:class:`~app.core.origins.voxels.WholeVoxelSample`, file frame; else None)."""
+    about one finite point in ``step = max(1, rows // most)``: :func:`subsample_offsets`) and,
+    when that is not the whole cloud, whole voxels of it at full density for the lidar sampling
+    test (:class:`~app.core.origins.voxels.WholeVoxelSample`, file frame; else None)."""
     from app.core.origins.voxels import WholeVoxelSample  # here: the CLI's checks need no scipy
 
     dropped, kept = [], []
@@ -150,8 +176,7 @@ def survey(
                 )
                 if voxels is not None:
                     voxels.add(points)
-            index = finite_before + np.arange(len(points))
-            kept.append(points[index % step == 0])
+            kept.append(points[subsample_offsets(finite_before, len(points), step)])
             finite_before += len(points)
             n_rows = first_row + len(block)
     cloud = StreamedCloud(
@@ -362,7 +387,7 @@ def write_outputs(
         written.changed += int(np.count_nonzero(label == LABEL_CHANGED))
         written.unobserved += int(np.count_nonzero(label == LABEL_UNOBSERVED))
         rows = cloud.file_rows(first, stop - first) if len(cloud.dropped) else slice(first, stop)
-        subsample = np.arange((-first) % cloud.step, stop - first, cloud.step)
+        subsample = subsample_offsets(first, stop - first, cloud.step)
         for name, path in zip(OUTPUT_FILES, paths.values(), strict=True):
             written.sub[name].append(values[name][subsample])
             output = np.load(path, mmap_mode="r+")

@@ -7,8 +7,10 @@ plans, cuts and merges the tiles (32 bytes a point read lean: 6.4 GB for 100M + 
 :func:`~app.core.formats.streamed.open_point_blocks`: memory-mapped PLY/NPY read with
 ``pread``, laspy's chunk iterator) and keeps only:
 
-- an even subsample of each cloud (every k-th finite point, at most about
-  :data:`SUBSAMPLE_POINTS`), float32 in the local frame: the stages of
+- a subsample of each cloud (about one finite point in k, about :data:`SUBSAMPLE_POINTS`,
+  drawn by a hash of each point's index, not every k-th point, which a file in scan order
+  would alias: :func:`~app.core.tiling.pair_files.subsample_offsets`), float32 in the local
+  frame: the stages of
   :func:`app.core.pipeline.run_stages` run on it (the reference's and the scan's origins,
   the registration, whose own sample is then the same points as the whole pair's, the
   detectors' sample) and the planner counts crops on it, scaled to the whole clouds;
@@ -479,7 +481,8 @@ def compare_streamed(
         Who computes the tiles (gets :class:`~app.core.tiling.crops.TileCropFiles` as its
         source); default :func:`compute_tiles_to_files` under ``work_dir/tiles``.
     subsample_points : int
-        Most points of each cloud the stages see.
+        About how many points of each cloud the stages see (one in ``rows // subsample_points``,
+        :func:`~app.core.tiling.pair_files.subsample_offsets`).
     ray_directions : bool
         Crops keep the other sensor's returns by direction too (as
         :func:`~app.core.tiling.compare.compare_tiled`'s): each tile marks the directions it
