@@ -288,26 +288,27 @@ def _write_side(
                 near = np.flatnonzero(box_mask(chunk, low - reach, high + reach))
                 if not len(near):
                     continue
-                kept = near[
-                    crop_mask(
-                        chunk[near],
-                        None if chunk_station is None else chunk_station[near],
-                        origins,
-                        low,
-                        high,
-                        context.ray_reach,
-                        cells=None if directions is None else directions[0],
-                        marks=None if directions is None else directions[1][tiles[number]],
-                    )
-                ]
+                near_points = chunk[near]  # gathered once, the kept ones taken from it
+                near_station = None if chunk_station is None else chunk_station[near]
+                in_crop = crop_mask(
+                    near_points,
+                    near_station,
+                    origins,
+                    low,
+                    high,
+                    context.ray_reach,
+                    cells=None if directions is None else directions[0],
+                    marks=None if directions is None else directions[1][tiles[number]],
+                )
+                kept = near[in_crop]
                 if not len(kept):
                     continue
                 records = np.empty(len(kept), dtype=dtype)
-                records["point"] = chunk[kept]
+                records["point"] = near_points[in_crop]
                 records["index"] = start + kept
-                if chunk_station is not None:
-                    records["station"] = chunk_station[kept]
-                files[number].write(records.tobytes())
+                if near_station is not None:
+                    records["station"] = near_station[in_crop]
+                files[number].write(records.view(np.uint8))  # its bytes, not a copy
                 counts[number] += len(kept)
     return counts
 

@@ -250,6 +250,8 @@ class StreamedLocalisation:
 
         def count_crop(low: NDArray[np.float64], high: NDArray[np.float64]) -> int:
             # as TileSource.count_crop: at most COUNT_SAMPLE points a cloud, coarser cells then
+            if np.all(np.isinf(low)) and np.all(np.isinf(high)):
+                return full[0] + full[1]  # the unbounded box (the plan's first): every point
             steps = [max(1, len(points) // COUNT_SAMPLE) for points in sub]
             masks = crop_masks(
                 [
