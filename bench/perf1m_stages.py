@@ -54,6 +54,7 @@ STAGES = (
     ("nearest point each way", "app.core.localise.changes", "nearest_in"),
     ("misalignment residual", "app.core.localise.changes", "alignment_residual"),
     ("distances to the other surface", "app.core.localise.changes", "surface_distance"),
+    ("surface levels near the threshold", "app.core.localise.changes", "surface_offset_candidates"),
     ("candidates", "app.core.localise.changes", "find_candidates"),
     ("ray test", "app.core.localise.changes", "label_candidates"),
     ("regions (changed and unobserved)", "app.core.localise.changes", "find_regions"),

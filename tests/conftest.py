@@ -48,3 +48,23 @@ def service_factory(tmp_path: Path) -> Iterator[Callable[..., ServiceProcess]]:
     yield make
     for service in started:
         service.kill()
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """In an xdist process, order the tests longest file first (tests/helpers/heavy_first.py):
+    ``make test``'s processes then take the long files first instead of last."""
+    if hasattr(config, "workerinput"):
+        from tests.helpers.heavy_first import order_longest_first
+
+        order_longest_first(items)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """``--dist loadfile``: the longest files first, tests/browser as one unit."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from tests.helpers.heavy_first import LongestFirstScheduling
+
+    return LongestFirstScheduling(config, log)

@@ -33,7 +33,7 @@ from app.testing.paths import PROJECT_ROOT
 
 DOCUMENTS = [*sorted((PROJECT_ROOT / "docs").glob("*.md")), PROJECT_ROOT / "README.md"]
 CODE_PATH = re.compile(
-    r"(?<![\w./-])((?:app|bench|tests|static|migrations|docs)/[\w./-]*\.(?:py|js|css|html|md))"
+    r"(?<![\w./-])((?:app|bench|tests|static|migrations|docs)/[\w./-]*\.(?:py|json|js|css|html|md)(?!\w))"
 )
 MODULE_PATH = re.compile(r"(?<![\w./-])(app(?:\.[A-Za-z_]\w*)+)")
 SETTING = re.compile(r"\bSCANDIFF_[A-Z0-9_]*[A-Z0-9](?![A-Z0-9_]*\*)")
@@ -277,6 +277,7 @@ def test_every_api_path_named_in_the_docs_is_a_route() -> None:
     [
         ("see `app/services/nowhere.py`", "app/services/nowhere.py"),
         ("run `bench/nothing_here.py --fast`", "bench/nothing_here.py"),
+        ("the table `tests/no_such_table.json`", "tests/no_such_table.json"),
     ],
 )
 def test_the_code_path_check_catches_a_missing_file(text: str, found: str) -> None:

@@ -21,7 +21,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
-from scipy.ndimage import binary_dilation
 
 CAMERA_FOV = 75.0 * math.pi / 180.0
 """viser's default vertical field of view (radians), the one a browser opens with."""
@@ -99,6 +98,8 @@ class OccupancyGrid:
         self.cells = np.zeros(tuple(shape.astype(np.int64)), dtype=bool)
         index = np.floor((points - self.low) / self.voxel).astype(np.int64)
         self.cells[index[:, 0], index[:, 1], index[:, 2]] = True
+        from scipy.ndimage import binary_dilation  # on first use: API processes need no scipy
+
         self.cells = binary_dilation(self.cells)
 
     def occupied(self, samples: NDArray[np.floating]) -> NDArray[np.bool_]:

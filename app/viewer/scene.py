@@ -22,7 +22,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from app.config import DEFAULT_VIEWER_POINT_BUDGET
 from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
@@ -355,6 +354,8 @@ def estimate_point_size(
         return 0.05
     rng = np.random.default_rng(0)
     sample = points if len(points) <= sample_size else points[rng.choice(len(points), sample_size)]
+    from scipy.spatial import cKDTree  # on first use: API processes need no scipy
+
     tree = cKDTree(points if len(points) <= 200_000 else subsample(points, 200_000, rng))
     distances, _ = tree.query(sample, k=2)
     spacing = float(np.median(distances[:, 1]))

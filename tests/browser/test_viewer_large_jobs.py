@@ -290,8 +290,13 @@ def test_the_box_panel_draws_the_box_and_goes_back(stored_job):
 
             click("Load the box at full density")
             wait_until(lambda: _drawn(viewer)[0] == box.n_shown, 30, "the box was not drawn")
-            status = _drawn(viewer)[1]["controls"]["box_status"]
-            assert f"All **{box.n_total:,}** points in the box" in status
+            # the status is set after the points, on the click's thread: wait for it too
+            loaded = f"All **{box.n_total:,}** points in the box"
+            wait_until(
+                lambda: loaded in _drawn(viewer)[1]["controls"]["box_status"],
+                10,
+                "the box's status does not say it is loaded",
+            )
             click("Back to the whole view")
             wait_until(lambda: _drawn(viewer)[0] == whole_drawn, 30, "the whole view is not back")
     finally:

@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 CORE = Path(__file__).resolve().parents[2] / "app" / "core"
 FORBIDDEN_TOP_LEVEL = {
     "fastapi",
@@ -159,3 +161,30 @@ def test_the_docs_list_the_localisation_modules_in_their_import_order():
     table = text.split("| module | what it holds |", 1)[1].split("\n\n", 1)[0]
     listed = [line.split("`")[1] for line in table.splitlines() if line.startswith("| `")]
     assert listed == list(reversed(LOCALISE_LAYERS))
+
+
+def test_the_api_and_the_service_supervisor_load_no_scipy():
+    """scipy is imported where it is used (~0.3 CPU s a process): the API process (the FastAPI
+    app, with the viewer's routes) and ``scandiff serve``'s supervisor (migrations, recovery,
+    storage, which reach the geometry cache and the localiser's settings) never load it; the
+    job consumer loads it with the pipeline it preloads."""
+    code = (
+        "import sys, app.main, app.cli.serve, app.db.migrate, app.jobs.recovery\n"
+        "import app.services.storage, app.services.schedules.runs, app.core.cache.geometry\n"
+        "print(','.join(sorted(m for m in sys.modules if m.split('.')[0] == 'scipy'))[:200])\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    )
+    assert result.stdout.strip() == ""
+
+
+def test_the_localisation_package_gives_its_public_names_on_first_use():
+    import app.core.localise as localise
+    from app.core.localise.changes import localise_changes
+
+    assert localise.localise_changes is localise_changes
+    assert set(localise.__all__) <= set(dir(localise))
+    assert all(getattr(localise, name) is not None for name in localise.__all__)
+    with pytest.raises(AttributeError, match="no attribute 'made_up'"):
+        _ = localise.made_up

@@ -41,6 +41,21 @@ def box_faces(rng, low, high):
     )
 
 
+def box_sides(rng, low, high, faces="tnsew", spacing=SPACING):
+    """Some faces of a box, sampled every ``spacing``: ``t`` its top, ``s`` / ``n`` its sides
+    at low / high y, ``w`` / ``e`` its sides at low / high x (a path sees some faces only)."""
+    low, high = np.asarray(low, float), np.asarray(high, float)
+    x, y, z = np.diag(high - low)
+    corners = {
+        "t": ([low[0], low[1], high[2]], x, y),
+        "s": (low, x, z),
+        "n": ([low[0], high[1], low[2]], x, z),
+        "w": (low, y, z),
+        "e": ([high[0], low[1], low[2]], y, z),
+    }
+    return np.vstack([plane(rng, *corners[face], spacing=spacing) for face in faces])
+
+
 def fused_room(rng, *, floor_hole=None, box=None, ceiling_to=6.0):
     """A 6 x 4 x 2.5 m room's floor, two walls and ceiling (to x = ``ceiling_to``), sampled
     as a fused map is: uniformly, with what a box hides of the floor missing."""

@@ -30,7 +30,6 @@ from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
 from app.core.cloud import as_points, column_extreme
@@ -228,6 +227,8 @@ def _dense_cell_limit(n_points: int) -> int:
 def median_spacing(points: NDArray[np.float64], rng: np.random.Generator) -> float:
     """Median nearest-neighbour distance of ``points`` (n, 3), from up to 1000 query points."""
     queries = points[rng.choice(points.shape[0], min(1000, points.shape[0]), replace=False)]
+    from scipy.spatial import cKDTree  # on first use: API processes need no scipy
+
     distances, _ = cKDTree(points).query(queries, k=2)
     spacing = float(np.median(distances[:, 1]))
     if spacing > 0:

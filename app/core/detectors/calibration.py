@@ -64,7 +64,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import special
 
 from app.core.cloud import column_extreme
 
@@ -273,6 +272,8 @@ def threshold_from_null(null: NDArray[np.float64], false_alarm_rate: float) -> N
     log_mean = float(logs.mean())
     log_std = float(logs.std(ddof=1))
     # Student's t quantile: scipy.stats.t.ppf's own function, without scipy.stats' ~0.3 s import
+    from scipy import special  # on first use: API processes need no scipy
+
     t_quantile = float(special.stdtrit(positive.size - 1, level))
     inflation = math.sqrt(1.0 + 1.0 / positive.size)
     threshold = math.exp(log_mean + t_quantile * log_std * inflation)

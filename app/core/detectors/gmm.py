@@ -46,7 +46,6 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import linalg
 
 from app.core.detectors.base import ChangeDetector
 from app.core.detectors.kmeans import kmeans_labels
@@ -160,6 +159,8 @@ class MixtureStart:
     ) -> MixtureStart:
         """The start scikit-learn makes of ``weights_init``, ``means_init``,
         ``precisions_init``: shapes (K,), (K, d), (K, d, d)."""
+        from scipy import linalg  # on first use: API processes need no scipy
+
         flipped = [
             np.flip(linalg.cholesky(np.flip(precision), lower=True)) for precision in precisions
         ]
@@ -209,6 +210,8 @@ def _log_sum_exp_rows(values: NDArray[np.float64]) -> NDArray[np.float64]:
 
 def _precisions_cholesky(covariances: NDArray[np.float64]) -> NDArray[np.float64]:
     """``U_k`` (upper triangular, ``Sigma_k^-1 = U_k U_k^T``), shape (K, d, d)."""
+    from scipy import linalg  # on first use: API processes need no scipy
+
     identity = np.eye(covariances.shape[1])
     result = np.empty_like(covariances)
     for k, covariance in enumerate(covariances):

@@ -62,7 +62,6 @@ from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from app.core.detectors.base import ChangeDetector
 from app.core.detectors.plane_extraction import PlaneSettings, extract_fuzzy_planes
@@ -99,6 +98,8 @@ def estimate_noise_and_spacing(
     n_points = points.shape[0]
     neighbours = min(n_neighbours, n_points)
     queries = points[rng.choice(n_points, min(500, n_points), replace=False)]
+    from scipy.spatial import cKDTree  # on first use: API processes need no scipy
+
     tree = cKDTree(points)
     distances, indices = tree.query(queries, k=neighbours)
     spacing = float(np.median(distances[:, 1])) if neighbours > 1 else 0.0

@@ -24,20 +24,41 @@ Modules, each depending only on those below it:
 - :mod:`~app.core.localise.neighbourhoods`: the k-NN search, in line or on its own thread;
 - :mod:`~app.core.localise.settings`: keyword parameters and input checks.
 
-This module lists the package's public names.
+This module lists the package's public names.  They are imported on first use (PEP 562): a
+process that only needs one submodule (the geometry cache needs ``neighbourhoods`` and
+``surface``) does not load the others, which import scipy (~0.3 CPU s a process start).
 """
 
-from app.core.localise.changes import Localisation, localise_changes
-from app.core.localise.epoch import EpochCloud
-from app.core.localise.neighbourhoods import (
-    Neighbourhoods,
-    NeighbourhoodSearch,
-    nearest_neighbourhoods,
-    neighbourhood_size,
-    start_neighbourhood_search,
-)
-from app.core.localise.regions import ChangedRegion
-from app.core.localise.settings import DEFAULT_PARAMETERS
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from app.core.localise.changes import Localisation, localise_changes
+    from app.core.localise.epoch import EpochCloud
+    from app.core.localise.neighbourhoods import (
+        Neighbourhoods,
+        NeighbourhoodSearch,
+        nearest_neighbourhoods,
+        neighbourhood_size,
+        start_neighbourhood_search,
+    )
+    from app.core.localise.regions import ChangedRegion
+    from app.core.localise.settings import DEFAULT_PARAMETERS
+
+_SUBMODULE_OF_NAME = {
+    "DEFAULT_PARAMETERS": "settings",
+    "ChangedRegion": "regions",
+    "EpochCloud": "epoch",
+    "Localisation": "changes",
+    "NeighbourhoodSearch": "neighbourhoods",
+    "Neighbourhoods": "neighbourhoods",
+    "localise_changes": "changes",
+    "nearest_neighbourhoods": "neighbourhoods",
+    "neighbourhood_size": "neighbourhoods",
+    "start_neighbourhood_search": "neighbourhoods",
+}
 
 __all__ = [
     "DEFAULT_PARAMETERS",
@@ -51,3 +72,17 @@ __all__ = [
     "neighbourhood_size",
     "start_neighbourhood_search",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """A public name, imported from its submodule on first use (then cached here)."""
+    submodule = _SUBMODULE_OF_NAME.get(name)
+    if submodule is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{submodule}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *__all__])

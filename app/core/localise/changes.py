@@ -348,11 +348,13 @@ def _thresholds(
         reference_side.geometry.spacing[scan_side.nearest_index],
         out=relative_nn_distance[n_reference:],
     )
-    support = support_factor(relative_nn_distance, settings["support_factor"])
+    # one quantile (a partition of both clouds' values, in place) for the report and the
+    # calibrated support factor
     nn_distance_quartile = float(
         np.quantile(relative_nn_distance, SUPPORT_FACTOR_QUANTILE, overwrite_input=True)
     )
     del relative_nn_distance  # 8 bytes a point of both clouds
+    support = support_factor(nn_distance_quartile, settings["support_factor"])
     noises = (reference_side.geometry.noise, scan_side.geometry.noise)
     resolution_floor = RESOLUTION_THRESHOLD_FRACTION * median_spacing
     noise_only_threshold = max(

@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from app.core.cloud import MIN_POINTS
 from app.core.localise.settings import CHUNK, GATHER_CHUNK, QUERY_CHUNK
-from app.core.localise.surface import LocalGeometry
+from app.core.localise.surface import LocalGeometry, weighted_plane
 from app.core.spatial_order import ordered_chunks
 
 __all__ = [
@@ -127,27 +127,26 @@ def nearest_in(
     return distance, index
 
 
-def support_factor(nn_distance_over_spacing: NDArray[np.float64], requested: float | None) -> float:
+def support_factor(nn_distance_quartile: float, requested: float | None) -> float:
     """The support factor ``f``: ``requested``, or calibrated from the clouds when None.
 
     Parameters
     ----------
-    nn_distance_over_spacing : ndarray, shape (p,)
-        Each point's nearest-neighbour distance in the other cloud, in that cloud's local
-        spacings (both clouds' points).
+    nn_distance_quartile : float
+        The :data:`SUPPORT_FACTOR_QUANTILE` quantile of each point's nearest-neighbour distance
+        in the other cloud, in that cloud's local spacings (both clouds' points).
     requested : float or None
 
     Returns
     -------
     float
-        :data:`SUPPORT_FACTOR_PER_QUANTILE` x the lower quartile of
-        ``nn_distance_over_spacing``, clipped to :data:`SUPPORT_FACTOR_RANGE`.
+        :data:`SUPPORT_FACTOR_PER_QUANTILE` x ``nn_distance_quartile``, clipped to
+        :data:`SUPPORT_FACTOR_RANGE`.
     """
     if requested is not None:
         return float(requested)
-    quartile = float(np.quantile(nn_distance_over_spacing, SUPPORT_FACTOR_QUANTILE))
     low, high = SUPPORT_FACTOR_RANGE
-    return float(np.clip(SUPPORT_FACTOR_PER_QUANTILE * quartile, low, high))
+    return float(np.clip(SUPPORT_FACTOR_PER_QUANTILE * nn_distance_quartile, low, high))
 
 
 def surface_distance(
@@ -361,15 +360,13 @@ def surface_offset_candidates(
         found_distance, index = geometry.tree.query(point, k=k, distance_upper_bound=reach)
         near = np.asarray(found_distance).reshape(len(row), k) <= reach
         index = np.minimum(np.asarray(index).reshape(len(row), k), geometry.points.shape[0] - 1)
-        weight = near / np.maximum(near.sum(axis=1), 1)[:, None]
-        centred = (
-            geometry.points[index]
-            - np.einsum("ck,ckd->cd", weight, geometry.points[index])[:, None, :]
-        )
-        _, vectors = np.linalg.eigh(np.einsum("ck,ckd,cke->cde", weight, centred, centred))
+        _, _, vectors = weighted_plane(geometry.points[index], near.astype(np.float64))
         unit = vectors[:, :, 0]
         toward = np.sign(np.einsum("cd,cd->c", other.points[own.nearest_index[row]] - point, unit))
-        own_level, own_found = _level(point, point, unit, geometry, change_threshold)
+        # the own level's first ball is the axis's (same centre and radius): not queried again
+        own_level, own_found = _level(
+            point, point, unit, geometry, change_threshold, first_ball=(found_distance, index)
+        )
         other_level, other_found = _level(
             point + (toward * distance[row])[:, None] * unit, point, unit, other, change_threshold
         )
@@ -388,6 +385,7 @@ def _level(
     unit: NDArray[np.float64],
     cloud: LocalGeometry,
     change_threshold: float,
+    first_ball: tuple[NDArray, NDArray] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """Median offset along ``unit`` from ``point`` of ``cloud``'s points in a cylinder around
     the normal line, gathered around ``centre``, and whether there were any (shapes (c, 3) ->
@@ -395,13 +393,18 @@ def _level(
 
     The :data:`LEVEL_NEIGHBOURS` nearest points of ``centre`` within half the change threshold,
     those within :data:`LEVEL_RADIUS_FACTOR` spacings of the line; re-centred once on their
-    median, so that the ball, which truncates a noisy surface's spread, is centred on it."""
+    median, so that the ball, which truncates a noisy surface's spread, is centred on it.
+    ``first_ball``: the (distances, indices) of ``cloud.tree``'s query around ``centre`` with
+    that ``k`` and radius, when the caller has it already (the same result, one query fewer)."""
     k = min(LEVEL_NEIGHBOURS, cloud.points.shape[0])
     level = np.einsum("cd,cd->c", centre - point, unit)
     count = np.zeros(len(point), dtype=np.int64)
-    for _ in range(2):
+    for iteration in range(2):
         probe = point + level[:, None] * unit
-        found, index = cloud.tree.query(probe, k=k, distance_upper_bound=0.5 * change_threshold)
+        if iteration == 0 and first_ball is not None:
+            found, index = first_ball
+        else:
+            found, index = cloud.tree.query(probe, k=k, distance_upper_bound=0.5 * change_threshold)
         index = np.minimum(np.asarray(index).reshape(len(probe), k), cloud.points.shape[0] - 1)
         offset = cloud.points[index] - point[:, None, :]
         along = np.einsum("ckd,cd->ck", offset, unit)

@@ -15,7 +15,11 @@ judged by the geometry the two epochs share, one cluster of candidates at a time
   no surface anywhere near it (a room the other path never entered).
 - **Seen empty** (``seen_empty``): otherwise, when the other epoch has surface that this epoch
   lacks on the normal lines through the cluster (the floor under a removed chair, the wall
-  behind a removed board, seen now that the object is gone), or its surface all around.
+  behind a removed board, seen now that the object is gone), or its surface all around.  An
+  upright part whose first level surface of the other epoch straight under it is surface this
+  epoch lacks stands on what it hides (the seat under a backrest turned onto it, the floor
+  under an added box): the other epoch saw its place empty, whether or not its surface seems
+  to continue or its border to meet the other epoch's faces (:func:`_verdict`).
 
 - **An unseen face** (``no_coverage``, :func:`unseen_faces`): a part whose border meets the
   other epoch's surfaces at an edge (the object's top or other sides), where those surfaces
@@ -49,8 +53,10 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
+from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE
 from app.core.localise.interface import VisibilityContext, VisibilityOutcome
 from app.core.localise.map_faces import far_faces
 from app.core.localise.map_parts import (
@@ -177,6 +183,39 @@ def _narrow_gaps(
     return gap
 
 
+def _on_lacking_share(
+    candidates: Candidates,
+    labels: NDArray[np.int64],
+    recheck: NDArray[np.bool_],
+    *,
+    own: Side,
+    other: Side,
+    other_unmatched: NDArray[np.bool_],
+) -> NDArray[np.float64]:
+    """Per part marked in ``recheck`` (0 elsewhere), the share of its candidates whose first
+    level surface of the other epoch straight under them, within
+    :data:`~app.core.localise.map_parts.SEE_THROUGH_REACH`, has a point this epoch lacks
+    (:func:`~app.core.localise.map_planes.level_surface_below`).  This epoch's own upright
+    points that are no candidates stop the probe (a wall under a patch of it)."""
+    chosen = np.flatnonzero(recheck[labels])
+    share = np.zeros(recheck.shape[0])
+    if chosen.shape[0] == 0:
+        return share
+    upright = np.abs(own.geometry.normal[:, 2]) < NORMAL_AGREEMENT_COSINE
+    upright[candidates.index] = False
+    on_lacking = level_surface_below(
+        candidates.points[chosen],
+        other.geometry,
+        SEE_THROUGH_REACH,
+        max(BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))),
+        marked=other_unmatched,
+        blocking=KDTree(own.points[upright]) if upright.any() else None,
+    )
+    hits = np.bincount(labels[chosen], weights=on_lacking, minlength=share.shape[0])
+    sizes = np.bincount(labels[chosen], minlength=share.shape[0])
+    return hits / np.maximum(sizes, 1)
+
+
 def map_test(
     candidates: Candidates,
     *,
@@ -273,7 +312,14 @@ def map_test(
             cluster_factor=cluster_factor,
         )
 
-    coverage, confidence, counts = _verdict(figures, see_through, open_beneath, far_face)
+    def stands_on_lacking(recheck: NDArray[np.bool_]) -> NDArray[np.float64]:
+        return _on_lacking_share(
+            candidates, labels, recheck, own=own, other=other, other_unmatched=other_unmatched
+        )
+
+    coverage, confidence, counts = _verdict(
+        figures, see_through, open_beneath, far_face, stands_on_lacking
+    )
     status[coverage[labels]] = STATUS_UNOBSERVED
     evidence[coverage[labels]] = EVIDENCE_NO_COVERAGE
     return MapEvidence(status, evidence, confidence[labels].astype(np.float32), counts)
@@ -304,7 +350,7 @@ def unseen_faces(figures: PartFigures) -> NDArray[np.bool_]:
 
 
 def _verdict(
-    figures: PartFigures, see_through: Any, open_beneath: Any, far_face: Any
+    figures: PartFigures, see_through: Any, open_beneath: Any, far_face: Any, on_lacking: Any
 ) -> tuple[NDArray[np.bool_], NDArray[np.float64], dict[str, Any]]:
     """Per part, whether it is a coverage difference and the confidence in its verdict.
 
@@ -316,7 +362,9 @@ def _verdict(
     (:func:`unseen_faces`: an unseen top has its object's body under it).
     ``far_face(check)`` gives, per part, whether the surface behind it is its object's far
     face and the joined share (:func:`~app.core.localise.map_faces.far_faces`), for the parts
-    marked in ``check``.
+    marked in ``check``.  ``on_lacking(check)`` gives the share of the marked parts' points
+    whose first level surface of the other epoch straight under them is surface this epoch
+    lacks (:data:`SEE_THROUGH_SHARE` of an upright part's points: it stands on what it hides).
     """
     part = figures
     unseen_side = unseen_faces(part)
@@ -327,6 +375,14 @@ def _verdict(
         part.coplanar_share >= COPLANAR_SHARE
     )
     continuing = continues_plainly | continues_in_plane
+    # an upright part standing on a level surface that the other epoch saw and this one lacks
+    # hides it: the other epoch saw its place empty (the seat under a backrest turned onto it,
+    # seen from above its lower band only, in line with another chair's side)
+    stands_on_hidden = part.upright & (
+        on_lacking(part.upright & (continuing | unseen_side)) >= SEE_THROUGH_SHARE
+    )
+    continuing &= ~stands_on_hidden
+    unseen_side &= ~stands_on_hidden
     see_through_share = see_through(
         continuing & (part.behind_share >= SEE_THROUGH_SHARE), part.behind_share
     )
@@ -358,6 +414,7 @@ def _verdict(
         **part.counts,
         "map_unseen_side_clusters": int((unseen_side & coverage).sum()),
         "map_far_face_parts": int(far.sum()),
+        "map_standing_on_hidden_parts": int(stands_on_hidden.sum()),
         "map_coplanar_share_median": float(np.median(part.coplanar_share)),
     }
     return coverage, confidence, counts

@@ -39,6 +39,7 @@ from app.core.localise.origin_free import (
 )
 from app.core.localise.rays import Candidates
 from app.core.localise.regions import CLUSTER_NEIGHBOURS
+from app.core.localise.surface import weighted_plane
 
 __all__ = ["FAR_FACE_SHARE", "far_faces", "oriented_depths"]
 
@@ -173,13 +174,8 @@ def _meeting_planes(
     weight = (
         (distance <= reach) & (np.abs(np.einsum("bkd,bd->bk", normals, toward)) < EDGE_COSINE)
     ).astype(np.float64)
-    total = weight.sum(axis=1)
-    found = total >= 3
-    positions = other.points[index]
-    centroid = np.einsum("bk,bkd->bd", weight, positions) / np.maximum(total, 1.0)[:, None]
-    offset = positions - centroid[:, None, :]
-    scatter = np.einsum("bk,bkd,bke->bde", weight, offset, offset)
-    values, vectors = np.linalg.eigh(scatter + 1e-12 * np.eye(3))
+    found = weight.sum(axis=1) >= 3
+    centroid, values, vectors = weighted_plane(other.points[index], weight)
     normal = vectors[:, :, 0]
     # points along a line fit no plane: their mean normal then
     reference = normals[np.arange(points.shape[0]), np.argmax(weight, axis=1)]

@@ -16,8 +16,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
@@ -167,6 +165,9 @@ def surface_parts(
     )
     rows = np.repeat(np.arange(count), k - 1)[linked.ravel()]
     columns = neighbour[linked]
+    from scipy.sparse import coo_matrix  # on first use: API processes need no scipy
+    from scipy.sparse.csgraph import connected_components
+
     graph = coo_matrix((np.ones(rows.shape[0], dtype=np.int8), (rows, columns)), (count, count))
     _, labels = connected_components(graph, directed=True, connection="weak")
     return labels.astype(np.int64)

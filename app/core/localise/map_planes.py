@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 from numpy.typing import NDArray
+from pykdtree.kdtree import KDTree
 
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
 from app.core.localise.rays import Candidates
@@ -122,7 +123,12 @@ def share_on_planes(
 
 
 def level_surface_below(
-    points: NDArray[np.float64], cloud: LocalGeometry, reach: float, min_radius: float
+    points: NDArray[np.float64],
+    cloud: LocalGeometry,
+    reach: float,
+    min_radius: float,
+    marked: NDArray[np.bool_] | None = None,
+    blocking: KDTree | None = None,
 ) -> NDArray[np.bool_]:
     """Whether ``cloud`` has a level surface under each point within ``reach`` metres
     (straight down, z up; shapes (p, 3) -> (p,)).
@@ -130,9 +136,16 @@ def level_surface_below(
     The probes' balls are :data:`BELOW_RADIUS_FRACTION` of their depth wide, at least
     ``min_radius``; the deepest probe is at ``reach`` or less.  Only downwards: above a top
     lies open air up to a ceiling at any height, which says nothing of what stood under it.
+
+    With ``marked`` (shape (m,), bool, over ``cloud``'s points): whether the first level
+    surface found under each point has a marked point in the probe that found it (a marked
+    surface farther down, under an unmarked one, does not count); with ``blocking`` too (a
+    tree over other points), a probe that holds one of those before it holds a level surface
+    stops the search: False.
     """
     count = points.shape[0]
     found = np.zeros(count, dtype=bool)
+    first_marked = np.zeros(count, dtype=bool)
     if count == 0 or cloud.points.shape[0] == 0:
         return found
     k = min(PROBE_NEIGHBOURS, cloud.points.shape[0])
@@ -148,6 +161,14 @@ def level_surface_below(
         distance, index = cloud.tree.query(probes, k=k, distance_upper_bound=radius)
         distance = np.asarray(distance).reshape(todo.shape[0], k)
         index = np.minimum(np.asarray(index).reshape(todo.shape[0], k), cloud.points.shape[0] - 1)
-        level = np.abs(cloud.normal[index][:, :, 2]) >= NORMAL_AGREEMENT_COSINE
-        found[todo] = ((distance <= radius) & level).any(axis=1)
-    return found
+        level = (distance <= radius) & (
+            np.abs(cloud.normal[index][:, :, 2]) >= NORMAL_AGREEMENT_COSINE
+        )
+        hit = level.any(axis=1)
+        if marked is not None:
+            first_marked[todo[hit]] = (level & marked[index]).any(axis=1)[hit]
+        if blocking is not None:
+            block_distance, _ = blocking.query(probes, k=1, distance_upper_bound=radius)
+            hit |= np.asarray(block_distance).ravel() <= radius
+        found[todo] = hit
+    return found if marked is None else first_marked

@@ -13,8 +13,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 __all__ = [
     "EVIDENCE_NAMES",
@@ -106,6 +104,9 @@ def cluster_labels(points: NDArray[np.float64], radius: NDArray[np.float64]) -> 
     linked = distance[:, 1:] <= radius[:, None]
     rows = np.repeat(np.arange(count), k - 1)[linked.ravel()]
     columns = neighbour[:, 1:][linked]
+    from scipy.sparse import coo_matrix  # on first use: API processes need no scipy
+    from scipy.sparse.csgraph import connected_components
+
     graph = coo_matrix((np.ones(rows.shape[0], dtype=np.int8), (rows, columns)), (count, count))
     _, labels = connected_components(graph, directed=True, connection="weak")
     return labels

@@ -34,6 +34,7 @@ __all__ = [
     "local_geometry",
     "neighbourhood_planes",
     "plane_fit",
+    "weighted_plane",
     "with_surfaces",
 ]
 
@@ -41,6 +42,8 @@ LINEAR_EIGENVALUE_RATIO = 0.1
 """A neighbourhood whose middle/largest eigenvalue ratio is below this is a line, not a plane."""
 LINEAR_REFIT_FACTOR = 3
 """Linear neighbourhoods are refitted with this many times more neighbours."""
+SCATTER_REGULARISER = 1e-12
+"""Added (times the identity) to a weighted scatter before :func:`weighted_plane` decomposes it."""
 _RELEASED_INDEX = np.empty((0, 0), dtype=np.uint32)
 """Stands for a geometry's neighbour index once the localiser no longer needs it."""
 _RELEASED_VARIATION = np.empty(0)
@@ -160,6 +163,42 @@ def plane_fit(
     normal /= np.where(best_norm > 0, best_norm, 1.0)[:, None]
     normal[(best_norm <= 0) | (spread <= 0)] = (0.0, 0.0, 1.0)
     return np.maximum(smallest, 0.0), largest, normal
+
+
+def weighted_plane(
+    positions: NDArray[np.float64], weight: NDArray[np.floating]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """The plane of each weighted set of points: their weighted centroid and the eigenvalues
+    and eigenvectors of their weighted scatter about it.
+
+    The weights are normalised per set, so the scatter is a weighted covariance whatever their
+    scale; a tiny multiple of the identity (:data:`SCATTER_REGULARISER`) is added before the
+    decomposition, which leaves the eigenvectors as they are and keeps an empty or degenerate
+    set's finite.
+
+    Parameters
+    ----------
+    positions : ndarray, shape (b, k, 3)
+    weight : ndarray, shape (b, k)
+        Non-negative; 0 leaves a point out.  A set whose weights are all 0 gets the origin as
+        its centroid.
+
+    Returns
+    -------
+    centroid : ndarray, shape (b, 3)
+    values : ndarray, shape (b, 3)
+        Eigenvalues of the weighted scatter, ascending.
+    vectors : ndarray, shape (b, 3, 3)
+        The matching unit eigenvectors as columns: ``vectors[:, :, 0]`` is the plane's normal.
+    """
+    total = weight.sum(axis=1)
+    share = weight / np.where(total > 0, total, 1.0)[:, None]
+    centroid = np.einsum("bk,bkd->bd", share, positions)
+    centred = positions - centroid[:, None, :]
+    # a batched matrix product: a three-operand einsum takes numpy's generic loop (4-5x slower)
+    scatter = np.matmul((share[:, :, None] * centred).transpose(0, 2, 1), centred)
+    values, vectors = np.linalg.eigh(scatter + SCATTER_REGULARISER * np.eye(3))
+    return centroid, values, vectors
 
 
 def neighbourhood_planes(

@@ -13,7 +13,6 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
-from scipy.ndimage import uniform_filter
 
 from app.core.origins.columns import _grid_votes, horizontal_bounds, normal_z
 
@@ -175,6 +174,8 @@ def _hough_peaks(
     low = low - 1.0
     shape = np.ceil((high + 1.0 - low) / CELL).astype(np.int64) + 1
     votes = _hough_votes(((anchor - low) / CELL).astype(np.float32), direction, shape)
+    from scipy.ndimage import uniform_filter  # on first use: API processes need no scipy
+
     smoothed = uniform_filter(votes.reshape(shape), size=3, mode="constant")
     flat = _strongest_peaks(smoothed, PEAK_SEPARATION, MAX_CANDIDATES)
     rows, columns = np.unravel_index(flat, shape)

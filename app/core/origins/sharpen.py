@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from app.core.origins.rings import (
     FINE_BIN_DEG,
@@ -79,6 +78,8 @@ def _surfaces(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Returns on level surfaces and on walls (by their neighbours' plane), shapes (m, 3)."""
     queries = patch[rng.choice(len(patch), size=min(len(patch), SURFACE_QUERIES), replace=False)]
+    from scipy.spatial import cKDTree  # on first use: API processes need no scipy
+
     _, neighbour = cKDTree(patch).query(queries, k=NEIGHBOURS)
     local = patch[neighbour]
     centred = local - local.mean(axis=1, keepdims=True)
