@@ -19,9 +19,6 @@ import contextlib
 import hashlib
 import importlib
 import json
-import os
-import signal
-import socket
 import sqlite3
 import subprocess
 import sys
@@ -31,7 +28,6 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
-import httpx
 import numpy as np
 
 from app.core.datasets import map_pair
@@ -40,6 +36,7 @@ from app.core.formats.streamed import declared_rows
 from app.core.tiling import TileBudgetError, compute_tile
 from app.core.tiling.compare import compare_tiled
 from app.jobs.consumer import first_use_libraries
+from bench.service_process import Service, group_peak_rss, size_settings, upload, wait_for_job
 
 TARGET_SPEEDUP = 1.7
 JOB_TIMEOUT_SECONDS = 3600.0
@@ -57,123 +54,20 @@ PHASES = (
     "localise",
     "detect",
     "write_outputs",
+    "write_outputs_cpu",
+    "stream_survey_cpu",
+    "stream_stations_cpu",
+    "stream_plan_cpu",
+    "stream_marks_cpu",
+    "stream_crops_cpu",
+    "stream_tiles_cpu",
+    "stream_merge_cpu",
+    "stream_other_stages_cpu",
     "job_total",
     "compute_cpu",
     "streamed_seconds",
 )
 """The job's timings printed for each run (app/jobs/execution.py, app/jobs/tiles.py)."""
-
-
-def _free_port() -> int:
-    with socket.socket() as listener:
-        listener.bind(("127.0.0.1", 0))
-        return int(listener.getsockname()[1])
-
-
-class Service:
-    """``scandiff serve`` on loopback in a fresh data directory, killed on exit."""
-
-    def __init__(self, data_dir: Path, workers: int, env: dict[str, str]) -> None:
-        self.data_dir, self.port = data_dir, _free_port()
-        environment = {**os.environ, "OMP_NUM_THREADS": "1", **env}
-        environment.pop("SCANDIFF_DATA_DIR", None)
-        command = [sys.executable, "-m", "app", "serve", "--data-dir", str(data_dir)]
-        command += ["--port", str(self.port), "--workers", str(workers)]
-        self.log = open(data_dir.with_suffix(".log"), "wb")  # noqa: SIM115 - closed in __exit__
-        self.process = subprocess.Popen(
-            command,
-            env=environment,
-            stdout=self.log,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,  # its own process group: the workers are killed with it
-        )
-        self.base_url = f"http://127.0.0.1:{self.port}"
-
-    def __enter__(self) -> httpx.Client:
-        deadline = time.monotonic() + 120
-        token_file = self.data_dir / "admin-token"
-        while time.monotonic() < deadline:
-            with contextlib.suppress(httpx.HTTPError):
-                health = httpx.get(f"{self.base_url}/api/v1/health").status_code
-                if health == 200 and token_file.exists():
-                    break
-            time.sleep(0.2)
-        else:
-            raise RuntimeError(f"scandiff serve did not start; see {self.log.name}")
-        token = token_file.read_text().strip()
-        self.client = httpx.Client(
-            base_url=self.base_url, headers={"Authorization": f"Bearer {token}"}, timeout=60
-        )
-        return self.client
-
-    def __exit__(self, *exc: object) -> None:
-        self.client.close()
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(self.process.pid, signal.SIGKILL)
-        self.process.wait()
-        self.log.close()
-
-
-def _file_body(path: Path) -> Any:
-    """The file as an upload body, streamed in 16 MiB pieces (a 1.2 GB scan is never held)."""
-    with path.open("rb") as source:
-        while piece := source.read(1 << 24):
-            yield piece
-
-
-def upload(client: httpx.Client, path: str, file: Path, params: dict[str, str]) -> dict:
-    """POST ``file`` as the raw body of ``path``, streamed; the response's JSON."""
-    response = client.post(
-        path,
-        params=params,
-        content=_file_body(file),
-        headers={"Content-Length": str(file.stat().st_size)},
-        timeout=None,
-    )
-    response.raise_for_status()
-    return response.json()
-
-
-def size_settings(files: tuple[Path, Path]) -> dict[str, str]:
-    """Upload size and point limits raised above their defaults when the pair needs it."""
-    env = {}
-    largest = max(path.stat().st_size for path in files)
-    if largest > 512 * 1024**2:
-        env["SCANDIFF_MAX_UPLOAD_BYTES"] = str(2 * largest)
-    most = max(declared_rows(path) or 0 for path in files)
-    if most > 50_000_000:
-        env["SCANDIFF_MAX_POINTS"] = str(2 * most)
-    return env
-
-
-def wait_for_job(
-    client: httpx.Client, job_id: str, group: int, timeout: float, every: float = 60.0
-) -> dict:
-    """Poll the job until it ends, printing every ``every`` s its tiles done/total and each
-    service process's peak RSS and CPU so far (a long run shows how far it got)."""
-    started = last = time.perf_counter()
-    while True:
-        job = client.get(f"/api/v1/jobs/{job_id}", params={"wait": 10}).json()
-        if job["status"] in ("succeeded", "failed"):
-            return job
-        now = time.perf_counter()
-        if now - last >= every:
-            last = now
-            status = {"status": job["status"], "progress": job.get("progress")}
-            print(
-                json.dumps(
-                    {
-                        "at": time.strftime("%H:%M:%S"),
-                        "elapsed_s": round(now - started),
-                        "job": status,
-                        "tiles": job.get("tiles"),
-                        "processes": group_peak_rss(group, with_cpu=True),
-                    }
-                ),
-                flush=True,
-            )
-        if now - started > timeout:
-            raise RuntimeError(f"job {job_id} did not finish in {timeout:.0f} s")
 
 
 def run_service(
@@ -229,17 +123,22 @@ def run_service(
     with np.load(labels_path) as data:
         arrays = {name: data[name] for name in ("reference_label", "scan_label")}
     with sqlite3.connect(data_dir / "scandiff.sqlite3") as connection:
-        owners = [
-            row[0].rsplit(":", 2)[1]
-            for row in connection.execute(
-                "SELECT lease_owner FROM job_tile WHERE job_id = ?", (job_id,)
-            )
-        ]
+        tile_rows = connection.execute(
+            "SELECT tile_index, lease_owner, points, seconds, started_at, finished_at"
+            " FROM job_tile WHERE job_id = ? ORDER BY started_at",
+            (job_id,),
+        ).fetchall()
+    owners = [row[1].rsplit(":", 2)[1] for row in tile_rows]
+    tile_log = [  # (tile, worker pid, crop points, wall s, started, finished), as started
+        (row[0], row[1].rsplit(":", 2)[1], row[2], round(row[3] or 0.0, 1), row[4], row[5])
+        for row in tile_rows
+    ]
     return {
         "seconds": seconds,
         "labels": arrays,
         "tiles": job["tiles"],
         "tiles_per_worker": sorted(Counter(owners).values(), reverse=True),
+        "tile_log": tile_log,
         "changed": job["changed"],
         "n_regions": job["n_regions"],
         "timings": job["timings"],
@@ -249,29 +148,6 @@ def run_service(
         "warnings": job.get("warnings"),
         "labels_path": labels_path,
     }
-
-
-def group_peak_rss(group: int, with_cpu: bool = False) -> dict[str, Any]:
-    """Peak RSS (``VmHWM``, MB) of each live process of process group ``group``, by
-    ``pid: command`` (the service's API process and its workers); ``with_cpu``: each as
-    ``[peak MB, CPU s so far]``."""
-    ticks = os.sysconf("SC_CLK_TCK")
-    peaks: dict[str, Any] = {}
-    for status in Path("/proc").glob("[0-9]*/status"):
-        with contextlib.suppress(OSError, IndexError, ValueError):
-            stat = (status.parent / "stat").read_text()
-            if int(stat.rsplit(")", 1)[1].split()[2]) != group:
-                continue
-            fields = dict(
-                line.split(":", 1) for line in status.read_text().splitlines() if ":" in line
-            )
-            command = (status.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode()
-            name = f"{status.parent.name}: {' '.join(command.split()[2:5])}"
-            peaks[name] = round(int(fields["VmHWM"].split()[0]) / 1024)
-            if with_cpu:
-                cpu = sum(int(value) for value in stat.rsplit(")", 1)[1].split()[11:13])
-                peaks[name] = [peaks[name], round(cpu / ticks, 1)]
-    return peaks
 
 
 def truth_check(pair_dir: Path | None, run: dict) -> dict[str, Any] | None:
@@ -389,6 +265,20 @@ def print_phases(clock: PhaseClock, total_points: int, crop_points: int) -> None
         f"{amdahl(serial, clock.tiles, 2):.2f}x (the service adds writing the tiles' inputs "
         "and reading their results)\n"
     )
+
+
+def parent_cpu_split(timings: dict[str, float]) -> dict[str, float]:
+    """The parent's CPU seconds: ``serial`` (the job's CPU and its result files' writing, less
+    the tiles it computed), ``tiles_here`` and, of the serial part, each streamed phase
+    (``stream_*_cpu`` in the job's timings)."""
+    tiles_here = timings.get("tiles_parent_computing_cpu", 0.0)
+    serial = timings.get("compute_cpu", 0.0) + timings.get("write_outputs_cpu", 0.0) - tiles_here
+    split = {"serial": serial, "tiles_here": tiles_here}
+    for name, seconds in timings.items():
+        if name.startswith("stream_") and name.endswith("_cpu") and name != "stream_tiles_cpu":
+            split[name.removeprefix("stream_").removesuffix("_cpu")] = seconds
+    split["write_outputs"] = timings.get("write_outputs_cpu", 0.0)
+    return {name: round(seconds, 1) for name, seconds in split.items()}
 
 
 def cpu_speedup(one: dict[str, float], two: dict[str, float]) -> float:
@@ -585,6 +475,12 @@ def main(argv: list[str] | None = None) -> int:
     for workers, run in runs.items():
         shown = {key: round(value, 1) for key, value in run["timings"].items() if key in PHASES}
         print(f"- {workers} worker(s): {shown}")
+    print("\nThe parent's CPU s: serial (all but the tiles it computed) and its tiles:\n")
+    for workers, run in runs.items():
+        print(f"- {workers} worker(s): {parent_cpu_split(run['timings'])}")
+    print("\nTiles as they started (index, worker pid, crop points, wall s, started, finished):\n")
+    for workers, run in runs.items():
+        print(f"- {workers} worker(s): {run['tile_log']}")
     print("\nPeak RSS (VmHWM, MB) of the service's processes, and the labels' digest:\n")
     for workers, run in runs.items():
         digest = hashlib.sha256()

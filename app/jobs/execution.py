@@ -303,9 +303,10 @@ def execute_job(job_id: str, settings: Settings) -> JobOutcome:
         with memory_limit(limit_bytes):
             result, job_timings = compute(job, settings, keeper)
             keeper.report("writing", PROGRESS_COMPARED)
-            write_started = time.perf_counter()
+            write_started, write_cpu = time.perf_counter(), time.process_time()
             labels_path = write_result_files(job, settings, result)
             job_timings["write_outputs"] = time.perf_counter() - write_started
+            job_timings["write_outputs_cpu"] = time.process_time() - write_cpu
         keeper.report("storing", PROGRESS_COMPARED)
         keeper.stop()
         keeper.check()

@@ -8,6 +8,7 @@ region numbers, regions, score and decision.  Small tiles are forced (``max_crop
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -118,6 +119,24 @@ def test_a_streamed_comparison_equals_the_lean_tiled_one(tmp_path, three_station
     # by default the crops keep the other sensor's returns by direction too, both paths
     paths, n_points, tiled = three_station_pair
     _assert_streamed_equals_lean(paths, tmp_path, n_points, tiled)
+
+
+def test_tiles_marking_their_directions_in_small_reads_equal_the_lean_one(
+    tmp_path, three_station_pair, monkeypatch
+) -> None:
+    # the parent writes the crops in the top view only; each tile marks its directions from
+    # the other cloud's points in its box and filters its crop as it reads it, here a few
+    # hundred records at a time: the crops, and so the result, are the lean run's
+    from app.core.tiling import crops
+
+    monkeypatch.setattr(crops, "READ_CHUNK", 997)
+    paths, n_points, tiled = three_station_pair
+    streamed = _assert_streamed_equals_lean(paths, tmp_path, n_points, tiled)
+    layout = json.loads((tmp_path / "work" / "crops" / "crops.json").read_text())
+    assert all(layout[side]["directions"] for side in ("reference", "scan"))
+    written = sum(path.stat().st_size for path in (tmp_path / "work" / "crops").glob("*.bin"))
+    record_bytes = np.dtype(crops.record_dtype(np.zeros((0, 3), np.float32), np.zeros(0))).itemsize
+    assert written > record_bytes * sum(_crop_sizes(streamed)), "filtered by the tiles"
 
 
 @pytest.mark.slow  # a second streamed run of the module pair (~10 CPU s): make test-slow

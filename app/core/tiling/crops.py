@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.tiling.plan import TilePlan
-from app.core.tiling.rays import box_mask, direction_cells, expanded_marks
+from app.core.tiling.rays import box_mask, direction_cells, expanded_marks, kept_by_direction
 from app.core.tiling.tile import TileContext, TileCrop, TileSource, _cropped_rays, crop_mask
 
 __all__ = [
@@ -51,6 +51,8 @@ __all__ = [
 
 CROP_CHUNK = 1 << 20
 """Points of a cloud handled at a time while the crops are written."""
+READ_CHUNK = 1 << 22
+"""Records of a crop file read at a time when a tile filters it by direction."""
 MAX_OPEN_TILES = 128
 """Tiles whose files are open at once (more tiles: one more pass over the points)."""
 META_FILE = "crops.json"
@@ -187,6 +189,7 @@ def write_crops_from_chunks(
     *,
     threads: int = 1,
     marks: dict[str, TileMarks] | None = None,
+    directions_in_tiles: bool = False,
 ) -> list[int]:
     """:func:`write_tile_crops` of clouds handed out in chunks (a streamed parent's).
 
@@ -207,14 +210,27 @@ def write_crops_from_chunks(
         For a cloud whose context has direction cells (``<side>_ray_cells``): its
         :func:`tile_direction_marks`, so that its crops keep the other sensor's returns by
         direction too (:func:`~app.core.tiling.rays.crop_masks`); else the top view only.
+    directions_in_tiles : bool
+        Instead of ``marks``: the crops are written in the top view only and each tile,
+        reading them (:meth:`TileCropFiles.crop`), marks the directions from the other cloud's
+        points in its box and keeps what ``marks`` would have kept (the same points in the
+        same order), so that the parent need not pass over the other file for the marks.
+        For a cloud whose context has direction cells and no rays.
 
     Returns
     -------
     list of int
-        Points of both clouds in each tile's crop.
+        Points of both clouds in each tile's crop (as written).
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
+    deferred = {
+        side: directions_in_tiles
+        and getattr(context, f"{side}_ray_cells") is not None
+        and sides[side][1] is not None
+        and sides[side][3] is None
+        for side in sides
+    }
 
     def write(side: str) -> NDArray[np.int64]:
         chunks, origins, dtype, rays = sides[side]
@@ -238,7 +254,7 @@ def write_crops_from_chunks(
     with ThreadPoolExecutor(max_workers=max(1, min(threads, len(sides)))) as pool:
         crop_sizes = sum(pool.map(write, list(sides)), np.zeros(plan.n_tiles, dtype=np.int64))
     layout = {
-        side: {"dtype": dtype.descr, "rays": rays is not None}
+        side: {"dtype": dtype.descr, "rays": rays is not None, "directions": deferred[side]}
         for side, (_, _, dtype, rays) in sides.items()
     }
     (directory / META_FILE).write_text(json.dumps(layout))
@@ -272,26 +288,27 @@ def _write_side(
                 near = np.flatnonzero(box_mask(chunk, low - reach, high + reach))
                 if not len(near):
                     continue
-                kept = near[
-                    crop_mask(
-                        chunk[near],
-                        None if chunk_station is None else chunk_station[near],
-                        origins,
-                        low,
-                        high,
-                        context.ray_reach,
-                        cells=None if directions is None else directions[0],
-                        marks=None if directions is None else directions[1][tiles[number]],
-                    )
-                ]
+                near_points = chunk[near]  # gathered once, the kept ones taken from it
+                near_station = None if chunk_station is None else chunk_station[near]
+                in_crop = crop_mask(
+                    near_points,
+                    near_station,
+                    origins,
+                    low,
+                    high,
+                    context.ray_reach,
+                    cells=None if directions is None else directions[0],
+                    marks=None if directions is None else directions[1][tiles[number]],
+                )
+                kept = near[in_crop]
                 if not len(kept):
                     continue
                 records = np.empty(len(kept), dtype=dtype)
-                records["point"] = chunk[kept]
+                records["point"] = near_points[in_crop]
                 records["index"] = start + kept
-                if chunk_station is not None:
-                    records["station"] = chunk_station[kept]
-                files[number].write(records.tobytes())
+                if near_station is not None:
+                    records["station"] = near_station[in_crop]
+                files[number].write(records.view(np.uint8))  # its bytes, not a copy
                 counts[number] += len(kept)
     return counts
 
@@ -312,9 +329,60 @@ class TileCropFiles:
             side: np.dtype([tuple(field) for field in layout[side]["dtype"]]) for side in SIDES
         }
         self._rays = {side: bool(layout[side]["rays"]) for side in SIDES}
+        self._directions = {side: bool(layout[side].get("directions")) for side in SIDES}
+
+    def _records(self, tile_index: int, side: str) -> Iterator[NDArray]:
+        """A tile's crop file of one cloud, :data:`READ_CHUNK` records at a time."""
+        with open(crop_file(self.directory, tile_index, side), "rb") as file:
+            while len(records := np.fromfile(file, self._dtypes[side], count=READ_CHUNK)):
+                yield records
+
+    def _marks(
+        self, plan: TilePlan, tile_index: int, context: TileContext, side: str
+    ) -> list[NDArray[np.int64]]:
+        """The direction marks of ``side``'s origins for this tile, from the other cloud's
+        points in its crop box (:func:`tile_direction_marks` of this tile)."""
+        low, high = plan.crop_box(tile_index)
+        origins = getattr(context, f"{side}_origins")
+        cells = getattr(context, f"{side}_ray_cells")
+        found: list[list[NDArray[np.int64]]] = [[] for _ in origins]
+        for records in self._records(tile_index, SIDES[1 - SIDES.index(side)]):
+            points = records["point"]
+            inside = box_mask(points, low, high)
+            if inside.any():
+                for number, cells_seen in enumerate(
+                    direction_cells(points[inside], origins, cells)
+                ):
+                    found[number].append(cells_seen)
+        return expanded_marks(found, cells)
+
+    def _filtered(
+        self, plan: TilePlan, tile_index: int, context: TileContext, side: str
+    ) -> NDArray:
+        """A crop file written in the top view only, kept by direction as it is read."""
+        marks = self._marks(plan, tile_index, context, side)
+        low, high = plan.crop_box(tile_index)
+        origins = getattr(context, f"{side}_origins")
+        cells = getattr(context, f"{side}_ray_cells")
+        has_station = "station" in self._dtypes[side].names
+        kept = [
+            records[
+                kept_by_direction(
+                    records["point"],
+                    records["station"] if has_station else None,
+                    origins,
+                    low,
+                    high,
+                    cells,
+                    marks,
+                )
+            ]
+            for records in self._records(tile_index, side)
+        ]
+        return np.concatenate(kept) if kept else np.zeros(0, self._dtypes[side])
 
     def _side(
-        self, tile_index: int, side: str
+        self, plan: TilePlan, tile_index: int, context: TileContext, side: str
     ) -> tuple[
         NDArray[np.int64],
         NDArray[np.float64],
@@ -323,7 +391,10 @@ class TileCropFiles:
     ]:
         """One cloud's crop of a tile: indices, float64 points, stations, rays."""
         dtype = self._dtypes[side]
-        records = np.fromfile(crop_file(self.directory, tile_index, side), dtype=dtype)
+        if self._directions[side]:
+            records = self._filtered(plan, tile_index, context, side)
+        else:
+            records = np.fromfile(crop_file(self.directory, tile_index, side), dtype=dtype)
         station = (
             np.asarray(records["station"], dtype=np.int64) if "station" in dtype.names else None
         )
@@ -340,8 +411,8 @@ class TileCropFiles:
 
     def crop(self, plan: TilePlan, tile_index: int, context: TileContext) -> TileCrop:
         """Tile ``tile_index``'s crop, as :meth:`TileSource.crop` of the whole pair gives it."""
-        reference = self._side(tile_index, "reference")
-        scan = self._side(tile_index, "scan")
+        reference = self._side(plan, tile_index, context, "reference")
+        scan = self._side(plan, tile_index, context, "scan")
         return TileCrop(
             reference_index=reference[0],
             scan_index=scan[0],

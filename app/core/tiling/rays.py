@@ -40,6 +40,7 @@ __all__ = [
     "direction_cells",
     "direction_marks",
     "expanded_marks",
+    "kept_by_direction",
     "ray_cell_sizes",
 ]
 
@@ -201,6 +202,47 @@ def _marked(
         mark = marks[number]
         position = np.minimum(np.searchsorted(mark, cell_number), max(len(mark) - 1, 0))
         keep[rows] = (length > 0) & (len(mark) > 0) & (mark[position] == cell_number)
+    return keep
+
+
+def kept_by_direction(
+    points: NDArray[np.floating],
+    station: NDArray[np.integer] | None,
+    origins: NDArray[np.float64],
+    low: NDArray[np.float64],
+    high: NDArray[np.float64],
+    cells: NDArray[np.float64],
+    marks: Sequence[NDArray[np.int64]],
+) -> NDArray[np.bool_]:
+    """Which points of a crop kept in the top view only (:func:`crop_mask` without marks)
+    :func:`crop_mask` with ``cells`` and ``marks`` keeps too: those in the xy box ``[low,
+    high]``, and the others (returns whose ray crossed it) whose direction is marked.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    station : ndarray, shape (n,), int, or None
+        Each point's index into ``origins`` (None: the first origin).
+    origins : ndarray, shape (k, 3)
+    low, high : ndarray, shape (2,)
+    cells : ndarray, shape (k,)
+    marks : list of ndarray
+        Each origin's marked cells (:func:`direction_marks`).
+
+    Returns
+    -------
+    ndarray, shape (n,), bool
+    """
+    keep = box_mask(points, low, high)
+    rows = np.flatnonzero(~keep)
+    if len(rows):
+        keep[rows] = _marked(
+            np.asarray(points[rows], dtype=np.float64),
+            None if station is None else np.asarray(station[rows], dtype=np.int64),
+            origins,
+            cells,
+            marks,
+        )
     return keep
 
 

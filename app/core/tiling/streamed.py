@@ -18,9 +18,11 @@ plans, cuts and merges the tiles (32 bytes a point read lean: 6.4 GB for 100M + 
   (:mod:`app.core.tiling.crops`): the chunk moved into the local frame, the scan's aligned,
   each point's station assigned (:func:`~app.core.localise.station_assignment.best_stations`
   with the contrasts of the subsample); with stations, the other sensor's returns are kept
-  by direction too (:mod:`app.core.tiling.rays`), the directions each tile needs marked in
-  one more pass over the other file (:func:`~app.core.tiling.crops.tile_direction_marks`),
-  the direction cells from the subsample's station counts scaled up;
+  by direction too (:mod:`app.core.tiling.rays`): written in the top view, each tile marks
+  its directions from the other cloud's points in its box as it reads its crop
+  (:class:`~app.core.tiling.crops.TileCropFiles`, ``directions_in_tiles``), so that this
+  work runs on whichever worker takes the tile; the direction cells from the subsample's
+  station counts scaled up;
 - the merge, range by range of :data:`~app.core.tiling.pair_files.OUTPUT_RANGE` points: each
   tile's result is read from its file for the range, and the labels, distances and region
   numbers are written into ``.npy`` files in the files' row order
@@ -39,8 +41,10 @@ from __future__ import annotations
 
 import dataclasses
 import shutil
+import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Unpack
@@ -62,7 +66,6 @@ from app.core.tiling.compare import REGISTRATION_SAMPLE, TileRunner, origin_arra
 from app.core.tiling.crops import (
     TileCropFiles,
     record_dtype,
-    tile_direction_marks,
     write_crops_from_chunks,
 )
 from app.core.tiling.merge import join_regions, merged_parameters
@@ -99,6 +102,18 @@ COUNT_SAMPLE = 400_000
 PLAN_FILE = "plan.npz"
 """The plan (:meth:`~app.core.tiling.plan.TilePlan.save`), written into ``work_dir`` once it
 is made, before the crops."""
+
+
+@contextmanager
+def timed_phase(timings: dict[str, float], name: str) -> Iterator[None]:
+    """Add the ``with`` block's wall seconds to ``timings[name]`` and this process's CPU
+    seconds (all its threads) to ``timings[name + "_cpu"]``."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    try:
+        yield
+    finally:
+        timings[name] = timings.get(name, 0.0) + time.perf_counter() - wall
+        timings[f"{name}_cpu"] = timings.get(f"{name}_cpu", 0.0) + time.process_time() - cpu
 
 
 def compute_tiles_to_files(directory: Path) -> TileRunner:
@@ -171,14 +186,59 @@ class StreamedLocalisation:
         report: ProgressCallback,
         timings: dict[str, float],
     ) -> tuple[Localisation, int]:
-        """Plan on the subsamples, write the crops from the files, run the tiles, merge."""
+        """Plan on the subsamples, write the crops from the files, run the tiles, merge.
+
+        Adds each phase's wall and CPU seconds to ``timings`` (:func:`timed_phase`):
+        ``stream_stations`` (the subsamples' stations), ``stream_plan``, ``stream_crops``,
+        ``stream_tiles`` and ``stream_merge``.
+        """
         for cloud in (origins.reference, origins.scan):
             if cloud.station is not None or cloud.trajectory_rays is not None:
                 raise ValueError("a streamed comparison takes files with coordinates only")
-        sides = self._sides(loaded, alignment, origins)
+        with timed_phase(timings, "stream_stations"):
+            sides = self._sides(loaded, alignment, origins)
         sub = [loaded.reference_points, alignment.aligned_scan]
         sub_stations = [side[1] for side in sides]
         context = self._context(loaded, origins, sub_stations, [len(points) for points in sub])
+        with timed_phase(timings, "stream_plan"):
+            plan = self._plan(sub, sub_stations, context)
+        plan.save(self.work_dir / PLAN_FILE)  # how the pair was cut, before any crop
+        report("localise", 0.36)  # planned
+        all_origins = [context.reference_origins, context.scan_origins]
+        crops, partial = self.work_dir / "crops", self.work_dir / "crops.partial"
+        with timed_phase(timings, "stream_crops"):
+            shutil.rmtree(partial, ignore_errors=True)  # swapped in whole: a tile of an
+            write_crops_from_chunks(  # earlier attempt never reads a half-written crop
+                partial,
+                plan,
+                context,
+                {
+                    name: (chunks, side_origins, dtype, None)
+                    for name, (chunks, _, dtype), side_origins in zip(
+                        ("reference", "scan"), sides, all_origins, strict=True
+                    )
+                },
+                threads=loaded.threads,
+                directions_in_tiles=True,  # each tile marks its directions as it reads
+            )
+            shutil.rmtree(crops, ignore_errors=True)
+            partial.rename(crops)
+        report("localise", 0.37)  # the tiles' inputs written
+        with timed_phase(timings, "stream_tiles"):
+            results = self.run_tiles(plan, TileCropFiles(crops), context, loaded.threads, report)  # type: ignore[arg-type]
+        with timed_phase(timings, "stream_merge"):
+            localisation = self._merge(plan, results, context.min_region_points)
+        return localisation, context.min_region_points
+
+    def _plan(
+        self,
+        sub: Sequence[NDArray[np.float32]],
+        sub_stations: Sequence[NDArray | None],
+        context: TileContext,
+    ) -> TilePlan:
+        """The tiles, planned on the subsamples (``sub``: the reference's and the aligned
+        scan's, (m, 3)); each candidate crop counted on at most :data:`COUNT_SAMPLE` points a
+        cloud and scaled to the whole clouds."""
         limit = self.max_crop_points
         if limit is None:
             limit = crop_point_limit(
@@ -190,6 +250,8 @@ class StreamedLocalisation:
 
         def count_crop(low: NDArray[np.float64], high: NDArray[np.float64]) -> int:
             # as TileSource.count_crop: at most COUNT_SAMPLE points a cloud, coarser cells then
+            if np.all(np.isinf(low)) and np.all(np.isinf(high)):
+                return full[0] + full[1]  # the unbounded box (the plan's first): every point
             steps = [max(1, len(points) // COUNT_SAMPLE) for points in sub]
             masks = crop_masks(
                 [
@@ -211,7 +273,7 @@ class StreamedLocalisation:
                 total += np.count_nonzero(mask) * n / max(1, len(points[::step]))
             return int(np.ceil(total))
 
-        plan = plan_tiles(
+        return plan_tiles(
             sub[0][:, :2],
             sub[1][:, :2],
             max_crop_points=limit,
@@ -219,29 +281,6 @@ class StreamedLocalisation:
             margin=self.margin,
             budget_bytes=self.budget_bytes,
         )
-        plan.save(self.work_dir / PLAN_FILE)  # how the pair was cut, before any crop
-        report("localise", 0.36)  # planned
-        marks = self._marks(plan, sides, context, loaded.threads)
-        crops, partial = self.work_dir / "crops", self.work_dir / "crops.partial"
-        shutil.rmtree(partial, ignore_errors=True)  # swapped in whole: a tile of an earlier
-        write_crops_from_chunks(  # attempt never reads a half-written crop
-            partial,
-            plan,
-            context,
-            {
-                name: (chunks, side_origins, dtype, None)
-                for name, (chunks, _, dtype, _), side_origins in zip(
-                    ("reference", "scan"), sides, all_origins, strict=True
-                )
-            },
-            threads=loaded.threads,
-            marks=marks,
-        )
-        shutil.rmtree(crops, ignore_errors=True)
-        partial.rename(crops)
-        report("localise", 0.37)  # the tiles' inputs written
-        results = self.run_tiles(plan, TileCropFiles(crops), context, loaded.threads, report)  # type: ignore[arg-type]
-        return self._merge(plan, results, context.min_region_points), context.min_region_points
 
     def _context(
         self,
@@ -306,31 +345,11 @@ class StreamedLocalisation:
                 counts = counts * (n_points / max(1, n_sub))
         return cells_of_counts(counts, angle_factor)
 
-    def _marks(
-        self, plan: TilePlan, sides: Sequence[tuple], context: TileContext, threads: int
-    ) -> dict[str, Any] | None:
-        """Each cloud's direction marks for every tile (:func:`tile_direction_marks`), from a
-        pass over the other file (both clouds at once with two threads)."""
-        work = []
-        for number, (side, cells, origins) in enumerate(
-            (
-                ("reference", context.reference_ray_cells, context.reference_origins),
-                ("scan", context.scan_ray_cells, context.scan_origins),
-            )
-        ):
-            if cells is not None and origins is not None:
-                work.append((side, sides[1 - number][3], origins, cells))
-        if not work:
-            return None
-        with ThreadPoolExecutor(max_workers=max(1, min(threads, len(work)))) as pool:
-            found = pool.map(lambda item: tile_direction_marks(plan, *item[1:]), work)
-            return {item[0]: marks for item, marks in zip(work, found, strict=True)}
-
     def _sides(
         self, loaded: LoadedPair, alignment: Alignment, sensor_origins: SensorOrigins
-    ) -> list[tuple[Callable[[], Iterator], NDArray | None, np.dtype, Callable[[], Iterator]]]:
+    ) -> list[tuple[Callable[[], Iterator], NDArray | None, np.dtype]]:
         """Each cloud's pass over its file (local frame, the scan aligned, stations), the
-        subsample's stations, its crop records' dtype, and a pass without the stations."""
+        subsample's stations and its crop records' dtype."""
         transform = alignment.registration.transform
         sides = []
         for cloud, sub, origins, move in (
@@ -351,7 +370,6 @@ class StreamedLocalisation:
                     self._pass(cloud, move, origins if several else None, contrasts),
                     stations,
                     record_dtype(sub, stations),
-                    self._pass(cloud, move, None, None),
                 )
             )
         return sides
@@ -469,8 +487,8 @@ def compare_streamed(
         :func:`~app.core.tiling.pair_files.subsample_offsets`).
     ray_directions : bool
         Crops keep the other sensor's returns by direction too (as
-        :func:`~app.core.tiling.compare.compare_tiled`'s): one more pass over each file marks
-        the directions every tile needs (:func:`~app.core.tiling.crops.tile_direction_marks`).
+        :func:`~app.core.tiling.compare.compare_tiled`'s): each tile marks the directions it
+        needs from the other cloud's points in its box as it reads its crop.
     **options
         As :func:`app.core.pipeline.compare` (``method``, ``variant``, ``align``,
         ``random_state``, ``params``, ``threads``).
@@ -483,7 +501,11 @@ def compare_streamed(
     work_dir = Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
     threads = options.get("threads") or available_threads()
-    with ThreadPoolExecutor(max_workers=2 if threads >= 2 else 1) as pool:  # one file each
+    timings: dict[str, float] = {}
+    with (
+        timed_phase(timings, "stream_survey"),
+        ThreadPoolExecutor(max_workers=2 if threads >= 2 else 1) as pool,  # one file each
+    ):
         (reference, reference_sub, reference_voxels), (scan, scan_sub, scan_voxels) = pool.map(
             lambda number: survey(
                 Path((reference_path, scan_path)[number]), formats[number], subsample_points
@@ -515,11 +537,17 @@ def compare_streamed(
         work_dir=work_dir,
         ray_directions=ray_directions,
     )
+    started_cpu = time.process_time()
     result = run_stages(
         loaded, progress=progress, site_calibration=site_calibration, localise_step=step
     )
+    stages_cpu = time.process_time() - started_cpu
+    localise_cpu = sum(value for name, value in result.timings.items() if name.endswith("_cpu"))
+    timings.update(result.timings)
+    timings["stream_other_stages_cpu"] = stages_cpu - localise_cpu  # origins, align, detect
     return dataclasses.replace(
         result,
+        timings=timings,
         n_reference=reference.n_points,
         n_scan=scan.n_points,
         **{name: np.load(path, mmap_mode="r") for name, path in step.outputs.items()},
