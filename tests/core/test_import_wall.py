@@ -46,6 +46,14 @@ def imported_modules(path: Path) -> set[str]:
     return names
 
 
+def printed_by_a_fresh_process(code: str) -> str:
+    """What ``code`` prints, run by a new Python process (its imports start from nothing)."""
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    )
+    return result.stdout.strip()
+
+
 def test_core_sources_import_nothing_outside_the_core():
     offenders = []
     for path in sorted(CORE.rglob("*.py")):
@@ -68,10 +76,7 @@ def test_importing_the_core_loads_no_web_or_database_module():
         "bad = sorted(m for m in sys.modules if m.split('.')[0] in forbidden)\n"
         "print(','.join(bad))\n"
     )
-    result = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=True
-    )
-    assert result.stdout.strip() == ""
+    assert printed_by_a_fresh_process(code) == ""
 
 
 def test_reading_a_result_and_its_labels_loads_no_localiser():
@@ -81,10 +86,7 @@ def test_reading_a_result_and_its_labels_loads_no_localiser():
         "import sys, app.core.labels, app.core.comparison.result\n"
         "print(','.join(sorted(m for m in sys.modules if m.startswith('app.core.localise'))))\n"
     )
-    result = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=True
-    )
-    assert result.stdout.strip() == ""
+    assert printed_by_a_fresh_process(code) == ""
 
 
 LABEL_NAMES = {"LABEL_CHANGED", "LABEL_UNCHANGED", "LABEL_UNOBSERVED"}
@@ -173,10 +175,7 @@ def test_the_api_and_the_service_supervisor_load_no_scipy():
         "import app.services.storage, app.services.schedules.runs, app.core.cache.geometry\n"
         "print(','.join(sorted(m for m in sys.modules if m.split('.')[0] == 'scipy'))[:200])\n"
     )
-    result = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=True
-    )
-    assert result.stdout.strip() == ""
+    assert printed_by_a_fresh_process(code) == ""
 
 
 def test_the_localisation_package_gives_its_public_names_on_first_use():

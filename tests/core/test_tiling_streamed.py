@@ -223,12 +223,9 @@ def test_a_subsampled_file_is_lidar_tested_on_whole_voxels_at_full_density(tmp_p
     assert survey(path, None, len(survey_pair.reference))[2] is None  # no subsample, no voxels
 
 
-@pytest.mark.parametrize("random_state", [5, 6])
-def test_a_file_in_scan_order_keeps_its_stations_in_the_subsample(tmp_path, random_state) -> None:
-    # a survey written station by station, ring by ring (as scanners write them): every 20th
-    # point of such a file keeps no two points of one column, and no station was recovered
-    # from it (the 100M pair, issue 30); the hashed subsample keeps them all
-    written = write_lidar_pair(
+def _ring_ordered_survey(tmp_path: Path, random_state: int):
+    """A 200k-point three-station room survey written station by station, ring by ring."""
+    return write_lidar_pair(
         tmp_path,
         layout="room",
         change="none",
@@ -236,6 +233,14 @@ def test_a_file_in_scan_order_keeps_its_stations_in_the_subsample(tmp_path, rand
         angular_step_deg=steps_for_points(200_000, 3),
         random_state=random_state,
     )
+
+
+@pytest.mark.parametrize("random_state", [5, 6])
+def test_a_file_in_scan_order_keeps_its_stations_in_the_subsample(tmp_path, random_state) -> None:
+    # a survey written station by station, ring by ring (as scanners write them): every 20th
+    # point of such a file keeps no two points of one column, and no station was recovered
+    # from it (the 100M pair, issue 30); the hashed subsample keeps them all
+    written = _ring_ordered_survey(tmp_path, random_state)
     cloud, subsample, _ = survey(written.reference_path, None, 10_000)
     assert cloud.step == 20
     whole = np.concatenate([points for _, points in cloud.chunks()])
@@ -252,14 +257,7 @@ def test_a_sparse_subsample_searches_its_stations_on_whole_voxels(tmp_path, rand
     # one point in 50 (as at 100M points a file) keeps too few pairs of one column: the
     # stations are searched on the survey's whole voxels at full density, in the subsample's
     # frame, also when the cloud is moved (the scan's aligned frame)
-    written = write_lidar_pair(
-        tmp_path,
-        layout="room",
-        change="none",
-        n_stations=3,
-        angular_step_deg=steps_for_points(200_000, 3),
-        random_state=random_state,
-    )
+    written = _ring_ordered_survey(tmp_path, random_state)
     _, subsample, voxels = survey(written.reference_path, None, 4_000)
     true = np.load(written.truth_path)["reference_origins"]
     options = {"given": None, "from_file": None, "estimate": True, "recover": "auto"}
