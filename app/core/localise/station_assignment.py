@@ -116,7 +116,7 @@ def station_contrasts(
     points: NDArray[np.floating], origins: NDArray[np.float64]
 ) -> list[NDArray[np.float64]]:
     """The first pass of :func:`assign_stations`: each station's ring contrast per elevation
-    bin, from ``points`` (shape (n, 3); a cloud streamed in chunks passes an even subsample).
+    bin, from ``points`` (shape (n, 3); a cloud streamed in chunks passes its subsample).
 
     Returns
     -------
