@@ -24,7 +24,7 @@ the tile's ray reach (the only ones :func:`crop_mask` can keep).
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
 from pathlib import Path
@@ -42,6 +42,7 @@ __all__ = [
     "MAX_OPEN_TILES",
     "Chunks",
     "TileCropFiles",
+    "box_direction_marks",
     "crop_file",
     "record_dtype",
     "tile_direction_marks",
@@ -111,15 +112,27 @@ def tile_direction_marks(
     TileMarks
     """
     boxes = [plan.crop_box(tile_index) for tile_index in range(plan.n_tiles)]
+    return box_direction_marks((chunk for _, chunk, _ in other()), boxes, origins, cells)
+
+
+def box_direction_marks(
+    point_chunks: Iterable[NDArray[np.floating]],
+    boxes: Sequence[tuple[NDArray[np.float64], NDArray[np.float64]]],
+    origins: NDArray[np.float64],
+    cells: NDArray[np.float64],
+) -> TileMarks:
+    """The direction marks of ``origins`` in each xy box ``(low, high)`` from the other
+    cloud's points handed out in chunks (each shape (c, 3)): the same cells whatever the
+    chunks (:func:`tile_direction_marks` for every tile, a tile's crop file for its own)."""
     found: list[list[list[NDArray[np.int64]]]] = [[[] for _ in origins] for _ in boxes]
-    for _, chunk, _ in other():
-        for tile_index, (low, high) in enumerate(boxes):
+    for chunk in point_chunks:
+        for box_number, (low, high) in enumerate(boxes):
             inside = box_mask(chunk, low, high)
             if not inside.any():
                 continue
             seen = direction_cells(chunk[inside], origins, cells)
             for number, cells_seen in enumerate(seen):
-                found[tile_index][number].append(cells_seen)
+                found[box_number][number].append(cells_seen)
     return [expanded_marks(parts, cells) for parts in found]
 
 
@@ -342,19 +355,13 @@ class TileCropFiles:
     ) -> list[NDArray[np.int64]]:
         """The direction marks of ``side``'s origins for this tile, from the other cloud's
         points in its crop box (:func:`tile_direction_marks` of this tile)."""
-        low, high = plan.crop_box(tile_index)
-        origins = getattr(context, f"{side}_origins")
-        cells = getattr(context, f"{side}_ray_cells")
-        found: list[list[NDArray[np.int64]]] = [[] for _ in origins]
-        for records in self._records(tile_index, SIDES[1 - SIDES.index(side)]):
-            points = records["point"]
-            inside = box_mask(points, low, high)
-            if inside.any():
-                for number, cells_seen in enumerate(
-                    direction_cells(points[inside], origins, cells)
-                ):
-                    found[number].append(cells_seen)
-        return expanded_marks(found, cells)
+        other_records = self._records(tile_index, SIDES[1 - SIDES.index(side)])
+        return box_direction_marks(
+            (records["point"] for records in other_records),
+            [plan.crop_box(tile_index)],
+            getattr(context, f"{side}_origins"),
+            getattr(context, f"{side}_ray_cells"),
+        )[0]
 
     def _filtered(
         self, plan: TilePlan, tile_index: int, context: TileContext, side: str
