@@ -508,6 +508,29 @@ class JobTile(Base):
     finished_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
 
 
+class JobCropPass(Base):
+    """One cloud's pass writing its share of every tile's crop in a streamed tiled job.
+
+    The parent's crops pass split by cloud (:mod:`app.jobs.crop_passes`): claimed, leased,
+    retried and cancelled as a :class:`JobTile` is; ``pass_index`` numbers the clouds
+    (0 the reference, 1 the scan).
+    """
+
+    __tablename__ = "job_crop_pass"
+    __table_args__ = (Index("ix_job_crop_pass_job_status", "job_id", "status"),)
+
+    job_id: Mapped[str] = mapped_column(ForeignKey("job.id", ondelete="CASCADE"), primary_key=True)
+    pass_index: Mapped[int] = mapped_column(Integer, primary_key=True)
+    status: Mapped[str] = mapped_column(String(16), default=TileStatus.QUEUED)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    lease_owner: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    lease_expires_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
+    points: Mapped[int] = mapped_column(Integer, default=0)  # points written into the crops
+    seconds: Mapped[float | None] = mapped_column(Float, nullable=True)
+    started_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
+    finished_at: Mapped[datetime | None] = mapped_column(Timestamp, nullable=True)
+
+
 # A fanned-out job's tiles, counted where the job is read (``JobRead.tiles``): no counter to keep
 # in step, the rows are the truth.
 Job.tiles_total = column_property(

@@ -29,6 +29,7 @@ import numpy as np
 from app.config import DEFAULT_MEMORY_BUDGET_BYTES, Settings
 from app.core.errors import InputError
 from app.core.formats import read_point_cloud
+from app.jobs.crop_passes import CropPassFanOut
 from app.jobs.geometry import geometry_cache_of, record_geometry_cache
 from app.jobs.hooks import job_hooks
 from app.jobs.leases import (
@@ -171,12 +172,13 @@ def streamed_compute(
     job: ClaimedJob, settings: Settings, keeper: LeaseKeeper, threads: int
 ) -> tuple[Comparison, dict[str, float]]:
     """:func:`compute` of a job whose files are read in chunks: the tiles' inputs written
-    from them, the tiles on the queue, the labels merged into files (this worker never holds
-    the whole pair)."""
+    from them (one crop pass a file on the queue), the tiles on the queue, the labels merged
+    into files (this worker never holds the whole pair)."""
     from app.core.tiling.streamed import compare_streamed
 
     started, started_cpu = time.perf_counter(), time.process_time()
     fan_out = TileFanOut(job, settings, keeper)
+    crop_fan_out = CropPassFanOut(job, settings, keeper, fan_out.timings)
     keeper.report("comparing", PROGRESS_LOADED)
     result = compare_streamed(
         job.reference_path,  # type: ignore[arg-type]  # checked by streamed_tiles
@@ -186,6 +188,7 @@ def streamed_compute(
         formats=(job.reference_format, job.scan_format),
         max_crop_points=settings.tile_crop_points,
         run_tiles=fan_out,
+        run_crops=crop_fan_out,
         method=job.method,
         variant=job.variant,
         params=job.params,

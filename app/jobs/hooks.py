@@ -21,6 +21,10 @@ with that message: a transient failure).
 * :meth:`JobHooks.in_tile`: in a job compared tile by tile (:mod:`app.jobs.tiles`), once a
   worker claimed a tile: ``tile_sleep_seconds`` (every worker, every tile) and ``kill_in_tile``
   (N: the job's own worker SIGKILLs itself in the tile after storing N tiles).
+* :meth:`JobHooks.in_crop_pass`: in a streamed job's crop pass (:mod:`app.jobs.crop_passes`),
+  once a worker claimed it: ``crop_pass_sleep_seconds`` (every worker, every pass) and
+  ``kill_in_crop_pass`` (``"helper"``: a worker running a pass from its queue message
+  SIGKILLs itself there; ``"parent"``: the job's own worker does, ``on_attempts`` filtering).
 """
 
 from __future__ import annotations
@@ -118,6 +122,23 @@ class JobHooks:
         kill_after = faults.get("kill_in_tile")
         if job is not None and kill_after is not None and tiles_done_here >= int(kill_after):
             job_log("test hook: killing this worker in a tile", job.id, "testing-kill")
+            logging.shutdown()
+            os.kill(os.getpid(), signal.SIGKILL)
+
+    def in_crop_pass(self, job: ClaimedJob | None, pass_index: int) -> None:
+        """Act out the crop pass faults once a worker claimed pass ``pass_index`` of a job
+        (``job``: the job's own worker; None: a worker that took the pass's message)."""
+        faults = self.faults_for(job) if job is not None else self.process_faults()
+        if not faults:
+            return
+        time.sleep(float(faults.get("crop_pass_sleep_seconds", 0.0)))
+        who = "parent" if job is not None else "helper"
+        if faults.get("kill_in_crop_pass") == who:
+            logger.info(
+                "test hook: killing this worker in crop pass %d",
+                pass_index,
+                extra={"stage": "testing-kill"},
+            )
             logging.shutdown()
             os.kill(os.getpid(), signal.SIGKILL)
 

@@ -3,8 +3,9 @@
 The queue only carries job ids; the ``job`` table is the truth (see ``docs/jobs.md``).  By default
 the queue is a SQLite file in the data directory (``SqliteHuey``, no server); a ``redis://`` (or
 ``rediss://``, ``unix://``) ``SCANDIFF_QUEUE_URL`` selects ``RedisHuey`` so consumers can run on
-many hosts.  One Huey instance per backend per process, each with the ``run_job`` and ``run_tile``
-tasks registered (no Huey retries: attempts live in the job and job_tile tables).
+many hosts.  One Huey instance per backend per process, each with the ``run_job``, ``run_tile``
+and ``run_crop_pass`` tasks registered (no Huey retries: attempts live in the job, job_tile and
+job_crop_pass tables).
 
 The queue knows nothing of what runs on it: the task calls the runner a worker process installs
 with :func:`install_job_runner` (:mod:`app.jobs.runner`); a process that only enqueues (the API)
@@ -36,6 +37,8 @@ QUEUE_NAME = "scandiff"
 JOB_TASK_NAME = "run_job"
 TILE_TASK_NAME = "run_tile"
 """The second task: one tile of a job localised tile by tile (:mod:`app.jobs.tiles`)."""
+CROP_PASS_TASK_NAME = "run_crop_pass"
+"""The third task: one cloud's crop pass of a streamed tiled job (:mod:`app.jobs.crop_passes`)."""
 SQLITE_QUEUE_TIMEOUT_SECONDS = 60.0
 """Busy timeout of the Huey SQLite queue file (Huey's default of 5 s is too short under load)."""
 REDIS_URL_SCHEMES = ("redis://", "rediss://", "unix://")
@@ -49,9 +52,11 @@ CONSUMER_HEARTBEAT_KEY = "consumer-heartbeat"
 _hueys: dict[tuple[str, str], Huey] = {}
 _job_tasks: dict[int, Callable[..., Any]] = {}
 _tile_tasks: dict[int, Callable[..., Any]] = {}
+_crop_pass_tasks: dict[int, Callable[..., Any]] = {}
 _hueys_lock = threading.Lock()
 _job_runner: Callable[[str], object] | None = None
 _tile_runner: Callable[[str, int], object] | None = None
+_crop_pass_runner: Callable[[str, int], object] | None = None
 
 
 def install_job_runner(runner: Callable[[str], object]) -> None:
@@ -83,6 +88,22 @@ def run_tile(job_id: str, tile_index: int) -> None:
             "(start a worker: scandiff worker)"
         )
     _tile_runner(job_id, int(tile_index))
+
+
+def install_crop_pass_runner(runner: Callable[[str, int], object]) -> None:
+    """Make this process's ``run_crop_pass`` messages call ``runner(job_id, pass_index)``."""
+    global _crop_pass_runner
+    _crop_pass_runner = runner
+
+
+def run_crop_pass(job_id: str, pass_index: int) -> None:
+    """The Huey task: hand crop pass ``pass_index`` of job ``job_id`` to this process's runner."""
+    if _crop_pass_runner is None:
+        raise RuntimeError(
+            f"job {job_id} crop pass {pass_index}: no crop pass runner in this process "
+            "(start a worker: scandiff worker)"
+        )
+    _crop_pass_runner(job_id, int(pass_index))
 
 
 def queue_backend(settings: Settings) -> str:
@@ -121,6 +142,7 @@ def create_huey(settings: Settings) -> Huey:
         huey = RedisHuey(name=QUEUE_NAME, connection_pool=pool, results=False, utc=True)
     _job_tasks[id(huey)] = huey.task(name=JOB_TASK_NAME, retries=0)(run_job)
     _tile_tasks[id(huey)] = huey.task(name=TILE_TASK_NAME, retries=0)(run_tile)
+    _crop_pass_tasks[id(huey)] = huey.task(name=CROP_PASS_TASK_NAME, retries=0)(run_crop_pass)
     return huey
 
 
@@ -160,6 +182,17 @@ def send_tile_messages(job_id: str, tile_indices: list[int], settings: Settings)
     for tile_index in tile_indices:
         task(job_id, int(tile_index))
     if tile_indices and queue_backend(settings) == "sqlite":
+        ring(doorbell_path(settings.data_dir))
+
+
+def send_crop_pass_messages(job_id: str, pass_indices: list[int], settings: Settings) -> None:
+    """Put one ``run_crop_pass(job_id, i)`` message on the queue per pass, then wake idle
+    workers of an SQLite queue.  A lost message costs nothing: the job's own worker runs every
+    pass no other worker took (:mod:`app.jobs.crop_passes`)."""
+    task = _crop_pass_tasks[id(get_huey(settings))]
+    for pass_index in pass_indices:
+        task(job_id, int(pass_index))
+    if pass_indices and queue_backend(settings) == "sqlite":
         ring(doorbell_path(settings.data_dir))
 
 

@@ -33,26 +33,32 @@ from __future__ import annotations
 
 import logging
 import shutil
-import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from datetime import timedelta
 from pathlib import Path
 
-from sqlalchemy import ColumnElement, and_, func, or_, select, update
+from sqlalchemy import func, select
 
-from app.clock import utc_now
 from app.config import Settings
 from app.core.files import write_atomically
 from app.core.tiling import TileContext, TilePlan, TileResult, TileSource, compute_tile
 from app.core.tiling.crops import TileCropFiles, write_tile_crops
 from app.core.tiling.pair_files import StoredTileResults
-from app.db.models import Job, JobStatus, JobTile, TileStatus
+from app.db.models import JobStatus, JobTile, TileStatus
 from app.db.session import transaction
 from app.jobs.hooks import job_hooks
 from app.jobs.leases import ClaimedJob, LeaseKeeper, TileOutcome, make_lease_owner
 from app.jobs.queue import send_tile_messages
+from app.jobs.task_rows import (
+    CROP_PASSES,
+    TILES,
+    TaskLease,
+    cancel_tasks,
+    claim_task,
+    job_status,
+    store_task,
+)
 
 logger = logging.getLogger("scandiff.jobs.tiles")
 
@@ -150,90 +156,9 @@ def tile_progress(settings: Settings, job_id: str) -> tuple[int, int]:
 def claim_tile(
     settings: Settings, job_id: str, owner: str, tile_index: int | None = None
 ) -> int | None:
-    """Take one tile of a running job (that one, or the lowest free one); its index, or None.
-
-    Free: ``queued``, or ``running`` with an expired lease (its worker died).
-    """
-    with transaction(settings.sqlalchemy_url) as session:
-        session.connection()  # SQLite: BEGIN IMMEDIATE waits for the write lock here, so ...
-        now = utc_now()  # ... a lease is never born expired by that wait
-        free = or_(
-            JobTile.status == TileStatus.QUEUED,
-            and_(JobTile.status == TileStatus.RUNNING, JobTile.lease_expires_at < now),
-        )
-        job_running = session.scalar(
-            select(Job.id).where(Job.id == job_id, Job.status == JobStatus.RUNNING)
-        )
-        if job_running is None:
-            return None
-        candidates = select(JobTile.tile_index).where(JobTile.job_id == job_id, free)
-        if tile_index is not None:
-            candidates = candidates.where(JobTile.tile_index == tile_index)
-        for candidate in session.scalars(candidates.order_by(JobTile.tile_index).limit(4)):
-            taken = session.execute(
-                update(JobTile)
-                .where(JobTile.job_id == job_id, JobTile.tile_index == candidate, free)
-                .values(
-                    status=TileStatus.RUNNING,
-                    attempts=JobTile.attempts + 1,
-                    lease_owner=owner,
-                    lease_expires_at=now + timedelta(seconds=settings.job_lease_seconds),
-                    started_at=now,
-                )
-                .execution_options(synchronize_session=False)
-            ).rowcount
-            if taken:
-                return int(candidate)
-    return None
-
-
-def _held(job_id: str, tile_index: int, owner: str) -> ColumnElement[bool]:
-    """The tile, still running under ``owner``'s lease."""
-    return and_(
-        JobTile.job_id == job_id,
-        JobTile.tile_index == tile_index,
-        JobTile.status == TileStatus.RUNNING,
-        JobTile.lease_owner == owner,
-    )
-
-
-class TileLease:
-    """Heartbeat thread of one claimed tile: extends its lease until stopped."""
-
-    def __init__(self, settings: Settings, job_id: str, tile_index: int, owner: str) -> None:
-        self.settings, self.job_id, self.tile_index, self.owner = (
-            settings,
-            job_id,
-            tile_index,
-            owner,
-        )
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="tile-lease", daemon=True)
-
-    def __enter__(self) -> TileLease:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join()
-
-    def _run(self) -> None:
-        interval = min(self.settings.job_heartbeat_seconds, self.settings.job_lease_seconds / 3)
-        while not self._stop.wait(interval):
-            try:
-                with transaction(self.settings.sqlalchemy_url) as session:
-                    session.execute(
-                        update(JobTile)
-                        .where(_held(self.job_id, self.tile_index, self.owner))
-                        .values(
-                            lease_expires_at=utc_now()
-                            + timedelta(seconds=self.settings.job_lease_seconds)
-                        )
-                        .execution_options(synchronize_session=False)
-                    )
-            except Exception:  # retried at the next beat; the lease covers several
-                logger.exception("tile heartbeat failed", extra={"job_id": self.job_id})
+    """Take one tile of a running job (that one, or the lowest free one); its index, or None
+    (:func:`app.jobs.task_rows.claim_task`)."""
+    return claim_task(settings, TILES, job_id, owner, tile_index)
 
 
 def run_claimed_tile(
@@ -249,7 +174,7 @@ def run_claimed_tile(
     """Compute a tile this worker claimed and store it; whether it was stored."""
     directory = settings.data_layout.job_tiles_dir(job_id)
     started = time.perf_counter()
-    with TileLease(settings, job_id, tile_index, owner):
+    with TaskLease(settings, TILES, job_id, tile_index, owner):
         job_hooks.in_tile(parent, tiles_done_here)
         plan, source, context = load_tile_inputs(directory)
         result = compute_tile(plan, tile_index, source, context, threads=threads)
@@ -259,20 +184,16 @@ def run_claimed_tile(
     crop_points = int(
         result.figures.get("crop_reference_points", 0) + result.figures.get("crop_scan_points", 0)
     )
-    with transaction(settings.sqlalchemy_url) as session:
-        stored = session.execute(
-            update(JobTile)
-            .where(_held(job_id, tile_index, owner))
-            .values(
-                status=TileStatus.SUCCEEDED,
-                result_path=settings.data_layout.stored_form(path),
-                points=crop_points,
-                seconds=seconds,
-                finished_at=utc_now(),
-                lease_expires_at=None,  # lease_owner stays: who computed it
-            )
-            .execution_options(synchronize_session=False)
-        ).rowcount
+    stored = store_task(
+        settings,
+        TILES,
+        job_id,
+        tile_index,
+        owner,
+        result_path=settings.data_layout.stored_form(path),
+        points=crop_points,
+        seconds=seconds,
+    )
     logger.info(
         "tile %s",
         "stored" if stored else "computed but not stored (lease lost or job stopped)",
@@ -282,17 +203,8 @@ def run_claimed_tile(
 
 
 def cancel_tiles(settings: Settings, job_id: str) -> int:
-    """Mark a stopped job's unfinished tiles ``cancelled``; how many."""
-    with transaction(settings.sqlalchemy_url) as session:
-        return session.execute(
-            update(JobTile)
-            .where(
-                JobTile.job_id == job_id,
-                JobTile.status.in_([TileStatus.QUEUED, TileStatus.RUNNING]),
-            )
-            .values(status=TileStatus.CANCELLED, lease_owner=None, lease_expires_at=None)
-            .execution_options(synchronize_session=False)
-        ).rowcount
+    """Mark a stopped job's unfinished tiles and crop passes ``cancelled``; how many."""
+    return sum(cancel_tasks(settings, table, job_id) for table in (TILES, CROP_PASSES))
 
 
 def remove_tile_inputs(settings: Settings, job_id: str) -> None:
@@ -309,8 +221,7 @@ def run_tile_message(
     owner = make_lease_owner()
     claimed = claim_tile(settings, job_id, owner, tile_index)
     if claimed is None:
-        with transaction(settings.sqlalchemy_url) as session:
-            status = session.scalar(select(Job.status).where(Job.id == job_id))
+        status = job_status(settings, job_id)
         if status in (JobStatus.RUNNING, JobStatus.QUEUED):
             return TileOutcome.SKIPPED
         cancel_tiles(settings, job_id)  # finished, failed or deleted: nothing will read it

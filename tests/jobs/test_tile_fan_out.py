@@ -5,7 +5,9 @@ tiles are ``run_tile`` messages on the same queue the workers consume.  Checked:
 result equals the in-process tiled comparison of the same files (labels identical), more than
 one worker computed tiles, the job reports tiles done/total, a worker killed inside a tile
 leaves that tile to be retried while the tiles already stored are never computed again, and a
-job that stops cancels its tiles.
+job that stops cancels its tiles.  The streamed parent's crops pass is queue work too, one pass
+a cloud: run by both workers, retried when the worker running one is killed, cancelled with
+its job.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from __future__ import annotations
 import sqlite3
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -22,8 +25,9 @@ from app.config import Settings
 from app.core.datasets import map_pair
 from app.core.formats import read_point_cloud
 from app.core.tiling.compare import compare_tiled
-from app.db.models import Job, JobStatus, JobTile, TileStatus
+from app.db.models import Job, JobCropPass, JobStatus, JobTile, TileStatus
 from app.db.session import transaction
+from app.jobs.crop_passes import run_crop_pass_message
 from app.jobs.leases import TileOutcome, lease_owner_pid
 from app.jobs.tiles import run_tile_message
 from app.testing.files import ply_bytes
@@ -68,6 +72,32 @@ def _run_job(service: ServiceProcess, reference: np.ndarray, scan: np.ndarray) -
     return {**job, "labels_npz": labels.content}
 
 
+def _crop_passes(data_dir: Path, job_id: str) -> list[dict]:
+    with sqlite3.connect(data_dir / "scandiff.sqlite3") as connection:
+        connection.row_factory = sqlite3.Row
+        rows = connection.execute(
+            "SELECT * FROM job_crop_pass WHERE job_id = ? ORDER BY pass_index", (job_id,)
+        ).fetchall()
+    return [dict(row) for row in rows]
+
+
+def _expected(tmp_path: Path, reference: np.ndarray, scan: np.ndarray, crop_points: int) -> Any:
+    """The in-process tiled comparison of the files the service stored."""
+    clouds = []
+    for name, points in (("reference.ply", reference), ("scan.ply", scan)):
+        (tmp_path / name).write_bytes(ply_bytes(points))  # the bytes the service stored
+        clouds.append(read_point_cloud(tmp_path / name))
+    return compare_tiled(*clouds, budget_bytes=1 << 40, max_crop_points=crop_points, threads=1)
+
+
+def _assert_same_labels(job: dict, expected: Any, tmp_path: Path) -> None:
+    assert job["changed"] == expected.changed
+    assert job["n_regions"] == len(expected.regions)
+    stored = _labels(job["labels_npz"], tmp_path)
+    np.testing.assert_array_equal(stored["reference_label"], expected.reference_label)
+    np.testing.assert_array_equal(stored["scan_label"], expected.scan_label)
+
+
 def _labels(npz: bytes, tmp_path: Path) -> dict[str, np.ndarray]:
     path = tmp_path / "labels.npz"
     path.write_bytes(npz)
@@ -75,7 +105,7 @@ def _labels(npz: bytes, tmp_path: Path) -> dict[str, np.ndarray]:
         return {name: data[name] for name in data.files}
 
 
-def test_tiles_run_on_every_worker_and_equal_the_in_process_tiled_result(
+def test_tiles_and_crop_passes_run_on_every_worker_and_equal_the_in_process_tiled_result(
     service_factory: Callable[..., ServiceProcess], tmp_path: Path
 ) -> None:
     reference, scan, crop_points = _pair()
@@ -83,7 +113,10 @@ def test_tiles_run_on_every_worker_and_equal_the_in_process_tiled_result(
         workers=2,
         env={
             "SCANDIFF_TILE_CROP_POINTS": str(crop_points),
-            "SCANDIFF_TEST_JOB_HOOKS": '{"tile_sleep_seconds": 0.3}',
+            # a pass long enough for the other worker to take the second pass's message
+            "SCANDIFF_TEST_JOB_HOOKS": (
+                '{"tile_sleep_seconds": 0.3, "crop_pass_sleep_seconds": 1.5}'
+            ),
         },
     )
     job = _run_job(service, reference, scan)
@@ -109,22 +142,44 @@ def test_tiles_run_on_every_worker_and_equal_the_in_process_tiled_result(
     ), (timings, seconds_by_owner)
     assert timings["tile_inputs_write"] > 0 and timings["tile_results_read"] > 0
     assert "streamed_seconds" in timings, "coordinates-only files: the parent streams them"
+    passes = _crop_passes(service.data_dir, job["id"])  # the crops pass: one a cloud
+    assert [row["pass_index"] for row in passes] == [0, 1]
+    assert {row["status"] for row in passes} == {"succeeded"}
+    assert all(row["attempts"] == 1 and row["points"] > 0 for row in passes)
+    workers = {lease_owner_pid(row["lease_owner"]) for row in passes}
+    assert len(workers) == 2, f"crop passes run by {workers}: the second worker took none"
+    assert timings["crop_passes_computed_here"] == timings["crop_passes_computed_elsewhere"] == 1
+    assert timings["crop_passes_other_workers"] > 0
 
-    clouds = []
-    for name, points in (("reference.ply", reference), ("scan.ply", scan)):
-        (tmp_path / name).write_bytes(ply_bytes(points))  # the bytes the service stored
-        clouds.append(read_point_cloud(tmp_path / name))
-    expected = compare_tiled(
-        *clouds,
-        budget_bytes=1 << 40,
-        max_crop_points=crop_points,
-        threads=1,
+    _assert_same_labels(job, _expected(tmp_path, reference, scan, crop_points), tmp_path)
+
+
+@pytest.mark.slow  # a lease to expire: ~40 s
+def test_a_worker_killed_in_a_crop_pass_leaves_it_retried_with_the_same_result(
+    service_factory: Callable[..., ServiceProcess], tmp_path: Path
+) -> None:
+    reference, scan, crop_points = _pair()
+    service = service_factory(
+        workers=2,
+        env={
+            "SCANDIFF_TILE_CROP_POINTS": str(crop_points),
+            "SCANDIFF_JOB_LEASE_SECONDS": "3",
+            "SCANDIFF_JOB_HEARTBEAT_SECONDS": "0.5",
+            "SCANDIFF_TEST_JOB_HOOKS": (
+                '{"crop_pass_sleep_seconds": 1.5, "kill_in_crop_pass": "helper"}'
+            ),
+        },
     )
-    assert job["changed"] == expected.changed
-    assert job["n_regions"] == len(expected.regions)
-    stored = _labels(job["labels_npz"], tmp_path)
-    np.testing.assert_array_equal(stored["reference_label"], expected.reference_label)
-    np.testing.assert_array_equal(stored["scan_label"], expected.scan_label)
+    job = _run_job(service, reference, scan)
+    assert job["status"] == JobStatus.SUCCEEDED, job
+    assert job["attempts"] == 1, "the job's own worker lived: only the pass was retried"
+    passes = _crop_passes(service.data_dir, job["id"])
+    assert {row["status"] for row in passes} == {"succeeded"}
+    # the pass the other worker died in ran again (on the job's worker); the other ran once
+    assert sorted(row["attempts"] for row in passes) == [1, 2]
+    assert len({row["lease_owner"] for row in passes}) == 1, "the job's worker stored both"
+    assert job["timings"]["crop_passes_computed_here"] == 2
+    _assert_same_labels(job, _expected(tmp_path, reference, scan, crop_points), tmp_path)
 
 
 @pytest.mark.slow  # two attempts of a real job with a lease to expire: ~1 minute
@@ -172,6 +227,22 @@ def test_tiles_of_a_job_that_stopped_are_cancelled(job_settings: Settings, endin
     assert _statuses(job_settings, job_id) == (
         {TileStatus.CANCELLED} if ending == "failed" else set()
     )
+
+
+def test_crop_passes_of_a_job_that_stopped_are_cancelled(job_settings: Settings) -> None:
+    job_id = create_job(job_settings)
+    with transaction(job_settings.sqlalchemy_url) as session:
+        session.execute(update(Job).where(Job.id == job_id).values(status=JobStatus.QUEUED))
+        session.add_all(JobCropPass(job_id=job_id, pass_index=index) for index in range(2))
+    assert run_crop_pass_message(job_id, 1, job_settings) is TileOutcome.SKIPPED
+    with transaction(job_settings.sqlalchemy_url) as session:
+        session.execute(update(Job).where(Job.id == job_id).values(status=JobStatus.FAILED))
+    assert run_crop_pass_message(job_id, 1, job_settings) is TileOutcome.CANCELLED
+    with transaction(job_settings.sqlalchemy_url) as session:
+        statuses = set(
+            session.scalars(select(JobCropPass.status).where(JobCropPass.job_id == job_id))
+        )
+    assert statuses == {TileStatus.CANCELLED}
 
 
 def _statuses(settings: Settings, job_id: str) -> set[str]:

@@ -46,7 +46,9 @@ __all__ = [
     "crop_file",
     "record_dtype",
     "tile_direction_marks",
+    "write_crop_layout",
     "write_crops_from_chunks",
+    "write_side_crops",
     "write_tile_crops",
 ]
 
@@ -202,9 +204,8 @@ def write_crops_from_chunks(
     *,
     threads: int = 1,
     marks: dict[str, TileMarks] | None = None,
-    directions_in_tiles: bool = False,
 ) -> list[int]:
-    """:func:`write_tile_crops` of clouds handed out in chunks (a streamed parent's).
+    """:func:`write_tile_crops` of clouds handed out in chunks.
 
     Parameters
     ----------
@@ -222,13 +223,9 @@ def write_crops_from_chunks(
     marks : dict, optional
         For a cloud whose context has direction cells (``<side>_ray_cells``): its
         :func:`tile_direction_marks`, so that its crops keep the other sensor's returns by
-        direction too (:func:`~app.core.tiling.rays.crop_masks`); else the top view only.
-    directions_in_tiles : bool
-        Instead of ``marks``: the crops are written in the top view only and each tile,
-        reading them (:meth:`TileCropFiles.crop`), marks the directions from the other cloud's
-        points in its box and keeps what ``marks`` would have kept (the same points in the
-        same order), so that the parent need not pass over the other file for the marks.
-        For a cloud whose context has direction cells and no rays.
+        direction too (:func:`~app.core.tiling.rays.crop_masks`); else the top view only (a
+        streamed parent's crops, :mod:`app.core.tiling.crop_passes`, are kept by direction
+        as each tile reads them).
 
     Returns
     -------
@@ -237,25 +234,13 @@ def write_crops_from_chunks(
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    deferred = {
-        side: directions_in_tiles
-        and getattr(context, f"{side}_ray_cells") is not None
-        and sides[side][1] is not None
-        and sides[side][3] is None
-        for side in sides
-    }
 
     def write(side: str) -> NDArray[np.int64]:
         chunks, origins, dtype, rays = sides[side]
         cells = getattr(context, f"{side}_ray_cells")
         side_marks = None if marks is None or cells is None else marks.get(side)
         directions = None if side_marks is None else (cells, side_marks)
-        sizes = np.zeros(plan.n_tiles, dtype=np.int64)
-        for first in range(0, plan.n_tiles, MAX_OPEN_TILES):
-            tiles = range(first, min(plan.n_tiles, first + MAX_OPEN_TILES))
-            sizes[first : tiles.stop] = _write_side(
-                directory, plan, tiles, side, chunks, origins, context, dtype, directions
-            )
+        sizes = write_side_crops(directory, plan, context, side, chunks, origins, dtype, directions)
         if rays is not None:
             for tile_index in range(plan.n_tiles):
                 index = np.fromfile(crop_file(directory, tile_index, side), dtype=dtype)["index"]
@@ -267,11 +252,58 @@ def write_crops_from_chunks(
     with ThreadPoolExecutor(max_workers=max(1, min(threads, len(sides)))) as pool:
         crop_sizes = sum(pool.map(write, list(sides)), np.zeros(plan.n_tiles, dtype=np.int64))
     layout = {
-        side: {"dtype": dtype.descr, "rays": rays is not None, "directions": deferred[side]}
+        side: {"dtype": dtype.descr, "rays": rays is not None, "directions": False}
         for side, (_, _, dtype, rays) in sides.items()
     }
-    (directory / META_FILE).write_text(json.dumps(layout))
+    write_crop_layout(directory, layout)
     return [int(size) for size in crop_sizes]
+
+
+def write_side_crops(
+    directory: Path,
+    plan: TilePlan,
+    context: TileContext,
+    side: str,
+    chunks: Chunks,
+    origins: NDArray[np.float64] | None,
+    dtype: np.dtype,
+    directions: tuple[NDArray[np.float64], TileMarks] | None = None,
+) -> NDArray[np.int64]:
+    """Every tile's crop file of one cloud, one pass over ``chunks`` per
+    :data:`MAX_OPEN_TILES` tiles; the crops' point counts, shape (n_tiles,).
+
+    Parameters
+    ----------
+    directory : Path
+        Where the crop files go (:func:`crop_file`); it must exist.
+    plan : TilePlan
+    context : TileContext
+    side : str
+        ``reference`` or ``scan``.
+    chunks : Chunks
+        A pass over the cloud.
+    origins : ndarray, shape (k, 3), or None
+        The cloud's origins in the context.
+    dtype : numpy.dtype
+        :func:`record_dtype` of the points and stations.
+    directions : (ndarray, TileMarks), optional
+        The cloud's direction cells and :func:`tile_direction_marks`: kept by direction too;
+        else in the top view only.
+    """
+    sizes = np.zeros(plan.n_tiles, dtype=np.int64)
+    for first in range(0, plan.n_tiles, MAX_OPEN_TILES):
+        tiles = range(first, min(plan.n_tiles, first + MAX_OPEN_TILES))
+        sizes[first : tiles.stop] = _write_side(
+            directory, plan, tiles, side, chunks, origins, context, dtype, directions
+        )
+    return sizes
+
+
+def write_crop_layout(directory: Path, layout: dict[str, dict[str, Any]]) -> None:
+    """Write the crops' record layout (``crops.json``, read by :class:`TileCropFiles`):
+    per cloud, ``dtype`` (its ``descr``), ``rays`` and ``directions`` (see
+    :func:`write_crops_from_chunks`)."""
+    (Path(directory) / META_FILE).write_text(json.dumps(layout))
 
 
 def _write_side(

@@ -36,6 +36,7 @@ __all__ = [
     "StoredTileResults",
     "StreamedCloud",
     "coordinates_only",
+    "finite_chunks",
     "side_arrays",
     "streamed_outputs",
     "subsample_offsets",
@@ -95,7 +96,7 @@ class StreamedCloud:
 
     def chunks(self) -> Iterator[tuple[int, NDArray[np.float64]]]:
         """``(first finite index, finite points (c, 3) float64)``, :data:`CHUNK` at a time."""
-        yield from _finite_chunks(self.path, self.format)
+        yield from finite_chunks(self.path, self.format)
 
     def file_rows(self, first: int, count: int) -> NDArray[np.int64]:
         """The file rows of finite points ``first .. first + count - 1``."""
@@ -106,7 +107,7 @@ class StreamedCloud:
         return finite + np.searchsorted(before, finite, side="right")
 
 
-def _finite_chunks(path: Path, format: str | None) -> Iterator[tuple[int, NDArray[np.float64]]]:
+def finite_chunks(path: Path, format: str | None) -> Iterator[tuple[int, NDArray[np.float64]]]:
     """A file's finite points in windows of exactly :data:`CHUNK` (the last shorter)."""
     pending: list[NDArray[np.float64]] = []
     count = first = 0

@@ -15,12 +15,14 @@ plans, cuts and merges the tiles (32 bytes a point read lean: 6.4 GB for 100M + 
   the registration, whose own sample is then the same points as the whole pair's, the
   detectors' sample) and the planner counts crops on it, scaled to the whole clouds;
 - each tile's input, written in one pass over each file's chunks into files of its own
-  (:mod:`app.core.tiling.crops`): the chunk moved into the local frame, the scan's aligned,
+  (:mod:`app.core.tiling.crops`), one :class:`~app.core.tiling.crop_passes.CropPass` a file,
+  run by ``run_crops`` (here, or on the workers: :mod:`app.jobs.crop_passes`): the chunk
+  moved into the local frame, the scan's aligned,
   each point's station assigned (:func:`~app.core.localise.station_assignment.best_stations`
   with the contrasts of the subsample); with stations, the other sensor's returns are kept
   by direction too (:mod:`app.core.tiling.rays`): written in the top view, each tile marks
   its directions from the other cloud's points in its box as it reads its crop
-  (:class:`~app.core.tiling.crops.TileCropFiles`, ``directions_in_tiles``), so that this
+  (:class:`~app.core.tiling.crops.TileCropFiles`), so that this
   work runs on whichever worker takes the tile; the direction cells from the subsample's
   station counts scaled up;
 - the merge, range by range of :data:`~app.core.tiling.pair_files.OUTPUT_RANGE` points: each
@@ -42,7 +44,7 @@ from __future__ import annotations
 import dataclasses
 import shutil
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -53,7 +55,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.cloud import PointCloud, choose_local_origin
-from app.core.comparison.align import Alignment, transformed
+from app.core.comparison.align import Alignment
 from app.core.comparison.load import LoadedPair, PairOptions, load_pair
 from app.core.comparison.origins import SensorOrigins
 from app.core.localise import Localisation
@@ -63,11 +65,13 @@ from app.core.localise.station_assignment import best_stations, station_contrast
 from app.core.pipeline import ComparisonResult, ProgressCallback, run_stages
 from app.core.threads import available_threads
 from app.core.tiling.compare import REGISTRATION_SAMPLE, TileRunner, origin_array
-from app.core.tiling.crops import (
-    TileCropFiles,
-    record_dtype,
-    write_crops_from_chunks,
+from app.core.tiling.crop_passes import (
+    CropPass,
+    CropRunner,
+    write_crop_passes_here,
+    write_pass_layout,
 )
+from app.core.tiling.crops import TileCropFiles
 from app.core.tiling.merge import join_regions, merged_parameters
 from app.core.tiling.pair_files import (
     StoredTileResults,
@@ -155,6 +159,8 @@ class StreamedLocalisation:
         Filled by :meth:`localise`: the output files' paths by ``<side>_<name>``.
     ray_directions : bool
         Crops keep the other sensor's returns by direction too (:mod:`app.core.tiling.rays`).
+    run_crops : CropRunner
+        Who runs each cloud's crop pass (:mod:`app.core.tiling.crop_passes`).
     """
 
     budget_bytes: int
@@ -172,6 +178,7 @@ class StreamedLocalisation:
     detection_sample: int = REGISTRATION_SAMPLE
     detect_fraction: float = 0.85
     ray_directions: bool = True
+    run_crops: CropRunner = write_crop_passes_here
 
     @property
     def params(self) -> Mapping[str, Any]:
@@ -196,31 +203,19 @@ class StreamedLocalisation:
             if cloud.station is not None or cloud.trajectory_rays is not None:
                 raise ValueError("a streamed comparison takes files with coordinates only")
         with timed_phase(timings, "stream_stations"):
-            sides = self._sides(loaded, alignment, origins)
+            passes, sub_stations = self._passes(loaded, alignment, origins)
         sub = [loaded.reference_points, alignment.aligned_scan]
-        sub_stations = [side[1] for side in sides]
         context = self._context(loaded, origins, sub_stations, [len(points) for points in sub])
         with timed_phase(timings, "stream_plan"):
             plan = self._plan(sub, sub_stations, context)
         plan.save(self.work_dir / PLAN_FILE)  # how the pair was cut, before any crop
         report("localise", 0.36)  # planned
-        all_origins = [context.reference_origins, context.scan_origins]
         crops, partial = self.work_dir / "crops", self.work_dir / "crops.partial"
         with timed_phase(timings, "stream_crops"):
             shutil.rmtree(partial, ignore_errors=True)  # swapped in whole: a tile of an
-            write_crops_from_chunks(  # earlier attempt never reads a half-written crop
-                partial,
-                plan,
-                context,
-                {
-                    name: (chunks, side_origins, dtype, None)
-                    for name, (chunks, _, dtype), side_origins in zip(
-                        ("reference", "scan"), sides, all_origins, strict=True
-                    )
-                },
-                threads=loaded.threads,
-                directions_in_tiles=True,  # each tile marks its directions as it reads
-            )
+            partial.mkdir(parents=True)  # earlier attempt never reads a half-written crop
+            self.run_crops(partial, plan, context, passes, loaded.threads, report)
+            write_pass_layout(partial, context, passes)
             shutil.rmtree(crops, ignore_errors=True)
             partial.rename(crops)
         report("localise", 0.37)  # the tiles' inputs written
@@ -345,57 +340,49 @@ class StreamedLocalisation:
                 counts = counts * (n_points / max(1, n_sub))
         return cells_of_counts(counts, angle_factor)
 
-    def _sides(
+    def _passes(
         self, loaded: LoadedPair, alignment: Alignment, sensor_origins: SensorOrigins
-    ) -> list[tuple[Callable[[], Iterator], NDArray | None, np.dtype]]:
-        """Each cloud's pass over its file (local frame, the scan aligned, stations), the
-        subsample's stations and its crop records' dtype."""
-        transform = alignment.registration.transform
-        sides = []
-        for cloud, sub, origins, move in (
-            (self.reference, loaded.reference_points, origin_array(sensor_origins.reference), None),
-            (self.scan, alignment.aligned_scan, origin_array(sensor_origins.scan), transform),
+    ) -> tuple[list[CropPass], list[NDArray | None]]:
+        """Each cloud's crop pass over its file (local frame, the scan aligned, stations) and
+        its subsample's stations."""
+        passes, sub_stations = [], []
+        for side, cloud, sub, origins, move in (
+            (
+                "reference",
+                self.reference,
+                loaded.reference_points,
+                origin_array(sensor_origins.reference),
+                None,
+            ),
+            (
+                "scan",
+                self.scan,
+                alignment.aligned_scan,
+                origin_array(sensor_origins.scan),
+                alignment.registration.transform,
+            ),
         ):
             several = origins is not None and len(origins) >= 2
             contrasts = station_contrasts(sub, origins) if several else None
-            stations = (
-                best_stations(sub, origins, contrasts).astype(
-                    np.int8 if len(origins) <= 127 else np.int32
+            sub_stations.append(
+                best_stations(sub, origins, contrasts).astype(  # type: ignore[arg-type]
+                    np.int8 if len(origins) <= 127 else np.int32  # type: ignore[arg-type]
                 )
                 if several
                 else None
             )
-            sides.append(
-                (
-                    self._pass(cloud, move, origins if several else None, contrasts),
-                    stations,
-                    record_dtype(sub, stations),
+            passes.append(
+                CropPass(
+                    side=side,
+                    path=cloud.path,
+                    format=cloud.format,
+                    offset=self.offset,
+                    transform=move,
+                    station_origins=origins if several else None,
+                    contrasts=None if contrasts is None else np.stack(contrasts),
                 )
             )
-        return sides
-
-    def _pass(
-        self,
-        cloud: StreamedCloud,
-        transform: NDArray[np.float64] | None,
-        origins: NDArray[np.float64] | None,
-        contrasts: list[NDArray[np.float64]] | None,
-    ) -> Callable[[], Iterator[tuple[int, NDArray[np.float32], NDArray | None]]]:
-        """A fresh pass over ``cloud``'s file: float32 local (aligned) points and stations."""
-
-        def chunks() -> Iterator[tuple[int, NDArray[np.float32], NDArray | None]]:
-            for first, points in cloud.chunks():
-                local = (points - self.offset).astype(np.float32)
-                if transform is not None:
-                    local = transformed(local, transform)
-                station = (
-                    None
-                    if origins is None or contrasts is None
-                    else best_stations(local, origins, contrasts)
-                )
-                yield first, local, station
-
-        return chunks
+        return passes, sub_stations
 
     def _merge(
         self, plan: TilePlan, results: Sequence[TileResult], min_region_points: int
@@ -461,6 +448,7 @@ def compare_streamed(
     margin: float = DEFAULT_MARGIN_METRES,
     ray_reach: float = DEFAULT_RAY_REACH_METRES,
     run_tiles: TileRunner | None = None,
+    run_crops: CropRunner | None = None,
     subsample_points: int = SUBSAMPLE_POINTS,
     ray_directions: bool = True,
     **options: Unpack[PairOptions],
@@ -482,6 +470,9 @@ def compare_streamed(
     run_tiles : TileRunner, optional
         Who computes the tiles (gets :class:`~app.core.tiling.crops.TileCropFiles` as its
         source); default :func:`compute_tiles_to_files` under ``work_dir/tiles``.
+    run_crops : CropRunner, optional
+        Who runs each cloud's crop pass (:mod:`app.core.tiling.crop_passes`); default
+        :func:`~app.core.tiling.crop_passes.write_crop_passes_here`.
     subsample_points : int
         About how many points of each cloud the stages see (one in ``rows // subsample_points``,
         :func:`~app.core.tiling.pair_files.subsample_offsets`).
@@ -536,6 +527,7 @@ def compare_streamed(
         offset=offset,
         work_dir=work_dir,
         ray_directions=ray_directions,
+        run_crops=run_crops or write_crop_passes_here,
     )
     started_cpu = time.process_time()
     result = run_stages(
