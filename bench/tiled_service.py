@@ -45,6 +45,11 @@ PHASES = (
     "origins",
     "align",
     "plan",
+    "crop_pass_inputs_write",
+    "crop_passes_parent_computing",
+    "crop_passes_parent_computing_cpu",
+    "crop_passes_parent_waiting",
+    "crop_passes_other_workers",
     "tile_inputs_write",
     "tiles_parent_computing",
     "tiles_parent_computing_cpu",
@@ -67,7 +72,8 @@ PHASES = (
     "compute_cpu",
     "streamed_seconds",
 )
-"""The job's timings printed for each run (app/jobs/execution.py, app/jobs/tiles.py)."""
+"""The job's timings printed for each run (app/jobs/execution.py, app/jobs/tiles.py,
+app/jobs/crop_passes.py)."""
 
 
 def run_service(
@@ -278,6 +284,7 @@ def parent_cpu_split(timings: dict[str, float]) -> dict[str, float]:
         if name.startswith("stream_") and name.endswith("_cpu") and name != "stream_tiles_cpu":
             split[name.removeprefix("stream_").removesuffix("_cpu")] = seconds
     split["write_outputs"] = timings.get("write_outputs_cpu", 0.0)
+    split["crop_passes_here"] = timings.get("crop_passes_parent_computing_cpu", 0.0)
     return {name: round(seconds, 1) for name, seconds in split.items()}
 
 
@@ -286,12 +293,17 @@ def cpu_speedup(one: dict[str, float], two: dict[str, float]) -> float:
 
     The 1-worker job's CPU is its whole time; with 2 workers the job ends when the later of
     the parent (its serial part and its tiles) and the serial part plus the other worker's
-    tiles (every tile's CPU, from the 1-worker run, less the parent's) ends.  Wall seconds on a
-    loaded machine measure the scheduler's shares; these do not.
+    tiles (every tile's CPU, from the 1-worker run, less the parent's) ends.  The crops pass
+    runs on both workers at once (one cloud's pass each): the parent waits for the other's
+    pass when it is the longer (its CPU: both passes from the 1-worker run, less the
+    parent's).  Wall seconds on a loaded machine measure the scheduler's shares; these do not.
     """
     serial = two["compute_cpu"] - two["tiles_parent_computing_cpu"]
     others = one["tiles_parent_computing_cpu"] - two["tiles_parent_computing_cpu"]
-    return one["compute_cpu"] / max(two["compute_cpu"], serial + others)
+    passes_here = two.get("crop_passes_parent_computing_cpu", 0.0)
+    other_pass = one.get("crop_passes_parent_computing_cpu", 0.0) - passes_here
+    waiting = max(0.0, other_pass - passes_here)
+    return one["compute_cpu"] / max(two["compute_cpu"] + waiting, serial + waiting + others)
 
 
 def pair_files(work: Path, arguments: argparse.Namespace) -> tuple[Path, Path]:
