@@ -212,8 +212,9 @@ class StreamedLocalisation:
         report("localise", 0.36)  # planned
         crops, partial = self.work_dir / "crops", self.work_dir / "crops.partial"
         with timed_phase(timings, "stream_crops"):
-            shutil.rmtree(partial, ignore_errors=True)  # swapped in whole: a tile of an
-            partial.mkdir(parents=True)  # earlier attempt never reads a half-written crop
+            # swapped in whole: a tile of an earlier attempt never reads a half-written crop
+            shutil.rmtree(partial, ignore_errors=True)
+            partial.mkdir(parents=True, exist_ok=True)
             self.run_crops(partial, plan, context, passes, loaded.threads, report)
             write_pass_layout(partial, context, passes)
             shutil.rmtree(crops, ignore_errors=True)
