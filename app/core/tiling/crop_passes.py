@@ -108,14 +108,13 @@ class CropPass:
             np.savez(file, meta=np.array(json.dumps(meta)), offset=self.offset, **arrays)
 
     @classmethod
-    def load(cls, path: str | Path, file_path: str | Path | None = None) -> CropPass:
-        """Read a pass written by :meth:`save` (``file_path``: the cloud's file as this
-        process sees it, when not the path saved)."""
+    def load(cls, path: str | Path) -> CropPass:
+        """Read a pass written by :meth:`save`."""
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data["meta"]))
             return cls(
                 side=str(meta["side"]),
-                path=Path(file_path if file_path is not None else meta["path"]),
+                path=Path(meta["path"]),
                 format=meta["format"],
                 offset=data["offset"],
                 transform=data.get("transform", None),
