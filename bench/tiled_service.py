@@ -433,8 +433,9 @@ def main(argv: list[str] | None = None) -> int:
         del clouds
         if arguments.phases_only:
             return 0
-        runs = {
-            workers: run_service(
+        runs = {}
+        for workers in map(int, arguments.workers.split(",")):
+            runs[workers] = run = run_service(
                 work,
                 workers,
                 crop_points,
@@ -444,8 +445,9 @@ def main(argv: list[str] | None = None) -> int:
                 arguments.job_timeout,
                 json.loads(arguments.job_params) if arguments.job_params else None,
             )
-            for workers in map(int, arguments.workers.split(","))
-        }
+            # at once, so a long --check-cli after it cannot lose the run's figures
+            print(f"{workers} worker(s): {run['seconds']:.1f} s, timings {run['timings']}")
+            print(f"  parent CPU split {parent_cpu_split(run['timings'])}", flush=True)
         for run in runs.values():  # while the labels files are still there
             run["truth"] = truth_check(arguments.pair_dir, run)
         if arguments.check_cli:
