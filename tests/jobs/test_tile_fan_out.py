@@ -113,9 +113,9 @@ def test_tiles_and_crop_passes_run_on_every_worker_and_equal_the_in_process_tile
         workers=2,
         env={
             "SCANDIFF_TILE_CROP_POINTS": str(crop_points),
-            # a pass long enough for the other worker to take the second pass's message
+            # a pass long enough for the other worker to take the second pass's message under load
             "SCANDIFF_TEST_JOB_HOOKS": (
-                '{"tile_sleep_seconds": 0.3, "crop_pass_sleep_seconds": 1.5}'
+                '{"tile_sleep_seconds": 0.3, "crop_pass_sleep_seconds": 3.0}'
             ),
         },
     )
@@ -166,7 +166,7 @@ def test_a_worker_killed_in_a_crop_pass_leaves_it_retried_with_the_same_result(
             "SCANDIFF_JOB_LEASE_SECONDS": "3",
             "SCANDIFF_JOB_HEARTBEAT_SECONDS": "0.5",
             "SCANDIFF_TEST_JOB_HOOKS": (
-                '{"crop_pass_sleep_seconds": 1.5, "kill_in_crop_pass": "helper"}'
+                '{"crop_pass_sleep_seconds": 3.0, "kill_in_crop_pass": "helper"}'
             ),
         },
     )
@@ -227,6 +227,31 @@ def test_tiles_of_a_job_that_stopped_are_cancelled(job_settings: Settings, endin
     assert _statuses(job_settings, job_id) == (
         {TileStatus.CANCELLED} if ending == "failed" else set()
     )
+
+
+@pytest.mark.slow  # two attempts of a real job with a lease to expire: ~1 minute
+def test_a_parent_killed_in_a_crop_pass_is_followed_by_an_attempt_writing_the_crops_afresh(
+    service_factory: Callable[..., ServiceProcess], tmp_path: Path
+) -> None:
+    reference, scan, crop_points = _pair()
+    service = service_factory(
+        workers=1,
+        env={
+            "SCANDIFF_TILE_CROP_POINTS": str(crop_points),
+            "SCANDIFF_JOB_LEASE_SECONDS": "3",
+            "SCANDIFF_JOB_HEARTBEAT_SECONDS": "0.5",
+            "SCANDIFF_TEST_JOB_HOOKS": '{"kill_in_crop_pass": "parent", "on_attempts": [1]}',
+        },
+    )
+    job = _run_job(service, reference, scan)
+    assert job["status"] == JobStatus.SUCCEEDED, job
+    assert job["attempts"] == 2, "the first worker died in its crop pass"
+    passes = _crop_passes(service.data_dir, job["id"])
+    assert {row["status"] for row in passes} == {"succeeded"}
+    # the pass it died in (its first: the reference's) ran again in the second attempt (the
+    # other too, maybe twice: the restarted worker may take its message from the first)
+    assert passes[0]["attempts"] >= 2
+    _assert_same_labels(job, _expected(tmp_path, reference, scan, crop_points), tmp_path)
 
 
 def test_crop_passes_of_a_job_that_stopped_are_cancelled(job_settings: Settings) -> None:
