@@ -4,9 +4,6 @@ same labels; arrays it cannot read are refused or left to numpy."""
 
 from __future__ import annotations
 
-import shutil
-import sysconfig
-
 import numpy as np
 import pytest
 
@@ -16,6 +13,7 @@ from app.core.datasets.scenes import raycast_scene
 from app.core.localise import surface
 from app.core.localise.neighbourhoods import nearest_neighbourhoods
 from app.core.pipeline import compare
+from tests.helpers.environment import c_compiler_found
 
 KERNEL = surface.PLANE_KERNEL
 needs_kernel = pytest.mark.skipif(KERNEL is None, reason="installed without a C compiler")
@@ -36,9 +34,8 @@ def assert_same_bits(compiled: tuple, plain: tuple) -> None:
 
 
 def test_the_kernel_is_built_where_a_c_compiler_is():
-    compiler = (sysconfig.get_config_var("CC") or "cc").split()[0]
-    if shutil.which(compiler) is None:
-        pytest.skip(f"no C compiler ({compiler}): the numpy passes run")
+    if not c_compiler_found():
+        pytest.skip("no C compiler: the numpy passes run")
     assert KERNEL is not None, "setup.py builds app.core.localise._plane_kernel: reinstall"
 
 
