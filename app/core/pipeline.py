@@ -36,7 +36,7 @@ from app.core.cache.geometry import GeometryCache
 from app.core.cloud import PointCloud
 from app.core.comparison.align import Alignment, align_scan
 from app.core.comparison.assemble import assemble_result
-from app.core.comparison.decide import Detected, DetectionAhead, decide_change, detect_change
+from app.core.comparison.decide import decide_change, detect_change
 from app.core.comparison.load import LoadedPair, PairOptions, load_pair
 from app.core.comparison.localise import (
     REFERENCE_AHEAD_MIN_POINTS,
@@ -80,8 +80,6 @@ class Matched:
     alignment: Alignment
     localisation: Localisation
     min_region_points: int
-    detected: Detected | None = None
-    """The detector's score, when it ran beside the region clustering (two threads)."""
 
 
 def compare(
@@ -230,7 +228,7 @@ def run_stages(
     memory.keep()
     report("detect", 0.65 if localise_step is None else localise_step.detect_fraction)
     started = time.perf_counter()
-    detected = matched.detected or detect_change(
+    detected = detect_change(
         loaded.settings.detector,
         loaded.reference_points,
         matched.alignment.aligned_scan,
@@ -238,7 +236,7 @@ def run_stages(
         sample_points=None if localise_step is None else localise_step.detection_sample,
         random_state=0 if localise_step is None else localise_step.detection_seed,
     )
-    timings["detect"] = timings.get("detect", 0.0) + time.perf_counter() - started
+    timings["detect"] = time.perf_counter() - started
     decision = decide_change(
         detected.detection,
         matched.localisation.regions,
@@ -324,23 +322,12 @@ def _match(
                     loaded, origins, alignment, report, timings
                 )
             else:
-                # the score beside the region clustering, on two threads (the same result)
-                ahead = DetectionAhead(
-                    settings.detector, loaded.reference_points, alignment.aligned_scan
+                localisation = localise_pair(
+                    reference_origins.epoch(loaded.reference_points, reference_neighbourhoods),
+                    scan_origins.epoch(alignment.aligned_scan, scan_neighbourhoods),
+                    threads=loaded.threads,
+                    localisation_params=settings.localisation,
                 )
-                with ahead.joined_on_error():
-                    localisation = localise_pair(
-                        reference_origins.epoch(loaded.reference_points, reference_neighbourhoods),
-                        scan_origins.epoch(alignment.aligned_scan, scan_neighbourhoods),
-                        threads=loaded.threads,
-                        localisation_params=settings.localisation,
-                        on_observed=ahead.start if loaded.threads >= 2 else None,
-                    )
                 min_region_points = int(localisation.parameters.get("min_region_points", 1))
     timings["localise"] = time.perf_counter() - started
-    if localise_step is not None:
-        return Matched(origins, alignment, localisation, min_region_points)
-    # joined here, under the caller's one-thread BLAS limit, which it ran in
-    detected = ahead.result()
-    timings["detect"] = ahead.seconds
-    return Matched(origins, alignment, localisation, min_region_points, detected)
+    return Matched(origins, alignment, localisation, min_region_points)

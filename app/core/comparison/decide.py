@@ -9,10 +9,7 @@ its threshold is calibrated from the clouds' own resampling noise
 
 from __future__ import annotations
 
-import threading
-import time
-from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -72,47 +69,8 @@ def detect_change(
     -------
     Detected
     """
-    return detect_observed(
-        detector,
-        reference_points,
-        aligned_scan,
-        (
-            localisation.reference_label != LABEL_UNOBSERVED,
-            localisation.scan_label != LABEL_UNOBSERVED,
-        ),
-        sample_points=sample_points,
-        random_state=random_state,
-    )
-
-
-def detect_observed(
-    detector: ChangeDetector,
-    reference_points: NDArray[np.float64],
-    aligned_scan: NDArray[np.float64],
-    observed: tuple[NDArray[np.bool_], NDArray[np.bool_]],
-    *,
-    sample_points: int | None = None,
-    random_state: int = 0,
-) -> Detected:
-    """:func:`detect_change` given which points are observed (the localisation's labels are
-    not needed: only which points are unobserved, known before its regions are).
-
-    Parameters
-    ----------
-    detector : ChangeDetector
-    reference_points : ndarray, shape (n, 3)
-    aligned_scan : ndarray, shape (m, 3)
-    observed : (ndarray, ndarray), shapes (n,) and (m,), bool
-        Each cloud's points not labelled unobserved.
-    sample_points : int, optional
-    random_state : int
-        As in :func:`detect_change`.
-
-    Returns
-    -------
-    Detected
-    """
-    reference_observed, scan_observed = observed
+    reference_observed = localisation.reference_label != LABEL_UNOBSERVED
+    scan_observed = localisation.scan_label != LABEL_UNOBSERVED
     use_observed = (
         np.count_nonzero(reference_observed) >= MIN_POINTS
         and np.count_nonzero(scan_observed) >= MIN_POINTS
@@ -135,71 +93,6 @@ def detect_observed(
         else:
             detection = detector.detect(reference_points, aligned_scan)
     return Detected(detection, compared)
-
-
-class DetectionAhead:
-    """:func:`detect_observed` on a thread of its own, started as soon as the localiser knows
-    which points are observed (``localise_changes(on_observed=ahead.start)``), so the score is
-    computed beside the region clustering instead of after it.  The same result.
-
-    Parameters
-    ----------
-    detector : ChangeDetector
-    reference_points : ndarray, shape (n, 3)
-    aligned_scan : ndarray, shape (m, 3)
-    """
-
-    def __init__(
-        self,
-        detector: ChangeDetector,
-        reference_points: NDArray[np.float64],
-        aligned_scan: NDArray[np.float64],
-    ):
-        self._clouds = (detector, reference_points, aligned_scan)
-        self._thread: threading.Thread | None = None
-        self._result: Detected | None = None
-        self._error: BaseException | None = None
-        self.seconds = 0.0
-        """Wall seconds the detection took on its thread."""
-
-    def start(
-        self, reference_observed: NDArray[np.bool_], scan_observed: NDArray[np.bool_]
-    ) -> None:
-        """Start the detection of these observed points, shapes (n,) and (m,) (once)."""
-        if self._thread is not None:
-            raise RuntimeError("the detection ahead was started already")
-        self._thread = threading.Thread(
-            target=self._run, args=((reference_observed, scan_observed),), name="detection"
-        )
-        self._thread.start()
-
-    def _run(self, observed: tuple[NDArray[np.bool_], NDArray[np.bool_]]) -> None:
-        started = time.perf_counter()
-        try:
-            self._result = detect_observed(*self._clouds, observed)
-        except BaseException as error:  # handed to result()'s caller
-            self._error = error
-        self.seconds = time.perf_counter() - started
-
-    @contextmanager
-    def joined_on_error(self) -> Iterator[None]:
-        """Around the localisation: if it fails, wait for a started detection before the
-        error goes on (its own outcome is dropped), so no thread outlives the comparison."""
-        try:
-            yield
-        except BaseException:
-            if self._thread is not None:
-                self._thread.join()
-            raise
-
-    def result(self) -> Detected | None:
-        """Wait for the detection and return it; None if it was never started."""
-        if self._thread is None:
-            return None
-        self._thread.join()
-        if self._error is not None:
-            raise self._error
-        return self._result
 
 
 def _detect_sample(

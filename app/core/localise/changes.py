@@ -154,7 +154,6 @@ def localise_changes(
     registration_rmse: float = 0.0,
     min_region_points: int | None = None,
     threads: int | None = None,
-    on_observed: Callable[[NDArray[np.bool_], NDArray[np.bool_]], object] | None = None,
     **params: Any,
 ) -> Localisation:
     """Label each point unchanged, changed or unobserved and group changes into regions.
@@ -174,11 +173,6 @@ def localise_changes(
         Threads to use (the reference and scan sides run concurrently from 2; the KD-tree
         queries use OpenMP's setting).  Default: :func:`available_threads`.  The result does
         not depend on it.
-    on_observed : callable, optional
-        Called with each cloud's observed points (not unobserved; shapes (n,) and (m,), bool)
-        once they are final, before the changed points are clustered into regions (which only
-        turns changed points unchanged): a caller can start what needs them beside the
-        clustering (the detector's score, :class:`app.core.comparison.decide.DetectionAhead`).
     **params
         See :data:`~app.core.localise.settings.DEFAULT_PARAMETERS`.
 
@@ -219,11 +213,6 @@ def localise_changes(
     reference_found, scan_found = _labelled(
         (reference_side, scan_side), candidates, limits, settings, threads
     )
-    if on_observed is not None:
-        on_observed(
-            reference_found.labelled.label != LABEL_UNOBSERVED,
-            scan_found.labelled.label != LABEL_UNOBSERVED,
-        )
     regions, uncertain_regions, dropped = _regions(
         reference_found, scan_found, settings, min_region_points, threads
     )
