@@ -72,6 +72,21 @@ def test_degenerate_neighbourhoods_are_the_numpy_passes_to_the_bit(monkeypatch):
 
 
 @needs_kernel
+def test_wide_neighbourhoods_are_the_numpy_passes_to_the_bit(monkeypatch):
+    """More than 128 neighbours: numpy's pairwise sums split in halves (any n_neighbors is
+    allowed, and line-shaped neighbourhoods are refitted with three times as many)."""
+    rng = np.random.default_rng(4)
+    points = rng.normal(size=(1500, 3)) * [3.0, 2.0, 0.01] + 1000.0
+    index = np.stack([rng.permutation(1500)[:1201] for _ in range(7)]).astype(np.uint32)
+    compiled = surface.neighbourhood_planes(points, index)
+    values = rng.random(1500)
+    compiled_means = surface._neighbourhood_means(values, index, None, 1)
+    monkeypatch.setattr(surface, "PLANE_KERNEL", None)
+    assert_same_bits(compiled, surface.neighbourhood_planes(points, index))
+    assert np.array_equal(compiled_means, surface._neighbourhood_means(values, index, None, 1))
+
+
+@needs_kernel
 def test_surfaces_and_labels_are_the_numpy_passes(lidar_points, monkeypatch):
     found = nearest_neighbourhoods(lidar_points, 10)
     arguments = (lidar_points, found.tree, found.neighbor_index, found.kth_distance, found.order)

@@ -18,10 +18,10 @@
 #include <stdint.h>
 #include <string.h>
 
-#define MAX_COLUMNS 1024
+#define UINT32_FORMATS "IL"
 #include <math.h>
 
-/* numpy's pairwise sum of n values (n <= 128), as DOUBLE_pairwise_sum does it. */
+/* numpy's pairwise sum of n values, as DOUBLE_pairwise_sum does it (blocks of 128). */
 static double pairwise_sum(const double *values, Py_ssize_t n)
 {
     if (n < 8) {
@@ -30,6 +30,11 @@ static double pairwise_sum(const double *values, Py_ssize_t n)
             sum += values[i];
         }
         return sum;
+    }
+    if (n > 128) {
+        Py_ssize_t half = n / 2;
+        half -= half % 8;
+        return pairwise_sum(values, half) + pairwise_sum(values + half, n - half);
     }
     double r[8];
     for (int j = 0; j < 8; j++) {
@@ -148,7 +153,7 @@ static PyObject *plane_moments(PyObject *module, PyObject *args)
     }
     static const char *names[4] = {"points", "neighbor_index", "rows", "moments"};
     static const int ndims[4] = {2, 2, 1, 2};
-    static const char *formats[4] = {"d", "I", ROWS_FORMAT, "d"};
+    static const char *formats[4] = {"d", UINT32_FORMATS, ROWS_FORMAT, "d"};
     static const Py_ssize_t itemsizes[4] = {8, 4, 8, 8};
     static const int flags[4] = {PyBUF_STRIDES, READ, READ, WRITE};
     if (hold_all(objects, held, names, ndims, formats, itemsizes, flags, 4) < 0) {
@@ -157,11 +162,11 @@ static PyObject *plane_moments(PyObject *module, PyObject *args)
     Py_ssize_t n = held[0].view.shape[0];
     Py_ssize_t count = held[1].view.shape[0], columns = held[1].view.shape[1];
     Py_ssize_t row_count = held[2].view.shape[0], width = held[3].view.shape[1];
-    if (held[0].view.shape[1] != 3 || columns < 1 || columns > MAX_COLUMNS ||
-        held[3].view.shape[0] != MOMENTS || width < row_count) {
+    if (held[0].view.shape[1] != 3 || columns < 1 || held[3].view.shape[0] != MOMENTS ||
+        width < row_count) {
         release(held, 4);
         PyErr_SetString(PyExc_ValueError, "plane_moments: points (n, 3), neighbor_index "
-                                          "(p, 1..1024), moments (12, >= len(rows))");
+                                          "(p, >= 1), moments (12, >= len(rows))");
         return NULL;
     }
     const char *points = held[0].view.buf;
@@ -170,8 +175,13 @@ static PyObject *plane_moments(PyObject *module, PyObject *args)
     const int64_t *rows = held[2].view.buf;
     double *moments = held[3].view.buf;
     Py_ssize_t bad_row = -1, bad_index = -1;
+    double *buffer = PyMem_RawMalloc(3 * columns * sizeof(double));
+    if (buffer == NULL) {
+        release(held, 4);
+        return PyErr_NoMemory();
+    }
     Py_BEGIN_ALLOW_THREADS
-    double deviation[3][MAX_COLUMNS];
+    double *deviation[3] = {buffer, buffer + columns, buffer + 2 * columns};
     double k = (double)columns;
     for (Py_ssize_t i = 0; i < row_count && bad_row < 0 && bad_index < 0; i++) {
         int64_t row = rows[i];
@@ -224,6 +234,7 @@ static PyObject *plane_moments(PyObject *module, PyObject *args)
         }
     }
     Py_END_ALLOW_THREADS
+    PyMem_RawFree(buffer);
     release(held, 4);
     if (bad_row >= 0) {
         PyErr_Format(PyExc_IndexError, "plane_moments: rows[%zd] is outside 0..%zd", bad_row,
@@ -374,7 +385,7 @@ static PyObject *neighbourhood_means(PyObject *module, PyObject *args)
     }
     static const char *names[4] = {"values", "neighbor_index", "rows", "means"};
     static const int ndims[4] = {1, 2, 1, 1};
-    static const char *formats[4] = {"d", "I", ROWS_FORMAT, "d"};
+    static const char *formats[4] = {"d", UINT32_FORMATS, ROWS_FORMAT, "d"};
     static const Py_ssize_t itemsizes[4] = {8, 4, 8, 8};
     static const int flags[4] = {READ, READ, READ, WRITE};
     if (hold_all(objects, held, names, ndims, formats, itemsizes, flags, 4) < 0) {
@@ -383,9 +394,9 @@ static PyObject *neighbourhood_means(PyObject *module, PyObject *args)
     Py_ssize_t n = held[0].view.shape[0];
     Py_ssize_t count = held[1].view.shape[0], columns = held[1].view.shape[1];
     Py_ssize_t row_count = held[2].view.shape[0];
-    if (columns < 1 || columns > MAX_COLUMNS || held[3].view.shape[0] != count) {
+    if (columns < 1 || held[3].view.shape[0] != count) {
         release(held, 4);
-        PyErr_SetString(PyExc_ValueError, "neighbourhood_means: neighbor_index (p, 1..1024), "
+        PyErr_SetString(PyExc_ValueError, "neighbourhood_means: neighbor_index (p, >= 1), "
                                           "means (p,)");
         return NULL;
     }
@@ -394,8 +405,12 @@ static PyObject *neighbourhood_means(PyObject *module, PyObject *args)
     const int64_t *rows = held[2].view.buf;
     double *means = held[3].view.buf;
     Py_ssize_t bad_row = -1, bad_index = -1;
+    double *gathered = PyMem_RawMalloc(columns * sizeof(double));
+    if (gathered == NULL) {
+        release(held, 4);
+        return PyErr_NoMemory();
+    }
     Py_BEGIN_ALLOW_THREADS
-    double gathered[MAX_COLUMNS];
     for (Py_ssize_t i = 0; i < row_count && bad_index < 0; i++) {
         int64_t row = rows[i];
         if (row < 0 || row >= count) {
@@ -415,6 +430,7 @@ static PyObject *neighbourhood_means(PyObject *module, PyObject *args)
         }
     }
     Py_END_ALLOW_THREADS
+    PyMem_RawFree(gathered);
     release(held, 4);
     if (bad_row >= 0) {
         PyErr_Format(PyExc_IndexError, "neighbourhood_means: rows[%zd] is outside 0..%zd",
