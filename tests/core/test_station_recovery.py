@@ -344,3 +344,39 @@ def test_scouted_station_heights_are_those_of_scoring_the_whole_range(layout):
                 )
                 assert abs(expected - origin[2]) < 5e-3  # the reference finds the station
                 assert abs(found - expected) < 5e-4, (layout, seed, origin, found, expected)
+
+
+@pytest.mark.parametrize(("seed", "offset"), [(1, 0.04), (1, 0.05)])
+def test_a_station_found_beside_a_true_one_that_blurs_its_rings_is_dropped(
+    monkeypatch, seed, offset
+):
+    """At 100M points three stations a side came out 7-17 cm beside true ones, on later passes
+    (issue 30); here the search is made to find one ``offset`` metres beside the first of two
+    dense stations: its rings hold over 5 % of the points (kept before), but it is the
+    clearest on few of them.  The two true ones are kept (the three stations of
+    :func:`close_survey`, 0.3-1.5 m apart, are kept by the tests above)."""
+    world = LidarWorld(
+        shell_low=np.zeros(3),
+        shell_high=np.array([12.0, 9.0, 5.8]),
+        box_low=np.array([[1.0, 1.0, 0.0], [8.0, 6.0, 0.0]]),
+        box_high=np.array([[2.5, 2.0, 1.5], [9.5, 7.5, 2.5]]),
+    )
+    rng = np.random.default_rng(seed)
+    origins = np.array(
+        [[*rng.uniform([2.0, 2.0], [10.0, 7.0]), rng.uniform(0.8, 1.6)] for _ in range(2)]
+    )
+    points = np.vstack([_dense_station(world, origin, rng) for origin in origins])
+    passes = []
+
+    def search_centres(residual, rng, known):
+        passes.append(len(residual))
+        if len(passes) > 1:
+            return [], 0
+        beside = origins[0, :2] + np.array([offset, 0.0])
+        return [(origins[0, :2], 500), (origins[1, :2], 400), (beside, 60)], 1000
+
+    monkeypatch.setattr(stations, "search_centres", search_centres)
+    found = recover_stations(points)
+    assert found.origins.shape == (2, 3)
+    np.testing.assert_allclose(found.origins[:, :2], origins[:, :2])
+    assert np.abs(found.origins[:, 2] - origins[:, 2]).max() < 5e-3
