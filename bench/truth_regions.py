@@ -26,6 +26,8 @@ from numpy.typing import NDArray
 
 REGION_MARGIN = 0.5
 """A region is on a changed object when its centroid is within this many metres of its box."""
+BOX_TOLERANCE = 0.05
+"""A changed point belongs to a box when within this many metres of it (range noise: 1 cm)."""
 
 
 def ply_rows(path: Path, rows: NDArray[np.int64]) -> NDArray[np.float64]:
@@ -84,9 +86,14 @@ def object_figures(pair_dir: Path, truth: Any, labels: Any) -> tuple[list[dict],
         label = labels[f"{side}_label"]
         rows = np.sort(truth[f"{side}_changed_rows"])
         points = ply_rows(pair_dir / f"{side}.ply", rows) if len(rows) else np.zeros((0, 3))
+        if side == "scan":  # the boxes are in the reference file's frame
+            transform = truth["true_transform"]
+            points = points @ transform[:3, :3].T + transform[:3, 3]
         on_objects = np.zeros(len(rows), dtype=bool)
         for low, high in changed_objects(truth, side):
-            inside = np.all((points >= low - 1e-3) & (points <= high + 1e-3), axis=1)
+            inside = np.all(
+                (points >= low - BOX_TOLERANCE) & (points <= high + BOX_TOLERANCE), axis=1
+            )
             on_objects |= inside
             mine = label[rows[inside]]
             objects.append(
