@@ -323,6 +323,8 @@ class PartFigures:
         Its border points that the other epoch's surface adjoins at an edge.
     surround_share : ndarray, shape (parts,), float64
         Share of those where that surface carries on past the point.
+    adjoined : ndarray, shape (b,), int64
+        Those border points of every part (indices into the candidates).
     upright : ndarray, shape (parts,), bool
         The part is an upright face.
     counts : dict
@@ -336,6 +338,7 @@ class PartFigures:
     behind_share: NDArray[np.float64]
     adjoining: NDArray[np.float64]
     surround_share: NDArray[np.float64]
+    adjoined: NDArray[np.int64]
     upright: NDArray[np.bool_]
     counts: dict[str, Any]
 
@@ -418,9 +421,10 @@ def _adjoining_surfaces(
     other_unmatched: NDArray[np.bool_],
     threshold: float,
     change_threshold: float,
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Per part, how many border points the other epoch's surface adjoins at an edge, and the
-    share of those where it carries on past the point (:func:`_surrounded`)."""
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+    """Per part, how many border points the other epoch's surface adjoins at an edge and the
+    share of those where it carries on past the point (:func:`_surrounded`), and those border
+    points (indices into the candidates)."""
     probe = np.flatnonzero(border)
     adjoining_points, surrounded_points = _surrounded(
         candidates.points[probe],
@@ -437,7 +441,7 @@ def _adjoining_surfaces(
     surround_share = np.bincount(
         labels[probe], weights=carried_on.astype(np.float64), minlength=n_parts
     ) / np.maximum(adjoining, 1.0)
-    return adjoining, surround_share
+    return adjoining, surround_share, probe[adjoining_points]
 
 
 def unmatched_points(
@@ -512,7 +516,7 @@ def part_figures(
         cluster_factor=cluster_factor,
     )
     behind = surface_behind(candidates.points, candidates.normal, other, other_unmatched)
-    adjoining, surround_share = _adjoining_surfaces(
+    adjoining, surround_share, adjoined = _adjoining_surfaces(
         candidates,
         labels,
         n_parts,
@@ -540,6 +544,7 @@ def part_figures(
         / np.maximum(sizes, 1.0),
         adjoining=adjoining,
         surround_share=surround_share,
+        adjoined=adjoined,
         # a side: an upright face (a top, seen from any path above it, is left to other rules)
         upright=np.bincount(labels, weights=vertical, minlength=n_parts) / np.maximum(sizes, 1.0)
         < UPRIGHT_NORMAL_Z,
