@@ -57,6 +57,9 @@ EDGE_COSINE = math.cos(math.radians(60.0))
 """A surface adjoins a border point at an edge when the normals' cosine is below this."""
 UPRIGHT_NORMAL_Z = 0.5
 """A part is upright (a side) when its normals' mean vertical component is below this."""
+LEVEL_NORMAL_Z = math.sqrt(0.5)
+"""Candidates whose normals are closer to vertical than 45 degrees (level surfaces) and the
+others (upright ones) are never in one surface part (:func:`surface_parts`)."""
 SEE_THROUGH_REACH = 1.2
 """Farther along the normal line, the other epoch's unmatched surface is as likely another
 coverage difference (the ceiling a path saw above a floor patch the other path saw) as what
@@ -160,8 +163,13 @@ def surface_parts(
     k = min(CLUSTER_NEIGHBOURS + 1, count)
     distance, neighbour = KDTree(points).query(points, k=k, distance_upper_bound=radius.max())
     neighbour = np.minimum(neighbour[:, 1:], count - 1)
-    linked = (distance[:, 1:] <= radius[:, None]) & (
-        np.abs(np.einsum("ckd,cd->ck", unit[neighbour], unit)) >= NORMAL_AGREEMENT_COSINE
+    # upright or level, never both: points at a crease have normals turning gradually from
+    # one surface's to the other's and would chain a board to the floor it stands on
+    level = np.abs(unit[:, 2]) >= LEVEL_NORMAL_Z
+    linked = (
+        (distance[:, 1:] <= radius[:, None])
+        & (np.abs(np.einsum("ckd,cd->ck", unit[neighbour], unit)) >= NORMAL_AGREEMENT_COSINE)
+        & (level[neighbour] == level[:, None])
     )
     rows = np.repeat(np.arange(count), k - 1)[linked.ravel()]
     columns = neighbour[linked]
