@@ -69,7 +69,11 @@ from app.core.localise.map_parts import (
     surface_parts,
     unmatched_points,
 )
-from app.core.localise.map_planes import coplanar_sectors, level_surface_below
+from app.core.localise.map_planes import (
+    coplanar_sectors,
+    first_level_surface_marked,
+    level_surface_below,
+)
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
 from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED, Candidates
 from app.core.localise.regions import EVIDENCE_NO_COVERAGE, EVIDENCE_SEEN_EMPTY
@@ -224,7 +228,7 @@ def _on_lacking_share(
     """Per part marked in ``recheck`` (0 elsewhere), the share of its candidates whose first
     level surface of the other epoch straight under them, within
     :data:`~app.core.localise.map_parts.SEE_THROUGH_REACH`, has a point this epoch lacks
-    (:func:`~app.core.localise.map_planes.level_surface_below`).  This epoch's own upright
+    (:func:`~app.core.localise.map_planes.first_level_surface_marked`).  This epoch's own upright
     points that are no candidates stop the probe (a wall under a patch of it)."""
     chosen = np.flatnonzero(recheck[labels])
     share = np.zeros(recheck.shape[0])
@@ -232,7 +236,7 @@ def _on_lacking_share(
         return share
     upright = np.abs(own.geometry.normal[:, 2]) < NORMAL_AGREEMENT_COSINE
     upright[candidates.index] = False
-    on_lacking = level_surface_below(
+    on_lacking = first_level_surface_marked(
         candidates.points[chosen],
         other.geometry,
         SEE_THROUGH_REACH,
