@@ -59,7 +59,11 @@ UPRIGHT_NORMAL_Z = 0.5
 """A part is upright (a side) when its normals' mean vertical component is below this."""
 LEVEL_NORMAL_Z = math.sqrt(0.5)
 """Candidates whose normals are closer to vertical than 45 degrees (level surfaces) and the
-others (upright ones) are never in one surface part (:func:`surface_parts`)."""
+others (upright ones) are not in one surface part where a part has much of both
+(:data:`MIXED_SHARE`, :func:`surface_parts`)."""
+MIXED_SHARE = 0.25
+"""A part whose level candidates are between this share and its complement is split into
+its upright and its level surfaces."""
 SEE_THROUGH_REACH = 1.2
 """Farther along the normal line, the other epoch's unmatched surface is as likely another
 coverage difference (the ceiling a path saw above a floor patch the other path saw) as what
@@ -163,15 +167,29 @@ def surface_parts(
     k = min(CLUSTER_NEIGHBOURS + 1, count)
     distance, neighbour = KDTree(points).query(points, k=k, distance_upper_bound=radius.max())
     neighbour = np.minimum(neighbour[:, 1:], count - 1)
-    # upright or level, never both: points at a crease have normals turning gradually from
-    # one surface's to the other's and would chain a board to the floor it stands on
-    level = np.abs(unit[:, 2]) >= LEVEL_NORMAL_Z
-    linked = (
-        (distance[:, 1:] <= radius[:, None])
-        & (np.abs(np.einsum("ckd,cd->ck", unit[neighbour], unit)) >= NORMAL_AGREEMENT_COSINE)
-        & (level[neighbour] == level[:, None])
+    linked = (distance[:, 1:] <= radius[:, None]) & (
+        np.abs(np.einsum("ckd,cd->ck", unit[neighbour], unit)) >= NORMAL_AGREEMENT_COSINE
     )
-    rows = np.repeat(np.arange(count), k - 1)[linked.ravel()]
+    labels = _components(linked, neighbour, count)
+    # upright or level, never both: points at a crease have normals turning gradually from
+    # one surface's to the other's and chain a board to the floor it stands on.  Only a part
+    # with much of both is split (rough ground has a few steep points, a fence a few flat ones)
+    level = np.abs(unit[:, 2]) >= LEVEL_NORMAL_Z
+    sizes = np.bincount(labels).astype(np.float64)
+    level_share = np.bincount(labels, weights=level.astype(np.float64)) / sizes
+    mixed = (level_share >= MIXED_SHARE) & (level_share <= 1.0 - MIXED_SHARE)
+    if mixed.any():
+        linked &= ~mixed[labels][:, None] | (level[neighbour] == level[:, None])
+        labels = _components(linked, neighbour, count)
+    return labels.astype(np.int64)
+
+
+def _components(
+    linked: NDArray[np.bool_], neighbour: NDArray[np.int64], count: int
+) -> NDArray[np.int64]:
+    """Connected components of the graph linking each point to its ``linked`` neighbours
+    (shapes (c, k), (c, k) -> (c,))."""
+    rows = np.repeat(np.arange(count), neighbour.shape[1])[linked.ravel()]
     columns = neighbour[linked]
     from scipy.sparse import coo_matrix  # on first use: API processes need no scipy
     from scipy.sparse.csgraph import connected_components
