@@ -215,30 +215,6 @@ def _supports(unit: NDArray[np.float64], height: NDArray[np.float64]) -> NDArray
     return level & (height * np.sign(unit[:, 2]) > 0.0)
 
 
-def _holds_up(
-    offset: NDArray[np.float64],
-    on_plane: NDArray[np.bool_],
-    own_normal: NDArray[np.floating],
-    unit: NDArray[np.float64],
-    tolerance: float,
-) -> NDArray[np.bool_]:
-    """Whether the point is on an upright face and the adjoining surface is an upright one
-    lying wholly under it: it has points on its plane around the point's foot and none higher
-    than ``tolerance`` above it (shapes (b, k, 3), (b, k), (b, 3), (b, 3) -> (b,)).
-
-    The sides of an object standing in both epochs meet a face only one path saw along its
-    whole height; a surface ending under the face's foot is what the face stands on (the legs
-    and sides of the desk under a board), which says nothing of whether it stood there.  Near
-    a face's top corners the object's other sides lie under the point too: a few border
-    points of an unseen side drop out.  An object's sides lie under its top's rim: a top is
-    left alone."""
-    upright = (np.abs(unit[:, 2]) < NORMAL_AGREEMENT_COSINE) & (
-        np.abs(own_normal[:, 2]) < NORMAL_AGREEMENT_COSINE
-    )
-    above = (on_plane & (offset[:, :, 2] > tolerance)).any(axis=1)
-    return upright & on_plane.any(axis=1) & ~above
-
-
 def _clear_of_edge(
     offset: NDArray[np.float64],
     own_normal: NDArray[np.floating],
@@ -347,10 +323,6 @@ def _surrounded(
         rows = np.broadcast_to(np.arange(query.shape[0])[:, None], sector.shape)
         taken[rows[on_plane], sector[on_plane]] = True
         surrounded[chunk] = taken.sum(axis=1)
-        # an upright surface that lies wholly under the point (the legs or sides of a desk a
-        # board stands on, ending at the desk top under its foot) holds the part up: like a
-        # support, it is no face of the part's object
-        adjoining[chunk] &= ~_holds_up(offset, on_plane, own_normal[chunk], unit, tolerance)
         # a surface that this epoch lacks next to the point: the object hid it here
         surrounded[chunk][other_unmatched[nearest]] = SECTORS
         adjoining[chunk] &= ~(support & (surrounded[chunk] < SURROUND_SECTORS))
