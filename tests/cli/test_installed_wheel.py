@@ -17,8 +17,9 @@ import pytest
 from app.testing.network import free_port
 from app.testing.paths import PROJECT_ROOT
 from app.testing.waiting import wait_until
+from tests.helpers.environment import c_compiler_found
 
-BUILD_INPUTS = ("pyproject.toml", "README.md", "app", "static", "migrations")
+BUILD_INPUTS = ("pyproject.toml", "setup.py", "README.md", "app", "static", "migrations")
 """What the Dockerfile copies into its build stage before ``pip wheel``."""
 
 pytestmark = pytest.mark.slow  # builds a wheel in an isolated build env: about a minute
@@ -35,7 +36,7 @@ def build_wheel(workdir: Path) -> Path:
                 origin,
                 source / name,
                 symlinks=True,
-                ignore=shutil.ignore_patterns("__pycache__"),
+                ignore=shutil.ignore_patterns("__pycache__", "*.so"),
             )
         else:
             shutil.copy2(origin, source / name)
@@ -91,6 +92,22 @@ def test_the_wheel_holds_every_dashboard_file_and_migration(installed, directory
     }
     assert expected, f"the checkout's {directory}/ is empty"
     assert shipped == expected
+
+
+def test_the_installed_wheel_fits_planes_with_its_compiled_kernel(installed, tmp_path):
+    """setup.py builds the plane-fit kernel into the wheel where a C compiler is."""
+    if not c_compiler_found():
+        pytest.skip("no C compiler: the wheel falls back to the numpy passes")
+    _, bin_dir = installed
+    located = subprocess.run(
+        [bin_dir / "python", "-c", "import app.core.localise.surface as s; print(s.PLANE_KERNEL)"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=120,
+    ).stdout.strip()
+    assert "_plane_kernel" in located and str(bin_dir.parent) in located, located
 
 
 def test_the_installed_wheel_serves_the_dashboard_from_another_directory(installed, tmp_path):

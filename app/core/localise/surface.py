@@ -11,8 +11,10 @@ median residual, corrected for the fit's degrees of freedom, is the cloud's nois
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,7 +30,24 @@ from app.core.localise.settings import CHUNK
 from app.core.spatial_order import ordered_chunks
 from app.core.threads import for_each_chunk
 
+
+def _compiled_kernel() -> Any:
+    """The compiled module, or None when setup.py found no C compiler to build it.
+
+    Imported by name: it is a leaf module, but ``from app.core.localise import ...`` would read
+    as an import of this package's ``__init__``, a cycle, to tests/test_import_graph.py."""
+    try:
+        return importlib.import_module("app.core.localise._plane_kernel")
+    except ImportError:  # pragma: no cover - depends on the install
+        return None
+
+
+PLANE_KERNEL: Any = _compiled_kernel()
+"""The compiled plane fit (``_plane_kernel.c``), or None when it was not built: then
+:func:`neighbourhood_planes` and the spacing means run as numpy passes, to the same bits."""
+
 __all__ = [
+    "PLANE_KERNEL",
     "LocalGeometry",
     "fit_surfaces",
     "local_geometry",
@@ -244,8 +263,13 @@ def neighbourhood_planes(
     residual_variance = np.empty(count)
     middle_over_largest = np.empty(count)
     variation = np.empty(count)
+    outputs = (normal, plane_constant, residual_variance, middle_over_largest, variation)
+    kernel = PLANE_KERNEL if _kernel_reads(points, neighbor_index) else None
 
     def fit(chunk: NDArray[np.intp] | slice) -> None:
+        if kernel is not None:
+            _compiled_fit(kernel, points, neighbor_index, _row_numbers(chunk, count), outputs)
+            return
         index = neighbor_index[chunk]
         centroid = np.empty((index.shape[0], 3))
         deviation = []
@@ -270,6 +294,46 @@ def neighbourhood_planes(
 
     for_each_chunk(fit, ordered_chunks(order, count, CHUNK), threads)
     return normal, plane_constant, residual_variance, middle_over_largest, variation
+
+
+def _kernel_reads(values: NDArray, neighbor_index: NDArray) -> bool:
+    """Whether the compiled kernel is there and takes these arrays (float64 values, a C-order
+    uint32 index: what the localiser's KD-tree queries give); the numpy passes otherwise."""
+    return (
+        PLANE_KERNEL is not None
+        and values.dtype == np.float64
+        and neighbor_index.dtype == np.uint32
+        and neighbor_index.flags.c_contiguous
+    )
+
+
+def _row_numbers(chunk: NDArray[np.intp] | slice, count: int) -> NDArray[np.int64]:
+    """The rows a chunk of :func:`~app.core.spatial_order.ordered_chunks` selects, shape (c,)."""
+    if isinstance(chunk, slice):
+        return np.arange(*chunk.indices(count), dtype=np.int64)
+    return np.ascontiguousarray(chunk, dtype=np.int64)
+
+
+def _compiled_fit(
+    kernel: Any,
+    points: NDArray[np.float64],
+    neighbor_index: NDArray[np.uint32],
+    rows: NDArray[np.int64],
+    outputs: tuple[NDArray, NDArray, NDArray, NDArray, NDArray],
+) -> None:
+    """:func:`neighbourhood_planes`' fit of ``rows`` (c,) by the compiled kernel, written to
+    ``outputs`` (normal (p, 3) float32, then the four (p,) float64 arrays) at those rows.
+
+    The kernel's first loop gathers each neighbourhood and stops at :func:`plane_fit`'s arccos;
+    the arccos and cosines are numpy's (as in :func:`plane_fit`: its vectorised versions differ
+    from the C library's in the last bits); its second loop does the rest.  The same bits as
+    the numpy passes (``tests/core/test_plane_kernel.py``)."""
+    moments = np.empty((12, rows.shape[0]))  # 6 covariances, centroid, mean, spread, det / 2
+    kernel.plane_moments(points, neighbor_index, rows, moments)
+    angle = np.arccos(np.clip(moments[11], -1.0, 1.0)) / 3.0
+    largest_cosine = np.cos(angle)
+    smallest_cosine = np.cos(angle + 2.0 * np.pi / 3.0)
+    kernel.plane_finish(moments, largest_cosine, smallest_cosine, rows, *outputs)
 
 
 def fit_surfaces(
@@ -343,10 +407,19 @@ def _neighbourhood_means(
     threads: int,
 ) -> NDArray[np.float64]:
     """The mean of ``values`` (n,) over each point's neighbourhood (n, k + 1), shape (n,)."""
-    means = np.empty(neighbor_index.shape[0])
+    count = neighbor_index.shape[0]
+    means = np.empty(count)
+    kernel = (
+        PLANE_KERNEL
+        if _kernel_reads(values, neighbor_index) and values.flags.c_contiguous
+        else None
+    )
 
     def mean(chunk: NDArray[np.intp] | slice) -> None:
-        means[chunk] = values[neighbor_index[chunk]].mean(axis=1)
+        if kernel is not None:
+            kernel.neighbourhood_means(values, neighbor_index, _row_numbers(chunk, count), means)
+        else:
+            means[chunk] = values[neighbor_index[chunk]].mean(axis=1)
 
     for_each_chunk(mean, ordered_chunks(order, neighbor_index.shape[0], CHUNK), threads)
     return means
