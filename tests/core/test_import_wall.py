@@ -134,6 +134,7 @@ LOCALISE_LAYERS = (
     "map_parts",
     "map_faces",
     "map_evidence",
+    "map_agreement",
     "coverage",
     "visibility",
     "changes",

@@ -61,6 +61,7 @@ from app.core.localise.settings import (
 from app.core.localise.surface import LocalGeometry, local_geometry
 from app.core.localise.visibility import (
     Labelled,
+    agree_on_faces,
     find_candidates,
     label_candidates,
 )
@@ -449,6 +450,12 @@ def _labelled(
         threads,
         lambda: label(reference_side, scan_side, reference_candidates),
         lambda: label(scan_side, reference_side, scan_candidates),
+    )
+    reference_labelled, scan_labelled = agree_on_faces(
+        sides,
+        (reference_labelled, scan_labelled),
+        threshold=limits.threshold,
+        change_threshold=limits.change_threshold,
     )
     return (
         _Found(reference_side, reference_distance, reference_labelled),

@@ -24,7 +24,13 @@ from numpy.typing import NDArray
 from app.core.localise.distance import Side
 from app.core.localise.rays import Candidates
 
-__all__ = ["INDIRECT_CONFIDENCE", "VisibilityContext", "VisibilityOutcome", "VisibilityTest"]
+__all__ = [
+    "INDIRECT_CONFIDENCE",
+    "FaceBorder",
+    "VisibilityContext",
+    "VisibilityOutcome",
+    "VisibilityTest",
+]
 
 INDIRECT_CONFIDENCE = 0.5
 """Confidence of a change a test could not see directly: an edge-on face joined to faces seen
@@ -57,6 +63,30 @@ class VisibilityContext:
 
 
 @dataclass(frozen=True)
+class FaceBorder:
+    """One cloud's unseen faces, as the map test found them
+    (:func:`~app.core.localise.map_agreement.faces_meeting_changes` reads them).
+
+    Attributes
+    ----------
+    members : ndarray, shape (f,), int64
+        The cloud's points (indices) in parts that are coverage differences as unseen faces.
+    member_part : ndarray, shape (f,), int64
+        Each member's part number.
+    border : ndarray, shape (b,), int64
+        The members that lie on their part's border and that the other epoch's surface meets
+        at an edge (point indices).
+    border_part : ndarray, shape (b,), int64
+        Each border point's part number.
+    """
+
+    members: NDArray[np.int64]
+    member_part: NDArray[np.int64]
+    border: NDArray[np.int64]
+    border_part: NDArray[np.int64]
+
+
+@dataclass(frozen=True)
 class VisibilityOutcome:
     """One test's verdict on one cloud's candidates.
 
@@ -71,12 +101,16 @@ class VisibilityOutcome:
     evidence : ndarray, shape (c,), int8, optional
         :data:`~app.core.localise.regions.EVIDENCE_NAMES` code of each candidate; default:
         seen_empty for changed, no_coverage for unobserved candidates.
+    faces : FaceBorder, optional
+        The map test's unseen faces, which the two sides' verdicts may overturn
+        (:func:`~app.core.localise.map_agreement.faces_meeting_changes`).
     """
 
     status: NDArray[np.int8]
     confidence: NDArray[np.float32]
     report: dict[str, Any] = field(default_factory=dict)
     evidence: NDArray[np.int8] | None = None
+    faces: FaceBorder | None = None
 
 
 class VisibilityTest(Protocol):

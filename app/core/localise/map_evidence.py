@@ -57,7 +57,7 @@ from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE
-from app.core.localise.interface import VisibilityContext, VisibilityOutcome
+from app.core.localise.interface import FaceBorder, VisibilityContext, VisibilityOutcome
 from app.core.localise.map_faces import far_faces
 from app.core.localise.map_parts import (
     SEE_THROUGH_REACH,
@@ -69,7 +69,11 @@ from app.core.localise.map_parts import (
     surface_parts,
     unmatched_points,
 )
-from app.core.localise.map_planes import coplanar_sectors, level_surface_below
+from app.core.localise.map_planes import (
+    coplanar_sectors,
+    first_level_surface_marked,
+    level_surface_below,
+)
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
 from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED, Candidates
 from app.core.localise.regions import EVIDENCE_NO_COVERAGE, EVIDENCE_SEEN_EMPTY
@@ -121,12 +125,17 @@ class MapEvidence:
         Confidence in the candidate's cluster's verdict, in [0, 1].
     counts : dict
         JSON-serialisable figures for the report.
+    faces : FaceBorder or None
+        The candidates that are coverage differences as unseen faces only, and their border
+        points that the other epoch's surface meets
+        (:func:`~app.core.localise.map_agreement.faces_meeting_changes` reads them).
     """
 
     status: NDArray[np.int8]
     evidence: NDArray[np.int8]
     confidence: NDArray[np.float32]
     counts: dict[str, Any]
+    faces: FaceBorder | None
 
 
 def _rechecked_share(
@@ -183,6 +192,30 @@ def _narrow_gaps(
     return gap
 
 
+def _level_below_share(
+    candidates: Candidates, labels: NDArray[np.int64], recheck: NDArray[np.bool_], *, other: Side
+) -> NDArray[np.float64]:
+    """Per part marked in ``recheck`` (0 elsewhere), the share of its candidates with a level
+    surface of the other epoch straight under them within
+    :data:`~app.core.localise.map_parts.SEE_THROUGH_REACH`
+    (:func:`~app.core.localise.map_planes.level_surface_below`)."""
+    chosen = np.flatnonzero(recheck[labels])
+    share = np.zeros(recheck.shape[0])
+    if chosen.shape[0] == 0:
+        return share
+    below = level_surface_below(
+        candidates.points[chosen],
+        other.geometry,
+        SEE_THROUGH_REACH,
+        max(BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))),
+    )
+    parts = np.unique(labels[chosen])
+    hits = np.bincount(labels[chosen], weights=below.astype(np.float64), minlength=share.shape[0])
+    sizes = np.bincount(labels[chosen], minlength=share.shape[0])
+    share[parts] = hits[parts] / np.maximum(sizes[parts], 1)
+    return share
+
+
 def _on_lacking_share(
     candidates: Candidates,
     labels: NDArray[np.int64],
@@ -195,7 +228,7 @@ def _on_lacking_share(
     """Per part marked in ``recheck`` (0 elsewhere), the share of its candidates whose first
     level surface of the other epoch straight under them, within
     :data:`~app.core.localise.map_parts.SEE_THROUGH_REACH`, has a point this epoch lacks
-    (:func:`~app.core.localise.map_planes.level_surface_below`).  This epoch's own upright
+    (:func:`~app.core.localise.map_planes.first_level_surface_marked`).  This epoch's own upright
     points that are no candidates stop the probe (a wall under a patch of it)."""
     chosen = np.flatnonzero(recheck[labels])
     share = np.zeros(recheck.shape[0])
@@ -203,7 +236,7 @@ def _on_lacking_share(
         return share
     upright = np.abs(own.geometry.normal[:, 2]) < NORMAL_AGREEMENT_COSINE
     upright[candidates.index] = False
-    on_lacking = level_surface_below(
+    on_lacking = first_level_surface_marked(
         candidates.points[chosen],
         other.geometry,
         SEE_THROUGH_REACH,
@@ -249,7 +282,7 @@ def map_test(
     evidence = np.full(count, EVIDENCE_SEEN_EMPTY, dtype=np.int8)
     if count == 0:
         counts = {"map_clusters": 0, "map_coverage_clusters": 0}
-        return MapEvidence(status, evidence, np.ones(count, dtype=np.float32), counts)
+        return MapEvidence(status, evidence, np.ones(count, dtype=np.float32), counts, None)
     labels = surface_parts(
         candidates.points, candidates.normal, cluster_factor * candidates.spacing
     )
@@ -281,23 +314,7 @@ def map_test(
         return _rechecked_share(candidates, chosen, labels, share, other=other, counted=counted)
 
     def open_beneath(recheck: NDArray[np.bool_]) -> NDArray[np.float64]:
-        chosen = np.flatnonzero(recheck[labels])
-        share = np.zeros(recheck.shape[0])
-        if chosen.shape[0] == 0:
-            return share
-        below = level_surface_below(
-            candidates.points[chosen],
-            other.geometry,
-            SEE_THROUGH_REACH,
-            max(BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))),
-        )
-        parts = np.unique(labels[chosen])
-        hits = np.bincount(
-            labels[chosen], weights=below.astype(np.float64), minlength=share.shape[0]
-        )
-        sizes = np.bincount(labels[chosen], minlength=share.shape[0])
-        share[parts] = hits[parts] / np.maximum(sizes[parts], 1)
-        return share
+        return _level_below_share(candidates, labels, recheck, other=other)
 
     def far_face(check: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
         return far_faces(
@@ -317,12 +334,36 @@ def map_test(
             candidates, labels, recheck, own=own, other=other, other_unmatched=other_unmatched
         )
 
-    coverage, confidence, counts = _verdict(
+    coverage, faces, confidence, counts = _verdict(
         figures, see_through, open_beneath, far_face, stands_on_lacking
     )
     status[coverage[labels]] = STATUS_UNOBSERVED
     evidence[coverage[labels]] = EVIDENCE_NO_COVERAGE
-    return MapEvidence(status, evidence, confidence[labels].astype(np.float32), counts)
+    return MapEvidence(
+        status,
+        evidence,
+        confidence[labels].astype(np.float32),
+        counts,
+        _face_border(candidates, labels, faces, figures.adjoined),
+    )
+
+
+def _face_border(
+    candidates: Candidates,
+    labels: NDArray[np.int64],
+    faces: NDArray[np.bool_],
+    adjoined: NDArray[np.int64],
+) -> FaceBorder:
+    """The candidates of the ``faces`` parts (shape (parts,), bool) and those of them among the
+    ``adjoined`` border points (indices into the candidates), as point indices."""
+    members = np.flatnonzero(faces[labels])
+    border = adjoined[faces[labels[adjoined]]]
+    return FaceBorder(
+        members=candidates.index[members],
+        member_part=labels[members],
+        border=candidates.index[border],
+        border_part=labels[border],
+    )
 
 
 def unseen_faces(figures: PartFigures) -> NDArray[np.bool_]:
@@ -351,8 +392,10 @@ def unseen_faces(figures: PartFigures) -> NDArray[np.bool_]:
 
 def _verdict(
     figures: PartFigures, see_through: Any, open_beneath: Any, far_face: Any, on_lacking: Any
-) -> tuple[NDArray[np.bool_], NDArray[np.float64], dict[str, Any]]:
-    """Per part, whether it is a coverage difference and the confidence in its verdict.
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.float64], dict[str, Any]]:
+    """Per part, whether it is a coverage difference, whether it is one as an unseen face
+    only (:class:`~app.core.localise.interface.FaceBorder`), and the confidence in its
+    verdict.
 
     ``see_through(recheck, behind_share)`` recomputes the see-through share of the parts
     marked in ``recheck`` without the other epoch's surface in narrow gaps of this one's
@@ -387,6 +430,7 @@ def _verdict(
         continuing & (part.behind_share >= SEE_THROUGH_SHARE), part.behind_share
     )
     coverage = continuing & (see_through_share < SEE_THROUGH_SHARE)
+    continues = coverage.copy()
     # an unseen side is overridden by the other epoch's surface behind it (a wall it hid),
     # unless that surface is the far face of the same object, seen from its far side only
     # (map_faces: the object's top and sides join the two faces in the other epoch).  With a
@@ -398,7 +442,8 @@ def _verdict(
         & (part.surround_share < NARROW_SURROUND_SHARE)
     )
     far, joined_share = far_face(narrow_side & (part.behind_share >= SEE_THROUGH_SHARE))
-    coverage |= ~part.near | (unseen_side & (part.behind_share < SEE_THROUGH_SHARE)) | far
+    faces = (unseen_side & (part.behind_share < SEE_THROUGH_SHARE)) | far
+    coverage |= ~part.near | faces
     side_confidence = np.where(unseen_side, 1.0 - part.surround_share, 0.0)
     side_confidence = np.where(far, np.maximum(side_confidence, joined_share), side_confidence)
     confidence = np.where(
@@ -417,7 +462,7 @@ def _verdict(
         "map_standing_on_hidden_parts": int(stands_on_hidden.sum()),
         "map_coplanar_share_median": float(np.median(part.coplanar_share)),
     }
-    return coverage, confidence, counts
+    return coverage, faces & part.near & ~continues, confidence, counts
 
 
 class MapTest:
@@ -442,4 +487,5 @@ class MapTest:
             confidence=found.confidence,
             report=dict(found.counts),
             evidence=found.evidence,
+            faces=found.faces,
         )

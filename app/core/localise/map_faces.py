@@ -41,7 +41,7 @@ from app.core.localise.rays import Candidates
 from app.core.localise.regions import CLUSTER_NEIGHBOURS
 from app.core.localise.surface import weighted_plane
 
-__all__ = ["FAR_FACE_SHARE", "far_faces", "oriented_depths"]
+__all__ = ["FAR_FACE_SHARE", "far_faces", "meeting_planes", "oriented_depths"]
 
 FAR_FACE_SHARE = 0.3
 """The surface behind a part is its object's far face when this share of the part's border
@@ -152,7 +152,7 @@ def _on_plane(
     return ((distance <= radius[:, None]) & (agrees >= NORMAL_AGREEMENT_COSINE)).any(axis=1)
 
 
-def _meeting_planes(
+def meeting_planes(
     points: NDArray[np.float64], toward: NDArray[np.float64], other: Side, reach: float
 ) -> tuple[NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64]]:
     """The plane of the other cloud's surface meeting each point at an edge: fitted to its
@@ -198,7 +198,7 @@ def _joins(
     """Which border points the other epoch's surface meets at an edge, and which of those it
     joins to the surface ``depth`` away along ``toward`` (the far face).
 
-    The meeting surface (:func:`_meeting_planes`) lies within :data:`EDGE_FACTOR` change
+    The meeting surface (:func:`meeting_planes`) lies within :data:`EDGE_FACTOR` change
     thresholds of the point.  It joins the point to the far face when, on its plane, the other
     cloud has surface halfway towards the far face, none a margin past it, and none a margin
     behind the point: it runs from the part's edge to the far face and ends at both (an
@@ -223,7 +223,7 @@ def _joins(
     if count == 0:
         return np.zeros(0, dtype=bool), np.zeros(0, dtype=bool)
     reach = EDGE_FACTOR * change_threshold
-    found, centroid, plane_normal = _meeting_planes(points, toward, other, 2.0 * reach)
+    found, centroid, plane_normal = meeting_planes(points, toward, other, 2.0 * reach)
     height = np.einsum("bd,bd->b", points - centroid, plane_normal)
     meets = found & (np.abs(height) <= reach)
     foot = points - height[:, None] * plane_normal

@@ -57,6 +57,13 @@ EDGE_COSINE = math.cos(math.radians(60.0))
 """A surface adjoins a border point at an edge when the normals' cosine is below this."""
 UPRIGHT_NORMAL_Z = 0.5
 """A part is upright (a side) when its normals' mean vertical component is below this."""
+LEVEL_NORMAL_Z = math.sqrt(0.5)
+"""Candidates whose normals are closer to vertical than 45 degrees (level surfaces) and the
+others (upright ones) are not in one surface part where a part has much of both
+(:data:`MIXED_SHARE`, :func:`surface_parts`)."""
+MIXED_SHARE = 0.25
+"""A part whose level candidates are between this share and its complement is split into
+its upright and its level surfaces."""
 SEE_THROUGH_REACH = 1.2
 """Farther along the normal line, the other epoch's unmatched surface is as likely another
 coverage difference (the ceiling a path saw above a floor patch the other path saw) as what
@@ -163,7 +170,26 @@ def surface_parts(
     linked = (distance[:, 1:] <= radius[:, None]) & (
         np.abs(np.einsum("ckd,cd->ck", unit[neighbour], unit)) >= NORMAL_AGREEMENT_COSINE
     )
-    rows = np.repeat(np.arange(count), k - 1)[linked.ravel()]
+    labels = _components(linked, neighbour, count)
+    # upright or level, never both: points at a crease have normals turning gradually from
+    # one surface's to the other's and chain a board to the floor it stands on.  Only a part
+    # with much of both is split (rough ground has a few steep points, a fence a few flat ones)
+    level = np.abs(unit[:, 2]) >= LEVEL_NORMAL_Z
+    sizes = np.bincount(labels).astype(np.float64)
+    level_share = np.bincount(labels, weights=level.astype(np.float64)) / sizes
+    mixed = (level_share >= MIXED_SHARE) & (level_share <= 1.0 - MIXED_SHARE)
+    if mixed.any():
+        linked &= ~mixed[labels][:, None] | (level[neighbour] == level[:, None])
+        labels = _components(linked, neighbour, count)
+    return labels.astype(np.int64)
+
+
+def _components(
+    linked: NDArray[np.bool_], neighbour: NDArray[np.int64], count: int
+) -> NDArray[np.int64]:
+    """Connected components of the graph linking each point to its ``linked`` neighbours
+    (shapes (c, k), (c, k) -> (c,))."""
+    rows = np.repeat(np.arange(count), neighbour.shape[1])[linked.ravel()]
     columns = neighbour[linked]
     from scipy.sparse import coo_matrix  # on first use: API processes need no scipy
     from scipy.sparse.csgraph import connected_components
@@ -323,6 +349,8 @@ class PartFigures:
         Its border points that the other epoch's surface adjoins at an edge.
     surround_share : ndarray, shape (parts,), float64
         Share of those where that surface carries on past the point.
+    adjoined : ndarray, shape (b,), int64
+        Those border points of every part (indices into the candidates).
     upright : ndarray, shape (parts,), bool
         The part is an upright face.
     counts : dict
@@ -336,6 +364,7 @@ class PartFigures:
     behind_share: NDArray[np.float64]
     adjoining: NDArray[np.float64]
     surround_share: NDArray[np.float64]
+    adjoined: NDArray[np.int64]
     upright: NDArray[np.bool_]
     counts: dict[str, Any]
 
@@ -418,9 +447,10 @@ def _adjoining_surfaces(
     other_unmatched: NDArray[np.bool_],
     threshold: float,
     change_threshold: float,
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Per part, how many border points the other epoch's surface adjoins at an edge, and the
-    share of those where it carries on past the point (:func:`_surrounded`)."""
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+    """Per part, how many border points the other epoch's surface adjoins at an edge and the
+    share of those where it carries on past the point (:func:`_surrounded`), and those border
+    points (indices into the candidates)."""
     probe = np.flatnonzero(border)
     adjoining_points, surrounded_points = _surrounded(
         candidates.points[probe],
@@ -437,7 +467,7 @@ def _adjoining_surfaces(
     surround_share = np.bincount(
         labels[probe], weights=carried_on.astype(np.float64), minlength=n_parts
     ) / np.maximum(adjoining, 1.0)
-    return adjoining, surround_share
+    return adjoining, surround_share, probe[adjoining_points]
 
 
 def unmatched_points(
@@ -512,7 +542,7 @@ def part_figures(
         cluster_factor=cluster_factor,
     )
     behind = surface_behind(candidates.points, candidates.normal, other, other_unmatched)
-    adjoining, surround_share = _adjoining_surfaces(
+    adjoining, surround_share, adjoined = _adjoining_surfaces(
         candidates,
         labels,
         n_parts,
@@ -540,6 +570,7 @@ def part_figures(
         / np.maximum(sizes, 1.0),
         adjoining=adjoining,
         surround_share=surround_share,
+        adjoined=adjoined,
         # a side: an upright face (a top, seen from any path above it, is left to other rules)
         upright=np.bincount(labels, weights=vertical, minlength=n_parts) / np.maximum(sizes, 1.0)
         < UPRIGHT_NORMAL_Z,

@@ -25,6 +25,7 @@ __all__ = [
     "SURFACE_SECTORS",
     "coplanar_sectors",
     "extends",
+    "first_level_surface_marked",
     "level_surface_below",
     "share_on_planes",
 ]
@@ -122,32 +123,22 @@ def share_on_planes(
     return hits / np.maximum(np.bincount(labels[sample], minlength=n_clusters), 1)
 
 
-def level_surface_below(
+def _probe_below(
     points: NDArray[np.float64],
     cloud: LocalGeometry,
     reach: float,
     min_radius: float,
-    marked: NDArray[np.bool_] | None = None,
-    blocking: KDTree | None = None,
-) -> NDArray[np.bool_]:
-    """Whether ``cloud`` has a level surface under each point within ``reach`` metres
-    (straight down, z up; shapes (p, 3) -> (p,)).
-
-    The probes' balls are :data:`BELOW_RADIUS_FRACTION` of their depth wide, at least
-    ``min_radius``; the deepest probe is at ``reach`` or less.  Only downwards: above a top
-    lies open air up to a ceiling at any height, which says nothing of what stood under it.
-
-    With ``marked`` (shape (m,), bool, over ``cloud``'s points): whether the first level
-    surface found under each point has a marked point in the probe that found it (a marked
-    surface farther down, under an unmarked one, does not count); with ``blocking`` too (a
-    tree over other points), a probe that holds one of those before it holds a level surface
-    stops the search: False.
-    """
+    marked: NDArray[np.bool_] | None,
+    blocking: KDTree | None,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """The probes straight down from each point (shapes (p, 3) -> (p,), (p,)): whether one
+    found a level surface of ``cloud`` (or, with ``blocking``, a point of that tree first),
+    and whether the probe that found the level surface holds a ``marked`` point."""
     count = points.shape[0]
     found = np.zeros(count, dtype=bool)
     first_marked = np.zeros(count, dtype=bool)
     if count == 0 or cloud.points.shape[0] == 0:
-        return found
+        return found, first_marked
     k = min(PROBE_NEIGHBOURS, cloud.points.shape[0])
     steps = BELOW_FIRST * BELOW_STEP_RATIO ** np.arange(
         math.floor(math.log(reach / BELOW_FIRST, BELOW_STEP_RATIO) + 1e-9) + 1
@@ -171,4 +162,37 @@ def level_surface_below(
             block_distance, _ = blocking.query(probes, k=1, distance_upper_bound=radius)
             hit |= np.asarray(block_distance).ravel() <= radius
         found[todo] = hit
-    return found if marked is None else first_marked
+    return found, first_marked
+
+
+def level_surface_below(
+    points: NDArray[np.float64], cloud: LocalGeometry, reach: float, min_radius: float
+) -> NDArray[np.bool_]:
+    """Whether ``cloud`` has a level surface under each point within ``reach`` metres
+    (straight down, z up; shapes (p, 3) -> (p,)).
+
+    The probes' balls are :data:`BELOW_RADIUS_FRACTION` of their depth wide, at least
+    ``min_radius``; the deepest probe is at ``reach`` or less.  Only downwards: above a top
+    lies open air up to a ceiling at any height, which says nothing of what stood under it.
+    """
+    return _probe_below(points, cloud, reach, min_radius, None, None)[0]
+
+
+def first_level_surface_marked(
+    points: NDArray[np.float64],
+    cloud: LocalGeometry,
+    reach: float,
+    min_radius: float,
+    *,
+    marked: NDArray[np.bool_],
+    blocking: KDTree | None = None,
+) -> NDArray[np.bool_]:
+    """Whether the first level surface of ``cloud`` under each point (the probes of
+    :func:`level_surface_below`) has a ``marked`` point (shape (m,), bool, over ``cloud``'s
+    points) in the probe that found it; shapes (p, 3) -> (p,).
+
+    A marked surface farther down, under an unmarked one, does not count; with ``blocking``
+    (a tree over other points), a probe that holds one of those before it holds a level
+    surface stops the search: False.
+    """
+    return _probe_below(points, cloud, reach, min_radius, marked, blocking)[1]

@@ -19,6 +19,7 @@ the regions.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -29,7 +30,8 @@ from numpy.typing import NDArray
 from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
 from app.core.localise.coverage import CoverageTest
 from app.core.localise.distance import Side
-from app.core.localise.interface import VisibilityContext, VisibilityTest
+from app.core.localise.interface import FaceBorder, VisibilityContext, VisibilityTest
+from app.core.localise.map_agreement import faces_meeting_changes
 from app.core.localise.map_evidence import MapTest
 from app.core.localise.origin_free import SurfaceTest
 from app.core.localise.rays import (
@@ -48,6 +50,7 @@ from app.core.localise.trajectory_visibility import TrajectoryTest
 
 __all__ = [
     "Labelled",
+    "agree_on_faces",
     "choose_test",
     "combine_station_status",
     "find_candidates",
@@ -71,12 +74,15 @@ class Labelled:
         Confidence in each candidate's label, in [0, 1].
     report : dict
         JSON-serialisable figures of the test.
+    faces : FaceBorder, optional
+        The map test's unseen faces (:func:`agree_on_faces`).
     """
 
     label: NDArray[np.int8]
     evidence: NDArray[np.int8]
     confidence: NDArray[np.float32]
     report: dict[str, Any]
+    faces: FaceBorder | None = None
 
 
 def find_candidates(
@@ -189,4 +195,39 @@ def label_candidates(
     judged = status != STATUS_SURFACE
     evidence[index[judged]] = evidence_of_candidates[judged]
     confidence[index[judged]] = outcome.confidence[judged]
-    return Labelled(label=label, evidence=evidence, confidence=confidence, report=report)
+    return Labelled(
+        label=label, evidence=evidence, confidence=confidence, report=report, faces=outcome.faces
+    )
+
+
+def agree_on_faces(
+    sides: tuple[Side, Side],
+    labelled: tuple[Labelled, Labelled],
+    *,
+    threshold: float,
+    change_threshold: float,
+) -> tuple[Labelled, Labelled]:
+    """Both sides' labels with each side's unseen faces that meet a change of the other
+    epoch made changes (:func:`~app.core.localise.map_agreement.faces_meeting_changes`, from both
+    sides' first labels); ``threshold`` and ``change_threshold`` are ``tau`` and ``c``
+    (metres)."""
+    found = faces_meeting_changes(
+        sides,
+        (labelled[0].label, labelled[1].label),
+        (labelled[0].faces, labelled[1].faces),
+        tolerance=threshold,
+        change_threshold=change_threshold,
+    )
+    agreed = []
+    for side, own, (chosen, share) in zip(sides, labelled, found, strict=True):
+        label, evidence, confidence = own.label.copy(), own.evidence.copy(), own.confidence.copy()
+        label[chosen] = LABEL_CHANGED
+        evidence[chosen] = EVIDENCE_SEEN_EMPTY
+        confidence[chosen] = share
+        report = {**own.report, f"{side.name}_map_faces_meeting_changes": int(chosen.shape[0])}
+        agreed.append(
+            dataclasses.replace(
+                own, label=label, evidence=evidence, confidence=confidence, report=report
+            )
+        )
+    return agreed[0], agreed[1]
