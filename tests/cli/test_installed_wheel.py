@@ -94,32 +94,32 @@ def test_the_wheel_holds_every_dashboard_file_and_migration(installed, directory
     assert shipped == expected
 
 
+def _printed(bin_dir: Path, directory: Path, code: str) -> str:
+    """What ``code`` prints, run by the installed venv's Python from ``directory``."""
+    return subprocess.run(
+        [bin_dir / "python", "-c", code],
+        cwd=directory,
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=120,
+    ).stdout.strip()
+
+
 def test_the_installed_wheel_fits_planes_with_its_compiled_kernel(installed, tmp_path):
     """setup.py builds the plane-fit kernel into the wheel where a C compiler is."""
     if not c_compiler_found():
         pytest.skip("no C compiler: the wheel falls back to the numpy passes")
     _, bin_dir = installed
-    located = subprocess.run(
-        [bin_dir / "python", "-c", "import app.core.localise.surface as s; print(s.PLANE_KERNEL)"],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        check=True,
-        timeout=120,
-    ).stdout.strip()
+    located = _printed(
+        bin_dir, tmp_path, "import app.core.localise.surface as s; print(s.PLANE_KERNEL)"
+    )
     assert "_plane_kernel" in located and str(bin_dir.parent) in located, located
 
 
 def test_the_installed_wheel_serves_the_dashboard_from_another_directory(installed, tmp_path):
     _, bin_dir = installed
-    located = subprocess.run(
-        [bin_dir / "python", "-c", "import app.api.browser as b; print(b.STATIC_DIR)"],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        check=True,
-        timeout=120,
-    ).stdout.strip()
+    located = _printed(bin_dir, tmp_path, "import app.api.browser as b; print(b.STATIC_DIR)")
     assert Path(located).is_relative_to(bin_dir.parent), located  # not the checkout's static/
 
     port = free_port()

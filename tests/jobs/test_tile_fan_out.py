@@ -105,6 +105,21 @@ def _labels(npz: bytes, tmp_path: Path) -> dict[str, np.ndarray]:
         return {name: data[name] for name in data.files}
 
 
+def _service_with_short_leases(
+    service_factory: Callable[..., ServiceProcess], workers: int, crop_points: int, hooks: str
+) -> ServiceProcess:
+    """A service whose job and tile leases expire 3 s after a kill (``hooks``: the test hooks)."""
+    return service_factory(
+        workers=workers,
+        env={
+            "SCANDIFF_TILE_CROP_POINTS": str(crop_points),
+            "SCANDIFF_JOB_LEASE_SECONDS": "3",
+            "SCANDIFF_JOB_HEARTBEAT_SECONDS": "0.5",
+            "SCANDIFF_TEST_JOB_HOOKS": hooks,
+        },
+    )
+
+
 def test_tiles_and_crop_passes_run_on_every_worker_and_equal_the_in_process_tiled_result(
     service_factory: Callable[..., ServiceProcess], tmp_path: Path
 ) -> None:
@@ -159,16 +174,11 @@ def test_a_worker_killed_in_a_crop_pass_leaves_it_retried_with_the_same_result(
     service_factory: Callable[..., ServiceProcess], tmp_path: Path
 ) -> None:
     reference, scan, crop_points = _pair()
-    service = service_factory(
-        workers=2,
-        env={
-            "SCANDIFF_TILE_CROP_POINTS": str(crop_points),
-            "SCANDIFF_JOB_LEASE_SECONDS": "3",
-            "SCANDIFF_JOB_HEARTBEAT_SECONDS": "0.5",
-            "SCANDIFF_TEST_JOB_HOOKS": (
-                '{"crop_pass_sleep_seconds": 3.0, "kill_in_crop_pass": "helper"}'
-            ),
-        },
+    service = _service_with_short_leases(
+        service_factory,
+        2,
+        crop_points,
+        ('{"crop_pass_sleep_seconds": 3.0, "kill_in_crop_pass": "helper"}'),
     )
     job = _run_job(service, reference, scan)
     assert job["status"] == JobStatus.SUCCEEDED, job
@@ -187,14 +197,8 @@ def test_a_worker_killed_in_a_tile_leaves_it_retried_and_stored_tiles_are_kept(
     service_factory: Callable[..., ServiceProcess],
 ) -> None:
     reference, scan, crop_points = _pair()
-    service = service_factory(
-        workers=1,
-        env={
-            "SCANDIFF_TILE_CROP_POINTS": str(crop_points),
-            "SCANDIFF_JOB_LEASE_SECONDS": "3",
-            "SCANDIFF_JOB_HEARTBEAT_SECONDS": "0.5",
-            "SCANDIFF_TEST_JOB_HOOKS": '{"kill_in_tile": 2, "on_attempts": [1]}',
-        },
+    service = _service_with_short_leases(
+        service_factory, 1, crop_points, '{"kill_in_tile": 2, "on_attempts": [1]}'
     )
     job = _run_job(service, reference, scan)
     assert job["status"] == JobStatus.SUCCEEDED, job
@@ -234,14 +238,8 @@ def test_a_parent_killed_in_a_crop_pass_is_followed_by_an_attempt_writing_the_cr
     service_factory: Callable[..., ServiceProcess], tmp_path: Path
 ) -> None:
     reference, scan, crop_points = _pair()
-    service = service_factory(
-        workers=1,
-        env={
-            "SCANDIFF_TILE_CROP_POINTS": str(crop_points),
-            "SCANDIFF_JOB_LEASE_SECONDS": "3",
-            "SCANDIFF_JOB_HEARTBEAT_SECONDS": "0.5",
-            "SCANDIFF_TEST_JOB_HOOKS": '{"kill_in_crop_pass": "parent", "on_attempts": [1]}',
-        },
+    service = _service_with_short_leases(
+        service_factory, 1, crop_points, '{"kill_in_crop_pass": "parent", "on_attempts": [1]}'
     )
     job = _run_job(service, reference, scan)
     assert job["status"] == JobStatus.SUCCEEDED, job
