@@ -288,13 +288,9 @@ def _dense_station(world, origin, rng, step=0.04):
     return origin + distance[:, None] * directions
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_the_heights_of_stations_whose_rings_are_denser_than_the_scouting_bins_are_found(seed):
-    """Two stations scanned every 0.04 degrees (as a 100M-point survey of five: its rings fill
-    every 0.04 degree scouting bin alike), written one after the other and searched on whole
-    voxels (as recover_stations searches): the heights came out 0.3-4.7 m wrong (issue 30)."""
-    from app.core.origins.voxels import whole_voxels
-
+def _two_dense_stations(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Two stations at random places of a two-box room scanned every 0.04 degrees, written
+    one after the other: their origins (2, 3) and points (n, 3)."""
     world = LidarWorld(
         shell_low=np.zeros(3),
         shell_high=np.array([12.0, 9.0, 5.8]),
@@ -302,10 +298,20 @@ def test_the_heights_of_stations_whose_rings_are_denser_than_the_scouting_bins_a
         box_high=np.array([[2.5, 2.0, 1.5], [9.5, 7.5, 2.5]]),
     )
     rng = np.random.default_rng(seed)
-    origins = [
-        np.array([*rng.uniform([2.0, 2.0], [10.0, 7.0]), rng.uniform(0.8, 1.6)]) for _ in range(2)
-    ]
-    points = np.vstack([_dense_station(world, origin, rng) for origin in origins])
+    origins = np.array(
+        [[*rng.uniform([2.0, 2.0], [10.0, 7.0]), rng.uniform(0.8, 1.6)] for _ in range(2)]
+    )
+    return origins, np.vstack([_dense_station(world, origin, rng) for origin in origins])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_heights_of_stations_whose_rings_are_denser_than_the_scouting_bins_are_found(seed):
+    """Two stations scanned every 0.04 degrees (as a 100M-point survey of five: its rings fill
+    every 0.04 degree scouting bin alike), written one after the other and searched on whole
+    voxels (as recover_stations searches): the heights came out 0.3-4.7 m wrong (issue 30)."""
+    from app.core.origins.voxels import whole_voxels
+
+    origins, points = _two_dense_stations(seed)
     sample = whole_voxels(points, 40_000, np.random.default_rng(0))
     for origin in origins:
         found = station_height.station_height(sample, origin[:2], np.random.default_rng(0))
@@ -355,17 +361,7 @@ def test_a_station_found_beside_a_true_one_that_blurs_its_rings_is_dropped(
     dense stations: its rings hold over 5 % of the points (kept before), but it is the
     clearest on few of them.  The two true ones are kept (the three stations of
     :func:`close_survey`, 0.3-1.5 m apart, are kept by the tests above)."""
-    world = LidarWorld(
-        shell_low=np.zeros(3),
-        shell_high=np.array([12.0, 9.0, 5.8]),
-        box_low=np.array([[1.0, 1.0, 0.0], [8.0, 6.0, 0.0]]),
-        box_high=np.array([[2.5, 2.0, 1.5], [9.5, 7.5, 2.5]]),
-    )
-    rng = np.random.default_rng(seed)
-    origins = np.array(
-        [[*rng.uniform([2.0, 2.0], [10.0, 7.0]), rng.uniform(0.8, 1.6)] for _ in range(2)]
-    )
-    points = np.vstack([_dense_station(world, origin, rng) for origin in origins])
+    origins, points = _two_dense_stations(seed)
     passes = []
 
     def search_centres(residual, rng, known):
