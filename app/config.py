@@ -97,6 +97,14 @@ class Settings(BaseSettings):
         "tiles only for a pair that does not fit a worker's memory budget.  For tests and "
         "for spreading mid-sized jobs over idle workers.",
     )
+    min_free_disk_bytes: int = Field(
+        default=1024**3,
+        ge=0,
+        description="Disk that must stay free under data_dir once a job's tile inputs and "
+        "results are written: a tiled job whose files would leave less is refused at submit "
+        "time when the pair alone cannot fit (422 insufficient_disk), else fails once planned "
+        "with how much it needs and how much is free, before any crop is written.",
+    )
     worker_memory_budget_bytes: int | None = Field(
         default=DEFAULT_MEMORY_BUDGET_BYTES,
         ge=1,

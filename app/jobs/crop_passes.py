@@ -85,7 +85,11 @@ def save_pass_inputs(
     write_atomically(directory / PASSES_DIR / "context.npz", context.save)
     for pass_index, crop_pass in enumerate(passes):
         stored = dataclasses.replace(
-            crop_pass, path=Path(settings.data_layout.stored_form(crop_pass.path))
+            crop_pass,
+            path=Path(settings.data_layout.stored_form(crop_pass.path)),
+            other_path=None
+            if crop_pass.other_path is None
+            else Path(settings.data_layout.stored_form(crop_pass.other_path)),
         )
         write_atomically(_pass_file(directory, pass_index), stored.save)
 
@@ -98,7 +102,13 @@ def load_pass_inputs(
     return (
         TilePlan.load(directory / PASSES_DIR / "plan.npz"),
         TileContext.load(directory / PASSES_DIR / "context.npz"),
-        dataclasses.replace(crop_pass, path=settings.data_layout.resolve(str(crop_pass.path))),
+        dataclasses.replace(
+            crop_pass,
+            path=settings.data_layout.resolve(str(crop_pass.path)),
+            other_path=None
+            if crop_pass.other_path is None
+            else settings.data_layout.resolve(str(crop_pass.other_path)),
+        ),
     )
 
 

@@ -59,6 +59,7 @@ logger = logging.getLogger("scandiff.jobs")
 
 API_FIXES_OF_ERRORS = {
     "skip_alignment": ' ("align": false in the job\'s params: POST /api/v1/jobs/{job_id}/rerun)',
+    "free_disk": " (ask the operator: the data directory's disk, SCANDIFF_MIN_FREE_DISK_BYTES)",
 }
 """The API's knob for each ``how_to_fix`` a core error names (a job's error is read over HTTP)."""
 
@@ -189,6 +190,8 @@ def streamed_compute(
         max_crop_points=settings.tile_crop_points,
         run_tiles=fan_out,
         run_crops=crop_fan_out,
+        keep_free_disk_bytes=settings.min_free_disk_bytes,
+        free_disk=job_hooks.free_disk,
         method=job.method,
         variant=job.variant,
         params=job.params,

@@ -25,6 +25,8 @@ with that message: a transient failure).
   once a worker claimed it: ``crop_pass_sleep_seconds`` (every worker, every pass) and
   ``kill_in_crop_pass`` (``"helper"``: a worker running a pass from its queue message
   SIGKILLs itself there; ``"parent"``: the job's own worker does, ``on_attempts`` filtering).
+* :meth:`JobHooks.free_disk`: the free disk a streamed job checks its files against; the
+  figure ``free_disk_bytes`` when given.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ import signal
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -141,6 +144,16 @@ class JobHooks:
             )
             logging.shutdown()
             os.kill(os.getpid(), signal.SIGKILL)
+
+    def free_disk(self, directory: Path) -> int:
+        """Free bytes of the disk under ``directory``, or the figure ``free_disk_bytes`` of the
+        faults (tests only: a disk too small without filling one)."""
+        faults = self.process_faults()
+        if "free_disk_bytes" in faults:
+            return int(faults["free_disk_bytes"])
+        from app.core.tiling.disk import free_disk_bytes  # the worker's import, not the API's
+
+        return free_disk_bytes(directory)
 
     def process_faults(self) -> dict[str, Any]:
         """The faults of this process's environment that concern every job (tests only)."""

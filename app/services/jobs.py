@@ -95,6 +95,7 @@ def create_job(
             code="scans_of_different_sites",
         )
     check_memory_budget(settings, reference, scan)
+    check_disk_space(settings, reference, scan)
     site = sites.get_site(session, principal, scan.site_id)
     method, variant, params = sites.resolve_detector(
         site, payload.method, payload.variant, payload.params
@@ -142,6 +143,34 @@ def check_memory_budget(settings: Settings, reference: Scan, scan: Scan) -> None
         f"alone needs about {needed / 1024**2:,.0f} MiB before any tile is compared; ask the "
         "operator to raise it, or compare smaller scans",
         code="memory_budget_too_small",
+    )
+
+
+def check_disk_space(settings: Settings, reference: Scan, scan: Scan) -> None:
+    """422 when a pair the workers compare in tiles cannot fit the data directory's free disk:
+    each of its points is in at least one tile's crop and has a result
+    (:data:`~app.core.tiling.disk.MIN_BYTES_PER_POINT`), beside what must stay free."""
+    from app.core.tiling.disk import MIN_BYTES_PER_POINT, free_disk_bytes
+    from app.core.tiling.plan import crop_point_limit
+
+    n_points = reference.n_points + scan.n_points
+    budget = settings.worker_memory_budget_bytes
+    tiled = bool(settings.tile_crop_points) or (
+        budget is not None and crop_point_limit(budget, n_points) < n_points
+    )
+    if not tiled:
+        return
+    needed = n_points * MIN_BYTES_PER_POINT
+    free = free_disk_bytes(settings.data_dir)
+    if needed + settings.min_free_disk_bytes <= free:
+        return
+    raise ValidationFailedError(
+        f"not enough disk to compare these scans: their {n_points:,} points are compared in "
+        f"tiles whose inputs and results need at least {needed / 1e9:,.1f} GB under the data "
+        f"directory, which has {free / 1e9:,.1f} GB free and must keep "
+        f"{settings.min_free_disk_bytes / 1e9:,.1f} GB free (SCANDIFF_MIN_FREE_DISK_BYTES); "
+        "ask the operator to free disk, or compare smaller scans",
+        code="insufficient_disk",
     )
 
 

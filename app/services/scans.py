@@ -323,6 +323,7 @@ def _register_upload(
         reference = session.get(Scan, site.reference_scan_id)
         if reference is not None:
             jobs.check_memory_budget(settings, reference, scan)
+            jobs.check_disk_space(settings, reference, scan)
     session.add(scan)
     session.flush()
     if options.reference:

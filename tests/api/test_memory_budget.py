@@ -1,7 +1,8 @@
 """The workers' memory budget (SCANDIFF_WORKER_MEMORY_BUDGET_BYTES): a comparison whose two
 scans cannot even be held within it is refused with a 422 naming the setting, nothing queued;
 a pair a worker reads in chunks (coordinates-only binary PLY, no origin) needs room for its
-subsamples only."""
+subsamples only.  The disk likewise: a pair compared in tiles whose points' crops and results
+cannot fit beside what must stay free (SCANDIFF_MIN_FREE_DISK_BYTES) is refused."""
 
 from __future__ import annotations
 
@@ -106,3 +107,31 @@ def test_a_pair_read_in_chunks_needs_room_for_its_subsamples_only(
         "memory_budget_too_small",
     )
     assert count(streamed_api, Job) == jobs_before
+
+
+@pytest.fixture(scope="module")
+def small_disk_api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ApiServer]:
+    """The app comparing every pair in tiles, with more disk to keep free than any disk has."""
+    yield from fresh_api(
+        tmp_path_factory,
+        "small-disk-data",
+        max_upload_bytes=MAX_UPLOAD_BYTES,
+        tile_crop_points=PAIR_POINTS // 2,
+        min_free_disk_bytes=10**18,
+    )
+
+
+def test_a_tiled_pair_that_cannot_fit_the_disk_is_refused_with_the_setting_to_raise(
+    small_disk_api: ApiServer,
+) -> None:
+    writer = small_disk_api.client(small_disk_api.token("writer"))
+    site, _ = site_with_reference(writer)
+    scans_before, jobs_before = count(small_disk_api, Scan), count(small_disk_api, Job)
+    detail = assert_error(
+        upload(writer, site["id"], ply_bytes(room_points(SCAN_POINTS, seed=3))),
+        422,
+        "insufficient_disk",
+    )
+    assert "5,000 points" in detail and "SCANDIFF_MIN_FREE_DISK_BYTES" in detail, detail
+    assert "1,000,000,000.0 GB free" in detail, detail
+    assert (count(small_disk_api, Scan), count(small_disk_api, Job)) == (scans_before, jobs_before)

@@ -29,6 +29,7 @@ from app.core.origins.station_recovery import (
 from app.core.pipeline import ComparisonResult
 from app.core.registration import apply_transform
 from app.core.tiling.compare import compare_tiled
+from app.core.tiling.disk import DiskSpaceError
 from app.core.tiling.lean import float32_cloud
 from app.core.tiling.pair_files import (
     streamed_outputs,
@@ -121,22 +122,69 @@ def test_a_streamed_comparison_equals_the_lean_tiled_one(tmp_path, three_station
     _assert_streamed_equals_lean(paths, tmp_path, n_points, tiled)
 
 
+def test_the_crops_on_disk_hold_exactly_the_points_the_tiles_read(
+    tmp_path, three_station_pair
+) -> None:
+    # each cloud's pass reads the other cloud's file for its tiles' direction marks and writes
+    # only the returns the tiles read, in packed records (float32 point, uint32 index, int8
+    # station): the crops' bytes are what the tiles' crop sizes say, no more
+    from app.core.tiling import crops
+
+    paths, n_points, tiled = three_station_pair
+    streamed = _assert_streamed_equals_lean(paths, tmp_path, n_points, tiled)
+    layout = json.loads((tmp_path / "work" / "crops" / "crops.json").read_text())
+    assert not any(layout[side]["directions"] for side in ("reference", "scan"))
+    record = crops.record_dtype(np.zeros((0, 3), np.float32), n_points, 3)
+    assert record.itemsize == 17
+    written = sum(path.stat().st_size for path in (tmp_path / "work" / "crops").glob("*.bin"))
+    assert written == record.itemsize * sum(_crop_sizes(streamed))
+
+
 def test_tiles_marking_their_directions_in_small_reads_equal_the_lean_one(
     tmp_path, three_station_pair, monkeypatch
 ) -> None:
-    # the parent writes the crops in the top view only; each tile marks its directions from
-    # the other cloud's points in its box and filters its crop as it reads it, here a few
-    # hundred records at a time: the crops, and so the result, are the lean run's
-    from app.core.tiling import crops
+    # passes that do not read the other cloud (an earlier attempt's) write the crops in the
+    # top view only; each tile marks its directions from the other cloud's points in its box
+    # and filters its crop as it reads it, here a few hundred records at a time: the crops,
+    # and so the result, are the lean run's
+    from app.core.tiling import crop_passes, crops
 
     monkeypatch.setattr(crops, "READ_CHUNK", 997)
+    monkeypatch.setattr(crop_passes.CropPass, "filters_by_direction", lambda *_: False)
     paths, n_points, tiled = three_station_pair
     streamed = _assert_streamed_equals_lean(paths, tmp_path, n_points, tiled)
     layout = json.loads((tmp_path / "work" / "crops" / "crops.json").read_text())
     assert all(layout[side]["directions"] for side in ("reference", "scan"))
     written = sum(path.stat().st_size for path in (tmp_path / "work" / "crops").glob("*.bin"))
-    record_bytes = np.dtype(crops.record_dtype(np.zeros((0, 3), np.float32), np.zeros(0))).itemsize
+    record_bytes = crops.record_dtype(np.zeros((0, 3), np.float32), n_points, 3).itemsize
     assert written > record_bytes * sum(_crop_sizes(streamed)), "filtered by the tiles"
+
+
+def test_a_pair_whose_crops_do_not_fit_the_disk_is_refused_before_a_crop_is_written(
+    tmp_path, three_station_pair
+) -> None:
+    paths, n_points, _ = three_station_pair
+    seen: list[Path] = []
+
+    def free_disk(directory: Path) -> int:  # a disk with 1 MB free
+        seen.append(directory)
+        return 1_000_000
+
+    with pytest.raises(DiskSpaceError) as refusal:
+        compare_streamed(
+            *paths,
+            work_dir=tmp_path / "work",
+            max_crop_points=int(0.6 * n_points),
+            free_disk=free_disk,
+            keep_free_disk_bytes=500_000,
+            **OPTIONS,
+        )
+    message = str(refusal.value)
+    assert "need about" in message and "only 0.0 GB are free" in message, message
+    assert "0.0 GB must stay free" in message and str(tmp_path / "work") in message
+    assert seen == [tmp_path / "work"]
+    assert not (tmp_path / "work" / "crops").exists()
+    assert not list((tmp_path / "work").glob("crops*/*.bin")), "no crop written"
 
 
 @pytest.mark.slow  # a second streamed run of the module pair (~10 CPU s): make test-slow

@@ -55,6 +55,15 @@ def _tiles(data_dir: Path, job_id: str) -> list[dict]:
 
 
 def _run_job(service: ServiceProcess, reference: np.ndarray, scan: np.ndarray) -> dict:
+    job = _finished_job(service, reference, scan)
+    with service.client() as client:
+        labels = client.get(f"/api/v1/jobs/{job['id']}/labels", params={"format": "npz"})
+        assert labels.status_code == 200, labels.text
+    return {**job, "labels_npz": labels.content}
+
+
+def _finished_job(service: ServiceProcess, reference: np.ndarray, scan: np.ndarray) -> dict:
+    """Upload the pair (the reference first) and wait for its job to end."""
     with service.client() as client:
         site = client.post("/api/v1/sites", json={"name": "hall"}).json()
         path = f"/api/v1/sites/{site['id']}/scans"
@@ -66,10 +75,7 @@ def _run_job(service: ServiceProcess, reference: np.ndarray, scan: np.ndarray) -
         assert response.status_code == 201, response.text
         response = client.post(path, params={"filename": "tuesday.ply"}, content=ply_bytes(scan))
         assert response.status_code == 202, response.text
-        job = service.wait_for_job(client, response.json()["job"]["id"], timeout=300)
-        labels = client.get(f"/api/v1/jobs/{job['id']}/labels", params={"format": "npz"})
-        assert labels.status_code == 200, labels.text
-    return {**job, "labels_npz": labels.content}
+        return service.wait_for_job(client, response.json()["job"]["id"], timeout=300)
 
 
 def _crop_passes(data_dir: Path, job_id: str) -> list[dict]:
@@ -167,6 +173,28 @@ def test_tiles_and_crop_passes_run_on_every_worker_and_equal_the_in_process_tile
     assert timings["crop_passes_other_workers"] > 0
 
     _assert_same_labels(job, _expected(tmp_path, reference, scan, crop_points), tmp_path)
+
+
+def test_a_job_whose_crops_do_not_fit_the_disk_fails_saying_so_before_writing_them(
+    service_factory: Callable[..., ServiceProcess],
+) -> None:
+    # the workers see a disk with 2 MB free (the API the real one: the pair alone fits)
+    reference, scan, crop_points = _pair()
+    service = service_factory(
+        workers=1,
+        env={
+            "SCANDIFF_TILE_CROP_POINTS": str(crop_points),
+            "SCANDIFF_TEST_JOB_HOOKS": '{"free_disk_bytes": 2000000}',
+        },
+    )
+    job = _finished_job(service, reference, scan)
+    assert job["status"] == JobStatus.FAILED, job
+    assert job["attempts"] == 1, "refused, not retried"
+    error = job["error"]
+    assert "not enough disk for this comparison" in error, error
+    assert "only 0.0 GB are free" in error and "SCANDIFF_MIN_FREE_DISK_BYTES" in error, error
+    assert _crop_passes(service.data_dir, job["id"]) == [], "no crop pass started"
+    assert not list((service.data_dir / "results").rglob("crop-*.bin")), "no crop written"
 
 
 @pytest.mark.slow  # a lease to expire: ~40 s

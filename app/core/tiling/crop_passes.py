@@ -27,7 +27,12 @@ from numpy.typing import NDArray
 
 from app.core.comparison.align import transformed
 from app.core.localise.station_assignment import best_stations
-from app.core.tiling.crops import record_dtype, write_crop_layout, write_side_crops
+from app.core.tiling.crops import (
+    record_dtype,
+    tile_direction_marks,
+    write_crop_layout,
+    write_side_crops,
+)
 from app.core.tiling.pair_files import finite_chunks
 from app.core.tiling.plan import TilePlan
 from app.core.tiling.tile import TileContext
@@ -73,37 +78,56 @@ class CropPass:
     transform: NDArray[np.float64] | None
     station_origins: NDArray[np.float64] | None
     contrasts: NDArray[np.float64] | None
+    n_points: int = 0
+    other_path: Path | None = None
+    other_format: str | None = None
+    other_transform: NDArray[np.float64] | None = None
 
     @property
     def dtype(self) -> np.dtype:
         """The crop files' records (:func:`~app.core.tiling.crops.record_dtype`)."""
-        stations = None if self.station_origins is None else np.zeros(0, np.int32)
-        return record_dtype(np.zeros((0, 3), np.float32), stations)
+        n_stations = None if self.station_origins is None else len(self.station_origins)
+        return record_dtype(np.zeros((0, 3), np.float32), self.n_points, n_stations)
 
     def chunks(self) -> Iterator[tuple[int, NDArray[np.float32], NDArray | None]]:
         """A pass over the file: ``(first index, float32 local (aligned) points (c, 3),
         stations (c,) or None)``, the file's finite points in the streamed chunks."""
-        for first, points in finite_chunks(self.path, self.format):
-            local = (points - self.offset).astype(np.float32)
-            if self.transform is not None:
-                local = transformed(local, self.transform)
+        for first, local in _local_chunks(self.path, self.format, self.offset, self.transform):
             station = None
             if self.station_origins is not None and self.contrasts is not None:
                 station = best_stations(local, self.station_origins, list(self.contrasts))
             yield first, local, station
 
+    def other_chunks(self) -> Iterator[tuple[int, NDArray[np.float32], None]]:
+        """A pass over the other cloud's file (:attr:`other_path`): its float32 local (aligned)
+        points as its own pass reads them, without stations."""
+        if self.other_path is None:
+            return
+        for first, local in _local_chunks(
+            self.other_path, self.other_format, self.offset, self.other_transform
+        ):
+            yield first, local, None
+
     def save(self, path: str | Path) -> None:
-        """Write the pass as a small ``.npz`` (the file's path as given)."""
+        """Write the pass as a small ``.npz`` (the files' paths as given)."""
         arrays = {
             name: value
             for name, value in (
                 ("transform", self.transform),
                 ("station_origins", self.station_origins),
                 ("contrasts", self.contrasts),
+                ("other_transform", self.other_transform),
             )
             if value is not None
         }
-        meta = {"side": self.side, "path": str(self.path), "format": self.format}
+        meta = {
+            "side": self.side,
+            "path": str(self.path),
+            "format": self.format,
+            "n_points": int(self.n_points),
+            "other_path": None if self.other_path is None else str(self.other_path),
+            "other_format": self.other_format,
+        }
         with open(path, "wb") as file:
             np.savez(file, meta=np.array(json.dumps(meta)), offset=self.offset, **arrays)
 
@@ -120,7 +144,35 @@ class CropPass:
                 transform=data.get("transform", None),
                 station_origins=data.get("station_origins", None),
                 contrasts=data.get("contrasts", None),
+                n_points=int(meta.get("n_points", 0)),
+                other_path=None if meta.get("other_path") is None else Path(meta["other_path"]),
+                other_format=meta.get("other_format"),
+                other_transform=data.get("other_transform", None),
             )
+
+    def filters_by_direction(self, context: TileContext) -> bool:
+        """Whether its crops keep the other sensor's returns by direction as they are written
+        (its context has direction cells and origins, and it reads the other cloud's file)."""
+        return self.other_path is not None and _has_directions(context, self.side)
+
+
+def _has_directions(context: TileContext, side: str) -> bool:
+    return (
+        getattr(context, f"{side}_ray_cells") is not None
+        and getattr(context, f"{side}_origins") is not None
+    )
+
+
+def _local_chunks(
+    path: Path, format: str | None, offset: NDArray[np.float64], transform: NDArray | None
+) -> Iterator[tuple[int, NDArray[np.float32]]]:
+    """A file's finite points in the streamed chunks, float32 in the local frame, moved by
+    ``transform`` when given: ``(first index, points (c, 3))``."""
+    for first, points in finite_chunks(path, format):
+        local = (points - offset).astype(np.float32)
+        if transform is not None:
+            local = transformed(local, transform)
+        yield first, local
 
 
 CropRunner = Callable[
@@ -133,15 +185,32 @@ CropRunner = Callable[
 def write_crop_pass(
     directory: Path, plan: TilePlan, context: TileContext, crop_pass: CropPass
 ) -> NDArray[np.int64]:
-    """Write one cloud's crop file of every tile into ``directory`` (created if needed), in
-    the top view (each tile keeps the other sensor's returns by direction as it reads,
-    :class:`~app.core.tiling.crops.TileCropFiles`); the crops' point counts, shape (n_tiles,).
+    """Write one cloud's crop file of every tile into ``directory`` (created if needed); the
+    crops' point counts, shape (n_tiles,).
+
+    When the pass :meth:`~CropPass.filters_by_direction`, it first reads the other cloud's
+    file for every tile's direction marks of this cloud's origins
+    (:func:`~app.core.tiling.crops.tile_direction_marks`) and writes only the returns a tile
+    reads (:func:`~app.core.tiling.rays.crop_mask` with the marks); else in the top view (each
+    tile then keeps the other sensor's returns by direction as it reads,
+    :class:`~app.core.tiling.crops.TileCropFiles`).
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     origins = getattr(context, f"{crop_pass.side}_origins")
+    directions = None
+    if crop_pass.filters_by_direction(context):
+        cells = getattr(context, f"{crop_pass.side}_ray_cells")
+        directions = (cells, tile_direction_marks(plan, crop_pass.other_chunks, origins, cells))
     return write_side_crops(
-        directory, plan, context, crop_pass.side, crop_pass.chunks, origins, crop_pass.dtype
+        directory,
+        plan,
+        context,
+        crop_pass.side,
+        crop_pass.chunks,
+        origins,
+        crop_pass.dtype,
+        directions,
     )
 
 
@@ -163,15 +232,15 @@ def write_crop_passes_here(
 def write_pass_layout(directory: Path, context: TileContext, passes: Sequence[CropPass]) -> None:
     """The crops' layout once every pass is written: each cloud's records, no rays, and whether
     its tiles keep the other sensor's returns by direction as they read (its context has
-    direction cells and origins)."""
+    direction cells and origins, and its pass wrote them in the top view)."""
     write_crop_layout(
         directory,
         {
             crop_pass.side: {
                 "dtype": crop_pass.dtype.descr,
                 "rays": False,
-                "directions": getattr(context, f"{crop_pass.side}_ray_cells") is not None
-                and getattr(context, f"{crop_pass.side}_origins") is not None,
+                "directions": _has_directions(context, crop_pass.side)
+                and not crop_pass.filters_by_direction(context),
             }
             for crop_pass in passes
         },

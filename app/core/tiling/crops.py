@@ -56,6 +56,9 @@ CROP_CHUNK = 1 << 20
 """Points of a cloud handled at a time while the crops are written."""
 READ_CHUNK = 1 << 22
 """Records of a crop file read at a time when a tile filters it by direction."""
+MARK_PARTS = 16
+"""Chunks' direction cells of a box and origin held apart before they are joined (a cell seen
+in many chunks is then held once: the marks of a whole cloud stay the size of their union)."""
 MAX_OPEN_TILES = 128
 """Tiles whose files are open at once (more tiles: one more pass over the points)."""
 META_FILE = "crops.json"
@@ -71,15 +74,28 @@ def _rays_file(directory: Path, tile_index: int, side: str) -> Path:
     return Path(directory) / f"crop-{tile_index:05d}-{side}-rays.npz"
 
 
-def record_dtype(points: NDArray[np.floating], station: NDArray | None) -> np.dtype:
-    """One point of a crop file: its coordinates as stored (``points``' dtype), its index,
-    its station (when ``station`` is not None)."""
+def record_dtype(points: NDArray[np.floating], n_points: int, n_stations: int | None) -> np.dtype:
+    """One point of a crop file, packed (no padding): its coordinates as stored (``points``'
+    dtype), its index in its cloud (uint32 below 2**32 points, else int64) and, with
+    ``n_stations`` not None, its station (int8 up to 127 stations, int16, int32).
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+        The cloud (only its dtype is read).
+    n_points : int
+        Points of the cloud.
+    n_stations : int or None
+        Its stations (None: no station per point).
+    """
+    index = np.uint32 if n_points <= np.iinfo(np.uint32).max else np.int64
     fields: list[tuple[Any, ...]] = [
         ("point", np.asarray(points[:0]).dtype, (3,)),
-        ("index", np.int64),
+        ("index", index),
     ]
-    if station is not None:
-        fields.append(("station", np.int32))
+    if n_stations is not None:
+        station = np.int8 if n_stations <= 127 else np.int16 if n_stations <= 32767 else np.int32
+        fields.append(("station", station))
     return np.dtype(fields)
 
 
@@ -134,7 +150,10 @@ def box_direction_marks(
                 continue
             seen = direction_cells(chunk[inside], origins, cells)
             for number, cells_seen in enumerate(seen):
-                found[box_number][number].append(cells_seen)
+                parts = found[box_number][number]
+                parts.append(cells_seen)
+                if len(parts) >= MARK_PARTS:  # the same cells seen again: held once
+                    parts[:] = [np.unique(np.concatenate(parts))]
     return [expanded_marks(parts, cells) for parts in found]
 
 
@@ -180,7 +199,7 @@ def write_tile_crops(
         return chunks
 
     sides = {
-        side: (chunks_of(points, station), origins, record_dtype(points, station), rays)
+        side: (chunks_of(points, station), origins, _record_dtype_of(points, station), rays)
         for side, (points, station, origins), rays in zip(
             SIDES,
             source._sides(context),
@@ -194,6 +213,12 @@ def write_tile_crops(
         if cells is not None and origins is not None:
             marks[side] = tile_direction_marks(plan, sides[other][0], origins, cells)
     return write_crops_from_chunks(directory, plan, context, sides, marks=marks)
+
+
+def _record_dtype_of(points: NDArray[np.floating], station: NDArray | None) -> np.dtype:
+    """:func:`record_dtype` of a cloud held whole (its stations counted from ``station``)."""
+    n_stations = None if station is None else int(np.max(station, initial=0)) + 1
+    return record_dtype(points, len(points), n_stations)
 
 
 def write_crops_from_chunks(
@@ -243,7 +268,8 @@ def write_crops_from_chunks(
         sizes = write_side_crops(directory, plan, context, side, chunks, origins, dtype, directions)
         if rays is not None:
             for tile_index in range(plan.n_tiles):
-                index = np.fromfile(crop_file(directory, tile_index, side), dtype=dtype)["index"]
+                records = np.fromfile(crop_file(directory, tile_index, side), dtype=dtype)
+                index = np.asarray(records["index"], dtype=np.int64)
                 returns, bounds = _cropped_rays(rays, index)
                 np.savez(_rays_file(directory, tile_index, side), returns=returns, bounds=bounds)
         return sizes
@@ -442,7 +468,7 @@ class TileCropFiles:
             with np.load(_rays_file(self.directory, tile_index, side)) as data:
                 rays = (data["returns"], data["bounds"])
         return (
-            np.ascontiguousarray(records["index"]),
+            np.asarray(records["index"], dtype=np.int64),
             np.asarray(records["point"], dtype=np.float64),
             station,
             rays,

@@ -72,6 +72,7 @@ from app.core.tiling.crop_passes import (
     write_pass_layout,
 )
 from app.core.tiling.crops import TileCropFiles
+from app.core.tiling.disk import FreeDisk, check_disk, free_disk_bytes, needed_disk_bytes
 from app.core.tiling.merge import join_regions, merged_parameters
 from app.core.tiling.pair_files import (
     StoredTileResults,
@@ -161,6 +162,10 @@ class StreamedLocalisation:
         Crops keep the other sensor's returns by direction too (:mod:`app.core.tiling.rays`).
     run_crops : CropRunner
         Who runs each cloud's crop pass (:mod:`app.core.tiling.crop_passes`).
+    keep_free_disk_bytes, free_disk
+        Disk that must stay free under ``work_dir`` and how free disk is measured: a pair
+        whose crops and results would not fit is refused once planned
+        (:func:`~app.core.tiling.disk.check_disk`).
     """
 
     budget_bytes: int
@@ -179,6 +184,8 @@ class StreamedLocalisation:
     detect_fraction: float = 0.85
     ray_directions: bool = True
     run_crops: CropRunner = write_crop_passes_here
+    keep_free_disk_bytes: int = 0
+    free_disk: FreeDisk = free_disk_bytes
 
     @property
     def params(self) -> Mapping[str, Any]:
@@ -212,12 +219,17 @@ class StreamedLocalisation:
         report("localise", 0.36)  # planned
         crops, partial = self.work_dir / "crops", self.work_dir / "crops.partial"
         with timed_phase(timings, "stream_crops"):
-            # swapped in whole: a tile of an earlier attempt never reads a half-written crop
-            shutil.rmtree(partial, ignore_errors=True)
+            # an earlier attempt's crops go first (the disk is for these), and these are
+            # swapped in whole: a tile never reads a half-written crop
+            for stale in (partial, crops):
+                shutil.rmtree(stale, ignore_errors=True)
+            n_points = self.reference.n_points + self.scan.n_points
+            record_bytes = max(crop_pass.dtype.itemsize for crop_pass in passes)
+            needed = needed_disk_bytes(plan, record_bytes, n_points)
+            check_disk(self.work_dir, needed, self.keep_free_disk_bytes, self.free_disk)
             partial.mkdir(parents=True, exist_ok=True)
             self.run_crops(partial, plan, context, passes, loaded.threads, report)
             write_pass_layout(partial, context, passes)
-            shutil.rmtree(crops, ignore_errors=True)
             partial.rename(crops)
         report("localise", 0.37)  # the tiles' inputs written
         with timed_phase(timings, "stream_tiles"):
@@ -381,9 +393,20 @@ class StreamedLocalisation:
                     transform=move,
                     station_origins=origins if several else None,
                     contrasts=None if contrasts is None else np.stack(contrasts),
+                    n_points=cloud.n_points,
                 )
             )
-        return passes, sub_stations
+        # each pass reads the other cloud's file too, for its crops' direction marks
+        reference, scan = passes
+        return [
+            dataclasses.replace(
+                one,
+                other_path=other.path,
+                other_format=other.format,
+                other_transform=other.transform,
+            )
+            for one, other in ((reference, scan), (scan, reference))
+        ], sub_stations
 
     def _merge(
         self, plan: TilePlan, results: Sequence[TileResult], min_region_points: int
@@ -452,6 +475,8 @@ def compare_streamed(
     run_crops: CropRunner | None = None,
     subsample_points: int = SUBSAMPLE_POINTS,
     ray_directions: bool = True,
+    keep_free_disk_bytes: int = 0,
+    free_disk: FreeDisk = free_disk_bytes,
     **options: Unpack[PairOptions],
 ) -> ComparisonResult:
     """:func:`~app.core.tiling.compare.compare_tiled` of two files, never holding either whole.
@@ -480,7 +505,10 @@ def compare_streamed(
     ray_directions : bool
         Crops keep the other sensor's returns by direction too (as
         :func:`~app.core.tiling.compare.compare_tiled`'s): each tile marks the directions it
-        needs from the other cloud's points in its box as it reads its crop.
+        needs from the other cloud's points in its box, its crop pass reading that file too.
+    keep_free_disk_bytes, free_disk
+        As :class:`StreamedLocalisation`: refused (:class:`~app.core.tiling.disk.DiskSpaceError`)
+        before a crop is written when the files would not fit the disk.
     **options
         As :func:`app.core.pipeline.compare` (``method``, ``variant``, ``align``,
         ``random_state``, ``params``, ``threads``).
@@ -529,6 +557,8 @@ def compare_streamed(
         work_dir=work_dir,
         ray_directions=ray_directions,
         run_crops=run_crops or write_crop_passes_here,
+        keep_free_disk_bytes=keep_free_disk_bytes,
+        free_disk=free_disk,
     )
     started_cpu = time.process_time()
     result = run_stages(
