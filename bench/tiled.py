@@ -164,6 +164,7 @@ def plan_only(scene_dir: Path, budget: str) -> None:
     import shutil
     import tempfile
 
+    from app.core.tiling.crops import record_dtype
     from app.core.tiling.plan import TilePlan, thinned_point_limit
     from app.core.tiling.streamed import PLAN_FILE, compare_streamed
 
@@ -204,6 +205,9 @@ def plan_only(scene_dir: Path, budget: str) -> None:
         "smallest_thinned_crop_allowed": min(bounds, default=0),
         "thinning_cells_m": [round(min(cells), 4), round(max(cells), 4)] if cells else [],
         "crop_points_sum": int(plan.crop_points.sum()),
+        # the crop files as the passes write them (clouds under 2**32 points, with stations)
+        "crops_planned_bytes": int(plan.crop_points.sum())
+        * record_dtype(np.zeros((0, 3), np.float32), 0, 2).itemsize,
         "cpu_s": round(usage.ru_utime + usage.ru_stime, 1),
         "peak_rss_mb": round(_rss_bytes("VmHWM") / 1024**2),
     }
