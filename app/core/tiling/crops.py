@@ -249,8 +249,8 @@ def write_crops_from_chunks(
         For a cloud whose context has direction cells (``<side>_ray_cells``): its
         :func:`tile_direction_marks`, so that its crops keep the other sensor's returns by
         direction too (:func:`~app.core.tiling.rays.crop_masks`); else the top view only (a
-        streamed parent's crops, :mod:`app.core.tiling.crop_passes`, are kept by direction
-        as each tile reads them).
+        streamed crop pass without the other cloud's file,
+        :mod:`app.core.tiling.crop_passes`: kept by direction as each tile reads them).
 
     Returns
     -------

@@ -20,11 +20,11 @@ plans, cuts and merges the tiles (32 bytes a point read lean: 6.4 GB for 100M + 
   moved into the local frame, the scan's aligned,
   each point's station assigned (:func:`~app.core.localise.station_assignment.best_stations`
   with the contrasts of the subsample); with stations, the other sensor's returns are kept
-  by direction too (:mod:`app.core.tiling.rays`): written in the top view, each tile marks
-  its directions from the other cloud's points in its box as it reads its crop
-  (:class:`~app.core.tiling.crops.TileCropFiles`), so that this
-  work runs on whichever worker takes the tile; the direction cells from the subsample's
-  station counts scaled up;
+  by direction too (:mod:`app.core.tiling.rays`): each pass first reads the other cloud's
+  file for every tile's direction marks of its own origins (the other cloud's points in the
+  tile's box) and writes only the returns the tile reads, so the crops on disk are the
+  points the plan counts (not the top view's, about 3x more at 100M + 100M); the direction
+  cells from the subsample's station counts scaled up;
 - the merge, range by range of :data:`~app.core.tiling.pair_files.OUTPUT_RANGE` points: each
   tile's result is read from its file for the range, and the labels, distances and region
   numbers are written into ``.npy`` files in the files' row order
