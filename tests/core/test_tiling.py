@@ -202,6 +202,17 @@ def test_a_crop_holds_the_rays_through_its_box_within_reach() -> None:
     assert reached.tolist() == [True, True, False, False]
 
 
+def test_a_box_without_the_other_clouds_points_keeps_no_ray_crossing_it() -> None:
+    # no point of the other cloud in the box: no direction marked, so only the box's own
+    # points are kept (the empty marks are read, not indexed)
+    origins = np.zeros((1, 3))
+    points = np.array([[2.5, 0.0, 0.0], [5.0, 0.2, 0.0], [9.0, 0.4, 0.0]])
+    low, high = np.array([2.0, -1.0]), np.array([3.0, 1.0])
+    empty = [np.zeros(0, dtype=np.int64)]
+    kept = crop_mask(points, None, origins, low, high, 8.0, cells=np.array([0.05]), marks=empty)
+    assert kept.tolist() == [True, False, False]
+
+
 def test_a_crop_round_a_station_keeps_the_returns_the_ray_test_reads_not_the_whole_station() -> (
     None
 ):

@@ -194,14 +194,16 @@ def _marked(
     keep = np.zeros(len(points), dtype=bool)
     which = np.zeros(len(points), dtype=np.int64) if station is None else station
     for number in np.unique(which):
+        mark = marks[number]
+        if not len(mark):  # no point of the other cloud in the box seen from this origin
+            continue
         rows = np.flatnonzero(which == number)
         offset = points[rows] - origins[number]
         length = np.sqrt(np.einsum("pd,pd->p", offset, offset))
         with np.errstate(divide="ignore", invalid="ignore"):
             cell_number = _cell_numbers(offset / length[:, None], float(cells[number]))
-        mark = marks[number]
-        position = np.minimum(np.searchsorted(mark, cell_number), max(len(mark) - 1, 0))
-        keep[rows] = (length > 0) & (len(mark) > 0) & (mark[position] == cell_number)
+        position = np.minimum(np.searchsorted(mark, cell_number), len(mark) - 1)
+        keep[rows] = (length > 0) & (mark[position] == cell_number)
     return keep
 
 
