@@ -22,6 +22,7 @@ from app.core.errors import InputError
 from app.core.tiling.plan import TilePlan
 
 __all__ = [
+    "CROP_COUNT_SLACK",
     "MIN_BYTES_PER_POINT",
     "RESULT_BYTES_PER_POINT",
     "DiskSpaceError",
@@ -39,6 +40,11 @@ MIN_BYTES_PER_POINT = 16 + RESULT_BYTES_PER_POINT
 """The least a point of a pair compared in tiles takes: one crop record (float32 point,
 uint32 index; :func:`~app.core.tiling.crops.record_dtype`) and its results; the crops'
 margins and rays add to it (the plan counts them)."""
+
+CROP_COUNT_SLACK = 1.05
+"""The plan's crop points times this is what :func:`needed_disk_bytes` counts: the planner
+counts on a subsample (measured written / planned: 0.982 on the 20M + 20M pair, 1.010 on the
+100M + 100M one)."""
 
 FreeDisk = Callable[[Path], int]
 """Free bytes of the file system holding a directory."""
@@ -62,10 +68,11 @@ def free_disk_bytes(directory: Path) -> int:
 
 def needed_disk_bytes(plan: TilePlan, record_bytes: int, n_points: int) -> int:
     """Bytes of a streamed comparison's files: every crop's records (``record_bytes`` a point
-    of :attr:`~app.core.tiling.plan.TilePlan.crop_points`) and ``n_points`` points' results
-    (:data:`RESULT_BYTES_PER_POINT`)."""
+    of :attr:`~app.core.tiling.plan.TilePlan.crop_points`, :data:`CROP_COUNT_SLACK` more) and
+    ``n_points`` points' results (:data:`RESULT_BYTES_PER_POINT`)."""
     crop_points = int(np.sum(plan.crop_points, dtype=np.int64))
-    return crop_points * int(record_bytes) + int(n_points) * RESULT_BYTES_PER_POINT
+    crops = int(np.ceil(crop_points * CROP_COUNT_SLACK)) * int(record_bytes)
+    return crops + int(n_points) * RESULT_BYTES_PER_POINT
 
 
 def _gb(count: int) -> str:
