@@ -72,6 +72,7 @@ from app.core.localise.map_parts import (
 from app.core.localise.map_planes import (
     coplanar_sectors,
     first_level_surface_marked,
+    in_sampling_gap,
     level_surface_below,
 )
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
@@ -90,6 +91,11 @@ CONTINUATION_SHARE = 0.3
 continue: from this share on, it is a coverage difference when most of its points also lie on
 planes the other epoch has nearby (:data:`COPLANAR_SHARE`)."""
 COPLANAR_SHARE = 0.75
+GAP_SHARE = 0.5
+"""A part is a coverage difference when this share of its points lies in gaps between the
+other epoch's samples of one plane
+(:func:`~app.core.localise.map_planes.in_sampling_gap`: single scan lines far from both paths,
+each epoch's on its own place of the floor or a box top)."""
 SURROUND_SHARE = 0.1
 """An upright part is an unseen side when less than this share of its adjoining border points
 has the other epoch's surface carrying on past them (or surface this epoch lacks)."""
@@ -216,6 +222,28 @@ def _level_below_share(
     return share
 
 
+def _sampling_gap_share(
+    candidates: Candidates,
+    labels: NDArray[np.int64],
+    recheck: NDArray[np.bool_],
+    *,
+    other: Side,
+    tolerance: float,
+) -> NDArray[np.float64]:
+    """Per part marked in ``recheck`` (0 elsewhere), the share of its candidates that lie in a
+    gap between the other epoch's samples of one plane
+    (:func:`~app.core.localise.map_planes.in_sampling_gap`)."""
+    chosen = np.flatnonzero(recheck[labels])
+    share = np.zeros(recheck.shape[0])
+    if chosen.shape[0] == 0:
+        return share
+    in_gap = in_sampling_gap(
+        candidates.points[chosen], candidates.normal[chosen], other.geometry, tolerance
+    )
+    hits = np.bincount(labels[chosen], weights=in_gap.astype(np.float64), minlength=share.shape[0])
+    return hits / np.maximum(np.bincount(labels[chosen], minlength=share.shape[0]), 1)
+
+
 def _on_lacking_share(
     candidates: Candidates,
     labels: NDArray[np.int64],
@@ -334,8 +362,11 @@ def map_test(
             candidates, labels, recheck, own=own, other=other, other_unmatched=other_unmatched
         )
 
+    def in_gap(recheck: NDArray[np.bool_]) -> NDArray[np.float64]:
+        return _sampling_gap_share(candidates, labels, recheck, other=other, tolerance=threshold)
+
     coverage, faces, confidence, counts = _verdict(
-        figures, see_through, open_beneath, far_face, stands_on_lacking
+        figures, see_through, open_beneath, far_face, stands_on_lacking, in_gap
     )
     status[coverage[labels]] = STATUS_UNOBSERVED
     evidence[coverage[labels]] = EVIDENCE_NO_COVERAGE
@@ -390,8 +421,31 @@ def unseen_faces(figures: PartFigures) -> NDArray[np.bool_]:
     return (figures.adjoining >= MIN_ADJOINING) & (figures.surround_share < SURROUND_SHARE)
 
 
+def _continuing(part: PartFigures, in_gap: Any) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    """Per part, whether it lies on a surface that continues in the other epoch, and the
+    share of its points in gaps between the other epoch's samples of one plane.
+
+    Its border continues into the other epoch's surface (:data:`PLAIN_CONTINUATION_SHARE`, or
+    :data:`CONTINUATION_SHARE` with :data:`COPLANAR_SHARE` of its points on the other epoch's
+    planes), or :data:`GAP_SHARE` of its points lie between the other epoch's samples of a
+    plane (``in_gap(recheck)``, for the near parts not continuing otherwise: a single scan
+    line has no normal to continue along)."""
+    continues_plainly = part.continuation_share >= PLAIN_CONTINUATION_SHARE
+    continues_in_plane = (part.continuation_share >= CONTINUATION_SHARE) & (
+        part.coplanar_share >= COPLANAR_SHARE
+    )
+    continuing = continues_plainly | continues_in_plane
+    gap_share = in_gap(part.near & ~continuing)
+    return continuing | (gap_share >= GAP_SHARE), gap_share
+
+
 def _verdict(
-    figures: PartFigures, see_through: Any, open_beneath: Any, far_face: Any, on_lacking: Any
+    figures: PartFigures,
+    see_through: Any,
+    open_beneath: Any,
+    far_face: Any,
+    on_lacking: Any,
+    in_gap: Any,
 ) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.float64], dict[str, Any]]:
     """Per part, whether it is a coverage difference, whether it is one as an unseen face
     only (:class:`~app.core.localise.interface.FaceBorder`), and the confidence in its
@@ -408,16 +462,13 @@ def _verdict(
     marked in ``check``.  ``on_lacking(check)`` gives the share of the marked parts' points
     whose first level surface of the other epoch straight under them is surface this epoch
     lacks (:data:`SEE_THROUGH_SHARE` of an upright part's points: it stands on what it hides).
+    ``in_gap`` is :func:`_continuing`'s.
     """
     part = figures
     unseen_side = unseen_faces(part)
     beneath = open_beneath(unseen_side & ~part.upright)
     unseen_side &= part.upright | (beneath < SEE_THROUGH_SHARE)
-    continues_plainly = part.continuation_share >= PLAIN_CONTINUATION_SHARE
-    continues_in_plane = (part.continuation_share >= CONTINUATION_SHARE) & (
-        part.coplanar_share >= COPLANAR_SHARE
-    )
-    continuing = continues_plainly | continues_in_plane
+    continuing, gap_share = _continuing(part, in_gap)
     # an upright part standing on a level surface that the other epoch saw and this one lacks
     # hides it: the other epoch saw its place empty (the seat under a backrest turned onto it,
     # seen from above its lower band only, in line with another chair's side)
@@ -448,7 +499,11 @@ def _verdict(
     side_confidence = np.where(far, np.maximum(side_confidence, joined_share), side_confidence)
     confidence = np.where(
         coverage,
-        np.where(part.near, np.maximum(part.continuation_share, side_confidence), 1.0),
+        np.where(
+            part.near,
+            np.maximum(np.maximum(part.continuation_share, gap_share), side_confidence),
+            1.0,
+        ),
         np.clip(1.0 - part.continuation_share, 0.0, 1.0)
         * np.clip(0.5 + part.behind_share / (2 * SEE_THROUGH_SHARE), 0.0, 1.0),
     )
@@ -460,6 +515,7 @@ def _verdict(
         "map_unseen_side_clusters": int((unseen_side & coverage).sum()),
         "map_far_face_parts": int(far.sum()),
         "map_standing_on_hidden_parts": int(stands_on_hidden.sum()),
+        "map_sampling_gap_parts": int((gap_share >= GAP_SHARE).sum()),
         "map_coplanar_share_median": float(np.median(part.coplanar_share)),
     }
     return coverage, faces & part.near & ~continues, confidence, counts
