@@ -327,7 +327,9 @@ def _surrounded(
         rows = np.broadcast_to(np.arange(query.shape[0])[:, None], sector.shape)
         taken[rows[on_plane], sector[on_plane]] = True
         surrounded[chunk] = taken.sum(axis=1)
-        under[chunk] = holds_up(offset, on_plane, own_normal[chunk], unit, tolerance)
+        under[chunk] = holds_up(
+            offset, on_plane, own_normal[chunk], unit, tolerance, UPRIGHT_NORMAL_Z
+        )
         # a surface that this epoch lacks next to the point: the object hid it here
         surrounded[chunk][other_unmatched[nearest]] = SECTORS
         adjoining[chunk] &= ~(support & (surrounded[chunk] < SURROUND_SECTORS))

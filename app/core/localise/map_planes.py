@@ -285,10 +285,14 @@ def holds_up(
     own_normal: NDArray[np.floating],
     unit: NDArray[np.float64],
     tolerance: float,
+    upright_z: float,
 ) -> NDArray[np.bool_]:
     """Whether the point is on an upright face and the adjoining surface is an upright one
     lying wholly under it: it has points on its plane around the point's foot and none higher
-    than ``tolerance`` above it (shapes (b, k, 3), (b, k), (b, 3), (b, 3) -> (b,)).
+    than ``tolerance`` above it (shapes (b, k, 3), (b, k), (b, 3), (b, 3) -> (b,)).  Upright:
+    its normal's vertical component is below ``upright_z``, as a side's is; a crease between
+    a level surface and an upright one (the foot of a board on a desk top, its normals
+    turning from one to the other) is neither.
 
     Such a surface ends under the face's foot: the sides of a desk a board stands on, seen
     by a lidar below the desk's top.  Whether it holds the part up is told by the part's
@@ -296,7 +300,7 @@ def holds_up(
     sides meet an unseen side along its height, and near its top corners they lie under a
     border point too (judged per border point, RGB-D room 604 of ``bench.moving_maps``
     gained 1,377 false changed points; robot office 402 is a board on such a desk)."""
-    upright = (np.abs(unit[:, 2]) < NORMAL_AGREEMENT_COSINE) & (
+    upright = (np.abs(unit[:, 2]) < upright_z) & (
         np.abs(own_normal[:, 2]) < NORMAL_AGREEMENT_COSINE
     )
     above = (on_plane & (offset[:, :, 2] > tolerance)).any(axis=1)
