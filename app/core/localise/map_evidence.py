@@ -58,7 +58,7 @@ from pykdtree.kdtree import KDTree
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE
 from app.core.localise.interface import FaceBorder, VisibilityContext, VisibilityOutcome
-from app.core.localise.map_faces import closed_side_behind, far_faces
+from app.core.localise.map_faces import far_faces
 from app.core.localise.map_parts import (
     SEE_THROUGH_REACH,
     SPARSE_PROBE_FACTOR,
@@ -150,28 +150,16 @@ def _rechecked_share(
     labels: NDArray[np.int64],
     behind_share: NDArray[np.float64],
     *,
-    own: Side,
     other: Side,
     counted: NDArray[np.bool_],
-    change_threshold: float,
 ) -> NDArray[np.float64]:
     """Per part, the share of candidates with the other epoch's surface on their normal line,
     recomputed on the ``recheck`` candidates' parts counting only the ``counted`` points of
-    the other cloud and, where the part's open side is told, only behind it
-    (:func:`~app.core.localise.map_faces.closed_side_behind`); ``behind_share`` elsewhere."""
+    the other cloud (``behind_share`` elsewhere)."""
     share = behind_share.copy()
     if recheck.shape[0] == 0:
         return share
-    behind = closed_side_behind(
-        candidates.points[recheck],
-        candidates.normal[recheck],
-        labels[recheck],
-        surface_behind(candidates.points[recheck], candidates.normal[recheck], other, counted),
-        own=own,
-        other=other,
-        counted=counted,
-        change_threshold=change_threshold,
-    )
+    behind = surface_behind(candidates.points[recheck], candidates.normal[recheck], other, counted)
     parts = np.unique(labels[recheck])
     hits = np.bincount(labels[recheck], weights=behind.astype(np.float64), minlength=share.shape[0])
     sizes = np.bincount(labels[recheck], minlength=share.shape[0])
@@ -350,16 +338,8 @@ def map_test(
             other_unmatched=other_unmatched,
             tolerance=threshold,
         )
-        return _rechecked_share(
-            candidates,
-            chosen,
-            labels,
-            share,
-            own=own,
-            other=other,
-            counted=other_unmatched & ~gap,
-            change_threshold=change_threshold,
-        )
+        counted = other_unmatched & ~gap
+        return _rechecked_share(candidates, chosen, labels, share, other=other, counted=counted)
 
     def open_beneath(recheck: NDArray[np.bool_]) -> NDArray[np.float64]:
         return _level_below_share(candidates, labels, recheck, other=other)

@@ -41,13 +41,7 @@ from app.core.localise.rays import Candidates
 from app.core.localise.regions import CLUSTER_NEIGHBOURS
 from app.core.localise.surface import weighted_plane
 
-__all__ = [
-    "FAR_FACE_SHARE",
-    "closed_side_behind",
-    "far_faces",
-    "meeting_planes",
-    "oriented_depths",
-]
+__all__ = ["FAR_FACE_SHARE", "far_faces", "meeting_planes", "oriented_depths"]
 
 FAR_FACE_SHARE = 0.3
 """The surface behind a part is its object's far face when this share of the part's border
@@ -63,9 +57,6 @@ PROBE_SPACINGS = 1.5
 PROBE_MIN_RADIUS = 0.05
 PROBE_NEIGHBOURS = 4
 MEETING_NEIGHBOURS = 16
-SIDE_STEPS = (0.3, 0.6, 1.0)
-"""Metres off a part's plane at which :func:`_open_sides` looks for this epoch's surface."""
-SIDE_NEIGHBOURS = 64
 
 
 def _part_axes(
@@ -337,79 +328,3 @@ def far_faces(
     share = joining / np.maximum(meeting, 1.0)
     far = check & (joining >= MIN_JOINING) & (share >= FAR_FACE_SHARE)
     return far, share
-
-
-def _open_sides(
-    points: NDArray[np.float64],
-    axes: NDArray[np.float64],
-    labels: NDArray[np.int64],
-    own: Side,
-    change_threshold: float,
-) -> NDArray[np.float64]:
-    """Per part (``labels``, shape (c,)), the side of its plane (+1 along its axis, -1
-    against it) on which this epoch has surface within the see-through reach while it has
-    none on the other side; 0 when it has both or neither (shapes (c, 3), (c, 3) ->
-    (parts,)).
-
-    Balls :data:`SIDE_STEPS` off the part's centroid, each as wide as the part plus half its
-    step, hold this epoch's points more than the change threshold off the plane: a floor has
-    the room over it (furniture, walls) and nothing under it."""
-    n_parts = int(labels.max()) + 1
-    side = np.zeros(n_parts)
-    k = min(SIDE_NEIGHBOURS, own.points.shape[0])
-    for part in np.unique(labels):
-        mine = points[labels == part]
-        axis = axes[labels == part][0]
-        centre = mine.mean(axis=0)
-        radius = float(np.linalg.norm(mine - centre, axis=1).max())
-        occupied = []
-        for sign in (1.0, -1.0):
-            probes = centre + sign * np.asarray(SIDE_STEPS)[:, None] * axis
-            reach = radius + 0.5 * np.asarray(SIDE_STEPS) + change_threshold
-            distance, index = own.geometry.tree.query(probes, k=k, distance_upper_bound=reach.max())
-            distance = np.asarray(distance).reshape(probes.shape[0], k)
-            index = np.minimum(
-                np.asarray(index).reshape(probes.shape[0], k), own.points.shape[0] - 1
-            )
-            height = sign * np.einsum("skd,d->sk", own.points[index] - centre, axis)
-            occupied.append(
-                bool(((distance <= reach[:, None]) & (height > change_threshold)).any())
-            )
-        side[part] = float(occupied[0]) - float(occupied[1])
-    return side
-
-
-def closed_side_behind(
-    points: NDArray[np.float64],
-    normal: NDArray[np.floating],
-    labels: NDArray[np.int64],
-    behind: NDArray[np.bool_],
-    *,
-    own: Side,
-    other: Side,
-    counted: NDArray[np.bool_],
-    change_threshold: float,
-) -> NDArray[np.bool_]:
-    """Which points of parts lying on a surface both epochs hold have the other epoch's
-    ``counted`` surface behind them, on their closed side only (shapes (c, 3), (c, 3), (c,),
-    (c,) -> (c,)).
-
-    A surface seen in a map was seen from its open side; the other epoch saw through a patch
-    of it (an opened door in a wall) only if its surface lies on the patch's closed side.  The
-    open side is the one on which this epoch has surface near the part while it has none on
-    the other (:func:`_open_sides`): a floor has the room over it, a closed door the room it
-    was seen from.  The other epoch's surface on the open side is in front of the patch (the
-    top of a desk over a floor patch that only this epoch saw, under it), no sign that it saw
-    the patch's place empty.  Where the open side is not told, ``behind`` (both ways) stands.
-    """
-    if points.shape[0] == 0:
-        return behind
-    axes = _part_axes(normal, labels, int(labels.max()) + 1)[labels]
-    side = _open_sides(points, axes, labels, own, change_threshold)[labels]
-    told = side != 0
-    if not told.any():
-        return behind
-    _, back = oriented_depths(points[told], side[told, None] * axes[told], other, counted)
-    closed = behind.copy()
-    closed[told] = np.isfinite(back)
-    return closed
