@@ -82,12 +82,7 @@ def install_tile_runner(runner: Callable[[str, int], object]) -> None:
 
 def run_tile(job_id: str, tile_index: int) -> None:
     """The Huey task: hand tile ``tile_index`` of job ``job_id`` to this process's tile runner."""
-    if _tile_runner is None:
-        raise RuntimeError(
-            f"job {job_id} tile {tile_index}: no tile runner in this process "
-            "(start a worker: scandiff worker)"
-        )
-    _tile_runner(job_id, int(tile_index))
+    _hand_part_to(_tile_runner, "tile", job_id, tile_index)
 
 
 def install_crop_pass_runner(runner: Callable[[str, int], object]) -> None:
@@ -98,12 +93,19 @@ def install_crop_pass_runner(runner: Callable[[str, int], object]) -> None:
 
 def run_crop_pass(job_id: str, pass_index: int) -> None:
     """The Huey task: hand crop pass ``pass_index`` of job ``job_id`` to this process's runner."""
-    if _crop_pass_runner is None:
+    _hand_part_to(_crop_pass_runner, "crop pass", job_id, pass_index)
+
+
+def _hand_part_to(
+    runner: Callable[[str, int], object] | None, part: str, job_id: str, index: int
+) -> None:
+    """Call ``runner(job_id, index)``, or say that this process installed no runner for ``part``."""
+    if runner is None:
         raise RuntimeError(
-            f"job {job_id} crop pass {pass_index}: no crop pass runner in this process "
+            f"job {job_id} {part} {index}: no {part} runner in this process "
             "(start a worker: scandiff worker)"
         )
-    _crop_pass_runner(job_id, int(pass_index))
+    runner(job_id, int(index))
 
 
 def queue_backend(settings: Settings) -> str:
@@ -178,21 +180,24 @@ def send_tile_messages(job_id: str, tile_indices: list[int], settings: Settings)
     """Put one ``run_tile(job_id, i)`` message on the queue per tile, then wake idle workers of
     an SQLite queue.  A lost message costs nothing: the job's own worker takes every tile no
     other worker took (:mod:`app.jobs.tiles`)."""
-    task = _tile_tasks[id(get_huey(settings))]
-    for tile_index in tile_indices:
-        task(job_id, int(tile_index))
-    if tile_indices and queue_backend(settings) == "sqlite":
-        ring(doorbell_path(settings.data_dir))
+    _send_part_messages(_tile_tasks, job_id, tile_indices, settings)
 
 
 def send_crop_pass_messages(job_id: str, pass_indices: list[int], settings: Settings) -> None:
     """Put one ``run_crop_pass(job_id, i)`` message on the queue per pass, then wake idle
     workers of an SQLite queue.  A lost message costs nothing: the job's own worker runs every
     pass no other worker took (:mod:`app.jobs.crop_passes`)."""
-    task = _crop_pass_tasks[id(get_huey(settings))]
-    for pass_index in pass_indices:
-        task(job_id, int(pass_index))
-    if pass_indices and queue_backend(settings) == "sqlite":
+    _send_part_messages(_crop_pass_tasks, job_id, pass_indices, settings)
+
+
+def _send_part_messages(
+    tasks: dict[int, Callable[..., Any]], job_id: str, indices: list[int], settings: Settings
+) -> None:
+    """Send ``task(job_id, i)`` for each index with this queue's task of ``tasks``; ring once."""
+    task = tasks[id(get_huey(settings))]
+    for index in indices:
+        task(job_id, int(index))
+    if indices and queue_backend(settings) == "sqlite":
         ring(doorbell_path(settings.data_dir))
 
 
