@@ -160,11 +160,25 @@ def _rechecked_share(
     if recheck.shape[0] == 0:
         return share
     behind = surface_behind(candidates.points[recheck], candidates.normal[recheck], other, counted)
-    parts = np.unique(labels[recheck])
-    hits = np.bincount(labels[recheck], weights=behind.astype(np.float64), minlength=share.shape[0])
-    sizes = np.bincount(labels[recheck], minlength=share.shape[0])
+    return _share_per_part(labels[recheck], behind, share)
+
+
+def _share_per_part(
+    part: NDArray[np.int64], hit: NDArray[np.generic], share: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """``share`` (shape (parts,)) with each part that has a point in ``part`` (shape (m,)) set
+    to the share of its points whose ``hit`` (shape (m,), bool or weight) holds; others kept."""
+    parts = np.unique(part)
+    hits = np.bincount(part, weights=np.asarray(hit, dtype=np.float64), minlength=share.shape[0])
+    sizes = np.bincount(part, minlength=share.shape[0])
     share[parts] = hits[parts] / np.maximum(sizes[parts], 1)
     return share
+
+
+def _probe_radius(other: Side) -> float:
+    """Radius of the probes straight down into ``other``'s surface: its sampling, not less than
+    :data:`BEHIND_MIN_RADIUS`."""
+    return max(BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing)))
 
 
 def _narrow_gaps(
@@ -210,16 +224,9 @@ def _level_below_share(
     if chosen.shape[0] == 0:
         return share
     below = level_surface_below(
-        candidates.points[chosen],
-        other.geometry,
-        SEE_THROUGH_REACH,
-        max(BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))),
+        candidates.points[chosen], other.geometry, SEE_THROUGH_REACH, _probe_radius(other)
     )
-    parts = np.unique(labels[chosen])
-    hits = np.bincount(labels[chosen], weights=below.astype(np.float64), minlength=share.shape[0])
-    sizes = np.bincount(labels[chosen], minlength=share.shape[0])
-    share[parts] = hits[parts] / np.maximum(sizes[parts], 1)
-    return share
+    return _share_per_part(labels[chosen], below, share)
 
 
 def _sampling_gap_share(
@@ -240,8 +247,7 @@ def _sampling_gap_share(
     in_gap = in_sampling_gap(
         candidates.points[chosen], candidates.normal[chosen], other.geometry, tolerance
     )
-    hits = np.bincount(labels[chosen], weights=in_gap.astype(np.float64), minlength=share.shape[0])
-    return hits / np.maximum(np.bincount(labels[chosen], minlength=share.shape[0]), 1)
+    return _share_per_part(labels[chosen], in_gap, share)
 
 
 def _on_lacking_share(
@@ -268,13 +274,11 @@ def _on_lacking_share(
         candidates.points[chosen],
         other.geometry,
         SEE_THROUGH_REACH,
-        max(BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))),
+        _probe_radius(other),
         marked=other_unmatched,
         blocking=KDTree(own.points[upright]) if upright.any() else None,
     )
-    hits = np.bincount(labels[chosen], weights=on_lacking, minlength=share.shape[0])
-    sizes = np.bincount(labels[chosen], minlength=share.shape[0])
-    return hits / np.maximum(sizes, 1)
+    return _share_per_part(labels[chosen], on_lacking, share)
 
 
 def map_test(
