@@ -6,6 +6,8 @@ Exit status 0 on success, 2 on bad input (one line on stderr saying what is wron
 from __future__ import annotations
 
 import argparse
+import atexit
+import gc
 import json
 import os
 import sys
@@ -385,6 +387,7 @@ def run(args: argparse.Namespace) -> int:
     from app.kit.allocator import release_freed_memory_promptly
 
     release_freed_memory_promptly()
+    _skip_the_final_collections()
     cleanup = ExitStack()  # a streamed comparison's work files, removed when it is reported
     try:
         for path in (args.reference, args.scan):
@@ -450,6 +453,18 @@ def run(args: argparse.Namespace) -> int:
     print_warnings(result)
     report(args, result)
     return 0
+
+
+def _skip_the_final_collections() -> None:
+    """Freeze the garbage collector's objects as the process exits (registered once).
+
+    The interpreter's shutdown collects every generation a few times, tracing the numeric
+    stack's objects (numpy, scipy, the app's modules): ~0.08 CPU s at the end of a command,
+    alone on one core.  Frozen objects are skipped by those collections; they are freed by
+    their reference counts all the same, and a cycle among them is left to the process's end.
+    """
+    atexit.unregister(gc.freeze)
+    atexit.register(gc.freeze)
 
 
 def _streamed(args: argparse.Namespace, budget: int | None) -> bool:

@@ -307,10 +307,10 @@ REGISTRATION_LIBRARIES = ("small_gicp",)
 def first_use_libraries() -> tuple[str, ...]:
     """The libraries the comparison imports on its first run, not with its modules.
 
-    The detectors' (scipy.optimize: :data:`app.core.detectors.LIBRARIES`) and the
-    registration's.  The command line keeps them lazy, loading
-    them on a thread while it aligns; a worker loaded them in its first job, on the cores the
-    job needs.
+    The detectors' and the region clustering's (scipy.optimize, scipy.sparse.csgraph:
+    :data:`app.core.detectors.LIBRARIES`) and the registration's.  The command line keeps them
+    lazy, loading them on a thread while it aligns; a worker loaded them in its first job, on
+    the cores the job needs.
     """
     from app.core.detectors import LIBRARIES  # loaded with the pipeline already
 

@@ -45,3 +45,19 @@ def test_a_file_that_is_not_a_point_cloud_is_refused_before_the_comparison_loads
         f"assert main(['compare', {str(garbage)!r}, {str(garbage)!r}]) == 2"
     )
     assert _heavy_modules_after(code) == []
+
+
+def test_the_untiled_comparison_stack_imports_no_scipy_until_the_comparison_runs() -> None:
+    """``scandiff compare`` imports the comparison's stack (``app.core.tiling.compare``) after
+    reading the clouds, in its serial start-up: scipy (~0.2 CPU s with scipy.sparse and
+    csgraph) loads on first use instead, the tile merge's included, which an untiled
+    comparison never calls."""
+    assert _heavy_modules_after("import app.core.tiling.compare, app.core.pipeline") == []
+
+
+def test_the_warm_up_thread_loads_the_region_clustering_graphs() -> None:
+    """The detectors' warm-up thread (started as the comparison loads its pair, beside the
+    neighbour searches) loads scipy's graph components too, which the localiser's region
+    clustering imports on first use on both sides' threads."""
+    code = "from app.core.detectors import warm_up\nwarm_up().join()"
+    assert "scipy.sparse.csgraph" in _heavy_modules_after(code)

@@ -33,10 +33,14 @@ METHOD_ALIASES: dict[str, str] = {
 """The paper's names (GMM-EMD, PCA-EMD, PE-EMD for plane extraction) and their canonical method;
 matched case-insensitively, like the canonical names, by :func:`canonical_method`."""
 
-LIBRARIES = ("scipy.optimize",)
+LIBRARIES = ("scipy.optimize", "scipy.sparse.csgraph")
 """What the detectors import on first use: scipy.optimize (the EMD's linear programme, ~0.06 CPU
 s). Their k-means, t quantile and EMD need neither scikit-learn, scipy.stats nor POT (~0.9 CPU
-s of imports): :mod:`app.core.detectors.kmeans`, ``scipy.special.stdtrit``, ``scipy.optimize``."""
+s of imports): :mod:`app.core.detectors.kmeans`, ``scipy.special.stdtrit``, ``scipy.optimize``.
+And scipy.sparse.csgraph, which the localiser's region clustering imports on first use
+(:func:`app.core.localise.regions.cluster_labels`, ~0.08 CPU s): loaded here beside the
+neighbour searches rather than in the clustering, where the other side's thread waits for it,
+or in the command's serial start-up (``app.core.tiling.merge`` imports it on first use)."""
 
 
 def warm_up() -> threading.Thread | None:

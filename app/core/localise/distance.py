@@ -51,6 +51,11 @@ LEVEL_RADIUS_FACTOR = 4.0
 MIN_AXIS_POINTS = 12
 """Fewer points within half the change threshold give no axis (the point keeps its own
 distance)."""
+LEVEL_CHUNK = GATHER_CHUNK * 12 // LEVEL_NEIGHBOURS
+"""Points judged per step of :func:`surface_offset_candidates`: its (chunk, 96, 3) float64
+gathers are then as large as a :data:`~app.core.localise.settings.GATHER_CHUNK` gather of
+k + 1 = 12 neighbours (0.56 MiB), under the 1 MiB mmap threshold (see the settings' note): a
+2,048-point step's 4.7 MB temporaries faulted ~85k fresh pages in at 1M + 1M points."""
 
 
 @dataclass(frozen=True)
@@ -351,8 +356,8 @@ def surface_offset_candidates(
     geometry = own.geometry
     k = min(LEVEL_NEIGHBOURS, geometry.points.shape[0])
     reach = 0.5 * change_threshold
-    for start in range(0, len(rows), GATHER_CHUNK):
-        row = rows[start : start + GATHER_CHUNK]
+    for start in range(0, len(rows), LEVEL_CHUNK):
+        row = rows[start : start + LEVEL_CHUNK]
         point = geometry.points[row]
         # the surface's axis from a wider neighbourhood than its fitted normal's (at 1 cm
         # spacing with 1 cm of noise, 10 neighbours' normals point anywhere), within half the

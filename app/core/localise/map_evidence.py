@@ -72,6 +72,7 @@ from app.core.localise.map_parts import (
 from app.core.localise.map_planes import (
     coplanar_sectors,
     first_level_surface_marked,
+    in_sampling_gap,
     level_surface_below,
 )
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
@@ -90,6 +91,11 @@ CONTINUATION_SHARE = 0.3
 continue: from this share on, it is a coverage difference when most of its points also lie on
 planes the other epoch has nearby (:data:`COPLANAR_SHARE`)."""
 COPLANAR_SHARE = 0.75
+GAP_SHARE = 0.5
+"""A part is a coverage difference when this share of its points lies in gaps between the
+other epoch's samples of one plane
+(:func:`~app.core.localise.map_planes.in_sampling_gap`: single scan lines far from both paths,
+each epoch's on its own place of the floor or a box top)."""
 SURROUND_SHARE = 0.1
 """An upright part is an unseen side when less than this share of its adjoining border points
 has the other epoch's surface carrying on past them (or surface this epoch lacks)."""
@@ -154,11 +160,25 @@ def _rechecked_share(
     if recheck.shape[0] == 0:
         return share
     behind = surface_behind(candidates.points[recheck], candidates.normal[recheck], other, counted)
-    parts = np.unique(labels[recheck])
-    hits = np.bincount(labels[recheck], weights=behind.astype(np.float64), minlength=share.shape[0])
-    sizes = np.bincount(labels[recheck], minlength=share.shape[0])
+    return _share_per_part(labels[recheck], behind, share)
+
+
+def _share_per_part(
+    part: NDArray[np.int64], hit: NDArray[np.generic], share: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """``share`` (shape (parts,)) with each part that has a point in ``part`` (shape (m,)) set
+    to the share of its points whose ``hit`` (shape (m,), bool or weight) holds; others kept."""
+    parts = np.unique(part)
+    hits = np.bincount(part, weights=np.asarray(hit, dtype=np.float64), minlength=share.shape[0])
+    sizes = np.bincount(part, minlength=share.shape[0])
     share[parts] = hits[parts] / np.maximum(sizes[parts], 1)
     return share
+
+
+def _probe_radius(other: Side) -> float:
+    """Radius of the probes straight down into ``other``'s surface: its sampling, not less than
+    :data:`BEHIND_MIN_RADIUS`."""
+    return max(BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing)))
 
 
 def _narrow_gaps(
@@ -204,16 +224,30 @@ def _level_below_share(
     if chosen.shape[0] == 0:
         return share
     below = level_surface_below(
-        candidates.points[chosen],
-        other.geometry,
-        SEE_THROUGH_REACH,
-        max(BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))),
+        candidates.points[chosen], other.geometry, SEE_THROUGH_REACH, _probe_radius(other)
     )
-    parts = np.unique(labels[chosen])
-    hits = np.bincount(labels[chosen], weights=below.astype(np.float64), minlength=share.shape[0])
-    sizes = np.bincount(labels[chosen], minlength=share.shape[0])
-    share[parts] = hits[parts] / np.maximum(sizes[parts], 1)
-    return share
+    return _share_per_part(labels[chosen], below, share)
+
+
+def _sampling_gap_share(
+    candidates: Candidates,
+    labels: NDArray[np.int64],
+    recheck: NDArray[np.bool_],
+    *,
+    other: Side,
+    tolerance: float,
+) -> NDArray[np.float64]:
+    """Per part marked in ``recheck`` (0 elsewhere), the share of its candidates that lie in a
+    gap between the other epoch's samples of one plane
+    (:func:`~app.core.localise.map_planes.in_sampling_gap`)."""
+    chosen = np.flatnonzero(recheck[labels])
+    share = np.zeros(recheck.shape[0])
+    if chosen.shape[0] == 0:
+        return share
+    in_gap = in_sampling_gap(
+        candidates.points[chosen], candidates.normal[chosen], other.geometry, tolerance
+    )
+    return _share_per_part(labels[chosen], in_gap, share)
 
 
 def _on_lacking_share(
@@ -240,13 +274,11 @@ def _on_lacking_share(
         candidates.points[chosen],
         other.geometry,
         SEE_THROUGH_REACH,
-        max(BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))),
+        _probe_radius(other),
         marked=other_unmatched,
         blocking=KDTree(own.points[upright]) if upright.any() else None,
     )
-    hits = np.bincount(labels[chosen], weights=on_lacking, minlength=share.shape[0])
-    sizes = np.bincount(labels[chosen], minlength=share.shape[0])
-    return hits / np.maximum(sizes, 1)
+    return _share_per_part(labels[chosen], on_lacking, share)
 
 
 def map_test(
@@ -334,8 +366,11 @@ def map_test(
             candidates, labels, recheck, own=own, other=other, other_unmatched=other_unmatched
         )
 
+    def in_gap(recheck: NDArray[np.bool_]) -> NDArray[np.float64]:
+        return _sampling_gap_share(candidates, labels, recheck, other=other, tolerance=threshold)
+
     coverage, faces, confidence, counts = _verdict(
-        figures, see_through, open_beneath, far_face, stands_on_lacking
+        figures, see_through, open_beneath, far_face, stands_on_lacking, in_gap
     )
     status[coverage[labels]] = STATUS_UNOBSERVED
     evidence[coverage[labels]] = EVIDENCE_NO_COVERAGE
@@ -390,8 +425,36 @@ def unseen_faces(figures: PartFigures) -> NDArray[np.bool_]:
     return (figures.adjoining >= MIN_ADJOINING) & (figures.surround_share < SURROUND_SHARE)
 
 
+def _continuing(
+    part: PartFigures, in_gap: Any, unseen_side: NDArray[np.bool_]
+) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    """Per part, whether it lies on a surface that continues in the other epoch, and the
+    share of its points in gaps between the other epoch's samples of one plane.
+
+    Its border continues into the other epoch's surface (:data:`PLAIN_CONTINUATION_SHARE`, or
+    :data:`CONTINUATION_SHARE` with :data:`COPLANAR_SHARE` of its points on the other epoch's
+    planes), or :data:`GAP_SHARE` of its points lie between the other epoch's samples of a
+    plane (``in_gap(recheck)``, for the near parts not continuing otherwise: a single scan
+    line has no normal to continue along).  An ``unseen_side`` is read as that: the other
+    epoch's surfaces meet it at an edge and end there, and the two epochs' map tests must
+    still be able to agree on it (:mod:`~app.core.localise.map_agreement`: RGB-D room 203's
+    old backrest, on a plane of the turned chair's points, 100 % -> 84 % without this)."""
+    continues_plainly = part.continuation_share >= PLAIN_CONTINUATION_SHARE
+    continues_in_plane = (part.continuation_share >= CONTINUATION_SHARE) & (
+        part.coplanar_share >= COPLANAR_SHARE
+    )
+    continuing = continues_plainly | continues_in_plane
+    gap_share = in_gap(part.near & ~continuing & ~unseen_side)
+    return continuing | (gap_share >= GAP_SHARE), gap_share
+
+
 def _verdict(
-    figures: PartFigures, see_through: Any, open_beneath: Any, far_face: Any, on_lacking: Any
+    figures: PartFigures,
+    see_through: Any,
+    open_beneath: Any,
+    far_face: Any,
+    on_lacking: Any,
+    in_gap: Any,
 ) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.float64], dict[str, Any]]:
     """Per part, whether it is a coverage difference, whether it is one as an unseen face
     only (:class:`~app.core.localise.interface.FaceBorder`), and the confidence in its
@@ -408,16 +471,13 @@ def _verdict(
     marked in ``check``.  ``on_lacking(check)`` gives the share of the marked parts' points
     whose first level surface of the other epoch straight under them is surface this epoch
     lacks (:data:`SEE_THROUGH_SHARE` of an upright part's points: it stands on what it hides).
+    ``in_gap`` is :func:`_continuing`'s.
     """
     part = figures
     unseen_side = unseen_faces(part)
     beneath = open_beneath(unseen_side & ~part.upright)
     unseen_side &= part.upright | (beneath < SEE_THROUGH_SHARE)
-    continues_plainly = part.continuation_share >= PLAIN_CONTINUATION_SHARE
-    continues_in_plane = (part.continuation_share >= CONTINUATION_SHARE) & (
-        part.coplanar_share >= COPLANAR_SHARE
-    )
-    continuing = continues_plainly | continues_in_plane
+    continuing, gap_share = _continuing(part, in_gap, unseen_side)
     # an upright part standing on a level surface that the other epoch saw and this one lacks
     # hides it: the other epoch saw its place empty (the seat under a backrest turned onto it,
     # seen from above its lower band only, in line with another chair's side)
@@ -448,7 +508,11 @@ def _verdict(
     side_confidence = np.where(far, np.maximum(side_confidence, joined_share), side_confidence)
     confidence = np.where(
         coverage,
-        np.where(part.near, np.maximum(part.continuation_share, side_confidence), 1.0),
+        np.where(
+            part.near,
+            np.maximum(np.maximum(part.continuation_share, gap_share), side_confidence),
+            1.0,
+        ),
         np.clip(1.0 - part.continuation_share, 0.0, 1.0)
         * np.clip(0.5 + part.behind_share / (2 * SEE_THROUGH_SHARE), 0.0, 1.0),
     )
@@ -460,6 +524,7 @@ def _verdict(
         "map_unseen_side_clusters": int((unseen_side & coverage).sum()),
         "map_far_face_parts": int(far.sum()),
         "map_standing_on_hidden_parts": int(stands_on_hidden.sum()),
+        "map_sampling_gap_parts": int((gap_share >= GAP_SHARE).sum()),
         "map_coplanar_share_median": float(np.median(part.coplanar_share)),
     }
     return coverage, faces & part.near & ~continues, confidence, counts

@@ -19,7 +19,7 @@ from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
-from app.core.localise.map_planes import SECTORS, extends, share_on_planes
+from app.core.localise.map_planes import SECTORS, extends, holds_up, share_on_planes
 from app.core.localise.origin_free import (
     BEHIND_MAX_RADIUS,
     BEHIND_MIN_RADIUS,
@@ -244,9 +244,9 @@ def _surrounded(
     other_unmatched: NDArray[np.bool_],
     tolerance: float,
     change_threshold: float,
-) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
-    """Whether the other epoch's surface adjoins each border point at an edge, and in how
-    many directions it carries on past the point.
+) -> tuple[NDArray[np.bool_], NDArray[np.int64], NDArray[np.bool_]]:
+    """Whether the other epoch's surface adjoins each border point at an edge, in how many
+    directions it carries on past the point, and whether it lies wholly under the point.
 
     The other epoch's nearest surface (within :data:`ADJOINING_FACTOR` change thresholds, at
     an angle to the point's own: :data:`EDGE_COSINE`) is taken as the plane of its nearest
@@ -277,12 +277,16 @@ def _surrounded(
         one the point stands on that ends there: :func:`_supports`).
     sectors : ndarray, shape (b,), int64
         In how many of :data:`SECTORS` directions that surface carries on past the point.
+    under : ndarray, shape (b,), bool
+        That surface is an upright one lying wholly under an upright point
+        (:func:`~app.core.localise.map_planes.holds_up`).
     """
     count = points.shape[0]
     adjoining = np.zeros(count, dtype=bool)
     surrounded = np.zeros(count, dtype=np.int64)
+    under = np.zeros(count, dtype=bool)
     if count == 0:
-        return adjoining, surrounded
+        return adjoining, surrounded, under
     k = min(SURROUND_NEIGHBOURS, other.points.shape[0])
     for start in range(0, count, GATHER_CHUNK):
         chunk = slice(start, start + GATHER_CHUNK)
@@ -323,10 +327,13 @@ def _surrounded(
         rows = np.broadcast_to(np.arange(query.shape[0])[:, None], sector.shape)
         taken[rows[on_plane], sector[on_plane]] = True
         surrounded[chunk] = taken.sum(axis=1)
+        under[chunk] = holds_up(
+            offset, on_plane, own_normal[chunk], unit, tolerance, UPRIGHT_NORMAL_Z
+        )
         # a surface that this epoch lacks next to the point: the object hid it here
         surrounded[chunk][other_unmatched[nearest]] = SECTORS
         adjoining[chunk] &= ~(support & (surrounded[chunk] < SURROUND_SECTORS))
-    return adjoining, surrounded
+    return adjoining, surrounded, under
 
 
 @dataclass(frozen=True)
@@ -450,9 +457,14 @@ def _adjoining_surfaces(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
     """Per part, how many border points the other epoch's surface adjoins at an edge and the
     share of those where it carries on past the point (:func:`_surrounded`), and those border
-    points (indices into the candidates)."""
+    points (indices into the candidates).
+
+    A part all of whose adjoining border points have the adjoining surface wholly under them
+    (:func:`~app.core.localise.map_planes.holds_up`) stands on it: that surface is no face of
+    its object, as a level support that ends at it is none (:func:`_supports`), and the part
+    has no adjoining border point."""
     probe = np.flatnonzero(border)
-    adjoining_points, surrounded_points = _surrounded(
+    adjoining_points, surrounded_points, under = _surrounded(
         candidates.points[probe],
         candidates.normal[probe],
         other.geometry,
@@ -460,6 +472,8 @@ def _adjoining_surfaces(
         threshold,
         change_threshold,
     )
+    on_top = np.bincount(labels[probe], weights=adjoining_points & ~under, minlength=n_parts)
+    adjoining_points &= on_top[labels[probe]] > 0
     adjoining = np.bincount(
         labels[probe], weights=adjoining_points.astype(np.float64), minlength=n_parts
     )

@@ -41,6 +41,11 @@ HOUGH_LINES = 5_000
 """Lines voting in the Hough accumulator (all of them refine its peak)."""
 HOUGH_PEAKS = 6
 """Accumulator peaks refined; the one most lines point at is kept."""
+HOUGH_CHUNK_LINES = 400
+"""Lines :func:`_hough` draws at once: their (lines, steps) float64 arrays (~0.9 MiB at the
+~280 steps of a 100-cell grid) stay under the 1 MiB mmap threshold of ``app.kit.allocator``,
+where 4,000 lines' (9 MB each) faulted fresh pages in.  The votes are whole counts, the same
+in any chunking."""
 REFINE_LINES = 2_000
 """Lines voting on each refinement grid (a random share of those passing near the peak)."""
 REFINE_REACH = 1.0
@@ -189,8 +194,9 @@ def _hough(
     reach = float(np.linalg.norm(high - low))
     steps = np.arange(-reach, reach, size)
     grid = np.zeros(int(shape[0] * shape[1]), dtype=np.float64)
-    for start in range(0, len(anchor), 4000):
-        a, d = anchor[start : start + 4000], direction[start : start + 4000]
+    for start in range(0, len(anchor), HOUGH_CHUNK_LINES):
+        a = anchor[start : start + HOUGH_CHUNK_LINES]
+        d = direction[start : start + HOUGH_CHUNK_LINES]
         # x and y apart: tests along the last axis of (lines, steps, 2) arrays took 3x longer
         x = a[:, 0, None] + steps[None, :] * d[:, 0, None]
         y = a[:, 1, None] + steps[None, :] * d[:, 1, None]

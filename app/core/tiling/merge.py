@@ -17,8 +17,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from app.core.errors import InputError
 from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
@@ -275,6 +273,11 @@ def _linked_components(
         rows.append(node[visiting][same])
         columns.append(owner_nodes[position[same]])
     row, col = np.concatenate(rows), np.concatenate(columns)
+    # on first use: an untiled comparison imports this module but never merges, and scipy.sparse
+    # at start-up was ~0.18 CPU s of its serial start (the detectors' warm-up imports it beside)
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     graph = coo_matrix((np.ones(len(row), dtype=np.int8), (row, col)), (n_nodes, n_nodes))
     _, component = connected_components(graph, directed=True, connection="weak")
     return component
