@@ -3,6 +3,8 @@ localised on one point a cube and its labels carried back to every point."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -21,6 +23,7 @@ from app.core.tiling.thinning import (
     MIN_THINNING_CELL_METRES,
     representatives,
 )
+from app.testing.files import ply_bytes
 
 BOX_LOW = np.array([0.1, 0.1, 0.0])
 BOX_SIDE = 0.3
@@ -130,3 +133,48 @@ def test_each_point_is_represented_by_the_first_point_of_its_cube() -> None:
     assert np.array_equal(representative[kept], np.arange(len(kept)))  # a kept point: itself
     lone = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
     assert representatives(lone, cell)[0].tolist() == [0, 1]
+
+
+def test_a_streamed_tile_whose_written_crop_is_over_the_limit_runs_thinned(
+    dense_pair: tuple[PointCloud, PointCloud, ComparisonResult], tmp_path, monkeypatch
+) -> None:
+    # the plan counts crops on a sample and can count a tile low: here it counts every tile
+    # within the limit (none thinned); the crops as written are what the tiles hold, so a
+    # tile whose written crop is over the limit must still run thinned
+    from app.core.tiling import plan as plan_module
+    from app.core.tiling import streamed
+
+    reference, scan, one = dense_pair
+    paths = [tmp_path / "reference.ply", tmp_path / "scan.ply"]
+    for path, cloud in zip(paths, (reference, scan), strict=True):
+        path.write_bytes(ply_bytes(cloud.points))
+    limit = int(0.6 * (len(reference) + len(scan)))
+
+    def under_counted(*args, **kwargs) -> plan_module.TilePlan:
+        plan = plan_module.plan_tiles(*args, **kwargs)
+        return dataclasses.replace(
+            plan, crop_points=np.minimum(plan.crop_points, limit), thinning_cells=None
+        )
+
+    monkeypatch.setattr(streamed, "plan_tiles", under_counted)
+    result = streamed.compare_streamed(
+        *paths, work_dir=tmp_path / "work", budget_bytes=1 << 40, max_crop_points=limit,
+        margin=0.5, threads=1,
+    )  # fmt: skip
+    tiles = result.localisation["tiles"]
+    over = [
+        figures
+        for figures in tiles["per_tile"]
+        if figures["crop_reference_points"] + figures["crop_scan_points"] > limit
+    ]
+    assert over, "a crop as written is over the limit"
+    for figures in over:
+        assert figures["tile"] in tiles["thinned_tiles"]
+        assert MIN_THINNING_CELL_METRES <= figures["thinning_cell_m"] <= MAX_THINNING_CELL_METRES
+        assert figures["thinned_reference_points"] + figures["thinned_scan_points"] <= limit
+    assert len(over) < tiles["count"], "the tiles within the limit run whole"
+    for figures in tiles["per_tile"]:
+        if figures not in over:
+            assert "thinning_cell_m" not in figures
+    assert [region.kind for region in result.regions] == ["added"]
+    assert _iou(one.scan_label, np.asarray(result.scan_label)) >= 0.9

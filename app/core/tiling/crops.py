@@ -402,6 +402,17 @@ class TileCropFiles:
         self._rays = {side: bool(layout[side]["rays"]) for side in SIDES}
         self._directions = {side: bool(layout[side].get("directions")) for side in SIDES}
 
+    def written_points(self, n_tiles: int) -> NDArray[np.int64]:
+        """Records of both clouds in each tile's crop files, shape (n_tiles,) (a tile whose
+        files keep the other sensor's returns by direction as it reads holds them all)."""
+        counts = np.zeros(n_tiles, dtype=np.int64)
+        for tile_index in range(n_tiles):
+            for side in SIDES:
+                path = crop_file(self.directory, tile_index, side)
+                if path.exists():
+                    counts[tile_index] += path.stat().st_size // self._dtypes[side].itemsize
+        return counts
+
     def _records(self, tile_index: int, side: str) -> Iterator[NDArray]:
         """A tile's crop file of one cloud, :data:`READ_CHUNK` records at a time."""
         with open(crop_file(self.directory, tile_index, side), "rb") as file:

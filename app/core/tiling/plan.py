@@ -28,6 +28,7 @@ cannot fit (the whole crop cannot be held beside its thinned copy, or the cell w
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -55,6 +56,7 @@ __all__ = [
     "TilePlan",
     "crop_point_limit",
     "plan_tiles",
+    "thinned_as_written",
     "thinned_point_limit",
 ]
 
@@ -266,11 +268,7 @@ def plan_tiles(
         axis = int(np.argmax(extent))
         cut = float(np.median(inside[:, axis])) if len(inside) else 0.0
         if extent[axis] < 2 * margin or depth >= MAX_DEPTH:
-            area = float(np.prod(extent + 2 * margin))
-            localised = thinned_point_limit(max_crop_points, count)
-            if localised < MIN_THINNED_POINTS:
-                raise TileBudgetError(_refusal(count, extent, area, max_crop_points, budget_bytes))
-            cell = thinning_cell(area, localised)
+            cell = _leaf_thinning_cell(count, extent, margin, max_crop_points, budget_bytes)
             leaves.append((low, high, count, cell))
             continue
         left_high, right_low = high.copy(), low.copy()
@@ -291,6 +289,69 @@ def plan_tiles(
             else None
         ),
     )
+
+
+def _leaf_thinning_cell(
+    count: int,
+    extent: NDArray[np.float64],
+    margin: float,
+    max_crop_points: int,
+    budget_bytes: int | None,
+) -> float:
+    """The thinning cell of a tile of ``count`` crop points whose points span ``extent``
+    (shape (2,), metres) in xy; :class:`TileBudgetError` when it does not fit even thinned."""
+    area = float(np.prod(extent + 2 * margin))
+    localised = thinned_point_limit(max_crop_points, count)
+    if localised < MIN_THINNED_POINTS:
+        raise TileBudgetError(_refusal(count, extent, area, max_crop_points, budget_bytes))
+    return thinning_cell(area, localised)
+
+
+def thinned_as_written(
+    plan: TilePlan,
+    written_points: NDArray[np.int64],
+    reference_xy: NDArray[np.float64],
+    scan_xy: NDArray[np.float64],
+    budget_bytes: int | None = None,
+) -> TilePlan:
+    """The plan once its crops are written: a tile planned whole whose crop holds more than
+    :attr:`TilePlan.max_crop_points` gets the thinning cell :func:`plan_tiles` gives such a
+    tile (its count was estimated on a sample, its crop as written is what it holds).
+
+    Parameters
+    ----------
+    plan : TilePlan
+    written_points : ndarray, shape (t,), int64
+        Points of both clouds in each tile's crop as written.
+    reference_xy, scan_xy : ndarray, shape (n, 2) / (m, 2)
+        The points' xy as given to :func:`plan_tiles` (a tile's extent is its points').
+    budget_bytes : int, optional
+        Named in the error message when a tile does not fit even thinned.
+
+    Returns
+    -------
+    TilePlan
+        ``plan`` itself when no tile planned whole is over the limit; else a copy with those
+        tiles' thinning cells (the other tiles', and every count, unchanged).
+
+    Raises
+    ------
+    TileBudgetError
+        Such a tile does not fit even thinned.
+    """
+    written = np.asarray(written_points, dtype=np.int64)
+    cells = np.zeros(plan.n_tiles) if plan.thinning_cells is None else plan.thinning_cells.copy()
+    over = np.flatnonzero((written > plan.max_crop_points) & (cells == 0))
+    if len(over) == 0:
+        return plan
+    sample = np.concatenate([_thinned(reference_xy), _thinned(scan_xy)])
+    for tile_index in over.tolist():
+        inside = sample[plan.in_core(tile_index, sample)]
+        extent = inside.max(axis=0) - inside.min(axis=0) if len(inside) else np.zeros(2)
+        cells[tile_index] = _leaf_thinning_cell(
+            int(written[tile_index]), extent, plan.margin, plan.max_crop_points, budget_bytes
+        )
+    return dataclasses.replace(plan, thinning_cells=cells)
 
 
 def _refusal(

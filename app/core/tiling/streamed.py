@@ -87,6 +87,7 @@ from app.core.tiling.plan import (
     TilePlan,
     crop_point_limit,
     plan_tiles,
+    thinned_as_written,
 )
 from app.core.tiling.rays import MAX_DIRECTION_STATIONS, cells_of_counts, crop_masks
 from app.core.tiling.tile import COUNT_CELL_SCALE, TileContext, TileResult, compute_tile
@@ -232,8 +233,21 @@ class StreamedLocalisation:
             write_pass_layout(partial, context, passes)
             partial.rename(crops)
         report("localise", 0.37)  # the tiles' inputs written
+        files = TileCropFiles(crops)
+        # the plan counted crops on a sample: a tile planned whole whose crop as written is
+        # over the limit is thinned, as the planner would have (the crops are unchanged)
+        rethinned = thinned_as_written(
+            plan,
+            files.written_points(plan.n_tiles),
+            sub[0][:, :2],
+            sub[1][:, :2],
+            self.budget_bytes,
+        )
+        if rethinned is not plan:
+            plan = rethinned
+            plan.save(self.work_dir / PLAN_FILE)
         with timed_phase(timings, "stream_tiles"):
-            results = self.run_tiles(plan, TileCropFiles(crops), context, loaded.threads, report)  # type: ignore[arg-type]
+            results = self.run_tiles(plan, files, context, loaded.threads, report)  # type: ignore[arg-type]
         with timed_phase(timings, "stream_merge"):
             localisation = self._merge(plan, results, context.min_region_points)
         return localisation, context.min_region_points
