@@ -402,9 +402,12 @@ class TileCropFiles:
         self._rays = {side: bool(layout[side]["rays"]) for side in SIDES}
         self._directions = {side: bool(layout[side].get("directions")) for side in SIDES}
 
-    def written_points(self, n_tiles: int) -> NDArray[np.int64]:
-        """Records of both clouds in each tile's crop files, shape (n_tiles,) (a tile whose
-        files keep the other sensor's returns by direction as it reads holds them all)."""
+    def written_points(self, n_tiles: int) -> NDArray[np.int64] | None:
+        """Records of both clouds in each tile's crop files, shape (n_tiles,): the points each
+        tile holds; None when a cloud's tiles keep the other sensor's returns by direction as
+        they read (its files hold more than its tiles do)."""
+        if any(self._directions.values()):
+            return None
         counts = np.zeros(n_tiles, dtype=np.int64)
         for tile_index in range(n_tiles):
             for side in SIDES:

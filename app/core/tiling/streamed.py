@@ -236,16 +236,14 @@ class StreamedLocalisation:
         files = TileCropFiles(crops)
         # the plan counted crops on a sample: a tile planned whole whose crop as written is
         # over the limit is thinned, as the planner would have (the crops are unchanged)
-        rethinned = thinned_as_written(
-            plan,
-            files.written_points(plan.n_tiles),
-            sub[0][:, :2],
-            sub[1][:, :2],
-            self.budget_bytes,
-        )
-        if rethinned is not plan:
-            plan = rethinned
-            plan.save(self.work_dir / PLAN_FILE)
+        written = files.written_points(plan.n_tiles)
+        if written is not None:
+            rethinned = thinned_as_written(
+                plan, written, *(points[:, :2] for points in sub), self.budget_bytes
+            )
+            if rethinned is not plan:
+                plan = rethinned
+                plan.save(self.work_dir / PLAN_FILE)
         with timed_phase(timings, "stream_tiles"):
             results = self.run_tiles(plan, files, context, loaded.threads, report)  # type: ignore[arg-type]
         with timed_phase(timings, "stream_merge"):
