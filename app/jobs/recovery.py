@@ -9,7 +9,8 @@ serve`` at start-up and by the consumer every ``recovery_interval_seconds``:
 * sends a message again for ``queued`` jobs that have none waiting in the queue and were not
   enqueued within the grace period (``job_lease_seconds``: a dequeued message is claimed within
   milliseconds), or were never enqueued (``enqueued_at`` null);
-* deletes temporary result files left by killed workers;
+* deletes temporary result files left by killed workers, and the tile inputs of jobs that no
+  longer run (a worker killed between storing a tiled job's labels and removing its crops);
 * deletes events (and their webhook deliveries) past ``event_retention_days`` whose deliveries
   are all final (:mod:`app.jobs.retention`).
 
@@ -34,7 +35,7 @@ from app.db.session import transaction
 from app.jobs.alerts.events import publish_job_finished
 from app.jobs.leases import job_log, lease_owner_is_dead_here
 from app.jobs.queue import mark_not_enqueued, pending_job_ids, send_job_message
-from app.jobs.results import remove_stale_temp_files
+from app.jobs.results import remove_finished_tile_inputs, remove_stale_temp_files
 from app.jobs.retention import prune_events
 
 logger = logging.getLogger("scandiff.jobs.recovery")
@@ -53,6 +54,8 @@ class RecoveryReport:
     unsent: list[str] = field(default_factory=list)
     """Jobs due a message that the queue did not take (unreachable); the next sweep sends them."""
     removed_temp_files: int = 0
+    removed_tile_inputs: int = 0
+    """Jobs whose left-over tile inputs were deleted (a worker killed after storing, a failure)."""
     pruned_events: int = 0
 
     @property
@@ -72,6 +75,7 @@ class RecoveryReport:
             self.due_messages
             or self.failed_expired
             or self.removed_temp_files
+            or self.removed_tile_inputs
             or self.pruned_events
         )
 
@@ -189,6 +193,7 @@ def recovery_sweep(
     resend_orphaned_queued(settings, now, pending, report)
     send_due_messages(settings, report)
     report.removed_temp_files = remove_stale_temp_files(settings, temp_file_max_age_seconds)
+    report.removed_tile_inputs = remove_finished_tile_inputs(settings)
     report.pruned_events = prune_events(settings, now)
     if not report.is_empty():
         logger.info(
@@ -199,6 +204,7 @@ def recovery_sweep(
                 "resent_queued": len(report.resent_queued),
                 "unsent": len(report.unsent),
                 "removed_temp_files": report.removed_temp_files,
+                "removed_tile_inputs": report.removed_tile_inputs,
                 "pruned_events": report.pruned_events,
             },
         )

@@ -12,6 +12,7 @@ killed while writing left.
 
 from __future__ import annotations
 
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -188,4 +189,32 @@ def remove_stale_temp_files(settings: Settings, older_than_seconds: float) -> in
                 removed += 1
         except FileNotFoundError:
             continue
+    return removed
+
+
+def remove_finished_tile_inputs(settings: Settings) -> int:
+    """Delete the tile inputs of jobs that no longer run (finished, failed or deleted); how many.
+
+    A job removes its own once its labels are stored, but a worker killed between the two, or a
+    failed job, leaves them: a 100M-point pair's crops are tens of GB.  A queued or running job
+    keeps its tiles (a finished tile is never computed again).
+    """
+    if not settings.results_dir.is_dir():
+        return 0
+    tile_dirs = {path.parent.name: path for path in settings.results_dir.glob("*/tiles")}
+    if not tile_dirs:
+        return 0
+    with transaction(settings.sqlalchemy_url) as session:
+        unfinished = set(
+            session.scalars(
+                select(Job.id).where(
+                    Job.id.in_(list(tile_dirs)), Job.status.in_(JobStatus.unfinished())
+                )
+            )
+        )
+    removed = 0
+    for job_id, directory in tile_dirs.items():
+        if job_id not in unfinished:
+            shutil.rmtree(directory, ignore_errors=True)
+            removed += not directory.exists()
     return removed

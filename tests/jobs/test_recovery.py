@@ -120,6 +120,26 @@ def test_sweep_removes_stale_temporary_result_files(job_settings: Settings) -> N
     assert not stale.exists() and fresh.exists() and kept.exists()
 
 
+def test_sweep_removes_tile_inputs_of_jobs_that_no_longer_run(job_settings: Settings) -> None:
+    # a worker killed between storing a tiled job's labels and deleting its crops leaves them
+    statuses = ["succeeded", "failed", "queued", "running"]
+    job_ids = [create_job(job_settings) for _ in statuses]
+    for job_id, status in zip(job_ids, statuses, strict=True):
+        set_job(job_settings, job_id, status=status)
+    tiles = [job_settings.data_layout.job_tiles_dir(job_id) for job_id in job_ids]
+    tiles.append(job_settings.data_layout.job_tiles_dir("deletedjob"))
+    for directory in tiles:
+        (directory / "crops").mkdir(parents=True)
+        (directory / "crops" / "reference-0.bin").write_bytes(b"x" * 64)
+    labels = job_settings.data_layout.labels_file(job_ids[0])
+    labels.write_bytes(b"kept")
+
+    assert recovery_sweep(job_settings).removed_tile_inputs == 3
+    assert [directory.exists() for directory in tiles] == [False, False, True, True, False]
+    assert labels.read_bytes() == b"kept"  # the stored results stay
+    assert recovery_sweep(job_settings).is_empty()
+
+
 def test_queue_backend_follows_the_queue_url(tmp_path: object) -> None:
     assert queue_backend(Settings(data_dir=tmp_path)) == "sqlite"
     assert queue_backend(Settings(data_dir=tmp_path, queue_url="redis://localhost:6379/0")) == (
