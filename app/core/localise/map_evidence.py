@@ -48,6 +48,7 @@ to a sensor's ring pattern, which voxel filters and SLAM fusion erase.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -175,6 +176,20 @@ def _share_per_part(
     return share
 
 
+def _probed_share(
+    labels: NDArray[np.int64],
+    recheck: NDArray[np.bool_],
+    probe: Callable[[NDArray[np.int64]], NDArray[np.generic]],
+) -> NDArray[np.float64]:
+    """Per part marked in ``recheck`` (shape (parts,); 0 elsewhere), the share of its candidates
+    for which ``probe`` (given the candidates' indices, shape (m,)) holds; no probe without any."""
+    chosen = np.flatnonzero(recheck[labels])
+    share = np.zeros(recheck.shape[0])
+    if chosen.shape[0] == 0:
+        return share
+    return _share_per_part(labels[chosen], probe(chosen), share)
+
+
 def _probe_radius(other: Side) -> float:
     """Radius of the probes straight down into ``other``'s surface: its sampling, not less than
     :data:`BEHIND_MIN_RADIUS`."""
@@ -219,14 +234,13 @@ def _level_below_share(
     surface of the other epoch straight under them within
     :data:`~app.core.localise.map_parts.SEE_THROUGH_REACH`
     (:func:`~app.core.localise.map_planes.level_surface_below`)."""
-    chosen = np.flatnonzero(recheck[labels])
-    share = np.zeros(recheck.shape[0])
-    if chosen.shape[0] == 0:
-        return share
-    below = level_surface_below(
-        candidates.points[chosen], other.geometry, SEE_THROUGH_REACH, _probe_radius(other)
+    return _probed_share(
+        labels,
+        recheck,
+        lambda chosen: level_surface_below(
+            candidates.points[chosen], other.geometry, SEE_THROUGH_REACH, _probe_radius(other)
+        ),
     )
-    return _share_per_part(labels[chosen], below, share)
 
 
 def _sampling_gap_share(
@@ -240,14 +254,13 @@ def _sampling_gap_share(
     """Per part marked in ``recheck`` (0 elsewhere), the share of its candidates that lie in a
     gap between the other epoch's samples of one plane
     (:func:`~app.core.localise.map_planes.in_sampling_gap`)."""
-    chosen = np.flatnonzero(recheck[labels])
-    share = np.zeros(recheck.shape[0])
-    if chosen.shape[0] == 0:
-        return share
-    in_gap = in_sampling_gap(
-        candidates.points[chosen], candidates.normal[chosen], other.geometry, tolerance
+    return _probed_share(
+        labels,
+        recheck,
+        lambda chosen: in_sampling_gap(
+            candidates.points[chosen], candidates.normal[chosen], other.geometry, tolerance
+        ),
     )
-    return _share_per_part(labels[chosen], in_gap, share)
 
 
 def _on_lacking_share(
@@ -264,21 +277,20 @@ def _on_lacking_share(
     :data:`~app.core.localise.map_parts.SEE_THROUGH_REACH`, has a point this epoch lacks
     (:func:`~app.core.localise.map_planes.first_level_surface_marked`).  This epoch's own upright
     points that are no candidates stop the probe (a wall under a patch of it)."""
-    chosen = np.flatnonzero(recheck[labels])
-    share = np.zeros(recheck.shape[0])
-    if chosen.shape[0] == 0:
-        return share
-    upright = np.abs(own.geometry.normal[:, 2]) < NORMAL_AGREEMENT_COSINE
-    upright[candidates.index] = False
-    on_lacking = first_level_surface_marked(
-        candidates.points[chosen],
-        other.geometry,
-        SEE_THROUGH_REACH,
-        _probe_radius(other),
-        marked=other_unmatched,
-        blocking=KDTree(own.points[upright]) if upright.any() else None,
-    )
-    return _share_per_part(labels[chosen], on_lacking, share)
+
+    def on_lacking(chosen: NDArray[np.int64]) -> NDArray[np.float64]:
+        upright = np.abs(own.geometry.normal[:, 2]) < NORMAL_AGREEMENT_COSINE
+        upright[candidates.index] = False
+        return first_level_surface_marked(
+            candidates.points[chosen],
+            other.geometry,
+            SEE_THROUGH_REACH,
+            _probe_radius(other),
+            marked=other_unmatched,
+            blocking=KDTree(own.points[upright]) if upright.any() else None,
+        )
+
+    return _probed_share(labels, recheck, on_lacking)
 
 
 def map_test(
