@@ -133,6 +133,7 @@ LOCALISE_LAYERS = (
     "map_planes",
     "map_parts",
     "map_faces",
+    "map_bodies",
     "map_evidence",
     "map_agreement",
     "coverage",

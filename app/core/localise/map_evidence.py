@@ -59,6 +59,7 @@ from pykdtree.kdtree import KDTree
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE
 from app.core.localise.interface import FaceBorder, VisibilityContext, VisibilityOutcome
+from app.core.localise.map_bodies import hollow_sides
 from app.core.localise.map_faces import far_faces
 from app.core.localise.map_parts import (
     SEE_THROUGH_REACH,
@@ -381,8 +382,21 @@ def map_test(
     def in_gap(recheck: NDArray[np.bool_]) -> NDArray[np.float64]:
         return _sampling_gap_share(candidates, labels, recheck, other=other, tolerance=threshold)
 
+    def hollow(check: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        return hollow_sides(
+            candidates,
+            labels,
+            check,
+            figures.adjoined,
+            own=own,
+            other=other,
+            lacking=other_unmatched,
+            tolerance=threshold,
+            change_threshold=change_threshold,
+        )
+
     coverage, faces, confidence, counts = _verdict(
-        figures, see_through, open_beneath, far_face, stands_on_lacking, in_gap
+        figures, see_through, open_beneath, far_face, stands_on_lacking, in_gap, hollow
     )
     status[coverage[labels]] = STATUS_UNOBSERVED
     evidence[coverage[labels]] = EVIDENCE_NO_COVERAGE
@@ -467,6 +481,7 @@ def _verdict(
     far_face: Any,
     on_lacking: Any,
     in_gap: Any,
+    hollow: Any = None,
 ) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.float64], dict[str, Any]]:
     """Per part, whether it is a coverage difference, whether it is one as an unseen face
     only (:class:`~app.core.localise.interface.FaceBorder`), and the confidence in its
@@ -483,12 +498,18 @@ def _verdict(
     marked in ``check``.  ``on_lacking(check)`` gives the share of the marked parts' points
     whose first level surface of the other epoch straight under them is surface this epoch
     lacks (:data:`SEE_THROUGH_SHARE` of an upright part's points: it stands on what it hides).
-    ``in_gap`` is :func:`_continuing`'s.
+    ``in_gap`` is :func:`_continuing`'s.  ``hollow(check)`` says which marked upright unseen
+    sides would bound a body that holds points of the two epochs
+    (:func:`~app.core.localise.map_bodies.hollow_sides`): they are no sides.
     """
     part = figures
     unseen_side = unseen_faces(part)
     beneath = open_beneath(unseen_side & ~part.upright)
     unseen_side &= part.upright | (beneath < SEE_THROUGH_SHARE)
+    hollow_side = (
+        np.zeros_like(unseen_side) if hollow is None else hollow(unseen_side & part.upright)
+    )
+    unseen_side &= ~hollow_side
     continuing, gap_share = _continuing(part, in_gap, unseen_side)
     # an upright part standing on a level surface that the other epoch saw and this one lacks
     # hides it: the other epoch saw its place empty (the seat under a backrest turned onto it,
@@ -536,6 +557,7 @@ def _verdict(
         "map_unseen_side_clusters": int((unseen_side & coverage).sum()),
         "map_far_face_parts": int(far.sum()),
         "map_standing_on_hidden_parts": int(stands_on_hidden.sum()),
+        "map_hollow_side_parts": int(hollow_side.sum()),
         "map_sampling_gap_parts": int((gap_share >= GAP_SHARE).sum()),
         "map_coplanar_share_median": float(np.median(part.coplanar_share)),
     }
