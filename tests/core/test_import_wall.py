@@ -136,6 +136,7 @@ LOCALISE_LAYERS = (
     "map_bodies",
     "map_evidence",
     "map_agreement",
+    "turned_faces",
     "coverage",
     "visibility",
     "changes",

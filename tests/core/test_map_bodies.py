@@ -73,3 +73,31 @@ def test_a_box_each_path_saw_one_side_of_stays_unseen(seed):
     assert not np.any(localisation.reference_label == LABEL_CHANGED)
     assert not np.any(localisation.scan_label == LABEL_CHANGED)
 
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_turned_backrest_seen_from_afar_is_a_change_under_the_noise_floor(seed):
+    # the reference saw the old backrest from both sides; the scan saw the new one from
+    # afar: a sparse face of fewer points than min_region_points, meeting the old backrest
+    # (a removed region) at the corner they share, at a right angle
+    rng = np.random.default_rng(seed)
+    reference = np.vstack(
+        [
+            fused_room(rng, floor_hole=SEAT),
+            box_sides(rng, *SEAT, faces="nsew"),
+            _seat_top(rng, OLD_BACK),
+            box_sides(rng, *OLD_BACK, faces="tew"),
+        ]
+    )
+    scan = np.vstack(
+        [
+            fused_room(rng, floor_hole=SEAT),
+            box_sides(rng, *SEAT, faces="nsew"),
+            _seat_top(rng, NEW_BACK),
+            box_sides(rng, *NEW_BACK, faces="n", spacing=0.09),
+        ]
+    )
+    localisation = localise_changes(reference, scan)
+    new = (np.abs(scan[:, 1] - 2.0) < 0.01) & (scan[:, 0] > 2.5) & (scan[:, 0] < 2.85)
+    new &= (scan[:, 2] > 0.6) & (scan[:, 2] < 0.95)
+    assert 0 < np.count_nonzero(new) < localisation.parameters["min_region_points"]
+    assert np.mean(localisation.scan_label[new] == LABEL_CHANGED) >= 0.9

@@ -59,6 +59,7 @@ from app.core.localise.settings import (
     resolve_parameters,
 )
 from app.core.localise.surface import LocalGeometry, local_geometry
+from app.core.localise.turned_faces import ChangedPoints, with_turned_faces
 from app.core.localise.visibility import (
     Labelled,
     agree_on_faces,
@@ -217,6 +218,23 @@ def localise_changes(
     regions, uncertain_regions, dropped = _regions(
         reference_found, scan_found, settings, min_region_points, threads
     )
+    regions, turned = with_turned_faces(
+        regions,
+        tuple(  # type: ignore[arg-type]
+            ChangedPoints(
+                f.side,
+                f.labelled.label == LABEL_CHANGED,
+                f.distance,
+                f.labelled.evidence,
+                f.labelled.confidence,
+            )
+            for f in (reference_found, scan_found)
+        ),
+        cluster_factor=settings["cluster_factor"],
+        min_region_points=min_region_points,
+        change_threshold=limits.change_threshold,
+    )
+    dropped -= turned
     reference_region, scan_region = _region_indices(regions, n_reference, n_scan)
     # changed points outside any kept region were in clusters too small to be a change
     for found, region in ((reference_found, reference_region), (scan_found, scan_region)):

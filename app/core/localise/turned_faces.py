@@ -1,0 +1,173 @@
+"""Small changed faces that meet a change of the other epoch at an angle: a face turned in place.
+
+Clusters of changed points smaller than ``min_region_points`` are noise: features at the
+resolution limit (an edge or a strip seen at a grazing angle) whose point count grows like the
+square root of the cloud's.  A turned object's new face can be as small, in a sparse robot map
+that saw it from afar (a chair turned a quarter in place: its new backrest 16 points at 140k
+points a cloud, under a floor of about 30), and yet it is no noise: it meets the old face, a
+change of the other epoch, at the corner they share, at an angle.
+
+:func:`turned_faces` keeps such a small cluster as a region when it is an upright face whose
+points meet an upright region of the other epoch at an edge (the two faces' normals at more
+than 60 degrees, within two change thresholds): the object before and after it turned.  A
+surface revealed where a removed object stood is none: it is level (the floor or a top under
+it) or parallel to the removed object's face that hid it (the wall behind it).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+from pykdtree.kdtree import KDTree
+
+from app.core.localise.distance import Side
+from app.core.localise.map_faces import EDGE_COSINE, EDGE_FACTOR
+from app.core.localise.map_parts import UPRIGHT_NORMAL_Z
+from app.core.localise.regions import ChangedRegion, find_regions, mark_moved_surfaces
+
+__all__ = ["ChangedPoints", "turned_faces", "with_turned_faces"]
+
+FLOOR_SHARE = 1.0 / 3.0
+"""A turned face has at least this share of ``min_region_points`` points (and 4)."""
+MIN_MEETING = 3
+"""Fewer of its points meeting the other epoch's region than this say nothing."""
+MEETING_SHARE = 0.5
+"""This share of its meeting points must meet the region's upright surface at an angle."""
+
+
+class ChangedPoints(NamedTuple):
+    """One cloud's changed points, as the regions are drawn from them.
+
+    Attributes
+    ----------
+    side : Side
+    changed : ndarray, shape (n,), bool
+    distance : ndarray, shape (n,)
+        Each point's distance to the other cloud's surface.
+    evidence : ndarray, shape (n,), int8
+    confidence : ndarray, shape (n,)
+    """
+
+    side: Side
+    changed: NDArray[np.bool_]
+    distance: NDArray[np.float64]
+    evidence: NDArray[np.int8]
+    confidence: NDArray[np.floating]
+
+
+def _face_normal(points: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The unit normal of the plane fitted to ``points`` (shape (p, 3) -> (3,))."""
+    _, vectors = np.linalg.eigh(np.cov((points - points.mean(axis=0)).T))
+    return vectors[:, 0]
+
+
+def _meets_at_angle(
+    face: NDArray[np.float64], other: Side, region_points: NDArray[np.int64], reach: float
+) -> bool:
+    """Whether the upright ``face`` (points, shape (p, 3)) meets the other cloud's
+    ``region_points`` (indices) at an edge: :data:`MIN_MEETING` of its points within ``reach``
+    of one, and :data:`MEETING_SHARE` of those at an upright surface at an angle to it."""
+    normal = _face_normal(face)
+    if abs(normal[2]) >= UPRIGHT_NORMAL_Z or region_points.shape[0] == 0:
+        return False
+    distance, index = KDTree(other.points[region_points]).query(
+        face, k=1, distance_upper_bound=reach
+    )
+    distance = np.asarray(distance).ravel()
+    meeting = distance <= reach
+    if np.count_nonzero(meeting) < MIN_MEETING:
+        return False
+    nearest = region_points[np.asarray(index, dtype=np.int64).ravel()[meeting]]
+    met = other.geometry.normal[nearest].astype(np.float64)
+    at_angle = (np.abs(met[:, 2]) < UPRIGHT_NORMAL_Z) & (np.abs(met @ normal) < EDGE_COSINE)
+    return bool(np.mean(at_angle) >= MEETING_SHARE)
+
+
+def turned_faces(
+    changed: tuple[ChangedPoints, ChangedPoints],
+    regions: list[ChangedRegion],
+    *,
+    cluster_factor: float,
+    min_region_points: int,
+    change_threshold: float,
+) -> list[ChangedRegion]:
+    """The clusters of changed points under ``min_region_points`` that are faces turned in
+    place (module docstring), as regions.
+
+    Parameters
+    ----------
+    changed : (ChangedPoints, ChangedPoints)
+        The reference's and the scan's changed points.
+    regions : list of ChangedRegion
+        The regions kept (of both kinds): a small cluster must meet one of the other cloud's.
+    cluster_factor : float
+        Points closer than this many local spacings are one cluster.
+    min_region_points : int
+    change_threshold : float
+        ``c`` (metres): a face meets a region within :data:`EDGE_FACTOR` of it.
+
+    Returns
+    -------
+    list of ChangedRegion
+        The small clusters kept, reference's first.
+    """
+    floor = max(4, int(np.ceil(FLOOR_SHARE * min_region_points)))
+    if floor >= min_region_points:
+        return []
+    kept: list[ChangedRegion] = []
+    for own, other in ((changed[0], changed[1]), (changed[1], changed[0])):
+        other_kind = other.side.region_kind
+        region_points = [r.point_indices for r in regions if r.kind == other_kind]
+        if not region_points or not own.changed.any():
+            continue
+        other_points = np.concatenate(region_points)
+        small, _ = find_regions(
+            own.side.points,
+            kind=own.side.region_kind,
+            changed=own.changed,
+            spacing=own.side.geometry.spacing,
+            distance=own.distance,
+            cluster_factor=cluster_factor,
+            min_region_points=floor,
+            evidence=own.evidence,
+            confidence=own.confidence,
+        )
+        kept += [
+            region
+            for region in small
+            if region.n_points < min_region_points
+            and _meets_at_angle(
+                own.side.points[region.point_indices],
+                other.side,
+                other_points,
+                EDGE_FACTOR * change_threshold,
+            )
+        ]
+    return kept
+
+
+def with_turned_faces(
+    regions: list[ChangedRegion],
+    changed: tuple[ChangedPoints, ChangedPoints],
+    *,
+    cluster_factor: float,
+    min_region_points: int,
+    change_threshold: float,
+) -> tuple[list[ChangedRegion], int]:
+    """``regions`` with the :func:`turned_faces` added, largest first, removed and added ones
+    side by side marked again (:func:`~app.core.localise.regions.mark_moved_surfaces`), and how
+    many small clusters were kept."""
+    found = turned_faces(
+        changed,
+        regions,
+        cluster_factor=cluster_factor,
+        min_region_points=min_region_points,
+        change_threshold=change_threshold,
+    )
+    if not found:
+        return regions, 0
+    merged = [*regions, *found]
+    merged.sort(key=lambda region: (-region.n_points, region.kind, int(region.point_indices[0])))
+    return mark_moved_surfaces(merged), len(found)
