@@ -136,9 +136,9 @@ LOCALISE_LAYERS = (
     "map_bodies",
     "map_evidence",
     "map_agreement",
-    "turned_faces",
     "coverage",
     "visibility",
+    "turned_faces",
     "changes",
 )
 """The localisation package's modules, lowest first: each imports only modules before it."""

@@ -59,7 +59,7 @@ from app.core.localise.settings import (
     resolve_parameters,
 )
 from app.core.localise.surface import LocalGeometry, local_geometry
-from app.core.localise.turned_faces import ChangedPoints, with_turned_faces
+from app.core.localise.turned_faces import changed_points, with_turned_faces
 from app.core.localise.visibility import (
     Labelled,
     agree_on_faces,
@@ -220,15 +220,11 @@ def localise_changes(
     )
     regions, turned = with_turned_faces(
         regions,
-        tuple(  # type: ignore[arg-type]
-            ChangedPoints(
-                f.side,
-                f.labelled.label == LABEL_CHANGED,
-                f.distance,
-                f.labelled.evidence,
-                f.labelled.confidence,
-            )
-            for f in (reference_found, scan_found)
+        (
+            changed_points(
+                reference_found.side, reference_found.labelled, reference_found.distance
+            ),
+            changed_points(scan_found.side, scan_found.labelled, scan_found.distance),
         ),
         cluster_factor=settings["cluster_factor"],
         min_region_points=min_region_points,

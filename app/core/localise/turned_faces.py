@@ -11,7 +11,9 @@ change of the other epoch, at the corner they share, at an angle.
 points meet an upright region of the other epoch at an edge (the two faces' normals at more
 than 60 degrees, within two change thresholds): the object before and after it turned.  A
 surface revealed where a removed object stood is none: it is level (the floor or a top under
-it) or parallel to the removed object's face that hid it (the wall behind it).
+it) or parallel to the removed object's face that hid it (the wall behind it).  Only for the
+clouds the map test judged (:func:`changed_points`): the ray tests' classes keep their noise
+floor as it was.
 """
 
 from __future__ import annotations
@@ -22,12 +24,15 @@ import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
+from app.core.labels import LABEL_CHANGED
 from app.core.localise.distance import Side
+from app.core.localise.map_evidence import MapTest
 from app.core.localise.map_faces import EDGE_COSINE, EDGE_FACTOR
 from app.core.localise.map_parts import UPRIGHT_NORMAL_Z
 from app.core.localise.regions import ChangedRegion, find_regions, mark_moved_surfaces
+from app.core.localise.visibility import Labelled
 
-__all__ = ["ChangedPoints", "turned_faces", "with_turned_faces"]
+__all__ = ["ChangedPoints", "changed_points", "turned_faces", "with_turned_faces"]
 
 FLOOR_SHARE = 1.0 / 3.0
 """A turned face has at least this share of ``min_region_points`` points (and 4)."""
@@ -55,6 +60,19 @@ class ChangedPoints(NamedTuple):
     distance: NDArray[np.float64]
     evidence: NDArray[np.int8]
     confidence: NDArray[np.floating]
+
+
+def changed_points(side: Side, labelled: Labelled, distance: NDArray[np.float64]) -> ChangedPoints:
+    """``side``'s changed points (``labelled``; ``distance`` shape (n,)) when the map test
+    judged them, none otherwise: the noise floor of the ray tests' classes stands as it was."""
+    judged = labelled.report.get(f"{side.name}_visibility") == MapTest.name
+    return ChangedPoints(
+        side,
+        (labelled.label == LABEL_CHANGED) & judged,
+        distance,
+        labelled.evidence,
+        labelled.confidence,
+    )
 
 
 def _face_normal(points: NDArray[np.float64]) -> NDArray[np.float64]:
