@@ -82,19 +82,21 @@ def _face_normal(points: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def _meets_at_angle(
-    face: NDArray[np.float64], other: Side, region_points: NDArray[np.int64], reach: float
+    face: NDArray[np.float64],
+    other: Side,
+    region_points: NDArray[np.int64],
+    region_tree: KDTree,
+    reach: float,
 ) -> bool:
     """Whether the upright ``face`` (points, shape (p, 3)) meets the other cloud's
-    ``region_points`` (indices) at an edge: :data:`MIN_MEETING` of its points within ``reach``
-    of one, and :data:`MEETING_SHARE` of those at an upright surface at an angle to it."""
+    ``region_points`` (indices, shape (r,); ``region_tree`` over their positions) at an edge:
+    :data:`MIN_MEETING` of its points within ``reach`` of one, and :data:`MEETING_SHARE` of
+    those at an upright surface at an angle to it."""
     normal = _face_normal(face)
-    if abs(normal[2]) >= UPRIGHT_NORMAL_Z or region_points.shape[0] == 0:
+    if abs(normal[2]) >= UPRIGHT_NORMAL_Z:
         return False
-    distance, index = KDTree(other.points[region_points]).query(
-        face, k=1, distance_upper_bound=reach
-    )
-    distance = np.asarray(distance).ravel()
-    meeting = distance <= reach
+    distance, index = region_tree.query(face, k=1, distance_upper_bound=reach)
+    meeting = np.asarray(distance).ravel() <= reach
     if np.count_nonzero(meeting) < MIN_MEETING:
         return False
     nearest = region_points[np.asarray(index, dtype=np.int64).ravel()[meeting]]
@@ -141,6 +143,7 @@ def turned_faces(
         if not region_points or not own.changed.any():
             continue
         other_points = np.concatenate(region_points)
+        other_tree = KDTree(other.side.points[other_points])
         small, _ = find_regions(
             own.side.points,
             kind=own.side.region_kind,
@@ -160,6 +163,7 @@ def turned_faces(
                 own.side.points[region.point_indices],
                 other.side,
                 other_points,
+                other_tree,
                 EDGE_FACTOR * change_threshold,
             )
         ]
