@@ -14,9 +14,12 @@ But the box those two sides would bound holds the chair's seat, which both epoch
 above: the two backrests close no body, and each is a change of its epoch.
 
 :func:`hollow_sides` measures this in each cloud's own terms: the body's depth from the other
-epoch's meeting surfaces, a margin of the change threshold's fraction and the clouds' spacings
-inside each bounding plane, and the points of both epochs inside it.  No sensor position, no
-ring pattern.
+epoch's meeting surfaces, margins of ``tau`` or one local spacing inside each bounding plane,
+and the points of both epochs inside it.  It looks only at sides whose meeting surfaces are
+in good part surface this epoch lacks (two faces, one per epoch, meeting at a corner): where
+this epoch has them too, the side belongs to an object both epochs saw, whatever its shape (an
+unchanged chair's legs and seat edge, open under its seat).  No sensor position, no ring
+pattern.
 """
 
 from __future__ import annotations
@@ -147,8 +150,10 @@ def body_inside_counts(
     change_threshold: float,
 ) -> NDArray[np.int64]:
     """Per part marked in ``check`` (shape (parts,)), how many points of the two epochs lie
-    inside the solid body it would bound as a side (-1 where no body is defined: no upright
-    meeting surface on one side of it, or a body thinner than its margins).
+    inside the solid body it would bound as a side (-1 where none is looked at: no upright
+    meeting surface on one side of it, meeting surfaces this epoch has too (less than
+    :data:`LACKING_SHARE` of their points in ``lacking``, shape (m,)), or a body thinner than
+    its margins).
 
     The body runs from the part's plane towards the side where the other epoch's upright
     surfaces meeting its ``adjoined`` border points (indices into the candidates) lie, as deep
@@ -180,6 +185,8 @@ def body_inside_counts(
         depth = other.points[found] @ normals[row] - offsets[row]
         side = 1.0 if np.median(depth) > 0.0 else -1.0
         depth = side * depth
+        if not np.any(depth > 0.0):
+            continue
         depth = min(SURROUND_REACH, float(np.quantile(depth[depth > 0.0], DEPTH_QUANTILE)))
         members = np.flatnonzero(labels == part)
         spacing = float(np.median(candidates.spacing[members]))
