@@ -510,7 +510,7 @@ def _verdict(
         np.zeros_like(unseen_side) if hollow is None else hollow(unseen_side & part.upright)
     )
     unseen_side &= ~hollow_side
-    continuing, gap_share = _continuing(part, in_gap, unseen_side)
+    continuing, gap_share = _continuing(part, in_gap, unseen_side | hollow_side)
     # an upright part standing on a level surface that the other epoch saw and this one lacks
     # hides it: the other epoch saw its place empty (the seat under a backrest turned onto it,
     # seen from above its lower band only, in line with another chair's side)
