@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE
 from app.core.localise.map_faces import EDGE_FACTOR, meeting_planes
-from app.core.localise.map_parts import SURROUND_REACH, UPRIGHT_NORMAL_Z
+from app.core.localise.map_parts import SURROUND_REACH, UPRIGHT_NORMAL_Z, PartFigures
 from app.core.localise.rays import Candidates
 from app.core.localise.settings import GATHER_CHUNK
 
@@ -219,23 +219,23 @@ def body_inside_counts(
 def hollow_sides(
     candidates: Candidates,
     labels: NDArray[np.int64],
+    figures: PartFigures,
     check: NDArray[np.bool_],
-    adjoined: NDArray[np.int64],
-    *,
     own: Side,
     other: Side,
     lacking: NDArray[np.bool_],
     tolerance: float,
     change_threshold: float,
 ) -> NDArray[np.bool_]:
-    """Per part marked in ``check`` (shape (parts,), bool), whether the body it would bound as
-    an unseen side holds at least :data:`INSIDE_POINTS` points of the two epochs
-    (:func:`body_inside_counts`): no solid object has such a side, so it is none."""
+    """Per part marked in ``check`` (shape (parts,), bool; ``figures``: the parts' figures),
+    whether the body it would bound as an unseen side holds at least :data:`INSIDE_POINTS`
+    points of the two epochs (:func:`body_inside_counts`, the other arguments as there): no
+    solid object has such a side, so it is none."""
     counts = body_inside_counts(
         candidates,
         labels,
         check,
-        adjoined,
+        figures.adjoined,
         own=own,
         other=other,
         lacking=lacking,

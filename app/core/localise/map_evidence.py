@@ -382,19 +382,10 @@ def map_test(
     def in_gap(recheck: NDArray[np.bool_]) -> NDArray[np.float64]:
         return _sampling_gap_share(candidates, labels, recheck, other=other, tolerance=threshold)
 
-    def hollow(check: NDArray[np.bool_]) -> NDArray[np.bool_]:
-        return hollow_sides(
-            candidates,
-            labels,
-            check,
-            figures.adjoined,
-            own=own,
-            other=other,
-            lacking=other_unmatched,
-            tolerance=threshold,
-            change_threshold=change_threshold,
-        )
-
+    check = unseen_faces(figures) & figures.upright
+    hollow = hollow_sides(
+        candidates, labels, figures, check, own, other, other_unmatched, threshold, change_threshold
+    )
     coverage, faces, confidence, counts = _verdict(
         figures, see_through, open_beneath, far_face, stands_on_lacking, in_gap, hollow
     )
@@ -481,7 +472,7 @@ def _verdict(
     far_face: Any,
     on_lacking: Any,
     in_gap: Any,
-    hollow: Any = None,
+    hollow: NDArray[np.bool_] | None = None,
 ) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.float64], dict[str, Any]]:
     """Per part, whether it is a coverage difference, whether it is one as an unseen face
     only (:class:`~app.core.localise.interface.FaceBorder`), and the confidence in its
@@ -498,16 +489,17 @@ def _verdict(
     marked in ``check``.  ``on_lacking(check)`` gives the share of the marked parts' points
     whose first level surface of the other epoch straight under them is surface this epoch
     lacks (:data:`SEE_THROUGH_SHARE` of an upright part's points: it stands on what it hides).
-    ``in_gap`` is :func:`_continuing`'s.  ``hollow(check)`` says which marked upright unseen
-    sides would bound a body that holds points of the two epochs
-    (:func:`~app.core.localise.map_bodies.hollow_sides`): they are no sides.
+    ``in_gap`` is :func:`_continuing`'s.  ``hollow`` (shape (parts,), bool) marks the upright
+    unseen sides that would bound a body holding points of the two epochs
+    (:func:`~app.core.localise.map_bodies.hollow_sides`):
+    they are no sides.
     """
     part = figures
     unseen_side = unseen_faces(part)
     beneath = open_beneath(unseen_side & ~part.upright)
     unseen_side &= part.upright | (beneath < SEE_THROUGH_SHARE)
     hollow_side = (
-        np.zeros_like(unseen_side) if hollow is None else hollow(unseen_side & part.upright)
+        np.zeros_like(unseen_side) if hollow is None else hollow & unseen_side & part.upright
     )
     unseen_side &= ~hollow_side
     continuing, gap_share = _continuing(part, in_gap, unseen_side | hollow_side)
