@@ -49,6 +49,7 @@ from app.jobs.lifecycle import die_with_supervisor, set_parent_death_signal
 from app.jobs.limits import job_memory_limit, job_threads
 from app.jobs.recovery import recovery_sweep
 from app.jobs.side_process import Loop, SideProcess
+from app.kit.allocator import release_freed_memory_promptly, return_free_heap
 from app.log import bind_job, configure_process_logging
 
 logger = logging.getLogger("scandiff.jobs.consumer")
@@ -125,6 +126,8 @@ def install_worker_hooks(huey: Huey, settings: Settings) -> None:
 
     @huey.on_startup(name="scandiff_worker_started")
     def worker_started() -> None:
+        # a worker may run tiles and crop passes before any job: freed temporaries leave it
+        release_freed_memory_promptly()
         pid_dir.mkdir(parents=True, exist_ok=True)
         settings.data_layout.worker_pid_file(os.getpid()).touch()
         logger.info("job worker started", extra={"stage": "worker-started"})
@@ -136,6 +139,7 @@ def install_worker_hooks(huey: Huey, settings: Settings) -> None:
     @huey.post_execute(name="scandiff_unbind_job")
     def unbind_running_job(task: Any, task_value: Any, exception: BaseException | None) -> None:
         bind_job(None)
+        return_free_heap()  # the next task (a tile sized by the budget) starts from live data
 
     @huey.on_shutdown(name="scandiff_worker_stopped")
     def worker_stopped() -> None:

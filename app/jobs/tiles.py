@@ -59,6 +59,7 @@ from app.jobs.task_rows import (
     job_status,
     store_task,
 )
+from app.kit.allocator import return_free_heap
 
 logger = logging.getLogger("scandiff.jobs.tiles")
 
@@ -176,6 +177,7 @@ def run_claimed_tile(
     started = time.perf_counter()
     with TaskLease(settings, TILES, job_id, tile_index, owner):
         job_hooks.in_tile(parent, tiles_done_here)
+        return_free_heap()  # sized by the budget: it starts from live data (not a crop pass's)
         plan, source, context = load_tile_inputs(directory)
         result = compute_tile(plan, tile_index, source, context, threads=threads)
         path = tile_result_path(directory, tile_index)

@@ -23,7 +23,12 @@ import ctypes
 import ctypes.util
 import sys
 
-__all__ = ["MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES", "release_freed_memory_promptly"]
+__all__ = [
+    "MMAP_THRESHOLD_BYTES",
+    "TRIM_THRESHOLD_BYTES",
+    "release_freed_memory_promptly",
+    "return_free_heap",
+]
 
 MMAP_THRESHOLD_BYTES = 1024 * 1024
 """Fixed here instead of growing with each large free (glibc starts at 128 KiB)."""
@@ -31,6 +36,18 @@ TRIM_THRESHOLD_BYTES = 32 * 1024 * 1024
 """Free space kept at the top of the heap before glibc gives it back (default 128 KiB)."""
 _M_TRIM_THRESHOLD = -1  # from <malloc.h>
 _M_MMAP_THRESHOLD = -3
+
+
+def _libc() -> ctypes.CDLL | None:
+    """glibc, or None elsewhere (not Linux, or a C library without mallopt)."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.mallopt, libc.malloc_trim  # noqa: B018 (glibc's, not musl's)
+    except (OSError, AttributeError):
+        return None
+    return libc
 
 
 def release_freed_memory_promptly() -> bool:
@@ -41,14 +58,22 @@ def release_freed_memory_promptly() -> bool:
     bool
         True when the settings were applied (Linux with glibc).
     """
-    if not sys.platform.startswith("linux"):
+    libc = _libc()
+    if libc is None:
         return False
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return False  # not glibc (musl has no mallopt)
+    mallopt = libc.mallopt
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
     mallopt.restype = ctypes.c_int
     trimmed = mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES)
     return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(trimmed)
+
+
+def return_free_heap() -> bool:
+    """Hand the heap's free pages back to the system now (glibc's ``malloc_trim(0)``), so
+    that the next task starts from live data only; whether any went back (False elsewhere)."""
+    libc = _libc()
+    if libc is None:
+        return False
+    libc.malloc_trim.argtypes = [ctypes.c_size_t]
+    libc.malloc_trim.restype = ctypes.c_int
+    return bool(libc.malloc_trim(0))

@@ -33,6 +33,10 @@ PROGRAM = textwrap.dedent(
         blocks.append(np.ones(500_000))
         keep.append(np.ones(1_000))  # 8 kB: from malloc, not a small-object pool
     del blocks
+    if sys.argv[1] == "trimmed":
+        from app.kit.allocator import return_free_heap
+
+        return_free_heap()
     print(resident_mb() - start)
     """
 )
@@ -52,3 +56,12 @@ def test_fixed_threshold_returns_freed_arrays_to_the_system() -> None:
     fixed = retained_megabytes("fixed")
     assert fixed < 20, f"{fixed:.0f} MB still resident after freeing with the fixed threshold"
     assert default > 100, f"the default kept only {default:.0f} MB: the test shows nothing"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc_trim: Linux only")
+def test_returning_the_free_heap_hands_back_what_the_default_threshold_kept() -> None:
+    # a worker trims after each task: what one tile freed is not resident under the next
+    default = retained_megabytes("default")
+    trimmed = retained_megabytes("trimmed")
+    assert default > 100, f"the default kept only {default:.0f} MB: the test shows nothing"
+    assert trimmed < 20, f"{trimmed:.0f} MB still resident after returning the free heap"
