@@ -24,7 +24,7 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
-$(STAMP): pyproject.toml setup.py app/core/localise/_plane_kernel.c | $(BIN)/python
+$(STAMP): pyproject.toml setup.py app/core/localise/_plane_kernel.c app/core/localise/_knn_kernel.c | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 

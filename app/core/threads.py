@@ -14,6 +14,7 @@ from typing import TypeVar
 __all__ = [
     "OPENMP_WAIT_POLICY",
     "available_threads",
+    "concurrently",
     "configured_threads",
     "for_each_chunk",
     "prefer_passive_openmp_waits",
@@ -21,6 +22,8 @@ __all__ = [
 ]
 
 Rows = TypeVar("Rows")
+First = TypeVar("First")
+Second = TypeVar("Second")
 
 OPENMP_WAIT_POLICY = "PASSIVE"
 """What ``OMP_WAIT_POLICY`` defaults to in a process that imports the core (see below)."""
@@ -79,3 +82,19 @@ def for_each_chunk(work: Callable[[Rows], object], chunks: Iterable[Rows], threa
             done.result()
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def concurrently(
+    threads: int, first: Callable[[], First], second: Callable[[], Second]
+) -> tuple[First, Second]:
+    """``first()`` and ``second()``, the first on a helper thread when ``threads`` >= 2.
+
+    For two independent steps (e.g. one per cloud of a pair) whose work is mostly numpy array
+    loops or KD-tree queries, which release the GIL; the results are the same either way.
+    """
+    if threads < 2:
+        return first(), second()
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        future = pool.submit(first)
+        second_result = second()
+        return future.result(), second_result

@@ -1,0 +1,506 @@
+/*
+ * Every point's k nearest neighbours in its own cloud (app/core/localise/neighbourhoods.py),
+ * found a leaf of points at a time without the GIL.
+ *
+ * A k-d tree of its own (sliding-midpoint splits, tight boxes, up to LEAF_SIZE points a leaf,
+ * coordinates copied in tree order, one array per axis) is searched once per leaf: the leaf's
+ * points share one walk of the tree, which skips a node when the gap between its box and the
+ * leaf's exceeds the largest k-th distance the leaf's points have found so far, and each point
+ * scans the points of a reached leaf when its own gap to that leaf's box is smaller than its own
+ * k-th distance.  Squared distances are pykdtree's to the bit: (dx dx + dy dy) + dz dz with no
+ * fused multiply-adds (setup.py builds with -ffp-contract=off), so the neighbours and the k-th
+ * distance are the same numbers, in the same order, whenever that order is unique.  When it is
+ * not (two of the k + 1 nearest at the same distance, e.g. duplicate points), the point is
+ * flagged and the caller asks pykdtree for it, whose order among equals follows its own walk.
+ *
+ * Optional: setup.py builds it when a C compiler is there (Extension(optional=True)); without it
+ * neighbourhoods.py queries pykdtree a chunk at a time.  No numpy headers: arrays come through
+ * the buffer protocol.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+#define LEAF_SIZE 32
+#define MAX_NEIGHBOURS 256
+#define MAX_LEAF 4096 /* larger leaves (many equal points) are left to pykdtree */
+
+typedef struct {
+    double low[3], high[3];
+    uint32_t start, count;
+    int32_t left, right; /* children, or -1 for a leaf */
+} Node;
+
+typedef struct {
+    Py_ssize_t n;
+    double *axis[3]; /* coordinates in tree order */
+    uint32_t *row;   /* tree position -> row of the caller's array */
+    Node *nodes;
+    Py_ssize_t n_nodes, capacity;
+    int32_t *leaves; /* leaf nodes in tree order */
+    Py_ssize_t n_leaves;
+    int depth;
+    uint32_t largest_leaf;
+} Tree;
+
+static void free_tree(Tree *tree)
+{
+    for (int d = 0; d < 3; d++) {
+        free(tree->axis[d]);
+    }
+    free(tree->row);
+    free(tree->nodes);
+    free(tree->leaves);
+    memset(tree, 0, sizeof(Tree));
+}
+
+static int32_t new_node(Tree *tree)
+{
+    if (tree->n_nodes == tree->capacity) {
+        Py_ssize_t capacity = tree->capacity ? 2 * tree->capacity : 1024;
+        Node *grown = realloc(tree->nodes, (size_t)capacity * sizeof(Node));
+        if (grown == NULL) {
+            return -1;
+        }
+        tree->nodes = grown;
+        tree->capacity = capacity;
+    }
+    return (int32_t)tree->n_nodes++;
+}
+
+static void swap_rows(Tree *tree, uint32_t a, uint32_t b)
+{
+    for (int d = 0; d < 3; d++) {
+        double value = tree->axis[d][a];
+        tree->axis[d][a] = tree->axis[d][b];
+        tree->axis[d][b] = value;
+    }
+    uint32_t row = tree->row[a];
+    tree->row[a] = tree->row[b];
+    tree->row[b] = row;
+}
+
+/* The node over tree positions [start, start + count), its subtree built; its id or -1. */
+static int32_t build(Tree *tree, uint32_t start, uint32_t count, int depth)
+{
+    int32_t id = new_node(tree);
+    if (id < 0) {
+        return -1;
+    }
+    Node node = {.start = start, .count = count, .left = -1, .right = -1};
+    for (int d = 0; d < 3; d++) {
+        const double *values = tree->axis[d] + start;
+        double low = values[0], high = values[0];
+        for (uint32_t i = 1; i < count; i++) {
+            if (values[i] < low) {
+                low = values[i];
+            }
+            else if (values[i] > high) {
+                high = values[i];
+            }
+        }
+        node.low[d] = low;
+        node.high[d] = high;
+    }
+    if (depth > tree->depth) {
+        tree->depth = depth;
+    }
+    int dim = 0;
+    for (int d = 1; d < 3; d++) {
+        if (node.high[d] - node.low[d] > node.high[dim] - node.low[dim]) {
+            dim = d;
+        }
+    }
+    double split = node.low[dim] + 0.5 * (node.high[dim] - node.low[dim]);
+    if (count > LEAF_SIZE && split > node.low[dim]) {
+        const double *values = tree->axis[dim];
+        int64_t first = start, last = (int64_t)start + count - 1;
+        while (first <= last) {
+            if (values[first] < split) {
+                first++;
+            }
+            else if (values[last] >= split) {
+                last--;
+            }
+            else {
+                swap_rows(tree, (uint32_t)first, (uint32_t)last);
+                first++;
+                last--;
+            }
+        }
+        /* >= 1 (the lowest value is below split) and < count (the highest is not) */
+        uint32_t below = (uint32_t)(first - start);
+        int32_t left = build(tree, start, below, depth + 1);
+        int32_t right = left < 0 ? -1 : build(tree, start + below, count - below, depth + 1);
+        if (right < 0) {
+            return -1;
+        }
+        node.left = left;
+        node.right = right;
+    }
+    else if (count > tree->largest_leaf) {
+        tree->largest_leaf = count;
+    }
+    tree->nodes[id] = node;
+    return id;
+}
+
+static void collect_leaves(Tree *tree, int32_t id)
+{
+    const Node *node = &tree->nodes[id];
+    if (node->left < 0) {
+        tree->leaves[tree->n_leaves++] = id;
+        return;
+    }
+    collect_leaves(tree, node->left);
+    collect_leaves(tree, node->right);
+}
+
+/* Squared gap between two boxes (0 where they overlap along an axis). */
+static inline double box_gap(const Node *a, const Node *b)
+{
+    double sum = 0.0;
+    for (int d = 0; d < 3; d++) {
+        double gap = 0.0;
+        if (b->high[d] < a->low[d]) {
+            gap = a->low[d] - b->high[d];
+        }
+        else if (b->low[d] > a->high[d]) {
+            gap = b->low[d] - a->high[d];
+        }
+        sum += gap * gap;
+    }
+    return sum;
+}
+
+/* Squared gap between a point and a box: no more than the squared distance (as computed
+   below) to any point in the box, rounding being monotonic. */
+static inline double point_gap(const double *point, const Node *box)
+{
+    double sum = 0.0;
+    for (int d = 0; d < 3; d++) {
+        double gap = 0.0;
+        if (point[d] < box->low[d]) {
+            gap = box->low[d] - point[d];
+        }
+        else if (point[d] > box->high[d]) {
+            gap = point[d] - box->high[d];
+        }
+        sum += gap * gap;
+    }
+    return sum;
+}
+
+typedef struct {
+    int32_t *stack;
+    double *best;      /* (leaf points, kept) squared distances, ascending */
+    uint32_t *best_at; /* their tree positions */
+    double *scratch;   /* one leaf's squared distances to one point */
+} Work;
+
+/* One reached leaf scanned for each of the own leaf's points that may find a neighbour in it. */
+static void scan_leaf(const Tree *tree, const Node *own, const Node *node, int kept, Work *work)
+{
+    const double *xs = tree->axis[0] + node->start;
+    const double *ys = tree->axis[1] + node->start;
+    const double *zs = tree->axis[2] + node->start;
+    for (uint32_t i = 0; i < own->count; i++) {
+        uint32_t at = own->start + i;
+        double point[3] = {tree->axis[0][at], tree->axis[1][at], tree->axis[2][at]};
+        double *best = work->best + (size_t)i * kept;
+        uint32_t *best_at = work->best_at + (size_t)i * kept;
+        double limit = best[kept - 1];
+        if (point_gap(point, node) >= limit) {
+            continue;
+        }
+        for (uint32_t j = 0; j < node->count; j++) {
+            double dx = xs[j] - point[0], dy = ys[j] - point[1], dz = zs[j] - point[2];
+            double squared = dx * dx + dy * dy;
+            work->scratch[j] = squared + dz * dz;
+        }
+        for (uint32_t j = 0; j < node->count; j++) {
+            double squared = work->scratch[j];
+            if (squared < limit) {
+                int slot = kept - 1;
+                while (slot > 0 && best[slot - 1] > squared) {
+                    best[slot] = best[slot - 1];
+                    best_at[slot] = best_at[slot - 1];
+                    slot--;
+                }
+                best[slot] = squared;
+                best_at[slot] = node->start + j;
+                limit = best[kept - 1];
+            }
+        }
+    }
+}
+
+/* The k1 nearest of each point of one leaf (k1 + 1 kept, to see ties at the k1-th); the
+   number of its points whose order is not unique. */
+static Py_ssize_t search_leaf(const Tree *tree, const Node *own, int k1, uint32_t *index_out,
+                              double *kth_out, uint8_t *tie_out, Work *work)
+{
+    const int kept = k1 + 1;
+    for (size_t i = 0; i < (size_t)own->count * kept; i++) {
+        work->best[i] = INFINITY;
+        work->best_at[i] = 0;
+    }
+    double worst = INFINITY;
+    int top = 0;
+    work->stack[top++] = 0;
+    while (top > 0) {
+        const Node *node = &tree->nodes[work->stack[--top]];
+        if (box_gap(own, node) > worst) {
+            continue;
+        }
+        if (node->left < 0) {
+            scan_leaf(tree, own, node, kept, work);
+            worst = 0.0;
+            for (uint32_t i = 0; i < own->count; i++) {
+                double kth = work->best[(size_t)i * kept + kept - 1];
+                worst = kth > worst ? kth : worst;
+            }
+            continue;
+        }
+        /* the nearer child is searched first (pushed last) */
+        int32_t near = node->left, far = node->right;
+        double near_gap = box_gap(own, &tree->nodes[near]);
+        double far_gap = box_gap(own, &tree->nodes[far]);
+        if (far_gap < near_gap) {
+            int32_t swapped = near;
+            near = far;
+            far = swapped;
+            double gap = near_gap;
+            near_gap = far_gap;
+            far_gap = gap;
+        }
+        if (far_gap <= worst) {
+            work->stack[top++] = far;
+        }
+        if (near_gap <= worst) {
+            work->stack[top++] = near;
+        }
+    }
+    Py_ssize_t ties = 0;
+    for (uint32_t i = 0; i < own->count; i++) {
+        const double *best = work->best + (size_t)i * kept;
+        const uint32_t *best_at = work->best_at + (size_t)i * kept;
+        size_t row = tree->row[own->start + i];
+        uint8_t tie = !(best[k1 - 1] < INFINITY);
+        for (int slot = 1; slot < kept; slot++) {
+            tie |= !(best[slot - 1] < best[slot]);
+        }
+        for (int slot = 0; slot < k1; slot++) {
+            index_out[row * k1 + slot] = tree->row[best_at[slot]];
+        }
+        kth_out[row] = best[k1 - 1];
+        tie_out[row] = tie;
+        ties += tie;
+    }
+    return ties;
+}
+
+/* ---- Python ---- */
+
+typedef struct {
+    PyObject_HEAD Tree tree;
+} TreeObject;
+
+static void tree_dealloc(TreeObject *self)
+{
+    free_tree(&self->tree);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static PyTypeObject TreeType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "app.core.localise._knn_kernel.Tree",
+    .tp_basicsize = sizeof(TreeObject),
+    .tp_dealloc = (destructor)tree_dealloc,
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "A k-d tree over an (n, 3) float64 array (build_tree).",
+};
+
+static int float64_rows(Py_buffer *view, Py_ssize_t *n)
+{
+    if (view->ndim != 2 || view->shape[1] != 3 || view->itemsize != 8 ||
+        view->format == NULL || strcmp(view->format, "d") != 0 ||
+        !PyBuffer_IsContiguous(view, 'C')) {
+        PyErr_SetString(PyExc_ValueError, "points must be a C-contiguous (n, 3) float64 array");
+        return -1;
+    }
+    *n = view->shape[0];
+    return 0;
+}
+
+static int tree_of_points(Tree *tree, const double *points, Py_ssize_t n)
+{
+    memset(tree, 0, sizeof(Tree));
+    tree->n = n;
+    for (int d = 0; d < 3; d++) {
+        tree->axis[d] = malloc(sizeof(double) * (size_t)n);
+    }
+    tree->row = malloc(sizeof(uint32_t) * (size_t)n);
+    if (!tree->axis[0] || !tree->axis[1] || !tree->axis[2] || !tree->row) {
+        return -1;
+    }
+    for (Py_ssize_t i = 0; i < n; i++) {
+        for (int d = 0; d < 3; d++) {
+            tree->axis[d][i] = points[3 * i + d];
+        }
+        tree->row[i] = (uint32_t)i;
+    }
+    if (build(tree, 0, (uint32_t)n, 1) < 0) {
+        return -1;
+    }
+    tree->leaves = malloc(sizeof(int32_t) * (size_t)tree->n_nodes);
+    if (tree->leaves == NULL) {
+        return -1;
+    }
+    collect_leaves(tree, 0);
+    return 0;
+}
+
+static PyObject *build_tree(PyObject *module, PyObject *args)
+{
+    PyObject *points;
+    Py_buffer view;
+    if (!PyArg_ParseTuple(args, "O", &points) ||
+        PyObject_GetBuffer(points, &view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) {
+        return NULL;
+    }
+    Py_ssize_t n;
+    if (float64_rows(&view, &n) < 0 || n < 1 || n > (Py_ssize_t)UINT32_MAX) {
+        if (!PyErr_Occurred()) {
+            PyErr_SetString(PyExc_ValueError, "points must have 1 .. 2**32 - 1 rows");
+        }
+        PyBuffer_Release(&view);
+        return NULL;
+    }
+    TreeObject *self = PyObject_New(TreeObject, &TreeType);
+    if (self == NULL) {
+        PyBuffer_Release(&view);
+        return NULL;
+    }
+    int failed;
+    Py_BEGIN_ALLOW_THREADS
+    failed = tree_of_points(&self->tree, view.buf, n);
+    Py_END_ALLOW_THREADS
+    PyBuffer_Release(&view);
+    if (failed) {
+        Py_DECREF(self);
+        return PyErr_NoMemory();
+    }
+    return (PyObject *)self;
+}
+
+static int writable(Py_buffer *view, Py_ssize_t bytes, const char *name)
+{
+    if (view->len != bytes || !PyBuffer_IsContiguous(view, 'C')) {
+        PyErr_Format(PyExc_ValueError, "%s has the wrong size or layout", name);
+        return -1;
+    }
+    return 0;
+}
+
+static PyObject *self_neighbours(PyObject *module, PyObject *args)
+{
+    TreeObject *self;
+    int k1;
+    Py_buffer index_out, kth_out, tie_out, cancel;
+    Py_ssize_t first = 0, last = -1;
+    if (!PyArg_ParseTuple(args, "O!iw*w*w*w*|nn", &TreeType, &self, &k1, &index_out, &kth_out,
+                          &tie_out, &cancel, &first, &last)) {
+        return NULL;
+    }
+    const Tree *tree = &self->tree;
+    PyObject *result = NULL;
+    if (last < 0 || last > tree->n_leaves) {
+        last = tree->n_leaves;
+    }
+    if (first < 0 || first > last) {
+        PyErr_SetString(PyExc_ValueError, "leaves out of range");
+    }
+    else if (k1 < 1 || k1 >= MAX_NEIGHBOURS || k1 > tree->n) {
+        PyErr_SetString(PyExc_ValueError, "k + 1 must be in 1 .. min(n, 255)");
+    }
+    else if (tree->largest_leaf > MAX_LEAF) {
+        PyErr_SetString(PyExc_ValueError, "too many equal points for the kernel");
+    }
+    else if (writable(&index_out, tree->n * k1 * 4, "index_out") == 0 &&
+             writable(&kth_out, tree->n * 8, "kth_out") == 0 &&
+             writable(&tie_out, tree->n, "tie_out") == 0 && writable(&cancel, 1, "cancel") == 0) {
+        size_t kept = (size_t)k1 + 1, most = tree->largest_leaf > LEAF_SIZE ? tree->largest_leaf
+                                                                           : LEAF_SIZE;
+        Work work = {
+            .stack = malloc(sizeof(int32_t) * (size_t)(tree->depth + 2)),
+            .best = malloc(sizeof(double) * most * kept),
+            .best_at = malloc(sizeof(uint32_t) * most * kept),
+            .scratch = malloc(sizeof(double) * most),
+        };
+        if (work.stack && work.best && work.best_at && work.scratch) {
+            Py_ssize_t ties = 0, leaf = first;
+            volatile const uint8_t *cancelled = cancel.buf;
+            Py_BEGIN_ALLOW_THREADS
+            for (; leaf < last && !*cancelled; leaf++) {
+                ties += search_leaf(tree, &tree->nodes[tree->leaves[leaf]], k1, index_out.buf,
+                                    kth_out.buf, tie_out.buf, &work);
+            }
+            Py_END_ALLOW_THREADS
+            result = PyLong_FromSsize_t(leaf < last ? -1 : ties);
+        }
+        else {
+            PyErr_NoMemory();
+        }
+        free(work.stack);
+        free(work.best);
+        free(work.best_at);
+        free(work.scratch);
+    }
+    PyBuffer_Release(&index_out);
+    PyBuffer_Release(&kth_out);
+    PyBuffer_Release(&tie_out);
+    PyBuffer_Release(&cancel);
+    return result;
+}
+
+static PyObject *leaf_count(PyObject *module, PyObject *args)
+{
+    TreeObject *self;
+    if (!PyArg_ParseTuple(args, "O!", &TreeType, &self)) {
+        return NULL;
+    }
+    return PyLong_FromSsize_t(self->tree.n_leaves);
+}
+
+static PyMethodDef methods[] = {
+    {"leaf_count", leaf_count, METH_VARARGS, "leaf_count(tree) -> int: the tree's leaves."},
+    {"build_tree", build_tree, METH_VARARGS,
+     "build_tree(points) -> Tree: a k-d tree over a C-contiguous (n, 3) float64 array."},
+    {"self_neighbours", self_neighbours, METH_VARARGS,
+     "self_neighbours(tree, k1, index_out, kth_out, tie_out, cancel, first=0, last=-1) -> int\n\n"
+     "The points of leaves first .. last - 1 (last -1: all; leaves are disjoint, so two\n"
+     "threads may share the arrays): each one's k1 nearest points (itself first), ascending,\n"
+     "into index_out ((n, k1)\n"
+     "uint32), the k1-th squared distance into kth_out ((n,) float64) and 1 into tie_out\n"
+     "((n,) uint8) where two of the k1 + 1 nearest are equally far (their order is then\n"
+     "not unique).  Stops when cancel[0] becomes non-zero.  Returns the number of tied\n"
+     "points, or -1 when cancelled.  Runs without the GIL."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {
+    PyModuleDef_HEAD_INIT, "app.core.localise._knn_kernel",
+    "Every point's k nearest neighbours in its own cloud (see _knn_kernel.c).", -1, methods,
+};
+
+PyMODINIT_FUNC PyInit__knn_kernel(void)
+{
+    if (PyType_Ready(&TreeType) < 0) {
+        return NULL;
+    }
+    return PyModule_Create(&module);
+}

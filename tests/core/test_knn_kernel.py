@@ -1,0 +1,143 @@
+"""The compiled k-NN (``app/core/localise/_knn_kernel.c``, built by setup.py where a C compiler
+is) against the pykdtree queries it replaces and that run without it: the same neighbours and
+k-th distances to the bit, ties (equally far points) left to pykdtree, the same labels."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.core.cloud import PointCloud
+from app.core.datasets.lidar import lidar_pair
+from app.core.datasets.scenes import raycast_scene
+from app.core.localise import neighbourhoods
+from app.core.localise.neighbourhoods import nearest_neighbourhoods
+from app.core.pipeline import compare
+from tests.helpers.environment import c_compiler_found
+
+KERNEL = neighbourhoods.KNN_KERNEL
+needs_kernel = pytest.mark.skipif(KERNEL is None, reason="installed without a C compiler")
+
+
+def pykdtree_neighbourhoods(points, n_neighbors, monkeypatch):
+    """:func:`nearest_neighbourhoods` by pykdtree's chunked queries (the kernel switched off)."""
+    with monkeypatch.context() as patched:
+        patched.setattr(neighbourhoods, "KNN_KERNEL", None)
+        return nearest_neighbourhoods(points, n_neighbors)
+
+
+def assert_same(compiled, plain) -> None:
+    assert compiled.neighbor_index.dtype == plain.neighbor_index.dtype == np.uint32
+    assert np.array_equal(compiled.neighbor_index, plain.neighbor_index)
+    assert np.array_equal(compiled.kth_distance.view(np.uint64), plain.kth_distance.view(np.uint64))
+    assert np.array_equal(compiled.order, plain.order)
+
+
+def test_the_kernel_is_built_where_a_c_compiler_is():
+    if not c_compiler_found():
+        pytest.skip("no C compiler: pykdtree's queries run")
+    assert KERNEL is not None, "setup.py builds app.core.localise._knn_kernel: reinstall"
+
+
+@needs_kernel
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_scanned_room_has_pykdtrees_neighbours(threads, monkeypatch):
+    points = lidar_pair(layout="room", angular_step_deg=1.2, random_state=5).reference
+    compiled = nearest_neighbourhoods(points, 10, threads=threads)
+    assert_same(compiled, pykdtree_neighbourhoods(points, 10, monkeypatch))
+
+
+@needs_kernel
+@pytest.mark.parametrize("n_neighbors", [1, 10, 30])
+def test_equally_far_points_are_left_to_pykdtree(n_neighbors, monkeypatch):
+    """A lattice (every neighbour at one of a few distances), duplicated points and points
+    rounded to float32: orders among equals are pykdtree's walk's, so those points are asked
+    of pykdtree; the others are the kernel's, the same numbers."""
+    rng = np.random.default_rng(7)
+    lattice = np.stack(np.meshgrid(*[np.arange(12.0)] * 3), axis=-1).reshape(-1, 3) * 0.1
+    blob = rng.normal(size=(3000, 3))
+    duplicated = np.concatenate([blob, blob[:200], blob[:50]])
+    rounded = rng.uniform(-2, 2, size=(4000, 3)).astype(np.float32).astype(np.float64)
+    for points in (lattice, duplicated, rounded):
+        points = np.ascontiguousarray(rng.permutation(points))
+        compiled = nearest_neighbourhoods(points, n_neighbors, threads=2)
+        assert_same(compiled, pykdtree_neighbourhoods(points, n_neighbors, monkeypatch))
+
+
+@needs_kernel
+def test_the_kernel_flags_the_points_it_cannot_order():
+    points = np.array([[0.0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 3, 0], [5, 5, 5]])
+    index = np.empty((5, 2), dtype=np.uint32)
+    kth = np.empty(5)
+    tie = np.empty(5, dtype=np.uint8)
+    ties = KERNEL.self_neighbours(
+        KERNEL.build_tree(points), 2, index, kth, tie, np.zeros(1, np.uint8)
+    )
+    # the origin has two nearest at 1; the others' second nearest is unique
+    assert ties == 1 and tie.tolist() == [1, 0, 0, 0, 0]
+    assert index[1:].tolist() == [[1, 0], [2, 0], [3, 0], [4, 3]]
+    assert kth[1:].tolist() == [1.0, 1.0, 9.0, 25.0 + 4.0 + 25.0]
+
+
+@needs_kernel
+def test_the_smallest_cloud_and_arrays_the_kernel_cannot_read(monkeypatch):
+    rng = np.random.default_rng(3)
+    smallest = rng.normal(size=(11, 3))  # k + 1 = n
+    assert_same(
+        nearest_neighbourhoods(smallest, 10), pykdtree_neighbourhoods(smallest, 10, monkeypatch)
+    )
+    points = rng.normal(size=(500, 3))
+    with pytest.raises(ValueError, match="float64"):
+        KERNEL.build_tree(points.astype(np.float32))
+    with pytest.raises(ValueError):
+        KERNEL.build_tree(points[::2])
+    tree = KERNEL.build_tree(points)
+    outputs = (np.empty((500, 11), np.uint32), np.empty(500), np.empty(500, np.uint8))
+    with pytest.raises(ValueError, match="index_out"):
+        KERNEL.self_neighbours(
+            tree, 11, np.empty((500, 10), np.uint32), *outputs[1:], np.zeros(1, np.uint8)
+        )
+    with pytest.raises(ValueError, match="k \\+ 1"):
+        KERNEL.self_neighbours(tree, 501, *outputs, np.zeros(1, np.uint8))
+    # thousands of equal points: refused by the kernel, found by pykdtree all the same
+    equal = np.zeros((5000, 3))
+    with pytest.raises(ValueError, match="equal points"):
+        KERNEL.self_neighbours(
+            KERNEL.build_tree(equal),
+            11,
+            np.empty((5000, 11), np.uint32),
+            np.empty(5000),
+            np.empty(5000, np.uint8),
+            np.zeros(1, np.uint8),
+        )
+    assert_same(nearest_neighbourhoods(equal, 10), pykdtree_neighbourhoods(equal, 10, monkeypatch))
+
+
+@needs_kernel
+def test_a_cancelled_search_stops_inside_the_kernel():
+    """The kernel's loop reads the search's flag between leaves, without the GIL: set, it
+    stops (-1) and the search gives nothing."""
+    points = np.random.default_rng(5).normal(size=(20_000, 3))
+    outputs = (np.empty((20_000, 11), np.uint32), np.empty(20_000), np.empty(20_000, np.uint8))
+    tree = KERNEL.build_tree(points)
+    assert KERNEL.self_neighbours(tree, 11, *outputs, np.ones(1, np.uint8)) == -1
+    event = neighbourhoods.CancelEvent()
+    event.set()
+    assert event.is_set() and event.flag[0] == 1
+    assert nearest_neighbourhoods(points, 10, event) is None
+
+
+@needs_kernel
+def test_labels_are_pykdtrees(monkeypatch):
+    pair = raycast_scene(n_points=20_000, change="box", random_state=3)
+    clouds = (
+        PointCloud.from_array(pair.reference, sensor_origin=pair.reference_origin),
+        PointCloud.from_array(pair.scan, sensor_origin=pair.scan_origin),
+    )
+    compiled = compare(*clouds)
+    monkeypatch.setattr(neighbourhoods, "KNN_KERNEL", None)
+    plain = compare(*clouds)
+    assert np.count_nonzero(compiled.scan_label == 1) > 0
+    for name in ("reference_label", "scan_label", "reference_distance", "scan_distance"):
+        assert np.array_equal(getattr(compiled, name), getattr(plain, name), equal_nan=True), name
+    assert compiled.score == plain.score
