@@ -16,7 +16,7 @@ import pytest
 from app.core.datasets.maps import map_pair
 from app.core.tiling.compare import compare_tiled
 from app.core.tiling.crops import MARK_PARTS, box_direction_marks, record_dtype
-from app.core.tiling.rays import box_mask, direction_marks
+from app.core.tiling.rays import box_mask, crop_mask, direction_marks, own_direction_cells
 from tests.helpers.tiling import CropChecker, assert_identical_results
 
 
@@ -69,3 +69,26 @@ def test_direction_marks_joined_as_the_chunks_come_are_the_whole_clouds() -> Non
     assert MARK_PARTS < len(points) // 97, "joined several times"
     for got, expected in zip(chunked, whole, strict=True):
         assert np.array_equal(got, expected)
+
+
+def test_a_crop_mask_given_its_points_direction_cells_is_the_one_computing_them() -> None:
+    # the crop pass numbers each point's direction from its station once per chunk, whatever
+    # the tiles it reaches; a point at its station has no direction and is never marked
+    generator = np.random.default_rng(11)
+    points = generator.uniform(-8.0, 8.0, size=(6000, 3)).astype(np.float32)
+    origins = np.array([[0.0, 0.0, 1.5], [4.0, -3.0, 1.0]])
+    points[:2] = origins.astype(np.float32)
+    station = generator.integers(0, 2, size=len(points)).astype(np.int8)
+    station[:2] = [0, 1]
+    cells = np.array([0.04, 0.07])
+    other = generator.uniform(-8.0, 8.0, size=(3000, 3)).astype(np.float32)
+    low, high = np.array([-1.0, -1.5]), np.array([1.5, 2.0])
+    marks = direction_marks(other, box_mask(other, low, high), origins, cells)
+    numbers = own_direction_cells(points, station, origins, cells)
+    assert (numbers[:2] == -1).all() and (numbers[2:] >= 0).all()
+    options = {"cells": cells, "marks": marks}
+    computed = crop_mask(points, station, origins, low, high, 4.0, **options)
+    given = crop_mask(points, station, origins, low, high, 4.0, **options, point_cells=numbers)
+    assert np.array_equal(given, computed)
+    # the first station stands in the box (kept as the box's point); the second outside: no ray
+    assert 0 < given.sum() < len(points) and given[0] and not given[1]

@@ -34,7 +34,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.tiling.plan import TilePlan
-from app.core.tiling.rays import box_mask, direction_cells, expanded_marks, kept_by_direction
+from app.core.tiling.rays import (
+    box_mask,
+    cells_seen,
+    expanded_marks,
+    kept_by_direction,
+    origin_direction_cells,
+    own_direction_cells,
+)
 from app.core.tiling.tile import TileContext, TileCrop, TileSource, _cropped_rays, crop_mask
 
 __all__ = [
@@ -59,6 +66,8 @@ READ_CHUNK = 1 << 22
 MARK_PARTS = 16
 """Chunks' direction cells of a box and origin held apart before they are joined (a cell seen
 in many chunks is then held once: the marks of a whole cloud stay the size of their union)."""
+DIRECTION_CELLS_AT_ONCE = 1 << 22
+"""Cell numbers (int64) computed at once for the direction marks: points a step times origins."""
 MAX_OPEN_TILES = 128
 """Tiles whose files are open at once (more tiles: one more pass over the points)."""
 META_FILE = "crops.json"
@@ -143,17 +152,24 @@ def box_direction_marks(
     cloud's points handed out in chunks (each shape (c, 3)): the same cells whatever the
     chunks (:func:`tile_direction_marks` for every tile, a tile's crop file for its own)."""
     found: list[list[list[NDArray[np.int64]]]] = [[[] for _ in origins] for _ in boxes]
+    step = max(1 << 16, DIRECTION_CELLS_AT_ONCE // max(1, len(origins)))
     for chunk in point_chunks:
-        for box_number, (low, high) in enumerate(boxes):
-            inside = box_mask(chunk, low, high)
-            if not inside.any():
+        for start in range(0, len(chunk), step):
+            part = chunk[start : start + step]
+            inside_boxes = [
+                (number, box_mask(part, low, high)) for number, (low, high) in enumerate(boxes)
+            ]
+            inside_boxes = [(number, inside) for number, inside in inside_boxes if inside.any()]
+            if not inside_boxes:
                 continue
-            seen = direction_cells(chunk[inside], origins, cells)
-            for number, cells_seen in enumerate(seen):
-                parts = found[box_number][number]
-                parts.append(cells_seen)
-                if len(parts) >= MARK_PARTS:  # the same cells seen again: held once
-                    parts[:] = [np.unique(np.concatenate(parts))]
+            # each point's cells once, whatever the boxes (crop boxes overlap by their margins)
+            numbers = origin_direction_cells(part, origins, cells)
+            for box_number, inside in inside_boxes:
+                for number, row in enumerate(numbers):
+                    parts = found[box_number][number]
+                    parts.append(cells_seen(row[inside]))
+                    if len(parts) >= MARK_PARTS:  # the same cells seen again: held once
+                        parts[:] = [np.unique(np.concatenate(parts))]
     return [expanded_marks(parts, cells) for parts in found]
 
 
@@ -354,6 +370,12 @@ def _write_side(
             for tile_index in tiles
         ]
         for start, chunk, chunk_station in chunks():
+            # each point's direction from its station once, whatever the tiles it reaches
+            point_cells = (
+                None
+                if directions is None or origins is None
+                else own_direction_cells(chunk, chunk_station, origins, directions[0])
+            )
             for number, (low, high) in enumerate(boxes):
                 # the box test of crop_mask itself (float32 bounds rounded outward), widened
                 near = np.flatnonzero(box_mask(chunk, low - reach, high + reach))
@@ -370,6 +392,7 @@ def _write_side(
                     context.ray_reach,
                     cells=None if directions is None else directions[0],
                     marks=None if directions is None else directions[1][tiles[number]],
+                    point_cells=None if point_cells is None else point_cells[near],
                 )
                 kept = near[in_crop]
                 if not len(kept):

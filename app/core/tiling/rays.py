@@ -35,12 +35,15 @@ __all__ = [
     "MAX_DIRECTION_STATIONS",
     "RAY_CELL_FACTOR",
     "cells_of_counts",
+    "cells_seen",
     "crop_mask",
     "crop_masks",
     "direction_cells",
     "direction_marks",
     "expanded_marks",
     "kept_by_direction",
+    "origin_direction_cells",
+    "own_direction_cells",
     "ray_cell_sizes",
 ]
 
@@ -121,13 +124,6 @@ def _neighbour_offsets(cell: float) -> NDArray[np.int64]:
     return (step[:, None, None] * side * side + step[None, :, None] * side + step).ravel()
 
 
-def _unit_directions(points: NDArray[np.floating], origin: NDArray[np.float64]) -> NDArray:
-    offset = np.asarray(points, dtype=np.float64) - origin
-    length = np.sqrt(np.einsum("pd,pd->p", offset, offset))
-    kept = length > 0
-    return offset[kept] / length[kept, None]
-
-
 def direction_marks(
     points: NDArray[np.floating],
     in_box: NDArray[np.bool_],
@@ -165,10 +161,66 @@ def direction_cells(
 ) -> list[NDArray[np.int64]]:
     """For each origin, the sorted direction cells of ``points`` (shape (p, 3)) seen from it:
     the cells of a box's points, a chunk at a time (:func:`expanded_marks` joins them)."""
-    return [
-        np.unique(_cell_numbers(_unit_directions(points, origin), float(cell)))
-        for origin, cell in zip(origins, cells, strict=True)
-    ]
+    return [cells_seen(row) for row in origin_direction_cells(points, origins, cells)]
+
+
+def origin_direction_cells(
+    points: NDArray[np.floating], origins: NDArray[np.float64], cells: NDArray[np.float64]
+) -> NDArray[np.int64]:
+    """The direction cell of every point seen from every origin.
+
+    Parameters
+    ----------
+    points : ndarray, shape (p, 3)
+    origins : ndarray, shape (k, 3)
+    cells : ndarray, shape (k,)
+        The origins' cells (:func:`ray_cell_sizes`).
+
+    Returns
+    -------
+    ndarray, shape (k, p), int64
+        Cell numbers, ``-1`` for a point at the origin (it has no direction).
+    """
+    numbers = np.empty((len(origins), len(points)), dtype=np.int64)
+    for number, (origin, cell) in enumerate(zip(origins, cells, strict=True)):
+        numbers[number] = _direction_cells_from(points, origin, float(cell))
+    return numbers
+
+
+def own_direction_cells(
+    points: NDArray[np.floating],
+    station: NDArray[np.integer] | None,
+    origins: NDArray[np.float64],
+    cells: NDArray[np.float64],
+) -> NDArray[np.int64]:
+    """The direction cell of each point (shape (p, 3)) seen from its own origin
+    (``origins[station]``; None: the first), ``-1`` for a point at its origin; shape (p,)."""
+    numbers = np.empty(len(points), dtype=np.int64)
+    if station is None:
+        numbers[:] = _direction_cells_from(points, origins[0], float(cells[0]))
+        return numbers
+    for number in np.unique(station):
+        rows = np.flatnonzero(station == number)
+        numbers[rows] = _direction_cells_from(points[rows], origins[number], float(cells[number]))
+    return numbers
+
+
+def cells_seen(numbers: NDArray[np.int64]) -> NDArray[np.int64]:
+    """The sorted distinct cells of :func:`origin_direction_cells`' numbers (no ``-1``)."""
+    distinct = np.unique(numbers)
+    return distinct[distinct >= 0]
+
+
+def _direction_cells_from(
+    points: NDArray[np.floating], origin: NDArray[np.float64], cell: float
+) -> NDArray[np.int64]:
+    """Each point's direction cell from ``origin``, ``-1`` at the origin (:func:`_cell_numbers`)."""
+    offset = np.asarray(points, dtype=np.float64) - origin
+    length = np.sqrt(np.einsum("pd,pd->p", offset, offset))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        directions = offset / length[:, None]
+    directions[length == 0] = 0.0  # numbered, then dropped: no NaN reaches the cast
+    return np.where(length > 0, _cell_numbers(directions, cell), -1)
 
 
 def expanded_marks(
@@ -189,8 +241,12 @@ def _marked(
     origins: NDArray[np.float64],
     cells: NDArray[np.float64],
     marks: Sequence[NDArray[np.int64]],
+    point_cells: NDArray[np.int64] | None = None,
 ) -> NDArray[np.bool_]:
-    """Which of ``points`` (shape (p, 3)) lie in a marked cell of their origin."""
+    """Which of ``points`` (shape (p, 3)) lie in a marked cell of their origin
+    (``point_cells``: their :func:`own_direction_cells`, when already known)."""
+    if point_cells is None:
+        point_cells = own_direction_cells(points, station, origins, cells)
     keep = np.zeros(len(points), dtype=bool)
     which = np.zeros(len(points), dtype=np.int64) if station is None else station
     for number in np.unique(which):
@@ -198,12 +254,9 @@ def _marked(
         if not len(mark):  # no point of the other cloud in the box seen from this origin
             continue
         rows = np.flatnonzero(which == number)
-        offset = points[rows] - origins[number]
-        length = np.sqrt(np.einsum("pd,pd->p", offset, offset))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            cell_number = _cell_numbers(offset / length[:, None], float(cells[number]))
+        cell_number = point_cells[rows]
         position = np.minimum(np.searchsorted(mark, cell_number), len(mark) - 1)
-        keep[rows] = (length > 0) & (mark[position] == cell_number)
+        keep[rows] = mark[position] == cell_number  # never -1: marks are cells' numbers
     return keep
 
 
@@ -344,6 +397,7 @@ def crop_mask(
     *,
     cells: NDArray[np.float64] | None = None,
     marks: Sequence[NDArray[np.int64]] | None = None,
+    point_cells: NDArray[np.int64] | None = None,
 ) -> NDArray[np.bool_]:
     """Points in the xy box ``[low, high]``, or whose ray from their sensor crosses it and
     that lie within ``ray_reach`` metres of it (in x and y), and (with ``marks``) whose
@@ -363,6 +417,8 @@ def crop_mask(
         Each origin's direction cell (:func:`ray_cell_sizes`); with ``marks``.
     marks : list of ndarray, optional
         Each origin's marked cells (:func:`direction_marks`); None: the top view only.
+    point_cells : ndarray, shape (n,), int64, optional
+        The points' :func:`own_direction_cells` when already known (computed here otherwise).
 
     Returns
     -------
@@ -392,6 +448,7 @@ def crop_mask(
                     origins,
                     cells,
                     marks,
+                    None if point_cells is None else point_cells[chunk][rows],
                 )
                 rows = rows[seen]
             inside[rows] = True
