@@ -77,7 +77,7 @@ from app.core.localise.map_planes import (
     in_sampling_gap,
     level_surface_below,
 )
-from app.core.localise.map_shared import edge_strips, unshared
+from app.core.localise.map_shared import edge_strips
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
 from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED, Candidates
 from app.core.localise.regions import EVIDENCE_NO_COVERAGE, EVIDENCE_SEEN_EMPTY
@@ -381,7 +381,7 @@ def map_test(
             other_unmatched=other_unmatched,
             tolerance=threshold,
         )
-        counted = unshared(candidates.points[chosen], other_unmatched, ~gap, other, threshold)
+        counted = other_unmatched & ~gap
         return _rechecked_share(candidates, chosen, labels, share, other=other, counted=counted)
 
     def open_beneath(recheck: NDArray[np.bool_]) -> NDArray[np.float64]:
