@@ -61,6 +61,7 @@ from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE
 from app.core.localise.interface import FaceBorder, VisibilityContext, VisibilityOutcome
 from app.core.localise.map_bodies import hollow_sides
 from app.core.localise.map_faces import far_faces
+from app.core.localise.map_lines import line_gap_share
 from app.core.localise.map_parts import (
     SEE_THROUGH_REACH,
     SPARSE_PROBE_FACTOR,
@@ -77,6 +78,7 @@ from app.core.localise.map_planes import (
     in_sampling_gap,
     level_surface_below,
 )
+from app.core.localise.map_shared import edge_strips
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
 from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED, Candidates
 from app.core.localise.regions import EVIDENCE_NO_COVERAGE, EVIDENCE_SEEN_EMPTY
@@ -264,6 +266,31 @@ def _sampling_gap_share(
     )
 
 
+def _gap_share(
+    candidates: Candidates,
+    labels: NDArray[np.int64],
+    recheck: NDArray[np.bool_],
+    *,
+    own: Side,
+    other: Side,
+    tolerance: float,
+) -> NDArray[np.float64]:
+    """Per part marked in ``recheck`` (0 elsewhere), the share of its candidates in gaps
+    between the other epoch's samples of a plane (:func:`_sampling_gap_share`) or, for a line
+    of samples, between its lines (:func:`~app.core.localise.map_lines.line_gap_share`)."""
+    share = _sampling_gap_share(candidates, labels, recheck, other=other, tolerance=tolerance)
+    lines = line_gap_share(
+        candidates.points,
+        candidates.normal,
+        labels,
+        recheck & (share < GAP_SHARE),
+        own=own.geometry,
+        other=other.geometry,
+        tolerance=tolerance,
+    )
+    return np.maximum(share, lines)
+
+
 def _on_lacking_share(
     candidates: Candidates,
     labels: NDArray[np.int64],
@@ -380,7 +407,7 @@ def map_test(
         )
 
     def in_gap(recheck: NDArray[np.bool_]) -> NDArray[np.float64]:
-        return _sampling_gap_share(candidates, labels, recheck, other=other, tolerance=threshold)
+        return _gap_share(candidates, labels, recheck, own=own, other=other, tolerance=threshold)
 
     check = unseen_faces(figures) & figures.upright
     hollow = hollow_sides(
@@ -495,7 +522,9 @@ def _verdict(
     they are no sides.
     """
     part = figures
-    unseen_side = unseen_faces(part)
+    unseen_side = unseen_faces(part) | edge_strips(
+        part, min_adjoining=MIN_ADJOINING, surround=SURROUND_SHARE, coplanar=COPLANAR_SHARE
+    )
     beneath = open_beneath(unseen_side & ~part.upright)
     unseen_side &= part.upright | (beneath < SEE_THROUGH_SHARE)
     hollow_side = (

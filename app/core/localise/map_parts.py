@@ -19,7 +19,7 @@ from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
-from app.core.localise.map_planes import SECTORS, extends, holds_up, share_on_planes
+from app.core.localise.map_planes import SECTORS, extends, holds_up, share_on_planes, shared_wall
 from app.core.localise.origin_free import (
     BEHIND_MAX_RADIUS,
     BEHIND_MIN_RADIUS,
@@ -330,6 +330,9 @@ def _surrounded(
         under[chunk] = holds_up(
             offset, on_plane, own_normal[chunk], unit, tolerance, UPRIGHT_NORMAL_Z
         )
+        # a wall both epochs saw on both sides of the point: no face of its object, no evidence
+        shared = shared_wall(offset, on_plane, index, own_normal[chunk], unit, other_unmatched)
+        adjoining[chunk] &= ~shared | other_unmatched[nearest]
         # a surface that this epoch lacks next to the point: the object hid it here
         surrounded[chunk][other_unmatched[nearest]] = SECTORS
         adjoining[chunk] &= ~(support & (surrounded[chunk] < SURROUND_SECTORS))

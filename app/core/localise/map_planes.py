@@ -31,6 +31,7 @@ __all__ = [
     "in_sampling_gap",
     "level_surface_below",
     "share_on_planes",
+    "shared_wall",
 ]
 
 SURFACE_REACH = 0.8
@@ -305,3 +306,34 @@ def holds_up(
     )
     above = (on_plane & (offset[:, :, 2] > tolerance)).any(axis=1)
     return upright & on_plane.any(axis=1) & ~above
+
+
+def shared_wall(
+    offset: NDArray[np.float64],
+    on_plane: NDArray[np.bool_],
+    index: NDArray[np.int64],
+    own_normal: NDArray[np.floating],
+    unit: NDArray[np.float64],
+    lacking: NDArray[np.bool_],
+) -> NDArray[np.bool_]:
+    """Whether the other epoch's surface adjoining a border point is a wall that both epochs
+    saw there: upright, with samples on its plane around the point's foot (``offset`` of the
+    other cloud's points ``index``, ``on_plane``; shapes (b, k, 3), (b, k)) on both sides of
+    the line where the point's own surface (normal ``own_normal``, shape (b, 3)) meets it
+    (normal ``unit``, shape (b, 3)), none of them surface this epoch lacks (``lacking``, shape
+    (m,), bool); shape (b,), bool.
+
+    A wall standing clear of an object (a box 9 cm in front of it, a chair's backrest 7 cm
+    from it) is seen by both epochs past the object's ends and over its top, whether or not
+    the object stood there: it is no face of the object (those end at its edges, on one side
+    of the line), and it says nothing either way; such border points do not count as adjoined
+    (:func:`~app.core.localise.map_parts._surrounded`).  Where the other epoch saw the object's
+    place empty, it saw the wall the object hid from this epoch there: surface this epoch
+    lacks.  A sparse map samples a wall in ring lines: it may fill fewer directions around the
+    foot than a surface carrying on does, yet lie on both sides of the line."""
+    upright = np.abs(unit[:, 2]) < NORMAL_AGREEMENT_COSINE
+    edge = np.cross(own_normal.astype(np.float64), unit)
+    across = np.cross(unit, edge)
+    side = np.einsum("bkd,bd->bk", offset, across)
+    both = (on_plane & (side > 0.0)).any(axis=1) & (on_plane & (side < 0.0)).any(axis=1)
+    return upright & both & ~(on_plane & lacking[index]).any(axis=1)

@@ -1,0 +1,194 @@
+"""The map test on robot maps (issue 29): surfaces both epochs saw in part are no evidence of a
+change (a wall beside a box, a desk top over a floor patch), and lines of samples between the
+other epoch's lines on a far floor are a coverage difference."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.core.datasets.maps import map_pair
+from app.core.labels import LABEL_CHANGED
+from app.core.localise import localise_changes
+from app.core.pipeline import compare
+from tests.helpers.fused_rooms import box_sides, plane
+
+ROOM_FLOOR = ([0.0, 0.0, 0.0], [6.0, 4.0, 0.0])
+
+
+def floor(rng, holes=()):
+    """The 6 x 4 m floor without the ``holes`` ((low, high) boxes in x, y)."""
+    points = plane(rng, [0, 0, 0], [6, 0, 0], [0, 4, 0])
+    return _without(points, [([*low[:2], -1.0], [*high[:2], 1.0]) for low, high in holes])
+
+
+def _without(points, holes):
+    keep = np.ones(points.shape[0], bool)
+    for low, high in holes:
+        inside = np.ones(points.shape[0], bool)
+        for axis in range(3):
+            if high[axis] > low[axis]:
+                inside &= (points[:, axis] > low[axis]) & (points[:, axis] < high[axis])
+        keep &= ~inside
+    return points[keep]
+
+
+def walls(rng, holes=(), spacing=0.03):
+    """The room's two walls (y = 0, sampled every ``spacing``, and x = 0) and its ceiling,
+    without the ``holes``."""
+    return _without(
+        np.vstack(
+            [
+                plane(rng, [0, 0, 0], [6, 0, 0], [0, 0, 2.5], spacing=spacing),
+                plane(rng, [0, 0, 0], [0, 4, 0], [0, 0, 2.5]),
+                plane(rng, [0, 0, 2.5], [6, 0, 0], [0, 4, 0]),
+            ]
+        ),
+        holes,
+    )
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_box_standing_clear_of_a_wall_each_epoch_saw_from_its_own_side_is_unchanged(seed):
+    # a guard for the next test: a box 7-9 cm in front of a wall, only the reference's path
+    # saw its west face; the wall beside it, seen by both, says nothing either way, and the
+    # box's top and north face, which the scan saw end at the face, make it an unseen side
+    rng = np.random.default_rng(seed)
+    gap = rng.uniform(0.07, 0.09)
+    box = ([2.5, gap, 0.0], [2.85, gap + 0.32, 0.5])
+    hidden = [([2.5, 0.0, 0.0], [2.85, 0.0, 0.5])]  # the wall behind the box
+    # the floor under the box, in the slot behind it and beside its east end (too grazing)
+    under = [([2.5, 0.0, 0.0], [3.15, box[1][1], 0.0])]
+    # a robot's lidar sees the wall sparsely: its samples around the face's foot reach 0.5 m
+    room = [floor(rng, under), walls(rng, hidden, spacing=0.1)]
+    reference = np.vstack([*room, box_sides(rng, *box, faces="twen")])
+    room = [floor(rng, under), walls(rng, hidden, spacing=0.1)]
+    scan = np.vstack([*room, box_sides(rng, *box, faces="ten")])
+    localisation = localise_changes(reference, scan)
+    assert localisation.parameters["reference_visibility"] == "maps"
+    assert np.count_nonzero(localisation.reference_label == LABEL_CHANGED) == 0
+    assert localisation.regions == []
+
+
+def test_a_box_standing_clear_of_a_corridor_wall_is_unchanged():
+    # robot corridor 301 of bench.moving_maps: a box 9 cm in front of the corridor's wall,
+    # only the reference's path saw its west face.  Both epochs saw the wall past the box's
+    # ends and over its top, sampled sparsely: it carried on past the west face's border
+    # beside it (in 6-8 of 8 directions, 0.35 of the border), and the face was taken for one
+    # whose place the scan saw empty (1 region of 107 points)
+    pair = map_pair("robot", layout="corridor", change="none", misaligned=True, random_state=301)
+    result = compare(*pair.clouds())
+    assert result.regions == []
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_box_added_clear_of_a_wall_is_still_added(seed):
+    # the guard: the wall beside an added box says nothing either way; the reference saw the
+    # floor where the box now stands
+    rng = np.random.default_rng(seed)
+    box = ([2.5, 0.08, 0.0], [2.8, 0.4, 0.5])
+    reference = np.vstack([floor(rng), walls(rng)])
+    hidden = [([2.5, 0.0, 0.0], [2.8, 0.0, 0.5])]
+    scan = np.vstack(
+        [floor(rng, [(box[0], box[1])]), walls(rng, hidden), box_sides(rng, *box, faces="twe")]
+    )
+    localisation = localise_changes(reference, scan)
+    on_box = (scan[:, 2] > 0.12) & (scan[:, 2] < 0.6) & (scan[:, 1] > 0.06)
+    on_box &= (scan[:, 0] > 2.45) & (scan[:, 0] < 2.85)
+    assert on_box.sum() > 100
+    assert np.mean(localisation.scan_label[on_box] == LABEL_CHANGED) >= 0.9
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="robot 303: the see-through exclusion that fixed it cost RGB-D room 1103 86 -> 61 %",
+)
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_floor_patch_under_a_desk_top_the_other_epoch_saw_more_of_is_unchanged(seed):
+    # robot office 303 of bench.moving_maps: the scan's lidar saw the floor under a desk that
+    # the reference's never saw, and the reference saw the part of the desk's top over it that
+    # the scan's did not.  The reference's desk top, surface the scan lacks on the floor
+    # patch's normal lines, was taken for the scan having seen through the patch's place (a
+    # region); it carries on into the desk top both epochs saw
+    rng = np.random.default_rng(seed)
+    desk = ([2.0, 1.0, 0.0], [3.0, 2.0, 0.0])
+    patch = ([2.0, 1.2, -1.0], [2.45, 1.8, 1.0])
+    top = plane(rng, [2.0, 1.0, 0.75], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], spacing=0.02)
+    reference = np.vstack([floor(rng, [desk]), walls(rng), top])
+    scan_floor = np.vstack([floor(rng, [desk]), _patch(rng)])
+    scan = np.vstack([scan_floor, walls(rng), _without(top, [patch])])
+    localisation = localise_changes(reference, scan)
+    assert localisation.parameters["scan_visibility"] == "maps"
+    for label in (localisation.reference_label, localisation.scan_label):
+        assert np.count_nonzero(label == LABEL_CHANGED) == 0
+    assert localisation.regions == []
+
+
+def _patch(rng):
+    """The floor under the desk that only the scan saw."""
+    return plane(rng, [2.0, 1.2, 0.0], [0.45, 0.0, 0.0], [0.0, 0.6, 0.0])
+
+
+def test_a_wall_section_pushed_out_is_still_seen_through():
+    # the guard (the paper's corridor, as test_localise's): the scan's wall section 0.5 m in
+    # front of the reference's is surface of the scan alone, carrying on into nothing both
+    # epochs saw, so the reference's wall patch behind it stays removed
+    rng = np.random.default_rng(4)
+    section = ([2.0, 0.0, 0.5], [3.0, 0.0, 1.5])
+    reference = np.vstack([floor(rng), walls(rng)])
+    moved = plane(rng, [2.0, 0.5, 0.5], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0])
+    scan = np.vstack([floor(rng), walls(rng, [section]), moved])
+    localisation = localise_changes(reference, scan)
+    patch = (np.abs(reference[:, 1]) < 0.01) & (reference[:, 2] > 0.65) & (reference[:, 2] < 1.35)
+    patch &= (reference[:, 0] > 2.15) & (reference[:, 0] < 2.85)
+    assert patch.sum() > 100
+    assert np.mean(localisation.reference_label[patch] == LABEL_CHANGED) >= 0.9
+
+
+def floor_lines(rng, xs, *, step=0.05):
+    """Single lidar lines across the floor at x = ``xs``, every ``step`` metres (two sweeps'
+    returns each, a few millimetres apart)."""
+    y = np.arange(0.1, 3.9, step)
+    lines = [
+        np.column_stack([x + 0.008 * row + rng.normal(0.0, 0.003, y.size), y, np.zeros(y.size)])
+        for x in xs
+        for row in range(2)
+    ]
+    return np.vstack(lines)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_single_scan_lines_metres_apart_each_epoch_in_its_own_place_are_not_changed(seed):
+    # robot corridor 801 of bench.moving_maps: a 16-ring lidar sees the corridor's ceiling
+    # only from 6.5 m on, in ring arcs a metre apart; each epoch's arcs lay 0.6-3 m from the
+    # other's, beyond the 0.5 m that the gaps between scan lines are looked for in (3 regions)
+    rng = np.random.default_rng(seed)
+    lines = ([2.6, 0.0, 0.0], [5.0, 4.0, 0.0])
+    shift = rng.uniform(0.55, 0.65)
+    reference = np.vstack([floor(rng, [lines]), walls(rng), floor_lines(rng, [3.2, 4.4])])
+    scan = np.vstack([floor(rng, [lines]), walls(rng), floor_lines(rng, [3.2 + shift])])
+    localisation = localise_changes(reference, scan)
+    for cloud, label in (
+        (reference, localisation.reference_label),
+        (scan, localisation.scan_label),
+    ):
+        between = (cloud[:, 0] > lines[0][0] + 0.05) & (cloud[:, 0] < lines[1][0] - 0.05)
+        assert np.count_nonzero(label[between] == LABEL_CHANGED) == 0
+    assert localisation.regions == []
+
+
+def test_a_strip_of_a_rack_end_next_to_its_corner_is_not_changed():
+    # robot warehouse 804 of bench.moving_maps: each path saw a rack's end face in lidar
+    # columns, the reference's two 9-26 cm from the rack's corner, the scan's 0.4 m and more
+    # from it.  The strip lay between the scan's columns on the face and the corner, where the
+    # scan's side of the rack ends; too few of its border points (4) met that side for an
+    # unseen side, and its half-plane towards the corner was empty: a false region of 28
+    # points beside the removed box (IoU 0.663)
+    pair = map_pair("robot", layout="warehouse", change="removed", random_state=804)
+    reference, scan = pair.clouds()
+    localisation = localise_changes(reference.points, scan.points)
+    label = localisation.reference_label
+    false = (label == LABEL_CHANGED) & ~pair.reference_changed & pair.reference_scored
+    assert np.count_nonzero(false) == 0
+    box = pair.reference_changed & pair.reference_scored
+    assert np.mean(label[box] == LABEL_CHANGED) >= 0.9
