@@ -177,6 +177,11 @@ def test_single_scan_lines_metres_apart_each_epoch_in_its_own_place_are_not_chan
     assert localisation.regions == []
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="robot 804: the edge-strip rule that fixed it turned 604's turned backrest into an "
+    "unseen side (tests/core/test_map_bodies.py); reverted at the s17 merge",
+)
 def test_a_strip_of_a_rack_end_next_to_its_corner_is_not_changed():
     # robot warehouse 804 of bench.moving_maps: each path saw a rack's end face in lidar
     # columns, the reference's two 9-26 cm from the rack's corner, the scan's 0.4 m and more

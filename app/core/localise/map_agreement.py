@@ -1,6 +1,6 @@
 """The two epochs' map tests agree: an unseen face meets no change of the other epoch.
 
-The map test calls a part an unseen face (:func:`~app.core.localise.map_evidence.unseen_faces`)
+The map test calls a part an unseen face (:func:`~app.core.localise.map_shared.unseen_faces`)
 when the other epoch's surfaces meet its border at an edge and end there: they are taken for
 the other faces (top, other sides) of an object standing in both epochs, of which only this
 epoch's path saw this face.  That holds only when those surfaces are the same object in the

@@ -1,7 +1,7 @@
 """The map test's unseen sides bound solid bodies: a side stands only if its body hides its inside.
 
 The map test calls an upright part an unseen side
-(:func:`~app.core.localise.map_evidence.unseen_faces`) when the other epoch's surfaces meet its
+(:func:`~app.core.localise.map_shared.unseen_faces`) when the other epoch's surfaces meet its
 border at an edge and end there: the other faces of an object standing in both epochs, of which
 only this epoch's path faced this one.  Two faces of one solid object meet at its corner and
 close its inside: from the part's plane, the object's body runs towards the side on which the

@@ -21,8 +21,9 @@ judged by the geometry the two epochs share, one cluster of candidates at a time
   under an added box): the other epoch saw its place empty, whether or not its surface seems
   to continue or its border to meet the other epoch's faces (:func:`_verdict`).
 
-- **An unseen face** (``no_coverage``, :func:`unseen_faces`): a part whose border meets the
-  other epoch's surfaces at an edge (the object's top or other sides), where those surfaces
+- **An unseen face** (``no_coverage``,
+  :func:`~app.core.localise.map_shared.unseen_faces`): a part whose border meets the other
+  epoch's surfaces at an edge (the object's top or other sides), where those surfaces
   end at the part instead of carrying on past it, and where the other epoch has no surface
   that this one lacks: the side of an object standing in both epochs that only this epoch's
   path faced, or its top that only this epoch's path looked down on.  Where the other epoch
@@ -78,7 +79,7 @@ from app.core.localise.map_planes import (
     in_sampling_gap,
     level_surface_below,
 )
-from app.core.localise.map_shared import edge_strips
+from app.core.localise.map_shared import MIN_ADJOINING, unseen_faces
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
 from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED, Candidates
 from app.core.localise.regions import EVIDENCE_NO_COVERAGE, EVIDENCE_SEEN_EMPTY
@@ -100,11 +101,6 @@ GAP_SHARE = 0.5
 other epoch's samples of one plane
 (:func:`~app.core.localise.map_planes.in_sampling_gap`: single scan lines far from both paths,
 each epoch's on its own place of the floor or a box top)."""
-SURROUND_SHARE = 0.1
-"""An upright part is an unseen side when less than this share of its adjoining border points
-has the other epoch's surface carrying on past them (or surface this epoch lacks)."""
-MIN_ADJOINING = 5
-"""Fewer adjoining border points than this say nothing about a part."""
 NARROW_SURROUND_SHARE = 0.35
 """An upright part whose adjoining border points have the other epoch's surface carrying on
 past them in less than this share is a side of an object when the surface behind it is that
@@ -445,30 +441,6 @@ def _face_border(
     )
 
 
-def unseen_faces(figures: PartFigures) -> NDArray[np.bool_]:
-    """Per part, whether it is a face of an object standing in both epochs that only this
-    epoch's path saw (shape (parts,), bool).
-
-    The other epoch's surfaces adjoin the part at an edge and end at it, instead of carrying
-    on past it (:data:`MIN_ADJOINING` border points, fewer than :data:`SURROUND_SHARE` carried
-    on): the other epoch saw the object's other faces, not this one.  An upright side has the
-    object's top and its other sides ending at its edges; a top (a box on a desk, a cabinet
-    the other path never looked down on) has the object's sides ending at its rim.  The other
-    epoch's surfaces carry on past a removed or added object's faces (the floor, desk top or
-    wall it stood on or against), or are surface this epoch lacks; a supporting surface ending
-    at a part is no evidence either way (:func:`~app.core.localise.map_parts._supports`).
-    Tops were left out before (s10): on six seeds of RGB-D rooms, horizontal parts meeting
-    this rule carry 1,800 false changed points on unseen tops and desk strips and 71 true ones.
-    A top is one only when the other epoch has no level surface straight under most of it
-    within :data:`~app.core.localise.map_parts.SEE_THROUGH_REACH` (:func:`_verdict`,
-    :func:`~app.core.localise.map_planes.level_surface_below`): a solid object's body hides
-    everything under its top, while under a removed table the other epoch saw the floor (the
-    real classroom's table).  Until s12 that probe looked up as well and reached 1.42 m: it
-    found the ceiling over a box's top as often as what lay under it.
-    """
-    return (figures.adjoining >= MIN_ADJOINING) & (figures.surround_share < SURROUND_SHARE)
-
-
 def _continuing(
     part: PartFigures, in_gap: Any, unseen_side: NDArray[np.bool_]
 ) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
@@ -510,7 +482,8 @@ def _verdict(
     (:func:`_narrow_gaps`).  It only lowers a share, so only parts at or over
     :data:`SEE_THROUGH_SHARE` are rechecked.  ``open_beneath(recheck)`` gives the share of
     the marked parts' points with a level surface of the other epoch straight under them
-    (:func:`unseen_faces`: an unseen top has its object's body under it).
+    (:func:`~app.core.localise.map_shared.unseen_faces`: an unseen top has its object's body
+    under it).
     ``far_face(check)`` gives, per part, whether the surface behind it is its object's far
     face and the joined share (:func:`~app.core.localise.map_faces.far_faces`), for the parts
     marked in ``check``.  ``on_lacking(check)`` gives the share of the marked parts' points
@@ -522,9 +495,7 @@ def _verdict(
     they are no sides.
     """
     part = figures
-    unseen_side = unseen_faces(part) | edge_strips(
-        part, min_adjoining=MIN_ADJOINING, surround=SURROUND_SHARE, coplanar=COPLANAR_SHARE
-    )
+    unseen_side = unseen_faces(part)
     beneath = open_beneath(unseen_side & ~part.upright)
     unseen_side &= part.upright | (beneath < SEE_THROUGH_SHARE)
     hollow_side = (
