@@ -61,7 +61,7 @@ from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE
 from app.core.localise.interface import FaceBorder, VisibilityContext, VisibilityOutcome
 from app.core.localise.map_bodies import hollow_sides
-from app.core.localise.map_faces import far_faces
+from app.core.localise.map_faces import EDGE_FACTOR, far_faces
 from app.core.localise.map_lines import line_gap_share
 from app.core.localise.map_parts import (
     SEE_THROUGH_REACH,
@@ -79,7 +79,12 @@ from app.core.localise.map_planes import (
     in_sampling_gap,
     level_surface_below,
 )
-from app.core.localise.map_shared import MIN_ADJOINING, unseen_faces
+from app.core.localise.map_shared import (
+    MIN_ADJOINING,
+    edge_strips,
+    meets_lacking_at_angle,
+    unseen_faces,
+)
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
 from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED, Candidates
 from app.core.localise.regions import EVIDENCE_NO_COVERAGE, EVIDENCE_SEEN_EMPTY
@@ -409,8 +414,13 @@ def map_test(
     hollow = hollow_sides(
         candidates, labels, figures, check, own, other, other_unmatched, threshold, change_threshold
     )
+    strips = edge_strips(figures)
+    reach = EDGE_FACTOR * change_threshold
+    strips &= ~meets_lacking_at_angle(
+        candidates.points, labels, strips, other, other_unmatched, reach
+    )
     coverage, faces, confidence, counts = _verdict(
-        figures, see_through, open_beneath, far_face, stands_on_lacking, in_gap, hollow
+        figures, see_through, open_beneath, far_face, stands_on_lacking, in_gap, hollow, strips
     )
     status[coverage[labels]] = STATUS_UNOBSERVED
     evidence[coverage[labels]] = EVIDENCE_NO_COVERAGE
@@ -472,6 +482,7 @@ def _verdict(
     on_lacking: Any,
     in_gap: Any,
     hollow: NDArray[np.bool_] | None = None,
+    strips: NDArray[np.bool_] | None = None,
 ) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.float64], dict[str, Any]]:
     """Per part, whether it is a coverage difference, whether it is one as an unseen face
     only (:class:`~app.core.localise.interface.FaceBorder`), and the confidence in its
@@ -492,10 +503,12 @@ def _verdict(
     ``in_gap`` is :func:`_continuing`'s.  ``hollow`` (shape (parts,), bool) marks the upright
     unseen sides that would bound a body holding points of the two epochs
     (:func:`~app.core.localise.map_bodies.hollow_sides`):
-    they are no sides.
+    they are no sides.  ``strips`` (shape (parts,), bool) marks the strips of a face both
+    epochs saw along its edge (:func:`~app.core.localise.map_shared.edge_strips`, less the
+    faces turned in place): unseen sides too.
     """
     part = figures
-    unseen_side = unseen_faces(part)
+    unseen_side = unseen_faces(part) if strips is None else unseen_faces(part) | strips
     beneath = open_beneath(unseen_side & ~part.upright)
     unseen_side &= part.upright | (beneath < SEE_THROUGH_SHARE)
     hollow_side = (
@@ -550,6 +563,7 @@ def _verdict(
         "map_far_face_parts": int(far.sum()),
         "map_standing_on_hidden_parts": int(stands_on_hidden.sum()),
         "map_hollow_side_parts": int(hollow_side.sum()),
+        "map_edge_strip_parts": int(0 if strips is None else strips.sum()),
         "map_sampling_gap_parts": int((gap_share >= GAP_SHARE).sum()),
         "map_coplanar_share_median": float(np.median(part.coplanar_share)),
     }

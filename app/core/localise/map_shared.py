@@ -1,19 +1,43 @@
-"""Faces of objects standing in both epochs that only one epoch saw (:func:`unseen_faces`)."""
+"""Faces of objects standing in both epochs that only one epoch saw (:func:`unseen_faces`).
+
+A sparse map sees an upright face in lidar columns, each epoch's elsewhere.  A column next to
+the face's edge lies between the other epoch's columns on the face and the edge, where the
+other epoch's side round the corner ends (:func:`edge_strips`: robot warehouse 804's rack end).
+A face turned in place looks the same to the figures (a chair's new backrest seen from afar, on
+the plane of the seat's side, the other epoch's seat top ending at it: robot warehouse 604),
+but it meets the old face, surface this epoch lacks, at an angle next to it
+(:func:`meets_lacking_at_angle`); a strip of a face both epochs saw meets only surface both
+have.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+from pykdtree.kdtree import KDTree
 
-from app.core.localise.map_parts import PartFigures
+from app.core.localise.distance import Side
+from app.core.localise.map_parts import EDGE_COSINE, UPRIGHT_NORMAL_Z, PartFigures
 
-__all__ = ["MIN_ADJOINING", "SURROUND_SHARE", "unseen_faces"]
+__all__ = [
+    "MIN_ADJOINING",
+    "SURROUND_SHARE",
+    "edge_strips",
+    "meets_lacking_at_angle",
+    "unseen_faces",
+]
 
 SURROUND_SHARE = 0.1
 """An upright part is an unseen side when less than this share of its adjoining border points
 has the other epoch's surface carrying on past them (or surface this epoch lacks)."""
 MIN_ADJOINING = 5
 """Fewer adjoining border points than this say nothing about a part."""
+STRIP_COPLANAR_SHARE = 0.75
+"""An edge strip lies on planes the other epoch has nearby with this share of its points."""
+MIN_MEETING = 3
+"""A part meets the other epoch's lacking surface when this many of its points lie next to it."""
+MEETING_NEIGHBOURS = 8
+"""The other epoch's lacking points looked at around each of the part's points."""
 
 
 def unseen_faces(figures: PartFigures) -> NDArray[np.bool_]:
@@ -39,3 +63,61 @@ def unseen_faces(figures: PartFigures) -> NDArray[np.bool_]:
     found the ceiling over a box's top as often as what lay under it.
     """
     return (figures.adjoining >= MIN_ADJOINING) & (figures.surround_share < SURROUND_SHARE)
+
+
+def edge_strips(figures: PartFigures) -> NDArray[np.bool_]:
+    """Per part, whether it may be a strip of a face both epochs saw, along the face's edge
+    (shape (parts,), bool): upright, on planes the other epoch has nearby
+    (:data:`STRIP_COPLANAR_SHARE` of its points), with fewer than :data:`MIN_ADJOINING` (but
+    some) border points that the other epoch's surface meets at an edge, that surface ending
+    at them (under :data:`SURROUND_SHARE` carried on past).
+
+    A column next to the face's edge is a few samples wide: too few border points meet the
+    other epoch's side round the corner for :func:`unseen_faces`, and its half-plane towards
+    the edge is empty (:func:`~app.core.localise.map_planes.in_sampling_gap`).  A face turned in
+    place has the same figures: :func:`meets_lacking_at_angle` tells them apart."""
+    return (
+        figures.upright
+        & (figures.adjoining >= 1)
+        & (figures.adjoining < MIN_ADJOINING)
+        & (figures.surround_share < SURROUND_SHARE)
+        & (figures.coplanar_share >= STRIP_COPLANAR_SHARE)
+    )
+
+
+def meets_lacking_at_angle(
+    points: NDArray[np.float64],
+    labels: NDArray[np.int64],
+    check: NDArray[np.bool_],
+    other: Side,
+    other_unmatched: NDArray[np.bool_],
+    reach: float,
+) -> NDArray[np.bool_]:
+    """Per part marked in ``check`` (shape (parts,); False elsewhere), whether
+    :data:`MIN_MEETING` of its candidates (``points`` shape (c, 3), ``labels`` shape (c,)) lie
+    within ``reach`` of the other cloud's points that this epoch lacks (``other_unmatched``,
+    shape (m,), bool) on an upright surface at an angle to the part's plane (normals' cosine
+    under :data:`~app.core.localise.map_parts.EDGE_COSINE`).
+
+    That surface is a change of the other epoch meeting the part at an edge: the face the part
+    was turned from (a chair's old backrest at the corner it shares with the new one).  A strip
+    of a face both epochs saw meets the object's other faces, which both epochs have."""
+    met = np.zeros(check.shape[0], dtype=bool)
+    normal = other.geometry.normal.astype(np.float64)
+    lacking = np.flatnonzero(other_unmatched & (np.abs(normal[:, 2]) < UPRIGHT_NORMAL_Z))
+    if lacking.shape[0] == 0:
+        return met
+    tree = KDTree(other.points[lacking])
+    for part in np.flatnonzero(check):
+        face = points[labels == part]
+        if face.shape[0] < MIN_MEETING:
+            continue
+        _, vectors = np.linalg.eigh(np.cov((face - face.mean(axis=0)).T))
+        k = min(MEETING_NEIGHBOURS, lacking.shape[0])
+        distance, index = tree.query(face, k=k, distance_upper_bound=reach)
+        distance = np.asarray(distance).reshape(face.shape[0], k)
+        index = np.minimum(np.asarray(index).reshape(face.shape[0], k), lacking.shape[0] - 1)
+        at_angle = np.abs(normal[lacking[index]] @ vectors[:, 0]) < EDGE_COSINE
+        meeting = ((distance <= reach) & at_angle).any(axis=1)
+        met[part] = np.count_nonzero(meeting) >= MIN_MEETING
+    return met
