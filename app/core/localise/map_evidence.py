@@ -69,7 +69,6 @@ from app.core.localise.map_parts import (
     PartFigures,
     near_candidates,
     part_figures,
-    surface_behind,
     surface_parts,
     unmatched_points,
 )
@@ -83,6 +82,7 @@ from app.core.localise.map_shared import (
     MIN_ADJOINING,
     edge_strips,
     meets_lacking_at_angle,
+    seen_through,
     unseen_faces,
 )
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
@@ -147,25 +147,6 @@ class MapEvidence:
     confidence: NDArray[np.float32]
     counts: dict[str, Any]
     faces: FaceBorder | None
-
-
-def _rechecked_share(
-    candidates: Candidates,
-    recheck: NDArray[np.int64],
-    labels: NDArray[np.int64],
-    behind_share: NDArray[np.float64],
-    *,
-    other: Side,
-    counted: NDArray[np.bool_],
-) -> NDArray[np.float64]:
-    """Per part, the share of candidates with the other epoch's surface on their normal line,
-    recomputed on the ``recheck`` candidates' parts counting only the ``counted`` points of
-    the other cloud (``behind_share`` elsewhere)."""
-    share = behind_share.copy()
-    if recheck.shape[0] == 0:
-        return share
-    behind = surface_behind(candidates.points[recheck], candidates.normal[recheck], other, counted)
-    return _share_per_part(labels[recheck], behind, share)
 
 
 def _share_per_part(
@@ -384,7 +365,11 @@ def map_test(
             tolerance=threshold,
         )
         counted = other_unmatched & ~gap
-        return _rechecked_share(candidates, chosen, labels, share, other=other, counted=counted)
+        points, normal = candidates.points[chosen], candidates.normal[chosen]
+        behind = seen_through(
+            points, normal, labels[chosen], figures.upright, other, counted, threshold
+        )
+        return _share_per_part(labels[chosen], behind, share)
 
     def open_beneath(recheck: NDArray[np.bool_]) -> NDArray[np.float64]:
         return _level_below_share(candidates, labels, recheck, other=other)

@@ -17,13 +17,19 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
-from app.core.localise.map_parts import EDGE_COSINE, UPRIGHT_NORMAL_Z, PartFigures
+from app.core.localise.map_parts import (
+    EDGE_COSINE,
+    UPRIGHT_NORMAL_Z,
+    PartFigures,
+    surface_behind,
+)
 
 __all__ = [
     "MIN_ADJOINING",
     "SURROUND_SHARE",
     "edge_strips",
     "meets_lacking_at_angle",
+    "seen_through",
     "unseen_faces",
 ]
 
@@ -121,3 +127,35 @@ def meets_lacking_at_angle(
         meeting = ((distance <= reach) & at_angle).any(axis=1)
         met[part] = np.count_nonzero(meeting) >= MIN_MEETING
     return met
+
+
+def seen_through(
+    points: NDArray[np.float64],
+    normal: NDArray[np.floating],
+    labels: NDArray[np.int64],
+    upright: NDArray[np.bool_],
+    other: Side,
+    counted: NDArray[np.bool_],
+    tolerance: float,
+) -> NDArray[np.bool_]:
+    """Whether the other cloud's ``counted`` points (shape (m,), bool) lie on each candidate's
+    normal line (:func:`~app.core.localise.map_parts.surface_behind`); for the candidates of a
+    level part (``labels`` shape (c,) into ``upright`` shape (parts,), bool), only those lower
+    than the part's median height less ``tolerance``; shapes (c, 3) -> (c,).
+
+    A level part (a floor patch, a desk top) is seen from above; the other epoch saw through
+    its place only onto what lies under it (the floor under a removed box's top).  Its surface
+    over the part is no see-through: it stood between the part and the other epoch's views and
+    hid the part from them (robot office 303: the reference's desk top over a floor patch only
+    the scan's lidar saw, from the side, under the desk).  An upright part's sensors may stand
+    on either side of it: every counted surface on its normal line is evidence (the wall
+    behind a turned backrest: RGB-D room 1103)."""
+    found = np.zeros(points.shape[0], dtype=bool)
+    sides = upright[labels]
+    found[sides] = surface_behind(points[sides], normal[sides], other, counted)
+    height = other.points[:, 2]
+    for part in np.unique(labels[~sides]):
+        members = np.flatnonzero(labels == part)
+        below = counted & (height < float(np.median(points[members, 2])) - tolerance)
+        found[members] = surface_behind(points[members], normal[members], other, below)
+    return found
