@@ -80,9 +80,8 @@ from app.core.localise.map_planes import (
 )
 from app.core.localise.map_shared import (
     MIN_ADJOINING,
-    edge_strips,
-    meets_lacking_at_angle,
     seen_through,
+    strip_sides,
     unseen_faces,
 )
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
@@ -364,11 +363,8 @@ def map_test(
             other_unmatched=other_unmatched,
             tolerance=threshold,
         )
-        counted = other_unmatched & ~gap
-        points, normal = candidates.points[chosen], candidates.normal[chosen]
-        behind = seen_through(
-            points, normal, labels[chosen], figures.upright, other, counted, threshold
-        )
+        upright, counted = figures.upright, other_unmatched & ~gap
+        behind = seen_through(candidates, chosen, labels, upright, other, counted, threshold)
         return _share_per_part(labels[chosen], behind, share)
 
     def open_beneath(recheck: NDArray[np.bool_]) -> NDArray[np.float64]:
@@ -399,11 +395,8 @@ def map_test(
     hollow = hollow_sides(
         candidates, labels, figures, check, own, other, other_unmatched, threshold, change_threshold
     )
-    strips = edge_strips(figures)
     reach = EDGE_FACTOR * change_threshold
-    strips &= ~meets_lacking_at_angle(
-        candidates.points, labels, strips, other, other_unmatched, reach
-    )
+    strips = strip_sides(figures, candidates.points, labels, other, other_unmatched, reach)
     coverage, faces, confidence, counts = _verdict(
         figures, see_through, open_beneath, far_face, stands_on_lacking, in_gap, hollow, strips
     )

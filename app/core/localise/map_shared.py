@@ -23,6 +23,7 @@ from app.core.localise.map_parts import (
     PartFigures,
     surface_behind,
 )
+from app.core.localise.rays import Candidates
 
 __all__ = [
     "MIN_ADJOINING",
@@ -30,6 +31,7 @@ __all__ = [
     "edge_strips",
     "meets_lacking_at_angle",
     "seen_through",
+    "strip_sides",
     "unseen_faces",
 ]
 
@@ -130,18 +132,19 @@ def meets_lacking_at_angle(
 
 
 def seen_through(
-    points: NDArray[np.float64],
-    normal: NDArray[np.floating],
+    candidates: Candidates,
+    chosen: NDArray[np.int64],
     labels: NDArray[np.int64],
     upright: NDArray[np.bool_],
     other: Side,
     counted: NDArray[np.bool_],
     tolerance: float,
 ) -> NDArray[np.bool_]:
-    """Whether the other cloud's ``counted`` points (shape (m,), bool) lie on each candidate's
-    normal line (:func:`~app.core.localise.map_parts.surface_behind`); for the candidates of a
-    level part (``labels`` shape (c,) into ``upright`` shape (parts,), bool), only those lower
-    than the part's median height less ``tolerance``; shapes (c, 3) -> (c,).
+    """Whether the other cloud's ``counted`` points (shape (m,), bool) lie on the normal line
+    of each ``chosen`` candidate (indices, shape (k,) -> (k,), bool;
+    :func:`~app.core.localise.map_parts.surface_behind`); for the candidates of a level part
+    (``labels`` shape (c,) into ``upright`` shape (parts,), bool), only those lower than the
+    part's median height less ``tolerance``.
 
     A level part (a floor patch, a desk top) is seen from above; the other epoch saw through
     its place only onto what lies under it (the floor under a removed box's top).  Its surface
@@ -150,6 +153,7 @@ def seen_through(
     the scan's lidar saw, from the side, under the desk).  An upright part's sensors may stand
     on either side of it: every counted surface on its normal line is evidence (the wall
     behind a turned backrest: RGB-D room 1103)."""
+    points, normal, labels = candidates.points[chosen], candidates.normal[chosen], labels[chosen]
     found = np.zeros(points.shape[0], dtype=bool)
     sides = upright[labels]
     found[sides] = surface_behind(points[sides], normal[sides], other, counted)
@@ -159,3 +163,18 @@ def seen_through(
         below = counted & (height < float(np.median(points[members, 2])) - tolerance)
         found[members] = surface_behind(points[members], normal[members], other, below)
     return found
+
+
+def strip_sides(
+    figures: PartFigures,
+    points: NDArray[np.float64],
+    labels: NDArray[np.int64],
+    other: Side,
+    other_unmatched: NDArray[np.bool_],
+    reach: float,
+) -> NDArray[np.bool_]:
+    """Per part, whether it is a strip of a face both epochs saw along its edge
+    (:func:`edge_strips`) that meets no surface this epoch lacks at an angle within ``reach``
+    (:func:`meets_lacking_at_angle`: a face turned in place); shape (parts,), bool."""
+    strips = edge_strips(figures)
+    return strips & ~meets_lacking_at_angle(points, labels, strips, other, other_unmatched, reach)
