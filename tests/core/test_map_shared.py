@@ -4,12 +4,15 @@ other epoch's lines on a far floor are a coverage difference."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
 from app.core.datasets.maps import map_pair
 from app.core.labels import LABEL_CHANGED
 from app.core.localise import localise_changes
+from app.core.localise.map_shared import meets_lacking_at_angle
 from app.core.pipeline import compare
 from tests.helpers.fused_rooms import box_sides, plane
 
@@ -211,3 +214,42 @@ def test_a_backrest_turned_in_place_is_no_strip_of_a_face_both_saw():
     new_backrest = pair.scan_changed & pair.scan_scored
     assert np.count_nonzero(new_backrest) > 0
     assert np.mean(localisation.scan_label[new_backrest] == LABEL_CHANGED) >= 0.75
+
+
+def _cloud(points, normals):
+    """The two attributes of a side that the meeting probe reads (points and their normals)."""
+    return SimpleNamespace(points=points, geometry=SimpleNamespace(normal=normals))
+
+
+def _sheet(rng, origin, first, second, spacing):
+    points = plane(rng, origin, first, second, spacing=spacing)
+    normal = np.cross(first, second) / np.linalg.norm(np.cross(first, second))
+    return points, np.broadcast_to(normal, points.shape).astype(np.float32)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_only_a_face_meeting_surface_this_epoch_lacks_at_an_angle_is_turned_in_place(seed):
+    # a sparse upright face (a new backrest seen from afar, on the plane y = 2) against the
+    # other epoch's upright surfaces next to it: its old face round the corner, lacking in this
+    # epoch, meets it at a right angle (turned in place); the other epoch's own columns on the
+    # same plane (a strip of a face both saw), the same corner face 0.5 m off, or matched by
+    # this epoch, do not
+    rng = np.random.default_rng(seed)
+    face, _ = _sheet(rng, [2.5, 2.0, 0.45], [0.3, 0, 0], [0, 0, 0.4], spacing=0.09)
+    labels = np.zeros(face.shape[0], dtype=np.int64)
+    check = np.array([True])
+    gap = rng.uniform(0.04, 0.08)
+    corner, corner_normal = _sheet(rng, [2.8 + gap, 1.5, 0.45], [0, 0.45, 0], [0, 0, 0.5], 0.03)
+    columns, columns_normal = _sheet(rng, [2.95, 2.0, 0.45], [0.3, 0, 0], [0, 0, 0.4], 0.03)
+    far, far_normal = _sheet(rng, [3.3, 1.5, 0.45], [0, 0.45, 0], [0, 0, 0.5], 0.03)
+    reach = 0.2
+    lacking = np.ones(corner.shape[0], dtype=bool)
+    met = meets_lacking_at_angle(face, labels, check, _cloud(corner, corner_normal), lacking, reach)
+    assert met.tolist() == [True]
+    for other, normal in ((columns, columns_normal), (far, far_normal)):
+        lacking = np.ones(other.shape[0], dtype=bool)
+        met = meets_lacking_at_angle(face, labels, check, _cloud(other, normal), lacking, reach)
+        assert met.tolist() == [False]
+    matched = np.zeros(corner.shape[0], dtype=bool)
+    met = meets_lacking_at_angle(face, labels, check, _cloud(corner, corner_normal), matched, reach)
+    assert met.tolist() == [False]
