@@ -42,7 +42,8 @@ split; whether a part is near the other epoch's coverage is judged on its whole 
 A coverage-difference cluster that the other epoch nevertheless saw through (surface this epoch
 lacks behind it on a good share of its points: an opened door in a wall) is a change; surface
 in a narrow gap of this epoch's own does not count (the far face of a rack, each path having
-seen its own aisle's face).  The
+seen its own aisle's face), nor, for a level cluster, surface over it: it hid the cluster
+(:func:`~app.core.localise.map_shared.seen_through`).  The
 dimensions that decide are relative to the clouds' own spacing and the change threshold, never
 to a sensor's ring pattern, which voxel filters and SLAM fusion erase.
 """
