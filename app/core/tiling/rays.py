@@ -236,7 +236,7 @@ def expanded_marks(
 
 
 def _marked(
-    points: NDArray[np.float64],
+    points: NDArray[np.float64] | None,
     station: NDArray[np.integer] | None,
     origins: NDArray[np.float64],
     cells: NDArray[np.float64],
@@ -244,11 +244,14 @@ def _marked(
     point_cells: NDArray[np.int64] | None = None,
 ) -> NDArray[np.bool_]:
     """Which of ``points`` (shape (p, 3)) lie in a marked cell of their origin
-    (``point_cells``: their :func:`own_direction_cells`, when already known)."""
+    (``point_cells``: their :func:`own_direction_cells`, when already known; ``points`` is
+    then not read and may be None)."""
     if point_cells is None:
+        if points is None:
+            raise ValueError("_marked needs the points or their direction cells")
         point_cells = own_direction_cells(points, station, origins, cells)
-    keep = np.zeros(len(points), dtype=bool)
-    which = np.zeros(len(points), dtype=np.int64) if station is None else station
+    keep = np.zeros(len(point_cells), dtype=bool)
+    which = np.zeros(len(point_cells), dtype=np.int64) if station is None else station
     for number in np.unique(which):
         mark = marks[number]
         if not len(mark):  # no point of the other cloud in the box seen from this origin
@@ -443,7 +446,9 @@ def crop_mask(
             rows, which = rows[crossing], which[crossing]
             if marks is not None and cells is not None and len(rows):
                 seen = _marked(
-                    np.asarray(points[chunk][rows], dtype=np.float64),
+                    None  # the cells answer it: no float64 copy of the crossing rows
+                    if point_cells is not None
+                    else np.asarray(points[chunk][rows], dtype=np.float64),
                     None if station is None else which,
                     origins,
                     cells,
