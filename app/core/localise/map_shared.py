@@ -21,6 +21,9 @@ fewer than this share of its points has nothing under or over it that the other 
 LEVEL_COPLANAR_SHARE = 0.5
 """... and with at least this share of its points on planes the other epoch has nearby, it is a
 patch of a surface the other epoch saw elsewhere (:func:`unseen_levels`)."""
+LEVEL_MIN_POINTS = 8
+"""A part of fewer points has no share to speak of (a 2-point level strip of a chair added at
+the real classroom's front wall, 1 of its 2 points on a plane of the other epoch's)."""
 
 
 def unseen_faces(figures: PartFigures) -> NDArray[np.bool_]:
@@ -56,7 +59,8 @@ def unseen_levels(figures: PartFigures) -> NDArray[np.bool_]:
     top under a removed or added object's top, the floor under a removed table (its surface
     on the part's normal lines, which this epoch lacks: ``behind_share``).  A level part with
     none of that on the normal lines of its points (:data:`LEVEL_BEHIND_SHARE`), lying on
-    planes the other epoch has nearby (:data:`LEVEL_COPLANAR_SHARE`), is a patch of that
+    planes the other epoch has nearby (:data:`LEVEL_COPLANAR_SHARE`; of
+    :data:`LEVEL_MIN_POINTS` or more), is a patch of that
     surface which the other epoch's path never saw: a 16-ring lidar sees an office's ceiling
     1.9 m up in ring arcs metres from its path, each epoch's elsewhere, and the floor 3 m
     under it is out of reach (robot office 903, unchanged: 2 regions / 48 points of ceiling
@@ -70,6 +74,7 @@ def unseen_levels(figures: PartFigures) -> NDArray[np.bool_]:
     """
     return (
         ~figures.upright
+        & (figures.sizes >= LEVEL_MIN_POINTS)
         & (figures.behind_share < LEVEL_BEHIND_SHARE)
         & (figures.coplanar_share >= LEVEL_COPLANAR_SHARE)
     )
