@@ -1,4 +1,5 @@
-"""The origin-free test of merged clouds: a candidate in a sampling gap of the other's surface.
+"""Sampling gaps: the origin-free test of merged clouds (a candidate in a sampling gap of the
+other's surface) and places between a ring lidar's lines (:func:`between_samples`).
 
 Without any sensor origin, a candidate that lies *on* the other cloud's surface, inside a hole
 of its sampling, is not a change: under each station of a merged survey lies a blind disc
