@@ -97,7 +97,7 @@ class RayTest:
         Metres: a ray's crossing of a candidate's plane with no own point near it is over the
         own surface when the own cloud's samples of that plane within this radius surround it
         (:func:`~app.core.localise.gaps.between_samples`: a surface sampled in lines spans the
-        gaps between them); 0: never.
+        gaps between them), for the rays that pass clearly beyond the plane; 0: never.
     """
 
     normal_tolerance: float
@@ -330,8 +330,8 @@ def _ray_status(
     # whatever the test below decides (the expected stop is one of the two): such points are
     # unobserved already, and most candidates of a moved sensor are (its shadows).
     occluded_anyway = ~found.any(axis=1) | (hides & (ray_range < crossing - margin)).any(axis=1)
-    # ... and only where the point's own cloud has surface: a ray crossing the plane beyond
-    # the edge of a table top says nothing about the table
+    # ... and only where the own cloud has surface (a table top's, not past its edge)
+    own_gap = np.where(ray_range > crossing + margin, test.gap_radius, 0.0)
     near_rows, near_rays = np.nonzero(crosses_near & ~occluded_anyway[:, None])
     crosses_near[near_rows, near_rays] = _over_own_surface(
         own,
@@ -341,7 +341,7 @@ def _ray_status(
         ray_dot_normal[near_rows, near_rays],
         reach=margin_factor * normal_tolerance,
         normal_tolerance=normal_tolerance,
-        gap_radius=test.gap_radius,
+        gap_radius=own_gap[near_rows, near_rays],
     )
     expected_stop = np.where(
         crosses_near, np.minimum(crossing, point_range[:, None]), point_range[:, None]
@@ -365,7 +365,7 @@ def _over_own_surface(
     *,
     reach: float,
     normal_tolerance: float,
-    gap_radius: float = 0.0,
+    gap_radius: float | NDArray[np.float64] = 0.0,
 ) -> NDArray[np.bool_]:
     """Whether a ray meets the candidate's own surface wherever it may meet it, not beside it.
 
@@ -395,10 +395,12 @@ def _over_own_surface(
         How far (metres) the surface may lie off its plane.
     normal_tolerance : float
         The smallest own support radius (metres).
-    gap_radius : float
-        With a positive one, a place with no own point near it is over the own surface when
-        the own samples of the candidate's plane within it surround it
-        (:func:`~app.core.localise.gaps.between_samples`).
+    gap_radius : float or ndarray, shape (s,)
+        For a ray with a positive one, a place with no own point near it is over the own
+        surface when the own samples of the candidate's plane within it surround it
+        (:func:`~app.core.localise.gaps.between_samples`); the caller gives it only to the
+        rays that pass clearly beyond the plane (free space where the surface would be; a ray
+        ending on the plane between the lines may end on another surface meeting it there).
 
     Returns
     -------
@@ -415,11 +417,12 @@ def _over_own_surface(
         own_distance, own_nearest = own.tree.query(along, k=1)
         own_support = np.maximum(OWN_SUPPORT_FACTOR * own.spacing[own_nearest], normal_tolerance)
         near = own_distance <= own_support
-        if gap_radius > 0.0:
-            # between the own cloud's sampling lines (a ring lidar's on a floor or a box top)
-            bridged = np.flatnonzero(supported & ~near)
+        # between the own cloud's sampling lines (a ring lidar's on a floor or a box top)
+        bridged = np.flatnonzero(supported & ~near & (gap_radius > 0.0))
+        if bridged.size:
+            radius = float(np.max(gap_radius))
             near[bridged] = between_samples(
-                along[bridged], normal[bridged], own, radius=gap_radius, tolerance=reach
+                along[bridged], normal[bridged], own, radius=radius, tolerance=reach
             )
         supported &= near
     return supported
