@@ -30,7 +30,11 @@ def assert_same(compiled, plain) -> None:
     assert compiled.neighbor_index.dtype == plain.neighbor_index.dtype == np.uint32
     assert np.array_equal(compiled.neighbor_index, plain.neighbor_index)
     assert np.array_equal(compiled.kth_distance.view(np.uint64), plain.kth_distance.view(np.uint64))
-    assert np.array_equal(compiled.order, plain.order)
+    # each a spatial order (the kernel tree's or Morton's): any permutation gives the same
+    # answers to the passes that follow it
+    rows = np.arange(compiled.neighbor_index.shape[0])
+    assert np.array_equal(np.sort(compiled.order), rows)
+    assert np.array_equal(np.sort(plain.order), rows)
 
 
 def test_the_kernel_is_built_where_a_c_compiler_is():
@@ -62,6 +66,29 @@ def test_equally_far_points_are_left_to_pykdtree(n_neighbors, monkeypatch):
         points = np.ascontiguousarray(rng.permutation(points))
         compiled = nearest_neighbourhoods(points, n_neighbors, threads=2)
         assert_same(compiled, pykdtree_neighbourhoods(points, n_neighbors, monkeypatch))
+
+
+@needs_kernel
+def test_the_kernel_trees_order_is_the_spatial_order(monkeypatch):
+    """With the kernel, the cloud's spatial order is its tree's leaf order (a copy), not a
+    Morton sort of its own; nearby points come together in it."""
+
+    def no_morton_sort(points):
+        raise AssertionError("spatial_order called although the kernel's tree has an order")
+
+    points = lidar_pair(layout="room", angular_step_deg=1.2, random_state=5).reference
+    points = np.ascontiguousarray(np.random.default_rng(2).permutation(points))
+    with monkeypatch.context() as patched:
+        patched.setattr(neighbourhoods, "spatial_order", no_morton_sort)
+        found = nearest_neighbourhoods(points, 10)
+    assert found.order.dtype == np.intp
+    assert np.array_equal(np.sort(found.order), np.arange(len(points)))
+    step_in_order = np.linalg.norm(np.diff(points[found.order], axis=0), axis=1)
+    step_in_file = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    assert np.median(step_in_order) < np.median(step_in_file) / 10
+    order = np.empty(len(points), dtype=np.intp)
+    with pytest.raises(ValueError, match="order_out"):
+        KERNEL.tree_order(KERNEL.build_tree(points), order[1:])
 
 
 @needs_kernel

@@ -476,8 +476,34 @@ static PyObject *leaf_count(PyObject *module, PyObject *args)
     return PyLong_FromSsize_t(self->tree.n_leaves);
 }
 
+static PyObject *tree_order(PyObject *module, PyObject *args)
+{
+    TreeObject *self;
+    Py_buffer order_out;
+    if (!PyArg_ParseTuple(args, "O!w*", &TreeType, &self, &order_out)) {
+        return NULL;
+    }
+    const Tree *tree = &self->tree;
+    int failed = writable(&order_out, tree->n * (Py_ssize_t)sizeof(int64_t), "order_out");
+    if (failed == 0) {
+        int64_t *order = order_out.buf;
+        for (Py_ssize_t i = 0; i < tree->n; i++) {
+            order[i] = tree->row[i];
+        }
+    }
+    PyBuffer_Release(&order_out);
+    if (failed) {
+        return NULL;
+    }
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"leaf_count", leaf_count, METH_VARARGS, "leaf_count(tree) -> int: the tree's leaves."},
+    {"tree_order", tree_order, METH_VARARGS,
+     "tree_order(tree, order_out) -> None\n\n"
+     "The rows of the points in tree order (leaf after leaf, each leaf's points together)\n"
+     "into order_out ((n,) int64): a spatial order of the cloud."},
     {"build_tree", build_tree, METH_VARARGS,
      "build_tree(points) -> Tree: a k-d tree over a C-contiguous (n, 3) float64 array."},
     {"self_neighbours", self_neighbours, METH_VARARGS,

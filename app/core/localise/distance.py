@@ -49,8 +49,15 @@ within :data:`LEVEL_RADIUS_FACTOR` local spacings of its normal line, its level
 (:func:`surface_offset_candidates`)."""
 LEVEL_RADIUS_FACTOR = 4.0
 MIN_AXIS_POINTS = 12
-"""Fewer points within half the change threshold give no axis (the point keeps its own
-distance)."""
+"""Fewer points within half the change threshold give no axis of their own: the point takes
+its fitted normal where its cloud is sampled sparsely for its noise
+(:data:`SPARSE_AXIS_SPACINGS`), and keeps its own distance elsewhere."""
+SPARSE_AXIS_SPACINGS = 3.0
+"""A point whose local spacing is at least this many of its cloud's noise ``sigma`` has a
+fitted normal (from its 10 neighbours, two spacings round) that noise hardly tilts: where half
+the change threshold holds fewer than :data:`MIN_AXIS_POINTS` of its points, because the cloud
+is sparse there (a robot map, 3-5 cm apart at 8 mm noise), that normal is its surface's axis.
+A dense cloud's normals, at 1 cm spacing with 1.2 cm of depth noise, point anywhere."""
 LEVEL_CHUNK = GATHER_CHUNK * 12 // LEVEL_NEIGHBOURS
 """Points judged per step of :func:`surface_offset_candidates`: its (chunk, 96, 3) float64
 gathers are then as large as a :data:`~app.core.localise.settings.GATHER_CHUNK` gather of
@@ -329,7 +336,8 @@ def surface_offset_candidates(
     candidate.  A point within ``min(tau, c - tau)`` under the change threshold ``c`` (none
     when noise sets the threshold) is judged by its surface: the axis of its points within
     ``c / 2`` (:data:`MIN_AXIS_POINTS` to :data:`LEVEL_NEIGHBOURS`; their fitted normals,
-    from 10 neighbours, point anywhere at 1 cm noise) and, along it, the median level of
+    from 10 neighbours, point anywhere at 1 cm noise), or its fitted normal where its cloud is
+    sparse for its noise (:func:`_surface_axes`), and, along it, the median level of
     each cloud's points in a cylinder round its normal line (:func:`_level`).  It is a
     candidate when both clouds have points there and the two levels lie more than ``c``
     apart: a median of tens of samples, where the point had one.
@@ -354,34 +362,54 @@ def surface_offset_candidates(
     rows = np.flatnonzero(~candidate & (distance > change_threshold - band)) if band > 0 else []
     found = candidate.copy()
     geometry = own.geometry
-    k = min(LEVEL_NEIGHBOURS, geometry.points.shape[0])
-    reach = 0.5 * change_threshold
     for start in range(0, len(rows), LEVEL_CHUNK):
         row = rows[start : start + LEVEL_CHUNK]
         point = geometry.points[row]
-        # the surface's axis from a wider neighbourhood than its fitted normal's (at 1 cm
-        # spacing with 1 cm of noise, 10 neighbours' normals point anywhere), within half the
-        # change threshold (a sparse map's 96 nearest points reach round its corners)
-        found_distance, index = geometry.tree.query(point, k=k, distance_upper_bound=reach)
-        near = np.asarray(found_distance).reshape(len(row), k) <= reach
-        index = np.minimum(np.asarray(index).reshape(len(row), k), geometry.points.shape[0] - 1)
-        _, _, vectors = weighted_plane(geometry.points[index], near.astype(np.float64))
-        unit = vectors[:, :, 0]
+        unit, has_axis, ball = _surface_axes(geometry, row, change_threshold)
         toward = np.sign(np.einsum("cd,cd->c", other.points[own.nearest_index[row]] - point, unit))
         # the own level's first ball is the axis's (same centre and radius): not queried again
         own_level, own_found = _level(
-            point, point, unit, geometry, change_threshold, first_ball=(found_distance, index)
+            point, point, unit, geometry, change_threshold, first_ball=ball
         )
         other_level, other_found = _level(
             point + (toward * distance[row])[:, None] * unit, point, unit, other, change_threshold
         )
         found[row] = (
-            (near.sum(axis=1) >= MIN_AXIS_POINTS)
+            has_axis
             & own_found
             & other_found
             & (np.abs(other_level - own_level) > change_threshold)
         )
     return found
+
+
+def _surface_axes(
+    geometry: LocalGeometry, row: NDArray[np.int64], change_threshold: float
+) -> tuple[NDArray[np.float64], NDArray[np.bool_], tuple[NDArray, NDArray]]:
+    """The axis of each ``row`` point's surface (shape (c, 3)), whether it has one (shape
+    (c,)), and the ball it came from (the (distances, indices) of its
+    :data:`LEVEL_NEIGHBOURS` nearest points within half the change threshold).
+
+    The smallest eigenvector of the ball's points when it holds :data:`MIN_AXIS_POINTS`
+    (the surface's axis from a wider neighbourhood than its fitted normal's: at 1 cm spacing
+    with 1 cm of noise, 10 neighbours' normals point anywhere; within half the change
+    threshold, as a sparse map's 96 nearest points reach round its corners).  With fewer, the
+    point's fitted normal where its local spacing is :data:`SPARSE_AXIS_SPACINGS` noise
+    ``sigma`` or more (the ball is short of points because the cloud is sparse there, and
+    noise hardly tilts a fit two spacings round: a robot map's board 11 cm in front of a wall,
+    3-5 cm between samples, had no axis and lost half its points to noise); none otherwise.
+    """
+    k = min(LEVEL_NEIGHBOURS, geometry.points.shape[0])
+    reach = 0.5 * change_threshold
+    point = geometry.points[row]
+    found_distance, index = geometry.tree.query(point, k=k, distance_upper_bound=reach)
+    near = np.asarray(found_distance).reshape(len(row), k) <= reach
+    index = np.minimum(np.asarray(index).reshape(len(row), k), geometry.points.shape[0] - 1)
+    _, _, vectors = weighted_plane(geometry.points[index], near.astype(np.float64))
+    own_axis = near.sum(axis=1) >= MIN_AXIS_POINTS
+    sparse = ~own_axis & (geometry.spacing[row] >= SPARSE_AXIS_SPACINGS * geometry.noise)
+    unit = np.where(sparse[:, None], geometry.normal[row].astype(np.float64), vectors[:, :, 0])
+    return unit, own_axis | sparse, (found_distance, index)
 
 
 def _level(

@@ -79,7 +79,7 @@ from app.core.localise.map_planes import (
     in_sampling_gap,
     level_surface_below,
 )
-from app.core.localise.map_shared import MIN_ADJOINING, unseen_faces
+from app.core.localise.map_shared import MIN_ADJOINING, unseen_faces, unseen_levels
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
 from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED, Candidates
 from app.core.localise.regions import EVIDENCE_NO_COVERAGE, EVIDENCE_SEEN_EMPTY
@@ -528,9 +528,13 @@ def _verdict(
     )
     far, joined_share = far_face(narrow_side & (part.behind_share >= SEE_THROUGH_SHARE))
     faces = (unseen_side & (part.behind_share < SEE_THROUGH_SHARE)) | far
-    coverage |= ~part.near | faces
+    # a level patch with nothing of the other epoch's under or over it, on its planes nearby
+    unseen_level = unseen_levels(part) & ~coverage
+    unseen_level &= open_beneath(unseen_level) < SEE_THROUGH_SHARE
+    coverage |= ~part.near | faces | unseen_level
     side_confidence = np.where(unseen_side, 1.0 - part.surround_share, 0.0)
     side_confidence = np.where(far, np.maximum(side_confidence, joined_share), side_confidence)
+    side_confidence = np.where(unseen_level, part.coplanar_share, side_confidence)
     confidence = np.where(
         coverage,
         np.where(
@@ -551,6 +555,7 @@ def _verdict(
         "map_standing_on_hidden_parts": int(stands_on_hidden.sum()),
         "map_hollow_side_parts": int(hollow_side.sum()),
         "map_sampling_gap_parts": int((gap_share >= GAP_SHARE).sum()),
+        "map_unseen_level_parts": int(unseen_level.sum()),
         "map_coplanar_share_median": float(np.median(part.coplanar_share)),
     }
     return coverage, faces & part.near & ~continues, confidence, counts

@@ -88,8 +88,9 @@ class Neighbourhoods:
     kth_distance : ndarray, shape (n,), float64
         Distance to the k-th neighbour.
     order : ndarray, shape (n,), intp, or None
-        The cloud's :func:`~app.core.spatial_order.spatial_order`, with which later passes
-        over the cloud visit it chunk by chunk of nearby points (None: file order).
+        A spatial order of the cloud (the compiled kernel's tree order, or
+        :func:`~app.core.spatial_order.spatial_order`), with which later passes over the cloud
+        visit it chunk by chunk of nearby points (None: file order).
     surfaces : Surfaces or None
         Fitted already (e.g. read from a reference's geometry cache), or None.
     """
@@ -124,9 +125,10 @@ def nearest_neighbourhoods(
     By the compiled kernel when it was built (:data:`KNN_KERNEL`, ~20 % less CPU at 1M points,
     without the GIL throughout; the same neighbours, see :func:`_compiled_neighbours`), else by
     the tree's queries in chunks, so only the k-th distance is kept (never an (n, k + 1) float
-    array).  The chunks follow the cloud's :func:`~app.core.spatial_order.spatial_order`
-    (nearby points together: the tree walks stay in cache, about 4x faster on a shuffled
-    1M-point cloud; each point's answer is the same in any order).  The query releases the GIL:
+    array).  The chunks follow a spatial order of the cloud (:func:`_spatial_order`: the
+    kernel tree's, else :func:`~app.core.spatial_order.spatial_order`; nearby points together:
+    the tree walks stay in cache, about 4x faster on a shuffled 1M-point cloud; each point's
+    answer is the same in any order).  The query releases the GIL:
     :class:`NeighbourhoodSearch` runs this on its own thread.
 
     Parameters
@@ -149,10 +151,13 @@ def nearest_neighbourhoods(
     if not 1 <= k <= n - 1:
         raise ValueError(f"n_neighbors must be in 1..{n - 1}, got {n_neighbors}")
     tree = KDTree(points)
-    order = spatial_order(points)
+    own_tree = _kernel_tree(points, k)
+    order = _spatial_order(points, own_tree)
     neighbor_index = np.empty((n, k + 1), dtype=np.uint32)
     kth_distance = np.empty(n)
-    found = _compiled_neighbours(points, k, neighbor_index, kth_distance, tree, _cancelled, threads)
+    found = own_tree is not None and _compiled_neighbours(
+        own_tree, points, k, neighbor_index, kth_distance, tree, _cancelled, threads
+    )
     if found is None:
         return None
     if not found:
@@ -164,7 +169,33 @@ def nearest_neighbourhoods(
     return Neighbourhoods(tree, neighbor_index, kth_distance, order)
 
 
+def _kernel_tree(points: NDArray[np.float64], k: int) -> Any:
+    """The compiled kernel's k-d tree of ``points`` (n, 3), or None when the kernel cannot
+    search it for ``k`` neighbours (not built, points it refuses)."""
+    kernel = KNN_KERNEL
+    if kernel is None or not points.flags.c_contiguous or k + 1 >= KERNEL_MAX_NEIGHBOURS:
+        return None
+    try:
+        return kernel.build_tree(points)
+    except (ValueError, BufferError):
+        return None
+
+
+def _spatial_order(points: NDArray[np.float64], own_tree: Any) -> NDArray[np.intp]:
+    """A spatial order of ``points`` (n, 3), shape (n,): the rows of the kernel tree's points
+    (``own_tree``, None: none), leaf after leaf (each leaf's up to 32 points together,
+    neighbouring leaves mostly next to each other), which costs a copy, else
+    :func:`~app.core.spatial_order.spatial_order`, which sorts Morton codes (~0.08 CPU s a 1M
+    cloud).  Every pass that follows an order gives each point the same answer in any order."""
+    if own_tree is not None and np.dtype(np.intp).itemsize == 8:
+        order = np.empty(points.shape[0], dtype=np.intp)
+        KNN_KERNEL.tree_order(own_tree, order)
+        return order
+    return spatial_order(points)
+
+
 def _compiled_neighbours(
+    own_tree: Any,
     points: NDArray[np.float64],
     k: int,
     neighbor_index: NDArray[np.uint32],
@@ -173,9 +204,10 @@ def _compiled_neighbours(
     cancelled: CancelEvent | None,
     threads: int = 1,
 ) -> bool | None:
-    """:func:`nearest_neighbourhoods`' neighbours by the compiled kernel (``_knn_kernel.c``):
-    ``neighbor_index`` (n, k + 1) and ``kth_distance`` (n,) filled in; False when it cannot (not
-    built, or points it refuses: then nothing is written), None when ``cancelled``.
+    """:func:`nearest_neighbourhoods`' neighbours by the compiled kernel (``_knn_kernel.c``)
+    from its tree of ``points`` (:func:`_kernel_tree`): ``neighbor_index`` (n, k + 1) and
+    ``kth_distance`` (n,) filled in; False when it cannot (points it refuses: then nothing is
+    written), None when ``cancelled``.
 
     The same numbers as pykdtree's queries, to the bit: the kernel computes each squared
     distance as pykdtree does, and the points whose k + 1 nearest are not all at different
@@ -186,13 +218,10 @@ def _compiled_neighbours(
     leaf of ~16 points.
     """
     kernel = KNN_KERNEL
-    if kernel is None or not points.flags.c_contiguous or k + 1 >= KERNEL_MAX_NEIGHBOURS:
-        return False
     tie = np.empty(points.shape[0], dtype=np.uint8)
     flag = getattr(cancelled, "flag", None)
     flag = np.zeros(1, dtype=np.uint8) if flag is None else flag
     try:
-        own_tree = kernel.build_tree(points)
         # the leaves split between ``threads`` threads (each writes its own points' rows)
         half = kernel.leaf_count(own_tree) // 2 if threads >= 2 else 0
 
