@@ -52,19 +52,25 @@ def swept_map(
     path: NDArray[np.float64],
     *,
     step_deg: float = 2.5,
+    azimuth_step_deg: float | None = None,
     voxel: float = 0.05,
     noise: float = 0.005,
     start_time: float = 1000.0,
     seed: int = 0,
     with_times: bool = True,
 ) -> SweptMap:
-    """Sweep the world with ``boxes`` from each pose of ``path`` (p, 3), merge, thin."""
+    """Sweep the world with ``boxes`` from each pose of ``path`` (p, 3), merge, thin.
+
+    Rings ``step_deg`` apart, columns ``azimuth_step_deg`` apart (``step_deg`` when None: a
+    finer one gives a ring lidar's floor, lines far apart with dense samples along each)."""
     rng = np.random.default_rng(seed)
     world = _world(boxes)
     points, exact, times = [], [], []
     pose_times, pose_positions = [], []
     for number, position in enumerate(path):
-        directions = lidar_directions(step_deg, step_deg, yaw_deg=rng.uniform(0, 360))
+        directions = lidar_directions(
+            step_deg, azimuth_step_deg or step_deg, yaw_deg=rng.uniform(0, 360)
+        )
         distance, _ = world.cast(position, directions)
         keep = distance >= 0.3
         directions, distance = directions[keep], distance[keep]

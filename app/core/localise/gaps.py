@@ -1,4 +1,5 @@
-"""The origin-free test of merged clouds: a candidate in a sampling gap of the other's surface.
+"""Sampling gaps: the origin-free test of merged clouds (a candidate in a sampling gap of the
+other's surface) and places between a ring lidar's lines (:func:`between_samples`).
 
 Without any sensor origin, a candidate that lies *on* the other cloud's surface, inside a hole
 of its sampling, is not a change: under each station of a merged survey lies a blind disc
@@ -23,7 +24,14 @@ from numpy.typing import NDArray
 from app.core.localise.settings import GATHER_CHUNK
 from app.core.localise.surface import LocalGeometry
 
-__all__ = ["MAX_GAP", "SECTORS", "coplanar_near_probe", "in_sampling_gap", "tangent_directions"]
+__all__ = [
+    "MAX_GAP",
+    "SECTORS",
+    "between_samples",
+    "coplanar_near_probe",
+    "in_sampling_gap",
+    "tangent_directions",
+]
 
 SECTORS = 6
 """Directions (60 degrees apart) in which the other cloud's surface must be found."""
@@ -38,6 +46,15 @@ PLANE_SLOPE = math.sin(math.radians(1.0))
 """The plane tolerance grows by this much a metre away from the candidate (surfaces bend)."""
 NORMAL_AGREEMENT_COSINE = math.cos(math.radians(30.0))
 PROBE_NEIGHBOURS = 4
+SURROUNDING_SAMPLES = 64
+""":func:`between_samples` looks at most at this many samples (nearest first)."""
+MAX_SURROUNDING_GAP = math.radians(150.0)
+"""Surrounded: no angle wider than this between the directions to the samples in the plane (a
+place past a straight edge of the samples has one of 180 degrees or more; the margin is for
+noisy samples along that edge)."""
+SURROUNDING_CHUNK = GATHER_CHUNK * 12 // SURROUNDING_SAMPLES
+"""Places per step of :func:`between_samples`: (chunk, 64, 3) float64 gathers as large as a
+:data:`~app.core.localise.settings.GATHER_CHUNK` gather of 12 neighbours."""
 
 
 def tangent_directions(
@@ -171,3 +188,78 @@ def in_sampling_gap(
             found |= hit.reshape(query.shape[0], SECTORS)
         result[chunk] = found.all(axis=1)
     return result
+
+
+def between_samples(
+    points: NDArray[np.float64],
+    normal: NDArray[np.floating],
+    cloud: LocalGeometry,
+    *,
+    radius: float,
+    tolerance: float,
+) -> NDArray[np.bool_]:
+    """Whether each place lies between ``cloud``'s samples of a plane through it.
+
+    A ring lidar samples a floor or a box top in lines a few to tens of centimetres apart,
+    wider than a sample's spacing along its line: a place between two lines is on that surface
+    though no sample lies near it.  The samples within ``radius`` (at most
+    :data:`SURROUNDING_SAMPLES`, with a fitted plane) whose plane passes within ``tolerance``
+    of the place are that surface's; projected onto the place's plane they surround it when no
+    angle between the directions to them exceeds :data:`MAX_SURROUNDING_GAP` (the place lies
+    inside them, not past their edge).  Unlike :func:`in_sampling_gap` the reach is bounded:
+    only gaps narrower than twice ``radius`` are bridged.
+
+    Parameters
+    ----------
+    points : ndarray, shape (c, 3)
+    normal : ndarray, shape (c, 3)
+        Unit normal of the plane at each place.
+    cloud : LocalGeometry
+    radius, tolerance : float
+        Metres.
+
+    Returns
+    -------
+    ndarray, shape (c,), bool
+    """
+    count = points.shape[0]
+    surrounded = np.zeros(count, dtype=bool)
+    k = min(SURROUNDING_SAMPLES, cloud.points.shape[0])
+    if count == 0 or k < 3:
+        return surrounded
+    for start in range(0, count, SURROUNDING_CHUNK):
+        rows = slice(start, start + SURROUNDING_CHUNK)
+        point = points[rows]
+        found, index = cloud.tree.query(point, k=k, distance_upper_bound=radius)
+        index = np.minimum(np.asarray(index).reshape(len(point), k), cloud.points.shape[0] - 1)
+        offset = cloud.points[index] - point[:, None, :]  # (c, k, 3)
+        plane_offset = np.einsum("ckd,ckd->ck", offset, cloud.normal[index].astype(np.float64))
+        on_plane = (
+            (np.asarray(found).reshape(len(point), k) <= radius)
+            & (np.abs(plane_offset) <= tolerance)
+            & ~cloud.linear[index]
+        )
+        surrounded[rows] = _largest_gap(offset, normal[rows], on_plane) <= MAX_SURROUNDING_GAP
+    return surrounded
+
+
+def _largest_gap(
+    offset: NDArray[np.float64], normal: NDArray[np.floating], valid: NDArray[np.bool_]
+) -> NDArray[np.float64]:
+    """Widest angle (radians) between the in-plane directions to the valid offsets, shapes
+    (c, k, 3), (c, 3), (c, k) -> (c,); 2 pi with fewer than three of them."""
+    _, directions = tangent_directions(normal, 4)  # 0 and 90 degrees: the plane's axes
+    angle = np.arctan2(
+        np.einsum("ckd,cd->ck", offset, directions[:, 1]),
+        np.einsum("ckd,cd->ck", offset, directions[:, 0]),
+    )
+    angle = np.sort(np.where(valid, angle, np.inf), axis=1)
+    count = valid.sum(axis=1)
+    finite = np.isfinite(angle)
+    angle = np.where(finite, angle, 0.0)
+    rows = np.arange(angle.shape[0])
+    # the wrap-around gap from the last valid direction back to the first
+    wrap = angle[:, 0] + 2.0 * math.pi - angle[rows, np.maximum(count - 1, 0)]
+    steps = np.where(finite[:, 1:], np.diff(angle, axis=1), 0.0)
+    largest = np.maximum(steps.max(axis=1), wrap)
+    return np.where(count >= 3, largest, 2.0 * math.pi)

@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
+from app.core.localise.gaps import between_samples
 from app.core.localise.settings import CHUNK, GATHER_CHUNK
 from app.core.localise.surface import LocalGeometry
 from app.core.threads import for_each_chunk
@@ -92,6 +93,11 @@ class RayTest:
         threshold_factor x the other cloud's noise (the error of its ranges).
     margin_factor, angle_factor, beyond_fraction, miss_factor : float
         The ``visibility_*`` parameters (:data:`~app.core.localise.settings.DEFAULT_PARAMETERS`).
+    gap_radius : float
+        Metres: a ray's crossing of a candidate's plane with no own point near it is over the
+        own surface when the own cloud's samples of that plane within this radius surround it
+        (:func:`~app.core.localise.gaps.between_samples`: a surface sampled in lines spans the
+        gaps between them), for the rays that pass clearly beyond the plane; 0: never.
     """
 
     normal_tolerance: float
@@ -100,6 +106,7 @@ class RayTest:
     angle_factor: float
     beyond_fraction: float
     miss_factor: float
+    gap_radius: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -271,7 +278,6 @@ def _ray_status(
     spacing, surface_distance = candidates.spacing, candidates.surface_distance
     normal_tolerance, range_tolerance = test.normal_tolerance, test.range_tolerance
     margin_factor, miss_factor = test.margin_factor, test.miss_factor
-    beyond_fraction = test.beyond_fraction
     other_origin, other_range, other_direction = rays.origin, rays.range, rays.direction
     offset = points - other_origin
     point_range = np.linalg.norm(offset, axis=1)
@@ -324,8 +330,8 @@ def _ray_status(
     # whatever the test below decides (the expected stop is one of the two): such points are
     # unobserved already, and most candidates of a moved sensor are (its shadows).
     occluded_anyway = ~found.any(axis=1) | (hides & (ray_range < crossing - margin)).any(axis=1)
-    # ... and only where the point's own cloud has surface: a ray crossing the plane beyond
-    # the edge of a table top says nothing about the table
+    # ... and only where the own cloud has surface (a table top's, not past its edge)
+    own_gap = np.where(ray_range > crossing + margin, test.gap_radius, 0.0)
     near_rows, near_rays = np.nonzero(crosses_near & ~occluded_anyway[:, None])
     crosses_near[near_rows, near_rays] = _over_own_surface(
         own,
@@ -335,6 +341,7 @@ def _ray_status(
         ray_dot_normal[near_rows, near_rays],
         reach=margin_factor * normal_tolerance,
         normal_tolerance=normal_tolerance,
+        gap_radius=own_gap[near_rows, near_rays],
     )
     expected_stop = np.where(
         crosses_near, np.minimum(crossing, point_range[:, None]), point_range[:, None]
@@ -343,7 +350,7 @@ def _ray_status(
     passes_beyond = crosses_near & (ray_range > crossing + margin)
     n_near = crosses_near.sum(axis=1)
     occluded = (~found.any(axis=1)) | stops_before.any(axis=1)
-    seen_through = passes_beyond.sum(axis=1) >= beyond_fraction * np.maximum(n_near, 1)
+    seen_through = passes_beyond.sum(axis=1) >= test.beyond_fraction * np.maximum(n_near, 1)
     status = np.where(seen_through, STATUS_SEEN_THROUGH, STATUS_SURFACE)
     status = np.where(n_near == 0, STATUS_EDGE_ON, status)
     return np.where(occluded, STATUS_UNOBSERVED, status).astype(np.int8)
@@ -358,6 +365,7 @@ def _over_own_surface(
     *,
     reach: float,
     normal_tolerance: float,
+    gap_radius: float | NDArray[np.float64] = 0.0,
 ) -> NDArray[np.bool_]:
     """Whether a ray meets the candidate's own surface wherever it may meet it, not beside it.
 
@@ -387,6 +395,12 @@ def _over_own_surface(
         How far (metres) the surface may lie off its plane.
     normal_tolerance : float
         The smallest own support radius (metres).
+    gap_radius : float or ndarray, shape (s,)
+        For a ray with a positive one, a place with no own point near it is over the own
+        surface when the own samples of the candidate's plane within it surround it
+        (:func:`~app.core.localise.gaps.between_samples`); the caller gives it only to the
+        rays that pass clearly beyond the plane (free space where the surface would be; a ray
+        ending on the plane between the lines may end on another surface meeting it there).
 
     Returns
     -------
@@ -402,7 +416,15 @@ def _over_own_surface(
     for along in (crossing_point, crossing_point - stretch, crossing_point + stretch):
         own_distance, own_nearest = own.tree.query(along, k=1)
         own_support = np.maximum(OWN_SUPPORT_FACTOR * own.spacing[own_nearest], normal_tolerance)
-        supported &= own_distance <= own_support
+        near = own_distance <= own_support
+        # between the own cloud's sampling lines (a ring lidar's on a floor or a box top)
+        bridged = np.flatnonzero(supported & ~near & (gap_radius > 0.0))
+        if bridged.size:
+            radius = float(np.max(gap_radius))
+            near[bridged] = between_samples(
+                along[bridged], normal[bridged], own, radius=radius, tolerance=reach
+            )
+        supported &= near
     return supported
 
 

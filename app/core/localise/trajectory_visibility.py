@@ -9,6 +9,13 @@ to returns beyond it), saw a surface there, or could not see it.  The statuses a
 for stations (the caller combines them with
 :func:`~app.core.localise.station_rays.combine_station_status`).
 
+A ring lidar samples a floor or a box top in lines tens of centimetres apart, wider than a
+sample's support disc (:func:`~app.core.localise.gaps.between_samples`).  A candidate no
+pseudo-station's rays met near it (edge-on from every one) that lies on a plane the other cloud
+sampled all around it is on that surface (a point between two lines measures its distance to
+the nearest one); and a ray crossing the candidate's plane between the own cloud's lines
+crosses the candidate's surface (:attr:`~app.core.localise.rays.RayTest.gap_radius`).
+
 Cost stays bounded: a candidate is tested only against the pseudo-stations that took the other
 cloud's returns nearest to it (they looked at its place) and the few nearest along the path,
 within the sensor's range; each pseudo-station indexes only its own returns.
@@ -16,6 +23,7 @@ within the sensor's range; each pseudo-station indexes only its own returns.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -24,10 +32,12 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
+from app.core.localise.gaps import between_samples
 from app.core.localise.interface import VisibilityContext, VisibilityOutcome
 from app.core.localise.rays import (
     STATUS_EDGE_ON,
     STATUS_SEEN_THROUGH,
+    STATUS_SURFACE,
     STATUS_UNOBSERVED,
     Candidates,
     RayTest,
@@ -35,7 +45,12 @@ from app.core.localise.rays import (
 )
 from app.core.localise.station_rays import combine_station_status, ray_test_for, settle_ray_status
 
-__all__ = ["NEAREST_GROUPS", "NEIGHBOUR_RETURNS", "TrajectoryTest", "trajectory_statuses"]
+__all__ = [
+    "NEAREST_GROUPS",
+    "NEIGHBOUR_RETURNS",
+    "TrajectoryTest",
+    "trajectory_statuses",
+]
 
 LONE_SIGHTING_FACTOR = 1.5
 """A trajectory candidate within this many change thresholds of the other cloud's surface,
@@ -50,6 +65,11 @@ SENSOR_RANGE = 30.0
 """Metres: a group farther than this from a candidate is not tested against it."""
 MIN_GROUP_POINTS = 10
 """A group with fewer returns saw too little to tell anything."""
+SURROUNDING_RADIUS_FACTOR = 2.0
+"""Samples within this many change thresholds of a place may surround it
+(:func:`~app.core.localise.gaps.between_samples`): a candidate between the other cloud's
+samples of its plane, and a ray's crossing between the own cloud's samples of the candidate's
+plane."""
 
 
 def _group_slots(
@@ -179,13 +199,31 @@ class TrajectoryTest:
     ) -> VisibilityOutcome:
         """Statuses from the pseudo-stations tested, lone sightings near the surface left to the
         edge-on resolution."""
-        test = ray_test_for(own, other, context)
+        test = dataclasses.replace(
+            ray_test_for(own, other, context),
+            gap_radius=SURROUNDING_RADIUS_FACTOR * context.change_threshold,
+        )
         statuses, figures = trajectory_statuses(candidates, own=own, other=other, test=test)
         status = combine_station_status(statuses)
         # just past the change threshold: one ray through a grazed edge is not enough
         near = candidates.surface_distance < LONE_SIGHTING_FACTOR * context.change_threshold
         lone = lone_sightings(statuses) & (status == STATUS_SEEN_THROUGH) & near
         status = np.where(lone, STATUS_EDGE_ON, status).astype(np.int8)
-        report: dict[str, Any] = {"candidates_seen_through_once": int(lone.sum())}
+        # met by no ray but between the other cloud's samples of its plane: on that surface
+        edge_on = np.flatnonzero(status == STATUS_EDGE_ON)
+        between = edge_on[
+            between_samples(
+                candidates.points[edge_on],
+                candidates.normal[edge_on],
+                other.geometry,
+                radius=SURROUNDING_RADIUS_FACTOR * context.change_threshold,
+                tolerance=context.threshold,
+            )
+        ]
+        status[between] = STATUS_SURFACE
+        report: dict[str, Any] = {
+            "candidates_seen_through_once": int(lone.sum()),
+            "candidates_between_other_samples": int(between.size),
+        }
         report.update({f"other_{name}": value for name, value in figures.items()})
         return settle_ray_status(candidates, status, report, context)

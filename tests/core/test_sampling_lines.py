@@ -1,0 +1,136 @@
+"""Surfaces a ring lidar samples in lines: a floor or a box top seen as strips far apart.
+
+A spinning lidar on a robot samples a floor (or a box's top, seen from a little above) in ring
+lines tens of centimetres apart, each dense along itself.  Rules checked:
+
+* :func:`~app.core.localise.gaps.between_samples`: a place on the plane between two strips of
+  samples lies on that surface; a place past the last strip, or off the plane, does not;
+* the ray test with a ``gap_radius`` (the trajectory test's): a ray crossing a removed box's
+  top between the own cloud's strips crosses its surface, so the top is seen through; without
+  it (the ray met the plane where no own sample lies near) the top is only seen edge-on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from pykdtree.kdtree import KDTree
+
+from app.core.datasets.lidar import LidarWorld, lidar_directions
+from app.core.localise.gaps import between_samples
+from app.core.localise.rays import (
+    STATUS_EDGE_ON,
+    STATUS_SEEN_THROUGH,
+    Candidates,
+    RayTest,
+    ray_visibility,
+)
+from app.core.localise.surface import local_geometry
+
+TEST = RayTest(
+    normal_tolerance=0.03,
+    range_tolerance=0.03,
+    margin_factor=1.0,
+    angle_factor=2.5,
+    beyond_fraction=0.5,
+    miss_factor=4.0,
+)
+
+
+def strips(
+    centres: list[float], *, height: float, length: float = 1.0, across_x: bool = False
+) -> np.ndarray:
+    """Strips of 3 rows 2 cm apart along x (samples every 2 cm) at the given y centres (along y
+    at the given x centres with ``across_x``), at ``height``, shape (n, 3)."""
+    along = np.arange(-0.5 * length, 0.5 * length + 1e-9, 0.02)
+    rows = []
+    for centre in centres:
+        for row in (-0.02, 0.0, 0.02):
+            rows.append(np.column_stack([along, np.full(along.size, centre + row)]))
+    flat = np.vstack(rows)
+    if across_x:
+        flat = flat[:, ::-1]
+    return np.column_stack([flat, np.full(flat.shape[0], height)])
+
+
+def test_a_place_between_two_strips_of_a_plane_lies_on_it() -> None:
+    cloud = local_geometry(strips([-0.12, 0.13], height=0.0), 10)
+    places = np.array(
+        [
+            [0.0, 0.0, 0.0],  # between the strips
+            [0.2, 0.01, 0.005],  # between them, within the tolerance of the plane
+            [0.0, 0.32, 0.0],  # 17 cm past the last strip
+            [0.0, 0.0, 0.08],  # above the plane
+        ]
+    )
+    normal = np.tile([0.0, 0.0, 1.0], (len(places), 1))
+
+    surrounded = between_samples(places, normal, cloud, radius=0.2, tolerance=0.03)
+
+    np.testing.assert_array_equal(surrounded, [True, True, False, False])
+
+
+def test_samples_farther_than_the_radius_do_not_surround() -> None:
+    cloud = local_geometry(strips([-0.3, 0.3], height=0.0), 10)
+
+    surrounded = between_samples(
+        np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), cloud, radius=0.2, tolerance=0.03
+    )
+
+    assert not surrounded.any()
+
+
+BOX_TOP = 0.5
+SENSOR = np.array([-2.5, 0.0, 1.2])
+"""Sees the box's top (x -0.3..0.3, y -0.35..0.35) at 70-80 degrees incidence."""
+
+
+def top_status(gap_radius: float) -> np.ndarray:
+    """Ray status of a removed box's top (its two inner strips: the outer ones are its
+    edges), its own cloud strips 20 cm apart across the sensor's view, seen by a lidar whose
+    world no longer holds the box."""
+    own_points = strips([-0.3, -0.1, 0.1, 0.3], height=BOX_TOP, length=0.7, across_x=True)
+    own = local_geometry(own_points, 10)
+    chosen = np.flatnonzero((np.abs(own_points[:, 1]) <= 0.2) & (np.abs(own_points[:, 0]) <= 0.15))
+    directions = lidar_directions(1.0, 0.25)
+    world = LidarWorld(
+        shell_low=np.array([-10.0, -10.0, 0.0]),
+        shell_high=np.array([10.0, 10.0, 4.0]),
+        box_low=np.empty((0, 3)),
+        box_high=np.empty((0, 3)),
+    )
+    distance, _ = world.cast(SENSOR, directions)
+    other_points = SENSOR + distance[:, None] * directions
+    other = local_geometry(other_points, 10)
+    surface_distance, _ = KDTree(other_points).query(own_points[chosen], k=1)
+    candidates = Candidates(
+        index=chosen,
+        points=own_points[chosen],
+        normal=np.tile(np.array([0.0, 0.0, 1.0], dtype=np.float32), (chosen.size, 1)),
+        linear=np.zeros(chosen.size, dtype=bool),
+        spacing=own.spacing[chosen],
+        surface_distance=surface_distance.astype(np.float64),
+    )
+    status, _ = ray_visibility(
+        candidates,
+        own=own,
+        other_points=other_points,
+        other_origin=SENSOR,
+        test=dataclasses.replace(TEST, gap_radius=gap_radius),
+        other_normals=other.normal,
+        other_linear=other.linear,
+    )
+    return status
+
+
+def test_a_removed_box_top_sampled_in_strips_is_seen_through_between_them() -> None:
+    status = top_status(gap_radius=0.2)
+
+    assert (status == STATUS_SEEN_THROUGH).all(), np.unique(status, return_counts=True)
+
+
+def test_without_a_gap_radius_rays_between_the_strips_are_no_evidence() -> None:
+    status = top_status(gap_radius=0.0)
+
+    assert (status == STATUS_EDGE_ON).all(), np.unique(status, return_counts=True)
