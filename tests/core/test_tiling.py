@@ -44,8 +44,22 @@ def _assert_same(
     assert tiled.localisation["tiles"]["count"] >= 3, "the scene must cross tile borders"
     for name in ("reference_label", "scan_label"):
         assert _iou(getattr(one, name), getattr(tiled, name)) >= MIN_IOU, name
-    assert [region.kind for region in tiled.regions] == [region.kind for region in one.regions]
-    for expected, got in zip(one.regions, tiled.regions, strict=True):
+    assert sorted(region.kind for region in tiled.regions) == sorted(
+        region.kind for region in one.regions
+    )
+    # regions are listed largest first: two of near-equal size (127 and 128 points) may swap
+    # places, so each is paired with the unpaired region of its kind whose box is nearest
+    unpaired = list(tiled.regions)
+    for expected in one.regions:
+        same_kind = [region for region in unpaired if region.kind == expected.kind]
+        got = min(
+            same_kind,
+            key=lambda region: float(
+                np.abs(np.asarray(region.bbox_min) - expected.bbox_min - shift).max()
+                + np.abs(np.asarray(region.bbox_max) - expected.bbox_max - shift).max()
+            ),
+        )
+        unpaired.remove(got)
         assert np.allclose(got.bbox_min, expected.bbox_min + shift, atol=BOX_TOLERANCE_M)
         assert np.allclose(got.bbox_max, expected.bbox_max + shift, atol=BOX_TOLERANCE_M)
     assert tiled.changed == one.changed
