@@ -43,6 +43,7 @@ from app.core.localise.distance import (
     SUPPORT_FACTOR_QUANTILE,
     Side,
     alignment_residual,
+    crossing_candidates,
     nearest_in,
     support_factor,
     surface_distance,
@@ -249,6 +250,7 @@ class _Limits:
     threshold: float
     change_threshold: float
     registration_rmse: float
+    crossing_threshold: float
 
     @property
     def misalignment(self) -> float:
@@ -357,6 +359,7 @@ def _thresholds(
         threshold=threshold,
         change_threshold=max(threshold, settings["min_change_distance"]),
         registration_rmse=float(registration_rmse),
+        crossing_threshold=max(noise_only_threshold, settings["min_change_distance"]),
     )
 
 
@@ -411,6 +414,14 @@ def _candidates(
             threshold=limits.threshold,
             change_threshold=limits.change_threshold,
         )
+        if limits.crossing_threshold < limits.change_threshold:
+            candidate = crossing_candidates(
+                candidate,
+                distance,
+                own,
+                other.geometry,
+                crossing_threshold=limits.crossing_threshold,
+            )
         # the candidates' flattest neighbours are taken before the neighbour index is released
         # (on each side's thread: ~0.15 CPU s of serial gathers at 1M + 1M otherwise)
         return distance, find_candidates(own, distance=distance, candidate=candidate)
