@@ -62,6 +62,7 @@ from app.core.localise.turned_faces import changed_points, with_turned_faces
 from app.core.localise.visibility import (
     Labelled,
     agree_on_faces,
+    choose_test,
     find_candidates,
     label_candidates,
 )
@@ -190,7 +191,9 @@ def localise_changes(
     reference_side, scan_side = _sides(reference, scan, settings["n_neighbors"], threads)
     del reference, scan  # the sides hold what is needed (and not the neighbourhoods ahead)
     limits = _thresholds(reference_side, scan_side, settings, registration_rmse, threads)
-    reference_side, scan_side, candidates = _candidates(reference_side, scan_side, limits, threads)
+    reference_side, scan_side, candidates = _candidates(
+        reference_side, scan_side, limits, settings, threads
+    )
     reference_found, scan_found = _labelled(
         (reference_side, scan_side), candidates, limits, settings, threads
     )
@@ -391,10 +394,15 @@ def _nn_distance_quartile(reference_side: Side, scan_side: Side) -> float:
 
 
 def _candidates(
-    reference_side: Side, scan_side: Side, limits: _Limits, threads: int
+    reference_side: Side,
+    scan_side: Side,
+    limits: _Limits,
+    settings: dict[str, Any],
+    threads: int,
 ) -> tuple[Side, Side, tuple[tuple[NDArray, Candidates], tuple[NDArray, Candidates]]]:
     """Distances to the other's surface and change candidates (step 3); the sides returned
-    without their neighbour index (4 (k + 1) bytes a point), needed only until here."""
+    without their neighbour index (4 (k + 1) bytes a point), needed only until here; points
+    crossing the other's surface only where the map test judges (:func:`crossing_candidates`)."""
 
     def distance_to(own: Side, other: Side) -> tuple[NDArray, Candidates]:
         distance, candidate, _ = surface_distance(
@@ -414,13 +422,10 @@ def _candidates(
             threshold=limits.threshold,
             change_threshold=limits.change_threshold,
         )
-        if limits.crossing_threshold < limits.change_threshold:
+        crossing = limits.crossing_threshold
+        if crossing < limits.change_threshold and choose_test(other, settings).name == "maps":
             candidate = crossing_candidates(
-                candidate,
-                distance,
-                own,
-                other.geometry,
-                crossing_threshold=limits.crossing_threshold,
+                candidate, distance, own, other.geometry, crossing_threshold=crossing
             )
         # the candidates' flattest neighbours are taken before the neighbour index is released
         # (on each side's thread: ~0.15 CPU s of serial gathers at 1M + 1M otherwise)
