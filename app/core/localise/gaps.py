@@ -57,7 +57,7 @@ noisy samples along that edge)."""
 PLANE_RADIUS_FACTOR = 2.0
 """Samples within this many change thresholds of a candidate give its planes
 (:func:`on_sampled_planes`): lines up to twice that apart are bridged."""
-PLANE_SAMPLES = 16
+PLANE_SAMPLES = 32
 """:func:`on_sampled_planes` picks a candidate's nearest plane among this many samples."""
 PLANE_CHUNK = GATHER_CHUNK * 12 // PLANE_SAMPLES
 SURROUNDING_CHUNK = GATHER_CHUNK * 12 // SURROUNDING_SAMPLES
@@ -317,7 +317,11 @@ def on_sampled_planes(
     for start in range(0, candidates.size, PLANE_CHUNK):
         rows = candidates[start : start + PLANE_CHUNK]
         on_plane, plane_distance = _nearest_sampled_plane(
-            points[rows], cloud, radius=radius, tolerance=tolerance, reach=change_threshold
+            points[rows],
+            cloud,
+            radius=radius,
+            tolerance=tolerance,
+            reach=change_threshold,
         )
         distance[rows[on_plane]] = plane_distance[on_plane]
         kept[rows[on_plane]] = False
@@ -343,15 +347,14 @@ def _nearest_sampled_plane(
     valid = (np.asarray(found).reshape(len(points), k) <= radius) & ~cloud.linear[index]
     nearest = np.argmin(np.where(valid, np.abs(offset), np.inf), axis=1)
     rows = np.arange(len(points))
-    plane_normal = normal[rows, nearest]  # (c, 3)
-    # the plane's samples (on it, normals agreeing): their median offset along its normal,
-    # not the one sample's nearest to the point (the least of k noisy offsets lies low)
+    # the samples whose normals agree with that sample's are the plane's: their mean normal
+    # and their median offset along it (one sample's normal tilts by noise, and the least of
+    # k noisy offsets lies low)
+    agreeing = np.einsum("ckd,cd->ck", normal, normal[rows, nearest])
+    on_it = valid & (np.abs(agreeing) >= NORMAL_AGREEMENT_COSINE)
+    plane_normal = np.einsum("ck,ckd->cd", np.where(on_it, np.sign(agreeing), 0.0), normal)
+    plane_normal /= np.maximum(np.linalg.norm(plane_normal, axis=1), 1e-12)[:, None]
     along = np.einsum("ckd,cd->ck", points[:, None, :] - cloud.points[index], plane_normal)
-    on_it = (
-        valid
-        & (np.abs(along - along[rows, nearest][:, None]) <= tolerance)
-        & (np.abs(np.einsum("ckd,cd->ck", normal, plane_normal)) >= NORMAL_AGREEMENT_COSINE)
-    )
     ranked = np.sort(np.where(on_it, along, np.inf), axis=1)
     count = on_it.sum(axis=1)
     median = 0.5 * (
