@@ -190,6 +190,6 @@ def test_a_removed_box_foot_over_a_floor_seen_in_lines_is_on_the_floor(seed: int
 
     foot_label = found.reference_label[foot]
     assert (foot_label == LABEL_UNCHANGED).all(), np.unique(foot_label, return_counts=True)
-    assert (found.reference_distance[foot] < 0.07).all()
+    assert (found.reference_distance[foot] <= 0.1).all()  # within the change threshold
     upper = on_box & (reference[:, 2] > 0.2)
     assert np.mean(found.reference_label[upper] == LABEL_CHANGED) > 0.9
