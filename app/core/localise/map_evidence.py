@@ -86,8 +86,14 @@ from app.core.localise.map_shared import (
     unseen_faces,
     unseen_levels,
 )
+from app.core.localise.map_supports import resting_on_support
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
-from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED, Candidates
+from app.core.localise.rays import (
+    STATUS_SEEN_THROUGH,
+    STATUS_SURFACE,
+    STATUS_UNOBSERVED,
+    Candidates,
+)
 from app.core.localise.regions import EVIDENCE_NO_COVERAGE, EVIDENCE_SEEN_EMPTY
 
 __all__ = ["MapEvidence", "MapTest", "map_test", "unseen_faces"]
@@ -404,6 +410,12 @@ def map_test(
     )
     status[coverage[labels]] = STATUS_UNOBSERVED
     evidence[coverage[labels]] = EVIDENCE_NO_COVERAGE
+    # the foot of an upright face on a support the other epoch sampled only round it
+    resting = resting_on_support(
+        candidates.points, candidates.normal, other.geometry, threshold, change_threshold
+    )
+    status[resting] = STATUS_SURFACE
+    counts["map_resting_points"] = int(resting.sum())
     return MapEvidence(
         status,
         evidence,
