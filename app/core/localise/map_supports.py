@@ -28,12 +28,26 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE
 from app.core.localise.map_parts import UPRIGHT_NORMAL_Z
+from app.core.localise.rays import (
+    STATUS_SEEN_THROUGH,
+    STATUS_SURFACE,
+    STATUS_UNOBSERVED,
+    Candidates,
+)
+from app.core.localise.regions import EVIDENCE_NO_COVERAGE, EVIDENCE_SEEN_EMPTY
 from app.core.localise.settings import GATHER_CHUNK
 from app.core.localise.surface import LocalGeometry
 
-__all__ = ["MIN_SUPPORT_SAMPLES", "SUPPORT_NEIGHBOURS", "SUPPORT_REACH", "resting_on_support"]
+__all__ = [
+    "MIN_SUPPORT_SAMPLES",
+    "SUPPORT_NEIGHBOURS",
+    "SUPPORT_REACH",
+    "map_statuses",
+    "resting_on_support",
+]
 
 SUPPORT_REACH = 0.5
 """Metres: the other epoch's level samples within this distance of the candidate count (a
@@ -104,3 +118,22 @@ def resting_on_support(
             & (rise >= -tolerance)
         )
     return resting
+
+
+def map_statuses(
+    candidates: Candidates,
+    covered: NDArray[np.bool_],
+    other: Side,
+    threshold: float,
+    change_threshold: float,
+) -> tuple[NDArray[np.int8], NDArray[np.int8], int]:
+    """Each candidate's status and evidence (shape (c,), int8) from the parts' verdicts
+    (``covered``: in a coverage difference, shape (c,), bool), and how many rest on the other
+    epoch's support (:func:`resting_on_support`: surface)."""
+    status = np.where(covered, STATUS_UNOBSERVED, STATUS_SEEN_THROUGH).astype(np.int8)
+    evidence = np.where(covered, EVIDENCE_NO_COVERAGE, EVIDENCE_SEEN_EMPTY).astype(np.int8)
+    resting = resting_on_support(
+        candidates.points, candidates.normal, other.geometry, threshold, change_threshold
+    )
+    status[resting] = STATUS_SURFACE
+    return status, evidence, int(resting.sum())
