@@ -65,5 +65,27 @@ def test_only_upright_candidates_over_a_level_support_rest_on_it():
         ]
     )
     normal = np.array([[1.0, 0, 0], [1.0, 0, 0], [0, 0, 1.0], [1.0, 0, 0]])
-    found = resting_on_support(points, normal, other, tolerance=0.02, change_threshold=0.1)
+    bottom = np.full(4, 0.03)
+    found = resting_on_support(points, normal, bottom, other, tolerance=0.02, change_threshold=0.1)
     assert found.tolist() == [True, False, False, False]
+    # a face whose part reaches lower than the level surface passes it by
+    found = resting_on_support(
+        points, normal, np.full(4, -0.3), other, tolerance=0.02, change_threshold=0.1
+    )
+    assert not found.any()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_an_added_board_passing_a_low_box_beside_it_stays_changed_at_the_box_tops_height(seed):
+    # RGB-D room 1002's moved board: its middle band lay just over the top of a shelf 0.35 m
+    # beside it; that top is no support of the board, which reaches down past it
+    rng = np.random.default_rng(seed)
+    top = rng.uniform(0.35, 0.45)
+    low_box = ([2.0, 1.5, 0.0], [2.4, 2.1, top])
+    reference = np.vstack([_room(rng, ((0, 0), (0, 0))), box_sides(rng, *low_box)])
+    board = plane(rng, [2.75, 1.5, 0.0], [0, 0.6, 0], [0, 0, 0.9])
+    scan = np.vstack([_room(rng, ((0, 0), (0, 0))), box_sides(rng, *low_box), board])
+    localisation = localise_changes(reference, scan)
+    label = localisation.scan_label[-board.shape[0] :]
+    band = (board[:, 2] > top + 0.01) & (board[:, 2] < top + 0.09)
+    assert np.mean(label[band] == LABEL_CHANGED) >= 0.95

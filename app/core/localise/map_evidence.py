@@ -405,7 +405,7 @@ def map_test(
         figures, see_through, open_beneath, far_face, stands_on_lacking, in_gap, hollow, strips
     )
     status, evidence, counts["map_resting_points"] = map_statuses(
-        candidates, coverage[labels], other, threshold, change_threshold
+        candidates, labels, coverage[labels], other, threshold, change_threshold
     )
     return MapEvidence(
         status,

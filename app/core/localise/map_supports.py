@@ -60,6 +60,7 @@ MIN_SUPPORT_SAMPLES = 6
 def resting_on_support(
     points: NDArray[np.float64],
     normal: NDArray[np.floating],
+    part_bottom: NDArray[np.float64],
     other: LocalGeometry,
     tolerance: float,
     change_threshold: float,
@@ -73,6 +74,9 @@ def resting_on_support(
         The candidates.
     normal : ndarray, shape (c, 3)
         Their normals.
+    part_bottom : ndarray, shape (c,)
+        The height of the lowest candidate of each candidate's surface part: a face standing
+        on the support ends at it, one reaching lower passes it by.
     other : LocalGeometry
         The other epoch's cloud.
     tolerance : float
@@ -116,12 +120,14 @@ def resting_on_support(
             (on_support.sum(axis=1) >= MIN_SUPPORT_SAMPLES)
             & (rise < change_threshold)
             & (rise >= -tolerance)
+            & (part_bottom[chosen[rows]] >= support - tolerance)
         )
     return resting
 
 
 def map_statuses(
     candidates: Candidates,
+    labels: NDArray[np.int64],
     covered: NDArray[np.bool_],
     other: Side,
     threshold: float,
@@ -132,8 +138,15 @@ def map_statuses(
     epoch's support (:func:`resting_on_support`: surface)."""
     status = np.where(covered, STATUS_UNOBSERVED, STATUS_SEEN_THROUGH).astype(np.int8)
     evidence = np.where(covered, EVIDENCE_NO_COVERAGE, EVIDENCE_SEEN_EMPTY).astype(np.int8)
+    bottom = np.full(int(labels.max()) + 1, np.inf)
+    np.minimum.at(bottom, labels, candidates.points[:, 2])
     resting = resting_on_support(
-        candidates.points, candidates.normal, other.geometry, threshold, change_threshold
+        candidates.points,
+        candidates.normal,
+        bottom[labels],
+        other.geometry,
+        threshold,
+        change_threshold,
     )
     status[resting] = STATUS_SURFACE
     return status, evidence, int(resting.sum())
