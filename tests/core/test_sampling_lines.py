@@ -7,15 +7,21 @@ lines tens of centimetres apart, each dense along itself.  Rules checked:
   samples lies on that surface; a place past the last strip, or off the plane, does not;
 * the ray test with a ``gap_radius`` (the trajectory test's): a ray crossing a removed box's
   top between the own cloud's strips crosses its surface, so the top is seen through; without
-  it (the ray met the plane where no own sample lies near) the top is only seen edge-on.
+  it (the ray met the plane where no own sample lies near) the top is only seen edge-on;
+* :func:`~app.core.localise.gaps.on_sampled_planes`: a removed box's foot, a few centimetres
+  over a floor the other epoch saw in lines 0.3 m apart, lies on that floor (its distance is
+  its height over the floor's plane, not the 13 cm to the nearest line).
 """
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from pykdtree.kdtree import KDTree
 
 from app.core.datasets.lidar import LidarWorld, lidar_directions
+from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED
+from app.core.localise.changes import localise_changes
 from app.core.localise.gaps import between_samples
 from app.core.localise.rays import STATUS_EDGE_ON, STATUS_SEEN_THROUGH
 from app.core.localise.surface import local_geometry
@@ -103,3 +109,56 @@ def test_without_a_gap_radius_rays_between_the_strips_are_no_evidence() -> None:
     status = top_status(gap_radius=0.0)
 
     assert (status == STATUS_EDGE_ON).all(), np.unique(status, return_counts=True)
+
+
+def grid(x: tuple[float, float], y: tuple[float, float], z: tuple[float, float], step: float):
+    """Points every ``step`` metres on the axis-aligned rectangle spanned by the ranges (one of
+    them a single value), shape (n, 3)."""
+    axes = [np.arange(low, high + 1e-9, step) if high > low else [low] for low, high in (x, y, z)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+BOX_HALF, BOX_HEIGHT = 0.15, 0.5
+
+
+def box_over_lines(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(reference, scan): a dense floor and a box standing on it, 0.3 m square; the scan lost
+    the box and saw the floor in strips 0.3 m apart, the box's faces midway between them."""
+    rng = np.random.default_rng(seed)
+    floor = grid((-1.5, 1.5), (-1.5, 1.5), (0.0, 0.0), 0.03)
+    floor = floor[(np.abs(floor[:, :2]) > BOX_HALF).any(axis=1)]
+    sides = [
+        grid((low, high), (-BOX_HALF, BOX_HALF), (0.01, BOX_HEIGHT), 0.03)
+        for low, high in ((-BOX_HALF, -BOX_HALF), (BOX_HALF, BOX_HALF))
+    ] + [
+        grid((-BOX_HALF, BOX_HALF), (low, high), (0.01, BOX_HEIGHT), 0.03)
+        for low, high in ((-BOX_HALF, -BOX_HALF), (BOX_HALF, BOX_HALF))
+    ]
+    top = grid((-BOX_HALF, BOX_HALF), (-BOX_HALF, BOX_HALF), (BOX_HEIGHT, BOX_HEIGHT), 0.03)
+    reference = np.vstack([floor, *sides, top])
+    scan = strips([-1.2, -0.9, -0.6, -0.3, 0.0, 0.3, 0.6, 0.9, 1.2], height=0.0, length=3.0)
+    noise = 0.003
+    return (
+        reference + rng.normal(0.0, noise, reference.shape),
+        scan + rng.normal(0.0, noise, scan.shape),
+    )
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_removed_box_foot_over_a_floor_seen_in_lines_is_on_the_floor(seed: int) -> None:
+    """The box's foot (under 6 cm up) lies within the change threshold of the floor, though its
+    nearest floor sample is 13 cm away across the gap between two lines: unchanged; the box
+    above 20 cm stays removed."""
+    reference, scan = box_over_lines(seed)
+    on_box = (np.abs(reference[:, :2]) <= BOX_HALF + 0.01).all(axis=1) & (reference[:, 2] > 0.005)
+    foot = on_box & (reference[:, 2] < 0.06) & (np.abs(reference[:, :2]) > 0.1).any(axis=1)
+    nearest, _ = KDTree(scan).query(reference[foot], k=1)
+    assert np.median(nearest) > 0.11  # the floor's samples are far: only its plane is near
+
+    found = localise_changes(reference, scan)
+
+    foot_label = found.reference_label[foot]
+    assert (foot_label == LABEL_UNCHANGED).all(), np.unique(foot_label, return_counts=True)
+    assert (found.reference_distance[foot] <= 0.1).all()  # within the change threshold
+    upper = on_box & (reference[:, 2] > 0.2)
+    assert np.mean(found.reference_label[upper] == LABEL_CHANGED) > 0.9

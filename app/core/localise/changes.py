@@ -50,6 +50,7 @@ from app.core.localise.distance import (
     surface_offset_candidates,
 )
 from app.core.localise.epoch import EpochCloud, with_checked_stations
+from app.core.localise.gaps import PLANE_RADIUS_FACTOR, on_sampled_planes
 from app.core.localise.rays import Candidates
 from app.core.localise.regions import ChangedRegion, find_regions, mark_moved_surfaces
 from app.core.localise.settings import (
@@ -412,6 +413,15 @@ def _candidates(
             other=other.geometry,
             threshold=limits.threshold,
             support_factor=limits.support,
+            change_threshold=limits.change_threshold,
+        )
+        candidate = on_sampled_planes(
+            own.points,
+            distance,
+            candidate,
+            other.geometry,
+            radius=PLANE_RADIUS_FACTOR * limits.change_threshold,
+            tolerance=limits.threshold,
             change_threshold=limits.change_threshold,
         )
         candidate = surface_offset_candidates(

@@ -26,10 +26,12 @@ from app.core.localise.surface import LocalGeometry
 
 __all__ = [
     "MAX_GAP",
+    "PLANE_RADIUS_FACTOR",
     "SECTORS",
     "between_samples",
     "coplanar_near_probe",
     "in_sampling_gap",
+    "on_sampled_planes",
     "tangent_directions",
 ]
 
@@ -52,6 +54,12 @@ MAX_SURROUNDING_GAP = math.radians(150.0)
 """Surrounded: no angle wider than this between the directions to the samples in the plane (a
 place past a straight edge of the samples has one of 180 degrees or more; the margin is for
 noisy samples along that edge)."""
+PLANE_RADIUS_FACTOR = 2.0
+"""Samples within this many change thresholds of a candidate give its planes
+(:func:`on_sampled_planes`): lines up to twice that apart are bridged."""
+PLANE_SAMPLES = 32
+""":func:`on_sampled_planes` picks a candidate's nearest plane among this many samples."""
+PLANE_CHUNK = GATHER_CHUNK * 12 // PLANE_SAMPLES
 SURROUNDING_CHUNK = GATHER_CHUNK * 12 // SURROUNDING_SAMPLES
 """Places per step of :func:`between_samples`: (chunk, 64, 3) float64 gathers as large as a
 :data:`~app.core.localise.settings.GATHER_CHUNK` gather of 12 neighbours."""
@@ -263,3 +271,101 @@ def _largest_gap(
     steps = np.where(finite[:, 1:], np.diff(angle, axis=1), 0.0)
     largest = np.maximum(steps.max(axis=1), wrap)
     return np.where(count >= 3, largest, 2.0 * math.pi)
+
+
+def on_sampled_planes(
+    points: NDArray[np.float64],
+    distance: NDArray[np.float64],
+    candidate: NDArray[np.bool_],
+    cloud: LocalGeometry,
+    *,
+    radius: float,
+    tolerance: float,
+    change_threshold: float,
+) -> NDArray[np.bool_]:
+    """Candidates within the change threshold of a plane ``cloud`` sampled all around them.
+
+    A point's distance to the other cloud's surface counts only the support discs of that
+    cloud's samples (:func:`~app.core.localise.distance.surface_distance`), each a few local
+    spacings wide.  A ring lidar samples a floor in lines farther apart than that: a removed
+    box's foot, 3-7 cm over the floor a later path saw in lines 20 cm apart, measures 10-14 cm
+    to the nearest line, though it lies within the change threshold of the floor.  Of the
+    ``cloud`` samples within ``radius`` of such a candidate, the plane it lies nearest to is
+    the surface when its foot on that plane lies between that plane's samples
+    (:func:`between_samples`): there its distance is its offset from that plane.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    distance : ndarray, shape (n,)
+        Distance to ``cloud``'s surface; lowered in place where a sampled plane is nearer.
+    candidate : ndarray, shape (n,), bool
+    cloud : LocalGeometry
+        The other cloud.
+    radius, tolerance, change_threshold : float
+        Metres: the reach of the samples, ``tau`` and ``c``.
+
+    Returns
+    -------
+    ndarray, shape (n,), bool
+        ``candidate`` without the points within ``change_threshold`` of such a plane.
+    """
+    kept = candidate.copy()
+    if cloud.points.shape[0] < 3:
+        return kept
+    candidates = np.flatnonzero(candidate)
+    for start in range(0, candidates.size, PLANE_CHUNK):
+        rows = candidates[start : start + PLANE_CHUNK]
+        on_plane, plane_distance = _nearest_sampled_plane(
+            points[rows],
+            cloud,
+            radius=radius,
+            tolerance=tolerance,
+            reach=change_threshold,
+        )
+        distance[rows[on_plane]] = plane_distance[on_plane]
+        kept[rows[on_plane]] = False
+    return kept
+
+
+def _nearest_sampled_plane(
+    points: NDArray[np.float64],
+    cloud: LocalGeometry,
+    *,
+    radius: float,
+    tolerance: float,
+    reach: float,
+) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    """Whether each point (shape (c, 3)) lies within ``reach`` of the plane of one of
+    ``cloud``'s samples within ``radius`` (the one it lies nearest to) with its foot on that
+    plane between the plane's samples, and its offset from that plane (shapes (c,), (c,))."""
+    k = min(PLANE_SAMPLES, cloud.points.shape[0])
+    found, index = cloud.tree.query(points, k=k, distance_upper_bound=radius)
+    index = np.minimum(np.asarray(index).reshape(len(points), k), cloud.points.shape[0] - 1)
+    normal = cloud.normal[index].astype(np.float64)  # (c, k, 3)
+    offset = np.einsum("ckd,ckd->ck", points[:, None, :] - cloud.points[index], normal)
+    valid = (np.asarray(found).reshape(len(points), k) <= radius) & ~cloud.linear[index]
+    nearest = np.argmin(np.where(valid, np.abs(offset), np.inf), axis=1)
+    rows = np.arange(len(points))
+    # the samples whose normals agree with that sample's are the plane's: their mean normal
+    # and their median offset along it (one sample's normal tilts by noise, and the least of
+    # k noisy offsets lies low)
+    agreeing = np.einsum("ckd,cd->ck", normal, normal[rows, nearest])
+    on_it = valid & (np.abs(agreeing) >= NORMAL_AGREEMENT_COSINE)
+    plane_normal = np.einsum("ck,ckd->cd", np.where(on_it, np.sign(agreeing), 0.0), normal)
+    plane_normal /= np.maximum(np.linalg.norm(plane_normal, axis=1), 1e-12)[:, None]
+    along = np.einsum("ckd,cd->ck", points[:, None, :] - cloud.points[index], plane_normal)
+    ranked = np.sort(np.where(on_it, along, np.inf), axis=1)
+    count = on_it.sum(axis=1)
+    median = 0.5 * (
+        ranked[rows, np.maximum(count - 1, 0) // 2] + ranked[rows, np.minimum(count // 2, k - 1)]
+    )
+    plane_distance = np.where(valid[rows, nearest], np.abs(median), np.inf)
+    on_plane = plane_distance <= reach
+    near = np.flatnonzero(on_plane)
+    if near.size:
+        foot = points[near] - median[near, None] * plane_normal[near]
+        on_plane[near] = between_samples(
+            foot, plane_normal[near], cloud, radius=radius, tolerance=tolerance
+        )
+    return on_plane, plane_distance

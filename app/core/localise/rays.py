@@ -16,8 +16,10 @@ beside the candidate's direction end on that surface short of the candidate with
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -331,26 +333,94 @@ def _ray_status(
     # unobserved already, and most candidates of a moved sensor are (its shadows).
     occluded_anyway = ~found.any(axis=1) | (hides & (ray_range < crossing - margin)).any(axis=1)
     # ... and only where the own cloud has surface (a table top's, not past its edge)
-    own_gap = np.where(ray_range > crossing + margin, test.gap_radius, 0.0)
-    near_rows, near_rays = np.nonzero(crosses_near & ~occluded_anyway[:, None])
-    crosses_near[near_rows, near_rays] = _over_own_surface(
+    near = np.nonzero(crosses_near & ~occluded_anyway[:, None])
+    readings = _Readings(
+        hides,
+        ray_range > crossing + margin,
+        ray_range,
+        crossing,
+        point_range,
+        margin,
+        found.any(axis=1),
+    )
+    crossing_rays = (
+        crossing_point[near],
+        ray_direction[near],
+        normals[near[0]],
+        ray_dot_normal[near],
+    )
+    return _status_over_own_surface(own, crosses_near, near, crossing_rays, readings, test)
+
+
+class _Readings(NamedTuple):
+    """What a chunk's rays say (:func:`_ray_status`), shapes (c, k) unless said.
+
+    ``hides``: the ray stops short of the candidate, behind the surface it hit; ``passes``: it
+    carries on clearly beyond its crossing of the candidate's plane; ``ray_range``,
+    ``crossing`` (its range there), ``point_range`` (c,) the candidate's, ``margin`` the
+    range margin; ``found_any`` (c,): the candidate has rays at all.
+    """
+
+    hides: NDArray[np.bool_]
+    passes: NDArray[np.bool_]
+    ray_range: NDArray[np.float64]
+    crossing: NDArray[np.float64]
+    point_range: NDArray[np.float64]
+    margin: NDArray[np.float64]
+    found_any: NDArray[np.bool_]
+
+
+def _status_over_own_surface(
+    own: LocalGeometry,
+    crosses_near: NDArray[np.bool_],
+    near: tuple[NDArray[np.int64], NDArray[np.int64]],
+    crossing_rays: tuple[NDArray[np.float64], ...],
+    readings: _Readings,
+    test: RayTest,
+) -> NDArray[np.int8]:
+    """Each candidate's status (shape (c,)), its ``near`` rays (row and ray indices into the
+    (c, k) ``crosses_near``, updated in place) counted only where they cross the own surface
+    (:func:`_over_own_surface`; ``crossing_rays``: its first four arguments for those rays).
+
+    With ``test.gap_radius``, a ray passing clearly beyond a crossing between the own cloud's
+    sampling lines crosses the surface too, but only for the candidates not seen through
+    without it: such a ray only adds a ray through the surface, so a candidate seen through
+    without it stays so (the same statuses, for fewer rays' probes).
+    """
+    own_surface = functools.partial(
+        _over_own_surface,
         own,
-        crossing_point[near_rows, near_rays],
-        ray_direction[near_rows, near_rays],
-        normals[near_rows],
-        ray_dot_normal[near_rows, near_rays],
-        reach=margin_factor * normal_tolerance,
-        normal_tolerance=normal_tolerance,
-        gap_radius=own_gap[near_rows, near_rays],
+        reach=test.margin_factor * test.normal_tolerance,
+        normal_tolerance=test.normal_tolerance,
     )
-    expected_stop = np.where(
-        crosses_near, np.minimum(crossing, point_range[:, None]), point_range[:, None]
+    crosses_near[near] = own_surface(*crossing_rays)
+    status = _combined_status(crosses_near, readings, test.beyond_fraction)
+    if test.gap_radius <= 0.0:
+        return status
+    rows, rays = near
+    bridged = np.flatnonzero(
+        ~crosses_near[near] & readings.passes[near] & (status[rows] != STATUS_SEEN_THROUGH)
     )
-    stops_before = hides & (ray_range < expected_stop - margin)
-    passes_beyond = crosses_near & (ray_range > crossing + margin)
+    if bridged.size == 0:
+        return status
+    crosses_near[rows[bridged], rays[bridged]] = own_surface(
+        *(part[bridged] for part in crossing_rays), gap_radius=test.gap_radius
+    )
+    return _combined_status(crosses_near, readings, test.beyond_fraction)
+
+
+def _combined_status(
+    crosses_near: NDArray[np.bool_], readings: _Readings, beyond_fraction: float
+) -> NDArray[np.int8]:
+    """Each candidate's status (shape (c,)) from its rays: ``crosses_near`` (c, k), the ray
+    meets the candidate's own surface near it."""
+    point_range = readings.point_range[:, None]
+    expected_stop = np.where(crosses_near, np.minimum(readings.crossing, point_range), point_range)
+    stops_before = readings.hides & (readings.ray_range < expected_stop - readings.margin)
+    passes_beyond = crosses_near & readings.passes
     n_near = crosses_near.sum(axis=1)
-    occluded = (~found.any(axis=1)) | stops_before.any(axis=1)
-    seen_through = passes_beyond.sum(axis=1) >= test.beyond_fraction * np.maximum(n_near, 1)
+    occluded = ~readings.found_any | stops_before.any(axis=1)
+    seen_through = passes_beyond.sum(axis=1) >= beyond_fraction * np.maximum(n_near, 1)
     status = np.where(seen_through, STATUS_SEEN_THROUGH, STATUS_SURFACE)
     status = np.where(n_near == 0, STATUS_EDGE_ON, status)
     return np.where(occluded, STATUS_UNOBSERVED, status).astype(np.int8)

@@ -12,8 +12,8 @@ points meet an upright region of the other epoch at an edge (the two faces' norm
 than 60 degrees, within two change thresholds): the object before and after it turned.  A
 surface revealed where a removed object stood is none: it is level (the floor or a top under
 it) or parallel to the removed object's face that hid it (the wall behind it).  Only for the
-clouds the map test judged (:func:`changed_points`): the ray tests' classes keep their noise
-floor as it was.
+clouds the map test or the trajectory test judged (:func:`changed_points`): the station ray
+tests' classes keep their noise floor as it was.
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ from app.core.localise.map_evidence import MapTest
 from app.core.localise.map_faces import EDGE_COSINE, EDGE_FACTOR
 from app.core.localise.map_parts import UPRIGHT_NORMAL_Z
 from app.core.localise.regions import ChangedRegion, find_regions, mark_moved_surfaces
+from app.core.localise.trajectory_visibility import TrajectoryTest
 from app.core.localise.visibility import Labelled
 
 __all__ = ["ChangedPoints", "changed_points", "turned_faces", "with_turned_faces"]
@@ -63,9 +64,10 @@ class ChangedPoints(NamedTuple):
 
 
 def changed_points(side: Side, labelled: Labelled, distance: NDArray[np.float64]) -> ChangedPoints:
-    """``side``'s changed points (``labelled``; ``distance`` shape (n,)) when the map test
-    judged them, none otherwise: the noise floor of the ray tests' classes stands as it was."""
-    judged = labelled.report.get(f"{side.name}_visibility") == MapTest.name
+    """``side``'s changed points (``labelled``; ``distance`` shape (n,)) when the map test or
+    the trajectory test judged them (maps from a moving sensor, sparse where it saw a face from
+    afar), none otherwise: the noise floor of the station ray tests' classes stands as it was."""
+    judged = labelled.report.get(f"{side.name}_visibility") in (MapTest.name, TrajectoryTest.name)
     return ChangedPoints(
         side,
         (labelled.label == LABEL_CHANGED) & judged,
