@@ -63,7 +63,6 @@ from app.core.localise.turned_faces import changed_points, with_turned_faces
 from app.core.localise.visibility import (
     Labelled,
     agree_on_faces,
-    choose_test,
     find_candidates,
     label_candidates,
 )
@@ -192,9 +191,7 @@ def localise_changes(
     reference_side, scan_side = _sides(reference, scan, settings["n_neighbors"], threads)
     del reference, scan  # the sides hold what is needed (and not the neighbourhoods ahead)
     limits = _thresholds(reference_side, scan_side, settings, registration_rmse, threads)
-    reference_side, scan_side, candidates = _candidates(
-        reference_side, scan_side, limits, settings, threads
-    )
+    reference_side, scan_side, candidates = _candidates(reference_side, scan_side, limits, threads)
     reference_found, scan_found = _labelled(
         (reference_side, scan_side), candidates, limits, settings, threads
     )
@@ -395,15 +392,10 @@ def _nn_distance_quartile(reference_side: Side, scan_side: Side) -> float:
 
 
 def _candidates(
-    reference_side: Side,
-    scan_side: Side,
-    limits: _Limits,
-    settings: dict[str, Any],
-    threads: int,
+    reference_side: Side, scan_side: Side, limits: _Limits, threads: int
 ) -> tuple[Side, Side, tuple[tuple[NDArray, Candidates], tuple[NDArray, Candidates]]]:
     """Distances to the other's surface and change candidates (step 3); the sides returned
-    without their neighbour index (4 (k + 1) bytes a point), needed only until here; points
-    crossing the other's surface only where the map test judges (:func:`crossing_candidates`)."""
+    without their neighbour index (4 (k + 1) bytes a point), needed only until here."""
 
     def distance_to(own: Side, other: Side) -> tuple[NDArray, Candidates]:
         distance, candidate, _ = surface_distance(
@@ -432,8 +424,8 @@ def _candidates(
             threshold=limits.threshold,
             change_threshold=limits.change_threshold,
         )
-        crossing = limits.crossing_threshold
-        if crossing < limits.change_threshold and choose_test(other, settings).name == "maps":
+        crossing = limits.crossing_threshold  # fused maps only (no origins: the map test)
+        if crossing < limits.change_threshold and other.origins is None:
             candidate = crossing_candidates(
                 candidate, distance, own, other.geometry, crossing_threshold=crossing
             )
