@@ -315,6 +315,7 @@ def map_test(
     threshold: float,
     change_threshold: float,
     cluster_factor: float,
+    resting_band: float | None = None,
 ) -> MapEvidence:
     """Judge one fused map's change candidates against the other epoch's map.
 
@@ -330,6 +331,9 @@ def map_test(
         The change threshold ``c`` (metres): a surface within it is the same surface.
     cluster_factor : float
         Candidates closer than this many local spacings form one cluster.
+    resting_band : float, optional
+        Height over the other epoch's support under which an upright foot rests on it
+        (:func:`~app.core.localise.map_supports.map_statuses`); default ``change_threshold``.
 
     Returns
     -------
@@ -405,7 +409,7 @@ def map_test(
         figures, see_through, open_beneath, far_face, stands_on_lacking, in_gap, hollow, strips
     )
     status, evidence, counts["map_resting_points"] = map_statuses(
-        candidates, labels, coverage[labels], other, threshold, change_threshold
+        candidates, labels, coverage[labels], other, threshold, resting_band or change_threshold
     )
     return MapEvidence(
         status,
@@ -574,6 +578,15 @@ class MapTest:
             threshold=context.threshold,
             change_threshold=context.change_threshold,
             cluster_factor=context.settings["cluster_factor"],
+            # a foot rests on a support within the noise-only threshold (distance.crossing_...)
+            resting_band=min(
+                context.change_threshold,
+                max(
+                    context.settings["min_change_distance"],
+                    context.settings["threshold_factor"]
+                    * np.hypot(own.geometry.noise, other.geometry.noise),
+                ),
+            ),
         )
         return VisibilityOutcome(
             status=found.status,
