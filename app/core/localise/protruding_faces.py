@@ -13,8 +13,8 @@ and most of its points stand, within two change thresholds, in front of a parall
 other epoch's surface this epoch lacks (the other cloud's points farther than the change
 threshold from this cloud's surface), on the side away from the body that face bounds: the
 object's face stood out there in one epoch, where the other epoch's object was not.  The body
-is taken from the other cloud's own points around that face (its meeting faces and top: the
-points at an angle to it, off its plane, between its foot and its top).  A surface revealed
+is taken from the other cloud's own points around that face (off its plane, between its foot
+and its top: its meeting faces, its top and its far face).  A surface revealed
 where an object was removed or moved away (a wall behind it) lies on the body's side of the
 object's face, and is no protruding face; a level patch (a floor under it) is no upright face.
 Only for the clouds the map test or the trajectory test judged: the station ray tests keep
@@ -99,8 +99,9 @@ def _outside_body(
 ) -> bool:
     """Whether ``face`` (shape (p, 3), unit ``normal``) stands at least
     :data:`MIN_OFFSET_SHARE` change thresholds from the other cloud's ``other_face`` (indices)
-    on the side away from the body that face bounds: the other cloud's points around it at an
-    angle to it, off its plane, above its foot and not over its top."""
+    on the side away from the body that face bounds: the median side of the other cloud's
+    points around it, off its plane, above its foot and not over its top (its meeting faces,
+    its top and its far face)."""
     face_points = other.side.points[other_face]
     offset = float(np.median(face_points @ normal) - np.median(face @ normal))
     if abs(offset) < MIN_OFFSET_SHARE * change_threshold:
@@ -117,6 +118,33 @@ def _outside_body(
     if np.count_nonzero(bounding) < MIN_BODY_POINTS:
         return False
     return float(np.median(depth[bounding])) * offset > 0
+
+
+def _small_upright_faces(
+    own: ChangedPoints, floor: int, min_region_points: int, cluster_factor: float
+) -> list[tuple[ChangedRegion, NDArray[np.float64], NDArray[np.float64]]]:
+    """``own``'s clusters of ``floor`` to ``min_region_points`` changed points whose plane
+    fit is upright: each as a region, its points (shape (p, 3)) and unit normal (shape (3,))."""
+    small, _ = find_regions(
+        own.side.points,
+        kind=own.side.region_kind,
+        changed=own.changed,
+        spacing=own.side.geometry.spacing,
+        distance=own.distance,
+        cluster_factor=cluster_factor,
+        min_region_points=floor,
+        evidence=own.evidence,
+        confidence=own.confidence,
+    )
+    faces = []
+    for region in small:
+        if region.n_points >= min_region_points:
+            continue
+        face = own.side.points[region.point_indices]
+        normal = face_normal(face)
+        if abs(normal[2]) < UPRIGHT_NORMAL_Z:
+            faces.append((region, face, normal))
+    return faces
 
 
 def protruding_faces(
@@ -153,28 +181,12 @@ def protruding_faces(
     for own, other in ((changed[0], changed[1]), (changed[1], changed[0])):
         if own.test not in JUDGING_TESTS or not own.changed.any():
             continue
+        faces = _small_upright_faces(own, floor, min_region_points, cluster_factor)
         lacking = np.flatnonzero(other.distance > change_threshold)
-        if lacking.size == 0:
+        if not faces or lacking.size == 0:
             continue
         lacking_tree = KDTree(other.side.points[lacking])
-        small, _ = find_regions(
-            own.side.points,
-            kind=own.side.region_kind,
-            changed=own.changed,
-            spacing=own.side.geometry.spacing,
-            distance=own.distance,
-            cluster_factor=cluster_factor,
-            min_region_points=floor,
-            evidence=own.evidence,
-            confidence=own.confidence,
-        )
-        for region in small:
-            if region.n_points >= min_region_points:
-                continue
-            face = own.side.points[region.point_indices]
-            normal = face_normal(face)
-            if abs(normal[2]) >= UPRIGHT_NORMAL_Z:
-                continue
+        for region, face, normal in faces:
             other_face = _other_face(
                 face, normal, (lacking, lacking_tree), other, EDGE_FACTOR * change_threshold
             )
