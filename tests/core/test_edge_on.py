@@ -19,8 +19,9 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from app.core.datasets.lidar import LidarWorld, lidar_directions
-from app.core.localise.rays import STATUS_SEEN_THROUGH, Candidates, RayTest, ray_visibility
+from app.core.localise.rays import STATUS_SEEN_THROUGH
 from app.core.localise.surface import local_geometry
+from tests.helpers.ray_cases import face_candidates, ray_test, status_seen_by
 
 BOX_LOW = np.array([4.0, 0.5, 0.0])
 BOX_HIGH = np.array([4.5, 1.0, 1.0])
@@ -34,14 +35,7 @@ LIDAR_STEP_DEG = 0.25
 """Fine enough that the rays hitting the face next to the edge do not hide it (at 1 degree
 their returns fall short of the edge's points by more than the range margin)."""
 COS_SECTOR = math.cos(math.radians(45.0))
-TEST = RayTest(
-    normal_tolerance=0.035,
-    range_tolerance=0.035,
-    margin_factor=1.0,
-    angle_factor=2.5,
-    beyond_fraction=0.5,
-    miss_factor=4.0,
-)
+TEST = ray_test(0.035)
 
 
 def own_box_faces() -> np.ndarray:
@@ -83,25 +77,9 @@ def face_status(sensor: np.ndarray, *, box_there: bool, yaw_deg: float, x_low: f
         & (faces[:, 2] <= 0.7)
     )
     other_points = other_station(sensor, box_there=box_there, yaw_deg=yaw_deg)
-    other = local_geometry(other_points, 10)
     surface_distance, _ = KDTree(other_points).query(faces[chosen], k=1)
-    candidates = Candidates(
-        index=chosen,
-        points=faces[chosen],
-        normal=np.tile(np.array([0.0, -1.0, 0.0], dtype=np.float32), (chosen.size, 1)),
-        linear=np.zeros(chosen.size, dtype=bool),
-        spacing=own.spacing[chosen],
-        surface_distance=surface_distance.astype(np.float64),
-    )
-    status, _ = ray_visibility(
-        candidates,
-        own=own,
-        other_points=other_points,
-        other_origin=sensor,
-        test=TEST,
-        other_normals=other.normal,
-        other_linear=other.linear,
-    )
+    candidates = face_candidates(faces, own, chosen, (0.0, -1.0, 0.0), surface_distance)
+    status = status_seen_by(candidates, own, other_points, sensor, TEST)
     return status
 
 

@@ -15,30 +15,18 @@ from __future__ import annotations
 import numpy as np
 
 from app.core.datasets.lidar import LidarWorld, lidar_directions
-from app.core.localise.rays import (
-    STATUS_SEEN_THROUGH,
-    STATUS_UNOBSERVED,
-    Candidates,
-    RayTest,
-    ray_visibility,
-)
-from app.core.localise.surface import local_geometry
+from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED, Candidates
+from app.core.localise.surface import LocalGeometry, local_geometry
+from tests.helpers.ray_cases import face_candidates, ray_test, status_seen_by
 
 SENSOR = np.array([0.0, 0.0, 0.85])
 FACE_X = 11.5
 """The removed box's face (the candidates' own surface) stands across the floor at x = 11.5."""
-TEST = RayTest(
-    normal_tolerance=0.035,
-    range_tolerance=0.035,
-    margin_factor=1.0,
-    angle_factor=2.5,
-    beyond_fraction=0.5,
-    miss_factor=4.0,
-)
+TEST = ray_test(0.035)
 
 
-def other_station(box_low: list[list[float]], box_high: list[list[float]]):
-    """Returns of a 1 degree lidar at SENSOR in a 40 x 20 m hall, and their local surfaces."""
+def other_station(box_low: list[list[float]], box_high: list[list[float]]) -> np.ndarray:
+    """Returns of a 1 degree lidar at SENSOR in a 40 x 20 m hall, shape (k, 3)."""
     world = LidarWorld(
         shell_low=np.array([-5.0, -10.0, 0.0]),
         shell_high=np.array([35.0, 10.0, 6.0]),
@@ -47,11 +35,10 @@ def other_station(box_low: list[list[float]], box_high: list[list[float]]):
     )
     directions = lidar_directions(1.0, 1.0, yaw_deg=0.5)
     distance, _ = world.cast(SENSOR, directions)
-    points = SENSOR + distance[:, None] * directions
-    return points, local_geometry(points, 10)
+    return SENSOR + distance[:, None] * directions
 
 
-def foot_of_removed_box(low: float, high: float) -> tuple[Candidates, object]:
+def foot_of_removed_box(low: float, high: float) -> tuple[Candidates, LocalGeometry]:
     """Candidates ``low``-``high`` metres up the face of a box (3 cm grid) now gone."""
     grid = np.arange(-0.3, 0.3, 0.03)
     heights = np.arange(0.0, 0.6, 0.03)
@@ -59,30 +46,14 @@ def foot_of_removed_box(low: float, high: float) -> tuple[Candidates, object]:
     face = np.column_stack([np.full(y.size, FACE_X), y.ravel(), z.ravel()])
     own = local_geometry(face, 10)
     chosen = np.flatnonzero((np.abs(face[:, 1]) < 0.1) & (face[:, 2] >= low) & (face[:, 2] <= high))
-    candidates = Candidates(
-        index=chosen,
-        points=face[chosen],
-        normal=np.tile(np.array([-1.0, 0.0, 0.0], dtype=np.float32), (chosen.size, 1)),
-        linear=np.zeros(chosen.size, dtype=bool),
-        spacing=own.spacing[chosen],
-        surface_distance=face[chosen, 2],  # the floor is the nearest surface left
-    )
+    # the floor is the nearest surface left
+    candidates = face_candidates(face, own, chosen, (-1.0, 0.0, 0.0), face[chosen, 2])
     return candidates, own
 
 
 def status_seen_from(box_low: list, box_high: list, low: float, high: float) -> np.ndarray:
     candidates, own = foot_of_removed_box(low, high)
-    points, surfaces = other_station(box_low, box_high)
-    status, _ = ray_visibility(
-        candidates,
-        own=own,
-        other_points=points,
-        other_origin=SENSOR,
-        test=TEST,
-        other_normals=surfaces.normal,
-        other_linear=surfaces.linear,
-    )
-    return status
+    return status_seen_by(candidates, own, other_station(box_low, box_high), SENSOR, TEST)
 
 
 def test_rays_ending_on_the_floor_short_of_a_removed_boxs_foot_do_not_hide_it():

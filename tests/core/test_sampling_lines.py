@@ -12,30 +12,14 @@ lines tens of centimetres apart, each dense along itself.  Rules checked:
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 from pykdtree.kdtree import KDTree
 
 from app.core.datasets.lidar import LidarWorld, lidar_directions
 from app.core.localise.gaps import between_samples
-from app.core.localise.rays import (
-    STATUS_EDGE_ON,
-    STATUS_SEEN_THROUGH,
-    Candidates,
-    RayTest,
-    ray_visibility,
-)
+from app.core.localise.rays import STATUS_EDGE_ON, STATUS_SEEN_THROUGH
 from app.core.localise.surface import local_geometry
-
-TEST = RayTest(
-    normal_tolerance=0.03,
-    range_tolerance=0.03,
-    margin_factor=1.0,
-    angle_factor=2.5,
-    beyond_fraction=0.5,
-    miss_factor=4.0,
-)
+from tests.helpers.ray_cases import face_candidates, ray_test, status_seen_by
 
 
 def strips(
@@ -102,25 +86,10 @@ def top_status(gap_radius: float) -> np.ndarray:
     )
     distance, _ = world.cast(SENSOR, directions)
     other_points = SENSOR + distance[:, None] * directions
-    other = local_geometry(other_points, 10)
     surface_distance, _ = KDTree(other_points).query(own_points[chosen], k=1)
-    candidates = Candidates(
-        index=chosen,
-        points=own_points[chosen],
-        normal=np.tile(np.array([0.0, 0.0, 1.0], dtype=np.float32), (chosen.size, 1)),
-        linear=np.zeros(chosen.size, dtype=bool),
-        spacing=own.spacing[chosen],
-        surface_distance=surface_distance.astype(np.float64),
-    )
-    status, _ = ray_visibility(
-        candidates,
-        own=own,
-        other_points=other_points,
-        other_origin=SENSOR,
-        test=dataclasses.replace(TEST, gap_radius=gap_radius),
-        other_normals=other.normal,
-        other_linear=other.linear,
-    )
+    candidates = face_candidates(own_points, own, chosen, (0.0, 0.0, 1.0), surface_distance)
+    test = ray_test(0.03, gap_radius=gap_radius)
+    status = status_seen_by(candidates, own, other_points, SENSOR, test)
     return status
 
 
