@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from app.core import registration
 from app.core.cloud import PointCloud
 from app.core.errors import RegistrationError
 from app.core.formats import read_point_cloud
@@ -327,3 +328,25 @@ def test_a_reference_memory_gives_the_same_alignment_without_the_reference_work(
         identity.fitness,
         identity.rmse,
     )
+
+
+def test_large_clouds_are_aligned_on_a_random_sample(reference, rescan, monkeypatch):
+    """Beyond ``SAMPLE_POINTS`` a cloud is aligned on that many of its points, and still
+    recovers the transform; an identical scan (the same draw) aligns to the identity."""
+    seen: list[int] = []
+
+    def spacing(points: np.ndarray, *args, **kwargs) -> float:
+        seen.append(len(points))
+        return estimate_point_spacing(points, *args, **kwargs)
+
+    monkeypatch.setattr(registration, "SAMPLE_POINTS", 12_000, raising=False)
+    monkeypatch.setattr(registration, "estimate_point_spacing", spacing)
+    truth = rigid_transform(0.03, 0.4)
+    result = register_scan(reference, apply_transform(rescan, np.linalg.inv(truth)))
+    assert len(reference) > 20_000 and seen == [12_000, 12_000]
+    translation_error, rotation_error = errors(result.transform, truth)
+    assert translation_error < 0.005
+    assert rotation_error < 0.05
+    assert result.fitness > 0.9
+    same = register_scan(reference, reference.copy())
+    np.testing.assert_allclose(same.transform, np.eye(4), atol=1e-9)

@@ -86,9 +86,12 @@ from app.core.localise.map_shared import (
     unseen_faces,
     unseen_levels,
 )
+from app.core.localise.map_supports import map_statuses
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
-from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED, Candidates
-from app.core.localise.regions import EVIDENCE_NO_COVERAGE, EVIDENCE_SEEN_EMPTY
+from app.core.localise.rays import (
+    STATUS_SEEN_THROUGH,
+    Candidates,
+)
 
 __all__ = ["MapEvidence", "MapTest", "map_test", "unseen_faces"]
 
@@ -333,11 +336,10 @@ def map_test(
     MapEvidence
     """
     count = candidates.index.shape[0]
-    status = np.full(count, STATUS_SEEN_THROUGH, dtype=np.int8)
-    evidence = np.full(count, EVIDENCE_SEEN_EMPTY, dtype=np.int8)
     if count == 0:
+        status = np.full(count, STATUS_SEEN_THROUGH, dtype=np.int8)
         counts = {"map_clusters": 0, "map_coverage_clusters": 0}
-        return MapEvidence(status, evidence, np.ones(count, dtype=np.float32), counts, None)
+        return MapEvidence(status, status.copy(), np.ones(count, dtype=np.float32), counts, None)
     labels = surface_parts(
         candidates.points, candidates.normal, cluster_factor * candidates.spacing
     )
@@ -402,8 +404,9 @@ def map_test(
     coverage, faces, confidence, counts = _verdict(
         figures, see_through, open_beneath, far_face, stands_on_lacking, in_gap, hollow, strips
     )
-    status[coverage[labels]] = STATUS_UNOBSERVED
-    evidence[coverage[labels]] = EVIDENCE_NO_COVERAGE
+    status, evidence, counts["map_resting_points"] = map_statuses(
+        candidates, labels, coverage[labels], other, threshold, change_threshold
+    )
     return MapEvidence(
         status,
         evidence,

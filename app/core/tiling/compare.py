@@ -6,7 +6,8 @@ The stages around localisation are those of :func:`app.core.pipeline.compare`
 with three differences that bound memory:
 
 - **Registration** runs on at most :data:`REGISTRATION_SAMPLE` points of each cloud (evenly
-  strided: GICP thins both clouds on a voxel grid anyway); each tile then measures the
+  strided: GICP thins both clouds on a voxel grid anyway; the alignment then draws its own
+  random :data:`~app.core.registration.SAMPLE_POINTS` of them); each tile then measures the
   alignment residual left on its own crop, reported per tile (``localisation.tiles``) with
   the largest of them.
 - **Localisation** runs tile by tile (:mod:`app.core.tiling`), with the sensor origins and
