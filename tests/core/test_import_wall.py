@@ -142,6 +142,7 @@ LOCALISE_LAYERS = (
     "coverage",
     "visibility",
     "turned_faces",
+    "protruding_faces",
     "changes",
 )
 """The localisation package's modules, lowest first: each imports only modules before it."""

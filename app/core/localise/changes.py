@@ -51,6 +51,7 @@ from app.core.localise.distance import (
 )
 from app.core.localise.epoch import EpochCloud, with_checked_stations
 from app.core.localise.gaps import PLANE_RADIUS_FACTOR, on_sampled_planes
+from app.core.localise.protruding_faces import with_small_faces
 from app.core.localise.rays import Candidates
 from app.core.localise.regions import ChangedRegion, find_regions, mark_moved_surfaces
 from app.core.localise.settings import (
@@ -59,7 +60,7 @@ from app.core.localise.settings import (
     resolve_parameters,
 )
 from app.core.localise.surface import LocalGeometry, local_geometry
-from app.core.localise.turned_faces import changed_points, with_turned_faces
+from app.core.localise.turned_faces import changed_points
 from app.core.localise.visibility import (
     Labelled,
     agree_on_faces,
@@ -198,7 +199,7 @@ def localise_changes(
     regions, uncertain_regions, dropped = _regions(
         reference_found, scan_found, settings, min_region_points, threads
     )
-    regions, turned = with_turned_faces(
+    regions, turned = with_small_faces(
         regions,
         (
             changed_points(

@@ -29,11 +29,11 @@ from app.core.localise.distance import Side
 from app.core.localise.map_evidence import MapTest
 from app.core.localise.map_faces import EDGE_COSINE, EDGE_FACTOR
 from app.core.localise.map_parts import UPRIGHT_NORMAL_Z
-from app.core.localise.regions import ChangedRegion, find_regions, mark_moved_surfaces
+from app.core.localise.regions import ChangedRegion, find_regions
 from app.core.localise.trajectory_visibility import TrajectoryTest
 from app.core.localise.visibility import Labelled
 
-__all__ = ["ChangedPoints", "changed_points", "turned_faces", "with_turned_faces"]
+__all__ = ["ChangedPoints", "changed_points", "face_normal", "turned_faces"]
 
 FLOOR_SHARE = 1.0 / 3.0
 """A turned face has at least this share of ``min_region_points`` points (and 4)."""
@@ -54,6 +54,8 @@ class ChangedPoints(NamedTuple):
         Each point's distance to the other cloud's surface.
     evidence : ndarray, shape (n,), int8
     confidence : ndarray, shape (n,)
+    test : str
+        The name of the visibility test that judged the cloud (``""`` when none did).
     """
 
     side: Side
@@ -61,23 +63,23 @@ class ChangedPoints(NamedTuple):
     distance: NDArray[np.float64]
     evidence: NDArray[np.int8]
     confidence: NDArray[np.floating]
+    test: str = ""
 
 
 def changed_points(side: Side, labelled: Labelled, distance: NDArray[np.float64]) -> ChangedPoints:
-    """``side``'s changed points (``labelled``; ``distance`` shape (n,)) when the map test or
-    the trajectory test judged them (maps from a moving sensor, sparse where it saw a face from
-    afar), none otherwise: the noise floor of the station ray tests' classes stands as it was."""
-    judged = labelled.report.get(f"{side.name}_visibility") in (MapTest.name, TrajectoryTest.name)
+    """``side``'s changed points (``labelled``; ``distance`` shape (n,)) and the name of the
+    visibility test that judged them."""
     return ChangedPoints(
         side,
-        (labelled.label == LABEL_CHANGED) & judged,
+        labelled.label == LABEL_CHANGED,
         distance,
         labelled.evidence,
         labelled.confidence,
+        str(labelled.report.get(f"{side.name}_visibility", "")),
     )
 
 
-def _face_normal(points: NDArray[np.float64]) -> NDArray[np.float64]:
+def face_normal(points: NDArray[np.float64]) -> NDArray[np.float64]:
     """The unit normal of the plane fitted to ``points`` (shape (p, 3) -> (3,))."""
     _, vectors = np.linalg.eigh(np.cov((points - points.mean(axis=0)).T))
     return vectors[:, 0]
@@ -94,7 +96,7 @@ def _meets_at_angle(
     ``region_points`` (indices, shape (r,); ``region_tree`` over their positions) at an edge:
     :data:`MIN_MEETING` of its points within ``reach`` of one, and :data:`MEETING_SHARE` of
     those at an upright surface at an angle to it."""
-    normal = _face_normal(face)
+    normal = face_normal(face)
     if abs(normal[2]) >= UPRIGHT_NORMAL_Z:
         return False
     distance, index = region_tree.query(face, k=1, distance_upper_bound=reach)
@@ -142,7 +144,10 @@ def turned_faces(
     for own, other in ((changed[0], changed[1]), (changed[1], changed[0])):
         other_kind = other.side.region_kind
         region_points = [r.point_indices for r in regions if r.kind == other_kind]
-        if not region_points or not own.changed.any():
+        # the map and trajectory tests' clouds only (maps from a moving sensor, sparse where
+        # it saw a face from afar): the noise floor of the station ray tests' classes stands
+        judged = own.test in (MapTest.name, TrajectoryTest.name)
+        if not judged or not region_points or not own.changed.any():
             continue
         other_points = np.concatenate(region_points)
         other_tree = KDTree(other.side.points[other_points])
@@ -170,28 +175,3 @@ def turned_faces(
             )
         ]
     return kept
-
-
-def with_turned_faces(
-    regions: list[ChangedRegion],
-    changed: tuple[ChangedPoints, ChangedPoints],
-    *,
-    cluster_factor: float,
-    min_region_points: int,
-    change_threshold: float,
-) -> tuple[list[ChangedRegion], int]:
-    """``regions`` with the :func:`turned_faces` added, largest first, removed and added ones
-    side by side marked again (:func:`~app.core.localise.regions.mark_moved_surfaces`), and how
-    many small clusters were kept."""
-    found = turned_faces(
-        changed,
-        regions,
-        cluster_factor=cluster_factor,
-        min_region_points=min_region_points,
-        change_threshold=change_threshold,
-    )
-    if not found:
-        return regions, 0
-    merged = [*regions, *found]
-    merged.sort(key=lambda region: (-region.n_points, region.kind, int(region.point_indices[0])))
-    return mark_moved_surfaces(merged), len(found)
