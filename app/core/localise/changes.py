@@ -427,9 +427,7 @@ def _candidates(
         )
         crossing = limits.crossing_threshold  # fused maps only (no origins: the map test)
         if crossing < limits.change_threshold and other.origins is None:
-            candidate = crossing_candidates(
-                candidate, distance, own, other.geometry, crossing_threshold=crossing
-            )
+            candidate = crossing_candidates(candidate, distance, own, other.geometry, crossing)
         # the candidates' flattest neighbours are taken before the neighbour index is released
         # (on each side's thread: ~0.15 CPU s of serial gathers at 1M + 1M otherwise)
         return distance, find_candidates(own, distance=distance, candidate=candidate)

@@ -393,7 +393,6 @@ def crossing_candidates(
     distance: NDArray[np.float64],
     own: Side,
     other: LocalGeometry,
-    *,
     crossing_threshold: float,
 ) -> NDArray[np.bool_]:
     """Candidates, with the points whose own surface crosses the other cloud's judged by the
