@@ -27,17 +27,19 @@ import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
-from app.core.localise.map_evidence import MapTest
 from app.core.localise.map_faces import EDGE_FACTOR
 from app.core.localise.map_parts import UPRIGHT_NORMAL_Z
 from app.core.localise.regions import ChangedRegion, find_regions, mark_moved_surfaces
-from app.core.localise.trajectory_visibility import TrajectoryTest
-from app.core.localise.turned_faces import FLOOR_SHARE, ChangedPoints, face_normal, turned_faces
+from app.core.localise.turned_faces import (
+    FLOOR_SHARE,
+    MOVING_SENSOR_TESTS,
+    ChangedPoints,
+    face_normal,
+    turned_faces,
+)
 
-__all__ = ["JUDGING_TESTS", "protruding_faces", "with_small_faces"]
+__all__ = ["protruding_faces", "with_small_faces"]
 
-JUDGING_TESTS = (MapTest.name, TrajectoryTest.name)
-"""The visibility tests whose clouds' small clusters may be protruding faces."""
 PARALLEL_COSINE = 0.9
 """The other face's normals within about 25 degrees of the face's: parallel."""
 FACING_SHARE = 0.5
@@ -179,7 +181,7 @@ def protruding_faces(
         return []
     kept: list[ChangedRegion] = []
     for own, other in ((changed[0], changed[1]), (changed[1], changed[0])):
-        if own.test not in JUDGING_TESTS or not own.changed.any():
+        if own.test not in MOVING_SENSOR_TESTS or not own.changed.any():
             continue
         faces = _small_upright_faces(own, floor, min_region_points, cluster_factor)
         lacking = np.flatnonzero(other.distance > change_threshold)

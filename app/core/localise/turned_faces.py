@@ -33,8 +33,17 @@ from app.core.localise.regions import ChangedRegion, find_regions
 from app.core.localise.trajectory_visibility import TrajectoryTest
 from app.core.localise.visibility import Labelled
 
-__all__ = ["ChangedPoints", "changed_points", "face_normal", "turned_faces"]
+__all__ = [
+    "MOVING_SENSOR_TESTS",
+    "ChangedPoints",
+    "changed_points",
+    "face_normal",
+    "turned_faces",
+]
 
+MOVING_SENSOR_TESTS = (MapTest.name, TrajectoryTest.name)
+"""The visibility tests of maps from a moving sensor, sparse where it saw a face from afar:
+their small faces are looked for; the station ray tests' classes keep their noise floor."""
 FLOOR_SHARE = 1.0 / 3.0
 """A turned face has at least this share of ``min_region_points`` points (and 4)."""
 MIN_MEETING = 3
@@ -144,10 +153,7 @@ def turned_faces(
     for own, other in ((changed[0], changed[1]), (changed[1], changed[0])):
         other_kind = other.side.region_kind
         region_points = [r.point_indices for r in regions if r.kind == other_kind]
-        # the map and trajectory tests' clouds only (maps from a moving sensor, sparse where
-        # it saw a face from afar): the noise floor of the station ray tests' classes stands
-        judged = own.test in (MapTest.name, TrajectoryTest.name)
-        if not judged or not region_points or not own.changed.any():
+        if own.test not in MOVING_SENSOR_TESTS or not region_points or not own.changed.any():
             continue
         other_points = np.concatenate(region_points)
         other_tree = KDTree(other.side.points[other_points])
