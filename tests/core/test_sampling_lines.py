@@ -22,7 +22,8 @@ from pykdtree.kdtree import KDTree
 from app.core.datasets.lidar import LidarWorld, lidar_directions
 from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED
 from app.core.localise.changes import localise_changes
-from app.core.localise.gaps import between_samples
+from app.core.localise.epoch import EpochCloud
+from app.core.localise.gaps import between_samples, on_sampled_planes
 from app.core.localise.rays import STATUS_EDGE_ON, STATUS_SEEN_THROUGH
 from app.core.localise.surface import local_geometry
 from tests.helpers.ray_cases import face_candidates, ray_test, status_seen_by
@@ -162,3 +163,35 @@ def test_a_removed_box_foot_over_a_floor_seen_in_lines_is_on_the_floor(seed: int
     assert (found.reference_distance[foot] <= 0.1).all()  # within the change threshold
     upper = on_box & (reference[:, 2] > 0.2)
     assert np.mean(found.reference_label[upper] == LABEL_CHANGED) > 0.9
+
+
+def test_a_station_clouds_candidates_keep_their_measured_distance() -> None:
+    """The rule is for maps from a moving sensor: against a scan from one known station (its
+    rays model the sensor), the foot keeps the distance to its nearest floor line: a
+    candidate for the ray test, not unchanged surface."""
+    reference, scan = box_over_lines(0)
+    on_box = (np.abs(reference[:, :2]) <= BOX_HALF + 0.01).all(axis=1) & (reference[:, 2] > 0.005)
+    foot = on_box & (reference[:, 2] < 0.06) & (np.abs(reference[:, :2]) > 0.1).any(axis=1)
+
+    found = localise_changes(reference, EpochCloud(scan, origin=np.array([0.0, -2.5, 1.0])))
+
+    assert np.mean(found.reference_label[foot] == LABEL_UNCHANGED) < 0.5
+
+
+def test_skipping_candidates_with_no_sample_within_reach_gives_the_same_planes() -> None:
+    reference, scan = box_over_lines(1)
+    other = local_geometry(scan, 10)
+    nearest, _ = KDTree(scan).query(reference, k=1)
+    candidate = nearest > 0.1
+    settings = {"radius": 0.2, "tolerance": 0.03, "change_threshold": 0.1}
+    distance_all, distance_near = nearest.copy(), nearest.copy()
+
+    kept_all = on_sampled_planes(reference, distance_all, candidate, other, **settings)
+    kept_near = on_sampled_planes(
+        reference, distance_near, candidate, other, nearest_distance=nearest, **settings
+    )
+
+    assert 0 < np.count_nonzero(candidate & ~kept_all) < np.count_nonzero(candidate)
+    assert (nearest[candidate] > 0.2).any()  # some candidates are skipped
+    np.testing.assert_array_equal(kept_near, kept_all)
+    np.testing.assert_array_equal(distance_near, distance_all)

@@ -408,15 +408,17 @@ def _candidates(
             support_factor=limits.support,
             change_threshold=limits.change_threshold,
         )
-        candidate = on_sampled_planes(
-            own.points,
-            distance,
-            candidate,
-            other.geometry,
-            radius=PLANE_RADIUS_FACTOR * limits.change_threshold,
-            tolerance=limits.threshold,
-            change_threshold=limits.change_threshold,
-        )
+        if other.origins is None or other.trajectory_rays is not None:  # a moving sensor's map
+            candidate = on_sampled_planes(
+                own.points,
+                distance,
+                candidate,
+                other.geometry,
+                radius=PLANE_RADIUS_FACTOR * limits.change_threshold,
+                tolerance=limits.threshold,
+                change_threshold=limits.change_threshold,
+                nearest_distance=own.nearest_distance,
+            )
         candidate = surface_offset_candidates(
             candidate,
             distance,
@@ -428,8 +430,7 @@ def _candidates(
         crossing = limits.crossing_threshold  # fused maps only (no origins: the map test)
         if crossing < limits.change_threshold and other.origins is None:
             candidate = crossing_candidates(candidate, distance, own, other.geometry, crossing)
-        # the candidates' flattest neighbours are taken before the neighbour index is released
-        # (on each side's thread: ~0.15 CPU s of serial gathers at 1M + 1M otherwise)
+        # the flattest neighbours before the neighbour index goes (~0.15 CPU s serial at 1M)
         return distance, find_candidates(own, distance=distance, candidate=candidate)
 
     (reference_distance, reference_candidates), (scan_distance, scan_candidates) = concurrently(
