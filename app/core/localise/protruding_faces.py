@@ -29,12 +29,13 @@ from pykdtree.kdtree import KDTree
 
 from app.core.localise.map_faces import EDGE_FACTOR
 from app.core.localise.map_parts import UPRIGHT_NORMAL_Z
-from app.core.localise.regions import ChangedRegion, find_regions, mark_moved_surfaces
+from app.core.localise.regions import ChangedRegion, mark_moved_surfaces
 from app.core.localise.turned_faces import (
     FLOOR_SHARE,
     MOVING_SENSOR_TESTS,
     ChangedPoints,
     face_normal,
+    small_clusters,
     turned_faces,
 )
 
@@ -127,17 +128,7 @@ def _small_upright_faces(
 ) -> list[tuple[ChangedRegion, NDArray[np.float64], NDArray[np.float64]]]:
     """``own``'s clusters of ``floor`` to ``min_region_points`` changed points whose plane
     fit is upright: each as a region, its points (shape (p, 3)) and unit normal (shape (3,))."""
-    small, _ = find_regions(
-        own.side.points,
-        kind=own.side.region_kind,
-        changed=own.changed,
-        spacing=own.side.geometry.spacing,
-        distance=own.distance,
-        cluster_factor=cluster_factor,
-        min_region_points=floor,
-        evidence=own.evidence,
-        confidence=own.confidence,
-    )
+    small = small_clusters(own, floor, cluster_factor)
     faces = []
     for region in small:
         if region.n_points >= min_region_points:

@@ -38,6 +38,7 @@ __all__ = [
     "ChangedPoints",
     "changed_points",
     "face_normal",
+    "small_clusters",
     "turned_faces",
 ]
 
@@ -86,6 +87,22 @@ def changed_points(side: Side, labelled: Labelled, distance: NDArray[np.float64]
         labelled.confidence,
         str(labelled.report.get(f"{side.name}_visibility", "")),
     )
+
+
+def small_clusters(own: ChangedPoints, floor: int, cluster_factor: float) -> list[ChangedRegion]:
+    """``own``'s clusters of changed points of at least ``floor`` points, as regions."""
+    clusters, _ = find_regions(
+        own.side.points,
+        kind=own.side.region_kind,
+        changed=own.changed,
+        spacing=own.side.geometry.spacing,
+        distance=own.distance,
+        cluster_factor=cluster_factor,
+        min_region_points=floor,
+        evidence=own.evidence,
+        confidence=own.confidence,
+    )
+    return clusters
 
 
 def face_normal(points: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -157,17 +174,7 @@ def turned_faces(
             continue
         other_points = np.concatenate(region_points)
         other_tree = KDTree(other.side.points[other_points])
-        small, _ = find_regions(
-            own.side.points,
-            kind=own.side.region_kind,
-            changed=own.changed,
-            spacing=own.side.geometry.spacing,
-            distance=own.distance,
-            cluster_factor=cluster_factor,
-            min_region_points=floor,
-            evidence=own.evidence,
-            confidence=own.confidence,
-        )
+        small = small_clusters(own, floor, cluster_factor)
         kept += [
             region
             for region in small
