@@ -31,9 +31,9 @@ from app.core.localise.map_faces import EDGE_FACTOR
 from app.core.localise.map_parts import UPRIGHT_NORMAL_Z
 from app.core.localise.regions import ChangedRegion, mark_moved_surfaces
 from app.core.localise.turned_faces import (
-    FLOOR_SHARE,
     MOVING_SENSOR_TESTS,
     ChangedPoints,
+    face_floor,
     face_normal,
     small_clusters,
     turned_faces,
@@ -167,7 +167,7 @@ def protruding_faces(
     list of ChangedRegion
         The small clusters kept, reference's first.
     """
-    floor = max(4, int(np.ceil(FLOOR_SHARE * min_region_points)))
+    floor = face_floor(min_region_points)
     if floor >= min_region_points:
         return []
     kept: list[ChangedRegion] = []

@@ -37,6 +37,7 @@ __all__ = [
     "MOVING_SENSOR_TESTS",
     "ChangedPoints",
     "changed_points",
+    "face_floor",
     "face_normal",
     "small_clusters",
     "turned_faces",
@@ -87,6 +88,12 @@ def changed_points(side: Side, labelled: Labelled, distance: NDArray[np.float64]
         labelled.confidence,
         str(labelled.report.get(f"{side.name}_visibility", "")),
     )
+
+
+def face_floor(min_region_points: int) -> int:
+    """The fewest points a small face kept as a region holds: :data:`FLOOR_SHARE` of
+    ``min_region_points``, and 4 (none is kept when that is ``min_region_points`` or more)."""
+    return max(4, int(np.ceil(FLOOR_SHARE * min_region_points)))
 
 
 def small_clusters(own: ChangedPoints, floor: int, cluster_factor: float) -> list[ChangedRegion]:
@@ -163,7 +170,7 @@ def turned_faces(
     list of ChangedRegion
         The small clusters kept, reference's first.
     """
-    floor = max(4, int(np.ceil(FLOOR_SHARE * min_region_points)))
+    floor = face_floor(min_region_points)
     if floor >= min_region_points:
         return []
     kept: list[ChangedRegion] = []
