@@ -31,10 +31,10 @@ from app.core.localise.map_faces import EDGE_FACTOR
 from app.core.localise.map_parts import UPRIGHT_NORMAL_Z
 from app.core.localise.regions import ChangedRegion, mark_moved_surfaces
 from app.core.localise.turned_faces import (
-    MOVING_SENSOR_TESTS,
     ChangedPoints,
     face_floor,
     face_normal,
+    moving_sensor_sides,
     small_clusters,
     turned_faces,
 )
@@ -171,9 +171,7 @@ def protruding_faces(
     if floor >= min_region_points:
         return []
     kept: list[ChangedRegion] = []
-    for own, other in ((changed[0], changed[1]), (changed[1], changed[0])):
-        if own.test not in MOVING_SENSOR_TESTS or not own.changed.any():
-            continue
+    for own, other in moving_sensor_sides(changed):
         faces = _small_upright_faces(own, floor, min_region_points, cluster_factor)
         lacking = np.flatnonzero(other.distance > change_threshold)
         if not faces or lacking.size == 0:

@@ -39,6 +39,7 @@ __all__ = [
     "changed_points",
     "face_floor",
     "face_normal",
+    "moving_sensor_sides",
     "small_clusters",
     "turned_faces",
 ]
@@ -94,6 +95,20 @@ def face_floor(min_region_points: int) -> int:
     """The fewest points a small face kept as a region holds: :data:`FLOOR_SHARE` of
     ``min_region_points``, and 4 (none is kept when that is ``min_region_points`` or more)."""
     return max(4, int(np.ceil(FLOOR_SHARE * min_region_points)))
+
+
+def moving_sensor_sides(
+    changed: tuple[ChangedPoints, ChangedPoints],
+) -> list[tuple[ChangedPoints, ChangedPoints]]:
+    """``(own, other)`` for each cloud with changed points that a moving sensor's test
+    (:data:`MOVING_SENSOR_TESTS`) judged, reference first: the clouds small faces are looked
+    for in."""
+    pairs = ((changed[0], changed[1]), (changed[1], changed[0]))
+    return [
+        (own, other)
+        for own, other in pairs
+        if own.test in MOVING_SENSOR_TESTS and own.changed.any()
+    ]
 
 
 def small_clusters(own: ChangedPoints, floor: int, cluster_factor: float) -> list[ChangedRegion]:
@@ -174,10 +189,9 @@ def turned_faces(
     if floor >= min_region_points:
         return []
     kept: list[ChangedRegion] = []
-    for own, other in ((changed[0], changed[1]), (changed[1], changed[0])):
-        other_kind = other.side.region_kind
-        region_points = [r.point_indices for r in regions if r.kind == other_kind]
-        if own.test not in MOVING_SENSOR_TESTS or not region_points or not own.changed.any():
+    for own, other in moving_sensor_sides(changed):
+        region_points = [r.point_indices for r in regions if r.kind == other.side.region_kind]
+        if not region_points:
             continue
         other_points = np.concatenate(region_points)
         other_tree = KDTree(other.side.points[other_points])
