@@ -130,6 +130,7 @@ def _border_continuation(
             own.points[neighbour],
             own.nearest_index[neighbour],
             outside & coplanar,
+            own.geometry,
             other.geometry,
             change_threshold,
         ).any(axis=1)

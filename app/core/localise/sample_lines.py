@@ -101,6 +101,7 @@ def continues_into(
     own_points: NDArray[np.float64],
     match: NDArray[np.integer],
     consider: NDArray[np.bool_],
+    own: LocalGeometry,
     other: LocalGeometry,
     change_threshold: float,
 ) -> NDArray[np.bool_]:
@@ -130,5 +131,13 @@ def continues_into(
     parallel = np.abs(np.einsum("ckd,cd->ck", other.normal[match], unit)) >= NORMAL_AGREEMENT_COSINE
     on_it = consider & (np.abs(np.einsum("ckd,cd->ck", offset, unit)) <= change_threshold)
     on_line, in_plane = lines_in_planes(other, match, unit, on_it)
-    near = np.linalg.norm(offset, axis=2) <= change_threshold
-    return on_it & np.where(on_line, in_plane & near, parallel)
+    held = in_plane & (np.linalg.norm(offset, axis=2) <= change_threshold)
+    if held.any():
+        # which plane through the line: this epoch's own surface where the line lies
+        _, own_there = own.tree.query(other.points[match[held]], k=1)
+        rows = np.nonzero(held)[0]
+        held[held] = (
+            np.abs(np.einsum("pd,pd->p", own.normal[np.asarray(own_there).ravel()], unit[rows]))
+            >= NORMAL_AGREEMENT_COSINE
+        )
+    return on_it & np.where(on_line, held, parallel)
