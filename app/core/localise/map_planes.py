@@ -72,7 +72,7 @@ def coplanar_sectors(
 
     With ``lines``, a sample of ``cloud`` on a line
     (:func:`~app.core.localise.sample_lines.sample_lines`: its fitted normal says nothing) is
-    surface on the plane when the line lies in it, whatever its normal."""
+    no surface on the plane, whatever its normal: a line lies in any plane through it."""
     count = points.shape[0]
     if count == 0:
         return np.zeros(0, dtype=np.int64)
@@ -96,8 +96,7 @@ def coplanar_sectors(
         )
         hit = placed & (agrees >= NORMAL_AGREEMENT_COSINE)
         if lines:
-            on_line, in_plane = lines_in_planes(cloud, index, unit, placed)
-            hit = np.where(on_line, in_plane, hit)
+            hit &= ~lines_in_planes(cloud, index, unit, hit)[0]
         hits[:, sector] = hit.any(axis=1)
     return hits.sum(axis=1)
 
