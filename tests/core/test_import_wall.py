@@ -130,6 +130,7 @@ LOCALISE_LAYERS = (
     "station_rays",
     "trajectory_visibility",
     "origin_free",
+    "sample_lines",
     "map_planes",
     "map_lines",
     "map_parts",
