@@ -84,25 +84,38 @@ def test_samples_on_one_line_have_its_direction_and_a_plane_has_none():
     assert np.all(np.abs(direction[:2, 0]) > 0.99)
 
 
-def test_a_line_carries_on_a_plane_that_holds_it_near_the_point_only():
+def test_a_line_carries_on_a_plane_that_holds_it_near_the_point_where_this_epoch_has_it():
     rng = np.random.default_rng(1)
     cloud = local_geometry(rim_arc(rng), 10)
+    (x0, _), (x1, y1) = DESK
+    # this epoch's desk top up to the rim, and (another epoch) the desk's front face under it
+    top = local_geometry(desk_top(rng), 10)
+    front = local_geometry(
+        plane(rng, [x0, y1, DESK_HEIGHT - 0.3], [x1 - x0, 0, 0], [0, 0, 0.3]), 10
+    )
     middle = cloud.points.shape[0] // 2
     level = np.array([[0.0, 0.0, 1.0]])
     upright = np.array([[0.0, 1.0, 0.0]])
-    # a point of the level desk top 4 cm behind the rim, and of an upright face 5 cm behind
-    # it and 20 cm up: the line lies in both planes, but only the first point is near it
-    near_top = cloud.points[middle] + [0.0, -0.04, 0.0]
-    face = cloud.points[middle] + [0.0, -0.05, 0.2]
+    # a point 4 cm behind the rim, and one 5 cm behind it and 20 cm up: the line lies in the
+    # level and the upright plane through them; it holds the plane this epoch has there only
+    near_rim = cloud.points[middle] + [0.0, -0.04, 0.0]
+    high = cloud.points[middle] + [0.0, -0.05, 0.2]
     found = [
         continues_into(
             unit,
             point[None, None, :],
             np.array([[middle]]),
             np.array([[True]]),
+            own,
             cloud,
             change_threshold=0.1,
         )[0, 0]
-        for unit, point in ((level, near_top), (upright, face), (upright, near_top))
+        for unit, point, own in (
+            (level, near_rim, top),
+            (upright, high, top),
+            (upright, high, front),
+            (upright, near_rim, top),
+            (upright, near_rim, front),
+        )
     ]
-    assert found == [True, False, True]
+    assert found == [True, False, False, False, True]
