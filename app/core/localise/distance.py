@@ -239,7 +239,7 @@ def surface_distance(
         if change_threshold is not None:
             # on the nearest point's plane, or as close to that point (a sample of the surface)
             # as a change may be: a plane fitted across an edge or a corner can be far off both
-            near_surface = (np.abs(offset) <= change_threshold) & ~other.linear[nearest]
+            near_surface = np.abs(offset) <= change_threshold
             matched &= near_surface | (nn_distance[chunk] <= change_threshold)
         unmatched_parts.append(start + np.flatnonzero(~matched))
         rows = start + np.flatnonzero(matched)
@@ -256,7 +256,7 @@ def surface_distance(
         offset = query[:, None, :] - other.points[neighbours]
         along_normal = np.einsum("ckd,ckd->ck", offset, normals)
         lateral_squared = np.einsum("ckd,ckd->ck", offset, offset) - along_normal**2
-        supported = (lateral_squared <= support_radius**2) & ~other.linear[neighbours]
+        supported = lateral_squared <= support_radius**2
         plane_offset = np.einsum("cd,ckd->ck", query, normals) - other.plane_constant[neighbours]
         plane_distance = np.where(supported, np.abs(plane_offset), np.inf).min(axis=1)
         distance[rows] = np.where(np.isfinite(plane_distance), plane_distance, nn_distance[rows])
