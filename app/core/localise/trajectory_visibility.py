@@ -34,6 +34,9 @@ from pykdtree.kdtree import KDTree
 from app.core.localise.distance import Side
 from app.core.localise.gaps import between_samples
 from app.core.localise.interface import VisibilityContext, VisibilityOutcome
+from app.core.localise.map_parts import surface_parts
+from app.core.localise.map_planes import in_sampling_gap
+from app.core.localise.map_supports import resting_on_support
 from app.core.localise.rays import (
     STATUS_EDGE_ON,
     STATUS_SEEN_THROUGH,
@@ -188,6 +191,32 @@ def lone_sightings(statuses: NDArray[np.int8]) -> NDArray[np.bool_]:
     return (through == 1) & (other >= 1)
 
 
+def _resting(
+    candidates: Candidates, status: NDArray[np.int8], other: Side, context: VisibilityContext
+) -> NDArray[np.bool_]:
+    """EXPERIMENT"""
+    judged = np.flatnonzero((status == STATUS_SEEN_THROUGH) | (status == STATUS_EDGE_ON))
+    resting = np.zeros(status.shape[0], dtype=bool)
+    if judged.size == 0:
+        return resting
+    labels = surface_parts(
+        candidates.points,
+        candidates.normal,
+        context.settings["cluster_factor"] * candidates.spacing,
+    )
+    bottom = np.full(int(labels.max()) + 1, np.inf)
+    np.minimum.at(bottom, labels, candidates.points[:, 2])
+    resting[judged] = resting_on_support(
+        candidates.points[judged],
+        candidates.normal[judged],
+        bottom[labels[judged]],
+        other.geometry,
+        context.threshold,
+        context.change_threshold,
+    )
+    return resting
+
+
 class TrajectoryTest:
     """The ray test from the pseudo-stations of the other cloud's trajectory
     (``name = "trajectory"``)."""
@@ -221,7 +250,20 @@ class TrajectoryTest:
             )
         ]
         status[between] = STATUS_SURFACE
+        still_edge_on = np.flatnonzero(status == STATUS_EDGE_ON)
+        in_gap = still_edge_on[
+            in_sampling_gap(
+                candidates.points[still_edge_on],
+                candidates.normal[still_edge_on],
+                other.geometry,
+                context.threshold,
+            )
+        ]
+        status[in_gap] = STATUS_SURFACE
+        resting = _resting(candidates, status, other, context)
+        status[resting] = STATUS_SURFACE
         report: dict[str, Any] = {
+            "candidates_resting_on_other_support": int(resting.sum()),
             "candidates_seen_through_once": int(lone.sum()),
             "candidates_between_other_samples": int(between.size),
         }
