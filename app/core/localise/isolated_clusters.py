@@ -38,8 +38,9 @@ ISOLATION_FACTOR = 4.0
 """A cluster's points stand this many change thresholds from the other cloud (median)."""
 GAP_FACTOR = 1.5
 """And this many times the larger of both clouds' local spacings there: no sampling gap."""
-SPAN_FACTOR = 2.0
-"""Its second principal extent spans this many of its own spacings at least: no line."""
+SPAN_FACTOR = 1.0
+"""Its second principal extent spans this many of its own spacings at least: no line of
+single samples (a ring arc at the resolution limit is narrower than one spacing)."""
 
 
 def _second_extent(points: NDArray[np.float64]) -> float:
