@@ -14,7 +14,11 @@ point of the other cloud is at least :data:`ISOLATION_FACTOR` change thresholds 
 :data:`GAP_FACTOR` times the larger of the two clouds' local spacings there (no sampling gap
 of either cloud: a warehouse ceiling swept sparsely 9-10 m up has its nearest other points
 one spacing away), and it spans a surface, not a line (its second principal extent at least
-:data:`SPAN_FACTOR` of its own spacings: a single ring arc at the resolution limit is none).
+:data:`SPAN_FACTOR` of its own spacings: a single ring arc at the resolution limit is none),
+and the other epoch saw its place empty over a support: the other cloud's highest points in
+the column under it are level (the floor or top the object stood or stands on) and none lie
+at its heights.  A patch only one epoch's path reached (a fused RGB-D room's corner the other
+camera never looked at) has nothing of the other epoch under it, or the side of a wall.
 Only for the clouds the map test or the trajectory test judged (:func:`~app.core.localise.
 turned_faces.moving_sensor_sides`): the station ray tests' classes keep their noise floor.
 """
@@ -24,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from app.core.localise.map_parts import LEVEL_NORMAL_Z
 from app.core.localise.regions import ChangedRegion
 from app.core.localise.turned_faces import (
     ChangedPoints,
@@ -41,6 +46,10 @@ GAP_FACTOR = 1.5
 SPAN_FACTOR = 1.0
 """Its second principal extent spans this many of its own spacings at least: no line of
 single samples (a ring arc at the resolution limit is narrower than one spacing)."""
+COLUMN_FACTOR = 2.0
+"""The column over the cluster's footprint is widened by this many change thresholds."""
+MIN_SUPPORT_POINTS = 3
+"""The other cloud's level points under the cluster, fewer say nothing of its place."""
 
 
 def _second_extent(points: NDArray[np.float64]) -> float:
@@ -49,6 +58,30 @@ def _second_extent(points: NDArray[np.float64]) -> float:
     _, vectors = np.linalg.eigh(np.cov(centred.T))
     along = centred @ vectors[:, 1]
     return float(along.max() - along.min())
+
+
+def _seen_empty_over_support(
+    other: ChangedPoints, points: NDArray[np.float64], change_threshold: float
+) -> bool:
+    """Whether ``other`` saw the place of the cluster ``points`` (shape (p, 3)) empty: in the
+    column over its footprint (widened by ``change_threshold``), its highest points under the
+    cluster's foot are :data:`MIN_SUPPORT_POINTS` level ones (a floor or a top the object stood
+    or stands on), and none lie at the cluster's own heights."""
+    low, high = points.min(axis=0), points.max(axis=0)
+    other_points = other.side.points
+    margin = COLUMN_FACTOR * change_threshold
+    column = np.flatnonzero(
+        np.all(other_points[:, :2] >= low[:2] - margin, axis=1)
+        & np.all(other_points[:, :2] <= high[:2] + margin, axis=1)
+    )
+    heights = other_points[column, 2]
+    if np.any((heights >= low[2]) & (heights <= high[2])):
+        return False
+    below = column[heights < low[2]]
+    if below.size < MIN_SUPPORT_POINTS:
+        return False
+    highest = below[np.argsort(other_points[below, 2])[-MIN_SUPPORT_POINTS:]]
+    return bool(np.all(np.abs(other.side.geometry.normal[highest, 2]) >= LEVEL_NORMAL_Z))
 
 
 def _isolated(
@@ -64,7 +97,10 @@ def _isolated(
     other_spacing = float(np.median(other.side.geometry.spacing[nearest]))
     if gap < GAP_FACTOR * max(own_spacing, other_spacing):
         return False
-    return _second_extent(own.side.points[members]) >= SPAN_FACTOR * own_spacing
+    points = own.side.points[members]
+    if _second_extent(points) < SPAN_FACTOR * own_spacing:
+        return False
+    return _seen_empty_over_support(other, points, change_threshold)
 
 
 def isolated_clusters(
