@@ -56,6 +56,21 @@ def test_the_same_box_unmoved_is_no_change(seed):
     assert localisation.regions == []
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_small_cluster_where_the_other_epoch_saw_nothing_under_it_stays_noise(seed):
+    # the same box, seen by the reference only, standing past the room's floor (x 6.6-7.3 m,
+    # the floor ends at 6 m): the scan saw nothing of its place, no support under it, so it
+    # stands far from every scan point for want of coverage, not because it moved
+    rng = np.random.default_rng(seed)
+    size = np.array([rng.uniform(0.28, 0.34), rng.uniform(0.36, 0.44), rng.uniform(0.65, 0.75)])
+    where = np.array([rng.uniform(6.6, 7.0), rng.uniform(1.0, 2.6), 0.0])
+    box = box_sides(rng, where, where + size, faces="tw", spacing=0.12)
+    reference = np.vstack([fused_room(rng), box])
+    localisation = localise_changes(reference, fused_room(rng))
+    assert box.shape[0] < localisation.parameters["min_region_points"]
+    assert localisation.regions == []
+
+
 def test_robot_1204_box_moved_far_is_found():
     pair = map_pair("robot", layout="warehouse", change="mixed", random_state=1204)
     result = compare(*pair.clouds())

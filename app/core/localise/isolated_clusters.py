@@ -6,7 +6,7 @@ robot warehouse 1204's box (0.56 x 0.32 x 0.33 m) moved 18 m, seen in each epoch
 12 points, under a floor of 30.  Yet noise lies on or near surfaces both epochs sampled: an
 offset sample, an edge, a strip one path reached, a sparse far return whose neighbours in the
 other epoch are one sampling gap away.  The moved box's points stand 0.4 m and more from
-every point of the other epoch, several times both clouds' sampling steps there.
+every point of the other epoch, more than 1.5 times both clouds' sampling steps there.
 
 :func:`isolated_clusters` keeps a small cluster (of :func:`~app.core.localise.turned_faces.
 face_floor` points at least) as a region when its points' median distance to the nearest
