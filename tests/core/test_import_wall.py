@@ -143,6 +143,7 @@ LOCALISE_LAYERS = (
     "coverage",
     "visibility",
     "turned_faces",
+    "isolated_clusters",
     "protruding_faces",
     "changes",
 )
