@@ -199,6 +199,7 @@ typedef struct {
     double *best;      /* (leaf points, kept) squared distances, ascending */
     uint32_t *best_at; /* their tree positions */
     double *scratch;   /* one leaf's squared distances to one point */
+    uint32_t *passing; /* the places in that leaf of those below the point's k1 + 1-th */
 } Work;
 
 /* One reached leaf scanned for each of the own leaf's points that may find a neighbour in it. */
@@ -221,7 +222,14 @@ static void scan_leaf(const Tree *tree, const Node *own, const Node *node, int k
             double squared = dx * dx + dy * dy;
             work->scratch[j] = squared + dz * dz;
         }
+        /* those below the limit listed without a branch (most are not), then inserted */
+        uint32_t passed = 0;
         for (uint32_t j = 0; j < node->count; j++) {
+            work->passing[passed] = j;
+            passed += work->scratch[j] < limit;
+        }
+        for (uint32_t candidate = 0; candidate < passed; candidate++) {
+            uint32_t j = work->passing[candidate];
             double squared = work->scratch[j];
             if (squared < limit) {
                 int slot = kept - 1;
@@ -440,8 +448,9 @@ static PyObject *self_neighbours(PyObject *module, PyObject *args)
             .best = malloc(sizeof(double) * most * kept),
             .best_at = malloc(sizeof(uint32_t) * most * kept),
             .scratch = malloc(sizeof(double) * most),
+            .passing = malloc(sizeof(uint32_t) * most),
         };
-        if (work.stack && work.best && work.best_at && work.scratch) {
+        if (work.stack && work.best && work.best_at && work.scratch && work.passing) {
             Py_ssize_t ties = 0, leaf = first;
             volatile const uint8_t *cancelled = cancel.buf;
             Py_BEGIN_ALLOW_THREADS
@@ -459,6 +468,7 @@ static PyObject *self_neighbours(PyObject *module, PyObject *args)
         free(work.best);
         free(work.best_at);
         free(work.scratch);
+        free(work.passing);
     }
     PyBuffer_Release(&index_out);
     PyBuffer_Release(&kth_out);
