@@ -107,6 +107,35 @@ def test_the_kernel_flags_the_points_it_cannot_order():
 
 
 @needs_kernel
+@pytest.mark.parametrize("k1", [2, 5, 11])
+def test_the_tie_flags_are_those_of_a_brute_force_sort(k1):
+    """The kernel keeps each point's k1 nearest and flags it when two of its k1 + 1 nearest
+    are equally far, also when the (k1 + 1)-th (never kept) is as far as the k1-th; on
+    coordinates rounded to a coarse grid (many equal distances) the flags, the neighbours
+    and the k1-th distances of the others are a brute-force sort's."""
+    rng = np.random.default_rng(11)
+    for _ in range(20):
+        points = np.round(rng.uniform(0, 1, size=(int(rng.integers(40, 400)), 3)), 1)
+        offset = points[None, :, :] - points[:, None, :]
+        squared = offset[..., 0] * offset[..., 0] + offset[..., 1] * offset[..., 1]
+        squared = squared + offset[..., 2] * offset[..., 2]
+        nearest = np.sort(squared, axis=1)[:, : k1 + 1]
+        expected_tie = (np.diff(nearest, axis=1) == 0).any(axis=1)
+        index = np.empty((len(points), k1), np.uint32)
+        kth = np.empty(len(points))
+        tie = np.empty(len(points), np.uint8)
+        ties = KERNEL.self_neighbours(
+            KERNEL.build_tree(points), k1, index, kth, tie, np.zeros(1, np.uint8)
+        )
+        assert ties == expected_tie.sum()
+        assert np.array_equal(tie.astype(bool), expected_tie)
+        unique = ~expected_tie
+        order = np.argsort(squared, axis=1, kind="stable")[:, :k1]
+        assert np.array_equal(index[unique], order[unique])
+        assert np.array_equal(kth[unique], nearest[unique, k1 - 1])
+
+
+@needs_kernel
 def test_the_smallest_cloud_and_arrays_the_kernel_cannot_read(monkeypatch):
     rng = np.random.default_rng(3)
     smallest = rng.normal(size=(11, 3))  # k + 1 = n

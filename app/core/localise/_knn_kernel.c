@@ -196,13 +196,19 @@ static inline double point_gap(const double *point, const Node *box)
 
 typedef struct {
     int32_t *stack;
-    double *best;      /* (leaf points, kept) squared distances, ascending */
+    double *best;      /* (leaf points, k1) squared distances, ascending */
     uint32_t *best_at; /* their tree positions */
+    uint8_t *equal;    /* (leaf points,) 1: a point not kept is as far as the k1-th */
     double *scratch;   /* one leaf's squared distances to one point */
+    uint32_t *passing; /* the places in that leaf of those no farther than the point's k1-th */
 } Work;
 
-/* One reached leaf scanned for each of the own leaf's points that may find a neighbour in it. */
-static void scan_leaf(const Tree *tree, const Node *own, const Node *node, int kept, Work *work)
+/* One reached leaf scanned for each of the own leaf's points that may find a neighbour in it.
+   A point's k1 nearest so far are kept; one as far as the k1-th but not kept (seen, or pushed
+   out by a nearer one while another as far stays) sets its equal flag, which a nearer k1-th
+   clears.  So no point as far as the k1-th is skipped (a leaf is skipped only when its gap is
+   larger), and at the end the flag says whether the k1 + 1-th is as far as the k1-th. */
+static void scan_leaf(const Tree *tree, const Node *own, const Node *node, int k1, Work *work)
 {
     const double *xs = tree->axis[0] + node->start;
     const double *ys = tree->axis[1] + node->start;
@@ -210,10 +216,10 @@ static void scan_leaf(const Tree *tree, const Node *own, const Node *node, int k
     for (uint32_t i = 0; i < own->count; i++) {
         uint32_t at = own->start + i;
         double point[3] = {tree->axis[0][at], tree->axis[1][at], tree->axis[2][at]};
-        double *best = work->best + (size_t)i * kept;
-        uint32_t *best_at = work->best_at + (size_t)i * kept;
-        double limit = best[kept - 1];
-        if (point_gap(point, node) >= limit) {
+        double *best = work->best + (size_t)i * k1;
+        uint32_t *best_at = work->best_at + (size_t)i * k1;
+        double limit = best[k1 - 1];
+        if (point_gap(point, node) > limit) {
             continue;
         }
         for (uint32_t j = 0; j < node->count; j++) {
@@ -221,10 +227,18 @@ static void scan_leaf(const Tree *tree, const Node *own, const Node *node, int k
             double squared = dx * dx + dy * dy;
             work->scratch[j] = squared + dz * dz;
         }
+        /* those no farther than the limit listed without a branch (most are farther) */
+        uint32_t passed = 0;
         for (uint32_t j = 0; j < node->count; j++) {
+            work->passing[passed] = j;
+            passed += work->scratch[j] <= limit;
+        }
+        uint8_t equal = work->equal[i];
+        for (uint32_t candidate = 0; candidate < passed; candidate++) {
+            uint32_t j = work->passing[candidate];
             double squared = work->scratch[j];
             if (squared < limit) {
-                int slot = kept - 1;
+                int slot = k1 - 1;
                 while (slot > 0 && best[slot - 1] > squared) {
                     best[slot] = best[slot - 1];
                     best_at[slot] = best_at[slot - 1];
@@ -232,22 +246,28 @@ static void scan_leaf(const Tree *tree, const Node *own, const Node *node, int k
                 }
                 best[slot] = squared;
                 best_at[slot] = node->start + j;
-                limit = best[kept - 1];
+                /* the one pushed out was at the old limit */
+                equal = !(best[k1 - 1] < limit);
+                limit = best[k1 - 1];
+            }
+            else if (squared == limit) {
+                equal = 1;
             }
         }
+        work->equal[i] = equal;
     }
 }
 
-/* The k1 nearest of each point of one leaf (k1 + 1 kept, to see ties at the k1-th); the
-   number of its points whose order is not unique. */
+/* The k1 nearest of each point of one leaf; the number of its points whose order is not
+   unique (two of the k1 + 1 nearest equally far, or fewer than k1 points in the tree). */
 static Py_ssize_t search_leaf(const Tree *tree, const Node *own, int k1, uint32_t *index_out,
                               double *kth_out, uint8_t *tie_out, Work *work)
 {
-    const int kept = k1 + 1;
-    for (size_t i = 0; i < (size_t)own->count * kept; i++) {
+    for (size_t i = 0; i < (size_t)own->count * k1; i++) {
         work->best[i] = INFINITY;
         work->best_at[i] = 0;
     }
+    memset(work->equal, 0, own->count);
     double worst = INFINITY;
     int top = 0;
     work->stack[top++] = 0;
@@ -257,10 +277,10 @@ static Py_ssize_t search_leaf(const Tree *tree, const Node *own, int k1, uint32_
             continue;
         }
         if (node->left < 0) {
-            scan_leaf(tree, own, node, kept, work);
+            scan_leaf(tree, own, node, k1, work);
             worst = 0.0;
             for (uint32_t i = 0; i < own->count; i++) {
-                double kth = work->best[(size_t)i * kept + kept - 1];
+                double kth = work->best[(size_t)i * k1 + k1 - 1];
                 worst = kth > worst ? kth : worst;
             }
             continue;
@@ -286,11 +306,11 @@ static Py_ssize_t search_leaf(const Tree *tree, const Node *own, int k1, uint32_
     }
     Py_ssize_t ties = 0;
     for (uint32_t i = 0; i < own->count; i++) {
-        const double *best = work->best + (size_t)i * kept;
-        const uint32_t *best_at = work->best_at + (size_t)i * kept;
+        const double *best = work->best + (size_t)i * k1;
+        const uint32_t *best_at = work->best_at + (size_t)i * k1;
         size_t row = tree->row[own->start + i];
-        uint8_t tie = !(best[k1 - 1] < INFINITY);
-        for (int slot = 1; slot < kept; slot++) {
+        uint8_t tie = (uint8_t)(!(best[k1 - 1] < INFINITY)) | work->equal[i];
+        for (int slot = 1; slot < k1; slot++) {
             tie |= !(best[slot - 1] < best[slot]);
         }
         for (int slot = 0; slot < k1; slot++) {
@@ -433,15 +453,16 @@ static PyObject *self_neighbours(PyObject *module, PyObject *args)
     else if (writable(&index_out, tree->n * k1 * 4, "index_out") == 0 &&
              writable(&kth_out, tree->n * 8, "kth_out") == 0 &&
              writable(&tie_out, tree->n, "tie_out") == 0 && writable(&cancel, 1, "cancel") == 0) {
-        size_t kept = (size_t)k1 + 1, most = tree->largest_leaf > LEAF_SIZE ? tree->largest_leaf
-                                                                           : LEAF_SIZE;
+        size_t most = tree->largest_leaf > LEAF_SIZE ? tree->largest_leaf : LEAF_SIZE;
         Work work = {
             .stack = malloc(sizeof(int32_t) * (size_t)(tree->depth + 2)),
-            .best = malloc(sizeof(double) * most * kept),
-            .best_at = malloc(sizeof(uint32_t) * most * kept),
+            .best = malloc(sizeof(double) * most * (size_t)k1),
+            .best_at = malloc(sizeof(uint32_t) * most * (size_t)k1),
+            .equal = malloc(most),
             .scratch = malloc(sizeof(double) * most),
+            .passing = malloc(sizeof(uint32_t) * most),
         };
-        if (work.stack && work.best && work.best_at && work.scratch) {
+        if (work.stack && work.best && work.best_at && work.equal && work.scratch && work.passing) {
             Py_ssize_t ties = 0, leaf = first;
             volatile const uint8_t *cancelled = cancel.buf;
             Py_BEGIN_ALLOW_THREADS
@@ -458,7 +479,9 @@ static PyObject *self_neighbours(PyObject *module, PyObject *args)
         free(work.stack);
         free(work.best);
         free(work.best_at);
+        free(work.equal);
         free(work.scratch);
+        free(work.passing);
     }
     PyBuffer_Release(&index_out);
     PyBuffer_Release(&kth_out);
