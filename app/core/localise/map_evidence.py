@@ -63,6 +63,7 @@ from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE
 from app.core.localise.interface import FaceBorder, VisibilityContext, VisibilityOutcome
 from app.core.localise.map_bodies import hollow_sides
 from app.core.localise.map_faces import EDGE_FACTOR, far_faces
+from app.core.localise.map_fragments import joined_surface_parts
 from app.core.localise.map_lines import line_gap_share
 from app.core.localise.map_parts import (
     SEE_THROUGH_REACH,
@@ -70,7 +71,6 @@ from app.core.localise.map_parts import (
     PartFigures,
     near_candidates,
     part_figures,
-    surface_parts,
     unmatched_points,
 )
 from app.core.localise.map_planes import (
@@ -344,7 +344,7 @@ def map_test(
         status = np.full(count, STATUS_SEEN_THROUGH, dtype=np.int8)
         counts = {"map_clusters": 0, "map_coverage_clusters": 0}
         return MapEvidence(status, status.copy(), np.ones(count, dtype=np.float32), counts, None)
-    labels = surface_parts(
+    labels = joined_surface_parts(
         candidates.points, candidates.normal, cluster_factor * candidates.spacing
     )
     other_unmatched = unmatched_points(own, other, threshold, change_threshold)

@@ -1,0 +1,109 @@
+"""Surface parts without noise fragments: each fragment joins the part it lies in.
+
+:func:`~app.core.localise.map_parts.surface_parts` links candidates whose normals agree.  On
+a noisy surface the normals of a few neighbourhoods tilt together (each fitted over the same
+handful of points), so a far wall of a fused RGB-D map, voxel-thinned finer than its depth
+noise, falls apart into many small parts inside its large ones.  Such a fragment has almost
+no border of its own with the rest of the map, so nothing continues from it; judged alone,
+a piece of a coverage gap high on a wall that the other path never looked at became a
+change, and more of them the denser the map (a fragment's point count is set by the
+neighbourhoods that tilt together, not by its area: the false points grew with density).
+
+A fragment (a part of fewer than :data:`FRAGMENT_POINTS` candidates) carries no surface of
+its own: fragments linked to each other form one group, and a group joins the non-fragment
+part it has the most links with (one part only, so a fragment at a crease never joins a board
+to the floor it stands on).  A group linked to no larger part stays a part of its own.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from pykdtree.kdtree import KDTree
+
+from app.core.localise.map_parts import surface_parts
+from app.core.localise.regions import CLUSTER_NEIGHBOURS
+
+__all__ = ["FRAGMENT_POINTS", "joined_surface_parts"]
+
+FRAGMENT_POINTS = 50
+"""Parts of fewer candidates are fragments: a few tilted neighbourhoods of the normal fits
+(:data:`~app.core.localise.regions.CLUSTER_NEIGHBOURS` points each), far smaller than a face
+of an object of 0.3 m even at the 2-3 cm spacing of a coarse fused map (100-200 points)."""
+
+
+def joined_surface_parts(
+    points: NDArray[np.float64], normal: NDArray[np.floating], radius: NDArray[np.float64]
+) -> NDArray[np.int64]:
+    """:func:`~app.core.localise.map_parts.surface_parts` with each fragment joined to the
+    part it lies in (module docstring).
+
+    Parameters
+    ----------
+    points : ndarray, shape (c, 3)
+    normal : ndarray, shape (c, 3)
+    radius : ndarray, shape (c,)
+        Candidates within a candidate's radius (its nearest
+        :data:`~app.core.localise.regions.CLUSTER_NEIGHBOURS`) are linked.
+
+    Returns
+    -------
+    ndarray, shape (c,), int64
+        Part label per candidate, ``0 .. parts - 1``.
+    """
+    labels = surface_parts(points, normal, radius)
+    count = points.shape[0]
+    sizes = np.bincount(labels)
+    fragment = sizes < FRAGMENT_POINTS
+    if count <= 1 or not fragment[labels].any() or fragment.all():
+        return labels
+    k = min(CLUSTER_NEIGHBOURS + 1, count)
+    distance, neighbour = KDTree(points).query(points, k=k, distance_upper_bound=radius.max())
+    neighbour = np.minimum(neighbour[:, 1:], count - 1)
+    linked = distance[:, 1:] <= radius[:, None]
+    rows = np.broadcast_to(np.arange(count)[:, None], neighbour.shape)[linked]
+    columns = neighbour[linked]
+    in_fragment = fragment[labels]
+    # fragments linked to each other form one group
+    groups = _grouped(labels, rows, columns, in_fragment[rows] & in_fragment[columns])
+    # a group joins the larger part it has the most links with
+    towards = in_fragment[rows] & ~in_fragment[columns]
+    group_of, part_of = groups[rows[towards]], labels[columns[towards]]
+    joined = np.arange(groups.max() + 1)
+    if group_of.shape[0]:
+        pairs, links = np.unique(np.stack([group_of, part_of], axis=1), axis=0, return_counts=True)
+        order = np.lexsort((-links, pairs[:, 0]))
+        first = np.ones(order.shape[0], dtype=bool)
+        first[1:] = pairs[order[1:], 0] != pairs[order[:-1], 0]
+        best = pairs[order[first]]
+        joined[best[:, 0]] = _group_of_part(groups, labels, best[:, 1])
+    return np.unique(joined[groups], return_inverse=True)[1].astype(np.int64)
+
+
+def _grouped(
+    labels: NDArray[np.int64],
+    rows: NDArray[np.int64],
+    columns: NDArray[np.int64],
+    joins: NDArray[np.bool_],
+) -> NDArray[np.int64]:
+    """Labels with the parts linked by the ``joins`` links (rows -> columns) merged; shape (c,)."""
+    from scipy.sparse import coo_matrix  # on first use: API processes need no scipy
+    from scipy.sparse.csgraph import connected_components
+
+    n_parts = int(labels.max()) + 1
+    first, second = labels[rows[joins]], labels[columns[joins]]
+    graph = coo_matrix(
+        (np.ones(first.shape[0], dtype=np.int8), (first, second)), (n_parts, n_parts)
+    )
+    _, merged = connected_components(graph, directed=True, connection="weak")
+    return merged[labels].astype(np.int64)
+
+
+def _group_of_part(
+    groups: NDArray[np.int64], labels: NDArray[np.int64], parts: NDArray[np.int64]
+) -> NDArray[np.int64]:
+    """The group label of each part in ``parts`` (a larger part is its own group)."""
+    n_parts = int(labels.max()) + 1
+    group_of_part = np.zeros(n_parts, dtype=np.int64)
+    group_of_part[labels] = groups
+    return group_of_part[parts]
