@@ -133,6 +133,7 @@ LOCALISE_LAYERS = (
     "map_planes",
     "map_lines",
     "map_parts",
+    "map_fragments",
     "map_supports",
     "map_shared",
     "map_faces",
