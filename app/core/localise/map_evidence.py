@@ -345,7 +345,10 @@ def map_test(
         counts = {"map_clusters": 0, "map_coverage_clusters": 0}
         return MapEvidence(status, status.copy(), np.ones(count, dtype=np.float32), counts, None)
     labels = joined_surface_parts(
-        candidates.points, candidates.normal, cluster_factor * candidates.spacing
+        candidates.points,
+        candidates.normal,
+        cluster_factor * candidates.spacing,
+        candidates.spacing,
     )
     other_unmatched = unmatched_points(own, other, threshold, change_threshold)
     figures = part_figures(
