@@ -1,4 +1,4 @@
-"""Surface parts without noise fragments: each fragment joins the part it lies in.
+"""Noise fragments of surface parts, and the part each lies in.
 
 :func:`~app.core.localise.map_parts.surface_parts` links candidates whose normals agree.  On
 a noisy surface the normals of a few neighbourhoods tilt together (each fitted over the same
@@ -13,9 +13,11 @@ at 4-5 cm) stay parts of their own.
 
 A fragment (a part covering less than :data:`FRAGMENT_AREA`, its candidates' squared
 spacings summed) carries no surface of its own: fragments linked to each other form one
-group, and a group joins the non-fragment part it has the most links with (one part only,
+group, and a group lies in the non-fragment part it has the most links with (one part only,
 so a fragment at a crease never joins a board to the floor it stands on).  A group linked to
-no larger part stays a part of its own.
+no larger part lies in itself.  A fragment in a coverage difference is one too
+(:func:`~app.core.localise.map_evidence.map_test`); a fragment of a change keeps its own
+verdict (a fragment's verdict is never made a change by its host).
 """
 
 from __future__ import annotations
@@ -24,10 +26,9 @@ import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
-from app.core.localise.map_parts import surface_parts
 from app.core.localise.regions import CLUSTER_NEIGHBOURS
 
-__all__ = ["FRAGMENT_AREA", "joined_surface_parts"]
+__all__ = ["FRAGMENT_AREA", "fragment_hosts"]
 
 FRAGMENT_AREA = 0.02
 """Square metres: smaller parts are fragments, under a quarter of a face of the smallest
@@ -36,19 +37,20 @@ object the issue asks for (0.3 m: 0.09 m^2); a tilted patch of the normal fits
 map (10-50 points at 1-2 cm, 0.001-0.02 m^2)."""
 
 
-def joined_surface_parts(
+def fragment_hosts(
+    labels: NDArray[np.int64],
     points: NDArray[np.float64],
-    normal: NDArray[np.floating],
     radius: NDArray[np.float64],
     spacing: NDArray[np.float64],
 ) -> NDArray[np.int64]:
-    """:func:`~app.core.localise.map_parts.surface_parts` with each fragment joined to the
-    part it lies in (module docstring).
+    """Per surface part, the part it lies in: a fragment's group's larger part (module
+    docstring), every other part itself.
 
     Parameters
     ----------
+    labels : ndarray, shape (c,), int64
+        :func:`~app.core.localise.map_parts.surface_parts` of the candidates.
     points : ndarray, shape (c, 3)
-    normal : ndarray, shape (c, 3)
     radius : ndarray, shape (c,)
         Candidates within a candidate's radius (its nearest
         :data:`~app.core.localise.regions.CLUSTER_NEIGHBOURS`) are linked.
@@ -57,15 +59,15 @@ def joined_surface_parts(
 
     Returns
     -------
-    ndarray, shape (c,), int64
-        Part label per candidate, ``0 .. parts - 1``.
+    ndarray, shape (parts,), int64
+        The host part of each part.
     """
-    labels = surface_parts(points, normal, radius)
     count = points.shape[0]
-    area = np.bincount(labels, weights=np.square(spacing))
-    fragment = area < FRAGMENT_AREA
-    if count <= 1 or not fragment[labels].any() or fragment.all():
-        return labels
+    n_parts = int(labels.max()) + 1 if count else 0
+    host = np.arange(n_parts)
+    fragment = np.bincount(labels, weights=np.square(spacing), minlength=n_parts) < FRAGMENT_AREA
+    if count <= 1 or not fragment.any() or fragment.all():
+        return host
     k = min(CLUSTER_NEIGHBOURS + 1, count)
     distance, neighbour = KDTree(points).query(points, k=k, distance_upper_bound=radius.max())
     neighbour = np.minimum(neighbour[:, 1:], count - 1)
@@ -75,18 +77,25 @@ def joined_surface_parts(
     in_fragment = fragment[labels]
     # fragments linked to each other form one group
     groups = _grouped(labels, rows, columns, in_fragment[rows] & in_fragment[columns])
-    # a group joins the larger part it has the most links with
+    # a group lies in the larger part it has the most links with
     towards = in_fragment[rows] & ~in_fragment[columns]
-    group_of, part_of = groups[rows[towards]], labels[columns[towards]]
-    joined = np.arange(groups.max() + 1)
-    if group_of.shape[0]:
-        pairs, links = np.unique(np.stack([group_of, part_of], axis=1), axis=0, return_counts=True)
-        order = np.lexsort((-links, pairs[:, 0]))
-        first = np.ones(order.shape[0], dtype=bool)
-        first[1:] = pairs[order[1:], 0] != pairs[order[:-1], 0]
-        best = pairs[order[first]]
-        joined[best[:, 0]] = _group_of_part(groups, labels, best[:, 1])
-    return np.unique(joined[groups], return_inverse=True)[1].astype(np.int64)
+    if not towards.any():
+        return host
+    pairs, links = np.unique(
+        np.stack([groups[rows[towards]], labels[columns[towards]]], axis=1),
+        axis=0,
+        return_counts=True,
+    )
+    order = np.lexsort((-links, pairs[:, 0]))
+    first = np.ones(order.shape[0], dtype=bool)
+    first[1:] = pairs[order[1:], 0] != pairs[order[:-1], 0]
+    chosen = np.full(int(groups.max()) + 1, -1, dtype=np.int64)
+    chosen[pairs[order[first], 0]] = pairs[order[first], 1]
+    group_of_part = np.zeros(n_parts, dtype=np.int64)
+    group_of_part[labels] = groups
+    hosted = fragment & (chosen[group_of_part] >= 0)
+    host[hosted] = chosen[group_of_part[hosted]]
+    return host
 
 
 def _grouped(
@@ -106,13 +115,3 @@ def _grouped(
     )
     _, merged = connected_components(graph, directed=True, connection="weak")
     return merged[labels].astype(np.int64)
-
-
-def _group_of_part(
-    groups: NDArray[np.int64], labels: NDArray[np.int64], parts: NDArray[np.int64]
-) -> NDArray[np.int64]:
-    """The group label of each part in ``parts`` (a larger part is its own group)."""
-    n_parts = int(labels.max()) + 1
-    group_of_part = np.zeros(n_parts, dtype=np.int64)
-    group_of_part[labels] = groups
-    return group_of_part[parts]
