@@ -20,8 +20,12 @@ change in the same conditions and says where the serial stretches are.
 For the floor (bench/perf.py's floor worker, 2 query threads) only its timed section counts
 (the last ``seconds`` of the process it reports, as the target does).
 
+The command runs from compiled bytecode, as installed (:func:`bench.perf_1m.compile_bytecode`;
+``--from-source``: compiled at each start, as before s20).
+
 Run: ``.venv/bin/python -m bench.perf1m_parallelism [--pairs bench,room/30/scanner]
-[--baseline DIR] [--repeats 2] [--work-dir DIR]`` (pairs as in ``bench.perf_1m``).
+[--baseline DIR] [--repeats 2] [--work-dir DIR] [--from-source]`` (pairs as in
+``bench.perf_1m``).
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ from pathlib import Path
 from typing import Any
 
 from bench.perf import worker_environment
-from bench.perf_1m import HELD_OUT, write_named_pair
+from bench.perf_1m import HELD_OUT, compile_bytecode, write_named_pair
 from bench.perf_round2 import SCANDIFF
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
@@ -182,7 +186,14 @@ def main() -> None:
     )
     parser.add_argument("--work-dir", type=Path, help="keep the pairs here (reused when present)")
     parser.add_argument("--output", type=Path, help="write the rows as JSON here")
+    parser.add_argument(
+        "--from-source", action="store_true", help="do not compile app's bytecode first"
+    )
     args = parser.parse_args()
+    if not args.from_source:
+        for code_root in (PROJECT_ROOT, args.baseline):
+            if code_root is not None:
+                compile_bytecode(code_root)
     rows = []
     with tempfile.TemporaryDirectory(prefix="scandiff-parallelism-") as temporary:
         work_dir = args.work_dir or Path(temporary)

@@ -18,8 +18,12 @@ no profiler, so Python-heavy stages are not inflated.  What is left:
 rounds.  The median of ``--repeats`` rounds is printed.  The machine may be loaded: CPU
 seconds, not wall seconds, are the measure.
 
+Both checkouts run from compiled bytecode, as installed (:func:`bench.perf_1m.compile_bytecode`;
+``--from-source``: compiled at each start, as before s20).
+
 Run: ``.venv/bin/python -m bench.perf1m_stages [--pairs bench,room/30/scanner]
-[--baseline DIR] [--repeats 3] [--work-dir DIR]`` (pairs as in ``bench.perf_1m``).
+[--baseline DIR] [--repeats 3] [--work-dir DIR] [--from-source]`` (pairs as in
+``bench.perf_1m``).
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ import textwrap
 from pathlib import Path
 from typing import Any
 
-from bench.perf_1m import HELD_OUT, write_named_pair
+from bench.perf_1m import HELD_OUT, compile_bytecode, write_named_pair
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 
@@ -171,10 +175,16 @@ def main() -> None:
     parser.add_argument("--baseline", type=Path, help="a checkout of the code before")
     parser.add_argument("--repeats", type=int, default=3, help="interleaved rounds a pair")
     parser.add_argument("--work-dir", type=Path, help="keep the pairs here (reused)")
+    parser.add_argument(
+        "--from-source", action="store_true", help="do not compile app's bytecode first"
+    )
     args = parser.parse_args()
     roots = {"this code": PROJECT_ROOT}
     if args.baseline is not None:
         roots["code before"] = args.baseline.resolve()
+    if not args.from_source:
+        for root in roots.values():
+            compile_bytecode(root)
     results: dict[str, dict[str, dict[str, float]]] = {}
     with tempfile.TemporaryDirectory(prefix="scandiff-perf1m-stages-") as temporary:
         work_dir = args.work_dir or Path(temporary)

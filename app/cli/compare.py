@@ -415,9 +415,10 @@ def _import_ahead(module: str) -> threading.Thread | None:
 
 def run(args: argparse.Namespace) -> int:
     """Run one comparison; exit status 0, or 2 on bad input."""
-    from app.kit.allocator import release_freed_memory_promptly
+    from app.kit.allocator import keep_heap_headroom, release_freed_memory_promptly
 
     release_freed_memory_promptly()
+    keep_heap_headroom()
     _skip_the_final_collections()
     cleanup = ExitStack()  # a streamed comparison's work files, removed when it is reported
     try:

@@ -193,17 +193,19 @@ static PyObject *plane_moments(PyObject *module, PyObject *args)
         for (Py_ssize_t j = 0; j < columns; j++) {
             if ((Py_ssize_t)neighbours[j] >= n) {
                 bad_index = i;
+                break;
             }
+            /* the three coordinates of a neighbour together: one row of points read once */
+            const char *point = points + (Py_ssize_t)neighbours[j] * row_stride;
+            deviation[0][j] = *(const double *)point;
+            deviation[1][j] = *(const double *)(point + column_stride);
+            deviation[2][j] = *(const double *)(point + 2 * column_stride);
         }
         if (bad_index >= 0) {
             break;
         }
         for (int axis = 0; axis < 3; axis++) {
             double *values = deviation[axis];
-            const char *column = points + axis * column_stride;
-            for (Py_ssize_t j = 0; j < columns; j++) {
-                values[j] = *(const double *)(column + (Py_ssize_t)neighbours[j] * row_stride);
-            }
             double mean = pairwise_sum(values, columns) / k;
             moments[(CX + axis) * width + i] = mean;
             for (Py_ssize_t j = 0; j < columns; j++) {

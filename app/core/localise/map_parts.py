@@ -28,6 +28,7 @@ from app.core.localise.origin_free import (
 )
 from app.core.localise.rays import Candidates
 from app.core.localise.regions import CLUSTER_NEIGHBOURS, cluster_labels
+from app.core.localise.sample_lines import continues_into
 from app.core.localise.settings import GATHER_CHUNK
 from app.core.localise.surface import LocalGeometry
 
@@ -101,7 +102,6 @@ def _border_continuation(
     border = np.zeros(count, dtype=bool)
     continues = np.zeros(count, dtype=bool)
     k = min(BORDER_NEIGHBOURS + 1, own.points.shape[0])
-    other_normal = other.geometry.normal
     for start in range(0, count, GATHER_CHUNK):
         chunk = slice(start, start + GATHER_CHUNK)
         query = candidates.points[chunk]
@@ -124,16 +124,16 @@ def _border_continuation(
             >= NORMAL_AGREEMENT_COSINE
         )
         # where the own surface carries on, the other epoch's nearest surface is parallel and
-        # on it: the same surface, seen by both epochs
-        match = own.nearest_index[neighbour]
-        parallel = (
-            np.abs(np.einsum("ckd,cd->ck", other_normal[match], unit)) >= NORMAL_AGREEMENT_COSINE
-        )
-        on_it = (
-            np.abs(np.einsum("ckd,cd->ck", other.points[match] - own.points[neighbour], unit))
-            <= change_threshold
-        )
-        continues[chunk] = (outside & coplanar & parallel & on_it).any(axis=1)
+        # on it (or a line of samples in its plane): the same surface, seen by both epochs
+        continues[chunk] = continues_into(
+            unit,
+            own.points[neighbour],
+            own.nearest_index[neighbour],
+            outside & coplanar,
+            own.geometry,
+            other.geometry,
+            change_threshold,
+        ).any(axis=1)
     return border, continues
 
 
@@ -408,7 +408,7 @@ def _continuation_share(
     # map, some 15 degrees off under the ceiling), on the plane of the other epoch's surface
     probe = np.flatnonzero(continues)
     continues[probe] = extends(
-        candidates.points[probe], candidates.normal[probe], other.geometry, threshold
+        candidates.points[probe], candidates.normal[probe], other.geometry, threshold, lines=True
     )
     probe = probe[~continues[probe]]
     continues[probe] = extends(

@@ -15,6 +15,7 @@ from pykdtree.kdtree import KDTree
 
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
 from app.core.localise.rays import Candidates
+from app.core.localise.sample_lines import lines_in_planes
 from app.core.localise.settings import GATHER_CHUNK
 from app.core.localise.surface import LocalGeometry, weighted_plane
 
@@ -64,9 +65,14 @@ def coplanar_sectors(
     cloud: LocalGeometry,
     tolerance: float,
     reach: float,
+    lines: bool = False,
 ) -> NDArray[np.int64]:
     """In how many of :data:`SECTORS` directions of each point's plane ``cloud`` has surface
-    on that plane about ``reach`` away (between half and twice it; shapes (p, 3) -> (p,))."""
+    on that plane about ``reach`` away (between half and twice it; shapes (p, 3) -> (p,)).
+
+    With ``lines``, a sample of ``cloud`` on a line
+    (:func:`~app.core.localise.sample_lines.sample_lines`: its fitted normal says nothing) is
+    no surface on the plane, whatever its normal: a line lies in any plane through it."""
     count = points.shape[0]
     if count == 0:
         return np.zeros(0, dtype=np.int64)
@@ -82,13 +88,16 @@ def coplanar_sectors(
         across = np.abs(np.einsum("pkd,pd->pk", offset, unit))
         along = np.einsum("pkd,pd->pk", offset, direction)
         agrees = np.abs(np.einsum("pkd,pd->pk", cloud.normal[index], unit))
-        hits[:, sector] = (
+        placed = (
             (distance <= 2.0 * reach)
             & (along >= SECTOR_HALF_ANGLE_COSINE * distance)
             & (along >= 0.5 * reach)
             & (across <= tolerance + PLANE_SLOPE * distance)
-            & (agrees >= NORMAL_AGREEMENT_COSINE)
-        ).any(axis=1)
+        )
+        hit = placed & (agrees >= NORMAL_AGREEMENT_COSINE)
+        if lines:
+            hit &= ~lines_in_planes(cloud, index, unit, hit)[0]
+        hits[:, sector] = hit.any(axis=1)
     return hits.sum(axis=1)
 
 
@@ -97,10 +106,13 @@ def extends(
     normal: NDArray[np.floating],
     cloud: LocalGeometry,
     tolerance: float,
+    lines: bool = False,
 ) -> NDArray[np.bool_]:
     """Whether ``cloud`` has surface on each point's plane :data:`SURFACE_REACH` away in at
-    least :data:`SURFACE_SECTORS` directions (shapes (p, 3) -> (p,))."""
-    return coplanar_sectors(points, normal, cloud, tolerance, SURFACE_REACH) >= SURFACE_SECTORS
+    least :data:`SURFACE_SECTORS` directions (shapes (p, 3) -> (p,); ``lines`` as
+    :func:`coplanar_sectors`')."""
+    found = coplanar_sectors(points, normal, cloud, tolerance, SURFACE_REACH, lines)
+    return found >= SURFACE_SECTORS
 
 
 def share_on_planes(

@@ -16,11 +16,14 @@ among the other cloud's :data:`SUPPORT_NEIGHBOURS` nearest points within
 :data:`SUPPORT_REACH` of it, at least :data:`MIN_SUPPORT_SAMPLES` are level (normals within 30
 degrees of vertical) and lie, within the plane tolerance, at one height (their median) that
 is less than the change threshold under the candidate, and no more than the tolerance over
-it.  Its map-test status is then surface (unchanged).  The samples may lie on one side only:
-a seat seen in front of a backrest, a desk top seen beside a box.  Lines (a single ring arc,
-its fitted normal arbitrary) and upright surfaces count for nothing.  Level candidates are
-left to the sampling-gap probe (:func:`~app.core.localise.map_planes.in_sampling_gap`): a
-removed box's top level with a desk top beside it is a change.
+it.  Its status is then surface (unchanged), in the map test and in the trajectory test
+(:mod:`~app.core.localise.trajectory_visibility`: the ray test sees through the foot's place
+like the rest of the face, yet the band is no change of its own there either).  The samples
+may lie on one side only: a seat seen in front of a backrest, a desk top seen beside a box.
+Lines (a single ring arc, its fitted normal arbitrary) and upright surfaces count for
+nothing.  Level candidates are left to the sampling-gap probe
+(:func:`~app.core.localise.map_planes.in_sampling_gap`): a removed box's top level with a desk
+top beside it is a change.
 """
 
 from __future__ import annotations
@@ -46,6 +49,7 @@ __all__ = [
     "SUPPORT_NEIGHBOURS",
     "SUPPORT_REACH",
     "map_statuses",
+    "part_bottom",
     "resting_on_support",
 ]
 
@@ -125,6 +129,16 @@ def resting_on_support(
     return resting
 
 
+def part_bottom(points: NDArray[np.float64], labels: NDArray[np.int64]) -> NDArray[np.float64]:
+    """The height of the lowest point of each point's part (``labels``, shape (c,); points
+    shape (c, 3)), shape (c,)."""
+    if labels.size == 0:
+        return np.zeros(0)
+    bottom = np.full(int(labels.max()) + 1, np.inf)
+    np.minimum.at(bottom, labels, points[:, 2])
+    return bottom[labels]
+
+
 def map_statuses(
     candidates: Candidates,
     labels: NDArray[np.int64],
@@ -138,12 +152,10 @@ def map_statuses(
     epoch's support (:func:`resting_on_support`: surface)."""
     status = np.where(covered, STATUS_UNOBSERVED, STATUS_SEEN_THROUGH).astype(np.int8)
     evidence = np.where(covered, EVIDENCE_NO_COVERAGE, EVIDENCE_SEEN_EMPTY).astype(np.int8)
-    bottom = np.full(int(labels.max()) + 1, np.inf)
-    np.minimum.at(bottom, labels, candidates.points[:, 2])
     resting = resting_on_support(
         candidates.points,
         candidates.normal,
-        bottom[labels],
+        part_bottom(candidates.points, labels),
         other.geometry,
         threshold,
         change_threshold,

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
+from app.core.localise.isolated_clusters import isolated_clusters
 from app.core.localise.map_faces import EDGE_FACTOR
 from app.core.localise.map_parts import UPRIGHT_NORMAL_Z
 from app.core.localise.regions import ChangedRegion, mark_moved_surfaces
@@ -197,22 +198,23 @@ def with_small_faces(
     change_threshold: float,
 ) -> tuple[list[ChangedRegion], int]:
     """``regions`` with the small clusters kept as faces turned in place
-    (:func:`~app.core.localise.turned_faces.turned_faces`) or standing out past the other
-    epoch's face (:func:`protruding_faces`) added, largest first, removed and added ones side
-    by side marked again (:func:`~app.core.localise.regions.mark_moved_surfaces`), and how many
-    small clusters were kept."""
+    (:func:`~app.core.localise.turned_faces.turned_faces`), standing out past the other
+    epoch's face (:func:`protruding_faces`) or far from everything the other epoch sampled
+    (:func:`~app.core.localise.isolated_clusters.isolated_clusters`) added, largest first,
+    removed and added ones side by side marked again
+    (:func:`~app.core.localise.regions.mark_moved_surfaces`), and how many small clusters were
+    kept."""
     settings = {
         "cluster_factor": cluster_factor,
         "min_region_points": min_region_points,
         "change_threshold": change_threshold,
     }
     found = turned_faces(changed, regions, **settings)
-    seen = {(region.kind, int(region.point_indices[0])) for region in found}
-    found += [
-        region
-        for region in protruding_faces(changed, **settings)
-        if (region.kind, int(region.point_indices[0])) not in seen
-    ]
+    for more in (protruding_faces(changed, **settings), isolated_clusters(changed, **settings)):
+        seen = {(region.kind, int(region.point_indices[0])) for region in found}
+        found += [
+            region for region in more if (region.kind, int(region.point_indices[0])) not in seen
+        ]
     if not found:
         return regions, 0
     merged = [*regions, *found]

@@ -19,6 +19,10 @@ crosses the candidate's surface (:attr:`~app.core.localise.rays.RayTest.gap_radi
 Cost stays bounded: a candidate is tested only against the pseudo-stations that took the other
 cloud's returns nearest to it (they looked at its place) and the few nearest along the path,
 within the sensor's range; each pseudo-station indexes only its own returns.
+
+The foot of an upright face (a box's side, a backrest over its seat) within the change
+threshold above a support the other epoch sampled near it is unchanged, as in the map test
+(:func:`resting_feet`).
 """
 
 from __future__ import annotations
@@ -34,6 +38,8 @@ from pykdtree.kdtree import KDTree
 from app.core.localise.distance import Side
 from app.core.localise.gaps import between_samples
 from app.core.localise.interface import VisibilityContext, VisibilityOutcome
+from app.core.localise.map_parts import surface_parts
+from app.core.localise.map_supports import part_bottom, resting_on_support
 from app.core.localise.rays import (
     STATUS_EDGE_ON,
     STATUS_SEEN_THROUGH,
@@ -49,6 +55,7 @@ __all__ = [
     "NEAREST_GROUPS",
     "NEIGHBOUR_RETURNS",
     "TrajectoryTest",
+    "resting_feet",
     "trajectory_statuses",
 ]
 
@@ -188,6 +195,53 @@ def lone_sightings(statuses: NDArray[np.int8]) -> NDArray[np.bool_]:
     return (through == 1) & (other >= 1)
 
 
+def resting_feet(
+    candidates: Candidates, status: NDArray[np.int8], other: Side, context: VisibilityContext
+) -> NDArray[np.bool_]:
+    """Candidates seen through or edge-on that rest on the other epoch's support, shape (c,).
+
+    The change distance measures a point against the other cloud's samples, and a sparse map
+    samples a floor or a seat in arcs far apart, never under an object standing on it: the
+    lowest centimetres of a box's sides or of a backrest over its seat measure farther than
+    the change threshold although the support runs under them, within it, in the other epoch's
+    world.  The rays see through the foot's place as through the rest of the face; the foot is
+    still no change of its own (:func:`~app.core.localise.map_supports.resting_on_support`,
+    the map test's rule, with the candidates' surface parts:
+    :func:`~app.core.localise.map_parts.surface_parts`).
+
+    Parameters
+    ----------
+    candidates : Candidates
+        c candidates.
+    status : ndarray, shape (c,), int8
+        Their combined ray statuses.
+    other : Side
+    context : VisibilityContext
+
+    Returns
+    -------
+    ndarray, shape (c,), bool
+    """
+    judged = np.flatnonzero((status == STATUS_SEEN_THROUGH) | (status == STATUS_EDGE_ON))
+    resting = np.zeros(status.shape[0], dtype=bool)
+    if judged.size == 0:
+        return resting
+    labels = surface_parts(
+        candidates.points,
+        candidates.normal,
+        context.settings["cluster_factor"] * candidates.spacing,
+    )
+    resting[judged] = resting_on_support(
+        candidates.points[judged],
+        candidates.normal[judged],
+        part_bottom(candidates.points, labels)[judged],
+        other.geometry,
+        context.threshold,
+        context.change_threshold,
+    )
+    return resting
+
+
 class TrajectoryTest:
     """The ray test from the pseudo-stations of the other cloud's trajectory
     (``name = "trajectory"``)."""
@@ -221,7 +275,11 @@ class TrajectoryTest:
             )
         ]
         status[between] = STATUS_SURFACE
+        # the foot of an upright face on the other epoch's support: no change of its own
+        resting = resting_feet(candidates, status, other, context)
+        status[resting] = STATUS_SURFACE
         report: dict[str, Any] = {
+            "candidates_resting_on_other_support": int(resting.sum()),
             "candidates_seen_through_once": int(lone.sum()),
             "candidates_between_other_samples": int(between.size),
         }
