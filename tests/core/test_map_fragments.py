@@ -73,15 +73,16 @@ def test_fragments_lie_in_one_part_and_never_bridge_two():
     labels = surface_parts(points, normal, radius)
     area = np.bincount(labels, weights=np.square(spacing))
     assert area[labels[crease | tilted | lone_rows]].max() < FRAGMENT_AREA  # fragments
-    hosts = fragment_hosts(labels, points, radius, spacing)
-    floor_part = labels[np.flatnonzero(~(crease | tilted))[0]]
-    board_part = labels[floor.shape[0] + np.flatnonzero(~crease[floor.shape[0] :])[0]]
+    grouped, hosts = fragment_hosts(labels, points, radius, spacing)
+    floor_part = grouped[np.flatnonzero(~(crease | tilted))[0]]
+    board_part = grouped[floor.shape[0] + np.flatnonzero(~crease[floor.shape[0] :])[0]]
     assert floor_part != board_part
     assert hosts[floor_part] == floor_part and hosts[board_part] == board_part
-    assert set(hosts[labels[crease]]) <= {floor_part, board_part}
-    assert np.unique(hosts[labels[crease]]).shape[0] == 1
-    assert np.all(hosts[labels[tilted]] == floor_part)
-    assert np.all(hosts[labels[lone_rows]] == labels[lone_rows])
+    assert set(hosts[grouped[crease]]) <= {floor_part, board_part}
+    assert np.unique(hosts[grouped[crease]]).shape[0] == 1
+    assert np.all(hosts[grouped[tilted]] == floor_part)
+    assert np.all(hosts[grouped[lone_rows]] == grouped[lone_rows])
+    assert np.unique(grouped[lone_rows]).shape[0] == 1
 
 
 def test_a_sparse_maps_small_face_is_no_fragment():
@@ -97,8 +98,8 @@ def test_a_sparse_maps_small_face_is_no_fragment():
     normal[floor.shape[0] :, 1] = 1.0
     radius, spacing = np.full(points.shape[0], 0.11), np.full(points.shape[0], 0.045)
     labels = surface_parts(points, normal, radius)
-    hosts = fragment_hosts(labels, points, radius, spacing)
+    grouped, hosts = fragment_hosts(labels, points, radius, spacing)
     assert side.shape[0] < 50
-    side_part = labels[floor.shape[0]]
-    assert np.unique(labels[floor.shape[0] :]).shape[0] == 1
+    side_part = grouped[floor.shape[0]]
+    assert np.unique(grouped[floor.shape[0] :]).shape[0] == 1
     assert hosts[side_part] == side_part

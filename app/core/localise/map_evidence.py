@@ -347,7 +347,7 @@ def map_test(
         return MapEvidence(status, status.copy(), np.ones(count, dtype=np.float32), counts, None)
     radius = cluster_factor * candidates.spacing
     labels = surface_parts(candidates.points, candidates.normal, radius)
-    hosts = fragment_hosts(labels, candidates.points, radius, candidates.spacing)
+    labels, hosts = fragment_hosts(labels, candidates.points, radius, candidates.spacing)
     other_unmatched = unmatched_points(own, other, threshold, change_threshold)
     figures = part_figures(
         candidates,

@@ -42,9 +42,9 @@ def fragment_hosts(
     points: NDArray[np.float64],
     radius: NDArray[np.float64],
     spacing: NDArray[np.float64],
-) -> NDArray[np.int64]:
-    """Per surface part, the part it lies in: a fragment's group's larger part (module
-    docstring), every other part itself.
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """The parts with linked fragments grouped, and per part the part it lies in: a
+    fragment group's larger part (module docstring), every other part itself.
 
     Parameters
     ----------
@@ -59,15 +59,17 @@ def fragment_hosts(
 
     Returns
     -------
-    ndarray, shape (parts,), int64
-        The host part of each part.
+    grouped : ndarray, shape (c,), int64
+        Part label per candidate, each group of linked fragments one part.
+    host : ndarray, shape (grouped parts,), int64
+        The host part of each part of ``grouped``.
     """
     count = points.shape[0]
     n_parts = int(labels.max()) + 1 if count else 0
     host = np.arange(n_parts)
     fragment = np.bincount(labels, weights=np.square(spacing), minlength=n_parts) < FRAGMENT_AREA
     if count <= 1 or not fragment.any() or fragment.all():
-        return host
+        return labels, host
     k = min(CLUSTER_NEIGHBOURS + 1, count)
     distance, neighbour = KDTree(points).query(points, k=k, distance_upper_bound=radius.max())
     neighbour = np.minimum(neighbour[:, 1:], count - 1)
@@ -79,8 +81,10 @@ def fragment_hosts(
     groups = _grouped(labels, rows, columns, in_fragment[rows] & in_fragment[columns])
     # a group lies in the larger part it has the most links with
     towards = in_fragment[rows] & ~in_fragment[columns]
+    groups = np.unique(groups, return_inverse=True)[1].astype(np.int64)
+    host = np.arange(int(groups.max()) + 1)
     if not towards.any():
-        return host
+        return groups, host
     pairs, links = np.unique(
         np.stack([groups[rows[towards]], labels[columns[towards]]], axis=1),
         axis=0,
@@ -89,13 +93,8 @@ def fragment_hosts(
     order = np.lexsort((-links, pairs[:, 0]))
     first = np.ones(order.shape[0], dtype=bool)
     first[1:] = pairs[order[1:], 0] != pairs[order[:-1], 0]
-    chosen = np.full(int(groups.max()) + 1, -1, dtype=np.int64)
-    chosen[pairs[order[first], 0]] = pairs[order[first], 1]
-    group_of_part = np.zeros(n_parts, dtype=np.int64)
-    group_of_part[labels] = groups
-    hosted = fragment & (chosen[group_of_part] >= 0)
-    host[hosted] = chosen[group_of_part[hosted]]
-    return host
+    host[pairs[order[first], 0]] = _group_of(groups, labels, n_parts)[pairs[order[first], 1]]
+    return groups, host
 
 
 def _grouped(
@@ -115,3 +114,10 @@ def _grouped(
     )
     _, merged = connected_components(graph, directed=True, connection="weak")
     return merged[labels].astype(np.int64)
+
+
+def _group_of(groups: NDArray[np.int64], labels: NDArray[np.int64], n_parts: int) -> NDArray:
+    """The group of each part of ``labels`` (shape (parts,))."""
+    group_of_part = np.zeros(n_parts, dtype=np.int64)
+    group_of_part[labels] = groups
+    return group_of_part
