@@ -63,7 +63,7 @@ from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE
 from app.core.localise.interface import FaceBorder, VisibilityContext, VisibilityOutcome
 from app.core.localise.map_bodies import hollow_sides
 from app.core.localise.map_faces import EDGE_FACTOR, far_faces
-from app.core.localise.map_fragments import fragment_hosts
+from app.core.localise.map_fragments import fragment_hosts, host_coverage
 from app.core.localise.map_lines import line_gap_share
 from app.core.localise.map_parts import (
     SEE_THROUGH_REACH,
@@ -409,8 +409,7 @@ def map_test(
     coverage, faces, confidence, counts = _verdict(
         figures, see_through, open_beneath, far_face, stands_on_lacking, in_gap, hollow, strips
     )
-    hosted = ~coverage & coverage[hosts]
-    coverage, confidence = coverage | hosted, np.where(hosted, confidence[hosts], confidence)
+    coverage, confidence = host_coverage(coverage, confidence, hosts)
     status, evidence, counts["map_resting_points"] = map_statuses(
         candidates, labels, coverage[labels], other, threshold, resting_band or change_threshold
     )

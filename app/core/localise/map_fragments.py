@@ -28,7 +28,7 @@ from pykdtree.kdtree import KDTree
 
 from app.core.localise.regions import CLUSTER_NEIGHBOURS
 
-__all__ = ["FRAGMENT_AREA", "fragment_hosts"]
+__all__ = ["FRAGMENT_AREA", "fragment_hosts", "host_coverage"]
 
 FRAGMENT_AREA = 0.02
 """Square metres: smaller parts are fragments, under a quarter of a face of the smallest
@@ -121,3 +121,13 @@ def _group_of(groups: NDArray[np.int64], labels: NDArray[np.int64], n_parts: int
     group_of_part = np.zeros(n_parts, dtype=np.int64)
     group_of_part[labels] = groups
     return group_of_part
+
+
+def host_coverage(
+    coverage: NDArray[np.bool_], confidence: NDArray[np.float64], host: NDArray[np.int64]
+) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    """Per part (shapes (parts,)), whether it is a coverage difference and the confidence,
+    with each part whose ``host`` is one made one too, at its host's confidence; a host's
+    change verdict is never passed on."""
+    hosted = ~coverage & coverage[host]
+    return coverage | hosted, np.where(hosted, confidence[host], confidence)
