@@ -133,6 +133,7 @@ LOCALISE_LAYERS = (
     "map_planes",
     "map_lines",
     "map_parts",
+    "map_fragments",
     "map_supports",
     "trajectory_visibility",
     "map_shared",

@@ -63,6 +63,7 @@ from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE
 from app.core.localise.interface import FaceBorder, VisibilityContext, VisibilityOutcome
 from app.core.localise.map_bodies import hollow_sides
 from app.core.localise.map_faces import EDGE_FACTOR, far_faces
+from app.core.localise.map_fragments import fragment_hosts, host_coverage
 from app.core.localise.map_lines import line_gap_share
 from app.core.localise.map_parts import (
     SEE_THROUGH_REACH,
@@ -344,9 +345,9 @@ def map_test(
         status = np.full(count, STATUS_SEEN_THROUGH, dtype=np.int8)
         counts = {"map_clusters": 0, "map_coverage_clusters": 0}
         return MapEvidence(status, status.copy(), np.ones(count, dtype=np.float32), counts, None)
-    labels = surface_parts(
-        candidates.points, candidates.normal, cluster_factor * candidates.spacing
-    )
+    radius = cluster_factor * candidates.spacing
+    labels = surface_parts(candidates.points, candidates.normal, radius)
+    labels, hosts = fragment_hosts(labels, candidates.points, radius, candidates.spacing)
     other_unmatched = unmatched_points(own, other, threshold, change_threshold)
     figures = part_figures(
         candidates,
@@ -408,6 +409,7 @@ def map_test(
     coverage, faces, confidence, counts = _verdict(
         figures, see_through, open_beneath, far_face, stands_on_lacking, in_gap, hollow, strips
     )
+    coverage, confidence = host_coverage(coverage, confidence, hosts)
     status, evidence, counts["map_resting_points"] = map_statuses(
         candidates, labels, coverage[labels], other, threshold, resting_band or change_threshold
     )
