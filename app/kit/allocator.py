@@ -27,6 +27,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import sys
+from collections.abc import Callable
 
 __all__ = [
     "HEAP_TOP_PAD_BYTES",
@@ -60,6 +61,17 @@ def _libc() -> ctypes.CDLL | None:
     return libc
 
 
+def _mallopt() -> Callable[[int, int], int] | None:
+    """glibc's ``mallopt(param, value)``, typed; None where there is no glibc."""
+    libc = _libc()
+    if libc is None:
+        return None
+    mallopt = libc.mallopt
+    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+    mallopt.restype = ctypes.c_int
+    return mallopt
+
+
 def release_freed_memory_promptly() -> bool:
     """Fix glibc's mmap and trim thresholds for this process (a no-op elsewhere).
 
@@ -68,12 +80,9 @@ def release_freed_memory_promptly() -> bool:
     bool
         True when the settings were applied (Linux with glibc).
     """
-    libc = _libc()
-    if libc is None:
+    mallopt = _mallopt()
+    if mallopt is None:
         return False
-    mallopt = libc.mallopt
-    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
-    mallopt.restype = ctypes.c_int
     trimmed = mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES)
     return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(trimmed)
 
@@ -91,12 +100,9 @@ def keep_heap_headroom() -> bool:
     bool
         True when the setting was applied (Linux with glibc).
     """
-    libc = _libc()
-    if libc is None:
+    mallopt = _mallopt()
+    if mallopt is None:
         return False
-    mallopt = libc.mallopt
-    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
-    mallopt.restype = ctypes.c_int
     return bool(mallopt(_M_TOP_PAD, HEAP_TOP_PAD_BYTES))
 
 

@@ -32,9 +32,8 @@ from app.core.localise.map_parts import LEVEL_NORMAL_Z
 from app.core.localise.regions import ChangedRegion
 from app.core.localise.turned_faces import (
     ChangedPoints,
-    face_floor,
-    moving_sensor_sides,
     small_clusters,
+    small_face_sides,
 )
 
 __all__ = ["isolated_clusters"]
@@ -128,11 +127,9 @@ def isolated_clusters(
     list of ChangedRegion
         The small clusters kept, reference's first.
     """
-    floor = face_floor(min_region_points)
-    if floor >= min_region_points:
-        return []
+    floor, sides = small_face_sides(changed, min_region_points)
     kept: list[ChangedRegion] = []
-    for own, other in moving_sensor_sides(changed):
+    for own, other in sides:
         kept += [
             region
             for region in small_clusters(own, floor, cluster_factor)

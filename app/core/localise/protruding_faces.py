@@ -33,10 +33,9 @@ from app.core.localise.map_parts import UPRIGHT_NORMAL_Z
 from app.core.localise.regions import ChangedRegion, mark_moved_surfaces
 from app.core.localise.turned_faces import (
     ChangedPoints,
-    face_floor,
     face_normal,
-    moving_sensor_sides,
     small_clusters,
+    small_face_sides,
     turned_faces,
 )
 
@@ -168,11 +167,9 @@ def protruding_faces(
     list of ChangedRegion
         The small clusters kept, reference's first.
     """
-    floor = face_floor(min_region_points)
-    if floor >= min_region_points:
-        return []
+    floor, sides = small_face_sides(changed, min_region_points)
     kept: list[ChangedRegion] = []
-    for own, other in moving_sensor_sides(changed):
+    for own, other in sides:
         faces = _small_upright_faces(own, floor, min_region_points, cluster_factor)
         lacking = np.flatnonzero(other.distance > change_threshold)
         if not faces or lacking.size == 0:

@@ -41,6 +41,7 @@ __all__ = [
     "face_normal",
     "moving_sensor_sides",
     "small_clusters",
+    "small_face_sides",
     "turned_faces",
 ]
 
@@ -109,6 +110,17 @@ def moving_sensor_sides(
         for own, other in pairs
         if own.test in MOVING_SENSOR_TESTS and own.changed.any()
     ]
+
+
+def small_face_sides(
+    changed: tuple[ChangedPoints, ChangedPoints], min_region_points: int
+) -> tuple[int, list[tuple[ChangedPoints, ChangedPoints]]]:
+    """The small-face floor (:func:`face_floor`) and the clouds small faces are looked for in
+    (:func:`moving_sensor_sides`; none when the floor reaches ``min_region_points``)."""
+    floor = face_floor(min_region_points)
+    if floor >= min_region_points:
+        return floor, []
+    return floor, moving_sensor_sides(changed)
 
 
 def small_clusters(own: ChangedPoints, floor: int, cluster_factor: float) -> list[ChangedRegion]:
@@ -185,11 +197,9 @@ def turned_faces(
     list of ChangedRegion
         The small clusters kept, reference's first.
     """
-    floor = face_floor(min_region_points)
-    if floor >= min_region_points:
-        return []
+    floor, sides = small_face_sides(changed, min_region_points)
     kept: list[ChangedRegion] = []
-    for own, other in moving_sensor_sides(changed):
+    for own, other in sides:
         region_points = [r.point_indices for r in regions if r.kind == other.side.region_kind]
         if not region_points:
             continue
