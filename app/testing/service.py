@@ -105,6 +105,14 @@ class ServiceStartError(RuntimeError):
     """The service exited or did not become healthy in time."""
 
 
+class PortTakenError(ServiceStartError):
+    """Another server holds the service's port (a free port taken between choosing and binding)."""
+
+
+PORT_ATTEMPTS = 3
+"""Ports a service with a chosen-for-it port tries before its start fails."""
+
+
 class ServiceProcess:
     """One ``scandiff serve`` subprocess (API + job consumer) on a free port."""
 
@@ -123,6 +131,7 @@ class ServiceProcess:
         self.workers = workers
         self.host = host
         self.port = port or free_port(host)
+        self._port_given = port is not None
         self.startup_timeout = startup_timeout
         self.log_path = Path(log_path) if log_path else self.data_dir.with_suffix(".service.log")
         self.extra_env = dict(env or {})
@@ -181,6 +190,20 @@ class ServiceProcess:
         if self.is_running():
             raise RuntimeError("service already running")
         self.data_dir.parent.mkdir(parents=True, exist_ok=True)
+        for attempt in range(PORT_ATTEMPTS):
+            self._launch()
+            try:
+                self.wait_healthy()
+                return self
+            except PortTakenError:
+                self.kill()
+                if self._port_given or attempt == PORT_ATTEMPTS - 1:
+                    raise
+                self.port = free_port(self.host)
+        raise AssertionError("unreachable")
+
+    def _launch(self) -> None:
+        """Start ``scandiff serve`` with its output appended to the log."""
         self._log_offset = self.log_path.stat().st_size if self.log_path.exists() else 0
         with open(self.log_path, "ab") as log_file:
             self.process = subprocess.Popen(
@@ -192,8 +215,6 @@ class ServiceProcess:
                 stderr=subprocess.STDOUT,
                 start_new_session=True,  # own session and process group: kill() reaches all
             )
-        self.wait_healthy()
-        return self
 
     def wait_healthy(self, timeout: float | None = None) -> None:
         """Poll the health endpoint until 200; raise with the log if the service dies first."""
@@ -201,7 +222,8 @@ class ServiceProcess:
         last_error = "no answer yet"
         while time.monotonic() < deadline:
             if self.process is None or self.process.poll() is not None:
-                raise ServiceStartError(
+                error = PortTakenError if "address already in use" in self.log_text() else None
+                raise (error or ServiceStartError)(
                     f"scandiff serve exited with {self.process and self.process.returncode}:\n"
                     f"{self.log_text()[-4000:]}"
                 )
@@ -209,8 +231,10 @@ class ServiceProcess:
                 response = httpx.get(
                     self.base_url + HEALTH_PATH, timeout=2.0, verify=local_tls_context()
                 )
-                if response.status_code == 200:
+                if response.status_code == 200 and self._answers_to_its_token():
                     return
+                if response.status_code == 200:
+                    last_error = "healthy, but this service has not started yet"
                 last_error = f"{response.status_code} {response.text[:200]}"
             except httpx.HTTPError as exc:
                 last_error = repr(exc)
@@ -219,6 +243,28 @@ class ServiceProcess:
             f"service not healthy after {timeout or self.startup_timeout}s ({last_error}):\n"
             f"{self.log_text()[-4000:]}"
         )
+
+    def _answers_to_its_token(self) -> bool:
+        """Whether the server on the port knows this service's admin token (raises
+        :class:`PortTakenError` when it refuses it: another server answered the health check).
+
+        False until ``serve`` printed its banner (its token file is written by then); a data
+        directory without a token file (a shared database) cannot be checked: True.
+        """
+        if "scandiff serving at" not in self.log_text():
+            return False
+        path = DataLayout(self.data_dir).admin_token_file
+        if not path.exists():
+            return True
+        response = httpx.get(
+            self.base_url + "/api/v1/sites",
+            headers={"Authorization": f"Bearer {path.read_text().strip()}"},
+            timeout=5.0,
+            verify=local_tls_context(),
+        )
+        if response.status_code in (401, 403, 404):
+            raise PortTakenError(f"another server answers on port {self.port}")
+        return True
 
     def is_running(self) -> bool:
         """Whether the ``serve`` process is alive."""
