@@ -116,6 +116,10 @@ PORT_ATTEMPTS = 3
 class ServiceProcess:
     """One ``scandiff serve`` subprocess (API + job consumer) on a free port."""
 
+    started_line: str | None = "scandiff serving at"
+    """What the process prints once its token file is written (None: its health is not checked
+    against its token)."""
+
     def __init__(
         self,
         data_dir: str | Path,
@@ -248,10 +252,13 @@ class ServiceProcess:
         """Whether the server on the port knows this service's admin token (raises
         :class:`PortTakenError` when it refuses it: another server answered the health check).
 
-        False until ``serve`` printed its banner (its token file is written by then); a data
-        directory without a token file (a shared database) cannot be checked: True.
+        False until the process printed :attr:`started_line` (its token file is written by
+        then); a data directory without a token file (a shared database), or a process without
+        such a line, cannot be checked: True.
         """
-        if "scandiff serving at" not in self.log_text():
+        if self.started_line is None:
+            return True
+        if self.started_line not in self.log_text():
             return False
         path = DataLayout(self.data_dir).admin_token_file
         if not path.exists():
@@ -513,6 +520,8 @@ class ApiProcess(ServiceProcess):
     def __init__(self, data_dir: str | Path, *, log_path: str | Path, **kwargs: Any) -> None:
         super().__init__(data_dir, log_path=log_path, **kwargs)
         self.extra_env.setdefault("SCANDIFF_DATA_DIR", str(self.data_dir))
+
+    started_line = None
 
     def command(self) -> list[str]:
         """The uvicorn command line of this API process."""
