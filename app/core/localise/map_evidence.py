@@ -61,9 +61,10 @@ from pykdtree.kdtree import KDTree
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE
 from app.core.localise.interface import FaceBorder, VisibilityContext, VisibilityOutcome
+from app.core.localise.map_blind import settled_coverage
 from app.core.localise.map_bodies import hollow_sides
 from app.core.localise.map_faces import EDGE_FACTOR, far_faces
-from app.core.localise.map_fragments import fragment_hosts, host_coverage
+from app.core.localise.map_fragments import fragment_hosts
 from app.core.localise.map_lines import line_gap_share
 from app.core.localise.map_parts import (
     SEE_THROUGH_REACH,
@@ -89,10 +90,7 @@ from app.core.localise.map_shared import (
 )
 from app.core.localise.map_supports import map_statuses
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
-from app.core.localise.rays import (
-    STATUS_SEEN_THROUGH,
-    Candidates,
-)
+from app.core.localise.rays import STATUS_SEEN_THROUGH, Candidates
 
 __all__ = ["MapEvidence", "MapTest", "map_test", "unseen_faces"]
 
@@ -409,7 +407,9 @@ def map_test(
     coverage, faces, confidence, counts = _verdict(
         figures, see_through, open_beneath, far_face, stands_on_lacking, in_gap, hollow, strips
     )
-    coverage, confidence = host_coverage(coverage, confidence, hosts)
+    coverage, confidence, counts["map_blind_area_parts"] = settled_coverage(
+        candidates, labels, radius, (coverage, confidence), hosts, own.points, change_threshold
+    )
     status, evidence, counts["map_resting_points"] = map_statuses(
         candidates, labels, coverage[labels], other, threshold, resting_band or change_threshold
     )
