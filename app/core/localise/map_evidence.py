@@ -52,6 +52,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -374,8 +375,7 @@ def map_test(
         behind = seen_through(candidates, chosen, labels, upright, other, counted, threshold)
         return _share_per_part(labels[chosen], behind, share)
 
-    def open_beneath(recheck: NDArray[np.bool_]) -> NDArray[np.float64]:
-        return _level_below_share(candidates, labels, recheck, other=other)
+    open_beneath = partial(_level_below_share, candidates, labels, other=other)
 
     def far_face(check: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
         return far_faces(
@@ -395,8 +395,7 @@ def map_test(
             candidates, labels, recheck, own=own, other=other, other_unmatched=other_unmatched
         )
 
-    def in_gap(recheck: NDArray[np.bool_]) -> NDArray[np.float64]:
-        return _gap_share(candidates, labels, recheck, own=own, other=other, tolerance=threshold)
+    in_gap = partial(_gap_share, candidates, labels, own=own, other=other, tolerance=threshold)
 
     check = unseen_faces(figures) & figures.upright
     hollow = hollow_sides(
