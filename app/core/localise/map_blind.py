@@ -16,7 +16,9 @@ map test already judged coverage differences (the wall behind an unchanged desk 
 handheld camera never filmed, while it filmed the floor under the desk from the side).
 
 :func:`blind_clusters` takes each cluster with a change part and looks at this epoch's points
-around it, within :data:`SHELL_FACTOR` change thresholds of its candidates and outside it:
+around it, within :data:`SHELL_FACTOR` change thresholds of its candidates and outside it, and
+more than one change threshold over its lowest candidate (the floor or desk it stands on is
+no surrounding: the other path may have missed the floor round an added box's foot):
 when at least :data:`BLIND_SHARE` of them are other clusters' coverage differences, the whole
 cluster lies in the other epoch's blind area and is one too.  Then each change part left is
 judged alone the same way, its own cluster's coverage parts in its shell: a patch of a wall
@@ -112,6 +114,12 @@ def blind_clusters(
     )
     shell = np.asarray(distance).ravel() <= reach
     owner = clusters[np.flatnonzero(members)[np.asarray(nearest).ravel()[shell]]]
+    # the support it stands on is no surrounding: only points over its foot count
+    bottom = np.full(changing.shape[0], np.inf)
+    np.minimum.at(bottom, clusters[members], candidates[members, 2])
+    raised = points[looked[shell], 2] > bottom[owner] + change_threshold
+    shell[np.flatnonzero(shell)[~raised]] = False
+    owner = owner[raised]
     is_candidate = np.zeros(points.shape[0], dtype=bool)
     is_candidate[candidate_index] = True
     # shell points that are candidates lie in clusters with no change part: coverage
