@@ -63,7 +63,7 @@ from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE
 from app.core.localise.interface import FaceBorder, VisibilityContext, VisibilityOutcome
 from app.core.localise.map_bodies import hollow_sides
 from app.core.localise.map_faces import EDGE_FACTOR, far_faces
-from app.core.localise.map_fragments import fragment_hosts, host_coverage, planar_part_normals
+from app.core.localise.map_fragments import fragment_hosts, host_coverage
 from app.core.localise.map_lines import line_gap_share
 from app.core.localise.map_parts import (
     SEE_THROUGH_REACH,
@@ -348,7 +348,6 @@ def map_test(
     radius = cluster_factor * candidates.spacing
     labels = surface_parts(candidates.points, candidates.normal, radius)
     labels, hosts = fragment_hosts(labels, candidates.points, radius, candidates.spacing)
-    candidates = planar_part_normals(candidates, labels)
     other_unmatched = unmatched_points(own, other, threshold, change_threshold)
     figures = part_figures(
         candidates,
