@@ -30,6 +30,8 @@ __all__ = [
     "Side",
     "alignment_residual",
     "nearest_in",
+    "pair_median_spacing",
+    "pair_nn_distance_quartile",
     "support_factor",
     "surface_distance",
     "surface_offset_candidates",
@@ -137,6 +139,33 @@ def nearest_in(
     for rows in ordered_chunks(order, len(points), QUERY_CHUNK):
         distance[rows], index[rows] = other.tree.query(points[rows], k=1)
     return distance, index
+
+
+def pair_median_spacing(reference_side: Side, scan_side: Side) -> float:
+    """The median spacing of both clouds' points."""
+    # both clouds' values in one array, partitioned in place (no copy: 80 MB at 5M + 5M)
+    both_spacings = np.concatenate([reference_side.geometry.spacing, scan_side.geometry.spacing])
+    return float(np.median(both_spacings, overwrite_input=True))
+
+
+def pair_nn_distance_quartile(reference_side: Side, scan_side: Side) -> float:
+    """The :data:`SUPPORT_FACTOR_QUANTILE` quantile of each point's nearest-neighbour distance
+    in the other cloud, in that cloud's local spacings (both clouds' points)."""
+    n_reference = len(reference_side.points)
+    relative_nn_distance = np.empty(n_reference + len(scan_side.points))
+    np.divide(
+        reference_side.nearest_distance,
+        scan_side.geometry.spacing[reference_side.nearest_index],
+        out=relative_nn_distance[:n_reference],
+    )
+    np.divide(
+        scan_side.nearest_distance,
+        reference_side.geometry.spacing[scan_side.nearest_index],
+        out=relative_nn_distance[n_reference:],
+    )
+    # one quantile (a partition of both clouds' values, in place) for the report and the
+    # calibrated support factor
+    return float(np.quantile(relative_nn_distance, SUPPORT_FACTOR_QUANTILE, overwrite_input=True))
 
 
 def support_factor(nn_distance_quartile: float, requested: float | None) -> float:
