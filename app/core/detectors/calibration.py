@@ -66,6 +66,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.cloud import column_extreme
+from app.core.threads import for_each_chunk
 
 SCHEMES = ("auto", "paired", "permutation", "split_half")
 
@@ -82,6 +83,7 @@ def null_distribution(
     rng: np.random.Generator,
     pairing_voxel: float = 0.0,
     pairing_origin: NDArray[np.float64] | None = None,
+    threads: int = 1,
 ) -> NDArray[np.float64]:
     """Distances between resampled sets that share no change, scaled to the pair's sizes.
 
@@ -101,6 +103,10 @@ def null_distribution(
     pairing_origin : ndarray, shape (3,), optional
         Corner of that grid: the thinning grid's, so each voxel holds at most one point of
         each cloud (default: the pooled minimum).
+    threads : int
+        From 2, the ``paired`` and ``permutation`` resamples are all drawn first (``rng`` in
+        the same order) and scored on that many threads: only for a ``score`` that draws
+        nothing from ``rng`` itself, so the values are the same as on one thread.
 
     Returns
     -------
@@ -113,11 +119,20 @@ def null_distribution(
             raise ValueError("the paired scheme needs pairing_voxel > 0")
         pooled = np.concatenate([reference, scan])
         resampler = VoxelPairing(reference, scan, pairing_voxel, pairing_origin)
+        if threads >= 2:
+            drawn = [resampler.draw(rng) for _ in range(n_resamples)]
+            _score_drawn(values, score, [(pooled[to], pooled[~to]) for to in drawn], threads)
+            return values
         for index in range(n_resamples):
             to_first = resampler.draw(rng)
             values[index] = score(pooled[to_first], pooled[~to_first])
     elif scheme == "permutation":
         pooled = np.concatenate([reference, scan])
+        if threads >= 2:
+            orders = [rng.permutation(pooled.shape[0]) for _ in range(n_resamples)]
+            pairs = [(pooled[order[:n_reference]], pooled[order[n_reference:]]) for order in orders]
+            _score_drawn(values, score, pairs, threads)
+            return values
         for index in range(n_resamples):
             order = rng.permutation(pooled.shape[0])
             values[index] = score(pooled[order[:n_reference]], pooled[order[n_reference:]])
@@ -133,6 +148,21 @@ def null_distribution(
     else:
         raise ValueError(f"unknown calibration scheme {scheme!r}; valid: {list(SCHEMES)}")
     return values
+
+
+def _score_drawn(
+    values: NDArray[np.float64],
+    score: PairScore,
+    pairs: list[tuple[NDArray[np.float64], NDArray[np.float64]]],
+    threads: int,
+) -> None:
+    """``values[i] = score(*pairs[i])`` for every resampled pair, on ``threads`` threads (each
+    pair's score written to its own entry; numpy's loops and the EMD's solver share cores)."""
+
+    def score_one(index: int) -> None:
+        values[index] = score(*pairs[index])
+
+    for_each_chunk(score_one, range(len(pairs)), threads)
 
 
 class VoxelPairing:
