@@ -58,7 +58,7 @@ docs/detectors.md.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -104,9 +104,10 @@ def null_distribution(
         Corner of that grid: the thinning grid's, so each voxel holds at most one point of
         each cloud (default: the pooled minimum).
     threads : int
-        From 2, the ``paired`` and ``permutation`` resamples are all drawn first (``rng`` in
-        the same order) and scored on that many threads: only for a ``score`` that draws
-        nothing from ``rng`` itself, so the values are the same as on one thread.
+        From 2, the ``paired`` and ``permutation`` resamples are drawn on the calling thread
+        (``rng`` in the same order) and scored on that many threads meanwhile: only for a
+        ``score`` that draws nothing from ``rng`` itself, so the values are the same as on
+        one thread.
 
     Returns
     -------
@@ -120,8 +121,8 @@ def null_distribution(
         pooled = np.concatenate([reference, scan])
         resampler = VoxelPairing(reference, scan, pairing_voxel, pairing_origin)
         if threads >= 2:
-            drawn = [resampler.draw(rng) for _ in range(n_resamples)]
-            _score_drawn(values, score, [(pooled[to], pooled[~to]) for to in drawn], threads)
+            drawn = (resampler.draw(rng) for _ in range(n_resamples))
+            _score_drawn(values, score, ((pooled[to], pooled[~to]) for to in drawn), threads)
             return values
         for index in range(n_resamples):
             to_first = resampler.draw(rng)
@@ -129,8 +130,8 @@ def null_distribution(
     elif scheme == "permutation":
         pooled = np.concatenate([reference, scan])
         if threads >= 2:
-            orders = [rng.permutation(pooled.shape[0]) for _ in range(n_resamples)]
-            pairs = [(pooled[order[:n_reference]], pooled[order[n_reference:]]) for order in orders]
+            orders = (rng.permutation(pooled.shape[0]) for _ in range(n_resamples))
+            pairs = ((pooled[order[:n_reference]], pooled[order[n_reference:]]) for order in orders)
             _score_drawn(values, score, pairs, threads)
             return values
         for index in range(n_resamples):
@@ -153,16 +154,18 @@ def null_distribution(
 def _score_drawn(
     values: NDArray[np.float64],
     score: PairScore,
-    pairs: list[tuple[NDArray[np.float64], NDArray[np.float64]]],
+    pairs: Iterator[tuple[NDArray[np.float64], NDArray[np.float64]]],
     threads: int,
 ) -> None:
-    """``values[i] = score(*pairs[i])`` for every resampled pair, on ``threads`` threads (each
-    pair's score written to its own entry; numpy's loops and the EMD's solver share cores)."""
+    """``values[i] = score(*pair)`` for the ``i``-th resampled pair, on ``threads`` threads:
+    each pair is drawn on the calling thread (in the generator's order) while those drawn
+    before it are scored, and each score is written to its own entry."""
 
-    def score_one(index: int) -> None:
-        values[index] = score(*pairs[index])
+    def score_one(numbered: tuple[int, tuple[NDArray, NDArray]]) -> None:
+        index, pair = numbered
+        values[index] = score(*pair)
 
-    for_each_chunk(score_one, range(len(pairs)), threads)
+    for_each_chunk(score_one, enumerate(pairs), threads)
 
 
 class VoxelPairing:

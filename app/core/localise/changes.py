@@ -408,6 +408,7 @@ def _candidates(
             other.geometry,
             threshold=limits.threshold,
             change_threshold=limits.change_threshold,
+            threads=threads,
         )
         crossing = limits.crossing_threshold  # fused maps only (no origins: the map test)
         if crossing < limits.change_threshold and other.origins is None:

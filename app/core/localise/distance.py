@@ -25,6 +25,7 @@ from app.core.cloud import MIN_POINTS
 from app.core.localise.settings import CHUNK, GATHER_CHUNK, QUERY_CHUNK
 from app.core.localise.surface import LocalGeometry, weighted_plane
 from app.core.spatial_order import ordered_chunks
+from app.core.threads import for_each_chunk
 
 __all__ = [
     "Side",
@@ -355,6 +356,7 @@ def surface_offset_candidates(
     *,
     threshold: float,
     change_threshold: float,
+    threads: int = 1,
 ) -> NDArray[np.bool_]:
     """Candidates, with the points just under the change threshold judged by their surface.
 
@@ -381,6 +383,10 @@ def surface_offset_candidates(
     other : LocalGeometry
     threshold, change_threshold : float
         ``tau`` and ``c`` (metres).
+    threads : int
+        Threads that judge the chunks of points (each writes its own rows: the same result on
+        any number; the other cloud's points, judged on a thread of their own, may take much
+        less time, and this cloud's chunks then still share both cores).
 
     Returns
     -------
@@ -391,7 +397,8 @@ def surface_offset_candidates(
     rows = np.flatnonzero(~candidate & (distance > change_threshold - band)) if band > 0 else []
     found = candidate.copy()
     geometry = own.geometry
-    for start in range(0, len(rows), LEVEL_CHUNK):
+
+    def judge(start: int) -> None:
         row = rows[start : start + LEVEL_CHUNK]
         point = geometry.points[row]
         unit, has_axis, ball = _surface_axes(geometry, row, change_threshold)
@@ -409,6 +416,8 @@ def surface_offset_candidates(
             & other_found
             & (np.abs(other_level - own_level) > change_threshold)
         )
+
+    for_each_chunk(judge, range(0, len(rows), LEVEL_CHUNK), threads)
     return found
 
 
