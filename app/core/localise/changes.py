@@ -346,7 +346,7 @@ def _thresholds(
     median_spacing, nn_distance_quartile = concurrently(
         threads,
         lambda: pair_median_spacing(reference_side, scan_side),
-        lambda: pair_nn_distance_quartile(reference_side, scan_side),
+        lambda: pair_nn_distance_quartile(reference_side, scan_side, threads),
     )
     support = support_factor(nn_distance_quartile, settings["support_factor"])
     noises = (reference_side.geometry.noise, scan_side.geometry.noise)

@@ -25,7 +25,7 @@ from app.core.cloud import MIN_POINTS
 from app.core.localise.settings import CHUNK, GATHER_CHUNK, QUERY_CHUNK
 from app.core.localise.surface import LocalGeometry, weighted_plane
 from app.core.spatial_order import ordered_chunks
-from app.core.threads import for_each_chunk
+from app.core.threads import concurrently, for_each_chunk
 
 __all__ = [
     "Side",
@@ -149,20 +149,20 @@ def pair_median_spacing(reference_side: Side, scan_side: Side) -> float:
     return float(np.median(both_spacings, overwrite_input=True))
 
 
-def pair_nn_distance_quartile(reference_side: Side, scan_side: Side) -> float:
+def pair_nn_distance_quartile(reference_side: Side, scan_side: Side, threads: int = 1) -> float:
     """The :data:`SUPPORT_FACTOR_QUANTILE` quantile of each point's nearest-neighbour distance
-    in the other cloud, in that cloud's local spacings (both clouds' points)."""
+    in the other cloud, in that cloud's local spacings (both clouds' points); from 2
+    ``threads`` each cloud's values (a gather of the other's spacings) on a thread of its own."""
     n_reference = len(reference_side.points)
     relative_nn_distance = np.empty(n_reference + len(scan_side.points))
-    np.divide(
-        reference_side.nearest_distance,
-        scan_side.geometry.spacing[reference_side.nearest_index],
-        out=relative_nn_distance[:n_reference],
-    )
-    np.divide(
-        scan_side.nearest_distance,
-        reference_side.geometry.spacing[scan_side.nearest_index],
-        out=relative_nn_distance[n_reference:],
+
+    def relative(own: Side, other: Side, out: NDArray[np.float64]) -> None:
+        np.divide(own.nearest_distance, other.geometry.spacing[own.nearest_index], out=out)
+
+    concurrently(
+        threads,
+        lambda: relative(reference_side, scan_side, relative_nn_distance[:n_reference]),
+        lambda: relative(scan_side, reference_side, relative_nn_distance[n_reference:]),
     )
     # one quantile (a partition of both clouds' values, in place) for the report and the
     # calibrated support factor
