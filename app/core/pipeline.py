@@ -232,8 +232,11 @@ def run_stages(
         else None
     )
     with threadpool_limits(limits=1, user_api="blas"):
-        matched = _match(loaded, memory, report, timings, localise_step, early)
-        # joined within the limit: the detector's own limit restores the value it found
+        try:
+            matched = _match(loaded, memory, report, timings, localise_step, early)
+        finally:  # joined within the limit: the detector's own restores the value it found
+            if early is not None:
+                early.wait()
         detected = None if early is None else early.take(matched.localisation)
     memory.keep()
     report("detect", 0.65 if localise_step is None else localise_step.detect_fraction)

@@ -96,3 +96,27 @@ def test_the_snapshot_compares_observed_points_only():
     unobserved = np.array([LABEL_UNOBSERVED, LABEL_UNCHANGED, LABEL_UNOBSERVED], dtype=np.int8)
     assert snapshot.observes_as(Final(unchanged, started))
     assert not snapshot.observes_as(Final(started, unobserved))
+
+
+def test_no_detection_thread_outlives_a_comparison_that_fails(monkeypatch, box_pair):
+    """An error after the detection started (here in the regions step) is raised once the
+    detection thread has ended."""
+    reference, scan, params = box_pair
+
+    def failing_regions(*args, **kwargs):
+        raise RuntimeError("the regions failed")
+
+    monkeypatch.setattr(changes, "find_regions", failing_regions)
+    started = threading.Thread.start
+    detection_threads: list[threading.Thread] = []
+
+    def recorded_start(thread):
+        if thread.name == "early-detection":
+            detection_threads.append(thread)
+        started(thread)
+
+    monkeypatch.setattr(threading.Thread, "start", recorded_start)
+    with pytest.raises(RuntimeError, match="the regions failed"):
+        compare(reference, scan, params=params, threads=2)
+    assert len(detection_threads) == 1
+    assert not detection_threads[0].is_alive()

@@ -101,12 +101,18 @@ class EarlyDetection:
             self._detected = None
         self.seconds = time.perf_counter() - started
 
+    def wait(self) -> None:
+        """Wait for the detection, if it started (also when stage 4 failed after its start:
+        no thread outlives the comparison)."""
+        if self._thread is not None:
+            self._thread.join()
+
     def take(self, localisation: Localisation) -> Detected | None:
         """Wait for the detection; its result when it ran on the points ``localisation``
         observes, else None (not started, failed, or other labels: detect again)."""
         if self._thread is None or self._labels is None:
             return None
-        self._thread.join()
+        self.wait()
         detected, self._detected = self._detected, None
         if detected is None or not self._labels.observes_as(localisation):
             return None
