@@ -46,6 +46,7 @@ from app.core.localise.station_rays import (
     combine_station_status,
     resolve_edge_on,
 )
+from app.core.localise.stray_samples import without_strays
 from app.core.localise.trajectory_visibility import TrajectoryTest
 
 __all__ = [
@@ -168,6 +169,7 @@ def label_candidates(
     Labelled
     """
     test = choose_test(other, settings)
+    candidates, strays = without_strays(own, other, candidates)
     context = VisibilityContext(
         misalignment=misalignment,
         threshold=threshold,
@@ -180,6 +182,8 @@ def label_candidates(
     side = own.name
     report: dict[str, Any] = {f"{side}_candidates": int(candidates.index.size)}
     report[f"{side}_visibility"] = test.name
+    if strays:
+        report[f"{side}_stray_samples"] = strays
     report.update({f"{side}_{name}": value for name, value in outcome.report.items()})
     evidence_of_candidates = outcome.evidence
     if evidence_of_candidates is None:
