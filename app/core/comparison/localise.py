@@ -26,7 +26,6 @@ from app.core.localise import (
     localise_changes,
     start_neighbourhood_search,
 )
-from app.core.localise.map_strays import map_kept, with_strays_back
 
 REFERENCE_AHEAD_MIN_POINTS = 50_000
 """From this many reference points (and with >= 2 threads) the reference's nearest-neighbour
@@ -114,16 +113,12 @@ def localise_pair(
     Localisation
     """
     with threadpool_limits(limits=threads, user_api="openmp"):
-        # a map's stray samples (flying pixels) are left out, then given back unchanged
-        kept = (map_kept(reference), map_kept(scan))
-        sizes = (len(reference.points), len(scan.points))  # type: ignore[arg-type]
-        localisation = localise_changes(
-            reference if kept[0] is None else reference.subset(kept[0]),
-            scan if kept[1] is None else scan.subset(kept[1]),
+        return localise_changes(
+            reference,
+            scan,
             # Not registration.rmse: that includes sampling distance and real change (0.15 m
             # on KITTI); localise measures the remaining misalignment itself from surfaces.
             registration_rmse=0.0,
             threads=threads,
             **localisation_params,
         )
-        return with_strays_back(localisation, kept, sizes)

@@ -19,23 +19,15 @@ far returns are its resolution limit, judged by its ray test.
 
 from __future__ import annotations
 
-import math
 from dataclasses import fields
 
 import numpy as np
 from numpy.typing import NDArray
-from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
 from app.core.localise.rays import Candidates
 
-__all__ = [
-    "STRAY_NEIGHBOURS",
-    "STRAY_RADIUS_FACTOR",
-    "cloud_strays",
-    "stray_samples",
-    "without_strays",
-]
+__all__ = ["STRAY_NEIGHBOURS", "STRAY_RADIUS_FACTOR", "stray_samples", "without_strays"]
 
 STRAY_RADIUS_FACTOR = 4.0
 """The radius a sample's neighbours are counted in, in the cloud's median spacings."""
@@ -82,28 +74,3 @@ def without_strays(own: Side, other: Side, candidates: Candidates) -> tuple[Cand
         **{field.name: getattr(candidates, field.name)[kept] for field in fields(candidates)}
     )
     return subset, int(stray.sum())
-
-
-SPACING_NEIGHBOURS = 10
-"""A cloud's median spacing, before its local geometry exists: from the distance to the
-``SPACING_NEIGHBOURS``-th neighbour (``d_k sqrt(pi / k)``, as the local geometry's)."""
-SPACING_SAMPLE = 20_000
-"""At most about this many points (every ``n // SPACING_SAMPLE``-th) give that median."""
-
-
-def cloud_strays(points: NDArray[np.float64]) -> NDArray[np.bool_]:
-    """Which points of a whole cloud (n, 3) are stray samples, shape (n,): at most
-    :data:`STRAY_NEIGHBOURS` other points within :data:`STRAY_RADIUS_FACTOR` times the cloud's
-    median spacing (estimated from every ``n // SPACING_SAMPLE``-th point)."""
-    count = len(points)
-    if count <= SPACING_NEIGHBOURS + 1:
-        return np.zeros(count, dtype=bool)
-    points = np.ascontiguousarray(points, dtype=np.float64)
-    tree = KDTree(points)
-    sample = points[:: max(1, count // SPACING_SAMPLE)]
-    distance, _ = tree.query(sample, k=SPACING_NEIGHBOURS + 1)
-    spacing = float(np.median(distance[:, -1])) * math.sqrt(math.pi / SPACING_NEIGHBOURS)
-    distance, _ = tree.query(
-        points, k=STRAY_NEIGHBOURS + 2, distance_upper_bound=STRAY_RADIUS_FACTOR * spacing
-    )
-    return ~np.isfinite(distance[:, -1])
