@@ -19,15 +19,13 @@ far returns are its resolution limit, judged by its ray test.
 
 from __future__ import annotations
 
-from dataclasses import fields
-
 import numpy as np
 from numpy.typing import NDArray
 
 from app.core.localise.distance import Side
 from app.core.localise.rays import Candidates
 
-__all__ = ["STRAY_NEIGHBOURS", "STRAY_RADIUS_FACTOR", "stray_samples", "without_strays"]
+__all__ = ["STRAY_NEIGHBOURS", "STRAY_RADIUS_FACTOR", "stray_rows", "stray_samples"]
 
 STRAY_RADIUS_FACTOR = 4.0
 """The radius a sample's neighbours are counted in, in the cloud's median spacings."""
@@ -61,16 +59,9 @@ def stray_samples(own: Side, candidates: Candidates) -> NDArray[np.bool_]:
     return ~np.isfinite(distance[:, -1])
 
 
-def without_strays(own: Side, other: Side, candidates: Candidates) -> tuple[Candidates, int]:
-    """``candidates`` without the stray samples when ``other`` is a moving sensor's map (no
-    stations, or a trajectory), and how many were left out."""
+def stray_rows(own: Side, other: Side, candidates: Candidates) -> NDArray[np.int64]:
+    """Rows of ``own`` (s,) of its stray candidates when ``other`` is a moving sensor's map
+    (no stations, or a trajectory); none otherwise."""
     if other.origins is not None and other.trajectory_rays is None:
-        return candidates, 0
-    stray = stray_samples(own, candidates)
-    if not stray.any():
-        return candidates, 0
-    kept = ~stray
-    subset = Candidates(
-        **{field.name: getattr(candidates, field.name)[kept] for field in fields(candidates)}
-    )
-    return subset, int(stray.sum())
+        return np.zeros(0, dtype=np.int64)
+    return candidates.index[stray_samples(own, candidates)]

@@ -46,7 +46,7 @@ from app.core.localise.station_rays import (
     combine_station_status,
     resolve_edge_on,
 )
-from app.core.localise.stray_samples import without_strays
+from app.core.localise.stray_samples import stray_rows
 from app.core.localise.trajectory_visibility import TrajectoryTest
 
 __all__ = [
@@ -169,7 +169,7 @@ def label_candidates(
     Labelled
     """
     test = choose_test(other, settings)
-    candidates, strays = without_strays(own, other, candidates)
+    strays = stray_rows(own, other, candidates)
     context = VisibilityContext(
         misalignment=misalignment,
         threshold=threshold,
@@ -182,8 +182,8 @@ def label_candidates(
     side = own.name
     report: dict[str, Any] = {f"{side}_candidates": int(candidates.index.size)}
     report[f"{side}_visibility"] = test.name
-    if strays:
-        report[f"{side}_stray_samples"] = strays
+    if strays.size:
+        report[f"{side}_stray_samples"] = int(strays.size)
     report.update({f"{side}_{name}": value for name, value in outcome.report.items()})
     evidence_of_candidates = outcome.evidence
     if evidence_of_candidates is None:
@@ -199,6 +199,9 @@ def label_candidates(
     judged = status != STATUS_SURFACE
     evidence[index[judged]] = evidence_of_candidates[judged]
     confidence[index[judged]] = outcome.confidence[judged]
+    label[strays] = LABEL_UNCHANGED  # judged with the others, then no change of their own
+    evidence[strays] = 0
+    confidence[strays] = 0.0
     return Labelled(
         label=label, evidence=evidence, confidence=confidence, report=report, faces=outcome.faces
     )
