@@ -46,7 +46,6 @@ from app.core.localise.station_rays import (
     combine_station_status,
     resolve_edge_on,
 )
-from app.core.localise.stray_samples import stray_rows
 from app.core.localise.trajectory_visibility import TrajectoryTest
 
 __all__ = [
@@ -169,7 +168,6 @@ def label_candidates(
     Labelled
     """
     test = choose_test(other, settings)
-    strays = stray_rows(own, other, candidates)
     context = VisibilityContext(
         misalignment=misalignment,
         threshold=threshold,
@@ -182,8 +180,6 @@ def label_candidates(
     side = own.name
     report: dict[str, Any] = {f"{side}_candidates": int(candidates.index.size)}
     report[f"{side}_visibility"] = test.name
-    if strays.size:
-        report[f"{side}_stray_samples"] = int(strays.size)
     report.update({f"{side}_{name}": value for name, value in outcome.report.items()})
     evidence_of_candidates = outcome.evidence
     if evidence_of_candidates is None:
@@ -199,9 +195,6 @@ def label_candidates(
     judged = status != STATUS_SURFACE
     evidence[index[judged]] = evidence_of_candidates[judged]
     confidence[index[judged]] = outcome.confidence[judged]
-    label[strays] = LABEL_UNCHANGED  # judged with the others, then no change of their own
-    evidence[strays] = 0
-    confidence[strays] = 0.0
     return Labelled(
         label=label, evidence=evidence, confidence=confidence, report=report, faces=outcome.faces
     )
