@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
-from app.core.localise.gaps import between_samples
+from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, between_samples
 from app.core.localise.interface import VisibilityContext, VisibilityOutcome
 from app.core.localise.map_parts import surface_parts
 from app.core.localise.map_supports import part_bottom, resting_on_support
@@ -56,7 +56,9 @@ __all__ = [
     "NEIGHBOUR_RETURNS",
     "TrajectoryTest",
     "resting_feet",
+    "resting_on_own_support",
     "trajectory_statuses",
+    "undersides_edge_on",
 ]
 
 LONE_SIGHTING_FACTOR = 1.5
@@ -242,6 +244,97 @@ def resting_feet(
     return resting
 
 
+def undersides_edge_on(
+    candidates: Candidates, status: NDArray[np.int8], own: Side
+) -> NDArray[np.bool_]:
+    """Level candidates seen edge-on that their own sensor saw from below, shape (c,).
+
+    A desk's or a shelf's underside at about the other sensor's height is seen edge-on from
+    every pose of the other path, whatever stands on the desk.  The edge-on resolution
+    (:func:`~app.core.localise.station_rays.resolve_edge_on`) promotes an edge-on face joined
+    to faces seen through: right for a removed box's top at the sensor's height, which caps
+    the faces seen through below it, wrong for the underside of the desk a removed box stood
+    on, which the box's faces join from above.  A level surface its own sensor saw from below
+    is the underside of something raised, never the top of an object standing on it: seen
+    edge-on by the other epoch, it has no evidence and is not promoted.
+
+    Parameters
+    ----------
+    candidates : Candidates
+        c candidates of ``own``.
+    status : ndarray, shape (c,), int8
+        Their combined ray statuses.
+    own : Side
+        The candidates' cloud; without sensor positions (``origins`` and ``station``) no
+        candidate is an underside.
+
+    Returns
+    -------
+    ndarray, shape (c,), bool
+    """
+    edge_on = status == STATUS_EDGE_ON
+    if own.origins is None or own.station is None or not edge_on.any():
+        return np.zeros(status.shape[0], dtype=bool)
+    sensor_height = np.asarray(own.origins, dtype=np.float64).reshape(-1, 3)[
+        own.station[candidates.index], 2
+    ]
+    level = np.abs(candidates.normal[:, 2]) >= NORMAL_AGREEMENT_COSINE
+    return edge_on & level & ~candidates.linear & (candidates.points[:, 2] > sensor_height)
+
+
+def resting_on_own_support(
+    candidates: Candidates, status: NDArray[np.int8], own: Side, context: VisibilityContext
+) -> NDArray[np.bool_]:
+    """Candidates seen through or edge-on on the foot of an upright face whose own support the
+    other epoch never saw empty, shape (c,).
+
+    Truth and the change distance call a point unchanged within the change threshold of any
+    surface of the other epoch's world.  A box's foot stands within it of the desk or floor
+    under it; when the other cloud never sampled that support (a desk top above the other
+    sensor's path, a floor between its rings), the rays through the foot's place say the box
+    is gone but nothing about the support: the foot may lie within the threshold of it, and
+    its own cloud's support is either sampled by the other epoch (not a candidate) or a
+    candidate the other epoch did not see through (seen edge-on or not at all).  Such a foot
+    has no evidence of its own (:func:`~app.core.localise.map_supports.resting_on_support`
+    with the own cloud's level samples, those the other epoch saw through left out).
+
+    Parameters
+    ----------
+    candidates : Candidates
+        c candidates of ``own``.
+    status : ndarray, shape (c,), int8
+        Their combined ray statuses.
+    own : Side
+        The candidates' cloud.
+    context : VisibilityContext
+
+    Returns
+    -------
+    ndarray, shape (c,), bool
+    """
+    judged = np.flatnonzero((status == STATUS_SEEN_THROUGH) | (status == STATUS_EDGE_ON))
+    resting = np.zeros(status.shape[0], dtype=bool)
+    if judged.size == 0:
+        return resting
+    unseen = np.ones(own.points.shape[0], dtype=bool)
+    unseen[candidates.index[status == STATUS_SEEN_THROUGH]] = False
+    labels = surface_parts(
+        candidates.points,
+        candidates.normal,
+        context.settings["cluster_factor"] * candidates.spacing,
+    )
+    resting[judged] = resting_on_support(
+        candidates.points[judged],
+        candidates.normal[judged],
+        part_bottom(candidates.points, labels)[judged],
+        own.geometry,
+        context.threshold,
+        context.change_threshold,
+        samples=unseen,
+    )
+    return resting
+
+
 class TrajectoryTest:
     """The ray test from the pseudo-stations of the other cloud's trajectory
     (``name = "trajectory"``)."""
@@ -278,8 +371,16 @@ class TrajectoryTest:
         # the foot of an upright face on the other epoch's support: no change of its own
         resting = resting_feet(candidates, status, other, context)
         status[resting] = STATUS_SURFACE
+        # ... or on an own support the other epoch never saw empty: no evidence
+        on_unseen_support = resting_on_own_support(candidates, status, own, context)
+        status[on_unseen_support] = STATUS_UNOBSERVED
+        # a desk's underside the other path saw edge-on: not the removed object's face
+        undersides = undersides_edge_on(candidates, status, own)
+        status[undersides] = STATUS_UNOBSERVED
         report: dict[str, Any] = {
             "candidates_resting_on_other_support": int(resting.sum()),
+            "candidates_resting_on_unseen_support": int(on_unseen_support.sum()),
+            "candidates_undersides_edge_on": int(undersides.sum()),
             "candidates_seen_through_once": int(lone.sum()),
             "candidates_between_other_samples": int(between.size),
         }
