@@ -283,7 +283,10 @@ def undersides_edge_on(
 
 
 def resting_on_own_support(
-    candidates: Candidates, status: NDArray[np.int8], own: Side, context: VisibilityContext
+    candidates: Candidates,
+    status: NDArray[np.int8],
+    sides: tuple[Side, Side],
+    context: VisibilityContext,
 ) -> NDArray[np.bool_]:
     """Candidates seen through or edge-on on the foot of an upright face whose own support the
     other epoch never saw empty, shape (c,).
@@ -293,10 +296,13 @@ def resting_on_own_support(
     under it; when the other cloud never sampled that support (a desk top above the other
     sensor's path, a floor between its rings), the rays through the foot's place say the box
     is gone but nothing about the support: the foot may lie within the threshold of it, and
-    its own cloud's support is either sampled by the other epoch (not a candidate) or a
-    candidate the other epoch did not see through (seen edge-on or not at all).  Such a foot
-    has no evidence of its own (:func:`~app.core.localise.map_supports.resting_on_support`
-    with the own cloud's level samples, those the other epoch saw through left out).
+    its own cloud's support is a candidate the other epoch did not see at all (a desk's
+    underside, :func:`undersides_edge_on`) or saw a surface at, or not a candidate and
+    nearest to a level sample of the other epoch.  Such a foot has no evidence of its own
+    (:func:`~app.core.localise.map_supports.resting_on_support` with those own level samples
+    only: a removed chair's seat, seen through or promoted with its backrest, carries the
+    backrest's foot away; and a seat's sample within the change threshold of a board turned
+    across it says nothing of the seat).
 
     Parameters
     ----------
@@ -304,20 +310,27 @@ def resting_on_own_support(
         c candidates of ``own``.
     status : ndarray, shape (c,), int8
         Their combined ray statuses.
-    own : Side
-        The candidates' cloud.
+    sides : (Side, Side)
+        The candidates' cloud and the other one.
     context : VisibilityContext
 
     Returns
     -------
     ndarray, shape (c,), bool
     """
+    own, other = sides
     judged = np.flatnonzero((status == STATUS_SEEN_THROUGH) | (status == STATUS_EDGE_ON))
     resting = np.zeros(status.shape[0], dtype=bool)
     if judged.size == 0:
         return resting
-    unseen = np.ones(own.points.shape[0], dtype=bool)
-    unseen[candidates.index[status == STATUS_SEEN_THROUGH]] = False
+    # own samples on a level surface of the other epoch (the nearest other point level too) ...
+    nearest = own.nearest_index
+    unseen = (np.abs(other.geometry.normal[nearest, 2]) >= NORMAL_AGREEMENT_COSINE) & ~(
+        other.geometry.linear[nearest]
+    )
+    unseen[candidates.index] = False
+    # ... or candidates it did not see at all, or saw a surface at
+    unseen[candidates.index[(status == STATUS_UNOBSERVED) | (status == STATUS_SURFACE)]] = True
     labels = surface_parts(
         candidates.points,
         candidates.normal,
@@ -371,12 +384,12 @@ class TrajectoryTest:
         # the foot of an upright face on the other epoch's support: no change of its own
         resting = resting_feet(candidates, status, other, context)
         status[resting] = STATUS_SURFACE
-        # ... or on an own support the other epoch never saw empty: no evidence
-        on_unseen_support = resting_on_own_support(candidates, status, own, context)
-        status[on_unseen_support] = STATUS_UNOBSERVED
         # a desk's underside the other path saw edge-on: not the removed object's face
         undersides = undersides_edge_on(candidates, status, own)
         status[undersides] = STATUS_UNOBSERVED
+        # ... and a foot on an own support the other epoch never saw empty: no evidence
+        on_unseen_support = resting_on_own_support(candidates, status, (own, other), context)
+        status[on_unseen_support] = STATUS_UNOBSERVED
         report: dict[str, Any] = {
             "candidates_resting_on_other_support": int(resting.sum()),
             "candidates_resting_on_unseen_support": int(on_unseen_support.sum()),
