@@ -245,7 +245,12 @@ def resting_feet(
 
 
 def undersides_edge_on(
-    candidates: Candidates, status: NDArray[np.int8], own: Side
+    candidates: Candidates,
+    status: NDArray[np.int8],
+    own: Side,
+    *,
+    tolerance: float,
+    change_threshold: float,
 ) -> NDArray[np.bool_]:
     """Level candidates seen edge-on that their own sensor saw from below, shape (c,).
 
@@ -256,7 +261,10 @@ def undersides_edge_on(
     the faces seen through below it, wrong for the underside of the desk a removed box stood
     on, which the box's faces join from above.  A level surface its own sensor saw from below
     is the underside of something raised, never the top of an object standing on it: seen
-    edge-on by the other epoch, it has no evidence and is not promoted.
+    edge-on by the other epoch, it has no evidence and is not promoted.  Its own sensor saw it
+    through the space under it, so that space is open: no own point within half the change
+    threshold of the place that far (and ``tolerance``) under it (a thin backrest's top edge,
+    whose fitted normal may be level, has its own sides just under it).
 
     Parameters
     ----------
@@ -267,6 +275,8 @@ def undersides_edge_on(
     own : Side
         The candidates' cloud; without sensor positions (``origins`` and ``station``) no
         candidate is an underside.
+    tolerance, change_threshold : float
+        ``tau`` and ``c`` (metres).
 
     Returns
     -------
@@ -279,7 +289,17 @@ def undersides_edge_on(
         own.station[candidates.index], 2
     ]
     level = np.abs(candidates.normal[:, 2]) >= NORMAL_AGREEMENT_COSINE
-    return edge_on & level & ~candidates.linear & (candidates.points[:, 2] > sensor_height)
+    above = edge_on & level & ~candidates.linear & (candidates.points[:, 2] > sensor_height)
+    rows = np.flatnonzero(above)
+    if rows.size == 0:
+        return above
+    # the own sensor saw it from below: the space under it is open (a thin body's top edge,
+    # its level-fitted normal notwithstanding, has its own sides just under it)
+    reach = 0.5 * change_threshold
+    under = candidates.points[rows] - np.array([0.0, 0.0, reach + tolerance])
+    distance, _ = own.geometry.tree.query(under, k=1, distance_upper_bound=reach)
+    above[rows] = ~np.isfinite(np.asarray(distance))
+    return above
 
 
 def resting_on_own_support(
@@ -385,7 +405,13 @@ class TrajectoryTest:
         resting = resting_feet(candidates, status, other, context)
         status[resting] = STATUS_SURFACE
         # a desk's underside the other path saw edge-on: not the removed object's face
-        undersides = undersides_edge_on(candidates, status, own)
+        undersides = undersides_edge_on(
+            candidates,
+            status,
+            own,
+            tolerance=context.threshold,
+            change_threshold=context.change_threshold,
+        )
         status[undersides] = STATUS_UNOBSERVED
         # ... and a foot on an own support the other epoch never saw empty: no evidence
         on_unseen_support = resting_on_own_support(candidates, status, (own, other), context)
