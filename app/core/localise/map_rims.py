@@ -98,10 +98,12 @@ def inside_rims(
         slab = slab[np.linspace(0, slab.shape[0] - 1, RIM_MAX_GATHER).round().astype(np.int64)]
     if slab.shape[0] < RIM_MIN_POINTS:
         return np.zeros(points.shape[0], dtype=bool)
-    edge = _level_edges(other, slab)
     offset = other.points[slab][None, :, :] - points[:, None, :]
     across = np.hypot(offset[:, :, 0], offset[:, :, 1])
     held = (across <= RIM_REACH) & (np.abs(offset[:, :, 2]) <= tolerance + PLANE_SLOPE * across)
+    used = np.flatnonzero(held.any(axis=0))
+    held, offset = held[:, used], offset[:, used, :]
+    edge = _level_edges(other, slab[used])
     angle = np.arctan2(offset[:, :, 1], offset[:, :, 0])
     return (
         (held.sum(axis=1) >= RIM_MIN_POINTS)
