@@ -194,17 +194,18 @@ class ServiceProcess:
         if self.is_running():
             raise RuntimeError("service already running")
         self.data_dir.parent.mkdir(parents=True, exist_ok=True)
-        for attempt in range(PORT_ATTEMPTS):
+        for attempt in range(1, PORT_ATTEMPTS + 1):
             self._launch()
             try:
                 self.wait_healthy()
-                return self
             except PortTakenError:
                 self.kill()
-                if self._port_given or attempt == PORT_ATTEMPTS - 1:
+                if self._port_given or attempt == PORT_ATTEMPTS:
                     raise
                 self.port = free_port(self.host)
-        raise AssertionError("unreachable")
+            else:
+                break
+        return self
 
     def _launch(self) -> None:
         """Start ``scandiff serve`` with its output appended to the log."""
@@ -237,9 +238,11 @@ class ServiceProcess:
                 )
                 if response.status_code == 200 and self._answers_to_its_token():
                     return
-                if response.status_code == 200:
-                    last_error = "healthy, but this service has not started yet"
-                last_error = f"{response.status_code} {response.text[:200]}"
+                last_error = (
+                    "healthy, but this service has not started yet"
+                    if response.status_code == 200
+                    else f"{response.status_code} {response.text[:200]}"
+                )
             except httpx.HTTPError as exc:
                 last_error = repr(exc)
             time.sleep(0.1)
@@ -517,11 +520,11 @@ class ApiProcess(ServiceProcess):
     first); it writes no admin token, so tests make their own tokens.
     """
 
+    started_line = None
+
     def __init__(self, data_dir: str | Path, *, log_path: str | Path, **kwargs: Any) -> None:
         super().__init__(data_dir, log_path=log_path, **kwargs)
         self.extra_env.setdefault("SCANDIFF_DATA_DIR", str(self.data_dir))
-
-    started_line = None
 
     def command(self) -> list[str]:
         """The uvicorn command line of this API process."""

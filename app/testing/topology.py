@@ -50,7 +50,12 @@ from app.testing.fake_pipeline import CONSUMER_BOOTSTRAP
 from app.testing.network import free_port, local_tls_context
 from app.testing.paths import PROJECT_ROOT
 from app.testing.redis import redis_ping, redis_server_binary
-from app.testing.service import kill_process_group, live_worker_pids, process_group_members
+from app.testing.service import (
+    PORT_ATTEMPTS,
+    kill_process_group,
+    live_worker_pids,
+    process_group_members,
+)
 
 REDIS_SERVER = redis_server_binary() or "/usr/bin/redis-server"
 """The redis-server the topology runs (``SCANDIFF_TEST_REDIS_SERVER``, else on the PATH)."""
@@ -223,6 +228,7 @@ class ApiProcess(ManagedProcess):
     """One API process (uvicorn, no job consumer)."""
 
     port: int = 0
+    admin_token: str = ""
 
     @property
     def base_url(self) -> str:
@@ -230,15 +236,36 @@ class ApiProcess(ManagedProcess):
         return f"http://127.0.0.1:{self.port}"
 
     def healthy(self) -> bool:
-        """Whether ``GET /api/v1/health`` answers 200."""
+        """Whether ``GET /api/v1/health`` answers 200 and, given :attr:`admin_token`, the server
+        on the port knows it (another test's server that took the port first does not)."""
         try:
             answer = httpx.get(self.base_url + HEALTH_PATH, timeout=2.0, verify=local_tls_context())
-            return answer.status_code == 200
+            if answer.status_code != 200 or not self.admin_token:
+                return answer.status_code == 200
+            sites = httpx.get(
+                self.base_url + "/api/v1/sites",
+                headers={"Authorization": f"Bearer {self.admin_token}"},
+                timeout=5.0,
+                verify=local_tls_context(),
+            )
+            return sites.status_code == 200
         except httpx.HTTPError:
             return False
 
     def wait_ready(self) -> None:
-        wait_for(self.healthy, START_TIMEOUT_SECONDS, "healthy", self)
+        """Wait until healthy; when the port was taken before it bound, move to a fresh port."""
+        for attempt in range(PORT_ATTEMPTS):
+            try:
+                wait_for(self.healthy, START_TIMEOUT_SECONDS, "healthy", self)
+                return
+            except RuntimeError:
+                last_start = self.log_text().rsplit("--- start ", 1)[-1]
+                if attempt == PORT_ATTEMPTS - 1 or "address already in use" not in last_start:
+                    raise
+            self.kill()
+            self.port = free_port()
+            self.command = [*self.command[: self.command.index("--port") + 1], str(self.port)]
+            self.spawn()
 
 
 @dataclass
@@ -415,6 +442,7 @@ def scaled_out(
                 logs / f"api-{index}.log",
                 cpus=pick(api_cpus, index),
                 port=port,
+                admin_token=admin_token,
             )
             processes.append(api)
             apis.append(api)

@@ -9,6 +9,8 @@ a fresh port when it does not.
 
 from __future__ import annotations
 
+import os
+import sys
 import threading
 from collections.abc import Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -17,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from app.testing.service import PortTakenError, ServiceProcess
+from app.testing.topology import ApiProcess
 from tests.helpers.http import create_site
 
 
@@ -66,3 +69,50 @@ def test_a_service_given_a_taken_port_says_so(tmp_path: Path, foreign_port: int)
             service.start()
     finally:
         service.kill()
+
+
+_TOKEN_SERVER = """
+import sys
+from http.server import BaseHTTPRequestHandler, HTTPServer
+
+class Handler(BaseHTTPRequestHandler):
+    def do_GET(self):
+        ours = self.headers.get("Authorization") == "Bearer ours"
+        status = 200 if self.path.endswith("/health") or ours else 401
+        self.send_response(status)
+        self.send_header("Content-Length", "0")
+        self.end_headers()
+
+try:
+    HTTPServer(("127.0.0.1", int(sys.argv[sys.argv.index("--port") + 1])), Handler).serve_forever()
+except OSError as error:
+    print(f"error while attempting to bind: {error} address already in use", flush=True)
+    sys.exit(1)
+"""
+
+
+def test_a_topology_api_refuses_a_foreign_server_as_its_health(tmp_path: Path, foreign_port: int):
+    api = ApiProcess("api", [], {}, tmp_path / "api.log", port=foreign_port, admin_token="ours")
+    assert not api.healthy()
+    assert ApiProcess("api", [], {}, tmp_path / "api.log", port=foreign_port).healthy()
+
+
+def test_a_topology_api_whose_port_was_taken_moves_to_a_fresh_port(
+    tmp_path: Path, foreign_port: int
+):
+    command = [sys.executable, "-c", _TOKEN_SERVER, "--port", str(foreign_port)]
+    api = ApiProcess(
+        "api",
+        command,
+        dict(os.environ),
+        tmp_path / "api.log",
+        port=foreign_port,
+        admin_token="ours",
+    )
+    try:
+        api.start()
+        assert api.port != foreign_port
+        assert api.command[-1] == str(api.port)
+        assert api.healthy()
+    finally:
+        api.kill()
