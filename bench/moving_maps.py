@@ -25,8 +25,12 @@ of the compare.  Then the issue's targets, PASS or FAIL:
 hand-made truth of ``bench/real_changes.json`` (:mod:`bench.real_changes`): each plain change's
 recall, the mean, changed points outside every annotated change, regions and seconds.
 
+``--realism drift`` gives the RGB-D rooms the artefacts of real fused maps (tracking drift with
+a partial loop closure, flying pixels at depth edges, missing patches:
+:mod:`app.core.datasets.rgbd_artefacts`); the rooms, paths and changes are those without.
+
 Run: ``.venv/bin/python -m bench.moving_maps [--seeds 1] [--classes rgbd,robot,tls]
-[--modes default,trajectory] [--size 1.0] [--output FILE] [--real]``.
+[--modes default,trajectory] [--size 1.0] [--realism none|drift] [--output FILE] [--real]``.
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from app.core.datasets.maps import MAP_CLASSES, MapPair, class_layouts, map_pair
+from app.core.datasets.rgbd_artefacts import REALISM_LEVELS
 from app.core.formats import read_point_cloud
 from app.core.labels import LABEL_CHANGED
 from app.core.pipeline import compare
@@ -243,6 +248,12 @@ def main() -> None:
     parser.add_argument("--classes", default=",".join(MAP_CLASSES))
     parser.add_argument("--modes", default="default")
     parser.add_argument("--size", type=float, default=1.0, help="scales the rays per epoch")
+    parser.add_argument(
+        "--realism",
+        choices=REALISM_LEVELS,
+        default="none",
+        help="RGB-D artefacts of real fused maps (drift: pose drift, flying pixels, holes)",
+    )
     parser.add_argument("--output", type=Path, help="also write the report to this file")
     parser.add_argument("--real", action="store_true", help="run the real pairs instead")
     parser.add_argument("--real-dir", type=Path, default=REAL, help="where the real data is")
@@ -274,6 +285,7 @@ def main() -> None:
                         change=change,
                         misaligned=misaligned,
                         size=args.size,
+                        realism=args.realism if map_class == "rgbd" else "none",
                         random_state=scene_seed,
                     )
                 except ValueError as error:  # no visible change drawn: say so, go on

@@ -200,3 +200,58 @@ def test_a_sparse_maps_surface_just_under_the_change_distance_is_not_changed(see
     localisation = localise_changes(reference, scan)
     assert np.mean(localisation.reference_label[board] != LABEL_UNCHANGED) <= 0.1
     assert np.mean(localisation.reference_label[board] == LABEL_CHANGED) <= 0.1
+
+
+def test_the_points_judged_by_their_surface_are_judged_on_both_threads_alike(monkeypatch):
+    """The points under the change threshold judged by their surface level are split in
+    chunks that share the threads (the cloud with more of them no longer runs alone at the
+    end): the labels are those of one thread."""
+    from app.core.localise import distance
+
+    reference, scan, _ = _board_before_a_wall(0.125, 0)
+    one = localise_changes(reference, scan, threads=1)
+    judged: list[tuple[int, int]] = []
+    for_each_chunk = distance.for_each_chunk
+
+    def recorded(work, chunks, threads):
+        chunks = list(chunks)
+        judged.append((len(chunks), threads))
+        for_each_chunk(work, chunks, threads)
+
+    monkeypatch.setattr(distance, "for_each_chunk", recorded)
+    two = localise_changes(reference, scan, threads=2)
+    assert len(judged) == 2 and all(threads == 2 for _, threads in judged)
+    assert max(count for count, _ in judged) > 1
+    np.testing.assert_array_equal(two.reference_label, one.reference_label)
+    np.testing.assert_array_equal(two.scan_label, one.scan_label)
+    np.testing.assert_array_equal(two.reference_distance, one.reference_distance)
+    assert two.parameters == one.parameters
+
+
+def test_the_support_quartile_of_both_clouds_is_the_same_on_two_threads():
+    """Each cloud's relative nearest distances, gathered on a thread of its own, give the
+    one-thread quartile to the bit."""
+    from types import SimpleNamespace
+
+    from app.core.localise.distance import pair_nn_distance_quartile
+
+    rng = np.random.default_rng(8)
+
+    def side(n: int, n_other: int) -> SimpleNamespace:
+        return SimpleNamespace(
+            points=np.zeros((n, 3)),
+            nearest_distance=rng.random(n),
+            nearest_index=rng.integers(0, n_other, n).astype(np.uint32),
+            geometry=SimpleNamespace(spacing=rng.random(n) + 0.01),
+        )
+
+    reference, scan = side(5_000, 4_000), side(4_000, 5_000)
+    one = pair_nn_distance_quartile(reference, scan, 1)
+    relative = np.concatenate(
+        [
+            reference.nearest_distance / scan.geometry.spacing[reference.nearest_index],
+            scan.nearest_distance / reference.geometry.spacing[scan.nearest_index],
+        ]
+    )
+    assert one == np.quantile(relative, 0.25)
+    assert pair_nn_distance_quartile(reference, scan, 2) == one

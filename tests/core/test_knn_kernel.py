@@ -4,6 +4,8 @@ k-th distances to the bit, ties (equally far points) left to pykdtree, the same 
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -48,6 +50,30 @@ def test_the_kernel_is_built_where_a_c_compiler_is():
 def test_a_scanned_room_has_pykdtrees_neighbours(threads, monkeypatch):
     points = lidar_pair(layout="room", angular_step_deg=1.2, random_state=5).reference
     compiled = nearest_neighbourhoods(points, 10, threads=threads)
+    assert_same(compiled, pykdtree_neighbourhoods(points, 10, monkeypatch))
+
+
+@needs_kernel
+def test_two_threads_take_the_leaves_block_by_block(monkeypatch):
+    """With two threads the kernel's leaves go out in LEAF_BLOCKS blocks from one counter (a
+    thread that was slower leaves the rest to the other), every leaf once: pykdtree's
+    neighbours."""
+    points = lidar_pair(layout="room", angular_step_deg=1.2, random_state=5).reference
+    asked: list[tuple[int, int]] = []
+    self_neighbours = KERNEL.self_neighbours
+
+    def recorded(tree, k1, index, kth, tie, flag, first, last):
+        asked.append((first, last))
+        return self_neighbours(tree, k1, index, kth, tie, flag, first, last)
+
+    monkeypatch.setattr(KERNEL, "self_neighbours", recorded)
+    compiled = nearest_neighbourhoods(points, 10, threads=2)
+    n_leaves = KERNEL.leaf_count(KERNEL.build_tree(points))
+    assert len(asked) == neighbourhoods.LEAF_BLOCKS
+    bounds = sorted(asked)
+    assert bounds[0][0] == 0 and bounds[-1][1] == n_leaves
+    assert all(one[1] == two[0] for one, two in itertools.pairwise(bounds))
+    monkeypatch.undo()
     assert_same(compiled, pykdtree_neighbourhoods(points, 10, monkeypatch))
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -21,8 +21,20 @@ from app.core.cloud import MIN_POINTS
 from app.core.comparison.reports import Decision, DecisionTest, SiteProvenance
 from app.core.detectors.base import ChangeDetector, Detection
 from app.core.labels import LABEL_UNOBSERVED
-from app.core.localise import ChangedRegion, Localisation
+from app.core.localise import ChangedRegion
 from app.core.site_calibration import DecisionInputs, decide, largest_extent
+
+
+class PointLabels(Protocol):
+    """Both clouds' labels (a :class:`~app.core.localise.Localisation` has them)."""
+
+    @property
+    def reference_label(self) -> NDArray[np.int8]:
+        """Shape (n,)."""
+
+    @property
+    def scan_label(self) -> NDArray[np.int8]:
+        """Shape (m,)."""
 
 
 @dataclass(frozen=True)
@@ -44,7 +56,7 @@ def detect_change(
     detector: ChangeDetector,
     reference_points: NDArray[np.float64],
     aligned_scan: NDArray[np.float64],
-    localisation: Localisation,
+    localisation: PointLabels,
     *,
     sample_points: int | None = None,
     random_state: int = 0,

@@ -34,6 +34,13 @@ from app.core.datasets.map_world import (
     visible_enough,
     world_of,
 )
+from app.core.datasets.rgbd_artefacts import (
+    DepthArtefacts,
+    drift_errors,
+    fly_edge_pixels,
+    missing_patches,
+    realism_artefacts,
+)
 
 __all__ = ["CAMERA", "FRAME_RATE", "camera_rotation", "handheld_pair"]
 
@@ -106,8 +113,13 @@ def _render(
     path: SensorPath,
     pixels: tuple[int, int],
     rng: np.random.Generator,
+    realism: tuple[DepthArtefacts, np.random.Generator] | None = None,
 ) -> EpochSamples:
-    """Every frame of ``path``: a jittered ``pixels`` (columns, rows) grid of depth samples."""
+    """Every frame of ``path``: a jittered ``pixels`` (columns, rows) grid of depth samples.
+
+    ``realism``: the artefacts of a real fused map and their own generator (flying pixels,
+    drifting poses, missing patches; :mod:`app.core.datasets.rgbd_artefacts`); None: exact
+    poses, every pixel as measured."""
     world = world_and_owner[0]
     columns, rows = pixels
     n_frames = len(path.times)
@@ -127,10 +139,44 @@ def _render(
     depth = distance * local.reshape(-1, 3)[:, 2]
     keep = (depth >= CAMERA.range_limits[0]) & (depth <= CAMERA.range_limits[1])
     exact = origins[keep] + distance[keep, None] * directions[keep]
+    if realism is not None:  # the same draws of ``rng`` with and without the artefacts
+        flown = fly_edge_pixels(
+            depth.reshape(n_frames, rows, columns),
+            box.reshape(n_frames, rows, columns),
+            realism[0],
+            realism[1],
+        ).reshape(-1)
+        depth = np.where(keep, np.clip(flown, *CAMERA.range_limits), depth)
     noisy_depth = depth[keep] + rng.normal(0.0, 1.0, keep.sum()) * DEPTH_NOISE * depth[keep] ** 2
     measured = noisy_depth / local.reshape(-1, 3)[keep, 2]
     points = origins[keep] + measured[:, None] * directions[keep]
-    return EpochSamples(points, exact, box[keep], pose[keep], path)
+    samples = EpochSamples(points, exact, box[keep], pose[keep], path)
+    return samples if realism is None else _with_drift_and_holes(samples, *realism)
+
+
+def _with_drift_and_holes(
+    samples: EpochSamples, artefacts: DepthArtefacts, rng: np.random.Generator
+) -> EpochSamples:
+    """``samples`` fused with drifting frame poses (each frame's points turned and shifted by
+    its pose error about its camera), without their missing patches; the path as estimated."""
+    path = samples.path
+    error_rotation, error_shift = drift_errors(rng, len(path.times), artefacts)
+    origins = path.positions[samples.pose]
+    relative = np.einsum("pij,pj->pi", error_rotation[samples.pose], samples.points - origins)
+    points = origins + error_shift[samples.pose] + relative
+    estimated = SensorPath(
+        path.times,
+        path.positions + error_shift,
+        np.einsum("pij,pjk->pik", error_rotation, path.rotations),
+    )
+    remaining = missing_patches(samples.exact, artefacts, rng)
+    return EpochSamples(
+        points[remaining],
+        samples.exact[remaining],
+        samples.box[remaining],
+        samples.pose[remaining],
+        estimated,
+    )
 
 
 def _furnish(rng: np.random.Generator, placement: Placement) -> list[MapObject]:
@@ -156,6 +202,7 @@ def handheld_pair(
     pixels: tuple[int, int] = (36, 27),
     voxel: float | None = None,
     visibility_stride: int = 4,
+    realism: str = "none",
     random_state: int = 0,
 ) -> MapPair:
     """A random two-epoch handheld RGB-D map of a furnished room, with per-point truth.
@@ -177,6 +224,11 @@ def handheld_pair(
         Edge (metres) of the thinning voxels; default drawn in 5-10 mm.
     visibility_stride : int
         The truth's ``scored`` tests every this many frames of the other epoch.
+    realism : {"none", "drift"}
+        ``"drift"``: the artefacts of a real fused map (tracking drift with a partial loop
+        closure, flying pixels at depth edges, missing patches;
+        :mod:`app.core.datasets.rgbd_artefacts`), drawn from their own generator so the room,
+        paths and change are those of ``"none"``.  The truth stays the world's.
     random_state : int
         Seeds every draw: the same seed gives the same pair.
 
@@ -188,8 +240,17 @@ def handheld_pair(
         layout is redrawn until it does, up to 10 times).
     """
     rng = np.random.default_rng(random_state)
+    artefacts = realism_artefacts(realism)
+    artefact_rng = np.random.default_rng([random_state, 29])
+    settings = (n_frames, pixels, voxel, visibility_stride)
     for _ in range(10):
-        pair = _draw(rng, change, misaligned, n_frames, pixels, voxel, visibility_stride)
+        pair = _draw(
+            rng,
+            change,
+            misaligned,
+            settings,
+            None if artefacts is None else (artefacts, artefact_rng),
+        )
         if visible_enough(pair):
             return replace(pair, seed=random_state)
     raise ValueError(f"no visible {change!r} change in 10 layouts; try another seed")
@@ -199,11 +260,10 @@ def _draw(
     rng: np.random.Generator,
     change: str,
     misaligned: bool,
-    n_frames: int,
-    pixels: tuple[int, int],
-    voxel: float | None,
-    stride: int,
+    settings: tuple[int, tuple[int, int], float | None, int],
+    realism: tuple[DepthArtefacts, np.random.Generator] | None,
 ) -> MapPair:
+    n_frames, pixels, voxel, stride = settings
     shell_high = np.array([rng.uniform(4.0, 8.0), rng.uniform(3.5, 6.0), rng.uniform(2.5, 3.0)])
     shell = (np.zeros(3), shell_high)
     frame_strides = rng.integers(10, 21, 2)
@@ -222,7 +282,7 @@ def _draw(
 
     scan_objects, changes = apply_change(change, objects, placement, rng, new_object)
     samples = tuple(
-        _render(world_of(shell, epoch_objects), path, pixels, rng)
+        _render(world_of(shell, epoch_objects), path, pixels, rng, realism)
         for epoch_objects, (path, _) in zip((objects, scan_objects), paths, strict=True)
     )
     voxel_size = float(rng.uniform(0.005, 0.010)) if voxel is None else float(voxel)
@@ -242,6 +302,7 @@ def _draw(
             "layout": "room",
             "change": change,
             "seed": 0,
-            "metadata": {"voxel": voxel_size, "frames": float(n_frames)},
+            "metadata": {"voxel": voxel_size, "frames": float(n_frames)}
+            | ({} if realism is None else {"drift": 1.0}),
         },
     )

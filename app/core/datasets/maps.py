@@ -51,6 +51,7 @@ def map_pair(
     change: str = "removed",
     misaligned: bool = False,
     size: float = 1.0,
+    realism: str = "none",
     random_state: int = 0,
 ) -> MapPair:
     """A random two-epoch map of ``map_class`` with per-point truth.
@@ -66,6 +67,10 @@ def map_pair(
         reference frame; ``true_transform`` undoes the misalignment).
     size : float
         Scales the rays cast per epoch (1: about 100-150k points an epoch after thinning).
+    realism : {"none", "drift"}
+        RGB-D only: ``"drift"`` adds a real fused map's tracking drift, flying pixels and
+        missing patches (:mod:`app.core.datasets.rgbd_artefacts`) to the same room; the lidar
+        classes carry their own pose errors and accept ``"none"`` only.
     random_state : int
 
     Returns
@@ -78,6 +83,8 @@ def map_pair(
         raise ValueError(f"layout of a {map_class!r} map must be one of {layouts}, got {layout!r}")
     if size <= 0:
         raise ValueError(f"size must be positive, got {size}")
+    if realism != "none" and map_class != "rgbd":
+        raise ValueError(f"realism {realism!r} is for RGB-D maps only; use 'none' for {map_class}")
     if map_class == "rgbd":
         frames = max(8, round(160 * size**0.5))
         columns = max(4, round(36 * size**0.25))
@@ -86,6 +93,7 @@ def map_pair(
             misaligned=misaligned,
             n_frames=frames,
             pixels=(columns, max(3, round(columns * 0.75))),
+            realism=realism,
             random_state=random_state,
         )
     build = robot_pair if map_class == "robot" else terrestrial_pair

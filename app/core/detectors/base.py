@@ -328,6 +328,9 @@ class ChangeDetector(ABC):
     iterations), ignored for a whole :meth:`detect` or :meth:`distance` call. They are set once
     in the calling thread (``warnings.catch_warnings`` is not thread-safe)."""
     _variant_defaults: ClassVar[dict[str, dict[str, Any]]] = {}
+    _score_draws: ClassVar[bool] = True
+    """Whether :meth:`_score` draws from the generator it is given; False lets the
+    calibration's resamples be scored on two threads, in any order, to the same values."""
 
     def __init__(self, variant: str = "improved", *, random_state: int = 0, **params: Any):
         if variant not in VARIANTS:
@@ -554,6 +557,7 @@ class ChangeDetector(ABC):
             rng=calibration_rng,
             pairing_voxel=pairing_voxel,
             pairing_origin=None if info["grid_origin"] is None else np.array(info["grid_origin"]),
+            threads=1 if self._score_draws else available_threads(),
         )
         n_failed = int(np.sum(~np.isfinite(null)))
         if null.size - n_failed < 2:

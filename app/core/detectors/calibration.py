@@ -58,7 +58,7 @@ docs/detectors.md.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -66,6 +66,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.cloud import column_extreme
+from app.core.threads import for_each_chunk
 
 SCHEMES = ("auto", "paired", "permutation", "split_half")
 
@@ -82,6 +83,7 @@ def null_distribution(
     rng: np.random.Generator,
     pairing_voxel: float = 0.0,
     pairing_origin: NDArray[np.float64] | None = None,
+    threads: int = 1,
 ) -> NDArray[np.float64]:
     """Distances between resampled sets that share no change, scaled to the pair's sizes.
 
@@ -101,6 +103,11 @@ def null_distribution(
     pairing_origin : ndarray, shape (3,), optional
         Corner of that grid: the thinning grid's, so each voxel holds at most one point of
         each cloud (default: the pooled minimum).
+    threads : int
+        From 2, the ``paired`` and ``permutation`` resamples are drawn on the calling thread
+        (``rng`` in the same order) and scored on that many threads meanwhile: only for a
+        ``score`` that draws nothing from ``rng`` itself, so the values are the same as on
+        one thread.
 
     Returns
     -------
@@ -113,11 +120,20 @@ def null_distribution(
             raise ValueError("the paired scheme needs pairing_voxel > 0")
         pooled = np.concatenate([reference, scan])
         resampler = VoxelPairing(reference, scan, pairing_voxel, pairing_origin)
+        if threads >= 2:
+            drawn = (resampler.draw(rng) for _ in range(n_resamples))
+            _score_drawn(values, score, ((pooled[to], pooled[~to]) for to in drawn), threads)
+            return values
         for index in range(n_resamples):
             to_first = resampler.draw(rng)
             values[index] = score(pooled[to_first], pooled[~to_first])
     elif scheme == "permutation":
         pooled = np.concatenate([reference, scan])
+        if threads >= 2:
+            orders = (rng.permutation(pooled.shape[0]) for _ in range(n_resamples))
+            pairs = ((pooled[order[:n_reference]], pooled[order[n_reference:]]) for order in orders)
+            _score_drawn(values, score, pairs, threads)
+            return values
         for index in range(n_resamples):
             order = rng.permutation(pooled.shape[0])
             values[index] = score(pooled[order[:n_reference]], pooled[order[n_reference:]])
@@ -133,6 +149,23 @@ def null_distribution(
     else:
         raise ValueError(f"unknown calibration scheme {scheme!r}; valid: {list(SCHEMES)}")
     return values
+
+
+def _score_drawn(
+    values: NDArray[np.float64],
+    score: PairScore,
+    pairs: Iterator[tuple[NDArray[np.float64], NDArray[np.float64]]],
+    threads: int,
+) -> None:
+    """``values[i] = score(*pair)`` for the ``i``-th resampled pair, on ``threads`` threads:
+    each pair is drawn on the calling thread (in the generator's order) while those drawn
+    before it are scored, and each score is written to its own entry."""
+
+    def score_one(numbered: tuple[int, tuple[NDArray, NDArray]]) -> None:
+        index, pair = numbered
+        values[index] = score(*pair)
+
+    for_each_chunk(score_one, enumerate(pairs), threads)
 
 
 class VoxelPairing:

@@ -398,6 +398,7 @@ class GmmDetector(ChangeDetector):
     """
 
     method: ClassVar[str] = "gmm"
+    _score_draws: ClassVar[bool] = False  # EM from a seed or a shared start, then the EMD
 
     _specs: ClassVar[dict[str, ParamSpec]] = {
         "n_components": ParamSpec("int", 1, 256),

@@ -25,11 +25,14 @@ from app.core.cloud import MIN_POINTS
 from app.core.localise.settings import CHUNK, GATHER_CHUNK, QUERY_CHUNK
 from app.core.localise.surface import LocalGeometry, weighted_plane
 from app.core.spatial_order import ordered_chunks
+from app.core.threads import concurrently, for_each_chunk
 
 __all__ = [
     "Side",
     "alignment_residual",
     "nearest_in",
+    "pair_median_spacing",
+    "pair_nn_distance_quartile",
     "support_factor",
     "surface_distance",
     "surface_offset_candidates",
@@ -137,6 +140,33 @@ def nearest_in(
     for rows in ordered_chunks(order, len(points), QUERY_CHUNK):
         distance[rows], index[rows] = other.tree.query(points[rows], k=1)
     return distance, index
+
+
+def pair_median_spacing(reference_side: Side, scan_side: Side) -> float:
+    """The median spacing of both clouds' points."""
+    # both clouds' values in one array, partitioned in place (no copy: 80 MB at 5M + 5M)
+    both_spacings = np.concatenate([reference_side.geometry.spacing, scan_side.geometry.spacing])
+    return float(np.median(both_spacings, overwrite_input=True))
+
+
+def pair_nn_distance_quartile(reference_side: Side, scan_side: Side, threads: int = 1) -> float:
+    """The :data:`SUPPORT_FACTOR_QUANTILE` quantile of each point's nearest-neighbour distance
+    in the other cloud, in that cloud's local spacings (both clouds' points); from 2
+    ``threads`` each cloud's values (a gather of the other's spacings) on a thread of its own."""
+    n_reference = len(reference_side.points)
+    relative_nn_distance = np.empty(n_reference + len(scan_side.points))
+
+    def relative(own: Side, other: Side, out: NDArray[np.float64]) -> None:
+        np.divide(own.nearest_distance, other.geometry.spacing[own.nearest_index], out=out)
+
+    concurrently(
+        threads,
+        lambda: relative(reference_side, scan_side, relative_nn_distance[:n_reference]),
+        lambda: relative(scan_side, reference_side, relative_nn_distance[n_reference:]),
+    )
+    # one quantile (a partition of both clouds' values, in place) for the report and the
+    # calibrated support factor
+    return float(np.quantile(relative_nn_distance, SUPPORT_FACTOR_QUANTILE, overwrite_input=True))
 
 
 def support_factor(nn_distance_quartile: float, requested: float | None) -> float:
@@ -326,6 +356,7 @@ def surface_offset_candidates(
     *,
     threshold: float,
     change_threshold: float,
+    threads: int = 1,
 ) -> NDArray[np.bool_]:
     """Candidates, with the points just under the change threshold judged by their surface.
 
@@ -352,6 +383,10 @@ def surface_offset_candidates(
     other : LocalGeometry
     threshold, change_threshold : float
         ``tau`` and ``c`` (metres).
+    threads : int
+        Threads that judge the chunks of points (each writes its own rows: the same result on
+        any number; the other cloud's points, judged on a thread of their own, may take much
+        less time, and this cloud's chunks then still share both cores).
 
     Returns
     -------
@@ -362,7 +397,8 @@ def surface_offset_candidates(
     rows = np.flatnonzero(~candidate & (distance > change_threshold - band)) if band > 0 else []
     found = candidate.copy()
     geometry = own.geometry
-    for start in range(0, len(rows), LEVEL_CHUNK):
+
+    def judge(start: int) -> None:
         row = rows[start : start + LEVEL_CHUNK]
         point = geometry.points[row]
         unit, has_axis, ball = _surface_axes(geometry, row, change_threshold)
@@ -380,6 +416,8 @@ def surface_offset_candidates(
             & other_found
             & (np.abs(other_level - own_level) > change_threshold)
         )
+
+    for_each_chunk(judge, range(0, len(rows), LEVEL_CHUNK), threads)
     return found
 
 

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE
@@ -68,6 +69,7 @@ def resting_on_support(
     other: LocalGeometry,
     tolerance: float,
     change_threshold: float,
+    samples: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.bool_]:
     """Whether each candidate is on an upright face within ``change_threshold`` above a level
     support the other epoch sampled near it (shapes (c, 3), (c, 3) -> (c,)).
@@ -87,6 +89,8 @@ def resting_on_support(
         ``tau``: the plane tolerance (metres).
     change_threshold : float
         ``c`` (metres).
+    samples : ndarray, shape (n,), bool, optional
+        Which of ``other``'s n points may be support samples (default: all).
 
     Returns
     -------
@@ -94,22 +98,28 @@ def resting_on_support(
     """
     resting = np.zeros(points.shape[0], dtype=bool)
     upright = np.flatnonzero(np.abs(normal[:, 2]) < UPRIGHT_NORMAL_Z)
-    k = min(SUPPORT_NEIGHBOURS, other.points.shape[0])
-    if upright.size == 0 or k < MIN_SUPPORT_SAMPLES:
+    sample_points, tree = other.points, other.tree
+    level = (np.abs(other.normal[:, 2]) >= NORMAL_AGREEMENT_COSINE) & ~other.linear
+    if samples is not None:  # only the level samples allowed, in a tree of their own
+        sample_points = other.points[level & samples]
+        level = np.ones(sample_points.shape[0], dtype=bool)
+        tree = KDTree(sample_points) if sample_points.shape[0] else None
+    k = min(SUPPORT_NEIGHBOURS, sample_points.shape[0])
+    if upright.size == 0 or k < MIN_SUPPORT_SAMPLES or tree is None:
         return resting
     for start in range(0, upright.shape[0], GATHER_CHUNK):
         chosen = upright[start : start + GATHER_CHUNK]
         height = points[chosen, 2]
-        distance, index = other.tree.query(points[chosen], k=k, distance_upper_bound=SUPPORT_REACH)
+        distance, index = tree.query(points[chosen], k=k, distance_upper_bound=SUPPORT_REACH)
         distance = np.asarray(distance).reshape(chosen.shape[0], k)
-        index = np.minimum(np.asarray(index).reshape(chosen.shape[0], k), other.points.shape[0] - 1)
-        sample_height = other.points[index, 2]
+        index = np.minimum(
+            np.asarray(index).reshape(chosen.shape[0], k), sample_points.shape[0] - 1
+        )
+        sample_height = sample_points[index, 2]
         below = height[:, None] - sample_height
-        level = np.abs(other.normal[index, 2]) >= NORMAL_AGREEMENT_COSINE
         usable = (
             (distance <= SUPPORT_REACH)
-            & level
-            & ~other.linear[index]
+            & level[index]
             & (below >= -tolerance)
             & (below < change_threshold)
         )

@@ -7,6 +7,7 @@ e.g. for the reference while the scan is still being aligned (:func:`start_neigh
 from __future__ import annotations
 
 import importlib
+import itertools
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -39,6 +40,9 @@ KNN_KERNEL: Any = _compiled_kernel()
 pykdtree's queries run a chunk at a time, to the same neighbours."""
 KERNEL_MAX_NEIGHBOURS = 256
 """The kernel's limit on k + 1 (``MAX_NEIGHBOURS`` in ``_knn_kernel.c``)."""
+LEAF_BLOCKS = 32
+"""Blocks of the kernel tree's leaves that two threads share (~1k leaves, ~30k points each
+at 1M points): a thread finishes at most one block after the other."""
 
 __all__ = [
     "KNN_KERNEL",
@@ -214,7 +218,8 @@ def _compiled_neighbours(
     distances (their order among equals is the KD-tree walk's) are queried with ``tree``.  The
     k-th distance is the root of the squared one, as pykdtree takes it (IEEE square roots are
     exact to the last bit).  One call without the GIL (a search running beside the alignment
-    waits for no GIL hand-over), or two on ``threads`` >= 2; ``cancelled`` stops it at its next
+    waits for no GIL hand-over), or blocks of leaves shared by two on ``threads`` >= 2
+    (:data:`LEAF_BLOCKS`); ``cancelled`` stops it at its next
     leaf of ~16 points.
     """
     kernel = KNN_KERNEL
@@ -222,15 +227,35 @@ def _compiled_neighbours(
     flag = getattr(cancelled, "flag", None)
     flag = np.zeros(1, dtype=np.uint8) if flag is None else flag
     try:
-        # the leaves split between ``threads`` threads (each writes its own points' rows)
-        half = kernel.leaf_count(own_tree) // 2 if threads >= 2 else 0
+        # the leaves in blocks that ``threads`` threads take one at a time from one counter
+        # (each writes its own points' rows): a thread whose blocks were slower, or which got
+        # less of a core, leaves the rest to the other instead of finishing alone
+        n_leaves = kernel.leaf_count(own_tree)
+        n_blocks = LEAF_BLOCKS if threads >= 2 else 1
+        bounds = [n_leaves * block // n_blocks for block in range(n_blocks + 1)]
+        block_numbers = itertools.count()  # next() is one C call under the GIL: atomic
 
-        def leaves(first: int, last: int) -> int:
-            return kernel.self_neighbours(
-                own_tree, k + 1, neighbor_index, kth_distance, tie, flag, first, last
-            )
+        def leaves() -> int:
+            ties = 0
+            for block in block_numbers:
+                if block >= n_blocks:
+                    return ties
+                found = kernel.self_neighbours(
+                    own_tree,
+                    k + 1,
+                    neighbor_index,
+                    kth_distance,
+                    tie,
+                    flag,
+                    bounds[block],
+                    bounds[block + 1],
+                )
+                if found < 0:  # cancelled
+                    return found
+                ties += found
+            return ties
 
-        counts = concurrently(threads, lambda: leaves(0, half), lambda: leaves(half, -1))
+        counts = concurrently(threads, leaves, leaves)
     except (ValueError, BufferError):  # e.g. thousands of equal points: left to the tree
         return False
     if min(counts) < 0:

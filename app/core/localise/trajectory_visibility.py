@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
-from app.core.localise.gaps import between_samples
+from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, between_samples
 from app.core.localise.interface import VisibilityContext, VisibilityOutcome
 from app.core.localise.map_parts import surface_parts
 from app.core.localise.map_supports import part_bottom, resting_on_support
@@ -56,7 +56,9 @@ __all__ = [
     "NEIGHBOUR_RETURNS",
     "TrajectoryTest",
     "resting_feet",
+    "resting_on_own_support",
     "trajectory_statuses",
+    "undersides_edge_on",
 ]
 
 LONE_SIGHTING_FACTOR = 1.5
@@ -242,6 +244,130 @@ def resting_feet(
     return resting
 
 
+def undersides_edge_on(
+    candidates: Candidates,
+    status: NDArray[np.int8],
+    own: Side,
+    *,
+    tolerance: float,
+    change_threshold: float,
+) -> NDArray[np.bool_]:
+    """Level candidates seen edge-on that their own sensor saw from below, shape (c,).
+
+    A desk's or a shelf's underside at about the other sensor's height is seen edge-on from
+    every pose of the other path, whatever stands on the desk.  The edge-on resolution
+    (:func:`~app.core.localise.station_rays.resolve_edge_on`) promotes an edge-on face joined
+    to faces seen through: right for a removed box's top at the sensor's height, which caps
+    the faces seen through below it, wrong for the underside of the desk a removed box stood
+    on, which the box's faces join from above.  A level surface its own sensor saw from below
+    is the underside of something raised, never the top of an object standing on it: seen
+    edge-on by the other epoch, it has no evidence and is not promoted.  Its own sensor saw it
+    through the space under it, so that space is open: no own point within half the change
+    threshold of the place that far (and ``tolerance``) under it (a thin backrest's top edge,
+    whose fitted normal may be level, has its own sides just under it).
+
+    Parameters
+    ----------
+    candidates : Candidates
+        c candidates of ``own``.
+    status : ndarray, shape (c,), int8
+        Their combined ray statuses.
+    own : Side
+        The candidates' cloud; without sensor positions (``origins`` and ``station``) no
+        candidate is an underside.
+    tolerance, change_threshold : float
+        ``tau`` and ``c`` (metres).
+
+    Returns
+    -------
+    ndarray, shape (c,), bool
+    """
+    edge_on = status == STATUS_EDGE_ON
+    if own.origins is None or own.station is None or not edge_on.any():
+        return np.zeros(status.shape[0], dtype=bool)
+    sensor_height = np.asarray(own.origins, dtype=np.float64).reshape(-1, 3)[
+        own.station[candidates.index], 2
+    ]
+    level = np.abs(candidates.normal[:, 2]) >= NORMAL_AGREEMENT_COSINE
+    above = edge_on & level & ~candidates.linear & (candidates.points[:, 2] > sensor_height)
+    rows = np.flatnonzero(above)
+    if rows.size == 0:
+        return above
+    # the own sensor saw it from below: the space under it is open (a thin body's top edge,
+    # its level-fitted normal notwithstanding, has its own sides just under it)
+    reach = 0.5 * change_threshold
+    under = candidates.points[rows] - np.array([0.0, 0.0, reach + tolerance])
+    distance, _ = own.geometry.tree.query(under, k=1, distance_upper_bound=reach)
+    above[rows] = ~np.isfinite(np.asarray(distance))
+    return above
+
+
+def resting_on_own_support(
+    candidates: Candidates,
+    status: NDArray[np.int8],
+    sides: tuple[Side, Side],
+    context: VisibilityContext,
+) -> NDArray[np.bool_]:
+    """Candidates seen through or edge-on on the foot of an upright face whose own support the
+    other epoch never saw empty, shape (c,).
+
+    Truth and the change distance call a point unchanged within the change threshold of any
+    surface of the other epoch's world.  A box's foot stands within it of the desk or floor
+    under it; when the other cloud never sampled that support (a desk top above the other
+    sensor's path, a floor between its rings), the rays through the foot's place say the box
+    is gone but nothing about the support: the foot may lie within the threshold of it, and
+    its own cloud's support is a candidate the other epoch did not see at all (a desk's
+    underside, :func:`undersides_edge_on`) or saw a surface at, or not a candidate and
+    nearest to a level sample of the other epoch.  Such a foot has no evidence of its own
+    (:func:`~app.core.localise.map_supports.resting_on_support` with those own level samples
+    only: a removed chair's seat, seen through or promoted with its backrest, carries the
+    backrest's foot away; and a seat's sample within the change threshold of a board turned
+    across it says nothing of the seat).
+
+    Parameters
+    ----------
+    candidates : Candidates
+        c candidates of ``own``.
+    status : ndarray, shape (c,), int8
+        Their combined ray statuses.
+    sides : (Side, Side)
+        The candidates' cloud and the other one.
+    context : VisibilityContext
+
+    Returns
+    -------
+    ndarray, shape (c,), bool
+    """
+    own, other = sides
+    judged = np.flatnonzero((status == STATUS_SEEN_THROUGH) | (status == STATUS_EDGE_ON))
+    resting = np.zeros(status.shape[0], dtype=bool)
+    if judged.size == 0:
+        return resting
+    # own samples on a level surface of the other epoch (the nearest other point level too) ...
+    nearest = own.nearest_index
+    unseen = (np.abs(other.geometry.normal[nearest, 2]) >= NORMAL_AGREEMENT_COSINE) & ~(
+        other.geometry.linear[nearest]
+    )
+    unseen[candidates.index] = False
+    # ... or candidates it did not see at all, or saw a surface at
+    unseen[candidates.index[(status == STATUS_UNOBSERVED) | (status == STATUS_SURFACE)]] = True
+    labels = surface_parts(
+        candidates.points,
+        candidates.normal,
+        context.settings["cluster_factor"] * candidates.spacing,
+    )
+    resting[judged] = resting_on_support(
+        candidates.points[judged],
+        candidates.normal[judged],
+        part_bottom(candidates.points, labels)[judged],
+        own.geometry,
+        context.threshold,
+        context.change_threshold,
+        samples=unseen,
+    )
+    return resting
+
+
 class TrajectoryTest:
     """The ray test from the pseudo-stations of the other cloud's trajectory
     (``name = "trajectory"``)."""
@@ -278,8 +404,22 @@ class TrajectoryTest:
         # the foot of an upright face on the other epoch's support: no change of its own
         resting = resting_feet(candidates, status, other, context)
         status[resting] = STATUS_SURFACE
+        # a desk's underside the other path saw edge-on: not the removed object's face
+        undersides = undersides_edge_on(
+            candidates,
+            status,
+            own,
+            tolerance=context.threshold,
+            change_threshold=context.change_threshold,
+        )
+        status[undersides] = STATUS_UNOBSERVED
+        # ... and a foot on an own support the other epoch never saw empty: no evidence
+        on_unseen_support = resting_on_own_support(candidates, status, (own, other), context)
+        status[on_unseen_support] = STATUS_UNOBSERVED
         report: dict[str, Any] = {
             "candidates_resting_on_other_support": int(resting.sum()),
+            "candidates_resting_on_unseen_support": int(on_unseen_support.sum()),
+            "candidates_undersides_edge_on": int(undersides.sum()),
             "candidates_seen_through_once": int(lone.sum()),
             "candidates_between_other_samples": int(between.size),
         }
