@@ -132,6 +132,7 @@ LOCALISE_LAYERS = (
     "sample_lines",
     "map_planes",
     "map_lines",
+    "map_rims",
     "map_parts",
     "map_fragments",
     "map_supports",

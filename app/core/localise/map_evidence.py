@@ -82,6 +82,7 @@ from app.core.localise.map_planes import (
     in_sampling_gap,
     level_surface_below,
 )
+from app.core.localise.map_rims import rim_gap_share
 from app.core.localise.map_shared import (
     MIN_ADJOINING,
     seen_through,
@@ -232,26 +233,6 @@ def _level_below_share(
     )
 
 
-def _sampling_gap_share(
-    candidates: Candidates,
-    labels: NDArray[np.int64],
-    recheck: NDArray[np.bool_],
-    *,
-    other: Side,
-    tolerance: float,
-) -> NDArray[np.float64]:
-    """Per part marked in ``recheck`` (0 elsewhere), the share of its candidates that lie in a
-    gap between the other epoch's samples of one plane
-    (:func:`~app.core.localise.map_planes.in_sampling_gap`)."""
-    return _probed_share(
-        labels,
-        recheck,
-        lambda chosen: in_sampling_gap(
-            candidates.points[chosen], candidates.normal[chosen], other.geometry, tolerance
-        ),
-    )
-
-
 def _gap_share(
     candidates: Candidates,
     labels: NDArray[np.int64],
@@ -262,19 +243,31 @@ def _gap_share(
     tolerance: float,
 ) -> NDArray[np.float64]:
     """Per part marked in ``recheck`` (0 elsewhere), the share of its candidates in gaps
-    between the other epoch's samples of a plane (:func:`_sampling_gap_share`) or, for a line
-    of samples, between its lines (:func:`~app.core.localise.map_lines.line_gap_share`)."""
-    share = _sampling_gap_share(candidates, labels, recheck, other=other, tolerance=tolerance)
-    lines = line_gap_share(
-        candidates.points,
-        candidates.normal,
+    between the other epoch's samples of a plane
+    (:func:`~app.core.localise.map_planes.in_sampling_gap`), for a line of samples between its
+    lines (:func:`~app.core.localise.map_lines.line_gap_share`), or for a level part inside
+    the other epoch's rim on its plane (:func:`~app.core.localise.map_rims.rim_gap_share`)."""
+    share = _probed_share(
         labels,
-        recheck & (share < GAP_SHARE),
-        own=own.geometry,
-        other=other.geometry,
-        tolerance=tolerance,
+        recheck,
+        lambda chosen: in_sampling_gap(
+            candidates.points[chosen], candidates.normal[chosen], other.geometry, tolerance
+        ),
     )
-    return np.maximum(share, lines)
+    for probe in (line_gap_share, rim_gap_share):
+        share = np.maximum(
+            share,
+            probe(
+                candidates.points,
+                candidates.normal,
+                labels,
+                recheck & (share < GAP_SHARE),
+                own=own.geometry,
+                other=other.geometry,
+                tolerance=tolerance,
+            ),
+        )
+    return share
 
 
 def _on_lacking_share(
