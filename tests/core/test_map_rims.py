@@ -10,6 +10,8 @@ import pytest
 
 from app.core.labels import LABEL_CHANGED
 from app.core.localise import localise_changes
+from app.core.localise.map_rims import inside_rims
+from app.core.localise.surface import local_geometry
 from tests.helpers.fused_rooms import box_sides, fused_room, plane
 
 DESK_HEIGHT = 0.75
@@ -94,3 +96,17 @@ def test_a_table_removed_from_a_corner_keeps_its_top_changed(seed):
     assert top.shape[0] > 100
     # (its rim within the change threshold of the walls is no candidate)
     assert np.mean(label == LABEL_CHANGED) >= 0.6
+
+
+def test_a_part_whose_gathered_samples_are_all_out_of_reach_is_not_inside_a_rim():
+    """The other epoch's samples in the part's box but beyond the rim's reach of every probed
+    point hold nothing (c06207b + robotrim: no angles to sort raised a ValueError)."""
+    rng = np.random.default_rng(0)
+    part = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    far = np.column_stack(
+        [1.5 + rng.uniform(-0.1, 0.1, 16), 0.45 + rng.uniform(-0.02, 0.02, 16), np.zeros(16)]
+    )
+    other = local_geometry(far, 10)
+    by_height = np.argsort(other.points[:, 2], kind="stable")
+    inside = inside_rims(part, other, 0.01, by_height)
+    assert inside.tolist() == [False, False]

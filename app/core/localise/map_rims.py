@@ -102,6 +102,8 @@ def inside_rims(
     across = np.hypot(offset[:, :, 0], offset[:, :, 1])
     held = (across <= RIM_REACH) & (np.abs(offset[:, :, 2]) <= tolerance + PLANE_SLOPE * across)
     used = np.flatnonzero(held.any(axis=0))
+    if used.shape[0] < RIM_MIN_POINTS:  # too few around any point (none: no angles to sort)
+        return np.zeros(points.shape[0], dtype=bool)
     held, offset = held[:, used], offset[:, used, :]
     edge = _level_edges(other, slab[used])
     angle = np.arctan2(offset[:, :, 1], offset[:, :, 0])
