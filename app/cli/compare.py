@@ -373,14 +373,19 @@ def _read_clouds(
     }
     trajectories = [_read_trajectory(args, name) for name in ("trajectory", "scan_trajectory")]
     paths = {"reference": args.reference, "scan": args.scan}
-    _import_ahead(COMPARISON_STACK)
-    reference, scan, frame_offset = read_pair(
-        args.reference,
-        args.scan,
-        lambda side: read_point_cloud(paths[side], bag_options=bags[side]),
-        budget,
-        allowed=trajectories == [None, None],
-    )
+    importer = _import_ahead(COMPARISON_STACK)
+    try:
+        reference, scan, frame_offset = read_pair(
+            args.reference,
+            args.scan,
+            lambda side: read_point_cloud(paths[side], bag_options=bags[side]),
+            budget,
+            allowed=trajectories == [None, None],
+        )
+    except BaseException:
+        if importer is not None:  # an interpreter that exits mid-import can crash (SIGSEGV)
+            importer.join()
+        raise
     reference = _with_trajectory(reference, trajectories[0])
     return reference, _with_trajectory(scan, trajectories[1]), frame_offset
 
@@ -396,7 +401,9 @@ def _import_ahead(module: str) -> threading.Thread | None:
     Reading a pair is mostly numpy copies and file reads, which release the GIL; importing is
     Python, which holds it: the two share the process's first second instead of following each
     other.  The later ``import`` of the module waits for this one (imports hold a lock per
-    module); an error is left to that import to raise.
+    module); an error is left to that import to raise.  A caller that fails before using it
+    joins the thread first: an interpreter finalised while a daemon thread is inside an
+    extension module's import can die of SIGSEGV (seen on a refused garbage file).
     """
 
     def load() -> None:
