@@ -98,22 +98,3 @@ def test_a_cluster_ringed_by_coverage_differences_is_blind_and_one_ringed_by_mat
     blind, share = blind_clusters(points, index, radius, labels, coverage, 0.1)
     assert blind.tolist() == [True, False, False]
     assert share[0] > 0.9 and share[2] == 0.0
-
-
-def test_a_patch_inside_a_coverage_band_is_blind_on_its_own_shell():
-    """A wall band the other path never filmed, one cluster of candidates, with a patch in it
-    judged a change (its noisy normals split it off): the cluster's shell is the matched wall
-    under the band, so the cluster is not blind, but the patch's own shell is the band."""
-    rng = np.random.default_rng(0)
-    seen = plane(rng, [0, 0, 0], [2.0, 0, 0], [0, 0, 1.0], spacing=SPACING)
-    band = plane(rng, [0, 0, 1.0], [2.0, 0, 0], [0, 0, 1.0], spacing=SPACING)
-    points = np.vstack([seen, band])
-    index = np.arange(seen.shape[0], points.shape[0])
-    in_patch = np.linalg.norm(band - [1.0, 0.0, 1.5], axis=1) < 0.15
-    labels = in_patch.astype(np.int64)  # part 1: the patch
-    coverage = np.array([True, False])
-    radius = np.full(index.shape[0], 3 * SPACING)
-    whole, _ = blind_clusters(points, index, radius, labels, coverage, 0.1)
-    alone, share = blind_clusters(points, index, radius, labels, coverage, 0.1, by_parts=True)
-    assert not whole[1]
-    assert alone[1] and share[1] > 0.9

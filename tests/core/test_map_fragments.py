@@ -8,12 +8,8 @@ import pytest
 
 from app.core.labels import LABEL_CHANGED
 from app.core.localise import localise_changes
-from app.core.localise.map_evidence import COPLANAR_SHARE
-from app.core.localise.map_fragments import FRAGMENT_AREA, fragment_hosts, planar_part_normals
+from app.core.localise.map_fragments import FRAGMENT_AREA, fragment_hosts
 from app.core.localise.map_parts import surface_parts
-from app.core.localise.map_planes import share_on_planes
-from app.core.localise.rays import Candidates
-from app.core.localise.surface import local_geometry
 from tests.helpers.fused_rooms import box_sides, plane
 
 SPACING, WALL_NOISE = 0.012, 0.012
@@ -107,41 +103,3 @@ def test_a_sparse_maps_small_face_is_no_fragment():
     side_part = grouped[floor.shape[0]]
     assert np.unique(grouped[floor.shape[0] :]).shape[0] == 1
     assert hosts[side_part] == side_part
-
-
-def test_a_noisy_dense_wall_patch_lies_on_the_other_epochs_wall():
-    """The top band of a wall that only one path saw, thinned to 8 mm with 1.5 cm depth noise:
-    its points' 10-neighbour normals tilt by tens of degrees, so about 60 % of them lie on the
-    other epoch's plane of the wall below (a coverage gap judged a change: RGB-D room 104 at
-    ``--size 4``, wall bands at coplanar shares 0.62-0.68).  On the band's own plane, fitted
-    over the whole band, all do; a bent part keeps its points' normals."""
-    rng = np.random.default_rng(0)
-    wall = plane(rng, [0, 2.0, 0], [2.0, 0, 0], [0, 0, 2.0], spacing=0.008, noise=0.015)
-    patch = wall[:, 2] > 1.5
-    other = local_geometry(wall[~patch], 10)
-    own = local_geometry(wall, 10)
-    index = np.flatnonzero(patch)
-    candidates = Candidates(
-        index=index,
-        points=wall[index],
-        normal=own.normal[index],
-        linear=np.zeros(index.shape[0], dtype=bool),
-        spacing=own.spacing[index],
-        surface_distance=np.full(index.shape[0], 0.2),
-    )
-    labels = np.zeros(index.shape[0], dtype=np.int64)
-    tolerance = 0.024  # tau of such a map: its noise is underestimated at this spacing
-    tilted = share_on_planes(candidates, labels, 1, other, tolerance)[0]
-    flat = share_on_planes(planar_part_normals(candidates, labels), labels, 1, other, tolerance)
-    assert tilted < COPLANAR_SHARE <= flat[0]
-    bent = np.vstack([wall[index], wall[index][:, [0, 2, 1]]])  # a wall patch and a floor patch
-    bent_candidates = Candidates(
-        index=np.arange(bent.shape[0]),
-        points=bent,
-        normal=np.tile(np.float32([0, 1, 0]), (bent.shape[0], 1)),
-        linear=np.zeros(bent.shape[0], dtype=bool),
-        spacing=np.full(bent.shape[0], 0.008),
-        surface_distance=np.full(bent.shape[0], 0.2),
-    )
-    kept = planar_part_normals(bent_candidates, np.zeros(bent.shape[0], dtype=np.int64))
-    assert np.array_equal(kept.normal, bent_candidates.normal)

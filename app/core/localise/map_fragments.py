@@ -22,21 +22,16 @@ verdict (a fragment's verdict is never made a change by its host).
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
-from app.core.localise.rays import Candidates
 from app.core.localise.regions import CLUSTER_NEIGHBOURS
 
 __all__ = [
     "FRAGMENT_AREA",
-    "PLANE_FLATNESS",
     "fragment_hosts",
     "host_coverage",
-    "planar_part_normals",
 ]
 
 FRAGMENT_AREA = 0.02
@@ -44,10 +39,6 @@ FRAGMENT_AREA = 0.02
 object the issue asks for (0.3 m: 0.09 m^2); a tilted patch of the normal fits
 (:data:`~app.core.localise.regions.CLUSTER_NEIGHBOURS` points each) is far smaller on a dense
 map (10-50 points at 1-2 cm, 0.001-0.02 m^2)."""
-PLANE_FLATNESS = 0.25
-"""A part has a plane of its own (:func:`planar_part_normals`) when its points' spread across
-it (standard deviation along its thinnest axis) is at most this share of their spread along
-its second axis: a strip no wider than the noise, or a bent part, has none."""
 
 
 def fragment_hosts(
@@ -144,57 +135,3 @@ def host_coverage(
     change verdict is never passed on."""
     hosted = ~coverage & coverage[host]
     return coverage | hosted, np.where(hosted, confidence[host], confidence)
-
-
-def planar_part_normals(candidates: Candidates, labels: NDArray[np.int64]) -> Candidates:
-    """``candidates`` with the normal of each planar part's plane in place of the points'
-    own normals.
-
-    A point's normal is fitted over its :data:`~app.core.localise.regions.CLUSTER_NEIGHBOURS`
-    nearest neighbours: on a map thinned finer than its depth noise (a far wall of a fused
-    RGB-D map, 1 cm apart with 1-2 cm noise) they span a few centimetres and tilt by tens of
-    degrees, so the wall's points no longer lie on the other epoch's plane of that wall nor
-    carry on into it, and more so the denser the map.  A flat part (:data:`PLANE_FLATNESS`)
-    has the normal of its plane, fitted over the whole part: its size in metres sets the
-    scale, not the point count.  Each point keeps its own normal's side.
-
-    Parameters
-    ----------
-    candidates : Candidates
-    labels : ndarray, shape (c,), int64
-        Part of each candidate.
-
-    Returns
-    -------
-    Candidates
-    """
-    count = labels.shape[0]
-    if count == 0:
-        return candidates
-    n_parts = int(labels.max()) + 1
-    sizes = np.bincount(labels, minlength=n_parts).astype(np.float64)
-    centre = (
-        np.stack(
-            [np.bincount(labels, candidates.points[:, axis], n_parts) for axis in range(3)], axis=1
-        )
-        / np.maximum(sizes, 1.0)[:, None]
-    )
-    offset = candidates.points - centre[labels]
-    moments = np.zeros((n_parts, 3, 3))
-    for row in range(3):
-        for column in range(row, 3):
-            moments[:, row, column] = np.bincount(
-                labels, offset[:, row] * offset[:, column], n_parts
-            ) / np.maximum(sizes, 1.0)
-            moments[:, column, row] = moments[:, row, column]
-    values, vectors = np.linalg.eigh(moments)
-    spread = np.sqrt(np.maximum(values, 0.0))
-    planar = (sizes > CLUSTER_NEIGHBOURS) & (spread[:, 0] <= PLANE_FLATNESS * spread[:, 1])
-    chosen = planar[labels]
-    if not chosen.any():
-        return candidates
-    normal = candidates.normal.astype(np.float64)
-    plane = vectors[labels[chosen], :, 0]
-    side = np.where(np.einsum("cd,cd->c", plane, normal[chosen]) < 0.0, -1.0, 1.0)
-    normal[chosen] = plane * side[:, None]
-    return dataclasses.replace(candidates, normal=normal.astype(candidates.normal.dtype))

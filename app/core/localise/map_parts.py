@@ -19,7 +19,6 @@ from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
-from app.core.localise.map_fragments import planar_part_normals
 from app.core.localise.map_planes import SECTORS, extends, holds_up, share_on_planes, shared_wall
 from app.core.localise.origin_free import (
     BEHIND_MAX_RADIUS,
@@ -583,10 +582,7 @@ def part_figures(
         sizes=sizes,
         near=near,
         continuation_share=continuation_share,
-        # on the plane of each flat part, not its points' tilted 10-neighbour planes
-        coplanar_share=share_on_planes(
-            planar_part_normals(candidates, labels), labels, n_parts, other.geometry, threshold
-        ),
+        coplanar_share=share_on_planes(candidates, labels, n_parts, other.geometry, threshold),
         behind_share=np.bincount(labels, weights=behind.astype(np.float64), minlength=n_parts)
         / np.maximum(sizes, 1.0),
         adjoining=adjoining,
