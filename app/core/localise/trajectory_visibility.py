@@ -50,6 +50,7 @@ from app.core.localise.rays import (
     ray_visibility,
 )
 from app.core.localise.station_rays import combine_station_status, ray_test_for, settle_ray_status
+from app.core.localise.surface import LocalGeometry
 
 __all__ = [
     "NEAREST_GROUPS",
@@ -228,19 +229,7 @@ def resting_feet(
     resting = np.zeros(status.shape[0], dtype=bool)
     if judged.size == 0:
         return resting
-    labels = surface_parts(
-        candidates.points,
-        candidates.normal,
-        context.settings["cluster_factor"] * candidates.spacing,
-    )
-    resting[judged] = resting_on_support(
-        candidates.points[judged],
-        candidates.normal[judged],
-        part_bottom(candidates.points, labels)[judged],
-        other.geometry,
-        context.threshold,
-        context.change_threshold,
-    )
+    resting[judged] = _feet_on_support(candidates, judged, other.geometry, context)
     return resting
 
 
@@ -351,21 +340,35 @@ def resting_on_own_support(
     unseen[candidates.index] = False
     # ... or candidates it did not see at all, or saw a surface at
     unseen[candidates.index[(status == STATUS_UNOBSERVED) | (status == STATUS_SURFACE)]] = True
+    resting[judged] = _feet_on_support(candidates, judged, own.geometry, context, unseen)
+    return resting
+
+
+def _feet_on_support(
+    candidates: Candidates,
+    judged: NDArray[np.int64],
+    geometry: LocalGeometry,
+    context: VisibilityContext,
+    samples: NDArray[np.bool_] | None = None,
+) -> NDArray[np.bool_]:
+    """Whether each ``judged`` candidate is the foot of an upright face standing on
+    ``geometry``'s support (its ``samples`` only, when given), shape (j,): the map test's
+    :func:`~app.core.localise.map_supports.resting_on_support` on the candidates' surface
+    parts."""
     labels = surface_parts(
         candidates.points,
         candidates.normal,
         context.settings["cluster_factor"] * candidates.spacing,
     )
-    resting[judged] = resting_on_support(
+    return resting_on_support(
         candidates.points[judged],
         candidates.normal[judged],
         part_bottom(candidates.points, labels)[judged],
-        own.geometry,
+        geometry,
         context.threshold,
         context.change_threshold,
-        samples=unseen,
+        samples=samples,
     )
-    return resting
 
 
 class TrajectoryTest:
