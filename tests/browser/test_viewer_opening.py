@@ -112,7 +112,9 @@ def first_frame_change_pixels(
         "the 3D view did not connect and draw its layers",
     )
     best = 0
-    deadline = time.monotonic() + 30  # software WebGL: the first frames may take a while
+    # software WebGL: the first frames may take a while, and longer beside a running suite
+    # (30 s saw every capture time out under `make test` + `make test-slow`)
+    deadline = time.monotonic() + 90
     while time.monotonic() < deadline and best < MIN_CHANGE_PIXELS:
         dismiss_notifications(driver)
         try:
