@@ -23,9 +23,8 @@ when at least :data:`BLIND_SHARE` of them are other clusters' coverage differenc
 cluster lies in the other epoch's blind area and is one too.  (Judging each change part
 alone on its own shell as well, s21, cleared a wall band's patches on dense rooms but took a
 removed chair in a dense RGB-D room from 95 to 17 % and real bicycles from 82 to 75 %: not
-kept.)  No sensor position, no ring
-pattern: the shell is measured in metres of the change threshold, the verdict in shares of
-this cloud's own points.
+kept.)  No sensor position, no ring pattern: the shell is measured in metres of the change
+threshold, the verdict in shares of this cloud's own points.
 """
 
 from __future__ import annotations
@@ -59,9 +58,8 @@ def blind_clusters(
     coverage: NDArray[np.bool_],
     change_threshold: float,
 ) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
-    """Per surface part, whether its cluster lies in the other
-    epoch's blind area, and the share of the cluster's shell that is coverage differences
-    (module docstring).
+    """Per surface part, whether its cluster lies in the other epoch's blind area, and the
+    share of the cluster's shell that is coverage differences (module docstring).
 
     Parameters
     ----------

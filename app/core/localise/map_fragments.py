@@ -28,11 +28,7 @@ from pykdtree.kdtree import KDTree
 
 from app.core.localise.regions import CLUSTER_NEIGHBOURS
 
-__all__ = [
-    "FRAGMENT_AREA",
-    "fragment_hosts",
-    "host_coverage",
-]
+__all__ = ["FRAGMENT_AREA", "fragment_hosts", "host_coverage"]
 
 FRAGMENT_AREA = 0.02
 """Square metres: smaller parts are fragments, under a quarter of a face of the smallest

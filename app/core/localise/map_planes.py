@@ -33,6 +33,7 @@ __all__ = [
     "level_surface_below",
     "share_on_planes",
     "shared_wall",
+    "widest_empty_angle",
 ]
 
 SURFACE_REACH = 0.8
@@ -220,6 +221,19 @@ def first_level_surface_marked(
     return _probe_below(points, cloud, reach, min_radius, marked, blocking)[1]
 
 
+def widest_empty_angle(angle: NDArray[np.float64], held: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Per row, the widest angle (radians) holding none of its ``held`` directions ``angle``
+    (within +-pi; shapes (b, k) -> (b,)); 2 pi with fewer than two held (or no columns)."""
+    if angle.shape[1] == 0:
+        return np.full(angle.shape[0], 2.0 * np.pi)
+    # the directions not held sort last and repeat the first one
+    ordered = np.sort(np.where(held, angle, 4.0 * np.pi), axis=1)
+    first = ordered[:, :1] + 2.0 * np.pi
+    ordered = np.where(ordered <= np.pi, ordered, first)
+    widest = np.diff(np.concatenate([ordered, first], axis=1), axis=1).max(axis=1)
+    return np.where(held.sum(axis=1) >= 2, widest, 2.0 * np.pi)
+
+
 def _largest_empty_angle(
     offset: NDArray[np.float64], on_plane: NDArray[np.bool_], vectors: NDArray[np.float64]
 ) -> NDArray[np.float64]:
@@ -230,12 +244,7 @@ def _largest_empty_angle(
         np.einsum("bkd,bd->bk", offset, vectors[:, :, 1]),
         np.einsum("bkd,bd->bk", offset, vectors[:, :, 2]),
     )
-    # the offsets off the plane sort last (angles are within +-pi) and repeat the first one
-    ordered = np.sort(np.where(on_plane, angle, 4.0 * np.pi), axis=1)
-    first = ordered[:, :1] + 2.0 * np.pi
-    ordered = np.where(ordered <= np.pi, ordered, first)
-    widest = np.diff(np.concatenate([ordered, first], axis=1), axis=1).max(axis=1)
-    return np.where(on_plane.sum(axis=1) >= 2, widest, 2.0 * np.pi)
+    return widest_empty_angle(angle, on_plane)
 
 
 def in_sampling_gap(

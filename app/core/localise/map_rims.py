@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE
+from app.core.localise.map_planes import widest_empty_angle
 from app.core.localise.sample_lines import IN_PLANE_SINE, sample_lines
 from app.core.localise.surface import LocalGeometry
 
@@ -43,18 +44,6 @@ RIM_SAMPLE = 64
 """Points probed per part, spread over it."""
 RIM_MAX_GATHER = 20000
 """At most this many of the other epoch's samples are gathered per part (spread evenly)."""
-
-
-def _largest_empty_angle(
-    angle: NDArray[np.float64], held: NDArray[np.bool_]
-) -> NDArray[np.float64]:
-    """Per row, the widest angle (radians) holding none of its ``held`` ``angle`` values
-    (shapes (p, m) -> (p,)); 2 pi with fewer than two."""
-    ordered = np.sort(np.where(held, angle, 4.0 * np.pi), axis=1)
-    first = ordered[:, :1] + 2.0 * np.pi
-    ordered = np.where(ordered <= np.pi, ordered, first)
-    widest = np.diff(np.concatenate([ordered, first], axis=1), axis=1).max(axis=1)
-    return np.where(held.sum(axis=1) >= 2, widest, 2.0 * np.pi)
 
 
 def _level_edges(other: LocalGeometry, index: NDArray[np.int64]) -> NDArray[np.bool_]:
@@ -102,7 +91,7 @@ def inside_rims(
     across = np.hypot(offset[:, :, 0], offset[:, :, 1])
     held = (across <= RIM_REACH) & (np.abs(offset[:, :, 2]) <= tolerance + PLANE_SLOPE * across)
     used = np.flatnonzero(held.any(axis=0))
-    if used.shape[0] < RIM_MIN_POINTS:  # too few around any point (none: no angles to sort)
+    if used.shape[0] < RIM_MIN_POINTS:  # too few around any point to hold a rim
         return np.zeros(points.shape[0], dtype=bool)
     held, offset = held[:, used], offset[:, used, :]
     edge = _level_edges(other, slab[used])
@@ -110,7 +99,7 @@ def inside_rims(
     return (
         (held.sum(axis=1) >= RIM_MIN_POINTS)
         & (held & edge[None, :]).any(axis=1)
-        & (_largest_empty_angle(angle, held) <= math.pi)
+        & (widest_empty_angle(angle, held) <= math.pi)
     )
 
 
