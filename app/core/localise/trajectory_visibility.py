@@ -56,6 +56,7 @@ __all__ = [
     "NEAREST_GROUPS",
     "NEIGHBOUR_RETURNS",
     "TrajectoryTest",
+    "candidate_part_bottoms",
     "resting_feet",
     "resting_on_own_support",
     "trajectory_statuses",
@@ -199,7 +200,11 @@ def lone_sightings(statuses: NDArray[np.int8]) -> NDArray[np.bool_]:
 
 
 def resting_feet(
-    candidates: Candidates, status: NDArray[np.int8], other: Side, context: VisibilityContext
+    candidates: Candidates,
+    status: NDArray[np.int8],
+    other: Side,
+    context: VisibilityContext,
+    bottom: NDArray[np.float64],
 ) -> NDArray[np.bool_]:
     """Candidates seen through or edge-on that rest on the other epoch's support, shape (c,).
 
@@ -220,17 +225,14 @@ def resting_feet(
         Their combined ray statuses.
     other : Side
     context : VisibilityContext
+    bottom : ndarray, shape (c,)
+        The lowest height of each candidate's surface part (:func:`candidate_part_bottoms`).
 
     Returns
     -------
     ndarray, shape (c,), bool
     """
-    judged = np.flatnonzero((status == STATUS_SEEN_THROUGH) | (status == STATUS_EDGE_ON))
-    resting = np.zeros(status.shape[0], dtype=bool)
-    if judged.size == 0:
-        return resting
-    resting[judged] = _feet_on_support(candidates, judged, other.geometry, context)
-    return resting
+    return _feet_on_support(candidates, status, bottom, other.geometry, context)
 
 
 def undersides_edge_on(
@@ -296,6 +298,7 @@ def resting_on_own_support(
     status: NDArray[np.int8],
     sides: tuple[Side, Side],
     context: VisibilityContext,
+    bottom: NDArray[np.float64],
 ) -> NDArray[np.bool_]:
     """Candidates seen through or edge-on on the foot of an upright face whose own support the
     other epoch never saw empty, shape (c,).
@@ -322,16 +325,14 @@ def resting_on_own_support(
     sides : (Side, Side)
         The candidates' cloud and the other one.
     context : VisibilityContext
+    bottom : ndarray, shape (c,)
+        The lowest height of each candidate's surface part (:func:`candidate_part_bottoms`).
 
     Returns
     -------
     ndarray, shape (c,), bool
     """
     own, other = sides
-    judged = np.flatnonzero((status == STATUS_SEEN_THROUGH) | (status == STATUS_EDGE_ON))
-    resting = np.zeros(status.shape[0], dtype=bool)
-    if judged.size == 0:
-        return resting
     # own samples on a level surface of the other epoch (the nearest other point level too) ...
     nearest = own.nearest_index
     unseen = (np.abs(other.geometry.normal[nearest, 2]) >= NORMAL_AGREEMENT_COSINE) & ~(
@@ -340,35 +341,47 @@ def resting_on_own_support(
     unseen[candidates.index] = False
     # ... or candidates it did not see at all, or saw a surface at
     unseen[candidates.index[(status == STATUS_UNOBSERVED) | (status == STATUS_SURFACE)]] = True
-    resting[judged] = _feet_on_support(candidates, judged, own.geometry, context, unseen)
-    return resting
+    return _feet_on_support(candidates, status, bottom, own.geometry, context, unseen)
 
 
-def _feet_on_support(
-    candidates: Candidates,
-    judged: NDArray[np.int64],
-    geometry: LocalGeometry,
-    context: VisibilityContext,
-    samples: NDArray[np.bool_] | None = None,
-) -> NDArray[np.bool_]:
-    """Whether each ``judged`` candidate is the foot of an upright face standing on
-    ``geometry``'s support (its ``samples`` only, when given), shape (j,): the map test's
-    :func:`~app.core.localise.map_supports.resting_on_support` on the candidates' surface
-    parts."""
+def candidate_part_bottoms(
+    candidates: Candidates, context: VisibilityContext
+) -> NDArray[np.float64]:
+    """The lowest height of each candidate's surface part, shape (c,)
+    (:func:`~app.core.localise.map_supports.part_bottom` over
+    :func:`~app.core.localise.map_parts.surface_parts`): the feet rules' parts."""
     labels = surface_parts(
         candidates.points,
         candidates.normal,
         context.settings["cluster_factor"] * candidates.spacing,
     )
-    return resting_on_support(
-        candidates.points[judged],
-        candidates.normal[judged],
-        part_bottom(candidates.points, labels)[judged],
-        geometry,
-        context.threshold,
-        context.change_threshold,
-        samples=samples,
-    )
+    return part_bottom(candidates.points, labels)
+
+
+def _feet_on_support(
+    candidates: Candidates,
+    status: NDArray[np.int8],
+    bottom: NDArray[np.float64],
+    geometry: LocalGeometry,
+    context: VisibilityContext,
+    samples: NDArray[np.bool_] | None = None,
+) -> NDArray[np.bool_]:
+    """Which candidates seen through or edge-on are the foot of an upright face standing on
+    ``geometry``'s support (its ``samples`` only, when given), shape (c,): the map test's
+    :func:`~app.core.localise.map_supports.resting_on_support` with their parts' ``bottom``."""
+    judged = np.flatnonzero((status == STATUS_SEEN_THROUGH) | (status == STATUS_EDGE_ON))
+    resting = np.zeros(status.shape[0], dtype=bool)
+    if judged.size:
+        resting[judged] = resting_on_support(
+            candidates.points[judged],
+            candidates.normal[judged],
+            bottom[judged],
+            geometry,
+            context.threshold,
+            context.change_threshold,
+            samples=samples,
+        )
+    return resting
 
 
 class TrajectoryTest:
@@ -405,7 +418,8 @@ class TrajectoryTest:
         ]
         status[between] = STATUS_SURFACE
         # the foot of an upright face on the other epoch's support: no change of its own
-        resting = resting_feet(candidates, status, other, context)
+        bottom = candidate_part_bottoms(candidates, context)  # both feet rules' parts
+        resting = resting_feet(candidates, status, other, context, bottom)
         status[resting] = STATUS_SURFACE
         # a desk's underside the other path saw edge-on: not the removed object's face
         undersides = undersides_edge_on(
@@ -417,7 +431,9 @@ class TrajectoryTest:
         )
         status[undersides] = STATUS_UNOBSERVED
         # ... and a foot on an own support the other epoch never saw empty: no evidence
-        on_unseen_support = resting_on_own_support(candidates, status, (own, other), context)
+        on_unseen_support = resting_on_own_support(
+            candidates, status, (own, other), context, bottom
+        )
         status[on_unseen_support] = STATUS_UNOBSERVED
         report: dict[str, Any] = {
             "candidates_resting_on_other_support": int(resting.sum()),
