@@ -7,8 +7,9 @@ the benchmarks per configuration); without it, every CPU the process may run on.
 from __future__ import annotations
 
 import os
+from collections import deque
 from collections.abc import Callable, Iterable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TypeVar
 
 __all__ = [
@@ -70,16 +71,23 @@ def for_each_chunk(work: Callable[[Rows], object], chunks: Iterable[Rows], threa
     numpy releases the GIL in its array loops (gathers, ufuncs, ``einsum``), so the chunks of a
     pass over a cloud overlap on two cores; each ``work`` call must write only its own rows, so
     the result is the same on any number of threads.  The first exception of a chunk is raised
-    here once the chunks running with it have finished (the others are not started).
+    here once the chunks running with it have finished (the others are not started).  At most
+    ``2 * threads`` chunks are taken from ``chunks`` ahead of the ones finished: a generator of
+    large chunks (the detector's calibration resamples) holds a few, never all of them.
     """
     if threads < 2:
         for rows in chunks:
             work(rows)
         return
     pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="chunks")
+    pending: deque[Future[object]] = deque()
     try:
-        for done in [pool.submit(work, rows) for rows in chunks]:
-            done.result()
+        for rows in chunks:
+            pending.append(pool.submit(work, rows))
+            if len(pending) > 2 * threads:
+                pending.popleft().result()
+        while pending:
+            pending.popleft().result()
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -55,3 +57,28 @@ def test_an_error_in_a_chunk_reaches_the_caller(threads):
 
     with pytest.raises(ValueError, match="chunk five"):
         for_each_chunk(fail_on_five, range(10), threads)
+
+
+def test_for_each_chunk_takes_only_a_few_chunks_ahead_of_the_finished_ones():
+    """A generator of large chunks (the calibration's resamples) is not drawn to the end
+    before the first is done: at most 2 * threads chunks wait beside the finished ones."""
+    lock = threading.Lock()
+    drawn = finished = ahead = 0
+
+    def chunks():
+        nonlocal drawn, ahead
+        for index in range(60):
+            with lock:
+                drawn += 1
+                ahead = max(ahead, drawn - finished)
+            yield index
+
+    def work(index):
+        nonlocal finished
+        time.sleep(0.002)
+        with lock:
+            finished += 1
+
+    for_each_chunk(work, chunks(), 2)
+    assert finished == 60
+    assert ahead <= 2 * 2 + 1
