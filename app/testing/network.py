@@ -1,10 +1,13 @@
-"""Network helpers: a free TCP port, one TLS context for local clients."""
+"""Network helpers: a free TCP port, one TLS context for local clients, whose token a server
+knows."""
 
 from __future__ import annotations
 
 import socket
 import ssl
 from functools import cache
+
+import httpx
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -23,3 +26,14 @@ def local_tls_context() -> ssl.SSLContext:
     and benchmarks speak plain HTTP, so the context never serves a handshake.
     """
     return ssl.create_default_context()
+
+
+def token_status(base_url: str, token: str) -> int:
+    """The status ``GET /api/v1/sites`` with ``token`` answers at ``base_url``: 200 from the
+    server whose database holds the token, 401 or 403 from another server on that port."""
+    return httpx.get(
+        base_url + "/api/v1/sites",
+        headers={"Authorization": f"Bearer {token}"},
+        timeout=5.0,
+        verify=local_tls_context(),
+    ).status_code

@@ -41,7 +41,7 @@ import httpx
 from app.config import Settings
 from app.kit.data_layout import DataLayout
 from app.testing.fake_pipeline import CONSUMER_BOOTSTRAP
-from app.testing.network import free_port, local_tls_context
+from app.testing.network import free_port, local_tls_context, token_status
 from app.testing.paths import PROJECT_ROOT
 
 HEALTH_PATH = "/api/v1/health"
@@ -266,13 +266,7 @@ class ServiceProcess:
         path = DataLayout(self.data_dir).admin_token_file
         if not path.exists():
             return True
-        response = httpx.get(
-            self.base_url + "/api/v1/sites",
-            headers={"Authorization": f"Bearer {path.read_text().strip()}"},
-            timeout=5.0,
-            verify=local_tls_context(),
-        )
-        if response.status_code in (401, 403, 404):
+        if token_status(self.base_url, path.read_text().strip()) in (401, 403, 404):
             raise PortTakenError(f"another server answers on port {self.port}")
         return True
 

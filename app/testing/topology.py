@@ -47,7 +47,7 @@ from app.db.migrate import upgrade_to_head
 from app.db.session import get_engine, transaction
 from app.services.auth import create_token
 from app.testing.fake_pipeline import CONSUMER_BOOTSTRAP
-from app.testing.network import free_port, local_tls_context
+from app.testing.network import free_port, local_tls_context, token_status
 from app.testing.paths import PROJECT_ROOT
 from app.testing.redis import redis_ping, redis_server_binary
 from app.testing.service import (
@@ -242,13 +242,7 @@ class ApiProcess(ManagedProcess):
             answer = httpx.get(self.base_url + HEALTH_PATH, timeout=2.0, verify=local_tls_context())
             if answer.status_code != 200 or not self.admin_token:
                 return answer.status_code == 200
-            sites = httpx.get(
-                self.base_url + "/api/v1/sites",
-                headers={"Authorization": f"Bearer {self.admin_token}"},
-                timeout=5.0,
-                verify=local_tls_context(),
-            )
-            return sites.status_code == 200
+            return token_status(self.base_url, self.admin_token) == 200
         except httpx.HTTPError:
             return False
 
