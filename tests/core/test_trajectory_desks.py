@@ -13,36 +13,15 @@ the desk top that is still there).
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
-from app.core.cloud import PointCloud
 from app.core.labels import LABEL_CHANGED
 from app.core.pipeline import compare
-from tests.helpers.trajectory_scenes import OFFSET, in_box, swept_map
+from tests.helpers.trajectory_scenes import OFFSET, in_box, swept_map, without_band_round_box
 
 DESK = (np.array([3.0, 2.9, 0.72]), np.array([4.8, 3.8, 0.75]))
 BOX = (np.array([3.6, 3.2, 0.75]), np.array([4.1, 3.7, 1.25]))
-
-
-def _without_underside_round_box(cloud: PointCloud, margin: float) -> PointCloud:
-    """``cloud`` without its desk-underside points within ``margin`` of the box's footprint."""
-    points = np.asarray(cloud.points)
-    local = points - OFFSET
-    low, high = BOX[0] - margin, BOX[1] + margin
-    hole = (
-        (np.abs(local[:, 2] - DESK[0][2]) < 0.01)
-        & (local[:, 0] > low[0])
-        & (local[:, 0] < high[0])
-        & (local[:, 1] > low[1])
-        & (local[:, 1] < high[1])
-    )
-    kept = PointCloud.from_array(
-        points[~hole], {"time": np.asarray(cloud.attributes["time"])[~hole]}
-    )
-    return dataclasses.replace(kept, trajectory=cloud.trajectory)
 
 
 @pytest.fixture(scope="module", params=[0, 1, 2])
@@ -61,7 +40,9 @@ def removed_from_desk(request: pytest.FixtureRequest):
     rings = {"step_deg": 2.0, "azimuth_step_deg": 0.5}
     reference = swept_map([DESK, BOX], reference_path, seed=10 + seed, **rings)
     scan = swept_map([DESK], scan_path, seed=20 + seed, start_time=5000.0, **rings)
-    scan_cloud = _without_underside_round_box(scan.cloud, rng.uniform(0.3, 0.5))
+    scan_cloud = without_band_round_box(
+        scan.cloud, BOX, rng.uniform(0.3, 0.5), (DESK[0][2] - 0.01, DESK[0][2] + 0.01)
+    )
     result = compare(reference.cloud, scan_cloud, threads=1)
     return reference, result
 

@@ -10,35 +10,14 @@ in the reference's world.
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
-from app.core.cloud import PointCloud
 from app.core.labels import LABEL_CHANGED
 from app.core.pipeline import compare
-from tests.helpers.trajectory_scenes import OFFSET, in_box, swept_map
+from tests.helpers.trajectory_scenes import OFFSET, in_box, swept_map, without_band_round_box
 
 BOX = (np.array([3.0, 2.6, 0.0]), np.array([3.6, 3.2, 0.7]))
-
-
-def _without_floor_round_box(cloud: PointCloud, margin: float) -> PointCloud:
-    """``cloud`` without its floor points within ``margin`` of the box's footprint."""
-    points = np.asarray(cloud.points)
-    local = points - OFFSET
-    low, high = BOX[0] - margin, BOX[1] + margin
-    hole = (
-        (local[:, 0] > low[0])
-        & (local[:, 0] < high[0])
-        & (local[:, 1] > low[1])
-        & (local[:, 1] < high[1])
-        & (local[:, 2] < 0.05)
-    )
-    kept = PointCloud.from_array(
-        points[~hole], {"time": np.asarray(cloud.attributes["time"])[~hole]}
-    )
-    return dataclasses.replace(kept, trajectory=cloud.trajectory)
 
 
 @pytest.fixture(scope="module", params=[0, 1, 2])
@@ -50,7 +29,9 @@ def added_box(request: pytest.FixtureRequest):
     scan_path = np.column_stack([path_x, np.full(path_x.size, 1.3), np.full(path_x.size, 1.1)])
     reference = swept_map([], reference_path, seed=10 + seed)
     scan = swept_map([BOX], scan_path, seed=20 + seed, start_time=5000.0)
-    reference_cloud = _without_floor_round_box(reference.cloud, rng.uniform(0.25, 0.35))
+    reference_cloud = without_band_round_box(
+        reference.cloud, BOX, rng.uniform(0.25, 0.35), (-np.inf, 0.05)
+    )
     result = compare(reference_cloud, scan.cloud, threads=1)
     return scan, result
 

@@ -115,3 +115,23 @@ def in_box(points: NDArray[np.float64], box: tuple[NDArray, NDArray], margin: fl
     """Which points (file frame) lie on or in ``box`` (within ``margin``), shape (n,)."""
     low, high = box[0] + OFFSET - margin, box[1] + OFFSET + margin
     return ((points >= low) & (points <= high)).all(axis=1)
+
+
+def without_band_round_box(
+    cloud: PointCloud, box: tuple[NDArray, NDArray], margin: float, heights: tuple[float, float]
+) -> PointCloud:
+    """``cloud`` (times and trajectory kept) without its points over ``box``'s footprint widened
+    by ``margin`` whose height (scene frame) lies strictly between ``heights``: the floor or
+    the desk underside the other path's sweeps happened not to sample there."""
+    points = np.asarray(cloud.points)
+    local = points - OFFSET
+    low, high = box[0][:2] - margin, box[1][:2] + margin
+    hole = (
+        np.all((local[:, :2] > low) & (local[:, :2] < high), axis=1)
+        & (local[:, 2] > heights[0])
+        & (local[:, 2] < heights[1])
+    )
+    kept = PointCloud.from_array(
+        points[~hole], {"time": np.asarray(cloud.attributes["time"])[~hole]}
+    )
+    return dataclasses.replace(kept, trajectory=cloud.trajectory)
