@@ -120,23 +120,13 @@ def null_distribution(
             raise ValueError("the paired scheme needs pairing_voxel > 0")
         pooled = np.concatenate([reference, scan])
         resampler = VoxelPairing(reference, scan, pairing_voxel, pairing_origin)
-        if threads >= 2:
-            drawn = (resampler.draw(rng) for _ in range(n_resamples))
-            _score_drawn(values, score, ((pooled[to], pooled[~to]) for to in drawn), threads)
-            return values
-        for index in range(n_resamples):
-            to_first = resampler.draw(rng)
-            values[index] = score(pooled[to_first], pooled[~to_first])
+        drawn = (resampler.draw(rng) for _ in range(n_resamples))
+        _score_drawn(values, score, ((pooled[to], pooled[~to]) for to in drawn), threads)
     elif scheme == "permutation":
         pooled = np.concatenate([reference, scan])
-        if threads >= 2:
-            orders = (rng.permutation(pooled.shape[0]) for _ in range(n_resamples))
-            pairs = ((pooled[order[:n_reference]], pooled[order[n_reference:]]) for order in orders)
-            _score_drawn(values, score, pairs, threads)
-            return values
-        for index in range(n_resamples):
-            order = rng.permutation(pooled.shape[0])
-            values[index] = score(pooled[order[:n_reference]], pooled[order[n_reference:]])
+        orders = (rng.permutation(pooled.shape[0]) for _ in range(n_resamples))
+        pairs = ((pooled[order[:n_reference]], pooled[order[n_reference:]]) for order in orders)
+        _score_drawn(values, score, pairs, threads)
     elif scheme == "split_half":
         target_variance = 1.0 / n_reference + 1.0 / n_scan
         for index in range(n_resamples):
@@ -157,9 +147,10 @@ def _score_drawn(
     pairs: Iterator[tuple[NDArray[np.float64], NDArray[np.float64]]],
     threads: int,
 ) -> None:
-    """``values[i] = score(*pair)`` for the ``i``-th resampled pair, on ``threads`` threads:
-    each pair is drawn on the calling thread (in the generator's order) while those drawn
-    before it are scored, and each score is written to its own entry."""
+    """``values[i] = score(*pair)`` for the ``i``-th resampled pair.  On one thread each pair
+    is drawn, then scored, in turn; from 2 ``threads`` each is drawn on the calling thread (in
+    the generator's order) while those drawn before it are scored, each score written to its
+    own entry."""
 
     def score_one(numbered: tuple[int, tuple[NDArray, NDArray]]) -> None:
         index, pair = numbered
