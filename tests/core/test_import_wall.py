@@ -146,6 +146,7 @@ LOCALISE_LAYERS = (
     "coverage",
     "visibility",
     "turned_faces",
+    "hanging_faces",
     "isolated_clusters",
     "protruding_faces",
     "changes",
