@@ -146,7 +146,6 @@ LOCALISE_LAYERS = (
     "coverage",
     "visibility",
     "turned_faces",
-    "hanging_faces",
     "isolated_clusters",
     "protruding_faces",
     "changes",

@@ -53,7 +53,6 @@ from app.core.localise.distance import (
 )
 from app.core.localise.epoch import EpochCloud, with_checked_stations
 from app.core.localise.gaps import PLANE_RADIUS_FACTOR, on_sampled_planes
-from app.core.localise.hanging_faces import with_hanging_faces
 from app.core.localise.protruding_faces import with_small_faces
 from app.core.localise.rays import Candidates
 from app.core.localise.regions import ChangedRegion, find_regions, mark_moved_surfaces
@@ -458,12 +457,6 @@ def _labelled(
         lambda: label(scan_side, reference_side, scan_candidates),
     )
     reference_labelled, scan_labelled = agree_on_faces(
-        sides,
-        (reference_labelled, scan_labelled),
-        threshold=limits.threshold,
-        change_threshold=limits.change_threshold,
-    )
-    reference_labelled, scan_labelled = with_hanging_faces(
         sides,
         (reference_labelled, scan_labelled),
         threshold=limits.threshold,
