@@ -141,6 +141,7 @@ LOCALISE_LAYERS = (
     "map_shared",
     "map_faces",
     "map_bodies",
+    "map_tops",
     "map_evidence",
     "map_agreement",
     "coverage",

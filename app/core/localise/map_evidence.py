@@ -91,6 +91,7 @@ from app.core.localise.map_shared import (
     unseen_levels,
 )
 from app.core.localise.map_supports import map_statuses
+from app.core.localise.map_tops import with_held_tops
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
 from app.core.localise.rays import STATUS_SEEN_THROUGH, Candidates
 
@@ -370,24 +371,20 @@ def map_test(
 
     open_beneath = partial(_level_below_share, candidates, labels, other=other)
 
-    def far_face(check: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
-        return far_faces(
-            candidates,
-            labels,
-            check,
-            own=own,
-            other=other,
-            counted=other_unmatched,
-            threshold=threshold,
-            change_threshold=change_threshold,
-            cluster_factor=cluster_factor,
-        )
-
-    def stands_on_lacking(recheck: NDArray[np.bool_]) -> NDArray[np.float64]:
-        return _on_lacking_share(
-            candidates, labels, recheck, own=own, other=other, other_unmatched=other_unmatched
-        )
-
+    far_face = partial(
+        far_faces,
+        candidates,
+        labels,
+        own=own,
+        other=other,
+        counted=other_unmatched,
+        threshold=threshold,
+        change_threshold=change_threshold,
+        cluster_factor=cluster_factor,
+    )
+    stands_on_lacking = partial(
+        _on_lacking_share, candidates, labels, own=own, other=other, other_unmatched=other_unmatched
+    )
     in_gap = partial(_gap_share, candidates, labels, own=own, other=other, tolerance=threshold)
 
     check = unseen_faces(figures) & figures.upright
@@ -398,6 +395,9 @@ def map_test(
     strips = strip_sides(figures, candidates.points, labels, other, other_unmatched, reach)
     coverage, faces, confidence, counts = _verdict(
         figures, see_through, open_beneath, far_face, stands_on_lacking, in_gap, hollow, strips
+    )
+    coverage, confidence, counts["map_held_top_parts"] = with_held_tops(
+        candidates, labels, figures, coverage, confidence, other, other_unmatched, change_threshold
     )
     coverage, confidence, counts["map_blind_area_parts"] = settled_coverage(
         candidates, labels, radius, (coverage, confidence), hosts, own.points, change_threshold
