@@ -17,6 +17,8 @@ own fits.
 from __future__ import annotations
 
 import dataclasses
+import threading
+import weakref
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,6 +42,8 @@ DENSE_SPACING = 0.8 * VOXEL
 by about 3x, so it cannot tell).  A robot map voxel-filtered at 2-5 cm keeps its own fits."""
 EDGE_NEIGHBOURS = 7
 """Cubes around a point's own among which the flattest gives its plane."""
+_RECENT: list[tuple[weakref.ref, tuple[NDArray[np.intp], NDArray[np.float32], NDArray]]] = []
+_RECENT_LOCK = threading.Lock()
 
 
 def _dense(side: Side) -> bool:
@@ -62,7 +66,7 @@ def _cube_planes(
     k = min(NEIGHBOURS, centroids.shape[0] - 1)
     tree = KDTree(centroids)
     _, index = tree.query(centroids, k=k + 1)
-    index = np.asarray(index, dtype=np.int64).reshape(centroids.shape[0], k + 1)
+    index = np.asarray(index).reshape(centroids.shape[0], k + 1)
     normal, constant, _, _, variation = neighbourhood_planes(centroids, index)
     near = index[:, : min(EDGE_NEIGHBOURS, k) + 1]
     flattest = near[np.arange(near.shape[0]), np.argmin(variation[near], axis=1)]
@@ -71,10 +75,18 @@ def _cube_planes(
 
 def metric_side(side: Side) -> tuple[Side, NDArray[np.float32] | None]:
     """``side`` with metric-scale planes if it is dense (as it is otherwise), and those
-    normals per point (shape (n, 3); None when kept)."""
+    normals per point (shape (n, 3); None when kept).  The planes of the last two clouds are
+    kept while their point arrays live (each cloud's map test runs with the other's)."""
     if side.points.shape[0] < NEIGHBOURS + 1 or not _dense(side):
         return side, None
-    cube, normal, constant = _cube_planes(side.points)
+    with _RECENT_LOCK:
+        found = [planes for held, planes in _RECENT if held() is side.points]
+    if found:
+        cube, normal, constant = found[0]
+    else:
+        cube, normal, constant = _cube_planes(side.points)
+        with _RECENT_LOCK:
+            _RECENT[:] = [*_RECENT[-1:], (weakref.ref(side.points), (cube, normal, constant))]
     own = side.geometry.normal
     point_normal = normal[cube]
     flip = np.einsum("nd,nd->n", point_normal, own) < 0
