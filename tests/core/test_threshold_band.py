@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from app.core.labels import LABEL_CHANGED
-from app.core.localise import localise_changes
+from app.core.localise import EpochCloud, localise_changes
 from tests.helpers.fused_rooms import plane
 
 GROUND_NOISE = 0.04
@@ -54,3 +54,16 @@ def test_a_fence_in_both_epochs_carries_nothing(seed):
     assert np.count_nonzero(found.reference_label == LABEL_CHANGED) == 0
     assert np.count_nonzero(found.scan_label == LABEL_CHANGED) == 0
     assert found.regions == []
+
+
+def test_nothing_is_carried_against_a_cloud_with_sensor_origins():
+    """The same removed fence with both scanners' origins known: the ray tests judge it, and
+    no band point is carried on (KITTI frames and Velodyne street scans keep main's labels)."""
+    rng = np.random.default_rng(0)
+    origin = np.array([[4.0, 1.0, 1.5]])
+    reference = EpochCloud(points=np.vstack([_ground(rng), _fence(rng)]), origin=origin)
+    scan = EpochCloud(points=_ground(rng), origin=origin)
+    found = localise_changes(reference, scan, threads=1)
+    assert found.parameters["change_threshold"] > 0.15
+    assert found.parameters["reference_band_carried_points"] == 0
+    assert found.parameters["scan_band_carried_points"] == 0
