@@ -37,7 +37,6 @@ from app.core.cloud import PointCloud
 from app.core.comparison.align import Alignment, align_scan
 from app.core.comparison.assemble import assemble_result
 from app.core.comparison.decide import decide_change, detect_change
-from app.core.comparison.early_detection import EarlyDetection
 from app.core.comparison.load import LoadedPair, PairOptions, load_pair
 from app.core.comparison.localise import (
     REFERENCE_AHEAD_MIN_POINTS,
@@ -224,33 +223,20 @@ def run_stages(
     # BLAS on one thread: the stages' products are (n, 3) x (3, 3) and memory-bound, and
     # OpenBLAS's second thread spins after each of them (~0.15 CPU s at 1M + 1M, the same
     # result); the detector limits its own BLAS calls likewise
-    # with two threads the detector starts once the unobserved points are known, beside the
-    # regions' clustering (the same result: app.core.comparison.early_detection)
-    early = (
-        EarlyDetection(loaded.settings.detector, loaded.reference_points)
-        if localise_step is None and loaded.threads >= 2
-        else None
-    )
     with threadpool_limits(limits=1, user_api="blas"):
-        try:
-            matched = _match(loaded, memory, report, timings, localise_step, early)
-        finally:  # joined within the limit: the detector's own restores the value it found
-            if early is not None:
-                early.wait()
-        detected = None if early is None else early.take(matched.localisation)
+        matched = _match(loaded, memory, report, timings, localise_step)
     memory.keep()
     report("detect", 0.65 if localise_step is None else localise_step.detect_fraction)
     started = time.perf_counter()
-    if detected is None:
-        detected = detect_change(
-            loaded.settings.detector,
-            loaded.reference_points,
-            matched.alignment.aligned_scan,
-            matched.localisation,
-            sample_points=None if localise_step is None else localise_step.detection_sample,
-            random_state=0 if localise_step is None else localise_step.detection_seed,
-        )
-    timings["detect"] = time.perf_counter() - started + (0.0 if early is None else early.seconds)
+    detected = detect_change(
+        loaded.settings.detector,
+        loaded.reference_points,
+        matched.alignment.aligned_scan,
+        matched.localisation,
+        sample_points=None if localise_step is None else localise_step.detection_sample,
+        random_state=0 if localise_step is None else localise_step.detection_seed,
+    )
+    timings["detect"] = time.perf_counter() - started
     decision = decide_change(
         detected.detection,
         matched.localisation.regions,
@@ -287,7 +273,6 @@ def _match(
     report: ProgressCallback,
     timings: dict[str, float],
     localise_step: LocaliseStep | None = None,
-    early: EarlyDetection | None = None,
 ) -> Matched:
     """Stages 2-4: origins, alignment and localisation, with the neighbour searches ahead.
 
@@ -295,8 +280,7 @@ def _match(
     reference's origin is resolved and the scan aligned (none of which needs it); on one
     thread the origin comes first, so that a cache written by the search holds it.  The
     scan's own search runs while its origin is resolved.  A ``localise_step`` of its own
-    (tiles) has no searches ahead.  ``early``: the detection to start once the labels'
-    unobserved points are final.
+    (tiles) has no searches ahead.
     """
     settings = loaded.settings
     ahead = localise_step is None and searches_ahead(
@@ -343,7 +327,6 @@ def _match(
                     scan_origins.epoch(alignment.aligned_scan, scan_neighbourhoods),
                     threads=loaded.threads,
                     localisation_params=settings.localisation,
-                    on_labelled=None if early is None else early.start_for(alignment.aligned_scan),
                 )
                 min_region_points = int(localisation.parameters.get("min_region_points", 1))
     timings["localise"] = time.perf_counter() - started

@@ -224,3 +224,41 @@ def test_the_reference_search_run_during_alignment_changes_nothing_and_ends_with
     with pytest.raises(InputError, match="n_neighbors"):
         compare(reference, scan, params={"localisation": {"n_neighbors": 2}}, threads=2)
     assert searches_running() == []
+
+
+def test_the_detector_runs_after_the_localisation_on_the_calling_thread(
+    monkeypatch, added_box_pair
+):
+    """With two threads the detection runs on the comparison's own thread once stage 4 has
+    returned (s21 started it on a thread of its own beside the regions' clustering: +0.6-1.2
+    CPU s and +30-40 MB of peak RSS on the held-out 1M pair, no quiet-wall gain), with the
+    one-thread result."""
+    from app.core import pipeline
+
+    detected_on: list[str] = []
+    localised: list[bool] = []
+    localise_pair, detect_change = pipeline.localise_pair, pipeline.detect_change
+
+    def localise(*args, **kwargs):
+        result = localise_pair(*args, **kwargs)
+        localised.append(True)
+        return result
+
+    def detect(*args, **kwargs):
+        detected_on.append(threading.current_thread().name)
+        assert localised, "the detection started before the localisation returned"
+        return detect_change(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "localise_pair", localise)
+    monkeypatch.setattr(pipeline, "detect_change", detect)
+    reference = PointCloud.from_array(added_box_pair.reference)
+    scan = PointCloud.from_array(added_box_pair.scan)
+    params = {
+        "reference_origin": added_box_pair.reference_origin.tolist(),
+        "scan_origin": added_box_pair.scan_origin.tolist(),
+    }
+    two = compare(reference, scan, params=params, threads=2)
+    assert detected_on == [threading.current_thread().name]
+    one = compare(reference, scan, params=params, threads=1)
+    assert two.score == one.score and two.threshold == one.threshold
+    np.testing.assert_array_equal(two.scan_label, one.scan_label)

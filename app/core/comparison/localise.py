@@ -9,7 +9,7 @@ resolved (:func:`scan_neighbourhoods_ahead`).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from typing import Any
 
@@ -94,7 +94,6 @@ def localise_pair(
     *,
     threads: int,
     localisation_params: Mapping[str, Any],
-    on_labelled: Callable[[NDArray[np.int8], NDArray[np.int8]], object] | None = None,
 ) -> Localisation:
     """Labels and regions of both clouds, on ``threads`` OpenMP threads.
 
@@ -108,9 +107,6 @@ def localise_pair(
     threads : int
     localisation_params : mapping
         :data:`app.core.localise.DEFAULT_PARAMETERS` keywords.
-    on_labelled : callable, optional
-        ``localise_changes``' hook, called once which points are unobserved is final
-        (:class:`~app.core.comparison.early_detection.EarlyDetection` starts the detector).
 
     Returns
     -------
@@ -124,6 +120,5 @@ def localise_pair(
             # on KITTI); localise measures the remaining misalignment itself from surfaces.
             registration_rmse=0.0,
             threads=threads,
-            on_labelled=on_labelled,
             **localisation_params,
         )

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from typing import Any
@@ -140,7 +139,6 @@ def localise_changes(
     registration_rmse: float = 0.0,
     min_region_points: int | None = None,
     threads: int | None = None,
-    on_labelled: Callable[[NDArray[np.int8], NDArray[np.int8]], object] | None = None,
     **params: Any,
 ) -> Localisation:
     """Label each point unchanged, changed or unobserved and group changes into regions.
@@ -160,10 +158,6 @@ def localise_changes(
         Threads to use (the reference and scan sides run concurrently from 2; the KD-tree
         queries use OpenMP's setting).  Default: :func:`available_threads`.  The result does
         not depend on it.
-    on_labelled : callable, optional
-        Called as ``on_labelled(reference_label, scan_label)`` once which points are
-        unobserved is final (only changed points turn unchanged after it), e.g. to start the
-        detector; the arrays change later: copy what is kept.
     **params
         See :data:`~app.core.localise.settings.DEFAULT_PARAMETERS`.
 
@@ -211,8 +205,6 @@ def localise_changes(
             cluster_factor=settings["cluster_factor"],
             min_region_points=min_region_points,
         )
-    if on_labelled is not None:
-        on_labelled(reference_found.labelled.label, scan_found.labelled.label)
     regions, uncertain_regions, dropped = _regions(
         reference_found, scan_found, settings, min_region_points, threads
     )
