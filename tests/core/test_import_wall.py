@@ -150,6 +150,7 @@ LOCALISE_LAYERS = (
     "turned_faces",
     "isolated_clusters",
     "protruding_faces",
+    "threshold_band",
     "changes",
 )
 """The localisation package's modules, lowest first: each imports only modules before it."""
