@@ -135,13 +135,14 @@ LOCALISE_LAYERS = (
     "map_rims",
     "map_fragments",
     "map_parts",
-    "map_blind",
     "map_supports",
     "trajectory_visibility",
     "map_shared",
     "map_faces",
     "map_bodies",
     "map_tops",
+    "map_blind",
+    "map_scale",
     "map_evidence",
     "map_agreement",
     "coverage",
@@ -149,6 +150,7 @@ LOCALISE_LAYERS = (
     "turned_faces",
     "isolated_clusters",
     "protruding_faces",
+    "threshold_band",
     "changes",
 )
 """The localisation package's modules, lowest first: each imports only modules before it."""

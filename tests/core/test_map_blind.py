@@ -98,3 +98,22 @@ def test_a_cluster_ringed_by_coverage_differences_is_blind_and_one_ringed_by_mat
     blind, share = blind_clusters(points, index, radius, labels, coverage, 0.1)
     assert blind.tolist() == [True, False, False]
     assert share[0] > 0.9 and share[2] == 0.0
+
+
+def test_a_cluster_ringed_by_coverage_differences_is_not_blind_where_the_other_epoch_saw_round_it():
+    """The panel of the test above, with the other epoch's surface carrying on past its
+    border (a removed board high on a wall, the ceiling over it seen by the other path, the
+    wall round it not: RGB-D room 700 with metric normals, 100 % -> 0 % without this)."""
+    rng = np.random.default_rng(0)
+    wall = plane(rng, [0, 0, 0], [1.0, 0, 0], [0, 0, 1.0], spacing=SPACING)
+    panel = wall[::2] - np.array([0.0, 0.15, 0.0])
+    points = np.vstack([panel, wall])
+    index = np.arange(points.shape[0])
+    labels = np.r_[np.zeros(panel.shape[0]), np.ones(wall.shape[0])].astype(np.int64)
+    coverage = np.array([False, True])
+    radius = np.full(index.shape[0], 3 * SPACING)
+    seen_around = np.array([True, False])
+    blind, _ = blind_clusters(points, index, radius, labels, coverage, 0.1, seen_around)
+    assert blind.tolist() == [False, False]
+    blind, _ = blind_clusters(points, index, radius, labels, coverage, 0.1)
+    assert blind.tolist() == [True, False]

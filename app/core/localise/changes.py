@@ -61,6 +61,7 @@ from app.core.localise.settings import (
     resolve_parameters,
 )
 from app.core.localise.surface import LocalGeometry, local_geometry
+from app.core.localise.threshold_band import carry_changes
 from app.core.localise.turned_faces import changed_points
 from app.core.localise.visibility import (
     Labelled,
@@ -197,6 +198,13 @@ def localise_changes(
     reference_found, scan_found = _labelled(
         (reference_side, scan_side), candidates, limits, settings, threads
     )
+    for own, other in ((reference_found, scan_found), (scan_found, reference_found)):
+        carry_changes(  # below a lifted c, beside a change (threshold_band)
+            *(own.side, other.side, own.labelled, own.distance),
+            limits=(settings["min_change_distance"], limits.change_threshold),
+            cluster_factor=settings["cluster_factor"],
+            min_region_points=min_region_points,
+        )
     regions, uncertain_regions, dropped = _regions(
         reference_found, scan_found, settings, min_region_points, threads
     )

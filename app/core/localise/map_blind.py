@@ -33,11 +33,16 @@ import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
+from app.core.localise.distance import Side
 from app.core.localise.map_fragments import host_coverage
+from app.core.localise.map_parts import ADJOINING_FACTOR, SPARSE_PROBE_FACTOR, PartFigures
+from app.core.localise.map_planes import level_surface_below
+from app.core.localise.map_shared import MIN_ADJOINING
+from app.core.localise.origin_free import BEHIND_MIN_RADIUS
 from app.core.localise.rays import Candidates
 from app.core.localise.regions import cluster_labels
 
-__all__ = ["BLIND_SHARE", "SHELL_FACTOR", "blind_clusters", "settled_coverage"]
+__all__ = ["BLIND_SHARE", "SHELL_FACTOR", "blind_clusters", "seen_round", "settled_coverage"]
 
 SHELL_FACTOR = 3.0
 """The shell around a cluster reaches this many change thresholds from its candidates (0.3 m
@@ -46,6 +51,12 @@ BLIND_SHARE = 0.5
 """A cluster is in the other epoch's blind area when this share of its shell is coverage
 differences (RGB-D room 9's unchanged desk, size 2: 0.81; every true change of RGB-D seeds
 0-2 and of the real pairs, the removed table and fence among them: 0.00-0.05)."""
+SEEN_AROUND_SHARE = 0.5
+"""A cluster with a change part whose adjoining border points (at least
+:data:`~app.core.localise.map_shared.MIN_ADJOINING`) have the other epoch's surface carrying on
+past them in this share is no blind area: the other epoch saw round it (a removed board high
+on a wall, the ceiling over it seen by the other path, the wall round it not: RGB-D room 700,
+once a dense map's wall band there was a coverage difference)."""
 MIN_SHELL_POINTS = 20
 """Fewer shell points say nothing about the surroundings (a cluster in mid-air)."""
 
@@ -57,6 +68,7 @@ def blind_clusters(
     labels: NDArray[np.int64],
     coverage: NDArray[np.bool_],
     change_threshold: float,
+    seen_around: NDArray[np.bool_] | None = None,
 ) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
     """Per surface part, whether its cluster lies in the other epoch's blind area, and the
     share of the cluster's shell that is coverage differences (module docstring).
@@ -76,6 +88,9 @@ def blind_clusters(
         The map test's verdict per part: a coverage difference.
     change_threshold : float
         ``c`` (metres).
+    seen_around : ndarray, shape (parts,), bool, optional
+        Parts round which the other epoch saw (:data:`SEEN_AROUND_SHARE`): a cluster with
+        such a change part is never blind.
 
     Returns
     -------
@@ -92,6 +107,9 @@ def blind_clusters(
     clusters = cluster_labels(candidates, candidate_radius)
     changing = np.zeros(int(clusters.max()) + 1, dtype=bool)
     changing[clusters[~coverage[labels]]] = True
+    seen = np.zeros_like(changing)
+    if seen_around is not None:
+        seen[clusters[~coverage[labels] & seen_around[labels]]] = True
     members = changing[clusters]
     reach = SHELL_FACTOR * change_threshold
     low = candidates[members].min(axis=0) - reach
@@ -121,27 +139,61 @@ def blind_clusters(
     unseen_share = np.bincount(owner, weights=unseen, minlength=changing.shape[0]) / np.maximum(
         totals, 1.0
     )
-    in_blind = changing & (totals >= MIN_SHELL_POINTS) & (unseen_share >= BLIND_SHARE)
+    in_blind = changing & ~seen & (totals >= MIN_SHELL_POINTS) & (unseen_share >= BLIND_SHARE)
     blind[labels] = in_blind[clusters]
     share[labels] = np.where(changing[clusters], unseen_share[clusters], 0.0)
     return blind, share
+
+
+def seen_round(
+    figures: PartFigures,
+    candidates: Candidates,
+    labels: NDArray[np.int64],
+    other: Side,
+    change_threshold: float,
+) -> NDArray[np.bool_]:
+    """Per part, whether the other epoch saw round it (shape (parts,), bool): at least
+    :data:`~app.core.localise.map_shared.MIN_ADJOINING` adjoining border points, the other
+    epoch's surface carrying on past :data:`SEEN_AROUND_SHARE` of them, and the part hanging
+    free: under fewer than half of its foot's candidates (within ``change_threshold`` of its
+    lowest) the other epoch has a level surface within
+    :data:`~app.core.localise.map_parts.ADJOINING_FACTOR` change thresholds (a board on a
+    wall, not a desk's leg on the floor the other path filmed round it)."""
+    check = (figures.adjoining >= MIN_ADJOINING) & (figures.surround_share >= SEEN_AROUND_SHARE)
+    chosen = np.flatnonzero(check[labels])
+    if chosen.shape[0] == 0:
+        return check
+    bottom = np.full(check.shape[0], np.inf)
+    np.minimum.at(bottom, labels[chosen], candidates.points[chosen, 2])
+    foot = chosen[candidates.points[chosen, 2] <= bottom[labels[chosen]] + change_threshold]
+    radius = max(BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing)))
+    below = level_surface_below(
+        candidates.points[foot], other.geometry, ADJOINING_FACTOR * change_threshold, radius
+    )
+    standing = np.bincount(labels[foot], weights=below, minlength=check.shape[0])
+    feet = np.bincount(labels[foot], minlength=check.shape[0])
+    return check & (standing < 0.5 * feet)
 
 
 def settled_coverage(
     candidates: Candidates,
     labels: NDArray[np.int64],
     radius: NDArray[np.float64],
-    verdict: tuple[NDArray[np.bool_], NDArray[np.float64]],
+    verdict: tuple[NDArray[np.bool_], NDArray[np.float64], NDArray[np.bool_]],
     hosts: NDArray[np.int64],
     own_points: NDArray[np.float64],
     change_threshold: float,
 ) -> tuple[NDArray[np.bool_], NDArray[np.float64], int]:
-    """The map test's ``verdict`` per part (coverage, confidence; shapes (parts,)) with the
+    """The map test's ``verdict`` per part (coverage, confidence, seen round: shapes (parts,))
+    with the
     fragments of coverage differences made ones (:func:`~app.core.localise.map_fragments.
     host_coverage`, ``hosts``), then the clusters in the other epoch's blind area
-    (:func:`blind_clusters`, at the share as confidence), and how many parts those made so."""
+    (:func:`blind_clusters`, at the share as confidence, none with a change part in
+    ``seen_around``), and how many parts those made so."""
     coverage, confidence = host_coverage(verdict[0], verdict[1], hosts)
     index = candidates.index
-    blind, share = blind_clusters(own_points, index, radius, labels, coverage, change_threshold)
+    blind, share = blind_clusters(
+        own_points, index, radius, labels, coverage, change_threshold, verdict[2]
+    )
     made = blind & ~coverage
     return coverage | blind, np.where(made, share, confidence), int(made.sum())

@@ -62,7 +62,7 @@ from pykdtree.kdtree import KDTree
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE
 from app.core.localise.interface import FaceBorder, VisibilityContext, VisibilityOutcome
-from app.core.localise.map_blind import settled_coverage
+from app.core.localise.map_blind import seen_round, settled_coverage
 from app.core.localise.map_bodies import hollow_sides
 from app.core.localise.map_faces import EDGE_FACTOR, far_faces
 from app.core.localise.map_fragments import fragment_hosts
@@ -83,6 +83,7 @@ from app.core.localise.map_planes import (
     level_surface_below,
 )
 from app.core.localise.map_rims import rim_gap_share
+from app.core.localise.map_scale import metric_candidates, metric_side
 from app.core.localise.map_shared import (
     MIN_ADJOINING,
     seen_through,
@@ -399,19 +400,16 @@ def map_test(
     coverage, confidence, counts["map_held_top_parts"] = with_held_tops(
         candidates, labels, figures, coverage, confidence, other, other_unmatched, change_threshold
     )
+    seen = seen_round(figures, candidates, labels, other, change_threshold)
+    verdict = (coverage, confidence, seen)
     coverage, confidence, counts["map_blind_area_parts"] = settled_coverage(
-        candidates, labels, radius, (coverage, confidence), hosts, own.points, change_threshold
+        candidates, labels, radius, verdict, hosts, own.points, change_threshold
     )
     status, evidence, counts["map_resting_points"] = map_statuses(
         candidates, labels, coverage[labels], other, threshold, resting_band or change_threshold
     )
-    return MapEvidence(
-        status,
-        evidence,
-        confidence[labels].astype(np.float32),
-        counts,
-        _face_border(candidates, labels, faces, figures.adjoined),
-    )
+    border = _face_border(candidates, labels, faces, figures.adjoined)
+    return MapEvidence(status, evidence, confidence[labels].astype(np.float32), counts, border)
 
 
 def _face_border(
@@ -564,11 +562,12 @@ class MapTest:
     def __call__(
         self, candidates: Candidates, *, own: Side, other: Side, context: VisibilityContext
     ) -> VisibilityOutcome:
-        """:func:`map_test` of ``own``'s candidates."""
+        """:func:`map_test` of ``own``'s candidates, on the :func:`metric_side` planes."""
+        (metric_own, own_normal), (metric_other, _) = metric_side(own), metric_side(other)
         found = map_test(
-            candidates,
-            own=own,
-            other=other,
+            metric_candidates(candidates, own_normal),
+            own=metric_own,
+            other=metric_other,
             threshold=context.threshold,
             change_threshold=context.change_threshold,
             cluster_factor=context.settings["cluster_factor"],
