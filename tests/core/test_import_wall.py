@@ -127,6 +127,7 @@ LOCALISE_LAYERS = (
     "gaps",
     "rays",
     "interface",
+    "station_returns",
     "station_rays",
     "origin_free",
     "sample_lines",
