@@ -28,7 +28,6 @@ from app.core.localise.rays import (
     ray_visibility,
 )
 from app.core.localise.regions import cluster_labels
-from app.core.localise.station_returns import on_hiding_surface
 
 __all__ = [
     "StationRayTest",
@@ -139,15 +138,6 @@ def any_station_status(
         else:
             mine = other.station == number
             station_points, normal, linear = other.points[mine], normal[mine], linear[mine]
-            # a return the station's assignment got wrong, behind what the station saw
-            station_points, normal, linear = on_hiding_surface(
-                station_points,
-                origin,
-                normal,
-                linear,
-                tolerance=test.margin_factor
-                * math.hypot(test.normal_tolerance, test.range_tolerance),
-            )
         if station_points.shape[0] < MIN_STATION_POINTS:
             continue  # a station without returns saw nothing: all unobserved
         status, angular_step = ray_visibility(
