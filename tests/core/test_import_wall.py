@@ -127,7 +127,6 @@ LOCALISE_LAYERS = (
     "gaps",
     "rays",
     "interface",
-    "station_returns",
     "station_rays",
     "origin_free",
     "sample_lines",
