@@ -78,3 +78,19 @@ def fused_room(rng, *, floor_hole=None, box=None, ceiling_to=6.0):
     if box is not None:
         parts.append(box_faces(rng, box[0], box[1]))
     return np.vstack(parts)
+
+
+def box_removed_beside_a_band(rng, wall_room, spacing):
+    """A 0.4 m box removed beside a wall the reference saw up to 2.4 m and the scan up to 1.4 m
+    (``wall_room(rng, wall_top)`` builds the room), localised: the share of the box's points
+    (those over the floor's change threshold) called changed, and the rest of the reference's
+    changed points."""
+    from app.core.labels import LABEL_CHANGED
+    from app.core.localise import localise_changes
+
+    box = box_sides(rng, [1.0, 0.6, 0.0], [1.4, 1.0, 0.4], spacing=spacing)
+    box = box[box[:, 2] > 0.12]  # its foot is within the change threshold of the floor
+    reference = np.vstack([wall_room(rng, 2.4), box])
+    found = localise_changes(reference, wall_room(rng, 1.4), threads=1)
+    changed = found.reference_label == LABEL_CHANGED
+    return changed[-box.shape[0] :].mean(), int(np.count_nonzero(changed[: -box.shape[0]]))
