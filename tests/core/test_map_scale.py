@@ -8,7 +8,7 @@ import numpy as np
 from app.core.labels import LABEL_CHANGED
 from app.core.localise import localise_changes
 from app.core.localise.distance import Side
-from app.core.localise.map_scale import metric_side
+from app.core.localise.map_scale import metric_planes, metric_side
 from app.core.localise.surface import local_geometry
 from tests.helpers.fused_rooms import box_removed_beside_a_band, plane
 
@@ -57,7 +57,7 @@ def test_a_dense_noisy_wall_gets_its_own_normal():
     wall = plane(rng, [0, 0, 0], [2.0, 0, 0], [0, 0, 2.0], SPACING, WALL_NOISE)
     side = _side(wall)
     steep = np.cos(np.radians(30))
-    metric, normal = metric_side(side)
+    metric, normal = metric_side(side, metric_planes(side))
     assert normal is not None
     assert np.mean(np.abs(side.geometry.normal[:, 1]) < steep) > 0.4
     assert np.mean(np.abs(normal[:, 1]) < steep) < 0.05
@@ -70,6 +70,6 @@ def test_a_sparse_map_keeps_its_own_fits():
     """A robot map's 3-5 cm samples: its 10 neighbours' normals are its surfaces' axes."""
     rng = np.random.default_rng(0)
     side = _side(plane(rng, [0, 0, 0], [3.0, 0, 0], [0, 3.0, 0], spacing=0.04, noise=0.008))
-    metric, normal = metric_side(side)
+    metric, normal = metric_side(side, metric_planes(side))
     assert normal is None
     assert metric is side

@@ -68,6 +68,7 @@ from app.core.localise.visibility import (
     agree_on_faces,
     find_candidates,
     label_candidates,
+    map_test_planes,
 )
 from app.core.threads import available_threads, concurrently
 
@@ -437,6 +438,7 @@ def _labelled(
 ) -> tuple[_Found, _Found]:
     """Each cloud's candidates labelled changed or unobserved by the visibility test (step 4)."""
     reference_side, scan_side = sides
+    shared = map_test_planes(sides, settings, threads)
 
     def label(own: Side, other: Side, found: Candidates) -> Labelled:
         return label_candidates(
@@ -448,6 +450,7 @@ def _labelled(
             settings=settings,
             change_threshold=limits.change_threshold,
             threads=threads,
+            shared=shared,
         )
 
     (reference_distance, reference_candidates), (scan_distance, scan_candidates) = candidates

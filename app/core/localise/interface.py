@@ -53,6 +53,9 @@ class VisibilityContext:
         The resolved localisation parameters.
     threads : int
         Threads a test may keep busy (the same result on any number).
+    shared : mapping, optional
+        What a test computes once per comparison for both clouds' tests, by cloud name
+        (the map test's metric-scale planes); a test computes its own without it.
     """
 
     misalignment: float
@@ -60,6 +63,7 @@ class VisibilityContext:
     change_threshold: float
     settings: Mapping[str, Any]
     threads: int = 1
+    shared: Mapping[str, Any] | None = None
 
 
 @dataclass(frozen=True)

@@ -83,7 +83,7 @@ from app.core.localise.map_planes import (
     level_surface_below,
 )
 from app.core.localise.map_rims import rim_gap_share
-from app.core.localise.map_scale import metric_candidates, metric_side
+from app.core.localise.map_scale import metric_candidates, metric_planes, metric_side
 from app.core.localise.map_shared import (
     MIN_ADJOINING,
     seen_through,
@@ -563,7 +563,11 @@ class MapTest:
         self, candidates: Candidates, *, own: Side, other: Side, context: VisibilityContext
     ) -> VisibilityOutcome:
         """:func:`map_test` of ``own``'s candidates, on the :func:`metric_side` planes."""
-        (metric_own, own_normal), (metric_other, _) = metric_side(own), metric_side(other)
+        shared = context.shared or {}
+        (metric_own, own_normal), (metric_other, _) = (
+            metric_side(side, shared[side.name] if side.name in shared else metric_planes(side))
+            for side in (own, other)
+        )
         found = map_test(
             metric_candidates(candidates, own_normal),
             own=metric_own,

@@ -17,8 +17,6 @@ own fits.
 from __future__ import annotations
 
 import dataclasses
-import threading
-import weakref
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,7 +26,7 @@ from app.core.localise.distance import Side
 from app.core.localise.rays import Candidates
 from app.core.localise.surface import neighbourhood_planes
 
-__all__ = ["VOXEL", "metric_candidates", "metric_side"]
+__all__ = ["VOXEL", "MetricPlanes", "metric_candidates", "metric_planes", "metric_side"]
 
 VOXEL = 0.02
 """Metres: edge of the cubes a dense cloud is thinned to before its planes are fitted."""
@@ -42,8 +40,25 @@ DENSE_SPACING = 0.8 * VOXEL
 by about 3x, so it cannot tell).  A robot map voxel-filtered at 2-5 cm keeps its own fits."""
 EDGE_NEIGHBOURS = 7
 """Cubes around a point's own among which the flattest gives its plane."""
-_RECENT: list[tuple[weakref.ref, tuple[NDArray[np.intp], NDArray[np.float32], NDArray]]] = []
-_RECENT_LOCK = threading.Lock()
+
+
+@dataclasses.dataclass(frozen=True)
+class MetricPlanes:
+    """A dense cloud's metric-scale planes (:func:`metric_planes`).
+
+    Attributes
+    ----------
+    cube : ndarray, shape (n,), intp
+        Each point's cube.
+    normal : ndarray, shape (m, 3), float32
+        Per cube, the unit normal of the flattest plane next to it.
+    constant : ndarray, shape (m,), float64
+        That plane's constant.
+    """
+
+    cube: NDArray[np.intp]
+    normal: NDArray[np.float32]
+    constant: NDArray[np.float64]
 
 
 def _dense(side: Side) -> bool:
@@ -73,25 +88,25 @@ def _cube_planes(
     return cube, normal[flattest], constant[flattest]
 
 
-def metric_side(side: Side) -> tuple[Side, NDArray[np.float32] | None]:
-    """``side`` with metric-scale planes if it is dense (as it is otherwise), and those
-    normals per point (shape (n, 3); None when kept).  The planes of the last two clouds are
-    kept while their point arrays live (each cloud's map test runs with the other's)."""
+def metric_planes(side: Side) -> MetricPlanes | None:
+    """``side``'s metric-scale planes if it is dense (module docstring), else None.  A
+    comparison fits each cloud's once (:func:`~app.core.localise.visibility.map_test_planes`):
+    each cloud's map test runs with the other's."""
     if side.points.shape[0] < NEIGHBOURS + 1 or not _dense(side):
+        return None
+    return MetricPlanes(*_cube_planes(side.points))
+
+
+def metric_side(side: Side, planes: MetricPlanes | None) -> tuple[Side, NDArray[np.float32] | None]:
+    """``side`` with its metric-scale ``planes`` (as it is when None), and those normals per
+    point (shape (n, 3); None when kept)."""
+    if planes is None:
         return side, None
-    with _RECENT_LOCK:
-        found = [planes for held, planes in _RECENT if held() is side.points]
-    if found:
-        cube, normal, constant = found[0]
-    else:
-        cube, normal, constant = _cube_planes(side.points)
-        with _RECENT_LOCK:
-            _RECENT[:] = [*_RECENT[-1:], (weakref.ref(side.points), (cube, normal, constant))]
     own = side.geometry.normal
-    point_normal = normal[cube]
+    point_normal = planes.normal[planes.cube]
     flip = np.einsum("nd,nd->n", point_normal, own) < 0
     point_normal[flip] *= -1
-    point_constant = np.where(flip, -constant[cube], constant[cube])
+    point_constant = np.where(flip, -planes.constant[planes.cube], planes.constant[planes.cube])
     geometry = dataclasses.replace(
         side.geometry, normal=point_normal, plane_constant=point_constant
     )

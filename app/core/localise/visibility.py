@@ -33,6 +33,7 @@ from app.core.localise.distance import Side
 from app.core.localise.interface import FaceBorder, VisibilityContext, VisibilityTest
 from app.core.localise.map_agreement import faces_meeting_changes
 from app.core.localise.map_evidence import MapTest
+from app.core.localise.map_scale import metric_planes
 from app.core.localise.origin_free import SurfaceTest
 from app.core.localise.rays import (
     STATUS_SEEN_THROUGH,
@@ -47,6 +48,7 @@ from app.core.localise.station_rays import (
     resolve_edge_on,
 )
 from app.core.localise.trajectory_visibility import TrajectoryTest
+from app.core.threads import concurrently
 
 __all__ = [
     "Labelled",
@@ -131,6 +133,21 @@ def choose_test(other: Side, settings: Mapping[str, Any]) -> VisibilityTest:
     return CoverageTest(sampling_gaps=chosen == "gaps")
 
 
+def map_test_planes(
+    sides: tuple[Side, Side], settings: Mapping[str, Any], threads: int
+) -> dict[str, Any] | None:
+    """The map test's metric-scale planes of both clouds by name (None per cloud that is not
+    dense), fitted once and concurrently when either cloud's candidates get the map test (each
+    cloud's map test reads both clouds' planes); None when neither does."""
+    reference_side, scan_side = sides
+    if not any(choose_test(other, settings).name == MapTest.name for other in sides):
+        return None
+    planes = concurrently(
+        threads, lambda: metric_planes(reference_side), lambda: metric_planes(scan_side)
+    )
+    return dict(zip((reference_side.name, scan_side.name), planes, strict=True))
+
+
 def label_candidates(
     own: Side,
     other: Side,
@@ -141,6 +158,7 @@ def label_candidates(
     settings: dict[str, Any],
     change_threshold: float | None = None,
     threads: int = 1,
+    shared: Mapping[str, Any] | None = None,
 ) -> Labelled:
     """Label one cloud's points: candidates become changed or unobserved, the rest unchanged.
 
@@ -162,6 +180,8 @@ def label_candidates(
         ``c``: a surface within it is the same surface; default ``threshold``.
     threads : int
         Threads the test may keep busy (the same labels on any number).
+    shared : mapping, optional
+        What the tests compute once per comparison (:func:`map_test_planes`).
 
     Returns
     -------
@@ -174,6 +194,7 @@ def label_candidates(
         change_threshold=threshold if change_threshold is None else change_threshold,
         settings=settings,
         threads=threads,
+        shared=shared,
     )
     outcome = test(candidates, own=own, other=other, context=context)
     status = outcome.status
