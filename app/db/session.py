@@ -21,6 +21,8 @@ pool's pre-ping is not such an error: the pool reconnects, so the service recove
 from __future__ import annotations
 
 import logging
+import sqlite3
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from functools import lru_cache
@@ -33,6 +35,8 @@ from sqlalchemy.orm import Session, sessionmaker
 logger = logging.getLogger("scandiff.db")
 
 SQLITE_BUSY_TIMEOUT_MS = 60_000
+SQLITE_LOCKED_RETRY_FIRST_PAUSE_SECONDS = 0.01
+SQLITE_LOCKED_RETRY_MAX_PAUSE_SECONDS = 0.5
 READ_ONLY_OPTION = "scandiff_read_only"
 """Execution option marking a session that only reads: on SQLite it opens a plain (deferred)
 transaction, which in WAL mode never waits for, nor blocks, writers."""
@@ -93,6 +97,40 @@ def read_transaction_wrote(session: Session) -> bool:
     return at_begin is None or _total_changes(connection) != at_begin
 
 
+def _execute_all(dbapi_connection, statements: tuple[str, ...]) -> None:  # type: ignore[no-untyped-def]
+    """Run ``statements`` on a raw DBAPI connection, in order."""
+    cursor = dbapi_connection.cursor()
+    try:
+        for statement in statements:
+            cursor.execute(statement)
+    finally:
+        cursor.close()
+
+
+def _retry_while_locked(
+    action: Callable[[], None], *, timeout_seconds: float = SQLITE_BUSY_TIMEOUT_MS / 1000
+) -> None:
+    """Run ``action``, again while SQLite answers "database is locked", for ``timeout_seconds``.
+
+    SQLite skips its busy handler where waiting could deadlock: switching a rollback-journal
+    database to WAL while another connection holds its write lock fails at once, whatever the
+    busy timeout.  Seven processes opening a fresh file together can meet that window (one
+    replica in ten rounds of ``tests/db/test_replicas_first_start.py`` died of it), so the
+    connection's set-up waits here, with backoff, as the busy handler would.
+    """
+    deadline = time.monotonic() + timeout_seconds
+    pause = SQLITE_LOCKED_RETRY_FIRST_PAUSE_SECONDS
+    while True:
+        try:
+            action()
+            return
+        except sqlite3.OperationalError as exc:
+            if not str(exc).startswith("database is locked") or time.monotonic() >= deadline:
+                raise
+        time.sleep(min(pause, max(0.0, deadline - time.monotonic())))
+        pause = min(2 * pause, SQLITE_LOCKED_RETRY_MAX_PAUSE_SECONDS)
+
+
 def _configure_sqlite(engine: Engine, *, foreign_keys: bool = True) -> None:
     """WAL, busy timeout, foreign keys and BEGIN IMMEDIATE on every SQLite connection."""
 
@@ -100,12 +138,13 @@ def _configure_sqlite(engine: Engine, *, foreign_keys: bool = True) -> None:
     def _on_connect(dbapi_connection, _record) -> None:  # type: ignore[no-untyped-def]
         # Let SQLAlchemy, not the sqlite3 module, emit BEGIN (pysqlite's own is deferred).
         dbapi_connection.isolation_level = None
-        cursor = dbapi_connection.cursor()
-        cursor.execute(f"PRAGMA busy_timeout = {SQLITE_BUSY_TIMEOUT_MS}")
-        cursor.execute("PRAGMA journal_mode = WAL")
-        cursor.execute("PRAGMA synchronous = NORMAL")
-        cursor.execute(f"PRAGMA foreign_keys = {'ON' if foreign_keys else 'OFF'}")
-        cursor.close()
+        pragmas = (
+            f"PRAGMA busy_timeout = {SQLITE_BUSY_TIMEOUT_MS}",
+            "PRAGMA journal_mode = WAL",
+            "PRAGMA synchronous = NORMAL",
+            f"PRAGMA foreign_keys = {'ON' if foreign_keys else 'OFF'}",
+        )
+        _retry_while_locked(lambda: _execute_all(dbapi_connection, pragmas))
 
     @event.listens_for(engine, "begin")
     def _on_begin(connection) -> None:  # type: ignore[no-untyped-def]

@@ -68,6 +68,7 @@ def _budget_just_over(total: int) -> int:
     )
 
 
+@pytest.mark.slow  # two whole CLI comparisons (~9 CPU s); the streamed CLI test stays in make test
 def test_a_pair_over_the_budget_is_compared_in_tiles(
     pair_files: tuple[Path, Path, int],
     over_budget_run: tuple[subprocess.CompletedProcess[str], int, Path],

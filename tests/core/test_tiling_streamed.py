@@ -198,6 +198,7 @@ def test_without_the_direction_filter_too_and_its_crops_are_larger(
     assert sum(_crop_sizes(by_direction)) < sum(_crop_sizes(top_view))
 
 
+@pytest.mark.slow  # a georeferenced pair streamed and compared lean (~9 CPU s): make test-slow
 def test_a_georeferenced_pair_with_non_finite_rows_streams_like_the_lean_one(tmp_path) -> None:
     """One station, survey-sized coordinates; NaN rows in the reference keep their place and
     come out unobserved, everything else as the lean comparison has it."""

@@ -142,6 +142,7 @@ def _rounds_on_postgresql(tmp_path: Path, rounds: int, n_api: int, n_workers: in
         assert problems == [], f"round {round_index + 1}: {problems}"
 
 
+@pytest.mark.slow  # seven processes started together (~10 CPU s): make test-slow
 @pytest.mark.timeout(600)
 def test_four_apis_and_three_workers_start_together_on_a_fresh_sqlite_file(
     tmp_path: Path,

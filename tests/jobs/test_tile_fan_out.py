@@ -32,6 +32,7 @@ from app.jobs.leases import TileOutcome, lease_owner_pid
 from app.jobs.tiles import run_tile_message
 from app.testing.files import ply_bytes
 from app.testing.service import ServiceProcess
+from app.testing.waiting import wait_until
 from tests.helpers.jobs import create_job
 
 CROP_SHARE = 0.5
@@ -149,7 +150,10 @@ def test_tiles_and_crop_passes_run_on_every_worker_and_equal_the_in_process_tile
     assert all(tile["attempts"] == 1 for tile in tiles), "no tile computed twice"
     workers = {lease_owner_pid(tile["lease_owner"]) for tile in tiles}
     assert len(workers) == 2, f"tiles computed by {workers}: the second worker took none"
-    assert not (service.data_dir / "results" / job["id"] / "tiles").exists()
+    tiles_directory = service.data_dir / "results" / job["id"] / "tiles"
+    # the parent deletes the tile files just after storing the job (a heavily loaded machine
+    # can show the job succeeded first); they must be gone soon after
+    wait_until(lambda: not tiles_directory.exists(), 30.0, "the finished job's tile files deleted")
     timings = job["timings"]  # the parent's phases, for operators
     assert timings["tiles_computed_here"] + timings["tiles_computed_elsewhere"] == len(tiles)
     seconds_by_owner: dict[str, list[float]] = {}

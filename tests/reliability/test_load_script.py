@@ -14,6 +14,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from app.testing.paths import PROJECT_ROOT
 from tests.helpers.figures import record_figure
 
@@ -22,6 +24,7 @@ SECONDS = 3.0
 UPLOAD_SHARE = 0.2
 
 
+@pytest.mark.slow  # the load script against a live service (~10 CPU s): make test-slow
 def test_the_load_script_runs_and_reports(tmp_path: Path) -> None:
     figures_path = tmp_path / "load.json"
     markdown_path = tmp_path / "load.md"
