@@ -2,7 +2,7 @@
 // changed region in metres, against the threshold it was decided with: the default or the
 // site's, learned from reviewed jobs) with the reviewers' verdicts on it; below, one small chart
 // per detector with its global score and that detector's own threshold. Jobs that finished in
-// the same instant are spread side by side. Clicking a dot opens the job.
+// the same instant (dots that would overlap) are spread side by side. Clicking a dot opens the job.
 
 const SVG_NS = "http://www.w3.org/2000/svg";
 const WIDTH = 800;
@@ -10,7 +10,7 @@ const MAIN_HEIGHT = 228;
 const LEGEND_ROW = 18;
 const DETECTOR_HEIGHT = 110;
 const MARGIN = { top: 24, right: 16, bottom: 36, left: 56 };
-const GROUP_PX = 4;
+const GROUP_PX = 12; // a changed job's dot diameter: closer dots would overlap
 const JITTER_PX = 8;
 
 const SECOND = 1000;
@@ -99,7 +99,7 @@ export function timeTickLabels(ticks, step) {
   });
 }
 
-/** x positions of time-sorted items, with items closer than GROUP_PX spread side by side. */
+/** x positions of time-sorted items, with items closer than GROUP_PX (overlapping dots) spread side by side. */
 function spread(items, x) {
   const groups = [];
   for (const item of items) {
