@@ -35,6 +35,10 @@ which widens the noise threshold by whatever misalignment remains.
    reference neighbour, the clouds do not overlap and the fine stage is skipped.
 2. Fine: the fine samples, from the coarse result, at ``max_correspondence_distance``, with
    tight convergence thresholds (``voxel_size / 1000`` and 0.006 degrees).
+3. Proof: a result farther than ``max_correspondence_distance`` from the starting transform (a
+   repeated structure locked one period off, or a real large error) is kept only when it beats
+   the fine stage started from the starting transform, if that converged, by a margin, on a
+   score that differing coverage does not fool (:mod:`app.core.registration_choice`).
 
 Both clouds are shifted by the reference's bounding-box centre first (small_gicp's voxel grid
 holds 21-bit coordinates, and rotations are better conditioned about the data); the returned
@@ -70,7 +74,9 @@ from pykdtree.kdtree import KDTree
 from app.core.cache.reference_memory import ReferenceMemory, recalled
 from app.core.cloud import PointCloud, column_extreme
 from app.core.errors import RegistrationError
+from app.core.registration_choice import largest_displacement, proven_transform
 from app.core.registration_result import Registration
+from app.core.registration_result import apply_transform as apply_transform
 from app.core.registration_result import rotation_angle_degrees as rotation_angle_degrees
 
 SAMPLE_POINTS = 200_000
@@ -98,24 +104,6 @@ VOXEL_GRID_LIMIT = 2**19
 halved for safety. Points beyond would be silently dropped."""
 
 CloudLike = PointCloud | NDArray[np.floating]
-
-
-def apply_transform(points: NDArray, transform: NDArray) -> NDArray[np.float64]:
-    """Apply a homogeneous rigid transform to points.
-
-    Parameters
-    ----------
-    points : ndarray, shape (n, 3)
-    transform : ndarray, shape (4, 4)
-
-    Returns
-    -------
-    ndarray, shape (n, 3), float64
-        ``points @ R.T + t``.
-    """
-    points = np.asarray(points, dtype=np.float64)
-    transform = np.asarray(transform, dtype=np.float64)
-    return points @ transform[:3, :3].T + transform[:3, 3]
 
 
 def estimate_point_spacing(
@@ -318,30 +306,32 @@ def register_scan(
     iterations = 0
     converged = False
     for target, target_tree, source, distance, is_fine in stages:
-        result = small_gicp.align(
-            target,
-            source,
-            target_tree,
-            init_T_target_source=local_transform,
-            registration_type="GICP",
-            max_correspondence_distance=distance,
-            num_threads=num_threads,
-            max_iterations=MAX_ITERATIONS["fine" if is_fine else "coarse"],
-            rotation_epsilon=1e-4 if is_fine else np.radians(0.1),
-            translation_epsilon=(plan.voxel_size if is_fine else coarse_voxel) * 1e-3,
+        local_transform, stage_iterations, converged, stage_fitness = _gicp_stage(
+            (target, target_tree, source), local_transform, distance, is_fine, plan, num_threads
         )
-        iterations += int(result.iterations)
-        converged = bool(result.converged)
-        candidate = np.asarray(result.T_target_source, dtype=np.float64)
-        if not np.isfinite(candidate).all():
-            diverged = "the alignment diverged (non-finite transform); check the inputs, or "
-            raise RegistrationError(diverged + NO_ALIGN_HINT)
-        local_transform = candidate
-        stage_fitness = result.num_inliers / max(source.size(), 1)
+        iterations += stage_iterations
         if not is_fine and stage_fitness < min_fitness:
             # The fine stage only refines within a quarter of this distance: it cannot bring
             # more points into overlap, and on non-overlapping clouds it would spend seconds.
             raise _no_overlap_error(stage_fitness, distance, min_fitness)
+
+    start = _translated(initial, -centre)
+    if len(stages) > 1 and largest_displacement(plan.scan_sample, local_transform, start) > (
+        plan.distance
+    ):  # far from the start: the fine stage from the start too, and the better (see the module)
+        near, near_iterations, near_converged, _ = _gicp_stage(
+            (fine_target, fine_tree, fine_source), start, plan.distance, True, plan, num_threads
+        )
+        iterations += near_iterations
+        if near_converged:  # else still sliding (along a corridor, say): no rival basin
+            local_transform, _ = proven_transform(
+                plan.reference_sample,
+                plan.scan_sample,
+                local_transform,
+                near,
+                plan.distance,
+                plan.grid / 2.0,
+            )
 
     transform = _translated(local_transform, centre)
     fitness, rmse = plan.fit_quality(local_transform)
@@ -357,6 +347,40 @@ def register_scan(
         plan.distance,
         plan.voxel_size,
     )
+
+
+def _gicp_stage(
+    clouds: tuple[Any, Any, Any],
+    start: NDArray[np.float64],
+    distance: float,
+    is_fine: bool,
+    plan: _Plan,
+    num_threads: int,
+) -> tuple[NDArray[np.float64], int, bool, float]:
+    """One GICP stage of :func:`register_scan` from ``start`` (4, 4), on ``clouds`` (target,
+    its tree, source): the transform (4, 4), iterations, convergence and inlier share."""
+    import small_gicp
+
+    target, target_tree, source = clouds
+    step = plan.voxel_size if is_fine else COARSE_VOXEL_FACTOR * plan.voxel_size
+    result = small_gicp.align(
+        target,
+        source,
+        target_tree,
+        init_T_target_source=start,
+        registration_type="GICP",
+        max_correspondence_distance=distance,
+        num_threads=num_threads,
+        max_iterations=MAX_ITERATIONS["fine" if is_fine else "coarse"],
+        rotation_epsilon=1e-4 if is_fine else np.radians(0.1),
+        translation_epsilon=step * 1e-3,
+    )
+    transform = np.asarray(result.T_target_source, dtype=np.float64)
+    if not np.isfinite(transform).all():
+        diverged = "the alignment diverged (non-finite transform); check the inputs, or "
+        raise RegistrationError(diverged + NO_ALIGN_HINT)
+    inliers = result.num_inliers / max(source.size(), 1)
+    return transform, int(result.iterations), bool(result.converged), inliers
 
 
 def _no_overlap_error(fitness: float, distance: float, min_fitness: float) -> RegistrationError:

@@ -1,5 +1,6 @@
-"""The result of :func:`app.core.registration.register_scan` (kept apart from the alignment's
-code, which :mod:`app.core.cache.reference_alignment` hashes into its cache key)."""
+"""The result of :func:`app.core.registration.register_scan`, and :func:`apply_transform` that
+moves points by it (kept apart from the alignment's code, which
+:mod:`app.core.cache.reference_alignment` hashes into its cache key)."""
 
 from __future__ import annotations
 
@@ -78,3 +79,21 @@ def rotation_angle_degrees(rotation: NDArray) -> float:
     """Angle of a 3x3 rotation matrix, in degrees (0 for the identity)."""
     cosine = (np.trace(np.asarray(rotation, dtype=np.float64)) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
+
+
+def apply_transform(points: NDArray, transform: NDArray) -> NDArray[np.float64]:
+    """Apply a homogeneous rigid transform to points.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    transform : ndarray, shape (4, 4)
+
+    Returns
+    -------
+    ndarray, shape (n, 3), float64
+        ``points @ R.T + t``.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    transform = np.asarray(transform, dtype=np.float64)
+    return points @ transform[:3, :3].T + transform[:3, 3]
