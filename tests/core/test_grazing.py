@@ -13,6 +13,7 @@ Rules checked (bench numbers in bench/results/visibility.md, "Several stations p
 from __future__ import annotations
 
 import numpy as np
+from pykdtree.kdtree import KDTree
 
 from app.core.datasets.lidar import LidarWorld, lidar_directions
 from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED, Candidates
@@ -71,3 +72,38 @@ def test_a_point_closer_to_the_floor_than_the_sensor_resolves_stays_unobserved()
 def test_a_box_between_the_sensor_and_the_foot_still_hides_it():
     status = status_seen_from([[7.0, -1.0, 0.0]], [[8.0, 1.0, 1.0]], 0.15, 0.45)
     assert (status == STATUS_UNOBSERVED).all()
+
+
+def test_rays_unsupported_at_their_crossing_are_not_asked_again():
+    """A ray whose crossing has no own point near it is unsupported whatever its stretch's
+    ends give: only the rays still supported are queried at the ends, with the same answer."""
+    from types import SimpleNamespace
+
+    from app.core.localise import rays
+
+    rng = np.random.default_rng(7)
+    side = np.linspace(0.0, 1.0, 41)
+    grid = np.stack(np.meshgrid(side, side), axis=-1).reshape(-1, 2)
+    floor = np.column_stack([grid, np.zeros(len(grid))])  # a plane of the own cloud, z = 0
+    spacing = np.full(len(floor), side[1] - side[0])
+    asked: list[int] = []
+    tree = KDTree(floor)
+
+    class CountingTree:
+        def query(self, points, k):
+            asked.append(len(points))
+            return tree.query(points, k=k)
+
+    own = SimpleNamespace(tree=CountingTree(), spacing=spacing)
+    count = 50
+    inside = rng.uniform(0.3, 0.7, (count, 2))
+    crossing = np.column_stack([np.vstack([inside, inside + 5.0]), np.zeros(2 * count)])
+    normal = np.tile([0.0, 0.0, 1.0], (2 * count, 1))
+    direction = np.tile([0.6, 0.0, -0.8], (2 * count, 1))
+    cosine = direction @ normal[0]
+    reach = spacing[0]
+    supported = rays._over_own_surface(
+        own, crossing, direction, normal, cosine, reach=reach, normal_tolerance=reach
+    )
+    np.testing.assert_array_equal(supported, np.arange(2 * count) < count)
+    assert asked == [2 * count, count, count]

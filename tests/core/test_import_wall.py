@@ -119,6 +119,7 @@ def test_the_labels_are_defined_and_imported_in_one_place():
 LOCALISE_LAYERS = (
     "settings",
     "station_assignment",
+    "station_occlusion",
     "neighbourhoods",
     "epoch",
     "surface",
@@ -134,6 +135,8 @@ LOCALISE_LAYERS = (
     "map_lines",
     "map_rims",
     "map_fragments",
+    "map_sides",
+    "map_steps",
     "map_parts",
     "map_supports",
     "trajectory_visibility",
@@ -151,6 +154,7 @@ LOCALISE_LAYERS = (
     "isolated_clusters",
     "protruding_faces",
     "threshold_band",
+    "flying_samples",
     "changes",
 )
 """The localisation package's modules, lowest first: each imports only modules before it."""

@@ -12,7 +12,7 @@ import pytest
 from app.core.cloud import PointCloud
 from app.core.datasets.lidar import lidar_pair
 from app.core.datasets.scenes import raycast_scene
-from app.core.localise import neighbourhoods
+from app.core.localise import neighbourhoods, regions
 from app.core.localise.neighbourhoods import nearest_neighbourhoods
 from app.core.pipeline import compare
 from tests.helpers.environment import c_compiler_found
@@ -223,3 +223,75 @@ def test_labels_are_pykdtrees(monkeypatch):
     for name in ("reference_label", "scan_label", "reference_distance", "scan_distance"):
         assert np.array_equal(getattr(compiled, name), getattr(plain, name), equal_nan=True), name
     assert compiled.score == plain.score
+
+
+@needs_kernel
+def test_the_nearest_point_in_the_other_cloud_is_pykdtrees():
+    """:func:`kernel_nearest` walks the other cloud's kernel tree a leaf of own points at a
+    time: pykdtree's nearest point and distance to the bit; the points with two nearest
+    equally far (a lattice against itself shifted, duplicates) are pykdtree's answers."""
+    pair = lidar_pair(layout="room", angular_step_deg=1.2, random_state=5)
+    rng = np.random.default_rng(11)
+    lattice = np.stack(np.meshgrid(*[np.arange(12.0)] * 3), axis=-1).reshape(-1, 3)
+    blob = rng.normal(size=(3000, 3))
+    cases = (
+        (pair.reference, pair.scan),
+        (lattice + 0.5, lattice),
+        (blob, np.concatenate([blob[::2] + 0.01, blob[:300] + 0.01])),
+    )
+    for own, other in cases:
+        own, other = np.ascontiguousarray(own), np.ascontiguousarray(other)
+        own_found = nearest_neighbourhoods(own, 10)
+        other_found = nearest_neighbourhoods(other, 10)
+        found = neighbourhoods.kernel_nearest(
+            own, own_found.kernel_tree, other_found.kernel_tree, other_found.tree
+        )
+        distance, index = other_found.tree.query(own, k=1)
+        assert found is not None and found[1].dtype == np.uint32
+        assert np.array_equal(found[0].view(np.uint64), distance.view(np.uint64))
+        assert np.array_equal(found[1], index)
+    tied = np.empty(len(lattice), dtype=np.uint8)
+    lattice_tree = KERNEL.build_tree(np.ascontiguousarray(lattice))
+    shifted_tree = KERNEL.build_tree(np.ascontiguousarray(lattice + 0.5))
+    outputs = (np.empty(len(lattice), np.uint32), np.empty(len(lattice)), tied)
+    # a node shifted by half a step is as far from 2-8 lattice nodes but at the far corner
+    ties = KERNEL.nearest_other(shifted_tree, lattice_tree, *outputs)
+    assert ties == tied.sum() > 0.9 * len(lattice)
+
+
+@needs_kernel
+def test_the_cluster_graph_is_pykdtrees(monkeypatch):
+    """``regions.cluster_labels``' links by the kernel's neighbours (distances computed as
+    pykdtree computes them, its bound strict) are those of pykdtree's bounded query: a
+    scanned room, a lattice whose neighbours lie exactly at the bound (pykdtree leaves them
+    out) or tie, duplicated points (asked of the bounded query)."""
+    room = lidar_pair(layout="room", angular_step_deg=1.2, random_state=5).reference[:20_000]
+    rng = np.random.default_rng(4)
+    lattice = np.stack(np.meshgrid(*[np.arange(9.0)] * 3), axis=-1).reshape(-1, 3)
+    cases = (
+        (room, rng.uniform(0.01, 0.2, len(room))),
+        (lattice, np.where(rng.random(len(lattice)) < 0.5, 1.0, 1.5)),
+        (lattice, np.ones(len(lattice))),
+        (np.concatenate([room[:3000], room[:500]]), np.full(3500, 0.05)),
+    )
+    used = []
+    kernel_links = regions.kernel_self_neighbours
+
+    def recorded(points, n_neighbors):
+        found = kernel_links(points, n_neighbors)
+        used.append(found is not None)
+        return found
+
+    monkeypatch.setattr(regions, "kernel_self_neighbours", recorded)
+    for points, radius in cases:
+        points = np.ascontiguousarray(points)
+        neighbour, linked = regions._links(points, radius, 11)
+        labels = regions.cluster_labels(points, radius)
+        with monkeypatch.context() as plain:
+            plain.setattr(neighbourhoods, "KNN_KERNEL", None)
+            plain_neighbour, plain_linked = regions._links(points, radius, 11)
+            plain_labels = regions.cluster_labels(points, radius)
+        assert np.array_equal(linked, plain_linked)
+        assert np.array_equal(neighbour[:, 1:][linked], plain_neighbour[:, 1:][plain_linked])
+        assert np.array_equal(labels, plain_labels)
+    assert used == [True, True, False, False] * len(cases)

@@ -18,7 +18,7 @@ import pytest
 
 from app.core.labels import LABEL_CHANGED
 from app.core.localise import localise_changes
-from app.core.localise.turned_faces import MOVING_SENSOR_TESTS, changed_points
+from app.core.localise.turned_faces import SMALL_FACE_TESTS, changed_points
 from app.core.localise.visibility import Labelled
 from tests.helpers.fused_rooms import box_sides, fused_room
 
@@ -108,14 +108,14 @@ def test_a_turned_backrest_seen_from_afar_is_a_change_under_the_noise_floor(seed
 
 
 @pytest.mark.parametrize(
-    ("test_name", "kept"), [("maps", True), ("trajectory", True), ("rays", False)]
+    ("test_name", "kept"),
+    [("maps", True), ("trajectory", True), ("ray", True), ("surfaces", False), ("coverage", False)],
 )
-def test_small_turned_faces_are_looked_for_in_maps_judged_by_the_map_or_trajectory_test(
-    test_name, kept
-):
+def test_small_turned_faces_are_looked_for_in_clouds_judged_by_a_sensor_test(test_name, kept):
     # a map from a moving sensor sees a turned face from afar as sparsely with its trajectory
     # as without it (robot warehouse 604 with trajectories: the new backrest's 16 points were
-    # dropped, IoU 0.652); the station ray tests' classes keep their noise floor
+    # dropped, IoU 0.652), and a survey's far station too (TLS 000); the origin-free tests keep
+    # their noise floor
     label = np.array([LABEL_CHANGED, 0, LABEL_CHANGED, -1], dtype=np.int8)
     labelled = Labelled(
         label=label,
@@ -128,4 +128,4 @@ def test_small_turned_faces_are_looked_for_in_maps_judged_by_the_map_or_trajecto
     changed = changed_points(side, labelled, np.full(4, 0.2))  # type: ignore[arg-type]
 
     np.testing.assert_array_equal(changed.changed, label == LABEL_CHANGED)
-    assert (changed.test in MOVING_SENSOR_TESTS) is kept
+    assert (changed.test in SMALL_FACE_TESTS) is kept

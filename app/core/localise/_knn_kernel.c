@@ -13,6 +13,10 @@
  * not (two of the k + 1 nearest at the same distance, e.g. duplicate points), the point is
  * flagged and the caller asks pykdtree for it, whose order among equals follows its own walk.
  *
+ * The same walk gives each point of one cloud its nearest point in another (nearest_other: the
+ * leaves of the first cloud's tree, the second's tree walked; one nearest kept, a point with
+ * two equally near flagged for pykdtree), as pykdtree's k = 1 query gives it.
+ *
  * Optional: setup.py builds it when a C compiler is there (Extension(optional=True)); without it
  * neighbourhoods.py queries pykdtree a chunk at a time.  No numpy headers: arrays come through
  * the buffer protocol.
@@ -208,18 +212,39 @@ typedef struct {
    out by a nearer one while another as far stays) sets its equal flag, which a nearer k1-th
    clears.  So no point as far as the k1-th is skipped (a leaf is skipped only when its gap is
    larger), and at the end the flag says whether the k1 + 1-th is as far as the k1-th. */
-static void scan_leaf(const Tree *tree, const Node *own, const Node *node, int k1, Work *work)
+static void scan_leaf(const Tree *own_tree, const Node *own, const Tree *tree, const Node *node,
+                      int k1, Work *work)
 {
     const double *xs = tree->axis[0] + node->start;
     const double *ys = tree->axis[1] + node->start;
     const double *zs = tree->axis[2] + node->start;
     for (uint32_t i = 0; i < own->count; i++) {
         uint32_t at = own->start + i;
-        double point[3] = {tree->axis[0][at], tree->axis[1][at], tree->axis[2][at]};
+        double point[3] = {own_tree->axis[0][at], own_tree->axis[1][at], own_tree->axis[2][at]};
         double *best = work->best + (size_t)i * k1;
         uint32_t *best_at = work->best_at + (size_t)i * k1;
         double limit = best[k1 - 1];
         if (point_gap(point, node) > limit) {
+            continue;
+        }
+        if (k1 == 1) { /* the nearest only: no list to keep */
+            uint8_t equal = work->equal[i];
+            uint32_t nearest = best_at[0];
+            for (uint32_t j = 0; j < node->count; j++) {
+                double dx = xs[j] - point[0], dy = ys[j] - point[1], dz = zs[j] - point[2];
+                double squared = dx * dx + dy * dy;
+                squared = squared + dz * dz;
+                if (squared <= limit) {
+                    equal = squared == limit;
+                    if (squared < limit) {
+                        limit = squared;
+                        nearest = node->start + j;
+                    }
+                }
+            }
+            best[0] = limit;
+            best_at[0] = nearest;
+            work->equal[i] = equal;
             continue;
         }
         for (uint32_t j = 0; j < node->count; j++) {
@@ -258,10 +283,12 @@ static void scan_leaf(const Tree *tree, const Node *own, const Node *node, int k
     }
 }
 
-/* The k1 nearest of each point of one leaf; the number of its points whose order is not
-   unique (two of the k1 + 1 nearest equally far, or fewer than k1 points in the tree). */
-static Py_ssize_t search_leaf(const Tree *tree, const Node *own, int k1, uint32_t *index_out,
-                              double *kth_out, uint8_t *tie_out, Work *work)
+/* The k1 nearest in ``tree`` of each point of one leaf of ``own_tree`` (the same tree for a
+   cloud's own neighbours, another cloud's for its nearest points there); the number of its
+   points whose order is not unique (two of the k1 + 1 nearest equally far, or fewer than k1
+   points in the tree).  Outputs are at the points' rows of ``own_tree``'s array. */
+static Py_ssize_t search_leaf(const Tree *own_tree, const Node *own, const Tree *tree, int k1,
+                              uint32_t *index_out, double *kth_out, uint8_t *tie_out, Work *work)
 {
     for (size_t i = 0; i < (size_t)own->count * k1; i++) {
         work->best[i] = INFINITY;
@@ -277,7 +304,7 @@ static Py_ssize_t search_leaf(const Tree *tree, const Node *own, int k1, uint32_
             continue;
         }
         if (node->left < 0) {
-            scan_leaf(tree, own, node, k1, work);
+            scan_leaf(own_tree, own, tree, node, k1, work);
             worst = 0.0;
             for (uint32_t i = 0; i < own->count; i++) {
                 double kth = work->best[(size_t)i * k1 + k1 - 1];
@@ -308,7 +335,7 @@ static Py_ssize_t search_leaf(const Tree *tree, const Node *own, int k1, uint32_
     for (uint32_t i = 0; i < own->count; i++) {
         const double *best = work->best + (size_t)i * k1;
         const uint32_t *best_at = work->best_at + (size_t)i * k1;
-        size_t row = tree->row[own->start + i];
+        size_t row = own_tree->row[own->start + i];
         uint8_t tie = (uint8_t)(!(best[k1 - 1] < INFINITY)) | work->equal[i];
         for (int slot = 1; slot < k1; slot++) {
             tie |= !(best[slot - 1] < best[slot]);
@@ -426,6 +453,36 @@ static int writable(Py_buffer *view, Py_ssize_t bytes, const char *name)
     return 0;
 }
 
+static void free_work(Work *work)
+{
+    free(work->stack);
+    free(work->best);
+    free(work->best_at);
+    free(work->equal);
+    free(work->scratch);
+    free(work->passing);
+}
+
+/* Work space for the points of ``own``'s leaves searching ``tree`` for k1 nearest; 0, or -1
+   when out of memory (then nothing is left allocated). */
+static int new_work(Work *work, const Tree *own, const Tree *tree, int k1)
+{
+    size_t own_most = own->largest_leaf > LEAF_SIZE ? own->largest_leaf : LEAF_SIZE;
+    size_t most = tree->largest_leaf > LEAF_SIZE ? tree->largest_leaf : LEAF_SIZE;
+    work->stack = malloc(sizeof(int32_t) * (size_t)(tree->depth + 2));
+    work->best = malloc(sizeof(double) * own_most * (size_t)k1);
+    work->best_at = malloc(sizeof(uint32_t) * own_most * (size_t)k1);
+    work->equal = malloc(own_most);
+    work->scratch = malloc(sizeof(double) * most);
+    work->passing = malloc(sizeof(uint32_t) * most);
+    if (work->stack && work->best && work->best_at && work->equal && work->scratch &&
+        work->passing) {
+        return 0;
+    }
+    free_work(work);
+    return -1;
+}
+
 static PyObject *self_neighbours(PyObject *module, PyObject *args)
 {
     TreeObject *self;
@@ -453,40 +510,72 @@ static PyObject *self_neighbours(PyObject *module, PyObject *args)
     else if (writable(&index_out, tree->n * k1 * 4, "index_out") == 0 &&
              writable(&kth_out, tree->n * 8, "kth_out") == 0 &&
              writable(&tie_out, tree->n, "tie_out") == 0 && writable(&cancel, 1, "cancel") == 0) {
-        size_t most = tree->largest_leaf > LEAF_SIZE ? tree->largest_leaf : LEAF_SIZE;
-        Work work = {
-            .stack = malloc(sizeof(int32_t) * (size_t)(tree->depth + 2)),
-            .best = malloc(sizeof(double) * most * (size_t)k1),
-            .best_at = malloc(sizeof(uint32_t) * most * (size_t)k1),
-            .equal = malloc(most),
-            .scratch = malloc(sizeof(double) * most),
-            .passing = malloc(sizeof(uint32_t) * most),
-        };
-        if (work.stack && work.best && work.best_at && work.equal && work.scratch && work.passing) {
+        Work work;
+        if (new_work(&work, tree, tree, k1) == 0) {
             Py_ssize_t ties = 0, leaf = first;
             volatile const uint8_t *cancelled = cancel.buf;
             Py_BEGIN_ALLOW_THREADS
             for (; leaf < last && !*cancelled; leaf++) {
-                ties += search_leaf(tree, &tree->nodes[tree->leaves[leaf]], k1, index_out.buf,
-                                    kth_out.buf, tie_out.buf, &work);
+                ties += search_leaf(tree, &tree->nodes[tree->leaves[leaf]], tree, k1,
+                                    index_out.buf, kth_out.buf, tie_out.buf, &work);
             }
             Py_END_ALLOW_THREADS
             result = PyLong_FromSsize_t(leaf < last ? -1 : ties);
+            free_work(&work);
         }
         else {
             PyErr_NoMemory();
         }
-        free(work.stack);
-        free(work.best);
-        free(work.best_at);
-        free(work.equal);
-        free(work.scratch);
-        free(work.passing);
     }
     PyBuffer_Release(&index_out);
     PyBuffer_Release(&kth_out);
     PyBuffer_Release(&tie_out);
     PyBuffer_Release(&cancel);
+    return result;
+}
+
+static PyObject *nearest_other(PyObject *module, PyObject *args)
+{
+    TreeObject *own_object, *other_object;
+    Py_buffer index_out, squared_out, tie_out;
+    Py_ssize_t first = 0, last = -1;
+    if (!PyArg_ParseTuple(args, "O!O!w*w*w*|nn", &TreeType, &own_object, &TreeType,
+                          &other_object, &index_out, &squared_out, &tie_out, &first, &last)) {
+        return NULL;
+    }
+    const Tree *own = &own_object->tree, *other = &other_object->tree;
+    PyObject *result = NULL;
+    if (last < 0 || last > own->n_leaves) {
+        last = own->n_leaves;
+    }
+    Work work;
+    if (first < 0 || first > last) {
+        PyErr_SetString(PyExc_ValueError, "leaves out of range");
+    }
+    else if (own->largest_leaf > MAX_LEAF || other->largest_leaf > MAX_LEAF) {
+        PyErr_SetString(PyExc_ValueError, "too many equal points for the kernel");
+    }
+    else if (writable(&index_out, own->n * 4, "index_out") == 0 &&
+             writable(&squared_out, own->n * 8, "squared_out") == 0 &&
+             writable(&tie_out, own->n, "tie_out") == 0) {
+        if (new_work(&work, own, other, 1) == 0) {
+            Py_ssize_t ties = 0;
+            Py_BEGIN_ALLOW_THREADS
+            for (Py_ssize_t leaf = first; leaf < last; leaf++) {
+                ties += search_leaf(own, &own->nodes[own->leaves[leaf]], other, 1,
+                                    index_out.buf, squared_out.buf, tie_out.buf, &work);
+            }
+            Py_END_ALLOW_THREADS
+            result = PyLong_FromSsize_t(ties);
+            free_work(&work);
+        }
+        else {
+            PyErr_NoMemory();
+        }
+    }
+    PyBuffer_Release(&index_out);
+    PyBuffer_Release(&squared_out);
+    PyBuffer_Release(&tie_out);
     return result;
 }
 
@@ -538,6 +627,13 @@ static PyMethodDef methods[] = {
      "((n,) uint8) where two of the k1 + 1 nearest are equally far (their order is then\n"
      "not unique).  Stops when cancel[0] becomes non-zero.  Returns the number of tied\n"
      "points, or -1 when cancelled.  Runs without the GIL."},
+    {"nearest_other", nearest_other, METH_VARARGS,
+     "nearest_other(own, other, index_out, squared_out, tie_out, first=0, last=-1) -> int\n\n"
+     "Each point of own's leaves first .. last - 1 (last -1: all): its nearest point in the\n"
+     "tree other, into index_out ((n,) uint32, rows of other's array), the squared distance\n"
+     "into squared_out ((n,) float64) and 1 into tie_out ((n,) uint8) where two of other's\n"
+     "points are equally near (which one pykdtree gives is then its walk's); n is own's\n"
+     "size, outputs at own's rows.  Returns the number of tied points.  Without the GIL."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -30,7 +30,6 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from functools import partial
 from typing import Any
 
 import numpy as np
@@ -51,6 +50,7 @@ from app.core.localise.distance import (
     surface_offset_candidates,
 )
 from app.core.localise.epoch import EpochCloud, with_checked_stations
+from app.core.localise.flying_samples import restored_localisation, without_flying_samples
 from app.core.localise.gaps import PLANE_RADIUS_FACTOR, on_sampled_planes
 from app.core.localise.protruding_faces import with_small_faces
 from app.core.localise.rays import Candidates
@@ -192,7 +192,9 @@ def localise_changes(
     elif min_region_points < 1:
         raise InputError(f"min_region_points must be >= 1, got {min_region_points}")
 
-    reference_side, scan_side = _sides(reference, scan, settings["n_neighbors"], threads)
+    n_neighbors = settings["n_neighbors"]
+    reference, scan, kept = without_flying_samples(reference, scan, n_neighbors, threads)
+    reference_side, scan_side = _sides(reference, scan, n_neighbors, threads)
     del reference, scan  # the sides hold what is needed (and not the neighbourhoods ahead)
     limits = _thresholds(reference_side, scan_side, settings, registration_rmse, threads)
     reference_side, scan_side, candidates = _candidates(reference_side, scan_side, limits, threads)
@@ -222,7 +224,7 @@ def localise_changes(
         change_threshold=limits.change_threshold,
     )
     dropped -= turned
-    reference_region, scan_region = _region_indices(regions, n_reference, n_scan)
+    reference_region, scan_region = _region_indices(regions, reference_found, scan_found)
     # changed points outside any kept region were in clusters too small to be a change
     for found, region in ((reference_found, reference_region), (scan_found, scan_region)):
         found.labelled.label[(found.labelled.label == LABEL_CHANGED) & (region < 0)] = (
@@ -238,7 +240,7 @@ def localise_changes(
         dropped=dropped,
         n_uncertain=len(uncertain_regions),
     )
-    return Localisation(
+    localisation = Localisation(
         reference_label=reference_found.labelled.label,
         scan_label=scan_found.labelled.label,
         reference_distance=reference_found.output_distance(),
@@ -249,6 +251,7 @@ def localise_changes(
         parameters=parameters,
         uncertain_regions=uncertain_regions,
     )
+    return restored_localisation(localisation, kept, (n_reference, n_scan))
 
 
 @dataclass(frozen=True)
@@ -326,9 +329,19 @@ def _sides(
     )
     reference_nearest, scan_nearest = concurrently(
         threads,
-        partial(nearest_in, reference_points, scan_geometry, reference_geometry.order),
-        partial(nearest_in, scan_points, reference_geometry, scan_geometry.order),
+        lambda: nearest_in(
+            reference_points,
+            scan_geometry,
+            reference_geometry.order,
+            reference_geometry.kernel_tree,
+        ),
+        lambda: nearest_in(
+            scan_points, reference_geometry, scan_geometry.order, scan_geometry.kernel_tree
+        ),
     )
+    # the kernel's trees (28 bytes a point) are not needed past the nearest points
+    reference_geometry = dataclasses.replace(reference_geometry, kernel_tree=None)
+    scan_geometry = dataclasses.replace(scan_geometry, kernel_tree=None)
     return (
         _side("reference", "removed", reference, reference_geometry, reference_nearest),
         _side("scan", "added", scan, scan_geometry, scan_nearest),
@@ -519,10 +532,11 @@ def _regions(
 
 
 def _region_indices(
-    regions: list[ChangedRegion], n_reference: int, n_scan: int
+    regions: list[ChangedRegion], reference: _Found, scan: _Found
 ) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
     """Each point's index in ``regions`` (removed ones: reference points; the others: scan
-    points), -1 if none; shapes (n_reference,) and (n_scan,)."""
+    points), -1 if none; shapes (n_reference,) and (n_scan,) of the clouds compared."""
+    n_reference, n_scan = len(reference.side.points), len(scan.side.points)
     reference_region = np.full(n_reference, -1, dtype=np.int32)
     scan_region = np.full(n_scan, -1, dtype=np.int32)
     for number, region in enumerate(regions):

@@ -12,6 +12,7 @@ from numpy.typing import ArrayLike, NDArray
 from app.core.localise.neighbourhoods import Neighbourhoods, NeighbourhoodSearch
 from app.core.localise.settings import as_station_index
 from app.core.localise.station_assignment import assign_stations
+from app.core.localise.station_occlusion import reassign_hidden_returns
 
 
 @dataclass(frozen=True)
@@ -119,4 +120,5 @@ def _stations_of(
         return None, "none"
     if len(origins) == 1:
         return None, "single"
-    return assign_stations(points, origins), "assigned"
+    # by the rings, then each return hidden behind its station's own returns to one that saw it
+    return reassign_hidden_returns(points, origins, assign_stations(points, origins)), "assigned"

@@ -19,8 +19,8 @@ and the other epoch saw its place empty over a support: the other cloud's highes
 the column under it are level (the floor or top the object stood or stands on) and none lie
 at its heights.  A patch only one epoch's path reached (a fused RGB-D room's corner the other
 camera never looked at) has nothing of the other epoch under it, or the side of a wall.
-Only for the clouds the map test or the trajectory test judged (:func:`~app.core.localise.
-turned_faces.moving_sensor_sides`): the station ray tests' classes keep their noise floor.
+Only for the clouds the map, trajectory or station ray test judged (:func:`~app.core.localise.
+turned_faces.small_face_clouds`): the origin-free tests keep their noise floor.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.localise.map_parts import LEVEL_NORMAL_Z
+from app.core.localise.map_sides import LEVEL_NORMAL_Z
 from app.core.localise.regions import ChangedRegion
 from app.core.localise.turned_faces import (
     ChangedPoints,

@@ -35,9 +35,10 @@ from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
 from app.core.localise.map_fragments import host_coverage
-from app.core.localise.map_parts import ADJOINING_FACTOR, SPARSE_PROBE_FACTOR, PartFigures
+from app.core.localise.map_parts import ADJOINING_FACTOR, PartFigures
 from app.core.localise.map_planes import level_surface_below
 from app.core.localise.map_shared import MIN_ADJOINING
+from app.core.localise.map_sides import SPARSE_PROBE_FACTOR
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
 from app.core.localise.rays import Candidates
 from app.core.localise.regions import cluster_labels
@@ -69,6 +70,7 @@ def blind_clusters(
     coverage: NDArray[np.bool_],
     change_threshold: float,
     seen_around: NDArray[np.bool_] | None = None,
+    faces: NDArray[np.bool_] | None = None,
 ) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
     """Per surface part, whether its cluster lies in the other epoch's blind area, and the
     share of the cluster's shell that is coverage differences (module docstring).
@@ -91,6 +93,13 @@ def blind_clusters(
     seen_around : ndarray, shape (parts,), bool, optional
         Parts round which the other epoch saw (:data:`SEEN_AROUND_SHARE`): a cluster with
         such a change part is never blind.
+    faces : ndarray, shape (parts,), bool, optional
+        Parts that are coverage differences as unseen faces only: the other epoch saw the
+        faces of their object that meet them, so it looked there, and they are no blind
+        surroundings.  A box or chair turned in place has its new face where the old object
+        stood as an unseen face, and the rest of the turned object beside it was taken into
+        the blind area on that face alone (held-out robot 2604's turned box, 2204's turned
+        chair).
 
     Returns
     -------
@@ -133,7 +142,10 @@ def blind_clusters(
     owner = owner[raised]
     is_candidate = np.zeros(points.shape[0], dtype=bool)
     is_candidate[candidate_index] = True
-    # shell points that are candidates lie in clusters with no change part: coverage
+    # shell points that are candidates lie in clusters with no change part: coverage, unless
+    # an unseen face's (the other epoch saw its object's faces meeting it: it looked there)
+    if faces is not None:
+        is_candidate[candidate_index[faces[labels]]] = False
     unseen = is_candidate[looked[shell]].astype(np.float64)
     totals = np.bincount(owner, minlength=changing.shape[0]).astype(np.float64)
     unseen_share = np.bincount(owner, weights=unseen, minlength=changing.shape[0]) / np.maximum(
@@ -183,17 +195,26 @@ def settled_coverage(
     hosts: NDArray[np.int64],
     own_points: NDArray[np.float64],
     change_threshold: float,
+    faces: NDArray[np.bool_] | None = None,
 ) -> tuple[NDArray[np.bool_], NDArray[np.float64], int]:
     """The map test's ``verdict`` per part (coverage, confidence, seen round: shapes (parts,))
     with the
     fragments of coverage differences made ones (:func:`~app.core.localise.map_fragments.
     host_coverage`, ``hosts``), then the clusters in the other epoch's blind area
     (:func:`blind_clusters`, at the share as confidence, none with a change part in
-    ``seen_around``), and how many parts those made so."""
+    ``seen_around``; the unseen ``faces``, shape (parts,), are no blind surroundings), and
+    how many parts those made so."""
     coverage, confidence = host_coverage(verdict[0], verdict[1], hosts)
     index = candidates.index
     blind, share = blind_clusters(
-        own_points, index, radius, labels, coverage, change_threshold, verdict[2]
+        own_points,
+        index,
+        radius,
+        labels,
+        coverage,
+        change_threshold,
+        verdict[2],
+        faces,
     )
     made = blind & ~coverage
     return coverage | blind, np.where(made, share, confidence), int(made.sum())

@@ -34,10 +34,9 @@ judged by the geometry the two epochs share, one cluster of candidates at a time
   (:func:`~app.core.localise.map_faces.far_faces`: the object's top and sides join the two
   faces and end at both).
 
-Candidates are judged a surface part at a time (:func:`surface_parts`: connected candidates
-whose normals agree), so that a change joined to a coverage difference (a removed fence to the
-rough ground strips beside it, an unseen side to the floor strip in the other path's shadow) is
-split; whether a part is near the other epoch's coverage is judged on its whole cluster.
+Candidates are judged a surface part at a time (:func:`surface_parts`), so that a change
+joined to a coverage difference is split; whether a part is near the other epoch's coverage is
+judged on its whole cluster.
 
 A coverage-difference cluster that the other epoch nevertheless saw through (surface this epoch
 lacks behind it on a good share of its points: an opened door in a wall) is a change; surface
@@ -67,15 +66,7 @@ from app.core.localise.map_bodies import hollow_sides
 from app.core.localise.map_faces import EDGE_FACTOR, far_faces
 from app.core.localise.map_fragments import fragment_hosts
 from app.core.localise.map_lines import line_gap_share
-from app.core.localise.map_parts import (
-    SEE_THROUGH_REACH,
-    SPARSE_PROBE_FACTOR,
-    PartFigures,
-    near_candidates,
-    part_figures,
-    surface_parts,
-    unmatched_points,
-)
+from app.core.localise.map_parts import PartFigures, part_figures, surface_parts, unmatched_points
 from app.core.localise.map_planes import (
     coplanar_sectors,
     first_level_surface_marked,
@@ -85,12 +76,14 @@ from app.core.localise.map_planes import (
 from app.core.localise.map_rims import rim_gap_share
 from app.core.localise.map_scale import metric_candidates, metric_planes, metric_side
 from app.core.localise.map_shared import (
+    LEVEL_BELOW_RADIUS,
     MIN_ADJOINING,
     seen_through,
     strip_sides,
     unseen_faces,
     unseen_levels,
 )
+from app.core.localise.map_sides import SEE_THROUGH_REACH, SPARSE_PROBE_FACTOR, near_candidates
 from app.core.localise.map_supports import map_statuses
 from app.core.localise.map_tops import with_held_tops
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
@@ -220,17 +213,23 @@ def _narrow_gaps(
 
 
 def _level_below_share(
-    candidates: Candidates, labels: NDArray[np.int64], recheck: NDArray[np.bool_], *, other: Side
+    candidates: Candidates,
+    labels: NDArray[np.int64],
+    recheck: NDArray[np.bool_],
+    *,
+    other: Side,
+    min_radius: float = 0.0,
 ) -> NDArray[np.float64]:
     """Per part marked in ``recheck`` (0 elsewhere), the share of its candidates with a level
     surface of the other epoch straight under them within
-    :data:`~app.core.localise.map_parts.SEE_THROUGH_REACH`
-    (:func:`~app.core.localise.map_planes.level_surface_below`)."""
+    :data:`~app.core.localise.map_sides.SEE_THROUGH_REACH`, the probes at least ``min_radius``
+    wide (:func:`~app.core.localise.map_planes.level_surface_below`)."""
+    radius = max(min_radius, _probe_radius(other))
     return _probed_share(
         labels,
         recheck,
         lambda chosen: level_surface_below(
-            candidates.points[chosen], other.geometry, SEE_THROUGH_REACH, _probe_radius(other)
+            candidates.points[chosen], other.geometry, SEE_THROUGH_REACH, radius
         ),
     )
 
@@ -283,7 +282,7 @@ def _on_lacking_share(
 ) -> NDArray[np.float64]:
     """Per part marked in ``recheck`` (0 elsewhere), the share of its candidates whose first
     level surface of the other epoch straight under them, within
-    :data:`~app.core.localise.map_parts.SEE_THROUGH_REACH`, has a point this epoch lacks
+    :data:`~app.core.localise.map_sides.SEE_THROUGH_REACH`, has a point this epoch lacks
     (:func:`~app.core.localise.map_planes.first_level_surface_marked`).  This epoch's own upright
     points that are no candidates stop the probe (a wall under a patch of it)."""
 
@@ -340,7 +339,7 @@ def map_test(
         counts = {"map_clusters": 0, "map_coverage_clusters": 0}
         return MapEvidence(status, status.copy(), np.ones(count, dtype=np.float32), counts, None)
     radius = cluster_factor * candidates.spacing
-    labels = surface_parts(candidates.points, candidates.normal, radius)
+    labels = surface_parts(candidates.points, candidates.normal, radius, step=change_threshold)
     labels, hosts = fragment_hosts(labels, candidates.points, radius, candidates.spacing)
     other_unmatched = unmatched_points(own, other, threshold, change_threshold)
     figures = part_figures(
@@ -403,7 +402,7 @@ def map_test(
     seen = seen_round(figures, candidates, labels, other, change_threshold)
     verdict = (coverage, confidence, seen)
     coverage, confidence, counts["map_blind_area_parts"] = settled_coverage(
-        candidates, labels, radius, verdict, hosts, own.points, change_threshold
+        candidates, labels, radius, verdict, hosts, own.points, change_threshold, faces
     )
     status, evidence, counts["map_resting_points"] = map_statuses(
         candidates, labels, coverage[labels], other, threshold, resting_band or change_threshold
@@ -522,7 +521,7 @@ def _verdict(
     faces = (unseen_side & (part.behind_share < SEE_THROUGH_SHARE)) | far
     # a level patch with nothing of the other epoch's under or over it, on its planes nearby
     unseen_level = unseen_levels(part) & ~coverage
-    unseen_level &= open_beneath(unseen_level) < SEE_THROUGH_SHARE
+    unseen_level &= open_beneath(unseen_level, min_radius=LEVEL_BELOW_RADIUS) < SEE_THROUGH_SHARE
     coverage |= ~part.near | faces | unseen_level
     side_confidence = np.where(unseen_side, 1.0 - part.surround_share, 0.0)
     side_confidence = np.where(far, np.maximum(side_confidence, joined_share), side_confidence)

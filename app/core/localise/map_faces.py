@@ -25,23 +25,15 @@ import math
 
 import numpy as np
 from numpy.typing import NDArray
-from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE
-from app.core.localise.map_parts import SEE_THROUGH_REACH, SPARSE_PROBE_FACTOR
-from app.core.localise.origin_free import (
-    BEHIND_FIRST,
-    BEHIND_MAX_RADIUS,
-    BEHIND_MIN_RADIUS,
-    BEHIND_RADIUS_FRACTION,
-    BEHIND_STEP_RATIO,
-)
+from app.core.localise.map_sides import inner_sides, nearest_in_air, oriented_depths, part_axes
 from app.core.localise.rays import Candidates
 from app.core.localise.regions import CLUSTER_NEIGHBOURS
 from app.core.localise.surface import weighted_plane
 
-__all__ = ["FAR_FACE_SHARE", "far_faces", "meeting_planes", "oriented_depths"]
+__all__ = ["FAR_FACE_SHARE", "far_faces", "meeting_planes"]
 
 FAR_FACE_SHARE = 0.3
 """The surface behind a part is its object's far face when this share of the part's border
@@ -57,80 +49,6 @@ PROBE_SPACINGS = 1.5
 PROBE_MIN_RADIUS = 0.05
 PROBE_NEIGHBOURS = 4
 MEETING_NEIGHBOURS = 16
-
-
-def _part_axes(
-    normal: NDArray[np.floating], labels: NDArray[np.int64], n_parts: int
-) -> NDArray[np.float64]:
-    """Per part, the principal direction of its candidates' (unsigned) normals, shape (parts, 3)."""
-    unit = normal.astype(np.float64)
-    unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-12)[:, None]
-    scatter = np.zeros((n_parts, 3, 3))
-    np.add.at(scatter, labels, unit[:, :, None] * unit[:, None, :])
-    _, vectors = np.linalg.eigh(scatter + 1e-12 * np.eye(3))
-    return vectors[:, :, 2]
-
-
-def oriented_depths(
-    points: NDArray[np.float64],
-    unit: NDArray[np.float64],
-    other: Side,
-    counted: NDArray[np.bool_],
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """How far along ``+unit`` and ``-unit`` each point has the other cloud's ``counted``
-    surface parallel to its own (within :data:`~app.core.localise.map_parts.SEE_THROUGH_REACH`).
-
-    The probes are those of :func:`~app.core.localise.origin_free.behind_evidence` (balls
-    growing with the distance, at least :data:`~app.core.localise.map_parts.SPARSE_PROBE_FACTOR`
-    of the other cloud's median spacing wide), each way on its own.
-
-    Parameters
-    ----------
-    points : ndarray, shape (c, 3)
-    unit : ndarray, shape (c, 3)
-        Unit normals, oriented.
-    other : Side
-    counted : ndarray, shape (m,), bool
-        The other cloud's points that count.
-
-    Returns
-    -------
-    ahead, back : ndarray, shape (c,)
-        The nearest such surface's distance along ``+unit`` and ``-unit`` (inf: none).
-    """
-    count = points.shape[0]
-    ahead = np.full(count, np.inf)
-    back = np.full(count, np.inf)
-    chosen = np.flatnonzero(counted)
-    if count == 0 or chosen.shape[0] == 0:
-        return ahead, back
-    tree = KDTree(other.points[chosen])
-    chosen_normal = other.geometry.normal[chosen]
-    min_radius = max(
-        BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))
-    )
-    k = min(PROBE_NEIGHBOURS, chosen.shape[0])
-    steps = BEHIND_FIRST * BEHIND_STEP_RATIO ** np.arange(
-        math.ceil(math.log(SEE_THROUGH_REACH / BEHIND_FIRST, BEHIND_STEP_RATIO)) + 1
-    )
-    for step in steps:
-        radius = min(max(min_radius, BEHIND_RADIUS_FRACTION * step), BEHIND_MAX_RADIUS)
-        for sign, depth in ((1.0, ahead), (-1.0, back)):
-            todo = np.flatnonzero(np.isinf(depth))
-            if todo.shape[0] == 0:
-                continue
-            distance, index = tree.query(
-                points[todo] + sign * step * unit[todo], k=k, distance_upper_bound=radius
-            )
-            distance = np.asarray(distance).reshape(todo.shape[0], k)
-            index = np.minimum(np.asarray(index).reshape(todo.shape[0], k), chosen.shape[0] - 1)
-            parallel = (
-                np.abs(np.einsum("ckd,cd->ck", chosen_normal[index], unit[todo]))
-                >= NORMAL_AGREEMENT_COSINE
-            )
-            found = ((distance <= radius) & parallel).any(axis=1)
-            depth[todo[found]] = step
-    return ahead, back
 
 
 def _on_plane(
@@ -302,7 +220,7 @@ def far_faces(
     chosen = np.flatnonzero(check[labels])
     if chosen.shape[0] == 0:
         return far, np.zeros(n_parts)
-    axes = _part_axes(candidates.normal[chosen], labels[chosen], n_parts)[labels[chosen]]
+    axes = part_axes(candidates.normal[chosen], labels[chosen], n_parts)[labels[chosen]]
     ahead, back = oriented_depths(candidates.points[chosen], axes, other, counted)
     # the side of the part the surface behind lies on, and how far: per part, the majority
     hits_ahead = np.bincount(labels[chosen], weights=np.isfinite(ahead), minlength=n_parts)
@@ -323,6 +241,12 @@ def far_faces(
         other=other,
         change_threshold=change_threshold,
     )
+    # the other epoch's samples in the air in front of the part meet no edge of it (map_sides)
+    inward = inner_sides(candidates.points, candidates.normal, labels, check, other, counted)
+    air = nearest_in_air(
+        candidates.points[chosen[probe]], inward[chosen[probe]], other, counted, threshold
+    )
+    meets, joins = meets & ~air, joins & ~air
     meeting = np.bincount(part_of, weights=meets, minlength=n_parts)
     joining = np.bincount(part_of, weights=joins, minlength=n_parts)
     share = joining / np.maximum(meeting, 1.0)

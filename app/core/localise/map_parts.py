@@ -20,12 +20,14 @@ from pykdtree.kdtree import KDTree
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
 from app.core.localise.map_planes import SECTORS, extends, holds_up, share_on_planes, shared_wall
-from app.core.localise.origin_free import (
-    BEHIND_MAX_RADIUS,
-    BEHIND_MIN_RADIUS,
-    UNMATCHED_FACTOR,
-    behind_evidence,
+from app.core.localise.map_sides import (
+    LEVEL_NORMAL_Z,
+    in_front,
+    inner_sides,
+    surface_behind,
 )
+from app.core.localise.map_steps import split_steps
+from app.core.localise.origin_free import UNMATCHED_FACTOR
 from app.core.localise.rays import Candidates
 from app.core.localise.regions import CLUSTER_NEIGHBOURS, cluster_labels
 from app.core.localise.sample_lines import continues_into
@@ -33,12 +35,8 @@ from app.core.localise.settings import GATHER_CHUNK
 from app.core.localise.surface import LocalGeometry
 
 __all__ = [
-    "SEE_THROUGH_REACH",
-    "SPARSE_PROBE_FACTOR",
     "PartFigures",
-    "near_candidates",
     "part_figures",
-    "surface_behind",
     "surface_parts",
     "unmatched_points",
 ]
@@ -58,20 +56,9 @@ EDGE_COSINE = math.cos(math.radians(60.0))
 """A surface adjoins a border point at an edge when the normals' cosine is below this."""
 UPRIGHT_NORMAL_Z = 0.5
 """A part is upright (a side) when its normals' mean vertical component is below this."""
-LEVEL_NORMAL_Z = math.sqrt(0.5)
-"""Candidates whose normals are closer to vertical than 45 degrees (level surfaces) and the
-others (upright ones) are not in one surface part where a part has much of both
-(:data:`MIXED_SHARE`, :func:`surface_parts`)."""
 MIXED_SHARE = 0.25
 """A part whose level candidates are between this share and its complement is split into
 its upright and its level surfaces."""
-SEE_THROUGH_REACH = 1.2
-"""Farther along the normal line, the other epoch's unmatched surface is as likely another
-coverage difference (the ceiling a path saw above a floor patch the other path saw) as what
-stood in front of or behind the cluster."""
-SPARSE_PROBE_FACTOR = 1.5
-"""The see-through probes' balls are at least this many of the other cloud's median spacings
-wide (a sparse cloud's surface is found between its samples)."""
 NEAR_FACTOR = 3.0
 NEAR_MIN = 1.0
 """A cluster is near the other epoch's coverage when its closest tenth of points lies within
@@ -138,7 +125,10 @@ def _border_continuation(
 
 
 def surface_parts(
-    points: NDArray[np.float64], normal: NDArray[np.floating], radius: NDArray[np.float64]
+    points: NDArray[np.float64],
+    normal: NDArray[np.floating],
+    radius: NDArray[np.float64],
+    step: float | None = None,
 ) -> NDArray[np.int64]:
     """Connected parts of candidates that lie on one surface: neighbours within a candidate's
     ``radius`` (its :data:`~app.core.localise.regions.CLUSTER_NEIGHBOURS` nearest) are linked
@@ -150,9 +140,10 @@ def surface_parts(
 
     Parameters
     ----------
-    points : ndarray, shape (c, 3)
-    normal : ndarray, shape (c, 3)
+    points, normal : ndarray, shape (c, 3)
     radius : ndarray, shape (c,)
+    step : float, optional
+        Split level parts of two level surfaces this far apart (:func:`split_steps`).
 
     Returns
     -------
@@ -181,7 +172,7 @@ def surface_parts(
     if mixed.any():
         linked &= ~mixed[labels][:, None] | (level[neighbour] == level[:, None])
         labels = _components(linked, neighbour, count)
-    return labels.astype(np.int64)
+    return split_steps(points, level, linked, neighbour, labels, step).astype(np.int64)
 
 
 def _components(
@@ -244,6 +235,7 @@ def _surrounded(
     other_unmatched: NDArray[np.bool_],
     tolerance: float,
     change_threshold: float,
+    inward: NDArray[np.float64],
 ) -> tuple[NDArray[np.bool_], NDArray[np.int64], NDArray[np.bool_]]:
     """Whether the other epoch's surface adjoins each border point at an edge, in how many
     directions it carries on past the point, and whether it lies wholly under the point.
@@ -269,6 +261,9 @@ def _surrounded(
         The other epoch's points that this epoch lacks.
     tolerance, change_threshold : float
         The plane tolerance and the change threshold (metres).
+    inward : ndarray, shape (b, 2, 3)
+        Unit directions into each point's part (zero: not known,
+        :func:`~app.core.localise.map_sides.inner_sides`).
 
     Returns
     -------
@@ -333,8 +328,12 @@ def _surrounded(
         # a wall both epochs saw on both sides of the point: no face of its object, no evidence
         shared = shared_wall(offset, on_plane, index, own_normal[chunk], unit, other_unmatched)
         adjoining[chunk] &= ~shared | other_unmatched[nearest]
-        # a surface that this epoch lacks next to the point: the object hid it here
-        surrounded[chunk][other_unmatched[nearest]] = SECTORS
+        # a surface that this epoch lacks next to the point: the object hid it here; not in
+        # front of the part, though, in the air this epoch saw it through (map_sides.in_front)
+        lacking = other_unmatched[nearest]
+        air = lacking & in_front(other.points[nearest] - query, inward[chunk], tolerance)
+        surrounded[chunk][lacking & ~air] = SECTORS
+        adjoining[chunk] &= ~air
         adjoining[chunk] &= ~(support & (surrounded[chunk] < SURROUND_SECTORS))
     return adjoining, surrounded, under
 
@@ -467,6 +466,14 @@ def _adjoining_surfaces(
     its object, as a level support that ends at it is none (:func:`_supports`), and the part
     has no adjoining border point."""
     probe = np.flatnonzero(border)
+    # the parts whose border has surface this epoch lacks nearest: which side is open?
+    wanted = np.zeros(n_parts, dtype=bool)
+    if probe.shape[0]:
+        _, nearest = other.geometry.tree.query(candidates.points[probe], k=1)
+        wanted[labels[probe][other_unmatched[np.asarray(nearest).ravel()]]] = True
+    inward = inner_sides(
+        candidates.points, candidates.normal, labels, wanted, other, other_unmatched
+    )
     adjoining_points, surrounded_points, under = _surrounded(
         candidates.points[probe],
         candidates.normal[probe],
@@ -474,6 +481,7 @@ def _adjoining_surfaces(
         other_unmatched,
         threshold,
         change_threshold,
+        inward[probe],
     )
     on_top = np.bincount(labels[probe], weights=adjoining_points & ~under, minlength=n_parts)
     adjoining_points &= on_top[labels[probe]] > 0
@@ -496,41 +504,6 @@ def unmatched_points(
         UNMATCHED_FACTOR * np.maximum(own.geometry.spacing[other.nearest_index], threshold),
         change_threshold,
     )
-
-
-def surface_behind(
-    points: NDArray[np.float64],
-    normal: NDArray[np.floating],
-    other: Side,
-    counted: NDArray[np.bool_],
-) -> NDArray[np.bool_]:
-    """Whether the other cloud's ``counted`` points lie on each point's normal line within
-    :data:`SEE_THROUGH_REACH` (:func:`~app.core.localise.origin_free.behind_evidence`, with
-    probes at least :data:`SPARSE_PROBE_FACTOR` of its spacings wide); shapes (c, 3) -> (c,)."""
-    return behind_evidence(
-        points,
-        normal,
-        other_points=other.points,
-        other_normal=other.geometry.normal,
-        other_unmatched=counted,
-        max_reach=SEE_THROUGH_REACH,
-        min_radius=max(
-            BEHIND_MIN_RADIUS, SPARSE_PROBE_FACTOR * float(np.median(other.geometry.spacing))
-        ),
-    )
-
-
-def near_candidates(
-    points: NDArray[np.float64], other: Side, other_unmatched: NDArray[np.bool_]
-) -> NDArray[np.int64]:
-    """Indices of the other cloud's unmatched points that the see-through probes from
-    ``points`` (shape (c, 3)) can reach (within :data:`SEE_THROUGH_REACH` plus a probe)."""
-    unmatched = np.flatnonzero(other_unmatched)
-    if unmatched.shape[0] == 0 or points.shape[0] == 0:
-        return unmatched[:0]
-    reach = SEE_THROUGH_REACH + BEHIND_MAX_RADIUS
-    distance, _ = KDTree(points).query(other.points[unmatched], k=1, distance_upper_bound=reach)
-    return unmatched[np.asarray(distance).ravel() <= reach]
 
 
 def part_figures(

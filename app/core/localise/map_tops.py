@@ -48,17 +48,41 @@ MIN_POST_POINTS = 3
 POST_LINK_SPACINGS = 3.0
 """Holding points within this many of the other cloud's spacings of each other, horizontally,
 are one post."""
+LINE_SPREAD = 0.25
+LINE_REACH = 0.5
+"""Metres: a level part that is a line (a desk's front rim seen by one path only, at its
+lidar's height) is held by posts along it past its ends up to this far: its top's points
+next to the legs are within the change threshold of the legs' tops and no candidates."""
 LEVEL_SURFACE_SHARE = 0.2
 """Level points of the other epoch within half the change threshold of one height, as many as
 this share of the part's points (and 5 at least), make it a level surface under the part (a
 leg's few points with a level normal fitted round its corners are none)."""
 
 
-def _under_part(part_points: NDArray[np.float64], other: Side, radius: float) -> NDArray[np.int64]:
+def _line_ends(part_points: NDArray[np.float64], step: float) -> NDArray[np.float64]:
+    """The part's points (shape (p, 3)) and, for a part that is a line horizontally (spread
+    across under :data:`LINE_SPREAD` of the spread along), places every ``step`` metres along
+    it past each end up to :data:`LINE_REACH`, at its median height; shape (q, 3)."""
+    if part_points.shape[0] < 3:
+        return part_points
+    flat = part_points[:, :2] - part_points[:, :2].mean(axis=0)
+    _, _, axes = np.linalg.svd(flat, full_matrices=False)
+    along, across = flat @ axes[0], flat @ axes[1]
+    if np.ptp(across) > LINE_SPREAD * np.ptp(along):
+        return part_points
+    reach = np.arange(step, LINE_REACH + step / 2.0, step)
+    ends = np.concatenate([along.min() - reach, along.max() + reach])
+    places = part_points[:, :2].mean(axis=0) + ends[:, None] * axes[0]
+    height = np.full((ends.shape[0], 1), np.median(part_points[:, 2]))
+    return np.vstack([part_points, np.hstack([places, height])])
+
+
+def _under_part(
+    part_points: NDArray[np.float64], other: Side, radius: float, height: float
+) -> NDArray[np.int64]:
     """Indices of the other cloud's points within ``radius`` horizontally of one of the part's
     points (shape (p, 3)) and within :data:`BELOW_REACH` under to :data:`ABOVE_REACH` over its
-    median height; shape (u,)."""
-    height = float(np.median(part_points[:, 2]))
+    ``height``; shape (u,)."""
     low, high = part_points.min(axis=0), part_points.max(axis=0)
     box = np.flatnonzero(
         np.all(other.points[:, :2] >= low[:2] - radius, axis=1)
@@ -83,8 +107,8 @@ def _holding(
 ) -> bool:
     """Whether the other epoch holds the level part (points shape (p, 3)) up with surface both
     epochs have (:func:`held_tops`)."""
-    under = _under_part(part_points, other, radius)
     height = float(np.median(part_points[:, 2]))
+    under = _under_part(_line_ends(part_points, radius), other, radius, height)
     z = other.points[under, 2]
     level = np.abs(other.geometry.normal[under, 2]) >= 1.0 - UPRIGHT_NORMAL_Z / 2.0
     below = z < height - change_threshold

@@ -49,6 +49,8 @@ __all__ = [
     "NeighbourhoodSearch",
     "Neighbourhoods",
     "Surfaces",
+    "kernel_nearest",
+    "kernel_self_neighbours",
     "nearest_neighbourhoods",
     "neighbourhood_size",
     "start_neighbourhood_search",
@@ -97,6 +99,9 @@ class Neighbourhoods:
         visit it chunk by chunk of nearby points (None: file order).
     surfaces : Surfaces or None
         Fitted already (e.g. read from a reference's geometry cache), or None.
+    kernel_tree : object or None
+        The compiled kernel's k-d tree of the cloud (:func:`nearest_neighbourhoods` found the
+        neighbours with it), kept for :func:`kernel_nearest`; None without it.
     """
 
     tree: KDTree
@@ -104,6 +109,7 @@ class Neighbourhoods:
     kth_distance: NDArray[np.float64]
     order: NDArray[np.intp] | None = None
     surfaces: Surfaces | None = None
+    kernel_tree: Any = None
 
 
 def neighbourhood_size(n_points: int, **params: Any) -> int:
@@ -170,7 +176,93 @@ def nearest_neighbourhoods(
                 return None
             squared, neighbor_index[rows] = tree.query(points[rows], k=k + 1, sqr_dists=True)
             kth_distance[rows] = np.sqrt(squared[:, k])
-    return Neighbourhoods(tree, neighbor_index, kth_distance, order)
+    return Neighbourhoods(
+        tree, neighbor_index, kth_distance, order, kernel_tree=own_tree if found else None
+    )
+
+
+def kernel_nearest(
+    points: NDArray[np.float64], own_tree: Any, other_tree: Any, other: KDTree
+) -> tuple[NDArray[np.float64], NDArray[np.uint32]] | None:
+    """Each point's nearest point in another cloud by the compiled kernel: the same numbers
+    as ``other.query(points, k=1)``, to the bit, or None when the kernel cannot search them.
+
+    The kernel walks ``other_tree`` once per leaf of ``own_tree`` (both its trees, from
+    :func:`nearest_neighbourhoods`), without the GIL; each squared distance is computed as
+    pykdtree computes it.  A point with two nearest points equally far (which one pykdtree
+    gives is its walk's) is asked of ``other``.
+
+    Parameters
+    ----------
+    points : ndarray, shape (p, 3), float64
+        The points ``own_tree`` was built over.
+    own_tree, other_tree : object
+        The kernel's trees of ``points`` and of the other cloud
+        (:attr:`Neighbourhoods.kernel_tree`).
+    other : pykdtree.kdtree.KDTree
+        Over the other cloud's points.
+
+    Returns
+    -------
+    distance : ndarray, shape (p,), float64
+    index : ndarray, shape (p,), uint32
+    """
+    count = points.shape[0]
+    index = np.empty(count, dtype=np.uint32)
+    distance = np.empty(count)
+    tie = np.empty(count, dtype=np.uint8)
+    try:
+        ties = KNN_KERNEL.nearest_other(own_tree, other_tree, index, distance, tie)
+    except (ValueError, BufferError):  # e.g. thousands of equal points: left to the tree
+        return None
+    np.sqrt(distance, out=distance)
+    if ties:
+        rows = np.flatnonzero(tie)
+        for first in range(0, rows.size, QUERY_CHUNK):
+            chunk = rows[first : first + QUERY_CHUNK]
+            distance[chunk], index[chunk] = other.query(points[chunk], k=1)
+    return distance, index
+
+
+def kernel_self_neighbours(
+    points: NDArray[np.float64], n_neighbors: int
+) -> tuple[NDArray[np.uint32], NDArray[np.bool_]] | None:
+    """Each point's ``n_neighbors`` nearest points in its own cloud by the compiled kernel,
+    on one thread, with the points whose answer is not unique flagged, not resolved.
+
+    The same neighbours as pykdtree's query with ``k = n_neighbors + 1``, to the bit, wherever
+    ``tie`` is False (see :func:`_compiled_neighbours`); where it is True (two of the
+    ``n_neighbors + 1`` nearest equally far) the caller asks its own query.
+
+    Parameters
+    ----------
+    points : ndarray, shape (c, 3), float64
+        C-contiguous.
+    n_neighbors : int
+        k, in 1..c - 1.
+
+    Returns
+    -------
+    index : ndarray, shape (c, k + 1), uint32
+        Column 0 is the point itself where ``tie`` is False.
+    tie : ndarray, shape (c,), bool
+    None
+        The kernel was not built or cannot search these points.
+    """
+    k = int(n_neighbors)
+    own_tree = _kernel_tree(points, k)
+    if own_tree is None:
+        return None
+    count = points.shape[0]
+    index = np.empty((count, k + 1), dtype=np.uint32)
+    tie = np.empty(count, dtype=np.uint8)
+    try:
+        KNN_KERNEL.self_neighbours(
+            own_tree, k + 1, index, np.empty(count), tie, np.zeros(1, dtype=np.uint8)
+        )
+    except (ValueError, BufferError):  # e.g. thousands of equal points
+        return None
+    return index, tie.view(np.bool_)
 
 
 def _kernel_tree(points: NDArray[np.float64], k: int) -> Any:

@@ -17,8 +17,9 @@ is taken from the other cloud's own points around that face (off its plane, betw
 and its top: its meeting faces, its top and its far face).  A surface revealed
 where an object was removed or moved away (a wall behind it) lies on the body's side of the
 object's face, and is no protruding face; a level patch (a floor under it) is no upright face.
-Only for the clouds the map test or the trajectory test judged: the station ray tests keep
-their noise floor.
+Only for the clouds the map, trajectory or station ray test judged
+(:data:`~app.core.localise.turned_faces.SMALL_FACE_TESTS`; TLS 000's rotated box: its new end
+face, 10 points under a floor of 30): the origin-free tests keep their noise floor.
 """
 
 from __future__ import annotations

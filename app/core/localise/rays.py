@@ -483,18 +483,24 @@ def _over_own_surface(
     in_plane = ray_direction - ray_dot_normal[:, None] * normal
     stretch = (reach / np.abs(ray_dot_normal))[:, None] * in_plane
     supported = np.ones(crossing_point.shape[0], dtype=bool)
-    for along in (crossing_point, crossing_point - stretch, crossing_point + stretch):
+    gap = np.broadcast_to(np.asarray(gap_radius, dtype=np.float64), supported.shape)
+    for shift in (0.0, -1.0, 1.0):
+        # only the rays still supported are asked (the others stay unsupported)
+        rows = np.flatnonzero(supported)
+        if rows.size == 0:
+            break
+        along = crossing_point[rows] + shift * stretch[rows] if shift else crossing_point[rows]
         own_distance, own_nearest = own.tree.query(along, k=1)
         own_support = np.maximum(OWN_SUPPORT_FACTOR * own.spacing[own_nearest], normal_tolerance)
         near = own_distance <= own_support
         # between the own cloud's sampling lines (a ring lidar's on a floor or a box top)
-        bridged = np.flatnonzero(supported & ~near & (gap_radius > 0.0))
+        bridged = np.flatnonzero(~near & (gap[rows] > 0.0))
         if bridged.size:
             radius = float(np.max(gap_radius))
             near[bridged] = between_samples(
-                along[bridged], normal[bridged], own, radius=radius, tolerance=reach
+                along[bridged], normal[rows[bridged]], own, radius=radius, tolerance=reach
             )
-        supported &= near
+        supported[rows] = near
     return supported
 
 

@@ -14,6 +14,8 @@ import numpy as np
 from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
+from app.core.localise.neighbourhoods import kernel_self_neighbours
+
 __all__ = [
     "EVIDENCE_NAMES",
     "ChangedRegion",
@@ -100,8 +102,7 @@ def cluster_labels(points: NDArray[np.float64], radius: NDArray[np.float64]) -> 
     if count <= 1:
         return np.zeros(count, dtype=np.int64)
     k = min(CLUSTER_NEIGHBOURS + 1, count)
-    distance, neighbour = KDTree(points).query(points, k=k, distance_upper_bound=radius.max())
-    linked = distance[:, 1:] <= radius[:, None]
+    neighbour, linked = _links(points, radius, k)
     rows = np.repeat(np.arange(count), k - 1)[linked.ravel()]
     columns = neighbour[:, 1:][linked]
     from scipy.sparse import coo_matrix  # on first use: API processes need no scipy
@@ -110,6 +111,38 @@ def cluster_labels(points: NDArray[np.float64], radius: NDArray[np.float64]) -> 
     graph = coo_matrix((np.ones(rows.shape[0], dtype=np.int8), (rows, columns)), (count, count))
     _, labels = connected_components(graph, directed=True, connection="weak")
     return labels
+
+
+def _links(
+    points: NDArray[np.float64], radius: NDArray[np.float64], k: int
+) -> tuple[NDArray[np.uint32], NDArray[np.bool_]]:
+    """:func:`cluster_labels`' graph: each point's ``k`` nearest (itself first; shape (c, k))
+    and which of the other ``k - 1`` lie within its ``radius`` (shape (c, k - 1)).
+
+    pykdtree's query bounded at the largest radius (a neighbour beyond it: not linked), or
+    the compiled kernel's neighbours (:func:`kernel_self_neighbours`, ~30 % less CPU, the same
+    neighbours) with their distances computed as pykdtree computes them, ((dx dx + dy dy) +
+    dz dz), and its bound (a squared distance below the bound's square); a point whose
+    neighbours' order is not unique is asked of the bounded query: the same links either way.
+    """
+    bound = radius.max()
+    found = kernel_self_neighbours(points, k - 1) if points.dtype == np.float64 else None
+    if found is None:
+        distance, neighbour = KDTree(points).query(points, k=k, distance_upper_bound=bound)
+        return neighbour, distance[:, 1:] <= radius[:, None]
+    neighbour, tie = found
+    squared = np.zeros((points.shape[0], k - 1))
+    for axis in range(3):
+        gap = points[neighbour[:, 1:], axis] - points[:, axis, None]
+        squared += gap * gap
+    linked = (squared < bound * bound) & (np.sqrt(squared) <= radius[:, None])
+    if tie.any():
+        rows = np.flatnonzero(tie)
+        distance, neighbour[rows] = KDTree(points).query(
+            points[rows], k=k, distance_upper_bound=bound
+        )
+        linked[rows] = distance[:, 1:] <= radius[rows, None]
+    return neighbour, linked
 
 
 def find_regions(

@@ -19,6 +19,8 @@ __all__ = [
     "STATION_INDEX_ATTRIBUTE",
     "assign_stations",
     "best_stations",
+    "elevation_bins",
+    "rays_from",
     "ring_contrast",
     "station_contrasts",
 ]
@@ -37,7 +39,17 @@ ASSIGN_CHUNK = 1 << 20
 """Points per step of :func:`assign_stations` (the result does not depend on it)."""
 
 
-def _elevation_bins(points: NDArray[np.floating], origin: NDArray[np.float64]) -> NDArray:
+def rays_from(
+    points: NDArray[np.float64], origins: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Unit direction (shape (m, 3)) and range (shape (m,)) of each point from its sensor
+    position (``origins`` shape (3,) for one sensor, or (m, 3): one per point)."""
+    offset = points - origins
+    ranges = np.sqrt(np.einsum("md,md->m", offset, offset))
+    return offset / np.maximum(ranges, 1e-12)[:, None], ranges
+
+
+def elevation_bins(points: NDArray[np.floating], origin: NDArray[np.float64]) -> NDArray:
     """Each point's elevation from ``origin`` as a bin number, shape (n,), int64."""
     bins = np.empty(points.shape[0], dtype=np.int64)
     for start in range(0, points.shape[0], CHUNK):
@@ -73,7 +85,7 @@ def ring_contrast(points: NDArray[np.float64], origin: NDArray[np.float64]) -> N
         Count of the point's elevation bin over the moving average of the counts around it:
         well above 1 for points on one of the rings of a lidar at ``origin``.
     """
-    bins = np.clip(_elevation_bins(points, origin), 0, N_BINS - 1)
+    bins = np.clip(elevation_bins(points, origin), 0, N_BINS - 1)
     counts = np.bincount(bins, minlength=N_BINS).astype(np.float64)
     return _contrast_of_bins(counts)[bins]
 
@@ -128,7 +140,7 @@ def station_contrasts(
     for start in range(0, points.shape[0], ASSIGN_CHUNK):
         chunk = points[start : start + ASSIGN_CHUNK]
         for number, origin in enumerate(origins):
-            bins = np.clip(_elevation_bins(chunk, origin), 0, N_BINS - 1)
+            bins = np.clip(elevation_bins(chunk, origin), 0, N_BINS - 1)
             counts[number] += np.bincount(bins, minlength=N_BINS)
     return [_contrast_of_bins(row) for row in counts]
 
@@ -155,9 +167,9 @@ def _best_stations(
     # the best station so far and its contrast, station by station (as an argmax over the
     # stacked contrasts, the first of equal ones, without the (k, n) stack)
     best = np.zeros(points.shape[0], dtype=np.int64)
-    best_contrast = contrast_of_bins[0][np.clip(_elevation_bins(points, origins[0]), 0, N_BINS - 1)]
+    best_contrast = contrast_of_bins[0][np.clip(elevation_bins(points, origins[0]), 0, N_BINS - 1)]
     for number in range(1, origins.shape[0]):
-        bins = np.clip(_elevation_bins(points, origins[number]), 0, N_BINS - 1)
+        bins = np.clip(elevation_bins(points, origins[number]), 0, N_BINS - 1)
         contrast = contrast_of_bins[number][bins]
         better = contrast > best_contrast
         best[better] = number

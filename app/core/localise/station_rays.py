@@ -38,6 +38,23 @@ __all__ = [
 ]
 
 EDGE_ON_SEEN_THROUGH_SHARE = 0.5
+EDGE_ON_SEEN_THROUGH_FLOOR = 0.1
+EDGE_ON_THROUGH_OVER_SURFACE = 3.0
+EDGE_ON_THICKNESS_FACTOR = 0.5
+"""Such a cluster must also spread at least this many ``c`` off one plane (standard deviation
+along its thinnest axis): a removed or added object's several faces (TLS 204: 0.095 m, 2104's
+chair 0.10 m), not one thin sheet grazed by every station (a rack's shelf edge in TLS 2004,
+0.003 m, 0.39 m clear of the other cloud)."""
+EDGE_ON_CLEAR_FACTOR = 2.5
+"""A surveyed cloud's edge-on candidates are also changed when, among the candidates connected
+to them (those seen as a surface included), at least :data:`EDGE_ON_SEEN_THROUGH_FLOOR` were seen
+through and :data:`EDGE_ON_THROUGH_OVER_SURFACE` times more often than seen as a surface, and
+the edge-on ones lie clear of the other cloud (their median distance to its surface at least
+this many ``c``): a far station's rays (15-25 cm apart) rarely meet a box's faces near a point
+of them but pass through the box (TLS 204: 58 edge-on, 15 seen through, none a surface, 0.39 m
+from the other cloud; 2104's chair 96 / 23, 0.40 m); an unchanged surface the other epoch
+sampled sparsely or in part lies within a couple of ``c`` of its points (TLS 2000's board
+0.17 m, 2104's thin panels 0.11-0.12 m, with ``c`` = 0.1 m)."""
 MIN_STATION_POINTS = 10
 """A station of the other cloud with fewer returns than this is ignored (it saw nothing)."""
 
@@ -76,7 +93,8 @@ class StationRayTest:
             "other_stations": len(steps),
             "other_angular_step_deg": math.degrees(float(np.median(steps))),
         }
-        return settle_ray_status(candidates, status, report, context)
+        surveyed = len(steps) > 1
+        return settle_ray_status(candidates, status, report, context, surveyed=surveyed)
 
 
 def settle_ray_status(
@@ -84,6 +102,8 @@ def settle_ray_status(
     status: NDArray[np.int8],
     report: dict[str, Any],
     context: VisibilityContext,
+    *,
+    surveyed: bool = False,
 ) -> VisibilityOutcome:
     """Count the ray statuses, resolve the edge-on ones, and give indirect ones less confidence.
 
@@ -95,6 +115,10 @@ def settle_ray_status(
     report : dict
         The test's figures so far; the counts are added to it.
     context : VisibilityContext
+    surveyed : bool
+        The other cloud's rays came from several stations (a survey): edge-on clusters seen
+        through rather than as a surface, clear of the other cloud, are changed too
+        (:data:`EDGE_ON_CLEAR_FACTOR`).
 
     Returns
     -------
@@ -108,6 +132,12 @@ def settle_ray_status(
         spacing=candidates.spacing,
         status=status,
         cluster_factor=context.settings["cluster_factor"],
+        clear_of_other=(
+            candidates.surface_distance >= EDGE_ON_CLEAR_FACTOR * context.change_threshold
+            if surveyed
+            else None
+        ),
+        min_thickness=EDGE_ON_THICKNESS_FACTOR * context.change_threshold,
     )
     confidence = np.where(direct, 1.0, INDIRECT_CONFIDENCE).astype(np.float32)
     return VisibilityOutcome(status=status, confidence=confidence, report=report)
@@ -190,13 +220,18 @@ def resolve_edge_on(
     spacing: NDArray[np.float64],
     status: NDArray[np.int8],
     cluster_factor: float,
+    clear_of_other: NDArray[np.bool_] | None = None,
+    min_thickness: float = 0.0,
 ) -> NDArray[np.int8]:
     """Decide candidates whose surface the other sensor saw only edge-on.
 
     A removed box's face that the other sensor sees edge-on gets no ray evidence of its own,
     but the sensor saw through the rest of the box: edge-on candidates connected (within
     ``cluster_factor`` local spacings) to candidates that are mostly seen through are
-    changed; the others (a pillar's face seen edge-on, the rest unchanged) are unobserved.
+    changed; with ``clear_of_other``, so are those of a cluster (surface candidates included)
+    seen through rather than as a surface whose edge-on candidates are mostly clear of the
+    other cloud (:data:`EDGE_ON_CLEAR_FACTOR`: a far station's rays through a box whose faces
+    they miss); the others (a pillar's face seen edge-on, the rest unchanged) are unobserved.
 
     Parameters
     ----------
@@ -207,6 +242,13 @@ def resolve_edge_on(
     status : ndarray, shape (c,), int8
         From :func:`ray_visibility`.
     cluster_factor : float
+    clear_of_other : ndarray, shape (c,), bool, optional
+        The candidate lies at least :data:`EDGE_ON_CLEAR_FACTOR` ``c`` from the other cloud's
+        surface; None: only the seen-through share decides.
+    min_thickness : float
+        With ``clear_of_other``: such a cluster's points must spread at least this far (the
+        standard deviation along their thinnest axis) off one plane (an object's several
+        faces, not one grazed sheet).
 
     Returns
     -------
@@ -222,6 +264,15 @@ def resolve_edge_on(
         labels, weights=(status[involved] == STATUS_SEEN_THROUGH).astype(np.float64)
     ) / np.bincount(labels)
     promoted = seen_through_share[labels] >= EDGE_ON_SEEN_THROUGH_SHARE
+    if clear_of_other is not None:
+        promoted |= _seen_through_clear_of_other(
+            points,
+            spacing=spacing,
+            status=status,
+            cluster_factor=cluster_factor,
+            clear=clear_of_other,
+            min_thickness=min_thickness,
+        )[involved]
     resolved = status.copy()
     resolved[involved] = np.where(
         edge_on[involved],
@@ -229,3 +280,45 @@ def resolve_edge_on(
         status[involved],
     )
     return resolved
+
+
+def _seen_through_clear_of_other(
+    points: NDArray[np.float64],
+    *,
+    spacing: NDArray[np.float64],
+    status: NDArray[np.int8],
+    cluster_factor: float,
+    clear: NDArray[np.bool_],
+    min_thickness: float,
+) -> NDArray[np.bool_]:
+    """Whether each candidate (shape (c,)) lies in a cluster of edge-on, seen-through and
+    surface candidates at least :data:`EDGE_ON_SEEN_THROUGH_FLOOR` seen through, seen through
+    :data:`EDGE_ON_THROUGH_OVER_SURFACE` times more often than seen as a surface, and whose
+    edge-on candidates are mostly ``clear`` of the other cloud, and that is at least
+    ``min_thickness`` thick (:func:`_thickness`); clusters as in :func:`resolve_edge_on`."""
+    edge_on = status == STATUS_EDGE_ON
+    surface = status == STATUS_SURFACE
+    through = status == STATUS_SEEN_THROUGH
+    involved = np.flatnonzero(edge_on | through | surface)
+    labels = cluster_labels(points[involved], cluster_factor * spacing[involved])
+    n_through = np.bincount(labels, weights=through[involved].astype(np.float64))
+    n_surface = np.bincount(labels, weights=surface[involved].astype(np.float64))
+    n_edge_on = np.bincount(labels, weights=edge_on[involved].astype(np.float64))
+    n_clear = np.bincount(labels, weights=(edge_on & clear)[involved].astype(np.float64))
+    cluster = (
+        (n_through >= EDGE_ON_SEEN_THROUGH_FLOOR * np.bincount(labels))
+        & (n_through >= EDGE_ON_THROUGH_OVER_SURFACE * n_surface)
+        & (n_clear > 0.5 * n_edge_on)
+    )
+    for label in np.flatnonzero(cluster):
+        cluster[label] = _thickness(points[involved[labels == label]]) >= min_thickness
+    answer = np.zeros(status.shape[0], dtype=bool)
+    answer[involved] = cluster[labels]
+    return answer
+
+
+def _thickness(points: NDArray[np.float64]) -> float:
+    """Standard deviation of ``points`` (shape (n, 3)) along their thinnest axis."""
+    centred = points - points.mean(axis=0)
+    variances = np.linalg.eigvalsh(centred.T @ centred / max(points.shape[0], 1))
+    return float(np.sqrt(max(variances[0], 0.0)))

@@ -96,6 +96,9 @@ class LocalGeometry:
     order : ndarray, shape (n,), intp, or None
         The cloud's :func:`~app.core.spatial_order.spatial_order` (None: file order), for
         passes that visit it a chunk of nearby points at a time.
+    kernel_tree : object or None
+        The compiled k-NN's tree of ``points`` (:attr:`Neighbourhoods.kernel_tree`), for the
+        nearest points of the other cloud; None without it or once released.
     """
 
     points: NDArray[np.float64]
@@ -108,6 +111,7 @@ class LocalGeometry:
     linear: NDArray[np.bool_]
     variation: NDArray[np.float64]
     order: NDArray[np.intp] | None = None
+    kernel_tree: Any = None
 
     def flattest_neighbour(self, index: NDArray[np.int64]) -> NDArray[np.int64]:
         """For each point in ``index``, the neighbour (or itself) whose fit is flattest.
@@ -122,9 +126,10 @@ class LocalGeometry:
 
     def without_neighbour_index(self) -> LocalGeometry:
         """This geometry with its neighbour index (4 (k + 1) bytes a point) released, and
-        ``variation`` (8 bytes a point), which only :meth:`flattest_neighbour` reads."""
+        ``variation`` (8 bytes a point), which only :meth:`flattest_neighbour` reads, and its
+        kernel tree (28 bytes a point)."""
         return dataclasses.replace(
-            self, neighbor_index=_RELEASED_INDEX, variation=_RELEASED_VARIATION
+            self, neighbor_index=_RELEASED_INDEX, variation=_RELEASED_VARIATION, kernel_tree=None
         )
 
 
@@ -478,10 +483,11 @@ def local_geometry(
             f"neighbourhoods of shape {neighbourhoods.neighbor_index.shape} were computed for "
             f"another cloud or k; this cloud needs {(n, k + 1)}"
         )
-    tree, neighbor_index, order = (
+    tree, neighbor_index, order, kernel_tree = (
         neighbourhoods.tree,
         neighbourhoods.neighbor_index,
         neighbourhoods.order,
+        neighbourhoods.kernel_tree,
     )
     surfaces = neighbourhoods.surfaces
     if surfaces is None:
@@ -499,4 +505,5 @@ def local_geometry(
         linear=surfaces.linear,
         variation=surfaces.variation,
         order=order,
+        kernel_tree=kernel_tree,
     )

@@ -18,7 +18,9 @@ crosses the candidate's surface (:attr:`~app.core.localise.rays.RayTest.gap_radi
 
 Cost stays bounded: a candidate is tested only against the pseudo-stations that took the other
 cloud's returns nearest to it (they looked at its place) and the few nearest along the path,
-within the sensor's range; each pseudo-station indexes only its own returns.
+within the sensor's range, and, when none of those observed it, the few nearest that had it in
+view (:func:`group_views`: a 16-ring lidar sees a seat under it only from metres away); each
+pseudo-station indexes only its own returns.
 
 The foot of an upright face (a box's side, a backrest over its seat) within the change
 threshold above a support the other epoch sampled near it is unchanged, as in the map test
@@ -49,14 +51,18 @@ from app.core.localise.rays import (
     RayTest,
     ray_visibility,
 )
+from app.core.localise.settings import CHUNK, GATHER_CHUNK
+from app.core.localise.station_assignment import rays_from
 from app.core.localise.station_rays import combine_station_status, ray_test_for, settle_ray_status
 from app.core.localise.surface import LocalGeometry
 
 __all__ = [
     "NEAREST_GROUPS",
     "NEIGHBOUR_RETURNS",
+    "GroupViews",
     "TrajectoryTest",
     "candidate_part_bottoms",
+    "group_views",
     "resting_feet",
     "resting_on_own_support",
     "trajectory_statuses",
@@ -74,6 +80,10 @@ NEAREST_GROUPS = 4
 """And the groups whose sensor positions are this many nearest to it."""
 SENSOR_RANGE = 30.0
 """Metres: a group farther than this from a candidate is not tested against it."""
+VIEW_GROUPS, VIEW_SEARCH = 4, 64
+"""A candidate none of those observed: the 4 nearest of its 64 nearest groups that had it in
+view (:func:`group_views`), within ``VIEW_MARGIN`` radians of their returns' span."""
+VIEW_MARGIN = math.radians(1.0)
 MIN_GROUP_POINTS = 10
 """A group with fewer returns saw too little to tell anything."""
 SURROUNDING_RADIUS_FACTOR = 2.0
@@ -81,6 +91,111 @@ SURROUNDING_RADIUS_FACTOR = 2.0
 (:func:`~app.core.localise.gaps.between_samples`): a candidate between the other cloud's
 samples of its plane, and a ray's crossing between the own cloud's samples of the candidate's
 plane."""
+
+
+@dataclasses.dataclass(frozen=True)
+class GroupViews:
+    """What each of k pseudo-stations' returns span, seen from its sensor position.
+
+    Attributes
+    ----------
+    lowest, highest : ndarray, shape (k,), float64
+        The least and greatest sine of its returns' elevations (a ring lidar's field of view).
+    axis : ndarray, shape (k, 3), float64
+        Unit mean direction of its returns (any unit vector when they balance out).
+    cone_cosine : ndarray, shape (k,), float64
+        Cosine of the widest angle of a return from ``axis`` (a camera's frustum).
+    reach : ndarray, shape (k,), float64
+        Its farthest return's range (metres).
+    """
+
+    lowest: NDArray[np.float64]
+    highest: NDArray[np.float64]
+    axis: NDArray[np.float64]
+    cone_cosine: NDArray[np.float64]
+    reach: NDArray[np.float64]
+
+
+def group_views(
+    points: NDArray[np.float64],
+    origins: NDArray[np.float64],
+    rays: tuple[NDArray[np.int64], NDArray[np.int64]],
+) -> GroupViews:
+    """The span of each pseudo-station's returns (:class:`GroupViews`).
+
+    Parameters
+    ----------
+    points : ndarray, shape (m, 3)
+        The cloud taken along the trajectory.
+    origins : ndarray, shape (k, 3)
+        Its pseudo-stations' sensor positions.
+    rays : (ndarray, ndarray)
+        ``(returns, bounds)``: group g's returns are ``points[returns[bounds[g]:bounds[g + 1]]]``.
+
+    Returns
+    -------
+    GroupViews
+        A group without returns sees nothing (an empty elevation span).
+    """
+    returns, bounds = rays
+    count = origins.shape[0]
+    group = np.repeat(np.arange(count), np.diff(bounds)[:count])
+    lowest, highest = np.full(count, np.inf), np.full(count, -np.inf)
+    reach, axis = np.zeros(count), np.zeros((count, 3))
+    # in chunks of returns (a cloud without times may have several rays a point)
+    for start in range(0, returns.shape[0], CHUNK):
+        chunk = slice(start, start + CHUNK)
+        direction, distance = rays_from(points[returns[chunk]], origins[group[chunk]])
+        np.minimum.at(lowest, group[chunk], direction[:, 2])
+        np.maximum.at(highest, group[chunk], direction[:, 2])
+        np.maximum.at(reach, group[chunk], distance)
+        np.add.at(axis, group[chunk], direction)
+    norm = np.linalg.norm(axis, axis=1)
+    axis = np.where(norm[:, None] > 1e-9, axis / np.maximum(norm, 1e-12)[:, None], [1.0, 0, 0])
+    cone_cosine = np.ones(count)
+    for start in range(0, returns.shape[0], CHUNK):
+        chunk = slice(start, start + CHUNK)
+        direction, _ = rays_from(points[returns[chunk]], origins[group[chunk]])
+        along = np.einsum("md,md->m", direction, axis[group[chunk]])
+        np.minimum.at(cone_cosine, group[chunk], along)
+    return GroupViews(lowest, highest, axis, cone_cosine, reach)
+
+
+def _nearest_in_view(
+    points: NDArray[np.float64], origins: NDArray[np.float64], views: GroupViews
+) -> NDArray[np.int64]:
+    """The :data:`VIEW_GROUPS` nearest groups within range that had each point in view (within
+    their returns' elevation span, cone and reach, :data:`VIEW_MARGIN` wider), shape (c, v),
+    -1 for an empty slot."""
+    tree = KDTree(origins)
+    chunks = range(0, points.shape[0], GATHER_CHUNK)
+    found = [_chunk_in_view(points[at : at + GATHER_CHUNK], origins, views, tree) for at in chunks]
+    return np.concatenate(found) if found else np.full((0, VIEW_GROUPS), -1, dtype=np.int64)
+
+
+def _chunk_in_view(
+    points: NDArray[np.float64], origins: NDArray[np.float64], views: GroupViews, tree: KDTree
+) -> NDArray[np.int64]:
+    """:func:`_nearest_in_view` of a chunk of points (``tree`` on ``origins``)."""
+    count = points.shape[0]
+    k = min(VIEW_SEARCH, origins.shape[0])
+    distance, group = tree.query(points, k=k, distance_upper_bound=SENSOR_RANGE)
+    distance = np.asarray(distance).reshape(count, k)
+    group = np.minimum(np.asarray(group, dtype=np.int64).reshape(count, k), origins.shape[0] - 1)
+    direction = (points[:, None, :] - origins[group]) / np.maximum(distance, 1e-12)[..., None]
+    margin, elevation = math.sin(VIEW_MARGIN), direction[..., 2]
+    from_axis = np.einsum("ckd,ckd->ck", direction, views.axis[group])
+    in_view = np.isfinite(distance) & (distance <= views.reach[group])
+    in_view &= (elevation >= views.lowest[group] - margin) & (
+        from_axis >= views.cone_cosine[group] - margin
+    )
+    in_view &= elevation <= views.highest[group] + margin
+    # the first VIEW_GROUPS in view, nearest first (the query's order)
+    rank = np.cumsum(in_view, axis=1)
+    chosen = np.full((count, VIEW_GROUPS), -1, dtype=np.int64)
+    rows, columns = np.nonzero(in_view & (rank <= VIEW_GROUPS))
+    chosen[rows, rank[rows, columns] - 1] = group[rows, columns]
+    return chosen
 
 
 def _group_slots(
@@ -131,12 +246,12 @@ def trajectory_statuses(
         with :func:`~app.core.localise.station_rays.combine_station_status`.
     report : dict
         ``groups`` (the other cloud's pseudo-stations), ``groups_tested`` (those tested against
-        some candidate), ``tests_per_candidate`` (mean), ``angular_step_deg`` (median of the
-        tested groups').
+        some candidate, once a pass), ``candidates_tried_in_view`` (those no pseudo-station of
+        the first pass observed, tried from the nearest that had them in view),
+        ``tests_per_candidate`` (mean), ``angular_step_deg`` (median of the tested groups').
     """
     assert other.origins is not None and other.station is not None
     assert other.trajectory_rays is not None
-    group_returns, group_bounds = other.trajectory_rays
     origins = np.asarray(other.origins, dtype=np.float64).reshape(-1, 3)
     count = candidates.points.shape[0]
     report: dict[str, Any] = {"groups": int(origins.shape[0]), "groups_tested": 0}
@@ -144,8 +259,43 @@ def trajectory_statuses(
         report.update(tests_per_candidate=0.0, angular_step_deg=math.nan)
         return np.empty((1, 0), dtype=np.int8), report
     slots = _group_slots(candidates, other, origins)
+    statuses, angular_steps, tested = _slot_statuses(
+        candidates, slots, own=own, other=other, test=test
+    )
+    # seen by none of those: try the nearest pseudo-stations that had it in view
+    unseen = np.flatnonzero((statuses == STATUS_UNOBSERVED).all(axis=0))
+    in_view = np.full((count, VIEW_GROUPS), -1, dtype=np.int64)
+    if unseen.size:
+        views = group_views(other.points, origins, other.trajectory_rays)
+        in_view[unseen] = _nearest_in_view(candidates.points[unseen], origins, views)
+        in_view[(in_view[:, :, None] == slots[:, None, :]).any(axis=2)] = -1  # tried already
+        more, more_steps, more_tested = _slot_statuses(
+            candidates, in_view, own=own, other=other, test=test
+        )
+        statuses = np.concatenate([statuses, more])
+        angular_steps, tested = angular_steps + more_steps, tested + more_tested
+    report["groups_tested"] = tested
+    report["candidates_tried_in_view"] = int(unseen.size)
+    report["tests_per_candidate"] = float((slots >= 0).sum() + (in_view >= 0).sum()) / count
+    report["angular_step_deg"] = (
+        math.degrees(float(np.median(angular_steps))) if angular_steps else math.nan
+    )
+    return statuses, report
+
+
+def _slot_statuses(
+    candidates: Candidates, slots: NDArray[np.int64], *, own: Side, other: Side, test: RayTest
+) -> tuple[NDArray[np.int8], list[float], int]:
+    """Ray status of each candidate from the group in each of its ``slots`` (shape (c, s), -1
+    empty): statuses shape (s, c) (STATUS_UNOBSERVED for empty slots), each tested group's
+    angular step (radians) and how many groups were tested."""
+    assert other.origins is not None and other.trajectory_rays is not None
+    group_returns, group_bounds = other.trajectory_rays
+    origins = np.asarray(other.origins, dtype=np.float64).reshape(-1, 3)
     statuses = np.full(slots.T.shape, STATUS_UNOBSERVED, dtype=np.int8)  # (s, c)
     candidate, slot = np.nonzero(slots >= 0)
+    if candidate.size == 0:
+        return statuses, [], 0
     group = slots[candidate, slot]
     pair_order = np.argsort(group, kind="stable")
     candidate, slot, group = candidate[pair_order], slot[pair_order], group[pair_order]
@@ -172,12 +322,7 @@ def trajectory_statuses(
         statuses[slot[start:end], rows] = status
         angular_steps.append(angular_step)
         tested += 1
-    report["groups_tested"] = tested
-    report["tests_per_candidate"] = float(candidate.size) / count
-    report["angular_step_deg"] = (
-        math.degrees(float(np.median(angular_steps))) if angular_steps else math.nan
-    )
-    return statuses, report
+    return statuses, angular_steps, tested
 
 
 def lone_sightings(statuses: NDArray[np.int8]) -> NDArray[np.bool_]:

@@ -11,9 +11,11 @@ change of the other epoch, at the corner they share, at an angle.
 points meet an upright region of the other epoch at an edge (the two faces' normals at more
 than 60 degrees, within two change thresholds): the object before and after it turned.  A
 surface revealed where a removed object stood is none: it is level (the floor or a top under
-it) or parallel to the removed object's face that hid it (the wall behind it).  Only for the
-clouds the map test or the trajectory test judged (:func:`changed_points`): the station ray
-tests' classes keep their noise floor as it was.
+it) or parallel to the removed object's face that hid it (the wall behind it).  For the
+clouds the map test, the trajectory test or the station ray test judged
+(:data:`SMALL_FACE_TESTS`): a terrestrial survey's far station samples an object's face as
+sparsely (TLS 000, a box turned a quarter in place: its new end face 10 points at 140k points
+a cloud, under a noise floor of 30).
 """
 
 from __future__ import annotations
@@ -30,24 +32,27 @@ from app.core.localise.map_evidence import MapTest
 from app.core.localise.map_faces import EDGE_COSINE, EDGE_FACTOR
 from app.core.localise.map_parts import UPRIGHT_NORMAL_Z
 from app.core.localise.regions import ChangedRegion, find_regions
+from app.core.localise.station_rays import StationRayTest
 from app.core.localise.trajectory_visibility import TrajectoryTest
 from app.core.localise.visibility import Labelled
 
 __all__ = [
-    "MOVING_SENSOR_TESTS",
+    "SMALL_FACE_TESTS",
     "ChangedPoints",
     "changed_points",
     "face_floor",
     "face_normal",
-    "moving_sensor_sides",
     "small_clusters",
+    "small_face_clouds",
     "small_face_sides",
     "turned_faces",
 ]
 
-MOVING_SENSOR_TESTS = (MapTest.name, TrajectoryTest.name)
-"""The visibility tests of maps from a moving sensor, sparse where it saw a face from afar:
-their small faces are looked for; the station ray tests' classes keep their noise floor."""
+SMALL_FACE_TESTS = (MapTest.name, TrajectoryTest.name, StationRayTest.name)
+"""The visibility tests whose clouds' small faces are looked for: maps from a moving sensor
+and surveys from stations, sparse where a sensor saw a face from afar (the noise floor
+``min_region_points`` is meant for features at the resolution limit, not an object's face).
+The origin-free surface and coverage tests keep their noise floor."""
 FLOOR_SHARE = 1.0 / 3.0
 """A turned face has at least this share of ``min_region_points`` points (and 4)."""
 MIN_MEETING = 3
@@ -98,17 +103,15 @@ def face_floor(min_region_points: int) -> int:
     return max(4, int(np.ceil(FLOOR_SHARE * min_region_points)))
 
 
-def moving_sensor_sides(
+def small_face_clouds(
     changed: tuple[ChangedPoints, ChangedPoints],
 ) -> list[tuple[ChangedPoints, ChangedPoints]]:
-    """``(own, other)`` for each cloud with changed points that a moving sensor's test
-    (:data:`MOVING_SENSOR_TESTS`) judged, reference first: the clouds small faces are looked
-    for in."""
+    """``(own, other)`` for each cloud with changed points that one of
+    :data:`SMALL_FACE_TESTS` judged, reference first: the clouds small faces are looked for
+    in."""
     pairs = ((changed[0], changed[1]), (changed[1], changed[0]))
     return [
-        (own, other)
-        for own, other in pairs
-        if own.test in MOVING_SENSOR_TESTS and own.changed.any()
+        (own, other) for own, other in pairs if own.test in SMALL_FACE_TESTS and own.changed.any()
     ]
 
 
@@ -116,11 +119,11 @@ def small_face_sides(
     changed: tuple[ChangedPoints, ChangedPoints], min_region_points: int
 ) -> tuple[int, list[tuple[ChangedPoints, ChangedPoints]]]:
     """The small-face floor (:func:`face_floor`) and the clouds small faces are looked for in
-    (:func:`moving_sensor_sides`; none when the floor reaches ``min_region_points``)."""
+    (:func:`small_face_clouds`; none when the floor reaches ``min_region_points``)."""
     floor = face_floor(min_region_points)
     if floor >= min_region_points:
         return floor, []
-    return floor, moving_sensor_sides(changed)
+    return floor, small_face_clouds(changed)
 
 
 def small_clusters(own: ChangedPoints, floor: int, cluster_factor: float) -> list[ChangedRegion]:
