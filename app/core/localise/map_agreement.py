@@ -27,9 +27,10 @@ from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE
 from app.core.localise.interface import FaceBorder
-from app.core.localise.map_faces import EDGE_FACTOR, meeting_planes
+from app.core.localise.map_faces import EDGE_COSINE, EDGE_FACTOR, MEETING_NEIGHBOURS
 from app.core.localise.map_parts import SURROUND_REACH
 from app.core.localise.settings import GATHER_CHUNK
+from app.core.localise.surface import weighted_plane
 
 __all__ = ["changed_share", "faces_meeting_changes", "faces_of_changes"]
 
@@ -46,6 +47,56 @@ MIN_MEETING = 5
 """Fewer such border points than this say nothing."""
 AGREEMENT_NEIGHBOURS = 256
 """The other epoch's points looked at around a border point (within the reach)."""
+DOMINANT_NEIGHBOURS = 4 * MEETING_NEIGHBOURS
+"""The other epoch's points among which the surface meeting a border point is sought (within
+twice :data:`~app.core.localise.map_faces.EDGE_FACTOR` change thresholds)."""
+
+
+def dominant_meeting_planes(
+    points: NDArray[np.float64], toward: NDArray[np.float64], other: Side, reach: float
+) -> tuple[NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64]]:
+    """The plane of the other cloud's surface meeting each point at an edge (shapes (b, 3),
+    (b, 3) -> (b,), (b, 3), (b, 3)): of its :data:`DOMINANT_NEIGHBOURS` nearest points within
+    ``reach`` whose normals are at more than 60 degrees to ``toward``, those whose normals
+    agree (:data:`~app.core.localise.gaps.NORMAL_AGREEMENT_COSINE`) with the normal most of
+    them agree with, fitted to their positions.
+
+    :func:`~app.core.localise.map_faces.meeting_planes` fits the 16 nearest such points: at a
+    corner a fused map smears (drift: the turned backrest's samples doubled a few centimetres
+    apart where it meets the old one, normals leaning every way) they span a few centimetres
+    each way and fit a diagonal plane no surface lies on, so none of the surface's samples
+    beyond the corner are on it (RGB-D room 1403: the old backrest's corner border points
+    judged 0 of the turned backrest's changed samples, 4-101 with this).  Among more samples,
+    the surface most of them belong to is the one meeting the point.
+
+    Returns
+    -------
+    found : ndarray, shape (b,), bool
+        At least three such points.
+    centroid, normal : ndarray, shape (b, 3)
+    """
+    k = min(DOMINANT_NEIGHBOURS, other.points.shape[0])
+    distance, index = other.geometry.tree.query(points, k=k, distance_upper_bound=reach)
+    distance = np.asarray(distance).reshape(points.shape[0], k)
+    index = np.minimum(np.asarray(index).reshape(points.shape[0], k), other.points.shape[0] - 1)
+    normals = other.geometry.normal[index].astype(np.float64)
+    candidate = (distance <= reach) & (
+        np.abs(np.einsum("bkd,bd->bk", normals, toward)) < EDGE_COSINE
+    )
+    agree = np.abs(np.einsum("bkd,bjd->bkj", normals, normals)) >= NORMAL_AGREEMENT_COSINE
+    agree &= candidate[:, :, None] & candidate[:, None, :]
+    best = np.argmax(agree.sum(axis=2), axis=1)
+    weight = agree[np.arange(points.shape[0]), best].astype(np.float64)
+    found = weight.sum(axis=1) >= 3
+    centroid, values, vectors = weighted_plane(other.points[index], weight)
+    normal = vectors[:, :, 0]
+    # points along a line fit no plane: their mean normal then
+    reference = normals[np.arange(points.shape[0]), best]
+    signs = np.where(np.einsum("bkd,bd->bk", normals, reference) < 0, -1.0, 1.0)
+    mean = np.einsum("bk,bkd->bd", weight * signs, normals)
+    mean /= np.maximum(np.linalg.norm(mean, axis=1), 1e-12)[:, None]
+    flat = values[:, 1] >= 0.01 * values[:, 2]
+    return found, centroid, np.where(flat[:, None], normal, mean)
 
 
 def changed_share(
@@ -80,7 +131,9 @@ def changed_share(
     for start in range(0, count, GATHER_CHUNK):
         chunk = slice(start, start + GATHER_CHUNK)
         query = points[chunk]
-        found, centroid, plane_normal = meeting_planes(query, unit[chunk], other, 2.0 * reach)
+        found, centroid, plane_normal = dominant_meeting_planes(
+            query, unit[chunk], other, 2.0 * reach
+        )
         height = np.einsum("cd,cd->c", query - centroid, plane_normal)
         meets = found & (np.abs(height) <= reach)
         distance, index = other.geometry.tree.query(query, k=k, distance_upper_bound=SURROUND_REACH)
@@ -104,6 +157,24 @@ def changed_share(
     return share
 
 
+def border_normals(own: Side, faces: FaceBorder) -> NDArray[np.float64]:
+    """The normal of each face border point's part: the least axis of the part's members'
+    positions (shape (b, 3)); a part of fewer than 3 members keeps its points' own normals.
+
+    A border point's own normal leans where its part meets another surface (its neighbours
+    take in both): at the corner where an old backrest meets the turned one it leans towards
+    the turned one, and the other epoch's surface at more than 60 degrees to it is then sought
+    among the samples parallel to the part (the seat's side under it), not the turned
+    backrest.  The part's own plane is the one the meeting surface stands at an edge to.
+    """
+    normal = own.geometry.normal[faces.border].astype(np.float64)
+    for part in np.unique(faces.border_part):
+        positions = own.points[faces.members[faces.member_part == part]]
+        if positions.shape[0] >= 3:
+            normal[faces.border_part == part] = np.linalg.eigh(np.cov(positions.T))[1][:, 0]
+    return normal
+
+
 def faces_of_changes(
     faces: FaceBorder,
     own: Side,
@@ -120,7 +191,7 @@ def faces_of_changes(
     meets = (
         changed_share(
             own.points[faces.border],
-            own.geometry.normal[faces.border],
+            border_normals(own, faces),
             other,
             other_label,
             tolerance=tolerance,
