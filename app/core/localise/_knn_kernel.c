@@ -283,6 +283,8 @@ static void scan_leaf(const Tree *own_tree, const Node *own, const Tree *tree, c
     }
 }
 
+#define OWN_LEAF_GUESS 1.5 /* times the point before's k1-th squared distance (see below) */
+
 /* Point i's k1-th squared distance is at most (r + d)^2, r the k1-th distance point i - 1 found
    in the leaf (k1 points of the leaf within r of it) and d the distance between the two, rounded
    up: a margin well above the few ulps of the squared distances' rounding. */
@@ -294,11 +296,13 @@ static inline double leaf_bound(double previous_kth, double squared_step)
 
 /* The own leaf scanned first, when every point's list is still empty: the same lists and flags
    as scan_leaf gives them, with less work.  The first k1 candidates fill the list from its
-   filled end (no shifting of the empty slots), and a point's candidates farther than
-   leaf_bound (from the point before it) are skipped: they cannot be among its k1 nearest in
-   the leaf, so scan_leaf would have pushed them out again (or never taken them) and, farther
-   than the final k1-th, they set no equal flag.  Skipping them leaves the same distances kept
-   and the same flag (what a tie flag reports). */
+   filled end (no shifting of the empty slots), and only the candidates no farther than a bound
+   are taken: when at least k1 of the leaf's points are within it, its k1 nearest are, and the
+   others are farther than the final k1-th (scan_leaf would have pushed them out again, or never
+   taken them, and they set no equal flag).  Any bound is exact by that count; the bound only
+   decides the work: first OWN_LEAF_GUESS times the k1-th of the point before (neighbouring
+   points of a leaf have about the same spacing; most points take it), else leaf_bound (k1
+   within it whenever the point before found k1 in the leaf), else every point of the leaf. */
 static void scan_own_leaf(const Tree *tree, const Node *own, int k1, Work *work)
 {
     const double *xs = tree->axis[0] + own->start;
@@ -313,19 +317,20 @@ static void scan_own_leaf(const Tree *tree, const Node *own, int k1, Work *work)
             double squared = dx * dx + dy * dy;
             work->scratch[j] = squared + dz * dz;
         }
-        double bound = INFINITY;
-        if (i > 0 && best[-1] < INFINITY) {
-            bound = leaf_bound(best[-1], work->scratch[i - 1]);
+        double bounds[3] = {INFINITY, INFINITY, INFINITY};
+        if (i > 0 && best[-1] < INFINITY) { /* best[-1]: the k1-th of the point before */
+            bounds[0] = OWN_LEAF_GUESS * best[-1];
+            bounds[1] = leaf_bound(best[-1], work->scratch[i - 1]);
         }
         uint32_t passed = 0;
-        for (uint32_t j = 0; j < own->count; j++) {
-            work->passing[passed] = j;
-            passed += work->scratch[j] <= bound;
-        }
-        if (passed < (uint32_t)k1 && passed < own->count) { /* not expected: no bound */
+        for (int tried = 0; tried < 3; tried++) {
             passed = 0;
             for (uint32_t j = 0; j < own->count; j++) {
-                work->passing[passed++] = j;
+                work->passing[passed] = j;
+                passed += work->scratch[j] <= bounds[tried];
+            }
+            if (passed >= (uint32_t)k1 || !(bounds[tried] < INFINITY)) {
+                break;
             }
         }
         int filled = 0;
