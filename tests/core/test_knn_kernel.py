@@ -162,6 +162,47 @@ def test_the_tie_flags_are_those_of_a_brute_force_sort(k1):
 
 
 @needs_kernel
+@pytest.mark.parametrize("k1", [2, 11, 20])
+def test_the_own_leaf_bound_skips_no_neighbour(k1):
+    """Each point's own leaf is scanned first taking only the candidates within a bound guessed
+    from the point before it (exact whenever k1 of them are within it, else a wider bound):
+    on clumps of very different spreads (where the guess often fails), far from the origin,
+    with duplicated points, the neighbours, k1-th distances and tie flags are still a
+    brute-force sort's."""
+    rng = np.random.default_rng(5)
+    for _ in range(12):
+        centres = rng.uniform(-1.0, 1.0, size=(int(rng.integers(2, 8)), 3))
+        spreads = 10.0 ** rng.uniform(-4, 0, size=centres.shape[0])
+        sizes = rng.integers(1, 120, size=centres.shape[0])
+        points = np.vstack(
+            [
+                c + s * rng.standard_normal((n, 3))
+                for c, s, n in zip(centres, spreads, sizes, strict=True)
+            ]
+        )
+        points = np.vstack([points, points[rng.integers(0, len(points), 5)]])  # duplicates
+        points += rng.uniform(-1e3, 1e3, size=3)
+        if len(points) < k1 + 1:
+            continue
+        offset = points[None, :, :] - points[:, None, :]
+        squared = offset[..., 0] * offset[..., 0] + offset[..., 1] * offset[..., 1]
+        squared = squared + offset[..., 2] * offset[..., 2]
+        nearest = np.sort(squared, axis=1)[:, : k1 + 1]
+        expected_tie = (np.diff(nearest, axis=1) == 0).any(axis=1)
+        index = np.empty((len(points), k1), np.uint32)
+        kth = np.empty(len(points))
+        tie = np.empty(len(points), np.uint8)
+        KERNEL.self_neighbours(
+            KERNEL.build_tree(points), k1, index, kth, tie, np.zeros(1, np.uint8)
+        )
+        assert np.array_equal(tie.astype(bool), expected_tie)
+        unique = ~expected_tie
+        order = np.argsort(squared, axis=1, kind="stable")[:, :k1]
+        assert np.array_equal(index[unique], order[unique])
+        assert np.array_equal(kth[unique], nearest[unique, k1 - 1])
+
+
+@needs_kernel
 def test_the_smallest_cloud_and_arrays_the_kernel_cannot_read(monkeypatch):
     rng = np.random.default_rng(3)
     smallest = rng.normal(size=(11, 3))  # k + 1 = n

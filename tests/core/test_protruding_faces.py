@@ -15,7 +15,7 @@ import pytest
 
 from app.core.datasets.maps import map_pair
 from app.core.labels import LABEL_CHANGED
-from app.core.localise import localise_changes
+from app.core.localise import isolated_clusters, localise_changes, protruding_faces, turned_faces
 from app.core.pipeline import compare
 from tests.helpers.fused_rooms import box_sides, fused_room
 
@@ -28,8 +28,9 @@ def _turned(points: np.ndarray, centre: np.ndarray, angle: float) -> np.ndarray:
     return turned
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2, 3])
-def test_the_ends_of_a_box_turned_in_place_are_changes_under_the_noise_floor(seed):
+def _turned_box_pair(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The reference (shape (n, 3)), the scan (shape (m, 3)) and the reference's old end faces
+    (its last rows, shape (e, 3)) of a box turned a quarter in place in a fused room."""
     # a box 0.3-0.4 m wide and 0.22-0.30 m longer, at a random place and heading, turned a
     # quarter (+- 6 degrees) about its centre: its old ends stand 11-15 cm outside the new
     # box's long faces; the reference saw them from afar (a 9 cm grid of fewer points than
@@ -57,6 +58,12 @@ def test_the_ends_of_a_box_turned_in_place_are_changes_under_the_noise_floor(see
     footprint = ([*(centre - reach), 0.0], [*(centre + reach), 0.0])
     reference = np.vstack([fused_room(rng, floor_hole=footprint), old_top, ends])
     scan = np.vstack([fused_room(rng, floor_hole=footprint), new_box])
+    return reference, scan, ends
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_the_ends_of_a_box_turned_in_place_are_changes_under_the_noise_floor(seed):
+    reference, scan, ends = _turned_box_pair(seed)
     localisation = localise_changes(reference, scan)
     assert localisation.parameters["reference_visibility"] == "maps"
     end_labels = localisation.reference_label[-ends.shape[0] :]
@@ -89,3 +96,34 @@ def test_tls_000_box_turned_in_place_is_found_in_a_survey():
     assert result.localisation["min_region_points"] > np.count_nonzero(truth) / 2
     assert np.count_nonzero(found) >= 0.75 * np.count_nonzero(truth)
     assert not np.any((result.scan_label == LABEL_CHANGED) & ~pair.scan_changed)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_each_clouds_small_clusters_are_found_once_for_the_three_rules(seed, monkeypatch):
+    # turned, protruding and isolated faces all look at the same small clusters of each cloud:
+    # clustered once and handed on (SmallClusters), with the labels of clustering each time
+    reference, scan, _ = _turned_box_pair(seed)
+    original = turned_faces.small_clusters
+
+    def forgetful(own, floor, cluster_factor, known=None):
+        return original(own, floor, cluster_factor)
+
+    with monkeypatch.context() as patched:
+        for module in (turned_faces, protruding_faces, isolated_clusters):
+            patched.setattr(module, "small_clusters", forgetful)
+        each_time = localise_changes(reference, scan)
+    kinds: list[str] = []
+    find_regions = turned_faces.find_regions
+
+    def counted(points, **kwargs):
+        kinds.append(kwargs["kind"])
+        return find_regions(points, **kwargs)
+
+    monkeypatch.setattr(turned_faces, "find_regions", counted)
+    once = localise_changes(reference, scan)
+    assert kinds and sorted(kinds) == sorted(set(kinds))
+    assert np.array_equal(once.reference_label, each_time.reference_label)
+    assert np.array_equal(once.scan_label, each_time.scan_label)
+    assert [r.point_indices.tolist() for r in once.regions] == [
+        r.point_indices.tolist() for r in each_time.regions
+    ]

@@ -23,7 +23,7 @@ import pytest
 from pykdtree.kdtree import KDTree
 
 from app.core.cloud import PointCloud
-from app.core.datasets.lidar import LidarPair, lidar_pair
+from app.core.datasets.lidar import LidarPair, lidar_directions, lidar_pair
 from app.core.datasets.scenes import _transform_points, raycast_scene
 from app.core.errors import InputError
 from app.core.ground_truth import changed_iou
@@ -36,7 +36,13 @@ from app.core.localise.rays import (
     STATUS_SURFACE,
     STATUS_UNOBSERVED,
 )
-from app.core.localise.station_assignment import RING_CONTRAST, assign_stations, ring_contrast
+from app.core.localise.station_assignment import (
+    RING_CONTRAST,
+    assign_stations,
+    grid_contrast,
+    ring_contrast,
+    station_contrasts,
+)
 from app.core.localise.surface import local_geometry
 from app.core.localise.visibility import combine_station_status
 from app.core.origins.station_recovery import recover_stations
@@ -133,7 +139,10 @@ def test_assigned_stations_tie_to_the_first_and_off_ring_points_to_the_nearest()
     rng = np.random.default_rng(0)
     noise = rng.uniform(pair.reference.min(axis=0), pair.reference.max(axis=0), (20_000, 3))
     points = np.vstack([pair.reference[::20], noise])
-    contrast = np.stack([ring_contrast(points, origin) for origin in origins])
+    grids = station_contrasts(points, origins)
+    contrast = np.stack(
+        [grid_contrast(points, origin, grid) for origin, grid in zip(origins, grids, strict=True)]
+    )
     squared = ((points[:, None, :] - origins[None, :, :]) ** 2).sum(axis=2)
     on_rings = contrast.max(axis=0) >= RING_CONTRAST
     assert 0 < np.count_nonzero(~on_rings) < len(points)
@@ -287,3 +296,41 @@ def test_station_assignment_does_not_depend_on_its_chunks_and_takes_float32(monk
     # float32 moves points by micrometres: a few move across a 0.01 degree elevation bin
     lean = assign_stations(pair.reference.astype(np.float32), pair.reference_origins)
     assert np.mean(lean == pair.reference_station) > right - 0.01
+
+
+def _hall_survey(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A hall's inside scanned from 3 stations at one height on 1 degree grids (each turned at
+    random), the origins known only to a few millimetres: points, origins, true stations."""
+    rng = np.random.default_rng(seed)
+    high = np.array([40.0, 12.0, 6.0])
+    height = rng.uniform(1.2, 1.7)
+    x = (np.arange(3) + rng.uniform(0.2, 0.8, 3)) * high[0] / 3
+    origins = np.column_stack([x, rng.uniform(2.0, 10.0, 3), np.full(3, height)])
+    points, station = [], []
+    for number, origin in enumerate(origins):
+        direction = lidar_directions(1.0, 1.0, rng.uniform(0.0, 360.0))
+        with np.errstate(divide="ignore"):
+            reach = np.where(direction > 0, (high - origin) / direction, -origin / direction)
+        reach = np.where(direction == 0, np.inf, reach).min(axis=1)
+        reach *= 1.0 + rng.normal(0.0, 0.002, reach.shape)
+        points.append(origin + direction * reach[:, None])
+        station.append(np.full(reach.shape, number))
+    estimated = origins + rng.normal(0.0, 0.003, origins.shape)
+    return np.vstack(points), estimated, np.concatenate(station)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_scanners_columns_tell_its_returns_from_another_stations_rings(seed):
+    # issue 29, TLS 2004: stations at one height share ring elevations, and origins known to a
+    # few millimetres blur the rings of near returns; a terrestrial scanner's returns also lie
+    # on its columns (fixed azimuth steps), which another station's rings do not line up with
+    points, origins, station = _hall_survey(seed)
+    contrast = np.stack([ring_contrast(points, origin) for origin in origins])
+    squared = ((points[:, None, :] - origins[None, :, :]) ** 2).sum(axis=2)
+    by_rings = np.where(
+        contrast.max(axis=0) >= RING_CONTRAST, contrast.argmax(axis=0), squared.argmin(axis=1)
+    )
+    wrong_by_rings = np.count_nonzero(by_rings != station)
+    assert wrong_by_rings > 0  # the case is there
+    wrong = np.count_nonzero(assign_stations(points, origins) != station)
+    assert wrong <= 0.75 * wrong_by_rings

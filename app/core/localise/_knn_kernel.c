@@ -283,6 +283,95 @@ static void scan_leaf(const Tree *own_tree, const Node *own, const Tree *tree, c
     }
 }
 
+#define OWN_LEAF_GUESS 1.5 /* times the point before's k1-th squared distance (see below) */
+
+/* Point i's k1-th squared distance is at most (r + d)^2, r the k1-th distance point i - 1 found
+   in the leaf (k1 points of the leaf within r of it) and d the distance between the two, rounded
+   up: a margin well above the few ulps of the squared distances' rounding. */
+static inline double leaf_bound(double previous_kth, double squared_step)
+{
+    double reach = sqrt(previous_kth) + sqrt(squared_step);
+    return reach * reach * (1.0 + 1e-9) + 1e-300;
+}
+
+/* The own leaf scanned first, when every point's list is still empty: the same lists and flags
+   as scan_leaf gives them, with less work.  The first k1 candidates fill the list from its
+   filled end (no shifting of the empty slots), and only the candidates no farther than a bound
+   are taken: when at least k1 of the leaf's points are within it, its k1 nearest are, and the
+   others are farther than the final k1-th (scan_leaf would have pushed them out again, or never
+   taken them, and they set no equal flag).  Any bound is exact by that count; the bound only
+   decides the work: first OWN_LEAF_GUESS times the k1-th of the point before (neighbouring
+   points of a leaf have about the same spacing; most points take it), else leaf_bound (k1
+   within it whenever the point before found k1 in the leaf), else every point of the leaf. */
+static void scan_own_leaf(const Tree *tree, const Node *own, int k1, Work *work)
+{
+    const double *xs = tree->axis[0] + own->start;
+    const double *ys = tree->axis[1] + own->start;
+    const double *zs = tree->axis[2] + own->start;
+    for (uint32_t i = 0; i < own->count; i++) {
+        double point[3] = {xs[i], ys[i], zs[i]};
+        double *best = work->best + (size_t)i * k1;
+        uint32_t *best_at = work->best_at + (size_t)i * k1;
+        for (uint32_t j = 0; j < own->count; j++) {
+            double dx = xs[j] - point[0], dy = ys[j] - point[1], dz = zs[j] - point[2];
+            double squared = dx * dx + dy * dy;
+            work->scratch[j] = squared + dz * dz;
+        }
+        double bounds[3] = {INFINITY, INFINITY, INFINITY};
+        if (i > 0 && best[-1] < INFINITY) { /* best[-1]: the k1-th of the point before */
+            bounds[0] = OWN_LEAF_GUESS * best[-1];
+            bounds[1] = leaf_bound(best[-1], work->scratch[i - 1]);
+        }
+        uint32_t passed = 0;
+        for (int tried = 0; tried < 3; tried++) {
+            passed = 0;
+            for (uint32_t j = 0; j < own->count; j++) {
+                work->passing[passed] = j;
+                passed += work->scratch[j] <= bounds[tried];
+            }
+            if (passed >= (uint32_t)k1 || !(bounds[tried] < INFINITY)) {
+                break;
+            }
+        }
+        int filled = 0;
+        uint32_t candidate = 0;
+        for (; candidate < passed && filled < k1; candidate++, filled++) {
+            uint32_t j = work->passing[candidate];
+            double squared = work->scratch[j];
+            int slot = filled;
+            while (slot > 0 && best[slot - 1] > squared) {
+                best[slot] = best[slot - 1];
+                best_at[slot] = best_at[slot - 1];
+                slot--;
+            }
+            best[slot] = squared;
+            best_at[slot] = own->start + j;
+        }
+        double limit = best[k1 - 1];
+        uint8_t equal = filled < k1; /* as scan_leaf leaves it: a list not full */
+        for (; candidate < passed; candidate++) {
+            uint32_t j = work->passing[candidate];
+            double squared = work->scratch[j];
+            if (squared < limit) {
+                int slot = k1 - 1;
+                while (slot > 0 && best[slot - 1] > squared) {
+                    best[slot] = best[slot - 1];
+                    best_at[slot] = best_at[slot - 1];
+                    slot--;
+                }
+                best[slot] = squared;
+                best_at[slot] = own->start + j;
+                equal = !(best[k1 - 1] < limit);
+                limit = best[k1 - 1];
+            }
+            else if (squared == limit) {
+                equal = 1;
+            }
+        }
+        work->equal[i] = equal;
+    }
+}
+
 /* The k1 nearest in ``tree`` of each point of one leaf of ``own_tree`` (the same tree for a
    cloud's own neighbours, another cloud's for its nearest points there); the number of its
    points whose order is not unique (two of the k1 + 1 nearest equally far, or fewer than k1
@@ -296,6 +385,7 @@ static Py_ssize_t search_leaf(const Tree *own_tree, const Node *own, const Tree 
     }
     memset(work->equal, 0, own->count);
     double worst = INFINITY;
+    int fresh = 1; /* no leaf scanned yet: every list empty */
     int top = 0;
     work->stack[top++] = 0;
     while (top > 0) {
@@ -304,7 +394,13 @@ static Py_ssize_t search_leaf(const Tree *own_tree, const Node *own, const Tree 
             continue;
         }
         if (node->left < 0) {
-            scan_leaf(own_tree, own, tree, node, k1, work);
+            if (fresh && node == own && own_tree == tree && k1 > 1) {
+                scan_own_leaf(tree, own, k1, work);
+            }
+            else {
+                scan_leaf(own_tree, own, tree, node, k1, work);
+            }
+            fresh = 0;
             worst = 0.0;
             for (uint32_t i = 0; i < own->count; i++) {
                 double kth = work->best[(size_t)i * k1 + k1 - 1];

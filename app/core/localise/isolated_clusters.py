@@ -32,6 +32,7 @@ from app.core.localise.map_sides import LEVEL_NORMAL_Z
 from app.core.localise.regions import ChangedRegion
 from app.core.localise.turned_faces import (
     ChangedPoints,
+    SmallClusters,
     small_clusters,
     small_face_sides,
 )
@@ -108,6 +109,7 @@ def isolated_clusters(
     cluster_factor: float,
     min_region_points: int,
     change_threshold: float,
+    known: SmallClusters | None = None,
 ) -> list[ChangedRegion]:
     """The clusters of changed points under ``min_region_points`` that stand far from every
     point of the other epoch (module docstring), as regions.
@@ -121,6 +123,8 @@ def isolated_clusters(
     min_region_points : int
     change_threshold : float
         ``c`` (metres): a cluster stands :data:`ISOLATION_FACTOR` of it from the other cloud.
+    known : SmallClusters, optional
+        The small clusters found so far (:func:`~app.core.localise.turned_faces.small_clusters`).
 
     Returns
     -------
@@ -132,7 +136,7 @@ def isolated_clusters(
     for own, other in sides:
         kept += [
             region
-            for region in small_clusters(own, floor, cluster_factor)
+            for region in small_clusters(own, floor, cluster_factor, known)
             if region.n_points < min_region_points
             and _isolated(own, other, region.point_indices, change_threshold)
         ]

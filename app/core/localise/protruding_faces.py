@@ -34,6 +34,7 @@ from app.core.localise.map_parts import UPRIGHT_NORMAL_Z
 from app.core.localise.regions import ChangedRegion, mark_moved_surfaces
 from app.core.localise.turned_faces import (
     ChangedPoints,
+    SmallClusters,
     face_normal,
     small_clusters,
     small_face_sides,
@@ -125,11 +126,15 @@ def _outside_body(
 
 
 def _small_upright_faces(
-    own: ChangedPoints, floor: int, min_region_points: int, cluster_factor: float
+    own: ChangedPoints,
+    floor: int,
+    min_region_points: int,
+    cluster_factor: float,
+    known: SmallClusters | None = None,
 ) -> list[tuple[ChangedRegion, NDArray[np.float64], NDArray[np.float64]]]:
     """``own``'s clusters of ``floor`` to ``min_region_points`` changed points whose plane
     fit is upright: each as a region, its points (shape (p, 3)) and unit normal (shape (3,))."""
-    small = small_clusters(own, floor, cluster_factor)
+    small = small_clusters(own, floor, cluster_factor, known)
     faces = []
     for region in small:
         if region.n_points >= min_region_points:
@@ -147,6 +152,7 @@ def protruding_faces(
     cluster_factor: float,
     min_region_points: int,
     change_threshold: float,
+    known: SmallClusters | None = None,
 ) -> list[ChangedRegion]:
     """The clusters of changed points under ``min_region_points`` that stand out past the other
     epoch's parallel face, away from its body (module docstring), as regions.
@@ -162,6 +168,8 @@ def protruding_faces(
     change_threshold : float
         ``c`` (metres): the other cloud's points farther than it from this cloud's surface
         are surface this cloud lacks; a face stands before it within :data:`EDGE_FACTOR` of it.
+    known : SmallClusters, optional
+        The small clusters found so far (:func:`~app.core.localise.turned_faces.small_clusters`).
 
     Returns
     -------
@@ -171,7 +179,7 @@ def protruding_faces(
     floor, sides = small_face_sides(changed, min_region_points)
     kept: list[ChangedRegion] = []
     for own, other in sides:
-        faces = _small_upright_faces(own, floor, min_region_points, cluster_factor)
+        faces = _small_upright_faces(own, floor, min_region_points, cluster_factor, known)
         lacking = np.flatnonzero(other.distance > change_threshold)
         if not faces or lacking.size == 0:
             continue
@@ -207,8 +215,12 @@ def with_small_faces(
         "min_region_points": min_region_points,
         "change_threshold": change_threshold,
     }
-    found = turned_faces(changed, regions, **settings)
-    for more in (protruding_faces(changed, **settings), isolated_clusters(changed, **settings)):
+    known: SmallClusters = {}  # each cloud's small clusters, found once for the three rules
+    found = turned_faces(changed, regions, **settings, known=known)
+    for more in (
+        protruding_faces(changed, **settings, known=known),
+        isolated_clusters(changed, **settings, known=known),
+    ):
         seen = {(region.kind, int(region.point_indices[0])) for region in found}
         found += [
             region for region in more if (region.kind, int(region.point_indices[0])) not in seen

@@ -46,9 +46,9 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
 from app.core.localise.station_assignment import (
-    N_BINS,
     RING_CONTRAST,
-    elevation_bins,
+    StationGrid,
+    grid_contrast,
     rays_from,
     station_contrasts,
 )
@@ -514,10 +514,10 @@ def _seeing_station(
     origins: NDArray[np.float64],
     station: NDArray[np.int64],
     moved: NDArray[np.int64],
-    contrasts: list[NDArray[np.float64]],
+    contrasts: list[StationGrid],
     rays: list[StationView | None],
 ) -> NDArray[np.int64]:
-    """For the hidden points ``moved`` (indices, shape (h,)): the station with the highest ring
+    """For the hidden points ``moved`` (indices, shape (h,)): the station with the highest grid
     contrast among those they are not hidden from (on no such station's rings: the nearest of
     them; hidden from all: their own), shape (h,).  ``rays``: :func:`station_view` of each
     station's returns now."""
@@ -531,8 +531,7 @@ def _seeing_station(
         own = points[station == number]
         seen = ~hidden_from(points[moved[rows]], origin, own, rays=rays[number])
         rows = rows[seen]
-        bins = np.clip(elevation_bins(points[moved[rows]], origin), 0, N_BINS - 1)
-        score[rows, number] = contrasts[number][bins]
+        score[rows, number] = grid_contrast(points[moved[rows]], origin, contrasts[number])
         distance[rows, number] = np.linalg.norm(points[moved[rows]] - origin, axis=1)
     best = np.argmax(score, axis=1)
     on_rings = score[np.arange(moved.size), best] >= RING_CONTRAST

@@ -39,6 +39,7 @@ from app.core.localise.visibility import Labelled
 __all__ = [
     "SMALL_FACE_TESTS",
     "ChangedPoints",
+    "SmallClusters",
     "changed_points",
     "face_floor",
     "face_normal",
@@ -126,8 +127,25 @@ def small_face_sides(
     return floor, small_face_clouds(changed)
 
 
-def small_clusters(own: ChangedPoints, floor: int, cluster_factor: float) -> list[ChangedRegion]:
-    """``own``'s clusters of changed points of at least ``floor`` points, as regions."""
+SmallClusters = dict[tuple[str, int, float], list[ChangedRegion]]
+"""The small clusters found so far in a comparison's clouds (:func:`small_clusters`), by the
+clouds' region kind, the floor and the cluster factor: the small-cluster rules
+(:func:`turned_faces`, ``protruding_faces``, ``isolated_clusters``) hand them on instead of
+clustering the same changed points again."""
+
+
+def small_clusters(
+    own: ChangedPoints, floor: int, cluster_factor: float, known: SmallClusters | None = None
+) -> list[ChangedRegion]:
+    """``own``'s clusters of changed points of at least ``floor`` points, as regions (not to be
+    changed: ``known`` may hand the same list to another caller).
+
+    ``known`` (optional): the clusters already found in this comparison, looked up first and
+    filled in with those found here.
+    """
+    key = (own.side.region_kind, floor, cluster_factor)
+    if known is not None and key in known:
+        return known[key]
     clusters, _ = find_regions(
         own.side.points,
         kind=own.side.region_kind,
@@ -139,6 +157,8 @@ def small_clusters(own: ChangedPoints, floor: int, cluster_factor: float) -> lis
         evidence=own.evidence,
         confidence=own.confidence,
     )
+    if known is not None:
+        known[key] = clusters
     return clusters
 
 
@@ -179,6 +199,7 @@ def turned_faces(
     cluster_factor: float,
     min_region_points: int,
     change_threshold: float,
+    known: SmallClusters | None = None,
 ) -> list[ChangedRegion]:
     """The clusters of changed points under ``min_region_points`` that are faces turned in
     place (module docstring), as regions.
@@ -194,6 +215,8 @@ def turned_faces(
     min_region_points : int
     change_threshold : float
         ``c`` (metres): a face meets a region within :data:`EDGE_FACTOR` of it.
+    known : SmallClusters, optional
+        The small clusters found so far (:func:`small_clusters`).
 
     Returns
     -------
@@ -208,7 +231,7 @@ def turned_faces(
             continue
         other_points = np.concatenate(region_points)
         other_tree = KDTree(other.side.points[other_points])
-        small = small_clusters(own, floor, cluster_factor)
+        small = small_clusters(own, floor, cluster_factor, known)
         kept += [
             region
             for region in small

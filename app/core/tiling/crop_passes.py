@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.comparison.align import transformed
-from app.core.localise.station_assignment import best_stations
+from app.core.localise.station_assignment import StationGrid, best_stations
 from app.core.tiling.crops import (
     record_dtype,
     tile_direction_marks,
@@ -67,8 +67,9 @@ class CropPass:
     station_origins : ndarray, shape (k, 3), or None
         With two stations or more: their origins, each point assigned its station.
     contrasts : ndarray, shape (k, n_bins), or None
-        The stations' ring contrasts from the subsample
-        (:func:`~app.core.localise.station_assignment.station_contrasts`).
+        The stations' ring and column contrasts from the subsample, one packed row a station
+        (:func:`~app.core.localise.station_assignment.station_contrasts`,
+        :meth:`~app.core.localise.station_assignment.StationGrid.packed`).
     """
 
     side: str
@@ -95,7 +96,8 @@ class CropPass:
         for first, local in _local_chunks(self.path, self.format, self.offset, self.transform):
             station = None
             if self.station_origins is not None and self.contrasts is not None:
-                station = best_stations(local, self.station_origins, list(self.contrasts))
+                grids = [StationGrid.of_packed(row) for row in self.contrasts]
+                station = best_stations(local, self.station_origins, grids)
             yield first, local, station
 
     def other_chunks(self) -> Iterator[tuple[int, NDArray[np.float32], None]]:

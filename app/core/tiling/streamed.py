@@ -404,7 +404,9 @@ class StreamedLocalisation:
                     offset=self.offset,
                     transform=move,
                     station_origins=origins if several else None,
-                    contrasts=None if contrasts is None else np.stack(contrasts),
+                    contrasts=None
+                    if contrasts is None
+                    else np.stack([grid.packed() for grid in contrasts]),
                     n_points=cloud.n_points,
                 )
             )
