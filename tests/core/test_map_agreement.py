@@ -133,8 +133,10 @@ def test_a_board_removed_from_a_desk_top_the_other_epoch_never_saw_is_changed(se
     assert np.mean(localisation.reference_label[on_board] == LABEL_CHANGED) >= 0.9
 
 
+@pytest.mark.slow  # a whole drifting RGB-D room localised (~6 CPU s): make test-slow
 def test_an_old_backrest_meeting_the_turned_one_at_a_smeared_corner_is_changed():
-    # RGB-D room 1403 of bench.moving_maps (held out, drift, misaligned): a chair turned in
+    # RGB-D room 1403 of bench.moving_maps (drift, misaligned; held out until s26, now a tuning
+    # scene: the held-out RGB-D rooms are seeds 18 and up): a chair turned in
     # place.  The old backrest meets the turned one at the corner they share and ends there,
     # an unseen face (25 % of the chair changed), unless the surface meeting it carries on
     # into the scan's change.  The drift smears the turned backrest's corner: the 16 samples
