@@ -18,7 +18,8 @@ import pytest
 
 from app.core.labels import LABEL_CHANGED
 from app.core.localise import localise_changes
-from app.core.localise.turned_faces import SMALL_FACE_TESTS, changed_points
+from app.core.localise.regions import find_regions
+from app.core.localise.turned_faces import SMALL_FACE_TESTS, changed_points, turned_faces
 from app.core.localise.visibility import Labelled
 from tests.helpers.fused_rooms import box_sides, fused_room
 
@@ -105,6 +106,71 @@ def test_a_turned_backrest_seen_from_afar_is_a_change_under_the_noise_floor(seed
     new &= (scan[:, 2] > 0.6) & (scan[:, 2] < 0.95)
     assert 0 < np.count_nonzero(new) < localisation.parameters["min_region_points"]
     assert np.mean(localisation.scan_label[new] == LABEL_CHANGED) >= 0.9
+
+
+def _face_side(rng, name, kind, low, high, normal, spacing, test_name="maps"):
+    """A cloud holding one upright face, every point changed, as the map test judged it."""
+    low, high = np.asarray(low, float), np.asarray(high, float)
+    face = "e" if normal[0] else "n"
+    points = box_sides(rng, low, high, faces=face, spacing=spacing)
+    count = points.shape[0]
+    geometry = SimpleNamespace(
+        normal=np.tile(np.asarray(normal, np.float32), (count, 1)),
+        spacing=np.full(count, spacing),
+    )
+    side = SimpleNamespace(name=name, region_kind=kind, points=points, geometry=geometry)
+    labelled = Labelled(
+        label=np.full(count, LABEL_CHANGED, dtype=np.int8),
+        evidence=np.ones(count, dtype=np.int8),
+        confidence=np.ones(count, dtype=np.float32),
+        report={f"{name}_visibility": test_name},
+    )
+    return changed_points(side, labelled, np.full(count, 0.2))  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+@pytest.mark.parametrize(
+    ("old_x", "test_name", "kept"),
+    [(3.0, "maps", True), (3.0, "trajectory", True), (3.4, "maps", False), (3.0, "ray", False)],
+)
+def test_an_old_backrest_seen_off_the_shared_corner_meets_the_new_one(seed, old_x, test_name, kept):
+    # robot corridor 2800: the reference saw the old backrest sparsely, only up to 0.17 m off
+    # the corner it shares with the new one; the scan's new backrest region ends 0.15 m
+    # off it.  No point of the old face lies within two change thresholds of the region, but
+    # the faces' planes meet in the corner line within that reach of both.  A face whose
+    # plane meets the region's 0.4 m past the region's end is no turned face.  Only maps
+    # from a moving sensor are read so (a station ray test's single street frames have a
+    # metre's reach: bench.label_digests' Lidar-SCU Velo2-3)
+    rng = np.random.default_rng(seed)
+    old = _face_side(
+        rng,
+        "reference",
+        "removed",
+        [old_x, 1.55, 0.6],
+        [old_x, 1.86, 0.95],
+        [1, 0, 0],
+        0.05,
+        test_name,
+    )
+    new = _face_side(rng, "scan", "added", [2.5, 2.0, 0.45], [2.85, 2.0, 0.95], [0, 1, 0], 0.03)
+    regions, _ = find_regions(
+        new.side.points,
+        kind="added",
+        changed=new.changed,
+        spacing=new.side.geometry.spacing,
+        distance=new.distance,
+        cluster_factor=2.5,
+        min_region_points=60,
+    )
+    assert len(regions) == 1
+    gap = np.min(np.linalg.norm(old.side.points[:, None] - new.side.points[None], axis=2))
+    assert gap > 2 * 0.1
+
+    found = turned_faces(
+        (old, new), regions, cluster_factor=2.5, min_region_points=60, change_threshold=0.1
+    )
+
+    assert [region.kind for region in found] == (["removed"] if kept else [])
 
 
 @pytest.mark.parametrize(

@@ -9,7 +9,11 @@ change of the other epoch, at the corner they share, at an angle.
 
 :func:`turned_faces` keeps such a small cluster as a region when it is an upright face whose
 points meet an upright region of the other epoch at an edge (the two faces' normals at more
-than 60 degrees, within two change thresholds): the object before and after it turned.  A
+than 60 degrees, within two change thresholds): the object before and after it turned.  Where
+no point of it lies that near, the two faces' planes may still meet in a vertical corner line
+within that reach of both (a path that saw each face only from a little off the corner they
+share: robot corridor 2800, the old backrest seen up to 0.17 m off it, the new one's changed
+points ending short of it, where both backrests lie within the change threshold).  A
 surface revealed where a removed object stood is none: it is level (the floor or a top under
 it) or parallel to the removed object's face that hid it (the wall behind it).  For the
 clouds the map test, the trajectory test or the station ray test judged
@@ -37,6 +41,7 @@ from app.core.localise.trajectory_visibility import TrajectoryTest
 from app.core.localise.visibility import Labelled
 
 __all__ = [
+    "CORNER_TESTS",
     "SMALL_FACE_TESTS",
     "ChangedPoints",
     "SmallClusters",
@@ -60,6 +65,14 @@ MIN_MEETING = 3
 """Fewer of its points meeting the other epoch's region than this say nothing."""
 MEETING_SHARE = 0.5
 """This share of its meeting points must meet the region's upright surface at an angle."""
+CORNER_NEIGHBOURS = 16
+"""The other region's points looked at per point of a face for the corner their planes meet in."""
+CORNER_TESTS = (MapTest.name, TrajectoryTest.name)
+"""The visibility tests whose clouds' small faces may meet a region at a corner line only
+(:func:`_corner_points`): maps from a moving sensor, whose paths saw each face of a turned
+object from places of their own.  Not the station ray test: on single street frames (the
+Lidar-SCU pairs of ``bench.label_digests``, ``c`` 0.51 m) its reach is a metre and 6-point
+faces of unknown truth met corner lines there."""
 
 
 class ChangedPoints(NamedTuple):
@@ -174,22 +187,72 @@ def _meets_at_angle(
     region_points: NDArray[np.int64],
     region_tree: KDTree,
     reach: float,
+    corner: bool = True,
 ) -> bool:
     """Whether the upright ``face`` (points, shape (p, 3)) meets the other cloud's
     ``region_points`` (indices, shape (r,); ``region_tree`` over their positions) at an edge:
     :data:`MIN_MEETING` of its points within ``reach`` of one, and :data:`MEETING_SHARE` of
-    those at an upright surface at an angle to it."""
+    those at an upright surface at an angle to it; or, with fewer points within ``reach``,
+    :data:`MIN_MEETING` of the region's points meet it at a corner line within ``reach`` of
+    both (:func:`_corner_points`, when ``corner``: a face seen only from a little off the
+    corner it shares with the other)."""
     normal = face_normal(face)
     if abs(normal[2]) >= UPRIGHT_NORMAL_Z:
         return False
     distance, index = region_tree.query(face, k=1, distance_upper_bound=reach)
     meeting = np.asarray(distance).ravel() <= reach
     if np.count_nonzero(meeting) < MIN_MEETING:
-        return False
+        if not corner:
+            return False
+        met_at = _corner_points(face, normal, other, region_points, region_tree, reach)
+        return met_at >= MIN_MEETING
     nearest = region_points[np.asarray(index, dtype=np.int64).ravel()[meeting]]
     met = other.geometry.normal[nearest].astype(np.float64)
     at_angle = (np.abs(met[:, 2]) < UPRIGHT_NORMAL_Z) & (np.abs(met @ normal) < EDGE_COSINE)
     return bool(np.mean(at_angle) >= MEETING_SHARE)
+
+
+def _corner_points(
+    face: NDArray[np.float64],
+    normal: NDArray[np.float64],
+    other: Side,
+    region_points: NDArray[np.int64],
+    region_tree: KDTree,
+    reach: float,
+) -> int:
+    """How many of the other cloud's ``region_points`` (indices, shape (r,); ``region_tree``
+    over their positions) lie on an upright surface at an angle to the upright ``face``
+    (points, shape (p, 3); unit ``normal``, shape (3,)) whose plane meets the face's plane in a
+    vertical corner line within ``reach`` of the point and of a point of the face at its
+    height: a face seen only from a little off the corner it shares with the other."""
+    k = min(CORNER_NEIGHBOURS, region_points.shape[0])
+    distance, index = region_tree.query(face, k=k, distance_upper_bound=2.0 * reach)
+    distance, index = np.asarray(distance).reshape(-1, k), np.asarray(index).reshape(-1, k)
+    near = region_points[np.unique(index[distance <= 2.0 * reach])]
+    if near.shape[0] == 0:
+        return 0
+    points = other.points[near]
+    met = other.geometry.normal[near].astype(np.float64)
+    along = normal[:2] / max(float(np.linalg.norm(normal[:2])), 1e-12)
+    across = met[:, :2] / np.maximum(np.linalg.norm(met[:, :2], axis=1), 1e-12)[:, None]
+    at_angle = (np.abs(met[:, 2]) < UPRIGHT_NORMAL_Z) & (np.abs(across @ along) < EDGE_COSINE)
+    # the corner line: on the face's plane and on each point's own plane (2 x 2 per point)
+    determinant = along[0] * across[:, 1] - along[1] * across[:, 0]
+    ok = at_angle & (np.abs(determinant) > 1e-6)
+    if not ok.any():
+        return 0
+    face_offset = float(along @ face.mean(axis=0)[:2])
+    own_offset = np.einsum("pd,pd->p", across[ok], points[ok, :2])
+    corner = np.column_stack(
+        [
+            (face_offset * across[ok, 1] - along[1] * own_offset) / determinant[ok],
+            (along[0] * own_offset - face_offset * across[ok, 0]) / determinant[ok],
+        ]
+    )
+    to_point = np.linalg.norm(points[ok, :2] - corner, axis=1) <= reach
+    to_face = np.linalg.norm(face[None, :, :2] - corner[:, None, :], axis=2) <= reach
+    level = np.abs(face[None, :, 2] - points[ok, 2][:, None]) <= reach
+    return int(np.count_nonzero(to_point & (to_face & level).any(axis=1)))
 
 
 def turned_faces(
@@ -242,6 +305,7 @@ def turned_faces(
                 other_points,
                 other_tree,
                 EDGE_FACTOR * change_threshold,
+                corner=own.test in CORNER_TESTS,
             )
         ]
     return kept
