@@ -26,7 +26,7 @@ from app.core.localise.map_sides import (
     inner_sides,
     surface_behind,
 )
-from app.core.localise.map_steps import split_steps
+from app.core.localise.map_steps import split_offsets, split_steps
 from app.core.localise.origin_free import UNMATCHED_FACTOR
 from app.core.localise.rays import Candidates
 from app.core.localise.regions import CLUSTER_NEIGHBOURS, cluster_labels
@@ -172,7 +172,8 @@ def surface_parts(
     if mixed.any():
         linked &= ~mixed[labels][:, None] | (level[neighbour] == level[:, None])
         labels = _components(linked, neighbour, count)
-    return split_steps(points, level, linked, neighbour, labels, step).astype(np.int64)
+    labels = split_steps(points, level, linked, neighbour, labels, step)
+    return split_offsets(points, unit, level, linked, neighbour, labels, step).astype(np.int64)
 
 
 def _components(

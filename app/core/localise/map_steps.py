@@ -1,4 +1,4 @@
-"""The map test's stepped level parts: a level part made of two level surfaces at different
+"""The map test's stepped parts: a level part made of two level surfaces at different
 heights, chained only through links steeper than any level surface.
 
 :func:`~app.core.localise.map_parts.surface_parts` links neighbouring candidates whose normals
@@ -10,7 +10,9 @@ difference with it).  A link between two points of one level surface rises less 
 their normals are within 45 degrees of vertical
 (:data:`~app.core.localise.map_sides.LEVEL_NORMAL_Z`), so the surface between them slopes less
 than 45 degrees.  A level part that falls into two sizeable pieces once its steeper links are
-cut, the pieces' heights a step apart, is two surfaces (:func:`split_steps`).
+cut, the pieces' heights a step apart, is two surfaces (:func:`split_steps`).  An upright
+part is split the same way across its own normal (:func:`split_offsets`): a box's face chained
+to the wall behind it through the box's smeared edge.
 """
 
 from __future__ import annotations
@@ -18,9 +20,10 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from app.core.localise.map_sides import LEVEL_NORMAL_Z
 from app.core.localise.regions import CLUSTER_NEIGHBOURS
 
-__all__ = ["STEP_SHARE", "split_steps"]
+__all__ = ["STEP_SHARE", "split_offsets", "split_steps"]
 
 STEP_SHARE = 0.25
 """The share of a level part's candidates each of two pieces needs for the part to be split
@@ -97,6 +100,87 @@ def split_steps(
             continue
         heights = [np.median(points[members[inverse == n], 2]) for n in np.flatnonzero(large)]
         split[part] = max(heights) - min(heights) >= step
+    if not split.any():
+        return labels
+    key = np.where(split[labels], labels.max() + 1 + pieces, labels)
+    return np.unique(key, return_inverse=True)[1].astype(np.int64)
+
+
+def split_offsets(
+    points: NDArray[np.float64],
+    unit: NDArray[np.float64],
+    level: NDArray[np.bool_],
+    linked: NDArray[np.bool_],
+    neighbour: NDArray[np.int64],
+    labels: NDArray[np.int64],
+    step: float | None,
+) -> NDArray[np.int64]:
+    """Split each mostly upright part whose facing candidates chain two parallel surfaces a
+    ``step`` or more apart along the part's normal through links steeper than 45 degrees to
+    them: :func:`split_steps` turned on its side.
+
+    A box's front face and the wall behind it face the same way; where the box's edge is
+    smeared (a drifting RGB-D map fuses it from several poses), the normals there turn
+    gradually from the face's to the side's and back to the wall's, and the face, the smeared
+    edge and a wall band the other map lacks become one part, judged as a whole (drift room
+    402: the band's coverage verdict took the box).  Within one upright surface a link runs
+    more along the surface than across it; a part that falls into two sizeable pieces once its
+    links that go more across the part's plane than along it are cut, the pieces a ``step``
+    apart along its normal, is two surfaces.
+
+    Parameters
+    ----------
+    points, unit : ndarray, shape (c, 3)
+        The candidates and their unit normals.
+    level : ndarray, shape (c,), bool
+        Whether each candidate's normal is level.
+    linked : ndarray, shape (c, k), bool
+        Whether each candidate is linked to each of its ``neighbour`` candidates.
+    neighbour : ndarray, shape (c, k), int64
+        Each candidate's neighbours (indices into ``points``).
+    labels : ndarray, shape (c,), int64
+        The part of each candidate, ``0 .. parts - 1``.
+    step : float or None
+        None: no split.  The least distance between two parallel surfaces told apart (metres).
+
+    Returns
+    -------
+    ndarray, shape (c,), int64
+        Part labels, ``0 .. parts' - 1``, the split parts' pieces numbered after the rest.
+    """
+    if step is None or labels.shape[0] == 0:
+        return labels
+    sizes = np.bincount(labels).astype(np.float64)
+    level_share = np.bincount(labels, weights=level.astype(np.float64), minlength=sizes.shape[0])
+    upright = (level_share <= STEP_SHARE * sizes) & (sizes >= 2 * CLUSTER_NEIGHBOURS)
+    if not upright.any():
+        return labels
+    # each part's normal: its candidates' normals, turned to one side, summed
+    axis = np.zeros((sizes.shape[0], 3))
+    for part in np.flatnonzero(upright):
+        members = unit[labels == part]
+        members = members * np.where(members @ members[0] >= 0.0, 1.0, -1.0)[:, None]
+        axis[part] = members.sum(axis=0) / max(np.linalg.norm(members.sum(axis=0)), 1e-12)
+    normal = axis[labels]
+    facing = np.abs(np.einsum("cd,cd->c", unit, normal)) >= LEVEL_NORMAL_Z
+    offset = points[neighbour] - points[:, None, :]
+    rise = np.abs(np.einsum("ckd,cd->ck", offset, normal))
+    run = np.sqrt(np.maximum(np.einsum("ckd,ckd->ck", offset, offset) - rise**2, 0.0))
+    steep = facing[:, None] & facing[neighbour] & (rise > run) & upright[labels][:, None]
+    cut = linked & ~steep
+    if np.array_equal(cut, linked):
+        return labels
+    pieces = _pieces(cut, neighbour)
+    split = np.zeros(sizes.shape[0], dtype=bool)
+    for part in np.flatnonzero(upright):
+        members = np.flatnonzero(labels == part)
+        _, inverse, counts = np.unique(pieces[members], return_inverse=True, return_counts=True)
+        large = counts >= max(STEP_SHARE * members.shape[0], CLUSTER_NEIGHBOURS)
+        if np.count_nonzero(large) < 2:
+            continue
+        depth = points[members] @ axis[part]
+        offsets = [np.median(depth[inverse == n]) for n in np.flatnonzero(large)]
+        split[part] = max(offsets) - min(offsets) >= step
     if not split.any():
         return labels
     key = np.where(split[labels], labels.max() + 1 + pieces, labels)
