@@ -367,7 +367,9 @@ def map_test(
             tolerance=threshold,
         )
         upright, counted = figures.upright, other_unmatched & ~gap
-        layer = LAYER_FACTOR * change_threshold
+        # a surface the other epoch has round the part: a layer on it hid it (map_shared)
+        layer = np.where(figures.continuation_share >= PLAIN_CONTINUATION_SHARE, LAYER_FACTOR, 0.0)
+        layer = layer * change_threshold
         behind = seen_through(candidates, chosen, labels, upright, other, counted, threshold, layer)
         return _share_per_part(labels[chosen], behind, share)
 

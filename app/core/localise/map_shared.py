@@ -160,7 +160,7 @@ def seen_through(
     other: Side,
     counted: NDArray[np.bool_],
     tolerance: float,
-    layer: float = 0.0,
+    layer: NDArray[np.float64] | None = None,
 ) -> NDArray[np.bool_]:
     """Whether the other cloud's ``counted`` points (shape (m,), bool) lie on the normal line
     of each ``chosen`` candidate (indices, shape (k,) -> (k,), bool;
@@ -174,15 +174,18 @@ def seen_through(
     hid the part from them (robot office 303: the reference's desk top over a floor patch only
     the scan's lidar saw, from the side, under the desk).  An upright part's sensors may stand
     on either side of it: every counted surface on its normal line is evidence (the wall
-    behind a turned backrest: RGB-D room 1103), except, with ``layer`` > 0, surface within
-    ``layer`` of it (:func:`layered_behind`)."""
+    behind a turned backrest: RGB-D room 1103), except, for the upright parts with a
+    ``layer`` (shape (parts,), metres, 0: none), surface within it (:func:`layered_behind`)."""
     points, normal, labels = candidates.points[chosen], candidates.normal[chosen], labels[chosen]
     found = np.zeros(points.shape[0], dtype=bool)
     sides = upright[labels]
-    if layer > 0.0:
-        found[sides] = layered_behind(points[sides], normal[sides], other, counted, layer)
-    else:
-        found[sides] = surface_behind(points[sides], normal[sides], other, counted)
+    layered = sides & ((np.zeros(upright.shape[0]) if layer is None else layer)[labels] > 0.0)
+    plain = sides & ~layered
+    found[plain] = surface_behind(points[plain], normal[plain], other, counted)
+    if layered.any():
+        found[layered] = layered_behind(
+            points[layered], normal[layered], other, counted, layer[labels[layered]]
+        )
     height = other.points[:, 2]
     for part in np.unique(labels[~sides]):
         members = np.flatnonzero(labels == part)
@@ -196,11 +199,11 @@ def layered_behind(
     normal: NDArray[np.floating],
     other: Side,
     counted: NDArray[np.bool_],
-    layer: float,
+    layer: NDArray[np.float64],
 ) -> NDArray[np.bool_]:
     """Whether the other cloud's ``counted`` surface lies on each point's normal line farther
-    than ``layer`` (metres) from it, on a side where none lies nearer (shapes (c, 3) ->
-    (c,); :func:`~app.core.localise.map_sides.oriented_depths`).
+    than its ``layer`` (metres, shape (c,)) from it, on a side where none lies nearer (shapes
+    (c, 3) -> (c,); :func:`~app.core.localise.map_sides.oriented_depths`).
 
     Asked for a part whose surface the other epoch has round it (it carries on past the
     part's border): the other epoch saw that surface there from its open side.  Its lacking
