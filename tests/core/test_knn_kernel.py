@@ -132,6 +132,28 @@ def test_the_kernel_flags_the_points_it_cannot_order():
     assert kth[1:].tolist() == [1.0, 1.0, 9.0, 25.0 + 4.0 + 25.0]
 
 
+def _assert_self_neighbours_are_a_brute_force_sorts(points: np.ndarray, k1: int) -> None:
+    """The kernel's k1 nearest of each of ``points`` (shape (n, 3)) among them, their tie flags,
+    tie count and k1-th squared distances, against a brute-force sort (the same arithmetic)."""
+    offset = points[None, :, :] - points[:, None, :]
+    squared = offset[..., 0] * offset[..., 0] + offset[..., 1] * offset[..., 1]
+    squared = squared + offset[..., 2] * offset[..., 2]
+    nearest = np.sort(squared, axis=1)[:, : k1 + 1]
+    expected_tie = (np.diff(nearest, axis=1) == 0).any(axis=1)
+    index = np.empty((len(points), k1), np.uint32)
+    kth = np.empty(len(points))
+    tie = np.empty(len(points), np.uint8)
+    ties = KERNEL.self_neighbours(
+        KERNEL.build_tree(points), k1, index, kth, tie, np.zeros(1, np.uint8)
+    )
+    assert ties == expected_tie.sum()
+    assert np.array_equal(tie.astype(bool), expected_tie)
+    unique = ~expected_tie
+    order = np.argsort(squared, axis=1, kind="stable")[:, :k1]
+    assert np.array_equal(index[unique], order[unique])
+    assert np.array_equal(kth[unique], nearest[unique, k1 - 1])
+
+
 @needs_kernel
 @pytest.mark.parametrize("k1", [2, 5, 11])
 def test_the_tie_flags_are_those_of_a_brute_force_sort(k1):
@@ -142,23 +164,7 @@ def test_the_tie_flags_are_those_of_a_brute_force_sort(k1):
     rng = np.random.default_rng(11)
     for _ in range(20):
         points = np.round(rng.uniform(0, 1, size=(int(rng.integers(40, 400)), 3)), 1)
-        offset = points[None, :, :] - points[:, None, :]
-        squared = offset[..., 0] * offset[..., 0] + offset[..., 1] * offset[..., 1]
-        squared = squared + offset[..., 2] * offset[..., 2]
-        nearest = np.sort(squared, axis=1)[:, : k1 + 1]
-        expected_tie = (np.diff(nearest, axis=1) == 0).any(axis=1)
-        index = np.empty((len(points), k1), np.uint32)
-        kth = np.empty(len(points))
-        tie = np.empty(len(points), np.uint8)
-        ties = KERNEL.self_neighbours(
-            KERNEL.build_tree(points), k1, index, kth, tie, np.zeros(1, np.uint8)
-        )
-        assert ties == expected_tie.sum()
-        assert np.array_equal(tie.astype(bool), expected_tie)
-        unique = ~expected_tie
-        order = np.argsort(squared, axis=1, kind="stable")[:, :k1]
-        assert np.array_equal(index[unique], order[unique])
-        assert np.array_equal(kth[unique], nearest[unique, k1 - 1])
+        _assert_self_neighbours_are_a_brute_force_sorts(points, k1)
 
 
 @needs_kernel
@@ -184,22 +190,7 @@ def test_the_own_leaf_bound_skips_no_neighbour(k1):
         points += rng.uniform(-1e3, 1e3, size=3)
         if len(points) < k1 + 1:
             continue
-        offset = points[None, :, :] - points[:, None, :]
-        squared = offset[..., 0] * offset[..., 0] + offset[..., 1] * offset[..., 1]
-        squared = squared + offset[..., 2] * offset[..., 2]
-        nearest = np.sort(squared, axis=1)[:, : k1 + 1]
-        expected_tie = (np.diff(nearest, axis=1) == 0).any(axis=1)
-        index = np.empty((len(points), k1), np.uint32)
-        kth = np.empty(len(points))
-        tie = np.empty(len(points), np.uint8)
-        KERNEL.self_neighbours(
-            KERNEL.build_tree(points), k1, index, kth, tie, np.zeros(1, np.uint8)
-        )
-        assert np.array_equal(tie.astype(bool), expected_tie)
-        unique = ~expected_tie
-        order = np.argsort(squared, axis=1, kind="stable")[:, :k1]
-        assert np.array_equal(index[unique], order[unique])
-        assert np.array_equal(kth[unique], nearest[unique, k1 - 1])
+        _assert_self_neighbours_are_a_brute_force_sorts(points, k1)
 
 
 @needs_kernel

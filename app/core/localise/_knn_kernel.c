@@ -207,6 +207,42 @@ typedef struct {
     uint32_t *passing; /* the places in that leaf of those no farther than the point's k1-th */
 } Work;
 
+/* The squared distances from point to each of a leaf's count points (axis arrays xs, ys, zs), in
+   scratch: the same arithmetic (x^2 + y^2, then + z^2) wherever a distance is compared. */
+static inline void leaf_squared(const double *xs, const double *ys, const double *zs,
+                                uint32_t count, const double point[3], double *scratch)
+{
+    for (uint32_t j = 0; j < count; j++) {
+        double dx = xs[j] - point[0], dy = ys[j] - point[1], dz = zs[j] - point[2];
+        double squared = dx * dx + dy * dy;
+        scratch[j] = squared + dz * dz;
+    }
+}
+
+/* One candidate (squared distance, tree position at) offered to a full list of k1 (best,
+   best_at, ascending) whose k1-th is *limit: kept in order when nearer, pushing the k1-th out;
+   *equal set when one as far as the k1-th is not kept, cleared when the k1-th gets nearer. */
+static inline void offer(double *best, uint32_t *best_at, int k1, double squared, uint32_t at,
+                         double *limit, uint8_t *equal)
+{
+    if (squared < *limit) {
+        int slot = k1 - 1;
+        while (slot > 0 && best[slot - 1] > squared) {
+            best[slot] = best[slot - 1];
+            best_at[slot] = best_at[slot - 1];
+            slot--;
+        }
+        best[slot] = squared;
+        best_at[slot] = at;
+        /* the one pushed out was at the old limit */
+        *equal = !(best[k1 - 1] < *limit);
+        *limit = best[k1 - 1];
+    }
+    else if (squared == *limit) {
+        *equal = 1;
+    }
+}
+
 /* One reached leaf scanned for each of the own leaf's points that may find a neighbour in it.
    A point's k1 nearest so far are kept; one as far as the k1-th but not kept (seen, or pushed
    out by a nearer one while another as far stays) sets its equal flag, which a nearer k1-th
@@ -247,11 +283,7 @@ static void scan_leaf(const Tree *own_tree, const Node *own, const Tree *tree, c
             work->equal[i] = equal;
             continue;
         }
-        for (uint32_t j = 0; j < node->count; j++) {
-            double dx = xs[j] - point[0], dy = ys[j] - point[1], dz = zs[j] - point[2];
-            double squared = dx * dx + dy * dy;
-            work->scratch[j] = squared + dz * dz;
-        }
+        leaf_squared(xs, ys, zs, node->count, point, work->scratch);
         /* those no farther than the limit listed without a branch (most are farther) */
         uint32_t passed = 0;
         for (uint32_t j = 0; j < node->count; j++) {
@@ -261,23 +293,7 @@ static void scan_leaf(const Tree *own_tree, const Node *own, const Tree *tree, c
         uint8_t equal = work->equal[i];
         for (uint32_t candidate = 0; candidate < passed; candidate++) {
             uint32_t j = work->passing[candidate];
-            double squared = work->scratch[j];
-            if (squared < limit) {
-                int slot = k1 - 1;
-                while (slot > 0 && best[slot - 1] > squared) {
-                    best[slot] = best[slot - 1];
-                    best_at[slot] = best_at[slot - 1];
-                    slot--;
-                }
-                best[slot] = squared;
-                best_at[slot] = node->start + j;
-                /* the one pushed out was at the old limit */
-                equal = !(best[k1 - 1] < limit);
-                limit = best[k1 - 1];
-            }
-            else if (squared == limit) {
-                equal = 1;
-            }
+            offer(best, best_at, k1, work->scratch[j], node->start + j, &limit, &equal);
         }
         work->equal[i] = equal;
     }
@@ -312,11 +328,7 @@ static void scan_own_leaf(const Tree *tree, const Node *own, int k1, Work *work)
         double point[3] = {xs[i], ys[i], zs[i]};
         double *best = work->best + (size_t)i * k1;
         uint32_t *best_at = work->best_at + (size_t)i * k1;
-        for (uint32_t j = 0; j < own->count; j++) {
-            double dx = xs[j] - point[0], dy = ys[j] - point[1], dz = zs[j] - point[2];
-            double squared = dx * dx + dy * dy;
-            work->scratch[j] = squared + dz * dz;
-        }
+        leaf_squared(xs, ys, zs, own->count, point, work->scratch);
         double bounds[3] = {INFINITY, INFINITY, INFINITY};
         if (i > 0 && best[-1] < INFINITY) { /* best[-1]: the k1-th of the point before */
             bounds[0] = OWN_LEAF_GUESS * best[-1];
@@ -351,22 +363,7 @@ static void scan_own_leaf(const Tree *tree, const Node *own, int k1, Work *work)
         uint8_t equal = filled < k1; /* as scan_leaf leaves it: a list not full */
         for (; candidate < passed; candidate++) {
             uint32_t j = work->passing[candidate];
-            double squared = work->scratch[j];
-            if (squared < limit) {
-                int slot = k1 - 1;
-                while (slot > 0 && best[slot - 1] > squared) {
-                    best[slot] = best[slot - 1];
-                    best_at[slot] = best_at[slot - 1];
-                    slot--;
-                }
-                best[slot] = squared;
-                best_at[slot] = own->start + j;
-                equal = !(best[k1 - 1] < limit);
-                limit = best[k1 - 1];
-            }
-            else if (squared == limit) {
-                equal = 1;
-            }
+            offer(best, best_at, k1, work->scratch[j], own->start + j, &limit, &equal);
         }
         work->equal[i] = equal;
     }
