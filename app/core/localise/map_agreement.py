@@ -27,15 +27,9 @@ from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE
 from app.core.localise.interface import FaceBorder
-from app.core.localise.map_faces import (
-    EDGE_COSINE,
-    EDGE_FACTOR,
-    MEETING_NEIGHBOURS,
-    meeting_planes,
-)
+from app.core.localise.map_faces import EDGE_FACTOR, meeting_planes
 from app.core.localise.map_parts import SURROUND_REACH
 from app.core.localise.settings import GATHER_CHUNK
-from app.core.localise.surface import weighted_plane
 
 __all__ = ["changed_share", "faces_meeting_changes", "faces_of_changes"]
 
@@ -52,56 +46,6 @@ MIN_MEETING = 5
 """Fewer such border points than this say nothing."""
 AGREEMENT_NEIGHBOURS = 256
 """The other epoch's points looked at around a border point (within the reach)."""
-DOMINANT_NEIGHBOURS = 4 * MEETING_NEIGHBOURS
-"""The other epoch's points among which the surface meeting a border point is sought (within
-twice :data:`~app.core.localise.map_faces.EDGE_FACTOR` change thresholds)."""
-
-
-def dominant_meeting_planes(
-    points: NDArray[np.float64], toward: NDArray[np.float64], other: Side, reach: float
-) -> tuple[NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64]]:
-    """The plane of the other cloud's surface meeting each point at an edge (shapes (b, 3),
-    (b, 3) -> (b,), (b, 3), (b, 3)): of its :data:`DOMINANT_NEIGHBOURS` nearest points within
-    ``reach`` whose normals are at more than 60 degrees to ``toward``, those whose normals
-    agree (:data:`~app.core.localise.gaps.NORMAL_AGREEMENT_COSINE`) with the normal most of
-    them agree with, fitted to their positions.
-
-    :func:`~app.core.localise.map_faces.meeting_planes` fits the 16 nearest such points: at a
-    corner a fused map smears (drift: the turned backrest's samples doubled a few centimetres
-    apart where it meets the old one, normals leaning every way) they span a few centimetres
-    each way and fit a diagonal plane no surface lies on, so none of the surface's samples
-    beyond the corner are on it (RGB-D room 1403: the old backrest's corner border points
-    judged 0 of the turned backrest's changed samples, 4-101 with this).  Among more samples,
-    the surface most of them belong to is the one meeting the point.
-
-    Returns
-    -------
-    found : ndarray, shape (b,), bool
-        At least three such points.
-    centroid, normal : ndarray, shape (b, 3)
-    """
-    k = min(DOMINANT_NEIGHBOURS, other.points.shape[0])
-    distance, index = other.geometry.tree.query(points, k=k, distance_upper_bound=reach)
-    distance = np.asarray(distance).reshape(points.shape[0], k)
-    index = np.minimum(np.asarray(index).reshape(points.shape[0], k), other.points.shape[0] - 1)
-    normals = other.geometry.normal[index].astype(np.float64)
-    candidate = (distance <= reach) & (
-        np.abs(np.einsum("bkd,bd->bk", normals, toward)) < EDGE_COSINE
-    )
-    agree = np.abs(np.einsum("bkd,bjd->bkj", normals, normals)) >= NORMAL_AGREEMENT_COSINE
-    agree &= candidate[:, :, None] & candidate[:, None, :]
-    best = np.argmax(agree.sum(axis=2), axis=1)
-    weight = agree[np.arange(points.shape[0]), best].astype(np.float64)
-    found = weight.sum(axis=1) >= 3
-    centroid, values, vectors = weighted_plane(other.points[index], weight)
-    normal = vectors[:, :, 0]
-    # points along a line fit no plane: their mean normal then
-    reference = normals[np.arange(points.shape[0]), best]
-    signs = np.where(np.einsum("bkd,bd->bk", normals, reference) < 0, -1.0, 1.0)
-    mean = np.einsum("bk,bkd->bd", weight * signs, normals)
-    mean /= np.maximum(np.linalg.norm(mean, axis=1), 1e-12)[:, None]
-    flat = values[:, 1] >= 0.01 * values[:, 2]
-    return found, centroid, np.where(flat[:, None], normal, mean)
 
 
 def changed_share(
@@ -119,7 +63,7 @@ def changed_share(
     The surface meeting a point at an edge is a plane fitted to the other cloud's points near
     it (within :data:`~app.core.localise.map_faces.EDGE_FACTOR` change thresholds), two ways:
     to the 16 nearest (:func:`~app.core.localise.map_faces.meeting_planes`) and to those of
-    the 64 nearest whose normals most agree (:func:`dominant_meeting_planes`); the larger
+    the 64 nearest whose normals most agree (``dominant``); the larger
     share counts.  The nearest fit finds a surface meeting a clean corner close by (clean
     RGB-D room 803's turned chair: 94 % with it, 80 % with the dominant fit alone), the
     dominant fit one meeting a corner the drift smeared (room 1403: 25 % -> 91 %).  Its
@@ -137,14 +81,20 @@ def changed_share(
     unit = normal.astype(np.float64)
     unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-12)[:, None]
     reach = EDGE_FACTOR * change_threshold
+    k = min(AGREEMENT_NEIGHBOURS, other.points.shape[0])
     for start in range(0, count, GATHER_CHUNK):
         chunk = slice(start, start + GATHER_CHUNK)
         query = points[chunk]
-        for fit in (meeting_planes, dominant_meeting_planes):
-            plane = fit(query, unit[chunk], other, 2.0 * reach)
+        distance, index = other.geometry.tree.query(query, k=k, distance_upper_bound=SURROUND_REACH)
+        distance = np.asarray(distance).reshape(query.shape[0], k)
+        index = np.minimum(np.asarray(index).reshape(query.shape[0], k), other.points.shape[0] - 1)
+        for dominant in (False, True):
+            plane = meeting_planes(query, unit[chunk], other, 2.0 * reach, dominant=dominant)
             share[chunk] = np.maximum(
                 share[chunk],
-                _share_on_plane(query, plane, other, other_label, reach, tolerance),
+                _share_on_plane(
+                    query, plane, (distance, index), other, other_label, reach, tolerance
+                ),
             )
     return share
 
@@ -152,20 +102,19 @@ def changed_share(
 def _share_on_plane(
     query: NDArray[np.float64],
     plane: tuple[NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64]],
+    near: tuple[NDArray[np.float64], NDArray[np.int64]],
     other: Side,
     other_label: NDArray[np.int8],
     reach: float,
     tolerance: float,
 ) -> NDArray[np.float64]:
     """The share of :func:`changed_share` for each of ``query`` (shape (b, 3) -> (b,)) on one
-    fitted meeting ``plane`` (found (b,), centroid (b, 3), normal (b, 3))."""
+    fitted meeting ``plane`` (found (b,), centroid (b, 3), normal (b, 3)), given the other
+    cloud's points ``near`` each (distances and indices, shapes (b, k))."""
     found, centroid, plane_normal = plane
-    k = min(AGREEMENT_NEIGHBOURS, other.points.shape[0])
+    distance, index = near
     height = np.einsum("cd,cd->c", query - centroid, plane_normal)
     meets = found & (np.abs(height) <= reach)
-    distance, index = other.geometry.tree.query(query, k=k, distance_upper_bound=SURROUND_REACH)
-    distance = np.asarray(distance).reshape(query.shape[0], k)
-    index = np.minimum(np.asarray(index).reshape(query.shape[0], k), other.points.shape[0] - 1)
     offset = other.points[index] - (query - height[:, None] * plane_normal)[:, None, :]
     along = np.linalg.norm(offset, axis=2)
     across = np.abs(np.einsum("ckd,cd->ck", offset, plane_normal))

@@ -49,6 +49,9 @@ PROBE_SPACINGS = 1.5
 PROBE_MIN_RADIUS = 0.05
 PROBE_NEIGHBOURS = 4
 MEETING_NEIGHBOURS = 16
+"""The other epoch's points a meeting surface is fitted to."""
+DOMINANT_NEIGHBOURS = 4 * MEETING_NEIGHBOURS
+"""The other epoch's points among which a meeting surface's dominant samples are sought."""
 
 
 def _on_plane(
@@ -71,12 +74,24 @@ def _on_plane(
 
 
 def meeting_planes(
-    points: NDArray[np.float64], toward: NDArray[np.float64], other: Side, reach: float
+    points: NDArray[np.float64],
+    toward: NDArray[np.float64],
+    other: Side,
+    reach: float,
+    *,
+    dominant: bool = False,
 ) -> tuple[NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64]]:
     """The plane of the other cloud's surface meeting each point at an edge: fitted to its
     :data:`MEETING_NEIGHBOURS` nearest points within ``reach`` whose normals are at more than
     60 degrees to ``toward`` (a fit to the points' positions: near a corner of a sparse cloud
     each point's own normal leans towards the other face).
+
+    ``dominant``: fitted instead to those of its :data:`DOMINANT_NEIGHBOURS` nearest such points
+    whose normals agree (:data:`~app.core.localise.gaps.NORMAL_AGREEMENT_COSINE`) with the
+    normal most of them agree with.  At a corner a fused map smears (drift: a turned backrest's
+    samples doubled a few centimetres apart where it meets the old one, normals leaning every
+    way) the nearest span a few centimetres each way and fit a diagonal plane no surface lies
+    on; among more samples, the surface most of them belong to is the one meeting the point.
 
     Returns
     -------
@@ -84,25 +99,32 @@ def meeting_planes(
         At least three such points.
     centroid, normal : ndarray, shape (b, 3)
     """
-    k = min(MEETING_NEIGHBOURS, other.points.shape[0])
+    k = min(DOMINANT_NEIGHBOURS if dominant else MEETING_NEIGHBOURS, other.points.shape[0])
     distance, index = other.geometry.tree.query(points, k=k, distance_upper_bound=reach)
     distance = np.asarray(distance).reshape(points.shape[0], k)
     index = np.minimum(np.asarray(index).reshape(points.shape[0], k), other.points.shape[0] - 1)
     normals = other.geometry.normal[index].astype(np.float64)
-    weight = (
-        (distance <= reach) & (np.abs(np.einsum("bkd,bd->bk", normals, toward)) < EDGE_COSINE)
-    ).astype(np.float64)
+    candidate = (distance <= reach) & (
+        np.abs(np.einsum("bkd,bd->bk", normals, toward)) < EDGE_COSINE
+    )
+    rows = np.arange(points.shape[0])
+    if dominant:
+        agree = np.abs(np.einsum("bkd,bjd->bkj", normals, normals)) >= NORMAL_AGREEMENT_COSINE
+        agree &= candidate[:, :, None] & candidate[:, None, :]
+        first = np.argmax(agree.sum(axis=2), axis=1)
+        weight = agree[rows, first].astype(np.float64)
+    else:
+        weight = candidate.astype(np.float64)
+        first = np.argmax(weight, axis=1)
     found = weight.sum(axis=1) >= 3
     centroid, values, vectors = weighted_plane(other.points[index], weight)
     normal = vectors[:, :, 0]
     # points along a line fit no plane: their mean normal then
-    reference = normals[np.arange(points.shape[0]), np.argmax(weight, axis=1)]
-    signs = np.where(np.einsum("bkd,bd->bk", normals, reference) < 0, -1.0, 1.0)
+    signs = np.where(np.einsum("bkd,bd->bk", normals, normals[rows, first]) < 0, -1.0, 1.0)
     mean = np.einsum("bk,bkd->bd", weight * signs, normals)
     mean /= np.maximum(np.linalg.norm(mean, axis=1), 1e-12)[:, None]
     flat = values[:, 1] >= 0.01 * values[:, 2]
-    normal = np.where(flat[:, None], normal, mean)
-    return found, centroid, normal
+    return found, centroid, np.where(flat[:, None], normal, mean)
 
 
 def _joins(
