@@ -88,22 +88,11 @@ def split_steps(
     run = np.hypot(*(points[neighbour, axis] - points[:, None, axis] for axis in (0, 1)))
     steep = level[:, None] & level[neighbour] & (rise > run)
     cut = linked & ~(steep & mostly_level[labels][:, None])
-    if np.array_equal(cut, linked):
-        return labels
-    pieces = _pieces(cut, neighbour)
-    split = np.zeros(sizes.shape[0], dtype=bool)
-    for part in np.flatnonzero(mostly_level & (sizes >= 2)):
-        members = np.flatnonzero(labels == part)
-        _, inverse, counts = np.unique(pieces[members], return_inverse=True, return_counts=True)
-        large = counts >= max(STEP_SHARE * members.shape[0], CLUSTER_NEIGHBOURS)
-        if np.count_nonzero(large) < 2:
-            continue
-        heights = [np.median(points[members[inverse == n], 2]) for n in np.flatnonzero(large)]
-        split[part] = max(heights) - min(heights) >= step
-    if not split.any():
-        return labels
-    key = np.where(split[labels], labels.max() + 1 + pieces, labels)
-    return np.unique(key, return_inverse=True)[1].astype(np.int64)
+    up = np.zeros((sizes.shape[0], 3))
+    up[:, 2] = 1.0
+    return _split_apart(
+        points, labels, cut, linked, neighbour, mostly_level & (sizes >= 2), up, step
+    )
 
 
 def split_offsets(
@@ -167,20 +156,38 @@ def split_offsets(
     rise = np.abs(np.einsum("ckd,cd->ck", offset, normal))
     run = np.sqrt(np.maximum(np.einsum("ckd,ckd->ck", offset, offset) - rise**2, 0.0))
     steep = facing[:, None] & facing[neighbour] & (rise > run) & upright[labels][:, None]
-    cut = linked & ~steep
+    return _split_apart(points, labels, linked & ~steep, linked, neighbour, upright, axis, step)
+
+
+def _split_apart(
+    points: NDArray[np.float64],
+    labels: NDArray[np.int64],
+    cut: NDArray[np.bool_],
+    linked: NDArray[np.bool_],
+    neighbour: NDArray[np.int64],
+    tried: NDArray[np.bool_],
+    direction: NDArray[np.float64],
+    step: float,
+) -> NDArray[np.int64]:
+    """Each ``tried`` part (shape (parts,)) that the ``cut`` links (shape (c, k), a subset of
+    ``linked``) leave in two or more sizeable pieces (each >= :data:`STEP_SHARE` of the part
+    and :data:`~app.core.localise.regions.CLUSTER_NEIGHBOURS` candidates) whose median
+    positions along the part's ``direction`` (shape (parts, 3)) differ by ``step`` or more,
+    split into its pieces; part labels ``0 .. parts' - 1``, the pieces numbered after the
+    rest (shape (c,))."""
     if np.array_equal(cut, linked):
         return labels
     pieces = _pieces(cut, neighbour)
-    split = np.zeros(sizes.shape[0], dtype=bool)
-    for part in np.flatnonzero(upright):
+    split = np.zeros(tried.shape[0], dtype=bool)
+    for part in np.flatnonzero(tried):
         members = np.flatnonzero(labels == part)
         _, inverse, counts = np.unique(pieces[members], return_inverse=True, return_counts=True)
         large = counts >= max(STEP_SHARE * members.shape[0], CLUSTER_NEIGHBOURS)
         if np.count_nonzero(large) < 2:
             continue
-        depth = points[members] @ axis[part]
-        offsets = [np.median(depth[inverse == n]) for n in np.flatnonzero(large)]
-        split[part] = max(offsets) - min(offsets) >= step
+        along = points[members] @ direction[part]
+        medians = [np.median(along[inverse == n]) for n in np.flatnonzero(large)]
+        split[part] = max(medians) - min(medians) >= step
     if not split.any():
         return labels
     key = np.where(split[labels], labels.max() + 1 + pieces, labels)
