@@ -61,7 +61,7 @@ STAGES = (
     ("surface levels near the threshold", "app.core.localise.changes", "surface_offset_candidates"),
     ("candidates", "app.core.localise.changes", "find_candidates"),
     ("ray test", "app.core.localise.changes", "label_candidates"),
-    ("regions (changed and unobserved)", "app.core.localise.changes", "find_regions"),
+    ("regions (changed and unobserved)", "app.core.localise.changed_regions", "find_regions"),
 )
 """(label, module, public function looked up in that module at call time).  The first eight
 follow one another; the others are parts of "reference neighbourhoods" and "localise"."""
