@@ -65,6 +65,9 @@ STAGES = (
 )
 """(label, module, public function looked up in that module at call time).  The first eight
 follow one another; the others are parts of "reference neighbourhoods" and "localise"."""
+FORMER_STAGES = (("regions (changed and unobserved)", "app.core.localise.changes", "find_regions"),)
+"""Where a baseline from before a move has a stage (the regions' step left ``changes`` in
+s27), timed too; a module or function a checkout lacks is skipped."""
 
 CHILD = textwrap.dedent(
     """
@@ -89,8 +92,12 @@ CHILD = textwrap.dedent(
         return wrapper
 
     for label, module_name, name in stages:
-        module = importlib.import_module(module_name)
-        setattr(module, name, timed(label, getattr(module, name)))
+        try:  # a stage another checkout does not have (a baseline's) is left out
+            module = importlib.import_module(module_name)
+        except ImportError:
+            continue
+        if hasattr(module, name):
+            setattr(module, name, timed(label, getattr(module, name)))
     from app.cli import main
 
     sys.argv = ["scandiff", *sys.argv[2:]]
@@ -114,7 +121,7 @@ def run_child(code_root: Path, reference: Path, scan: Path, labels: Path) -> dic
     """One profiled ``scandiff compare`` of the pair (one thread); its CPU seconds by stage."""
     environment = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(code_root))
     arguments = ["compare", str(reference), str(scan), "--json", "--labels", str(labels)]
-    command = [sys.executable, "-c", CHILD, json.dumps(STAGES), *arguments]
+    command = [sys.executable, "-c", CHILD, json.dumps([*STAGES, *FORMER_STAGES]), *arguments]
     completed = subprocess.run(
         command, cwd=code_root, env=environment, capture_output=True, text=True, check=False
     )
