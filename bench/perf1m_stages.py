@@ -62,6 +62,8 @@ STAGES = (
     ("candidates", "app.core.localise.changes", "find_candidates"),
     ("ray test", "app.core.localise.changes", "label_candidates"),
     ("regions (changed and unobserved)", "app.core.localise.changed_regions", "find_regions"),
+    ("regions (changed and unobserved)", "app.core.localise.changed_regions", "cluster_changed"),
+    ("small-cluster rules", "app.core.localise.changed_regions", "with_small_faces"),
 )
 """(label, module, public function looked up in that module at call time).  The first eight
 follow one another; the others are parts of "reference neighbourhoods" and "localise"."""
