@@ -181,16 +181,15 @@ def _thread_seconds(samples: list[tuple[float, int]], window: tuple[float, float
     return total
 
 
-def slot_order(round_index: int, with_baseline: bool) -> list[str]:
-    """The runs of round ``round_index`` (0-based) in the order they run after the floor.
+def slot_order(runs: list[str], round_index: int) -> list[str]:
+    """``runs`` in the order they run in round ``round_index`` (0-based): as given in even
+    rounds, reversed in odd ones.
 
     The command in the first slot runs ~0.4 CPU s (~0.2 quiet s) slower than the same code in
-    the second (s26), so with a baseline the two swap slots every round: an even number of
-    rounds puts each in each slot equally often.
+    the second (s26), so the runs swap slots every round: an even number of rounds puts each
+    in each slot equally often.
     """
-    if not with_baseline:
-        return ["compare"]
-    return ["compare", "baseline"] if round_index % 2 == 0 else ["baseline", "compare"]
+    return list(runs) if round_index % 2 == 0 else list(reversed(runs))
 
 
 def _measure_round(
@@ -199,7 +198,8 @@ def _measure_round(
     """One round on one pair: the floor, then the command (and baseline) in the round's order."""
     measured = {"floor": measure_floor(scene_dir)}
     slots = {"floor": 0}
-    for slot, run in enumerate(slot_order(round_index, baseline is not None), start=1):
+    runs = ["compare"] if baseline is None else ["compare", "baseline"]
+    for slot, run in enumerate(slot_order(runs, round_index), start=1):
         measured[run] = measure(scene, None if run == "compare" else baseline)
         slots[run] = slot
     floor = measured["floor"]["quiet_seconds"]

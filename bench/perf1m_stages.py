@@ -15,7 +15,8 @@ no profiler, so Python-heavy stages are not inflated.  What is left:
 * ``system``: the process's system CPU (page faults), part of the stages above.
 
 ``--baseline DIR`` runs another checkout's ``app`` (e.g. the code before a change) in the same
-rounds.  The median of ``--repeats`` rounds is printed.  The machine may be loaded: CPU
+rounds, the two swapping slots every round (the first runs slower for the same code; use an
+even ``--repeats``).  The median of ``--repeats`` rounds is printed.  The machine may be loaded: CPU
 seconds, not wall seconds, are the measure.
 
 Both checkouts run from compiled bytecode, as installed (:func:`bench.perf_1m.compile_bytecode`;
@@ -39,6 +40,7 @@ import textwrap
 from pathlib import Path
 from typing import Any
 
+from bench.perf1m_parallelism import slot_order
 from bench.perf_1m import HELD_OUT, compile_bytecode, write_named_pair
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
@@ -202,7 +204,8 @@ def main() -> None:
             name = "held-out class" if spec == HELD_OUT else spec
             rounds: dict[str, list[dict[str, Any]]] = {key: [] for key in roots}
             for round_index in range(args.repeats):
-                for key, root in roots.items():
+                for key in slot_order(list(roots), round_index):  # the first slot is slower
+                    root = roots[key]
                     labels = scene_dir / f"labels-stages-{key.replace(' ', '-')}.npz"
                     row = run_child(root, paths["reference"], paths["scan"], labels)
                     rounds[key].append(row)
