@@ -72,6 +72,7 @@ from app.core.localise.map_planes import (
     first_level_surface_marked,
     in_sampling_gap,
     level_surface_below,
+    part_normals,
 )
 from app.core.localise.map_rims import rim_gap_share
 from app.core.localise.map_scale import metric_candidates, metric_planes, metric_side
@@ -252,7 +253,11 @@ def _gap_share(
         labels,
         recheck,
         lambda chosen: in_sampling_gap(
-            candidates.points[chosen], candidates.normal[chosen], other.geometry, tolerance
+            candidates.points[chosen],
+            candidates.normal[chosen],
+            other.geometry,
+            tolerance,
+            part_normals(candidates.points[chosen], labels[chosen], candidates.normal[chosen]),
         ),
     )
     for probe in (line_gap_share, rim_gap_share):
