@@ -50,11 +50,7 @@ COPLANAR_REACHES = (0.25, 0.5, 1.0, 2.0)
 GAP_REACH = 0.5
 """Metres: the other epoch's points around a candidate that tell whether it lies in a gap
 between that epoch's samples of one plane (:func:`in_sampling_gap`)."""
-GAP_NEIGHBOURS = 96
-"""The other epoch's nearest points looked at (within :data:`GAP_REACH`).  Near the edge of a
-face (a wall's corner, a box face beside a rack) the 32 nearest were all the adjoining
-surface's and the face's own columns 0.3-0.5 m along it went unseen (held-out robot warehouse
-3405: a box face both epochs saw in columns, 49 % in gaps, one false region)."""
+GAP_NEIGHBOURS = 32
 GAP_MIN_POINTS = 6
 """Fewer of the other epoch's points on the plane around a candidate than this say nothing."""
 PART_PLANE_MIN_POINTS = 8

@@ -6,7 +6,7 @@ lies between those samples.  The rim arcs are lines (no normal: they carry on no
 line never counts as surface extending along a plane, :mod:`~app.core.localise.sample_lines`),
 the floor under an open desk is seen, so the top is no unseen top either, and the other epoch's
 nearest samples around it are the wall's, so it lies in no sampling gap of
-:func:`~app.core.localise.map_planes.in_sampling_gap` (its nearest within 0.5 m, mostly off
+:func:`~app.core.localise.map_planes.in_sampling_gap` (32 nearest within 0.5 m, mostly off
 its plane).  It was read as a change (robot office 1202: a 1.4 x 0.56 m desk top, 165 false
 points).
 
