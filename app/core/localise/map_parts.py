@@ -120,6 +120,7 @@ def _border_continuation(
             own.geometry,
             other.geometry,
             change_threshold,
+            anchor=query,
         ).any(axis=1)
     return border, continues
 

@@ -19,14 +19,16 @@ from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
 from app.core.localise.map_parts import EDGE_COSINE, UPRIGHT_NORMAL_Z, PartFigures
-from app.core.localise.map_sides import surface_behind
+from app.core.localise.map_sides import oriented_depths, surface_behind
 from app.core.localise.rays import Candidates
 
 __all__ = [
+    "LAYER_FACTOR",
     "LEVEL_BELOW_RADIUS",
     "MIN_ADJOINING",
     "SURROUND_SHARE",
     "edge_strips",
+    "layered_behind",
     "meets_lacking_at_angle",
     "seen_through",
     "strip_sides",
@@ -34,6 +36,10 @@ __all__ = [
     "unseen_levels",
 ]
 
+LAYER_FACTOR = 2.0
+"""The other epoch's lacking surface within this many change thresholds of a part whose
+surface it has all round is a layer on that surface (an object standing against it), no
+surface seen through the part's place (:func:`layered_behind`)."""
 SURROUND_SHARE = 0.1
 """An upright part is an unseen side when less than this share of its adjoining border points
 has the other epoch's surface carrying on past them (or surface this epoch lacks)."""
@@ -154,6 +160,7 @@ def seen_through(
     other: Side,
     counted: NDArray[np.bool_],
     tolerance: float,
+    layer: NDArray[np.float64] | None = None,
 ) -> NDArray[np.bool_]:
     """Whether the other cloud's ``counted`` points (shape (m,), bool) lie on the normal line
     of each ``chosen`` candidate (indices, shape (k,) -> (k,), bool;
@@ -167,17 +174,51 @@ def seen_through(
     hid the part from them (robot office 303: the reference's desk top over a floor patch only
     the scan's lidar saw, from the side, under the desk).  An upright part's sensors may stand
     on either side of it: every counted surface on its normal line is evidence (the wall
-    behind a turned backrest: RGB-D room 1103)."""
+    behind a turned backrest: RGB-D room 1103), except, for the upright parts with a
+    ``layer`` (shape (parts,), metres, 0: none), surface within it (:func:`layered_behind`)."""
     points, normal, labels = candidates.points[chosen], candidates.normal[chosen], labels[chosen]
     found = np.zeros(points.shape[0], dtype=bool)
     sides = upright[labels]
-    found[sides] = surface_behind(points[sides], normal[sides], other, counted)
+    layered = sides & ((np.zeros(upright.shape[0]) if layer is None else layer)[labels] > 0.0)
+    plain = sides & ~layered
+    found[plain] = surface_behind(points[plain], normal[plain], other, counted)
+    if layered.any():
+        found[layered] = layered_behind(
+            points[layered], normal[layered], other, counted, layer[labels[layered]]
+        )
     height = other.points[:, 2]
     for part in np.unique(labels[~sides]):
         members = np.flatnonzero(labels == part)
         below = counted & (height < float(np.median(points[members, 2])) - tolerance)
         found[members] = surface_behind(points[members], normal[members], other, below)
     return found
+
+
+def layered_behind(
+    points: NDArray[np.float64],
+    normal: NDArray[np.floating],
+    other: Side,
+    counted: NDArray[np.bool_],
+    layer: NDArray[np.float64],
+) -> NDArray[np.bool_]:
+    """Whether the other cloud's ``counted`` surface lies on each point's normal line farther
+    than its ``layer`` (metres, shape (c,)) from it, on a side where none lies nearer (shapes
+    (c, 3) -> (c,); :func:`~app.core.localise.map_sides.oriented_depths`).
+
+    Asked for a part whose surface the other epoch has round it (it carries on past the
+    part's border): the other epoch saw that surface there from its open side.  Its lacking
+    surface parallel to the part and within ``layer`` of it is taken as an object standing
+    against the surface on that side, which hid the part's place from the other epoch (a
+    chair's back 7-12 cm before a warehouse wall, robot 2804: the scan's wall where the
+    reference's chair stood), not as surface seen through it: the normal line does not tell
+    the side, and a hole in a surface showing another just behind it is the rarer shape.
+    The part is then unseen by the other epoch, not seen empty (a wall section pushed out by
+    less than ``layer`` leaves its old place unseen too).  Surface farther than ``layer`` on
+    a side is evidence as before (:func:`surface_behind`: the wall behind a turned backrest)."""
+    unit = normal.astype(np.float64)
+    unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-12)[:, None]
+    ahead, back = oriented_depths(points, unit, other, counted)
+    return (np.isfinite(ahead) & (ahead > layer)) | (np.isfinite(back) & (back > layer))
 
 
 def strip_sides(
