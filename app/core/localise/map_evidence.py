@@ -370,7 +370,9 @@ def map_test(
         # a surface the other epoch has round the part: a layer on it hid it (map_shared)
         layer = np.where(figures.continuation_share >= PLAIN_CONTINUATION_SHARE, LAYER_FACTOR, 0.0)
         layer = layer * change_threshold
-        behind = seen_through(candidates, chosen, labels, upright, other, counted, threshold, layer)
+        behind = seen_through(
+            candidates, chosen, labels, upright, other, counted, threshold, layer, own.geometry
+        )
         return _share_per_part(labels[chosen], behind, share)
 
     open_beneath = partial(_level_below_share, candidates, labels, other=other)
