@@ -367,9 +367,8 @@ def map_test(
             tolerance=threshold,
         )
         upright, counted = figures.upright, other_unmatched & ~gap
-        # a surface the other epoch has round the part: a layer on it hid it (map_shared)
-        layer = np.where(figures.continuation_share >= PLAIN_CONTINUATION_SHARE, LAYER_FACTOR, 0.0)
-        layer = layer * change_threshold
+        plain = figures.continuation_share >= PLAIN_CONTINUATION_SHARE  # a layer hid it
+        layer = np.where(plain, LAYER_FACTOR * change_threshold, 0.0)
         behind = seen_through(
             candidates, chosen, labels, upright, other, counted, threshold, layer, own.geometry
         )
