@@ -47,10 +47,11 @@ SECTOR_HALF_ANGLE_COSINE = math.cos(math.radians(35.0))
 PROBE_NEIGHBOURS = 4
 COPLANAR_SAMPLE = 256
 COPLANAR_REACHES = (0.25, 0.5, 1.0, 2.0)
-MUTUAL_FACTOR = 0.5
+MUTUAL_FACTOR = 1.0
 """A sample on a candidate's plane is the same surface only when its own plane passes the
 candidate within this many change thresholds (:func:`share_on_planes`): surface farther off
-is another one, parallel to it (a chair's back 7-13 cm before a wall, robot 2804)."""
+is another one, parallel to it (a chair's back 7-13 cm before a wall, robot 2804).  Half a
+change threshold also split RGB-D drift room 004's doubled walls (32 -> 80 false points)."""
 GAP_REACH = 0.5
 """Metres: the other epoch's points around a candidate that tell whether it lies in a gap
 between that epoch's samples of one plane (:func:`in_sampling_gap`)."""
