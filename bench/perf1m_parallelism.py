@@ -17,6 +17,10 @@ reported).  It assumes the threads' work and the GIL hand-offs are what they wou
 quiet machine, so it is a model, not a measurement: it ranks the code before and after a
 change in the same conditions and says where the serial stretches are.
 
+With ``--baseline`` the command and the baseline swap slots every round (:func:`slot_order`):
+the first slot after the floor runs slower for the same code, so an even ``--repeats`` measures
+both orders and each row says its ``slot``.
+
 For the floor (bench/perf.py's floor worker, 2 query threads) only its timed section counts
 (the last ``seconds`` of the process it reports, as the target does).
 
@@ -177,10 +181,42 @@ def _thread_seconds(samples: list[tuple[float, int]], window: tuple[float, float
     return total
 
 
+def slot_order(runs: list[str], round_index: int) -> list[str]:
+    """``runs`` in the order they run in round ``round_index`` (0-based): as given in even
+    rounds, reversed in odd ones.
+
+    The command in the first slot runs ~0.4 CPU s (~0.2 quiet s) slower than the same code in
+    the second (s26), so the runs swap slots every round: an even number of rounds puts each
+    in each slot equally often.
+    """
+    return list(runs) if round_index % 2 == 0 else list(reversed(runs))
+
+
+def _measure_round(
+    spec: str, scene_dir: Path, scene: dict[str, Path], round_index: int, baseline: Path | None
+) -> list[dict[str, Any]]:
+    """One round on one pair: the floor, then the command (and baseline) in the round's order."""
+    measured = {"floor": measure_floor(scene_dir)}
+    slots = {"floor": 0}
+    runs = ["compare"] if baseline is None else ["compare", "baseline"]
+    for slot, run in enumerate(slot_order(runs, round_index), start=1):
+        measured[run] = measure(scene, None if run == "compare" else baseline)
+        slots[run] = slot
+    floor = measured["floor"]["quiet_seconds"]
+    rows = []
+    for key, value in measured.items():
+        row = {"pair": spec, "round": round_index + 1, "run": key, "slot": slots[key], **value}
+        if key != "floor":
+            row["quiet_ratio"] = value["quiet_seconds"] / floor
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", default=f"bench,{HELD_OUT}")
-    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=2, help="rounds (even: both slot orders)")
     parser.add_argument(
         "--baseline", type=Path, help="another checkout, sampled in the same rounds"
     )
@@ -200,16 +236,7 @@ def main() -> None:
         for spec in args.pairs.split(","):
             scene_dir, scene = write_named_pair(work_dir, spec)
             for round_index in range(args.repeats):
-                measured = {"floor": measure_floor(scene_dir), "compare": measure(scene, None)}
-                if args.baseline is not None:
-                    measured["baseline"] = measure(scene, args.baseline)
-                floor = measured["floor"]["quiet_seconds"]
-                for key, value in measured.items():
-                    row = {"pair": spec, "round": round_index + 1, "run": key, **value}
-                    if key != "floor":
-                        row["quiet_ratio"] = value["quiet_seconds"] / floor
-                    rows.append(row)
-                    print(json.dumps(row), flush=True)
+                rows.extend(_measure_round(spec, scene_dir, scene, round_index, args.baseline))
     if args.output is not None:
         args.output.write_text(json.dumps(rows, indent=1))
 

@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from bench.perf1m_parallelism import _thread_states, quiet_estimate
+from bench.perf1m_parallelism import _thread_states, quiet_estimate, slot_order
 
 
 def test_two_runnable_threads_on_two_cores_take_half_their_cpu() -> None:
@@ -38,3 +38,12 @@ def test_the_calling_thread_is_seen_running() -> None:
     runnable, ticks = _thread_states(os.getpid())
     assert runnable >= 1 and ticks >= 0
     assert _thread_states(2**22 + 12345) is None  # no such process
+
+
+def test_the_command_and_the_baseline_swap_slots_every_round() -> None:
+    orders = [slot_order(["compare", "baseline"], round_index) for round_index in range(4)]
+    assert orders == [["compare", "baseline"], ["baseline", "compare"]] * 2
+    # each run in each slot equally often over an even number of rounds
+    for run in ("compare", "baseline"):
+        assert sorted(order.index(run) for order in orders) == [0, 0, 1, 1]
+    assert slot_order(["compare"], 1) == ["compare"]

@@ -155,6 +155,7 @@ LOCALISE_LAYERS = (
     "protruding_faces",
     "threshold_band",
     "flying_samples",
+    "changed_regions",
     "changes",
 )
 """The localisation package's modules, lowest first: each imports only modules before it."""

@@ -15,7 +15,13 @@ import pytest
 
 from app.core.datasets.maps import map_pair
 from app.core.labels import LABEL_CHANGED
-from app.core.localise import isolated_clusters, localise_changes, protruding_faces, turned_faces
+from app.core.localise import (
+    isolated_clusters,
+    localise_changes,
+    protruding_faces,
+    regions,
+    turned_faces,
+)
 from app.core.pipeline import compare
 from tests.helpers.fused_rooms import box_sides, fused_room
 
@@ -127,3 +133,51 @@ def test_each_clouds_small_clusters_are_found_once_for_the_three_rules(seed, mon
     assert [r.point_indices.tolist() for r in once.regions] == [
         r.point_indices.tolist() for r in each_time.regions
     ]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_each_clouds_changed_points_are_clustered_once_for_regions_and_small_faces(
+    seed, monkeypatch
+):
+    # the regions step's clustering of each cloud's changed points (filtered at
+    # min_region_points) is the small-cluster rules' (filtered at their floor): clustered
+    # once, with the labels and regions of clustering again
+    reference, scan, _ = _turned_box_pair(seed)
+    with monkeypatch.context() as patched:
+        patched.setattr(turned_faces, "find_regions", _without_clustering(regions.find_regions))
+        again = localise_changes(reference, scan)
+    clustered: list[bytes] = []
+    cluster_labels = regions.cluster_labels
+
+    def recorded(points, radius):
+        if len(points):  # (no cloud's empty set counts)
+            clustered.append(points.tobytes() + radius.tobytes())
+        return cluster_labels(points, radius)
+
+    small: list[str] = []
+    find_small = turned_faces.find_regions
+
+    def counted(points, **kwargs):
+        small.append(kwargs["kind"])
+        return find_small(points, **kwargs)
+
+    monkeypatch.setattr(regions, "cluster_labels", recorded)
+    monkeypatch.setattr(turned_faces, "find_regions", counted)
+    once = localise_changes(reference, scan)
+    assert small  # the small-cluster rules looked at a cloud's small clusters
+    assert len(clustered) == len(set(clustered))
+    assert np.array_equal(once.reference_label, again.reference_label)
+    assert np.array_equal(once.scan_label, again.scan_label)
+    assert [r.point_indices.tolist() for r in once.regions] == [
+        r.point_indices.tolist() for r in again.regions
+    ]
+
+
+def _without_clustering(find_regions):
+    """``find_regions`` that clusters the changed points itself, whatever it is handed."""
+
+    def clustering_again(points, **kwargs):
+        kwargs.pop("clustering", None)
+        return find_regions(points, **kwargs)
+
+    return clustering_again

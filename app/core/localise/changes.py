@@ -18,8 +18,10 @@ The steps, each in its own module (imports go one way: changes -> visibility -> 
 4. **Visibility: unobserved is never change** (:mod:`~app.core.localise.visibility`): ray
    tests from the other sensor's origin (:mod:`~app.core.localise.rays`), or a coverage test
    without one.
-5. **Regions** (:mod:`~app.core.localise.regions`): connected changed points; clusters below
-   ``min_region_points`` are noise and relabelled unchanged.
+5. **Regions** (:mod:`~app.core.localise.changed_regions`, clustering in
+   :mod:`~app.core.localise.regions`): connected changed points; clusters below
+   ``min_region_points`` are noise and relabelled unchanged, unless a small-cluster rule
+   keeps them.
 
 Everything is vectorised numpy with pykdtree's k-NN; the reference and scan sides run on two
 threads when available, which roughly halves the time (figures in ``docs/performance.md``).
@@ -37,7 +39,8 @@ from numpy.typing import NDArray
 
 from app.core.cloud import as_points
 from app.core.errors import InputError
-from app.core.labels import LABEL_CHANGED, LABEL_UNCHANGED, LABEL_UNOBSERVED
+from app.core.labels import LABEL_CHANGED, LABEL_UNOBSERVED
+from app.core.localise.changed_regions import Found, changed_regions
 from app.core.localise.distance import (
     Side,
     alignment_residual,
@@ -52,9 +55,8 @@ from app.core.localise.distance import (
 from app.core.localise.epoch import EpochCloud, with_checked_stations
 from app.core.localise.flying_samples import restored_localisation, without_flying_samples
 from app.core.localise.gaps import PLANE_RADIUS_FACTOR, on_sampled_planes
-from app.core.localise.protruding_faces import with_small_faces
 from app.core.localise.rays import Candidates
-from app.core.localise.regions import ChangedRegion, find_regions, mark_moved_surfaces
+from app.core.localise.regions import ChangedRegion
 from app.core.localise.settings import (
     DEFAULT_PARAMETERS,
     as_origins,
@@ -62,7 +64,6 @@ from app.core.localise.settings import (
 )
 from app.core.localise.surface import LocalGeometry, local_geometry
 from app.core.localise.threshold_band import carry_changes
-from app.core.localise.turned_faces import changed_points
 from app.core.localise.visibility import (
     Labelled,
     agree_on_faces,
@@ -208,28 +209,14 @@ def localise_changes(
             cluster_factor=settings["cluster_factor"],
             min_region_points=min_region_points,
         )
-    regions, uncertain_regions, dropped = _regions(
-        reference_found, scan_found, settings, min_region_points, threads
-    )
-    regions, turned = with_small_faces(
-        regions,
-        (
-            changed_points(
-                reference_found.side, reference_found.labelled, reference_found.distance
-            ),
-            changed_points(scan_found.side, scan_found.labelled, scan_found.distance),
-        ),
+    drawn = changed_regions(
+        reference_found,
+        scan_found,
         cluster_factor=settings["cluster_factor"],
         min_region_points=min_region_points,
         change_threshold=limits.change_threshold,
+        threads=threads,
     )
-    dropped -= turned
-    reference_region, scan_region = _region_indices(regions, reference_found, scan_found)
-    # changed points outside any kept region were in clusters too small to be a change
-    for found, region in ((reference_found, reference_region), (scan_found, scan_region)):
-        found.labelled.label[(found.labelled.label == LABEL_CHANGED) & (region < 0)] = (
-            LABEL_UNCHANGED
-        )
     parameters = _parameters(
         (reference_found, scan_found),
         limits,
@@ -237,19 +224,19 @@ def localise_changes(
         registration_rmse=registration_rmse,
         min_region_points=min_region_points,
         assignments=(reference_assignment, scan_assignment),
-        dropped=dropped,
-        n_uncertain=len(uncertain_regions),
+        dropped=drawn.dropped,
+        n_uncertain=len(drawn.uncertain),
     )
     localisation = Localisation(
         reference_label=reference_found.labelled.label,
         scan_label=scan_found.labelled.label,
         reference_distance=reference_found.output_distance(),
         scan_distance=scan_found.output_distance(),
-        reference_region=reference_region,
-        scan_region=scan_region,
-        regions=regions,
+        reference_region=drawn.reference_region,
+        scan_region=drawn.scan_region,
+        regions=drawn.regions,
         parameters=parameters,
-        uncertain_regions=uncertain_regions,
+        uncertain_regions=drawn.uncertain,
     )
     return restored_localisation(localisation, kept, (n_reference, n_scan))
 
@@ -271,21 +258,6 @@ class _Limits:
     def misalignment(self) -> float:
         """What is left of the alignment's error (metres)."""
         return math.hypot(self.registration_rmse, self.residual)
-
-
-@dataclass(frozen=True)
-class _Found:
-    """One cloud's side, distances to the other's surface and labels."""
-
-    side: Side
-    distance: NDArray[np.float64]
-    labelled: Labelled
-
-    def output_distance(self) -> NDArray[np.float32]:
-        """The distances as float32, NaN where unobserved, shape (n,)."""
-        distance = self.distance.astype(np.float32)
-        distance[self.labelled.label == LABEL_UNOBSERVED] = np.nan
-        return distance
 
 
 def _side(
@@ -448,7 +420,7 @@ def _labelled(
     limits: _Limits,
     settings: dict[str, Any],
     threads: int,
-) -> tuple[_Found, _Found]:
+) -> tuple[Found, Found]:
     """Each cloud's candidates labelled changed or unobserved by the visibility test (step 4)."""
     reference_side, scan_side = sides
     shared = map_test_planes(sides, settings, threads)
@@ -479,74 +451,13 @@ def _labelled(
         change_threshold=limits.change_threshold,
     )
     return (
-        _Found(reference_side, reference_distance, reference_labelled),
-        _Found(scan_side, scan_distance, scan_labelled),
+        Found(reference_side, reference_distance, reference_labelled),
+        Found(scan_side, scan_distance, scan_labelled),
     )
-
-
-def _regions(
-    reference: _Found,
-    scan: _Found,
-    settings: dict[str, Any],
-    min_region_points: int,
-    threads: int,
-) -> tuple[list[ChangedRegion], list[ChangedRegion], int]:
-    """Regions of changed points, largest first, the uncertain ones (not covered by the other
-    epoch) and how many clusters were too small (step 5)."""
-
-    def regions_of(found: _Found, wanted: int) -> tuple[list[ChangedRegion], int]:
-        return find_regions(
-            found.side.points,
-            kind=found.side.region_kind,
-            changed=found.labelled.label == wanted,
-            spacing=found.side.geometry.spacing,
-            distance=found.distance,
-            cluster_factor=settings["cluster_factor"],
-            min_region_points=min_region_points,
-            evidence=found.labelled.evidence,
-            confidence=found.labelled.confidence,
-        )
-
-    (removed, dropped_removed), (added, dropped_added) = concurrently(
-        threads,
-        lambda: regions_of(reference, LABEL_CHANGED),
-        lambda: regions_of(scan, LABEL_CHANGED),
-    )
-    regions: list[ChangedRegion] = [*removed, *added]
-    regions.sort(key=lambda region: (-region.n_points, region.kind, int(region.point_indices[0])))
-    regions = mark_moved_surfaces(regions)
-    # the unobserved points of both clouds clustered concurrently too (the reference's first,
-    # as the stable sort below expects): a serial stretch of ~0.3 CPU s at 1M + 1M otherwise
-    (reference_unobserved, _), (scan_unobserved, _) = concurrently(
-        threads,
-        lambda: regions_of(reference, LABEL_UNOBSERVED),
-        lambda: regions_of(scan, LABEL_UNOBSERVED),
-    )
-    uncertain_regions = [
-        region
-        for region in (*reference_unobserved, *scan_unobserved)
-        if region.evidence == "no_coverage"
-    ]
-    uncertain_regions.sort(key=lambda region: (-region.n_points, region.kind))
-    return regions, uncertain_regions, int(dropped_removed + dropped_added)
-
-
-def _region_indices(
-    regions: list[ChangedRegion], reference: _Found, scan: _Found
-) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
-    """Each point's index in ``regions`` (removed ones: reference points; the others: scan
-    points), -1 if none; shapes (n_reference,) and (n_scan,) of the clouds compared."""
-    n_reference, n_scan = len(reference.side.points), len(scan.side.points)
-    reference_region = np.full(n_reference, -1, dtype=np.int32)
-    scan_region = np.full(n_scan, -1, dtype=np.int32)
-    for number, region in enumerate(regions):
-        target = reference_region if region.kind == "removed" else scan_region
-        target[region.point_indices] = number
-    return reference_region, scan_region
 
 
 def _parameters(
-    found: tuple[_Found, _Found],
+    found: tuple[Found, Found],
     limits: _Limits,
     settings: dict[str, Any],
     *,

@@ -31,7 +31,7 @@ from pykdtree.kdtree import KDTree
 from app.core.localise.isolated_clusters import isolated_clusters
 from app.core.localise.map_faces import EDGE_FACTOR
 from app.core.localise.map_parts import UPRIGHT_NORMAL_Z
-from app.core.localise.regions import ChangedRegion, mark_moved_surfaces
+from app.core.localise.regions import ChangedRegion, Clustering, mark_moved_surfaces
 from app.core.localise.turned_faces import (
     ChangedPoints,
     SmallClusters,
@@ -202,6 +202,7 @@ def with_small_faces(
     cluster_factor: float,
     min_region_points: int,
     change_threshold: float,
+    clusterings: dict[tuple[str, float], Clustering] | None = None,
 ) -> tuple[list[ChangedRegion], int]:
     """``regions`` with the small clusters kept as faces turned in place
     (:func:`~app.core.localise.turned_faces.turned_faces`), standing out past the other
@@ -209,13 +210,15 @@ def with_small_faces(
     (:func:`~app.core.localise.isolated_clusters.isolated_clusters`) added, largest first,
     removed and added ones side by side marked again
     (:func:`~app.core.localise.regions.mark_moved_surfaces`), and how many small clusters were
-    kept."""
+    kept.  ``clusterings``: the clouds' clusters of their changed points found already (by
+    region kind and cluster factor, :attr:`SmallClusters.clusterings`), not found again."""
     settings = {
         "cluster_factor": cluster_factor,
         "min_region_points": min_region_points,
         "change_threshold": change_threshold,
     }
-    known: SmallClusters = {}  # each cloud's small clusters, found once for the three rules
+    # each cloud's small clusters, found once for the three rules
+    known = SmallClusters(clusterings=dict(clusterings or {}))
     found = turned_faces(changed, regions, **settings, known=known)
     for more in (
         protruding_faces(changed, **settings, known=known),

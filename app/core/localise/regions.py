@@ -19,6 +19,8 @@ from app.core.localise.neighbourhoods import kernel_self_neighbours
 __all__ = [
     "EVIDENCE_NAMES",
     "ChangedRegion",
+    "Clustering",
+    "cluster_changed",
     "cluster_labels",
     "find_regions",
     "mark_moved_surfaces",
@@ -79,6 +81,40 @@ class ChangedRegion:
     def n_points(self) -> int:
         """Number of points in the region."""
         return int(self.point_indices.shape[0])
+
+
+@dataclass(frozen=True)
+class Clustering:
+    """One cloud's changed points and the connected cluster each belongs to
+    (:func:`cluster_changed`).
+
+    Attributes
+    ----------
+    changed_index : ndarray, shape (c,), intp
+        The changed points' indices into the cloud, ascending.
+    labels : ndarray, shape (c,), int
+        Their cluster labels (:func:`cluster_labels`).
+    """
+
+    changed_index: NDArray[np.intp]
+    labels: NDArray[np.integer]
+
+    def of(self, changed: NDArray[np.bool_]) -> bool:
+        """Whether these are the clusters of exactly the points ``changed`` (shape (n,))."""
+        return np.array_equal(np.flatnonzero(changed), self.changed_index)
+
+
+def cluster_changed(
+    points: NDArray[np.float64],
+    changed: NDArray[np.bool_],
+    spacing: NDArray[np.float64],
+    cluster_factor: float,
+) -> Clustering:
+    """The connected clusters of one cloud's ``changed`` points (shapes (n, 3) and (n,)), each
+    linked to neighbours closer than ``cluster_factor`` of its ``spacing`` (shape (n,))."""
+    changed_index = np.flatnonzero(changed)
+    labels = cluster_labels(points[changed_index], cluster_factor * spacing[changed_index])
+    return Clustering(changed_index, labels)
 
 
 def cluster_labels(points: NDArray[np.float64], radius: NDArray[np.float64]) -> NDArray:
@@ -156,6 +192,7 @@ def find_regions(
     min_region_points: int,
     evidence: NDArray[np.int8] | None = None,
     confidence: NDArray[np.floating] | None = None,
+    clustering: Clustering | None = None,
 ) -> tuple[list[ChangedRegion], int]:
     """Cluster one cloud's changed points into regions of at least ``min_region_points``.
 
@@ -176,6 +213,9 @@ def find_regions(
         common one.  Default: seen_empty.
     confidence : ndarray, shape (n,), optional
         Each point's confidence; a region's is their mean.  Default 1.
+    clustering : Clustering, optional
+        The clusters of these ``changed`` points with this ``cluster_factor``, when already
+        found (:func:`cluster_changed`); default: found here.
 
     Returns
     -------
@@ -183,8 +223,9 @@ def find_regions(
     n_dropped_clusters : int
         Clusters smaller than ``min_region_points``.
     """
-    changed_index = np.flatnonzero(changed)
-    labels = cluster_labels(points[changed_index], cluster_factor * spacing[changed_index])
+    if clustering is None:
+        clustering = cluster_changed(points, changed, spacing, cluster_factor)
+    changed_index, labels = clustering.changed_index, clustering.labels
     if labels.size == 0:
         return [], 0
     sizes = np.bincount(labels)

@@ -24,6 +24,7 @@ a cloud, under a noise floor of 30).
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -35,7 +36,7 @@ from app.core.localise.distance import Side
 from app.core.localise.map_evidence import MapTest
 from app.core.localise.map_faces import EDGE_COSINE, EDGE_FACTOR
 from app.core.localise.map_parts import UPRIGHT_NORMAL_Z
-from app.core.localise.regions import ChangedRegion, find_regions
+from app.core.localise.regions import ChangedRegion, Clustering, find_regions
 from app.core.localise.station_rays import StationRayTest
 from app.core.localise.trajectory_visibility import TrajectoryTest
 from app.core.localise.visibility import Labelled
@@ -140,11 +141,25 @@ def small_face_sides(
     return floor, small_face_clouds(changed)
 
 
-SmallClusters = dict[tuple[str, int, float], list[ChangedRegion]]
-"""The small clusters found so far in a comparison's clouds (:func:`small_clusters`), by the
-clouds' region kind, the floor and the cluster factor: the small-cluster rules
-(:func:`turned_faces`, ``protruding_faces``, ``isolated_clusters``) hand them on instead of
-clustering the same changed points again."""
+@dataclass
+class SmallClusters:
+    """What a comparison's small-cluster rules (:func:`turned_faces`, ``protruding_faces``,
+    ``isolated_clusters``) hand on instead of clustering the same changed points again.
+
+    Attributes
+    ----------
+    clusterings : dict
+        Each cloud's clusters of its changed points
+        (:class:`~app.core.localise.regions.Clustering`), by the cloud's region kind and the
+        cluster factor: the regions step's (``min_region_points`` only filters them), reused
+        for the smaller floor.
+    regions : dict
+        The small clusters found so far (:func:`small_clusters`), by region kind, floor and
+        cluster factor.
+    """
+
+    clusterings: dict[tuple[str, float], Clustering] = field(default_factory=dict)
+    regions: dict[tuple[str, int, float], list[ChangedRegion]] = field(default_factory=dict)
 
 
 def small_clusters(
@@ -154,11 +169,15 @@ def small_clusters(
     changed: ``known`` may hand the same list to another caller).
 
     ``known`` (optional): the clusters already found in this comparison, looked up first and
-    filled in with those found here.
+    filled in with those found here; a clustering of exactly ``own``'s changed points with
+    ``cluster_factor`` there is filtered, not found again.
     """
     key = (own.side.region_kind, floor, cluster_factor)
-    if known is not None and key in known:
-        return known[key]
+    if known is not None and key in known.regions:
+        return known.regions[key]
+    clustering = None
+    if known is not None:
+        clustering = known.clusterings.get((own.side.region_kind, cluster_factor))
     clusters, _ = find_regions(
         own.side.points,
         kind=own.side.region_kind,
@@ -169,9 +188,10 @@ def small_clusters(
         min_region_points=floor,
         evidence=own.evidence,
         confidence=own.confidence,
+        clustering=clustering if clustering is not None and clustering.of(own.changed) else None,
     )
     if known is not None:
-        known[key] = clusters
+        known.regions[key] = clusters
     return clusters
 
 
