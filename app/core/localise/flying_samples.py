@@ -38,6 +38,7 @@ from pykdtree.kdtree import KDTree
 
 from app.core.labels import LABEL_UNOBSERVED
 from app.core.localise.epoch import EpochCloud
+from app.core.localise.flying_sight import on_sight_lines
 from app.core.localise.neighbourhoods import Neighbourhoods, nearest_neighbourhoods
 from app.core.localise.surface import neighbourhood_planes
 from app.core.threads import concurrently
@@ -90,7 +91,7 @@ def flying_samples(
     points: NDArray[np.float64],
     neighbourhoods: Neighbourhoods,
     typical: float | None = None,
-    other: KDTree | None = None,
+    other: tuple[KDTree, NDArray[np.float64]] | None = None,
 ) -> NDArray[np.bool_]:
     """Which of a cloud's points are flying samples (module docstring), shape (n,).
 
@@ -102,9 +103,10 @@ def flying_samples(
     typical : float, optional
         The cloud's median k-th neighbour distance (default: measured on ``points``; a pass
         after the first keeps the whole cloud's).
-    other : pykdtree.kdtree.KDTree, optional
-        Of the other epoch's points (aligned): a point with one of them within
-        :data:`OTHER_NEAR` median spacings is no flying sample.
+    other : (pykdtree.kdtree.KDTree, ndarray of shape (p, 3)), optional
+        The other epoch's points (aligned) and their tree: a point with one of them within
+        :data:`OTHER_NEAR` median spacings is no flying sample, unless it lies on a line of
+        sight past an own edge (:func:`~app.core.localise.flying_sight.on_sight_lines`).
 
     Returns
     -------
@@ -130,8 +132,12 @@ def flying_samples(
     spacing = typical * math.sqrt(math.pi / k)
     sparse = sparse[(variation >= SCATTER) & (spread > ISOLATION * spacing)]
     if other is not None and sparse.size:
-        near = other.query(points[sparse], k=1, distance_upper_bound=OTHER_NEAR * spacing)
-        sparse = sparse[~np.isfinite(near[0])]
+        near = other[0].query(points[sparse], k=1, distance_upper_bound=OTHER_NEAR * spacing)
+        held = np.isfinite(near[0])
+        solid = np.ones(n, dtype=bool)
+        solid[sparse] = False
+        sighted = on_sight_lines(points, sparse[held], solid, other[1])
+        sparse = np.concatenate([sparse[~held], sparse[held][sighted]])
     flying[sparse] = True
     return flying
 
@@ -183,12 +189,12 @@ def _searched(
 def _without_flying_samples(
     epoch: EpochCloud,
     searched: tuple[NDArray[np.float64], Neighbourhoods] | None,
-    other_tree: KDTree | None,
+    other_tree: tuple[KDTree, NDArray[np.float64]] | None,
 ) -> tuple[EpochCloud, NDArray[np.intp] | None]:
     """``epoch`` without its flying samples, and the indices of the points kept (None: all
     kept, ``epoch`` as it is, its neighbourhoods found).  ``searched``: its points and
     neighbourhoods (:func:`_searched`; None: a cloud with origins, left as it is);
-    ``other_tree``: of the other cloud's samples that keep a point near them
+    ``other_tree``: the other cloud's samples that keep a point near them and their tree
     (:data:`OTHER_NEAR`, :func:`_standing`)."""
     if searched is None:
         return epoch, None
@@ -206,9 +212,11 @@ def _without_flying_samples(
     return dataclasses.replace(epoch.subset(kept), neighbourhoods=neighbourhoods), kept
 
 
-def _standing(searched: tuple[NDArray[np.float64], Neighbourhoods] | None) -> KDTree | None:
-    """A tree of a cloud's samples that can keep the other epoch's points (:data:`OTHER_NEAR`):
-    all but its own flying candidates (the test without the other epoch).  Round a silhouette
+def _standing(
+    searched: tuple[NDArray[np.float64], Neighbourhoods] | None,
+) -> tuple[KDTree, NDArray[np.float64]] | None:
+    """A cloud's samples that can keep the other epoch's points (:data:`OTHER_NEAR`) and their
+    tree: all but its own flying candidates (the test without the other epoch).  Round a silhouette
     both epochs' cameras saw, each has its flying pixels in the same air: a flying pixel next
     to another is no surface both saw (drifting RGB-D room 503: such scan pixels kept the
     turned chair's reference points unchanged, recall 43 % with them, 47 % without).  None
@@ -218,8 +226,9 @@ def _standing(searched: tuple[NDArray[np.float64], Neighbourhoods] | None) -> KD
     points, found = searched
     candidates = flying_samples(points, found)
     if not candidates.any():
-        return found.tree
-    return KDTree(np.ascontiguousarray(points[~candidates]))
+        return found.tree, points
+    standing = np.ascontiguousarray(points[~candidates])
+    return KDTree(standing), standing
 
 
 def restored(values: NDArray, kept: NDArray[np.intp] | None, n: int, fill: float) -> NDArray:
