@@ -235,4 +235,4 @@ def test_a_flying_pixel_the_other_map_holds_on_a_line_of_sight_is_a_flying_sampl
     assert kept is not None
     taken = ~np.isin(np.arange(len(points)), kept)
     assert not taken[:n_surface].any()
-    assert taken[n_surface:][held].mean() > 0.8  # main: 4 of 12 (those the back does not hold)
+    assert taken[n_surface:][held].sum() >= 8  # main: 4 of 12 (those the back does not hold)

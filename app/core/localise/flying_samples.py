@@ -92,6 +92,7 @@ def flying_samples(
     neighbourhoods: Neighbourhoods,
     typical: float | None = None,
     other: tuple[KDTree, NDArray[np.float64]] | None = None,
+    sighted_only: bool = False,
 ) -> NDArray[np.bool_]:
     """Which of a cloud's points are flying samples (module docstring), shape (n,).
 
@@ -105,8 +106,10 @@ def flying_samples(
         after the first keeps the whole cloud's).
     other : (pykdtree.kdtree.KDTree, ndarray of shape (p, 3)), optional
         The other epoch's points (aligned) and their tree: a point with one of them within
-        :data:`OTHER_NEAR` median spacings is no flying sample, unless it lies on a line of
-        sight past an own edge (:func:`~app.core.localise.flying_sight.on_sight_lines`).
+        :data:`OTHER_NEAR` median spacings is no flying sample.
+    sighted_only : bool
+        Only the points ``other`` holds that lie on lines of sight past an own edge
+        (:func:`~app.core.localise.flying_sight.on_sight_lines`): flying all the same.
 
     Returns
     -------
@@ -134,10 +137,14 @@ def flying_samples(
     if other is not None and sparse.size:
         near = other[0].query(points[sparse], k=1, distance_upper_bound=OTHER_NEAR * spacing)
         held = np.isfinite(near[0])
-        solid = np.ones(n, dtype=bool)
-        solid[sparse] = False
-        sighted = on_sight_lines(points, sparse[held], solid, other[1])
-        sparse = np.concatenate([sparse[~held], sparse[held][sighted]])
+        if sighted_only:
+            solid = np.ones(n, dtype=bool)
+            solid[sparse] = False
+            sparse = sparse[held][on_sight_lines(points, sparse[held], solid, other[1])]
+        else:
+            sparse = sparse[~held]
+    elif sighted_only:
+        return flying
     flying[sparse] = True
     return flying
 
@@ -207,6 +214,10 @@ def _without_flying_samples(
             break
         neighbourhoods = _kept_neighbourhoods(points[kept], neighbourhoods, flying)
         kept = kept[~flying]
+    sighted = flying_samples(points[kept], neighbourhoods, typical, other_tree, True)
+    if sighted.any():  # after the passes: their neighbours are not judged again without them
+        neighbourhoods = _kept_neighbourhoods(points[kept], neighbourhoods, sighted)
+        kept = kept[~sighted]
     if kept.size == points.shape[0]:
         return dataclasses.replace(epoch, neighbourhoods=found), None
     return dataclasses.replace(epoch.subset(kept), neighbourhoods=neighbourhoods), kept
