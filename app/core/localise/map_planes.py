@@ -33,6 +33,7 @@ __all__ = [
     "in_sampling_gap",
     "level_surface_below",
     "part_normals",
+    "part_sampling_gap",
     "share_on_planes",
     "shared_wall",
     "widest_empty_angle",
@@ -352,6 +353,20 @@ def part_normals(
         _, vectors = np.linalg.eigh(spread.T @ spread)
         planes[members] = vectors[:, 0]
     return planes
+
+
+def part_sampling_gap(
+    candidates: Candidates,
+    chosen: NDArray[np.int64],
+    labels: NDArray[np.int64],
+    other: LocalGeometry,
+    tolerance: float,
+) -> NDArray[np.bool_]:
+    """:func:`in_sampling_gap` of the ``chosen`` candidates (indices, shape (m,) -> (m,)), with
+    the plane of each one's part among them (``labels`` shape (c,): :func:`part_normals`)."""
+    points, normal = candidates.points[chosen], candidates.normal[chosen]
+    planes = part_normals(points, labels[chosen], normal)
+    return in_sampling_gap(points, normal, other, tolerance, planes)
 
 
 def holds_up(
