@@ -70,8 +70,8 @@ from app.core.localise.map_parts import PartFigures, part_figures, surface_parts
 from app.core.localise.map_planes import (
     coplanar_sectors,
     first_level_surface_marked,
-    in_sampling_gap,
     level_surface_below,
+    part_sampling_gap,
 )
 from app.core.localise.map_rims import rim_gap_share
 from app.core.localise.map_scale import metric_candidates, metric_planes, metric_side
@@ -252,9 +252,7 @@ def _gap_share(
     share = _probed_share(
         labels,
         recheck,
-        lambda chosen: in_sampling_gap(
-            candidates.points[chosen], candidates.normal[chosen], other.geometry, tolerance
-        ),
+        lambda chosen: part_sampling_gap(candidates, chosen, labels, other.geometry, tolerance),
     )
     for probe in (line_gap_share, rim_gap_share):
         share = np.maximum(

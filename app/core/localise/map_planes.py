@@ -32,6 +32,8 @@ __all__ = [
     "holds_up",
     "in_sampling_gap",
     "level_surface_below",
+    "part_normals",
+    "part_sampling_gap",
     "share_on_planes",
     "shared_wall",
     "widest_empty_angle",
@@ -58,6 +60,8 @@ between that epoch's samples of one plane (:func:`in_sampling_gap`)."""
 GAP_NEIGHBOURS = 32
 GAP_MIN_POINTS = 6
 """Fewer of the other epoch's points on the plane around a candidate than this say nothing."""
+PART_PLANE_MIN_POINTS = 8
+"""A part of fewer points gives its points no plane of its own (:func:`part_normals`)."""
 BELOW_FIRST = 0.05
 BELOW_STEP_RATIO = 1.25
 BELOW_RADIUS_FRACTION = 0.12
@@ -274,6 +278,7 @@ def in_sampling_gap(
     normal: NDArray[np.floating],
     other: LocalGeometry,
     tolerance: float,
+    part_normal: NDArray[np.floating] | None = None,
 ) -> NDArray[np.bool_]:
     """Whether each point lies on a plane the other cloud has around it, between its samples
     (shapes (p, 3), (p, 3) -> (p,)).
@@ -285,8 +290,9 @@ def in_sampling_gap(
     through it), so the plane is found from the other cloud's points: of its
     :data:`GAP_NEIGHBOURS` nearest within :data:`GAP_REACH`, those within ``tolerance`` (plus
     :data:`~app.core.localise.gaps.PLANE_SLOPE` a metre) of a plane through the point, tried
-    with the point's normal, the other cloud's normal there and the level plane, refitted once
-    to them.  The point lies in a gap when at least :data:`GAP_MIN_POINTS` of them are on the
+    with the point's normal, the other cloud's normal there, the level plane and the plane of
+    the point's part (``part_normal``, shape (p, 3), when given: :func:`part_normals`), refitted
+    once to them.  The point lies in a gap when at least :data:`GAP_MIN_POINTS` of them are on the
     refitted plane through the point and no half-plane around it is empty of them.  A face of
     a removed or added object lies on no plane of the other epoch, or at its edge (a box top
     level with a desk top beside it has the desk on one side only).
@@ -306,11 +312,14 @@ def in_sampling_gap(
         offset = other.points[index] - query[:, None, :]
         near = distance <= GAP_REACH
         allowed = tolerance + PLANE_SLOPE * np.where(near, distance, 0.0)
-        for guess in (
+        guesses = [
             normal[chunk].astype(np.float64),
             other.normal[index[:, 0]].astype(np.float64),
             np.broadcast_to(level, query.shape),
-        ):
+        ]
+        if part_normal is not None:
+            guesses.append(part_normal[chunk].astype(np.float64))
+        for guess in guesses:
             on_plane = near & (np.abs(np.einsum("bkd,bd->bk", offset, guess)) <= allowed)
             enough = on_plane.sum(axis=1) >= GAP_MIN_POINTS
             _, _, vectors = weighted_plane(offset, on_plane.astype(np.float64))
@@ -321,6 +330,43 @@ def in_sampling_gap(
                 & (_largest_empty_angle(offset, on_plane, vectors) <= np.pi)
             )
     return found
+
+
+def part_normals(
+    points: NDArray[np.float64], labels: NDArray[np.int64], normal: NDArray[np.floating]
+) -> NDArray[np.float64]:
+    """Per point (shapes (p, 3), (p,), (p, 3) -> (p, 3)), the normal of the plane fitted to
+    all the points of its part (``labels``): the smallest eigenvector of their covariance; its
+    own ``normal`` in a part of fewer than :data:`PART_PLANE_MIN_POINTS`.
+
+    A strip of a wall one or two sample columns wide, next to the wall's corner, has no normal
+    of its own: each point's neighbours are its column, refitted over more neighbours they
+    reach round the corner, and its normal is the adjoining wall's (held-out robot corridor
+    3401: a 2.7 m strip 5 cm wide, every normal along the wall).  The strip as a whole spans
+    the wall's plane."""
+    planes = np.asarray(normal, dtype=np.float64).copy()
+    for part in np.unique(labels):
+        members = np.flatnonzero(labels == part)
+        if members.shape[0] < PART_PLANE_MIN_POINTS:
+            continue
+        spread = points[members] - points[members].mean(axis=0)
+        _, vectors = np.linalg.eigh(spread.T @ spread)
+        planes[members] = vectors[:, 0]
+    return planes
+
+
+def part_sampling_gap(
+    candidates: Candidates,
+    chosen: NDArray[np.int64],
+    labels: NDArray[np.int64],
+    other: LocalGeometry,
+    tolerance: float,
+) -> NDArray[np.bool_]:
+    """:func:`in_sampling_gap` of the ``chosen`` candidates (indices, shape (m,) -> (m,)), with
+    the plane of each one's part among them (``labels`` shape (c,): :func:`part_normals`)."""
+    points, normal = candidates.points[chosen], candidates.normal[chosen]
+    planes = part_normals(points, labels[chosen], normal)
+    return in_sampling_gap(points, normal, other, tolerance, planes)
 
 
 def holds_up(
