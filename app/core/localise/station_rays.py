@@ -15,7 +15,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import ConvexHull, QhullError
 
 from app.core.localise.distance import Side
 from app.core.localise.interface import INDIRECT_CONFIDENCE, VisibilityContext, VisibilityOutcome
@@ -344,6 +343,8 @@ def _sheet_seen_through_inside(
     lying more than :data:`SHEET_RIM_FACTOR` times their ``spacing`` (n,) inside its outline
     (the convex hull of the points in their plane) were seen ``through`` (n,); False for a
     sheet without such an interior (a strip, a line)."""
+    from scipy.spatial import ConvexHull, QhullError  # on first use: API processes need no scipy
+
     centred = points - points.mean(axis=0)
     _, axes = np.linalg.eigh(centred.T @ centred)
     in_plane = centred @ axes[:, 1:]
