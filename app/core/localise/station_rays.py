@@ -41,10 +41,19 @@ EDGE_ON_SEEN_THROUGH_SHARE = 0.5
 EDGE_ON_SEEN_THROUGH_FLOOR = 0.1
 EDGE_ON_THROUGH_OVER_SURFACE = 3.0
 EDGE_ON_THICKNESS_FACTOR = 0.5
-"""Such a cluster must also spread at least this many ``c`` off one plane (standard deviation
-along its thinnest axis): a removed or added object's several faces (TLS 204: 0.095 m, 2104's
-chair 0.10 m), not one thin sheet grazed by every station (a rack's shelf edge in TLS 2004,
-0.003 m, 0.39 m clear of the other cloud)."""
+"""Such a cluster thinner than this many ``c`` (standard deviation along its thinnest axis) is
+one sheet (a removed box's only sampled face: TLS 2504's top, 0.012 m; a rack's shelf edge),
+not an object's several faces (TLS 204: 0.095 m, 2104's chair 0.10 m), and needs its evidence
+inside its outline (:data:`SHEET_RIM_FACTOR`)."""
+SHEET_RIM_FACTOR = 2.0
+"""A sheet's edge-on candidates are changed only when, among its candidates more than this many
+local spacings inside its outline (its convex hull in its plane), at least
+:data:`EDGE_ON_SEEN_THROUGH_FLOOR` were seen through: a ray passing beside a grazed sheet's rim
+crosses its plane just past its last points (a near miss, no evidence it is gone), a ray
+through its interior crosses where the sheet must be (TLS 2504: the box top seen at 85 deg by
+one station, 28 % seen through all over it; TLS 2604's added board: its 11 seen-through
+candidates of 248, 10 of them within 6 cm of its outline, come from rays passing 4-6 cm beside
+it, none crossing inside it)."""
 EDGE_ON_CLEAR_FACTOR = 2.5
 """A surveyed cloud's edge-on candidates are also changed when, among the candidates connected
 to them (those seen as a surface included), at least :data:`EDGE_ON_SEEN_THROUGH_FLOOR` were seen
@@ -295,7 +304,8 @@ def _seen_through_clear_of_other(
     surface candidates at least :data:`EDGE_ON_SEEN_THROUGH_FLOOR` seen through, seen through
     :data:`EDGE_ON_THROUGH_OVER_SURFACE` times more often than seen as a surface, and whose
     edge-on candidates are mostly ``clear`` of the other cloud, and that is at least
-    ``min_thickness`` thick (:func:`_thickness`); clusters as in :func:`resolve_edge_on`."""
+    ``min_thickness`` thick (:func:`_thickness`) or, one sheet, seen through inside its
+    outline (:func:`_sheet_seen_through_inside`); clusters as in :func:`resolve_edge_on`."""
     edge_on = status == STATUS_EDGE_ON
     surface = status == STATUS_SURFACE
     through = status == STATUS_SEEN_THROUGH
@@ -311,7 +321,10 @@ def _seen_through_clear_of_other(
         & (n_clear > 0.5 * n_edge_on)
     )
     for label in np.flatnonzero(cluster):
-        cluster[label] = _thickness(points[involved[labels == label]]) >= min_thickness
+        members = involved[labels == label]
+        cluster[label] = _thickness(points[members]) >= min_thickness or (
+            _sheet_seen_through_inside(points[members], through[members], spacing[members])
+        )
     answer = np.zeros(status.shape[0], dtype=bool)
     answer[involved] = cluster[labels]
     return answer
@@ -322,3 +335,27 @@ def _thickness(points: NDArray[np.float64]) -> float:
     centred = points - points.mean(axis=0)
     variances = np.linalg.eigvalsh(centred.T @ centred / max(points.shape[0], 1))
     return float(np.sqrt(max(variances[0], 0.0)))
+
+
+def _sheet_seen_through_inside(
+    points: NDArray[np.float64], through: NDArray[np.bool_], spacing: NDArray[np.float64]
+) -> bool:
+    """Whether at least :data:`EDGE_ON_SEEN_THROUGH_FLOOR` of a sheet's points (shape (n, 3))
+    lying more than :data:`SHEET_RIM_FACTOR` times their ``spacing`` (n,) inside its outline
+    (the convex hull of the points in their plane) were seen ``through`` (n,); False for a
+    sheet without such an interior (a strip, a line)."""
+    from scipy.spatial import ConvexHull, QhullError  # on first use: API processes need no scipy
+
+    centred = points - points.mean(axis=0)
+    _, axes = np.linalg.eigh(centred.T @ centred)
+    in_plane = centred @ axes[:, 1:]
+    try:
+        hull = ConvexHull(in_plane)
+    except QhullError:
+        return False
+    # each hull facet's equation is (unit outward normal, offset): -max is the depth inside
+    depth = -(in_plane @ hull.equations[:, :2].T + hull.equations[:, 2]).max(axis=1)
+    inside = depth > SHEET_RIM_FACTOR * spacing
+    return bool(inside.any()) and bool(
+        through[inside].sum() >= EDGE_ON_SEEN_THROUGH_FLOOR * inside.sum()
+    )
