@@ -113,13 +113,15 @@ def blind_clusters(
     if candidate_index.shape[0] == 0 or coverage[labels].all():
         return blind, share
     candidates = points[candidate_index]
-    clusters = cluster_labels(candidates, candidate_radius)
-    changing = np.zeros(int(clusters.max()) + 1, dtype=bool)
-    changing[clusters[~coverage[labels]]] = True
-    seen = np.zeros_like(changing)
+    # the clusters of the change parts' candidates alone: the coverage differences joining
+    # two changes into one cluster of candidates are their surroundings, not part of them
+    members = ~coverage[labels]
+    clusters = np.full(candidates.shape[0], -1, dtype=np.int64)
+    clusters[members] = cluster_labels(candidates[members], candidate_radius[members])
+    n_clusters = int(clusters.max()) + 1
+    seen = np.zeros(n_clusters, dtype=bool)
     if seen_around is not None:
-        seen[clusters[~coverage[labels] & seen_around[labels]]] = True
-    members = changing[clusters]
+        seen[clusters[members & seen_around[labels]]] = True
     reach = SHELL_FACTOR * change_threshold
     low = candidates[members].min(axis=0) - reach
     high = candidates[members].max(axis=0) + reach
@@ -135,7 +137,7 @@ def blind_clusters(
     shell = np.asarray(distance).ravel() <= reach
     owner = clusters[np.flatnonzero(members)[np.asarray(nearest).ravel()[shell]]]
     # the support it stands on is no surrounding: only points over its foot count
-    bottom = np.full(changing.shape[0], np.inf)
+    bottom = np.full(n_clusters, np.inf)
     np.minimum.at(bottom, clusters[members], candidates[members, 2])
     raised = points[looked[shell], 2] > bottom[owner] + change_threshold
     shell[np.flatnonzero(shell)[~raised]] = False
@@ -147,13 +149,13 @@ def blind_clusters(
     if faces is not None:
         is_candidate[candidate_index[faces[labels]]] = False
     unseen = is_candidate[looked[shell]].astype(np.float64)
-    totals = np.bincount(owner, minlength=changing.shape[0]).astype(np.float64)
-    unseen_share = np.bincount(owner, weights=unseen, minlength=changing.shape[0]) / np.maximum(
+    totals = np.bincount(owner, minlength=n_clusters).astype(np.float64)
+    unseen_share = np.bincount(owner, weights=unseen, minlength=n_clusters) / np.maximum(
         totals, 1.0
     )
-    in_blind = changing & ~seen & (totals >= MIN_SHELL_POINTS) & (unseen_share >= BLIND_SHARE)
-    blind[labels] = in_blind[clusters]
-    share[labels] = np.where(changing[clusters], unseen_share[clusters], 0.0)
+    in_blind = ~seen & (totals >= MIN_SHELL_POINTS) & (unseen_share >= BLIND_SHARE)
+    blind[labels[members]] = in_blind[clusters[members]]
+    share[labels[members]] = unseen_share[clusters[members]]
     return blind, share
 
 
