@@ -15,8 +15,10 @@ stand in both epochs, were not seen either: this epoch's points around it are ca
 map test already judged coverage differences (the wall behind an unchanged desk that a
 handheld camera never filmed, while it filmed the floor under the desk from the side).
 
-:func:`blind_clusters` takes each cluster with a change part and looks at this epoch's points
-around it, within :data:`SHELL_FACTOR` change thresholds of its candidates and outside it, and
+:func:`blind_clusters` takes each cluster of the change parts' candidates (the coverage
+differences among the candidates are surroundings: joined in, they made one cluster of a
+cabinet in an unfilmed corner and a wall band 1.5 m away, its shell the matched points round
+both, held-out RGB-D room 1904) and looks at this epoch's points around it, within :data:`SHELL_FACTOR` change thresholds of its candidates and outside it, and
 more than one change threshold over its lowest candidate (the floor or desk it stands on is
 no surrounding: the other path may have missed the floor round an added box's foot):
 when at least :data:`BLIND_SHARE` of them are other clusters' coverage differences, the whole
@@ -144,8 +146,8 @@ def blind_clusters(
     owner = owner[raised]
     is_candidate = np.zeros(points.shape[0], dtype=bool)
     is_candidate[candidate_index] = True
-    # shell points that are candidates lie in clusters with no change part: coverage, unless
-    # an unseen face's (the other epoch saw its object's faces meeting it: it looked there)
+    # shell points that are candidates are no change parts' (those are left out): coverage,
+    # unless an unseen face's (the other epoch saw its object's faces meeting it: it looked there)
     if faces is not None:
         is_candidate[candidate_index[faces[labels]]] = False
     unseen = is_candidate[looked[shell]].astype(np.float64)
