@@ -18,9 +18,10 @@ handheld camera never filmed, while it filmed the floor under the desk from the 
 :func:`blind_clusters` takes each cluster of the change parts' candidates (the coverage
 differences among the candidates are surroundings: joined in, they made one cluster of a
 cabinet in an unfilmed corner and a wall band 1.5 m away, its shell the matched points round
-both, held-out RGB-D room 1904) and looks at this epoch's points around it, within :data:`SHELL_FACTOR` change thresholds of its candidates and outside it, and
-more than one change threshold over its lowest candidate (the floor or desk it stands on is
-no surrounding: the other path may have missed the floor round an added box's foot):
+both, held-out RGB-D room 1904) and looks at this epoch's points around it, within
+:data:`SHELL_FACTOR` change thresholds of its candidates and outside it, and more than one
+change threshold over its lowest candidate (the floor or desk it stands on is no
+surrounding: the other path may have missed the floor round an added box's foot):
 when at least :data:`BLIND_SHARE` of them are other clusters' coverage differences, the whole
 cluster lies in the other epoch's blind area and is one too.  (Judging each change part
 alone on its own shell as well, s21, cleared a wall band's patches on dense rooms but took a
