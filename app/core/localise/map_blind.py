@@ -15,10 +15,11 @@ stand in both epochs, were not seen either: this epoch's points around it are ca
 map test already judged coverage differences (the wall behind an unchanged desk that a
 handheld camera never filmed, while it filmed the floor under the desk from the side).
 
-:func:`blind_clusters` takes each cluster of the change parts' candidates (the coverage
-differences among the candidates are surroundings: joined in, they made one cluster of a
-cabinet in an unfilmed corner and a wall band 1.5 m away, its shell the matched points round
-both, held-out RGB-D room 1904) and looks at this epoch's points around it, within
+:func:`blind_clusters` takes each body, a cluster of the change parts' candidates and the
+small coverage parts among them (:func:`_bodies`: a larger coverage difference is the
+surroundings; joined in, it made one cluster of a cabinet in an unfilmed corner and a wall
+band 1.5 m away, its shell the matched points round both, held-out RGB-D room 1904), and
+looks at this epoch's points around it, within
 :data:`SHELL_FACTOR` change thresholds of its candidates and outside it, and more than one
 change threshold over its lowest candidate (the floor or desk it stands on is no
 surrounding: the other path may have missed the floor round an added box's foot):
