@@ -154,6 +154,7 @@ LOCALISE_LAYERS = (
     "isolated_clusters",
     "protruding_faces",
     "threshold_band",
+    "flying_sight",
     "flying_samples",
     "changed_regions",
     "changes",

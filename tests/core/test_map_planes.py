@@ -49,7 +49,7 @@ def test_a_wall_patch_with_tilted_point_normals_lies_on_the_other_epochs_wall(se
     normal = _tilted(rng, np.tile([1.0, 0.0, 0.0], (patch.shape[0], 1)), 6.0)
     labels = np.zeros(patch.shape[0], dtype=np.int64)
     share = share_on_planes(
-        _candidates(patch, normal), labels, 1, local_geometry(wall, 10), TOLERANCE
+        _candidates(patch, normal), labels, 1, local_geometry(wall, 10), TOLERANCE, 0.1
     )
     assert share[0] >= 0.9
 
@@ -64,6 +64,6 @@ def test_a_face_off_the_other_epochs_plane_stays_off_it():
     normal = np.tile([1.0, 0.0, 0.0], (face.shape[0], 1))
     labels = np.zeros(face.shape[0], dtype=np.int64)
     share = share_on_planes(
-        _candidates(face, normal), labels, 1, local_geometry(wall, 10), TOLERANCE
+        _candidates(face, normal), labels, 1, local_geometry(wall, 10), TOLERANCE, 0.1
     )
     assert share[0] == 0.0

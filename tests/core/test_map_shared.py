@@ -14,7 +14,7 @@ from app.core.labels import LABEL_CHANGED
 from app.core.localise import localise_changes
 from app.core.localise.map_shared import meets_lacking_at_angle
 from app.core.pipeline import compare
-from tests.helpers.fused_rooms import box_sides, plane
+from tests.helpers.fused_rooms import box_sides, chair_before_wall, plane
 
 ROOM_FLOOR = ([0.0, 0.0, 0.0], [6.0, 4.0, 0.0])
 
@@ -148,6 +148,21 @@ def test_a_wall_section_pushed_out_is_still_seen_through():
     patch &= (reference[:, 0] > 2.15) & (reference[:, 0] < 2.85)
     assert patch.sum() > 100
     assert np.mean(localisation.reference_label[patch] == LABEL_CHANGED) >= 0.9
+
+
+@pytest.mark.parametrize(("seed", "gap"), [(0, 0.10), (1, 0.10), (2, 0.12)])
+def test_a_wall_patch_a_removed_chairs_back_hid_just_before_it_is_unchanged(seed, gap):
+    # robot warehouse 2804: the reference's chair back stood a change threshold before the
+    # wall, which the scan (the chair removed) saw whole.  The scan's wall patch carries on
+    # into the reference's wall all round; the back on its normal line hid it from the
+    # reference (no sensor saw the wall's place empty through it), while the back itself is
+    # still removed
+    reference, scan, back, hidden = chair_before_wall(np.random.default_rng(seed), gap=gap)
+    localisation = localise_changes(reference, scan)
+    assert localisation.parameters["change_threshold"] == pytest.approx(0.1)
+    assert hidden.sum() > 150
+    assert np.mean(localisation.scan_label[hidden] == LABEL_CHANGED) <= 0.05
+    assert np.mean(localisation.reference_label[back] == LABEL_CHANGED) >= 0.6
 
 
 def floor_lines(rng, xs, *, step=0.05):

@@ -94,3 +94,27 @@ def box_removed_beside_a_band(rng, wall_room, spacing):
     found = localise_changes(reference, wall_room(rng, 1.4), threads=1)
     changed = found.reference_label == LABEL_CHANGED
     return changed[-box.shape[0] :].mean(), int(np.count_nonzero(changed[: -box.shape[0]]))
+
+
+def chair_before_wall(rng, *, gap, tilt=0.0):
+    """A chair whose back stands ``gap`` metres before the room's wall y = 0 (``gap + tilt`` at
+    its far end), and the room: the reference's room lacks the wall patch the back hid, the
+    scan's (the chair removed) has it whole (robot warehouse 2804 of ``bench.moving_maps``).
+
+    Returns
+    -------
+    reference, scan : ndarray, shape (n, 3)
+        The reference ends with the back's then the seat's points.
+    back, hidden : ndarray, bool
+        The reference's back points, the scan's wall patch the back hid from the reference.
+    """
+    x0, x1, z0, z1 = 2.5, 3.0, 0.45, 0.95
+    room = fused_room(rng)
+    hidden = (np.abs(room[:, 1]) < 0.01) & (room[:, 2] > z0 + 0.03) & (room[:, 2] < z1 - 0.03)
+    hidden &= (room[:, 0] > x0 + 0.03) & (room[:, 0] < x1 - 0.03)
+    back = plane(rng, [x0, gap, z0], [x1 - x0, tilt, 0], [0, 0, z1 - z0])
+    seat = box_sides(rng, [x0, gap + 0.02, 0.0], [x1, gap + 0.5, 0.45], faces="tew")
+    reference = np.vstack([room[~hidden], back, seat])
+    is_back = np.zeros(reference.shape[0], bool)
+    is_back[-(back.shape[0] + seat.shape[0]) : -seat.shape[0]] = True
+    return reference, room, is_back, hidden

@@ -38,6 +38,7 @@ from pykdtree.kdtree import KDTree
 
 from app.core.labels import LABEL_UNOBSERVED
 from app.core.localise.epoch import EpochCloud
+from app.core.localise.flying_sight import on_sight_lines
 from app.core.localise.neighbourhoods import Neighbourhoods, nearest_neighbourhoods
 from app.core.localise.surface import neighbourhood_planes
 from app.core.threads import concurrently
@@ -90,7 +91,8 @@ def flying_samples(
     points: NDArray[np.float64],
     neighbourhoods: Neighbourhoods,
     typical: float | None = None,
-    other: KDTree | None = None,
+    other: tuple[KDTree, NDArray[np.float64]] | None = None,
+    sighted_only: bool = False,
 ) -> NDArray[np.bool_]:
     """Which of a cloud's points are flying samples (module docstring), shape (n,).
 
@@ -102,9 +104,12 @@ def flying_samples(
     typical : float, optional
         The cloud's median k-th neighbour distance (default: measured on ``points``; a pass
         after the first keeps the whole cloud's).
-    other : pykdtree.kdtree.KDTree, optional
-        Of the other epoch's points (aligned): a point with one of them within
+    other : (pykdtree.kdtree.KDTree, ndarray of shape (p, 3)), optional
+        The other epoch's points (aligned) and their tree: a point with one of them within
         :data:`OTHER_NEAR` median spacings is no flying sample.
+    sighted_only : bool
+        Only the points ``other`` holds that lie on lines of sight past an own edge
+        (:func:`~app.core.localise.flying_sight.on_sight_lines`): flying all the same.
 
     Returns
     -------
@@ -130,8 +135,16 @@ def flying_samples(
     spacing = typical * math.sqrt(math.pi / k)
     sparse = sparse[(variation >= SCATTER) & (spread > ISOLATION * spacing)]
     if other is not None and sparse.size:
-        near = other.query(points[sparse], k=1, distance_upper_bound=OTHER_NEAR * spacing)
-        sparse = sparse[~np.isfinite(near[0])]
+        near = other[0].query(points[sparse], k=1, distance_upper_bound=OTHER_NEAR * spacing)
+        held = np.isfinite(near[0])
+        if sighted_only:
+            solid = np.ones(n, dtype=bool)
+            solid[sparse] = False
+            sparse = sparse[held][on_sight_lines(points, sparse[held], solid, other[1])]
+        else:
+            sparse = sparse[~held]
+    elif sighted_only:
+        return flying
     flying[sparse] = True
     return flying
 
@@ -183,12 +196,12 @@ def _searched(
 def _without_flying_samples(
     epoch: EpochCloud,
     searched: tuple[NDArray[np.float64], Neighbourhoods] | None,
-    other_tree: KDTree | None,
+    other_tree: tuple[KDTree, NDArray[np.float64]] | None,
 ) -> tuple[EpochCloud, NDArray[np.intp] | None]:
     """``epoch`` without its flying samples, and the indices of the points kept (None: all
     kept, ``epoch`` as it is, its neighbourhoods found).  ``searched``: its points and
     neighbourhoods (:func:`_searched`; None: a cloud with origins, left as it is);
-    ``other_tree``: of the other cloud's samples that keep a point near them
+    ``other_tree``: the other cloud's samples that keep a point near them and their tree
     (:data:`OTHER_NEAR`, :func:`_standing`)."""
     if searched is None:
         return epoch, None
@@ -201,14 +214,20 @@ def _without_flying_samples(
             break
         neighbourhoods = _kept_neighbourhoods(points[kept], neighbourhoods, flying)
         kept = kept[~flying]
+    sighted = flying_samples(points[kept], neighbourhoods, typical, other_tree, True)
+    if sighted.any():  # after the passes: their neighbours are not judged again without them
+        neighbourhoods = _kept_neighbourhoods(points[kept], neighbourhoods, sighted)
+        kept = kept[~sighted]
     if kept.size == points.shape[0]:
         return dataclasses.replace(epoch, neighbourhoods=found), None
     return dataclasses.replace(epoch.subset(kept), neighbourhoods=neighbourhoods), kept
 
 
-def _standing(searched: tuple[NDArray[np.float64], Neighbourhoods] | None) -> KDTree | None:
-    """A tree of a cloud's samples that can keep the other epoch's points (:data:`OTHER_NEAR`):
-    all but its own flying candidates (the test without the other epoch).  Round a silhouette
+def _standing(
+    searched: tuple[NDArray[np.float64], Neighbourhoods] | None,
+) -> tuple[KDTree, NDArray[np.float64]] | None:
+    """A cloud's samples that can keep the other epoch's points (:data:`OTHER_NEAR`) and their
+    tree: all but its own flying candidates (the test without the other epoch).  Round a silhouette
     both epochs' cameras saw, each has its flying pixels in the same air: a flying pixel next
     to another is no surface both saw (drifting RGB-D room 503: such scan pixels kept the
     turned chair's reference points unchanged, recall 43 % with them, 47 % without).  None
@@ -218,8 +237,9 @@ def _standing(searched: tuple[NDArray[np.float64], Neighbourhoods] | None) -> KD
     points, found = searched
     candidates = flying_samples(points, found)
     if not candidates.any():
-        return found.tree
-    return KDTree(np.ascontiguousarray(points[~candidates]))
+        return found.tree, points
+    standing = np.ascontiguousarray(points[~candidates])
+    return KDTree(standing), standing
 
 
 def restored(values: NDArray, kept: NDArray[np.intp] | None, n: int, fill: float) -> NDArray:

@@ -76,6 +76,7 @@ from app.core.localise.map_planes import (
 from app.core.localise.map_rims import rim_gap_share
 from app.core.localise.map_scale import metric_candidates, metric_planes, metric_side
 from app.core.localise.map_shared import (
+    LAYER_FACTOR,
     LEVEL_BELOW_RADIUS,
     MIN_ADJOINING,
     seen_through,
@@ -366,7 +367,11 @@ def map_test(
             tolerance=threshold,
         )
         upright, counted = figures.upright, other_unmatched & ~gap
-        behind = seen_through(candidates, chosen, labels, upright, other, counted, threshold)
+        plain = figures.continuation_share >= PLAIN_CONTINUATION_SHARE  # a layer hid it
+        layer = np.where(plain, LAYER_FACTOR * change_threshold, 0.0)
+        behind = seen_through(
+            candidates, chosen, labels, upright, other, counted, threshold, layer, own.geometry
+        )
         return _share_per_part(labels[chosen], behind, share)
 
     open_beneath = partial(_level_below_share, candidates, labels, other=other)

@@ -120,6 +120,7 @@ def _border_continuation(
             own.geometry,
             other.geometry,
             change_threshold,
+            anchor=query,
         ).any(axis=1)
     return border, continues
 
@@ -556,7 +557,9 @@ def part_figures(
         sizes=sizes,
         near=near,
         continuation_share=continuation_share,
-        coplanar_share=share_on_planes(candidates, labels, n_parts, other.geometry, threshold),
+        coplanar_share=share_on_planes(
+            candidates, labels, n_parts, other.geometry, threshold, change_threshold
+        ),
         behind_share=np.bincount(labels, weights=behind.astype(np.float64), minlength=n_parts)
         / np.maximum(sizes, 1.0),
         adjoining=adjoining,

@@ -22,6 +22,7 @@ from app.core.localise.surface import LocalGeometry, weighted_plane
 __all__ = [
     "COPLANAR_REACHES",
     "COPLANAR_SAMPLE",
+    "MUTUAL_FACTOR",
     "SECTORS",
     "SURFACE_REACH",
     "SURFACE_SECTORS",
@@ -46,6 +47,11 @@ SECTOR_HALF_ANGLE_COSINE = math.cos(math.radians(35.0))
 PROBE_NEIGHBOURS = 4
 COPLANAR_SAMPLE = 256
 COPLANAR_REACHES = (0.25, 0.5, 1.0, 2.0)
+MUTUAL_FACTOR = 1.0
+"""A sample on a candidate's plane is the same surface only when its own plane passes the
+candidate within this many change thresholds (:func:`share_on_planes`): surface farther off
+is another one, parallel to it (a chair's back 7-13 cm before a wall, robot 2804).  Half a
+change threshold also split RGB-D drift room 004's doubled walls (32 -> 80 false points)."""
 GAP_REACH = 0.5
 """Metres: the other epoch's points around a candidate that tell whether it lies in a gap
 between that epoch's samples of one plane (:func:`in_sampling_gap`)."""
@@ -67,13 +73,19 @@ def coplanar_sectors(
     tolerance: float,
     reach: float,
     lines: bool = False,
+    mutual: float | None = None,
 ) -> NDArray[np.int64]:
     """In how many of :data:`SECTORS` directions of each point's plane ``cloud`` has surface
     on that plane about ``reach`` away (between half and twice it; shapes (p, 3) -> (p,)).
 
     With ``lines``, a sample of ``cloud`` on a line
     (:func:`~app.core.localise.sample_lines.sample_lines`: its fitted normal says nothing) is
-    no surface on the plane, whatever its normal: a line lies in any plane through it."""
+    no surface on the plane, whatever its normal: a line lies in any plane through it.  With
+    ``mutual`` (metres), the sample's own plane must pass the point too, within that or the
+    plane tolerance, whichever is wider: a face tilted a few degrees off a wall 7-13 cm behind
+    it has its plane meet the wall some way off, parallel within the normal agreement, while
+    the wall's plane passes the face a change threshold off (robot warehouse 2804's chair
+    back)."""
     count = points.shape[0]
     if count == 0:
         return np.zeros(0, dtype=np.int64)
@@ -96,6 +108,9 @@ def coplanar_sectors(
             & (across <= tolerance + PLANE_SLOPE * distance)
         )
         hit = placed & (agrees >= NORMAL_AGREEMENT_COSINE)
+        if mutual is not None:
+            passes = np.abs(np.einsum("pkd,pkd->pk", offset, cloud.normal[index]))
+            hit &= passes <= np.maximum(tolerance + PLANE_SLOPE * distance, mutual)
         if lines:
             hit &= ~lines_in_planes(cloud, index, unit, hit)[0]
         hits[:, sector] = hit.any(axis=1)
@@ -122,9 +137,12 @@ def share_on_planes(
     n_clusters: int,
     other: LocalGeometry,
     tolerance: float,
+    change_threshold: float,
 ) -> NDArray[np.float64]:
     """Per cluster, the share of (up to :data:`COPLANAR_SAMPLE`) sampled candidates whose own
-    plane the other epoch has within :data:`COPLANAR_REACHES` of them, in some direction.
+    plane the other epoch has within :data:`COPLANAR_REACHES` of them, in some direction, with
+    its own plane passing the candidate within :data:`MUTUAL_FACTOR` ``change_threshold``
+    (:func:`coplanar_sectors`' ``mutual``).
 
     A patch of a continuing wall, floor or ceiling lies on the other epoch's plane almost
     everywhere; a removed object's faces do not, even where one of them is in line with a
@@ -144,14 +162,21 @@ def share_on_planes(
     sample = np.flatnonzero(rank < COPLANAR_SAMPLE)
     points, normal = candidates.points[sample], candidates.normal[sample]
     found = np.zeros(sample.shape[0], dtype=bool)
+    mutual = MUTUAL_FACTOR * change_threshold
     for reach in COPLANAR_REACHES:
         todo = np.flatnonzero(~found)
-        found[todo] = coplanar_sectors(points[todo], normal[todo], other, tolerance, reach) >= 1
+        found[todo] = (
+            coplanar_sectors(points[todo], normal[todo], other, tolerance, reach, mutual=mutual)
+            >= 1
+        )
     on_plane, plane_points, plane_normal = _cluster_planes(points, normal, labels[sample])
     for reach in COPLANAR_REACHES:
         todo = np.flatnonzero(~found & on_plane)
         found[todo] = (
-            coplanar_sectors(plane_points[todo], plane_normal[todo], other, tolerance, reach) >= 1
+            coplanar_sectors(
+                plane_points[todo], plane_normal[todo], other, tolerance, reach, mutual=mutual
+            )
+            >= 1
         )
     hits = np.bincount(labels[sample], weights=found.astype(np.float64), minlength=n_clusters)
     return hits / np.maximum(np.bincount(labels[sample], minlength=n_clusters), 1)

@@ -18,22 +18,34 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
+from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE
 from app.core.localise.map_parts import EDGE_COSINE, UPRIGHT_NORMAL_Z, PartFigures
-from app.core.localise.map_sides import surface_behind
+from app.core.localise.map_planes import extends
+from app.core.localise.map_sides import oriented_depths, surface_behind
 from app.core.localise.rays import Candidates
+from app.core.localise.surface import LocalGeometry
 
 __all__ = [
+    "LAYER_FACTOR",
     "LEVEL_BELOW_RADIUS",
     "MIN_ADJOINING",
     "SURROUND_SHARE",
     "edge_strips",
+    "layered_behind",
     "meets_lacking_at_angle",
     "seen_through",
+    "standing_layer",
     "strip_sides",
     "unseen_faces",
     "unseen_levels",
 ]
 
+LAYER_FACTOR = 2.0
+"""The other epoch's lacking surface within this many change thresholds of a part whose
+surface it has all round is a layer on that surface (an object standing against it), no
+surface seen through the part's place (:func:`layered_behind`)."""
+LAYER_NEIGHBOURS = 16
+"""The other cloud's points looked at round a point for an object standing in its layer."""
 SURROUND_SHARE = 0.1
 """An upright part is an unseen side when less than this share of its adjoining border points
 has the other epoch's surface carrying on past them (or surface this epoch lacks)."""
@@ -154,6 +166,8 @@ def seen_through(
     other: Side,
     counted: NDArray[np.bool_],
     tolerance: float,
+    layer: NDArray[np.float64] | None = None,
+    own: LocalGeometry | None = None,
 ) -> NDArray[np.bool_]:
     """Whether the other cloud's ``counted`` points (shape (m,), bool) lie on the normal line
     of each ``chosen`` candidate (indices, shape (k,) -> (k,), bool;
@@ -167,17 +181,110 @@ def seen_through(
     hid the part from them (robot office 303: the reference's desk top over a floor patch only
     the scan's lidar saw, from the side, under the desk).  An upright part's sensors may stand
     on either side of it: every counted surface on its normal line is evidence (the wall
-    behind a turned backrest: RGB-D room 1103)."""
+    behind a turned backrest: RGB-D room 1103), except, for the upright parts with a
+    ``layer`` (shape (parts,), metres, 0: none), an object standing within it
+    (:func:`layered_behind`; ``own``: the candidates' cloud, needed with ``layer``)."""
     points, normal, labels = candidates.points[chosen], candidates.normal[chosen], labels[chosen]
     found = np.zeros(points.shape[0], dtype=bool)
     sides = upright[labels]
-    found[sides] = surface_behind(points[sides], normal[sides], other, counted)
+    layered = sides & ((np.zeros(upright.shape[0]) if layer is None else layer)[labels] > 0.0)
+    plain = sides & ~layered
+    found[plain] = surface_behind(points[plain], normal[plain], other, counted)
+    if layered.any():
+        found[layered] = layered_behind(
+            points[layered], normal[layered], other, counted, layer[labels[layered]], own, tolerance
+        )
     height = other.points[:, 2]
     for part in np.unique(labels[~sides]):
         members = np.flatnonzero(labels == part)
         below = counted & (height < float(np.median(points[members, 2])) - tolerance)
         found[members] = surface_behind(points[members], normal[members], other, below)
     return found
+
+
+def layered_behind(
+    points: NDArray[np.float64],
+    normal: NDArray[np.floating],
+    other: Side,
+    counted: NDArray[np.bool_],
+    layer: NDArray[np.float64],
+    own: LocalGeometry,
+    tolerance: float,
+) -> NDArray[np.bool_]:
+    """Whether the other cloud's ``counted`` surface on each point's normal line is evidence
+    that the other epoch saw through the point's place (shapes (c, 3) -> (c,)): as
+    :func:`~app.core.localise.map_sides.surface_behind`, except where an object stands within
+    ``layer`` (metres, shape (c,)) of it (:func:`standing_layer`) and no such surface lies
+    farther than ``layer`` on a side
+    (:func:`~app.core.localise.map_sides.oriented_depths`).
+
+    Asked for a part whose surface the other epoch has round it (it carries on past the
+    part's border): the other epoch saw that surface there from its open side.  Its lacking
+    surface parallel to the part and within ``layer`` of it, on a plane this epoch does not
+    carry on, is taken as an object standing against the surface, which hid the part's place
+    from the other epoch (a chair's back 7-12 cm before a warehouse wall, robot 2804: the
+    scan's wall where the reference's chair stood), not as surface seen through it.  The part
+    is then unseen by the other epoch, not seen empty.  A surface whose plane this epoch has
+    round it is no such object but the wall behind the part (a removed board 12.5 cm before
+    a wall: the board is seen through); surface farther than ``layer`` on a side is evidence
+    as before (the wall behind a turned backrest)."""
+    unit = normal.astype(np.float64)
+    unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-12)[:, None]
+    found = surface_behind(points, normal, other, counted)
+    standing = standing_layer(
+        points[found], unit[found], other, counted, layer[found], own, tolerance
+    )
+    if standing.any():
+        rows = np.flatnonzero(found)[standing]
+        ahead, back = oriented_depths(points[rows], unit[rows], other, counted)
+        beyond = (np.isfinite(ahead) & (ahead > layer[rows])) | (
+            np.isfinite(back) & (back > layer[rows])
+        )
+        found[rows] = beyond
+    return found
+
+
+def standing_layer(
+    points: NDArray[np.float64],
+    unit: NDArray[np.float64],
+    other: Side,
+    counted: NDArray[np.bool_],
+    layer: NDArray[np.float64],
+    own: LocalGeometry,
+    tolerance: float,
+) -> NDArray[np.bool_]:
+    """Whether an object of the other epoch stands within ``layer`` (metres, shape (c,)) of
+    each point on its normal line (``unit``, shape (c, 3) -> (c,), bool): a ``counted`` point
+    of the other cloud at most ``layer`` along the line and ``layer / LAYER_FACTOR`` off it,
+    its surface parallel to the point's, and its plane one ``own`` (the point's cloud) does not
+    carry on (:func:`~app.core.localise.map_planes.extends`: the wall behind a removed board is
+    on the reference's wall plane; the removed chair's back before the scan's wall is not).
+    Measured on the points themselves: a probe's ball reaches farther than its depth (a sparse
+    corridor's box front 0.5 m out of the wall, ``layer`` 0.39 m, is no layer)."""
+    standing = np.zeros(points.shape[0], dtype=bool)
+    chosen = np.flatnonzero(counted)
+    if points.shape[0] == 0 or chosen.shape[0] == 0:
+        return standing
+    k = min(LAYER_NEIGHBOURS, chosen.shape[0])
+    reach = float(np.max(layer)) * np.hypot(1.0, 1.0 / LAYER_FACTOR)
+    _, index = KDTree(other.points[chosen]).query(points, k=k, distance_upper_bound=reach)
+    index = chosen[np.minimum(np.asarray(index).reshape(points.shape[0], k), chosen.shape[0] - 1)]
+    offset = other.points[index] - points[:, None, :]
+    along = np.einsum("ckd,cd->ck", offset, unit)
+    off_line = np.linalg.norm(offset - along[:, :, None] * unit[:, None, :], axis=2)
+    parallel = np.abs(np.einsum("ckd,cd->ck", other.geometry.normal[index], unit))
+    within = (
+        (np.abs(along) <= layer[:, None])
+        & (off_line <= layer[:, None] / LAYER_FACTOR)
+        & (parallel >= NORMAL_AGREEMENT_COSINE)
+    )
+    rows = np.flatnonzero(within.any(axis=1))
+    if rows.shape[0] == 0:
+        return standing
+    first = index[rows, np.argmax(within[rows], axis=1)]
+    carried = extends(other.points[first], other.geometry.normal[first], own, tolerance)
+    standing[rows] = ~carried
+    return standing
 
 
 def strip_sides(

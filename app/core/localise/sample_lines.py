@@ -104,11 +104,16 @@ def continues_into(
     own: LocalGeometry,
     other: LocalGeometry,
     change_threshold: float,
+    anchor: NDArray[np.float64] | None = None,
 ) -> NDArray[np.bool_]:
     """Whether the other epoch's sample ``match`` carries on the plane of normal ``unit``
     through this epoch's point ``own_points``: parallel to it and on it, or, on a line
     (:func:`sample_lines`), holding the line in the plane and within ``change_threshold`` of
-    the point.
+    the point.  With ``anchor`` (the row's own point whose plane it is), the sample's plane
+    must also pass within ``change_threshold`` of the anchor: a surface carries on through a
+    gap in its own plane, and one that passes the anchor farther off is another surface
+    (a chair's back tilted 5-13 cm before a wall, its points nearest the wall matched to it:
+    robot 2804).
 
     Parameters
     ----------
@@ -122,6 +127,7 @@ def continues_into(
         The pairs worth judging (others are False).
     other : LocalGeometry
     change_threshold : float
+    anchor : ndarray, shape (c, 3), optional
 
     Returns
     -------
@@ -140,4 +146,10 @@ def continues_into(
             np.abs(np.einsum("pd,pd->p", own.normal[np.asarray(own_there).ravel()], unit[rows]))
             >= NORMAL_AGREEMENT_COSINE
         )
-    return on_it & np.where(on_line, held, parallel)
+    carried = on_it & np.where(on_line, held, parallel)
+    if anchor is not None:
+        # the sample's plane carried on to the anchor (a line's: the own plane through it)
+        past = other.points[match] - anchor[:, None, :]
+        plane = np.where(on_line[:, :, None], unit[:, None, :], other.normal[match])
+        carried &= np.abs(np.einsum("ckd,ckd->ck", past, plane)) <= change_threshold
+    return carried
