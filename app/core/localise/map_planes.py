@@ -151,7 +151,10 @@ def share_on_planes(
     point's own normal, tilted a few degrees by the floor or a corner in its neighbourhood,
     or its sample a few centimetres off the wall by noise, leaves the other epoch's sparse
     samples of the same wall a metre away off its plane (held-out RGB-D room 1904's wall
-    behind a desk: 64 % on planes the other epoch has, 94 % on the cluster's plane).
+    behind a desk: 64 % on planes the other epoch has, 94 % on the cluster's plane).  There
+    the other epoch's sample must be the same surface: its plane passes the projected point
+    within the plane tolerance, not :data:`MUTUAL_FACTOR` change thresholds (a chair back
+    tilted 10-15 cm before a wall has a cleaner plane than its points and met the wall).
     """
     rng = np.random.default_rng(0)
     order = rng.permutation(labels.shape[0])
@@ -174,7 +177,7 @@ def share_on_planes(
         todo = np.flatnonzero(~found & on_plane)
         found[todo] = (
             coplanar_sectors(
-                plane_points[todo], plane_normal[todo], other, tolerance, reach, mutual=mutual
+                plane_points[todo], plane_normal[todo], other, tolerance, reach, mutual=0.0
             )
             >= 1
         )
