@@ -15,10 +15,14 @@ stand in both epochs, were not seen either: this epoch's points around it are ca
 map test already judged coverage differences (the wall behind an unchanged desk that a
 handheld camera never filmed, while it filmed the floor under the desk from the side).
 
-:func:`blind_clusters` takes each cluster with a change part and looks at this epoch's points
-around it, within :data:`SHELL_FACTOR` change thresholds of its candidates and outside it, and
-more than one change threshold over its lowest candidate (the floor or desk it stands on is
-no surrounding: the other path may have missed the floor round an added box's foot):
+:func:`blind_clusters` takes each body, a cluster of the change parts' candidates and the
+small coverage parts among them (:func:`_bodies`: a larger coverage difference is the
+surroundings; joined in, it made one cluster of a cabinet in an unfilmed corner and a wall
+band 1.5 m away, its shell the matched points round both, held-out RGB-D room 1904), and
+looks at this epoch's points around it, within
+:data:`SHELL_FACTOR` change thresholds of its candidates and outside it, and more than one
+change threshold over its lowest candidate (the floor or desk it stands on is no
+surrounding: the other path may have missed the floor round an added box's foot):
 when at least :data:`BLIND_SHARE` of them are other clusters' coverage differences, the whole
 cluster lies in the other epoch's blind area and is one too.  (Judging each change part
 alone on its own shell as well, s21, cleared a wall band's patches on dense rooms but took a
@@ -113,13 +117,16 @@ def blind_clusters(
     if candidate_index.shape[0] == 0 or coverage[labels].all():
         return blind, share
     candidates = points[candidate_index]
-    clusters = cluster_labels(candidates, candidate_radius)
-    changing = np.zeros(int(clusters.max()) + 1, dtype=bool)
+    members = _bodies(candidates, candidate_radius, labels, coverage)
+    clusters = np.full(candidates.shape[0], -1, dtype=np.int64)
+    clusters[members] = cluster_labels(candidates[members], candidate_radius[members])
+    n_clusters = int(clusters.max()) + 1
+    changing = np.zeros(n_clusters, dtype=bool)
     changing[clusters[~coverage[labels]]] = True
-    seen = np.zeros_like(changing)
+    seen = np.zeros(n_clusters, dtype=bool)
     if seen_around is not None:
         seen[clusters[~coverage[labels] & seen_around[labels]]] = True
-    members = changing[clusters]
+    members &= changing[clusters]
     reach = SHELL_FACTOR * change_threshold
     low = candidates[members].min(axis=0) - reach
     high = candidates[members].max(axis=0) + reach
@@ -135,26 +142,48 @@ def blind_clusters(
     shell = np.asarray(distance).ravel() <= reach
     owner = clusters[np.flatnonzero(members)[np.asarray(nearest).ravel()[shell]]]
     # the support it stands on is no surrounding: only points over its foot count
-    bottom = np.full(changing.shape[0], np.inf)
+    bottom = np.full(n_clusters, np.inf)
     np.minimum.at(bottom, clusters[members], candidates[members, 2])
     raised = points[looked[shell], 2] > bottom[owner] + change_threshold
     shell[np.flatnonzero(shell)[~raised]] = False
     owner = owner[raised]
     is_candidate = np.zeros(points.shape[0], dtype=bool)
     is_candidate[candidate_index] = True
-    # shell points that are candidates lie in clusters with no change part: coverage, unless
-    # an unseen face's (the other epoch saw its object's faces meeting it: it looked there)
+    # shell points that are candidates are no change parts' (those are left out): coverage,
+    # unless an unseen face's (the other epoch saw its object's faces meeting it: it looked there)
     if faces is not None:
         is_candidate[candidate_index[faces[labels]]] = False
     unseen = is_candidate[looked[shell]].astype(np.float64)
-    totals = np.bincount(owner, minlength=changing.shape[0]).astype(np.float64)
-    unseen_share = np.bincount(owner, weights=unseen, minlength=changing.shape[0]) / np.maximum(
+    totals = np.bincount(owner, minlength=n_clusters).astype(np.float64)
+    unseen_share = np.bincount(owner, weights=unseen, minlength=n_clusters) / np.maximum(
         totals, 1.0
     )
     in_blind = changing & ~seen & (totals >= MIN_SHELL_POINTS) & (unseen_share >= BLIND_SHARE)
-    blind[labels] = in_blind[clusters]
-    share[labels] = np.where(changing[clusters], unseen_share[clusters], 0.0)
+    blind[labels[members]] = in_blind[clusters[members]]
+    share[labels[members]] = unseen_share[clusters[members]]
     return blind, share
+
+
+def _bodies(
+    candidates: NDArray[np.float64],
+    radius: NDArray[np.float64],
+    labels: NDArray[np.int64],
+    coverage: NDArray[np.bool_],
+) -> NDArray[np.bool_]:
+    """The candidates (shape (c,), bool) that make up the bodies judged for blind areas: the
+    change parts' candidates, and those of each coverage part with fewer candidates than the
+    change parts of its cluster of candidates (shapes as :func:`blind_clusters`').
+
+    A small coverage difference among a body's changes is a piece of it (a board's top edge
+    that only one path looked down on); a larger one is its surroundings (the back wall behind
+    a cabinet in a corner the other path never filmed, which joined the cabinet into one
+    cluster with a wall band 1.5 m away: held-out RGB-D room 1904).
+    """
+    change = ~coverage[labels]
+    clusters = cluster_labels(candidates, radius)
+    changes_per_cluster = np.bincount(clusters[change], minlength=int(clusters.max()) + 1)
+    part_size = np.bincount(labels, minlength=coverage.shape[0])
+    return change | (part_size[labels] < changes_per_cluster[clusters])
 
 
 def seen_round(
