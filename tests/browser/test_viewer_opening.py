@@ -123,13 +123,13 @@ def first_frame_change_pixels(
             continue
         best = max(best, count_colour(png, REMOVED_COLOUR) + count_colour(png, ADDED_COLOUR))
         time.sleep(1.0)
-    for attempt in range(3):  # the artifact only: a busy software renderer may miss one capture
+    for attempt in range(3):  # the artifact only: a busy software renderer may miss a capture
         try:
             save_screenshot(driver, name, docs_name=f"{name}.png")
             break
         except TimeoutException:
-            if attempt == 2:
-                raise
+            if attempt == 2:  # the change pixels above are the check, not the artifact
+                print(f"{name}: no artifact screenshot, the renderer timed out 3 times")
     print(f"{name}: {best} change pixels in the first frame")
     driver.execute_cdp_cmd("Emulation.clearDeviceMetricsOverride", {})
     return best, view_scene(service, job_id)
