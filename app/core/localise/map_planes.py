@@ -17,7 +17,7 @@ from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent
 from app.core.localise.rays import Candidates
 from app.core.localise.sample_lines import lines_in_planes
 from app.core.localise.settings import GATHER_CHUNK
-from app.core.localise.surface import LocalGeometry, weighted_plane
+from app.core.localise.surface import LocalGeometry, principal_axes, weighted_plane
 
 __all__ = [
     "COPLANAR_REACHES",
@@ -398,9 +398,7 @@ def part_normals(
         members = np.flatnonzero(labels == part)
         if members.shape[0] < PART_PLANE_MIN_POINTS:
             continue
-        spread = points[members] - points[members].mean(axis=0)
-        _, vectors = np.linalg.eigh(spread.T @ spread)
-        planes[members] = vectors[:, 0]
+        planes[members] = principal_axes(points[members])[2][:, 0]
     return planes
 
 

@@ -28,6 +28,7 @@ from app.core.localise.rays import (
     ray_visibility,
 )
 from app.core.localise.regions import cluster_labels
+from app.core.localise.surface import principal_axes
 
 __all__ = [
     "StationRayTest",
@@ -332,9 +333,7 @@ def _seen_through_clear_of_other(
 
 def _thickness(points: NDArray[np.float64]) -> float:
     """Standard deviation of ``points`` (shape (n, 3)) along their thinnest axis."""
-    centred = points - points.mean(axis=0)
-    variances = np.linalg.eigvalsh(centred.T @ centred / max(points.shape[0], 1))
-    return float(np.sqrt(max(variances[0], 0.0)))
+    return float(np.sqrt(max(principal_axes(points)[1][0], 0.0)))
 
 
 def _sheet_seen_through_inside(
@@ -346,8 +345,7 @@ def _sheet_seen_through_inside(
     sheet without such an interior (a strip, a line)."""
     from scipy.spatial import ConvexHull, QhullError  # on first use: API processes need no scipy
 
-    centred = points - points.mean(axis=0)
-    _, axes = np.linalg.eigh(centred.T @ centred)
+    centred, _, axes = principal_axes(points)
     in_plane = centred @ axes[:, 1:]
     try:
         hull = ConvexHull(in_plane)

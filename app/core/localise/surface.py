@@ -53,6 +53,7 @@ __all__ = [
     "local_geometry",
     "neighbourhood_planes",
     "plane_fit",
+    "principal_axes",
     "weighted_plane",
     "with_surfaces",
 ]
@@ -131,6 +132,31 @@ class LocalGeometry:
         return dataclasses.replace(
             self, neighbor_index=_RELEASED_INDEX, variation=_RELEASED_VARIATION, kernel_tree=None
         )
+
+
+def principal_axes(
+    points: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """The plane fitted to one set of points: their principal axes.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+
+    Returns
+    -------
+    centred : ndarray, shape (n, 3)
+        The points less their mean.
+    variances : ndarray, shape (3,)
+        The variance along each axis, smallest first (the thinnest axis's is the plane's
+        thickness squared).
+    axes : ndarray, shape (3, 3)
+        The axes as columns in the same order: ``axes[:, 0]`` is the plane's normal,
+        ``axes[:, 1:]`` span the plane.
+    """
+    centred = points - points.mean(axis=0)
+    scatter, axes = np.linalg.eigh(centred.T @ centred)
+    return centred, scatter / max(points.shape[0], 1), axes
 
 
 def plane_fit(

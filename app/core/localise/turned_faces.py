@@ -38,6 +38,7 @@ from app.core.localise.map_faces import EDGE_COSINE, EDGE_FACTOR
 from app.core.localise.map_parts import UPRIGHT_NORMAL_Z
 from app.core.localise.regions import ChangedRegion, Clustering, find_regions
 from app.core.localise.station_rays import StationRayTest
+from app.core.localise.surface import principal_axes
 from app.core.localise.trajectory_visibility import TrajectoryTest
 from app.core.localise.visibility import Labelled
 
@@ -197,8 +198,7 @@ def small_clusters(
 
 def face_normal(points: NDArray[np.float64]) -> NDArray[np.float64]:
     """The unit normal of the plane fitted to ``points`` (shape (p, 3) -> (3,))."""
-    _, vectors = np.linalg.eigh(np.cov((points - points.mean(axis=0)).T))
-    return vectors[:, 0]
+    return principal_axes(points)[2][:, 0]
 
 
 def _meets_at_angle(
