@@ -80,12 +80,16 @@ def _near(tree: KDTree, points: NDArray[np.float64], radius: float) -> NDArray[n
 
 
 def _sighted(
-    candidate: NDArray[np.float64], own: KDTree, both: KDTree, along: NDArray[np.float64]
+    candidate: NDArray[np.float64],
+    own: KDTree,
+    both: KDTree,
+    along: NDArray[np.float64],
+    directions: NDArray[np.float64],
 ) -> bool:
-    """Whether one candidate (shape (3,)) has :data:`SIGHT_LINES` directions along which an
-    own run of samples starts within :data:`EDGE_REACH` in front (the edge), both maps leave
-    the line empty past it up to :data:`CLEAR_REACH`, and an own sample lies behind it."""
-    directions = _sphere(DIRECTIONS)
+    """Whether one candidate (shape (3,)) has :data:`SIGHT_LINES` of ``directions`` (unit,
+    shape (d, 3)) along which an own run of samples starts within :data:`EDGE_REACH` in front
+    (the edge), both maps leave the line empty past it up to :data:`CLEAR_REACH`, and an own
+    sample lies behind it; ``along``: the steps along each line, metres."""
     towards = candidate - directions[:, None, :] * along[None, :, None]
     hit = _near(own, towards, NEAR_LINE)
     blocked = _near(both, towards, 1.5 * NEAR_LINE)
@@ -134,6 +138,7 @@ def on_sight_lines(
     own = KDTree(surface)
     both = KDTree(np.ascontiguousarray(np.vstack([surface, other_points])))
     along = np.arange(NEAR_LINE, CLEAR_REACH, NEAR_LINE)
+    directions = _sphere(DIRECTIONS)
     for rank, index in enumerate(candidates):
-        found[rank] = _sighted(points[index], own, both, along)
+        found[rank] = _sighted(points[index], own, both, along, directions)
     return found
