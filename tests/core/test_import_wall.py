@@ -146,6 +146,7 @@ LOCALISE_LAYERS = (
     "map_tops",
     "map_blind",
     "map_scale",
+    "map_verdict",
     "map_evidence",
     "map_agreement",
     "coverage",

@@ -15,7 +15,7 @@ plus :data:`~app.core.localise.gaps.PLANE_SLOPE` a metre of each point's height,
 :data:`RIM_REACH` around it): a point lies inside a rim when they hold no empty half-plane
 around it (:data:`RIM_MIN_POINTS` at least) and one of them is a level edge, a level sample or
 a level line (a rim arc), not only walls meeting the plane.  A level part is a coverage
-difference when :data:`~app.core.localise.map_evidence.GAP_SHARE` of its probed points do.
+difference when :data:`~app.core.localise.map_verdict.GAP_SHARE` of its probed points do.
 A removed or added object's top has no samples of the other epoch at its height around it
 (the floor lies under it; walls meet its plane on one or two sides: a box in a corner has no
 level edge); a slid seat has the other seat on one side only.

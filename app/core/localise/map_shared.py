@@ -91,7 +91,7 @@ def unseen_faces(figures: PartFigures) -> NDArray[np.bool_]:
     this rule carry 1,800 false changed points on unseen tops and desk strips and 71 true ones.
     A top is one only when the other epoch has no level surface straight under most of it
     within :data:`~app.core.localise.map_sides.SEE_THROUGH_REACH`
-    (:func:`~app.core.localise.map_evidence._verdict`,
+    (:func:`~app.core.localise.map_verdict.part_verdict`,
     :func:`~app.core.localise.map_planes.level_surface_below`): a solid object's body hides
     everything under its top, while under a removed table the other epoch saw the floor (the
     real classroom's table).  Until s12 that probe looked up as well and reached 1.42 m: it
