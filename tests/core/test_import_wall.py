@@ -134,6 +134,7 @@ LOCALISE_LAYERS = (
     "map_planes",
     "map_lines",
     "map_rims",
+    "map_outlines",
     "map_fragments",
     "map_sides",
     "map_steps",

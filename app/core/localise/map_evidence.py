@@ -67,6 +67,7 @@ from app.core.localise.map_bodies import hollow_sides
 from app.core.localise.map_faces import EDGE_FACTOR, far_faces
 from app.core.localise.map_fragments import fragment_hosts
 from app.core.localise.map_lines import line_gap_share
+from app.core.localise.map_outlines import outline_gap_share
 from app.core.localise.map_parts import part_figures, surface_parts, unmatched_points
 from app.core.localise.map_planes import (
     coplanar_sectors,
@@ -223,14 +224,16 @@ def _gap_share(
     """Per part marked in ``recheck`` (0 elsewhere), the share of its candidates in gaps
     between the other epoch's samples of a plane
     (:func:`~app.core.localise.map_planes.in_sampling_gap`), for a line of samples between its
-    lines (:func:`~app.core.localise.map_lines.line_gap_share`), or for a level part inside
-    the other epoch's rim on its plane (:func:`~app.core.localise.map_rims.rim_gap_share`)."""
+    lines (:func:`~app.core.localise.map_lines.line_gap_share`), for a level part inside
+    the other epoch's rim on its plane (:func:`~app.core.localise.map_rims.rim_gap_share`), or
+    inside the other epoch's outline of its face
+    (:func:`~app.core.localise.map_outlines.outline_gap_share`)."""
     share = _probed_share(
         labels,
         recheck,
         lambda chosen: part_sampling_gap(candidates, chosen, labels, other.geometry, tolerance),
     )
-    for probe in (line_gap_share, rim_gap_share):
+    for probe in (line_gap_share, rim_gap_share, outline_gap_share):
         share = np.maximum(
             share,
             probe(
