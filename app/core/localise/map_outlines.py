@@ -13,7 +13,10 @@ them (robot warehouse 804's removed box 97 -> 88 %, held-out 3300's turned board
 Here the other epoch's samples within :data:`OUTLINE_REACH` of a point are gathered
 (:data:`OUTLINE_NEIGHBOURS` at most) and the face itself must be among them: at least
 :data:`OUTLINE_MIN_FACE` samples carrying the point's normal (or its part's) on its plane, not
-on a line (a line's normal says nothing), which set the plane (refitted to them).  The samples
+on a line (a line's normal says nothing).  Their normals (each fitted over its own
+neighbourhood, sign-aligned and summed) set the plane's: a fit to their positions is no plane
+when they are one column (held-out warehouse 3804: a rack's end face, the reference's nearest
+column of it 0.35 m off, turned any way round the column).  The samples
 of the other surfaces, the face's outline, count where they meet that plane: each is slid
 within its own plane onto the face's plane (the box's side face, sampled 16 cm short of its
 corner, marks the face's end there; a floor crossing the plane marks its foot).  The point
@@ -31,9 +34,9 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE
+from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
 from app.core.localise.map_planes import GAP_MIN_POINTS, part_normals, widest_empty_angle
-from app.core.localise.surface import LocalGeometry, weighted_plane
+from app.core.localise.surface import LocalGeometry
 
 __all__ = [
     "FACE_SLAB",
@@ -56,9 +59,9 @@ OUTLINE_MIN_FACE = 6
 """Fewer of the other epoch's samples carrying the face's normal on its plane than this: the
 other epoch did not see the face there."""
 FACE_SLAB = 0.1
-"""Metres: the first gather of the face's samples, before the plane is refitted to them,
-takes those this close to the guessed plane (a point's normal 12 degrees off its face puts the
-face's samples 0.35 m along it 7 cm off that plane)."""
+"""Metres: the face's samples that set its normal are those this close to the guessed plane
+(a point's normal 12 degrees off its face puts the face's samples 0.35 m along it 7 cm off
+that plane)."""
 OUTLINE_SAMPLE = 64
 """Points probed per part, spread over it."""
 OUTLINE_EMPTY_ANGLE = 0.5 * math.pi
@@ -120,10 +123,13 @@ def inside_outline(
     sample_normal = other.normal[index].astype(np.float64)
     surface = near & ~other.linear[index]
     for guess in (np.asarray(normal, dtype=np.float64), np.asarray(part_normal, np.float64)):
-        agrees = np.abs(np.einsum("bkd,bd->bk", sample_normal, guess)) >= NORMAL_AGREEMENT_COSINE
+        cosine = np.einsum("bkd,bd->bk", sample_normal, guess)
         gathered = np.abs(np.einsum("bkd,bd->bk", offset, guess)) <= np.maximum(allowed, FACE_SLAB)
-        _, _, vectors = weighted_plane(offset, (surface & agrees & gathered).astype(np.float64))
-        plane = vectors[:, :, 0]
+        weight = surface & (np.abs(cosine) >= NORMAL_AGREEMENT_COSINE) & gathered
+        # the face's normal: its samples' normals (fitted over their neighbourhoods), sign-aligned
+        plane = np.einsum("bk,bkd->bd", np.where(weight, np.sign(cosine), 0.0), sample_normal)
+        length = np.linalg.norm(plane, axis=1)
+        plane = np.where(length[:, None] > 0.0, plane / np.maximum(length, 1e-12)[:, None], guess)
         across = np.abs(np.einsum("bkd,bd->bk", offset, plane))
         agrees = np.abs(np.einsum("bkd,bd->bk", sample_normal, plane)) >= NORMAL_AGREEMENT_COSINE
         face = surface & agrees & (across <= allowed)
@@ -132,13 +138,13 @@ def inside_outline(
         outline = surface & ~agrees & ~on_plane & (np.linalg.norm(slid, axis=2) <= OUTLINE_REACH)
         held = on_plane | outline
         positions = np.where(outline[:, :, None], slid, offset)
+        _, axes = tangent_directions(plane, 4)
         angle = np.arctan2(
-            np.einsum("bkd,bd->bk", positions, vectors[:, :, 1]),
-            np.einsum("bkd,bd->bk", positions, vectors[:, :, 2]),
+            np.einsum("bkd,bd->bk", positions, axes[:, 1]),
+            np.einsum("bkd,bd->bk", positions, axes[:, 0]),
         )
         found |= (
-            (np.abs(np.einsum("bd,bd->b", plane, guess)) >= NORMAL_AGREEMENT_COSINE)
-            & (face.sum(axis=1) >= OUTLINE_MIN_FACE)
+            (face.sum(axis=1) >= OUTLINE_MIN_FACE)
             & (held.sum(axis=1) >= GAP_MIN_POINTS)
             & (widest_empty_angle(angle, held) <= OUTLINE_EMPTY_ANGLE)
         )
