@@ -23,10 +23,6 @@ from app.cli.compare_report import print_warnings, report
 from app.cli.exit_status import EXIT_BAD_INPUT
 from app.core.errors import InputError
 
-SETTINGS_PREFIX = "SCANDIFF_"
-"""What the service settings' environment variables start with (``app.config.Settings``:
-matched whatever their case)."""
-
 if TYPE_CHECKING:  # the numeric stack is imported when the command runs, not to build the parser
     from app.core.cloud import PointCloud
     from app.core.pipeline import ComparisonResult
@@ -246,11 +242,12 @@ def _memory_size(text: str) -> int | None:
 
 def _default_memory_budget() -> int | None:
     """The service's per-worker budget setting (its environment variable or default)."""
-    if not any(name.upper().startswith(SETTINGS_PREFIX) for name in os.environ):
-        # no setting given: the default, without pydantic's 0.15 s import (Settings() reads
-        # nothing else, and would reject none of its defaults)
-        from app.kit.memory_budget import DEFAULT_MEMORY_BUDGET_BYTES
+    from app.kit.memory_budget import DEFAULT_MEMORY_BUDGET_BYTES, SETTING_VARIABLES
 
+    if not any(name.upper() in SETTING_VARIABLES for name in os.environ):
+        # no setting given (another SCANDIFF_* variable, e.g. SCANDIFF_SHARED_DATA, is none):
+        # the default, without pydantic's 0.15 CPU s import (Settings() reads nothing else, and
+        # would reject none of its defaults)
         return DEFAULT_MEMORY_BUDGET_BYTES
     from app.config import Settings
 

@@ -9,7 +9,7 @@ import sys
 import pytest
 
 from app.cli import compare
-from app.kit.memory_budget import DEFAULT_MEMORY_BUDGET_BYTES
+from app.kit.memory_budget import DEFAULT_MEMORY_BUDGET_BYTES, SETTING_VARIABLES
 
 PROBE = (
     "import sys\n"
@@ -42,6 +42,33 @@ def test_without_a_setting_neither_the_settings_nor_pydantic_are_imported(
         [sys.executable, "-c", PROBE], capture_output=True, text=True, check=True, timeout=60
     )
     assert completed.stdout.split() == [str(DEFAULT_MEMORY_BUDGET_BYTES), "False", "False"]
+
+
+def test_a_scandiff_variable_that_is_no_setting_imports_neither(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # the benches' and tests' SCANDIFF_SHARED_DATA: Settings ignores it (extra="ignore"), so
+    # the default stands without pydantic's 0.15 CPU s import (on main: imported for it)
+    _scandiff_free(monkeypatch)
+    monkeypatch.setenv("SCANDIFF_SHARED_DATA", "/nowhere")
+    monkeypatch.setenv("scandiff_not_a_setting", "-1")
+    completed = subprocess.run(
+        [sys.executable, "-c", PROBE], capture_output=True, text=True, check=True, timeout=60
+    )
+    assert completed.stdout.split() == [str(DEFAULT_MEMORY_BUDGET_BYTES), "False", "False"]
+
+
+def test_the_setting_variables_are_the_ones_settings_reads() -> None:
+    from app.config import Settings
+
+    read = set()
+    for name, field in Settings.model_fields.items():
+        alias = field.validation_alias
+        choices = [f"SCANDIFF_{name}"] if alias is None else alias.choices  # type: ignore[union-attr]
+        read.update(str(choice).upper() for choice in choices)
+    assert Settings.model_config.get("env_prefix") == "SCANDIFF_"
+    assert not Settings.model_config.get("env_file")
+    assert read == SETTING_VARIABLES
 
 
 @pytest.mark.parametrize(

@@ -262,3 +262,34 @@ def test_the_detector_runs_after_the_localisation_on_the_calling_thread(
     one = compare(reference, scan, params=params, threads=1)
     assert two.score == one.score and two.threshold == one.threshold
     np.testing.assert_array_equal(two.scan_label, one.scan_label)
+
+
+def test_the_detector_is_given_the_mutually_observed_rows_in_their_order() -> None:
+    """detect_change hands the detector exactly the observed points of each cloud, in file
+    order, as float64 rows (np.compress: the rows a boolean index takes)."""
+    from types import SimpleNamespace
+
+    from app.core.comparison.decide import detect_change
+    from app.core.labels import LABEL_UNOBSERVED
+
+    rng = np.random.default_rng(28)
+    reference, scan = rng.normal(size=(3_000, 3)), rng.normal(size=(2_500, 3))
+    labels = SimpleNamespace(
+        reference_label=rng.choice(np.array([LABEL_UNOBSERVED, 0, 1], np.int8), 3_000),
+        scan_label=rng.choice(np.array([LABEL_UNOBSERVED, 0, 1], np.int8), 2_500),
+    )
+    given: list[np.ndarray] = []
+
+    class Recording:
+        def detect(self, first: np.ndarray, second: np.ndarray) -> str:
+            given.extend((first, second))
+            return "detected"
+
+    detected = detect_change(Recording(), reference, scan, labels)  # type: ignore[arg-type]
+    assert detected.compared_points == "mutually observed"
+    for points, label, got in zip(
+        (reference, scan), (labels.reference_label, labels.scan_label), given, strict=True
+    ):
+        expected = points[label != LABEL_UNOBSERVED]
+        assert got.dtype == np.float64 and got.flags.c_contiguous
+        np.testing.assert_array_equal(got, expected)
