@@ -1,4 +1,4 @@
-"""Isolated samples on lines of sight past an own edge: flying pixels the passes kept.
+"""Flying candidates on a line of sight past an own edge: flying where the other map holds them.
 
 A depth camera's flying pixel lies on its pixel's line of sight between a near surface's edge and
 the surface behind it: from the pixel towards the camera the line grazes the near surface's
@@ -9,19 +9,13 @@ lies close to the line a little in front (the edge), (ii) past that edge both ma
 line empty up to :data:`CLEAR_REACH` (a camera could see along it) and (iii) an own sample lies
 on the line behind it, is where a flying pixel would be.
 
-Two kinds of isolated samples that the flying passes keep are tested.  Scattered ones that
-:data:`~app.core.localise.flying_samples.OTHER_NEAR` keeps (a sample of the other map within one
-median spacing): a turned chair's old surface under the other map's flying pixels (drifting
-RGB-D rooms 503 / 303: 2 + 9 such pixels kept 45 / 308 of the chair's points unchanged) holds
-them as a thin part both maps saw would (s27).  And flat ones the other map does not hold
-(s28): a flying pixel alone in the air has a far surface's samples for its 10 neighbours, flat
-at k, so no scatter; 3 such reference pixels held 27 of room 503's 78 scored points of the
-turned chair within the change distance (63 % found; taken, 78 %).  A flat isolated sample the
-other map holds stays (a thin part both saw: clean room 104's chair leg).  A thin part seen
-past an edge with a wall behind it can look the same along a few lines (a real sample just
-behind a silhouette); such samples have fewer lines of sight than a fan behind a long edge,
-hence the count.  The lines' width and where the edge may start follow the map's median
-spacing; how far a camera stands and how far a flying pixel lies from its edge are metres.
+Only the flying candidates that :data:`~app.core.localise.flying_samples.OTHER_NEAR` keeps (a
+sample of the other map within one median spacing) are tested: a turned chair's old surface
+under the other map's flying pixels (drifting RGB-D rooms 503 / 303: 2 + 9 such pixels kept
+45 / 308 of the chair's points unchanged) holds them as a thin part both maps saw would.  A
+thin part seen past an edge with a wall behind it can look the same along a few lines (a real
+sample just behind a silhouette); such samples have fewer lines of sight than a fan behind a
+long edge, hence the count.
 """
 
 from __future__ import annotations
