@@ -133,22 +133,18 @@ def flying_samples(
     nearest = index[:, ISOLATED_NEIGHBOURS + 1].astype(np.intp)  # sorted nearest first
     spread = np.linalg.norm(points[nearest] - points[sparse], axis=1)
     spacing = typical * math.sqrt(math.pi / k)
-    isolated = spread > ISOLATION * spacing
-    sparse, scattered = sparse[isolated], variation[isolated] >= SCATTER
-    if other is None:
-        if sighted_only:
-            return flying
-        sparse = sparse[scattered]
-    elif sparse.size:
+    sparse = sparse[(variation >= SCATTER) & (spread > ISOLATION * spacing)]
+    if other is not None and sparse.size:
         near = other[0].query(points[sparse], k=1, distance_upper_bound=OTHER_NEAR * spacing)
         held = np.isfinite(near[0])
-        if not sighted_only:
-            sparse = sparse[scattered & ~held]
-        else:  # the isolated samples the passes kept: held scatters and flat ones not held
+        if sighted_only:
             solid = np.ones(n, dtype=bool)
             solid[sparse] = False
-            sparse = sparse[scattered | ~held]
-            sparse = sparse[on_sight_lines(points, sparse, solid, other[1], spacing)]
+            sparse = sparse[held][on_sight_lines(points, sparse[held], solid, other[1])]
+        else:
+            sparse = sparse[~held]
+    elif sighted_only:
+        return flying
     flying[sparse] = True
     return flying
 

@@ -30,7 +30,6 @@ __all__ = [
     "CLEAR_REACH",
     "DIRECTIONS",
     "EDGE_REACH",
-    "EDGE_START",
     "NEAR_LINE",
     "SIGHT_LINES",
     "on_sight_lines",
@@ -38,11 +37,10 @@ __all__ = [
 
 DIRECTIONS = 600
 """Directions tried per candidate (a Fibonacci sphere, ~8 degrees apart)."""
-NEAR_LINE = 0.5
-"""Median spacings of the map: a sample this close to a point of a line lies on it (1 cm on the
-RGB-D rooms' 1.9-2.2 cm), also the step along a line; the space past the edge is empty when no
-sample of either map lies within 1.5 times this of the line.  A map thinned to 5 mm voxels has
-its samples, and its flying pixels' neighbours, four times closer: the lines narrow with it."""
+NEAR_LINE = 0.01
+"""Metres: a sample this close to a point of a line lies on it (about half an RGB-D room's
+median spacing), also the step along a line; the space past the edge is empty when no sample
+of either map lies within 1.5 times this of the line."""
 SIGHT_LINES = 10
 """Directions (of :data:`DIRECTIONS`) a flying candidate lies on a line of sight along: a flying
 pixel behind a long edge (a rim, a chair's back) lies on such lines from a spread of places a
@@ -57,19 +55,8 @@ CLEAR_REACH = 1.2
 """Metres from the candidate: the line past the edge is empty of both maps' samples up to here
 (a handheld camera's nearest surfaces are 0.5-1 m away); also how far behind the candidate the
 surface behind may lie."""
-EDGE_START = 0.75
-"""Median spacings in front of the candidate where the edge may start (its own neighbours are
-nearer; 1.5 cm on the RGB-D rooms)."""
-DIRECTION_SETS = 4
-"""The directions are tried in this many interleaved sets (each spread over the sphere, ~16
-degrees apart), the count stopping once it reaches :data:`SIGHT_LINES` (most flying pixels
-reach it in the first set)."""
-EMPTY_SETS = 2
-"""A sample with no line of sight in the first this many sets (300 directions, ~11 degrees
-apart) is not tried further: a fan behind an edge is seen along a cone of lines tens of degrees
-wide.  Drifting RGB-D room 100: 782 of the 1,277 samples tried have none there, none of them
-10 in all 600; after one set (150 directions) 8 of drifting room 503's scan flying pixels were
-lost (a 147-point false region)."""
+EDGE_START = 0.015
+"""Metres in front of the candidate where the edge may start (its own neighbours are nearer)."""
 BEHIND_START = 0.03
 """Metres behind the candidate where the surface behind may start."""
 
@@ -92,42 +79,6 @@ def _near(tree: KDTree, points: NDArray[np.float64], radius: float) -> NDArray[n
     return np.isfinite(distance).reshape(points.shape[:-1])
 
 
-def _open_lines(
-    candidate: NDArray[np.float64],
-    own: KDTree,
-    both: KDTree,
-    along: NDArray[np.float64],
-    directions: NDArray[np.float64],
-) -> int:
-    """How many of ``directions`` (unit, shape (d, 3)) one candidate (shape (3,)) lies on a
-    line of sight along: an own run of samples starts within :data:`EDGE_REACH` in front (the
-    edge), both maps leave the line empty past it up to :data:`CLEAR_REACH`, and an own sample
-    lies behind it; ``along``: the steps along each line, metres, one line width apart from one
-    line width on (:data:`NEAR_LINE` median spacings).  Both maps' samples are looked for past
-    the edge only on the lines that have one."""
-    width = float(along[0])
-    towards = candidate - directions[:, None, :] * along[None, :, None]
-    reach = int(np.searchsorted(along, EDGE_REACH, side="right")) + 1  # an edge ends in here
-    hit = _near(own, towards[:, :reach], width)
-    index = np.arange(along.size)
-    front = hit & (along[:reach] >= EDGE_START / NEAR_LINE * width)
-    begin = np.where(front.any(axis=1), front.argmax(axis=1), reach)
-    past = ~hit & (index[:reach] > begin[:, None])
-    after = np.where(past.any(axis=1), past.argmax(axis=1), reach)
-    last = along[np.clip(after - 1, 0, along.size - 1)]
-    edged = np.flatnonzero((begin < reach) & (last <= EDGE_REACH) & (after + 2 < along.size))
-    if edged.size == 0:
-        return 0
-    beyond = index[None, :] >= after[edged][:, None] + 2
-    blocked = np.zeros(beyond.shape, dtype=bool)
-    blocked[beyond] = _near(both, towards[edged][beyond], 1.5 * width)
-    open_line = edged[~blocked.any(axis=1)]
-    if open_line.size == 0:
-        return 0
-    behind = candidate + directions[open_line][:, None, :] * along[None, :, None]
-    return int((_near(own, behind, width) & (along >= BEHIND_START)).any(axis=1).sum())
-
-
 def _sighted(
     candidate: NDArray[np.float64],
     own: KDTree,
@@ -135,18 +86,26 @@ def _sighted(
     along: NDArray[np.float64],
     directions: NDArray[np.float64],
 ) -> bool:
-    """Whether one candidate (shape (3,)) lies on lines of sight (:func:`_open_lines`) along
-    :data:`SIGHT_LINES` of ``directions`` (shape (d, 3)): counted a spread share of them at a
-    time (:data:`DIRECTION_SETS` interleaved sets), stopping once they are reached, or when the
-    first :data:`EMPTY_SETS` sets hold none."""
-    found = 0
-    for first in range(DIRECTION_SETS):
-        found += _open_lines(candidate, own, both, along, directions[first::DIRECTION_SETS])
-        if found >= SIGHT_LINES:
-            return True
-        if found == 0 and first + 1 == EMPTY_SETS:
-            return False
-    return False
+    """Whether one candidate (shape (3,)) has :data:`SIGHT_LINES` of ``directions`` (unit,
+    shape (d, 3)) along which an own run of samples starts within :data:`EDGE_REACH` in front
+    (the edge), both maps leave the line empty past it up to :data:`CLEAR_REACH`, and an own
+    sample lies behind it; ``along``: the steps along each line, metres."""
+    towards = candidate - directions[:, None, :] * along[None, :, None]
+    hit = _near(own, towards, NEAR_LINE)
+    blocked = _near(both, towards, 1.5 * NEAR_LINE)
+    index = np.arange(along.size)
+    front = hit & (along >= EDGE_START)
+    begin = np.where(front.any(axis=1), front.argmax(axis=1), along.size)
+    past = ~hit & (index > begin[:, None])
+    after = np.where(past.any(axis=1), past.argmax(axis=1), along.size)
+    clear = ~(blocked & (index >= after[:, None] + 2)).any(axis=1)
+    last = along[np.clip(after - 1, 0, along.size - 1)]
+    open_line = (begin < along.size) & (last <= EDGE_REACH) & (after + 2 < along.size) & clear
+    if not open_line.any():
+        return False
+    behind = candidate + directions[open_line][:, None, :] * along[None, :, None]
+    backed = (_near(own, behind, NEAR_LINE) & (along >= BEHIND_START)).any(axis=1)
+    return int(backed.sum()) >= SIGHT_LINES
 
 
 def on_sight_lines(
@@ -154,7 +113,6 @@ def on_sight_lines(
     candidates: NDArray[np.intp],
     solid: NDArray[np.bool_],
     other_points: NDArray[np.float64],
-    spacing: float,
 ) -> NDArray[np.bool_]:
     """Which ``candidates`` lie on a line of sight past an own edge (module docstring).
 
@@ -168,8 +126,6 @@ def on_sight_lines(
         The samples of ``points`` that count as surface (not flying candidates).
     other_points : ndarray, shape (p, 3)
         The other map's samples that count as surface (aligned).
-    spacing : float
-        The map's median spacing (metres): the lines' width and step follow it.
 
     Returns
     -------
@@ -181,8 +137,7 @@ def on_sight_lines(
     surface = np.ascontiguousarray(points[solid])
     own = KDTree(surface)
     both = KDTree(np.ascontiguousarray(np.vstack([surface, other_points])))
-    width = NEAR_LINE * spacing
-    along = np.arange(width, CLEAR_REACH, width)
+    along = np.arange(NEAR_LINE, CLEAR_REACH, NEAR_LINE)
     directions = _sphere(DIRECTIONS)
     for rank, index in enumerate(candidates):
         found[rank] = _sighted(points[index], own, both, along, directions)
