@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 
 from app.core.datasets.lidar import LidarWorld, lidar_directions
+from app.core.localise.ray_silhouettes import reaching_rays
 from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED
 from app.core.localise.surface import local_geometry
 from tests.helpers.ray_cases import face_candidates, ray_test, status_seen_by
@@ -146,3 +147,30 @@ def test_a_ring_below_ending_on_a_nearer_top_does_not_hide_a_face_seen_over_its_
 
 def test_a_face_behind_the_top_stays_hidden_from_a_ring_lidar():
     assert (ring_face_status(BEHIND_THE_BOX, SILHOUETTES) == STATUS_UNOBSERVED).all()
+
+
+def reaching(beyond: float, incidence_deg: float, tolerance: float = 0.04) -> bool:
+    """Whether one ray ending ``beyond`` metres past its crossing of the candidate's plane, at
+    ``incidence_deg`` from its normal, reaches into free space (range margin 0.05 m)."""
+    readings = (
+        np.array([[10.0 + beyond]]),
+        np.array([[10.0]]),
+        np.array([10.0]),
+        np.array([[0.05]]),
+        np.array([[np.cos(np.radians(incidence_deg))]]),
+    )
+    return bool(reaching_rays(np.array([[True]]), readings, tolerance=tolerance)[0, 0])
+
+
+def test_a_ray_ending_on_the_candidates_own_grazed_wall_does_not_reach():
+    # robot 201: a wall seen at 82 degrees, rays ending 0.2 m past their crossings (3 cm off
+    # the plane, within the tolerance): with them reaching, 37 false points on that wall
+    assert not reaching(0.2, 82.0)
+    assert not reaching(0.6, 84.0)  # off the plane 6 cm, but over a 0.6 m run along it
+
+
+def test_a_ray_passing_a_seat_into_the_room_beyond_reaches():
+    # robot 2302: rays 15 degrees down over a seat end 1.2 m past it, 0.3 m under its plane
+    assert reaching(1.2, 75.0)
+    assert reaching(2.5, 10.0)  # robot 2200: a face seen nearly head-on, the wall 2.5 m behind
+    assert not reaching(0.04, 10.0)  # within the range margin

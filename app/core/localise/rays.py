@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
 from app.core.localise.gaps import between_samples
+from app.core.localise.ray_silhouettes import beside_silhouette, reaching_rays
 from app.core.localise.settings import CHUNK, GATHER_CHUNK
 from app.core.localise.surface import LocalGeometry
 from app.core.threads import for_each_chunk
@@ -102,11 +103,11 @@ class RayTest:
         gaps between them), for the rays that pass clearly beyond the plane; 0: never.
     silhouettes : bool
         A return short of a candidate does not hide it when a ray nearer the candidate's
-        direction crosses its plane near it and carries on clearly beyond: the nearer
+        direction reaches its place and carries on into free space beyond it: the nearer
         object's silhouette edge lies between the two rays, the candidate on the reaching
-        ray's side (:func:`_beside_silhouette`).  Only for rays from sensor positions known
-        per return (a trajectory's pseudo-stations): a station's returns assigned by
-        geometry may belong to another station, and its lone far rays then reach.
+        ray's side (:mod:`~app.core.localise.ray_silhouettes`).  Only for rays from sensor
+        positions known per return (a trajectory's pseudo-stations): a station's returns
+        assigned by geometry may belong to another station, and its lone far rays then reach.
     """
 
     normal_tolerance: float
@@ -337,11 +338,12 @@ def _ray_status(
             ),
         )
     if test.silhouettes:
-        hides &= ~_beside_silhouette(
-            crosses_near
-            & ~hides
-            & (ray_range > crossing + margin)
-            & (ray_range > point_range[:, None])
+        hides &= ~beside_silhouette(
+            reaching_rays(
+                crosses_near & ~hides,
+                (ray_range, crossing, point_range, margin, ray_dot_normal),
+                tolerance=math.hypot(normal_tolerance, range_tolerance),
+            )
         )
     # A ray that hides the point and stops clearly before its crossing too occludes the point
     # whatever the test below decides (the expected stop is one of the two): such points are
@@ -365,30 +367,6 @@ def _ray_status(
         ray_dot_normal[near],
     )
     return _status_over_own_surface(own, crosses_near, near, crossing_rays, readings, test)
-
-
-def _beside_silhouette(reaching: NDArray[np.bool_]) -> NDArray[np.bool_]:
-    """The rays (columns in the k-NN order of angle from each candidate's direction) farther
-    from the candidate's direction than its nearest ray that reaches it, shape (c, k).
-
-    A ring lidar's rays within 2.5 steps of a candidate span several rings: the ring below
-    the line of sight may end on a nearer object's top while the rays nearest the line pass
-    over that object's edge into the candidate's place (an added chair seen over a desk's
-    edge, a moved box's new face over its old top).  The edge lies between the rays; the
-    candidate, nearer the reaching ray, is on its side.
-
-    Parameters
-    ----------
-    reaching : ndarray, shape (c, k), bool
-        The ray crosses the candidate's plane near it, passes clearly beyond that crossing
-        and beyond the candidate, and does not hide it.
-
-    Returns
-    -------
-    ndarray, shape (c, k), bool
-    """
-    first = np.where(reaching.any(axis=1), reaching.argmax(axis=1), reaching.shape[1])
-    return np.arange(reaching.shape[1])[None, :] > first[:, None]
 
 
 class _Readings(NamedTuple):

@@ -1,0 +1,87 @@
+"""Past a nearer object's silhouette: which rays short of a candidate do not hide it.
+
+The ray test (:func:`~app.core.localise.rays.ray_visibility`) reads the (up to 8) returns
+within 2.5 angular steps of a candidate's direction; any one of them ending on a surface the
+candidate lies behind hides it.  A ring lidar's 8 rays span two or three rings: the ring below
+a line of sight may end on a desk's or an old box's top while the rings nearest it pass over
+the edge into the candidate's place (robot 2302's added chair behind a desk's edge, 2200's
+moved box's new face over its old top).  Between a ray stopped short and a ray nearer the
+candidate's direction that reaches its place lies the nearer object's silhouette edge, and the
+candidate, nearer the reaching ray, is on its side: the farther rays do not hide it
+(``RayTest.silhouettes``, the trajectory test's pseudo-stations only, whose returns carry
+their own sensor positions).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["SILHOUETTE_TILT", "beside_silhouette", "reaching_rays"]
+
+SILHOUETTE_TILT = math.radians(5.0)
+"""A reaching ray's end must lie off the candidate's plane by the tolerance and this angle
+over its run along the plane (a normal a few degrees off, :func:`reaching_rays`)."""
+
+
+def reaching_rays(
+    candidate_rays: NDArray[np.bool_],
+    readings: tuple[NDArray[np.float64], ...],
+    *,
+    tolerance: float,
+) -> NDArray[np.bool_]:
+    """The rays that reach a candidate's place and carry on into free space beyond it.
+
+    Among ``candidate_rays`` (crossing the candidate's plane near it, hiding nothing), those
+    ending clearly beyond the crossing (by the range margin) and beyond the candidate, and off
+    its plane.  At a grazing incidence a ray ending on the candidate's own wall a few
+    decimetres past its crossing passes the range margin although it never left the wall
+    (robot 201: a wall seen at 82 degrees, rays ending 0.2 m past their crossings, 3 cm off
+    the plane; TLS 2304's rack in s25): its end must lie off the plane by ``tolerance`` and
+    :data:`SILHOUETTE_TILT` over its run along the plane.
+
+    Parameters
+    ----------
+    candidate_rays : ndarray, shape (c, k), bool
+    readings : tuple of ndarray
+        ``(ray_range, crossing, point_range, margin, ray_dot_normal)``: each ray's range, its
+        range where it crosses the candidate's plane, the candidate's range (shape (c,)), the
+        range margin and the ray's direction dotted with the candidate's normal (the others
+        shape (c, k)).
+    tolerance : float
+        How far (metres) a ray's end may lie off the candidate's plane and still be on it.
+
+    Returns
+    -------
+    ndarray, shape (c, k), bool
+    """
+    ray_range, crossing, point_range, margin, ray_dot_normal = readings
+    beyond = np.where(candidate_rays, ray_range - crossing, 0.0)
+    incidence = np.abs(ray_dot_normal)
+    run = beyond * np.sqrt(np.maximum(1.0 - incidence**2, 0.0))
+    return (
+        candidate_rays
+        & (beyond > margin)
+        & (ray_range > point_range[:, None])
+        & (beyond * incidence > tolerance + math.tan(SILHOUETTE_TILT) * run)
+    )
+
+
+def beside_silhouette(reaching: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """The rays farther from each candidate's direction than its nearest reaching ray.
+
+    Parameters
+    ----------
+    reaching : ndarray, shape (c, k), bool
+        :func:`reaching_rays`, columns in the k-NN order of angle from the candidate's
+        direction.
+
+    Returns
+    -------
+    ndarray, shape (c, k), bool
+        Those rays: a ray among them that ends short of the candidate does not hide it.
+    """
+    first = np.where(reaching.any(axis=1), reaching.argmax(axis=1), reaching.shape[1])
+    return np.arange(reaching.shape[1])[None, :] > first[:, None]
