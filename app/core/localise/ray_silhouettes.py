@@ -19,7 +19,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["SILHOUETTE_TILT", "beside_silhouette", "reaching_rays"]
+__all__ = ["SILHOUETTE_TILT", "beside_silhouette", "past_silhouettes", "reaching_rays"]
 
 SILHOUETTE_TILT = math.radians(5.0)
 """A reaching ray's end must lie off the candidate's plane by the tolerance and this angle
@@ -85,3 +85,33 @@ def beside_silhouette(reaching: NDArray[np.bool_]) -> NDArray[np.bool_]:
     """
     first = np.where(reaching.any(axis=1), reaching.argmax(axis=1), reaching.shape[1])
     return np.arange(reaching.shape[1])[None, :] > first[:, None]
+
+
+def past_silhouettes(
+    hides: NDArray[np.bool_],
+    crosses_near: NDArray[np.bool_],
+    readings: tuple[NDArray[np.float64], ...],
+    tolerances: tuple[float, float],
+) -> NDArray[np.bool_]:
+    """``hides`` without the rays beside a silhouette, shape (c, k).
+
+    Parameters
+    ----------
+    hides : ndarray, shape (c, k), bool
+        The ray ends short of the candidate, on a surface the candidate lies behind.
+    crosses_near : ndarray, shape (c, k), bool
+        The ray crosses the candidate's plane near it.
+    readings : tuple of ndarray
+        As for :func:`reaching_rays`.
+    tolerances : (float, float)
+        The normal and range tolerances (metres): a ray's end within their root sum of squares
+        of the candidate's plane is on it.
+
+    Returns
+    -------
+    ndarray, shape (c, k), bool
+        The rays that still hide the candidate: those no nearer ray reaching it overrules
+        (:func:`beside_silhouette` of :func:`reaching_rays`).
+    """
+    reaching = reaching_rays(crosses_near & ~hides, readings, tolerance=math.hypot(*tolerances))
+    return hides & ~beside_silhouette(reaching)

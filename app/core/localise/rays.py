@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
 from app.core.localise.gaps import between_samples
-from app.core.localise.ray_silhouettes import beside_silhouette, reaching_rays
+from app.core.localise.ray_silhouettes import past_silhouettes
 from app.core.localise.settings import CHUNK, GATHER_CHUNK
 from app.core.localise.surface import LocalGeometry
 from app.core.threads import for_each_chunk
@@ -337,14 +337,9 @@ def _ray_status(
                 0.5 * angular_step * point_range[short_rows],
             ),
         )
-    if test.silhouettes:
-        hides &= ~beside_silhouette(
-            reaching_rays(
-                crosses_near & ~hides,
-                (ray_range, crossing, point_range, margin, ray_dot_normal),
-                tolerance=math.hypot(normal_tolerance, range_tolerance),
-            )
-        )
+    if test.silhouettes:  # a ray nearer the candidate's direction reaching it: see past
+        readings = (ray_range, crossing, point_range, margin, ray_dot_normal)
+        hides = past_silhouettes(hides, crosses_near, readings, (normal_tolerance, range_tolerance))
     # A ray that hides the point and stops clearly before its crossing too occludes the point
     # whatever the test below decides (the expected stop is one of the two): such points are
     # unobserved already, and most candidates of a moved sensor are (its shadows).
