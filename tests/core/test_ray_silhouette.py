@@ -85,7 +85,7 @@ def test_candidates_whose_nearest_ray_ends_on_the_rack_stay_hidden():
     assert (status[y >= -0.04] == STATUS_UNOBSERVED).all()
 
 
-SILHOUETTES = dataclasses.replace(TEST, silhouettes=True)
+SILHOUETTES = dataclasses.replace(TEST, silhouette_clearance=0.1)
 """The trajectory test's setting: a ray nearer the candidate's direction that reaches it
 overrules the farther rays that end short of it."""
 

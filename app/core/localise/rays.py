@@ -101,13 +101,15 @@ class RayTest:
         own surface when the own cloud's samples of that plane within this radius surround it
         (:func:`~app.core.localise.gaps.between_samples`: a surface sampled in lines spans the
         gaps between them), for the rays that pass clearly beyond the plane; 0: never.
-    silhouettes : bool
-        A return short of a candidate does not hide it when a ray nearer the candidate's
-        direction reaches its place and carries on into free space beyond it: the nearer
+    silhouette_clearance : float
+        Metres; positive: a return short of a candidate does not hide it when a ray nearer
+        the candidate's direction reaches its place and carries on into free space beyond it,
+        and the candidate lies farther than this off the short ray's line: the nearer
         object's silhouette edge lies between the two rays, the candidate on the reaching
-        ray's side (:mod:`~app.core.localise.ray_silhouettes`).  Only for rays from sensor
-        positions known per return (a trajectory's pseudo-stations): a station's returns
-        assigned by geometry may belong to another station, and its lone far rays then reach.
+        ray's side (:mod:`~app.core.localise.ray_silhouettes`).  0: never.  Only for rays from
+        sensor positions known per return (the trajectory test's pseudo-stations, with ``c``):
+        a station's returns assigned by geometry may belong to another station, and its lone
+        far rays then reach.
     """
 
     normal_tolerance: float
@@ -117,7 +119,7 @@ class RayTest:
     beyond_fraction: float
     miss_factor: float
     gap_radius: float = 0.0
-    silhouettes: bool = False
+    silhouette_clearance: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -337,9 +339,12 @@ def _ray_status(
                 0.5 * angular_step * point_range[short_rows],
             ),
         )
-    if test.silhouettes:  # a ray nearer the candidate's direction reaching it: see past
+    if test.silhouette_clearance > 0.0:  # a nearer ray reaching the candidate: see past
         readings = (ray_range, crossing, point_range, margin, ray_dot_normal)
-        hides = past_silhouettes(hides, crosses_near, readings, (normal_tolerance, range_tolerance))
+        clear = angle * point_range[:, None] > test.silhouette_clearance
+        hides = past_silhouettes(
+            hides, crosses_near, readings, (normal_tolerance, range_tolerance), clear
+        )
     # A ray that hides the point and stops clearly before its crossing too occludes the point
     # whatever the test below decides (the expected stop is one of the two): such points are
     # unobserved already, and most candidates of a moved sensor are (its shadows).
