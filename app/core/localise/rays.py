@@ -102,8 +102,9 @@ class RayTest:
         (:func:`~app.core.localise.gaps.between_samples`: a surface sampled in lines spans the
         gaps between them), for the rays that pass clearly beyond the plane; 0: never.
     silhouette_clearance : float
-        Metres; positive: a return short of a candidate does not hide it when a ray nearer
-        the candidate's direction reaches its place and carries on into free space beyond it,
+        Metres; positive: a return short of a candidate does not hide it when a ray less than
+        half as far from the candidate's direction reaches its place and carries on into free
+        space beyond it,
         and the candidate lies farther than this off the short ray's line: the nearer
         object's silhouette edge lies between the two rays, the candidate on the reaching
         ray's side (:mod:`~app.core.localise.ray_silhouettes`).  0: never.  Only for rays from
@@ -341,9 +342,14 @@ def _ray_status(
         )
     if test.silhouette_clearance > 0.0:  # a nearer ray reaching the candidate: see past
         readings = (ray_range, crossing, point_range, margin, ray_dot_normal)
-        clear = angle * point_range[:, None] > test.silhouette_clearance
+        tolerances = (normal_tolerance, range_tolerance)
         hides = past_silhouettes(
-            hides, crosses_near, readings, (normal_tolerance, range_tolerance), clear
+            hides,
+            crosses_near,
+            readings,
+            tolerances,
+            angle=angle,
+            clearance=test.silhouette_clearance,
         )
     # A ray that hides the point and stops clearly before its crossing too occludes the point
     # whatever the test below decides (the expected stop is one of the two): such points are
