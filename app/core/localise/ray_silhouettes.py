@@ -129,10 +129,12 @@ def past_silhouettes(
         Each ray's angle from the candidate's direction (radians; inf for no ray).
     clearance : float
         Metres (``c``): a short ray whose line passes within this of the candidate (its angle
-        times the candidate's range) still hides it.  Within it, the short ray's object may
-        reach the candidate unseen: a desk top at the sensors' height, sampled only at its
-        front edge, runs on under a removed board's foot 2-6 cm over it (robot 402: the truth
-        calls the foot unchanged, within 10 cm of the desk).
+        times the candidate's range), or that ends within this short of it, still hides it:
+        its object, whose edge lies anywhere between the two rays, may come within ``c`` of
+        the candidate, which the truth then calls unchanged.  A desk top at the sensors'
+        height, sampled only at its front edge, runs on under a removed board's foot 2-6 cm
+        over it (robot 402); a box's face 9 cm in front of an unchanged upright beside its
+        edge (robot 504: 27 false points on the upright, 1 region, without the range term).
 
     Returns
     -------
@@ -141,5 +143,6 @@ def past_silhouettes(
         overrules (:func:`beside_silhouette` of :func:`reaching_rays`).
     """
     reaching = reaching_rays(crosses_near & ~hides, readings, tolerance=math.hypot(*tolerances))
-    clear = angle * readings[2][:, None] > clearance
+    ray_range, point_range = readings[0], readings[2][:, None]
+    clear = (angle * point_range > clearance) & (point_range - ray_range > clearance)
     return hides & ~(beside_silhouette(reaching, angle) & clear)
