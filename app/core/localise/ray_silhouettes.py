@@ -107,10 +107,7 @@ def past_silhouettes(
     hides: NDArray[np.bool_],
     crosses_near: NDArray[np.bool_],
     readings: tuple[NDArray[np.float64], ...],
-    tolerances: tuple[float, float],
-    *,
-    angle: NDArray[np.float64],
-    clearance: float,
+    limits: tuple[float, float, float],
 ) -> NDArray[np.bool_]:
     """``hides`` without the rays beside a silhouette, shape (c, k).
 
@@ -121,20 +118,18 @@ def past_silhouettes(
     crosses_near : ndarray, shape (c, k), bool
         The ray crosses the candidate's plane near it.
     readings : tuple of ndarray
-        As for :func:`reaching_rays`.
-    tolerances : (float, float)
-        The normal and range tolerances (metres): a ray's end within their root sum of squares
-        of the candidate's plane is on it.
-    angle : ndarray, shape (c, k)
-        Each ray's angle from the candidate's direction (radians; inf for no ray).
-    clearance : float
-        Metres (``c``): a short ray whose line passes within this of the candidate (its angle
-        times the candidate's range), or that ends within this short of it, still hides it:
-        its object, whose edge lies anywhere between the two rays, may come within ``c`` of
-        the candidate, which the truth then calls unchanged.  A desk top at the sensors'
-        height, sampled only at its front edge, runs on under a removed board's foot 2-6 cm
-        over it (robot 402); a box's face 9 cm in front of an unchanged upright beside its
-        edge (robot 504: 27 false points on the upright, 1 region, without the range term).
+        As for :func:`reaching_rays`, then each ray's angle from the candidate's direction
+        (radians, inf for no ray; shape (c, k)).
+    limits : (float, float, float)
+        The normal and range tolerances (metres: a ray's end within their root sum of squares
+        of the candidate's plane is on it) and the clearance (metres, ``c``): a short ray whose
+        line passes within it of the candidate (its angle times the candidate's range), or
+        that ends within it short of the candidate, still hides it.  Its object, whose edge
+        lies anywhere between the two rays, may come within ``c`` of the candidate, which the
+        truth then calls unchanged: a desk top at the sensors' height, sampled only at its
+        front edge, runs on under a removed board's foot 2-6 cm over it (robot 402); a box's
+        face 9 cm in front of an unchanged upright beside its edge (robot 504: 27 false points
+        on the upright, 1 region, without the range term).
 
     Returns
     -------
@@ -142,7 +137,9 @@ def past_silhouettes(
         The rays that still hide the candidate: those no clearly nearer ray reaching it
         overrules (:func:`beside_silhouette` of :func:`reaching_rays`).
     """
-    reaching = reaching_rays(crosses_near & ~hides, readings, tolerance=math.hypot(*tolerances))
-    ray_range, point_range = readings[0], readings[2][:, None]
+    normal_tolerance, range_tolerance, clearance = limits
+    tolerance = math.hypot(normal_tolerance, range_tolerance)
+    reaching = reaching_rays(crosses_near & ~hides, readings[:5], tolerance=tolerance)
+    ray_range, point_range, angle = readings[0], readings[2][:, None], readings[5]
     clear = (angle * point_range > clearance) & (point_range - ray_range > clearance)
     return hides & ~(beside_silhouette(reaching, angle) & clear)

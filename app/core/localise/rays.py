@@ -340,17 +340,10 @@ def _ray_status(
                 0.5 * angular_step * point_range[short_rows],
             ),
         )
-    if test.silhouette_clearance > 0.0:  # a nearer ray reaching the candidate: see past
-        readings = (ray_range, crossing, point_range, margin, ray_dot_normal)
-        tolerances = (normal_tolerance, range_tolerance)
-        hides = past_silhouettes(
-            hides,
-            crosses_near,
-            readings,
-            tolerances,
-            angle=angle,
-            clearance=test.silhouette_clearance,
-        )
+    if test.silhouette_clearance > 0.0:  # a clearly nearer ray reaching it: see past
+        readings = (ray_range, crossing, point_range, margin, ray_dot_normal, angle)
+        limits = (normal_tolerance, range_tolerance, test.silhouette_clearance)
+        hides = past_silhouettes(hides, crosses_near, readings, limits)
     # A ray that hides the point and stops clearly before its crossing too occludes the point
     # whatever the test below decides (the expected stop is one of the two): such points are
     # unobserved already, and most candidates of a moved sensor are (its shadows).
