@@ -1,4 +1,9 @@
-"""The trajectory test sees past a nearer object's silhouette (s28, bench.moving_maps robot maps).
+"""The trajectory test seeing past a nearer object's silhouette (s28, bench.moving_maps robot maps).
+
+Built (``RayTest.silhouette_clearance``) but not enabled in the trajectory test: on held-out
+robot seeds 30-32 it made a false region on unchanged 3101 (26 points on a level top seen at
+grazing incidence) and on 3000 (0.996 -> 0.904); the gains below are strict xfails, the guards
+pass (they hold for the rule once enabled).
 
 The 8 rays within 2.5 steps of a candidate span two or three rings of a 16-ring lidar: the ring
 below a line of sight ends on a desk's or an old box's top while the rings nearest it pass over
@@ -15,6 +20,7 @@ crossings, gets no change.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from app.core.datasets.maps import map_pair
 from app.core.labels import LABEL_CHANGED
@@ -49,12 +55,18 @@ def recall(pair, result, kind: str) -> float:
     return found / total
 
 
+@pytest.mark.xfail(
+    strict=True, reason="rule not enabled: false regions on held-out robot 3101 / 3000 (s28)"
+)
 def test_an_added_chair_seen_over_a_desks_edge_is_found() -> None:
     # robot 2302: 52 % before, the ring below ending on the desk hid the rest (82 % after)
     pair, result = compared("office", "mixed", True, 2302)
     assert recall(pair, result, "added") >= 0.8
 
 
+@pytest.mark.xfail(
+    strict=True, reason="rule not enabled: false regions on held-out robot 3101 / 3000 (s28)"
+)
 def test_a_moved_boxs_new_face_seen_over_its_old_top_is_found() -> None:
     # robot 2200: 90 % before, the new face's 21 points hidden by the old top
     pair, result = compared("corridor", "moved", True, 2200)
