@@ -126,6 +126,7 @@ LOCALISE_LAYERS = (
     "distance",
     "regions",
     "gaps",
+    "ray_silhouettes",
     "rays",
     "interface",
     "station_rays",

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
 from app.core.localise.gaps import between_samples
+from app.core.localise.ray_silhouettes import past_silhouettes
 from app.core.localise.settings import CHUNK, GATHER_CHUNK
 from app.core.localise.surface import LocalGeometry
 from app.core.threads import for_each_chunk
@@ -100,6 +101,16 @@ class RayTest:
         own surface when the own cloud's samples of that plane within this radius surround it
         (:func:`~app.core.localise.gaps.between_samples`: a surface sampled in lines spans the
         gaps between them), for the rays that pass clearly beyond the plane; 0: never.
+    silhouette_clearance : float
+        Metres; positive: a return short of a candidate does not hide it when a ray less than
+        half as far from the candidate's direction reaches its place and carries on into free
+        space beyond it,
+        and the candidate lies farther than this off the short ray's line: the nearer
+        object's silhouette edge lies between the two rays, the candidate on the reaching
+        ray's side (:mod:`~app.core.localise.ray_silhouettes`).  0: never.  Only for rays from
+        sensor positions known per return (the trajectory test's pseudo-stations, with ``c``):
+        a station's returns assigned by geometry may belong to another station, and its lone
+        far rays then reach.
     """
 
     normal_tolerance: float
@@ -109,6 +120,7 @@ class RayTest:
     beyond_fraction: float
     miss_factor: float
     gap_radius: float = 0.0
+    silhouette_clearance: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -328,6 +340,10 @@ def _ray_status(
                 0.5 * angular_step * point_range[short_rows],
             ),
         )
+    if test.silhouette_clearance > 0.0:  # a clearly nearer ray reaching it: see past
+        readings = (ray_range, crossing, point_range, margin, ray_dot_normal, angle)
+        limits = (normal_tolerance, range_tolerance, test.silhouette_clearance)
+        hides = past_silhouettes(hides, crosses_near, readings, limits)
     # A ray that hides the point and stops clearly before its crossing too occludes the point
     # whatever the test below decides (the expected stop is one of the two): such points are
     # unobserved already, and most candidates of a moved sensor are (its shadows).
