@@ -19,14 +19,7 @@ from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
-from app.core.localise.map_planes import (
-    SECTORS,
-    extends,
-    holds_up,
-    share_on_planes,
-    shared_wall,
-    through_lacking,
-)
+from app.core.localise.map_planes import SECTORS, extends, holds_up, share_on_planes, shared_wall
 from app.core.localise.map_sides import (
     LEVEL_NORMAL_Z,
     in_front,
@@ -342,11 +335,6 @@ def _surrounded(
         lacking = other_unmatched[nearest]
         air = lacking & in_front(other.points[nearest] - query, inward[chunk], tolerance)
         surrounded[chunk][lacking & ~air] = SECTORS
-        # ... or on the far side of the point's surface, that surface crossing it
-        ahead = np.einsum("ckd,csd->cks", other.points[index] - query[:, None, :], inward[chunk])
-        marked = other_unmatched[index] & ~(ahead < -tolerance).any(axis=2)
-        crossing = through_lacking(offset, on_plane, marked, own_normal[chunk], unit)
-        surrounded[chunk][crossing] = SECTORS
         adjoining[chunk] &= ~air
         adjoining[chunk] &= ~(support & (surrounded[chunk] < SURROUND_SECTORS))
     return adjoining, surrounded, under

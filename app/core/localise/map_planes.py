@@ -36,7 +36,6 @@ __all__ = [
     "part_sampling_gap",
     "share_on_planes",
     "shared_wall",
-    "through_lacking",
     "widest_empty_angle",
 ]
 
@@ -469,46 +468,8 @@ def shared_wall(
     lacks.  A sparse map samples a wall in ring lines: it may fill fewer directions around the
     foot than a surface carrying on does, yet lie on both sides of the line."""
     upright = np.abs(unit[:, 2]) < NORMAL_AGREEMENT_COSINE
-    both = _on_both_sides(offset, on_plane, own_normal, unit)
-    return upright & both & ~(on_plane & lacking[index]).any(axis=1)
-
-
-def through_lacking(
-    offset: NDArray[np.float64],
-    on_plane: NDArray[np.bool_],
-    marked: NDArray[np.bool_],
-    own_normal: NDArray[np.floating],
-    unit: NDArray[np.float64],
-) -> NDArray[np.bool_]:
-    """Whether the other epoch's surface adjoining a border point carries on through the
-    point's surface: samples on its plane around the point's foot (``offset``, ``on_plane``;
-    shapes (b, k, 3), (b, k)) on both sides of the line where the point's own surface (normal
-    ``own_normal``, shape (b, 3)) meets it (normal ``unit``, shape (b, 3)), some of them
-    ``marked`` (shape (b, k), bool: surface this epoch lacks, not in front of the point's
-    part); shape (b,), bool.
-
-    An object's other faces end at the edges of the face they adjoin, on one side of the
-    face's plane.  A surface of the other epoch on both sides of it, partly surface this epoch
-    lacks, passed through the place where this epoch's object stands: the other epoch's
-    object there was another one (robot warehouse 2104, a box turned a quarter in place: the
-    old box's side crosses the new box's side, sampled just outside it, within the change
-    threshold, and inside the new box, surface the scan lacks).  It carries on past the
-    point, as the nearest sample being surface this epoch lacks says
-    (:func:`~app.core.localise.map_parts._surrounded`), however sparsely it is sampled."""
-    both = _on_both_sides(offset, on_plane, own_normal, unit)
-    return both & (on_plane & marked).any(axis=1)
-
-
-def _on_both_sides(
-    offset: NDArray[np.float64],
-    on_plane: NDArray[np.bool_],
-    own_normal: NDArray[np.floating],
-    unit: NDArray[np.float64],
-) -> NDArray[np.bool_]:
-    """Whether the ``on_plane`` samples (``offset`` from the point's foot, shapes (b, k, 3),
-    (b, k)) lie on both sides of the line where the point's own surface (normal
-    ``own_normal``, shape (b, 3)) meets the adjoining plane (normal ``unit``); shape (b,)."""
     edge = np.cross(own_normal.astype(np.float64), unit)
     across = np.cross(unit, edge)
     side = np.einsum("bkd,bd->bk", offset, across)
-    return (on_plane & (side > 0.0)).any(axis=1) & (on_plane & (side < 0.0)).any(axis=1)
+    both = (on_plane & (side > 0.0)).any(axis=1) & (on_plane & (side < 0.0)).any(axis=1)
+    return upright & both & ~(on_plane & lacking[index]).any(axis=1)
