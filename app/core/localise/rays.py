@@ -104,10 +104,10 @@ class RayTest:
     silhouette_clearance : float
         Metres; positive: a return short of a candidate does not hide it when a ray less than
         half as far from the candidate's direction reaches its place and carries on into free
-        space beyond it,
-        and the candidate lies farther than this off the short ray's line: the nearer
-        object's silhouette edge lies between the two rays, the candidate on the reaching
-        ray's side (:mod:`~app.core.localise.ray_silhouettes`).  0: never.  Only for rays from
+        space beyond it, and the candidate lies farther than this off the short ray's line
+        and beyond its end: the nearer object's silhouette edge lies between the two rays, the
+        candidate on the reaching ray's side (:mod:`~app.core.localise.ray_silhouettes`).
+        0: never (the trajectory test does not set it yet: s28).  Only for rays from
         sensor positions known per return (the trajectory test's pseudo-stations, with ``c``):
         a station's returns assigned by geometry may belong to another station, and its lone
         far rays then reach.
