@@ -463,7 +463,7 @@ def shared_wall(
     from it) is seen by both epochs past the object's ends and over its top, whether or not
     the object stood there: it is no face of the object (those end at its edges, on one side
     of the line), and it says nothing either way; such border points do not count as adjoined
-    (:func:`~app.core.localise.map_parts._surrounded`).  Where the other epoch saw the object's
+    (:func:`~app.core.localise.map_surround.surrounded`).  Where the other epoch saw the object's
     place empty, it saw the wall the object hid from this epoch there: surface this epoch
     lacks.  A sparse map samples a wall in ring lines: it may fill fewer directions around the
     foot than a surface carrying on does, yet lie on both sides of the line."""
