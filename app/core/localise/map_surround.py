@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
-from app.core.localise.map_planes import SECTORS, holds_up, shared_wall
+from app.core.localise.map_planes import SECTORS, holds_up, shared_wall, through_lacking
 from app.core.localise.map_sides import in_front
 from app.core.localise.settings import GATHER_CHUNK
 from app.core.localise.surface import LocalGeometry
@@ -194,6 +194,11 @@ def _surrounded_chunk(
     lacking = other_unmatched[nearest]
     air = lacking & in_front(other.points[nearest] - query, inward, tolerance)
     sectors[lacking & ~air] = SECTORS
+    # ... or on the far side of the point's surface, that surface crossing it
+    ahead = np.einsum("ckd,csd->cks", other.points[index] - query[:, None, :], inward)
+    marked = other_unmatched[index] & ~(ahead < -tolerance).any(axis=2)
+    crossing = through_lacking(offset, on_plane, marked, own_normal, unit)
+    sectors[crossing] = SECTORS
     adjoining &= ~air
     adjoining &= ~(support & (sectors < SURROUND_SECTORS))
     return adjoining, sectors, under
