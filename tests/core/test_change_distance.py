@@ -206,19 +206,19 @@ def test_the_points_judged_by_their_surface_are_judged_on_both_threads_alike(mon
     """The points under the change threshold judged by their surface level are split in
     chunks that share the threads (the cloud with more of them no longer runs alone at the
     end): the labels are those of one thread."""
-    from app.core.localise import distance
+    from app.core.localise import surface_levels
 
     reference, scan, _ = _board_before_a_wall(0.125, 0)
     one = localise_changes(reference, scan, threads=1)
     judged: list[tuple[int, int]] = []
-    for_each_chunk = distance.for_each_chunk
+    for_each_chunk = surface_levels.for_each_chunk
 
     def recorded(work, chunks, threads):
         chunks = list(chunks)
         judged.append((len(chunks), threads))
         for_each_chunk(work, chunks, threads)
 
-    monkeypatch.setattr(distance, "for_each_chunk", recorded)
+    monkeypatch.setattr(surface_levels, "for_each_chunk", recorded)
     two = localise_changes(reference, scan, threads=2)
     assert len(judged) == 2 and all(threads == 2 for _, threads in judged)
     assert max(count for count, _ in judged) > 1
@@ -264,18 +264,18 @@ def test_the_own_surface_level_is_measured_only_where_the_other_cloud_has_points
     on its normal line: the own level (two 96-point balls a point) is measured only where the
     other cloud's was found (at 1M + 1M, 41 of 12,291 points; main measured all of them).
     The board keeps its labels (the tests above)."""
-    from app.core.localise import distance
+    from app.core.localise import surface_levels
 
     reference, scan, board = _board_before_a_wall(0.125, 0)
     calls: list[tuple[bool, int, int]] = []
-    level = distance._level
+    level = surface_levels._level
 
     def recorded(centre, point, unit, cloud, change_threshold, first_ball=None):
         found_level, found = level(centre, point, unit, cloud, change_threshold, first_ball)
         calls.append((first_ball is not None, len(point), int(found.sum())))
         return found_level, found
 
-    monkeypatch.setattr(distance, "_level", recorded)
+    monkeypatch.setattr(surface_levels, "_level", recorded)
     localisation = localise_changes(reference, scan, threads=1)
     other_calls = [(rows, found) for own, rows, found in calls if not own]
     own_rows = [rows for own, rows, _ in calls if own]

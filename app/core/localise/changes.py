@@ -44,13 +44,11 @@ from app.core.localise.changed_regions import Found, changed_regions
 from app.core.localise.distance import (
     Side,
     alignment_residual,
-    crossing_candidates,
     nearest_in,
     pair_median_spacing,
     pair_nn_distance_quartile,
     support_factor,
     surface_distance,
-    surface_offset_candidates,
 )
 from app.core.localise.epoch import EpochCloud, with_checked_stations
 from app.core.localise.flying_samples import restored_localisation, without_flying_samples
@@ -63,6 +61,7 @@ from app.core.localise.settings import (
     resolve_parameters,
 )
 from app.core.localise.surface import LocalGeometry, local_geometry
+from app.core.localise.surface_levels import crossing_candidates, surface_offset_candidates
 from app.core.localise.threshold_band import carry_changes
 from app.core.localise.visibility import (
     Labelled,
