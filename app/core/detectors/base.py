@@ -294,7 +294,7 @@ class ChangeDetector(ABC):
             target = max(MIN_WORKING_POINTS, min(max_points, smaller.shape[0] // 2))
             voxel_size, keys = concurrently(
                 threads,
-                lambda: auto_voxel_size(smaller, target) if thinned else 0.0,
+                lambda: auto_voxel_size(smaller, target, threads) if thinned else 0.0,
                 lambda: _keys_of(reference, scan, seed, voxel_size=float(thinned)),
             )
         else:

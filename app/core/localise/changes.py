@@ -374,6 +374,7 @@ def _candidates(
             threshold=limits.threshold,
             support_factor=limits.support,
             change_threshold=limits.change_threshold,
+            threads=threads,
         )
         if other.origins is None or other.trajectory_rays is not None:  # a moving sensor's map
             candidate = on_sampled_planes(
@@ -399,7 +400,9 @@ def _candidates(
         if crossing < limits.change_threshold and other.origins is None:
             candidate = crossing_candidates(candidate, distance, own, other.geometry, crossing)
         # the flattest neighbours before the neighbour index goes (~0.15 CPU s serial at 1M)
-        return distance, find_candidates(own, distance=distance, candidate=candidate)
+        return distance, find_candidates(
+            own, distance=distance, candidate=candidate, threads=threads
+        )
 
     (reference_distance, reference_candidates), (scan_distance, scan_candidates) = concurrently(
         threads,
