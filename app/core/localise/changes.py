@@ -305,9 +305,10 @@ def _sides(
             scan_geometry,
             reference_geometry.order,
             reference_geometry.kernel_tree,
+            threads,
         ),
         lambda: nearest_in(
-            scan_points, reference_geometry, scan_geometry.order, scan_geometry.kernel_tree
+            scan_points, reference_geometry, scan_geometry.order, scan_geometry.kernel_tree, threads
         ),
     )
     # the kernel's trees (28 bytes a point) are not needed past the nearest points

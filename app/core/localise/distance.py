@@ -101,6 +101,7 @@ def nearest_in(
     other: LocalGeometry,
     order: NDArray[np.intp] | None = None,
     own_tree: Any = None,
+    threads: int = 1,
 ) -> tuple[NDArray[np.float64], NDArray[np.uint32]]:
     """Distance to and index of each point's nearest point in ``other``.
 
@@ -116,6 +117,8 @@ def nearest_in(
         points at a time (faster on a shuffled cloud; the same answers).
     own_tree : object, optional
         The compiled kernel's tree of ``points`` (:attr:`LocalGeometry.kernel_tree`).
+    threads : int
+        Threads of the kernel's search (:func:`kernel_nearest`; the same answers).
 
     Returns
     -------
@@ -123,7 +126,7 @@ def nearest_in(
     index : ndarray, shape (p,), uint32
     """
     if own_tree is not None and other.kernel_tree is not None:
-        found = kernel_nearest(points, own_tree, other.kernel_tree, other.tree)
+        found = kernel_nearest(points, own_tree, other.kernel_tree, other.tree, threads)
         if found is not None:
             return found
     if order is None:
