@@ -432,7 +432,7 @@ class MapTest:
             threshold=context.threshold,
             change_threshold=context.change_threshold,
             cluster_factor=context.settings["cluster_factor"],
-            # a foot rests on a support within the noise-only threshold (distance.crossing_...)
+            # a foot rests on a support within the noise-only threshold (crossing_candidates)
             resting_band=min(
                 context.change_threshold,
                 max(
