@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
 from app.core.localise.gaps import between_samples
-from app.core.localise.ray_silhouettes import past_silhouettes
+from app.core.localise.ray_silhouettes import SilhouetteReadings, past_silhouettes
 from app.core.localise.settings import CHUNK, GATHER_CHUNK
 from app.core.localise.surface import LocalGeometry
 from app.core.threads import for_each_chunk
@@ -341,7 +341,10 @@ def _ray_status(
             ),
         )
     if test.silhouette_clearance > 0.0:  # a clearly nearer ray reaching it: see past
-        readings = (ray_range, crossing, point_range, margin, ray_dot_normal, angle)
+        readings = SilhouetteReadings(
+            ray_range, crossing, point_range, margin, ray_dot_normal, angle,
+            points, normals, other_origin, ray_direction, _return_normals(rays, ray),
+        )  # fmt: skip
         limits = (normal_tolerance, range_tolerance, test.silhouette_clearance)
         hides = past_silhouettes(hides, crosses_near, readings, limits)
     # A ray that hides the point and stops clearly before its crossing too occludes the point
@@ -366,6 +369,14 @@ def _ray_status(
         ray_dot_normal[near],
     )
     return _status_over_own_surface(own, crosses_near, near, crossing_rays, readings, test)
+
+
+def _return_normals(rays: _Rays, ray: NDArray[np.int64]) -> NDArray[np.float64] | None:
+    """The normal of the surface each of ``ray`` (shape (c, k)) ended on, shape (c, k, 3): NaN
+    where no plane was fitted; None without the other cloud's normals."""
+    if rays.normal is None or rays.linear is None:
+        return None
+    return np.where(rays.linear[ray][..., None], np.nan, rays.normal[ray].astype(np.float64))
 
 
 class _Readings(NamedTuple):
