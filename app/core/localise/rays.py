@@ -105,9 +105,11 @@ class RayTest:
         Metres; positive: a return short of a candidate does not hide it when a ray less than
         half as far from the candidate's direction reaches its place and carries on into free
         space beyond it, and the candidate lies farther than this off the short ray's line
-        and beyond its end: the nearer object's silhouette edge lies between the two rays, the
+        and beyond its end, and the short ray's return lies clearly apart from the candidate's
+        surface (more than this in front of its plane, the candidate more than this behind
+        the return's plane): the nearer object's silhouette edge lies between the two rays, the
         candidate on the reaching ray's side (:mod:`~app.core.localise.ray_silhouettes`).
-        0: never (the trajectory test does not set it yet: s28).  Only for rays from
+        0: never.  Only for rays from
         sensor positions known per return (the trajectory test's pseudo-stations, with ``c``):
         a station's returns assigned by geometry may belong to another station, and its lone
         far rays then reach.
