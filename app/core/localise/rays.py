@@ -343,12 +343,8 @@ def _ray_status(
             ),
         )
     if test.silhouette_clearance > 0.0:  # a clearly nearer ray reaching it: see past
-        readings = SilhouetteReadings(
-            ray_range, crossing, point_range, margin, ray_dot_normal, angle,
-            points, normals, other_origin, ray_direction, _return_normals(rays, ray),
-        )  # fmt: skip
-        limits = (normal_tolerance, range_tolerance, test.silhouette_clearance)
-        hides = past_silhouettes(hides, crosses_near, readings, limits)
+        readings = (ray_range, crossing, point_range, margin, ray_dot_normal, angle)
+        hides = _past_silhouettes(hides, crosses_near, readings, (candidates, rays, ray), test)
     # A ray that hides the point and stops clearly before its crossing too occludes the point
     # whatever the test below decides (the expected stop is one of the two): such points are
     # unobserved already, and most candidates of a moved sensor are (its shadows).
@@ -373,12 +369,33 @@ def _ray_status(
     return _status_over_own_surface(own, crosses_near, near, crossing_rays, readings, test)
 
 
-def _return_normals(rays: _Rays, ray: NDArray[np.int64]) -> NDArray[np.float64] | None:
-    """The normal of the surface each of ``ray`` (shape (c, k)) ended on, shape (c, k, 3): NaN
-    where no plane was fitted; None without the other cloud's normals."""
-    if rays.normal is None or rays.linear is None:
-        return None
-    return np.where(rays.linear[ray][..., None], np.nan, rays.normal[ray].astype(np.float64))
+def _past_silhouettes(
+    hides: NDArray[np.bool_],
+    crosses_near: NDArray[np.bool_],
+    readings: tuple[NDArray[np.float64], ...],
+    chunk: tuple[Candidates, _Rays, NDArray[np.int64]],
+    test: RayTest,
+) -> NDArray[np.bool_]:
+    """``hides`` (shape (c, k)) without the rays beside a nearer object's silhouette
+    (:func:`~app.core.localise.ray_silhouettes.past_silhouettes`; ``readings``: the first six
+    fields of :class:`~app.core.localise.ray_silhouettes.SilhouetteReadings`; ``chunk``: the
+    candidates, the other sensor's returns and the returns read, shape (c, k))."""
+    candidates, rays, ray = chunk
+    return_normal = None  # NaN where no plane was fitted
+    if rays.normal is not None and rays.linear is not None:
+        return_normal = np.where(
+            rays.linear[ray][..., None], np.nan, rays.normal[ray].astype(np.float64)
+        )
+    silhouette_readings = SilhouetteReadings(
+        *readings,
+        points=candidates.points,
+        normals=candidates.normal.astype(np.float64),
+        origin=rays.origin,
+        ray_direction=rays.direction[ray].astype(np.float64),
+        return_normal=return_normal,
+    )
+    limits = (test.normal_tolerance, test.range_tolerance, test.silhouette_clearance)
+    return past_silhouettes(hides, crosses_near, silhouette_readings, limits)
 
 
 class _Readings(NamedTuple):
