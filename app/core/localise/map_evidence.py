@@ -384,7 +384,15 @@ def map_test(
     seen = seen_round(figures, candidates, labels, other, change_threshold)
     verdict = (coverage, confidence, seen)
     coverage, confidence, counts["map_blind_area_parts"] = settled_coverage(
-        candidates, labels, radius, verdict, hosts, own.points, change_threshold, faces
+        candidates,
+        labels,
+        radius,
+        verdict,
+        hosts,
+        own.points,
+        change_threshold,
+        faces,
+        other.geometry,
     )
     status, evidence, counts["map_resting_points"] = map_statuses(
         candidates, labels, coverage[labels], other, threshold, resting_band or change_threshold
