@@ -297,24 +297,23 @@ def settled_coverage(
     radius: NDArray[np.float64],
     verdict: tuple[NDArray[np.bool_], NDArray[np.float64], NDArray[np.bool_]],
     hosts: NDArray[np.int64],
-    own_points: NDArray[np.float64],
+    clouds: tuple[NDArray[np.float64], LocalGeometry | None],
     change_threshold: float,
     faces: NDArray[np.bool_] | None = None,
-    other: LocalGeometry | None = None,
 ) -> tuple[NDArray[np.bool_], NDArray[np.float64], int]:
     """The map test's ``verdict`` per part (coverage, confidence, seen round: shapes (parts,))
-    with the
-    fragments of coverage differences made ones (:func:`~app.core.localise.map_fragments.
-    host_coverage`, ``hosts``), then the clusters in the other epoch's blind area
-    (:func:`blind_clusters`, at the share as confidence, none with a change part in
-    ``seen_around``; the unseen ``faces``, shape (parts,), are no blind surroundings; the
-    ``other`` epoch's isolated samples are no evidence of sight), and how many parts those
-    made so."""
+    with the fragments of coverage differences made ones
+    (:func:`~app.core.localise.map_fragments.host_coverage`, ``hosts``), then the clusters in
+    the other epoch's blind area (:func:`blind_clusters`, at the share as confidence, none with
+    a change part in ``seen_around``; the unseen ``faces``, shape (parts,), are no blind
+    surroundings), and how many parts those made so.  ``clouds``: this epoch's points (shape
+    (n, 3)) and the other epoch's geometry (its isolated samples are no evidence of sight;
+    None: every sample is)."""
     coverage, confidence = host_coverage(verdict[0], verdict[1], hosts)
-    index = candidates.index
+    own_points, other = clouds
     blind, share = blind_clusters(
         own_points,
-        index,
+        candidates.index,
         radius,
         labels,
         coverage,
