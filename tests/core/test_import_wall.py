@@ -140,6 +140,7 @@ LOCALISE_LAYERS = (
     "map_fragments",
     "map_sides",
     "map_steps",
+    "map_surround",
     "map_parts",
     "map_supports",
     "trajectory_visibility",

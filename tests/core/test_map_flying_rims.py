@@ -5,14 +5,14 @@ Unchanged drifting RGB-D room 504 of ``bench.moving_maps`` (s24 rgbd504): a box 
 from its own side; the scan's depth-edge pixels behind the box's silhouette (a fused fan, not
 isolated, so :mod:`app.core.localise.flying_samples` keeps them) are the scan's nearest points
 to the border of the reference's east face and top.  They are surface the reference lacks, so
-``map_parts._surrounded`` counts the border as surrounded (all 135 carried-on border points had
+``map_surround.surrounded`` counts the border as surrounded (all 135 carried-on border points had
 a flying nearest point), the face is no unseen side, and 1,256 of the box's reference points
 are called removed.  Without the fan the same scene is unchanged (0 points here, and room 504
 without flying pixels: the box's reference side unobserved).  Fixed in s25
 (:mod:`app.core.localise.map_sides`): the fan stands in front of the east face, on the side
 the reference saw it from (the scan's surface behind the face, its west face, tells the inner
 side), in the air the reference looked through: no surface the box hid, and no surface
-meeting the face at an edge (``map_parts._surrounded``, ``map_faces.far_faces``)."""
+meeting the face at an edge (``map_surround.surrounded``, ``map_faces.far_faces``)."""
 
 from __future__ import annotations
 

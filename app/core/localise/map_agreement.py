@@ -28,7 +28,7 @@ from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE
 from app.core.localise.interface import FaceBorder
 from app.core.localise.map_faces import EDGE_FACTOR, meeting_planes
-from app.core.localise.map_parts import SURROUND_REACH
+from app.core.localise.map_surround import SURROUND_REACH
 from app.core.localise.settings import GATHER_CHUNK
 
 __all__ = ["changed_share", "faces_meeting_changes", "faces_of_changes"]
@@ -68,7 +68,7 @@ def changed_share(
     RGB-D room 803's turned chair: 94 % with it, 80 % with the dominant fit alone), the
     dominant fit one meeting a corner the drift smeared (room 1403: 25 % -> 91 %).  Its
     points are the
-    other cloud's points within :data:`~app.core.localise.map_parts.SURROUND_REACH` (at most
+    other cloud's points within :data:`~app.core.localise.map_surround.SURROUND_REACH` (at most
     :data:`AGREEMENT_NEIGHBOURS`) on that plane (within ``tolerance``, widening with the
     distance, normals agreeing).  Of those the other side judged (its change candidates:
     changed or unobserved, ``other_label``, shape (m,)), the share it called changed; 0 where

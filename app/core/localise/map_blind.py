@@ -44,10 +44,11 @@ from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
 from app.core.localise.map_fragments import host_coverage
-from app.core.localise.map_parts import ADJOINING_FACTOR, PartFigures
+from app.core.localise.map_parts import PartFigures
 from app.core.localise.map_planes import level_surface_below
 from app.core.localise.map_shared import MIN_ADJOINING
 from app.core.localise.map_sides import SPARSE_PROBE_FACTOR
+from app.core.localise.map_surround import ADJOINING_FACTOR
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
 from app.core.localise.rays import Candidates
 from app.core.localise.regions import cluster_labels
@@ -273,7 +274,7 @@ def seen_round(
     epoch's surface carrying on past :data:`SEEN_AROUND_SHARE` of them, and the part hanging
     free: under fewer than half of its foot's candidates (within ``change_threshold`` of its
     lowest) the other epoch has a level surface within
-    :data:`~app.core.localise.map_parts.ADJOINING_FACTOR` change thresholds (a board on a
+    :data:`~app.core.localise.map_surround.ADJOINING_FACTOR` change thresholds (a board on a
     wall, not a desk's leg on the floor the other path filmed round it)."""
     check = (figures.adjoining >= MIN_ADJOINING) & (figures.surround_share >= SEEN_AROUND_SHARE)
     chosen = np.flatnonzero(check[labels])

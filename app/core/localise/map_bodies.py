@@ -30,7 +30,8 @@ from numpy.typing import NDArray
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE
 from app.core.localise.map_faces import EDGE_FACTOR, meeting_planes
-from app.core.localise.map_parts import SURROUND_REACH, UPRIGHT_NORMAL_Z, PartFigures
+from app.core.localise.map_parts import UPRIGHT_NORMAL_Z, PartFigures
+from app.core.localise.map_surround import SURROUND_REACH
 from app.core.localise.rays import Candidates
 from app.core.localise.settings import GATHER_CHUNK
 
@@ -82,7 +83,7 @@ def _meeting_offsets(
 ) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
     """The other epoch's upright surface meeting each border point at an edge, as its points
     near it (shapes (b, 3), (b, 3) -> (b,), (b, k)): whether one meets the point, and the
-    indices of its points within :data:`~app.core.localise.map_parts.SURROUND_REACH` on its
+    indices of its points within :data:`~app.core.localise.map_surround.SURROUND_REACH` on its
     plane (-1 elsewhere)."""
     count = points.shape[0]
     k = min(MEETING_POINTS, other.points.shape[0])
@@ -158,7 +159,7 @@ def body_inside_counts(
     The body runs from the part's plane towards the side where the other epoch's upright
     surfaces meeting its ``adjoined`` border points (indices into the candidates) lie, as deep
     as they run (:data:`DEPTH_QUANTILE`, at most
-    :data:`~app.core.localise.map_parts.SURROUND_REACH`), along the part's horizontal width,
+    :data:`~app.core.localise.map_surround.SURROUND_REACH`), along the part's horizontal width,
     from one change threshold under its lowest point up to its top; :data:`MARGIN_SPACINGS`
     local spacings (at least ``tolerance``) in from each bounding plane.
     """

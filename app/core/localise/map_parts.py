@@ -9,7 +9,6 @@ coverage at all.  :mod:`app.core.localise.map_evidence` decides on these figures
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,21 +17,16 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
-from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE, tangent_directions
-from app.core.localise.map_planes import SECTORS, extends, holds_up, share_on_planes, shared_wall
-from app.core.localise.map_sides import (
-    LEVEL_NORMAL_Z,
-    in_front,
-    inner_sides,
-    surface_behind,
-)
+from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE, PLANE_SLOPE
+from app.core.localise.map_planes import extends, share_on_planes
+from app.core.localise.map_sides import LEVEL_NORMAL_Z, inner_sides, surface_behind
 from app.core.localise.map_steps import split_offsets, split_steps
+from app.core.localise.map_surround import SURROUND_SECTORS, UPRIGHT_NORMAL_Z, surrounded
 from app.core.localise.origin_free import UNMATCHED_FACTOR
 from app.core.localise.rays import Candidates
 from app.core.localise.regions import CLUSTER_NEIGHBOURS, cluster_labels
 from app.core.localise.sample_lines import continues_into
 from app.core.localise.settings import GATHER_CHUNK
-from app.core.localise.surface import LocalGeometry
 
 __all__ = [
     "PartFigures",
@@ -43,19 +37,6 @@ __all__ = [
 
 BORDER_NEIGHBOURS = 16
 """Own neighbours of a candidate looked at for its cluster's border."""
-SURROUND_NEIGHBOURS = 32
-"""The other epoch's points looked at around a border point's foot on its adjoining surface."""
-SURROUND_REACH = 0.5
-"""Metres: farther points of the adjoining surface say nothing about the border point."""
-ADJOINING_FACTOR = 2.0
-"""The other epoch's surface adjoins a border point within this many change thresholds."""
-SURROUND_SECTORS = 6
-"""The adjoining surface carries on past a border point when it lies in this many of
-:data:`SECTORS` directions around the point's foot."""
-EDGE_COSINE = math.cos(math.radians(60.0))
-"""A surface adjoins a border point at an edge when the normals' cosine is below this."""
-UPRIGHT_NORMAL_Z = 0.5
-"""A part is upright (a side) when its normals' mean vertical component is below this."""
 MIXED_SHARE = 0.25
 """A part whose level candidates are between this share and its complement is split into
 its upright and its level surfaces."""
@@ -192,154 +173,6 @@ def _components(
     return labels.astype(np.int64)
 
 
-def _supports(unit: NDArray[np.float64], height: NDArray[np.float64]) -> NDArray[np.bool_]:
-    """Whether the other epoch's adjoining surface is a level one under the point (a floor, a
-    seat, a desk top the part stands on); shapes (b, 3), (b,) -> (b,).
-
-    A supporting surface that ends at an upright part says nothing of whether the part stood
-    in the other epoch: the floor in front of a box ends at its side because the box hides
-    the floor under it, and a chair's seat ends where its backrest rises, whichever way the
-    chair was turned.  Such border points do not count as adjoined (:func:`_surrounded`); a
-    support that carries on past the part (the floor under an added box's place) still does.
-    The surfaces that end at a part's upper and side edges (the object's top, its other
-    faces) are the evidence: the other epoch saw the object's other surfaces meet this one.
-    """
-    level = np.abs(unit[:, 2]) >= NORMAL_AGREEMENT_COSINE
-    return level & (height * np.sign(unit[:, 2]) > 0.0)
-
-
-def _clear_of_edge(
-    offset: NDArray[np.float64],
-    own_normal: NDArray[np.floating],
-    unit: NDArray[np.float64],
-    margin: float,
-) -> NDArray[np.bool_]:
-    """Which offsets on the adjoining plane lie farther than ``margin`` from the line where
-    the point's own surface meets that plane (shapes (b, k, 3), (b, 3), (b, 3) -> (b, k)).
-
-    A surface that ends at the point's edge (a box's side under the rim of its top) has its
-    last rows of samples along that line, spread a little to both sides by noise: counted,
-    they fill the directions next to the line on the far side as well, and the surface seems
-    to carry on past the point (6 of 8 directions where a half-plane fills 4).  Only samples
-    clear of the line tell on which sides of it the surface lies.  Not for a support
-    (:func:`_supports`): under a thin part (a backrest turned on its seat) the seat carries
-    on past its foot by the part's thickness only, a few centimetres."""
-    edge = np.cross(own_normal.astype(np.float64), unit)
-    edge /= np.maximum(np.linalg.norm(edge, axis=1), 1e-12)[:, None]
-    across = np.cross(unit, edge)
-    return np.abs(np.einsum("bkd,bd->bk", offset, across)) > margin
-
-
-def _surrounded(
-    points: NDArray[np.float64],
-    own_normal: NDArray[np.floating],
-    other: LocalGeometry,
-    other_unmatched: NDArray[np.bool_],
-    tolerance: float,
-    change_threshold: float,
-    inward: NDArray[np.float64],
-) -> tuple[NDArray[np.bool_], NDArray[np.int64], NDArray[np.bool_]]:
-    """Whether the other epoch's surface adjoins each border point at an edge, in how many
-    directions it carries on past the point, and whether it lies wholly under the point.
-
-    The other epoch's nearest surface (within :data:`ADJOINING_FACTOR` change thresholds, at
-    an angle to the point's own: :data:`EDGE_COSINE`) is taken as the plane of its nearest
-    point; the point is projected onto it, and that plane's points around the projection (the
-    :data:`SURROUND_NEIGHBOURS` nearest within :data:`SURROUND_REACH`) are sorted into
-    :data:`SECTORS` directions.  Where the other epoch saw the place of a removed or added
-    object, its floor, desk top or wall carries on under it: the directions are all taken (and
-    where that surface is one this epoch lacks, the object hid it: all directions count).
-    Where the object stands in both epochs and only this epoch faced one of its sides, the
-    other epoch's surfaces next to that side (the object's top, the floor in front of it) end
-    at it: half the directions are empty.
-
-    Parameters
-    ----------
-    points : ndarray, shape (b, 3)
-    own_normal : ndarray, shape (b, 3)
-        The points' own surface normals.
-    other : LocalGeometry
-    other_unmatched : ndarray, shape (m,), bool
-        The other epoch's points that this epoch lacks.
-    tolerance, change_threshold : float
-        The plane tolerance and the change threshold (metres).
-    inward : ndarray, shape (b, 2, 3)
-        Unit directions into each point's part (zero: not known,
-        :func:`~app.core.localise.map_sides.inner_sides`).
-
-    Returns
-    -------
-    adjoining : ndarray, shape (b,), bool
-        Whether the other epoch has a surface meeting the point's at an edge next to it (not
-        one the point stands on that ends there: :func:`_supports`).
-    sectors : ndarray, shape (b,), int64
-        In how many of :data:`SECTORS` directions that surface carries on past the point.
-    under : ndarray, shape (b,), bool
-        That surface is an upright one lying wholly under an upright point
-        (:func:`~app.core.localise.map_planes.holds_up`).
-    """
-    count = points.shape[0]
-    adjoining = np.zeros(count, dtype=bool)
-    surrounded = np.zeros(count, dtype=np.int64)
-    under = np.zeros(count, dtype=bool)
-    if count == 0:
-        return adjoining, surrounded, under
-    k = min(SURROUND_NEIGHBOURS, other.points.shape[0])
-    for start in range(0, count, GATHER_CHUNK):
-        chunk = slice(start, start + GATHER_CHUNK)
-        query = points[chunk]
-        distance, index = other.tree.query(query, k=k)
-        distance = np.asarray(distance).reshape(query.shape[0], k)
-        index = np.asarray(index).reshape(query.shape[0], k)
-        nearest = index[:, 0]
-        unit = other.normal[nearest].astype(np.float64)
-        height = np.einsum("cd,cd->c", query - other.points[nearest], unit)
-        # only a surface meeting the point's own at an edge adjoins it: one parallel to it
-        # is a gap in a surface both have, or a surface under or over it
-        across = (
-            np.abs(np.einsum("cd,cd->c", own_normal[chunk].astype(np.float64), unit)) < EDGE_COSINE
-        )
-        adjoining[chunk] = (np.abs(height) <= ADJOINING_FACTOR * change_threshold) & across
-        support = _supports(unit, height)
-        foot = query - height[:, None] * unit
-        offset = other.points[index] - foot[:, None, :]
-        along = np.linalg.norm(offset, axis=2)
-        on_plane = (
-            (distance <= SURROUND_REACH)
-            & (np.abs(np.einsum("ckd,cd->ck", offset, unit)) <= tolerance + PLANE_SLOPE * along)
-            & (
-                np.abs(np.einsum("ckd,cd->ck", other.normal[index].astype(np.float64), unit))
-                >= NORMAL_AGREEMENT_COSINE
-            )
-            & (_clear_of_edge(offset, own_normal[chunk], unit, tolerance) | support[:, None])
-        )
-        _, directions = tangent_directions(unit, 4)
-        first, second = directions[:, 0, :], directions[:, 1, :]
-        angle = np.arctan2(
-            np.einsum("ckd,cd->ck", offset, second), np.einsum("ckd,cd->ck", offset, first)
-        )
-        sector = np.floor((angle + math.pi) / (2.0 * math.pi) * SECTORS).astype(np.int64)
-        sector = np.clip(sector, 0, SECTORS - 1)
-        taken = np.zeros((query.shape[0], SECTORS), dtype=bool)
-        rows = np.broadcast_to(np.arange(query.shape[0])[:, None], sector.shape)
-        taken[rows[on_plane], sector[on_plane]] = True
-        surrounded[chunk] = taken.sum(axis=1)
-        under[chunk] = holds_up(
-            offset, on_plane, own_normal[chunk], unit, tolerance, UPRIGHT_NORMAL_Z
-        )
-        # a wall both epochs saw on both sides of the point: no face of its object, no evidence
-        shared = shared_wall(offset, on_plane, index, own_normal[chunk], unit, other_unmatched)
-        adjoining[chunk] &= ~shared | other_unmatched[nearest]
-        # a surface that this epoch lacks next to the point: the object hid it here; not in
-        # front of the part, though, in the air this epoch saw it through (map_sides.in_front)
-        lacking = other_unmatched[nearest]
-        air = lacking & in_front(other.points[nearest] - query, inward[chunk], tolerance)
-        surrounded[chunk][lacking & ~air] = SECTORS
-        adjoining[chunk] &= ~air
-        adjoining[chunk] &= ~(support & (surrounded[chunk] < SURROUND_SECTORS))
-    return adjoining, surrounded, under
-
-
 @dataclass(frozen=True)
 class PartFigures:
     """The figures the map test decides on, one per surface part of the candidates.
@@ -460,13 +293,15 @@ def _adjoining_surfaces(
     change_threshold: float,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
     """Per part, how many border points the other epoch's surface adjoins at an edge and the
-    share of those where it carries on past the point (:func:`_surrounded`), and those border
-    points (indices into the candidates).
+    share of those where it carries on past the point
+    (:func:`~app.core.localise.map_surround.surrounded`), and those border points (indices into
+    the candidates).
 
     A part all of whose adjoining border points have the adjoining surface wholly under them
     (:func:`~app.core.localise.map_planes.holds_up`) stands on it: that surface is no face of
-    its object, as a level support that ends at it is none (:func:`_supports`), and the part
-    has no adjoining border point."""
+    its object, as a level support that ends at it is none
+    (:func:`~app.core.localise.map_surround._supports`), and the part has no adjoining border
+    point."""
     probe = np.flatnonzero(border)
     # the parts whose border has surface this epoch lacks nearest: which side is open?
     wanted = np.zeros(n_parts, dtype=bool)
@@ -476,7 +311,7 @@ def _adjoining_surfaces(
     inward = inner_sides(
         candidates.points, candidates.normal, labels, wanted, other, other_unmatched
     )
-    adjoining_points, surrounded_points, under = _surrounded(
+    adjoining_points, surrounded_points, under = surrounded(
         candidates.points[probe],
         candidates.normal[probe],
         other.geometry,

@@ -19,9 +19,10 @@ from pykdtree.kdtree import KDTree
 
 from app.core.localise.distance import Side
 from app.core.localise.gaps import NORMAL_AGREEMENT_COSINE
-from app.core.localise.map_parts import EDGE_COSINE, UPRIGHT_NORMAL_Z, PartFigures
+from app.core.localise.map_parts import UPRIGHT_NORMAL_Z, PartFigures
 from app.core.localise.map_planes import extends
 from app.core.localise.map_sides import oriented_depths, surface_behind
+from app.core.localise.map_surround import EDGE_COSINE
 from app.core.localise.rays import Candidates
 from app.core.localise.surface import LocalGeometry
 
@@ -86,7 +87,7 @@ def unseen_faces(figures: PartFigures) -> NDArray[np.bool_]:
     the other path never looked down on) has the object's sides ending at its rim.  The other
     epoch's surfaces carry on past a removed or added object's faces (the floor, desk top or
     wall it stood on or against), or are surface this epoch lacks; a supporting surface ending
-    at a part is no evidence either way (:func:`~app.core.localise.map_parts._supports`).
+    at a part is no evidence either way (:func:`~app.core.localise.map_surround._supports`).
     Tops were left out before (s10): on six seeds of RGB-D rooms, horizontal parts meeting
     this rule carry 1,800 false changed points on unseen tops and desk strips and 71 true ones.
     A top is one only when the other epoch has no level surface straight under most of it
@@ -132,7 +133,7 @@ def meets_lacking_at_angle(
     :data:`MIN_MEETING` of its candidates (``points`` shape (c, 3), ``labels`` shape (c,)) lie
     within ``reach`` of the other cloud's points that this epoch lacks (``other_unmatched``,
     shape (m,), bool) on an upright surface at an angle to the part's plane (normals' cosine
-    under :data:`~app.core.localise.map_parts.EDGE_COSINE`).
+    under :data:`~app.core.localise.map_surround.EDGE_COSINE`).
 
     That surface is a change of the other epoch meeting the part at an edge: the face the part
     was turned from (a chair's old backrest at the corner it shares with the new one).  A strip

@@ -203,16 +203,20 @@ def face_normal(points: NDArray[np.float64]) -> NDArray[np.float64]:
 
 def _meets_at_angle(
     face: NDArray[np.float64],
+    face_normals: NDArray[np.floating],
     other: Side,
     region_points: NDArray[np.int64],
     region_tree: KDTree,
     reach: float,
     corner: bool = True,
 ) -> bool:
-    """Whether the upright ``face`` (points, shape (p, 3)) meets the other cloud's
-    ``region_points`` (indices, shape (r,); ``region_tree`` over their positions) at an edge:
-    :data:`MIN_MEETING` of its points within ``reach`` of one, and :data:`MEETING_SHARE` of
-    those at an upright surface at an angle to it; or, with fewer points within ``reach``,
+    """Whether the upright ``face`` (points, shape (p, 3); upright by its plane fit) meets the
+    other cloud's ``region_points`` (indices, shape (r,); ``region_tree`` over their
+    positions) at an edge: :data:`MIN_MEETING` of its points within ``reach`` of one, and
+    :data:`MEETING_SHARE` of those at an upright surface at an angle to their own normals
+    (``face_normals``, shape (p, 3): a cluster that is an L of two faces of a turned box has
+    the plane of its larger face, while the points meeting the old face may be the other
+    face's, robot warehouse 2104); or, with fewer points within ``reach``,
     :data:`MIN_MEETING` of the region's points meet it at a corner line within ``reach`` of
     both (:func:`_corner_points`, when ``corner``: a face seen only from a little off the
     corner it shares with the other)."""
@@ -228,7 +232,10 @@ def _meets_at_angle(
         return met_at >= MIN_MEETING
     nearest = region_points[np.asarray(index, dtype=np.int64).ravel()[meeting]]
     met = other.geometry.normal[nearest].astype(np.float64)
-    at_angle = (np.abs(met[:, 2]) < UPRIGHT_NORMAL_Z) & (np.abs(met @ normal) < EDGE_COSINE)
+    own = face_normals[meeting].astype(np.float64)
+    at_angle = (np.abs(met[:, 2]) < UPRIGHT_NORMAL_Z) & (
+        np.abs(np.einsum("pd,pd->p", met, own)) < EDGE_COSINE
+    )
     return bool(np.mean(at_angle) >= MEETING_SHARE)
 
 
@@ -321,6 +328,7 @@ def turned_faces(
             if region.n_points < min_region_points
             and _meets_at_angle(
                 own.side.points[region.point_indices],
+                own.side.geometry.normal[region.point_indices],
                 other.side,
                 other_points,
                 other_tree,
