@@ -206,19 +206,19 @@ def test_the_points_judged_by_their_surface_are_judged_on_both_threads_alike(mon
     """The points under the change threshold judged by their surface level are split in
     chunks that share the threads (the cloud with more of them no longer runs alone at the
     end): the labels are those of one thread."""
-    from app.core.localise import distance
+    from app.core.localise import surface_levels
 
     reference, scan, _ = _board_before_a_wall(0.125, 0)
     one = localise_changes(reference, scan, threads=1)
     judged: list[tuple[int, int]] = []
-    for_each_chunk = distance.for_each_chunk
+    for_each_chunk = surface_levels.for_each_chunk
 
     def recorded(work, chunks, threads):
         chunks = list(chunks)
         judged.append((len(chunks), threads))
         for_each_chunk(work, chunks, threads)
 
-    monkeypatch.setattr(distance, "for_each_chunk", recorded)
+    monkeypatch.setattr(surface_levels, "for_each_chunk", recorded)
     two = localise_changes(reference, scan, threads=2)
     assert len(judged) == 2 and all(threads == 2 for _, threads in judged)
     assert max(count for count, _ in judged) > 1
@@ -264,18 +264,18 @@ def test_the_own_surface_level_is_measured_only_where_the_other_cloud_has_points
     on its normal line: the own level (two 96-point balls a point) is measured only where the
     other cloud's was found (at 1M + 1M, 41 of 12,291 points; main measured all of them).
     The board keeps its labels (the tests above)."""
-    from app.core.localise import distance
+    from app.core.localise import surface_levels
 
     reference, scan, board = _board_before_a_wall(0.125, 0)
     calls: list[tuple[bool, int, int]] = []
-    level = distance._level
+    level = surface_levels._level
 
     def recorded(centre, point, unit, cloud, change_threshold, first_ball=None):
         found_level, found = level(centre, point, unit, cloud, change_threshold, first_ball)
         calls.append((first_ball is not None, len(point), int(found.sum())))
         return found_level, found
 
-    monkeypatch.setattr(distance, "_level", recorded)
+    monkeypatch.setattr(surface_levels, "_level", recorded)
     localisation = localise_changes(reference, scan, threads=1)
     other_calls = [(rows, found) for own, rows, found in calls if not own]
     own_rows = [rows for own, rows, _ in calls if own]
@@ -283,3 +283,45 @@ def test_the_own_surface_level_is_measured_only_where_the_other_cloud_has_points
     assert sum(rows for rows, _ in other_calls) > sum(own_rows)
     assert own_rows == [found for _, found in other_calls]
     assert np.mean(localisation.reference_label[board] == LABEL_CHANGED) >= 0.8
+
+
+def test_the_distances_are_found_by_blocks_on_two_threads_as_on_one(monkeypatch):
+    """:func:`surface_distance` fills blocks of rows on its threads (the other cloud's
+    distances, on a thread of their own, may finish first) and the candidates' flattest
+    neighbours are found by chunks: the same distances, candidates, offsets and neighbours as
+    one block on one thread."""
+    from app.core.localise import distance, surface
+
+    reference, scan, _ = removed_box_on_a_grazing_floor()
+    other = local_geometry(scan, 10)
+    nn_distance, nn_index = nearest_in(reference, other)
+    limits = {"threshold": 0.02, "support_factor": 1.3, "change_threshold": 0.10}
+    monkeypatch.setattr(distance, "DISTANCE_BLOCK", 10**9)
+    one = surface_distance(reference, nn_distance, nn_index, other=other, **limits)
+    one_offset = surface_distance(
+        reference, nn_distance, nn_index, other=other, with_plane_offset=True, **limits
+    )[2]
+    assert 0 < one[1].sum() < len(reference)
+    blocks: list[tuple[int, int]] = []
+    for_each_chunk = distance.for_each_chunk
+
+    def recorded(work, chunks, threads):
+        chunks = list(chunks)
+        blocks.append((len(chunks), threads))
+        for_each_chunk(work, chunks, threads)
+
+    monkeypatch.setattr(distance, "for_each_chunk", recorded)
+    monkeypatch.setattr(distance, "DISTANCE_BLOCK", 1_000)
+    two = surface_distance(reference, nn_distance, nn_index, other=other, **limits, threads=2)
+    two_offset = surface_distance(
+        reference, nn_distance, nn_index, other=other, with_plane_offset=True, **limits, threads=2
+    )[2]
+    np.testing.assert_array_equal(two[0], one[0])
+    np.testing.assert_array_equal(two[1], one[1])
+    np.testing.assert_array_equal(two_offset, one_offset)
+    assert blocks == [(-(-len(reference) // 1_000), 2)] * 2
+    index = np.flatnonzero(np.arange(len(scan)) % 3 != 0)
+    neighbours = other.neighbor_index[index]
+    expected = neighbours[np.arange(len(index)), np.argmin(other.variation[neighbours], axis=1)]
+    monkeypatch.setattr(surface, "CHUNK", 50)
+    np.testing.assert_array_equal(other.flattest_neighbour(index, threads=2), expected)

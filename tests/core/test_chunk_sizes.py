@@ -15,9 +15,10 @@ import math
 import numpy as np
 import pytest
 
-from app.core.detectors.base import KEY_BLOCK_ROWS, VOXEL_BLOCK_ROWS, point_keys
-from app.core.localise.distance import LEVEL_CHUNK, LEVEL_NEIGHBOURS
+from app.core.detectors.base import KEY_BLOCK_ROWS, point_keys
+from app.core.detectors.voxel_grid import VOXEL_BLOCK_ROWS
 from app.core.localise.settings import CHUNK, GATHER_CHUNK, QUERY_CHUNK
+from app.core.localise.surface_levels import LEVEL_CHUNK, LEVEL_NEIGHBOURS
 from app.core.origins.columns import HOUGH_CELLS, HOUGH_CHUNK_LINES
 from app.core.origins.voxels import HASH_BLOCK_ROWS
 from app.core.spatial_order import ORDER_CHUNK

@@ -4,7 +4,7 @@ A map's change threshold holds the alignment residual, the spread of the offsets
 surfaces both epochs have.  On a real mobile-mapping pair the ground's own level changes and
 drift take it to 6 cm and the threshold to 28 cm: the lowest 10-28 cm of a removed fence (the
 MLS bike-parking pair) was no candidate.  A point whose own surface crosses the other epoch's
-nearest surface is judged by the noise alone (``distance.crossing_candidates``).
+nearest surface is judged by the noise alone (``surface_levels.crossing_candidates``).
 """
 
 from __future__ import annotations

@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 from sklearn.mixture import GaussianMixture
 
-from app.core.detectors import METHODS, VARIANTS, Detection, base, make_detector, plane_extraction
+from app.core.detectors import (
+    METHODS,
+    VARIANTS,
+    Detection,
+    base,
+    make_detector,
+    plane_extraction,
+    voxel_grid,
+)
 from app.core.detectors.gmm import (
     MixtureStart,
     bures_wasserstein_distances,
@@ -356,14 +364,14 @@ def test_voxel_ids_by_blocks_equal_the_whole_array_formula(monkeypatch):
     below, inside and above the points and blocks that do not divide the row count."""
     rng = np.random.default_rng(18)
     points = rng.uniform(-7.0, 4.0, size=(10_001, 3)) * [1.0, 3.0, 0.3]
-    monkeypatch.setattr(base, "VOXEL_BLOCK_ROWS", 1_000)
+    monkeypatch.setattr(voxel_grid, "VOXEL_BLOCK_ROWS", 1_000)
     for origin in (points.min(axis=0) - 0.3, np.zeros(3), points.max(axis=0) + 0.7):
         for size in (0.01, 0.37, 5.0):
             cells = np.floor((points - origin) / size).astype(np.int64)
             cells -= cells.min(axis=0)
             extent = cells.max(axis=0) + 1
             expected = (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
-            voxels, n_cells = base.voxel_ids(points, size, origin)
+            voxels, n_cells = voxel_grid.voxel_ids(points, size, origin)
             np.testing.assert_array_equal(voxels, expected)
             assert n_cells == int(np.prod(extent))
 
@@ -376,17 +384,44 @@ def test_voxel_thinning_on_a_dense_grid_picks_what_the_sort_picks(monkeypatch):
     points[7::7] = points[3:-4:7]  # duplicated points: equal keys in a voxel
     keys = base.point_keys(points, seed=3)
     origin = points.min(axis=0) - 0.01
+    extremes = (points.min(axis=0), points.max(axis=0))
     dense = {
         size: (
-            base.voxel_representatives(points, size, origin, keys),
-            base._occupied_voxels(points, size),
+            voxel_grid.voxel_representatives(points, size, origin, keys),
+            voxel_grid._occupied_voxels(points, size, extremes),
         )
         for size in (0.05, 0.3, 2.0)
     }
-    assert base._dense_cell_limit(len(points)) > (8.0 / 0.3) ** 2 * (1.6 / 0.3)  # dense used
-    monkeypatch.setattr(base, "_dense_cell_limit", lambda n_points: 0)
+    assert voxel_grid._dense_cell_limit(len(points)) > (8.0 / 0.3) ** 2 * (1.6 / 0.3)  # dense used
+    monkeypatch.setattr(voxel_grid, "_dense_cell_limit", lambda n_points: 0)
     for size, (representatives, occupied) in dense.items():
         np.testing.assert_array_equal(
-            base.voxel_representatives(points, size, origin, keys), representatives
+            voxel_grid.voxel_representatives(points, size, origin, keys), representatives
         )
-        assert base._occupied_voxels(points, size) == occupied
+        assert voxel_grid._occupied_voxels(points, size, extremes) == occupied
+
+
+def test_the_voxel_size_search_counts_its_voxels_by_blocks_on_two_threads(monkeypatch):
+    """The occupied voxels of each step of :func:`voxel_grid.auto_voxel_size` are marked by
+    blocks of rows on the detector's threads (the keys beside it may finish first): every
+    count is the number of distinct voxel ids, and the size is the one-thread size."""
+    rng = np.random.default_rng(29)
+    points = rng.uniform(-3.0, 5.0, size=(30_001, 3)) * [1.0, 2.0, 0.2]
+    monkeypatch.setattr(voxel_grid, "VOXEL_BLOCK_ROWS", 1_000)
+    monkeypatch.setattr(voxel_grid, "OCCUPANCY_TASK_ROWS", 4_000)
+    extremes = (points.min(axis=0), points.max(axis=0))
+    for size in (0.05, 0.3, 2.0):
+        voxels, _ = voxel_grid.voxel_ids(points, size, extremes[0])
+        assert voxel_grid._occupied_voxels(points, size, extremes, 2) == np.unique(voxels).size
+    one = voxel_grid.auto_voxel_size(points, 2_000, 1)
+    marked: list[tuple[int, int]] = []
+    for_each_chunk = voxel_grid.for_each_chunk
+
+    def recorded(work, chunks, threads):
+        chunks = list(chunks)
+        marked.append((len(chunks), threads))
+        for_each_chunk(work, chunks, threads)
+
+    monkeypatch.setattr(voxel_grid, "for_each_chunk", recorded)
+    assert voxel_grid.auto_voxel_size(points, 2_000, 2) == one
+    assert marked and all(count == 8 and threads == 2 for count, threads in marked)

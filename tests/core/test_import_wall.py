@@ -124,6 +124,7 @@ LOCALISE_LAYERS = (
     "epoch",
     "surface",
     "distance",
+    "surface_levels",
     "regions",
     "gaps",
     "ray_silhouettes",

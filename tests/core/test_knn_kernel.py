@@ -282,6 +282,12 @@ def test_the_nearest_point_in_the_other_cloud_is_pykdtrees():
         assert found is not None and found[1].dtype == np.uint32
         assert np.array_equal(found[0].view(np.uint64), distance.view(np.uint64))
         assert np.array_equal(found[1], index)
+        shared = neighbourhoods.kernel_nearest(
+            own, own_found.kernel_tree, other_found.kernel_tree, other_found.tree, threads=2
+        )
+        assert shared is not None
+        assert np.array_equal(shared[0].view(np.uint64), distance.view(np.uint64))
+        assert np.array_equal(shared[1], index)
     tied = np.empty(len(lattice), dtype=np.uint8)
     lattice_tree = KERNEL.build_tree(np.ascontiguousarray(lattice))
     shifted_tree = KERNEL.build_tree(np.ascontiguousarray(lattice + 0.5))
@@ -309,8 +315,8 @@ def test_the_cluster_graph_is_pykdtrees(monkeypatch):
     used = []
     kernel_links = regions.kernel_self_neighbours
 
-    def recorded(points, n_neighbors):
-        found = kernel_links(points, n_neighbors)
+    def recorded(points, n_neighbors, threads=1):
+        found = kernel_links(points, n_neighbors, threads)
         used.append(found is not None)
         return found
 
@@ -319,6 +325,11 @@ def test_the_cluster_graph_is_pykdtrees(monkeypatch):
         points = np.ascontiguousarray(points)
         neighbour, linked = regions._links(points, radius, 11)
         labels = regions.cluster_labels(points, radius)
+        # the kernel's leaves in blocks on two threads: the same links
+        shared_neighbour, shared_linked = regions._links(points, radius, 11, threads=2)
+        assert np.array_equal(shared_linked, linked)
+        assert np.array_equal(shared_neighbour[:, 1:][linked], neighbour[:, 1:][linked])
+        assert np.array_equal(regions.cluster_labels(points, radius, threads=2), labels)
         with monkeypatch.context() as plain:
             plain.setattr(neighbourhoods, "KNN_KERNEL", None)
             plain_neighbour, plain_linked = regions._links(points, radius, 11)
@@ -326,4 +337,30 @@ def test_the_cluster_graph_is_pykdtrees(monkeypatch):
         assert np.array_equal(linked, plain_linked)
         assert np.array_equal(neighbour[:, 1:][linked], plain_neighbour[:, 1:][plain_linked])
         assert np.array_equal(labels, plain_labels)
-    assert used == [True, True, False, False] * len(cases)
+    assert used == [True, True, True, True, False, False] * len(cases)
+
+
+@needs_kernel
+def test_two_threads_share_the_kernel_trees_leaves_in_blocks():
+    """The nearest points and the cluster graph's neighbours on two threads: the kernel tree's
+    leaves in :data:`neighbourhoods.LEAF_BLOCKS` blocks that together cover every leaf once
+    (each block writes its own points' rows); one call over all leaves on one thread."""
+    points = np.random.default_rng(30).normal(size=(5_000, 3))
+    tree = KERNEL.build_tree(points)
+    n_leaves = KERNEL.leaf_count(tree)
+    for threads, expected in ((1, [(0, -1)]), (2, None)):
+        calls: list[tuple[int, int]] = []
+
+        def search(first: int, last: int, calls: list[tuple[int, int]] = calls) -> int:
+            calls.append((first, last))
+            return last - first
+
+        found = neighbourhoods._by_leaf_blocks(search, tree, threads)
+        if expected is not None:
+            assert calls == expected
+            continue
+        assert len(calls) == neighbourhoods.LEAF_BLOCKS
+        assert sorted(found) == sorted(last - first for first, last in calls)
+        bounds = sorted(calls)
+        assert bounds[0][0] == 0 and bounds[-1][1] == n_leaves
+        assert all(left[1] == right[0] for left, right in itertools.pairwise(bounds))

@@ -9,7 +9,8 @@ import pytest
 
 from app.core.labels import LABEL_CHANGED
 from app.core.localise import localise_changes
-from app.core.localise.map_blind import blind_clusters
+from app.core.localise.map_blind import blind_clusters, held_by_isolated
+from app.core.localise.surface import local_geometry
 from tests.helpers.fused_rooms import box_sides, plane
 
 SPACING = 0.02
@@ -161,3 +162,45 @@ def test_a_change_joined_to_coverage_differences_is_judged_on_its_own_shell():
     blind, share = blind_clusters(points, index, radius, labels, coverage, 0.1)
     assert blind.tolist() == [True, False]
     assert share[0] > 0.9
+
+
+def _panel_before_a_held_backing(rng, holders: str) -> tuple[np.ndarray, ...]:
+    """A panel (the only candidates, a change part) 15 cm before a backing wall this epoch
+    matched, and the other epoch there: a wall 12 cm behind the backing and, with ``holders``
+    "flying", a grid of lone samples (12 cm apart) 2 cm behind the backing and 10 cm before
+    that wall, within the change threshold of the backing (a fused map's flying pixels in front
+    of a far wall, their neighbours its samples); with "surface", a wall 2 cm behind the
+    backing instead.  Returns this epoch's points, the candidates' index, labels, coverage,
+    radius and the other epoch's geometry."""
+    panel = plane(rng, [0.2, 0.0, 0.2], [0.4, 0, 0], [0, 0, 0.6], spacing=SPACING)
+    backing = plane(rng, [0.0, 0.15, 0.2], [0.8, 0, 0], [0, 0, 0.8], spacing=SPACING)
+    far = plane(rng, [-0.2, 0.27, 0.0], [1.2, 0, 0], [0, 0, 1.2], spacing=SPACING)
+    if holders == "flying":
+        x, z = np.meshgrid(np.arange(0.02, 0.8, 0.12), np.arange(0.22, 1.0, 0.12))
+        lone = np.column_stack([x.ravel(), np.full(x.size, 0.17), z.ravel()])
+        other = np.vstack([far, lone])
+    else:
+        other = np.vstack([far, far - np.array([0.0, 0.1, 0.0])])
+    points = np.vstack([panel, backing])
+    index = np.arange(panel.shape[0])
+    labels = np.zeros(panel.shape[0], dtype=np.int64)
+    radius = np.full(panel.shape[0], 3 * SPACING)
+    return points, index, labels, np.array([False]), radius, local_geometry(other, 10)
+
+
+def test_a_shell_the_other_epoch_holds_only_by_lone_samples_is_unseen():
+    """The panel's shell (the backing) is matched only through the other epoch's lone samples
+    in the air: no evidence that the other path saw the place, so the panel is blind; main
+    counted them as sight (not blind: drifting RGB-D rooms' flying pixels held a wall round a
+    change).  Held by the other epoch's surface, it stays seen."""
+    rng = np.random.default_rng(0)
+    points, index, labels, coverage, radius, other = _panel_before_a_held_backing(rng, "flying")
+    backing = points[index.shape[0] :]
+    assert held_by_isolated(backing, other, 0.1).mean() > 0.9
+    assert blind_clusters(points, index, radius, labels, coverage, 0.1)[0].tolist() == [False]
+    blind, share = blind_clusters(points, index, radius, labels, coverage, 0.1, other=other)
+    assert blind.tolist() == [True] and share[0] > 0.9
+    points, index, labels, coverage, radius, other = _panel_before_a_held_backing(rng, "surface")
+    assert not held_by_isolated(points[index.shape[0] :], other, 0.1).any()
+    blind, share = blind_clusters(points, index, radius, labels, coverage, 0.1, other=other)
+    assert blind.tolist() == [False] and share[0] == 0.0

@@ -149,10 +149,10 @@ def test_each_clouds_changed_points_are_clustered_once_for_regions_and_small_fac
     clustered: list[bytes] = []
     cluster_labels = regions.cluster_labels
 
-    def recorded(points, radius):
+    def recorded(points, radius, threads=1):
         if len(points):  # (no cloud's empty set counts)
             clustered.append(points.tobytes() + radius.tobytes())
-        return cluster_labels(points, radius)
+        return cluster_labels(points, radius, threads)
 
     small: list[str] = []
     find_small = turned_faces.find_regions

@@ -23,7 +23,11 @@ import numpy as np
 import pytest
 
 from app.core.datasets.lidar import LidarWorld, lidar_directions
-from app.core.localise.ray_silhouettes import reaching_rays
+from app.core.localise.ray_silhouettes import (
+    SilhouetteReadings,
+    apart_from_returns,
+    reaching_rays,
+)
 from app.core.localise.rays import STATUS_SEEN_THROUGH, STATUS_UNOBSERVED
 from app.core.localise.surface import local_geometry
 from tests.helpers.ray_cases import face_candidates, ray_test, status_seen_by
@@ -176,3 +180,49 @@ def test_a_ray_passing_a_seat_into_the_room_beyond_reaches():
     assert reaching(1.2, 75.0)
     assert reaching(2.5, 10.0)  # robot 2200: a face seen nearly head-on, the wall 2.5 m behind
     assert not reaching(0.04, 10.0)  # within the range margin
+
+
+def apart(point, normal, sensor, end, end_normal, clearance: float = 0.1) -> bool:
+    """Whether a return at ``end`` (its surface's normal ``end_normal``) is clearly apart from
+    the candidate at ``point`` (normal ``normal``) seen from ``sensor``."""
+    point, normal, sensor, end = (
+        np.asarray(v, dtype=np.float64) for v in (point, normal, sensor, end)
+    )
+    direction = (end - sensor) / np.linalg.norm(end - sensor)
+    offset = point - sensor
+    ray_dot_normal = np.array([[direction @ normal]])
+    readings = SilhouetteReadings(
+        ray_range=np.array([[np.linalg.norm(end - sensor)]]),
+        crossing=(offset @ normal) / ray_dot_normal,
+        point_range=np.array([np.linalg.norm(offset)]),
+        margin=np.array([[0.1]]),
+        ray_dot_normal=ray_dot_normal,
+        angle=np.array([[0.04]]),
+        points=point[None, :],
+        normals=normal[None, :],
+        origin=sensor,
+        ray_direction=direction[None, None, :],
+        return_normal=np.asarray(end_normal, dtype=np.float64)[None, None, :],
+    )
+    return bool(apart_from_returns(readings, clearance)[0, 0])
+
+
+def test_a_return_on_the_candidates_own_box_or_wall_is_not_a_nearer_objects_silhouette():
+    # held-out robot 3101: a box's side face (y 60.79) seen at 75 degrees; the short ray ends
+    # on the box's front face (x -8.05), 6 cm behind the side face's plane
+    sensor = (-3.87, 61.817, 3.261)
+    assert not apart(
+        (-8.597, 60.8, 2.895), (0.0, -1.0, 0.0), sensor, (-8.047, 60.728, 2.933), (1.0, 0.0, 0.0)
+    )
+    # the same candidate behind a separate post 0.4 m in front of the face's plane
+    assert apart(
+        (-8.597, 60.8, 2.895), (0.0, -1.0, 0.0), sensor, (-7.0, 61.2, 3.0), (1.0, 0.0, 0.0)
+    )
+    # held-out robot 3000: a wall seen at 64 degrees near a corner (its fitted normal tilted
+    # 10 degrees), the short ray ending on the same wall 2.4 m nearer, the candidate 1 cm off
+    # that return's plane
+    wall_sensor = (48.329, -54.516, 3.304)
+    tilted = (0.173, -0.985, 0.02)
+    assert not apart(
+        (43.27, -52.989, 2.51), tilted, wall_sensor, (45.6, -52.98, 2.8), (0.0, -1.0, 0.0)
+    )

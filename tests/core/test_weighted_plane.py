@@ -1,5 +1,5 @@
 """``weighted_plane``: the weighted centroid and scatter shared by the surface-offset probe
-(``distance.surface_offset_candidates``) and the far-face test's meeting planes
+(``surface_levels.surface_offset_candidates``) and the far-face test's meeting planes
 (``map_faces``)."""
 
 from __future__ import annotations

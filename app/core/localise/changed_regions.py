@@ -148,7 +148,9 @@ def _regions(
     def regions_of(found: Found, wanted: int) -> tuple[list[ChangedRegion], int, Clustering]:
         side = found.side
         changed = found.labelled.label == wanted
-        clustering = cluster_changed(side.points, changed, side.geometry.spacing, cluster_factor)
+        clustering = cluster_changed(
+            side.points, changed, side.geometry.spacing, cluster_factor, threads
+        )
         regions, dropped = find_regions(
             side.points,
             kind=side.region_kind,

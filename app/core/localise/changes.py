@@ -44,13 +44,11 @@ from app.core.localise.changed_regions import Found, changed_regions
 from app.core.localise.distance import (
     Side,
     alignment_residual,
-    crossing_candidates,
     nearest_in,
     pair_median_spacing,
     pair_nn_distance_quartile,
     support_factor,
     surface_distance,
-    surface_offset_candidates,
 )
 from app.core.localise.epoch import EpochCloud, with_checked_stations
 from app.core.localise.flying_samples import restored_localisation, without_flying_samples
@@ -63,6 +61,7 @@ from app.core.localise.settings import (
     resolve_parameters,
 )
 from app.core.localise.surface import LocalGeometry, local_geometry
+from app.core.localise.surface_levels import crossing_candidates, surface_offset_candidates
 from app.core.localise.threshold_band import carry_changes
 from app.core.localise.visibility import (
     Labelled,
@@ -306,9 +305,10 @@ def _sides(
             scan_geometry,
             reference_geometry.order,
             reference_geometry.kernel_tree,
+            threads,
         ),
         lambda: nearest_in(
-            scan_points, reference_geometry, scan_geometry.order, scan_geometry.kernel_tree
+            scan_points, reference_geometry, scan_geometry.order, scan_geometry.kernel_tree, threads
         ),
     )
     # the kernel's trees (28 bytes a point) are not needed past the nearest points
@@ -375,6 +375,7 @@ def _candidates(
             threshold=limits.threshold,
             support_factor=limits.support,
             change_threshold=limits.change_threshold,
+            threads=threads,
         )
         if other.origins is None or other.trajectory_rays is not None:  # a moving sensor's map
             candidate = on_sampled_planes(
@@ -400,7 +401,9 @@ def _candidates(
         if crossing < limits.change_threshold and other.origins is None:
             candidate = crossing_candidates(candidate, distance, own, other.geometry, crossing)
         # the flattest neighbours before the neighbour index goes (~0.15 CPU s serial at 1M)
-        return distance, find_candidates(own, distance=distance, candidate=candidate)
+        return distance, find_candidates(
+            own, distance=distance, candidate=candidate, threads=threads
+        )
 
     (reference_distance, reference_candidates), (scan_distance, scan_candidates) = concurrently(
         threads,

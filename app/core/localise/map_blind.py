@@ -29,6 +29,11 @@ alone on its own shell as well, s21, cleared a wall band's patches on dense room
 removed chair in a dense RGB-D room from 95 to 17 % and real bicycles from 82 to 75 %: not
 kept.)  No sensor position, no ring pattern: the shell is measured in metres of the change
 threshold, the verdict in shares of this cloud's own points.
+
+A shell point the other epoch holds only by isolated samples (:func:`held_by_isolated`: no
+surface of the other epoch within the change threshold, only samples alone in the air, off
+their neighbours' plane) is no evidence that the other path saw the place: a fused map's
+flying pixels stand where its camera looked past an edge, not on the surface they hold.
 """
 
 from __future__ import annotations
@@ -47,8 +52,17 @@ from app.core.localise.map_surround import ADJOINING_FACTOR
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
 from app.core.localise.rays import Candidates
 from app.core.localise.regions import cluster_labels
+from app.core.localise.surface import LocalGeometry
 
-__all__ = ["BLIND_SHARE", "SHELL_FACTOR", "blind_clusters", "seen_round", "settled_coverage"]
+__all__ = [
+    "BLIND_SHARE",
+    "OFF_PLANE",
+    "SHELL_FACTOR",
+    "blind_clusters",
+    "held_by_isolated",
+    "seen_round",
+    "settled_coverage",
+]
 
 SHELL_FACTOR = 3.0
 """The shell around a cluster reaches this many change thresholds from its candidates (0.3 m
@@ -65,6 +79,25 @@ on a wall, the ceiling over it seen by the other path, the wall round it not: RG
 once a dense map's wall band there was a coverage difference)."""
 MIN_SHELL_POINTS = 20
 """Fewer shell points say nothing about the surroundings (a cluster in mid-air)."""
+ISOLATION = 4.0
+"""Median spacings: an isolated sample has at most :data:`ISOLATED_NEIGHBOURS` samples of its
+map within this (as :data:`~app.core.localise.flying_samples.ISOLATION`)."""
+ISOLATED_NEIGHBOURS = 2
+"""Samples an isolated sample may have within :data:`ISOLATION` median spacings."""
+OFF_PLANE = 2.0
+"""An isolated sample of the other epoch (:data:`ISOLATION`) this many median spacings
+or more off the plane of its :data:`PLANE_NEIGHBOURS` nearest samples has no surface of its
+own: a flying pixel in front of a far wall whose samples are its neighbours (drifting RGB-D
+room 503's reference holders of the turned chair: 18-55 cm off their surface)."""
+PLANE_NEIGHBOURS = 10
+"""Samples whose plane an isolated sample is measured against (itself not counted)."""
+DENSE_SPACING = 0.025
+"""Metres: only a map with a median spacing under this has flying pixels (a fused RGB-D map; as
+:data:`~app.core.localise.flying_samples.DENSE_SPACING`): a robot map's or a lidar scan's lone
+samples are ring arcs and far surfaces, evidence of sight."""
+HOLDERS = 16
+"""The other epoch's samples looked at within the change threshold of a shell point: a point
+with this many is held by a surface."""
 
 
 def blind_clusters(
@@ -76,6 +109,7 @@ def blind_clusters(
     change_threshold: float,
     seen_around: NDArray[np.bool_] | None = None,
     faces: NDArray[np.bool_] | None = None,
+    other: LocalGeometry | None = None,
 ) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
     """Per surface part, whether its cluster lies in the other epoch's blind area, and the
     share of the cluster's shell that is coverage differences (module docstring).
@@ -105,6 +139,9 @@ def blind_clusters(
         stood as an unseen face, and the rest of the turned object beside it was taken into
         the blind area on that face alone (held-out robot 2604's turned box, 2204's turned
         chair).
+    other : LocalGeometry, optional
+        The other epoch's samples (aligned): a shell point they hold only by isolated samples
+        counts as unseen (:func:`held_by_isolated`).
 
     Returns
     -------
@@ -150,11 +187,16 @@ def blind_clusters(
     owner = owner[raised]
     is_candidate = np.zeros(points.shape[0], dtype=bool)
     is_candidate[candidate_index] = True
+    in_candidates = is_candidate.copy()
     # shell points that are candidates are no change parts' (those are left out): coverage,
     # unless an unseen face's (the other epoch saw its object's faces meeting it: it looked there)
     if faces is not None:
         is_candidate[candidate_index[faces[labels]]] = False
-    unseen = is_candidate[looked[shell]].astype(np.float64)
+    unseen = is_candidate[looked[shell]]
+    if other is not None:
+        held = np.flatnonzero(~in_candidates[looked[shell]])
+        unseen[held] |= held_by_isolated(points[looked[shell][held]], other, change_threshold)
+    unseen = unseen.astype(np.float64)
     totals = np.bincount(owner, minlength=n_clusters).astype(np.float64)
     unseen_share = np.bincount(owner, weights=unseen, minlength=n_clusters) / np.maximum(
         totals, 1.0
@@ -163,6 +205,39 @@ def blind_clusters(
     blind[labels[members]] = in_blind[clusters[members]]
     share[labels[members]] = unseen_share[clusters[members]]
     return blind, share
+
+
+def held_by_isolated(
+    points: NDArray[np.float64], other: LocalGeometry, change_threshold: float
+) -> NDArray[np.bool_]:
+    """Which ``points`` (shape (m, 3)) the ``other`` epoch holds only by isolated samples,
+    shape (m,), bool: one of its samples within ``change_threshold``, and each of them there
+    isolated and off its neighbours' plane (:data:`ISOLATION`, :data:`OFF_PLANE`: a flying
+    pixel, no surface).  A point with :data:`HOLDERS` samples there is held by a surface.  All
+    False unless ``other`` is dense (:data:`DENSE_SPACING`)."""
+    held = np.zeros(points.shape[0], dtype=bool)
+    count = other.points.shape[0]
+    spacing = float(np.median(other.spacing)) if count else 0.0
+    if points.shape[0] == 0 or count <= PLANE_NEIGHBOURS or spacing >= DENSE_SPACING:
+        return held
+    distance, holder = other.tree.query(points, k=HOLDERS, distance_upper_bound=change_threshold)
+    near = np.isfinite(distance)
+    few = np.flatnonzero(near[:, 0] & ~near[:, -1])
+    holder, near = np.minimum(holder[few], count - 1), near[few]
+    holders = np.unique(holder[near])
+    if holders.shape[0] == 0:
+        return held
+    around, neighbour = other.tree.query(other.points[holders], k=PLANE_NEIGHBOURS + 1)
+    samples = other.points[neighbour[:, 1:].astype(np.intp)]
+    centre = samples.mean(axis=1)
+    spread = samples - centre[:, None, :]
+    normal = np.linalg.eigh(np.einsum("nki,nkj->nij", spread, spread))[1][:, :, 0]
+    off = np.abs(np.einsum("ni,ni->n", other.points[holders] - centre, normal))
+    lone = np.zeros(count, dtype=bool)
+    isolated = around[:, ISOLATED_NEIGHBOURS + 1] > ISOLATION * spacing
+    lone[holders[isolated & (off >= OFF_PLANE * spacing)]] = True
+    held[few] = ~(near & ~lone[holder]).any(axis=1)
+    return held
 
 
 def _bodies(
@@ -223,28 +298,30 @@ def settled_coverage(
     radius: NDArray[np.float64],
     verdict: tuple[NDArray[np.bool_], NDArray[np.float64], NDArray[np.bool_]],
     hosts: NDArray[np.int64],
-    own_points: NDArray[np.float64],
+    clouds: tuple[NDArray[np.float64], LocalGeometry | None],
     change_threshold: float,
     faces: NDArray[np.bool_] | None = None,
 ) -> tuple[NDArray[np.bool_], NDArray[np.float64], int]:
     """The map test's ``verdict`` per part (coverage, confidence, seen round: shapes (parts,))
-    with the
-    fragments of coverage differences made ones (:func:`~app.core.localise.map_fragments.
-    host_coverage`, ``hosts``), then the clusters in the other epoch's blind area
-    (:func:`blind_clusters`, at the share as confidence, none with a change part in
-    ``seen_around``; the unseen ``faces``, shape (parts,), are no blind surroundings), and
-    how many parts those made so."""
+    with the fragments of coverage differences made ones
+    (:func:`~app.core.localise.map_fragments.host_coverage`, ``hosts``), then the clusters in
+    the other epoch's blind area (:func:`blind_clusters`, at the share as confidence, none with
+    a change part in ``seen_around``; the unseen ``faces``, shape (parts,), are no blind
+    surroundings), and how many parts those made so.  ``clouds``: this epoch's points (shape
+    (n, 3)) and the other epoch's geometry (its isolated samples are no evidence of sight;
+    None: every sample is)."""
     coverage, confidence = host_coverage(verdict[0], verdict[1], hosts)
-    index = candidates.index
+    own_points, other = clouds
     blind, share = blind_clusters(
         own_points,
-        index,
+        candidates.index,
         radius,
         labels,
         coverage,
         change_threshold,
         verdict[2],
         faces,
+        other,
     )
     made = blind & ~coverage
     return coverage | blind, np.where(made, share, confidence), int(made.sum())

@@ -382,9 +382,9 @@ def map_test(
         candidates, labels, figures, coverage, confidence, other, other_unmatched, change_threshold
     )
     seen = seen_round(figures, candidates, labels, other, change_threshold)
-    verdict = (coverage, confidence, seen)
+    verdict, clouds = (coverage, confidence, seen), (own.points, other.geometry)
     coverage, confidence, counts["map_blind_area_parts"] = settled_coverage(
-        candidates, labels, radius, verdict, hosts, own.points, change_threshold, faces
+        candidates, labels, radius, verdict, hosts, clouds, change_threshold, faces
     )
     status, evidence, counts["map_resting_points"] = map_statuses(
         candidates, labels, coverage[labels], other, threshold, resting_band or change_threshold
@@ -432,7 +432,7 @@ class MapTest:
             threshold=context.threshold,
             change_threshold=context.change_threshold,
             cluster_factor=context.settings["cluster_factor"],
-            # a foot rests on a support within the noise-only threshold (distance.crossing_...)
+            # a foot rests on a support within the noise-only threshold (crossing_candidates)
             resting_band=min(
                 context.change_threshold,
                 max(

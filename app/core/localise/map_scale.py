@@ -6,8 +6,9 @@ their normals tilt by tens of degrees and more of them tilt the denser the map. 
 of the map test that compares normals (border continuation, coplanar probes, adjoining
 surfaces) then depends on the density, not on the surfaces.
 
-Here a dense cloud (median spacing under :data:`~app.core.localise.distance.SPARSE_AXIS_SPACINGS`
-noise sigmas, the same test that tells a sparse cloud's trustworthy normals) is thinned to
+Here a dense cloud (median spacing under
+:data:`~app.core.localise.surface_levels.SPARSE_AXIS_SPACINGS` noise sigmas, the same test
+that tells a sparse cloud's trustworthy normals) is thinned to
 :data:`VOXEL` cubes, a plane is fitted to each cube's :data:`NEIGHBOURS` nearest cubes (a disc
 of ~5 cm whatever the density), and each point takes the plane of the flattest of the cubes
 next to its own (near an edge, the cube on one face).  A sparse cloud (a robot map) keeps its

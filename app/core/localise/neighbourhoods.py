@@ -22,7 +22,7 @@ from app.core.cloud import as_points
 from app.core.errors import InputError, PointCloudError
 from app.core.localise.settings import QUERY_CHUNK, resolve_parameters
 from app.core.spatial_order import ordered_chunks, spatial_order
-from app.core.threads import concurrently
+from app.core.threads import concurrently, for_each_chunk
 
 
 def _compiled_kernel() -> Any:
@@ -181,8 +181,26 @@ def nearest_neighbourhoods(
     )
 
 
+def _by_leaf_blocks(search: Callable[[int, int], int], own_tree: Any, threads: int) -> list[int]:
+    """``search(first, last)`` over the leaves of the kernel's tree ``own_tree``: one call
+    (leaves 0 .. -1: all) below 2 ``threads``, else :data:`LEAF_BLOCKS` blocks of leaves that
+    the threads take in turn (each block writes its own points' rows: the same arrays); the
+    calls' results."""
+    if threads < 2:
+        return [search(0, -1)]
+    n_leaves = KNN_KERNEL.leaf_count(own_tree)
+    bounds = [n_leaves * block // LEAF_BLOCKS for block in range(LEAF_BLOCKS + 1)]
+    found: list[int] = []
+
+    def block(number: int) -> None:
+        found.append(search(bounds[number], bounds[number + 1]))
+
+    for_each_chunk(block, range(LEAF_BLOCKS), threads)
+    return found
+
+
 def kernel_nearest(
-    points: NDArray[np.float64], own_tree: Any, other_tree: Any, other: KDTree
+    points: NDArray[np.float64], own_tree: Any, other_tree: Any, other: KDTree, threads: int = 1
 ) -> tuple[NDArray[np.float64], NDArray[np.uint32]] | None:
     """Each point's nearest point in another cloud by the compiled kernel: the same numbers
     as ``other.query(points, k=1)``, to the bit, or None when the kernel cannot search them.
@@ -201,6 +219,9 @@ def kernel_nearest(
         (:attr:`Neighbourhoods.kernel_tree`).
     other : pykdtree.kdtree.KDTree
         Over the other cloud's points.
+    threads : int
+        From 2, blocks of ``own_tree``'s leaves on that many threads (:func:`_by_leaf_blocks`:
+        the other direction, on a thread of its own, may finish first).
 
     Returns
     -------
@@ -211,8 +232,12 @@ def kernel_nearest(
     index = np.empty(count, dtype=np.uint32)
     distance = np.empty(count)
     tie = np.empty(count, dtype=np.uint8)
+
+    def search(first: int, last: int) -> int:
+        return KNN_KERNEL.nearest_other(own_tree, other_tree, index, distance, tie, first, last)
+
     try:
-        ties = KNN_KERNEL.nearest_other(own_tree, other_tree, index, distance, tie)
+        ties = sum(_by_leaf_blocks(search, own_tree, threads))
     except (ValueError, BufferError):  # e.g. thousands of equal points: left to the tree
         return None
     np.sqrt(distance, out=distance)
@@ -225,10 +250,11 @@ def kernel_nearest(
 
 
 def kernel_self_neighbours(
-    points: NDArray[np.float64], n_neighbors: int
+    points: NDArray[np.float64], n_neighbors: int, threads: int = 1
 ) -> tuple[NDArray[np.uint32], NDArray[np.bool_]] | None:
     """Each point's ``n_neighbors`` nearest points in its own cloud by the compiled kernel,
-    on one thread, with the points whose answer is not unique flagged, not resolved.
+    on ``threads`` threads (:func:`_by_leaf_blocks`), with the points whose answer is not
+    unique flagged, not resolved.
 
     The same neighbours as pykdtree's query with ``k = n_neighbors + 1``, to the bit, wherever
     ``tie`` is False (see :func:`_compiled_neighbours`); where it is True (two of the
@@ -240,6 +266,7 @@ def kernel_self_neighbours(
         C-contiguous.
     n_neighbors : int
         k, in 1..c - 1.
+    threads : int
 
     Returns
     -------
@@ -256,10 +283,15 @@ def kernel_self_neighbours(
     count = points.shape[0]
     index = np.empty((count, k + 1), dtype=np.uint32)
     tie = np.empty(count, dtype=np.uint8)
+    kth_squared = np.empty(count)
+    never = np.zeros(1, dtype=np.uint8)
+
+    def search(first: int, last: int) -> int:
+        kernel = KNN_KERNEL
+        return kernel.self_neighbours(own_tree, k + 1, index, kth_squared, tie, never, first, last)
+
     try:
-        KNN_KERNEL.self_neighbours(
-            own_tree, k + 1, index, np.empty(count), tie, np.zeros(1, dtype=np.uint8)
-        )
+        _by_leaf_blocks(search, own_tree, threads)
     except (ValueError, BufferError):  # e.g. thousands of equal points
         return None
     return index, tie.view(np.bool_)

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from pykdtree.kdtree import KDTree
 
 from app.core.localise.gaps import between_samples
-from app.core.localise.ray_silhouettes import past_silhouettes
+from app.core.localise.ray_silhouettes import SilhouetteReadings, past_silhouettes
 from app.core.localise.settings import CHUNK, GATHER_CHUNK
 from app.core.localise.surface import LocalGeometry
 from app.core.threads import for_each_chunk
@@ -105,9 +105,11 @@ class RayTest:
         Metres; positive: a return short of a candidate does not hide it when a ray less than
         half as far from the candidate's direction reaches its place and carries on into free
         space beyond it, and the candidate lies farther than this off the short ray's line
-        and beyond its end: the nearer object's silhouette edge lies between the two rays, the
+        and beyond its end, and the short ray's return lies clearly apart from the candidate's
+        surface (more than this in front of its plane, the candidate more than this behind
+        the return's plane): the nearer object's silhouette edge lies between the two rays, the
         candidate on the reaching ray's side (:mod:`~app.core.localise.ray_silhouettes`).
-        0: never (the trajectory test does not set it yet: s28).  Only for rays from
+        0: never.  Only for rays from
         sensor positions known per return (the trajectory test's pseudo-stations, with ``c``):
         a station's returns assigned by geometry may belong to another station, and its lone
         far rays then reach.
@@ -342,8 +344,7 @@ def _ray_status(
         )
     if test.silhouette_clearance > 0.0:  # a clearly nearer ray reaching it: see past
         readings = (ray_range, crossing, point_range, margin, ray_dot_normal, angle)
-        limits = (normal_tolerance, range_tolerance, test.silhouette_clearance)
-        hides = past_silhouettes(hides, crosses_near, readings, limits)
+        hides = _past_silhouettes(hides, crosses_near, readings, (candidates, rays, ray), test)
     # A ray that hides the point and stops clearly before its crossing too occludes the point
     # whatever the test below decides (the expected stop is one of the two): such points are
     # unobserved already, and most candidates of a moved sensor are (its shadows).
@@ -366,6 +367,35 @@ def _ray_status(
         ray_dot_normal[near],
     )
     return _status_over_own_surface(own, crosses_near, near, crossing_rays, readings, test)
+
+
+def _past_silhouettes(
+    hides: NDArray[np.bool_],
+    crosses_near: NDArray[np.bool_],
+    readings: tuple[NDArray[np.float64], ...],
+    chunk: tuple[Candidates, _Rays, NDArray[np.int64]],
+    test: RayTest,
+) -> NDArray[np.bool_]:
+    """``hides`` (shape (c, k)) without the rays beside a nearer object's silhouette
+    (:func:`~app.core.localise.ray_silhouettes.past_silhouettes`; ``readings``: the first six
+    fields of :class:`~app.core.localise.ray_silhouettes.SilhouetteReadings`; ``chunk``: the
+    candidates, the other sensor's returns and the returns read, shape (c, k))."""
+    candidates, rays, ray = chunk
+    return_normal = None  # NaN where no plane was fitted
+    if rays.normal is not None and rays.linear is not None:
+        return_normal = np.where(
+            rays.linear[ray][..., None], np.nan, rays.normal[ray].astype(np.float64)
+        )
+    silhouette_readings = SilhouetteReadings(
+        *readings,
+        points=candidates.points,
+        normals=candidates.normal.astype(np.float64),
+        origin=rays.origin,
+        ray_direction=rays.direction[ray].astype(np.float64),
+        return_normal=return_normal,
+    )
+    limits = (test.normal_tolerance, test.range_tolerance, test.silhouette_clearance)
+    return past_silhouettes(hides, crosses_near, silhouette_readings, limits)
 
 
 class _Readings(NamedTuple):

@@ -109,15 +109,19 @@ def cluster_changed(
     changed: NDArray[np.bool_],
     spacing: NDArray[np.float64],
     cluster_factor: float,
+    threads: int = 1,
 ) -> Clustering:
     """The connected clusters of one cloud's ``changed`` points (shapes (n, 3) and (n,)), each
-    linked to neighbours closer than ``cluster_factor`` of its ``spacing`` (shape (n,))."""
+    linked to neighbours closer than ``cluster_factor`` of its ``spacing`` (shape (n,)); the
+    links found on ``threads`` threads (:func:`cluster_labels`)."""
     changed_index = np.flatnonzero(changed)
-    labels = cluster_labels(points[changed_index], cluster_factor * spacing[changed_index])
-    return Clustering(changed_index, labels)
+    radius = cluster_factor * spacing[changed_index]
+    return Clustering(changed_index, cluster_labels(points[changed_index], radius, threads))
 
 
-def cluster_labels(points: NDArray[np.float64], radius: NDArray[np.float64]) -> NDArray:
+def cluster_labels(
+    points: NDArray[np.float64], radius: NDArray[np.float64], threads: int = 1
+) -> NDArray:
     """Connected components of points linked to neighbours within their own ``radius``.
 
     Each point is linked to its :data:`CLUSTER_NEIGHBOURS` nearest neighbours that lie within
@@ -128,6 +132,8 @@ def cluster_labels(points: NDArray[np.float64], radius: NDArray[np.float64]) -> 
     ----------
     points : ndarray, shape (c, 3)
     radius : ndarray, shape (c,)
+    threads : int
+        Threads of the compiled kernel's neighbour search (the same links on any number).
 
     Returns
     -------
@@ -138,7 +144,7 @@ def cluster_labels(points: NDArray[np.float64], radius: NDArray[np.float64]) -> 
     if count <= 1:
         return np.zeros(count, dtype=np.int64)
     k = min(CLUSTER_NEIGHBOURS + 1, count)
-    neighbour, linked = _links(points, radius, k)
+    neighbour, linked = _links(points, radius, k, threads)
     rows = np.repeat(np.arange(count), k - 1)[linked.ravel()]
     columns = neighbour[:, 1:][linked]
     from scipy.sparse import coo_matrix  # on first use: API processes need no scipy
@@ -150,7 +156,7 @@ def cluster_labels(points: NDArray[np.float64], radius: NDArray[np.float64]) -> 
 
 
 def _links(
-    points: NDArray[np.float64], radius: NDArray[np.float64], k: int
+    points: NDArray[np.float64], radius: NDArray[np.float64], k: int, threads: int = 1
 ) -> tuple[NDArray[np.uint32], NDArray[np.bool_]]:
     """:func:`cluster_labels`' graph: each point's ``k`` nearest (itself first; shape (c, k))
     and which of the other ``k - 1`` lie within its ``radius`` (shape (c, k - 1)).
@@ -162,7 +168,7 @@ def _links(
     neighbours' order is not unique is asked of the bounded query: the same links either way.
     """
     bound = radius.max()
-    found = kernel_self_neighbours(points, k - 1) if points.dtype == np.float64 else None
+    found = kernel_self_neighbours(points, k - 1, threads) if points.dtype == np.float64 else None
     if found is None:
         distance, neighbour = KDTree(points).query(points, k=k, distance_upper_bound=bound)
         return neighbour, distance[:, 1:] <= radius[:, None]

@@ -148,6 +148,7 @@ def settle_ray_status(
             else None
         ),
         min_thickness=EDGE_ON_THICKNESS_FACTOR * context.change_threshold,
+        threads=context.threads,
     )
     confidence = np.where(direct, 1.0, INDIRECT_CONFIDENCE).astype(np.float32)
     return VisibilityOutcome(status=status, confidence=confidence, report=report)
@@ -232,6 +233,7 @@ def resolve_edge_on(
     cluster_factor: float,
     clear_of_other: NDArray[np.bool_] | None = None,
     min_thickness: float = 0.0,
+    threads: int = 1,
 ) -> NDArray[np.int8]:
     """Decide candidates whose surface the other sensor saw only edge-on.
 
@@ -259,6 +261,8 @@ def resolve_edge_on(
         With ``clear_of_other``: such a cluster's points must spread at least this far (the
         standard deviation along their thinnest axis) off one plane (an object's several
         faces, not one grazed sheet).
+    threads : int
+        Threads of the clusters' neighbour search (:func:`cluster_labels`; the same clusters).
 
     Returns
     -------
@@ -269,7 +273,7 @@ def resolve_edge_on(
     if not edge_on.any():
         return status
     involved = np.flatnonzero(edge_on | (status == STATUS_SEEN_THROUGH))
-    labels = cluster_labels(points[involved], cluster_factor * spacing[involved])
+    labels = cluster_labels(points[involved], cluster_factor * spacing[involved], threads)
     seen_through_share = np.bincount(
         labels, weights=(status[involved] == STATUS_SEEN_THROUGH).astype(np.float64)
     ) / np.bincount(labels)

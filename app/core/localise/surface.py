@@ -114,16 +114,23 @@ class LocalGeometry:
     order: NDArray[np.intp] | None = None
     kernel_tree: Any = None
 
-    def flattest_neighbour(self, index: NDArray[np.int64]) -> NDArray[np.int64]:
+    def flattest_neighbour(self, index: NDArray[np.int64], threads: int = 1) -> NDArray[np.int64]:
         """For each point in ``index``, the neighbour (or itself) whose fit is flattest.
 
         Near an edge a point's own neighbourhood straddles two faces and its normal is tilted;
         the neighbour with the flattest neighbourhood lies on one face and has that face's
-        normal.  Returns indices into the cloud, shape (len(index),).
+        normal.  Returns indices into the cloud, shape (len(index),), found :data:`CHUNK`
+        points at a time on up to ``threads`` threads (each its own rows: the same answer).
         """
-        neighbours = self.neighbor_index[index]
-        best = np.argmin(self.variation[neighbours], axis=1)
-        return neighbours[np.arange(neighbours.shape[0]), best]
+        flattest = np.empty(index.shape[0], dtype=self.neighbor_index.dtype)
+
+        def find(start: int) -> None:
+            neighbours = self.neighbor_index[index[start : start + CHUNK]]
+            best = np.argmin(self.variation[neighbours], axis=1)
+            flattest[start : start + CHUNK] = neighbours[np.arange(neighbours.shape[0]), best]
+
+        for_each_chunk(find, range(0, index.shape[0], CHUNK), threads)
+        return flattest
 
     def without_neighbour_index(self) -> LocalGeometry:
         """This geometry with its neighbour index (4 (k + 1) bytes a point) released, and

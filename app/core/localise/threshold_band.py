@@ -128,7 +128,7 @@ def carry_changes(
     """Label ``own``'s band points that carry a change on (:func:`carried_changes`) changed,
     in place, with the evidence and confidence of the change they continue, and report how
     many (``<own>_band_carried_points``); only against a map without sensor positions (the
-    map test's clouds, as :func:`~app.core.localise.distance.crossing_candidates`).  With
+    map test's clouds, as :func:`~app.core.localise.surface_levels.crossing_candidates`).  With
     the other epoch's origins, known or recovered (KITTI frames, Velodyne street scans:
     ``c`` 0.14-0.51 m from their alignment residual), the ray tests judge what they see and
     a band there is as likely the misalignment as a change.

@@ -543,6 +543,7 @@ class TrajectoryTest:
         test = dataclasses.replace(
             ray_test_for(own, other, context),
             gap_radius=SURROUNDING_RADIUS_FACTOR * context.change_threshold,
+            silhouette_clearance=context.change_threshold,
         )
         statuses, figures = trajectory_statuses(candidates, own=own, other=other, test=test)
         status = combine_station_status(statuses)

@@ -88,7 +88,7 @@ class Labelled:
 
 
 def find_candidates(
-    side: Side, *, distance: NDArray[np.float64], candidate: NDArray[np.bool_]
+    side: Side, *, distance: NDArray[np.float64], candidate: NDArray[np.bool_], threads: int = 1
 ) -> Candidates:
     """Gather ``side``'s candidates (before its neighbour index is released).
 
@@ -98,13 +98,15 @@ def find_candidates(
     distance : ndarray, shape (n,)
         Each point's distance to the other cloud's surface.
     candidate : ndarray, shape (n,), bool
+    threads : int
+        Threads that find the candidates' flattest neighbours (the same ones on any number).
 
     Returns
     -------
     Candidates
     """
     index = np.flatnonzero(candidate)
-    flattest = side.geometry.flattest_neighbour(index)
+    flattest = side.geometry.flattest_neighbour(index, threads)
     return Candidates(
         index=index,
         points=side.points[index],

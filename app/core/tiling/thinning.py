@@ -104,7 +104,7 @@ def representatives(
     """
     if len(points) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    from app.core.detectors.base import voxel_ids  # here: the planner imports numpy only
+    from app.core.detectors.voxel_grid import voxel_ids  # here: the planner imports numpy only
 
     low = column_extreme(points, np.minimum).astype(np.float64)  # the grid starts at the crop
     key, n_cells = voxel_ids(points, cell, low)
