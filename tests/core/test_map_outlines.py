@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from app.core.datasets.maps import map_pair
+from app.core.labels import LABEL_CHANGED
 from app.core.localise.map_outlines import inside_outline, outline_gap_share
 from app.core.localise.map_planes import in_sampling_gap, part_normals
 from app.core.localise.surface import local_geometry
@@ -164,6 +165,13 @@ def rack_end_leaning(rng):
     return dataclasses.replace(geometry, normal=normal)
 
 
+WITHDRAWN_GUESSED_PLANE = (
+    "s29 heldout's fix (the point's guessed plane tried as the face's plane) was withdrawn: it "
+    "turned held-out robot 2300's rotated chair into coverage (recall 93 % -> 36 %)"
+)
+
+
+@pytest.mark.xfail(strict=True, reason=WITHDRAWN_GUESSED_PLANE)
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_rack_end_strip_whose_other_columns_normals_lean(seed):
     # held-out unchanged robot warehouse 4305: the scan's one column of a rack's end face,
@@ -178,6 +186,7 @@ def test_a_rack_end_strip_whose_other_columns_normals_lean(seed):
     assert np.mean(inside_outline(points, normal, planes, other, 0.03)) >= 0.8
 
 
+@pytest.mark.xfail(strict=True, reason=WITHDRAWN_GUESSED_PLANE)
 def test_held_out_unchanged_robot_warehouse_4305_gets_no_region():
     # the reference's two columns of a rack's end face between the scan's one column 0.3-0.4 m
     # off (its normals leaning 11 degrees) and the rack side's corner: 1 `removed` region of
@@ -185,3 +194,23 @@ def test_held_out_unchanged_robot_warehouse_4305_gets_no_region():
     pair = map_pair("robot", layout="warehouse", change="none", misaligned=True, random_state=4305)
     result = compare(*pair.clouds())
     assert result.regions == []
+
+
+def test_held_out_robot_corridor_2300_keeps_its_rotated_chair():
+    # a chair turned in place in a corridor: 93 % of its truly changed points are found; the
+    # withdrawn guessed-plane outline (s29) closed the other epoch's outline round the chair's
+    # faces and called 64 % of them coverage (recall 36 %, IoU 0.354)
+    pair = map_pair(
+        "robot", layout="corridor", change="rotated", misaligned=False, random_state=2300
+    )
+    result = compare(*pair.clouds())
+    found = total = 0
+    for label, changed, scored in (
+        (result.reference_label, pair.reference_changed, pair.reference_scored),
+        (result.scan_label, pair.scan_changed, pair.scan_scored),
+    ):
+        truly = changed & scored
+        total += np.count_nonzero(truly)
+        found += np.count_nonzero(truly & (label == LABEL_CHANGED))
+    assert total > 100
+    assert found / total >= 0.8

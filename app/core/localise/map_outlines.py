@@ -130,45 +130,25 @@ def inside_outline(
         plane = np.einsum("bk,bkd->bd", np.where(weight, np.sign(cosine), 0.0), sample_normal)
         length = np.linalg.norm(plane, axis=1)
         plane = np.where(length[:, None] > 0.0, plane / np.maximum(length, 1e-12)[:, None], guess)
-        # a single column's fitted normals may lean towards the surface next to it, leaving
-        # their own samples off the plane they give: the guess is tried as the face's plane too
-        for face_plane in (plane, guess):
-            found |= _closed_round(offset, sample_normal, face_plane, near, surface, allowed)
+        across = np.abs(np.einsum("bkd,bd->bk", offset, plane))
+        agrees = np.abs(np.einsum("bkd,bd->bk", sample_normal, plane)) >= NORMAL_AGREEMENT_COSINE
+        face = surface & agrees & (across <= allowed)
+        on_plane = near & (across <= allowed)
+        slid = _slid_onto(offset, sample_normal, plane)
+        outline = surface & ~agrees & ~on_plane & (np.linalg.norm(slid, axis=2) <= OUTLINE_REACH)
+        held = on_plane | outline
+        positions = np.where(outline[:, :, None], slid, offset)
+        _, axes = tangent_directions(plane, 4)
+        angle = np.arctan2(
+            np.einsum("bkd,bd->bk", positions, axes[:, 1]),
+            np.einsum("bkd,bd->bk", positions, axes[:, 0]),
+        )
+        found |= (
+            (face.sum(axis=1) >= OUTLINE_MIN_FACE)
+            & (held.sum(axis=1) >= GAP_MIN_POINTS)
+            & (widest_empty_angle(angle, held) <= OUTLINE_EMPTY_ANGLE)
+        )
     return found
-
-
-def _closed_round(
-    offset: NDArray[np.float64],
-    sample_normal: NDArray[np.float64],
-    plane: NDArray[np.float64],
-    near: NDArray[np.bool_],
-    surface: NDArray[np.bool_],
-    allowed: NDArray[np.float64],
-) -> NDArray[np.bool_]:
-    """Per point, whether the other epoch's samples (``offset`` from it and ``sample_normal``,
-    shapes (b, k, 3); ``near`` within the reach, ``surface`` not on a line, shapes (b, k))
-    hold the face of normal ``plane`` (shape (b, 3)) round it: :data:`OUTLINE_MIN_FACE` of them
-    carrying the normal within ``allowed`` (shape (b, k)) of the plane, and with the other
-    surfaces' samples slid onto the plane, no angle wider than :data:`OUTLINE_EMPTY_ANGLE`
-    empty; shape (b,)."""
-    across = np.abs(np.einsum("bkd,bd->bk", offset, plane))
-    agrees = np.abs(np.einsum("bkd,bd->bk", sample_normal, plane)) >= NORMAL_AGREEMENT_COSINE
-    face = surface & agrees & (across <= allowed)
-    on_plane = near & (across <= allowed)
-    slid = _slid_onto(offset, sample_normal, plane)
-    outline = surface & ~agrees & ~on_plane & (np.linalg.norm(slid, axis=2) <= OUTLINE_REACH)
-    held = on_plane | outline
-    positions = np.where(outline[:, :, None], slid, offset)
-    _, axes = tangent_directions(plane, 4)
-    angle = np.arctan2(
-        np.einsum("bkd,bd->bk", positions, axes[:, 1]),
-        np.einsum("bkd,bd->bk", positions, axes[:, 0]),
-    )
-    return (
-        (face.sum(axis=1) >= OUTLINE_MIN_FACE)
-        & (held.sum(axis=1) >= GAP_MIN_POINTS)
-        & (widest_empty_angle(angle, held) <= OUTLINE_EMPTY_ANGLE)
-    )
 
 
 def outline_gap_share(
