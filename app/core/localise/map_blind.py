@@ -52,7 +52,7 @@ from app.core.localise.map_surround import ADJOINING_FACTOR
 from app.core.localise.origin_free import BEHIND_MIN_RADIUS
 from app.core.localise.rays import Candidates
 from app.core.localise.regions import cluster_labels
-from app.core.localise.surface import LocalGeometry
+from app.core.localise.surface import LocalGeometry, neighbourhood_planes
 
 __all__ = [
     "BLIND_SHARE",
@@ -228,11 +228,8 @@ def held_by_isolated(
     if holders.shape[0] == 0:
         return held
     around, neighbour = other.tree.query(other.points[holders], k=PLANE_NEIGHBOURS + 1)
-    samples = other.points[neighbour[:, 1:].astype(np.intp)]
-    centre = samples.mean(axis=1)
-    spread = samples - centre[:, None, :]
-    normal = np.linalg.eigh(np.einsum("nki,nkj->nij", spread, spread))[1][:, :, 0]
-    off = np.abs(np.einsum("ni,ni->n", other.points[holders] - centre, normal))
+    normal, plane_constant, *_ = neighbourhood_planes(other.points, neighbour[:, 1:])
+    off = np.abs(np.einsum("ni,ni->n", other.points[holders], normal) - plane_constant)
     lone = np.zeros(count, dtype=bool)
     isolated = around[:, ISOLATED_NEIGHBOURS + 1] > ISOLATION * spacing
     lone[holders[isolated & (off >= OFF_PLANE * spacing)]] = True
