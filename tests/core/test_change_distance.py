@@ -22,6 +22,7 @@ from app.core.localise.distance import nearest_in, surface_distance
 from app.core.localise.settings import DEFAULT_PARAMETERS
 from app.core.localise.surface import local_geometry
 from app.core.pipeline import compare
+from tests.helpers.chunk_passes import recorded_chunk_passes
 
 BOX_LOW = np.array([2.12, -0.25, 0.0])
 BOX_HIGH = np.array([2.62, 0.25, 0.5])
@@ -210,15 +211,7 @@ def test_the_points_judged_by_their_surface_are_judged_on_both_threads_alike(mon
 
     reference, scan, _ = _board_before_a_wall(0.125, 0)
     one = localise_changes(reference, scan, threads=1)
-    judged: list[tuple[int, int]] = []
-    for_each_chunk = surface_levels.for_each_chunk
-
-    def recorded(work, chunks, threads):
-        chunks = list(chunks)
-        judged.append((len(chunks), threads))
-        for_each_chunk(work, chunks, threads)
-
-    monkeypatch.setattr(surface_levels, "for_each_chunk", recorded)
+    judged = recorded_chunk_passes(monkeypatch, surface_levels)
     two = localise_changes(reference, scan, threads=2)
     assert len(judged) == 2 and all(threads == 2 for _, threads in judged)
     assert max(count for count, _ in judged) > 1
@@ -302,15 +295,7 @@ def test_the_distances_are_found_by_blocks_on_two_threads_as_on_one(monkeypatch)
         reference, nn_distance, nn_index, other=other, with_plane_offset=True, **limits
     )[2]
     assert 0 < one[1].sum() < len(reference)
-    blocks: list[tuple[int, int]] = []
-    for_each_chunk = distance.for_each_chunk
-
-    def recorded(work, chunks, threads):
-        chunks = list(chunks)
-        blocks.append((len(chunks), threads))
-        for_each_chunk(work, chunks, threads)
-
-    monkeypatch.setattr(distance, "for_each_chunk", recorded)
+    blocks = recorded_chunk_passes(monkeypatch, distance)
     monkeypatch.setattr(distance, "DISTANCE_BLOCK", 1_000)
     two = surface_distance(reference, nn_distance, nn_index, other=other, **limits, threads=2)
     two_offset = surface_distance(

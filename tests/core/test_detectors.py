@@ -33,6 +33,7 @@ from app.core.detectors.plane_extraction import (
 )
 from app.core.emd import earth_movers_distance
 from app.core.errors import InputError
+from tests.helpers.chunk_passes import recorded_chunk_passes
 
 SMALL = {"max_points": 2000}
 """Working sets of 2000 points (default 4000), to keep the tests quick."""
@@ -414,14 +415,6 @@ def test_the_voxel_size_search_counts_its_voxels_by_blocks_on_two_threads(monkey
         voxels, _ = voxel_grid.voxel_ids(points, size, extremes[0])
         assert voxel_grid._occupied_voxels(points, size, extremes, 2) == np.unique(voxels).size
     one = voxel_grid.auto_voxel_size(points, 2_000, 1)
-    marked: list[tuple[int, int]] = []
-    for_each_chunk = voxel_grid.for_each_chunk
-
-    def recorded(work, chunks, threads):
-        chunks = list(chunks)
-        marked.append((len(chunks), threads))
-        for_each_chunk(work, chunks, threads)
-
-    monkeypatch.setattr(voxel_grid, "for_each_chunk", recorded)
+    marked = recorded_chunk_passes(monkeypatch, voxel_grid)
     assert voxel_grid.auto_voxel_size(points, 2_000, 2) == one
     assert marked and all(count == 8 and threads == 2 for count, threads in marked)
